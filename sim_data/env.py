@@ -1,0 +1,147 @@
+"""Functional, batched environment in the style of MuJoCo Playground: `reset(rng) -> State`,
+`step(state, action) -> State`.
+
+One control step (20 Hz) is: actions -> actuator controls (shared JAX), `PHYSICS_SUBSTEPS`
+physics substeps in the chosen engine, then task state, success and observations (shared JAX).
+With the `mjx` engine the whole step is one jitted function; with `cpu` the two shared halves
+are jitted and the C engine runs between them.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from sim_data import robot as R
+from sim_data import scene as S
+from sim_data.engines import default_engine, make_engine
+from sim_data.tasks import CONTROL_DT, PHYSICS_SUBSTEPS, Task, TaskState, dirt_mocap_z, get_task, sample_initial, update_task
+
+
+@struct.dataclass
+class State:
+    """Batched environment state (leading axis B).
+
+    Attributes:
+      physics: the engine's own state (`mjx.Data` or `CpuPhysics`).
+      qpos: (B, nq) float32 joint positions after the last step.
+      qvel: (B, nv) float32 joint velocities.
+      mocap_pos: (B, nmocap, 3) positions of the mocap props (cues, dirt cells, stool, plant).
+      task: TaskState.
+      obs: {"proprio": (B, 49), "qpos", "qvel", "time": (B,)}; the last three are privileged
+        and read only by scripted policies.
+      success: (B,) bool, the task's success flag at this step.
+      done: (B,) bool, the episode's time is up.
+      step: (B,) int32 control steps taken.
+      gait_phase: (B,) leg gait phase.
+    """
+
+    physics: Any
+    qpos: jax.Array
+    qvel: jax.Array
+    mocap_pos: jax.Array
+    task: TaskState
+    obs: dict
+    success: jax.Array
+    done: jax.Array
+    step: jax.Array
+    gait_phase: jax.Array
+
+
+def _observe(qpos, qvel, ts: TaskState, idx: S.SceneIndex) -> dict:
+    return {"proprio": R.proprioception(qpos, qvel, idx.robot), "qpos": qpos, "qvel": qvel, "time": ts.time}
+
+
+class HomeEnv:
+    """B simulations of one task in the home scene, on the `cpu` or `mjx` engine.
+
+    Args:
+      task: a name from `sim_data.tasks.TASK_NAMES`.
+      batch_size: B.
+      engine: "cpu", "mjx" or None for the default (mjx where a GPU is present).
+      heldout: put the held-out plant into the scenes.
+      nthread: threads of the `cpu` engine (default: all cores, at most B).
+    """
+
+    def __init__(self, task: str, batch_size: int, engine: str | None = None, heldout: bool = False,
+                 nthread: int | None = None):
+        if batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        self.task: Task = get_task(task)
+        self.batch_size = batch_size
+        self.heldout = heldout
+        self.model = S.load_model()
+        self.idx = S.scene_index(self.model)
+        self.engine = make_engine(engine or default_engine(), self.model, batch_size, nthread)
+        self._qpos0 = np.asarray(self.model.qpos0, np.float32)
+        self._mocap0 = np.asarray(self.model.body_pos[self.model.body_mocapid >= 0][
+            np.argsort(self.model.body_mocapid[self.model.body_mocapid >= 0])], np.float32)
+        self._sample = jax.jit(jax.vmap(lambda k: sample_initial(self.task, k, self.idx, self._qpos0, self._mocap0, heldout)))
+        self._pre = jax.jit(self._pre_step)
+        self._post = jax.jit(self._post_step)
+        if self.engine.name == "mjx":
+            self._step = jax.jit(self._mjx_step)
+            self._init = jax.jit(self.engine.init)
+
+    @property
+    def episode_steps(self) -> int:
+        return self.task.episode_steps
+
+    # ---- shared halves of a control step -------------------------------------------------------
+    def _pre_step(self, state: State, action):
+        yaw = state.qpos[:, self.idx.robot.base_qpos[2]]
+        ctrl = R.action_to_ctrl(action, yaw, state.gait_phase, self.idx.robot)
+        return ctrl, state.mocap_pos
+
+    def _post_step(self, state: State, action, qpos, qvel):
+        qpos, qvel = qpos.astype(jnp.float32), qvel.astype(jnp.float32)
+        activity = R.gait_activity(jnp.clip(action, self.idx.robot.action_low, self.idx.robot.action_high))
+        phase = jnp.mod(state.gait_phase + 2 * jnp.pi * 1.6 * CONTROL_DT * activity, 2 * jnp.pi)
+        ts, success = update_task(self.task, state.task, qpos, qvel, state.mocap_pos, self.idx)
+        mocap = state.mocap_pos.at[:, self.idx.dirt_mocap, 2].set(dirt_mocap_z(ts))
+        step = state.step + 1
+        return state.replace(
+            qpos=qpos, qvel=qvel, mocap_pos=mocap, task=ts, obs=_observe(qpos, qvel, ts, self.idx),
+            success=success, done=step >= self.task.episode_steps, step=step, gait_phase=phase)
+
+    def _mjx_step(self, state: State, action):
+        ctrl, mocap = self._pre_step(state, action)
+        physics, qpos, qvel = self.engine.advance(state.physics, ctrl, mocap, PHYSICS_SUBSTEPS)
+        return self._post_step(state.replace(physics=physics), action, qpos, qvel)
+
+    # ---- public API ----------------------------------------------------------------------------
+    def reset(self, rng: jax.Array) -> State:
+        """Samples B initial states. rng: one PRNG key, or (B,) keys (one per episode)."""
+        keys = jnp.asarray(rng)
+        if keys.ndim == 1 and not jnp.issubdtype(keys.dtype, jax.dtypes.prng_key):
+            keys = jax.random.split(keys, self.batch_size) if keys.shape == (2,) else keys
+        if keys.shape[0] != self.batch_size:
+            raise ValueError(f"reset got {keys.shape[0]} keys for a batch of {self.batch_size}")
+        qpos, mocap, ts = self._sample(keys)
+        if self.engine.name == "mjx":
+            physics = self._init(qpos, mocap)
+        else:
+            physics = self.engine.init(np.asarray(qpos), np.asarray(mocap))
+        b = self.batch_size
+        qvel = jnp.zeros((b, self.model.nv), jnp.float32)
+        return State(
+            physics=physics, qpos=qpos, qvel=qvel, mocap_pos=mocap, task=ts, obs=_observe(qpos, qvel, ts, self.idx),
+            success=jnp.zeros((b,), bool), done=jnp.zeros((b,), bool), step=jnp.zeros((b,), jnp.int32),
+            gait_phase=jnp.zeros((b,), jnp.float32))
+
+    def step(self, state: State, action) -> State:
+        """Advances every simulation by one control step (CONTROL_DT) under action (B, 20)."""
+        action = jnp.asarray(action, jnp.float32)
+        if action.shape != (self.batch_size, R.ACTION_DIM):
+            raise ValueError(f"action must have shape ({self.batch_size}, {R.ACTION_DIM}), got {action.shape}")
+        if self.engine.name == "mjx":
+            return self._step(state, action)
+        bare = state.replace(physics=None)  # float64 C state rows stay out of (float32) jit
+        ctrl, mocap = self._pre(bare, action)
+        physics, qpos, qvel = self.engine.advance(state.physics, np.asarray(ctrl), np.asarray(mocap), PHYSICS_SUBSTEPS)
+        return self._post(bare, action, qpos.astype(np.float32), qvel.astype(np.float32)).replace(physics=physics)

@@ -1,0 +1,351 @@
+"""Scripted policies (inverse kinematics over MuJoCo's Jacobians + a timed state machine) with a
+`skill` knob, and open-loop action programs for controllability studies.
+
+Every policy follows the project's protocol, batched and jittable:
+
+    carry = policy.init_carry(params, obs, rng)
+    action, carry = policy.act(params, obs, carry, rng)
+
+with `params = {"skill": (B,) float}` for the scripted policies. Scripted policies read
+privileged simulator state (`obs["qpos"]`, `obs["time"]`).
+
+How skill degrades a policy (u = 1 - skill, drawn once per episode from the policy's rng):
+- noisy perception: object positions off by N(0, (0.045 u)^2) per horizontal axis, yaw by
+  N(0, (0.6 u)^2); for the arcade, the cued order is swapped with probability 0.35 u;
+- timing jitter: every phase of the script stretched by exp(N(0, (0.25 u)^2));
+- missed grasps: with probability 0.35 u the gripper closes 4-8 cm above the object;
+- early release: with probability 0.45 u the hand opens at a random moment of the transport;
+- step_back: distance error N(0, (0.3 u)^2) m and a yaw-rate bias N(0, (0.35 u)^2) rad/s.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from sim_data import robot as R
+from sim_data import scene as S
+from sim_data import tasks as T
+
+IK_DAMPING = 0.05
+IK_ITERS = 2
+IK_MAX_STEP = 0.04  # m of task-space error corrected per IK iteration
+GRIP_BELOW_FINGERTIP = 0.024  # the grip site sits this far above the fingertips' lower edge
+
+
+@struct.dataclass
+class ScriptCarry:
+    """Per-episode state of a scripted policy (leading axis B).
+
+    Attributes:
+      q_cmd: (B, 14) commanded arm joints (left, right), the IK's own configuration.
+      times: (B, K) keyframe times; pos: (B, K, 3) right-grip keyframes; yaw: (B, K) hand yaw;
+      closure: (B, K) right-hand closure at each keyframe.
+      release_at: (B,) time after which the hand opens (inf: never).
+      drive: (B, 3) step_back: target distance, yaw-rate bias, heading at reset.
+    """
+
+    q_cmd: jax.Array
+    times: jax.Array
+    pos: jax.Array
+    yaw: jax.Array
+    closure: jax.Array
+    release_at: jax.Array
+    drive: jax.Array
+
+
+class Kinematics:
+    """Site poses and Jacobians of the two grip sites from qpos, with MJX's kinematics."""
+
+    def __init__(self, model):
+        from mujoco import mjx
+
+        self._mjx = mjx
+        self.mx = mjx.put_model(model, impl="jax")
+        self.d0 = mjx.make_data(self.mx, impl="jax")
+        self.idx = S.scene_index(model)
+
+    def grip(self, qpos, side: int):
+        """Pose and arm Jacobian of one grip site (side 0 left, 1 right), unbatched.
+
+        Returns position (3,), rotation matrix (3, 3) and Jacobian (6, 7) over that arm's joints.
+        """
+        mjx = self._mjx
+        d = mjx.com_pos(self.mx, mjx.kinematics(self.mx, self.d0.replace(qpos=qpos)))
+        site = int(self.idx.grip_site[side])
+        p, rot = d.site_xpos[site], d.site_xmat[site].reshape(3, 3)
+        jacp, jacr = mjx.jac(self.mx, d, p, int(self.idx.hand_body[side]))
+        dofs = self.idx.robot.arm_qvel[7 * side : 7 * side + 7]
+        return p, rot, jnp.concatenate([jacp[dofs].T, jacr[dofs].T], axis=0)
+
+
+def _yaw_down(yaw):
+    """Rotation (3, 3) of a hand pointing down, pinch axis (hand y) turned by yaw about world z."""
+    c, s = jnp.cos(yaw), jnp.sin(yaw)
+    return jnp.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def ik_step(kin: Kinematics, qpos, q_arm, target_p, target_yaw, side: int = 1):
+    """One damped-least-squares IK update of one arm toward a hand-down pose; unbatched.
+
+    Args:
+      qpos: (nq,) measured configuration (base and everything but the arm).
+      q_arm: (7,) the arm's current commanded joints.
+      target_p: (3,) grip-site target; target_yaw: () hand yaw.
+    Returns:
+      (7,) updated arm joints, clipped to the joint ranges.
+    """
+    adr = kin.idx.robot.arm_qpos[7 * side : 7 * side + 7]
+    p, rot, jac = kin.grip(qpos.at[adr].set(q_arm), side)
+    e_pos = target_p - p
+    e_pos = e_pos * jnp.minimum(1.0, IK_MAX_STEP / (jnp.linalg.norm(e_pos) + 1e-9))
+    rot_t = _yaw_down(target_yaw)
+    e_rot = 0.5 * jnp.sum(jnp.cross(rot.T, rot_t.T), axis=0)
+    e = jnp.concatenate([e_pos, 0.5 * e_rot])
+    jj = jac @ jac.T + IK_DAMPING**2 * jnp.eye(6)
+    dq = jac.T @ jnp.linalg.solve(jj, e)
+    low, high = kin.idx.robot.action_low[7 * side : 7 * side + 7], kin.idx.robot.action_high[7 * side : 7 * side + 7]
+    return jnp.clip(q_arm + dq, low, high)
+
+
+def _smoothstep(x):
+    x = jnp.clip(x, 0.0, 1.0)
+    return x * x * (3 - 2 * x)
+
+
+def keyframe_target(t, times, pos, yaw, closure):
+    """Interpolated (grip position (3,), yaw (), closure ()) at time t; unbatched."""
+    k = jnp.clip(jnp.searchsorted(times, t, side="right") - 1, 0, times.shape[0] - 2)
+    a = _smoothstep((t - times[k]) / jnp.maximum(times[k + 1] - times[k], 1e-6))
+    lerp = lambda x: x[k] + (x[k + 1] - x[k]) * a
+    return lerp(pos), lerp(yaw), lerp(closure)
+
+
+def _wrap(a):
+    return jnp.mod(a + jnp.pi, 2 * jnp.pi) - jnp.pi
+
+
+def _pinch_yaw(obj_yaw):
+    """Hand yaw for a pinch across a box's y faces: box faces repeat every pi/2, take the nearest to 0."""
+    return jnp.mod(obj_yaw + jnp.pi / 4, jnp.pi / 2) - jnp.pi / 4
+
+
+def _script(task: str, qpos, ts: T.TaskState, noise, idx: S.SceneIndex, hand0):
+    """Keyframes of one task's script for one episode.
+
+    Args:
+      qpos: (nq,) state at reset; ts: unbatched TaskState; noise: dict of this episode's
+        perception and grasp errors; hand0: (3,) right grip at reset.
+    Returns:
+      times (K,), pos (K, 3), yaw (K,), closure (K,), and (t0, t1) of the transport phase.
+    """
+    ct = S.COUNTER_TOP
+    dxy = noise["xy"]
+    grasp_up = noise["grasp_up"]
+
+    def obj(adr):
+        p = qpos[adr : adr + 3]
+        return p.at[:2].add(dxy), T.quat_yaw(qpos[adr + 3 : adr + 7]) + noise["yaw"]
+
+    if task == "mug":
+        p, y = obj(idx.mug_qpos)
+        yaw = _pinch_yaw(y)
+        g = jnp.array([p[0], p[1], p[2] + 0.01 + grasp_up])
+        up = g.at[2].set(p[2] + 0.13)
+        lift = g.at[2].set(p[2] + 0.17)
+        keys = [(0.0, hand0, 0.0, 0.0), (1.0, up, yaw, 0.0), (1.8, g, yaw, 0.0), (2.3, g, yaw, 1.0),
+                (3.3, lift, yaw, 1.0), (6.0, lift, yaw, 1.0)]
+        transport = (2.6, 4.2)
+    elif task == "shelf":
+        p, y = obj(idx.block_qpos)
+        yaw = _pinch_yaw(y)
+        g = jnp.array([p[0], p[1], p[2] + 0.02 + grasp_up])
+        up = g.at[2].set(p[2] + 0.15)
+        carry_z = S.SHELF_BOARD[4] + 0.08 + 0.065
+        place_z = S.SHELF_BOARD[4] + 0.008 + 0.065
+        tx, ty = T.SHELF_TARGET_XY
+        lifted = g.at[2].set(carry_z)
+        over = jnp.array([tx, ty, carry_z]) + jnp.append(dxy, 0.0)
+        keys = [(0.0, hand0, 0.0, 0.0), (1.0, up, yaw, 0.0), (1.7, g, yaw, 0.0), (2.1, g, yaw, 1.0),
+                (3.1, lifted, yaw, 1.0), (4.6, over, 0.0, 1.0), (5.4, over.at[2].set(place_z), 0.0, 1.0),
+                (5.8, over.at[2].set(place_z), 0.0, 0.0), (6.6, over.at[2].set(carry_z + 0.05), 0.0, 0.0),
+                (9.0, over.at[2].set(carry_z + 0.05), 0.0, 0.0)]
+        transport = (2.4, 5.2)
+    elif task == "airfryer":
+        f = qpos[idx.fryer_qpos : idx.fryer_qpos + 3].at[:2].add(dxy)
+        h = jnp.array([f[0] - 0.206, f[1], f[2] - 0.02 + grasp_up])
+        yaw = -jnp.pi / 2 + noise["yaw"] * 0.5
+        pull = h.at[0].add(-noise["pull"])
+        keys = [(0.0, hand0, 0.0, 0.0), (1.2, h.at[2].add(0.12), yaw, 0.35), (2.0, h, yaw, 0.35), (2.5, h, yaw, 1.0),
+                (4.5, pull, yaw, 1.0), (5.0, pull, yaw, 0.3), (6.0, pull.at[2].add(0.1), yaw, 0.3),
+                (7.0, pull.at[2].add(0.1), yaw, 0.3)]
+        transport = (2.8, 4.4)
+    elif task == "wipe":
+        p, y = obj(idx.cloth_qpos)
+        yaw = _pinch_yaw(y)
+        g = jnp.array([p[0], p[1], ct + GRIP_BELOW_FINGERTIP + 0.004 + grasp_up])
+        px, py = ts.patch[0] + noise["patch"][0], ts.patch[1] + noise["patch"][1]
+        z = g[2]
+        a0 = jnp.array([px - 0.035, py - 0.09, z])
+        a1 = jnp.array([px - 0.035, py + 0.09, z])
+        b1 = jnp.array([px + 0.035, py + 0.09, z])
+        b0 = jnp.array([px + 0.035, py - 0.09, z])
+        keys = [(0.0, hand0, 0.0, 0.0), (1.0, g.at[2].add(0.1), yaw, 0.0), (1.6, g, yaw, 0.0), (2.0, g, yaw, 1.0),
+                (3.0, a0, yaw, 1.0), (4.8, a1, yaw, 1.0), (5.4, b1, yaw, 1.0), (7.2, b0, yaw, 1.0),
+                (7.6, b0, yaw, 0.0), (8.4, b0.at[2].add(0.1), yaw, 0.0), (10.0, b0.at[2].add(0.1), yaw, 0.0)]
+        transport = (2.2, 7.0)
+    elif task == "arcade":
+        seq = jnp.where(noise["swap"], ts.sequence[::-1], ts.sequence)
+        btn = jnp.array(T.BUTTON_XY)
+        top = ct + 0.024
+        press_z = top - 0.013 + GRIP_BELOW_FINGERTIP
+        hover_z = top + 0.10
+
+        def at(i, z):
+            b = btn[seq[i]] + dxy
+            return jnp.array([b[0], b[1], z])
+
+        keys = [(0.0, hand0, 0.0, 1.0), (1.2, at(0, hover_z), 0.0, 1.0), (1.8, at(0, press_z), 0.0, 1.0),
+                (2.3, at(0, hover_z), 0.0, 1.0), (3.3, at(1, hover_z), 0.0, 1.0), (3.9, at(1, press_z), 0.0, 1.0),
+                (4.4, at(1, hover_z), 0.0, 1.0), (8.0, at(1, hover_z), 0.0, 1.0)]
+        transport = (jnp.inf, jnp.inf)
+    else:
+        raise ValueError(f"no script for task {task!r}")
+    times = jnp.array([k[0] for k in keys]) * noise["stretch"]
+    pos = jnp.stack([jnp.asarray(k[1], jnp.float32) for k in keys])
+    yaw = jnp.stack([jnp.asarray(k[2], jnp.float32) for k in keys])
+    closure = jnp.array([k[3] for k in keys], jnp.float32)
+    t0, t1 = transport
+    return times, pos, yaw, closure, (t0 * noise["stretch"], t1 * noise["stretch"])
+
+
+@dataclasses.dataclass(frozen=True)
+class ScriptedPolicy:
+    """The scripted policy of one task, with the skill knob described in the module doc.
+
+    Args:
+      task: a task name.
+      model: the compiled home scene (`sim_data.scene.load_model()`).
+    """
+
+    task: str
+    kin: Kinematics
+
+    @classmethod
+    def create(cls, task: str, model=None):
+        T.get_task(task)
+        return cls(task, Kinematics(model if model is not None else S.load_model()))
+
+    def _noise(self, rng, skill):
+        u = 1.0 - jnp.clip(skill, 0.0, 1.0)
+        k = jax.random.split(rng, 10)
+        n = lambda kk, shape=(): jax.random.normal(kk, shape)
+        missed = jax.random.uniform(k[3]) < 0.35 * u
+        return {
+            "xy": 0.045 * u * n(k[0], (2,)),
+            "yaw": 0.6 * u * n(k[1]),
+            "stretch": jnp.exp(0.25 * u * n(k[2])),
+            "grasp_up": jnp.where(missed, jax.random.uniform(k[4], minval=0.04, maxval=0.08), 0.0),
+            "release": jax.random.uniform(k[5]) < 0.45 * u,
+            "release_frac": jax.random.uniform(k[6]),
+            "swap": jax.random.uniform(k[7]) < 0.35 * u,
+            "patch": 0.04 * u * n(k[8], (2,)),
+            "pull": 0.13 + 0.15 * u * jnp.abs(n(k[9])),
+            "distance": 0.6 + 0.3 * u * n(jax.random.fold_in(rng, 1)),
+            "yaw_bias": 0.35 * u * n(jax.random.fold_in(rng, 2)),
+        }
+
+    def _init_one(self, skill, qpos, ts, rng):
+        idx = self.kin.idx
+        noise = self._noise(rng, skill)
+        q_cmd = qpos[idx.robot.arm_qpos]
+        hand0, _, _ = self.kin.grip(qpos, 1)
+        if self.task == "step_back":
+            times, pos, yaw, closure = jnp.zeros(2), jnp.stack([hand0, hand0]), jnp.zeros(2), jnp.zeros(2)
+            t0, t1 = jnp.inf, jnp.inf
+        else:
+            times, pos, yaw, closure, (t0, t1) = _script(self.task, qpos, ts, noise, idx, hand0)
+        release_at = jnp.where(noise["release"], t0 + (t1 - t0) * noise["release_frac"], jnp.inf)
+        drive = jnp.stack([noise["distance"], noise["yaw_bias"], qpos[idx.robot.base_qpos[2]]])
+        return ScriptCarry(q_cmd=q_cmd, times=times, pos=pos, yaw=yaw, closure=closure, release_at=release_at, drive=drive)
+
+    def init_carry(self, params, obs, task_state, rng):
+        """Draws each episode's imperfections and plans its keyframes.
+
+        Args:
+          params: {"skill": (B,)}; obs: the environment's observation at reset; task_state: the
+            env's TaskState at reset (cue order, patch); rng: one PRNG key.
+        """
+        b = obs["qpos"].shape[0]
+        keys = jax.random.split(rng, b)
+        return jax.vmap(self._init_one)(params["skill"], obs["qpos"], task_state, keys)
+
+    def _act_one(self, qpos, t, c: ScriptCarry):
+        idx = self.kin.idx
+        action = jnp.zeros(R.ACTION_DIM)
+        action = action.at[R.NECK].set(jnp.array([0.0, S.READY_NECK_PITCH]))
+        if self.task == "step_back":
+            dist, bias = c.drive[0], c.drive[1]
+            speed = jnp.where(t < jnp.abs(dist) / 0.3, -0.3 * jnp.sign(dist), 0.0)
+            w = jnp.where(speed != 0.0, bias, 0.0)
+            action = action.at[R.FORWARD_SPEED].set(speed).at[R.YAW_RATE].set(w)
+            return action.at[R.ARMS].set(c.q_cmd), c
+        target, yaw, closure = keyframe_target(t, c.times, c.pos, c.yaw, c.closure)
+        closure = jnp.where(t >= c.release_at, 0.0, closure)
+        q_right = c.q_cmd[7:]
+        for _ in range(IK_ITERS):
+            q_right = ik_step(self.kin, qpos, q_right, target, yaw, side=1)
+        q_cmd = c.q_cmd.at[7:].set(q_right)
+        action = action.at[R.ARMS].set(q_cmd).at[R.RIGHT_HAND].set(closure)
+        return action, c.replace(q_cmd=q_cmd)
+
+    def act(self, params, obs, carry, rng):
+        """Batched actions (B, 20) and the updated carry, from privileged observations."""
+        del params, rng
+        return jax.vmap(self._act_one)(obs["qpos"], obs["time"], carry)
+
+
+# ---- open-loop action programs for controllability studies ---------------------------------------
+PROGRAMS = ("reach_mug", "wipe_counter", "step_backwards", "air_guitar")
+
+
+def action_program(name: str, num_steps: int) -> np.ndarray:
+    """A fixed action sequence (num_steps, 20) float32 at the control rate, from the ready pose.
+
+    `reach_mug`: the right hand reaches forward and down toward the mug's nominal place and closes;
+    `wipe_counter`: the right hand sweeps left and right low over the counter; `step_backwards`:
+    the base drives back 0.3 m/s for 2 s; `air_guitar`: both arms strum and fret, the head nods.
+    """
+    if name not in PROGRAMS:
+        raise ValueError(f"unknown program {name!r}; choose one of {', '.join(PROGRAMS)}")
+    t = np.arange(num_steps, dtype=np.float32) * T.CONTROL_DT
+    a = np.zeros((num_steps, R.ACTION_DIM), np.float32)
+    a[:, R.ARMS] = np.concatenate([S.READY_ARM, S.READY_ARM])
+    a[:, R.NECK] = [0.0, S.READY_NECK_PITCH]
+    ramp = np.clip(t / 1.5, 0, 1)[:, None]
+    right = a[:, R.RIGHT_ARM]
+    if name == "reach_mug":
+        reach = np.array([-0.35, 0.0, 0.0, -1.2, 0.0, 1.1, 0.0], np.float32)
+        a[:, R.RIGHT_ARM] = right + ramp * (reach - right)
+        a[:, R.RIGHT_HAND] = np.clip((t - 2.0) / 0.5, 0, 1)
+    elif name == "wipe_counter":
+        low = np.array([-0.3, 0.0, 0.0, -1.3, 0.0, 1.3, 0.0], np.float32)
+        a[:, R.RIGHT_ARM] = right + ramp * (low - right)
+        a[:, R.RIGHT_ARM.start + 1] = ramp[:, 0] * 0.35 * np.sin(2 * np.pi * 0.5 * t)
+        a[:, R.RIGHT_HAND] = 1.0
+    elif name == "step_backwards":
+        a[:, R.FORWARD_SPEED] = np.where(t < 2.0, -0.3, 0.0)
+    elif name == "air_guitar":
+        strum = 0.4 * np.sin(2 * np.pi * 2.0 * t)
+        a[:, R.RIGHT_ARM.start + 3] = S.READY_ARM[3] + 0.3 + 0.3 * strum
+        a[:, R.RIGHT_ARM.start + 4] = strum
+        a[:, R.LEFT_ARM.start + 0] = -0.8
+        a[:, R.LEFT_ARM.start + 1] = 0.5
+        a[:, R.LEFT_ARM.start + 3] = -1.2 + 0.25 * np.sin(2 * np.pi * 0.7 * t)
+        a[:, R.NECK.start + 1] = S.READY_NECK_PITCH + 0.15 * np.sin(2 * np.pi * 1.0 * t)
+        a[:, R.LEFT_HAND] = 0.5 + 0.5 * np.sin(2 * np.pi * 1.5 * t)
+    return a

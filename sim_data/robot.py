@@ -1,0 +1,176 @@
+"""The humanoid's action and proprioception vectors: the one place their layouts are defined.
+
+Action (20 floats), modelled on the 1X world-model dataset's layout (joint targets, then the
+neck, hand closures and the driving command):
+
+| index  | name                         | unit  | range                 |
+|--------|------------------------------|-------|-----------------------|
+| 0-6    | left arm joint targets       | rad   | joint ranges (MJCF)   |
+|        |  shoulder_pitch, shoulder_roll, shoulder_yaw, elbow, wrist_yaw, wrist_pitch, wrist_roll |
+| 7-13   | right arm joint targets      | rad   | same order            |
+| 14-15  | neck yaw, neck pitch         | rad   | joint ranges          |
+| 16     | left hand closure            | 1     | 0 open .. 1 closed    |
+| 17     | right hand closure           | 1     | 0 open .. 1 closed    |
+| 18     | forward speed                | m/s   | [-0.5, 0.5]           |
+| 19     | yaw rate                     | rad/s | [-1.0, 1.0]           |
+
+The legs are not commanded: a gait generator drives them from the driving command.
+
+Proprioception (49 floats):
+
+| index  | name                                                        |
+|--------|-------------------------------------------------------------|
+| 0-21   | joint positions: left arm 7, right arm 7, neck 2, legs 6 (left hip, knee, ankle, right ...) |
+| 22-43  | joint velocities, same order                                |
+| 44-46  | base velocity in the robot frame: forward, lateral (m/s), yaw rate (rad/s) |
+| 47-48  | measured hand closures, left and right (0 open .. 1 closed) |
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+
+ARM_JOINTS = ("shoulder_pitch", "shoulder_roll", "shoulder_yaw", "elbow", "wrist_yaw", "wrist_pitch", "wrist_roll")
+SIDES = ("left", "right")
+LEG_JOINTS = ("hip_pitch", "knee", "ankle")
+NECK_JOINTS = ("neck_yaw", "neck_pitch")
+BASE_JOINTS = ("base_x", "base_y", "base_yaw")
+FINGER_OPEN = 0.055  # finger slide (m) at closure 0; closure 1 drives the fingers together
+MAX_FORWARD_SPEED = 0.5
+MAX_YAW_RATE = 1.0
+
+ACTION_NAMES: tuple[str, ...] = (
+    tuple(f"left_{j}" for j in ARM_JOINTS)
+    + tuple(f"right_{j}" for j in ARM_JOINTS)
+    + NECK_JOINTS
+    + ("left_hand_closure", "right_hand_closure", "forward_speed", "yaw_rate")
+)
+ACTION_DIM = len(ACTION_NAMES)
+LEFT_ARM = slice(0, 7)
+RIGHT_ARM = slice(7, 14)
+ARMS = slice(0, 14)
+NECK = slice(14, 16)
+HAND_CLOSURE = slice(16, 18)
+LEFT_HAND, RIGHT_HAND = 16, 17
+DRIVE = slice(18, 20)
+FORWARD_SPEED, YAW_RATE = 18, 19
+
+POSED_JOINTS: tuple[str, ...] = ACTION_NAMES[:16] + tuple(f"{s}_{j}" for s in SIDES for j in LEG_JOINTS)
+PROPRIO_NAMES: tuple[str, ...] = (
+    tuple(f"pos_{j}" for j in POSED_JOINTS)
+    + tuple(f"vel_{j}" for j in POSED_JOINTS)
+    + ("base_forward_vel", "base_lateral_vel", "base_yaw_rate", "left_hand_closure", "right_hand_closure")
+)
+PROPRIO_DIM = len(PROPRIO_NAMES)
+PROPRIO_JOINT_POS = slice(0, 22)
+PROPRIO_JOINT_VEL = slice(22, 44)
+PROPRIO_BASE_VEL = slice(44, 47)
+PROPRIO_HAND_CLOSURE = slice(47, 49)
+
+# Actuator order in home.xml: arms (left, right), neck, fingers (left a, b, right a, b), base, legs.
+CTRL_ARMS = slice(0, 14)
+CTRL_NECK = slice(14, 16)
+CTRL_FINGERS = slice(16, 20)
+CTRL_BASE = slice(20, 23)
+CTRL_LEGS = slice(23, 29)
+CTRL_DIM = 29
+
+
+@dataclasses.dataclass(frozen=True)
+class RobotIndex:
+    """qpos/qvel addresses of the robot's joints in one compiled model (numpy int arrays)."""
+
+    base_qpos: np.ndarray  # (3,) x, y, yaw
+    base_qvel: np.ndarray  # (3,)
+    posed_qpos: np.ndarray  # (22,) POSED_JOINTS order
+    posed_qvel: np.ndarray  # (22,)
+    arm_qpos: np.ndarray  # (14,) left then right
+    arm_qvel: np.ndarray  # (14,)
+    finger_qpos: np.ndarray  # (4,) left a, left b, right a, right b
+    action_low: np.ndarray  # (20,)
+    action_high: np.ndarray  # (20,)
+
+
+def robot_index(model) -> RobotIndex:
+    """Looks up the robot's joint addresses and the action bounds in an `mujoco.MjModel`."""
+
+    def adr(names, field):
+        return np.array([getattr(model.joint(n), field)[0] for n in names], dtype=np.int32)
+
+    fingers = [f"{s}_finger_{f}" for s in SIDES for f in "ab"]
+    low = np.array([model.joint(n).range[0] for n in ACTION_NAMES[:16]] + [0, 0, -MAX_FORWARD_SPEED, -MAX_YAW_RATE])
+    high = np.array([model.joint(n).range[1] for n in ACTION_NAMES[:16]] + [1, 1, MAX_FORWARD_SPEED, MAX_YAW_RATE])
+    return RobotIndex(
+        base_qpos=adr(BASE_JOINTS, "qposadr"),
+        base_qvel=adr(BASE_JOINTS, "dofadr"),
+        posed_qpos=adr(POSED_JOINTS, "qposadr"),
+        posed_qvel=adr(POSED_JOINTS, "dofadr"),
+        arm_qpos=adr(ACTION_NAMES[:14], "qposadr"),
+        arm_qvel=adr(ACTION_NAMES[:14], "dofadr"),
+        finger_qpos=adr(fingers, "qposadr"),
+        action_low=low.astype(np.float32),
+        action_high=high.astype(np.float32),
+    )
+
+
+def gait_targets(phase: jnp.ndarray, activity: jnp.ndarray) -> jnp.ndarray:
+    """Leg joint targets of a simple walking gait.
+
+    Args:
+      phase: (B,) gait phase in radians.
+      activity: (B,) 0 (standing) .. 1 (full stride).
+    Returns:
+      (B, 6) targets for left hip, knee, ankle, right hip, knee, ankle.
+    """
+
+    def leg(p):
+        hip = 0.35 * jnp.sin(p)
+        knee = 0.7 * jnp.maximum(0.0, jnp.sin(p + 0.6))
+        ankle = -0.5 * hip + 0.3 * knee
+        return jnp.stack([hip, knee, ankle], axis=-1)
+
+    a = activity[..., None]
+    return jnp.concatenate([a * leg(phase), a * leg(phase + jnp.pi)], axis=-1)
+
+
+def gait_activity(action: jnp.ndarray) -> jnp.ndarray:
+    """(B,) stride amplitude in [0, 1] for a batch of actions (B, 20)."""
+    return jnp.clip(jnp.abs(action[..., FORWARD_SPEED]) / 0.3 + jnp.abs(action[..., YAW_RATE]) / 0.8, 0.0, 1.0)
+
+
+def action_to_ctrl(action: jnp.ndarray, base_yaw: jnp.ndarray, gait_phase: jnp.ndarray, idx: RobotIndex) -> jnp.ndarray:
+    """Maps actions to the 29 actuator controls of home.xml.
+
+    Args:
+      action: (B, 20) actions (clipped here to their documented ranges).
+      base_yaw: (B,) current base heading, to turn the robot-frame driving command into
+        world-frame base velocities.
+      gait_phase: (B,) gait phase for the leg targets.
+      idx: the model's RobotIndex.
+    Returns:
+      (B, 29) float controls.
+    """
+    a = jnp.clip(action, idx.action_low, idx.action_high)
+    closure = a[..., HAND_CLOSURE]
+    finger = (1.0 - closure) * FINGER_OPEN
+    fingers = jnp.stack([finger[..., 0], finger[..., 0], finger[..., 1], finger[..., 1]], axis=-1)
+    v, w = a[..., FORWARD_SPEED], a[..., YAW_RATE]
+    base = jnp.stack([v * jnp.cos(base_yaw), v * jnp.sin(base_yaw), w], axis=-1)
+    legs = gait_targets(gait_phase, gait_activity(a))
+    return jnp.concatenate([a[..., ARMS], a[..., NECK], fingers, base, legs], axis=-1)
+
+
+def proprioception(qpos: jnp.ndarray, qvel: jnp.ndarray, idx: RobotIndex) -> jnp.ndarray:
+    """The proprioception vector (B, 49) from qpos (B, nq) and qvel (B, nv); layout in the module doc."""
+    yaw = qpos[..., idx.base_qpos[2]]
+    vx, vy, wz = (qvel[..., i] for i in idx.base_qvel)
+    fwd = vx * jnp.cos(yaw) + vy * jnp.sin(yaw)
+    lat = -vx * jnp.sin(yaw) + vy * jnp.cos(yaw)
+    f = qpos[..., idx.finger_qpos]
+    closure = 1.0 - jnp.stack([f[..., 0] + f[..., 1], f[..., 2] + f[..., 3]], axis=-1) / (2 * FINGER_OPEN)
+    return jnp.concatenate(
+        [qpos[..., idx.posed_qpos], qvel[..., idx.posed_qvel], jnp.stack([fwd, lat, wz], axis=-1), closure], axis=-1
+    )
