@@ -10,12 +10,13 @@ with `params = {"skill": (B,) float}` for the scripted policies. Scripted polici
 privileged simulator state (`obs["qpos"]`, `obs["time"]`).
 
 How skill degrades a policy (u = 1 - skill, drawn once per episode from the policy's rng):
-- noisy perception: object positions off by N(0, (0.045 u)^2) per horizontal axis, yaw by
-  N(0, (0.6 u)^2); for the arcade, the cued order is swapped with probability 0.35 u;
+- noisy perception: object positions off by N(0, (0.05 u)^2) per horizontal axis, yaw by
+  N(0, (0.6 u)^2); for the arcade, each press is off by another N(0, (0.035 u)^2) per axis and
+  the cued order is swapped with probability 0.5 u;
 - timing jitter: every phase of the script stretched by exp(N(0, (0.25 u)^2));
-- missed grasps: with probability 0.35 u the gripper closes 4-8 cm above the object;
-- early release: with probability 0.45 u the hand opens at a random moment of the transport;
-- step_back: distance error N(0, (0.3 u)^2) m and a yaw-rate bias N(0, (0.35 u)^2) rad/s.
+- missed grasps: with probability 0.45 u the gripper closes 4-8 cm above the object;
+- early release: with probability 0.5 u the hand opens at a random moment of the transport;
+- step_back: target distance 0.6 - 0.3 u + N(0, (0.55 u)^2) m and a yaw-rate bias N(0, (0.6 u)^2) rad/s.
 """
 
 from __future__ import annotations
@@ -206,7 +207,7 @@ def _script(task: str, qpos, ts: T.TaskState, noise, idx: S.SceneIndex, hand0):
         hover_z = top + 0.10
 
         def at(i, z):
-            b = btn[seq[i]] + dxy
+            b = btn[seq[i]] + dxy + noise["press"][i]
             return jnp.array([b[0], b[1], z])
 
         keys = [(0.0, hand0, 0.0, 1.0), (1.2, at(0, hover_z), 0.0, 1.0), (1.8, at(0, press_z), 0.0, 1.0),
@@ -244,19 +245,20 @@ class ScriptedPolicy:
         u = 1.0 - jnp.clip(skill, 0.0, 1.0)
         k = jax.random.split(rng, 10)
         n = lambda kk, shape=(): jax.random.normal(kk, shape)
-        missed = jax.random.uniform(k[3]) < 0.35 * u
+        missed = jax.random.uniform(k[3]) < 0.45 * u
         return {
-            "xy": 0.045 * u * n(k[0], (2,)),
+            "xy": 0.05 * u * n(k[0], (2,)),
             "yaw": 0.6 * u * n(k[1]),
             "stretch": jnp.exp(0.25 * u * n(k[2])),
             "grasp_up": jnp.where(missed, jax.random.uniform(k[4], minval=0.04, maxval=0.08), 0.0),
-            "release": jax.random.uniform(k[5]) < 0.45 * u,
+            "release": jax.random.uniform(k[5]) < 0.5 * u,
             "release_frac": jax.random.uniform(k[6]),
-            "swap": jax.random.uniform(k[7]) < 0.35 * u,
+            "swap": jax.random.uniform(k[7]) < 0.5 * u,
+            "press": 0.035 * u * n(jax.random.fold_in(rng, 3), (2, 2)),
             "patch": 0.04 * u * n(k[8], (2,)),
             "pull": 0.13 + 0.15 * u * jnp.abs(n(k[9])),
-            "distance": 0.6 + 0.3 * u * n(jax.random.fold_in(rng, 1)),
-            "yaw_bias": 0.35 * u * n(jax.random.fold_in(rng, 2)),
+            "distance": 0.6 - 0.3 * u + 0.55 * u * n(jax.random.fold_in(rng, 1)),
+            "yaw_bias": 0.6 * u * n(jax.random.fold_in(rng, 2)),
         }
 
     def _init_one(self, skill, qpos, ts, rng):

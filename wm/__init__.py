@@ -1,0 +1,1 @@
+"""World model (frame tokenizer, action-conditioned dynamics, state and success heads): not built yet."""

@@ -1,0 +1,38 @@
+# The user's interface. Every target bootstraps .venv (Python >= 3.11, pinned packages) by itself.
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+export MUJOCO_GL ?= egl
+export XLA_FLAGS ?= --xla_cpu_multi_thread_eigen=true
+OUT ?= runs/demo
+EPISODES ?= 10
+
+.PHONY: setup demo test test-slow bench success-table clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[dev]'
+	touch $(STAMP)
+
+setup: $(STAMP)
+
+# Until the full demo chain exists: the scripted-policy success table, small and on the CPU.
+demo: setup
+	$(PY) -m sim_data.success_table --backend cpu --episodes $(EPISODES) --skills 0.2,0.6,1.0 --out $(OUT)/success_table.json
+
+success-table: setup
+	$(PY) -m sim_data.success_table --episodes 100 --skills 0.2,0.6,1.0 --out runs/success_table.json
+
+test: setup
+	$(PY) -m pytest -q
+
+test-slow: setup
+	$(PY) -m pytest -q -m slow
+
+bench: setup
+	$(PY) -m sim_data.bench --out runs/bench/physics_$$(hostname).json
+
+clean:
+	rm -rf runs/demo .pytest_cache

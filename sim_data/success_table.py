@@ -1,0 +1,128 @@
+"""Success rates of the scripted policies for every task at several skills.
+
+    python -m sim_data.success_table --backend cpu --episodes 100 --skills 0.2,0.6,1.0 --out runs/success.json
+
+writes `{task: {skill: success_rate}}` (skill keys as given) and prints a table with 95% Wilson
+intervals. Episodes of one task share their initial states across skills (same seed), so the
+skills are compared on the same scenes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm import tqdm
+
+from sim_data.engines import ENGINES, default_engine
+from sim_data.env import HomeEnv
+from sim_data.policies import ScriptedPolicy
+from sim_data.rollout import run_episodes
+from sim_data.tasks import TASK_NAMES
+
+
+def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
+    """95% Wilson score interval of a binomial proportion."""
+    if n == 0:
+        return (0.0, 1.0)
+    p = successes / n
+    den = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / den
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
+    return (max(0.0, centre - half), min(1.0, centre + half))
+
+
+def write_json_atomic(path: Path, obj) -> None:
+    """Writes obj as JSON to path through a temporary file and a rename."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
+    tmp.write_text(json.dumps(obj, indent=2, sort_keys=False) + "\n")
+    os.replace(tmp, path)
+
+
+def parse_skills(text: str) -> list[str]:
+    skills = [s.strip() for s in text.split(",") if s.strip()]
+    for s in skills:
+        try:
+            v = float(s)
+        except ValueError:
+            raise SystemExit(f"--skills: {s!r} is not a number") from None
+        if not 0.0 <= v <= 1.0:
+            raise SystemExit(f"--skills: {s} is outside [0, 1]")
+    if not skills:
+        raise SystemExit("--skills: give at least one skill, e.g. 0.2,0.6,1.0")
+    return skills
+
+
+def success_table(tasks, skills, episodes: int, engine: str, batch: int, seed: int, show_progress: bool = True):
+    """Runs `episodes` scripted episodes per (task, skill).
+
+    Returns ({task: {skill: rate}}, {task: {skill: successes}}, seconds).
+    """
+    rates, counts = {}, {}
+    total = len(tasks) * len(skills) * episodes
+    bar = tqdm(total=total, unit="ep", desc="success table", disable=not show_progress, file=sys.stderr)
+    t0 = time.time()
+    for ti, task in enumerate(tasks):
+        rates[task], counts[task] = {}, {}
+        chunks = [min(batch, episodes - s) for s in range(0, episodes, batch)]
+        envs = {b: HomeEnv(task, b, engine=engine) for b in set(chunks)}
+        policy = ScriptedPolicy.create(task, envs[chunks[0]].model)
+        for skill in skills:
+            wins = 0
+            for ci, b in enumerate(chunks):
+                rng = jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(seed), ti), ci)
+                params = {"skill": jnp.full((b,), float(skill), jnp.float32)}
+                state, _ = run_episodes(envs[b], policy, params, rng)
+                wins += int(np.sum(np.asarray(state.success)))
+                bar.update(b)
+                bar.set_postfix(task=task, skill=skill)
+            rates[task][skill] = wins / episodes
+            counts[task][skill] = wins
+    bar.close()
+    return rates, counts, time.time() - t0
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--backend", choices=ENGINES, default=None, help="physics engine (default: mjx on GPU, else cpu)")
+    p.add_argument("--episodes", type=int, default=100, help="episodes per task and skill")
+    p.add_argument("--skills", default="0.2,0.6,1.0", help="comma-separated skills in [0, 1]")
+    p.add_argument("--tasks", default=",".join(TASK_NAMES), help="comma-separated task names")
+    p.add_argument("--batch", type=int, default=None, help="episodes simulated together (default: 50 cpu, 1024 mjx)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path, required=True, help="JSON file to write")
+    a = p.parse_args(argv)
+    if a.episodes < 1:
+        raise SystemExit("--episodes must be >= 1")
+    tasks = [t.strip() for t in a.tasks.split(",") if t.strip()]
+    unknown = [t for t in tasks if t not in TASK_NAMES]
+    if unknown:
+        raise SystemExit(f"--tasks: unknown {unknown}; choose from {', '.join(TASK_NAMES)}")
+    skills = parse_skills(a.skills)
+    engine = a.backend or default_engine()
+    batch = min(a.batch or (50 if engine == "cpu" else 1024), a.episodes)
+    rates, counts, secs = success_table(tasks, skills, a.episodes, engine, batch, a.seed)
+    write_json_atomic(a.out, rates)
+    print(f"engine={engine} episodes={a.episodes} per point, {secs:.0f} s; 95% Wilson intervals")
+    print(f"{'task':<10}" + "".join(f"{'skill ' + s:>22}" for s in skills))
+    for task in tasks:
+        cells = []
+        for s in skills:
+            lo, hi = wilson_interval(counts[task][s], a.episodes)
+            cells.append(f"{rates[task][s]:.2f} [{lo:.2f},{hi:.2f}]")
+        print(f"{task:<10}" + "".join(f"{c:>22}" for c in cells))
+    print(f"wrote {a.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

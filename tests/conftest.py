@@ -1,0 +1,39 @@
+import os
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import jax  # noqa: E402
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from sim_data import scene as S  # noqa: E402
+
+
+@pytest.fixture(scope="session")
+def model() -> mujoco.MjModel:
+    return S.load_model()
+
+
+@pytest.fixture(scope="session")
+def idx(model) -> S.SceneIndex:
+    return S.scene_index(model)
+
+
+@pytest.fixture(scope="session")
+def rng():
+    return jax.random.PRNGKey(0)
+
+
+def sample_state(task: str, key, heldout: bool = False):
+    """Initial (qpos, mocap, TaskState) of one episode, batched with B=1."""
+    from sim_data.env import HomeEnv
+
+    env = HomeEnv(task, 1, engine="cpu")
+    st = env.reset(key[None] if key.ndim == 1 else key)
+    return env, st
+
+
+@pytest.fixture
+def np_rng():
+    return np.random.default_rng(0)

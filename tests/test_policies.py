@@ -1,0 +1,102 @@
+"""Scripted policies: IK converges, skill degrades, programs are well formed."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from sim_data import robot as R
+from sim_data import scene as S
+from sim_data.env import HomeEnv
+from sim_data.policies import PROGRAMS, Kinematics, ScriptedPolicy, action_program, ik_step
+
+
+@pytest.fixture(scope="module")
+def kin(model):
+    return Kinematics(model)
+
+
+def test_kinematics_matches_mujoco(model, kin):
+    import mujoco
+
+    d = mujoco.MjData(model)
+    d.qpos[:] = model.qpos0
+    q = np.asarray(kin.idx.robot.arm_qpos)
+    d.qpos[q] = np.concatenate([S.READY_ARM, S.READY_ARM])
+    mujoco.mj_forward(model, d)
+    p, rot, jac = jax.jit(lambda x: kin.grip(x, 1))(jnp.asarray(d.qpos, jnp.float32))
+    np.testing.assert_allclose(np.asarray(p), d.site("right_grip").xpos, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(rot), d.site("right_grip").xmat.reshape(3, 3), atol=1e-5)
+    jacp = np.zeros((3, model.nv))
+    jacr = np.zeros((3, model.nv))
+    mujoco.mj_jacSite(model, d, jacp, jacr, model.site("right_grip").id)
+    dofs = kin.idx.robot.arm_qvel[7:]
+    np.testing.assert_allclose(np.asarray(jac), np.concatenate([jacp[:, dofs], jacr[:, dofs]]), atol=1e-5)
+
+
+def test_ik_reaches_a_hand_down_target(model, kin):
+    qpos = jnp.asarray(model.qpos0, jnp.float32).at[kin.idx.robot.arm_qpos].set(np.concatenate([S.READY_ARM, S.READY_ARM]))
+    target, yaw = jnp.array([0.45, -0.2, 1.05]), 0.3
+    step = jax.jit(lambda q: ik_step(kin, qpos, q, target, yaw))
+    q = qpos[kin.idx.robot.arm_qpos[7:]]
+    for _ in range(60):
+        q = step(q)
+    p, rot, _ = kin.grip(qpos.at[kin.idx.robot.arm_qpos[7:]].set(q), 1)
+    assert float(jnp.linalg.norm(p - target)) < 2e-3
+    assert float(rot[2, 2]) > 0.999  # hand z up => fingers point down
+    assert abs(float(jnp.arctan2(rot[1, 0], rot[0, 0])) - yaw) < 1e-2
+
+
+def test_skill_changes_the_plan_deterministically(model):
+    env = HomeEnv("mug", 3, engine="cpu")
+    pol = ScriptedPolicy.create("mug", model)
+    st = env.reset(jax.random.PRNGKey(0))
+    params = {"skill": jnp.array([1.0, 1.0, 0.2])}
+    c1 = pol.init_carry(params, st.obs, st.task, jax.random.PRNGKey(1))
+    c2 = pol.init_carry(params, st.obs, st.task, jax.random.PRNGKey(1))
+    np.testing.assert_array_equal(np.asarray(c1.pos), np.asarray(c2.pos))
+    mug = np.asarray(st.qpos[:, env.idx.mug_qpos : env.idx.mug_qpos + 2])
+    grasp = np.asarray(c1.pos[:, 2, :2])  # keyframe 2: at the grasp
+    np.testing.assert_allclose(grasp[:2], mug[:2], atol=1e-6)  # skill 1: exact perception
+    assert np.abs(grasp[2] - mug[2]).max() > 1e-4  # skill 0.2: perception noise
+
+
+def test_scripted_arcade_succeeds_at_full_skill_and_actions_are_valid(model):
+    env = HomeEnv("arcade", 2, engine="cpu")
+    pol = ScriptedPolicy.create("arcade", model)
+    from sim_data.rollout import run_episodes
+
+    st, traj = run_episodes(env, pol, {"skill": jnp.ones(2)}, jax.random.PRNGKey(3), record=True)
+    assert np.asarray(st.success).all()
+    a = np.asarray(traj.action)
+    assert a.shape == (2, env.episode_steps, R.ACTION_DIM)
+    assert np.all(a >= env.idx.robot.action_low - 1e-6) and np.all(a <= env.idx.robot.action_high + 1e-6)
+
+
+@pytest.mark.parametrize("name", PROGRAMS)
+def test_action_programs(name, idx):
+    a = action_program(name, 60)
+    assert a.shape == (60, R.ACTION_DIM) and a.dtype == np.float32
+    assert np.all(a >= idx.robot.action_low - 1e-6) and np.all(a <= idx.robot.action_high + 1e-6)
+    assert np.abs(np.diff(a, axis=0)).max() > 0 or name == "step_backwards"
+
+
+def test_action_programs_differ_and_move_the_robot():
+    env = HomeEnv("mug", 1, engine="cpu")
+    finals = {}
+    for name in PROGRAMS:
+        st = env.reset(jax.random.PRNGKey(0))
+        for a in action_program(name, 40):
+            st = env.step(st, a[None])
+        finals[name] = np.asarray(st.qpos[0])
+    base = env.idx.robot.base_qpos
+    assert finals["step_backwards"][base[0]] < finals["reach_mug"][base[0]] - 0.3
+    names = list(finals)
+    for i in range(len(names)):
+        for j in range(i + 1, len(names)):
+            assert np.abs(finals[names[i]] - finals[names[j]]).max() > 0.05
+
+
+def test_unknown_program_is_a_clear_error():
+    with pytest.raises(ValueError, match="unknown program"):
+        action_program("moonwalk", 10)

@@ -1,0 +1,35 @@
+"""The success-table command and the Wilson interval."""
+
+import json
+import math
+
+import pytest
+
+from sim_data.success_table import main, wilson_interval
+
+
+def test_wilson_interval_hand_computed():
+    # p = 0.8, n = 100, z = 1.96: centre = (0.8 + 1.96^2/200) / (1 + 1.96^2/100)
+    z = 1.959964
+    den = 1 + z * z / 100
+    centre = (0.8 + z * z / 200) / den
+    half = z * math.sqrt(0.8 * 0.2 / 100 + z * z / 40000) / den
+    lo, hi = wilson_interval(80, 100)
+    assert lo == pytest.approx(centre - half) and hi == pytest.approx(centre + half)
+    assert lo == pytest.approx(0.7112, abs=1e-4) and hi == pytest.approx(0.8666, abs=1e-4)
+    assert wilson_interval(0, 10)[0] == 0.0 and wilson_interval(10, 10)[1] == 1.0
+
+
+def test_command_writes_task_skill_rates(tmp_path):
+    out = tmp_path / "t.json"
+    assert main(["--backend", "cpu", "--episodes", "2", "--skills", "1.0,0.0", "--tasks", "step_back", "--out", str(out)]) == 0
+    table = json.loads(out.read_text())
+    assert list(table) == ["step_back"] and list(table["step_back"]) == ["1.0", "0.0"]
+    assert table["step_back"]["1.0"] == 1.0
+
+
+def test_bad_arguments_are_refused(tmp_path):
+    with pytest.raises(SystemExit, match="outside"):
+        main(["--skills", "1.5", "--out", str(tmp_path / "x.json")])
+    with pytest.raises(SystemExit, match="unknown"):
+        main(["--tasks", "mug,fly", "--out", str(tmp_path / "x.json")])

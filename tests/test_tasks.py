@@ -1,0 +1,156 @@
+"""Samplers and success predicates on hand-built states."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from sim_data import scene as S
+from sim_data import tasks as T
+from sim_data.env import HomeEnv
+
+
+def initial(task, seed=0, batch=1, heldout=False):
+    env = HomeEnv(task, batch, engine="cpu", heldout=heldout)
+    return env, env.reset(jax.random.PRNGKey(seed))
+
+
+def update(env, st, qpos, qvel=None):
+    qvel = jnp.zeros_like(st.qvel) if qvel is None else qvel
+    return T.update_task(env.task, st.task, jnp.asarray(qpos), qvel, st.mocap_pos, env.idx)
+
+
+def test_sampler_is_deterministic_and_in_range():
+    env, a = initial("mug", seed=3, batch=8)
+    _, b = initial("mug", seed=3, batch=8)
+    np.testing.assert_array_equal(np.asarray(a.qpos), np.asarray(b.qpos))
+    mug = np.asarray(a.qpos[:, env.idx.mug_qpos : env.idx.mug_qpos + 3])
+    assert np.all(np.abs(mug[:, 0] - T.MUG_XY[0]) <= 0.03 + 1e-6) and np.all(np.abs(mug[:, 1] - T.MUG_XY[1]) <= 0.04 + 1e-6)
+    np.testing.assert_allclose(mug[:, 2], S.COUNTER_TOP + S.MUG_HALF_HEIGHT, atol=1e-6)
+    assert len({tuple(np.round(m, 5)) for m in mug}) == 8  # episodes differ
+    cols = np.asarray(a.task.colors)
+    assert cols.shape == (8, 4, 3) and cols.min() >= 0.1 and cols.max() <= 0.9
+    seq = np.asarray(a.task.sequence)
+    assert np.all(seq[:, 0] != seq[:, 1]) and seq.min() >= 0 and seq.max() <= 2
+
+
+def test_plant_only_in_heldout_scenes():
+    env, st = initial("mug")
+    _, held = initial("mug", heldout=True)
+    assert float(st.mocap_pos[0, env.idx.plant_mocap, 2]) < 0
+    assert float(held.mocap_pos[0, env.idx.plant_mocap, 2]) == pytest.approx(S.COUNTER_TOP)
+
+
+def test_mug_needs_half_a_second_above_8cm():
+    env, st = initial("mug")
+    q = np.asarray(st.qpos).copy()
+    q[0, env.idx.mug_qpos + 2] = S.COUNTER_TOP + S.MUG_HALF_HEIGHT + 0.079
+    ts, ok = update(env, st, q)
+    assert float(ts.hold[0]) == 0.0 and not bool(ok[0])
+    q[0, env.idx.mug_qpos + 2] += 0.002
+    for i in range(10):  # 10 control steps of 50 ms = 0.5 s
+        ts, ok = update(env, st.replace(task=ts) if i else st, q)
+        assert bool(ok[0]) == (i == 9)
+    q[0, env.idx.mug_qpos + 2] = 0.95  # put down: success stays (latched)
+    ts, ok = update(env, st.replace(task=ts), q)
+    assert bool(ok[0]) and float(ts.hold[0]) == 0.0
+
+
+def test_wipe_counts_cells_under_the_cloth_on_the_counter():
+    env, st = initial("wipe")
+    q = np.asarray(st.qpos).copy()
+    cells = np.asarray(T.dirt_cell_xy(st.task.patch))[0]
+    a = env.idx.cloth_qpos
+    q[0, a + 3 : a + 7] = [1, 0, 0, 0]
+    # centred on a cell: the cloth (10 x 8 cm) covers that cell and its neighbours within 5 / 4 cm
+    q[0, a : a + 2] = cells[0]
+    ts, _ = update(env, st, q)
+    covered = np.abs(cells - cells[0]) <= [0.05 + 1e-6, 0.04 + 1e-6]
+    np.testing.assert_array_equal(np.asarray(ts.wiped[0]), covered.all(-1))
+    # lifted 1 cm: nothing is wiped
+    q[0, a + 2] += 0.01
+    q[0, a : a + 2] = cells[-1]
+    ts2, _ = update(env, st.replace(task=ts), q)
+    np.testing.assert_array_equal(np.asarray(ts2.wiped), np.asarray(ts.wiped))
+    # sweep every cell: success at >= 80 %
+    q[0, a + 2] -= 0.01
+    for c in cells[: int(0.8 * len(cells))]:
+        q[0, a : a + 2] = c
+        ts, ok = update(env, st.replace(task=ts), q)
+    assert float(T.wiped_fraction(ts)[0]) >= 0.8 and bool(ok[0])
+    # wiped cells sink out of sight
+    z = np.asarray(T.dirt_mocap_z(ts))[0]
+    assert np.all(z[np.asarray(ts.wiped[0])] < S.COUNTER_TOP)
+
+
+def test_airfryer_fails_when_the_body_moves_2cm():
+    env, st = initial("airfryer")
+    q = np.asarray(st.qpos).copy()
+    q[0, env.idx.tray_qpos] = 0.101
+    ts, ok = update(env, st, q)
+    assert bool(ok[0])
+    q[0, env.idx.fryer_qpos] += 0.021
+    ts, ok = update(env, st.replace(task=ts), q)
+    assert not bool(ok[0])
+    q[0, env.idx.fryer_qpos] -= 0.021  # moved back: still a failure
+    ts, ok = update(env, st.replace(task=ts), q)
+    assert not bool(ok[0]) and bool(ts.failed[0])
+
+
+def press(env, st, q, button, ts=None):
+    q = q.copy()
+    q[0, env.idx.button_qpos] = 0.0
+    if button is not None:
+        q[0, env.idx.button_qpos[button]] = -0.01
+    return update(env, st.replace(task=ts) if ts is not None else st, q)
+
+
+def test_arcade_needs_the_cued_order():
+    env, st = initial("arcade", seed=1)
+    q = np.asarray(st.qpos)
+    first, second = (int(x) for x in np.asarray(st.task.sequence[0]))
+    ts, ok = press(env, st, q, first)
+    ts, ok = press(env, st, q, first, ts)  # holding it down is one press
+    ts, ok = press(env, st, q, None, ts)
+    assert int(ts.progress[0]) == 1 and not bool(ok[0])
+    ts, ok = press(env, st, q, second, ts)
+    assert bool(ok[0])
+    ts, ok = press(env, st, q, second)  # wrong first button
+    assert bool(ts.failed[0]) and not bool(ok[0])
+
+
+def test_shelf_needs_the_block_resting_on_the_board():
+    env, st = initial("shelf")
+    q = np.asarray(st.qpos).copy()
+    a = env.idx.block_qpos
+    x0, x1, y0, y1, top = S.SHELF_BOARD
+    q[0, a : a + 3] = [(x0 + x1) / 2, (y0 + y1) / 2, top + S.BLOCK_HALF[2]]
+    _, ok = update(env, st, q)
+    assert bool(ok[0])
+    moving = np.zeros(st.qvel.shape, np.float32)
+    moving[0, env.idx.block_qvel + 2] = -0.2
+    _, ok = update(env, st, q, jnp.asarray(moving))
+    assert not bool(ok[0])
+    q[0, a] = x1 + 0.01
+    _, ok = update(env, st, q)
+    assert not bool(ok[0])
+
+
+def test_step_back_distance_and_hits():
+    env, st = initial("step_back")
+    q = np.asarray(st.qpos).copy()
+    b = env.idx.robot.base_qpos
+    x0, y0, yaw0 = (float(v) for v in np.asarray(st.task.ref[0, 3:]))
+    q[0, b[0]] = x0 - 0.51 * np.cos(yaw0)
+    q[0, b[1]] = y0 - 0.51 * np.sin(yaw0)
+    ts, ok = update(env, st, q)
+    assert bool(ok[0])
+    stool = np.asarray(st.mocap_pos[0, env.idx.stool_mocap, :2])
+    q[0, b[0]], q[0, b[1]] = stool[0] + S.STOOL_HALF + S.BASE_RADIUS - 0.01, stool[1]
+    ts, ok = update(env, st.replace(task=ts), q)
+    assert bool(ts.failed[0]) and not bool(ok[0])
+
+
+def test_unknown_task_is_a_clear_error():
+    with pytest.raises(ValueError, match="unknown task 'dance'.*mug"):
+        HomeEnv("dance", 1, engine="cpu")
