@@ -35,7 +35,7 @@ def _controls(env: HomeEnv, b: int, seed: int = 0) -> np.ndarray:
     a[:, R.ARMS] = np.concatenate([S.READY_ARM, S.READY_ARM]) + 0.1 * np.random.default_rng(seed).standard_normal((b, 14))
     a[:, R.NECK.start + 1] = S.READY_NECK_PITCH
     st_yaw = np.zeros(b, np.float32)
-    return np.asarray(R.action_to_ctrl(jnp.asarray(a), jnp.asarray(st_yaw), jnp.zeros(b), env.idx.robot))
+    return np.asarray(R.action_to_ctrl(jnp.asarray(a), jnp.asarray(st_yaw), env.idx.robot))
 
 
 def device_name() -> str:

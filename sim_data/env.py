@@ -20,7 +20,7 @@ from flax import struct
 from sim_data import robot as R
 from sim_data import scene as S
 from sim_data.engines import default_engine, make_engine
-from sim_data.tasks import CONTROL_DT, PHYSICS_SUBSTEPS, Task, TaskState, dirt_mocap_z, get_task, sample_initial, update_task
+from sim_data.tasks import PHYSICS_SUBSTEPS, Task, TaskState, dirt_mocap_z, get_task, sample_initial, update_task
 
 
 @struct.dataclass
@@ -33,12 +33,11 @@ class State:
       qvel: (B, nv) float32 joint velocities.
       mocap_pos: (B, nmocap, 3) positions of the mocap props (cues, dirt cells, stool, plant).
       task: TaskState.
-      obs: {"proprio": (B, 49), "qpos", "qvel", "time": (B,)}; the last three are privileged
+      obs: {"proprio": (B, 37), "qpos", "qvel", "time": (B,)}; the last three are privileged
         and read only by scripted policies.
       success: (B,) bool, the task's success flag at this step.
       done: (B,) bool, the episode's time is up.
       step: (B,) int32 control steps taken.
-      gait_phase: (B,) leg gait phase.
     """
 
     physics: Any
@@ -50,7 +49,6 @@ class State:
     success: jax.Array
     done: jax.Array
     step: jax.Array
-    gait_phase: jax.Array
 
 
 def _observe(qpos, qvel, ts: TaskState, idx: S.SceneIndex) -> dict:
@@ -95,19 +93,17 @@ class HomeEnv:
     # ---- shared halves of a control step -------------------------------------------------------
     def _pre_step(self, state: State, action):
         yaw = state.qpos[:, self.idx.robot.base_qpos[2]]
-        ctrl = R.action_to_ctrl(action, yaw, state.gait_phase, self.idx.robot)
+        ctrl = R.action_to_ctrl(action, yaw, self.idx.robot)
         return ctrl, state.mocap_pos
 
     def _post_step(self, state: State, action, qpos, qvel):
         qpos, qvel = qpos.astype(jnp.float32), qvel.astype(jnp.float32)
-        activity = R.gait_activity(jnp.clip(action, self.idx.robot.action_low, self.idx.robot.action_high))
-        phase = jnp.mod(state.gait_phase + 2 * jnp.pi * 1.6 * CONTROL_DT * activity, 2 * jnp.pi)
         ts, success = update_task(self.task, state.task, qpos, qvel, state.mocap_pos, self.idx)
         mocap = state.mocap_pos.at[:, self.idx.dirt_mocap, 2].set(dirt_mocap_z(ts))
         step = state.step + 1
         return state.replace(
             qpos=qpos, qvel=qvel, mocap_pos=mocap, task=ts, obs=_observe(qpos, qvel, ts, self.idx),
-            success=success, done=step >= self.task.episode_steps, step=step, gait_phase=phase)
+            success=success, done=step >= self.task.episode_steps, step=step)
 
     def _mjx_step(self, state: State, action):
         ctrl, mocap = self._pre_step(state, action)
@@ -131,8 +127,7 @@ class HomeEnv:
         qvel = jnp.zeros((b, self.model.nv), jnp.float32)
         return State(
             physics=physics, qpos=qpos, qvel=qvel, mocap_pos=mocap, task=ts, obs=_observe(qpos, qvel, ts, self.idx),
-            success=jnp.zeros((b,), bool), done=jnp.zeros((b,), bool), step=jnp.zeros((b,), jnp.int32),
-            gait_phase=jnp.zeros((b,), jnp.float32))
+            success=jnp.zeros((b,), bool), done=jnp.zeros((b,), bool), step=jnp.zeros((b,), jnp.int32))
 
     def step(self, state: State, action) -> State:
         """Advances every simulation by one control step (CONTROL_DT) under action (B, 20)."""

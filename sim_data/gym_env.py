@@ -4,7 +4,7 @@
     env = gym.make("WMLab/HomeHumanoid-v0", task="mug", render_mode="rgb_array")
     obs, info = env.reset(seed=0, options={"task": "wipe"})   # the task can change at reset
 
-Observation: the 49-float proprioception vector (`sim_data.robot`). Action: the 20-float action
+Observation: the 37-float proprioception vector (`sim_data.robot`). Action: the 20-float action
 vector, bounded by the joint ranges, closures [0, 1], speed +-0.5 m/s, yaw rate +-1 rad/s.
 Reward: 1.0 at steps where the task's success flag holds, else 0. `truncated` when the task's
 episode time is up; `info["success"]` carries the flag. `render()` draws the external camera with

@@ -35,7 +35,7 @@ from sim_data import tasks as T
 IK_DAMPING = 0.05
 IK_ITERS = 2
 IK_MAX_STEP = 0.04  # m of task-space error corrected per IK iteration
-GRIP_BELOW_FINGERTIP = 0.024  # the grip site sits this far above the fingertips' lower edge
+GRIP_BELOW_FINGERTIP = 0.01  # the grip site sits this far above the finger pads' lower edge
 
 
 @struct.dataclass
@@ -202,7 +202,7 @@ def _script(task: str, qpos, ts: T.TaskState, noise, idx: S.SceneIndex, hand0):
     elif task == "arcade":
         seq = jnp.where(noise["swap"], ts.sequence[::-1], ts.sequence)
         btn = jnp.array(T.BUTTON_XY)
-        top = ct + 0.024
+        top = ct + 0.024  # button tops
         press_z = top - 0.013 + GRIP_BELOW_FINGERTIP
         hover_z = top + 0.10
 

@@ -5,25 +5,26 @@ neck, hand closures and the driving command):
 
 | index  | name                         | unit  | range                 |
 |--------|------------------------------|-------|-----------------------|
-| 0-6    | left arm joint targets       | rad   | joint ranges (MJCF)   |
+| 0-6    | left arm joint targets       | rad   | actuator ctrlrange    |
 |        |  shoulder_pitch, shoulder_roll, shoulder_yaw, elbow, wrist_yaw, wrist_pitch, wrist_roll |
 | 7-13   | right arm joint targets      | rad   | same order            |
-| 14-15  | neck yaw, neck pitch         | rad   | joint ranges          |
+| 14-15  | neck yaw, neck pitch         | rad   | actuator ctrlrange    |
 | 16     | left hand closure            | 1     | 0 open .. 1 closed    |
 | 17     | right hand closure           | 1     | 0 open .. 1 closed    |
 | 18     | forward speed                | m/s   | [-0.5, 0.5]           |
 | 19     | yaw rate                     | rad/s | [-1.0, 1.0]           |
 
-The legs are not commanded: a gait generator drives them from the driving command.
+The legs are not jointed: the base glides on the driving command (the legs are rigid geometry, a
+choice made for MJX speed, see the README's benchmark notes).
 
-Proprioception (49 floats):
+Proprioception (37 floats):
 
 | index  | name                                                        |
 |--------|-------------------------------------------------------------|
-| 0-21   | joint positions: left arm 7, right arm 7, neck 2, legs 6 (left hip, knee, ankle, right ...) |
-| 22-43  | joint velocities, same order                                |
-| 44-46  | base velocity in the robot frame: forward, lateral (m/s), yaw rate (rad/s) |
-| 47-48  | measured hand closures, left and right (0 open .. 1 closed) |
+| 0-15   | joint positions: left arm 7, right arm 7, neck 2            |
+| 16-31  | joint velocities, same order                                |
+| 32-34  | base velocity in the robot frame: forward, lateral (m/s), yaw rate (rad/s) |
+| 35-36  | measured hand closures, left and right (0 open .. 1 closed) |
 """
 
 from __future__ import annotations
@@ -35,7 +36,6 @@ import numpy as np
 
 ARM_JOINTS = ("shoulder_pitch", "shoulder_roll", "shoulder_yaw", "elbow", "wrist_yaw", "wrist_pitch", "wrist_roll")
 SIDES = ("left", "right")
-LEG_JOINTS = ("hip_pitch", "knee", "ankle")
 NECK_JOINTS = ("neck_yaw", "neck_pitch")
 BASE_JOINTS = ("base_x", "base_y", "base_yaw")
 FINGER_OPEN = 0.055  # finger slide (m) at closure 0; closure 1 drives the fingers together
@@ -58,25 +58,24 @@ LEFT_HAND, RIGHT_HAND = 16, 17
 DRIVE = slice(18, 20)
 FORWARD_SPEED, YAW_RATE = 18, 19
 
-POSED_JOINTS: tuple[str, ...] = ACTION_NAMES[:16] + tuple(f"{s}_{j}" for s in SIDES for j in LEG_JOINTS)
+POSED_JOINTS: tuple[str, ...] = ACTION_NAMES[:16]
 PROPRIO_NAMES: tuple[str, ...] = (
     tuple(f"pos_{j}" for j in POSED_JOINTS)
     + tuple(f"vel_{j}" for j in POSED_JOINTS)
     + ("base_forward_vel", "base_lateral_vel", "base_yaw_rate", "left_hand_closure", "right_hand_closure")
 )
 PROPRIO_DIM = len(PROPRIO_NAMES)
-PROPRIO_JOINT_POS = slice(0, 22)
-PROPRIO_JOINT_VEL = slice(22, 44)
-PROPRIO_BASE_VEL = slice(44, 47)
-PROPRIO_HAND_CLOSURE = slice(47, 49)
+PROPRIO_JOINT_POS = slice(0, 16)
+PROPRIO_JOINT_VEL = slice(16, 32)
+PROPRIO_BASE_VEL = slice(32, 35)
+PROPRIO_HAND_CLOSURE = slice(35, 37)
 
-# Actuator order in home.xml: arms (left, right), neck, fingers (left a, b, right a, b), base, legs.
+# Actuator order in home.xml: arms (left, right), neck, fingers (left a, b, right a, b), base.
 CTRL_ARMS = slice(0, 14)
 CTRL_NECK = slice(14, 16)
 CTRL_FINGERS = slice(16, 20)
 CTRL_BASE = slice(20, 23)
-CTRL_LEGS = slice(23, 29)
-CTRL_DIM = 29
+CTRL_DIM = 23
 
 
 @dataclasses.dataclass(frozen=True)
@@ -85,8 +84,8 @@ class RobotIndex:
 
     base_qpos: np.ndarray  # (3,) x, y, yaw
     base_qvel: np.ndarray  # (3,)
-    posed_qpos: np.ndarray  # (22,) POSED_JOINTS order
-    posed_qvel: np.ndarray  # (22,)
+    posed_qpos: np.ndarray  # (16,) POSED_JOINTS order
+    posed_qvel: np.ndarray  # (16,)
     arm_qpos: np.ndarray  # (14,) left then right
     arm_qvel: np.ndarray  # (14,)
     finger_qpos: np.ndarray  # (4,) left a, left b, right a, right b
@@ -101,8 +100,9 @@ def robot_index(model) -> RobotIndex:
         return np.array([getattr(model.joint(n), field)[0] for n in names], dtype=np.int32)
 
     fingers = [f"{s}_finger_{f}" for s in SIDES for f in "ab"]
-    low = np.array([model.joint(n).range[0] for n in ACTION_NAMES[:16]] + [0, 0, -MAX_FORWARD_SPEED, -MAX_YAW_RATE])
-    high = np.array([model.joint(n).range[1] for n in ACTION_NAMES[:16]] + [1, 1, MAX_FORWARD_SPEED, MAX_YAW_RATE])
+    # joint targets are bounded by their position actuators' ctrlrange (the joints carry no limits)
+    low = np.array([model.actuator(n).ctrlrange[0] for n in ACTION_NAMES[:16]] + [0, 0, -MAX_FORWARD_SPEED, -MAX_YAW_RATE])
+    high = np.array([model.actuator(n).ctrlrange[1] for n in ACTION_NAMES[:16]] + [1, 1, MAX_FORWARD_SPEED, MAX_YAW_RATE])
     return RobotIndex(
         base_qpos=adr(BASE_JOINTS, "qposadr"),
         base_qvel=adr(BASE_JOINTS, "dofadr"),
@@ -116,42 +116,16 @@ def robot_index(model) -> RobotIndex:
     )
 
 
-def gait_targets(phase: jnp.ndarray, activity: jnp.ndarray) -> jnp.ndarray:
-    """Leg joint targets of a simple walking gait.
-
-    Args:
-      phase: (B,) gait phase in radians.
-      activity: (B,) 0 (standing) .. 1 (full stride).
-    Returns:
-      (B, 6) targets for left hip, knee, ankle, right hip, knee, ankle.
-    """
-
-    def leg(p):
-        hip = 0.35 * jnp.sin(p)
-        knee = 0.7 * jnp.maximum(0.0, jnp.sin(p + 0.6))
-        ankle = -0.5 * hip + 0.3 * knee
-        return jnp.stack([hip, knee, ankle], axis=-1)
-
-    a = activity[..., None]
-    return jnp.concatenate([a * leg(phase), a * leg(phase + jnp.pi)], axis=-1)
-
-
-def gait_activity(action: jnp.ndarray) -> jnp.ndarray:
-    """(B,) stride amplitude in [0, 1] for a batch of actions (B, 20)."""
-    return jnp.clip(jnp.abs(action[..., FORWARD_SPEED]) / 0.3 + jnp.abs(action[..., YAW_RATE]) / 0.8, 0.0, 1.0)
-
-
-def action_to_ctrl(action: jnp.ndarray, base_yaw: jnp.ndarray, gait_phase: jnp.ndarray, idx: RobotIndex) -> jnp.ndarray:
-    """Maps actions to the 29 actuator controls of home.xml.
+def action_to_ctrl(action: jnp.ndarray, base_yaw: jnp.ndarray, idx: RobotIndex) -> jnp.ndarray:
+    """Maps actions to the 23 actuator controls of home.xml.
 
     Args:
       action: (B, 20) actions (clipped here to their documented ranges).
       base_yaw: (B,) current base heading, to turn the robot-frame driving command into
         world-frame base velocities.
-      gait_phase: (B,) gait phase for the leg targets.
       idx: the model's RobotIndex.
     Returns:
-      (B, 29) float controls.
+      (B, 23) float controls.
     """
     a = jnp.clip(action, idx.action_low, idx.action_high)
     closure = a[..., HAND_CLOSURE]
@@ -159,12 +133,11 @@ def action_to_ctrl(action: jnp.ndarray, base_yaw: jnp.ndarray, gait_phase: jnp.n
     fingers = jnp.stack([finger[..., 0], finger[..., 0], finger[..., 1], finger[..., 1]], axis=-1)
     v, w = a[..., FORWARD_SPEED], a[..., YAW_RATE]
     base = jnp.stack([v * jnp.cos(base_yaw), v * jnp.sin(base_yaw), w], axis=-1)
-    legs = gait_targets(gait_phase, gait_activity(a))
-    return jnp.concatenate([a[..., ARMS], a[..., NECK], fingers, base, legs], axis=-1)
+    return jnp.concatenate([a[..., ARMS], a[..., NECK], fingers, base], axis=-1)
 
 
 def proprioception(qpos: jnp.ndarray, qvel: jnp.ndarray, idx: RobotIndex) -> jnp.ndarray:
-    """The proprioception vector (B, 49) from qpos (B, nq) and qvel (B, nv); layout in the module doc."""
+    """The proprioception vector (B, 37) from qpos (B, nq) and qvel (B, nv); layout in the module doc."""
     yaw = qpos[..., idx.base_qpos[2]]
     vx, vy, wz = (qvel[..., i] for i in idx.base_qvel)
     fwd = vx * jnp.cos(yaw) + vy * jnp.sin(yaw)

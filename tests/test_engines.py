@@ -40,7 +40,7 @@ def test_cpu_engine_is_mujoco_c_engine(model, mug_episode):
     mujoco.mj_forward(model, d)
     for t in range(5):
         action = np.asarray(traj.action[:, t])
-        ctrl = np.asarray(R.action_to_ctrl(jnp.asarray(action), st.qpos[:, env.idx.robot.base_qpos[2]], st.gait_phase, env.idx.robot))
+        ctrl = np.asarray(R.action_to_ctrl(jnp.asarray(action), st.qpos[:, env.idx.robot.base_qpos[2]], env.idx.robot))
         d.ctrl[:] = ctrl[1]
         for _ in range(PHYSICS_SUBSTEPS):
             mujoco.mj_step(model, d)

@@ -17,7 +17,9 @@ def test_wilson_interval_hand_computed():
     lo, hi = wilson_interval(80, 100)
     assert lo == pytest.approx(centre - half) and hi == pytest.approx(centre + half)
     assert lo == pytest.approx(0.7112, abs=1e-4) and hi == pytest.approx(0.8666, abs=1e-4)
-    assert wilson_interval(0, 10)[0] == 0.0 and wilson_interval(10, 10)[1] == 1.0
+    assert wilson_interval(0, 10)[0] == pytest.approx(0.0, abs=1e-12)
+    assert wilson_interval(10, 10)[1] == pytest.approx(1.0, abs=1e-12)
+    assert wilson_interval(10, 10)[0] == pytest.approx(0.7225, abs=1e-4)  # 10/10: lower bound
 
 
 def test_command_writes_task_skill_rates(tmp_path):
