@@ -86,18 +86,22 @@ def bench_xml(xml: str, batch: int, nsteps: int = 100) -> dict:
     def one(q, mp):
         return mjx.forward(mx, mjx.make_data(mx, impl="jax").replace(qpos=q, mocap_pos=mp))
 
-    if m.nq != base.nq:  # a variant without some joints: carry the others' positions over by name
-        cols = []
+    if m.nq != base.nq:  # a variant with other joints: carry positions over by joint name
+        cols = np.tile(np.asarray(m.qpos0, np.float32), (batch, 1))
         for j in range(m.njnt):
-            nb = base.joint(m.joint(j).name)
-            width = {0: 7, 1: 4, 2: 1, 3: 1}[int(m.jnt_type[j])]
-            cols += list(range(nb.qposadr[0], nb.qposadr[0] + width))
-        qpos = qpos[:, np.array(cols)]
+            name, width = m.joint(j).name, {0: 7, 1: 4, 2: 1, 3: 1}[int(m.jnt_type[j])]
+            try:
+                src = base.joint(name).qposadr[0]
+            except KeyError:
+                continue
+            dst = m.jnt_qposadr[j]
+            cols[:, dst : dst + width] = np.asarray(qpos[:, src : src + width])
+        qpos = jnp.asarray(cols)
     d = jax.jit(jax.vmap(one))(qpos, mocap)
     a = np.zeros((batch, R.ACTION_DIM), np.float32)
     a[:, R.ARMS] = np.concatenate([S.READY_ARM, S.READY_ARM]) + 0.1 * np.random.default_rng(0).standard_normal((batch, 14))
     ctrl = R.action_to_ctrl(jnp.asarray(a), jnp.zeros(batch), idx.robot)
-    d = d.replace(ctrl=ctrl[:, : m.nu])  # leg actuators come last
+    d = d.replace(ctrl=jnp.pad(ctrl, ((0, 0), (0, m.nu - ctrl.shape[1]))))  # v0's leg actuators come last
     run = jax.jit(lambda dd: jax.lax.scan(lambda x, _: (jax.vmap(lambda y: mjx.step(mx, y))(x), None), dd, None, length=nsteps)[0])
     d = jax.block_until_ready(run(d))
     t0 = time.perf_counter()

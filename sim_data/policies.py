@@ -16,6 +16,8 @@ How skill degrades a policy (u = 1 - skill, drawn once per episode from the poli
 - timing jitter: every phase of the script stretched by exp(N(0, (0.25 u)^2));
 - missed grasps: with probability 0.45 u the gripper closes 4-8 cm above the object;
 - early release: with probability 0.5 u the hand opens at a random moment of the transport;
+- airfryer: pull distance 0.13 - 0.08 u + N(0, (0.12 u)^2) m (short pulls fail, long ones hit the
+  tray's end stop and may drag the body);
 - step_back: target distance 0.6 - 0.3 u + N(0, (0.55 u)^2) m and a yaw-rate bias N(0, (0.6 u)^2) rad/s.
 """
 
@@ -256,7 +258,7 @@ class ScriptedPolicy:
             "swap": jax.random.uniform(k[7]) < 0.5 * u,
             "press": 0.035 * u * n(jax.random.fold_in(rng, 3), (2, 2)),
             "patch": 0.04 * u * n(k[8], (2,)),
-            "pull": 0.13 + 0.15 * u * jnp.abs(n(k[9])),
+            "pull": jnp.maximum(0.0, 0.13 - 0.08 * u + 0.12 * u * n(k[9])),
             "distance": 0.6 - 0.3 * u + 0.55 * u * n(jax.random.fold_in(rng, 1)),
             "yaw_bias": 0.6 * u * n(jax.random.fold_in(rng, 2)),
         }
