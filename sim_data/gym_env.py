@@ -13,6 +13,8 @@ MuJoCo's OpenGL renderer (`camera="head_cam"` for the egocentric view).
 
 from __future__ import annotations
 
+import copy
+
 import gymnasium as gym
 import jax
 import mujoco
@@ -20,6 +22,7 @@ import numpy as np
 
 from sim_data import robot as R
 from sim_data.env import HomeEnv
+from sim_data.scene import paint
 from sim_data.tasks import TASK_NAMES, get_task
 
 ENV_ID = "WMLab/HomeHumanoid-v0"
@@ -77,11 +80,13 @@ class HomeGymEnv(gym.Env):
             return None
         env = self._env()
         if self._renderer is None:
-            self._renderer = mujoco.Renderer(env.model, *self._size)
-            self._data = mujoco.MjData(env.model)
+            self._model = copy.deepcopy(env.model)  # painted per episode; the shared model stays as loaded
+            self._renderer = mujoco.Renderer(self._model, *self._size)
+            self._data = mujoco.MjData(self._model)
+        paint(self._model, self._state.task.colors[0])
         self._data.qpos[:] = np.asarray(self._state.qpos[0], np.float64)
         self._data.mocap_pos[:] = np.asarray(self._state.mocap_pos[0], np.float64)
-        mujoco.mj_forward(env.model, self._data)
+        mujoco.mj_forward(self._model, self._data)
         self._renderer.update_scene(self._data, self._camera)
         return self._renderer.render().copy()
 

@@ -42,8 +42,19 @@ BUTTON_PRESSED = -0.007  # button slide (m) below which a button counts as press
 HIDDEN_Z = -3.0  # mocap props parked under the floor are out of the scene
 
 # Right-arm and left-arm joint angles of the ready pose (ACTION order within an arm).
-READY_NECK_PITCH = 0.55  # head tilted down at the counter
+READY_NECK_PITCH = 0.85  # head tilted down: the counter and hands fill the head camera
 READY_ARM = np.array([0.2, 0.0, 0.0, -2.1, 0.0, 1.4, 0.0], dtype=np.float32)
+
+
+# Geoms whose colour is drawn per episode (TaskState.colors rows: mug, cloth, block, fryer).
+COLORED_GEOMS = (("mug", "mug_body", "mug_handle"), ("cloth",), ("block",), ("fryer", "fryer_top"))
+
+
+def paint(model: mujoco.MjModel, colors) -> None:
+    """Writes one episode's colours (4, 3) into a model's geom_rgba (use a copy for rendering)."""
+    for names, rgb in zip(COLORED_GEOMS, np.asarray(colors)):
+        for n in names:
+            model.geom_rgba[model.geom(n).id, :3] = rgb
 
 
 @dataclasses.dataclass(frozen=True)
