@@ -4,7 +4,8 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 export MUJOCO_GL ?= egl
-export XLA_FLAGS ?= --xla_cpu_multi_thread_eigen=true
+# XLA:CPU's multi-threaded Eigen pool can wedge on large vmapped MJX graphs (idle, never returns)
+export XLA_FLAGS ?= --xla_cpu_multi_thread_eigen=false
 OUT ?= runs/demo
 EPISODES ?= 10
 

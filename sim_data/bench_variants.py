@@ -31,10 +31,12 @@ ASSETS = Path(__file__).parent / "assets"
 
 
 def _edit(xml: str, **opt) -> str:
+    """Sets attributes of the <option> element."""
+    head, rest = xml.split("<option", 1)
+    tag, tail = rest.split(">", 1)
     for k, v in opt.items():
-        xml = re.sub(rf'{k}="[^"]*"', f'{k}="{v}"', xml, count=1) if f'{k}="' in xml.split("<option")[1].split(">")[0] \
-            else xml.replace("<option ", f'<option {k}="{v}" ', 1)
-    return xml
+        tag = re.sub(rf' {k}="[^"]*"', f' {k}="{v}"', tag) if f" {k}=" in tag else f' {k}="{v}"' + tag
+    return head + "<option" + tag + ">" + tail
 
 
 def _sphere_pads(xml: str) -> str:

@@ -152,7 +152,7 @@ def sample_initial(task: Task, key: jax.Array, idx: S.SceneIndex, qpos0: jax.Arr
     mug_xy = jnp.array(MUG_XY) + u(k[1], -1, 1, (2,)) * jnp.array([0.03, 0.04])
     qpos = place(qpos, idx.mug_qpos, mug_xy, S.COUNTER_TOP + S.MUG_HALF_HEIGHT, u(k[2], -0.3, 0.3))
     cloth_xy = jnp.array(CLOTH_XY) + u(k[3], -0.02, 0.02, (2,))
-    qpos = place(qpos, idx.cloth_qpos, cloth_xy, S.COUNTER_TOP + S.CLOTH_HALF[2], u(k[3], -0.2, 0.2))
+    qpos = place(qpos, idx.cloth_qpos, cloth_xy, S.COUNTER_TOP + S.CLOTH_HALF[2], u(jax.random.fold_in(k[3], 1), -0.2, 0.2))
     fryer_xy = jnp.array(FRYER_XY) + u(k[4], -1, 1, (2,)) * jnp.array([0.02, 0.03])
     qpos = place(qpos, idx.fryer_qpos, fryer_xy, S.COUNTER_TOP + 0.15, jnp.zeros(()))
     block_xy = jnp.array(BLOCK_XY) + u(k[5], -0.03, 0.03, (2,))
