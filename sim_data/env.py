@@ -9,7 +9,7 @@ are jitted and the C engine runs between them.
 
 from __future__ import annotations
 
-import functools
+import warnings
 from typing import Any
 
 import jax
@@ -76,6 +76,9 @@ class HomeEnv:
         self.model = S.load_model()
         self.idx = S.scene_index(self.model)
         self.engine = make_engine(engine or default_engine(), self.model, batch_size, nthread)
+        if self.engine.name == "mjx" and batch_size > 2 and default_engine() == "cpu":
+            warnings.warn("the mjx engine is meant for GPUs: on XLA:CPU its whole-episode scan can stall at batch "
+                          "sizes above 2 (see README, known issues); use engine='cpu' here", stacklevel=2)
         self._qpos0 = np.asarray(self.model.qpos0, np.float32)
         self._mocap0 = np.asarray(self.model.body_pos[self.model.body_mocapid >= 0][
             np.argsort(self.model.body_mocapid[self.model.body_mocapid >= 0])], np.float32)

@@ -49,7 +49,7 @@ class ScriptCarry:
       times: (B, K) keyframe times; pos: (B, K, 3) right-grip keyframes; yaw: (B, K) hand yaw;
       closure: (B, K) right-hand closure at each keyframe.
       release_at: (B,) time after which the hand opens (inf: never).
-      drive: (B, 3) step_back: target distance, yaw-rate bias, heading at reset.
+      drive: (B, 2) step_back: target distance, yaw-rate bias.
     """
 
     q_cmd: jax.Array
@@ -126,10 +126,6 @@ def keyframe_target(t, times, pos, yaw, closure):
     a = _smoothstep((t - times[k]) / jnp.maximum(times[k + 1] - times[k], 1e-6))
     lerp = lambda x: x[k] + (x[k + 1] - x[k]) * a
     return lerp(pos), lerp(yaw), lerp(closure)
-
-
-def _wrap(a):
-    return jnp.mod(a + jnp.pi, 2 * jnp.pi) - jnp.pi
 
 
 def _pinch_yaw(obj_yaw):
@@ -274,7 +270,7 @@ class ScriptedPolicy:
         else:
             times, pos, yaw, closure, (t0, t1) = _script(self.task, qpos, ts, noise, idx, hand0)
         release_at = jnp.where(noise["release"], t0 + (t1 - t0) * noise["release_frac"], jnp.inf)
-        drive = jnp.stack([noise["distance"], noise["yaw_bias"], qpos[idx.robot.base_qpos[2]]])
+        drive = jnp.stack([noise["distance"], noise["yaw_bias"]])
         return ScriptCarry(q_cmd=q_cmd, times=times, pos=pos, yaw=yaw, closure=closure, release_at=release_at, drive=drive)
 
     def init_carry(self, params, obs, task_state, rng):
@@ -289,7 +285,6 @@ class ScriptedPolicy:
         return jax.vmap(self._init_one)(params["skill"], obs["qpos"], task_state, keys)
 
     def _act_one(self, qpos, t, c: ScriptCarry):
-        idx = self.kin.idx
         action = jnp.zeros(R.ACTION_DIM)
         action = action.at[R.NECK].set(jnp.array([0.0, S.READY_NECK_PITCH]))
         if self.task == "step_back":

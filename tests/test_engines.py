@@ -66,10 +66,10 @@ def test_mjx_replays_cpu_episode_within_tolerance(mug_episode):
 @pytest.mark.slow
 @pytest.mark.parametrize("task", TASK_NAMES)
 def test_closed_loop_success_flags_agree(task):
-    b = 8
+    b = 2  # XLA:CPU can wedge on the whole-episode MJX scan at larger batches (README, known issues)
     cpu, mj = HomeEnv(task, b, engine="cpu"), HomeEnv(task, b, engine="mjx")
     pol = ScriptedPolicy.create(task, cpu.model)
-    params = {"skill": jnp.linspace(0.2, 1.0, b)}
+    params = {"skill": jnp.array([0.2, 1.0])}
     rng = jax.random.PRNGKey(11)
     a, _ = run_episodes(cpu, pol, params, rng)
     m, _ = run_episodes(mj, pol, params, rng)
