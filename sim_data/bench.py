@@ -30,12 +30,26 @@ from sim_data.env import HomeEnv
 from sim_data.success_table import write_json_atomic
 
 
-def _controls(env: HomeEnv, b: int, seed: int = 0) -> np.ndarray:
+def ready_controls(idx: R.RobotIndex, b: int, seed: int = 0) -> np.ndarray:
+    """(b, 23) controls holding the ready pose under small random arm targets."""
     a = np.zeros((b, R.ACTION_DIM), np.float32)
     a[:, R.ARMS] = np.concatenate([S.READY_ARM, S.READY_ARM]) + 0.1 * np.random.default_rng(seed).standard_normal((b, 14))
     a[:, R.NECK.start + 1] = S.READY_NECK_PITCH
-    st_yaw = np.zeros(b, np.float32)
-    return np.asarray(R.action_to_ctrl(jnp.asarray(a), jnp.asarray(st_yaw), env.idx.robot))
+    return np.asarray(R.action_to_ctrl(jnp.asarray(a), jnp.zeros(b), idx))
+
+
+def time_mjx(engine, physics, ctrl, mocap_pos, nsteps: int, repeats: int = 1):
+    """Compiles and times nsteps MJX substeps of a batch; returns (best seconds, compile seconds, physics)."""
+    run = jax.jit(lambda d: engine.advance(d, ctrl, mocap_pos, nsteps)[0])
+    t0 = time.perf_counter()
+    d = jax.block_until_ready(run(physics))
+    compile_s = time.perf_counter() - t0
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        d = jax.block_until_ready(run(d))
+        times.append(time.perf_counter() - t0)
+    return min(times), compile_s, d
 
 
 def device_name() -> str:
@@ -46,7 +60,7 @@ def device_name() -> str:
 def bench_cpu(batch: int, seconds: float = 3.0, nthread: int | None = None) -> dict:
     env = HomeEnv("mug", batch, engine="cpu", nthread=nthread)
     st = env.reset(jax.random.PRNGKey(0))
-    ctrl = _controls(env, batch)
+    ctrl = ready_controls(env.idx.robot, batch)
     phys = st.physics
     ncon = env.engine.batch.bind("ncon")  # bound before stepping: refreshed by every call
     phys, _, _ = env.engine.advance(phys, ctrl, np.asarray(st.mocap_pos), 10)  # warm-up
@@ -62,17 +76,8 @@ def bench_cpu(batch: int, seconds: float = 3.0, nthread: int | None = None) -> d
 def bench_mjx(batch: int, nsteps: int = 200, repeats: int = 3) -> dict:
     env = HomeEnv("mug", batch, engine="mjx")
     st = env.reset(jax.random.PRNGKey(0))
-    ctrl = jnp.asarray(_controls(env, batch))
-    run = jax.jit(lambda d: env.engine.advance(d, ctrl, st.mocap_pos, nsteps)[0])
-    t0 = time.perf_counter()
-    d = jax.block_until_ready(run(st.physics))
-    compile_s = time.perf_counter() - t0
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        d = jax.block_until_ready(run(d))
-        times.append(time.perf_counter() - t0)
-    best = min(times)
+    ctrl = jnp.asarray(ready_controls(env.idx.robot, batch))
+    best, compile_s, d = time_mjx(env.engine, st.physics, ctrl, st.mocap_pos, nsteps, repeats)
     ncon = int(jnp.sum(d._impl.contact.dist < 0) / batch) if hasattr(d, "_impl") else None
     return {"engine": "mjx", "batch": batch, "device": device_name(), "steps_per_s": batch * nsteps / best,
             "seconds": best, "compile_s": compile_s, "active_contacts": ncon}

@@ -13,7 +13,6 @@ import json
 import re
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import jax
@@ -21,9 +20,9 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from sim_data import robot as R
 from sim_data import scene as S
-from sim_data.bench import device_name
+from sim_data.bench import device_name, ready_controls, time_mjx
+from sim_data.engines import MjxEngine
 from sim_data.success_table import write_json_atomic
 from sim_data.tasks import TASKS, sample_initial
 
@@ -68,48 +67,38 @@ def variants(which: str = "all") -> dict[str, str]:
     return out
 
 
+def _carry_qpos(qpos, base: mujoco.MjModel, m: mujoco.MjModel):
+    """Maps qpos (B, base.nq) onto a variant's joints by name; joints base lacks keep m.qpos0."""
+    out = np.tile(np.asarray(m.qpos0, np.float32), (qpos.shape[0], 1))
+    for j in range(m.njnt):
+        width = {0: 7, 1: 4, 2: 1, 3: 1}[int(m.jnt_type[j])]
+        try:
+            src = base.joint(m.joint(j).name).qposadr[0]
+        except KeyError:
+            continue
+        out[:, m.jnt_qposadr[j] : m.jnt_qposadr[j] + width] = np.asarray(qpos[:, src : src + width])
+    return out
+
+
 def bench_xml(xml: str, batch: int, nsteps: int = 100) -> dict:
+    """Steps a variant's MJCF exactly as `sim_data.bench` steps home.xml, from `mug` initial states."""
     with tempfile.NamedTemporaryFile("w", suffix=".xml", dir=ASSETS, delete=False) as f:
         f.write(xml)
     try:
         m = mujoco.MjModel.from_xml_path(f.name)
     finally:
         Path(f.name).unlink()
-    from mujoco import mjx
-
     base = S.load_model()
-    mx = mjx.put_model(m, impl="jax")
     idx = S.scene_index(base)
-    qpos0 = np.asarray(base.qpos0, np.float32)
-    mocap0 = np.asarray(m.body_pos[m.body_mocapid >= 0][np.argsort(m.body_mocapid[m.body_mocapid >= 0])], np.float32)
     keys = jax.random.split(jax.random.PRNGKey(0), batch)
-    qpos, mocap, _ = jax.jit(jax.vmap(lambda k: sample_initial(TASKS["mug"], k, idx, qpos0, mocap0, False)))(keys)
-
-    def one(q, mp):
-        return mjx.forward(mx, mjx.make_data(mx, impl="jax").replace(qpos=q, mocap_pos=mp))
-
-    if m.nq != base.nq:  # a variant with other joints: carry positions over by joint name
-        cols = np.tile(np.asarray(m.qpos0, np.float32), (batch, 1))
-        for j in range(m.njnt):
-            name, width = m.joint(j).name, {0: 7, 1: 4, 2: 1, 3: 1}[int(m.jnt_type[j])]
-            try:
-                src = base.joint(name).qposadr[0]
-            except KeyError:
-                continue
-            dst = m.jnt_qposadr[j]
-            cols[:, dst : dst + width] = np.asarray(qpos[:, src : src + width])
-        qpos = jnp.asarray(cols)
-    d = jax.jit(jax.vmap(one))(qpos, mocap)
-    a = np.zeros((batch, R.ACTION_DIM), np.float32)
-    a[:, R.ARMS] = np.concatenate([S.READY_ARM, S.READY_ARM]) + 0.1 * np.random.default_rng(0).standard_normal((batch, 14))
-    ctrl = R.action_to_ctrl(jnp.asarray(a), jnp.zeros(batch), idx.robot)
-    d = d.replace(ctrl=jnp.pad(ctrl, ((0, 0), (0, m.nu - ctrl.shape[1]))))  # v0's leg actuators come last
-    run = jax.jit(lambda dd: jax.lax.scan(lambda x, _: (jax.vmap(lambda y: mjx.step(mx, y))(x), None), dd, None, length=nsteps)[0])
-    d = jax.block_until_ready(run(d))
-    t0 = time.perf_counter()
-    d = jax.block_until_ready(run(d))
-    dt = time.perf_counter() - t0
-    return {"batch": batch, "steps_per_s": batch * nsteps / dt, "ncon_slots": int(d._impl.contact.dist.shape[1]),
+    sample = jax.vmap(lambda k: sample_initial(TASKS["mug"], k, idx, base.qpos0, S.default_mocap_pos(base), False))
+    qpos, mocap, _ = jax.jit(sample)(keys)
+    engine = MjxEngine(m, batch)
+    physics = jax.jit(engine.init)(_carry_qpos(qpos, base, m), mocap)
+    ctrl = ready_controls(idx.robot, batch)
+    ctrl = jnp.pad(jnp.asarray(ctrl), ((0, 0), (0, m.nu - ctrl.shape[1])))  # v0's leg actuators come last
+    best, _, d = time_mjx(engine, physics, ctrl, mocap, nsteps)
+    return {"batch": batch, "steps_per_s": batch * nsteps / best, "ncon_slots": int(d._impl.contact.dist.shape[1]),
             "nefc": int(d._impl.efc_J.shape[1]), "nv": m.nv, "npair": m.npair}
 
 

@@ -80,8 +80,7 @@ class HomeEnv:
             warnings.warn("the mjx engine is meant for GPUs: on XLA:CPU its whole-episode scan can stall at batch "
                           "sizes above 2 (see README, known issues); use engine='cpu' here", stacklevel=2)
         self._qpos0 = np.asarray(self.model.qpos0, np.float32)
-        self._mocap0 = np.asarray(self.model.body_pos[self.model.body_mocapid >= 0][
-            np.argsort(self.model.body_mocapid[self.model.body_mocapid >= 0])], np.float32)
+        self._mocap0 = S.default_mocap_pos(self.model)
         self._sample = jax.jit(jax.vmap(lambda k: sample_initial(self.task, k, self.idx, self._qpos0, self._mocap0, heldout)))
         self._pre = jax.jit(self._pre_step)
         self._post = jax.jit(self._post_step)

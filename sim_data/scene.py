@@ -80,6 +80,12 @@ class SceneIndex:
     nmocap: int
 
 
+def default_mocap_pos(model: mujoco.MjModel) -> np.ndarray:
+    """(nmocap, 3) float32 positions of the mocap bodies as authored, in mocap-id order."""
+    bodies = np.flatnonzero(model.body_mocapid >= 0)
+    return np.asarray(model.body_pos[bodies[np.argsort(model.body_mocapid[bodies])]], np.float32)
+
+
 @functools.lru_cache(maxsize=None)
 def load_model(path: str = str(MODEL_PATH)) -> mujoco.MjModel:
     """The compiled home scene (cached: treat it as read-only)."""
