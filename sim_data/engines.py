@@ -18,6 +18,7 @@ import numpy as np
 from flax import struct
 
 ENGINES = ("cpu", "mjx")
+POSE_FIELDS = ("geom_xpos", "geom_xmat", "cam_xpos", "cam_xmat")
 
 
 def default_engine() -> str:
@@ -27,9 +28,16 @@ def default_engine() -> str:
 
 @struct.dataclass
 class CpuPhysics:
-    """The `cpu` engine's state: one mjSTATE_INTEGRATION row per simulation, (B, nstate) float64."""
+    """The `cpu` engine's state.
+
+    Attributes:
+      rows: (B, nstate) float64, one mjSTATE_INTEGRATION row per simulation.
+      poses: {"geom_xpos", "geom_xmat", "cam_xpos", "cam_xmat"} copied from MjData after the last
+        step (the kinematics of its last substep, as `mjx.Data` holds them), for the renderer.
+    """
 
     rows: np.ndarray
+    poses: dict
 
 
 class CpuEngine:
@@ -47,6 +55,10 @@ class CpuEngine:
         self.batch = mujoco.batch.Batch(model, nsim=batch_size, nthread=nthread)
         self._qpos, self._qvel = self.batch.bind("qpos"), self.batch.bind("qvel")
         self._ctrl, self._mocap = self.batch.bind("ctrl"), self.batch.bind("mocap_pos")
+        self._poses = {k: self.batch.bind(k) for k in POSE_FIELDS}
+
+    def _state(self) -> CpuPhysics:
+        return CpuPhysics(rows=self.batch.state.copy(), poses={k: v.copy() for k, v in self._poses.items()})
 
     def init(self, qpos: np.ndarray, mocap_pos: np.ndarray) -> CpuPhysics:
         """Physics at rest at qpos (B, nq) with mocap bodies at mocap_pos (B, nmocap, 3)."""
@@ -54,7 +66,7 @@ class CpuEngine:
         self._qpos[:] = np.asarray(qpos, np.float64)
         self._mocap[:] = np.asarray(mocap_pos, np.float64)
         self.batch.forward()
-        return CpuPhysics(rows=self.batch.state.copy())
+        return self._state()
 
     def advance(self, physics: CpuPhysics, ctrl, mocap_pos, nsub: int):
         """Steps every simulation nsub times with constant ctrl (B, nu).
@@ -65,8 +77,11 @@ class CpuEngine:
         self._ctrl[:] = np.asarray(ctrl, np.float64)
         self._mocap[:] = np.asarray(mocap_pos, np.float64)
         self.batch.step(nstep=nsub)
-        rows = self.batch.state.copy()
-        return CpuPhysics(rows=rows), self._qpos.copy(), self._qvel.copy()
+        return self._state(), self._qpos.copy(), self._qvel.copy()
+
+    def poses(self, physics: CpuPhysics) -> dict:
+        """Geom and camera poses (B, ...) of a physics state, as MjData lays them out."""
+        return physics.poses
 
 
 class MjxEngine:
@@ -101,6 +116,10 @@ class MjxEngine:
 
         d, _ = jax.lax.scan(substep, d, None, length=nsub)
         return d, d.qpos, d.qvel
+
+    def poses(self, physics) -> dict:
+        """Geom and camera poses (B, ...) of a physics state (traceable)."""
+        return {k: getattr(physics, k) for k in POSE_FIELDS}
 
 
 def make_engine(name: str, model: mujoco.MjModel, batch_size: int, nthread: int | None = None):

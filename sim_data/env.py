@@ -20,6 +20,7 @@ from flax import struct
 from sim_data import robot as R
 from sim_data import scene as S
 from sim_data.engines import default_engine, make_engine
+from sim_data.render import Poses, poses_from_arrays
 from sim_data.tasks import PHYSICS_SUBSTEPS, Task, TaskState, dirt_mocap_z, get_task, sample_initial, update_task
 
 
@@ -130,6 +131,11 @@ class HomeEnv:
         return State(
             physics=physics, qpos=qpos, qvel=qvel, mocap_pos=mocap, task=ts, obs=_observe(qpos, qvel, ts, self.idx),
             success=jnp.zeros((b,), bool), done=jnp.zeros((b,), bool), step=jnp.zeros((b,), jnp.int32))
+
+    def poses(self, state: State) -> Poses:
+        """`sim_data.render.Poses` of the batch (traceable with the `mjx` engine)."""
+        p = self.engine.poses(state.physics)
+        return poses_from_arrays(p["geom_xpos"], p["geom_xmat"], p["cam_xpos"], p["cam_xmat"])
 
     def step(self, state: State, action) -> State:
         """Advances every simulation by one control step (CONTROL_DT) under action (B, 20)."""
