@@ -96,6 +96,7 @@ VARIANTS = (
     ("tiles 16px, 16 per type", dict(tile=16, max_per_tile=16)),
     ("tiles 16px, 24 per type", dict(tile=16, max_per_tile=24)),
     ("tiles 4px, 8 per type", dict(tile=4, max_per_tile=8)),
+    ("tiles 8px, 16 per type, shadows off", dict(tile=8, max_per_tile=16, shadows=False)),
 )
 
 
@@ -166,7 +167,7 @@ def main(argv=None) -> int:
     p.add_argument("--batches", default=None, help="JAX renderer batch sizes (default: 16,64 on CPU; 1024..16384 on GPU)")
     p.add_argument("--sizes", default="64,128")
     p.add_argument("--cameras", default="head_cam,ext_cam")
-    p.add_argument("--variants", action="store_true", help="time every culling design too")
+    p.add_argument("--variants", type=int, default=0, help="time every culling design at this batch size too")
     p.add_argument("--e2e", default="", help="batch sizes for the end-to-end MJX + renderer + policy scan")
     a = p.parse_args(argv)
     gpu = any(d.platform == "gpu" for d in jax.devices())
@@ -186,20 +187,25 @@ def main(argv=None) -> int:
             r = Renderer(model, RenderConfig(height=size, width=size, camera=camera))
             for b in batches:
                 poses, rgb = batch_inputs(r.geometry, pool, colors, b)
-                res = dict(size=size, camera=camera, batch=b, tile=r.cfg.tile, max_per_tile=r.cfg.max_per_tile,
-                           **time_jax_renderer(r, poses, rgb))
+                res = dict(size=size, camera=camera, batch=b, tile=r.cfg.tile, max_per_tile=r.cfg.max_per_tile)
+                try:
+                    res.update(time_jax_renderer(r, poses, rgb))
+                except Exception as e:  # out of device memory at the largest sizes: recorded, not fatal
+                    res.update(error=f"{type(e).__name__}: {str(e)[:200]}", frames_per_s=0.0)
                 report["jax_renderer"].append(res)
                 print(json.dumps(res), flush=True)
             write_json_atomic(a.out, report)
     if a.variants:
-        report["variants"] = bench_variants(model, pool, colors, batches[-1])
+        report["variants"] = bench_variants(model, pool, colors, a.variants)
+        write_json_atomic(a.out, report)
     for b in (int(x) for x in a.e2e.split(",") if x):
         res = bench_e2e(b)
         report["e2e"].append(res)
         print(json.dumps(res), flush=True)
+        write_json_atomic(a.out, report)
     summary = {}
     for m in report["mujoco_renderer"]:
-        ours = max(r["frames_per_s"] for r in report["jax_renderer"] if r["size"] == m["size"] and r["camera"] == m["camera"])
+        ours = max(r.get("frames_per_s", 0.0) for r in report["jax_renderer"] if r["size"] == m["size"] and r["camera"] == m["camera"])
         summary[f"{m['camera']}@{m['size']}"] = {"jax_fps": ours, "mujoco_fps": m["frames_per_s"], "ratio": ours / m["frames_per_s"]}
     report["summary"] = summary
     write_json_atomic(a.out, report)

@@ -196,7 +196,8 @@ def scene_geometry(model: mujoco.MjModel) -> SceneGeometry:
         head_ambient=np.array(model.vis.headlight.ambient, np.float32),
         head_diffuse=np.array(model.vis.headlight.diffuse, np.float32),
         znear=float(model.vis.map.znear * extent), zfar=float(model.vis.map.zfar * extent),
-        colored=tuple(np.array([model.geom(n).id for n in names], np.int32) for names in S.COLORED_GEOMS),
+        colored=tuple(np.array([i for i in (mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, n) for n in names)
+                                if i >= 0], np.int32) for names in S.COLORED_GEOMS),
         gtype=np.array(model.geom_type, np.int32),
     )
 

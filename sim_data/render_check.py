@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import copy
 import json
+from pathlib import Path
 
 import jax
 import mujoco
@@ -23,6 +24,7 @@ from sim_data.success_table import write_json_atomic
 from sim_data.tasks import TASK_NAMES
 
 ID_TARGET, DEPTH_TARGET = 0.98, 0.01
+CAMERAS = ("head_cam", "ext_cam")
 
 
 def sample_states(task: str, n: int, seed: int = 0, heldout: bool = False):
@@ -37,6 +39,19 @@ def sample_states(task: str, n: int, seed: int = 0, heldout: bool = False):
     rows = np.arange(n)
     init = env.reset(jax.random.split(jax.random.PRNGKey(seed), 3)[0])
     return (np.asarray(traj.qpos)[rows, steps], np.asarray(traj.mocap_pos)[rows, steps], np.asarray(init.task.colors))
+
+
+def random_states(task: str, n: int, seed: int = 0, heldout: bool = False):
+    """n initial states of task with the arms and neck moved to uniformly random targets (cheap:
+    no episode is run). Returns qpos (n, nq), mocap_pos (n, nmocap, 3), colors (n, 4, 3)."""
+    env = HomeEnv(task, n, engine="cpu", heldout=heldout)
+    st = env.reset(jax.random.PRNGKey(seed))
+    idx = env.idx.robot
+    rng = np.random.default_rng(seed)
+    qpos = np.array(st.qpos)
+    lo, hi = idx.action_low[:16], idx.action_high[:16]
+    qpos[:, idx.posed_qpos] = rng.uniform(lo, hi, (n, 16))
+    return qpos, np.asarray(st.mocap_pos), np.asarray(st.task.colors)
 
 
 def poses_of(model: mujoco.MjModel, qpos: np.ndarray, mocap_pos: np.ndarray) -> Poses:
@@ -84,10 +99,10 @@ def compare(ids, depth, ref_ids, ref_depth) -> dict:
     }
 
 
-def agreement(task: str, n: int, cfg: RenderConfig, seed: int = 0, renderer: Renderer | None = None) -> dict:
-    """Renders n states of task with both renderers (camera, size of cfg) and compares them."""
+def agreement(states, cfg: RenderConfig, renderer: Renderer | None = None) -> dict:
+    """Renders states (qpos, mocap_pos, colors) with both renderers (camera, size of cfg) and compares them."""
     model = S.load_model()
-    qpos, mocap, colors = sample_states(task, n, seed)
+    qpos, mocap, colors = states
     r = renderer or Renderer(model, cfg)
     out = r.render(poses_of(model, qpos, mocap), episode_rgb(r.geometry, colors))
     ref_ids, ref_depth = mujoco_reference(model, qpos, mocap, cfg.camera, cfg.height, cfg.width)
@@ -118,17 +133,17 @@ def main(argv=None):
     p.add_argument("--states", type=int, default=50, help="states per task")
     p.add_argument("--size", type=int, default=64)
     p.add_argument("--tasks", default=",".join(TASK_NAMES))
-    p.add_argument("--out", default="runs/render_check.json")
+    p.add_argument("--out", type=Path, default=Path("runs/render_check.json"))
     a = p.parse_args(argv)
     results = {}
-    for camera in ("head_cam", "ext_cam"):
-        cfg = RenderConfig(height=a.size, width=a.size, camera=camera)
-        r = Renderer(S.load_model(), cfg)
-        for task in a.tasks.split(","):
-            res = agreement(task, a.states, cfg, renderer=r)
+    renderers = {c: Renderer(S.load_model(), RenderConfig(height=a.size, width=a.size, camera=c)) for c in CAMERAS}
+    for task in a.tasks.split(","):
+        states = sample_states(task, a.states)
+        for camera, r in renderers.items():
+            res = agreement(states, r.cfg, renderer=r)
             results[f"{task}/{camera}"] = res
             print(f"{task:10s} {camera:8s} ids {res['id_agreement']:.4f} (worst frame {res['id_agreement_min_frame']:.3f})"
-                  f"  depth within 1% {res['depth_within_1pct']:.4f}")
+                  f"  depth within 1% {res['depth_within_1pct']:.4f}", flush=True)
     write_json_atomic(a.out, {"states_per_task": a.states, "size": a.size, "targets": {"id": ID_TARGET, "depth_rel": DEPTH_TARGET},
                               "results": results})
     print(json.dumps({"min_id_agreement": min(r["id_agreement"] for r in results.values())}))
