@@ -91,12 +91,14 @@ def id_agreement(a, b) -> float:
 
 VARIANTS = (
     ("all geoms per ray (tile=0)", dict(tile=0)),
-    ("tiles 8px, 16 per type", dict(tile=8, max_per_tile=16)),
     ("tiles 8px, 8 per type", dict(tile=8, max_per_tile=8)),
-    ("tiles 16px, 16 per type", dict(tile=16, max_per_tile=16)),
-    ("tiles 16px, 24 per type", dict(tile=16, max_per_tile=24)),
+    ("tiles 8px, 16 per type", dict(tile=8, max_per_tile=16)),
     ("tiles 4px, 8 per type", dict(tile=4, max_per_tile=8)),
-    ("tiles 8px, 16 per type, shadows off", dict(tile=8, max_per_tile=16, shadows=False)),
+    ("tiles 16px, 16 per type", dict(tile=16, max_per_tile=16)),
+    ("tiles 16px, 24 per type (default)", dict(tile=16, max_per_tile=24)),
+    ("tiles 16px, 32 per type", dict(tile=16, max_per_tile=32)),
+    ("tiles 32px, 32 per type", dict(tile=32, max_per_tile=32)),
+    ("tiles 16px, 24 per type, shadows off", dict(tile=16, max_per_tile=24, shadows=False)),
 )
 
 

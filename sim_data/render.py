@@ -55,8 +55,8 @@ class RenderConfig:
     width: int = 64
     camera: str = "head_cam"
     shadows: bool = True
-    tile: int = 8
-    max_per_tile: int = 16
+    tile: int = 16
+    max_per_tile: int = 24
 
     def __post_init__(self):
         if self.height < 1 or self.width < 1:
