@@ -294,6 +294,17 @@ def _to_local(v, mat):
     return tuple(v[0] * mat[..., 0, i] + v[1] * mat[..., 1, i] + v[2] * mat[..., 2, i] for i in range(3))
 
 
+def _vdot(a, b):
+    """Dot product over the last axis in full float32: `@` on GPUs defaults to TF32, whose 10-bit
+    mantissa moves rays by a pixel and depth by a percent."""
+    return jnp.sum(a * b, -1)
+
+
+def _matvec(m, v):
+    """m (3, 3) times each v (..., 3), in full float32."""
+    return jnp.sum(m * v[..., None, :], -1)
+
+
 def _split(x):
     """(..., 3) array -> tuple of 3 arrays."""
     return x[..., 0], x[..., 1], x[..., 2]
@@ -356,7 +367,7 @@ def _camera_rays(cfg: RenderConfig, fovy_deg, cam_mat):
     x = (2 * (jnp.arange(w) + 0.5) / w - 1) * tan * (w / h)
     local = jnp.stack([jnp.broadcast_to(x[None], (h, w)), jnp.broadcast_to(y[:, None], (h, w)), -jnp.ones((h, w))], -1)
     local = local / jnp.linalg.norm(local, axis=-1, keepdims=True)
-    return local @ cam_mat.T, -cam_mat[:, 2]
+    return _matvec(cam_mat, local), -cam_mat[:, 2]
 
 
 def _pack_min(t, k):
@@ -480,7 +491,7 @@ def _primary_candidates(geo, cfg, cam_pos, cam_mat, fovy_deg, pos, mat):
         if gtype == T.mjGEOM_PLANE:
             continue
         rel = _corners(geo, ids, pos, mat) - cam_pos
-        x, y, z = rel @ cam_mat[:, 0], rel @ cam_mat[:, 1], -(rel @ cam_mat[:, 2])  # z: depth
+        x, y, z = _vdot(rel, cam_mat[:, 0]), _vdot(rel, cam_mat[:, 1]), -_vdot(rel, cam_mat[:, 2])  # z: depth
         zs = jnp.maximum(z, geo.znear)
         u, v = x / zs / tan_x, y / zs / tan_y
         lo = jnp.stack([u.min(1), v.min(1)], -1)
@@ -501,17 +512,17 @@ def _shadow_candidates(geo, cfg, hit_tiles, lit_tiles, toward, pos, mat):
     e1 = e1 / jnp.linalg.norm(e1)
     e2 = jnp.cross(toward, e1)
     big = 1e6
-    proj = jnp.stack([hit_tiles @ e1, hit_tiles @ e2], -1)  # (nt, P, 2)
+    proj = jnp.stack([_vdot(hit_tiles, e1), _vdot(hit_tiles, e2)], -1)  # (nt, P, 2)
     tlo = jnp.min(jnp.where(lit_tiles[..., None], proj, big), 1)
     thi = jnp.max(jnp.where(lit_tiles[..., None], proj, -big), 1)
-    low = jnp.min(jnp.where(lit_tiles, hit_tiles @ toward, big), -1)  # lowest lit point along the light
+    low = jnp.min(jnp.where(lit_tiles, _vdot(hit_tiles, toward), big), -1)  # lowest lit point along the light
     cand = {}
     for gi, (gtype, ids) in enumerate(geo.groups):
         if gtype == T.mjGEOM_PLANE:
             continue
         c = _corners(geo, ids, pos, mat)
-        cp = jnp.stack([c @ e1, c @ e2], -1)  # (n, 8, 2)
-        height = c @ toward
+        cp = jnp.stack([_vdot(c, e1), _vdot(c, e2)], -1)  # (n, 8, 2)
+        height = _vdot(c, toward)
         meets = _overlaps(cp.min(1), cp.max(1), tlo, thi) & (height.max(1)[None] >= low[:, None])
         local, ok = _select(meets, jnp.broadcast_to(height.max(1), meets.shape), cfg.max_per_tile)
         cand[gi] = (jnp.asarray(ids)[local], ok)
@@ -530,7 +541,7 @@ def render_frame(geo: SceneGeometry, cfg: RenderConfig, geom_xpos, geom_xmat, ca
     dirs_hw, axis = _camera_rays(cfg, geo.fovy[cam], cam_xmat)
     dirs = dirs_hw.reshape(-1, 3)
     pos, mat = geom_xpos, geom_xmat
-    cos_axis = dirs @ axis
+    cos_axis = _vdot(dirs, axis)
     t_min = geo.znear / cos_axis
     if cfg.tile:
         cand = _primary_candidates(geo, cfg, cam_xpos, cam_xmat, geo.fovy[cam], pos, mat)
