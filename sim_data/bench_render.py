@@ -2,8 +2,8 @@
 
     python -m sim_data.bench_render --out runs/bench/render.json [--batches 64,256] [--sizes 64,128]
 
-Frames are of the full home scene from states of scripted episodes of every task (poses from
-MuJoCo's kinematics, tiled up to the batch size). The JAX figure is a jitted batched call on the
+Frames are of the full home scene from initial states of every task with the arms and neck at
+random targets (poses from MuJoCo's kinematics, tiled up to the batch size). The JAX figure is a jitted batched call on the
 default JAX device; MuJoCo's figure is one `mujoco.Renderer` (shadows on, as by default)
 drawing states one after another, read back to host memory. `variants` records each culling
 design tried, with its speed and its geom-id agreement with the un-culled renderer.
@@ -27,14 +27,15 @@ import numpy as np
 from sim_data import scene as S
 from sim_data.bench import device_name
 from sim_data.render import Poses, Renderer, RenderConfig, episode_rgb
-from sim_data.render_check import poses_of, sample_states
+from sim_data.render_check import poses_of, random_states
 from sim_data.success_table import write_json_atomic
 from sim_data.tasks import TASK_NAMES
 
 
 def state_pool(per_task: int = 8, seed: int = 0):
-    """qpos, mocap_pos, colors of per_task states of every task (numpy, stacked over tasks)."""
-    parts = [sample_states(t, per_task, seed) for t in TASK_NAMES]
+    """qpos, mocap_pos, colors of per_task states of every task, arms and neck at random targets
+    (numpy, stacked over tasks)."""
+    parts = [random_states(t, per_task, seed) for t in TASK_NAMES]
     return tuple(np.concatenate([p[i] for p in parts]) for i in range(3))
 
 

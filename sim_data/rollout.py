@@ -13,6 +13,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from sim_data.env import HomeEnv, State
+from sim_data.render import Renderer, episode_rgb
 
 
 @struct.dataclass
@@ -87,3 +88,99 @@ def _scan_episode(env: HomeEnv, policy, num_steps: int, record: bool, params, st
 
     (state, _), traj = jax.lax.scan(body, (state, carry), jnp.arange(num_steps))
     return state, traj
+
+
+@struct.dataclass
+class Recording:
+    """Whole episodes as a dataset stores them: T+1 observations around T actions (leaves (B, ...)).
+
+    Attributes:
+      frames: {camera name: (B, T+1, H, W, 3) uint8}, frame t seen before action t.
+      proprio: (B, T+1, 37); qpos: (B, T+1, nq); qvel: (B, T+1, nv); mocap_pos: (B, T+1, nmocap, 3).
+      success: (B, T+1) bool (False at t = 0); action: (B, T, 20).
+    """
+
+    frames: dict
+    proprio: jax.Array
+    qpos: jax.Array
+    qvel: jax.Array
+    mocap_pos: jax.Array
+    success: jax.Array
+    action: jax.Array
+
+
+def _observation(env: HomeEnv, state: State, renderers, rgb):
+    frames = {r.cfg.camera: r.render_batch(env.poses(state), rgb)["rgb"] for r in renderers}
+    rec = {"proprio": state.obs["proprio"], "qpos": state.qpos, "qvel": state.qvel, "mocap_pos": state.mocap_pos,
+           "success": state.success}
+    obs = dict(state.obs)
+    if frames:
+        obs["image"] = frames[renderers[0].cfg.camera]
+    return obs, frames, rec
+
+
+def _stack_recording(first, rest, actions) -> Recording:
+    """first: (frames, rec) of the reset state; rest: the same stacked over T steps (time-major)."""
+    def cat(a, b):
+        return jnp.concatenate([a[:, None], jnp.swapaxes(b, 0, 1)], axis=1)
+
+    frames = {k: cat(first[0][k], rest[0][k]) for k in first[0]}
+    rec = {k: cat(first[1][k], rest[1][k]) for k in first[1]}
+    return Recording(frames=frames, action=jnp.swapaxes(actions, 0, 1), **rec)
+
+
+def record_episodes(env: HomeEnv, policy, params, rng: jax.Array, renderers: tuple[Renderer, ...] = (),
+                    progress=None) -> tuple[State, Recording]:
+    """Runs env.batch_size episodes to the end, rendering every camera of `renderers` at every step.
+
+    The policy sees `obs["image"]`, the first renderer's frame, besides the state's observations.
+    Same seeding as `run_episodes`: one rng gives the same initial states and policy noise.
+    Returns (final State, Recording).
+    """
+    renderers = tuple(renderers)
+    k_reset, k_pol, k_act = jax.random.split(rng, 3)
+    state = env.reset(k_reset)
+    rgb = episode_rgb(renderers[0].geometry, state.task.colors) if renderers else None
+    carry = policy.init_carry(params, state.obs, state.task, k_pol)
+    if env.engine.name == "mjx":
+        state, first, rest, actions = _scan_recorded(env, policy, renderers, env.episode_steps, params, state, carry,
+                                                     k_act, rgb)
+        return state, _stack_recording(first, rest, actions)
+    jitted = _jitted_observe(env, renderers)
+
+    def observe(st, colors):
+        return jitted(st.replace(physics=st.physics.replace(rows=None)), colors)  # float64 rows stay out of jit
+
+    act = _jitted_act(policy)
+    obs, frames, rec = observe(state, rgb)
+    first, steps, actions = (frames, rec), [], []
+    for t in range(env.episode_steps):
+        action, carry = act(params, obs, carry, jax.random.fold_in(k_act, t))
+        state = env.step(state, action)
+        obs, frames, rec = observe(state, rgb)
+        steps.append((frames, rec))
+        actions.append(action)
+        if progress is not None:
+            progress(1)
+    rest = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *steps)
+    return state, _stack_recording(first, rest, jnp.stack(actions))
+
+
+@functools.lru_cache(maxsize=64)
+def _jitted_observe(env, renderers):
+    return jax.jit(lambda st, rgb: _observation(env, st, renderers, rgb))
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1, 2, 3))
+def _scan_recorded(env: HomeEnv, policy, renderers, num_steps: int, params, state, carry, rng, rgb):
+    obs, frames, rec = _observation(env, state, renderers, rgb)
+
+    def body(c, t):
+        st, pc, ob = c
+        action, pc = policy.act(params, ob, pc, jax.random.fold_in(rng, t))
+        st = env._mjx_step(st, action)
+        ob, fr, rc = _observation(env, st, renderers, rgb)
+        return (st, pc, ob), ((fr, rc), action)
+
+    (state, _, _), (rest, actions) = jax.lax.scan(body, (state, carry, obs), jnp.arange(num_steps))
+    return state, (frames, rec), rest, actions
