@@ -130,16 +130,17 @@ def _stack_recording(first, rest, actions) -> Recording:
 
 
 def record_episodes(env: HomeEnv, policy, params, rng: jax.Array, renderers: tuple[Renderer, ...] = (),
-                    progress=None) -> tuple[State, Recording]:
+                    progress=None, reset_keys=None) -> tuple[State, Recording]:
     """Runs env.batch_size episodes to the end, rendering every camera of `renderers` at every step.
 
     The policy sees `obs["image"]`, the first renderer's frame, besides the state's observations.
-    Same seeding as `run_episodes`: one rng gives the same initial states and policy noise.
+    Same seeding as `run_episodes`: one rng gives the same initial states and policy noise;
+    reset_keys (B, 2), if given, seed each episode's initial state instead.
     Returns (final State, Recording).
     """
     renderers = tuple(renderers)
     k_reset, k_pol, k_act = jax.random.split(rng, 3)
-    state = env.reset(k_reset)
+    state = env.reset(k_reset if reset_keys is None else reset_keys)
     rgb = episode_rgb(renderers[0].geometry, state.task.colors) if renderers else None
     carry = policy.init_carry(params, state.obs, state.task, k_pol)
     if env.engine.name == "mjx":

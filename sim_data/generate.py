@@ -1,0 +1,443 @@
+"""Dataset generation: episodes of tasks x policies x seeds into MCAP files, a manifest and stats.
+
+    python -m sim_data.generate --config smoke --out runs/data/smoke [key=value ...]
+    make data CONFIG=demo OUT=runs/data/demo
+
+Each episode is one MCAP file (`episodes/<episode_id>.mcap`: chunked, zstd, indexed) whose
+channels Foxglove shows without plugins:
+
+| topic | schema (jsonschema, JSON messages) | content per control step (20 Hz) |
+|---|---|---|
+| `/head_cam/image`, `/ext_cam/image` | `foxglove.CompressedImage` | JPEG frame (t = 0..T) |
+| `/robot_state` | `wmlab.RobotState` | proprioception (37) with names (t = 0..T) |
+| `/action` | `wmlab.Action` | the action (20) taken at step t (t = 0..T-1) |
+| `/task_state` | `wmlab.TaskState` | step, time, success flag (t = 0..T) |
+| `/sim_state` | `wmlab.SimState` | qpos, qvel, mocap_pos: the full simulator state (t = 0..T) |
+
+and a metadata record `episode` (task, policy, skill, seed, success, split, configuration,
+package versions). Observation t is seen before action t; the last one follows the last action.
+
+Episodes are written under a temporary name and renamed when whole, so a rerun of the same
+command skips finished episodes and completes the dataset. `manifest.jsonl` (one line per
+episode) and `stats.json` are rebuilt from the episode files at the end.
+"""
+
+from __future__ import annotations
+
+import argparse
+import base64
+import concurrent.futures as cf
+import dataclasses
+import functools
+import hashlib
+import json
+import os
+import sys
+import time
+from importlib import metadata as importlib_metadata
+from pathlib import Path
+
+import cv2
+import jax
+import numpy as np
+from mcap.reader import make_reader
+from mcap.writer import CompressionType, Writer
+from tqdm import tqdm
+
+from sim_data import robot as R
+from sim_data.engines import ENGINES, default_engine
+from sim_data.env import HomeEnv
+from sim_data.policies import ScriptedPolicy
+from sim_data.render import Renderer, RenderConfig
+from sim_data.rollout import record_episodes
+from sim_data.scene import load_model
+from sim_data.success_table import wilson_interval, write_json_atomic
+from sim_data.tasks import CONTROL_DT, TASK_NAMES
+
+CAMERAS = ("head_cam", "ext_cam")
+SPLITS = ("train", "val", "test")
+
+
+@dataclasses.dataclass(frozen=True)
+class DataConfig:
+    """What to generate.
+
+    Attributes:
+      tasks: task names. skills: scripted-policy skills (each a policy "scripted@<skill>").
+      episodes: episodes per task and skill; episode i of a task starts from the same initial
+        state (seed) at every skill.
+      seed: the dataset's seed; initial-state seeds derive from (seed, task, i).
+      engine: "cpu", "mjx" or "" (mjx where a GPU is present).
+      size: frame height = width (64 or 128). cameras: cameras to record.
+      heldout: scenes with the held-out plant.
+      batch: episodes simulated together. val_frac, test_frac: shares of initial states per split.
+      jpeg_quality: 1..100. workers: threads encoding and writing files.
+    """
+
+    tasks: tuple = TASK_NAMES
+    skills: tuple = (0.2, 0.6, 1.0)
+    episodes: int = 8
+    seed: int = 0
+    engine: str = ""
+    size: int = 64
+    cameras: tuple = CAMERAS
+    heldout: bool = False
+    batch: int = 8
+    val_frac: float = 0.1
+    test_frac: float = 0.1
+    jpeg_quality: int = 90
+    workers: int = 2
+
+    def validate(self) -> None:
+        bad = [t for t in self.tasks if t not in TASK_NAMES]
+        if bad or not self.tasks:
+            raise ValueError(f"tasks {bad or '(none)'} unknown; choose from {', '.join(TASK_NAMES)}")
+        if not self.skills or any(not 0.0 <= float(s) <= 1.0 for s in self.skills):
+            raise ValueError(f"skills must be in [0, 1], got {self.skills}")
+        if self.episodes < 1 or self.batch < 1 or self.workers < 1:
+            raise ValueError("episodes, batch and workers must be >= 1")
+        if self.engine not in ("",) + ENGINES:
+            raise ValueError(f"engine must be one of {ENGINES} or empty, got {self.engine!r}")
+        if self.size not in (64, 128):
+            raise ValueError(f"size must be 64 or 128, got {self.size}")
+        if not self.cameras or any(c not in CAMERAS for c in self.cameras):
+            raise ValueError(f"cameras must be among {CAMERAS}, got {self.cameras}")
+        if not (0 <= self.val_frac < 1 and 0 <= self.test_frac < 1 and self.val_frac + self.test_frac < 1):
+            raise ValueError("val_frac and test_frac must be in [0, 1) and sum below 1")
+        if not 1 <= self.jpeg_quality <= 100:
+            raise ValueError(f"jpeg_quality must be in 1..100, got {self.jpeg_quality}")
+
+
+PRESETS = {
+    "default": DataConfig(),
+    "smoke": DataConfig(tasks=("mug",), skills=(1.0,), episodes=2, batch=2),
+    "demo": DataConfig(skills=(0.3, 1.0), episodes=4, batch=8),
+    "full": DataConfig(skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=600, batch=1200, workers=12),
+    "heldout_plant": DataConfig(heldout=True, episodes=100, batch=600, workers=12),
+    "shelf": DataConfig(tasks=("shelf",), skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=600, batch=1200, workers=12),
+    "shelf_arcade": DataConfig(tasks=("shelf", "arcade"), skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=300,
+                               batch=1200, workers=12),
+    "airfryer": DataConfig(tasks=("airfryer",), skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=600, batch=1200,
+                           workers=12),
+}
+
+
+def _parse_value(field: dataclasses.Field, text: str):
+    kind = type(getattr(DataConfig(), field.name))
+    if kind is tuple:
+        items = [x for x in text.split(",") if x]
+        return tuple(float(x) for x in items) if field.name == "skills" else tuple(items)
+    if kind is bool:
+        if text.lower() not in ("true", "false", "1", "0"):
+            raise ValueError(f"{field.name} must be true or false, got {text!r}")
+        return text.lower() in ("true", "1")
+    try:
+        return kind(text)
+    except ValueError:
+        raise ValueError(f"{field.name} must be a {kind.__name__}, got {text!r}") from None
+
+
+def make_config(preset: str, overrides=()) -> DataConfig:
+    """The preset with `key=value` overrides applied, validated."""
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
+    fields = {f.name: f for f in dataclasses.fields(DataConfig)}
+    changes = {}
+    for item in overrides:
+        key, sep, value = item.partition("=")
+        if not sep or key not in fields:
+            raise ValueError(f"override {item!r} must be key=value with key one of {', '.join(fields)}")
+        changes[key] = _parse_value(fields[key], value)
+    cfg = dataclasses.replace(PRESETS[preset], **changes)
+    cfg.validate()
+    return cfg
+
+
+# ---- episode identity ---------------------------------------------------------------------------
+
+def initial_seed(cfg: DataConfig, task: str, i: int) -> int:
+    """The initial-state seed of episode i of task (the same at every skill)."""
+    digest = hashlib.sha256(f"{cfg.seed}/{task}/{i}/{cfg.heldout}".encode()).digest()
+    return int.from_bytes(digest[:4], "little") & 0x7FFFFFFF
+
+
+def split_of(cfg: DataConfig, seed: int) -> str:
+    """train / val / test by initial-state seed, so no initial state is in two splits."""
+    u = int.from_bytes(hashlib.sha256(f"split/{seed}".encode()).digest()[:4], "little") / 2**32
+    return "test" if u < cfg.test_frac else "val" if u < cfg.test_frac + cfg.val_frac else "train"
+
+
+def policy_name(skill: float) -> str:
+    return f"scripted@{float(skill):.2f}"
+
+
+def episode_id(task: str, skill: float, i: int) -> str:
+    return f"{task}-s{round(float(skill) * 100):03d}-{i:06d}"
+
+
+# ---- MCAP ---------------------------------------------------------------------------------------
+
+IMAGE_SCHEMA = {
+    "title": "foxglove.CompressedImage", "type": "object",
+    "properties": {
+        "timestamp": {"type": "object", "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}}},
+        "frame_id": {"type": "string"},
+        "data": {"type": "string", "contentEncoding": "base64"},
+        "format": {"type": "string"},
+    },
+}
+
+
+def _array_schema(title: str, fields: dict) -> dict:
+    return {"title": title, "type": "object", "properties": fields}
+
+
+NUM_ARRAY = {"type": "array", "items": {"type": "number"}}
+SCHEMAS = {
+    "/robot_state": _array_schema("wmlab.RobotState", {"proprio": NUM_ARRAY, "names": {"type": "array", "items": {"type": "string"}}}),
+    "/action": _array_schema("wmlab.Action", {"action": NUM_ARRAY, "names": {"type": "array", "items": {"type": "string"}}}),
+    "/task_state": _array_schema("wmlab.TaskState", {"step": {"type": "integer"}, "time": {"type": "number"},
+                                                     "success": {"type": "boolean"}}),
+    "/sim_state": _array_schema("wmlab.SimState", {"qpos": NUM_ARRAY, "qvel": NUM_ARRAY, "mocap_pos": NUM_ARRAY}),
+}
+
+
+def _versions() -> dict:
+    out = {}
+    for pkg in ("mujoco", "mujoco-mjx", "jax", "numpy", "opencv-python-headless", "mcap"):
+        try:
+            out[pkg] = importlib_metadata.version(pkg)
+        except importlib_metadata.PackageNotFoundError:
+            out[pkg] = "absent"
+    return out
+
+
+def _floats(x) -> list:
+    return [float(v) for v in np.asarray(x, np.float64).ravel()]
+
+
+def write_episode_mcap(path: Path, episode: dict, meta: dict, jpeg_quality: int) -> None:
+    """Writes one episode (numpy arrays of `Recording` for one row) to path atomically."""
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        w = Writer(f, chunk_size=1 << 20, compression=CompressionType.ZSTD)
+        w.start(profile="", library="wmlab")
+        channels = {}
+        for cam in episode["frames"]:
+            sid = w.register_schema("foxglove.CompressedImage", "jsonschema", json.dumps(IMAGE_SCHEMA).encode())
+            channels[cam] = w.register_channel(f"/{cam}/image", "json", sid)
+        for topic, schema in SCHEMAS.items():
+            sid = w.register_schema(schema["title"], "jsonschema", json.dumps(schema).encode())
+            channels[topic] = w.register_channel(topic, "json", sid)
+        n_obs = episode["proprio"].shape[0]
+        for t in range(n_obs):
+            ns = int(round(t * CONTROL_DT * 1e9))
+            stamp = {"sec": ns // 10**9, "nsec": ns % 10**9}
+
+            def put(key, obj, ns=ns):
+                w.add_message(channels[key], log_time=ns, publish_time=ns, data=json.dumps(obj).encode())
+
+            for cam, frames in episode["frames"].items():
+                ok, jpg = cv2.imencode(".jpg", cv2.cvtColor(frames[t], cv2.COLOR_RGB2BGR),
+                                       [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
+                put(cam, {"timestamp": stamp, "frame_id": cam, "format": "jpeg",
+                          "data": base64.b64encode(jpg.tobytes()).decode()})
+            put("/robot_state", {"proprio": _floats(episode["proprio"][t]), "names": list(R.PROPRIO_NAMES)})
+            put("/task_state", {"step": t, "time": t * CONTROL_DT, "success": bool(episode["success"][t])})
+            put("/sim_state", {"qpos": _floats(episode["qpos"][t]), "qvel": _floats(episode["qvel"][t]),
+                               "mocap_pos": _floats(episode["mocap_pos"][t])})
+            if t < n_obs - 1:
+                put("/action", {"action": _floats(episode["action"][t]), "names": list(R.ACTION_NAMES)})
+        w.add_metadata("episode", {k: v if isinstance(v, str) else json.dumps(v) for k, v in meta.items()})
+        w.finish()
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+class CorruptEpisode(ValueError):
+    """An episode file that cannot be read back whole."""
+
+
+def read_episode_meta(path: Path) -> dict:
+    """The `episode` metadata record of an MCAP file (values JSON-decoded where they were)."""
+    try:
+        with open(path, "rb") as f:
+            for rec in make_reader(f).iter_metadata():
+                if rec.name == "episode":
+                    return {k: _maybe_json(v) for k, v in rec.metadata.items()}
+    except Exception as e:  # the mcap reader raises several types on damaged files
+        raise CorruptEpisode(f"{path}: not a readable MCAP file ({type(e).__name__}: {e})") from e
+    raise CorruptEpisode(f"{path}: no 'episode' metadata record (truncated or not written by sim_data.generate)")
+
+
+def _maybe_json(v: str):
+    try:
+        return json.loads(v)
+    except ValueError:
+        return v
+
+
+# ---- the run ------------------------------------------------------------------------------------
+
+def _plan(cfg: DataConfig):
+    """Chunks of work: (task, skill, [episode indices]) in a fixed order."""
+    for task in cfg.tasks:
+        for skill in cfg.skills:
+            for start in range(0, cfg.episodes, cfg.batch):
+                yield task, float(skill), list(range(start, min(cfg.episodes, start + cfg.batch)))
+
+
+def _episode_meta(cfg, task, skill, i, success, num_steps, engine):
+    seed = initial_seed(cfg, task, i)
+    return {
+        "episode_id": episode_id(task, skill, i), "task": task, "policy": policy_name(skill), "policy_kind": "scripted",
+        "skill": float(skill), "seed": seed, "success": bool(success), "num_steps": int(num_steps),
+        "split": split_of(cfg, seed), "file": f"episodes/{episode_id(task, skill, i)}.mcap", "engine": engine,
+        "renderer": "sim_data.render (JAX ray casting)", "heldout": cfg.heldout, "size": cfg.size,
+        "cameras": list(cfg.cameras),
+    }
+
+
+def generate(cfg: DataConfig, out: Path, progress: bool = True) -> dict:
+    """Generates (or completes) the dataset of cfg in out; returns the stats written to stats.json."""
+    cfg.validate()
+    out = Path(out)
+    (out / "episodes").mkdir(parents=True, exist_ok=True)
+    _check_config_matches(cfg, out)
+    engine = cfg.engine or default_engine()
+    for stale in (out / "episodes").glob("*.tmp"):
+        stale.unlink()  # a killed run's half-written file
+    todo = [(task, skill, [i for i in idx if not (out / "episodes" / f"{episode_id(task, skill, i)}.mcap").exists()])
+            for task, skill, idx in _plan(cfg)]
+    todo = [c for c in todo if c[2]]
+    total = sum(len(c[2]) for c in todo)
+    bar = tqdm(total=total, unit="ep", desc="episodes", disable=not progress or total == 0)
+    t0, frames_done, steps_done = time.perf_counter(), 0, 0
+    pool = cf.ThreadPoolExecutor(cfg.workers)
+    pending = []
+    versions = _versions()
+    for task, skill, idx in todo:
+        b = len(idx)
+        env = _env(task, b, engine, cfg.heldout)
+        policy, renderers = _policy(task), _renderers(cfg.size, tuple(cfg.cameras))
+        reset_keys = jax.numpy.stack([jax.random.PRNGKey(initial_seed(cfg, task, i)) for i in idx])
+        chunk_key = jax.random.PRNGKey(initial_seed(cfg, f"{task}/{skill}", idx[0]))
+        _, rec = record_episodes(env, policy, {"skill": np.full((b,), skill, np.float32)}, chunk_key, renderers,
+                                 reset_keys=reset_keys)
+        rec = jax.tree_util.tree_map(np.asarray, rec)
+        for row, i in enumerate(idx):
+            ep = jax.tree_util.tree_map(lambda x: x[row], rec)
+            meta = _episode_meta(cfg, task, skill, i, ep.success[-1], ep.action.shape[0], engine)
+            meta.update(config=dataclasses.asdict(cfg), versions=versions)
+            episode = {"frames": ep.frames, "proprio": ep.proprio, "qpos": ep.qpos, "qvel": ep.qvel,
+                       "mocap_pos": ep.mocap_pos, "success": ep.success, "action": ep.action}
+            pending.append(pool.submit(write_episode_mcap, out / meta["file"], episode, meta, cfg.jpeg_quality))
+        steps_done += b * (rec.action.shape[1] + 1)
+        frames_done += b * (rec.action.shape[1] + 1) * len(cfg.cameras)
+        pending = _drain(pending, bar, wait_all=False)
+        dt = time.perf_counter() - t0
+        bar.set_postfix(frames_per_s=f"{frames_done / dt:.0f}")
+    _drain(pending, bar, wait_all=True)
+    pool.shutdown()
+    bar.close()
+    wall = time.perf_counter() - t0
+    manifest = build_manifest(cfg, out)
+    stats = _stats(manifest, {"wall_s": wall, "episodes_generated": total, "steps_generated": steps_done,
+                              "frames_generated": frames_done, "frames_per_s": frames_done / wall if total else None,
+                              "episodes_per_s": total / wall if total else None, "engine": engine,
+                              "device": _device_name()})
+    write_json_atomic(out / "stats.json", stats)
+    return stats
+
+
+@functools.lru_cache(maxsize=32)
+def _env(task, batch, engine, heldout) -> HomeEnv:
+    return HomeEnv(task, batch, engine=engine, heldout=heldout)  # cached: its jitted steps compile once
+
+
+@functools.lru_cache(maxsize=None)
+def _policy(task) -> ScriptedPolicy:
+    return ScriptedPolicy.create(task, load_model())
+
+
+@functools.lru_cache(maxsize=8)
+def _renderers(size, cameras) -> tuple:
+    return tuple(Renderer(load_model(), RenderConfig(height=size, width=size, camera=c)) for c in cameras)
+
+
+def _drain(pending, bar, wait_all: bool):
+    left = []
+    for fut in pending:
+        if wait_all or fut.done():
+            fut.result()  # re-raises a writer's error here
+            bar.update(1)
+        else:
+            left.append(fut)
+    return left
+
+
+def _device_name() -> str:
+    d = jax.devices()[0]
+    return getattr(d, "device_kind", d.platform)
+
+
+def _check_config_matches(cfg: DataConfig, out: Path) -> None:
+    """Saves the resolved config on first use; refuses to mix a different one into the same directory."""
+    path = out / "config.json"
+    mine = dataclasses.asdict(cfg)
+    mine = json.loads(json.dumps(mine))
+    if path.exists():
+        theirs = json.loads(path.read_text())
+        if theirs != mine:
+            diff = {k: (theirs.get(k), v) for k, v in mine.items() if theirs.get(k) != v}
+            raise ValueError(f"{out} holds a dataset of another configuration (differs in {diff}); use another OUT")
+    else:
+        write_json_atomic(path, mine)
+
+
+def build_manifest(cfg: DataConfig, out: Path) -> list:
+    """Writes manifest.jsonl from the episode files of cfg's plan (each read back); returns its rows."""
+    keys = ("episode_id", "task", "policy", "policy_kind", "skill", "seed", "success", "num_steps", "split", "file",
+            "engine", "renderer", "heldout")
+    rows = []
+    for task, skill, idx in _plan(cfg):
+        for i in idx:
+            meta = read_episode_meta(out / "episodes" / f"{episode_id(task, skill, i)}.mcap")
+            rows.append({k: meta[k] for k in keys})
+    tmp = out / f"manifest.jsonl.tmp{os.getpid()}"
+    tmp.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    os.replace(tmp, out / "manifest.jsonl")
+    return rows
+
+
+def _stats(rows: list, throughput: dict) -> dict:
+    groups = {}
+    for r in rows:
+        groups.setdefault((r["task"], r["policy"]), []).append(r)
+    per = []
+    for (task, policy), rs in sorted(groups.items()):
+        k, n = sum(r["success"] for r in rs), len(rs)
+        per.append({"task": task, "policy": policy, "episodes": n, "success_rate": k / n,
+                    "success_ci95": list(wilson_interval(k, n)),
+                    "splits": {s: sum(r["split"] == s for r in rs) for s in SPLITS}})
+    return {"episodes": len(rows), "per_task_policy": per, "throughput": throughput}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--config", default="demo", help=f"preset: {', '.join(PRESETS)}")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("overrides", nargs="*", help="key=value overrides of the preset (e.g. episodes=16 tasks=mug,wipe)")
+    a = p.parse_args(argv)
+    try:
+        cfg = make_config(a.config, a.overrides)
+    except ValueError as e:
+        p.error(str(e))
+    stats = generate(cfg, a.out)
+    print(json.dumps({"episodes": stats["episodes"], **stats["throughput"]}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
