@@ -9,7 +9,9 @@ export XLA_FLAGS ?= --xla_cpu_multi_thread_eigen=false
 OUT ?= runs/demo
 EPISODES ?= 10
 
-.PHONY: setup demo test test-slow bench success-table clean
+CONFIG ?= demo
+
+.PHONY: setup demo test test-slow bench success-table data render-check clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -25,6 +27,12 @@ demo: setup
 
 success-table: setup
 	$(PY) -m sim_data.success_table --episodes 100 --skills 0.2,0.6,1.0 --out runs/success_table.json
+
+data: setup
+	$(PY) -m sim_data.generate --config $(CONFIG) --out $(if $(filter command line,$(origin OUT)),$(OUT),runs/data/$(CONFIG))
+
+render-check: setup
+	$(PY) -m sim_data.render_check --states 50 --out runs/render_check.json
 
 test: setup
 	$(PY) -m pytest -q

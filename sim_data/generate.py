@@ -308,16 +308,18 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True) -> dict:
     engine = cfg.engine or default_engine()
     for stale in (out / "episodes").glob("*.tmp"):
         stale.unlink()  # a killed run's half-written file
-    todo = [(task, skill, [i for i in idx if not (out / "episodes" / f"{episode_id(task, skill, i)}.mcap").exists()])
+    # a chunk with any episode missing is simulated whole (its batch fixes every episode's noise) and
+    # only the missing episodes are written
+    todo = [(task, skill, idx, {i for i in idx if not (out / "episodes" / f"{episode_id(task, skill, i)}.mcap").exists()})
             for task, skill, idx in _plan(cfg)]
-    todo = [c for c in todo if c[2]]
-    total = sum(len(c[2]) for c in todo)
+    todo = [c for c in todo if c[3]]
+    total = sum(len(c[3]) for c in todo)
     bar = tqdm(total=total, unit="ep", desc="episodes", disable=not progress or total == 0)
     t0, frames_done, steps_done = time.perf_counter(), 0, 0
     pool = cf.ThreadPoolExecutor(cfg.workers)
     pending = []
     versions = _versions()
-    for task, skill, idx in todo:
+    for task, skill, idx, missing in todo:
         b = len(idx)
         env = _env(task, b, engine, cfg.heldout)
         policy, renderers = _policy(task), _renderers(cfg.size, tuple(cfg.cameras))
@@ -327,6 +329,8 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True) -> dict:
                                  reset_keys=reset_keys)
         rec = jax.tree_util.tree_map(np.asarray, rec)
         for row, i in enumerate(idx):
+            if i not in missing:
+                continue
             ep = jax.tree_util.tree_map(lambda x: x[row], rec)
             meta = _episode_meta(cfg, task, skill, i, ep.success[-1], ep.action.shape[0], engine)
             meta.update(config=dataclasses.asdict(cfg), versions=versions)

@@ -1,0 +1,112 @@
+"""make data's generator: files read back, determinism, resume, bad input."""
+
+import base64
+import json
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from sim_data import generate as G
+
+TOPICS = {"/head_cam/image", "/ext_cam/image", "/robot_state", "/action", "/task_state", "/sim_state"}
+
+
+@pytest.fixture(scope="module")
+def smoke(tmp_path_factory):
+    out = tmp_path_factory.mktemp("smoke")
+    cfg = G.make_config("smoke")
+    stats = G.generate(cfg, out, progress=False)
+    return cfg, out, stats
+
+
+def test_manifest_and_stats(smoke):
+    cfg, out, stats = smoke
+    rows = [json.loads(line) for line in (out / "manifest.jsonl").read_text().splitlines()]
+    assert len(rows) == cfg.episodes * len(cfg.tasks) * len(cfg.skills) == stats["episodes"]
+    for r in rows:
+        for k in ("episode_id", "task", "policy", "skill", "seed", "success", "num_steps", "split", "file", "engine",
+                  "renderer"):
+            assert k in r
+        assert (out / r["file"]).exists() and r["split"] in G.SPLITS and r["engine"] == "cpu"
+    per = stats["per_task_policy"][0]
+    k = sum(r["success"] for r in rows)
+    assert per["episodes"] == len(rows) and per["success_rate"] == k / len(rows)
+    lo, hi = per["success_ci95"]
+    assert lo <= k / len(rows) <= hi
+
+
+def test_mcap_reads_back_with_every_image_decoded(smoke):
+    cfg, out, _ = smoke
+    row = json.loads((out / "manifest.jsonl").read_text().splitlines()[0])
+    counts, successes = {}, []
+    with open(out / row["file"], "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None and summary.chunk_indexes  # indexed and chunked
+        assert {c.compression for c in summary.chunk_indexes} == {"zstd"}
+        for schema, channel, message in reader.iter_messages():
+            counts[channel.topic] = counts.get(channel.topic, 0) + 1
+            body = json.loads(message.data)
+            if channel.topic.endswith("/image"):
+                assert schema.name == "foxglove.CompressedImage" and schema.encoding == "jsonschema"
+                img = cv2.imdecode(np.frombuffer(base64.b64decode(body["data"]), np.uint8), cv2.IMREAD_COLOR)
+                assert img.shape == (cfg.size, cfg.size, 3) and body["format"] == "jpeg"
+            if channel.topic == "/task_state":
+                successes.append(body["success"])
+        meta = G.read_episode_meta(out / row["file"])
+    steps = row["num_steps"]
+    assert set(counts) == TOPICS
+    assert counts["/action"] == steps and counts["/head_cam/image"] == counts["/sim_state"] == steps + 1
+    assert successes[-1] == row["success"] == meta["success"] and meta["config"]["episodes"] == cfg.episodes
+
+
+def test_same_config_gives_same_bytes_and_resume_completes(smoke, tmp_path):
+    cfg, out, _ = smoke
+    again = tmp_path / "again"
+    G.generate(cfg, again, progress=False)
+    assert (again / "manifest.jsonl").read_bytes() == (out / "manifest.jsonl").read_bytes()
+    files = sorted(p.name for p in (out / "episodes").iterdir())
+    for name in files:
+        assert (again / "episodes" / name).read_bytes() == (out / "episodes" / name).read_bytes()
+    # a killed run: one episode missing, one half-written temporary file left behind
+    victim = again / "episodes" / files[0]
+    victim.unlink()
+    (again / "episodes" / (files[1] + ".tmp")).write_bytes(b"half")
+    stats = G.generate(cfg, again, progress=False)
+    assert stats["throughput"]["episodes_generated"] == 1
+    assert victim.read_bytes() == (out / "episodes" / files[0]).read_bytes()
+    assert sorted(p.name for p in (again / "episodes").iterdir()) == files
+
+
+def test_corrupt_file_is_named(smoke, tmp_path):
+    _, out, _ = smoke
+    src = next((out / "episodes").iterdir())
+    bad = tmp_path / src.name
+    bad.write_bytes(src.read_bytes()[: src.stat().st_size // 2])
+    with pytest.raises(G.CorruptEpisode, match=src.name):
+        G.read_episode_meta(bad)
+
+
+def test_bad_configuration_is_refused_before_work(tmp_path):
+    with pytest.raises(ValueError, match="episodes"):
+        G.make_config("smoke", ["episodes=0"])
+    with pytest.raises(ValueError, match="unknown"):
+        G.make_config("smoke", ["tasks=mug,juggling"])
+    with pytest.raises(ValueError, match="key=value"):
+        G.make_config("smoke", ["epsiodes=3"])
+    with pytest.raises(ValueError, match="unknown preset"):
+        G.make_config("huge")
+    with pytest.raises(SystemExit):
+        G.main(["--config", "smoke", "--out", str(tmp_path / "x"), "size=96"])
+    assert not (tmp_path / "x").exists()
+
+
+def test_another_config_is_not_mixed_into_a_dataset(smoke, tmp_path):
+    cfg, out, _ = smoke
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    with pytest.raises(ValueError, match="another configuration"):
+        G.generate(G.make_config("smoke", ["seed=5"]), copy, progress=False)
