@@ -222,10 +222,8 @@ def write_episode_mcap(path: Path, episode: dict, meta: dict, jpeg_quality: int)
     with open(tmp, "wb") as f:
         w = Writer(f, chunk_size=1 << 20, compression=CompressionType.ZSTD)
         w.start(profile="", library="wmlab")
-        channels = {}
-        for cam in episode["frames"]:
-            sid = w.register_schema("foxglove.CompressedImage", "jsonschema", json.dumps(IMAGE_SCHEMA).encode())
-            channels[cam] = w.register_channel(f"/{cam}/image", "json", sid)
+        image_schema = w.register_schema("foxglove.CompressedImage", "jsonschema", json.dumps(IMAGE_SCHEMA).encode())
+        channels = {cam: w.register_channel(f"/{cam}/image", "json", image_schema) for cam in episode["frames"]}
         for topic, schema in SCHEMAS.items():
             sid = w.register_schema(schema["title"], "jsonschema", json.dumps(schema).encode())
             channels[topic] = w.register_channel(topic, "json", sid)

@@ -34,11 +34,11 @@ def sample_states(task: str, n: int, seed: int = 0, heldout: bool = False):
     """
     env = HomeEnv(task, n, engine="cpu", heldout=heldout)
     policy = ScriptedPolicy.create(task, env.model)
-    _, traj = run_episodes(env, policy, {"skill": np.ones((n,), np.float32)}, jax.random.PRNGKey(seed), record=True)
+    final, traj = run_episodes(env, policy, {"skill": np.ones((n,), np.float32)}, jax.random.PRNGKey(seed), record=True)
     steps = np.random.default_rng(seed).integers(0, env.episode_steps, n)
     rows = np.arange(n)
-    init = env.reset(jax.random.split(jax.random.PRNGKey(seed), 3)[0])
-    return (np.asarray(traj.qpos)[rows, steps], np.asarray(traj.mocap_pos)[rows, steps], np.asarray(init.task.colors))
+    colors = np.asarray(final.task.colors)  # drawn at reset, constant over the episode
+    return np.asarray(traj.qpos)[rows, steps], np.asarray(traj.mocap_pos)[rows, steps], colors
 
 
 def random_states(task: str, n: int, seed: int = 0, heldout: bool = False):
