@@ -79,8 +79,9 @@ class CpuEngine:
         self.batch.step(nstep=nsub)
         return self._state(), self._qpos.copy(), self._qvel.copy()
 
-    def poses(self, physics: CpuPhysics) -> dict:
-        """Geom and camera poses (B, ...) of a physics state, as MjData lays them out."""
+    @staticmethod
+    def poses(physics: CpuPhysics) -> dict:
+        """Geom and camera poses (B, ...) of a physics state, as MjData lays them out (traceable)."""
         return physics.poses
 
 

@@ -25,34 +25,32 @@ episode) and `stats.json` are rebuilt from the episode files at the end.
 from __future__ import annotations
 
 import argparse
-import base64
 import concurrent.futures as cf
 import dataclasses
 import functools
 import hashlib
 import json
+import multiprocessing
 import os
 import sys
 import time
 from importlib import metadata as importlib_metadata
 from pathlib import Path
 
-import cv2
 import jax
 import numpy as np
-from mcap.reader import make_reader
-from mcap.writer import CompressionType, Writer
 from tqdm import tqdm
 
-from sim_data import robot as R
+from sim_data.cache import build_cache
 from sim_data.engines import ENGINES, default_engine
 from sim_data.env import HomeEnv
+from sim_data.episodes import CorruptEpisode, read_episode_meta, write_episode_mcap  # noqa: F401 (re-exported)
 from sim_data.policies import ScriptedPolicy
-from sim_data.render import Renderer, RenderConfig
+from sim_data.render import RenderConfig, Renderer
 from sim_data.rollout import record_episodes
 from sim_data.scene import load_model
 from sim_data.success_table import wilson_interval, write_json_atomic
-from sim_data.tasks import CONTROL_DT, TASK_NAMES
+from sim_data.tasks import TASK_NAMES
 
 CAMERAS = ("head_cam", "ext_cam")
 SPLITS = ("train", "val", "test")
@@ -71,7 +69,8 @@ class DataConfig:
       size: frame height = width (64 or 128). cameras: cameras to record.
       heldout: scenes with the held-out plant.
       batch: episodes simulated together. val_frac, test_frac: shares of initial states per split.
-      jpeg_quality: 1..100. workers: threads encoding and writing files.
+      jpeg_quality: 1..100. workers: processes encoding and writing files.
+      cache: build the training cache (sim_data.cache) at the end.
     """
 
     tasks: tuple = TASK_NAMES
@@ -87,6 +86,7 @@ class DataConfig:
     test_frac: float = 0.1
     jpeg_quality: int = 90
     workers: int = 2
+    cache: bool = True
 
     def validate(self) -> None:
         bad = [t for t in self.tasks if t not in TASK_NAMES]
@@ -175,32 +175,7 @@ def episode_id(task: str, skill: float, i: int) -> str:
     return f"{task}-s{round(float(skill) * 100):03d}-{i:06d}"
 
 
-# ---- MCAP ---------------------------------------------------------------------------------------
-
-IMAGE_SCHEMA = {
-    "title": "foxglove.CompressedImage", "type": "object",
-    "properties": {
-        "timestamp": {"type": "object", "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}}},
-        "frame_id": {"type": "string"},
-        "data": {"type": "string", "contentEncoding": "base64"},
-        "format": {"type": "string"},
-    },
-}
-
-
-def _array_schema(title: str, fields: dict) -> dict:
-    return {"title": title, "type": "object", "properties": fields}
-
-
-NUM_ARRAY = {"type": "array", "items": {"type": "number"}}
-SCHEMAS = {
-    "/robot_state": _array_schema("wmlab.RobotState", {"proprio": NUM_ARRAY, "names": {"type": "array", "items": {"type": "string"}}}),
-    "/action": _array_schema("wmlab.Action", {"action": NUM_ARRAY, "names": {"type": "array", "items": {"type": "string"}}}),
-    "/task_state": _array_schema("wmlab.TaskState", {"step": {"type": "integer"}, "time": {"type": "number"},
-                                                     "success": {"type": "boolean"}}),
-    "/sim_state": _array_schema("wmlab.SimState", {"qpos": NUM_ARRAY, "qvel": NUM_ARRAY, "mocap_pos": NUM_ARRAY}),
-}
-
+# ---- the run ------------------------------------------------------------------------------------
 
 def _versions() -> dict:
     out = {}
@@ -211,72 +186,6 @@ def _versions() -> dict:
             out[pkg] = "absent"
     return out
 
-
-def _floats(x) -> list:
-    return [float(v) for v in np.asarray(x, np.float64).ravel()]
-
-
-def write_episode_mcap(path: Path, episode: dict, meta: dict, jpeg_quality: int) -> None:
-    """Writes one episode (numpy arrays of `Recording` for one row) to path atomically."""
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        w = Writer(f, chunk_size=1 << 20, compression=CompressionType.ZSTD)
-        w.start(profile="", library="wmlab")
-        image_schema = w.register_schema("foxglove.CompressedImage", "jsonschema", json.dumps(IMAGE_SCHEMA).encode())
-        channels = {cam: w.register_channel(f"/{cam}/image", "json", image_schema) for cam in episode["frames"]}
-        for topic, schema in SCHEMAS.items():
-            sid = w.register_schema(schema["title"], "jsonschema", json.dumps(schema).encode())
-            channels[topic] = w.register_channel(topic, "json", sid)
-        n_obs = episode["proprio"].shape[0]
-        for t in range(n_obs):
-            ns = int(round(t * CONTROL_DT * 1e9))
-            stamp = {"sec": ns // 10**9, "nsec": ns % 10**9}
-
-            def put(key, obj, ns=ns):
-                w.add_message(channels[key], log_time=ns, publish_time=ns, data=json.dumps(obj).encode())
-
-            for cam, frames in episode["frames"].items():
-                ok, jpg = cv2.imencode(".jpg", cv2.cvtColor(frames[t], cv2.COLOR_RGB2BGR),
-                                       [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
-                put(cam, {"timestamp": stamp, "frame_id": cam, "format": "jpeg",
-                          "data": base64.b64encode(jpg.tobytes()).decode()})
-            put("/robot_state", {"proprio": _floats(episode["proprio"][t]), "names": list(R.PROPRIO_NAMES)})
-            put("/task_state", {"step": t, "time": t * CONTROL_DT, "success": bool(episode["success"][t])})
-            put("/sim_state", {"qpos": _floats(episode["qpos"][t]), "qvel": _floats(episode["qvel"][t]),
-                               "mocap_pos": _floats(episode["mocap_pos"][t])})
-            if t < n_obs - 1:
-                put("/action", {"action": _floats(episode["action"][t]), "names": list(R.ACTION_NAMES)})
-        w.add_metadata("episode", {k: v if isinstance(v, str) else json.dumps(v) for k, v in meta.items()})
-        w.finish()
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-
-
-class CorruptEpisode(ValueError):
-    """An episode file that cannot be read back whole."""
-
-
-def read_episode_meta(path: Path) -> dict:
-    """The `episode` metadata record of an MCAP file (values JSON-decoded where they were)."""
-    try:
-        with open(path, "rb") as f:
-            for rec in make_reader(f).iter_metadata():
-                if rec.name == "episode":
-                    return {k: _maybe_json(v) for k, v in rec.metadata.items()}
-    except Exception as e:  # the mcap reader raises several types on damaged files
-        raise CorruptEpisode(f"{path}: not a readable MCAP file ({type(e).__name__}: {e})") from e
-    raise CorruptEpisode(f"{path}: no 'episode' metadata record (truncated or not written by sim_data.generate)")
-
-
-def _maybe_json(v: str):
-    try:
-        return json.loads(v)
-    except ValueError:
-        return v
-
-
-# ---- the run ------------------------------------------------------------------------------------
 
 def _plan(cfg: DataConfig):
     """Chunks of work: (task, skill, [episode indices]) in a fixed order."""
@@ -314,7 +223,8 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True) -> dict:
     total = sum(len(c[3]) for c in todo)
     bar = tqdm(total=total, unit="ep", desc="episodes", disable=not progress or total == 0)
     t0, frames_done, steps_done = time.perf_counter(), 0, 0
-    pool = cf.ThreadPoolExecutor(cfg.workers)
+    # worker processes: JSON and zstd hold the GIL, and the cpu engine's step loop needs it
+    pool = cf.ProcessPoolExecutor(cfg.workers, mp_context=multiprocessing.get_context("spawn"))
     pending = []
     versions = _versions()
     for task, skill, idx, missing in todo:
@@ -338,6 +248,8 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True) -> dict:
         steps_done += b * (rec.action.shape[1] + 1)
         frames_done += b * (rec.action.shape[1] + 1) * len(cfg.cameras)
         pending = _drain(pending, bar, wait_all=False)
+        while len(pending) > cfg.batch:  # at most one chunk waits for the writers while the next simulates
+            pending = _drain(pending[:1], bar, wait_all=True) + pending[1:]
         dt = time.perf_counter() - t0
         bar.set_postfix(frames_per_s=f"{frames_done / dt:.0f}")
     _drain(pending, bar, wait_all=True)
@@ -349,6 +261,10 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True) -> dict:
                               "frames_generated": frames_done, "frames_per_s": frames_done / wall if total else None,
                               "episodes_per_s": total / wall if total else None, "engine": engine,
                               "device": _device_name()})
+    if cfg.cache:
+        t1 = time.perf_counter()
+        index = build_cache(out, workers=cfg.workers, progress=progress)
+        stats["throughput"].update(cache_s=time.perf_counter() - t1, cache_frames=index["frames"])
     write_json_atomic(out / "stats.json", stats)
     return stats
 
@@ -358,7 +274,7 @@ def _env(task, batch, engine, heldout) -> HomeEnv:
     return HomeEnv(task, batch, engine=engine, heldout=heldout)  # cached: its jitted steps compile once
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _policy(task) -> ScriptedPolicy:
     return ScriptedPolicy.create(task, load_model())
 

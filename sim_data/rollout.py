@@ -13,7 +13,8 @@ import jax.numpy as jnp
 from flax import struct
 
 from sim_data.env import HomeEnv, State
-from sim_data.render import Renderer, episode_rgb
+from sim_data.engines import CpuEngine
+from sim_data.render import Poses, Renderer, episode_rgb, poses_from_arrays
 
 
 @struct.dataclass
@@ -56,7 +57,7 @@ def run_episodes(env: HomeEnv, policy, params, rng: jax.Array, record: bool = Fa
     """
     k_reset, k_pol, k_act = jax.random.split(rng, 3)
     state = env.reset(k_reset)
-    carry = policy.init_carry(params, state.obs, state.task, k_pol)
+    carry = _jitted_init(policy)(params, state.obs, state.task, k_pol)
     if env.engine.name == "mjx":
         state, traj = _scan_episode(env, policy, env.episode_steps, record, params, state, carry, k_act)
         return state, (_to_batch_major(traj) if record else None)
@@ -76,6 +77,11 @@ def run_episodes(env: HomeEnv, policy, params, rng: jax.Array, record: bool = Fa
 @functools.lru_cache(maxsize=64)
 def _jitted_act(policy):
     return jax.jit(policy.act)
+
+
+@functools.lru_cache(maxsize=64)
+def _jitted_init(policy):
+    return jax.jit(policy.init_carry)  # eager, its many small ops would each compile
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1, 2, 3))
@@ -109,8 +115,8 @@ class Recording:
     action: jax.Array
 
 
-def _observation(env: HomeEnv, state: State, renderers, rgb):
-    frames = {r.cfg.camera: r.render_batch(env.poses(state), rgb)["rgb"] for r in renderers}
+def _observation(poses: Poses, state: State, renderers, rgb):
+    frames = {r.cfg.camera: r.render_batch(poses, rgb)["rgb"] for r in renderers}
     rec = {"proprio": state.obs["proprio"], "qpos": state.qpos, "qvel": state.qvel, "mocap_pos": state.mocap_pos,
            "success": state.success}
     obs = dict(state.obs)
@@ -142,12 +148,12 @@ def record_episodes(env: HomeEnv, policy, params, rng: jax.Array, renderers: tup
     k_reset, k_pol, k_act = jax.random.split(rng, 3)
     state = env.reset(k_reset if reset_keys is None else reset_keys)
     rgb = episode_rgb(renderers[0].geometry, state.task.colors) if renderers else None
-    carry = policy.init_carry(params, state.obs, state.task, k_pol)
+    carry = _jitted_init(policy)(params, state.obs, state.task, k_pol)
     if env.engine.name == "mjx":
         state, first, rest, actions = _scan_recorded(env, policy, renderers, env.episode_steps, params, state, carry,
                                                      k_act, rgb)
         return state, _stack_recording(first, rest, actions)
-    jitted = _jitted_observe(env, renderers)
+    jitted = _jitted_cpu_observe(renderers)
 
     def observe(st, colors):
         return jitted(st.replace(physics=st.physics.replace(rows=None)), colors)  # float64 rows stay out of jit
@@ -168,19 +174,23 @@ def record_episodes(env: HomeEnv, policy, params, rng: jax.Array, renderers: tup
 
 
 @functools.lru_cache(maxsize=64)
-def _jitted_observe(env, renderers):
-    return jax.jit(lambda st, rgb: _observation(env, st, renderers, rgb))
+def _jitted_cpu_observe(renderers):
+    """Shared by every task and batch size of the cpu engine (the renderer compiles once per shape)."""
+    def observe(st, rgb):
+        return _observation(poses_from_arrays(**CpuEngine.poses(st.physics)), st, renderers, rgb)
+
+    return jax.jit(observe)
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1, 2, 3))
 def _scan_recorded(env: HomeEnv, policy, renderers, num_steps: int, params, state, carry, rng, rgb):
-    obs, frames, rec = _observation(env, state, renderers, rgb)
+    obs, frames, rec = _observation(env.poses(state), state, renderers, rgb)
 
     def body(c, t):
         st, pc, ob = c
         action, pc = policy.act(params, ob, pc, jax.random.fold_in(rng, t))
         st = env._mjx_step(st, action)
-        ob, fr, rc = _observation(env, st, renderers, rgb)
+        ob, fr, rc = _observation(env.poses(st), st, renderers, rgb)
         return (st, pc, ob), ((fr, rc), action)
 
     (state, _, _), (rest, actions) = jax.lax.scan(body, (state, carry, obs), jnp.arange(num_steps))

@@ -37,3 +37,14 @@ def sample_state(task: str, key, heldout: bool = False):
 @pytest.fixture
 def np_rng():
     return np.random.default_rng(0)
+
+
+@pytest.fixture(scope="session")
+def smoke_dataset(tmp_path_factory):
+    """(config, directory, stats) of `make data CONFIG=smoke` (2 mug episodes, cpu, with its cache).
+    Shared: tests copy it before changing anything."""
+    from sim_data import generate as G
+
+    out = tmp_path_factory.mktemp("smoke")
+    cfg = G.make_config("smoke")
+    return cfg, out, G.generate(cfg, out, progress=False)

@@ -14,12 +14,9 @@ from sim_data import generate as G
 TOPICS = {"/head_cam/image", "/ext_cam/image", "/robot_state", "/action", "/task_state", "/sim_state"}
 
 
-@pytest.fixture(scope="module")
-def smoke(tmp_path_factory):
-    out = tmp_path_factory.mktemp("smoke")
-    cfg = G.make_config("smoke")
-    stats = G.generate(cfg, out, progress=False)
-    return cfg, out, stats
+@pytest.fixture
+def smoke(smoke_dataset):
+    return smoke_dataset
 
 
 def test_manifest_and_stats(smoke):
@@ -71,6 +68,10 @@ def test_same_config_gives_same_bytes_and_resume_completes(smoke, tmp_path):
     files = sorted(p.name for p in (out / "episodes").iterdir())
     for name in files:
         assert (again / "episodes" / name).read_bytes() == (out / "episodes" / name).read_bytes()
+    cached = sorted(p.relative_to(out) for p in (out / "cache").rglob("*") if p.is_file())
+    assert cached and cached == sorted(p.relative_to(again) for p in (again / "cache").rglob("*") if p.is_file())
+    for rel in cached:
+        assert (again / rel).read_bytes() == (out / rel).read_bytes(), rel
     # a killed run: one episode missing, one half-written temporary file left behind
     victim = again / "episodes" / files[0]
     victim.unlink()

@@ -1,0 +1,386 @@
+"""The training cache: a dataset's episodes as memory-mapped arrays, built from its MCAP files alone,
+and a loader of shuffled fixed-length windows.
+
+    python -m sim_data.cache build OUT            # build, or finish a killed build
+    python -m sim_data.cache rebuild OUT          # from scratch, from OUT/episodes/*.mcap alone
+    python -m sim_data.cache rebuild OUT --skip-corrupt   # leave out unreadable files, listed in index.json
+    python -m sim_data.cache info OUT
+
+Layout of `OUT/cache/`: shards `shard-00000/` .. of up to `shard_episodes` episodes (files in name
+order), each holding `<camera>.npy` (N, H, W, 3) uint8, `proprio.npy` (N, 37) float32,
+`action.npy` (N, 20) float32 (row t is the action taken after frame t; zeros after an episode's
+last frame), `success.npy` (N,) bool and `episodes.json`; N counts frames (T+1 per episode).
+`index.json`, written last, lists shards, episodes (with shard, start, length) and skipped
+files. Shards are written under a temporary name and renamed when whole, so a killed build
+resumes; the same MCAP files give the same bytes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import concurrent.futures as cf
+import json
+import multiprocessing
+import os
+import queue
+import shutil
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from sim_data.episodes import CorruptEpisode, read_episode, read_episode_meta
+
+FORMAT = 1
+EPISODE_KEYS = ("episode_id", "task", "policy", "policy_kind", "skill", "seed", "success", "split", "heldout")
+ARRAYS = ("proprio", "action", "success")
+
+
+def cache_dir(out: Path) -> Path:
+    return Path(out) / "cache"
+
+
+def episode_files(out: Path) -> list[Path]:
+    """The dataset's finished episode files, in name order."""
+    files = sorted((Path(out) / "episodes").glob("*.mcap"))
+    if not files:
+        raise FileNotFoundError(f"{out}/episodes holds no .mcap files: generate a dataset first (make data)")
+    return files
+
+
+def _decode(path: Path, cameras) -> dict:
+    """One episode's cache rows, or {"error": why} for a file that does not read back whole."""
+    try:
+        ep = read_episode(path, cameras=cameras, sim_state=False)
+    except CorruptEpisode as e:
+        return {"error": str(e)}
+    n = ep["proprio"].shape[0]
+    missing = [c for c in cameras if c not in ep["frames"]]
+    if missing:
+        return {"error": f"{path}: no camera {missing} (the dataset's other files have it)"}
+    action = np.zeros((n, ep["action"].shape[1]), np.float32)
+    action[: n - 1] = ep["action"]
+    rec = {k: ep["meta"].get(k) for k in EPISODE_KEYS}
+    rec.update(file=f"episodes/{path.name}", length=n)
+    return {"record": rec, "frames": ep["frames"], "proprio": ep["proprio"], "action": action, "success": ep["success"]}
+
+
+def _save_npy(path: Path, arr: np.ndarray) -> None:
+    with open(path, "wb") as f:
+        np.save(f, arr)
+
+
+def _write_shard(root: Path, name: str, decoded: list, cameras) -> dict:
+    """Writes one shard (in name.tmp, renamed when whole); returns its summary."""
+    tmp, final = root / f"{name}.tmp", root / name
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    good = [d for d in decoded if "error" not in d]
+    records, start = [], 0
+    for d in good:
+        records.append({**d["record"], "shard": name, "start": start})
+        start += d["record"]["length"]
+    for cam in cameras:
+        _save_npy(tmp / f"{cam}.npy", np.concatenate([d["frames"][cam] for d in good]) if good
+                         else np.zeros((0, 0, 0, 3), np.uint8))
+    for k in ARRAYS:
+        _save_npy(tmp / f"{k}.npy", np.concatenate([d[k] for d in good]) if good else np.zeros((0,)))
+    skipped = [{"file": str(d.get("file", "")), "error": d["error"]} for d in decoded if "error" in d]
+    summary = {"name": name, "frames": start, "episodes": records, "skipped": skipped}
+    (tmp / "episodes.json").write_text(json.dumps(summary, indent=1))
+    os.replace(tmp, final)
+    return summary
+
+
+def build_cache(out: Path, skip_corrupt: bool = False, workers: int | None = None, shard_episodes: int = 64,
+                cameras=None, progress: bool = True) -> dict:
+    """Builds (or finishes) OUT/cache from OUT/episodes/*.mcap; returns the index written to index.json.
+
+    Args:
+      out: the dataset directory.
+      skip_corrupt: leave out files that do not read back whole and list them in the index
+        (`skipped`) and on stderr; without it such a file stops the build with an error naming it.
+      workers: decoding processes (default: the CPU count, at most 16).
+      shard_episodes: episodes per shard.
+      cameras: cameras to cache (default: those of the first episode).
+    """
+    files = episode_files(out)
+    root = cache_dir(out)
+    root.mkdir(exist_ok=True)
+    if cameras is None:
+        cameras = _cameras_of(files, skip_corrupt)
+    cameras = list(cameras)
+    plan = {"format": FORMAT, "files": [p.name for p in files], "shard_episodes": shard_episodes, "cameras": cameras}
+    plan_path = root / "plan.json"
+    if plan_path.exists() and json.loads(plan_path.read_text()) != plan:
+        for p in root.iterdir():  # the episode set changed: the old shards describe another dataset
+            shutil.rmtree(p) if p.is_dir() else p.unlink()
+    plan_path.write_text(json.dumps(plan))
+    (root / "index.json").unlink(missing_ok=True)
+    groups = [files[i:i + shard_episodes] for i in range(0, len(files), shard_episodes)]
+    names = [f"shard-{i:05d}" for i in range(len(groups))]
+    todo = [(n, g) for n, g in zip(names, groups) if not (root / n / "episodes.json").exists()]
+    bar = tqdm(total=sum(len(g) for _, g in todo), unit="ep", desc="cache", disable=not progress or not todo)
+    workers = workers or min(16, os.cpu_count() or 1)
+    with cf.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        submitted = [[pool.submit(_decode, f, cameras) for f in g] for _, g in todo[:2]]
+        for k, (name, group) in enumerate(todo):
+            if k + 2 < len(todo):  # keep the next shards decoding while this one is written
+                submitted.append([pool.submit(_decode, f, cameras) for f in todo[k + 2][1]])
+            decoded = []
+            for f, fut in zip(group, submitted[k]):
+                d = fut.result()
+                if "error" in d:
+                    if not skip_corrupt:
+                        pool.shutdown(cancel_futures=True)
+                        raise CorruptEpisode(d["error"] + " (python -m sim_data.cache rebuild OUT --skip-corrupt "
+                                             "leaves such files out and lists them)")
+                    d["file"] = f"episodes/{f.name}"
+                decoded.append(d)
+                bar.update(1)
+            submitted[k] = None
+            _write_shard(root, name, decoded, cameras)
+    bar.close()
+    index = _write_index(root, names, cameras)
+    for s in index["skipped"]:
+        print(f"skipped {s['file']}: {s['error']}", file=sys.stderr)
+    return index
+
+
+def _cameras_of(files, skip_corrupt) -> list:
+    for f in files:
+        try:
+            return list(read_episode_meta(f)["cameras"])
+        except CorruptEpisode:
+            if not skip_corrupt:
+                raise
+    raise CorruptEpisode("no episode file of the dataset is readable")
+
+
+def _write_index(root: Path, names, cameras) -> dict:
+    shards = [json.loads((root / n / "episodes.json").read_text()) for n in names]
+    size = None
+    for s in shards:
+        if s["frames"]:
+            size = int(np.load(root / s["name"] / f"{cameras[0]}.npy", mmap_mode="r").shape[1])
+            break
+    index = {
+        "format": FORMAT, "cameras": cameras, "size": size,
+        "frames": sum(s["frames"] for s in shards),
+        "shards": [{"name": s["name"], "frames": s["frames"], "episodes": len(s["episodes"])} for s in shards],
+        "episodes": [e for s in shards for e in s["episodes"]],
+        "skipped": [x for s in shards for x in s["skipped"]],
+    }
+    tmp = root / "index.json.tmp"
+    tmp.write_text(json.dumps(index, indent=1))
+    os.replace(tmp, root / "index.json")
+    return index
+
+
+def rebuild_cache(out: Path, **kwargs) -> dict:
+    """Deletes OUT/cache and builds it again from the MCAP files alone."""
+    shutil.rmtree(cache_dir(out), ignore_errors=True)
+    return build_cache(out, **kwargs)
+
+
+# ---- reading --------------------------------------------------------------------------------------
+
+class TrainingCache:
+    """Read access to a built cache (arrays memory-mapped, opened on first use).
+
+    Attributes:
+      episodes: the index's episode records (task, policy, skill, seed, success, split, shard,
+        start, length, ...). tasks: sorted task names (the task ids of the loader's batches).
+    """
+
+    def __init__(self, out: Path):
+        path = cache_dir(out) / "index.json"
+        if not path.exists():
+            raise FileNotFoundError(f"{path} is missing: build the cache with python -m sim_data.cache build {out}")
+        self.root = cache_dir(out)
+        self.index = json.loads(path.read_text())
+        if self.index.get("format") != FORMAT:
+            raise ValueError(f"{path} has format {self.index.get('format')}, this code reads {FORMAT}: rebuild it")
+        self.episodes = self.index["episodes"]
+        self.cameras = self.index["cameras"]
+        self.tasks = sorted({e["task"] for e in self.episodes})
+        self._maps: dict = {}
+
+    def array(self, shard: str, name: str) -> np.ndarray:
+        """The memory-mapped array `name` (a camera or proprio/action/success) of a shard."""
+        key = (shard, name)
+        if key not in self._maps:
+            self._maps[key] = np.load(self.root / shard / f"{name}.npy", mmap_mode="r")
+        return self._maps[key]
+
+    def select(self, split: str | None = None, tasks=None) -> list[int]:
+        """Indices of the episodes of a split (train / val / test; None: all) and tasks (None: all)."""
+        return [i for i, e in enumerate(self.episodes)
+                if (split is None or e["split"] == split) and (tasks is None or e["task"] in tasks)]
+
+    def episode(self, i: int, cameras=None) -> dict:
+        """Episode i whole: {"frames": {camera: (T+1, H, W, 3) uint8}, "proprio": (T+1, 37),
+        "action": (T+1, 20) (last row zeros), "success": (T+1,) bool, "record": its index record}."""
+        e = self.episodes[i]
+        sl = slice(e["start"], e["start"] + e["length"])
+        cams = self.cameras if cameras is None else cameras
+        out = {k: np.asarray(self.array(e["shard"], k)[sl]) for k in ARRAYS}
+        out["frames"] = {c: np.asarray(self.array(e["shard"], c)[sl]) for c in cams}
+        out["record"] = e
+        return out
+
+
+class WindowLoader:
+    """Shuffled fixed-length windows of a cache's episodes, prefetched in a background thread.
+
+    Every start position of every selected episode is one window; an epoch visits them all in
+    an order drawn from (seed, epoch), in batches of `batch` (the last partial batch is dropped).
+    `state()` after a batch and `restore(state)` in a new loader continue the same sequence.
+
+    Batches: {"frames": {camera: (B, T, H, W, 3) uint8}, "proprio": (B, T, 37) float32,
+    "action": (B, T, 20) float32 (action t follows frame t), "success": (B, T) bool,
+    "outcome": (B,) bool (the episode's success), "task": (B,) int32 (index into cache.tasks),
+    "start": (B,) int32 (the window's first step), "episode": (B,) int32}.
+    """
+
+    def __init__(self, cache: TrainingCache, window: int, batch: int, split: str | None = "train", seed: int = 0,
+                 cameras=None, tasks=None, prefetch: int = 4):
+        if window < 1 or batch < 1:
+            raise ValueError(f"window and batch must be >= 1, got {window}, {batch}")
+        self.cache, self.window, self.batch, self.seed = cache, window, batch, seed
+        self.cameras = list(cameras or cache.cameras[:1])
+        bad = [c for c in self.cameras if c not in cache.cameras]
+        if bad:
+            raise ValueError(f"cameras {bad} are not in the cache (it has {cache.cameras})")
+        self.episodes = np.array([i for i in cache.select(split, tasks)
+                                  if cache.episodes[i]["length"] >= window], np.int64)
+        counts = np.array([cache.episodes[i]["length"] - window + 1 for i in self.episodes], np.int64)
+        if counts.sum() < batch:
+            raise ValueError(f"split {split!r} has {int(counts.sum())} windows of length {window}, fewer than a batch "
+                             f"of {batch}")
+        self._ends = np.cumsum(counts)
+        self.windows = int(self._ends[-1])
+        self.batches_per_epoch = self.windows // batch
+        self._task_id = {t: i for i, t in enumerate(cache.tasks)}
+        self._position = (0, 0)
+        self._prefetch = prefetch
+        self._queue = None
+        self._stop = None
+
+    # ---- iteration state ----
+    def state(self) -> dict:
+        """Where the loader is: pass to `restore` to continue after the batches already taken."""
+        return {"epoch": self._position[0], "batch": self._position[1], "seed": self.seed,
+                "window": self.window, "batch_size": self.batch, "windows": self.windows}
+
+    def restore(self, state: dict) -> None:
+        mine = {"seed": self.seed, "window": self.window, "batch_size": self.batch, "windows": self.windows}
+        theirs = {k: state.get(k) for k in mine}
+        if theirs != mine:
+            raise ValueError(f"loader state is for another loader ({theirs}), this one is {mine}")
+        self._halt()
+        self._position = (int(state["epoch"]), int(state["batch"]))
+
+    # ---- batches ----
+    def _order(self, epoch: int) -> np.ndarray:
+        return np.random.default_rng([self.seed, epoch]).permutation(self.windows)
+
+    def batch_at(self, epoch: int, k: int) -> dict:
+        """Batch k of an epoch (what iteration yields there)."""
+        ids = self._order(epoch)[k * self.batch:(k + 1) * self.batch]
+        return self.gather(ids)
+
+    def gather(self, window_ids: np.ndarray) -> dict:
+        """The windows with these ids (0 .. windows-1) as one batch."""
+        pos = np.searchsorted(self._ends, window_ids, side="right")
+        starts = window_ids - np.concatenate([[0], self._ends[:-1]])[pos]
+        eps = self.episodes[pos]
+        recs = [self.cache.episodes[i] for i in eps]
+        b, t = len(window_ids), self.window
+        out = {"frames": {}, "outcome": np.array([r["success"] for r in recs], bool),
+               "task": np.array([self._task_id[r["task"]] for r in recs], np.int32),
+               "start": starts.astype(np.int32), "episode": eps.astype(np.int32)}
+        shards = np.array([r["shard"] for r in recs])
+        rows = np.array([r["start"] for r in recs], np.int64) + starts
+        steps = np.arange(t)
+        for name in self.cameras + list(ARRAYS):
+            first = self.cache.array(recs[0]["shard"], name)
+            arr = np.empty((b, t) + first.shape[1:], first.dtype)
+            for shard in np.unique(shards):
+                sel = np.nonzero(shards == shard)[0]
+                arr[sel] = self.cache.array(shard, name)[rows[sel, None] + steps]
+            if name in self.cameras:
+                out["frames"][name] = arr
+            else:
+                out[name] = arr
+        return out
+
+    def _produce(self, epoch, k, q, stop):
+        while not stop.is_set():
+            try:
+                item = (epoch, k, self.batch_at(epoch, k))
+            except Exception as e:  # surfaced to the consumer
+                item = (epoch, k, e)
+            while not stop.is_set():
+                try:
+                    q.put(item, timeout=0.1)
+                    break
+                except queue.Full:
+                    continue
+            k += 1
+            if k == self.batches_per_epoch:
+                epoch, k = epoch + 1, 0
+
+    def _halt(self):
+        if self._stop is not None:
+            self._stop.set()
+        self._queue = self._stop = None
+
+    def __iter__(self):
+        return self
+
+    def __next__(self) -> dict:
+        if self._queue is None:
+            self._queue, self._stop = queue.Queue(self._prefetch), threading.Event()
+            threading.Thread(target=self._produce, args=(*self._position, self._queue, self._stop), daemon=True).start()
+        epoch, k, item = self._queue.get()
+        if isinstance(item, Exception):
+            self._halt()
+            raise item
+        k += 1
+        self._position = (epoch + 1, 0) if k == self.batches_per_epoch else (epoch, k)
+        return item
+
+    def close(self) -> None:
+        self._halt()
+
+
+# ---- command line ---------------------------------------------------------------------------------
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("command", choices=("build", "rebuild", "info"))
+    p.add_argument("out", type=Path, help="the dataset directory (holding episodes/)")
+    p.add_argument("--skip-corrupt", action="store_true", help="leave out unreadable files and list them")
+    p.add_argument("--workers", type=int, default=None)
+    p.add_argument("--shard-episodes", type=int, default=64)
+    a = p.parse_args(argv)
+    if a.command == "info":
+        idx = TrainingCache(a.out).index
+        print(json.dumps({k: idx[k] for k in ("cameras", "size", "frames", "shards", "skipped")}, indent=1))
+        return 0
+    build = rebuild_cache if a.command == "rebuild" else build_cache
+    try:
+        idx = build(a.out, skip_corrupt=a.skip_corrupt, workers=a.workers, shard_episodes=a.shard_episodes)
+    except (CorruptEpisode, FileNotFoundError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    print(f"{cache_dir(a.out)}: {len(idx['episodes'])} episodes, {idx['frames']} frames in {len(idx['shards'])} "
+          f"shards; {len(idx['skipped'])} skipped")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,113 @@
+"""The training cache (built from MCAP alone, resumable, corrupt files named or skipped and listed),
+the window loader (contents, epochs, resumable state) and replay."""
+
+import shutil
+
+import numpy as np
+import pytest
+
+from sim_data import cache as C
+from sim_data.episodes import CorruptEpisode, read_episode
+from sim_data.replay import replay_files, summarize
+
+
+@pytest.fixture(scope="module")
+def two_shards(smoke_dataset, tmp_path_factory):
+    """The smoke dataset's episodes with a cache of one episode per shard (the loader crosses shards)."""
+    _, out, _ = smoke_dataset
+    copy = tmp_path_factory.mktemp("two_shards")
+    shutil.copytree(out / "episodes", copy / "episodes")
+    C.build_cache(copy, shard_episodes=1, workers=2, progress=False)
+    return copy
+
+
+def test_cache_rows_equal_the_mcap_files(two_shards):
+    cache = C.TrainingCache(two_shards)
+    assert len(cache.index["shards"]) == 2 and cache.cameras == ["head_cam", "ext_cam"]
+    for i, rec in enumerate(cache.episodes):
+        ep = read_episode(two_shards / rec["file"])
+        row = cache.episode(i)
+        for cam in cache.cameras:
+            np.testing.assert_array_equal(row["frames"][cam], ep["frames"][cam])
+        np.testing.assert_array_equal(row["proprio"], ep["proprio"])
+        np.testing.assert_array_equal(row["action"][:-1], ep["action"])
+        assert not row["action"][-1].any()
+        np.testing.assert_array_equal(row["success"], ep["success"])
+        assert rec["success"] == ep["meta"]["success"] and rec["length"] == ep["proprio"].shape[0]
+
+
+def test_killed_build_resumes_to_the_same_bytes(two_shards, tmp_path):
+    copy = tmp_path / "copy"
+    shutil.copytree(two_shards, copy)
+    shutil.rmtree(copy / "cache" / "shard-00001")
+    (copy / "cache" / "index.json").unlink()
+    (copy / "cache" / "shard-00001.tmp").mkdir()  # a shard being written when the build died
+    (copy / "cache" / "shard-00001.tmp" / "proprio.npy").write_bytes(b"half")
+    C.build_cache(copy, shard_episodes=1, workers=1, progress=False)
+    for f in sorted((two_shards / "cache").rglob("*")):
+        if f.is_file():
+            assert (copy / f.relative_to(two_shards)).read_bytes() == f.read_bytes(), f
+    assert not (copy / "cache" / "shard-00001.tmp").exists()
+
+
+def test_corrupt_file_stops_the_build_or_is_skipped_and_listed(two_shards, tmp_path, capsys):
+    copy = tmp_path / "copy"
+    shutil.copytree(two_shards / "episodes", copy / "episodes")
+    victim = sorted((copy / "episodes").iterdir())[1]
+    data = bytearray(victim.read_bytes())
+    data[len(data) // 3: len(data) // 3 + 64] = bytes(64)  # damage inside a compressed chunk
+    victim.write_bytes(bytes(data))
+    with pytest.raises(CorruptEpisode, match=victim.name):
+        C.build_cache(copy, workers=1, progress=False)
+    assert not (copy / "cache" / "index.json").exists()
+    assert C.main(["rebuild", str(copy), "--skip-corrupt", "--workers", "1"]) == 0
+    index = C.TrainingCache(copy).index
+    assert [s["file"] for s in index["skipped"]] == [f"episodes/{victim.name}"]
+    assert len(index["episodes"]) == 1 and victim.name in capsys.readouterr().err
+    victim.write_bytes(bytes(data[: len(data) // 2]))  # truncated
+    assert C.main(["rebuild", str(copy)]) == 1
+    assert victim.name in capsys.readouterr().err
+
+
+def test_loader_windows_epochs_and_resume(two_shards):
+    cache = C.TrainingCache(two_shards)
+    window, batch = 16, 8
+    loader = C.WindowLoader(cache, window, batch, split=None, seed=3, cameras=["head_cam", "ext_cam"])
+    lengths = [e["length"] for e in cache.episodes]
+    assert loader.windows == sum(n - window + 1 for n in lengths)
+    first = [next(loader) for _ in range(3)]
+    b = first[0]
+    assert b["frames"]["head_cam"].shape == (batch, window, cache.index["size"], cache.index["size"], 3)
+    assert b["proprio"].shape == (batch, window, 37) and b["action"].shape == (batch, window, 20)
+    assert b["frames"]["head_cam"].dtype == np.uint8 and b["outcome"].dtype == bool
+    for j in range(batch):  # each window is a slice of its episode
+        ep = cache.episode(int(b["episode"][j]))
+        s = int(b["start"][j])
+        np.testing.assert_array_equal(b["frames"]["ext_cam"][j], ep["frames"]["ext_cam"][s:s + window])
+        np.testing.assert_array_equal(b["action"][j], ep["action"][s:s + window])
+        assert b["outcome"][j] == ep["record"]["success"] and cache.tasks[b["task"][j]] == ep["record"]["task"]
+    state = loader.state()
+    expected = next(loader)
+    loader.close()
+    again = C.WindowLoader(cache, window, batch, split=None, seed=3, cameras=["head_cam", "ext_cam"])
+    again.restore(state)
+    got = next(again)
+    np.testing.assert_array_equal(got["frames"]["head_cam"], expected["frames"]["head_cam"])
+    np.testing.assert_array_equal(got["start"], expected["start"])
+    # an epoch visits every window at most once
+    seen = {(int(e), int(s)) for k in range(loader.batches_per_epoch)
+            for e, s in zip(*(lambda x: (x["episode"], x["start"]))(loader.batch_at(0, k)))}
+    assert len(seen) == loader.batches_per_epoch * batch
+    with pytest.raises(ValueError, match="another loader"):
+        C.WindowLoader(cache, window + 1, batch, split=None, seed=3).restore(state)
+    with pytest.raises(ValueError, match="cameras"):
+        C.WindowLoader(cache, window, batch, split=None, cameras=["top_cam"])
+
+
+def test_replay_reproduces_recorded_episodes(smoke_dataset):
+    _, out, _ = smoke_dataset
+    files = sorted((out / "episodes").glob("*.mcap"))
+    results = replay_files(files)
+    s = summarize(results)
+    assert s["episodes"] == len(files) and s["outcome_agreement"] == 1.0 and s["mean_flags_agree"] == 1.0
+    assert s["max_initial_state_error"] == 0.0  # the cpu engine replays bit for bit
