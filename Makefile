@@ -43,6 +43,7 @@ test-slow: setup
 bench: setup
 	$(PY) -m sim_data.bench --out runs/bench/physics_$$(hostname).json
 	$(PY) -m sim_data.bench_render --out runs/bench/render_$$(hostname).json
+	$(PY) -m sim_data.bench_data --out runs/bench/data_$$(hostname).json
 
 clean:
 	rm -rf runs/demo .pytest_cache

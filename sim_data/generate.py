@@ -223,6 +223,7 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True) -> dict:
     total = sum(len(c[3]) for c in todo)
     bar = tqdm(total=total, unit="ep", desc="episodes", disable=not progress or total == 0)
     t0, frames_done, steps_done = time.perf_counter(), 0, 0
+    sim_s = wait_s = 0.0  # simulating and rendering (with the copy to the host); waiting on writers
     # worker processes: JSON and zstd hold the GIL, and the cpu engine's step loop needs it
     pool = cf.ProcessPoolExecutor(cfg.workers, mp_context=multiprocessing.get_context("spawn"))
     pending = []
@@ -233,13 +234,15 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True) -> dict:
         policy, renderers = _policy(task), _renderers(cfg.size, tuple(cfg.cameras))
         reset_keys = jax.numpy.stack([jax.random.PRNGKey(initial_seed(cfg, task, i)) for i in idx])
         chunk_key = jax.random.PRNGKey(initial_seed(cfg, f"{task}/{skill}", idx[0]))
+        ts = time.perf_counter()
         _, rec = record_episodes(env, policy, {"skill": np.full((b,), skill, np.float32)}, chunk_key, renderers,
                                  reset_keys=reset_keys)
         rec = jax.tree_util.tree_map(np.asarray, rec)
+        sim_s += time.perf_counter() - ts
         for row, i in enumerate(idx):
             if i not in missing:
                 continue
-            ep = jax.tree_util.tree_map(lambda x: x[row], rec)
+            ep = jax.tree_util.tree_map(lambda x, row=row: x[row], rec)
             meta = _episode_meta(cfg, task, skill, i, ep.success[-1], ep.action.shape[0], engine)
             meta.update(config=dataclasses.asdict(cfg), versions=versions)
             episode = {"frames": ep.frames, "proprio": ep.proprio, "qpos": ep.qpos, "qvel": ep.qvel,
@@ -247,12 +250,16 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True) -> dict:
             pending.append(pool.submit(write_episode_mcap, out / meta["file"], episode, meta, cfg.jpeg_quality))
         steps_done += b * (rec.action.shape[1] + 1)
         frames_done += b * (rec.action.shape[1] + 1) * len(cfg.cameras)
+        tw = time.perf_counter()
         pending = _drain(pending, bar, wait_all=False)
         while len(pending) > cfg.batch:  # at most one chunk waits for the writers while the next simulates
             pending = _drain(pending[:1], bar, wait_all=True) + pending[1:]
+        wait_s += time.perf_counter() - tw
         dt = time.perf_counter() - t0
         bar.set_postfix(frames_per_s=f"{frames_done / dt:.0f}")
+    tw = time.perf_counter()
     _drain(pending, bar, wait_all=True)
+    wait_s += time.perf_counter() - tw
     pool.shutdown()
     bar.close()
     wall = time.perf_counter() - t0
@@ -260,6 +267,7 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True) -> dict:
     stats = _stats(manifest, {"wall_s": wall, "episodes_generated": total, "steps_generated": steps_done,
                               "frames_generated": frames_done, "frames_per_s": frames_done / wall if total else None,
                               "episodes_per_s": total / wall if total else None, "engine": engine,
+                              "simulate_s": sim_s, "wait_for_writers_s": wait_s, "workers": cfg.workers,
                               "device": _device_name()})
     if cfg.cache:
         t1 = time.perf_counter()
