@@ -45,7 +45,7 @@ from sim_data.cache import build_cache
 from sim_data.engines import ENGINES, default_engine
 from sim_data.env import HomeEnv
 from sim_data.episodes import CorruptEpisode, read_episode_meta, write_episode_mcap  # noqa: F401 (re-exported)
-from sim_data.policies import ScriptedPolicy
+from sim_data.policies import PROGRAMS, ProgramPolicy, ScriptedPolicy
 from sim_data.render import RenderConfig, Renderer
 from sim_data.rollout import record_episodes
 from sim_data.scene import load_model
@@ -53,7 +53,7 @@ from sim_data.success_table import wilson_interval, write_json_atomic
 from sim_data.tasks import TASK_NAMES
 
 CAMERAS = ("head_cam", "ext_cam")
-SPLITS = ("train", "val", "test")
+SPLITS = ("train", "val", "test", "programs")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -71,6 +71,8 @@ class DataConfig:
       batch: episodes simulated together. val_frac, test_frac: shares of initial states per split.
       jpeg_quality: 1..100. workers: processes encoding and writing files.
       cache: build the training cache (sim_data.cache) at the end.
+      programs: initial states per task (split "programs", never train/val/test) from which every
+        action program of `sim_data.policies.PROGRAMS` is recorded: the world model's controllability set.
     """
 
     tasks: tuple = TASK_NAMES
@@ -87,6 +89,7 @@ class DataConfig:
     jpeg_quality: int = 90
     workers: int = 2
     cache: bool = True
+    programs: int = 0
 
     def validate(self) -> None:
         bad = [t for t in self.tasks if t not in TASK_NAMES]
@@ -96,6 +99,8 @@ class DataConfig:
             raise ValueError(f"skills must be in [0, 1], got {self.skills}")
         if self.episodes < 1 or self.batch < 1 or self.workers < 1:
             raise ValueError("episodes, batch and workers must be >= 1")
+        if self.programs < 0:
+            raise ValueError(f"programs must be >= 0, got {self.programs}")
         if self.engine not in ("",) + ENGINES:
             raise ValueError(f"engine must be one of {ENGINES} or empty, got {self.engine!r}")
         if self.size not in (64, 128):
@@ -110,9 +115,9 @@ class DataConfig:
 
 PRESETS = {
     "default": DataConfig(),
-    "smoke": DataConfig(tasks=("mug",), skills=(1.0,), episodes=2, batch=2),
-    "demo": DataConfig(skills=(0.3, 1.0), episodes=4, batch=8),
-    "full": DataConfig(skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=600, batch=1200, workers=12),
+    "smoke": DataConfig(tasks=("mug",), skills=(1.0,), episodes=2, batch=2, programs=1),
+    "demo": DataConfig(skills=(0.3, 1.0), episodes=4, batch=8, programs=1),
+    "full": DataConfig(skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=600, batch=1200, workers=12, programs=32),
     "heldout_plant": DataConfig(heldout=True, episodes=100, batch=600, workers=12),
     "shelf": DataConfig(tasks=("shelf",), skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=600, batch=1200, workers=12),
     "shelf_arcade": DataConfig(tasks=("shelf", "arcade"), skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=300,
@@ -167,12 +172,19 @@ def split_of(cfg: DataConfig, seed: int) -> str:
     return "test" if u < cfg.test_frac else "val" if u < cfg.test_frac + cfg.val_frac else "train"
 
 
-def policy_name(skill: float) -> str:
-    return f"scripted@{float(skill):.2f}"
+def policy_name(source) -> str:
+    """A source is a scripted skill (float) or an action program's name."""
+    return f"program:{source}" if isinstance(source, str) else f"scripted@{float(source):.2f}"
 
 
-def episode_id(task: str, skill: float, i: int) -> str:
-    return f"{task}-s{round(float(skill) * 100):03d}-{i:06d}"
+def episode_id(task: str, source, i: int) -> str:
+    if isinstance(source, str):
+        return f"{task}-p{PROGRAMS.index(source)}{source}-{i:06d}"
+    return f"{task}-s{round(float(source) * 100):03d}-{i:06d}"
+
+
+def _initial_seed_of(cfg, task, source, i) -> int:
+    return initial_seed(cfg, f"{task}/programs" if isinstance(source, str) else task, i)
 
 
 # ---- the run ------------------------------------------------------------------------------------
@@ -188,19 +200,24 @@ def _versions() -> dict:
 
 
 def _plan(cfg: DataConfig):
-    """Chunks of work: (task, skill, [episode indices]) in a fixed order."""
+    """Chunks of work: (task, source, [episode indices]) in a fixed order; a source is a scripted
+    skill (float) or an action program (str)."""
     for task in cfg.tasks:
-        for skill in cfg.skills:
-            for start in range(0, cfg.episodes, cfg.batch):
-                yield task, float(skill), list(range(start, min(cfg.episodes, start + cfg.batch)))
+        sources = [(float(s), cfg.episodes) for s in cfg.skills] + [(p, cfg.programs) for p in PROGRAMS if cfg.programs]
+        for source, n in sources:
+            for start in range(0, n, cfg.batch):
+                yield task, source, list(range(start, min(n, start + cfg.batch)))
 
 
-def _episode_meta(cfg, task, skill, i, success, num_steps, engine):
-    seed = initial_seed(cfg, task, i)
+def _episode_meta(cfg, task, source, i, success, num_steps, engine):
+    seed = _initial_seed_of(cfg, task, source, i)
+    program = isinstance(source, str)
     return {
-        "episode_id": episode_id(task, skill, i), "task": task, "policy": policy_name(skill), "policy_kind": "scripted",
-        "skill": float(skill), "seed": seed, "success": bool(success), "num_steps": int(num_steps),
-        "split": split_of(cfg, seed), "file": f"episodes/{episode_id(task, skill, i)}.mcap", "engine": engine,
+        "episode_id": episode_id(task, source, i), "task": task, "policy": policy_name(source),
+        "policy_kind": "program" if program else "scripted", "skill": None if program else float(source),
+        "seed": seed, "success": bool(success), "num_steps": int(num_steps),
+        "split": "programs" if program else split_of(cfg, seed), "file": f"episodes/{episode_id(task, source, i)}.mcap",
+        "engine": engine,
         "renderer": "sim_data.render (JAX ray casting)", "heldout": cfg.heldout, "size": cfg.size,
         "cameras": list(cfg.cameras),
     }
@@ -231,12 +248,15 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True) -> dict:
     for task, skill, idx, missing in todo:
         b = len(idx)
         env = _env(task, b, engine, cfg.heldout)
-        policy, renderers = _policy(task), _renderers(cfg.size, tuple(cfg.cameras))
-        reset_keys = jax.numpy.stack([jax.random.PRNGKey(initial_seed(cfg, task, i)) for i in idx])
+        renderers = _renderers(cfg.size, tuple(cfg.cameras))
+        if isinstance(skill, str):
+            policy, params = ProgramPolicy(skill, env.episode_steps), {}
+        else:
+            policy, params = _policy(task), {"skill": np.full((b,), skill, np.float32)}
+        reset_keys = jax.numpy.stack([jax.random.PRNGKey(_initial_seed_of(cfg, task, skill, i)) for i in idx])
         chunk_key = jax.random.PRNGKey(initial_seed(cfg, f"{task}/{skill}", idx[0]))
         ts = time.perf_counter()
-        _, rec = record_episodes(env, policy, {"skill": np.full((b,), skill, np.float32)}, chunk_key, renderers,
-                                 reset_keys=reset_keys)
+        _, rec = record_episodes(env, policy, params, chunk_key, renderers, reset_keys=reset_keys)
         rec = jax.tree_util.tree_map(np.asarray, rec)
         sim_s += time.perf_counter() - ts
         for row, i in enumerate(idx):

@@ -348,3 +348,21 @@ def action_program(name: str, num_steps: int) -> np.ndarray:
         a[:, R.NECK.start + 1] = S.READY_NECK_PITCH + 0.15 * np.sin(2 * np.pi * 1.0 * t)
         a[:, R.LEFT_HAND] = 0.5 + 0.5 * np.sin(2 * np.pi * 1.5 * t)
     return a
+
+
+@dataclasses.dataclass(frozen=True)
+class ProgramPolicy:
+    """An action program (`action_program`) as a policy of the project's protocol: it ignores the
+    observation and plays the program's action t at control step t (the last one after its end)."""
+
+    name: str
+    num_steps: int
+
+    def init_carry(self, params, obs, task_state, rng):
+        del params, task_state, rng
+        return jnp.zeros((obs["qpos"].shape[0],), jnp.int32)
+
+    def act(self, params, obs, carry, rng):
+        del params, obs, rng
+        table = jnp.asarray(action_program(self.name, self.num_steps))
+        return table[jnp.minimum(carry, self.num_steps - 1)], carry + 1

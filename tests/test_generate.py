@@ -10,6 +10,7 @@ import pytest
 from mcap.reader import make_reader
 
 from sim_data import generate as G
+from sim_data.policies import PROGRAMS
 
 TOPICS = {"/head_cam/image", "/ext_cam/image", "/robot_state", "/action", "/task_state", "/sim_state"}
 
@@ -22,13 +23,16 @@ def smoke(smoke_dataset):
 def test_manifest_and_stats(smoke):
     cfg, out, stats = smoke
     rows = [json.loads(line) for line in (out / "manifest.jsonl").read_text().splitlines()]
-    assert len(rows) == cfg.episodes * len(cfg.tasks) * len(cfg.skills) == stats["episodes"]
+    programs = len(cfg.tasks) * cfg.programs * len(PROGRAMS)
+    assert len(rows) == cfg.episodes * len(cfg.tasks) * len(cfg.skills) + programs == stats["episodes"]
+    assert sum(r["policy_kind"] == "program" and r["split"] == "programs" for r in rows) == programs > 0
     for r in rows:
         for k in ("episode_id", "task", "policy", "skill", "seed", "success", "num_steps", "split", "file", "engine",
                   "renderer"):
             assert k in r
         assert (out / r["file"]).exists() and r["split"] in G.SPLITS and r["engine"] == "cpu"
-    per = stats["per_task_policy"][0]
+    rows = [r for r in rows if r["policy"] == "scripted@1.00"]
+    per = next(p for p in stats["per_task_policy"] if p["policy"] == "scripted@1.00")
     k = sum(r["success"] for r in rows)
     assert per["episodes"] == len(rows) and per["success_rate"] == k / len(rows)
     lo, hi = per["success_ci95"]
