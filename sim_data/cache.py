@@ -206,6 +206,7 @@ class TrainingCache:
         self.cameras = self.index["cameras"]
         self.tasks = sorted({e["task"] for e in self.episodes})
         self._maps: dict = {}
+        self._finite: dict = {}
 
     def array(self, shard: str, name: str) -> np.ndarray:
         """The memory-mapped array `name` (a camera or proprio/action/success) of a shard."""
@@ -214,10 +215,26 @@ class TrainingCache:
             self._maps[key] = np.load(self.root / shard / f"{name}.npy", mmap_mode="r")
         return self._maps[key]
 
-    def select(self, split: str | None = None, tasks=None) -> list[int]:
-        """Indices of the episodes of a split (train / val / test; None: all) and tasks (None: all)."""
+    def select(self, split: str | None = None, tasks=None, finite_only: bool = True) -> list[int]:
+        """Indices of the episodes of a split (train / val / test / programs; None: all) and tasks
+        (None: all); with finite_only, episodes whose proprio or actions hold NaN or inf (a physics
+        blow-up) are left out."""
         return [i for i, e in enumerate(self.episodes)
-                if (split is None or e["split"] == split) and (tasks is None or e["task"] in tasks)]
+                if (split is None or e["split"] == split) and (tasks is None or e["task"] in tasks)
+                and (not finite_only or self.finite(i))]
+
+    def finite(self, i: int) -> bool:
+        """Whether episode i's proprio and actions are all finite."""
+        if i not in self._finite:
+            e = self.episodes[i]
+            sl = slice(e["start"], e["start"] + e["length"])
+            self._finite[i] = bool(np.isfinite(self.array(e["shard"], "proprio")[sl]).all()
+                                   and np.isfinite(self.array(e["shard"], "action")[sl]).all())
+        return self._finite[i]
+
+    def non_finite(self) -> list[str]:
+        """Ids of the episodes holding NaN or inf."""
+        return [e["episode_id"] for i, e in enumerate(self.episodes) if not self.finite(i)]
 
     def episode(self, i: int, cameras=None) -> dict:
         """Episode i whole: {"frames": {camera: (T+1, H, W, 3) uint8}, "proprio": (T+1, 37),

@@ -45,7 +45,7 @@ from sim_data.cache import build_cache
 from sim_data.engines import ENGINES, default_engine
 from sim_data.env import HomeEnv
 from sim_data.episodes import CorruptEpisode, read_episode_meta, write_episode_mcap  # noqa: F401 (re-exported)
-from sim_data.policies import PROGRAMS, ProgramPolicy, ScriptedPolicy
+from sim_data.policies import PROGRAMS, ProgramPolicy, ScriptedPolicy, program_params
 from sim_data.render import RenderConfig, Renderer
 from sim_data.rollout import record_episodes
 from sim_data.scene import load_model
@@ -118,6 +118,9 @@ PRESETS = {
     "smoke": DataConfig(tasks=("mug",), skills=(1.0,), episodes=2, batch=2, programs=1),
     "demo": DataConfig(skills=(0.3, 1.0), episodes=4, batch=8, programs=1),
     "full": DataConfig(skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=600, batch=1200, workers=12, programs=32),
+    # the world model's GPU set: two tasks, a spread of skills, the controllability programs, head camera
+    "wm_full": DataConfig(tasks=("mug", "wipe"), skills=(0.0, 0.25, 0.5, 0.75, 1.0), episodes=600, batch=600,
+                          cameras=("head_cam",), workers=14, programs=32),
     "heldout_plant": DataConfig(heldout=True, episodes=100, batch=600, workers=12),
     "shelf": DataConfig(tasks=("shelf",), skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=600, batch=1200, workers=12),
     "shelf_arcade": DataConfig(tasks=("shelf", "arcade"), skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=300,
@@ -250,7 +253,7 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True) -> dict:
         env = _env(task, b, engine, cfg.heldout)
         renderers = _renderers(cfg.size, tuple(cfg.cameras))
         if isinstance(skill, str):
-            policy, params = ProgramPolicy(skill, env.episode_steps), {}
+            policy, params = ProgramPolicy(env.episode_steps), program_params([skill] * b, env.episode_steps)
         else:
             policy, params = _policy(task), {"skill": np.full((b,), skill, np.float32)}
         reset_keys = jax.numpy.stack([jax.random.PRNGKey(_initial_seed_of(cfg, task, skill, i)) for i in idx])

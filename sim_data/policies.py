@@ -352,10 +352,13 @@ def action_program(name: str, num_steps: int) -> np.ndarray:
 
 @dataclasses.dataclass(frozen=True)
 class ProgramPolicy:
-    """An action program (`action_program`) as a policy of the project's protocol: it ignores the
-    observation and plays the program's action t at control step t (the last one after its end)."""
+    """Action programs as a policy of the project's protocol: it ignores the observation and plays
+    row t of its episode's program at control step t (the last row after the end).
 
-    name: str
+    params: {"table": (B, num_steps, 20)}, e.g. `program_params(names, num_steps)`; one compiled
+    rollout serves every program.
+    """
+
     num_steps: int
 
     def init_carry(self, params, obs, task_state, rng):
@@ -363,6 +366,12 @@ class ProgramPolicy:
         return jnp.zeros((obs["qpos"].shape[0],), jnp.int32)
 
     def act(self, params, obs, carry, rng):
-        del params, obs, rng
-        table = jnp.asarray(action_program(self.name, self.num_steps))
-        return table[jnp.minimum(carry, self.num_steps - 1)], carry + 1
+        del obs, rng
+        table = params["table"]
+        rows = jnp.arange(table.shape[0])
+        return table[rows, jnp.minimum(carry, self.num_steps - 1)], carry + 1
+
+
+def program_params(names, num_steps: int) -> dict:
+    """ProgramPolicy parameters for one episode per program name."""
+    return {"table": np.stack([action_program(n, num_steps) for n in names])}

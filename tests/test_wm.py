@@ -1,0 +1,175 @@
+"""The world model: metrics against hand-computed values, every module one step, causality and
+the sliding context, imagination consistent with training, the loss falling, resume after a kill,
+a non-finite loss stopping the run, make train's smoke preset with eval.json."""
+
+import dataclasses
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from wm import imagine as I
+from wm import metrics as M
+from wm.config import SMOKE_MODEL, make_config, override
+from wm.model import WorldModel, init_params
+from wm.train import Run, TrainingDiverged, main
+
+CFG = SMOKE_MODEL
+
+
+def test_psnr_ssim_auroc_hand_values():
+    a = np.full((2, 8, 8, 3), 100, np.uint8)
+    assert M.psnr(a, a + 1)[0] == pytest.approx(10 * np.log10(255**2))
+    assert M.psnr(a, a)[0] == np.inf
+    assert M.ssim(a, a)[0] == pytest.approx(1.0)
+    c1 = (0.01 * 255) ** 2  # constant images: only the luminance term remains
+    assert M.ssim(a, a + 20)[0] == pytest.approx((2 * 100 * 120 + c1) / (100**2 + 120**2 + c1))
+    assert M.auroc([0.1, 0.4, 0.35, 0.8], [0, 0, 1, 1]) == pytest.approx(0.75)
+    assert M.auroc([0.5, 0.5, 0.2], [1, 0, 0]) == pytest.approx(0.75)  # a tie counts one half
+    assert np.isnan(M.auroc([0.1, 0.2], [1, 1]))
+    assert M.accuracy([0.2, 0.7, 0.6], [0, 1, 0]) == pytest.approx(2 / 3)
+
+
+@pytest.fixture(scope="module")
+def model_and_inputs():
+    params = init_params(CFG, jax.random.PRNGKey(0), window=6)
+    rng = np.random.default_rng(0)
+    frames = rng.integers(0, 255, (2, 6, 64, 64, 3)).astype(np.uint8)
+    proprio = rng.normal(size=(2, 6, 37)).astype(np.float32)
+    action = rng.normal(size=(2, 6, 20)).astype(np.float32)
+    # non-zero output layers, so that every input reaches the predictions
+    params = jax.tree_util.tree_map(lambda x: x + 0.05 * jax.random.normal(jax.random.PRNGKey(1), x.shape), params)
+    return params, frames, proprio, action
+
+
+def test_modules_shapes_causality_and_context(model_and_inputs):
+    params, frames, proprio, action = model_and_inputs
+    m = WorldModel(CFG)
+    z = m.apply({"params": params}, frames, method=WorldModel.encode)
+    assert z.shape == (2, 6, 8, 8, CFG.latent) and float(jnp.abs(z).max()) <= 1.0
+    x = m.apply({"params": params}, z, method=WorldModel.decode)
+    assert x.shape == frames.shape and 0.0 <= float(x.min()) and float(x.max()) <= 1.0
+    out = m.apply({"params": params}, z, proprio, action, method=WorldModel.predict)
+    assert out["z"].shape == z.shape and out["proprio"].shape == proprio.shape and out["success"].shape == (2, 6)
+    # frame 4 changed: predictions made at frames 0..3 are unchanged, at frame 4 they change
+    z2 = z.at[:, 4].set(-z[:, 4])
+    out2 = m.apply({"params": params}, z2, proprio, action, method=WorldModel.predict)
+    np.testing.assert_allclose(out2["z"][:, :4], out["z"][:, :4], atol=1e-5)
+    assert float(jnp.abs(out2["z"][:, 4] - out["z"][:, 4]).max()) > 1e-3
+    # the prediction at frame 5 sees frames 2..5 (context 4): frame 1 does not matter
+    z3 = z.at[:, 1].set(-z[:, 1])
+    out3 = m.apply({"params": params}, z3, proprio, action, method=WorldModel.predict)
+    np.testing.assert_allclose(out3["z"][:, 5], out["z"][:, 5], atol=1e-5)
+    assert float(jnp.abs(out3["z"][:, 2] - out["z"][:, 2]).max()) > 1e-3
+
+
+def test_imagination_step_equals_the_teacher_forced_prediction(model_and_inputs):
+    params, frames, proprio, action = model_and_inputs
+    norm = I.Norm(jnp.zeros(37), jnp.ones(37), jnp.zeros(20), jnp.ones(20))
+    m = WorldModel(CFG)
+    c = 3
+    z = m.apply({"params": params}, frames[:, :c], method=WorldModel.encode)
+    tf = m.apply({"params": params}, z, proprio[:, :c], action[:, :c], method=WorldModel.predict)
+    st = I.init_state(CFG, params, norm, frames[:, :c], proprio[:, :c], action[:, :c - 1])
+    st = I.step(CFG, params, norm, st, action[:, c - 1])
+    np.testing.assert_allclose(st.z[:, -1], tf["z"][:, -1], atol=1e-5)
+    np.testing.assert_allclose(st.proprio[:, -1], tf["proprio"][:, -1], atol=1e-4)
+    got = I.open_loop(CFG, params, norm, frames[:, :c], proprio[:, :c], action[:, :c - 1], action[:, c - 1:])
+    assert got["frames"].shape == (2, 4, 64, 64, 3) and got["frames"].dtype == jnp.uint8
+    assert got["success"].shape == (2, 4) and float(got["success"].min()) >= 0.0
+
+
+class HoldStill:
+    """A policy of the protocol that counts its steps and sends a constant action."""
+
+    def init_carry(self, params, obs, task_state, rng):
+        return jnp.zeros((obs["image"].shape[0],), jnp.int32)
+
+    def act(self, params, obs, carry, rng):
+        assert obs["image"].dtype == jnp.uint8 and obs["proprio"].shape[-1] == 37
+        return jnp.broadcast_to(params["action"], (obs["image"].shape[0], 20)), carry + 1
+
+
+def test_closed_loop_with_a_policy(model_and_inputs):
+    params, frames, proprio, action = model_and_inputs
+    norm = I.Norm(jnp.zeros(37), jnp.ones(37), jnp.zeros(20), jnp.ones(20))
+    got = I.closed_loop(CFG, HoldStill(), 5, params, norm, {"action": jnp.full((20,), 0.3)}, frames[:, :2],
+                        proprio[:, :2], action[:, :1], jax.random.PRNGKey(0))
+    assert got["frames"].shape == (2, 5, 64, 64, 3) and got["proprio"].shape == (2, 5, 37)
+    np.testing.assert_allclose(got["action"], 0.3)
+
+
+def test_loss_falls_on_a_tiny_dataset(smoke_dataset, tmp_path):
+    _, data, _ = smoke_dataset
+    run = Run(make_config("smoke"), data, tmp_path / "run")
+    run.train(progress=False)
+    losses = [json.loads(line)["loss"] for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert len(losses) == 6 and losses[-1] < 0.6 * losses[0], losses
+
+
+class Killed(Exception):
+    pass
+
+
+class DyingLoader:
+    """The run's loader, killed when the run asks for batch number `dies_at`."""
+
+    def __init__(self, loader, dies_at):
+        self.loader, self.dies_at, self.taken = loader, dies_at, 0
+
+    def __next__(self):
+        self.taken += 1
+        if self.taken == self.dies_at:
+            raise Killed
+        return next(self.loader)
+
+    def __getattr__(self, name):
+        return getattr(self.loader, name)
+
+
+def test_resume_after_a_kill_matches_an_uninterrupted_run(smoke_dataset, tmp_path):
+    _, data, _ = smoke_dataset
+    cfg = make_config("smoke")
+    whole = Run(cfg, data, tmp_path / "whole")
+    whole.train(progress=False)
+    killed = Run(cfg, data, tmp_path / "killed")
+    killed.loader = DyingLoader(killed.loader, dies_at=14)  # after the checkpoint of step 10
+    with pytest.raises(Killed):
+        killed.train(progress=False)
+    again = Run(cfg, data, tmp_path / "killed")
+    assert again.restore() == 10
+    again.train(progress=False)
+    for a, b in zip(jax.tree_util.tree_leaves(whole.state["params"]), jax.tree_util.tree_leaves(again.state["params"]),
+                    strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-6)
+
+
+def test_non_finite_loss_stops_without_a_checkpoint(smoke_dataset, tmp_path):
+    _, data, _ = smoke_dataset
+    run = Run(make_config("smoke"), data, tmp_path / "nan")
+    run.norm = dataclasses.replace(run.norm, proprio_std=jnp.zeros(37))  # division by zero
+    with pytest.raises(TrainingDiverged, match="non-finite"):
+        run.train(progress=False)
+    assert run.latest.latest_step() is None
+
+
+def test_bad_settings_are_refused():
+    with pytest.raises(ValueError, match="unknown setting"):
+        make_config("smoke", ["model.width=3"])
+    with pytest.raises(ValueError, match="multiples"):
+        make_config("smoke", ["eval_every=3"])
+    assert override(make_config("smoke"), ["model.dim=48"]).model.dim == 48
+
+
+def test_make_train_smoke_writes_eval_json(smoke_dataset, tmp_path):
+    _, data, _ = smoke_dataset
+    out = tmp_path / "train"
+    assert main(["--config", "smoke", "--data", str(data), "--out", str(out)]) == 0
+    report = json.loads((out / "eval.json").read_text())
+    fq = report["frame_quality"]
+    assert fq["horizons"] == [1, 4] and len(fq["psnr"]) == 2 and len(fq["copy_last_psnr"]) == 2
+    assert report["controllability"]["groups"] == 1 and 0.0 <= report["controllability"]["match_accuracy"] <= 1.0
+    assert report["success_prediction"]["episodes"] >= 1 and (out / "eval_frames.png").stat().st_size > 0
+    assert (out / "best").is_dir() and (out / "metrics.jsonl").exists()

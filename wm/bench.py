@@ -1,0 +1,155 @@
+"""World-model speed: training throughput and model FLOPs utilisation, and imagination frames/s
+with a policy in the loop; writes JSON.
+
+    python -m wm.bench --out runs/bench/wm.json [--config full] [--imagine-batch 1024] [key=value ...]
+
+MFU = (FLOPs of one train step from XLA's cost analysis of the compiled step) x (steps/s) /
+(the bf16 matrix-multiply rate measured on the same device: 8192^3 products, best of 10).
+Inputs are random frames and actions of the configured shapes, so no dataset is needed.
+Imagination: `wm.imagine.closed_loop` with a small convolutional policy (image and proprio in,
+action out) over `--horizon` steps; a frame is one imagined step of one episode, decoded.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wm.config import make_config
+from wm.imagine import Norm, closed_loop
+from wm.model import init_params
+from wm.train import _jitted_step, make_optimizer
+
+
+def device_name() -> str:
+    d = jax.devices()[0]
+    return getattr(d, "device_kind", d.platform)
+
+
+def matmul_rate(n: int = 8192, reps: int = 10) -> float:
+    """Measured bf16 FLOP/s of an n x n x n matrix product (best of reps)."""
+    if jax.devices()[0].platform == "cpu":
+        n = 1024
+    a = jax.random.normal(jax.random.PRNGKey(0), (n, n), jnp.bfloat16)
+    f = jax.jit(lambda x: x @ x)
+    f(a).block_until_ready()
+    best = np.inf
+    for _ in range(reps):
+        t = time.perf_counter()
+        f(a).block_until_ready()
+        best = min(best, time.perf_counter() - t)
+    return 2 * n**3 / best
+
+
+def _flops(compiled) -> float:
+    cost = compiled.cost_analysis()
+    if isinstance(cost, list | tuple):
+        cost = cost[0]
+    return float(cost.get("flops", 0.0))
+
+
+def train_rate(cfg, steps: int = 20) -> dict:
+    m = cfg.model
+    params = init_params(m, jax.random.PRNGKey(0), window=cfg.window)
+    state = {"params": params, "opt": make_optimizer(cfg).init(params), "step": jnp.zeros((), jnp.int32)}
+    rng = np.random.default_rng(0)
+    b, t = cfg.batch, cfg.window
+    batch = {"frames": jnp.asarray(rng.integers(0, 255, (b, t, m.size, m.size, 3), dtype=np.uint8)),
+             "proprio": jnp.asarray(rng.normal(size=(b, t, m.proprio_dim)), jnp.float32),
+             "action": jnp.asarray(rng.normal(size=(b, t, m.action_dim)), jnp.float32),
+             "success": jnp.zeros((b, t), bool), "outcome": jnp.zeros((b,), bool)}
+    norm = Norm(jnp.zeros(m.proprio_dim), jnp.ones(m.proprio_dim), jnp.zeros(m.action_dim), jnp.ones(m.action_dim))
+    t0 = time.perf_counter()
+    compiled = _jitted_step.lower(cfg, state, batch, norm).compile()
+    compile_s = time.perf_counter() - t0
+    flops = _flops(compiled)
+    for _ in range(3):
+        state, parts = compiled(state, batch, norm)
+    jax.block_until_ready(parts)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        state, parts = compiled(state, batch, norm)
+    jax.block_until_ready(parts)
+    dt = (time.perf_counter() - t0) / steps
+    return {"batch": b, "window": t, "params": int(sum(x.size for x in jax.tree_util.tree_leaves(params))),
+            "step_s": dt, "frames_per_s": b * t / dt, "flops_per_step": flops, "achieved_flops_per_s": flops / dt,
+            "compile_s": compile_s}
+
+
+class ConvPolicy(nn.Module):
+    """A small image + proprio -> action network (the shape of the behaviour-cloning policies)."""
+
+    @nn.compact
+    def __call__(self, image, proprio):
+        x = image.astype(jnp.float32) / 255.0
+        for ch in (16, 32, 64):
+            x = nn.relu(nn.Conv(ch, (3, 3), strides=(2, 2))(x))
+        x = jnp.concatenate([x.mean(axis=(1, 2)), proprio], -1)
+        return nn.Dense(20)(nn.relu(nn.Dense(128)(x)))
+
+
+class BenchPolicy:
+    """ConvPolicy under the project's policy protocol."""
+
+    def init_carry(self, params, obs, task_state, rng):
+        return jnp.zeros((obs["image"].shape[0],), jnp.int32)
+
+    def act(self, params, obs, carry, rng):
+        return ConvPolicy().apply(params, obs["image"], obs["proprio"]), carry + 1
+
+
+def imagine_rate(cfg, batch: int, horizon: int) -> dict:
+    m = cfg.model
+    params = init_params(m, jax.random.PRNGKey(0), window=cfg.window)
+    pol = BenchPolicy()
+    pparams = ConvPolicy().init(jax.random.PRNGKey(1), jnp.zeros((1, m.size, m.size, 3), jnp.uint8), jnp.zeros((1, 37)))
+    norm = Norm(jnp.zeros(m.proprio_dim), jnp.ones(m.proprio_dim), jnp.zeros(m.action_dim), jnp.ones(m.action_dim))
+    c = 2
+    frames = jnp.zeros((batch, c, m.size, m.size, 3), jnp.uint8)
+    proprio = jnp.zeros((batch, c, m.proprio_dim))
+    acts = jnp.zeros((batch, c - 1, m.action_dim))
+    t0 = time.perf_counter()
+    jax.block_until_ready(closed_loop(m, pol, horizon, params, norm, pparams, frames, proprio, acts,
+                                      jax.random.PRNGKey(0)))
+    compile_s = time.perf_counter() - t0
+    best = np.inf
+    for r in range(3):
+        t0 = time.perf_counter()
+        jax.block_until_ready(closed_loop(m, pol, horizon, params, norm, pparams, frames, proprio, acts,
+                                          jax.random.PRNGKey(r)))
+        best = min(best, time.perf_counter() - t0)
+    return {"batch": batch, "horizon": horizon, "frames_per_s": batch * horizon / best, "first_call_s": compile_s}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--config", default=None, help="training preset (default: full on a GPU, demo on the CPU)")
+    p.add_argument("--imagine-batch", type=int, default=None)
+    p.add_argument("--horizon", type=int, default=32)
+    p.add_argument("overrides", nargs="*")
+    a = p.parse_args(argv)
+    gpu = jax.devices()[0].platform != "cpu"
+    cfg = make_config(a.config or ("full" if gpu else "demo"), a.overrides)
+    rate = matmul_rate()
+    train = train_rate(cfg)
+    train["mfu"] = train["achieved_flops_per_s"] / rate
+    imag = imagine_rate(cfg, a.imagine_batch or (1024 if gpu else 16), a.horizon)
+    report = {"device": device_name(), "config": a.config or ("full" if gpu else "demo"),
+              "bf16_matmul_flops_per_s": rate, "train": train, "imagine": imag}
+    a.out.parent.mkdir(parents=True, exist_ok=True)
+    a.out.write_text(json.dumps(report, indent=1))
+    print(json.dumps(report, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

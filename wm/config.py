@@ -1,0 +1,135 @@
+"""Training configuration: frozen dataclasses, named presets, dotted `key=value` overrides."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from wm.model import ModelConfig
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Attributes:
+      model: the architecture. camera: the frames the model learns (head_cam).
+      batch: windows per step (over all devices); window: frames per window.
+      steps: optimiser steps; max_minutes: stop training after this wall time (0: no limit), so a
+        stage fits its time slot; a rerun resumes. lr, warmup, weight_decay, grad_clip: AdamW.
+      rollout_passes: extra passes in which the dynamics reads its own (stop-gradient) predictions
+        instead of encoded frames (0: teacher forcing only); each pass extends the errors it learns
+        to correct by one step.
+      w_recon, w_latent, w_pixel, w_proprio, w_success: loss weights.
+      log_every, eval_every, ckpt_every: in steps (eval and checkpoints at multiples of log_every).
+      val_batches: validation batches per evaluation. param_sharding: "replicated" (data parallel)
+        or "fsdp" (parameters and optimiser state sharded over the data axis).
+      eval_context: observations given before imagining; eval_episodes: held-out episodes in eval.json;
+      eval_horizons: open-loop horizons reported; control_horizon: steps of the controllability study.
+    """
+
+    model: ModelConfig = ModelConfig()
+    camera: str = "head_cam"
+    batch: int = 64
+    window: int = 16
+    steps: int = 20000
+    max_minutes: float = 0.0
+    lr: float = 6e-4
+    warmup: int = 300
+    weight_decay: float = 0.01
+    grad_clip: float = 1.0
+    rollout_passes: int = 1
+    w_recon: float = 1.0
+    w_latent: float = 1.0
+    w_pixel: float = 1.0
+    w_proprio: float = 0.1
+    w_success: float = 0.05
+    log_every: int = 50
+    eval_every: int = 500
+    ckpt_every: int = 500
+    val_batches: int = 4
+    param_sharding: str = "replicated"
+    seed: int = 0
+    eval_context: int = 4
+    eval_episodes: int = 96
+    eval_horizons: tuple = (1, 4, 8, 16, 32)
+    control_horizon: int = 32
+
+    def validate(self) -> None:
+        self.model.validate()
+        if self.batch < 1 or self.window < 2 or self.steps < 1:
+            raise ValueError("batch >= 1, window >= 2 and steps >= 1 are required")
+        if self.eval_every % self.log_every or self.ckpt_every % self.log_every:
+            raise ValueError("eval_every and ckpt_every must be multiples of log_every")
+        if self.param_sharding not in ("replicated", "fsdp"):
+            raise ValueError(f"param_sharding must be replicated or fsdp, got {self.param_sharding!r}")
+        if not 1 <= self.eval_context <= self.model.context:
+            raise ValueError(f"eval_context must be in 1..model.context ({self.model.context})")
+        if self.rollout_passes < 0 or self.lr <= 0:
+            raise ValueError("rollout_passes >= 0 and lr > 0 are required")
+
+
+SMOKE_MODEL = ModelConfig(channels=(8, 16, 16), latent=4, dim=32, depth=1, heads=2, context=4, dtype="float32")
+DEMO_MODEL = ModelConfig(tokenizer="patch", channels=(128,), latent=16, dim=96, depth=2, heads=4, context=6,
+                         dtype="float32")
+
+PRESETS = {
+    "default": TrainConfig(),
+    "smoke": TrainConfig(model=SMOKE_MODEL, batch=2, window=6, steps=30, lr=3e-3, warmup=5, log_every=5,
+                         eval_every=10, ckpt_every=10, val_batches=1, eval_context=2, eval_episodes=2,
+                         eval_horizons=(1, 4), control_horizon=4),
+    "demo": TrainConfig(model=DEMO_MODEL, batch=8, window=10, steps=100000, max_minutes=5.0, lr=1e-3, warmup=50,
+                        log_every=25, eval_every=250, ckpt_every=250, val_batches=2, eval_context=4, eval_episodes=24,
+                        eval_horizons=(1, 4, 8, 16), control_horizon=16),
+    "full": TrainConfig(max_minutes=5.5),  # with compilation and eval.json, one 10-minute GPU command
+}
+
+
+def _parse(current, text: str, name: str):
+    kind = type(current)
+    if kind is tuple:
+        items = [x for x in text.split(",") if x]
+        elem = type(current[0]) if current else str
+        return tuple(elem(x) for x in items)
+    if kind is bool:
+        if text.lower() not in ("true", "false", "1", "0"):
+            raise ValueError(f"{name} must be true or false, got {text!r}")
+        return text.lower() in ("true", "1")
+    try:
+        return kind(text)
+    except ValueError:
+        raise ValueError(f"{name} must be a {kind.__name__}, got {text!r}") from None
+
+
+def override(cfg, items):
+    """cfg with dotted `key=value` items applied (e.g. `model.dim=256`, `batch=32`)."""
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ValueError(f"override {item!r} must be key=value")
+        cfg = _set(cfg, key.split("."), value, key)
+    return cfg
+
+
+def _set(obj, path, value, full):
+    names = {f.name for f in dataclasses.fields(obj)}
+    if path[0] not in names:
+        raise ValueError(f"unknown setting {full!r}; {type(obj).__name__} has {', '.join(sorted(names))}")
+    cur = getattr(obj, path[0])
+    new = _set(cur, path[1:], value, full) if len(path) > 1 else _parse(cur, value, full)
+    return dataclasses.replace(obj, **{path[0]: new})
+
+
+def make_config(preset: str, overrides=()) -> TrainConfig:
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
+    cfg = override(PRESETS[preset], overrides)
+    cfg.validate()
+    return cfg
+
+
+def to_dict(cfg) -> dict:
+    return dataclasses.asdict(cfg)
+
+
+def from_dict(d: dict) -> TrainConfig:
+    d = dict(d)
+    model = ModelConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.pop("model").items()})
+    return TrainConfig(model=model, **{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})

@@ -1,0 +1,198 @@
+"""The world model's evaluation on held-out episodes, written to `eval.json` (and `eval_frames.png`).
+
+- Frame quality: open-loop imagination under logged actions from `eval_context` observations of
+  test episodes (four starts evenly spread over each episode); PSNR and SSIM at each horizon, next
+  to the copy-last-frame baseline.
+- Success prediction: from each test episode's first `eval_context` observations, imagine to its
+  last frame under the logged actions; the predicted outcome is the success probability of the
+  final imagined frame. Accuracy (threshold 0.5) and AUROC against the simulator's outcome.
+- Controllability: the action programs recorded from shared initial states (split "programs"):
+  from the initial frame, imagine `control_horizon` steps under each program; match accuracy (each
+  prediction is closest, in mean squared error, to its own program's true future) and delta-PSNR
+  (Genie's: PSNR of true actions minus PSNR of another program's actions, against the truth).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from sim_data.cache import TrainingCache
+from wm.config import TrainConfig
+from wm.imagine import Norm, open_loop
+from wm.metrics import accuracy, auroc, psnr, ssim
+
+CHUNK = 64
+
+
+def _imagine(cfg: TrainConfig, params, norm: Norm, samples: list[dict], horizon: int) -> dict:
+    """Open-loop predictions for samples {"frames" (C, S, S, 3), "proprio" (C, 37), "context_actions"
+    (C-1, 20), "actions" (horizon, 20)}, in chunks of CHUNK (the last one padded)."""
+    outs = []
+    for i in range(0, len(samples), CHUNK):
+        part = samples[i:i + CHUNK]
+        pad = CHUNK - len(part) if len(samples) > CHUNK else 0
+        part = part + [part[-1]] * pad
+        stack = {k: np.stack([s[k] for s in part]) for k in part[0]}
+        got = open_loop(cfg.model, params, norm, stack["frames"], stack["proprio"], stack["context_actions"],
+                        stack["actions"][:, :horizon])
+        outs.append({k: np.asarray(v)[: len(part) - pad] for k, v in got.items()})
+    return {k: np.concatenate([o[k] for o in outs]) for k in outs[0]}
+
+
+def _sample(ep: dict, camera: str, start: int, context: int, horizon: int) -> dict:
+    c0, c1 = start, start + context
+    return {"frames": ep["frames"][camera][c0:c1], "proprio": ep["proprio"][c0:c1],
+            "context_actions": ep["action"][c0:c1 - 1], "actions": ep["action"][c1 - 1:c1 - 1 + horizon]}
+
+
+def frame_quality(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, episodes: list[int]) -> tuple[dict, dict]:
+    c, hmax = cfg.eval_context, max(cfg.eval_horizons)
+    samples, truths, lasts = [], [], []
+    for i in episodes:
+        ep = cache.episode(i, cameras=[cfg.camera])
+        n = ep["record"]["length"]
+        if n < c + hmax:
+            continue
+        span = n - c - hmax
+        for start in sorted({round(span * f) for f in (0.125, 0.375, 0.625, 0.875)}):  # spread over the episode
+            samples.append(_sample(ep, cfg.camera, start, c, hmax))
+            truths.append(ep["frames"][cfg.camera][start + c:start + c + hmax])
+            lasts.append(ep["frames"][cfg.camera][start + c - 1])
+    if not samples:
+        raise ValueError(f"no test episode is long enough for context {c} + horizon {hmax}")
+    pred = _imagine(cfg, params, norm, samples, hmax)["frames"]
+    truth = np.stack(truths)
+    copy = np.repeat(np.stack(lasts)[:, None], hmax, axis=1)
+    res = {"horizons": list(cfg.eval_horizons), "samples": len(samples), "psnr": [], "ssim": [], "copy_last_psnr": [],
+           "copy_last_ssim": []}
+    for h in cfg.eval_horizons:
+        res["psnr"].append(_finite_mean(psnr(pred[:, h - 1], truth[:, h - 1])))
+        res["ssim"].append(float(ssim(pred[:, h - 1], truth[:, h - 1]).mean()))
+        res["copy_last_psnr"].append(_finite_mean(psnr(copy[:, h - 1], truth[:, h - 1])))
+        res["copy_last_ssim"].append(float(ssim(copy[:, h - 1], truth[:, h - 1]).mean()))
+    res["gain_over_copy_last_db"] = [a - b for a, b in zip(res["psnr"], res["copy_last_psnr"], strict=True)]
+    return res, {"pred": pred[:4], "truth": truth[:4]}
+
+
+def _finite_mean(x) -> float:
+    """Mean PSNR with identical frames (inf) counted at 100 dB."""
+    return float(np.mean(np.minimum(x, 100.0)))
+
+
+def success_prediction(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, episodes: list[int]) -> dict:
+    c = cfg.eval_context
+    by_len: dict = {}
+    for i in episodes:
+        by_len.setdefault(cache.episodes[i]["length"], []).append(i)
+    probs, heads, labels = [], [], []
+    for n, ids in sorted(by_len.items()):
+        samples = [_sample(cache.episode(i, cameras=[cfg.camera]), cfg.camera, 0, c, n - c) for i in ids]
+        got = _imagine(cfg, params, norm, samples, n - c)
+        probs += list(got["success"][:, -1])
+        heads += list(got["outcome"][:, -1])
+        labels += [cache.episodes[i]["success"] for i in ids]
+    labels = np.array(labels, bool)
+    return {"episodes": len(labels), "positive_rate": float(labels.mean()), "accuracy": accuracy(probs, labels),
+            "auroc": auroc(probs, labels), "outcome_head_accuracy": accuracy(heads, labels),
+            "outcome_head_auroc": auroc(heads, labels)}
+
+
+def controllability(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache) -> dict:
+    groups: dict = {}
+    for i in cache.select("programs"):
+        e = cache.episodes[i]
+        groups.setdefault((e["task"], e["seed"]), {})[e["policy"]] = i
+    programs = sorted({p for g in groups.values() for p in g})
+    groups = {k: g for k, g in groups.items() if len(g) == len(programs)}
+    if not groups or len(programs) < 2:
+        return {"groups": 0, "note": "the dataset has no program episodes (generate with programs >= 1)"}
+    h = cfg.control_horizon
+    samples, shuffled, truths = [], [], []
+    for g in groups.values():
+        eps = [cache.episode(g[p], cameras=[cfg.camera]) for p in programs]
+        for j, ep in enumerate(eps):
+            samples.append(_sample(ep, cfg.camera, 0, 1, h))
+            other = eps[(j + 1) % len(eps)]
+            shuffled.append({**samples[-1], "actions": other["action"][:h]})
+            truths.append(ep["frames"][cfg.camera][1:1 + h])
+    pred = _imagine(cfg, params, norm, samples, h)["frames"].astype(np.float64)
+    wrong = _imagine(cfg, params, norm, shuffled, h)["frames"]
+    truth = np.stack(truths).astype(np.float64)
+    k = len(programs)
+    pred_g, truth_g = pred.reshape((-1, k) + pred.shape[1:]), truth.reshape((-1, k) + truth.shape[1:])
+    dist = ((pred_g[:, :, None] - truth_g[:, None]) ** 2).mean(axis=(3, 4, 5, 6))  # (G, pred i, truth j)
+    match = dist.argmin(axis=2) == np.arange(k)[None]
+    dpsnr = _finite_mean(psnr(pred, truth, axis=(1, 2, 3, 4))) - _finite_mean(psnr(wrong, truth, axis=(1, 2, 3, 4)))
+    return {"groups": len(groups), "programs": programs, "horizon": h, "match_accuracy": float(match.mean()),
+            "match_accuracy_per_program": dict(zip(programs, match.mean(axis=0).tolist(), strict=True)),
+            "delta_psnr_db": dpsnr}
+
+
+def evaluate(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, out: Path) -> dict:
+    """Computes and writes OUT/eval.json (and eval_frames.png); returns the report."""
+    split = next((s for s in ("test", "val", "train") if cache.select(s)), None)
+    if split is None:
+        raise ValueError("the dataset has no test, val or train episodes to evaluate on")
+    if split != "test":
+        print(f"warning: no test episodes; evaluating on the {split} split (figures are not held-out)")
+    test = cache.select(split)
+    test = test[:: max(1, len(test) // cfg.eval_episodes)][: cfg.eval_episodes]  # spread over tasks and policies
+    fq, pictures = frame_quality(cfg, params, norm, cache, test)
+    sp = success_prediction(cfg, params, norm, cache, test)
+    ctrl = controllability(cfg, params, norm, cache)
+    at = dict(zip(fq["horizons"], range(len(fq["horizons"])), strict=True))
+    summary = {
+        "psnr_h8": fq["psnr"][at[8]] if 8 in at else None,
+        "gain_over_copy_last_h8_db": fq["gain_over_copy_last_db"][at[8]] if 8 in at else None,
+        "gain_over_copy_last_h16_db": fq["gain_over_copy_last_db"][at[16]] if 16 in at else None,
+        "success_accuracy": sp["accuracy"], "success_auroc": sp["auroc"],
+        "match_accuracy": ctrl.get("match_accuracy"), "delta_psnr_db": ctrl.get("delta_psnr_db"),
+    }
+    report = {"summary": summary, "frame_quality": fq, "success_prediction": sp, "controllability": ctrl,
+              "episodes": len(test), "split": split}
+    tmp = Path(out) / "eval.json.tmp"
+    tmp.write_text(json.dumps(_no_nan(report), indent=1, default=float))
+    os.replace(tmp, Path(out) / "eval.json")
+    _save_strip(Path(out) / "eval_frames.png", pictures, fq["horizons"])
+    return report
+
+
+def _no_nan(x):
+    """NaN (an undefined statistic, e.g. AUROC with one class) as JSON null."""
+    if isinstance(x, dict):
+        return {k: _no_nan(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_no_nan(v) for v in x]
+    if isinstance(x, float | np.floating) and not np.isfinite(x):
+        return None
+    return x
+
+
+def _save_strip(path: Path, pictures: dict, horizons) -> None:
+    """Rows: true and imagined frames of a few test samples at each horizon."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    pred, truth = pictures["pred"], pictures["truth"]
+    rows = 2 * len(pred)
+    fig, axes = plt.subplots(rows, len(horizons), figsize=(1.4 * len(horizons), 1.4 * rows), squeeze=False)
+    for r in range(len(pred)):
+        for c, h in enumerate(horizons):
+            for k, (img, label) in enumerate(((truth[r, h - 1], "true"), (pred[r, h - 1], "imagined"))):
+                ax = axes[2 * r + k, c]
+                ax.imshow(img)
+                ax.set_xticks([])
+                ax.set_yticks([])
+                if c == 0:
+                    ax.set_ylabel(label, fontsize=7)
+                if 2 * r + k == 0:
+                    ax.set_title(f"h={h}", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

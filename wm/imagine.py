@@ -1,0 +1,155 @@
+"""Imagination: the world model as an environment. A pure, jittable `step(state, action) -> state`
+over a sliding buffer of the last K latent frames, an open-loop rollout from a given action
+sequence, and a closed-loop rollout in which a policy of the project's protocol
+(`act(params, obs, carry, rng) -> (action, carry)`, obs {"image", "proprio"}) sees decoded frames
+and predicted proprioception.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from wm.model import ModelConfig, WorldModel
+
+
+@struct.dataclass
+class Norm:
+    """Input standardisation: proprio and action mean and std (37,), (20,)."""
+
+    proprio_mean: jax.Array
+    proprio_std: jax.Array
+    action_mean: jax.Array
+    action_std: jax.Array
+
+    def proprio(self, p):
+        return (p - self.proprio_mean) / self.proprio_std
+
+    def unproprio(self, p):
+        return p * self.proprio_std + self.proprio_mean
+
+    def action(self, a):
+        return (a - self.action_mean) / self.action_std
+
+    def to_dict(self) -> dict:
+        return {k: np.asarray(getattr(self, k)).tolist() for k in ("proprio_mean", "proprio_std", "action_mean",
+                                                                  "action_std")}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Norm:
+        return cls(**{k: jnp.asarray(v, jnp.float32) for k, v in d.items()})
+
+
+@struct.dataclass
+class ImagineState:
+    """The last K frames the dynamics sees (leaves (B, K, ...)); slot K-1 is the current frame.
+
+    Attributes:
+      z: (B, K, 8, 8, C) latents; proprio: (B, K, 37) normalised; action: (B, K, 20) normalised
+      (slot K-1 is filled by the next step); valid: (B, K) bool; success: (B,) probability that the
+      current frame is a success; outcome: (B,) predicted probability of the episode's success.
+    """
+
+    z: jax.Array
+    proprio: jax.Array
+    action: jax.Array
+    valid: jax.Array
+    success: jax.Array
+    outcome: jax.Array
+
+
+def init_state(cfg: ModelConfig, params, norm: Norm, frames, proprio, actions) -> ImagineState:
+    """A buffer from C <= K context observations.
+
+    frames: (B, C, S, S, 3) uint8; proprio: (B, C, 37); actions: (B, C-1, 20), those between them.
+    """
+    model = WorldModel(cfg)
+    b, c = frames.shape[:2]
+    k = cfg.context
+    if c > k:
+        raise ValueError(f"{c} context frames exceed the model's context of {k}")
+    z = model.apply({"params": params}, frames, method=WorldModel.encode)
+    pad = k - c
+
+    def place(x):
+        return jnp.concatenate([jnp.zeros((b, pad) + x.shape[2:], x.dtype), x], axis=1)
+
+    acts = jnp.concatenate([norm.action(actions), jnp.zeros((b, 1, cfg.action_dim))], axis=1)
+    valid = jnp.concatenate([jnp.zeros((b, pad), bool), jnp.ones((b, c), bool)], axis=1)
+    return ImagineState(z=place(z), proprio=place(norm.proprio(proprio)), action=place(acts), valid=valid,
+                        success=jnp.zeros((b,)), outcome=jnp.zeros((b,)))
+
+
+def step(cfg: ModelConfig, params, norm: Norm, state: ImagineState, action) -> ImagineState:
+    """Advances every imagined episode by one control step under action (B, 20)."""
+    model = WorldModel(cfg)
+    acts = state.action.at[:, -1].set(norm.action(action))
+    out = model.apply({"params": params}, state.z, state.proprio, acts, state.valid, method=WorldModel.predict)
+
+    def push(buf, new):
+        return jnp.concatenate([buf[:, 1:], new[:, None]], axis=1)
+
+    return ImagineState(
+        z=push(state.z, out["z"][:, -1]), proprio=push(state.proprio, out["proprio"][:, -1]),
+        action=push(acts, jnp.zeros_like(acts[:, -1])), valid=push(state.valid, jnp.ones_like(state.valid[:, -1])),
+        success=jax.nn.sigmoid(out["success"][:, -1]), outcome=jax.nn.sigmoid(out["outcome"][:, -1]))
+
+
+def current_observation(cfg: ModelConfig, params, norm: Norm, state: ImagineState) -> dict:
+    """What a policy sees: {"image": (B, S, S, 3) uint8 decoded frame, "proprio": (B, 37)}."""
+    x = WorldModel(cfg).apply({"params": params}, state.z[:, -1], method=WorldModel.decode)
+    return {"image": to_uint8(x), "proprio": norm.unproprio(state.proprio[:, -1])}
+
+
+def to_uint8(x):
+    return jnp.clip(jnp.round(x * 255.0), 0, 255).astype(jnp.uint8)
+
+
+@functools.partial(jax.jit, static_argnums=(0,))
+def open_loop(cfg: ModelConfig, params, norm: Norm, frames, proprio, context_actions, actions) -> dict:
+    """Imagines H steps from C context observations under logged actions.
+
+    frames (B, C, S, S, 3) uint8, proprio (B, C, 37), context_actions (B, C-1, 20), actions (B, H, 20)
+    (action h follows imagined frame h-1, the first follows the last context frame).
+    Returns {"frames": (B, H, S, S, 3) uint8, "proprio": (B, H, 37), "success": (B, H),
+    "outcome": (B, H)} for frames C .. C+H-1 after the context.
+    """
+    state = init_state(cfg, params, norm, frames, proprio, context_actions)
+
+    def body(st, a):
+        st = step(cfg, params, norm, st, a)
+        return st, (st.z[:, -1], norm.unproprio(st.proprio[:, -1]), st.success, st.outcome)
+
+    _, (z, p, s, o) = jax.lax.scan(body, state, jnp.swapaxes(actions, 0, 1))
+    x = WorldModel(cfg).apply({"params": params}, jnp.swapaxes(z, 0, 1), method=WorldModel.decode)
+    return {"frames": to_uint8(x), "proprio": jnp.swapaxes(p, 0, 1), "success": s.T, "outcome": o.T}
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1, 2))
+def closed_loop(cfg: ModelConfig, policy, horizon: int, params, norm: Norm, policy_params, frames, proprio,
+                context_actions, rng) -> dict:
+    """A policy acting inside the world model for `horizon` steps from C context observations.
+
+    The policy's carry starts from `policy.init_carry(policy_params, obs, None, rng)` on the last
+    context observation. Returns {"frames": (B, horizon, S, S, 3) uint8, "proprio": (B, horizon, 37),
+    "success": (B, horizon), "outcome": (B, horizon), "action": (B, horizon, 20)}.
+    """
+    state = init_state(cfg, params, norm, frames, proprio, context_actions)
+    k_init, k_act = jax.random.split(rng)
+    obs = {"image": frames[:, -1], "proprio": proprio[:, -1]}
+    carry = policy.init_carry(policy_params, obs, None, k_init)
+
+    def body(c, t):
+        st, ob, pc = c
+        action, pc = policy.act(policy_params, ob, pc, jax.random.fold_in(k_act, t))
+        st = step(cfg, params, norm, st, action)
+        ob = current_observation(cfg, params, norm, st)
+        return (st, ob, pc), (ob["image"], ob["proprio"], st.success, st.outcome, action)
+
+    _, (f, p, s, o, a) = jax.lax.scan(body, (state, obs, carry), jnp.arange(horizon))
+    sw = functools.partial(jnp.swapaxes, axis1=0, axis2=1)
+    return {"frames": sw(f), "proprio": sw(p), "success": s.T, "outcome": o.T, "action": sw(a)}

@@ -1,0 +1,56 @@
+"""Frame and outcome metrics: PSNR, SSIM, accuracy, AUROC (numpy)."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import gaussian_filter
+
+
+def psnr(pred, true, axis=(-3, -2, -1)) -> np.ndarray:
+    """Peak signal-to-noise ratio in dB of uint8 (or [0, 255] float) images, reduced over `axis`.
+    Identical images give +inf."""
+    err = np.mean((np.asarray(pred, np.float64) - np.asarray(true, np.float64)) ** 2, axis=axis)
+    with np.errstate(divide="ignore"):
+        return 10.0 * np.log10(255.0**2 / err)
+
+
+def ssim(pred, true) -> np.ndarray:
+    """Structural similarity of (..., H, W, 3) uint8 images, per image: a Gaussian window (sigma
+    1.5, truncated at 3.5 sigma: the 11-tap window of Wang et al. 2004), K1 = 0.01, K2 = 0.03,
+    L = 255, averaged over pixels and channels."""
+    x = np.asarray(pred, np.float64)
+    y = np.asarray(true, np.float64)
+    lead = x.shape[:-3]
+    x = x.reshape((-1,) + x.shape[-3:])
+    y = y.reshape((-1,) + y.shape[-3:])
+    c1, c2 = (0.01 * 255) ** 2, (0.03 * 255) ** 2
+
+    def blur(a):
+        return gaussian_filter(a, sigma=(0, 1.5, 1.5, 0), truncate=3.5, mode="reflect")
+
+    mx, my = blur(x), blur(y)
+    vx, vy, cxy = blur(x * x) - mx * mx, blur(y * y) - my * my, blur(x * y) - mx * my
+    s = ((2 * mx * my + c1) * (2 * cxy + c2)) / ((mx * mx + my * my + c1) * (vx + vy + c2))
+    return s.mean(axis=(1, 2, 3)).reshape(lead)
+
+
+def auroc(scores, labels) -> float:
+    """Area under the ROC curve (the probability that a random positive scores above a random
+    negative, ties counting one half); nan when a class is absent."""
+    s = np.asarray(scores, np.float64)
+    y = np.asarray(labels, bool)
+    pos, neg = s[y], s[~y]
+    if len(pos) == 0 or len(neg) == 0:
+        return float("nan")
+    order = np.argsort(np.concatenate([pos, neg]), kind="mergesort")
+    ranks = np.empty(len(order))
+    ranks[order] = np.arange(1, len(order) + 1)
+    allv = np.concatenate([pos, neg])
+    for v in np.unique(allv):  # average ranks of ties
+        m = allv == v
+        ranks[m] = ranks[m].mean()
+    return float((ranks[: len(pos)].sum() - len(pos) * (len(pos) + 1) / 2) / (len(pos) * len(neg)))
+
+
+def accuracy(prob, labels, threshold: float = 0.5) -> float:
+    return float(np.mean((np.asarray(prob) >= threshold) == np.asarray(labels, bool)))

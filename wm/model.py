@@ -1,0 +1,259 @@
+"""The world model: a frame tokenizer (convolutional autoencoder to a latent grid) and an
+action-conditioned dynamics transformer over latents with heads for proprioception and success.
+
+Shapes: frames (B, T, S, S, 3) uint8 with S = 64 or 128; latents (B, T, 8, 8, C) in [-1, 1];
+actions (B, T, 20) where action t follows frame t; proprio (B, T, 37).
+
+The dynamics model sees, for every frame t, the tokens of frames t-K+1 .. t (K = `context`, a
+sliding window, block-causal in time, with a learned per-head bias for each frame distance) and
+predicts frame t+1's latents, proprioception, success flag (logit) and the episode's outcome
+(logit). Each frame's action and proprioception condition its tokens through adaptive layer norm
+(shift, scale and gate per block, zero-initialised as in DiT). Parameters are float32; compute
+runs in `ModelConfig.dtype` (bfloat16 by default).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+LATENT_SIDE = 8
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelConfig:
+    """Attributes:
+      size: frame side (64 or 128); tokenizer: "conv" (a convolutional autoencoder, channels its
+        widths, one stride-2 stage each: log2(size / 8) stages) or "patch" (an MLP over each 8x8
+        cell's pixels with 3x3 mixing at the latent grid, channels[-1] its width: cheap, for CPUs);
+      latent: latent channels; patch: latent cells per token side.
+      dim, depth, heads, mlp: the transformer; context: K, frames each prediction sees.
+      proprio_dim, action_dim: input sizes; dtype: compute dtype ("bfloat16" or "float32").
+    """
+
+    size: int = 64
+    tokenizer: str = "conv"
+    channels: tuple = (64, 128, 256)
+    latent: int = 16
+    patch: int = 2
+    dim: int = 384
+    depth: int = 8
+    heads: int = 6
+    mlp: int = 4
+    context: int = 8
+    proprio_dim: int = 37
+    action_dim: int = 20
+    dtype: str = "bfloat16"
+
+    def validate(self) -> None:
+        stages = int(round(math.log2(self.size / LATENT_SIDE)))
+        if self.tokenizer not in ("conv", "patch"):
+            raise ValueError(f"tokenizer must be conv or patch, got {self.tokenizer!r}")
+        if self.size not in (64, 128) or (self.tokenizer == "conv" and len(self.channels) != stages):
+            raise ValueError(f"size {self.size} needs {stages} encoder stages (channels), got {self.channels}")
+        if LATENT_SIDE % self.patch or self.dim % self.heads:
+            raise ValueError("patch must divide 8 and heads must divide dim")
+
+    @property
+    def tokens_per_frame(self) -> int:
+        return (LATENT_SIDE // self.patch) ** 2
+
+    @property
+    def compute_dtype(self):
+        return jnp.dtype(self.dtype)
+
+
+class ResBlock(nn.Module):
+    ch: int
+    dtype: jnp.dtype
+
+    @nn.compact
+    def __call__(self, x):
+        h = nn.Conv(self.ch, (3, 3), dtype=self.dtype)(nn.silu(nn.GroupNorm(8, dtype=self.dtype)(x)))
+        h = nn.Conv(self.ch, (3, 3), dtype=self.dtype)(nn.silu(nn.GroupNorm(8, dtype=self.dtype)(h)))
+        return x + h
+
+
+def space_to_depth(x, p):
+    """(N, H, W, C) -> (N, H/p, W/p, p*p*C)."""
+    n, h, w, c = x.shape
+    return x.reshape(n, h // p, p, w // p, p, c).transpose(0, 1, 3, 2, 4, 5).reshape(n, h // p, w // p, p * p * c)
+
+
+def depth_to_space(x, p):
+    """(N, H, W, p*p*C) -> (N, H*p, W*p, C)."""
+    n, h, w, _ = x.shape
+    return x.reshape(n, h, w, p, p, -1).transpose(0, 1, 3, 2, 4, 5).reshape(n, h * p, w * p, -1)
+
+
+class Encoder(nn.Module):
+    """(N, S, S, 3) uint8 -> (N, 8, 8, C) latents in [-1, 1]."""
+
+    cfg: ModelConfig
+
+    @nn.compact
+    def __call__(self, frames):
+        dt = self.cfg.compute_dtype
+        x = frames.astype(dt) / 127.5 - 1.0
+        if self.cfg.tokenizer == "patch":  # each 8x8 cell's pixels through an MLP, mixed with its neighbours
+            x = space_to_depth(x, self.cfg.size // LATENT_SIDE)
+            h = self.cfg.channels[-1]
+            x = nn.gelu(nn.Dense(h, dtype=dt)(x))
+            x = x + nn.gelu(nn.Conv(h, (3, 3), dtype=dt)(x))
+            return jnp.tanh(nn.Dense(self.cfg.latent, dtype=jnp.float32)(x).astype(jnp.float32))
+        x = nn.Conv(self.cfg.channels[0], (3, 3), dtype=dt)(x)
+        for ch in self.cfg.channels:
+            x = nn.Conv(ch, (4, 4), strides=(2, 2), dtype=dt)(x)
+            x = ResBlock(ch, dt)(x)
+        x = nn.silu(nn.GroupNorm(8, dtype=dt)(x))
+        return jnp.tanh(nn.Conv(self.cfg.latent, (1, 1), dtype=jnp.float32)(x).astype(jnp.float32))
+
+
+class Decoder(nn.Module):
+    """(N, 8, 8, C) latents -> (N, S, S, 3) float32 pixels in [0, 1]."""
+
+    cfg: ModelConfig
+
+    @nn.compact
+    def __call__(self, z):
+        dt = self.cfg.compute_dtype
+        if self.cfg.tokenizer == "patch":
+            h = self.cfg.channels[-1]
+            x = nn.gelu(nn.Conv(h, (3, 3), dtype=dt)(z.astype(dt)))
+            x = x + nn.gelu(nn.Dense(h, dtype=dt)(x))
+            p = self.cfg.size // LATENT_SIDE
+            return nn.sigmoid(depth_to_space(nn.Dense(3 * p * p, dtype=jnp.float32)(x).astype(jnp.float32), p))
+        chans = self.cfg.channels[::-1]
+        x = nn.Conv(chans[0], (3, 3), dtype=dt)(z.astype(dt))
+        for ch in chans:
+            x = ResBlock(x.shape[-1], dt)(x)
+            n, h, w, c = x.shape
+            x = jax.image.resize(x, (n, 2 * h, 2 * w, c), "nearest")
+            x = nn.Conv(ch, (3, 3), dtype=dt)(x)
+        x = nn.silu(nn.GroupNorm(8, dtype=dt)(x))
+        return nn.sigmoid(nn.Conv(3, (3, 3), dtype=jnp.float32)(x).astype(jnp.float32))
+
+
+def patchify(z, p):
+    """(B, T, 8, 8, C) -> (B, T, (8/p)^2, p*p*C)."""
+    b, t, h, w, c = z.shape
+    z = z.reshape(b, t, h // p, p, w // p, p, c).transpose(0, 1, 2, 4, 3, 5, 6)
+    return z.reshape(b, t, (h // p) * (w // p), p * p * c)
+
+
+def unpatchify(x, p, c):
+    """(B, T, N, p*p*C) -> (B, T, 8, 8, C)."""
+    b, t, n, _ = x.shape
+    g = int(round(math.sqrt(n)))
+    x = x.reshape(b, t, g, g, p, p, c).transpose(0, 1, 2, 4, 3, 5, 6)
+    return x.reshape(b, t, g * p, g * p, c)
+
+
+class Block(nn.Module):
+    cfg: ModelConfig
+
+    @nn.compact
+    def __call__(self, x, cond, bias):
+        """x: (B, T, N, D); cond: (B, T, D); bias: (B or 1, heads, T*N, T*N) additive attention bias."""
+        cfg, dt = self.cfg, self.cfg.compute_dtype
+        b, t, n, d = x.shape
+        mod = nn.Dense(6 * d, dtype=dt, kernel_init=nn.initializers.zeros)(nn.silu(cond))[:, :, None]
+        sh1, sc1, g1, sh2, sc2, g2 = jnp.split(mod, 6, axis=-1)
+        h = nn.LayerNorm(use_scale=False, use_bias=False, dtype=dt)(x) * (1 + sc1) + sh1
+        h = h.reshape(b, t * n, d)
+        qkv = nn.Dense(3 * d, dtype=dt)(h).reshape(b, t * n, 3, cfg.heads, d // cfg.heads)
+        q, k, v = qkv[:, :, 0], qkv[:, :, 1], qkv[:, :, 2]
+        logits = jnp.einsum("bqhd,bkhd->bhqk", q, k).astype(jnp.float32) / math.sqrt(d // cfg.heads) + bias
+        att = jax.nn.softmax(logits, axis=-1).astype(dt)
+        h = jnp.einsum("bhqk,bkhd->bqhd", att, v).reshape(b, t, n, d)
+        x = x + g1 * nn.Dense(d, dtype=dt)(h)
+        h = nn.LayerNorm(use_scale=False, use_bias=False, dtype=dt)(x) * (1 + sc2) + sh2
+        h = nn.Dense(d, dtype=dt)(nn.gelu(nn.Dense(cfg.mlp * d, dtype=dt)(h)))
+        return x + g2 * h
+
+
+class Dynamics(nn.Module):
+    """Latents, proprio, actions (B, T, ...) of frames 0..T-1 -> predictions for frames 1..T."""
+
+    cfg: ModelConfig
+
+    @nn.compact
+    def __call__(self, z, proprio, action, valid=None):
+        """z: (B, T, 8, 8, C); proprio: (B, T, 37) normalised; action: (B, T, 20) normalised;
+        valid: optional (B, T) bool, False for empty slots of an imagination buffer.
+        Returns {"z": (B, T, 8, 8, C), "proprio": (B, T, 37), "success": (B, T) logits,
+        "outcome": (B, T) logits}, entry t being the prediction for frame t+1."""
+        cfg, dt = self.cfg, self.cfg.compute_dtype
+        b, t = z.shape[:2]
+        n = cfg.tokens_per_frame
+        x = nn.Dense(cfg.dim, dtype=dt)(patchify(z, cfg.patch).astype(dt))
+        x = x + self.param("pos", nn.initializers.normal(0.02), (n, cfg.dim)).astype(dt)
+        cond_in = jnp.concatenate([action, proprio], -1).astype(dt)
+        cond = nn.Dense(cfg.dim, dtype=dt)(nn.silu(nn.Dense(cfg.dim, dtype=dt)(cond_in)))
+        bias = self._time_bias(t, n, valid)
+        for _ in range(cfg.depth):
+            x = Block(cfg)(x, cond, bias)
+        mod = nn.Dense(2 * cfg.dim, dtype=dt, kernel_init=nn.initializers.zeros)(nn.silu(cond))[:, :, None]
+        shift, scale = jnp.split(mod, 2, axis=-1)
+        h = nn.LayerNorm(use_scale=False, use_bias=False, dtype=dt)(x) * (1 + scale) + shift
+        dz = nn.Dense(cfg.patch * cfg.patch * cfg.latent, dtype=jnp.float32, kernel_init=nn.initializers.zeros)(h)
+        z_next = jnp.clip(z + unpatchify(dz.astype(jnp.float32), cfg.patch, cfg.latent), -1.0, 1.0)
+        pooled = h.mean(axis=2).astype(jnp.float32)
+        heads = nn.Dense(cfg.proprio_dim + 2, dtype=jnp.float32)(nn.silu(nn.Dense(cfg.dim, dtype=jnp.float32)(pooled)))
+        return {"z": z_next, "proprio": proprio + heads[..., :cfg.proprio_dim],
+                "success": heads[..., cfg.proprio_dim], "outcome": heads[..., cfg.proprio_dim + 1]}
+
+    def _time_bias(self, t, n, valid):
+        cfg = self.cfg
+        table = self.param("time_bias", nn.initializers.zeros, (cfg.heads, cfg.context))
+        ft = jnp.arange(t)
+        dist = ft[:, None] - ft[None, :]  # query frame - key frame
+        allowed = (dist >= 0) & (dist < cfg.context)
+        frame_bias = jnp.where(allowed[None], table[:, jnp.clip(dist, 0, cfg.context - 1)], -1e9)  # (H, T, T)
+        bias = jnp.repeat(jnp.repeat(frame_bias, n, axis=1), n, axis=2)[None]  # (1, H, T*N, T*N)
+        if valid is not None:
+            key_ok = jnp.repeat(valid, n, axis=1)[:, None, None, :]
+            bias = jnp.where(key_ok, bias, -1e9)
+        return bias
+
+
+class WorldModel(nn.Module):
+    """Tokenizer and dynamics under one parameter tree; methods are the model's entry points."""
+
+    cfg: ModelConfig
+
+    def setup(self):
+        self.encoder = Encoder(self.cfg)
+        self.decoder = Decoder(self.cfg)
+        self.dynamics = Dynamics(self.cfg)
+
+    def encode(self, frames):
+        """(..., S, S, 3) uint8 -> (..., 8, 8, C)."""
+        lead = frames.shape[:-3]
+        z = self.encoder(frames.reshape((-1,) + frames.shape[-3:]))
+        return z.reshape(lead + z.shape[1:])
+
+    def decode(self, z):
+        """(..., 8, 8, C) -> (..., S, S, 3) float32 in [0, 1]."""
+        lead = z.shape[:-3]
+        x = self.decoder(z.reshape((-1,) + z.shape[-3:]))
+        return x.reshape(lead + x.shape[1:])
+
+    def predict(self, z, proprio, action, valid=None):
+        return self.dynamics(z, proprio, action, valid)
+
+    def __call__(self, frames, proprio, action):
+        z = self.encode(frames)
+        return self.decode(z), self.predict(z, proprio, action)
+
+
+def init_params(cfg: ModelConfig, rng, window: int = 4):
+    """Float32 parameters of a WorldModel for cfg."""
+    cfg.validate()
+    frames = jnp.zeros((1, window, cfg.size, cfg.size, 3), jnp.uint8)
+    return WorldModel(cfg).init(rng, frames, jnp.zeros((1, window, cfg.proprio_dim)),
+                                jnp.zeros((1, window, cfg.action_dim)))["params"]

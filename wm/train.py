@@ -1,0 +1,369 @@
+"""Training the world model: `make train CONFIG=<preset> DATA=<dataset> OUT=<dir>`.
+
+    python -m wm.train --config demo --data runs/data/demo --out runs/wm/demo [key=value ...]
+
+One jitted, donated step trains tokenizer, dynamics and heads together (bf16 compute, float32
+parameters) on shuffled windows from the dataset's training cache, data parallel over a
+`jax.sharding` mesh of every local device (`param_sharding=fsdp` also shards parameters and
+optimiser state); `--distributed` calls `jax.distributed.initialize()` for several hosts.
+Orbax keeps the latest checkpoint (model, optimiser and data-iterator state; rerunning the same
+command resumes) and the best one on validation loss. Metrics go to `metrics.jsonl` and TensorBoard
+(`tb/`); a non-finite loss stops the run before any checkpoint of it is written. At the end
+`eval.json` is written from the best checkpoint (`wm.evaluate`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import orbax.checkpoint as ocp
+from jax.sharding import NamedSharding
+from jax.sharding import PartitionSpec as P
+from tqdm import tqdm
+
+from sim_data.cache import TrainingCache, WindowLoader
+from wm.config import TrainConfig, from_dict, make_config, to_dict
+from wm.imagine import Norm
+from wm.model import WorldModel, init_params
+
+
+class TrainingDiverged(FloatingPointError):
+    """The loss became NaN or infinite."""
+
+
+# ---- data ------------------------------------------------------------------------------------------
+
+def compute_norm(cache: TrainingCache) -> Norm:
+    """Mean and std of proprio and actions over the training split (std floored at 1e-3)."""
+    eps = [cache.episodes[i] for i in cache.select("train")]
+    if not eps:
+        raise ValueError("the dataset has no training episodes")
+    prop = np.concatenate([cache.array(e["shard"], "proprio")[e["start"]:e["start"] + e["length"]] for e in eps])
+    act = np.concatenate([cache.array(e["shard"], "action")[e["start"]:e["start"] + e["length"] - 1] for e in eps])
+    return Norm(proprio_mean=jnp.asarray(prop.mean(0)), proprio_std=jnp.asarray(np.maximum(prop.std(0), 1e-3)),
+                action_mean=jnp.asarray(act.mean(0)), action_std=jnp.asarray(np.maximum(act.std(0), 1e-3)))
+
+
+def model_batch(batch: dict, camera: str) -> dict:
+    """The loader's batch reduced to what the model trains on."""
+    return {"frames": batch["frames"][camera], "proprio": batch["proprio"], "action": batch["action"],
+            "success": batch["success"], "outcome": batch["outcome"]}
+
+
+# ---- loss and step ---------------------------------------------------------------------------------
+
+def _bce(logits, labels):
+    return optax.sigmoid_binary_cross_entropy(logits, labels.astype(jnp.float32)).mean()
+
+
+def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig):
+    """Scalar loss and its parts for one batch (frames (B, T, S, S, 3) uint8, ...)."""
+    model = WorldModel(cfg.model)
+    frames = batch["frames"]
+    target = frames[:, 1:].astype(jnp.float32) / 255.0
+    z = model.apply({"params": params}, frames, method=WorldModel.encode)
+    # reconstruction of every 4th frame: the decoder also learns from every predicted frame below
+    recon = model.apply({"params": params}, z[:, ::4], method=WorldModel.decode)
+    parts = {"recon": jnp.mean((recon - frames[:, ::4].astype(jnp.float32) / 255.0) ** 2)}
+    proprio, action = norm.proprio(batch["proprio"]), norm.action(batch["action"])
+    z_in, p_in = z, proprio
+    z_target = jax.lax.stop_gradient(z[:, 1:])
+    total = cfg.w_recon * parts["recon"]
+    for k in range(1 + cfg.rollout_passes):
+        pred = model.apply({"params": params}, z_in, p_in, action, method=WorldModel.predict)
+        zp = pred["z"][:, :-1]
+        pixels = model.apply({"params": params}, zp, method=WorldModel.decode)
+        latent = jnp.mean((zp - z_target) ** 2)
+        pixel = jnp.mean((pixels - target) ** 2)
+        prop = jnp.mean((pred["proprio"][:, :-1] - proprio[:, 1:]) ** 2)
+        succ = _bce(pred["success"][:, :-1], batch["success"][:, 1:])
+        outc = _bce(pred["outcome"], jnp.broadcast_to(batch["outcome"][:, None], pred["outcome"].shape))
+        total = total + cfg.w_latent * latent + cfg.w_pixel * pixel + cfg.w_proprio * prop + cfg.w_success * (succ + outc)
+        tag = "" if k == 0 else f"_pass{k}"
+        parts.update({f"latent{tag}": latent, f"pixel{tag}": pixel, f"proprio{tag}": prop, f"success{tag}": succ,
+                      f"outcome{tag}": outc})
+        # the next pass reads this pass's predictions of frames 1..T-1 (stop-gradient)
+        z_in = jnp.concatenate([z[:, :1], jax.lax.stop_gradient(zp)], axis=1)
+        p_in = jnp.concatenate([proprio[:, :1], jax.lax.stop_gradient(pred["proprio"][:, :-1])], axis=1)
+    parts["loss"] = total
+    return total, parts
+
+
+def make_optimizer(cfg: TrainConfig):
+    sched = optax.warmup_cosine_decay_schedule(0.0, cfg.lr, max(cfg.warmup, 1), max(cfg.steps, cfg.warmup + 1),
+                                               end_value=cfg.lr * 0.05)
+    return optax.chain(optax.clip_by_global_norm(cfg.grad_clip), optax.adamw(sched, weight_decay=cfg.weight_decay))
+
+
+def train_step(cfg: TrainConfig, state: dict, batch: dict, norm: Norm):
+    """One optimiser step: state {"params", "opt", "step"} -> (state, metrics)."""
+    (_, parts), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"], batch, norm, cfg)
+    updates, opt = make_optimizer(cfg).update(grads, state["opt"], state["params"])
+    params = optax.apply_updates(state["params"], updates)
+    parts["grad_norm"] = optax.tree.norm(grads)
+    return {"params": params, "opt": opt, "step": state["step"] + 1}, parts
+
+
+# jitted once per configuration (shared by every Run of it); parameter shardings follow the inputs
+_jitted_step = jax.jit(train_step, static_argnums=(0,), donate_argnums=(1,))
+_jitted_loss = jax.jit(lambda cfg, p, b, n: loss_fn(p, b, n, cfg)[1], static_argnums=(0,))
+
+
+# ---- devices ---------------------------------------------------------------------------------------
+
+def make_mesh():
+    """A 1-D mesh ("data") over every device of every process."""
+    # Auto axes: XLA propagates the batch sharding (Explicit axes would type every reshape)
+    return jax.make_mesh((jax.device_count(),), ("data",), axis_types=(jax.sharding.AxisType.Auto,))
+
+
+def param_spec(x, n: int, fsdp: bool) -> P:
+    """Replicated, or (fsdp) sharded on the largest axis divisible by the device count."""
+    if not fsdp or n == 1 or x.ndim == 0:
+        return P()
+    axes = sorted(range(x.ndim), key=lambda a: -x.shape[a])
+    for a in axes:
+        if x.shape[a] % n == 0 and x.shape[a] >= n:
+            spec = [None] * x.ndim
+            spec[a] = "data"
+            return P(*spec)
+    return P()
+
+
+def state_shardings(state, mesh, fsdp: bool):
+    n = mesh.devices.size
+    return jax.tree_util.tree_map(lambda x: NamedSharding(mesh, param_spec(x, n, fsdp)), state)
+
+
+def put_batch(batch: dict, mesh) -> dict:
+    """Host arrays -> global arrays sharded over the batch axis (each process passes its own rows)."""
+    sh = NamedSharding(mesh, P("data"))
+    if jax.process_count() == 1:
+        return jax.device_put(batch, sh)
+    return jax.tree_util.tree_map(lambda x: jax.make_array_from_process_local_data(sh, x), batch)
+
+
+# ---- the run ---------------------------------------------------------------------------------------
+
+class Run:
+    """Everything one training run holds: config, data, model state, checkpoints, logs."""
+
+    def __init__(self, cfg: TrainConfig, data: Path, out: Path):
+        self.cfg, self.data, self.out = cfg, Path(data), Path(out)
+        self.out.mkdir(parents=True, exist_ok=True)
+        _check_config(cfg, data, self.out)
+        self.cache = TrainingCache(self.data)
+        if cfg.camera not in self.cache.cameras:
+            raise ValueError(f"camera {cfg.camera} is not in the dataset's cache ({self.cache.cameras})")
+        if self.cache.index["size"] != cfg.model.size:
+            raise ValueError(f"the dataset's frames are {self.cache.index['size']} px, model.size is {cfg.model.size}")
+        bad = self.cache.non_finite()
+        if bad:
+            print(f"warning: {len(bad)} episodes hold NaN or inf in proprio or actions and are left out "
+                  f"(first: {', '.join(bad[:5])})", file=sys.stderr)
+        norm_path = self.out / "norm.json"
+        if norm_path.exists():
+            self.norm = Norm.from_dict(json.loads(norm_path.read_text()))
+        else:
+            self.norm = compute_norm(self.cache)
+            _write_json(norm_path, self.norm.to_dict())
+        if cfg.batch % jax.device_count():
+            raise ValueError(f"batch {cfg.batch} must be a multiple of the device count {jax.device_count()}")
+        local = cfg.batch // jax.process_count()
+        self.loader = WindowLoader(self.cache, cfg.window, local, split="train", seed=cfg.seed + jax.process_index(),
+                                   cameras=[cfg.camera])
+        self.val = WindowLoader(self.cache, cfg.window, local, split="val", seed=1234, cameras=[cfg.camera]) \
+            if self.cache.select("val") else None
+        self.mesh = make_mesh()
+        params = init_params(cfg.model, jax.random.PRNGKey(cfg.seed), window=cfg.window)
+        state = {"params": params, "opt": make_optimizer(cfg).init(params), "step": jnp.zeros((), jnp.int32)}
+        self.shardings = state_shardings(state, self.mesh, cfg.param_sharding == "fsdp")
+        self.state = jax.device_put(state, self.shardings)
+        opts = ocp.CheckpointManagerOptions(max_to_keep=1, create=True)
+        self.latest = ocp.CheckpointManager(self.out.absolute() / "checkpoints", options=opts)
+        self.best = ocp.CheckpointManager(self.out.absolute() / "best", options=opts)
+        self.best_val = math.inf
+        self._step = functools.partial(_jitted_step, cfg)
+        self._loss = functools.partial(_jitted_loss, cfg)
+
+    # ---- checkpoints ----
+    def restore(self) -> int:
+        step = self.latest.latest_step()
+        if step is None:
+            return 0
+        abstract = jax.tree_util.tree_map(lambda x, s: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=s),
+                                          self.state, self.shardings)
+        got = self.latest.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract),
+                                                                 loader=ocp.args.JsonRestore()))
+        self.state = got["state"]
+        self.loader.restore(got["loader"]["train"])
+        self.best_val = got["loader"].get("best_val", math.inf)
+        return int(step)
+
+    def save(self, step: int, best: bool) -> None:
+        meta = {"train": self.loader.state(), "best_val": self.best_val}
+        self.latest.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(self.state),
+                                                       loader=ocp.args.JsonSave(meta)), force=True)
+        if best:
+            self.best.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave({"params": self.state["params"]}),
+                                                         loader=ocp.args.JsonSave(meta)), force=True)
+        self.latest.wait_until_finished()
+        self.best.wait_until_finished()
+
+    def validate(self) -> dict:
+        if self.val is None:
+            return {}
+        parts = [jax.device_get(self._loss(self.state["params"], put_batch(model_batch(self.val.batch_at(0, k),
+                                                                                        self.cfg.camera), self.mesh),
+                                           self.norm))
+                 for k in range(min(self.cfg.val_batches, self.val.batches_per_epoch))]
+        return {f"val_{k}": float(np.mean([p[k] for p in parts])) for k in parts[0]}
+
+    # ---- the loop ----
+    def train(self, progress: bool = True) -> dict:
+        cfg = self.cfg
+        start = self.restore()
+        log = MetricLog(self.out)
+        bar = tqdm(total=cfg.steps, initial=start, unit="step", desc="train", disable=not progress)
+        t_start = time.perf_counter()
+        t_log, acc, n_acc = time.perf_counter(), None, 0
+        step = start
+        last = {}
+        while step < cfg.steps:
+            batch = put_batch(model_batch(next(self.loader), cfg.camera), self.mesh)
+            self.state, parts = self._step(self.state, batch, self.norm)
+            acc = parts if acc is None else jax.tree_util.tree_map(jnp.add, acc, parts)
+            n_acc += 1
+            step += 1
+            bar.update(1)
+            if step % cfg.log_every and step != cfg.steps:
+                continue
+            means = {k: float(v) / n_acc for k, v in jax.device_get(acc).items()}
+            if not all(math.isfinite(v) for v in means.values()):
+                bad = sorted(k for k, v in means.items() if not math.isfinite(v))
+                raise TrainingDiverged(
+                    f"non-finite {', '.join(bad)} between steps {step - n_acc + 1} and {step}; the last good checkpoint "
+                    f"(step {self.latest.latest_step()}) in {self.out / 'checkpoints'} is untouched. Lower lr or "
+                    f"raise warmup, and rerun.")
+            dt = time.perf_counter() - t_log
+            means.update(step=step, steps_per_s=n_acc / dt, frames_per_s=n_acc * cfg.batch * cfg.window / dt)
+            acc, n_acc, t_log = None, 0, time.perf_counter()
+            out_of_time = cfg.max_minutes and (time.perf_counter() - t_start) / 60 >= cfg.max_minutes
+            is_best = False
+            if step % cfg.eval_every == 0 or step == cfg.steps or out_of_time:
+                means.update(self.validate())
+                v = means.get("val_loss", means["loss"])
+                is_best = v < self.best_val
+                self.best_val = min(self.best_val, v)
+            log.write(means)
+            bar.set_postfix(loss=f"{means['loss']:.4f}", fps=f"{means['frames_per_s']:.0f}")
+            last = means
+            if step % cfg.ckpt_every == 0 or step == cfg.steps or out_of_time or is_best:
+                self.save(step, is_best)
+            if out_of_time:
+                break
+        bar.close()
+        log.close()
+        self.loader.close()
+        if self.best.latest_step() is None:  # e.g. a run that resumed at its last step
+            self.save(step, True)
+        return {"step": step, **last}
+
+    def best_params(self):
+        step = self.best.latest_step()
+        abstract = {"params": jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype),
+                                                     self.state["params"])}
+        got = self.best.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract),
+                                                               loader=ocp.args.JsonRestore()))
+        return got["state"]["params"]
+
+
+class MetricLog:
+    """metrics.jsonl (appended) and TensorBoard scalars."""
+
+    def __init__(self, out: Path):
+        self.path = out / "metrics.jsonl"
+        try:
+            from tensorboardX import SummaryWriter
+
+            self.tb = SummaryWriter(str(out / "tb"))
+        except ImportError:  # TensorBoard is optional; the JSONL log is not
+            self.tb = None
+
+    def write(self, metrics: dict) -> None:
+        with open(self.path, "a") as f:
+            f.write(json.dumps(metrics) + "\n")
+        if self.tb is not None:
+            for k, v in metrics.items():
+                if k != "step":
+                    self.tb.add_scalar(k, v, metrics["step"])
+            self.tb.flush()
+
+    def close(self):
+        if self.tb is not None:
+            self.tb.close()
+
+
+def _write_json(path: Path, obj) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(obj, indent=1))
+    os.replace(tmp, path)
+
+
+def _check_config(cfg: TrainConfig, data: Path, out: Path) -> None:
+    """Saves the resolved configuration; refuses to resume a run of another one."""
+    path = out / "config.json"
+    mine = json.loads(json.dumps({"train": to_dict(cfg), "data": str(Path(data).absolute())}))
+    if path.exists():
+        theirs = json.loads(path.read_text())
+        if theirs != mine:
+            raise ValueError(f"{out} holds a run of another configuration or dataset; use another OUT "
+                             f"(differs: {sorted(k for k in mine['train'] if mine['train'][k] != theirs['train'].get(k))})")
+    else:
+        _write_json(path, mine)
+
+
+def load_run_config(out: Path) -> tuple[TrainConfig, Path]:
+    d = json.loads((Path(out) / "config.json").read_text())
+    return from_dict(d["train"]), Path(d["data"])
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--config", default="demo")
+    p.add_argument("--data", type=Path, required=True, help="a dataset directory (make data) with its cache")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--distributed", action="store_true", help="jax.distributed.initialize() (several hosts)")
+    p.add_argument("--no-eval", action="store_true", help="skip eval.json at the end")
+    p.add_argument("overrides", nargs="*", help="dotted key=value overrides, e.g. model.dim=256 batch=32")
+    a = p.parse_args(argv)
+    try:
+        cfg = make_config(a.config, a.overrides)
+    except ValueError as e:
+        p.error(str(e))
+    if a.distributed:
+        jax.distributed.initialize()
+    run = Run(cfg, a.data, a.out)
+    summary = run.train()
+    print(json.dumps(summary, indent=1))
+    if not a.no_eval and jax.process_index() == 0:
+        from wm.evaluate import evaluate
+
+        report = evaluate(cfg, run.best_params(), run.norm, run.cache, a.out)
+        print(json.dumps(report["summary"], indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
