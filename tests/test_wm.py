@@ -49,7 +49,8 @@ def test_modules_shapes_causality_and_context(model_and_inputs):
     m = WorldModel(CFG)
     z = m.apply({"params": params}, frames, method=WorldModel.encode)
     assert z.shape == (2, 6, 8, 8, CFG.latent) and float(jnp.abs(z).max()) <= 1.0
-    x = m.apply({"params": params}, z, method=WorldModel.decode)
+    prev = frames.astype(np.float32) / 255.0
+    x = m.apply({"params": params}, z, prev, method=WorldModel.decode)
     assert x.shape == frames.shape and 0.0 <= float(x.min()) and float(x.max()) <= 1.0
     out = m.apply({"params": params}, z, proprio, action, method=WorldModel.predict)
     assert out["z"].shape == z.shape and out["proprio"].shape == proprio.shape and out["success"].shape == (2, 6)

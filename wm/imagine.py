@@ -50,14 +50,16 @@ class ImagineState:
 
     Attributes:
       z: (B, K, 8, 8, C) latents; proprio: (B, K, 37) normalised; action: (B, K, 20) normalised
-      (slot K-1 is filled by the next step); valid: (B, K) bool; success: (B,) probability that the
-      current frame is a success; outcome: (B,) predicted probability of the episode's success.
+      (slot K-1 is filled by the next step); valid: (B, K) bool; frame: (B, S, S, 3) float32 in
+      [0, 1], the current frame (decoded, or the last context frame); success: (B,) probability that
+      the current frame is a success; outcome: (B,) predicted probability of the episode's success.
     """
 
     z: jax.Array
     proprio: jax.Array
     action: jax.Array
     valid: jax.Array
+    frame: jax.Array
     success: jax.Array
     outcome: jax.Array
 
@@ -81,7 +83,8 @@ def init_state(cfg: ModelConfig, params, norm: Norm, frames, proprio, actions) -
     acts = jnp.concatenate([norm.action(actions), jnp.zeros((b, 1, cfg.action_dim))], axis=1)
     valid = jnp.concatenate([jnp.zeros((b, pad), bool), jnp.ones((b, c), bool)], axis=1)
     return ImagineState(z=place(z), proprio=place(norm.proprio(proprio)), action=place(acts), valid=valid,
-                        success=jnp.zeros((b,)), outcome=jnp.zeros((b,)))
+                        frame=frames[:, -1].astype(jnp.float32) / 255.0, success=jnp.zeros((b,)),
+                        outcome=jnp.zeros((b,)))
 
 
 def step(cfg: ModelConfig, params, norm: Norm, state: ImagineState, action) -> ImagineState:
@@ -93,16 +96,17 @@ def step(cfg: ModelConfig, params, norm: Norm, state: ImagineState, action) -> I
     def push(buf, new):
         return jnp.concatenate([buf[:, 1:], new[:, None]], axis=1)
 
+    z_next = out["z"][:, -1]
+    frame = model.apply({"params": params}, z_next, state.frame, method=WorldModel.decode)
     return ImagineState(
-        z=push(state.z, out["z"][:, -1]), proprio=push(state.proprio, out["proprio"][:, -1]),
+        z=push(state.z, z_next), proprio=push(state.proprio, out["proprio"][:, -1]),
         action=push(acts, jnp.zeros_like(acts[:, -1])), valid=push(state.valid, jnp.ones_like(state.valid[:, -1])),
-        success=jax.nn.sigmoid(out["success"][:, -1]), outcome=jax.nn.sigmoid(out["outcome"][:, -1]))
+        frame=frame, success=jax.nn.sigmoid(out["success"][:, -1]), outcome=jax.nn.sigmoid(out["outcome"][:, -1]))
 
 
-def current_observation(cfg: ModelConfig, params, norm: Norm, state: ImagineState) -> dict:
-    """What a policy sees: {"image": (B, S, S, 3) uint8 decoded frame, "proprio": (B, 37)}."""
-    x = WorldModel(cfg).apply({"params": params}, state.z[:, -1], method=WorldModel.decode)
-    return {"image": to_uint8(x), "proprio": norm.unproprio(state.proprio[:, -1])}
+def current_observation(norm: Norm, state: ImagineState) -> dict:
+    """What a policy sees: {"image": (B, S, S, 3) uint8 current frame, "proprio": (B, 37)}."""
+    return {"image": to_uint8(state.frame), "proprio": norm.unproprio(state.proprio[:, -1])}
 
 
 def to_uint8(x):
@@ -122,11 +126,10 @@ def open_loop(cfg: ModelConfig, params, norm: Norm, frames, proprio, context_act
 
     def body(st, a):
         st = step(cfg, params, norm, st, a)
-        return st, (st.z[:, -1], norm.unproprio(st.proprio[:, -1]), st.success, st.outcome)
+        return st, (to_uint8(st.frame), norm.unproprio(st.proprio[:, -1]), st.success, st.outcome)
 
-    _, (z, p, s, o) = jax.lax.scan(body, state, jnp.swapaxes(actions, 0, 1))
-    x = WorldModel(cfg).apply({"params": params}, jnp.swapaxes(z, 0, 1), method=WorldModel.decode)
-    return {"frames": to_uint8(x), "proprio": jnp.swapaxes(p, 0, 1), "success": s.T, "outcome": o.T}
+    _, (f, p, s, o) = jax.lax.scan(body, state, jnp.swapaxes(actions, 0, 1))
+    return {"frames": jnp.swapaxes(f, 0, 1), "proprio": jnp.swapaxes(p, 0, 1), "success": s.T, "outcome": o.T}
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1, 2))
@@ -147,7 +150,7 @@ def closed_loop(cfg: ModelConfig, policy, horizon: int, params, norm: Norm, poli
         st, ob, pc = c
         action, pc = policy.act(policy_params, ob, pc, jax.random.fold_in(k_act, t))
         st = step(cfg, params, norm, st, action)
-        ob = current_observation(cfg, params, norm, st)
+        ob = current_observation(norm, st)
         return (st, ob, pc), (ob["image"], ob["proprio"], st.success, st.outcome, action)
 
     _, (f, p, s, o, a) = jax.lax.scan(body, (state, obs, carry), jnp.arange(horizon))

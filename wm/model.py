@@ -114,28 +114,37 @@ class Encoder(nn.Module):
 
 
 class Decoder(nn.Module):
-    """(N, 8, 8, C) latents -> (N, S, S, 3) float32 pixels in [0, 1]."""
+    """(N, 8, 8, C) latents and the previous frame (N, S, S, 3) in [0, 1] -> (N, S, S, 3) float32 in [0, 1].
+
+    The output composes a generated frame with the previous one through a predicted per-pixel mask
+    (`mask * prev + (1 - mask) * generated`, as in Finn et al. 2016's CDNA), so what does not move is
+    carried over exactly and the latents spend their capacity on what changes.
+    """
 
     cfg: ModelConfig
 
     @nn.compact
-    def __call__(self, z):
-        dt = self.cfg.compute_dtype
-        if self.cfg.tokenizer == "patch":
-            h = self.cfg.channels[-1]
-            x = nn.gelu(nn.Conv(h, (3, 3), dtype=dt)(z.astype(dt)))
+    def __call__(self, z, prev):
+        cfg, dt = self.cfg, self.cfg.compute_dtype
+        p = cfg.size // LATENT_SIDE
+        prev_cells = space_to_depth(prev.astype(dt) * 2.0 - 1.0, p)  # (N, 8, 8, 3 p^2)
+        if cfg.tokenizer == "patch":
+            h = cfg.channels[-1]
+            x = nn.gelu(nn.Conv(h, (3, 3), dtype=dt)(z.astype(dt)) + nn.Dense(h, dtype=dt)(prev_cells))
             x = x + nn.gelu(nn.Dense(h, dtype=dt)(x))
-            p = self.cfg.size // LATENT_SIDE
-            return nn.sigmoid(depth_to_space(nn.Dense(3 * p * p, dtype=jnp.float32)(x).astype(jnp.float32), p))
-        chans = self.cfg.channels[::-1]
-        x = nn.Conv(chans[0], (3, 3), dtype=dt)(z.astype(dt))
-        for ch in chans:
-            x = ResBlock(x.shape[-1], dt)(x)
-            n, h, w, c = x.shape
-            x = jax.image.resize(x, (n, 2 * h, 2 * w, c), "nearest")
-            x = nn.Conv(ch, (3, 3), dtype=dt)(x)
-        x = nn.silu(nn.GroupNorm(8, dtype=dt)(x))
-        return nn.sigmoid(nn.Conv(3, (3, 3), dtype=jnp.float32)(x).astype(jnp.float32))
+            out = depth_to_space(nn.Dense(4 * p * p, dtype=jnp.float32)(x).astype(jnp.float32), p)
+        else:
+            chans = cfg.channels[::-1]
+            x = nn.Conv(chans[0], (3, 3), dtype=dt)(z.astype(dt)) + nn.Dense(chans[0], dtype=dt)(prev_cells)
+            for ch in chans:
+                x = ResBlock(x.shape[-1], dt)(x)
+                n, h, w, c = x.shape
+                x = jax.image.resize(x, (n, 2 * h, 2 * w, c), "nearest")
+                x = nn.Conv(ch, (3, 3), dtype=dt)(x)
+            x = nn.silu(nn.GroupNorm(8, dtype=dt)(x))
+            out = nn.Conv(4, (3, 3), dtype=jnp.float32)(x).astype(jnp.float32)
+        mask = nn.sigmoid(out[..., 3:])
+        return mask * prev.astype(jnp.float32) + (1.0 - mask) * nn.sigmoid(out[..., :3])
 
 
 def patchify(z, p):
@@ -237,10 +246,11 @@ class WorldModel(nn.Module):
         z = self.encoder(frames.reshape((-1,) + frames.shape[-3:]))
         return z.reshape(lead + z.shape[1:])
 
-    def decode(self, z):
-        """(..., 8, 8, C) -> (..., S, S, 3) float32 in [0, 1]."""
+    def decode(self, z, prev):
+        """(..., 8, 8, C) latents and the previous frames (..., S, S, 3) in [0, 1] -> (..., S, S, 3)
+        float32 in [0, 1]."""
         lead = z.shape[:-3]
-        x = self.decoder(z.reshape((-1,) + z.shape[-3:]))
+        x = self.decoder(z.reshape((-1,) + z.shape[-3:]), prev.reshape((-1,) + prev.shape[-3:]))
         return x.reshape(lead + x.shape[1:])
 
     def predict(self, z, proprio, action, valid=None):
@@ -248,7 +258,7 @@ class WorldModel(nn.Module):
 
     def __call__(self, frames, proprio, action):
         z = self.encode(frames)
-        return self.decode(z), self.predict(z, proprio, action)
+        return self.decode(z, frames.astype(jnp.float32) / 255.0), self.predict(z, proprio, action)
 
 
 def init_params(cfg: ModelConfig, rng, window: int = 4):

@@ -71,19 +71,21 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig):
     """Scalar loss and its parts for one batch (frames (B, T, S, S, 3) uint8, ...)."""
     model = WorldModel(cfg.model)
     frames = batch["frames"]
-    target = frames[:, 1:].astype(jnp.float32) / 255.0
+    pix = frames.astype(jnp.float32) / 255.0
+    target = pix[:, 1:]
     z = model.apply({"params": params}, frames, method=WorldModel.encode)
-    # reconstruction of every 4th frame: the decoder also learns from every predicted frame below
-    recon = model.apply({"params": params}, z[:, ::4], method=WorldModel.decode)
-    parts = {"recon": jnp.mean((recon - frames[:, ::4].astype(jnp.float32) / 255.0) ** 2)}
+    # reconstruction of every 4th frame from its true latents and the true previous frame; the
+    # decoder also learns from every predicted frame below
+    recon = model.apply({"params": params}, z[:, 1::4], pix[:, 0:-1:4], method=WorldModel.decode)
+    parts = {"recon": jnp.mean((recon - pix[:, 1::4]) ** 2)}
     proprio, action = norm.proprio(batch["proprio"]), norm.action(batch["action"])
-    z_in, p_in = z, proprio
+    z_in, p_in, prev = z, proprio, pix[:, :-1]
     z_target = jax.lax.stop_gradient(z[:, 1:])
     total = cfg.w_recon * parts["recon"]
     for k in range(1 + cfg.rollout_passes):
         pred = model.apply({"params": params}, z_in, p_in, action, method=WorldModel.predict)
         zp = pred["z"][:, :-1]
-        pixels = model.apply({"params": params}, zp, method=WorldModel.decode)
+        pixels = model.apply({"params": params}, zp, prev, method=WorldModel.decode)
         latent = jnp.mean((zp - z_target) ** 2)
         pixel = jnp.mean((pixels - target) ** 2)
         prop = jnp.mean((pred["proprio"][:, :-1] - proprio[:, 1:]) ** 2)
@@ -93,9 +95,11 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig):
         tag = "" if k == 0 else f"_pass{k}"
         parts.update({f"latent{tag}": latent, f"pixel{tag}": pixel, f"proprio{tag}": prop, f"success{tag}": succ,
                       f"outcome{tag}": outc})
-        # the next pass reads this pass's predictions of frames 1..T-1 (stop-gradient)
+        # the next pass reads this pass's predictions of frames 1..T-1 (stop-gradient): latents,
+        # proprio, and the decoded frames as the previous frames of the decoder
         z_in = jnp.concatenate([z[:, :1], jax.lax.stop_gradient(zp)], axis=1)
         p_in = jnp.concatenate([proprio[:, :1], jax.lax.stop_gradient(pred["proprio"][:, :-1])], axis=1)
+        prev = jnp.concatenate([pix[:, :1], jax.lax.stop_gradient(pixels[:, :-1])], axis=1)
     parts["loss"] = total
     return total, parts
 
