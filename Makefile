@@ -11,7 +11,7 @@ EPISODES ?= 10
 
 CONFIG ?= demo
 
-.PHONY: setup demo test test-slow bench success-table data render-check clean
+.PHONY: setup demo test test-slow bench success-table data render-check train clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -31,6 +31,10 @@ success-table: setup
 data: setup
 	$(PY) -m sim_data.generate --config $(CONFIG) --out $(if $(filter command line,$(origin OUT)),$(OUT),runs/data/$(CONFIG))
 
+# make train CONFIG=demo DATA=runs/data/demo OUT=runs/wm/demo
+train: setup
+	$(PY) -m wm.train --config $(CONFIG) --data $(or $(DATA),runs/data/$(CONFIG)) --out $(if $(filter command line,$(origin OUT)),$(OUT),runs/wm/$(CONFIG))
+
 render-check: setup
 	$(PY) -m sim_data.render_check --states 50 --out runs/render_check.json
 
@@ -44,6 +48,7 @@ bench: setup
 	$(PY) -m sim_data.bench --out runs/bench/physics_$$(hostname).json
 	$(PY) -m sim_data.bench_render --out runs/bench/render_$$(hostname).json
 	$(PY) -m sim_data.bench_data --out runs/bench/data_$$(hostname).json
+	$(PY) -m wm.bench --out runs/bench/wm_$$(hostname).json
 
 clean:
 	rm -rf runs/demo .pytest_cache
