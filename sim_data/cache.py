@@ -66,11 +66,6 @@ def _decode(path: Path, cameras) -> dict:
     return {"record": rec, "frames": ep["frames"], "proprio": ep["proprio"], "action": action, "success": ep["success"]}
 
 
-def _save_npy(path: Path, arr: np.ndarray) -> None:
-    with open(path, "wb") as f:
-        np.save(f, arr)
-
-
 def _write_shard(root: Path, name: str, decoded: list, cameras) -> dict:
     """Writes one shard (in name.tmp, renamed when whole); returns its summary."""
     tmp, final = root / f"{name}.tmp", root / name
@@ -82,10 +77,10 @@ def _write_shard(root: Path, name: str, decoded: list, cameras) -> dict:
         records.append({**d["record"], "shard": name, "start": start})
         start += d["record"]["length"]
     for cam in cameras:
-        _save_npy(tmp / f"{cam}.npy", np.concatenate([d["frames"][cam] for d in good]) if good
+        np.save(tmp / f"{cam}.npy", np.concatenate([d["frames"][cam] for d in good]) if good
                          else np.zeros((0, 0, 0, 3), np.uint8))
     for k in ARRAYS:
-        _save_npy(tmp / f"{k}.npy", np.concatenate([d[k] for d in good]) if good else np.zeros((0,)))
+        np.save(tmp / f"{k}.npy", np.concatenate([d[k] for d in good]) if good else np.zeros((0,)))
     skipped = [{"file": str(d.get("file", "")), "error": d["error"]} for d in decoded if "error" in d]
     summary = {"name": name, "frames": start, "episodes": records, "skipped": skipped}
     (tmp / "episodes.json").write_text(json.dumps(summary, indent=1))
@@ -277,6 +272,7 @@ class WindowLoader:
             raise ValueError(f"split {split!r} has {int(counts.sum())} windows of length {window}, fewer than a batch "
                              f"of {batch}")
         self._ends = np.cumsum(counts)
+        self._firsts = self._ends - counts  # the first window id of each episode
         self.windows = int(self._ends[-1])
         self.batches_per_epoch = self.windows // batch
         self._task_id = {t: i for i, t in enumerate(cache.tasks)}
@@ -315,7 +311,7 @@ class WindowLoader:
     def gather(self, window_ids: np.ndarray) -> dict:
         """The windows with these ids (0 .. windows-1) as one batch."""
         pos = np.searchsorted(self._ends, window_ids, side="right")
-        starts = window_ids - np.concatenate([[0], self._ends[:-1]])[pos]
+        starts = window_ids - self._firsts[pos]
         eps = self.episodes[pos]
         recs = [self.cache.episodes[i] for i in eps]
         b, t = len(window_ids), self.window

@@ -3,19 +3,8 @@
     python -m sim_data.generate --config smoke --out runs/data/smoke [key=value ...]
     make data CONFIG=demo OUT=runs/data/demo
 
-Each episode is one MCAP file (`episodes/<episode_id>.mcap`: chunked, zstd, indexed) whose
-channels Foxglove shows without plugins:
-
-| topic | schema (jsonschema, JSON messages) | content per control step (20 Hz) |
-|---|---|---|
-| `/head_cam/image`, `/ext_cam/image` | `foxglove.CompressedImage` | JPEG frame (t = 0..T) |
-| `/robot_state` | `wmlab.RobotState` | proprioception (37) with names (t = 0..T) |
-| `/action` | `wmlab.Action` | the action (20) taken at step t (t = 0..T-1) |
-| `/task_state` | `wmlab.TaskState` | step, time, success flag (t = 0..T) |
-| `/sim_state` | `wmlab.SimState` | qpos, qvel, mocap_pos: the full simulator state (t = 0..T) |
-
-and a metadata record `episode` (task, policy, skill, seed, success, split, configuration,
-package versions). Observation t is seen before action t; the last one follows the last action.
+Each episode is one MCAP file (`episodes/<episode_id>.mcap`); its channels and metadata record
+are described in `sim_data.episodes`.
 
 Episodes are written under a temporary name and renamed when whole, so a rerun of the same
 command skips finished episodes and completes the dataset. `manifest.jsonl` (one line per
@@ -41,6 +30,7 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
+from sim_data.bench import device_name
 from sim_data.cache import build_cache
 from sim_data.engines import ENGINES, default_engine
 from sim_data.env import HomeEnv
@@ -291,7 +281,7 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True) -> dict:
                               "frames_generated": frames_done, "frames_per_s": frames_done / wall if total else None,
                               "episodes_per_s": total / wall if total else None, "engine": engine,
                               "simulate_s": sim_s, "wait_for_writers_s": wait_s, "workers": cfg.workers,
-                              "device": _device_name()})
+                              "device": device_name()})
     if cfg.cache:
         t1 = time.perf_counter()
         index = build_cache(out, workers=cfg.workers, progress=progress)
@@ -324,11 +314,6 @@ def _drain(pending, bar, wait_all: bool):
         else:
             left.append(fut)
     return left
-
-
-def _device_name() -> str:
-    d = jax.devices()[0]
-    return getattr(d, "device_kind", d.platform)
 
 
 def _check_config_matches(cfg: DataConfig, out: Path) -> None:

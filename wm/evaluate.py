@@ -14,8 +14,6 @@
 
 from __future__ import annotations
 
-import json
-import os
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +22,7 @@ from sim_data.cache import TrainingCache
 from wm.config import TrainConfig
 from wm.imagine import Norm, open_loop
 from wm.metrics import accuracy, auroc, psnr, ssim
+from wm.train import write_json_atomic
 
 CHUNK = 64
 
@@ -154,9 +153,7 @@ def evaluate(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, out: Pa
     }
     report = {"summary": summary, "frame_quality": fq, "success_prediction": sp, "controllability": ctrl,
               "episodes": len(test), "split": split}
-    tmp = Path(out) / "eval.json.tmp"
-    tmp.write_text(json.dumps(_no_nan(report), indent=1, default=float))
-    os.replace(tmp, Path(out) / "eval.json")
+    write_json_atomic(Path(out) / "eval.json", _no_nan(report))
     _save_strip(Path(out) / "eval_frames.png", pictures, fq["horizons"])
     return report
 
@@ -167,8 +164,8 @@ def _no_nan(x):
         return {k: _no_nan(v) for k, v in x.items()}
     if isinstance(x, list | tuple):
         return [_no_nan(v) for v in x]
-    if isinstance(x, float | np.floating) and not np.isfinite(x):
-        return None
+    if isinstance(x, float | np.floating):
+        return float(x) if np.isfinite(x) else None
     return x
 
 

@@ -181,7 +181,7 @@ class Run:
             self.norm = Norm.from_dict(json.loads(norm_path.read_text()))
         else:
             self.norm = compute_norm(self.cache)
-            _write_json(norm_path, self.norm.to_dict())
+            write_json_atomic(norm_path, self.norm.to_dict())
         if cfg.batch % jax.device_count():
             raise ValueError(f"batch {cfg.batch} must be a multiple of the device count {jax.device_count()}")
         local = cfg.batch // jax.process_count()
@@ -198,6 +198,7 @@ class Run:
         self.latest = ocp.CheckpointManager(self.out.absolute() / "checkpoints", options=opts)
         self.best = ocp.CheckpointManager(self.out.absolute() / "best", options=opts)
         self.best_val = math.inf
+        self._val_batches = None
         self._step = functools.partial(_jitted_step, cfg)
         self._loss = functools.partial(_jitted_loss, cfg)
 
@@ -228,10 +229,10 @@ class Run:
     def validate(self) -> dict:
         if self.val is None:
             return {}
-        parts = [jax.device_get(self._loss(self.state["params"], put_batch(model_batch(self.val.batch_at(0, k),
-                                                                                        self.cfg.camera), self.mesh),
-                                           self.norm))
-                 for k in range(min(self.cfg.val_batches, self.val.batches_per_epoch))]
+        if self._val_batches is None:  # the same batches at every evaluation: gathered once
+            self._val_batches = [put_batch(model_batch(self.val.batch_at(0, k), self.cfg.camera), self.mesh)
+                                 for k in range(min(self.cfg.val_batches, self.val.batches_per_epoch))]
+        parts = [jax.device_get(self._loss(self.state["params"], b, self.norm)) for b in self._val_batches]
         return {f"val_{k}": float(np.mean([p[k] for p in parts])) for k in parts[0]}
 
     # ---- the loop ----
@@ -319,7 +320,7 @@ class MetricLog:
             self.tb.close()
 
 
-def _write_json(path: Path, obj) -> None:
+def write_json_atomic(path: Path, obj) -> None:
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(json.dumps(obj, indent=1))
     os.replace(tmp, path)
@@ -335,7 +336,7 @@ def _check_config(cfg: TrainConfig, data: Path, out: Path) -> None:
             raise ValueError(f"{out} holds a run of another configuration or dataset; use another OUT "
                              f"(differs: {sorted(k for k in mine['train'] if mine['train'][k] != theirs['train'].get(k))})")
     else:
-        _write_json(path, mine)
+        write_json_atomic(path, mine)
 
 
 def load_run_config(out: Path) -> tuple[TrainConfig, Path]:
