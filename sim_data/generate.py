@@ -32,6 +32,7 @@ from tqdm import tqdm
 
 from sim_data.bench import device_name
 from sim_data.cache import build_cache
+from sim_data.config import override
 from sim_data.engines import ENGINES, default_engine
 from sim_data.env import HomeEnv
 from sim_data.episodes import CorruptEpisode, read_episode_meta, write_episode_mcap  # noqa: F401 (re-exported)
@@ -39,6 +40,8 @@ from sim_data.policies import PROGRAMS, ProgramPolicy, ScriptedPolicy, program_p
 from sim_data.render import RenderConfig, Renderer
 from sim_data.rollout import record_episodes
 from sim_data.scene import load_model
+from sim_data.sources import PolicySource
+from sim_data.sources import resolve as resolve_sources
 from sim_data.success_table import wilson_interval, write_json_atomic
 from sim_data.tasks import TASK_NAMES
 
@@ -63,6 +66,9 @@ class DataConfig:
       cache: build the training cache (sim_data.cache) at the end.
       programs: initial states per task (split "programs", never train/val/test) from which every
         action program of `sim_data.policies.PROGRAMS` is recorded: the world model's controllability set.
+      policies: policy specs (`sim_data.sources`: zoo registries, plug-ins) whose own rollouts join
+        the dataset, failures included; policy_episodes: episodes per policy and task (0: `episodes`),
+        from the same initial states as the scripted episodes 0, 1, ...
     """
 
     tasks: tuple = TASK_NAMES
@@ -80,6 +86,8 @@ class DataConfig:
     workers: int = 2
     cache: bool = True
     programs: int = 0
+    policies: tuple = ()
+    policy_episodes: int = 0
 
     def validate(self) -> None:
         bad = [t for t in self.tasks if t not in TASK_NAMES]
@@ -89,8 +97,8 @@ class DataConfig:
             raise ValueError(f"skills must be in [0, 1], got {self.skills}")
         if self.episodes < 1 or self.batch < 1 or self.workers < 1:
             raise ValueError("episodes, batch and workers must be >= 1")
-        if self.programs < 0:
-            raise ValueError(f"programs must be >= 0, got {self.programs}")
+        if self.programs < 0 or self.policy_episodes < 0:
+            raise ValueError(f"programs and policy_episodes must be >= 0, got {self.programs}, {self.policy_episodes}")
         if self.engine not in ("",) + ENGINES:
             raise ValueError(f"engine must be one of {ENGINES} or empty, got {self.engine!r}")
         if self.size not in (64, 128):
@@ -120,33 +128,11 @@ PRESETS = {
 }
 
 
-def _parse_value(field: dataclasses.Field, text: str):
-    kind = type(getattr(DataConfig(), field.name))
-    if kind is tuple:
-        items = [x for x in text.split(",") if x]
-        return tuple(float(x) for x in items) if field.name == "skills" else tuple(items)
-    if kind is bool:
-        if text.lower() not in ("true", "false", "1", "0"):
-            raise ValueError(f"{field.name} must be true or false, got {text!r}")
-        return text.lower() in ("true", "1")
-    try:
-        return kind(text)
-    except ValueError:
-        raise ValueError(f"{field.name} must be a {kind.__name__}, got {text!r}") from None
-
-
 def make_config(preset: str, overrides=()) -> DataConfig:
     """The preset with `key=value` overrides applied, validated."""
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
-    fields = {f.name: f for f in dataclasses.fields(DataConfig)}
-    changes = {}
-    for item in overrides:
-        key, sep, value = item.partition("=")
-        if not sep or key not in fields:
-            raise ValueError(f"override {item!r} must be key=value with key one of {', '.join(fields)}")
-        changes[key] = _parse_value(fields[key], value)
-    cfg = dataclasses.replace(PRESETS[preset], **changes)
+    cfg = override(PRESETS[preset], overrides)
     cfg.validate()
     return cfg
 
@@ -166,11 +152,19 @@ def split_of(cfg: DataConfig, seed: int) -> str:
 
 
 def policy_name(source) -> str:
-    """A source is a scripted skill (float) or an action program's name."""
+    """A source is a scripted skill (float), an action program's name (str) or a PolicySource."""
+    if isinstance(source, PolicySource):
+        return f"{source.kind}:{source.name}"
     return f"program:{source}" if isinstance(source, str) else f"scripted@{float(source):.2f}"
 
 
+def policy_kind(source) -> str:
+    return source.kind if isinstance(source, PolicySource) else "program" if isinstance(source, str) else "scripted"
+
+
 def episode_id(task: str, source, i: int) -> str:
+    if isinstance(source, PolicySource):
+        return f"{task}-l{source.slug}-{i:06d}"
     if isinstance(source, str):
         return f"{task}-p{PROGRAMS.index(source)}{source}-{i:06d}"
     return f"{task}-s{round(float(source) * 100):03d}-{i:06d}"
@@ -178,6 +172,11 @@ def episode_id(task: str, source, i: int) -> str:
 
 def _initial_seed_of(cfg, task, source, i) -> int:
     return initial_seed(cfg, f"{task}/programs" if isinstance(source, str) else task, i)
+
+
+def _source_key(source) -> str:
+    """The chunk seed's name of a source."""
+    return source.name if isinstance(source, PolicySource) else str(source)
 
 
 # ---- the run ------------------------------------------------------------------------------------
@@ -192,11 +191,12 @@ def _versions() -> dict:
     return out
 
 
-def _plan(cfg: DataConfig):
+def _plan(cfg: DataConfig, learned=()):
     """Chunks of work: (task, source, [episode indices]) in a fixed order; a source is a scripted
-    skill (float) or an action program (str)."""
+    skill (float), an action program (str) or a PolicySource of `learned` (cfg.policies resolved)."""
     for task in cfg.tasks:
         sources = [(float(s), cfg.episodes) for s in cfg.skills] + [(p, cfg.programs) for p in PROGRAMS if cfg.programs]
+        sources += [(src, cfg.policy_episodes or cfg.episodes) for src in learned if src.runs_on(task)]
         for source, n in sources:
             for start in range(0, n, cfg.batch):
                 yield task, source, list(range(start, min(n, start + cfg.batch)))
@@ -205,14 +205,16 @@ def _plan(cfg: DataConfig):
 def _episode_meta(cfg, task, source, i, success, num_steps, engine):
     seed = _initial_seed_of(cfg, task, source, i)
     program = isinstance(source, str)
+    kind = policy_kind(source)
     return {
         "episode_id": episode_id(task, source, i), "task": task, "policy": policy_name(source),
-        "policy_kind": "program" if program else "scripted", "skill": None if program else float(source),
+        "policy_kind": kind, "skill": float(source) if kind == "scripted" else None,
         "seed": seed, "success": bool(success), "num_steps": int(num_steps),
         "split": "programs" if program else split_of(cfg, seed), "file": f"episodes/{episode_id(task, source, i)}.mcap",
         "engine": engine,
         "renderer": "sim_data.render (JAX ray casting)", "heldout": cfg.heldout, "size": cfg.size,
         "cameras": list(cfg.cameras),
+        "policy_source": source.record if isinstance(source, PolicySource) else None,
     }
 
 
@@ -223,12 +225,13 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True) -> dict:
     (out / "episodes").mkdir(parents=True, exist_ok=True)
     _check_config_matches(cfg, out)
     engine = cfg.engine or default_engine()
+    learned = resolve_sources(cfg.policies)
     for stale in (out / "episodes").glob("*.tmp"):
         stale.unlink()  # a killed run's half-written file
     # a chunk with any episode missing is simulated whole (its batch fixes every episode's noise) and
     # only the missing episodes are written
     todo = [(task, skill, idx, {i for i in idx if not (out / "episodes" / f"{episode_id(task, skill, i)}.mcap").exists()})
-            for task, skill, idx in _plan(cfg)]
+            for task, skill, idx in _plan(cfg, learned)]
     todo = [c for c in todo if c[3]]
     total = sum(len(c[3]) for c in todo)
     bar = tqdm(total=total, unit="ep", desc="episodes", disable=not progress or total == 0)
@@ -242,12 +245,14 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True) -> dict:
         b = len(idx)
         env = _env(task, b, engine, cfg.heldout)
         renderers = _renderers(cfg.size, tuple(cfg.cameras))
-        if isinstance(skill, str):
+        if isinstance(skill, PolicySource):
+            policy, params = skill.policy, skill.params
+        elif isinstance(skill, str):
             policy, params = ProgramPolicy(env.episode_steps), program_params([skill] * b, env.episode_steps)
         else:
             policy, params = _policy(task), {"skill": np.full((b,), skill, np.float32)}
         reset_keys = jax.numpy.stack([jax.random.PRNGKey(_initial_seed_of(cfg, task, skill, i)) for i in idx])
-        chunk_key = jax.random.PRNGKey(initial_seed(cfg, f"{task}/{skill}", idx[0]))
+        chunk_key = jax.random.PRNGKey(initial_seed(cfg, f"{task}/{_source_key(skill)}", idx[0]))
         ts = time.perf_counter()
         _, rec = record_episodes(env, policy, params, chunk_key, renderers, reset_keys=reset_keys)
         rec = jax.tree_util.tree_map(np.asarray, rec)
@@ -276,7 +281,7 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True) -> dict:
     pool.shutdown()
     bar.close()
     wall = time.perf_counter() - t0
-    manifest = build_manifest(cfg, out)
+    manifest = build_manifest(cfg, out, learned)
     stats = _stats(manifest, {"wall_s": wall, "episodes_generated": total, "steps_generated": steps_done,
                               "frames_generated": frames_done, "frames_per_s": frames_done / wall if total else None,
                               "episodes_per_s": total / wall if total else None, "engine": engine,
@@ -330,12 +335,12 @@ def _check_config_matches(cfg: DataConfig, out: Path) -> None:
         write_json_atomic(path, mine)
 
 
-def build_manifest(cfg: DataConfig, out: Path) -> list:
+def build_manifest(cfg: DataConfig, out: Path, learned=()) -> list:
     """Writes manifest.jsonl from the episode files of cfg's plan (each read back); returns its rows."""
     keys = ("episode_id", "task", "policy", "policy_kind", "skill", "seed", "success", "num_steps", "split", "file",
             "engine", "renderer", "heldout")
     rows = []
-    for task, skill, idx in _plan(cfg):
+    for task, skill, idx in _plan(cfg, learned):
         for i in idx:
             meta = read_episode_meta(out / "episodes" / f"{episode_id(task, skill, i)}.mcap")
             rows.append({k: meta[k] for k in keys})

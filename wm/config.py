@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
+from sim_data.config import override
 from wm.model import ModelConfig
 
 
@@ -80,41 +81,6 @@ PRESETS = {
                         eval_horizons=(1, 4, 8, 16), control_horizon=16),
     "full": TrainConfig(max_minutes=5.5),  # with compilation and eval.json, one 10-minute GPU command
 }
-
-
-def _parse(current, text: str, name: str):
-    kind = type(current)
-    if kind is tuple:
-        items = [x for x in text.split(",") if x]
-        elem = type(current[0]) if current else str
-        return tuple(elem(x) for x in items)
-    if kind is bool:
-        if text.lower() not in ("true", "false", "1", "0"):
-            raise ValueError(f"{name} must be true or false, got {text!r}")
-        return text.lower() in ("true", "1")
-    try:
-        return kind(text)
-    except ValueError:
-        raise ValueError(f"{name} must be a {kind.__name__}, got {text!r}") from None
-
-
-def override(cfg, items):
-    """cfg with dotted `key=value` items applied (e.g. `model.dim=256`, `batch=32`)."""
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise ValueError(f"override {item!r} must be key=value")
-        cfg = _set(cfg, key.split("."), value, key)
-    return cfg
-
-
-def _set(obj, path, value, full):
-    names = {f.name for f in dataclasses.fields(obj)}
-    if path[0] not in names:
-        raise ValueError(f"unknown setting {full!r}; {type(obj).__name__} has {', '.join(sorted(names))}")
-    cur = getattr(obj, path[0])
-    new = _set(cur, path[1:], value, full) if len(path) > 1 else _parse(cur, value, full)
-    return dataclasses.replace(obj, **{path[0]: new})
 
 
 def make_config(preset: str, overrides=()) -> TrainConfig:

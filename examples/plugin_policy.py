@@ -1,0 +1,34 @@
+"""A user's own policy, evaluated without editing the project: the README's plug-in example.
+
+    python -m sim_data.generate --config smoke --out runs/data/mine tasks=step_back policies=examples.plugin_policy:make
+
+It follows the policy protocol (`sim_data.sources`): hashable, batched, jittable, params shared by
+the batch. It backs away from the counter for `params["seconds"]` at `params["speed"]` m/s,
+holding the arms, neck and hands in the ready pose, and counts control steps in its carry.
+"""
+
+import dataclasses
+
+import jax.numpy as jnp
+
+from sim_data import robot
+from sim_data.policies import action_program
+from sim_data.tasks import CONTROL_DT
+
+
+@dataclasses.dataclass(frozen=True)
+class BackAway:
+    def init_carry(self, params, obs, task_state, rng):
+        return jnp.zeros((obs["proprio"].shape[0],), jnp.int32)
+
+    def act(self, params, obs, carry, rng):
+        hold = jnp.broadcast_to(params["ready"], (carry.shape[0], robot.ACTION_DIM))
+        moving = carry * CONTROL_DT < params["seconds"]
+        action = hold.at[:, robot.FORWARD_SPEED].set(jnp.where(moving, params["speed"], 0.0))
+        return action, carry + 1
+
+
+def make(seconds: float = 2.0, speed: float = -0.3):
+    """(policy, params): what `policies=examples.plugin_policy:make` loads."""
+    ready = jnp.asarray(action_program("step_backwards", 1)[0]).at[robot.FORWARD_SPEED].set(0.0)
+    return BackAway(), {"ready": ready, "seconds": jnp.float32(seconds), "speed": jnp.float32(speed)}

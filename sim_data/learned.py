@@ -1,0 +1,193 @@
+"""Learned vision policies: behaviour cloning from head-camera frames (and proprioception) to an
+action chunk, in Flax, following the project's policy protocol
+
+    carry = policy.init_carry(params, obs, task_state, rng)      # task_state is ignored (may be None)
+    action, carry = policy.act(params, obs, carry, rng)          # obs {"image": (B, S, S, 3) uint8, "proprio": (B, 37)}
+
+so the same checkpoint runs in the simulator (either engine) and inside the world model.
+
+The network sees the current frame, the proprioception (multiplied by `params["proprio_gate"]`: 0
+for the lineages trained without it, so every checkpoint of one encoder shares one compiled
+program), and the time since the episode began, which the policy counts in its carry (its only
+memory). It predicts the next `chunk` actions; the first is executed and the chunk is predicted
+again at every step (the rest of the chunk is an auxiliary target).
+
+params: {"net": Flax parameters, "norm": {"proprio_mean", "proprio_std", "action_mean",
+"action_std"}, "proprio_gate": ()}.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from sim_data import robot as R
+from sim_data.tasks import CONTROL_DT
+
+ENCODERS = ("conv", "vit")
+
+
+@dataclasses.dataclass(frozen=True)
+class PolicyNetConfig:
+    """The network of a behaviour-cloning policy.
+
+    Attributes:
+      encoder: "conv" (three strided convolutions) or "vit" (patch tokens through a small transformer).
+      width: channels of the convolutions / the transformer's token width. depth: transformer layers.
+      hidden: the MLP head's width. chunk: actions predicted per step. size: frame height = width.
+    """
+
+    encoder: str = "conv"
+    width: int = 32
+    depth: int = 3
+    hidden: int = 256
+    chunk: int = 4
+    size: int = 64
+
+    def validate(self) -> None:
+        if self.encoder not in ENCODERS:
+            raise ValueError(f"encoder must be one of {ENCODERS}, got {self.encoder!r}")
+        if self.chunk < 1 or self.width < 1 or self.hidden < 1:
+            raise ValueError("chunk, width and hidden must be >= 1")
+
+
+class ConvEncoder(nn.Module):
+    width: int
+
+    @nn.compact
+    def __call__(self, x):
+        for i, (ch, k) in enumerate(((self.width, 4), (2 * self.width, 4), (2 * self.width, 3))):
+            x = nn.gelu(nn.Conv(ch, (k, k), strides=2, name=f"conv{i}")(x))
+        return x.reshape(x.shape[0], -1)
+
+
+class ViTEncoder(nn.Module):
+    width: int
+    depth: int
+    patch: int = 8
+
+    @nn.compact
+    def __call__(self, x):
+        p = self.patch
+        x = nn.Conv(self.width, (p, p), strides=p, padding="VALID", name="patchify")(x)
+        b, h, w, c = x.shape
+        x = x.reshape(b, h * w, c)
+        x = x + self.param("pos", nn.initializers.normal(0.02), (1, h * w, c))
+        for i in range(self.depth):
+            y = nn.LayerNorm(name=f"ln_a{i}")(x)
+            x = x + nn.MultiHeadDotProductAttention(num_heads=4, name=f"attn{i}")(y, y)
+            y = nn.LayerNorm(name=f"ln_m{i}")(x)
+            x = x + nn.Dense(c, name=f"mlp_out{i}")(nn.gelu(nn.Dense(4 * c, name=f"mlp_in{i}")(y)))
+        return nn.LayerNorm(name="ln_out")(x).mean(axis=1)
+
+
+def time_features(t):
+    """(B,) control steps since the episode began -> (B, 8) sines and cosines of its time in seconds."""
+    s = t.astype(jnp.float32)[:, None] * CONTROL_DT
+    periods = jnp.array([1.0, 2.5, 6.0, 15.0])
+    ang = 2 * jnp.pi * s / periods
+    return jnp.concatenate([jnp.sin(ang), jnp.cos(ang)], axis=-1)
+
+
+class PolicyNet(nn.Module):
+    """(image (B, S, S, 3) uint8, proprio (B, 37) normalised, t (B,) int) -> (B, chunk, 20) normalised actions."""
+
+    cfg: PolicyNetConfig
+
+    @nn.compact
+    def __call__(self, image, proprio, t):
+        x = image.astype(jnp.float32) / 255.0 - 0.5
+        if self.cfg.encoder == "conv":
+            feat = ConvEncoder(self.cfg.width, name="encoder")(x)
+        else:
+            feat = ViTEncoder(self.cfg.width, self.cfg.depth, name="encoder")(x)
+        feat = nn.LayerNorm(name="feat_norm")(nn.Dense(self.cfg.hidden, name="feat")(feat))
+        p = nn.Dense(self.cfg.hidden, name="proprio")(proprio)
+        h = jnp.concatenate([feat, p, nn.Dense(32, name="time")(time_features(t))], axis=-1)
+        h = nn.gelu(nn.Dense(self.cfg.hidden, name="mlp0")(h))
+        h = nn.gelu(nn.Dense(self.cfg.hidden, name="mlp1")(h))
+        out = nn.Dense(self.cfg.chunk * R.ACTION_DIM, name="head", kernel_init=nn.initializers.zeros)(h)
+        return out.reshape(-1, self.cfg.chunk, R.ACTION_DIM)
+
+
+def normalise_proprio(params, proprio):
+    n = params["norm"]
+    return (proprio - n["proprio_mean"]) / n["proprio_std"] * params["proprio_gate"]
+
+
+def predict_chunk(cfg: PolicyNetConfig, params, image, proprio, t):
+    """The predicted action chunk (B, chunk, 20) in the action's own units."""
+    out = PolicyNet(cfg).apply({"params": params["net"]}, image, normalise_proprio(params, proprio), t)
+    n = params["norm"]
+    return out * n["action_std"] + n["action_mean"]
+
+
+def init_params(cfg: PolicyNetConfig, rng, norm: dict, use_proprio: bool) -> dict:
+    """Fresh parameters; norm holds proprio/action mean and std ((37,), (20,))."""
+    cfg.validate()
+    image = jnp.zeros((1, cfg.size, cfg.size, 3), jnp.uint8)
+    net = PolicyNet(cfg).init(rng, image, jnp.zeros((1, R.PROPRIO_DIM)), jnp.zeros((1,), jnp.int32))["params"]
+    return {"net": net, "norm": {k: jnp.asarray(v, jnp.float32) for k, v in norm.items()},
+            "proprio_gate": jnp.asarray(1.0 if use_proprio else 0.0, jnp.float32)}
+
+
+@dataclasses.dataclass(frozen=True)
+class BCPolicy:
+    """A behaviour-cloning policy of the project's protocol (see the module doc); the carry is the
+    step count (B,) int32."""
+
+    cfg: PolicyNetConfig
+
+    def init_carry(self, params, obs, task_state, rng):
+        del params, task_state, rng
+        return jnp.zeros((obs["proprio"].shape[0],), jnp.int32)
+
+    def act(self, params, obs, carry, rng):
+        del rng
+        chunk = predict_chunk(self.cfg, params, obs["image"], obs["proprio"], carry)
+        return chunk[:, 0], carry + 1
+
+
+@dataclasses.dataclass(frozen=True)
+class StackedPolicy:
+    """P policies of one protocol object with stacked parameters (every leaf has a leading P axis),
+    run as one batch: episodes [i*n, (i+1)*n) of a batch of B = P*n use parameters i. One compiled
+    rollout then serves a whole checkpoint series."""
+
+    policy: object
+
+    @staticmethod
+    def _split(x, p):
+        return x.reshape((p, x.shape[0] // p) + x.shape[1:])
+
+    def _p(self, params):
+        return jax.tree_util.tree_leaves(params)[0].shape[0]
+
+    def init_carry(self, params, obs, task_state, rng):
+        p = self._p(params)
+        obs = jax.tree_util.tree_map(lambda x: self._split(x, p), obs)
+        ts = None if task_state is None else jax.tree_util.tree_map(lambda x: self._split(x, p), task_state)
+        keys = jax.random.split(rng, p)
+        carry = jax.vmap(self.policy.init_carry, in_axes=(0, 0, None if ts is None else 0, 0))(params, obs, ts, keys)
+        return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), carry)
+
+    def act(self, params, obs, carry, rng):
+        p = self._p(params)
+        split = lambda tree: jax.tree_util.tree_map(lambda x: self._split(x, p), tree)
+        keys = jax.random.split(rng, p)
+        action, carry = jax.vmap(self.policy.act)(params, split(obs), split(carry), keys)
+        merge = lambda tree: jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), tree)
+        return merge(action), merge(carry)
+
+
+def stack_params(params_list: list) -> dict:
+    """Stacks P parameter trees of one structure along a new leading axis."""
+    return jax.tree_util.tree_map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *params_list)
+
+
+def to_numpy(params) -> dict:
+    return jax.tree_util.tree_map(lambda x: np.asarray(x), params)

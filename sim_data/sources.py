@@ -1,0 +1,114 @@
+"""Naming policies: registry checkpoints and users' own policies (plug-ins), for the data generator,
+the evaluator and the report.
+
+A policy spec is one of
+- a zoo registry: `runs/policies/demo` or `runs/policies/demo/policies.json` (every checkpoint),
+  optionally narrowed with `#` and `+`-separated names, lineages or tasks:
+  `runs/policies/demo#conv_proprio+vit_proprio`, `runs/policies/demo#mug/conv_proprio/300`;
+- a plug-in: `package.module:attribute`, where the attribute is a callable returning
+  `(policy, params)` (or is that pair itself). `policy` follows the project's protocol,
+
+      carry = policy.init_carry(params, obs, task_state, rng)
+      action, carry = policy.act(params, obs, carry, rng)
+
+  batched over a leading axis B (obs {"image": (B, 64, 64, 3) uint8 head-camera frame,
+  "proprio": (B, 37)}; action (B, 20), layout in `sim_data.robot`), jittable, with `params` shared by
+  the batch; it must be hashable (a frozen dataclass, for instance), since compiled rollouts are
+  cached per policy. In the world model `task_state` is None. A plug-in policy runs on every task
+  it is asked for; `name=` in front of the spec names it (`mine=my_pkg.policies:make`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import re
+from pathlib import Path
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class PolicySource:
+    """A named policy with its parameters.
+
+    Attributes:
+      name: unique, e.g. "mug/conv_proprio/300" or "my_pkg.policies:make".
+      kind: "learned" (a registry checkpoint) or "plugin". task: the task it was trained for (None:
+      any). policy, params: the protocol object and its parameters. record: the registry record
+      (lineage, step, val_loss, ...) or {} for a plug-in.
+    """
+
+    name: str
+    kind: str
+    task: str | None
+    policy: object
+    params: object
+    record: dict
+
+    @property
+    def slug(self) -> str:
+        """The name as a file-name fragment."""
+        return re.sub(r"[^A-Za-z0-9]+", "_", self.name).strip("_")
+
+    def runs_on(self, task: str) -> bool:
+        return self.task is None or self.task == task
+
+
+def is_plugin(spec: str) -> bool:
+    target = spec.split("=", 1)[-1]
+    return ":" in target and not Path(target.split("#")[0]).exists() and "/" not in target.split(":")[0]
+
+
+def load_plugin(spec: str) -> PolicySource:
+    """`[name=]package.module:attribute` -> its PolicySource."""
+    name, _, target = spec.rpartition("=")
+    module_name, _, attr = target.partition(":")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as e:
+        raise ValueError(f"plug-in {spec!r}: cannot import {module_name!r} ({e}); is it on PYTHONPATH?") from e
+    if not hasattr(module, attr):
+        raise ValueError(f"plug-in {spec!r}: module {module_name!r} has no attribute {attr!r}")
+    obj = getattr(module, attr)
+    got = obj() if callable(obj) and not isinstance(obj, tuple) else obj
+    if not (isinstance(got, tuple) and len(got) == 2):
+        raise ValueError(f"plug-in {spec!r} must give (policy, params), got {type(got).__name__}")
+    policy, params = got
+    for method in ("init_carry", "act"):
+        if not callable(getattr(policy, method, None)):
+            raise ValueError(f"plug-in {spec!r}: the policy has no {method}() (see sim_data.sources)")
+    try:
+        hash(policy)
+    except TypeError:
+        raise ValueError(f"plug-in {spec!r}: the policy must be hashable (a frozen dataclass, for instance)") from None
+    return PolicySource(name=name or target, kind="plugin", task=None, policy=policy, params=params,
+                        record={"plugin": target})
+
+
+def load_registry_sources(spec: str) -> list[PolicySource]:
+    """`PATH[#selector+...]` -> the registry's checkpoints whose name, lineage or task is selected."""
+    from sim_data.zoo import load_policy, load_registry  # the zoo imports flax training code: load it on use
+
+    path, _, sel = spec.partition("#")
+    wanted = {s for s in sel.split("+") if s}
+    records = load_registry(Path(path))
+    chosen = [r for r in records if not wanted or wanted & {r["name"], r["lineage"], r["task"]}]
+    if not chosen:
+        raise ValueError(f"{spec!r} selects no policy; the registry has lineages "
+                         f"{sorted({r['lineage'] for r in records})} and tasks {sorted({r['task'] for r in records})}")
+    out = []
+    for r in chosen:
+        policy, params = load_policy(r)
+        out.append(PolicySource(name=r["name"], kind="learned", task=r["task"], policy=policy, params=params, record=r))
+    return out
+
+
+def resolve(specs) -> list[PolicySource]:
+    """Every policy the specs name (see the module doc), names unique."""
+    out = []
+    for spec in specs:
+        out += [load_plugin(spec)] if is_plugin(spec) else load_registry_sources(spec)
+    names = [s.name for s in out]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ValueError(f"policy names repeat: {dup}; give plug-ins distinct names with name=module:attribute")
+    return out

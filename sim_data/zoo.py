@@ -1,0 +1,338 @@
+"""The policy zoo: behaviour-cloning policies (`sim_data.learned`) trained from a dataset's scripted
+demonstrations in several lineages, with checkpoints saved along training, and a registry.
+
+    python -m sim_data.zoo --config demo --data runs/data/demo --out runs/policies/demo [key=value ...]
+    make policies CONFIG=demo DATA=runs/data/demo OUT=runs/policies/demo
+
+A lineage is one training run of one task: an encoder (conv or vit), with or without
+proprioception, and its demonstrations (how many, of which skills, successes only or all).
+Checkpoints are taken at `checkpoints` steps spaced geometrically up to `steps`, so their quality
+runs from poor to good.
+
+Layout of OUT: `<task>/<lineage>/step-000123.msgpack` (parameters), `<task>/<lineage>/lineage.json`
+(written when the lineage is complete; a rerun skips complete lineages), `config.json`, and
+`policies.json`, the registry: one record per checkpoint {name, task, lineage, step, variant,
+val_loss, train_loss, checkpoint, net} (checkpoint relative to OUT).
+
+The validation imitation loss of every checkpoint is measured on one fixed set per task: the
+val-split scripted demonstrations of skill 1.0 that succeeded, whatever the lineage was trained on.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import flax.serialization
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from tqdm import tqdm
+
+from sim_data.cache import TrainingCache
+from sim_data.config import override
+from sim_data.learned import BCPolicy, PolicyNetConfig, init_params, predict_chunk, to_numpy
+from sim_data.success_table import write_json_atomic
+
+CAMERA = "head_cam"
+
+
+@dataclasses.dataclass(frozen=True)
+class Lineage:
+    """One checkpoint series. encoder: "conv" or "vit"; proprio: the policy sees proprioception;
+    demos: demonstrations trained on (0: all that qualify); skills: the scripted skills they come
+    from; successes_only: leave out the demonstrations that failed."""
+
+    name: str
+    encoder: str = "conv"
+    proprio: bool = True
+    demos: int = 0
+    skills: tuple = (1.0,)
+    successes_only: bool = True
+
+
+@dataclasses.dataclass(frozen=True)
+class ZooConfig:
+    """Attributes:
+      tasks: tasks with one lineage series each. lineages: the Lineage records.
+      conv, vit: the networks of the two encoders. steps: optimiser steps per lineage;
+      checkpoints: checkpoints per lineage, at steps spaced geometrically from first_step to steps.
+      batch, lr, weight_decay: AdamW. val_batches: validation batches of `batch` samples. seed.
+    """
+
+    tasks: tuple = ("mug", "wipe")
+    lineages: tuple = ()
+    conv: PolicyNetConfig = PolicyNetConfig(encoder="conv")
+    vit: PolicyNetConfig = PolicyNetConfig(encoder="vit", width=64, depth=3)
+    steps: int = 2000
+    checkpoints: int = 8
+    first_step: int = 10
+    batch: int = 64
+    lr: float = 1e-3
+    weight_decay: float = 1e-4
+    val_batches: int = 8
+    seed: int = 0
+
+    def validate(self) -> None:
+        if not self.tasks or not self.lineages:
+            raise ValueError("a zoo needs at least one task and one lineage")
+        if self.checkpoints < 1 or self.steps < self.checkpoints or self.first_step < 1:
+            raise ValueError(f"need 1 <= checkpoints <= steps and first_step >= 1 (got {self.checkpoints}, "
+                             f"{self.steps}, {self.first_step})")
+        names = [lin.name for lin in self.lineages]
+        if len(set(names)) != len(names):
+            raise ValueError(f"lineage names repeat: {names}")
+        for lin in self.lineages:
+            if lin.encoder not in ("conv", "vit"):
+                raise ValueError(f"lineage {lin.name}: encoder must be conv or vit, got {lin.encoder!r}")
+        self.conv.validate()
+        self.vit.validate()
+
+    def net(self, lineage: Lineage) -> PolicyNetConfig:
+        return self.conv if lineage.encoder == "conv" else self.vit
+
+    def checkpoint_steps(self) -> list[int]:
+        steps = np.geomspace(min(self.first_step, self.steps), self.steps, self.checkpoints)
+        return sorted({int(round(s)) for s in steps} | {self.steps})  # rounding may merge the first few
+
+
+LINEAGES_MAIN = (
+    Lineage("conv_proprio"),
+    Lineage("conv_noproprio", proprio=False),
+    Lineage("vit_proprio", encoder="vit"),
+)
+
+PRESETS = {
+    "smoke": ZooConfig(tasks=("mug",), lineages=LINEAGES_MAIN, steps=4, checkpoints=2, first_step=2, batch=8,
+                       val_batches=1, conv=PolicyNetConfig(width=8, hidden=32),
+                       vit=PolicyNetConfig(encoder="vit", width=16, depth=1, hidden=32)),
+    "demo": ZooConfig(tasks=("mug", "step_back"), lineages=LINEAGES_MAIN, steps=300, checkpoints=8, first_step=5,
+                      batch=32, val_batches=4, conv=PolicyNetConfig(width=16, hidden=128),
+                      vit=PolicyNetConfig(encoder="vit", width=32, depth=2, hidden=128)),
+    "full": ZooConfig(tasks=("mug", "wipe"), steps=3000, checkpoints=8, first_step=20, batch=256, val_batches=8,
+                      lineages=LINEAGES_MAIN + (Lineage("conv_proprio_few", demos=24),
+                                                Lineage("conv_proprio_lowskill", skills=(0.5, 0.75),
+                                                        successes_only=False))),
+}
+
+
+def make_config(preset: str, overrides=()) -> ZooConfig:
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
+    cfg = override(PRESETS[preset], overrides)
+    cfg.validate()
+    return cfg
+
+
+# ---- data ----------------------------------------------------------------------------------------
+
+def _episodes(cache: TrainingCache, task: str, split: str, skills, successes_only: bool, limit: int) -> list[int]:
+    skills = {round(float(s), 4) for s in skills}
+    out = [i for i in cache.select(split, tasks=[task])
+           if cache.episodes[i]["policy_kind"] == "scripted" and round(float(cache.episodes[i]["skill"]), 4) in skills
+           and (cache.episodes[i]["success"] or not successes_only)]
+    return out[:limit] if limit else out
+
+
+def load_samples(cache: TrainingCache, episodes: list[int], chunk: int) -> dict:
+    """Every (frame, proprio, time) of the episodes with the next `chunk` actions as targets.
+
+    Returns {"image": (N, S, S, 3) uint8, "proprio": (N, 37), "t": (N,) int32, "target": (N, chunk, 20),
+    "mask": (N, chunk) (0 past an episode's last action)}.
+    """
+    parts = {k: [] for k in ("image", "proprio", "t", "target", "mask")}
+    for i in episodes:
+        ep = cache.episode(i, cameras=[CAMERA])
+        n = ep["record"]["length"] - 1  # frames that are followed by an action
+        idx = np.arange(n)[:, None] + np.arange(chunk)[None]
+        parts["image"].append(ep["frames"][CAMERA][:n])
+        parts["proprio"].append(ep["proprio"][:n])
+        parts["t"].append(np.arange(n, dtype=np.int32))
+        parts["target"].append(ep["action"][np.minimum(idx, n - 1)])
+        parts["mask"].append((idx < n).astype(np.float32))
+    return {k: np.concatenate(v) for k, v in parts.items()}
+
+
+def compute_norm(samples: dict) -> dict:
+    a = samples["target"][:, 0]
+    return {"proprio_mean": samples["proprio"].mean(0), "proprio_std": samples["proprio"].std(0) + 1e-3,
+            "action_mean": a.mean(0), "action_std": a.std(0) + 1e-3}
+
+
+# ---- training -----------------------------------------------------------------------------------
+
+def imitation_loss(cfg: PolicyNetConfig, params, batch: dict):
+    """Mean squared error of the predicted chunk against the demonstration, in normalised action units."""
+    pred = predict_chunk(cfg, params, batch["image"], batch["proprio"], batch["t"])
+    n = params["norm"]
+    err = ((pred - batch["target"]) / n["action_std"]) ** 2
+    return (err.mean(-1) * batch["mask"]).sum() / jnp.maximum(batch["mask"].sum(), 1.0)
+
+
+def _make_step(cfg: PolicyNetConfig, opt):
+    @jax.jit
+    def step(params, opt_state, batch):
+        def loss(net):
+            return imitation_loss(cfg, {**params, "net": net}, batch)
+
+        value, grads = jax.value_and_grad(loss)(params["net"])
+        updates, opt_state = opt.update(grads, opt_state, params["net"])
+        return {**params, "net": optax.apply_updates(params["net"], updates)}, opt_state, value
+
+    return step
+
+
+def _batches(samples: dict, batch: int, rng: np.random.Generator, count: int):
+    n = len(samples["t"])
+    for _ in range(count):
+        idx = np.sort(rng.integers(0, n, batch))
+        yield {k: v[idx] for k, v in samples.items()}
+
+
+def _val_loss(cfg: PolicyNetConfig, params, val_batches: list) -> float:
+    loss = jax.jit(lambda p, b: imitation_loss(cfg, p, b))
+    return float(np.mean([float(loss(params, b)) for b in val_batches]))
+
+
+def save_params(path: Path, params) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
+    tmp.write_bytes(flax.serialization.msgpack_serialize(to_numpy(params)))
+    os.replace(tmp, path)
+
+
+def load_params(path: Path) -> dict:
+    return jax.tree_util.tree_map(jnp.asarray, flax.serialization.msgpack_restore(Path(path).read_bytes()))
+
+
+def train_lineage(cfg: ZooConfig, cache: TrainingCache, task: str, lineage: Lineage, out: Path, val: dict,
+                  progress: bool = True) -> list[dict]:
+    """Trains one lineage, saving its checkpoints; returns their registry records."""
+    net = cfg.net(lineage)
+    eps = _episodes(cache, task, "train", lineage.skills, lineage.successes_only, lineage.demos)
+    if not eps:
+        raise ValueError(f"{task}/{lineage.name}: the dataset has no train-split scripted demonstrations of skills "
+                         f"{lineage.skills}{' that succeeded' if lineage.successes_only else ''}")
+    samples = load_samples(cache, eps, net.chunk)
+    norm = compute_norm(samples)
+    seed = cfg.seed + 1000 * cfg.tasks.index(task) + [lin.name for lin in cfg.lineages].index(lineage.name)
+    params = init_params(net, jax.random.PRNGKey(seed), norm, lineage.proprio)
+    opt = optax.adamw(optax.cosine_decay_schedule(cfg.lr, cfg.steps, alpha=0.05), weight_decay=cfg.weight_decay)
+    opt_state = opt.init(params["net"])
+    step_fn = _make_step(net, opt)
+    rng = np.random.default_rng(seed)
+    val_batches = list(_batches(val, cfg.batch, np.random.default_rng(7), cfg.val_batches))
+    marks = set(cfg.checkpoint_steps())
+    records, losses = [], []
+    bar = tqdm(total=cfg.steps, desc=f"{task}/{lineage.name}", unit="step", disable=not progress, leave=False)
+    t0 = time.perf_counter()
+    for step, batch in enumerate(_batches(samples, cfg.batch, rng, cfg.steps), start=1):
+        params, opt_state, loss = step_fn(params, opt_state, batch)
+        losses.append(loss)
+        bar.update(1)
+        if step not in marks:
+            continue
+        train_loss = float(np.mean(jax.device_get(losses[-20:])))
+        if not np.isfinite(train_loss):
+            raise FloatingPointError(f"{task}/{lineage.name}: the imitation loss is {train_loss} at step {step}; "
+                                     f"lower lr and rerun")
+        rel = Path(task) / lineage.name / f"step-{step:06d}.msgpack"
+        save_params(out / rel, params)
+        records.append({
+            "name": f"{task}/{lineage.name}/{step}", "task": task, "lineage": lineage.name, "step": step,
+            "variant": {**dataclasses.asdict(lineage), "demos_used": len(eps)},
+            "val_loss": _val_loss(net, params, val_batches), "train_loss": train_loss,
+            "checkpoint": str(rel), "net": dataclasses.asdict(net)})
+        bar.set_postfix(loss=f"{train_loss:.3f}", val=f"{records[-1]['val_loss']:.3f}")
+    bar.close()
+    for r in records:
+        r["train_s"] = time.perf_counter() - t0
+    write_json_atomic(out / task / lineage.name / "lineage.json", records)
+    return records
+
+
+def train_zoo(cfg: ZooConfig, data: Path, out: Path, progress: bool = True) -> list[dict]:
+    """Trains (or completes) every lineage of every task; writes and returns the registry."""
+    cfg.validate()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    _check_config(cfg, data, out)
+    cache = TrainingCache(data)
+    if CAMERA not in cache.cameras:
+        raise ValueError(f"the policies see {CAMERA}, which the dataset's cache lacks ({cache.cameras})")
+    missing = [t for t in cfg.tasks if t not in cache.tasks]
+    if missing:
+        raise ValueError(f"tasks {missing} are not in the dataset {data} (it has {cache.tasks})")
+    registry = []
+    jobs = [(t, lin) for t in cfg.tasks for lin in cfg.lineages]
+    for n, (task, lin) in enumerate(jobs, start=1):
+        done = out / task / lin.name / "lineage.json"
+        if done.exists():
+            registry += json.loads(done.read_text())
+            continue
+        if progress:
+            print(f"[{n}/{len(jobs)}] {task}/{lin.name}", file=sys.stderr)
+        val_eps = _episodes(cache, task, "val", (1.0,), True, 0) or _episodes(cache, task, "train", (1.0,), True, 0)
+        val = load_samples(cache, val_eps, cfg.net(lin).chunk)
+        registry += train_lineage(cfg, cache, task, lin, out, val, progress)
+    write_json_atomic(out / "policies.json", {"data": str(Path(data)), "policies": registry})
+    return registry
+
+
+def _check_config(cfg: ZooConfig, data: Path, out: Path) -> None:
+    mine = json.loads(json.dumps({"data": str(Path(data)), "config": dataclasses.asdict(cfg)}))
+    path = out / "config.json"
+    if path.exists():
+        theirs = json.loads(path.read_text())
+        if theirs != mine:
+            raise ValueError(f"{out} holds a zoo of another configuration or dataset; use another OUT")
+    else:
+        write_json_atomic(path, mine)
+
+
+# ---- the registry ---------------------------------------------------------------------------------
+
+def load_registry(path: Path) -> list[dict]:
+    """The registry's records, each with `checkpoint` made absolute. path: policies.json or its directory."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "policies.json"
+    if not path.exists():
+        raise FileNotFoundError(f"{path} is missing: train a zoo first (make policies)")
+    records = json.loads(path.read_text())["policies"]
+    for r in records:
+        r["checkpoint"] = str(path.parent / r["checkpoint"])
+    return records
+
+
+def load_policy(record: dict) -> tuple[BCPolicy, dict]:
+    """(policy, params) of one registry record."""
+    net = PolicyNetConfig(**record["net"])
+    return BCPolicy(net), load_params(Path(record["checkpoint"]))
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--config", default="demo", help=f"preset: {', '.join(PRESETS)}")
+    p.add_argument("--data", type=Path, required=True, help="a dataset directory with its cache")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("overrides", nargs="*", help="key=value overrides (e.g. steps=500 conv.width=32)")
+    a = p.parse_args(argv)
+    try:
+        cfg = make_config(a.config, a.overrides)
+    except ValueError as e:
+        p.error(str(e))
+    t0 = time.perf_counter()
+    registry = train_zoo(cfg, a.data, a.out)
+    print(f"{len(registry)} checkpoints in {time.perf_counter() - t0:.0f} s; registry {a.out / 'policies.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
