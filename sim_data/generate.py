@@ -243,8 +243,8 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True) -> dict:
     versions = _versions()
     for task, skill, idx, missing in todo:
         b = len(idx)
-        env = _env(task, b, engine, cfg.heldout)
-        renderers = _renderers(cfg.size, tuple(cfg.cameras))
+        env = cached_env(task, b, engine, cfg.heldout)
+        renderers = cached_renderers(cfg.size, tuple(cfg.cameras))
         if isinstance(skill, PolicySource):
             policy, params = skill.policy, skill.params
         elif isinstance(skill, str):
@@ -296,7 +296,7 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True) -> dict:
 
 
 @functools.lru_cache(maxsize=32)
-def _env(task, batch, engine, heldout) -> HomeEnv:
+def cached_env(task, batch, engine, heldout) -> HomeEnv:
     return HomeEnv(task, batch, engine=engine, heldout=heldout)  # cached: its jitted steps compile once
 
 
@@ -306,7 +306,7 @@ def _policy(task) -> ScriptedPolicy:
 
 
 @functools.lru_cache(maxsize=8)
-def _renderers(size, cameras) -> tuple:
+def cached_renderers(size, cameras) -> tuple:
     return tuple(Renderer(load_model(), RenderConfig(height=size, width=size, camera=c)) for c in cameras)
 
 

@@ -29,6 +29,7 @@ from sim_data import robot as R
 from sim_data.tasks import CONTROL_DT
 
 ENCODERS = ("conv", "vit")
+PROPRIO_CLIP = 5.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -115,8 +116,11 @@ class PolicyNet(nn.Module):
 
 
 def normalise_proprio(params, proprio):
+    """Standardised proprioception, clipped to +-PROPRIO_CLIP (the world model's predicted state can
+    stray far outside the demonstrations), times the lineage's gate."""
     n = params["norm"]
-    return (proprio - n["proprio_mean"]) / n["proprio_std"] * params["proprio_gate"]
+    z = jnp.clip((proprio - n["proprio_mean"]) / n["proprio_std"], -PROPRIO_CLIP, PROPRIO_CLIP)
+    return jnp.nan_to_num(z) * params["proprio_gate"]
 
 
 def predict_chunk(cfg: PolicyNetConfig, params, image, proprio, t):

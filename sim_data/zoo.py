@@ -161,8 +161,9 @@ def load_samples(cache: TrainingCache, episodes: list[int], chunk: int) -> dict:
 
 def compute_norm(samples: dict) -> dict:
     a = samples["target"][:, 0]
-    return {"proprio_mean": samples["proprio"].mean(0), "proprio_std": samples["proprio"].std(0) + 1e-3,
-            "action_mean": a.mean(0), "action_std": a.std(0) + 1e-3}
+    # floors: dimensions (nearly) constant in the demonstrations must not amplify small deviations
+    return {"proprio_mean": samples["proprio"].mean(0), "proprio_std": np.maximum(samples["proprio"].std(0), 0.05),
+            "action_mean": a.mean(0), "action_std": np.maximum(a.std(0), 0.02)}
 
 
 # ---- training -----------------------------------------------------------------------------------
@@ -299,15 +300,17 @@ def _check_config(cfg: ZooConfig, data: Path, out: Path) -> None:
 # ---- the registry ---------------------------------------------------------------------------------
 
 def load_registry(path: Path) -> list[dict]:
-    """The registry's records, each with `checkpoint` made absolute. path: policies.json or its directory."""
+    """The registry's records, each with `checkpoint` made absolute and the zoo's `data` directory. path: policies.json or its directory."""
     path = Path(path)
     if path.is_dir():
         path = path / "policies.json"
     if not path.exists():
         raise FileNotFoundError(f"{path} is missing: train a zoo first (make policies)")
-    records = json.loads(path.read_text())["policies"]
+    registry = json.loads(path.read_text())
+    records = registry["policies"]
     for r in records:
         r["checkpoint"] = str(path.parent / r["checkpoint"])
+        r["data"] = registry["data"]
     return records
 
 

@@ -131,6 +131,26 @@ def controllability(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache) 
             "delta_psnr_db": dpsnr}
 
 
+def program_panel(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, horizon: int, task: str | None = None):
+    """One start, every action program: {program: {"real": (horizon+1, S, S, 3), "imagined": (horizon+1, S, S, 3)}}
+    (frame 0 is the shared initial frame), from the first complete program group (of `task`, if given);
+    {} when the dataset has none."""
+    groups: dict = {}
+    for i in cache.select("programs", tasks=None if task is None else [task]):
+        e = cache.episodes[i]
+        groups.setdefault((e["task"], e["seed"]), {})[e["policy"]] = i
+    programs = sorted({p for g in groups.values() for p in g})
+    full = [g for g in groups.values() if len(g) == len(programs)]
+    if not full:
+        return {}
+    eps = {p: cache.episode(full[0][p], cameras=[cfg.camera]) for p in programs}
+    h = min(horizon, min(ep["record"]["length"] for ep in eps.values()) - 1)
+    pred = _imagine(cfg, params, norm, [_sample(eps[p], cfg.camera, 0, 1, h) for p in programs], h)["frames"]
+    return {p.split(":")[-1]: {"real": eps[p]["frames"][cfg.camera][: h + 1],
+                               "imagined": np.concatenate([eps[p]["frames"][cfg.camera][:1], pred[j]])}
+            for j, p in enumerate(programs)}
+
+
 def evaluate(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, out: Path) -> dict:
     """Computes and writes OUT/eval.json (and eval_frames.png); returns the report."""
     split = next((s for s in ("test", "val", "train") if cache.select(s)), None)

@@ -17,6 +17,9 @@ from flax import struct
 from wm.model import ModelConfig, WorldModel
 
 
+INPUT_CLIP = 10.0  # standardised proprio and actions are clipped to +-INPUT_CLIP
+
+
 @struct.dataclass
 class Norm:
     """Input standardisation: proprio and action mean and std (37,), (20,)."""
@@ -27,13 +30,14 @@ class Norm:
     action_std: jax.Array
 
     def proprio(self, p):
-        return (p - self.proprio_mean) / self.proprio_std
+        return jnp.clip((p - self.proprio_mean) / self.proprio_std, -INPUT_CLIP, INPUT_CLIP)
 
     def unproprio(self, p):
         return p * self.proprio_std + self.proprio_mean
 
     def action(self, a):
-        return (a - self.action_mean) / self.action_std
+        """Standardised actions, clipped: a policy may command what no training episode did."""
+        return jnp.clip((a - self.action_mean) / self.action_std, -INPUT_CLIP, INPUT_CLIP)
 
     def to_dict(self) -> dict:
         return {k: np.asarray(getattr(self, k)).tolist() for k in ("proprio_mean", "proprio_std", "action_mean",

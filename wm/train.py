@@ -45,14 +45,15 @@ class TrainingDiverged(FloatingPointError):
 # ---- data ------------------------------------------------------------------------------------------
 
 def compute_norm(cache: TrainingCache) -> Norm:
-    """Mean and std of proprio and actions over the training split (std floored at 1e-3)."""
+    """Mean and std of proprio and actions over the training split (std floored at 1e-2: a dimension
+    constant in training must not blow a policy's small deviation up)."""
     eps = [cache.episodes[i] for i in cache.select("train")]
     if not eps:
         raise ValueError("the dataset has no training episodes")
     prop = np.concatenate([cache.array(e["shard"], "proprio")[e["start"]:e["start"] + e["length"]] for e in eps])
     act = np.concatenate([cache.array(e["shard"], "action")[e["start"]:e["start"] + e["length"] - 1] for e in eps])
-    return Norm(proprio_mean=jnp.asarray(prop.mean(0)), proprio_std=jnp.asarray(np.maximum(prop.std(0), 1e-3)),
-                action_mean=jnp.asarray(act.mean(0)), action_std=jnp.asarray(np.maximum(act.std(0), 1e-3)))
+    return Norm(proprio_mean=jnp.asarray(prop.mean(0)), proprio_std=jnp.asarray(np.maximum(prop.std(0), 1e-2)),
+                action_mean=jnp.asarray(act.mean(0)), action_std=jnp.asarray(np.maximum(act.std(0), 1e-2)))
 
 
 def model_batch(batch: dict, camera: str) -> dict:
@@ -342,6 +343,24 @@ def _check_config(cfg: TrainConfig, data: Path, out: Path) -> None:
 def load_run_config(out: Path) -> tuple[TrainConfig, Path]:
     d = json.loads((Path(out) / "config.json").read_text())
     return from_dict(d["train"]), Path(d["data"])
+
+
+def load_trained(out: Path):
+    """(TrainConfig, best parameters, Norm) of a finished training run in out."""
+    out = Path(out)
+    if not (out / "config.json").exists() or not (out / "best").exists():
+        raise FileNotFoundError(f"{out} holds no trained world model (config.json and best/): run make train first")
+    cfg, _ = load_run_config(out)
+    norm = Norm.from_dict(json.loads((out / "norm.json").read_text()))
+    shapes = jax.eval_shape(lambda: init_params(cfg.model, jax.random.PRNGKey(0), window=cfg.window))
+    mgr = ocp.CheckpointManager(out.absolute() / "best", options=ocp.CheckpointManagerOptions(create=False))
+    step = mgr.latest_step()
+    if step is None:
+        raise FileNotFoundError(f"{out}/best holds no checkpoint")
+    abstract = {"params": jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), shapes)}
+    got = mgr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract),
+                                                     loader=ocp.args.JsonRestore()))
+    return cfg, got["state"]["params"], norm
 
 
 def main(argv=None) -> int:

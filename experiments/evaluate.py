@@ -1,0 +1,416 @@
+"""Policy evaluation in the world model against the simulator.
+
+    python -m experiments.evaluate --config demo --out runs/eval/demo [key=value ...]
+    make eval CONFIG=demo OUT=runs/eval/demo
+
+For every task and every policy that runs on it (zoo checkpoints, plug-ins), from N held-out
+initial states per task (seeds checked against every seed of the world model's and the zoo's
+datasets):
+- true success: closed-loop episodes in the simulator, the policy seeing the rendered head camera;
+- predicted success: closed-loop episodes in the world model from the same initial frame and
+  proprioception, for the task's episode length; an episode's predicted probability is the success
+  probability of its final imagined frame (thresholded at `threshold` for its outcome).
+
+Policies of one architecture run as one batch (their parameters stacked), so one compiled rollout
+serves a whole checkpoint series. Each task is saved when done (`OUT/tasks/<task>.npz`) and a
+rerun resumes. `OUT/results.json` holds the per-policy rates and intervals and the statistics
+(experiments.stats), overall and per task, beside the imitation-loss baseline; `OUT/videos.npz`
+real and imagined episodes and the controllability panel for the report.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import json
+import math
+import sys
+import time
+from importlib import metadata as importlib_metadata
+from pathlib import Path
+
+import jax
+import numpy as np
+from tqdm import tqdm
+
+from experiments import stats as S
+from sim_data import robot as R
+from sim_data.bench import device_name
+from sim_data.cache import TrainingCache
+from sim_data.config import override
+from sim_data.engines import ENGINES, default_engine
+from sim_data.generate import cached_env, cached_renderers
+from sim_data.learned import StackedPolicy, stack_params
+from sim_data.rollout import record_episodes
+from sim_data.sources import resolve
+from sim_data.success_table import write_json_atomic
+from wm.evaluate import program_panel
+from wm.imagine import closed_loop
+from wm.train import load_trained
+
+CAMERA = "head_cam"
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalConfig:
+    """Attributes:
+      policies: policy specs (`sim_data.sources`: zoo registries, plug-ins).
+      wm: the world model's training run directory (make train OUT).
+      tasks: tasks to evaluate (empty: every task of the learned policies).
+      episodes: held-out initial states per task (each policy runs from all of them).
+      seed: names the held-out initial states. engine: "cpu", "mjx" or "" (mjx on a GPU).
+      batch: episodes simulated or imagined together (policies x initial states).
+      threshold: a predicted probability at or above it is a predicted success.
+      video_policies: policies per task whose episodes are kept for the report (lowest, middle and
+        highest true rate first); video_episodes: kept episodes per such policy.
+      gaps: true gaps of the decision analysis; decision_episodes: episodes per policy on its curve.
+    """
+
+    policies: tuple = ()
+    wm: str = ""
+    tasks: tuple = ()
+    episodes: int = 200
+    seed: int = 0
+    engine: str = ""
+    batch: int = 2048
+    threshold: float = 0.5
+    video_policies: int = 4
+    video_episodes: int = 2
+    gaps: tuple = (0.1, 0.2)
+    decision_episodes: tuple = (5, 10, 20, 50, 100, 200, 500)
+
+    def validate(self) -> None:
+        if not self.policies:
+            raise ValueError("name at least one policy spec (policies=runs/policies/demo,...)")
+        if not self.wm:
+            raise ValueError("name the world model's run directory (wm=runs/wm/demo)")
+        if self.episodes < 2 or self.batch < 1:
+            raise ValueError(f"episodes must be >= 2 and batch >= 1, got {self.episodes}, {self.batch}")
+        if self.engine not in ("",) + ENGINES:
+            raise ValueError(f"engine must be one of {ENGINES} or empty, got {self.engine!r}")
+        if not 0 < self.threshold < 1:
+            raise ValueError(f"threshold must be in (0, 1), got {self.threshold}")
+
+
+PRESETS = {
+    "demo": EvalConfig(policies=("runs/policies/demo",), wm="runs/wm/demo", episodes=8, batch=256),
+    "full": EvalConfig(policies=("runs/policies/full",), wm="runs/wm/full", episodes=200, batch=2400),
+}
+
+
+def make_config(preset: str, overrides=()) -> EvalConfig:
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
+    cfg = override(PRESETS[preset], overrides)
+    cfg.validate()
+    return cfg
+
+
+# ---- held-out initial states ----------------------------------------------------------------------
+
+def used_seeds(*datasets) -> set:
+    """Every initial-state seed in the manifests of the given dataset directories."""
+    seeds = set()
+    for d in datasets:
+        manifest = Path(d) / "manifest.jsonl"
+        if manifest.exists():
+            seeds |= {json.loads(line)["seed"] for line in manifest.read_text().splitlines() if line}
+    return seeds
+
+
+def heldout_seeds(task: str, n: int, seed: int, used: set) -> list[int]:
+    """n initial-state seeds of task that no training dataset used (a seed space of its own, with
+    the rare collision skipped)."""
+    out, i = [], 0
+    while len(out) < n:
+        digest = hashlib.sha256(f"heldout-eval/{seed}/{task}/{i}".encode()).digest()
+        s = int.from_bytes(digest[:4], "little") & 0x7FFFFFFF
+        if s not in used:
+            out.append(s)
+        i += 1
+    return out
+
+
+# ---- one task ------------------------------------------------------------------------------------
+
+def _groups(sources):
+    """Sources sharing one policy object (and so one compiled rollout), in a fixed order."""
+    groups: dict = {}
+    for s in sources:
+        groups.setdefault(s.policy, []).append(s)
+    return list(groups.values())
+
+
+def _chunks(group, n: int, batch: int):
+    """Chunks of at most batch // n policies, the last padded by repeating its last policy."""
+    per = max(1, batch // n)
+    for i in range(0, len(group), per):
+        part = group[i:i + per]
+        yield part, part + [part[-1]] * (min(per, len(group)) - len(part))
+
+
+def evaluate_task(cfg: EvalConfig, task: str, sources, wm, seeds, engine: str, progress: bool) -> dict:
+    """True and predicted outcomes of every source on task from the held-out seeds.
+
+    Returns {"names": [P], "true": (P, N) bool, "prob": (P, N) float, "videos": {key: (T+1, S, S, 3)},
+    "video_index": [...], "sim_s", "wm_s", "steps"}.
+    """
+    wm_cfg, wm_params, norm = wm
+    n = len(seeds)
+    reset_keys = np.stack([np.asarray(jax.random.PRNGKey(s)) for s in seeds])
+    renderer = cached_renderers(wm_cfg.model.size, (CAMERA,))
+    names, true, prob, kept = [], [], [], {}
+    sim_s = wm_s = 0.0
+    steps = None
+    todo = [(g, part, padded) for g in _groups(sources) for part, padded in _chunks(g, n, cfg.batch)]
+    bar = tqdm(total=len(sources) * n, desc=f"{task}", unit="ep", disable=not progress)
+    for k, (group, part, padded) in enumerate(todo):
+        policy = StackedPolicy(group[0].policy)
+        params = stack_params([s.params for s in padded])
+        b = len(padded) * n
+        env = cached_env(task, b, engine, False)
+        steps = env.episode_steps
+        keys = np.tile(reset_keys, (len(padded), 1))
+        rng = jax.random.PRNGKey(cfg.seed * 7919 + k)
+        t0 = time.perf_counter()
+        _, rec = record_episodes(env, policy, params, rng, renderer, reset_keys=keys)
+        outcome = np.asarray(rec.success[:, -1]).reshape(len(padded), n)[: len(part)]
+        sim_s += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        frames0, proprio0 = rec.frames[CAMERA][:, :1], rec.proprio[:, :1]
+        got = closed_loop(wm_cfg.model, policy, steps, wm_params, norm, params, frames0, proprio0,
+                          np.zeros((b, 0, R.ACTION_DIM), np.float32), jax.random.fold_in(rng, 1))
+        p = np.asarray(got["success"][:, -1], np.float64).reshape(len(padded), n)[: len(part)]
+        wm_s += time.perf_counter() - t0
+        for j, src in enumerate(part):
+            names.append(src.name)
+            true.append(outcome[j])
+            prob.append(p[j])
+            kept[src.name] = _keep_examples(cfg, src.name, j, n, outcome[j], p[j], rec.frames[CAMERA], got["frames"])
+        bar.update(len(part) * n)
+    bar.close()
+    true, prob = np.stack(true), np.stack(prob)
+    videos, index = _select_videos(cfg, task, names, true, kept)
+    return {"names": names, "true": true, "prob": prob, "videos": videos, "video_index": index, "sim_s": sim_s,
+            "wm_s": wm_s, "steps": steps}
+
+
+def _keep_examples(cfg, name, j, n, outcome, p, real, imagined) -> list:
+    """Up to video_episodes episodes of one policy (a success and a failure first), real and imagined."""
+    order = [int(np.argmax(outcome)), int(np.argmin(outcome))] + list(range(n))
+    picked = list(dict.fromkeys(order))[: cfg.video_episodes]
+    out = []
+    for e in picked:
+        row = j * n + e
+        real_ep = np.asarray(real[row])
+        gen = np.concatenate([real_ep[:1], np.asarray(imagined[row])])
+        out.append({"episode": e, "true_success": bool(outcome[e]), "pred_prob": float(p[e]), "real": real_ep,
+                    "imagined": gen})
+    return out
+
+
+def _select_videos(cfg, task, names, true, kept):
+    rates = true.mean(1)
+    order = np.argsort(rates, kind="stable")
+    picks = [order[0], order[len(order) // 2], order[-1]] + list(order)
+    chosen = list(dict.fromkeys(int(i) for i in picks))[: cfg.video_policies]
+    videos, index = {}, []
+    for i in chosen:
+        for ex in kept[names[i]]:
+            key = f"{task}/{names[i]}/{ex['episode']}"
+            videos[key + "/real"], videos[key + "/imagined"] = ex["real"], ex["imagined"]
+            index.append({"task": task, "policy": names[i], "episode": ex["episode"], "key": key,
+                          "true_success": ex["true_success"], "pred_prob": ex["pred_prob"]})
+    return videos, index
+
+
+# ---- results ---------------------------------------------------------------------------------------
+
+def _interval_of_mean(x) -> list:
+    x = np.asarray(x, np.float64)
+    half = S.Z95 * x.std(ddof=1) / math.sqrt(len(x)) if len(x) > 1 else math.nan
+    return [max(0.0, x.mean() - half), min(1.0, x.mean() + half)]
+
+
+def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) -> list[dict]:
+    rows = []
+    for name, t, p in zip(res["names"], res["true"], res["prob"], strict=True):
+        rec = sources_by_name[name].record
+        k, n = int(t.sum()), len(t)
+        kp = int((p >= cfg.threshold).sum())
+        rows.append({"name": name, "task": task, "lineage": rec.get("lineage", "plugin"), "step": rec.get("step"),
+                     "kind": sources_by_name[name].kind, "n": n, "true_rate": k / n,
+                     "true_ci": list(S.wilson_interval(k, n)), "pred_rate": float(p.mean()),
+                     "pred_ci": _interval_of_mean(p), "pred_rate_thresholded": kp / n,
+                     "pred_thresholded_ci": list(S.wilson_interval(kp, n)), "val_loss": rec.get("val_loss"),
+                     "alignment": S.alignment(p >= cfg.threshold, t)})
+    return rows
+
+
+def ranking_block(rows: list[dict], true_eps, prob_eps, threshold: float) -> dict:
+    """The world model's statistics and the imitation-loss baseline's over one set of policies."""
+    true = [r["true_rate"] for r in rows]
+    out = S.ranking_metrics([r["pred_rate"] for r in rows], true)
+    out["pearson_ci_bootstrap"] = list(S.bootstrap_pearson(prob_eps, true_eps, draws=1000))
+    out["alignment"] = S.alignment(prob_eps >= threshold, true_eps)
+    thr = S.ranking_metrics([r["pred_rate_thresholded"] for r in rows], true)
+    out["thresholded"] = {k: thr[k] for k in ("pearson", "spearman", "mmrv", "pairwise_acc_gap10")}
+    with_loss = [r for r in rows if r["val_loss"] is not None]
+    if len(with_loss) >= 2:  # lower imitation loss predicts higher success
+        out["baseline"] = S.ranking_metrics([-r["val_loss"] for r in with_loss], [r["true_rate"] for r in with_loss])
+    return out
+
+
+def decision_analysis(cfg: EvalConfig, rows: list[dict], tasks: dict, alignment: float) -> dict:
+    """The binomial model's curve per gap, beside resampling the world model's actual outcomes of the
+    policy pairs (same task) whose true gap is within 0.05 of it."""
+    eps = list(cfg.decision_episodes)
+    out = {"alignment": alignment, "episodes": eps, "model": {}, "resampled": {}, "pairs": {}}
+    for g in cfg.gaps:
+        out["model"][str(g)] = S.p_pick_better(min(max(alignment, 0.0), 1.0), g, eps).tolist()
+        curves = []
+        for task, res in tasks.items():
+            rates = res["true"].mean(1)
+            for a in range(len(rates)):
+                for b in range(len(rates)):
+                    if abs(rates[a] - rates[b] - g) <= 0.05 and len(curves) < 30:
+                        curves.append(S.resampled_pick_better(res["prob"][a] >= cfg.threshold,
+                                                              res["prob"][b] >= cfg.threshold, eps, draws=500,
+                                                              seed=len(curves)))
+        out["pairs"][str(g)] = len(curves)
+        out["resampled"][str(g)] = np.mean(curves, axis=0).tolist() if curves else None
+    return out
+
+
+# ---- the run -----------------------------------------------------------------------------------------
+
+def _versions() -> dict:
+    out = {}
+    for pkg in ("jax", "flax", "optax", "orbax-checkpoint", "mujoco", "mujoco-mjx", "numpy"):
+        try:
+            out[pkg] = importlib_metadata.version(pkg)
+        except importlib_metadata.PackageNotFoundError:
+            out[pkg] = "absent"
+    return out
+
+
+def run(cfg: EvalConfig, out: Path, progress: bool = True) -> dict:
+    """Evaluates (or completes the evaluation of) cfg into out; returns the results."""
+    cfg.validate()
+    out = Path(out)
+    (out / "tasks").mkdir(parents=True, exist_ok=True)
+    _check_config(cfg, out)
+    sources = resolve(cfg.policies)
+    tasks = list(cfg.tasks) or sorted({s.task for s in sources if s.task})
+    if not tasks:
+        raise ValueError("no task to evaluate: the policies are all plug-ins; name tasks=...")
+    wm = load_trained(Path(cfg.wm))
+    wm_cfg, _, _ = wm
+    wm_data = json.loads((Path(cfg.wm) / "config.json").read_text())["data"]
+    wm_tasks = TrainingCache(wm_data).tasks if (Path(wm_data) / "cache" / "index.json").exists() else tasks
+    unseen = [t for t in tasks if t not in wm_tasks]
+    if unseen:
+        print(f"warning: the world model never saw tasks {unseen} in training", file=sys.stderr)
+    zoo_data = {s.record.get("data") for s in sources} - {None}
+    used = used_seeds(wm_data, *zoo_data)
+    engine = cfg.engine or default_engine()
+    results, by_name = {}, {s.name: s for s in sources}
+    for task in tasks:
+        path = out / "tasks" / f"{task}.npz"
+        task_sources = [s for s in sources if s.runs_on(task)]
+        if path.exists():
+            results[task] = _load_task(path)
+            continue
+        seeds = heldout_seeds(task, cfg.episodes, cfg.seed, used)
+        res = evaluate_task(cfg, task, task_sources, wm, seeds, engine, progress)
+        res["seeds"] = seeds
+        _save_task(path, res)
+        results[task] = _load_task(path)
+    rows = [r for task in tasks for r in policy_rows(cfg, task, results[task], by_name)]
+    overall_true = np.concatenate([results[t]["true"] for t in tasks])
+    overall_prob = np.concatenate([results[t]["prob"] for t in tasks])
+    metrics = {"overall": ranking_block(rows, overall_true, overall_prob, cfg.threshold), "per_task": {}}
+    for t in tasks:
+        metrics["per_task"][t] = ranking_block([r for r in rows if r["task"] == t], results[t]["true"],
+                                               results[t]["prob"], cfg.threshold)
+    panel = program_panel(wm_cfg, wm[1], wm[2], TrainingCache(wm_data), horizon=48) \
+        if (Path(wm_data) / "cache" / "index.json").exists() else {}
+    videos = {k: v for t in tasks for k, v in results[t]["videos"].items()}
+    videos.update({f"controllability/{p}/{kind}": v[kind] for p, v in panel.items() for kind in ("real", "imagined")})
+    tmp = out / "videos.tmp.npz"
+    np.savez_compressed(tmp, **videos)
+    tmp.replace(out / "videos.npz")
+    report = {
+        "config": json.loads(json.dumps(dataclasses.asdict(cfg))), "engine": engine, "device": device_name(),
+        "versions": _versions(), "world_model": {"run": cfg.wm, "data": wm_data, "train_tasks": wm_tasks},
+        "tasks": tasks, "policies": rows, "metrics": metrics,
+        "decision": decision_analysis(cfg, rows, results, metrics["overall"]["alignment"]),
+        "videos": [v for t in tasks for v in results[t]["video_index"]],
+        "controllability": sorted(panel),
+        "timing": {t: {"simulate_s": results[t]["sim_s"], "imagine_s": results[t]["wm_s"],
+                       "episodes": int(results[t]["true"].size), "steps": results[t]["steps"]} for t in tasks},
+    }
+    write_json_atomic(out / "results.json", _no_nan(report))
+    return report
+
+
+def _save_task(path: Path, res: dict) -> None:
+    meta = {"names": res["names"], "video_index": res["video_index"], "sim_s": res["sim_s"], "wm_s": res["wm_s"],
+            "steps": res["steps"], "seeds": res["seeds"]}
+    arrays = {"true": res["true"], "prob": res["prob"], "meta": np.frombuffer(json.dumps(meta).encode(), np.uint8)}
+    arrays.update({f"video:{k}": v for k, v in res["videos"].items()})
+    tmp = path.with_name(path.stem + ".tmp.npz")
+    np.savez_compressed(tmp, **arrays)
+    tmp.replace(path)
+
+
+def _load_task(path: Path) -> dict:
+    with np.load(path) as z:
+        meta = json.loads(z["meta"].tobytes().decode())
+        videos = {k[len("video:"):]: z[k] for k in z.files if k.startswith("video:")}
+        return {**meta, "true": z["true"].astype(bool), "prob": z["prob"], "videos": videos}
+
+
+def _no_nan(x):
+    if isinstance(x, dict):
+        return {k: _no_nan(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_no_nan(v) for v in x]
+    if isinstance(x, float | np.floating):
+        return float(x) if np.isfinite(x) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    return x
+
+
+def _check_config(cfg: EvalConfig, out: Path) -> None:
+    mine = json.loads(json.dumps(dataclasses.asdict(cfg)))
+    path = out / "config.json"
+    if path.exists():
+        if json.loads(path.read_text()) != mine:
+            raise ValueError(f"{out} holds an evaluation of another configuration; use another OUT")
+    else:
+        write_json_atomic(path, mine)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--config", default="demo", help=f"preset: {', '.join(PRESETS)}")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("overrides", nargs="*", help="key=value overrides (e.g. episodes=50 policies=DIR,mod:attr)")
+    a = p.parse_args(argv)
+    try:
+        cfg = make_config(a.config, a.overrides)
+    except ValueError as e:
+        p.error(str(e))
+    t0 = time.perf_counter()
+    res = run(cfg, a.out)
+    m = res["metrics"]["overall"]
+    print(json.dumps({k: m[k] for k in ("pearson", "spearman", "mmrv", "pairwise_acc_gap10", "alignment")}, indent=1))
+    print(f"{len(res['policies'])} policies in {time.perf_counter() - t0:.0f} s; results {a.out / 'results.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

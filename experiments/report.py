@@ -1,0 +1,333 @@
+"""The evaluation report: one self-contained HTML file (figures and videos inlined) and a Markdown
+summary, from an evaluation directory (experiments.evaluate).
+
+    python -m experiments.report RUN          # writes RUN/report.html and RUN/report.md
+    make report RUN=runs/eval/demo
+"""
+
+from __future__ import annotations
+
+import argparse
+import base64
+import html
+import io
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+TARGETS = {"pearson": (">=", 0.95), "mmrv": ("<=", 0.03), "spearman": (">=", 0.9), "alignment": (">=", 0.85),
+           "pairwise_acc_gap10": (">=", 0.95)}
+HEADLINE = ("pearson", "spearman", "kendall", "mmrv", "pairwise_acc", "pairwise_acc_gap10", "alignment")
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _png(fig) -> str:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    _plt().close(fig)
+    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode()
+
+
+def _fmt(x, digits=3) -> str:
+    if x is None or (isinstance(x, float) and math.isnan(x)):
+        return "n/a"
+    return f"{x:.{digits}f}" if isinstance(x, float) else str(x)
+
+
+# ---- figures -----------------------------------------------------------------------------------------
+
+def scatter_figure(policies: list[dict], metrics: dict, tasks: list[str]) -> str:
+    """Predicted vs true success per policy with 95% intervals, one panel per task and one overall."""
+    plt = _plt()
+    panels = [("all tasks", policies, metrics["overall"])] + [
+        (t, [p for p in policies if p["task"] == t], metrics["per_task"][t]) for t in tasks]
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 4.2), squeeze=False)
+    lineages = sorted({p["lineage"] for p in policies})
+    colors = {lin: plt.cm.tab10(i % 10) for i, lin in enumerate(lineages)}
+    markers = dict(zip(tasks, "osD^vP*X", strict=False))
+    for ax, (title, rows, m) in zip(axes[0], panels, strict=True):
+        rows = [p for p in rows if p["pred_rate"] is not None]
+        for p in rows:
+            x, y = p["true_rate"], p["pred_rate"]
+            xe = [[x - p["true_ci"][0]], [p["true_ci"][1] - x]]
+            ye = [[y - p["pred_ci"][0]], [p["pred_ci"][1] - y]] if None not in p["pred_ci"] else None
+            ax.errorbar(x, y, xerr=xe, yerr=ye, fmt=markers.get(p["task"], "o"), color=colors[p["lineage"]],
+                        ms=5, alpha=0.8, elinewidth=0.7, capsize=0)
+        ax.plot([0, 1], [0, 1], ls="--", color="grey", lw=0.8)
+        xs, ys = np.array([p["true_rate"] for p in rows]), np.array([p["pred_rate"] for p in rows])
+        if len(rows) > 1 and xs.std() > 0:
+            a, b = np.polyfit(xs, ys, 1)
+            ax.plot([0, 1], [b, a + b], color="black", lw=1)
+        ax.set_xlim(-0.03, 1.03)
+        ax.set_ylim(-0.03, 1.03)
+        ax.set_xlabel("true success (simulator)")
+        ax.set_ylabel("predicted success (world model)")
+        ax.set_title(f"{title}: r={_fmt(m.get('pearson'), 2)}, MMRV={_fmt(m.get('mmrv'), 3)}", fontsize=10)
+    handles = [plt.Line2D([], [], color=colors[lin], marker="o", ls="", label=lin) for lin in lineages]
+    handles += [plt.Line2D([], [], color="grey", marker=markers[t], ls="", label=t) for t in tasks if t in markers]
+    axes[0][-1].legend(handles=handles, fontsize=7, loc="lower right")
+    return _png(fig)
+
+
+def baseline_figure(policies: list[dict], tasks: list[str]) -> str | None:
+    """True success against validation imitation loss (the baseline predictor), per task."""
+    rows = [p for p in policies if p["val_loss"] is not None]
+    if not rows:
+        return None
+    plt = _plt()
+    fig, axes = plt.subplots(1, len(tasks), figsize=(4.2 * len(tasks), 3.6), squeeze=False)
+    for ax, t in zip(axes[0], tasks, strict=True):
+        rs = [p for p in rows if p["task"] == t]
+        ax.scatter([p["val_loss"] for p in rs], [p["true_rate"] for p in rs], s=14)
+        ax.set_xscale("log")
+        ax.set_xlabel("validation imitation loss")
+        ax.set_ylabel("true success")
+        ax.set_title(f"{t}: the imitation-loss baseline", fontsize=10)
+    return _png(fig)
+
+
+def rank_figure(policies: list[dict], tasks: list[str]) -> str:
+    """True rank against predicted rank per task (a perfect ranking lies on the diagonal)."""
+    from experiments.stats import rank
+
+    plt = _plt()
+    fig, axes = plt.subplots(1, len(tasks), figsize=(4.2 * len(tasks), 4), squeeze=False)
+    for ax, t in zip(axes[0], tasks, strict=True):
+        rs = [p for p in policies if p["task"] == t]
+        rs = [p for p in rs if p["pred_rate"] is not None]
+        tr, pr = rank([p["true_rate"] for p in rs]), rank([p["pred_rate"] for p in rs])
+        ax.scatter(tr, pr, s=14)
+        ax.plot([1, len(rs)], [1, len(rs)], ls="--", color="grey", lw=0.8)
+        ax.set_xlabel("true rank (1 = worst)")
+        ax.set_ylabel("world model's rank")
+        ax.set_title(f"{t}: ranks", fontsize=10)
+    return _png(fig)
+
+
+def decision_figure(decision: dict) -> str:
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(5.5, 3.8))
+    eps = decision["episodes"]
+    for i, (g, curve) in enumerate(decision["model"].items()):
+        c = plt.cm.tab10(i)
+        ax.plot(eps, curve, color=c, label=f"binomial model, gap {float(g):.0%}")
+        res = decision["resampled"].get(g)
+        if res:
+            ax.plot(eps, res, "o", color=c, ms=5, label=f"resampled ({decision['pairs'][g]} pairs), gap {float(g):.0%}")
+    ax.set_xscale("log")
+    ax.set_ylim(0.45, 1.01)
+    ax.set_xlabel("episodes per policy in the world model")
+    ax.set_ylabel("P(pick the truly better policy)")
+    ax.set_title(f"decision analysis at alignment {decision['alignment']:.2f}", fontsize=10)
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3)
+    return _png(fig)
+
+
+def animation(real: np.ndarray, imagined: np.ndarray, every: int = 2) -> str:
+    """An animated WebP (data URI; a sixth of a GIF's size): real | imagined side by side, every
+    `every`-th frame at the control rate's pace."""
+    from PIL import Image
+
+    n = min(len(real), len(imagined))
+    gap = np.full((real.shape[1], 2, 3), 255, np.uint8)
+    frames = [Image.fromarray(np.concatenate([real[t], gap, imagined[t]], axis=1)) for t in range(0, n, every)]
+    buf = io.BytesIO()
+    frames[0].save(buf, format="WEBP", save_all=True, append_images=frames[1:], duration=50 * every, loop=0,
+                   quality=80, method=4)
+    return "data:image/webp;base64," + base64.b64encode(buf.getvalue()).decode()
+
+
+def strip_figure(panel: dict, times=(0, 8, 16, 24, 32, 48)) -> str:
+    """The controllability panel: one start, each program; rows real and imagined at several times."""
+    plt = _plt()
+    progs = sorted(panel)
+    times = [t for t in times if t < len(panel[progs[0]]["real"])]
+    fig, axes = plt.subplots(2 * len(progs), len(times), figsize=(1.3 * len(times), 1.35 * 2 * len(progs)),
+                             squeeze=False)
+    for r, p in enumerate(progs):
+        for k, kind in enumerate(("real", "imagined")):
+            for c, t in enumerate(times):
+                ax = axes[2 * r + k, c]
+                ax.imshow(panel[p][kind][t])
+                ax.set_xticks([])
+                ax.set_yticks([])
+                if c == 0:
+                    ax.set_ylabel(f"{p}\n{kind}", fontsize=6)
+                if r == 0 and k == 0:
+                    ax.set_title(f"t={t}", fontsize=7)
+    fig.tight_layout()
+    return _png(fig)
+
+
+# ---- verdicts ------------------------------------------------------------------------------------------
+
+def verdicts(policies: list[dict], tasks: list[str]) -> list[dict]:
+    """The proprioception ablation and the encoder A/B: the final checkpoints of two lineages, which
+    one the world model prefers and which one is truly better."""
+    pairs = [("proprioception", "conv_proprio", "conv_noproprio"), ("encoder", "conv_proprio", "vit_proprio")]
+    out = []
+    for t in tasks:
+        final = {}
+        for p in policies:
+            if p["task"] == t and p["step"] is not None and p["step"] >= final.get(p["lineage"], {}).get("step", -1):
+                final[p["lineage"]] = p
+        for what, a, b in pairs:
+            if a not in final or b not in final:
+                continue
+            pa, pb = final[a], final[b]
+            if pa["pred_rate"] is None or pb["pred_rate"] is None:
+                pred = "n/a (a prediction is undefined)"
+            else:
+                pred = a if pa["pred_rate"] > pb["pred_rate"] else b if pb["pred_rate"] > pa["pred_rate"] else "tie"
+            true = a if pa["true_rate"] > pb["true_rate"] else b if pb["true_rate"] > pa["true_rate"] else "tie"
+            overlap = pa["true_ci"][0] <= pb["true_ci"][1] and pb["true_ci"][0] <= pa["true_ci"][1]
+            out.append({"task": t, "comparison": what, "a": pa["name"], "b": pb["name"], "true": [pa["true_rate"],
+                        pb["true_rate"]], "pred": [pa["pred_rate"], pb["pred_rate"]], "world_model_prefers": pred,
+                        "truly_better": true, "agree": pred == true, "true_intervals_overlap": overlap})
+    return out
+
+
+# ---- the documents ------------------------------------------------------------------------------------
+
+def _metrics_table(metrics: dict) -> list[list[str]]:
+    rows = [["statistic", "world model", "imitation-loss baseline", "target (full preset)"]]
+    base = metrics.get("baseline", {})
+    for k in HEADLINE:
+        tgt = TARGETS.get(k)
+        val = _fmt(metrics.get(k))
+        if k == "pearson":
+            ci, bs = metrics.get("pearson_ci", [None, None]), metrics.get("pearson_ci_bootstrap", [None, None])
+            val += f" (Fisher {_fmt(ci[0], 2)}..{_fmt(ci[1], 2)}; bootstrap {_fmt(bs[0], 2)}..{_fmt(bs[1], 2)})"
+        rows.append([k, val, _fmt(base.get(k)) if k != "alignment" else "-",
+                     f"{tgt[0]} {tgt[1]}" if tgt else "-"])
+    return rows
+
+
+def _policy_table(rows: list[dict]) -> list[list[str]]:
+    out = [["policy", "lineage", "step", "true (95% CI)", "predicted (95% CI)", "thresholded", "alignment",
+            "val loss"]]
+    for p in sorted(rows, key=lambda r: (r["lineage"], r["step"] or 0)):
+        out.append([p["name"], p["lineage"], _fmt(p["step"]),
+                    f"{p['true_rate']:.2f} ({p['true_ci'][0]:.2f}-{p['true_ci'][1]:.2f})",
+                    f"{_fmt(p['pred_rate'], 2)} ({_fmt(p['pred_ci'][0], 2)}-{_fmt(p['pred_ci'][1], 2)})",
+                    _fmt(p["pred_rate_thresholded"], 2), _fmt(p["alignment"], 2), _fmt(p["val_loss"])])
+    return out
+
+
+def _html_table(rows) -> str:
+    head = "".join(f"<th>{html.escape(c)}</th>" for c in rows[0])
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>" for r in rows[1:])
+    return f"<table><tr>{head}</tr>{body}</table>"
+
+
+def _md_table(rows) -> str:
+    lines = ["| " + " | ".join(rows[0]) + " |", "|" + "---|" * len(rows[0])]
+    lines += ["| " + " | ".join(r) + " |" for r in rows[1:]]
+    return "\n".join(lines)
+
+
+CSS = """body{font-family:system-ui,sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;color:#222}
+table{border-collapse:collapse;font-size:13px;margin:0.5em 0 1.5em}td,th{border:1px solid #ccc;padding:3px 7px}
+th{background:#f3f3f3}img{max-width:100%}img.anim{width:300px;image-rendering:pixelated}.vid{display:inline-block;margin:6px;text-align:center;font-size:12px}
+.ok{color:#070}.bad{color:#b00}code{background:#f3f3f3;padding:1px 4px}"""
+
+
+def build(run: Path) -> tuple[str, str]:
+    """(HTML, Markdown) of the evaluation in run."""
+    res = json.loads((run / "results.json").read_text())
+    tasks, policies, metrics = res["tasks"], res["policies"], res["metrics"]
+    with np.load(run / "videos.npz") as z:
+        videos = {k: z[k] for k in z.files}
+    verd = verdicts(policies, tasks)
+    h = [f"<html><head><meta charset='utf-8'><title>World-model policy evaluation</title><style>{CSS}</style>"
+         "</head><body>", "<h1>Policy evaluation in the world model against the simulator</h1>",
+         f"<p>{len(policies)} policies on {', '.join(tasks)}; {res['config']['episodes']} held-out initial states "
+         f"per task; world model <code>{html.escape(res['world_model']['run'])}</code>; engine {res['engine']}; "
+         f"device {html.escape(str(res['device']))}.</p>",
+         "<h2>Headline statistics (all policies)</h2>", _html_table(_metrics_table(metrics["overall"])),
+         "<h2>Predicted against true success</h2>", f"<img src='{scatter_figure(policies, metrics, tasks)}'>",
+         "<h2>Rank comparison</h2>", f"<img src='{rank_figure(policies, tasks)}'>"]
+    base = baseline_figure(policies, tasks)
+    if base:
+        h += ["<h2>The imitation-loss baseline</h2>", f"<img src='{base}'>"]
+    h += ["<h2>Ablation and A/B verdicts</h2>"]
+    if verd:
+        vrows = [["task", "comparison", "A", "B", "true A/B", "predicted A/B", "world model prefers", "truly better",
+                  "agree"]]
+        vrows += [[v["task"], v["comparison"], v["a"], v["b"], f"{v['true'][0]:.2f} / {v['true'][1]:.2f}",
+                   f"{_fmt(v['pred'][0], 2)} / {_fmt(v['pred'][1], 2)}", v["world_model_prefers"], v["truly_better"],
+                   ("yes" if v["agree"] else "no") + (" (true intervals overlap)" if v["true_intervals_overlap"] else "")]
+                  for v in verd]
+        h.append(_html_table(vrows))
+    else:
+        h.append("<p>The evaluated policies hold no conv_proprio / conv_noproprio / vit_proprio lineages.</p>")
+    h += ["<h2>Decision analysis</h2>", f"<img src='{decision_figure(res['decision'])}'>"]
+    for t in tasks:
+        h += [f"<h2>Task {html.escape(t)}</h2>", _html_table(_metrics_table(metrics["per_task"][t])),
+              _html_table(_policy_table([p for p in policies if p["task"] == t]))]
+    h.append("<h2>Real (left) and imagined (right) episodes</h2>")
+    for v in res["videos"]:
+        key = v["key"]
+        if key + "/real" not in videos:
+            continue
+        label = (f"{v['policy']} ep {v['episode']}: truly {'success' if v['true_success'] else 'failure'}, "
+                 f"predicted {_fmt(v['pred_prob'], 2)}")
+        h.append(f"<div class='vid'><img class='anim' src='{animation(videos[key + '/real'], videos[key + '/imagined'])}'><br>"
+                 f"{html.escape(label)}</div>")
+    panel = {k.split("/")[1]: None for k in videos if k.startswith("controllability/")}
+    if panel:
+        panel = {p: {kind: videos[f"controllability/{p}/{kind}"] for kind in ("real", "imagined")} for p in panel}
+        h += ["<h2>Controllability: one start, four action programs</h2>", f"<img src='{strip_figure(panel)}'>"]
+        for p, v in sorted(panel.items()):
+            h.append(f"<div class='vid'><img class='anim' src='{animation(v['real'], v['imagined'])}'><br>{html.escape(p)}</div>")
+    h += ["<h2>Configuration and versions</h2>", f"<pre>{html.escape(json.dumps(res['config'], indent=1))}</pre>",
+          f"<pre>{html.escape(json.dumps(res['versions'], indent=1))}</pre>",
+          f"<pre>{html.escape(json.dumps(res['timing'], indent=1))}</pre>", "</body></html>"]
+    md = [f"# Policy evaluation: {len(policies)} policies on {', '.join(tasks)}", "",
+          f"World model `{res['world_model']['run']}`, {res['config']['episodes']} held-out initial states per task, "
+          f"engine {res['engine']}, device {res['device']}. Full report: `report.html`.", "",
+          "## All policies", "", _md_table(_metrics_table(metrics["overall"])), ""]
+    for t in tasks:
+        md += [f"## {t}", "", _md_table(_metrics_table(metrics["per_task"][t])), "",
+               _md_table(_policy_table([p for p in policies if p["task"] == t])), ""]
+    if verd:
+        md += ["## Verdicts", ""] + [
+            f"- {v['task']}, {v['comparison']}: the world model prefers {v['world_model_prefers']}, truly better is "
+            f"{v['truly_better']} ({'agree' if v['agree'] else 'disagree'})" for v in verd] + [""]
+    return "\n".join(h), "\n".join(md)
+
+
+def write_report(run: Path) -> Path:
+    run = Path(run)
+    if not (run / "results.json").exists():
+        raise FileNotFoundError(f"{run}/results.json is missing: run make eval first")
+    page, md = build(run)
+    for name, text in (("report.html", page), ("report.md", md)):
+        tmp = run / (name + ".tmp")
+        tmp.write_text(text)
+        tmp.replace(run / name)
+    return run / "report.html"
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("run", type=Path, help="an evaluation directory (make eval OUT)")
+    a = p.parse_args(argv)
+    print(write_report(a.run).absolute())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

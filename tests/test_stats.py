@@ -1,0 +1,83 @@
+"""experiments.stats against values worked out by hand (and scipy where it has the same statistic)."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy import stats as sps
+
+from experiments import stats as S
+
+
+def test_pearson_and_fisher_interval_by_hand():
+    # deviations (-2,-1,0,1,2) and (-2,0,1,0,1): sum of products 6, squares 10 and 6
+    r, (lo, hi) = S.pearson([1, 2, 3, 4, 5], [2, 4, 5, 4, 5])
+    assert r == pytest.approx(6 / math.sqrt(60))
+    # tanh(atanh(r) -/+ 1.96 / sqrt(5 - 3))
+    assert (lo, hi) == pytest.approx((-0.34008203518751035, 0.9842357551507267))
+    assert math.isnan(S.pearson([1, 1, 1], [0, 1, 2])[0])
+    with pytest.raises(ValueError, match="1-D"):
+        S.pearson([1, 2], [1, 2, 3])
+
+
+def test_spearman_and_kendall_with_ties_by_hand():
+    pred, true = [1, 2, 2, 3], [1, 3, 2, 4]
+    # ranks (1, 2.5, 2.5, 4) and (1, 3, 2, 4): products 4.5, squares 4.5 and 5
+    assert S.spearman(pred, true) == pytest.approx(4.5 / math.sqrt(22.5))
+    # 5 concordant pairs, 1 tied in prediction, none discordant: tau-b = 5 / sqrt(5 * 6)
+    assert S.kendall(pred, true) == pytest.approx(5 / math.sqrt(30))
+    assert S.spearman(pred, true) == pytest.approx(sps.spearmanr(pred, true).statistic)
+    assert S.kendall(pred, true) == pytest.approx(sps.kendalltau(pred, true).statistic)
+
+
+def test_mmrv_weights_violations_by_true_gap_and_counts_predicted_ties():
+    # only the pair (0, 1) is misordered; its true gap 0.4 is the max for policies 0 and 1
+    assert S.mmrv([0.3, 0.6, 0.1], [0.9, 0.5, 0.2]) == pytest.approx((0.4 + 0.4 + 0.0) / 3)
+    assert S.mmrv([0.1, 0.5, 0.9], [0.2, 0.5, 0.8]) == 0.0
+    # a predicted tie is a violation from the truly worse policy's side
+    assert S.mmrv([0.5, 0.5], [0.2, 0.6]) == pytest.approx(0.4 / 2)
+    # a true tie weighs nothing whatever the prediction
+    assert S.mmrv([0.9, 0.1], [0.5, 0.5]) == 0.0
+
+
+def test_pairwise_accuracy_all_pairs_and_gap_filter():
+    pred, true = [0.3, 0.6, 0.1], [0.9, 0.5, 0.2]
+    assert S.pairwise_accuracy(pred, true) == pytest.approx(2 / 3)
+    assert S.pairwise_accuracy(pred, true, min_gap=0.35) == pytest.approx(1 / 2)  # pairs (0,1), (0,2)
+    assert S.pairwise_accuracy([0.5, 0.5, 0.1], true) == pytest.approx(2.5 / 3)  # a predicted tie: one half
+    assert math.isnan(S.pairwise_accuracy([0.1, 0.2], [0.5, 0.5]))
+
+
+def test_alignment_and_ranking_metrics_bundle():
+    assert S.alignment([[1, 0, 1, 1]], [[1, 1, 1, 0]]) == 0.5
+    with pytest.raises(ValueError, match="shape"):
+        S.alignment([1, 0], [1, 0, 1])
+    m = S.ranking_metrics([0.1, 0.5, 0.9], [0.2, 0.5, 0.8])
+    assert m["pearson"] == pytest.approx(1.0) and m["spearman"] == pytest.approx(1.0) and m["mmrv"] == 0.0
+    assert m["pairwise_acc"] == 1.0 and m["pairwise_acc_gap10"] == 1.0 and m["n_policies"] == 3
+
+
+def test_bootstrap_interval_over_initial_states():
+    rng = np.random.default_rng(0)
+    true = (rng.random((6, 40)) < np.linspace(0.1, 0.9, 6)[:, None]).astype(float)
+    lo, hi = S.bootstrap_pearson(true, true, draws=300)
+    assert lo == pytest.approx(1.0) and hi == pytest.approx(1.0)  # a perfect predictor stays perfect
+    noisy = np.where(rng.random(true.shape) < 0.3, 1 - true, true)
+    lo, hi = S.bootstrap_pearson(noisy, true, draws=300)
+    r = S.pearson(noisy.mean(1), true.mean(1))[0]
+    assert -1 <= lo < r < hi <= 1
+
+
+def test_decision_analysis_by_hand_and_against_resampling():
+    # a = 1, rates 0.6 and 0.4, one episode each: P(A > B) = 0.6 * 0.6, P(tie) = 0.6 * 0.4 + 0.4 * 0.6
+    assert S.p_pick_better(1.0, 0.2, 1)[0] == pytest.approx(0.36 + 0.5 * 0.48)
+    # a = 0.5: the world model's outcomes are coin flips whatever the policy
+    assert S.p_pick_better(0.5, 0.4, [1, 10, 100]) == pytest.approx([0.5, 0.5, 0.5])
+    curve = S.p_pick_better(0.9, 0.1, [5, 20, 80, 320])
+    assert np.all(np.diff(curve) > 0) and curve[-1] > 0.95
+    # resampling outcomes with exactly these rates agrees with the binomial model
+    better, worse = np.r_[np.ones(60), np.zeros(40)], np.r_[np.ones(40), np.zeros(60)]
+    got = S.resampled_pick_better(better, worse, [1, 10], draws=20000)
+    assert got == pytest.approx(S.p_pick_better(1.0, 0.2, [1, 10]), abs=0.015)
+    with pytest.raises(ValueError, match="base"):
+        S.p_pick_better(0.9, 0.5, 10, base=0.7)
