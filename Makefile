@@ -6,12 +6,11 @@ STAMP := $(VENV)/.installed
 export MUJOCO_GL ?= egl
 # XLA:CPU's multi-threaded Eigen pool can wedge on large vmapped MJX graphs (idle, never returns)
 export XLA_FLAGS ?= --xla_cpu_multi_thread_eigen=false
-OUT ?= runs/demo
-EPISODES ?= 10
+
 
 CONFIG ?= demo
 
-.PHONY: setup demo test test-slow bench success-table data render-check train clean
+.PHONY: setup demo full test test-slow bench success-table data render-check train policies eval report clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -21,9 +20,14 @@ $(STAMP): pyproject.toml
 
 setup: $(STAMP)
 
-# Until the full demo chain exists: the scripted-policy success table, small and on the CPU.
+# The whole chain at small scale on the CPU (data, policies, world model, evaluation, report); ends with the report's path.
 demo: setup
-	$(PY) -m sim_data.success_table --backend cpu --episodes $(EPISODES) --skills 0.2,0.6,1.0 --out $(OUT)/success_table.json
+	$(PY) -m experiments.pipeline demo
+
+# The GPU preset in stages that each fit one 10-minute command and resume: make full STAGE=data|policies|train|eval|report
+STAGE ?= all
+full: setup
+	$(PY) -m experiments.pipeline full --stage $(STAGE)
 
 success-table: setup
 	$(PY) -m sim_data.success_table --episodes 100 --skills 0.2,0.6,1.0 --out runs/success_table.json
@@ -34,6 +38,18 @@ data: setup
 # make train CONFIG=demo DATA=runs/data/demo OUT=runs/wm/demo
 train: setup
 	$(PY) -m wm.train --config $(CONFIG) --data $(or $(DATA),runs/data/$(CONFIG)) --out $(if $(filter command line,$(origin OUT)),$(OUT),runs/wm/$(CONFIG))
+
+# make policies CONFIG=demo DATA=runs/data/demo OUT=runs/policies/demo
+policies: setup
+	$(PY) -m sim_data.zoo --config $(CONFIG) --data $(or $(DATA),runs/data/$(CONFIG)) --out $(if $(filter command line,$(origin OUT)),$(OUT),runs/policies/$(CONFIG))
+
+# make eval CONFIG=demo OUT=runs/eval/demo [ARGS="policies=runs/policies/demo,examples.plugin_policy:make wm=runs/wm/demo"]
+eval: setup
+	$(PY) -m experiments.evaluate --config $(CONFIG) --out $(if $(filter command line,$(origin OUT)),$(OUT),runs/eval/$(CONFIG)) $(ARGS)
+
+# make report RUN=runs/eval/demo
+report: setup
+	$(PY) -m experiments.report $(or $(RUN),runs/eval/$(CONFIG))
 
 render-check: setup
 	$(PY) -m sim_data.render_check --states 50 --out runs/render_check.json
@@ -51,4 +67,4 @@ bench: setup
 	$(PY) -m wm.bench --out runs/bench/wm_$$(hostname).json
 
 clean:
-	rm -rf runs/demo .pytest_cache
+	rm -rf runs/data/demo runs/policies/demo runs/wm/demo runs/eval/demo .pytest_cache
