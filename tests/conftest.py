@@ -48,3 +48,24 @@ def smoke_dataset(tmp_path_factory):
     out = tmp_path_factory.mktemp("smoke")
     cfg = G.make_config("smoke")
     return cfg, out, G.generate(cfg, out, progress=False)
+
+
+@pytest.fixture(scope="session")
+def smoke_world_model(smoke_dataset, tmp_path_factory):
+    """Directory of `make train CONFIG=smoke` on the smoke dataset (best/, norm.json, eval.json)."""
+    from wm.train import main
+
+    _, data, _ = smoke_dataset
+    out = tmp_path_factory.mktemp("wm") / "train"
+    assert main(["--config", "smoke", "--data", str(data), "--out", str(out)]) == 0
+    return out
+
+
+@pytest.fixture(scope="session")
+def smoke_zoo(smoke_dataset, tmp_path_factory):
+    """(directory, registry) of `make policies CONFIG=smoke` on the smoke dataset."""
+    from sim_data import zoo
+
+    _, data, _ = smoke_dataset
+    out = tmp_path_factory.mktemp("zoo") / "policies"
+    return out, zoo.train_zoo(zoo.make_config("smoke"), data, out, progress=False)

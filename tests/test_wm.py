@@ -14,7 +14,7 @@ from wm import imagine as I
 from wm import metrics as M
 from wm.config import SMOKE_MODEL, make_config, override
 from wm.model import WorldModel, init_params
-from wm.train import Run, TrainingDiverged, main
+from wm.train import Run, TrainingDiverged
 
 CFG = SMOKE_MODEL
 
@@ -164,10 +164,8 @@ def test_bad_settings_are_refused():
     assert override(make_config("smoke"), ["model.dim=48"]).model.dim == 48
 
 
-def test_make_train_smoke_writes_eval_json(smoke_dataset, tmp_path):
-    _, data, _ = smoke_dataset
-    out = tmp_path / "train"
-    assert main(["--config", "smoke", "--data", str(data), "--out", str(out)]) == 0
+def test_make_train_smoke_writes_eval_json(smoke_world_model):
+    out = smoke_world_model
     report = json.loads((out / "eval.json").read_text())
     fq = report["frame_quality"]
     assert fq["horizons"] == [1, 4] and len(fq["psnr"]) == 2 and len(fq["copy_last_psnr"]) == 2

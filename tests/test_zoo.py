@@ -1,0 +1,102 @@
+"""The policy zoo, the plug-in point and policy rollouts in the data generator."""
+
+import json
+import shutil
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from sim_data import generate as G
+from sim_data import zoo
+from sim_data.env import HomeEnv
+from sim_data.learned import StackedPolicy, stack_params
+from sim_data.rollout import run_episodes
+from sim_data.sources import resolve
+
+
+def test_zoo_registry_checkpoints_and_resume(smoke_zoo, smoke_dataset):
+    out, registry = smoke_zoo
+    cfg = zoo.make_config("smoke")
+    assert len(registry) == len(cfg.lineages) * len(cfg.checkpoint_steps())
+    assert {r["lineage"] for r in registry} == {"conv_proprio", "conv_noproprio", "vit_proprio"}
+    for r in registry:
+        assert np.isfinite(r["val_loss"]) and (out / r["checkpoint"]).exists()
+    assert {r["variant"]["proprio"] for r in registry} == {True, False}
+    # a rerun finds every lineage complete and trains nothing
+    stamp = {p: p.stat().st_mtime_ns for p in out.rglob("*.msgpack")}
+    again = zoo.train_zoo(cfg, smoke_dataset[1], out, progress=False)
+    assert [r["name"] for r in again] == [r["name"] for r in registry]
+    assert stamp == {p: p.stat().st_mtime_ns for p in out.rglob("*.msgpack")}
+    with pytest.raises(ValueError, match="another configuration"):
+        zoo.train_zoo(zoo.make_config("smoke", ["steps=6"]), smoke_dataset[1], out, progress=False)
+
+
+def test_learned_policies_follow_the_protocol_and_stack(smoke_zoo):
+    out, _ = smoke_zoo
+    sources = resolve([f"{out}#conv_proprio+conv_noproprio"])
+    assert len(sources) == 4 and all(s.kind == "learned" and s.task == "mug" for s in sources)
+    rng = np.random.default_rng(0)
+    obs = {"image": jnp.asarray(rng.integers(0, 255, (6, 64, 64, 3), dtype=np.uint8)),
+           "proprio": jnp.asarray(rng.normal(size=(6, 37)), jnp.float32)}
+    policy = sources[0].policy
+    singles = []
+    for s in sources[:2]:
+        carry = policy.init_carry(s.params, obs, None, jax.random.PRNGKey(0))
+        a, carry = policy.act(s.params, obs, carry, jax.random.PRNGKey(1))
+        assert a.shape == (6, 20) and np.isfinite(np.asarray(a)).all() and np.all(np.asarray(carry) == 1)
+        singles.append(np.asarray(a))
+    # two checkpoints stacked: episodes 0-2 use the first, 3-5 the second
+    stacked = StackedPolicy(policy)
+    params = stack_params([sources[0].params, sources[1].params])
+    carry = stacked.init_carry(params, obs, None, jax.random.PRNGKey(0))
+    a, _ = stacked.act(params, obs, carry, jax.random.PRNGKey(1))
+    np.testing.assert_allclose(np.asarray(a)[:3], singles[0][:3], atol=1e-5)
+    np.testing.assert_allclose(np.asarray(a)[3:], singles[1][3:], atol=1e-5)
+    # without proprioception the policy's actions ignore it
+    noprop = next(s for s in sources if s.record["lineage"] == "conv_noproprio")
+    c0 = policy.init_carry(noprop.params, obs, None, jax.random.PRNGKey(0))
+    a1, _ = policy.act(noprop.params, obs, c0, jax.random.PRNGKey(0))
+    a2, _ = policy.act(noprop.params, {**obs, "proprio": obs["proprio"] + 3.0}, c0, jax.random.PRNGKey(0))
+    np.testing.assert_array_equal(np.asarray(a1), np.asarray(a2))
+
+
+def test_readme_plugin_example_runs_in_the_simulator():
+    (source,) = resolve(["examples.plugin_policy:make"])
+    assert source.kind == "plugin" and source.runs_on("step_back") and source.runs_on("mug")
+    env = HomeEnv("step_back", 2, engine="cpu")
+    state, _ = run_episodes(env, source.policy, source.params, jax.random.PRNGKey(3))
+    assert np.asarray(state.success).all()  # it backs 0.6 m away, clear of the stool
+
+
+def test_bad_policy_specs_are_refused():
+    with pytest.raises(ValueError, match="cannot import"):
+        resolve(["no_such_package.policies:make"])
+    with pytest.raises(ValueError, match="no attribute"):
+        resolve(["examples.plugin_policy:missing"])
+    with pytest.raises(FileNotFoundError, match="make policies"):
+        resolve(["runs/no/such/zoo"])
+    with pytest.raises(ValueError, match="repeat"):
+        resolve(["examples.plugin_policy:make", "examples.plugin_policy:make"])
+
+
+def test_mixed_dataset_records_policy_rollouts(smoke_dataset, smoke_zoo, tmp_path):
+    cfg, data, _ = smoke_dataset
+    zoo_dir, registry = smoke_zoo
+    out = tmp_path / "mixed"
+    shutil.copytree(data, out)  # the scripted episodes exist; only the policies' rollouts are new
+    (out / "config.json").unlink()
+    last = max(r["step"] for r in registry if r["lineage"] == "conv_proprio")
+    mixed = G.make_config("smoke", [f"policies={zoo_dir}#mug/conv_proprio/{last},examples.plugin_policy:make",
+                                    "policy_episodes=1"])
+    G.generate(mixed, out, progress=False)
+    rows = [json.loads(line) for line in (out / "manifest.jsonl").read_text().splitlines()]
+    kinds = {r["policy_kind"] for r in rows}
+    assert kinds == {"scripted", "program", "learned", "plugin"}
+    learned = [r for r in rows if r["policy_kind"] == "learned"]
+    assert learned[0]["policy"] == f"learned:mug/conv_proprio/{last}"
+    scripted_seed = next(r["seed"] for r in rows if r["policy_kind"] == "scripted" and r["episode_id"].endswith("0"))
+    assert learned[0]["seed"] == scripted_seed  # the same initial state as scripted episode 0
+    meta = G.read_episode_meta(out / learned[0]["file"])
+    assert meta["policy_source"]["lineage"] == "conv_proprio"
