@@ -150,7 +150,7 @@ def test_resume_after_a_kill_matches_an_uninterrupted_run(smoke_dataset, tmp_pat
 def test_non_finite_loss_stops_without_a_checkpoint(smoke_dataset, tmp_path):
     _, data, _ = smoke_dataset
     run = Run(make_config("smoke"), data, tmp_path / "nan")
-    run.norm = dataclasses.replace(run.norm, proprio_std=jnp.zeros(37))  # division by zero
+    run.norm = dataclasses.replace(run.norm, proprio_mean=jnp.full(37, jnp.nan))  # NaN inputs
     with pytest.raises(TrainingDiverged, match="non-finite"):
         run.train(progress=False)
     assert run.latest.latest_step() is None
