@@ -27,7 +27,6 @@ import json
 import math
 import sys
 import time
-from importlib import metadata as importlib_metadata
 from pathlib import Path
 
 import jax
@@ -40,12 +39,12 @@ from sim_data.bench import device_name
 from sim_data.cache import TrainingCache
 from sim_data.config import override
 from sim_data.engines import ENGINES, default_engine
-from sim_data.generate import cached_env, cached_renderers
+from sim_data.generate import cached_env, cached_renderers, package_versions
 from sim_data.learned import StackedPolicy, stack_params
 from sim_data.rollout import record_episodes
 from sim_data.sources import resolve
 from sim_data.success_table import write_json_atomic
-from wm.evaluate import program_panel
+from wm.evaluate import no_nan, program_panel
 from wm.imagine import closed_loop
 from wm.train import load_trained
 
@@ -285,16 +284,6 @@ def decision_analysis(cfg: EvalConfig, rows: list[dict], tasks: dict, alignment:
 
 # ---- the run -----------------------------------------------------------------------------------------
 
-def _versions() -> dict:
-    out = {}
-    for pkg in ("jax", "flax", "optax", "orbax-checkpoint", "mujoco", "mujoco-mjx", "numpy"):
-        try:
-            out[pkg] = importlib_metadata.version(pkg)
-        except importlib_metadata.PackageNotFoundError:
-            out[pkg] = "absent"
-    return out
-
-
 def run(cfg: EvalConfig, out: Path, progress: bool = True) -> dict:
     """Evaluates (or completes the evaluation of) cfg into out; returns the results."""
     cfg.validate()
@@ -308,7 +297,8 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True) -> dict:
     wm = load_trained(Path(cfg.wm))
     wm_cfg, _, _ = wm
     wm_data = json.loads((Path(cfg.wm) / "config.json").read_text())["data"]
-    wm_tasks = TrainingCache(wm_data).tasks if (Path(wm_data) / "cache" / "index.json").exists() else tasks
+    wm_cache = TrainingCache(wm_data) if (Path(wm_data) / "cache" / "index.json").exists() else None
+    wm_tasks = wm_cache.tasks if wm_cache is not None else tasks
     unseen = [t for t in tasks if t not in wm_tasks]
     if unseen:
         print(f"warning: the world model never saw tasks {unseen} in training", file=sys.stderr)
@@ -334,8 +324,7 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True) -> dict:
     for t in tasks:
         metrics["per_task"][t] = ranking_block([r for r in rows if r["task"] == t], results[t]["true"],
                                                results[t]["prob"], cfg.threshold)
-    panel = program_panel(wm_cfg, wm[1], wm[2], TrainingCache(wm_data), horizon=48) \
-        if (Path(wm_data) / "cache" / "index.json").exists() else {}
+    panel = program_panel(wm_cfg, wm[1], wm[2], wm_cache, horizon=48) if wm_cache is not None else {}
     videos = {k: v for t in tasks for k, v in results[t]["videos"].items()}
     videos.update({f"controllability/{p}/{kind}": v[kind] for p, v in panel.items() for kind in ("real", "imagined")})
     tmp = out / "videos.tmp.npz"
@@ -343,7 +332,8 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True) -> dict:
     tmp.replace(out / "videos.npz")
     report = {
         "config": json.loads(json.dumps(dataclasses.asdict(cfg))), "engine": engine, "device": device_name(),
-        "versions": _versions(), "world_model": {"run": cfg.wm, "data": wm_data, "train_tasks": wm_tasks},
+        "versions": package_versions(("jax", "flax", "optax", "orbax-checkpoint", "mujoco", "mujoco-mjx", "numpy")),
+        "world_model": {"run": cfg.wm, "data": wm_data, "train_tasks": wm_tasks},
         "tasks": tasks, "policies": rows, "metrics": metrics,
         "decision": decision_analysis(cfg, rows, results, metrics["overall"]["alignment"]),
         "videos": [v for t in tasks for v in results[t]["video_index"]],
@@ -351,7 +341,7 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True) -> dict:
         "timing": {t: {"simulate_s": results[t]["sim_s"], "imagine_s": results[t]["wm_s"],
                        "episodes": int(results[t]["true"].size), "steps": results[t]["steps"]} for t in tasks},
     }
-    write_json_atomic(out / "results.json", _no_nan(report))
+    write_json_atomic(out / "results.json", no_nan(report))
     return report
 
 
@@ -370,18 +360,6 @@ def _load_task(path: Path) -> dict:
         meta = json.loads(z["meta"].tobytes().decode())
         videos = {k[len("video:"):]: z[k] for k in z.files if k.startswith("video:")}
         return {**meta, "true": z["true"].astype(bool), "prob": z["prob"], "videos": videos}
-
-
-def _no_nan(x):
-    if isinstance(x, dict):
-        return {k: _no_nan(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_no_nan(v) for v in x]
-    if isinstance(x, float | np.floating):
-        return float(x) if np.isfinite(x) else None
-    if isinstance(x, np.integer):
-        return int(x)
-    return x
 
 
 def _check_config(cfg: EvalConfig, out: Path) -> None:

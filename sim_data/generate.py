@@ -181,9 +181,10 @@ def _source_key(source) -> str:
 
 # ---- the run ------------------------------------------------------------------------------------
 
-def _versions() -> dict:
+def package_versions(packages=("mujoco", "mujoco-mjx", "jax", "numpy", "opencv-python-headless", "mcap")) -> dict:
+    """{package: installed version or "absent"}."""
     out = {}
-    for pkg in ("mujoco", "mujoco-mjx", "jax", "numpy", "opencv-python-headless", "mcap"):
+    for pkg in packages:
         try:
             out[pkg] = importlib_metadata.version(pkg)
         except importlib_metadata.PackageNotFoundError:
@@ -240,7 +241,7 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True) -> dict:
     # worker processes: JSON and zstd hold the GIL, and the cpu engine's step loop needs it
     pool = cf.ProcessPoolExecutor(cfg.workers, mp_context=multiprocessing.get_context("spawn"))
     pending = []
-    versions = _versions()
+    versions = package_versions()
     for task, skill, idx, missing in todo:
         b = len(idx)
         env = cached_env(task, b, engine, cfg.heldout)

@@ -173,19 +173,21 @@ def evaluate(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, out: Pa
     }
     report = {"summary": summary, "frame_quality": fq, "success_prediction": sp, "controllability": ctrl,
               "episodes": len(test), "split": split}
-    write_json_atomic(Path(out) / "eval.json", _no_nan(report))
+    write_json_atomic(Path(out) / "eval.json", no_nan(report))
     _save_strip(Path(out) / "eval_frames.png", pictures, fq["horizons"])
     return report
 
 
-def _no_nan(x):
+def no_nan(x):
     """NaN (an undefined statistic, e.g. AUROC with one class) as JSON null."""
     if isinstance(x, dict):
-        return {k: _no_nan(v) for k, v in x.items()}
+        return {k: no_nan(v) for k, v in x.items()}
     if isinstance(x, list | tuple):
-        return [_no_nan(v) for v in x]
+        return [no_nan(v) for v in x]
     if isinstance(x, float | np.floating):
         return float(x) if np.isfinite(x) else None
+    if isinstance(x, np.integer):
+        return int(x)
     return x
 
 
