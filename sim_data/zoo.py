@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import os
 import sys
@@ -196,8 +197,8 @@ def _batches(samples: dict, batch: int, rng: np.random.Generator, count: int):
         yield {k: v[idx] for k, v in samples.items()}
 
 
-def _val_loss(cfg: PolicyNetConfig, params, val_batches: list) -> float:
-    loss = jax.jit(lambda p, b: imitation_loss(cfg, p, b))
+def _val_loss(loss, params, val_batches: list) -> float:
+    """loss: the jitted imitation loss of the lineage's network (compiled once per lineage)."""
     return float(np.mean([float(loss(params, b)) for b in val_batches]))
 
 
@@ -227,6 +228,7 @@ def train_lineage(cfg: ZooConfig, cache: TrainingCache, task: str, lineage: Line
     opt = optax.adamw(optax.cosine_decay_schedule(cfg.lr, cfg.steps, alpha=0.05), weight_decay=cfg.weight_decay)
     opt_state = opt.init(params["net"])
     step_fn = _make_step(net, opt)
+    val_loss = jax.jit(functools.partial(imitation_loss, net))
     rng = np.random.default_rng(seed)
     val_batches = list(_batches(val, cfg.batch, np.random.default_rng(7), cfg.val_batches))
     marks = set(cfg.checkpoint_steps())
@@ -248,7 +250,7 @@ def train_lineage(cfg: ZooConfig, cache: TrainingCache, task: str, lineage: Line
         records.append({
             "name": f"{task}/{lineage.name}/{step}", "task": task, "lineage": lineage.name, "step": step,
             "variant": {**dataclasses.asdict(lineage), "demos_used": len(eps)},
-            "val_loss": _val_loss(net, params, val_batches), "train_loss": train_loss,
+            "val_loss": _val_loss(val_loss, params, val_batches), "train_loss": train_loss,
             "checkpoint": str(rel), "net": dataclasses.asdict(net)})
         bar.set_postfix(loss=f"{train_loss:.3f}", val=f"{records[-1]['val_loss']:.3f}")
     bar.close()
