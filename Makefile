@@ -64,6 +64,7 @@ bench: setup
 	$(PY) -m sim_data.bench --out runs/bench/physics_$$(hostname).json
 	$(PY) -m sim_data.bench_render --out runs/bench/render_$$(hostname).json
 	$(PY) -m sim_data.bench_data --out runs/bench/data_$$(hostname).json
+	$(PY) -m sim_data.bench_policy --out runs/bench/policy_$$(hostname).json
 	$(PY) -m wm.bench --out runs/bench/wm_$$(hostname).json
 
 clean:

@@ -36,7 +36,7 @@ from sim_data.config import override
 from sim_data.engines import ENGINES, default_engine
 from sim_data.env import HomeEnv
 from sim_data.episodes import CorruptEpisode, read_episode_meta, write_episode_mcap  # noqa: F401 (re-exported)
-from sim_data.policies import PROGRAMS, ProgramPolicy, ScriptedPolicy, program_params
+from sim_data.policies import PROGRAMS, ProgramPolicy, ScriptedPolicy, play_params, program_params
 from sim_data.render import RenderConfig, Renderer
 from sim_data.rollout import record_episodes
 from sim_data.scene import load_model
@@ -47,6 +47,7 @@ from sim_data.tasks import TASK_NAMES
 
 CAMERAS = ("head_cam", "ext_cam")
 SPLITS = ("train", "val", "test", "programs")
+PLAY = "play"  # the source of random play episodes (sim_data.policies.play_program)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -66,6 +67,8 @@ class DataConfig:
       cache: build the training cache (sim_data.cache) at the end.
       programs: initial states per task (split "programs", never train/val/test) from which every
         action program of `sim_data.policies.PROGRAMS` is recorded: the world model's controllability set.
+      play: episodes per task of random play (`sim_data.policies.play_program`, policy "play"), in
+        train/val/test like the scripted ones: they show the world model what every action does.
       policies: policy specs (`sim_data.sources`: zoo registries, plug-ins) whose own rollouts join
         the dataset, failures included; policy_episodes: episodes per policy and task (0: `episodes`),
         from the same initial states as the scripted episodes 0, 1, ...
@@ -86,6 +89,7 @@ class DataConfig:
     workers: int = 2
     cache: bool = True
     programs: int = 0
+    play: int = 0
     policies: tuple = ()
     policy_episodes: int = 0
 
@@ -97,8 +101,9 @@ class DataConfig:
             raise ValueError(f"skills must be in [0, 1], got {self.skills}")
         if self.episodes < 1 or self.batch < 1 or self.workers < 1:
             raise ValueError("episodes, batch and workers must be >= 1")
-        if self.programs < 0 or self.policy_episodes < 0:
-            raise ValueError(f"programs and policy_episodes must be >= 0, got {self.programs}, {self.policy_episodes}")
+        if min(self.programs, self.play, self.policy_episodes) < 0:
+            raise ValueError(f"programs, play and policy_episodes must be >= 0, got {self.programs}, {self.play}, "
+                             f"{self.policy_episodes}")
         if self.engine not in ("",) + ENGINES:
             raise ValueError(f"engine must be one of {ENGINES} or empty, got {self.engine!r}")
         if self.size not in (64, 128):
@@ -114,11 +119,14 @@ class DataConfig:
 PRESETS = {
     "default": DataConfig(),
     "smoke": DataConfig(tasks=("mug",), skills=(1.0,), episodes=2, batch=2, programs=1),
-    "demo": DataConfig(skills=(0.3, 1.0), episodes=4, batch=8, programs=1),
+    # the CPU chain's set: the demo zoo's two tasks, two skills, random play, the programs, head camera
+    "demo": DataConfig(tasks=("mug", "step_back"), skills=(0.3, 1.0), episodes=8, batch=8, programs=1, play=8,
+                       cameras=("head_cam",)),
     "full": DataConfig(skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=600, batch=1200, workers=12, programs=32),
-    # the world model's GPU set: two tasks, a spread of skills, the controllability programs, head camera
-    "wm_full": DataConfig(tasks=("mug", "wipe"), skills=(0.0, 0.25, 0.5, 0.75, 1.0), episodes=600, batch=600,
-                          cameras=("head_cam",), workers=14, programs=32),
+    # the world model's GPU set: two tasks, a spread of skills, random play, the controllability
+    # programs, head camera
+    "wm_full": DataConfig(tasks=("mug", "wipe"), skills=(0.0, 0.25, 0.5, 0.75, 1.0), episodes=500, batch=500,
+                          cameras=("head_cam",), workers=14, programs=32, play=500),
     "heldout_plant": DataConfig(heldout=True, episodes=100, batch=600, workers=12),
     "shelf": DataConfig(tasks=("shelf",), skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=600, batch=1200, workers=12),
     "shelf_arcade": DataConfig(tasks=("shelf", "arcade"), skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=300,
@@ -152,25 +160,33 @@ def split_of(cfg: DataConfig, seed: int) -> str:
 
 
 def policy_name(source) -> str:
-    """A source is a scripted skill (float), an action program's name (str) or a PolicySource."""
+    """A source is a scripted skill (float), PLAY, an action program's name (str) or a PolicySource."""
     if isinstance(source, PolicySource):
         return f"{source.kind}:{source.name}"
+    if source == PLAY:
+        return PLAY
     return f"program:{source}" if isinstance(source, str) else f"scripted@{float(source):.2f}"
 
 
 def policy_kind(source) -> str:
-    return source.kind if isinstance(source, PolicySource) else "program" if isinstance(source, str) else "scripted"
+    if isinstance(source, PolicySource):
+        return source.kind
+    return PLAY if source == PLAY else "program" if isinstance(source, str) else "scripted"
 
 
 def episode_id(task: str, source, i: int) -> str:
     if isinstance(source, PolicySource):
         return f"{task}-l{source.slug}-{i:06d}"
+    if source == PLAY:
+        return f"{task}-play-{i:06d}"
     if isinstance(source, str):
         return f"{task}-p{PROGRAMS.index(source)}{source}-{i:06d}"
     return f"{task}-s{round(float(source) * 100):03d}-{i:06d}"
 
 
 def _initial_seed_of(cfg, task, source, i) -> int:
+    if source == PLAY:
+        return initial_seed(cfg, f"{task}/play", i)
     return initial_seed(cfg, f"{task}/programs" if isinstance(source, str) else task, i)
 
 
@@ -197,6 +213,7 @@ def _plan(cfg: DataConfig, learned=()):
     skill (float), an action program (str) or a PolicySource of `learned` (cfg.policies resolved)."""
     for task in cfg.tasks:
         sources = [(float(s), cfg.episodes) for s in cfg.skills] + [(p, cfg.programs) for p in PROGRAMS if cfg.programs]
+        sources += [(PLAY, cfg.play)] if cfg.play else []
         sources += [(src, cfg.policy_episodes or cfg.episodes) for src in learned if src.runs_on(task)]
         for source, n in sources:
             for start in range(0, n, cfg.batch):
@@ -205,8 +222,8 @@ def _plan(cfg: DataConfig, learned=()):
 
 def _episode_meta(cfg, task, source, i, success, num_steps, engine):
     seed = _initial_seed_of(cfg, task, source, i)
-    program = isinstance(source, str)
     kind = policy_kind(source)
+    program = kind == "program"
     return {
         "episode_id": episode_id(task, source, i), "task": task, "policy": policy_name(source),
         "policy_kind": kind, "skill": float(source) if kind == "scripted" else None,
@@ -248,6 +265,10 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True) -> dict:
         renderers = cached_renderers(cfg.size, tuple(cfg.cameras))
         if isinstance(skill, PolicySource):
             policy, params = skill.policy, skill.params
+        elif skill == PLAY:
+            seeds = [_initial_seed_of(cfg, task, skill, i) + 1 for i in idx]  # not the initial state's own seed
+            policy, params = ProgramPolicy(env.episode_steps), play_params(seeds, env.episode_steps, env.idx.robot.action_low,
+                                                                   env.idx.robot.action_high)
         elif isinstance(skill, str):
             policy, params = ProgramPolicy(env.episode_steps), program_params([skill] * b, env.episode_steps)
         else:

@@ -350,6 +350,66 @@ def action_program(name: str, num_steps: int) -> np.ndarray:
     return a
 
 
+# per-joint amplitude (rad) of play's arm targets around the ready pose: shoulder pitch, roll, yaw,
+# elbow, wrist yaw, pitch, roll
+PLAY_ARM_AMPLITUDE = np.array([0.9, 0.5, 0.6, 1.0, 0.8, 0.6, 0.6], np.float32)
+
+
+def play_program(seed: int, num_steps: int) -> np.ndarray:
+    """Random, smooth "play" actions (num_steps, 20) float32 from the ready pose, a function of seed.
+
+    Each arm either rests or moves through random joint targets (knots every 0.8 to 2 s, eased
+    between, sometimes with a 0.5 to 2 Hz oscillation on one joint); hands open and close at random;
+    the neck looks around; the base drives forward or back and turns in random segments. It covers
+    what the scripted tasks leave out, so a world model learns what every action does.
+    """
+    rng = np.random.default_rng(seed)
+    t = np.arange(num_steps, dtype=np.float32) * T.CONTROL_DT
+    a = np.zeros((num_steps, R.ACTION_DIM), np.float32)
+
+    def eased(values, gap):
+        """Knot values (n, k), one every `gap` s from t=0, eased (smoothstep) into (num_steps, k)."""
+        u = t / gap
+        i = np.minimum(u.astype(int), len(values) - 2)
+        f = (u - i)[:, None]
+        f = f * f * (3 - 2 * f)
+        return values[i] * (1 - f) + values[i + 1] * f
+
+    def knots(low, high):
+        """A random knot spacing in [low, high] s and the number of knots that cover the episode."""
+        gap = rng.uniform(low, high)
+        return int(np.ceil(t[-1] / gap)) + 2, gap
+
+    for arm in (R.LEFT_ARM, R.RIGHT_ARM):
+        if rng.random() < 0.3:
+            a[:, arm] = S.READY_ARM
+            continue
+        n, gap = knots(0.8, 2.0)
+        offsets = rng.uniform(-1, 1, (n, 7)).astype(np.float32) * PLAY_ARM_AMPLITUDE
+        offsets[0] = 0.0  # start from the ready pose
+        a[:, arm] = S.READY_ARM + eased(offsets, gap)
+        if rng.random() < 0.4:
+            j = arm.start + int(rng.integers(7))
+            a[:, j] += 0.3 * np.sin(2 * np.pi * rng.uniform(0.5, 2.0) * t + rng.uniform(0, 2 * np.pi))
+    n, gap = knots(1.0, 2.5)
+    neck = np.stack([rng.uniform(-0.5, 0.5, n), rng.uniform(-0.3, 0.25, n)], -1).astype(np.float32)
+    neck[0] = 0.0
+    a[:, R.NECK] = np.array([0.0, S.READY_NECK_PITCH], np.float32) + eased(neck * (rng.random() < 0.6), gap)
+    n, gap = knots(0.6, 1.5)
+    a[:, R.HAND_CLOSURE] = eased((rng.random((n, 2)) < 0.5).astype(np.float32), gap)
+    n, gap = knots(1.0, 2.5)
+    drive = rng.uniform(-1, 1, (n, 2)).astype(np.float32) * [0.35, 0.6] * (rng.random((n, 2)) < 0.5)
+    drive[0] = 0.0
+    a[:, R.DRIVE] = eased(drive * (rng.random() < 0.7), gap)
+    return a
+
+
+def play_params(seeds, num_steps: int, low, high) -> dict:
+    """ProgramPolicy parameters for one play episode per seed, clipped to the action bounds (20,)
+    (`RobotIndex.action_low`, `action_high`), so that the recorded actions are the ones applied."""
+    return {"table": np.clip(np.stack([play_program(int(s), num_steps) for s in seeds]), low, high)}
+
+
 @dataclasses.dataclass(frozen=True)
 class ProgramPolicy:
     """Action programs as a policy of the project's protocol: it ignores the observation and plays

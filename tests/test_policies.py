@@ -8,7 +8,7 @@ import pytest
 from sim_data import robot as R
 from sim_data import scene as S
 from sim_data.env import HomeEnv
-from sim_data.policies import PROGRAMS, Kinematics, ScriptedPolicy, action_program, ik_step
+from sim_data.policies import PROGRAMS, Kinematics, ScriptedPolicy, action_program, ik_step, play_params, play_program
 
 
 @pytest.fixture(scope="module")
@@ -95,6 +95,23 @@ def test_action_programs_differ_and_move_the_robot():
     for i in range(len(names)):
         for j in range(i + 1, len(names)):
             assert np.abs(finals[names[i]] - finals[names[j]]).max() > 0.05
+
+
+def test_play_is_seeded_smooth_bounded_and_varied(idx):
+    low, high = idx.robot.action_low, idx.robot.action_high
+    table = play_params(range(40), 100, low, high)["table"]
+    assert table.shape == (40, 100, R.ACTION_DIM)
+    np.testing.assert_array_equal(play_program(7, 100), play_program(7, 100))
+    assert np.all(table >= low - 1e-6) and np.all(table <= high + 1e-6)
+    ready = np.concatenate([S.READY_ARM, S.READY_ARM, [0.0, S.READY_NECK_PITCH]])
+    np.testing.assert_allclose(table[:, 0, :16], np.broadcast_to(ready, (40, 16)), atol=0.31)  # + an oscillation
+    np.testing.assert_array_equal(table[:, 0, R.DRIVE], 0.0)  # starts standing still
+    assert np.abs(np.diff(table, axis=1)).max() < 0.8  # eased knots: no jumps between control steps
+    moved = np.abs(table - table[:, :1]).max(axis=1)  # (40, 20): how far each action moves in its episode
+    for part in (R.LEFT_ARM, R.RIGHT_ARM, R.NECK, R.HAND_CLOSURE, R.DRIVE):
+        assert (moved[:, part].max(axis=1) > 0.1).mean() > 0.3  # every part of the action vector is exercised
+        assert (moved[:, part].max(axis=1) < 1e-6).mean() > 0.0 or part == R.HAND_CLOSURE  # and sometimes rests
+    assert (table[:, :, R.FORWARD_SPEED] < -0.1).any() and (table[:, :, R.FORWARD_SPEED] > 0.1).any()
 
 
 def test_unknown_program_is_a_clear_error():

@@ -1,0 +1,108 @@
+"""What share of a rendered rollout's time the learned policies take; writes JSON.
+
+    python -m sim_data.bench_policy --out runs/bench/policy.json [--task mug] [--batch 64] [--engine cpu]
+
+For each policy network of the zoo (`conv` and `vit` at the `full` preset's sizes, fresh
+parameters: speed does not depend on what was learned) one batch of whole episodes is recorded with
+the head camera rendered, as the evaluator and the data generator do. The same rollout under an
+action program (a table lookup, no network) is the reference: the policy's share is
+`1 - program time / policy time`. The policy's `act` alone, jitted on the same batch, is timed too
+(`act_ms`), and `act_share` is its time over all steps relative to the whole rollout.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from sim_data import robot as R
+from sim_data.bench import device_name
+from sim_data.engines import default_engine
+from sim_data.generate import cached_env, cached_renderers
+from sim_data.learned import BCPolicy, PolicyNetConfig, init_params
+from sim_data.policies import ProgramPolicy, program_params
+from sim_data.rollout import record_episodes
+from sim_data.success_table import write_json_atomic
+from sim_data.zoo import PRESETS as ZOO_PRESETS
+
+CAMERA = "head_cam"
+
+
+def _timed_rollout(env, policy, params, renderers, repeats: int) -> float:
+    """Best wall seconds of recording one batch of episodes (after one warm-up run that compiles)."""
+    rng = jax.random.PRNGKey(0)
+    jax.block_until_ready(record_episodes(env, policy, params, rng, renderers)[1].frames)
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(record_episodes(env, policy, params, rng, renderers)[1].frames)
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def _timed_act(policy: BCPolicy, params, batch: int, size: int, repeats: int = 20) -> float:
+    """Best seconds of one jitted `act` on a batch of observations."""
+    obs = {"image": np.zeros((batch, size, size, 3), np.uint8), "proprio": np.zeros((batch, R.PROPRIO_DIM), np.float32)}
+    carry = np.zeros((batch,), np.int32)
+    act = jax.jit(policy.act)
+    jax.block_until_ready(act(params, obs, carry, None))
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(act(params, obs, carry, None))
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def bench(task: str, batch: int, engine: str, repeats: int = 2) -> dict:
+    env = cached_env(task, batch, engine, False)
+    zoo = ZOO_PRESETS["full"]
+    renderers = cached_renderers(zoo.conv.size, (CAMERA,))
+    steps = env.episode_steps
+    program_s = _timed_rollout(env, ProgramPolicy(steps), program_params(["reach_mug"] * batch, steps), renderers,
+                               repeats)
+    norm = {"proprio_mean": np.zeros(R.PROPRIO_DIM), "proprio_std": np.ones(R.PROPRIO_DIM),
+            "action_mean": np.zeros(R.ACTION_DIM), "action_std": np.ones(R.ACTION_DIM)}
+    rows = []
+    for net in (zoo.conv, zoo.vit):
+        net_cfg: PolicyNetConfig = net
+        policy = BCPolicy(net_cfg)
+        params = init_params(net_cfg, jax.random.PRNGKey(0), norm, use_proprio=True)
+        policy_s = _timed_rollout(env, policy, params, renderers, repeats)
+        act_s = _timed_act(policy, params, batch, net_cfg.size)
+        rows.append({"encoder": net_cfg.encoder, "rollout_s": policy_s, "program_rollout_s": program_s,
+                     "policy_share": max(0.0, 1.0 - program_s / policy_s), "act_ms": 1e3 * act_s,
+                     "act_share": min(1.0, act_s * steps / policy_s),
+                     "env_steps_per_s": batch * steps / policy_s})
+        print(f"{net_cfg.encoder}: rollout {policy_s:.2f} s (program {program_s:.2f} s), policy share "
+              f"{rows[-1]['policy_share']:.1%}, act {1e3 * act_s:.2f} ms x {steps} steps = "
+              f"{rows[-1]['act_share']:.1%}", flush=True)
+    return {"task": task, "batch": batch, "steps": steps, "engine": engine, "camera": CAMERA, "results": rows}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--task", default="mug")
+    p.add_argument("--batch", type=int, default=0, help="episodes per batch (0: 16 on cpu, 1024 on mjx)")
+    p.add_argument("--engine", default="", help="cpu or mjx (default: mjx where a GPU is present)")
+    a = p.parse_args(argv)
+    engine = a.engine or default_engine()
+    batch = a.batch or (1024 if engine == "mjx" else 16)
+    res = bench(a.task, batch, engine)
+    res.update(device=device_name(), host=platform.node(), jax=jax.__version__)
+    a.out.parent.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(a.out, res)
+    print(json.dumps(res, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
