@@ -45,7 +45,7 @@ from sim_data.rollout import record_episodes
 from sim_data.sources import resolve
 from sim_data.success_table import write_json_atomic
 from wm.evaluate import no_nan, program_panel
-from wm.imagine import closed_loop
+from wm.imagine import closed_loop, episode_success
 from wm.train import load_trained
 
 CAMERA = "head_cam"
@@ -180,7 +180,7 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, wm, seeds, engine: str, p
         frames0, proprio0 = rec.frames[CAMERA][:, :1], rec.proprio[:, :1]
         got = closed_loop(wm_cfg.model, policy, steps, wm_params, norm, params, frames0, proprio0,
                           np.zeros((b, 0, R.ACTION_DIM), np.float32), jax.random.fold_in(rng, 1))
-        p = np.asarray(got["success"][:, -1], np.float64).reshape(len(padded), n)[: len(part)]
+        p = np.asarray(episode_success(got["success"]), np.float64).reshape(len(padded), n)[: len(part)]
         wm_s += time.perf_counter() - t0
         for j, src in enumerate(part):
             names.append(src.name)

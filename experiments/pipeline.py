@@ -49,11 +49,10 @@ class Pipeline:
 
 PIPELINES = {
     "demo": Pipeline(data="demo", policies="demo", train="demo", eval="demo"),
-    # the GPU preset: two tasks, 5 skills x 600 scripted episodes + controllability programs; four conv
-    # lineages of 8 checkpoints evaluated over 200 held-out initial states per task
+    # the GPU preset: two tasks, scripted episodes of 5 skills, random play and the controllability
+    # programs; the zoo's five lineages of 8 checkpoints evaluated over 200 held-out initial states per task
     "full": Pipeline(data="wm_full", policies="full", train="full", eval="full", train_overrides=("w_success=0.5",),
-                     eval_overrides=("policies=runs/policies/full#conv_proprio+conv_noproprio+conv_proprio_few"
-                                     "+conv_proprio_lowskill",)),
+                     eval_overrides=("policies=runs/policies/full",)),
 }
 
 

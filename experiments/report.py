@@ -176,7 +176,7 @@ def strip_figure(panel: dict, times=(0, 8, 16, 24, 32, 48)) -> str:
 def verdicts(policies: list[dict], tasks: list[str]) -> list[dict]:
     """The proprioception ablation and the encoder A/B: the final checkpoints of two lineages, which
     one the world model prefers and which one is truly better."""
-    pairs = [("proprioception", "conv_proprio", "conv_noproprio"), ("encoder", "conv_proprio", "vit_proprio")]
+    pairs = [("proprioception", "conv_proprio", "conv_noproprio"), ("encoder", "conv_noproprio", "vit_noproprio")]
     out = []
     for t in tasks:
         final = {}
@@ -272,7 +272,7 @@ def build(run: Path) -> tuple[str, str]:
                   for v in verd]
         h.append(_html_table(vrows))
     else:
-        h.append("<p>The evaluated policies hold no conv_proprio / conv_noproprio / vit_proprio lineages.</p>")
+        h.append("<p>The evaluated policies hold no conv_proprio / conv_noproprio / vit_noproprio lineages.</p>")
     h += ["<h2>Decision analysis</h2>", f"<img src='{decision_figure(res['decision'])}'>"]
     for t in tasks:
         h += [f"<h2>Task {html.escape(t)}</h2>", _html_table(_metrics_table(metrics["per_task"][t])),

@@ -4,7 +4,7 @@ the evaluator and the report.
 A policy spec is one of
 - a zoo registry: `runs/policies/demo` or `runs/policies/demo/policies.json` (every checkpoint),
   optionally narrowed with `#` and `+`-separated names, lineages or tasks:
-  `runs/policies/demo#conv_proprio+vit_proprio`, `runs/policies/demo#mug/conv_proprio/300`;
+  `runs/policies/demo#conv_proprio+vit_noproprio`, `runs/policies/demo#mug/conv_proprio/300`;
 - a plug-in: `package.module:attribute`, where the attribute is a callable returning
   `(policy, params)` (or is that pair itself). `policy` follows the project's protocol,
 

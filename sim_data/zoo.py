@@ -103,10 +103,12 @@ class ZooConfig:
         return sorted({int(round(s)) for s in steps} | {self.steps})  # rounding may merge the first few
 
 
+# the proprioception ablation (conv_proprio against conv_noproprio) and the encoder A/B (conv_noproprio
+# against vit_noproprio): proprioception invites causal confusion, so the A/B is run without it
 LINEAGES_MAIN = (
     Lineage("conv_proprio"),
     Lineage("conv_noproprio", proprio=False),
-    Lineage("vit_proprio", encoder="vit"),
+    Lineage("vit_noproprio", encoder="vit", proprio=False),
 )
 
 PRESETS = {
@@ -116,9 +118,9 @@ PRESETS = {
     "demo": ZooConfig(tasks=("mug", "step_back"), lineages=LINEAGES_MAIN, steps=300, checkpoints=8, first_step=5,
                       batch=32, val_batches=4, conv=PolicyNetConfig(width=16, hidden=128),
                       vit=PolicyNetConfig(encoder="vit", width=32, depth=2, hidden=128)),
-    "full": ZooConfig(tasks=("mug", "wipe"), steps=3000, checkpoints=8, first_step=20, batch=256, val_batches=8,
-                      lineages=LINEAGES_MAIN + (Lineage("conv_proprio_few", demos=24),
-                                                Lineage("conv_proprio_lowskill", skills=(0.5, 0.75),
+    "full": ZooConfig(tasks=("mug", "wipe"), steps=5000, checkpoints=8, first_step=20, batch=256, val_batches=8,
+                      lineages=LINEAGES_MAIN + (Lineage("conv_noproprio_few", proprio=False, demos=24),
+                                                Lineage("conv_noproprio_lowskill", proprio=False, skills=(0.5, 0.75),
                                                         successes_only=False))),
 }
 

@@ -20,7 +20,7 @@ def test_zoo_registry_checkpoints_and_resume(smoke_zoo, smoke_dataset):
     out, registry = smoke_zoo
     cfg = zoo.make_config("smoke")
     assert len(registry) == len(cfg.lineages) * len(cfg.checkpoint_steps())
-    assert {r["lineage"] for r in registry} == {"conv_proprio", "conv_noproprio", "vit_proprio"}
+    assert {r["lineage"] for r in registry} == {"conv_proprio", "conv_noproprio", "vit_noproprio"}
     for r in registry:
         assert np.isfinite(r["val_loss"]) and (out / r["checkpoint"]).exists()
     assert {r["variant"]["proprio"] for r in registry} == {True, False}

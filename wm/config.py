@@ -17,7 +17,10 @@ class TrainConfig:
         stage fits its time slot; a rerun resumes. lr, warmup, weight_decay, grad_clip: AdamW.
       rollout_passes: extra passes in which the dynamics reads its own (stop-gradient) predictions
         instead of encoded frames (0: teacher forcing only); each pass extends the errors it learns
-        to correct by one step.
+        to correct by one step. rollout_grad: backpropagate through those passes' latents and proprio
+        (training k+1-step open-loop predictions end to end) instead of stopping the gradient.
+      context_noise: the largest std of Gaussian noise added to the input latents (each window draws
+        its level uniformly below it; 0: none), as GameNGen's noise augmentation.
       w_recon, w_latent, w_pixel, w_proprio, w_success: loss weights.
       log_every, eval_every, ckpt_every: in steps (eval and checkpoints at multiples of log_every).
       val_batches: validation batches per evaluation. param_sharding: "replicated" (data parallel)
@@ -37,6 +40,8 @@ class TrainConfig:
     weight_decay: float = 0.01
     grad_clip: float = 1.0
     rollout_passes: int = 1
+    rollout_grad: bool = False
+    context_noise: float = 0.0
     w_recon: float = 1.0
     w_latent: float = 1.0
     w_pixel: float = 1.0
@@ -79,7 +84,8 @@ PRESETS = {
     "demo": TrainConfig(model=DEMO_MODEL, batch=8, window=10, steps=100000, max_minutes=5.0, lr=1e-3, warmup=50,
                         log_every=25, eval_every=250, ckpt_every=250, val_batches=2, eval_context=4, eval_episodes=24,
                         eval_horizons=(1, 4, 8, 16), control_horizon=16),
-    "full": TrainConfig(max_minutes=5.5),  # with compilation and eval.json, one 10-minute GPU command
+    # with compilation and eval.json, one 10-minute GPU command
+    "full": TrainConfig(max_minutes=7.0, rollout_passes=2, rollout_grad=True),
 }
 
 

@@ -14,10 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from wm.model import ModelConfig, WorldModel
-
-
-INPUT_CLIP = 10.0  # standardised proprio and actions are clipped to +-INPUT_CLIP
+from wm.model import INPUT_CLIP, ModelConfig, WorldModel
 
 
 @struct.dataclass
@@ -106,6 +103,13 @@ def step(cfg: ModelConfig, params, norm: Norm, state: ImagineState, action) -> I
         z=push(state.z, z_next), proprio=push(state.proprio, out["proprio"][:, -1]),
         action=push(acts, jnp.zeros_like(acts[:, -1])), valid=push(state.valid, jnp.ones_like(state.valid[:, -1])),
         frame=frame, success=jax.nn.sigmoid(out["success"][:, -1]), outcome=jax.nn.sigmoid(out["outcome"][:, -1]))
+
+
+def episode_success(success):
+    """(B, T) per-step success probabilities of imagined episodes -> (B,) the episode's predicted
+    success: the highest over time. Every task's success is latched (once achieved, it stays), while
+    a model that sees only its last K frames may forget it was achieved (the lifted mug put down)."""
+    return jnp.max(jnp.asarray(success), axis=1)
 
 
 def current_observation(norm: Norm, state: ImagineState) -> dict:

@@ -7,8 +7,10 @@ actions (B, T, 20) where action t follows frame t; proprio (B, T, 37).
 The dynamics model sees, for every frame t, the tokens of frames t-K+1 .. t (K = `context`, a
 sliding window, block-causal in time, with a learned per-head bias for each frame distance) and
 predicts frame t+1's latents, proprioception, success flag (logit) and the episode's outcome
-(logit). Each frame's action and proprioception condition its tokens through adaptive layer norm
-(shift, scale and gate per block, zero-initialised as in DiT). Parameters are float32; compute
+(logit). A small MLP first predicts the next proprioception from the current one and the action
+(the robot's own dynamics, blind to the scene); each frame's action, proprioception and that
+prediction condition its tokens through adaptive layer norm (shift, scale and gate per block,
+zero-initialised as in DiT), and the tokens add a visual correction to the next proprioception. Parameters are float32; compute
 runs in `ModelConfig.dtype` (bfloat16 by default).
 """
 
@@ -22,6 +24,7 @@ import jax
 import jax.numpy as jnp
 
 LATENT_SIDE = 8
+INPUT_CLIP = 10.0  # standardised proprio and actions are clipped to +-INPUT_CLIP, predicted proprio too
 
 
 @dataclasses.dataclass(frozen=True)
@@ -33,6 +36,8 @@ class ModelConfig:
       latent: latent channels; patch: latent cells per token side.
       dim, depth, heads, mlp: the transformer; context: K, frames each prediction sees.
       proprio_dim, action_dim: input sizes; dtype: compute dtype ("bfloat16" or "float32").
+      compose: the decoder composes its output with the previous frame through a predicted mask
+        (False: the latents alone make the frame).
     """
 
     size: int = 64
@@ -48,6 +53,7 @@ class ModelConfig:
     proprio_dim: int = 37
     action_dim: int = 20
     dtype: str = "bfloat16"
+    compose: bool = True
 
     def validate(self) -> None:
         stages = int(round(math.log2(self.size / LATENT_SIDE)))
@@ -128,6 +134,8 @@ class Decoder(nn.Module):
         cfg, dt = self.cfg, self.cfg.compute_dtype
         p = cfg.size // LATENT_SIDE
         prev_cells = space_to_depth(prev.astype(dt) * 2.0 - 1.0, p)  # (N, 8, 8, 3 p^2)
+        if not cfg.compose:
+            prev_cells = jnp.zeros_like(prev_cells)
         if cfg.tokenizer == "patch":
             h = cfg.channels[-1]
             x = nn.gelu(nn.Conv(h, (3, 3), dtype=dt)(z.astype(dt)) + nn.Dense(h, dtype=dt)(prev_cells))
@@ -143,6 +151,8 @@ class Decoder(nn.Module):
                 x = nn.Conv(ch, (3, 3), dtype=dt)(x)
             x = nn.silu(nn.GroupNorm(8, dtype=dt)(x))
             out = nn.Conv(4, (3, 3), dtype=jnp.float32)(x).astype(jnp.float32)
+        if not cfg.compose:
+            return nn.sigmoid(out[..., :3])
         mask = nn.sigmoid(out[..., 3:])
         return mask * prev.astype(jnp.float32) + (1.0 - mask) * nn.sigmoid(out[..., :3])
 
@@ -201,7 +211,12 @@ class Dynamics(nn.Module):
         n = cfg.tokens_per_frame
         x = nn.Dense(cfg.dim, dtype=dt)(patchify(z, cfg.patch).astype(dt))
         x = x + self.param("pos", nn.initializers.normal(0.02), (n, cfg.dim)).astype(dt)
-        cond_in = jnp.concatenate([action, proprio], -1).astype(dt)
+        # the robot's next state from its state and the action alone (the joints follow their targets):
+        # the frame's tokens are then conditioned on where the body and camera go, not only on the command
+        s = jnp.concatenate([proprio, action], -1).astype(jnp.float32)
+        s = nn.silu(nn.Dense(cfg.dim, dtype=jnp.float32)(nn.silu(nn.Dense(cfg.dim, dtype=jnp.float32)(s))))
+        p_next = proprio + nn.Dense(cfg.proprio_dim, dtype=jnp.float32)(s)
+        cond_in = jnp.concatenate([action, proprio, p_next], -1).astype(dt)
         cond = nn.Dense(cfg.dim, dtype=dt)(nn.silu(nn.Dense(cfg.dim, dtype=dt)(cond_in)))
         bias = self._time_bias(t, n, valid)
         for _ in range(cfg.depth):
@@ -213,7 +228,9 @@ class Dynamics(nn.Module):
         z_next = jnp.clip(z + unpatchify(dz.astype(jnp.float32), cfg.patch, cfg.latent), -1.0, 1.0)
         pooled = h.mean(axis=2).astype(jnp.float32)
         heads = nn.Dense(cfg.proprio_dim + 2, dtype=jnp.float32)(nn.silu(nn.Dense(cfg.dim, dtype=jnp.float32)(pooled)))
-        return {"z": z_next, "proprio": proprio + heads[..., :cfg.proprio_dim],
+        # clipped like the standardised inputs, so that a long imagined rollout cannot diverge
+        p_out = jnp.clip(p_next + heads[..., :cfg.proprio_dim], -INPUT_CLIP, INPUT_CLIP)
+        return {"z": z_next, "proprio": p_out,
                 "success": heads[..., cfg.proprio_dim], "outcome": heads[..., cfg.proprio_dim + 1]}
 
     def _time_bias(self, t, n, valid):

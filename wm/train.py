@@ -68,8 +68,9 @@ def _bce(logits, labels):
     return optax.sigmoid_binary_cross_entropy(logits, labels.astype(jnp.float32)).mean()
 
 
-def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig):
-    """Scalar loss and its parts for one batch (frames (B, T, S, S, 3) uint8, ...)."""
+def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None):
+    """Scalar loss and its parts for one batch (frames (B, T, S, S, 3) uint8, ...); rng draws the
+    context noise (None: none, as in validation)."""
     model = WorldModel(cfg.model)
     frames = batch["frames"]
     pix = frames.astype(jnp.float32) / 255.0
@@ -81,8 +82,13 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig):
     parts = {"recon": jnp.mean((recon - pix[:, 1::4]) ** 2)}
     proprio, action = norm.proprio(batch["proprio"]), norm.action(batch["action"])
     z_in, p_in, prev = z, proprio, pix[:, :-1]
+    if cfg.context_noise > 0 and rng is not None:  # corrupted inputs: the past cannot be copied forward exactly
+        k1, k2 = jax.random.split(rng)
+        level = jax.random.uniform(k1, (z.shape[0],) + (1,) * (z.ndim - 1), maxval=cfg.context_noise)
+        z_in = jnp.clip(z + level * jax.random.normal(k2, z.shape), -1.0, 1.0)
     z_target = jax.lax.stop_gradient(z[:, 1:])
     total = cfg.w_recon * parts["recon"]
+    hold = (lambda x: x) if cfg.rollout_grad else jax.lax.stop_gradient
     for k in range(1 + cfg.rollout_passes):
         pred = model.apply({"params": params}, z_in, p_in, action, method=WorldModel.predict)
         zp = pred["z"][:, :-1]
@@ -96,10 +102,11 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig):
         tag = "" if k == 0 else f"_pass{k}"
         parts.update({f"latent{tag}": latent, f"pixel{tag}": pixel, f"proprio{tag}": prop, f"success{tag}": succ,
                       f"outcome{tag}": outc})
-        # the next pass reads this pass's predictions of frames 1..T-1 (stop-gradient): latents,
-        # proprio, and the decoded frames as the previous frames of the decoder
-        z_in = jnp.concatenate([z[:, :1], jax.lax.stop_gradient(zp)], axis=1)
-        p_in = jnp.concatenate([proprio[:, :1], jax.lax.stop_gradient(pred["proprio"][:, :-1])], axis=1)
+        # the next pass reads this pass's predictions of frames 1..T-1: latents and proprio (with their
+        # gradient if rollout_grad, so earlier steps learn what later ones need), and the decoded
+        # frames as the previous frames of the decoder (always stop-gradient)
+        z_in = jnp.concatenate([z[:, :1], hold(zp)], axis=1)
+        p_in = jnp.concatenate([proprio[:, :1], hold(pred["proprio"][:, :-1])], axis=1)
         prev = jnp.concatenate([pix[:, :1], jax.lax.stop_gradient(pixels[:, :-1])], axis=1)
     parts["loss"] = total
     return total, parts
@@ -113,7 +120,8 @@ def make_optimizer(cfg: TrainConfig):
 
 def train_step(cfg: TrainConfig, state: dict, batch: dict, norm: Norm):
     """One optimiser step: state {"params", "opt", "step"} -> (state, metrics)."""
-    (_, parts), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"], batch, norm, cfg)
+    rng = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), state["step"])
+    (_, parts), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"], batch, norm, cfg, rng)
     updates, opt = make_optimizer(cfg).update(grads, state["opt"], state["params"])
     params = optax.apply_updates(state["params"], updates)
     parts["grad_norm"] = optax.tree.norm(grads)
