@@ -355,29 +355,42 @@ def action_program(name: str, num_steps: int) -> np.ndarray:
 PLAY_ARM_AMPLITUDE = np.array([0.9, 0.5, 0.6, 1.0, 0.8, 0.6, 0.6], np.float32)
 
 
-def play_program(seed: int, num_steps: int) -> np.ndarray:
-    """Random, smooth "play" actions (num_steps, 20) float32 from the ready pose, a function of seed.
+PLAY_STYLES = ("eased", "stepped")
 
-    Each arm either rests or moves through random joint targets (knots every 0.8 to 2 s, eased
-    between, sometimes with a 0.5 to 2 Hz oscillation on one joint); hands open and close at random;
-    the neck looks around; the base drives forward or back and turns in random segments. It covers
-    what the scripted tasks leave out, so a world model learns what every action does.
+
+def play_program(seed: int, num_steps: int, style: str | None = None) -> np.ndarray:
+    """Random "play" actions (num_steps, 20) float32 from the ready pose, a function of seed.
+
+    Each arm either rests or moves through random joint targets (sometimes with a 0.5 to 2 Hz
+    oscillation on one joint); hands open and close at random; the neck looks around; the base
+    drives forward or back and turns in random segments. Style "eased" glides between knots 0.8 to
+    2.5 s apart; "stepped" holds each knot and jumps to the next (knots half as far apart), so
+    that motions start and stop at instants the past does not foretell and only the action
+    explains. style None draws one from the seed. Play covers what the scripted tasks leave out,
+    so a world model learns what every action does.
     """
     rng = np.random.default_rng(seed)
+    style = style or PLAY_STYLES[int(rng.integers(len(PLAY_STYLES)))]
+    if style not in PLAY_STYLES:
+        raise ValueError(f"style must be one of {PLAY_STYLES}, got {style!r}")
+    stepped = style == "stepped"
     t = np.arange(num_steps, dtype=np.float32) * T.CONTROL_DT
     a = np.zeros((num_steps, R.ACTION_DIM), np.float32)
 
     def eased(values, gap):
-        """Knot values (n, k), one every `gap` s from t=0, eased (smoothstep) into (num_steps, k)."""
+        """Knot values (n, k), one every `gap` s from t=0, into (num_steps, k): held, or eased (smoothstep)."""
         u = t / gap
+        if stepped:
+            return values[np.minimum(u.astype(int), len(values) - 1)]
         i = np.minimum(u.astype(int), len(values) - 2)
         f = (u - i)[:, None]
         f = f * f * (3 - 2 * f)
         return values[i] * (1 - f) + values[i + 1] * f
 
     def knots(low, high):
-        """A random knot spacing in [low, high] s and the number of knots that cover the episode."""
-        gap = rng.uniform(low, high)
+        """A random knot spacing in [low, high] s (halved when stepped) and the number of knots that
+        cover the episode."""
+        gap = rng.uniform(low, high) * (0.5 if stepped else 1.0)
         return int(np.ceil(t[-1] / gap)) + 2, gap
 
     for arm in (R.LEFT_ARM, R.RIGHT_ARM):

@@ -106,7 +106,10 @@ def test_play_is_seeded_smooth_bounded_and_varied(idx):
     ready = np.concatenate([S.READY_ARM, S.READY_ARM, [0.0, S.READY_NECK_PITCH]])
     np.testing.assert_allclose(table[:, 0, :16], np.broadcast_to(ready, (40, 16)), atol=0.31)  # + an oscillation
     np.testing.assert_array_equal(table[:, 0, R.DRIVE], 0.0)  # starts standing still
-    assert np.abs(np.diff(table, axis=1)).max() < 0.8  # eased knots: no jumps between control steps
+    eased = np.stack([play_program(s, 100, "eased") for s in range(20)])
+    stepped = np.stack([play_program(s, 100, "stepped") for s in range(20)])
+    assert np.abs(np.diff(eased, axis=1)).max() < 0.8  # eased knots: no jumps between control steps
+    assert np.abs(np.diff(stepped[:, :, R.DRIVE], axis=1)).max() > 0.1  # stepped ones jump
     moved = np.abs(table - table[:, :1]).max(axis=1)  # (40, 20): how far each action moves in its episode
     for part in (R.LEFT_ARM, R.RIGHT_ARM, R.NECK, R.HAND_CLOSURE, R.DRIVE):
         assert (moved[:, part].max(axis=1) > 0.1).mean() > 0.3  # every part of the action vector is exercised
@@ -117,3 +120,5 @@ def test_play_is_seeded_smooth_bounded_and_varied(idx):
 def test_unknown_program_is_a_clear_error():
     with pytest.raises(ValueError, match="unknown program"):
         action_program("moonwalk", 10)
+    with pytest.raises(ValueError, match="style"):
+        play_program(0, 10, "wobbly")

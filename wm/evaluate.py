@@ -162,10 +162,10 @@ def evaluate(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, out: Pa
     if split != "test":
         print(f"warning: no test episodes; evaluating on the {split} split (figures are not held-out)")
     test = cache.select(split)
-    test = test[:: max(1, len(test) // cfg.eval_episodes)][: cfg.eval_episodes]  # spread over tasks and policies
-    fq, pictures = frame_quality(cfg, params, norm, cache, test)
+    fq, pictures = frame_quality(cfg, params, norm, cache, _spread(test, cfg.eval_episodes))
     # random play is in the frame figures; success is judged on episodes that attempt the task
-    sp = success_prediction(cfg, params, norm, cache, [i for i in test if cache.episodes[i].get("policy_kind") != "play"])
+    tasked = [i for i in test if cache.episodes[i].get("policy_kind") != "play"]
+    sp = success_prediction(cfg, params, norm, cache, _spread(tasked, cfg.eval_episodes))
     ctrl = controllability(cfg, params, norm, cache)
     at = dict(zip(fq["horizons"], range(len(fq["horizons"])), strict=True))
     summary = {
@@ -176,10 +176,15 @@ def evaluate(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, out: Pa
         "match_accuracy": ctrl.get("match_accuracy"), "delta_psnr_db": ctrl.get("delta_psnr_db"),
     }
     report = {"summary": summary, "frame_quality": fq, "success_prediction": sp, "controllability": ctrl,
-              "episodes": len(test), "split": split}
+              "episodes": len(_spread(test, cfg.eval_episodes)), "split": split}
     write_json_atomic(Path(out) / "eval.json", no_nan(report))
     _save_strip(Path(out) / "eval_frames.png", pictures, fq["horizons"])
     return report
+
+
+def _spread(ids: list[int], n: int) -> list[int]:
+    """At most n of ids, evenly spaced (the cache orders episodes by task and policy)."""
+    return ids[:: max(1, len(ids) // n)][:n]
 
 
 def no_nan(x):
