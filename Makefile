@@ -10,7 +10,7 @@ export XLA_FLAGS ?= --xla_cpu_multi_thread_eigen=false
 
 CONFIG ?= demo
 
-.PHONY: setup demo full test test-slow bench success-table data render-check train policies eval report clean
+.PHONY: setup demo full test test-slow bench success-table data render-check train policies eval report sweep clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -59,6 +59,12 @@ test: setup
 
 test-slow: setup
 	$(PY) -m pytest -q -m slow
+
+# make sweep SWEEP=data_scaling|task_scaling SIZE=demo|full OUT=runs/sweeps/<name>
+SWEEP ?= data_scaling
+SIZE ?= demo
+sweep: setup
+	$(PY) -m experiments.sweep $(SWEEP) --size $(SIZE) --out $(or $(OUT),runs/sweeps/$(SWEEP)_$(SIZE))
 
 bench: setup
 	$(PY) -m sim_data.bench --out runs/bench/physics_$$(hostname).json

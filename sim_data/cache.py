@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import collections
 import concurrent.futures as cf
+import hashlib
 import json
 import multiprocessing
 import os
@@ -218,6 +219,13 @@ class TrainingCache:
                 if (split is None or e["split"] == split) and (tasks is None or e["task"] in tasks)
                 and (not finite_only or self.finite(i))]
 
+    def subset(self, ids: list[int], fraction: float) -> list[int]:
+        """The episodes of ids whose id hashes below `fraction`: a fixed share, nested across
+        fractions (those of 1/8 are among those of 1/4), the same on every machine."""
+        if fraction >= 1:
+            return list(ids)
+        return [i for i in ids if _unit_hash(self.episodes[i]["episode_id"]) < fraction]
+
     def finite(self, i: int) -> bool:
         """Whether episode i's proprio and actions are all finite."""
         if i not in self._finite:
@@ -243,6 +251,10 @@ class TrainingCache:
         return out
 
 
+def _unit_hash(key: str) -> float:
+    return int.from_bytes(hashlib.sha256(f"subset/{key}".encode()).digest()[:4], "little") / 2**32
+
+
 class WindowLoader:
     """Shuffled fixed-length windows of a cache's episodes, gathered ahead by background threads.
 
@@ -257,7 +269,7 @@ class WindowLoader:
     """
 
     def __init__(self, cache: TrainingCache, window: int, batch: int, split: str | None = "train", seed: int = 0,
-                 cameras=None, tasks=None, prefetch: int = 8, threads: int = 4):
+                 cameras=None, tasks=None, fraction: float = 1.0, prefetch: int = 8, threads: int = 4):
         if window < 1 or batch < 1:
             raise ValueError(f"window and batch must be >= 1, got {window}, {batch}")
         self.cache, self.window, self.batch, self.seed = cache, window, batch, seed
@@ -265,7 +277,7 @@ class WindowLoader:
         bad = [c for c in self.cameras if c not in cache.cameras]
         if bad:
             raise ValueError(f"cameras {bad} are not in the cache (it has {cache.cameras})")
-        self.episodes = np.array([i for i in cache.select(split, tasks)
+        self.episodes = np.array([i for i in cache.subset(cache.select(split, tasks), fraction)
                                   if cache.episodes[i]["length"] >= window], np.int64)
         counts = np.array([cache.episodes[i]["length"] - window + 1 for i in self.episodes], np.int64)
         if counts.sum() < batch:

@@ -121,7 +121,7 @@ PRESETS = {
     "smoke": DataConfig(tasks=("mug",), skills=(1.0,), episodes=2, batch=2, programs=1),
     # the CPU chain's set: the demo zoo's two tasks, two skills, random play, the programs, head camera
     "demo": DataConfig(tasks=("mug", "step_back"), skills=(0.3, 1.0), episodes=8, batch=8, programs=1, play=8,
-                       cameras=("head_cam",)),
+                       cameras=("head_cam",), test_frac=0.25),
     "full": DataConfig(skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=600, batch=1200, workers=12, programs=32),
     # the world model's GPU set: two tasks, a spread of skills, random play, the controllability
     # programs, head camera

@@ -27,6 +27,9 @@ class TrainConfig:
         or "fsdp" (parameters and optimiser state sharded over the data axis).
       eval_context: observations given before imagining; eval_episodes: held-out episodes in eval.json;
       eval_horizons: open-loop horizons reported; control_horizon: steps of the controllability study.
+      train_fraction: the share of training episodes used (a fixed nested subset: the episodes of
+        1/8 are among those of 1/4); train_tasks: the tasks trained on (empty: all);
+        eval_tasks: the tasks of eval.json (empty: all). The sweeps vary these.
     """
 
     model: ModelConfig = ModelConfig()
@@ -57,6 +60,9 @@ class TrainConfig:
     eval_episodes: int = 96
     eval_horizons: tuple = (1, 4, 8, 16, 32)
     control_horizon: int = 32
+    train_fraction: float = 1.0
+    train_tasks: tuple = ()
+    eval_tasks: tuple = ()
 
     def validate(self) -> None:
         self.model.validate()
@@ -68,6 +74,8 @@ class TrainConfig:
             raise ValueError(f"param_sharding must be replicated or fsdp, got {self.param_sharding!r}")
         if not 1 <= self.eval_context <= self.model.context:
             raise ValueError(f"eval_context must be in 1..model.context ({self.model.context})")
+        if not 0 < self.train_fraction <= 1:
+            raise ValueError(f"train_fraction must be in (0, 1], got {self.train_fraction}")
         if self.rollout_passes < 0 or self.lr <= 0:
             raise ValueError("rollout_passes >= 0 and lr > 0 are required")
 

@@ -103,9 +103,9 @@ def success_prediction(cfg: TrainConfig, params, norm: Norm, cache: TrainingCach
             "outcome_head_accuracy": accuracy(heads, labels), "outcome_head_auroc": auroc(heads, labels)}
 
 
-def controllability(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache) -> dict:
+def controllability(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, tasks=None) -> dict:
     groups: dict = {}
-    for i in cache.select("programs"):
+    for i in cache.select("programs", tasks):
         e = cache.episodes[i]
         groups.setdefault((e["task"], e["seed"]), {})[e["policy"]] = i
     programs = sorted({p for g in groups.values() for p in g})
@@ -156,17 +156,14 @@ def program_panel(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, ho
 
 def evaluate(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, out: Path) -> dict:
     """Computes and writes OUT/eval.json (and eval_frames.png); returns the report."""
-    split = next((s for s in ("test", "val", "train") if cache.select(s)), None)
-    if split is None:
-        raise ValueError("the dataset has no test, val or train episodes to evaluate on")
-    if split != "test":
-        print(f"warning: no test episodes; evaluating on the {split} split (figures are not held-out)")
-    test = cache.select(split)
+    tasks = list(cfg.eval_tasks) or None
+    split, test = _held_out(cache, tasks, lambda e: True, "episodes")
     fq, pictures = frame_quality(cfg, params, norm, cache, _spread(test, cfg.eval_episodes))
     # random play is in the frame figures; success is judged on episodes that attempt the task
-    tasked = [i for i in test if cache.episodes[i].get("policy_kind") != "play"]
+    success_split, tasked = _held_out(cache, tasks, lambda e: e.get("policy_kind") != "play", "task episodes")
     sp = success_prediction(cfg, params, norm, cache, _spread(tasked, cfg.eval_episodes))
-    ctrl = controllability(cfg, params, norm, cache)
+    sp["split"] = success_split
+    ctrl = controllability(cfg, params, norm, cache, tasks)
     at = dict(zip(fq["horizons"], range(len(fq["horizons"])), strict=True))
     summary = {
         "psnr_h8": fq["psnr"][at[8]] if 8 in at else None,
@@ -180,6 +177,17 @@ def evaluate(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, out: Pa
     write_json_atomic(Path(out) / "eval.json", no_nan(report))
     _save_strip(Path(out) / "eval_frames.png", pictures, fq["horizons"])
     return report
+
+
+def _held_out(cache: TrainingCache, tasks, keep, what: str) -> tuple[str, list[int]]:
+    """The first of the test, val and train splits holding episodes that `keep` accepts, and those."""
+    for split in ("test", "val", "train"):
+        ids = [i for i in cache.select(split, tasks) if keep(cache.episodes[i])]
+        if ids:
+            if split != "test":
+                print(f"warning: no test {what}; evaluating on the {split} split (figures are not held-out)")
+            return split, ids
+    raise ValueError(f"the dataset has no test, val or train {what} to evaluate on")
 
 
 def _spread(ids: list[int], n: int) -> list[int]:

@@ -44,10 +44,10 @@ class TrainingDiverged(FloatingPointError):
 
 # ---- data ------------------------------------------------------------------------------------------
 
-def compute_norm(cache: TrainingCache) -> Norm:
-    """Mean and std of proprio and actions over the training split (std floored at 1e-2: a dimension
-    constant in training must not blow a policy's small deviation up)."""
-    eps = [cache.episodes[i] for i in cache.select("train")]
+def compute_norm(cache: TrainingCache, ids=None) -> Norm:
+    """Mean and std of proprio and actions over the episodes ids (default: the training split; std
+    floored at 1e-2: a dimension constant in training must not blow a policy's small deviation up)."""
+    eps = [cache.episodes[i] for i in (cache.select("train") if ids is None else ids)]
     if not eps:
         raise ValueError("the dataset has no training episodes")
     prop = np.concatenate([cache.array(e["shard"], "proprio")[e["start"]:e["start"] + e["length"]] for e in eps])
@@ -185,17 +185,20 @@ class Run:
         if bad:
             print(f"warning: {len(bad)} episodes hold NaN or inf in proprio or actions and are left out "
                   f"(first: {', '.join(bad[:5])})", file=sys.stderr)
-        norm_path = self.out / "norm.json"
-        if norm_path.exists():
-            self.norm = Norm.from_dict(json.loads(norm_path.read_text()))
-        else:
-            self.norm = compute_norm(self.cache)
-            write_json_atomic(norm_path, self.norm.to_dict())
+        bad = [t for t in cfg.train_tasks + cfg.eval_tasks if t not in self.cache.tasks]
+        if bad:
+            raise ValueError(f"tasks {bad} are not in the dataset (it has {self.cache.tasks})")
         if cfg.batch % jax.device_count():
             raise ValueError(f"batch {cfg.batch} must be a multiple of the device count {jax.device_count()}")
         local = cfg.batch // jax.process_count()
         self.loader = WindowLoader(self.cache, cfg.window, local, split="train", seed=cfg.seed + jax.process_index(),
-                                   cameras=[cfg.camera])
+                                   cameras=[cfg.camera], tasks=cfg.train_tasks or None, fraction=cfg.train_fraction)
+        norm_path = self.out / "norm.json"
+        if norm_path.exists():
+            self.norm = Norm.from_dict(json.loads(norm_path.read_text()))
+        else:
+            self.norm = compute_norm(self.cache, [int(i) for i in self.loader.episodes])
+            write_json_atomic(norm_path, self.norm.to_dict())
         self.val = WindowLoader(self.cache, cfg.window, local, split="val", seed=1234, cameras=[cfg.camera]) \
             if self.cache.select("val") else None
         self.mesh = make_mesh()

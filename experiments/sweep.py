@@ -1,0 +1,276 @@
+"""Scaling and transfer sweeps of the world model: `make sweep SWEEP=<name> SIZE=demo|full OUT=<dir>`.
+
+    python -m experiments.sweep data_scaling --size demo --out runs/sweeps/data_scaling_demo
+
+A sweep is a set of world-model trainings that differ in one thing (the swept value `x`), each
+repeated over seeds, on datasets it generates or reuses (`make data` presets with overrides, under
+`runs/data/`). Every run trains with `wm.train` in its own directory and is judged by the `eval.json`
+it writes; the sweep collects the figures of every run into `OUT/results.json` (per run, and per
+value: the mean over seeds with a 95% t-interval where there are several) and `OUT/sweep.png`.
+Rerunning resumes: finished runs are read back, unfinished ones resume from their checkpoints. With
+several GPUs the runs are spread over them (one training process per GPU).
+
+Sweeps:
+- `data_scaling`: 1/8, 1/4, 1/2 and all of the training episodes (nested subsets).
+- `task_scaling`: 1, 2, 4 tasks, always including the evaluated task (mug), evaluated on mug.
+"""
+
+from __future__ import annotations
+
+import argparse
+import concurrent.futures as cf
+import dataclasses
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from sim_data.success_table import write_json_atomic
+
+# eval.json figures compared across runs: (name in results.json, path in eval.json)
+METRICS = (
+    ("psnr_h8", ("summary", "psnr_h8")),
+    ("gain_over_copy_last_h8_db", ("summary", "gain_over_copy_last_h8_db")),
+    ("success_accuracy", ("summary", "success_accuracy")),
+    ("success_auroc", ("summary", "success_auroc")),
+    ("match_accuracy", ("summary", "match_accuracy")),
+    ("delta_psnr_db", ("summary", "delta_psnr_db")),
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class SweepRun:
+    """One training: its swept value x, seed, dataset key and `wm.train` overrides."""
+
+    x: float
+    seed: int
+    data: str
+    overrides: tuple
+
+    @property
+    def name(self) -> str:
+        return f"x={self.x:g}/seed={self.seed}"
+
+
+@dataclasses.dataclass(frozen=True)
+class Size:
+    """A sweep's scale: the training preset and its time per run, seeds, and dataset presets."""
+
+    train: str
+    minutes: float
+    seeds: int
+    data: dict  # dataset key -> (generate preset, overrides)
+
+
+SIZES = {
+    "demo": Size(train="demo", minutes=1.5, seeds=1, data={
+        "base": ("demo", ()),
+        "tasks4": ("demo", ("tasks=mug,step_back,wipe,shelf", "episodes=6", "play=4")),
+    }),
+    "full": Size(train="full", minutes=2.5, seeds=3, data={
+        "base": ("wm_full", ()),
+        "tasks4": ("wm_full", ("tasks=mug,wipe,shelf,arcade", "episodes=300", "play=300", "batch=600")),
+    }),
+}
+
+
+def data_scaling(size: Size) -> list[SweepRun]:
+    return [SweepRun(f, s, "base", (f"train_fraction={f}", f"seed={s}"))
+            for f in (0.125, 0.25, 0.5, 1.0) for s in range(size.seeds)]
+
+
+TASK_SETS = {1: "mug", 2: "mug,step_back", 4: "mug,step_back,wipe,shelf"}
+TASK_SETS_FULL = {1: "mug", 2: "mug,wipe", 4: "mug,wipe,shelf,arcade"}
+
+
+def task_scaling(size: Size) -> list[SweepRun]:
+    sets = TASK_SETS_FULL if size.train == "full" else TASK_SETS
+    return [SweepRun(float(n), s, "tasks4", (f"train_tasks={tasks}", "eval_tasks=mug", f"seed={s}"))
+            for n, tasks in sets.items() for s in range(size.seeds)]
+
+
+SWEEPS = {
+    "data_scaling": (data_scaling, "share of the training episodes", True),
+    "task_scaling": (task_scaling, "tasks trained on (evaluated on mug)", False),
+}
+
+
+# ---- running ---------------------------------------------------------------------------------------
+
+def gpu_count() -> int:
+    """GPUs on this host (0 without nvidia-smi), without initialising JAX in this process."""
+    if shutil.which("nvidia-smi") is None:
+        return 0
+    out = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True, check=False).stdout
+    return sum(line.startswith("GPU ") for line in out.splitlines())
+
+
+def ensure_data(size: Size, keys, root: Path) -> dict:
+    """Generates (or completes) each dataset the sweep needs; returns key -> directory."""
+    from sim_data import generate
+
+    dirs = {}
+    for key in sorted(set(keys)):
+        preset, overrides = size.data[key]
+        # a preset as it is is the pipeline's own dataset (runs/data/<preset>), shared
+        d = root / "data" / (preset if not overrides else f"sweep_{preset}_{key}")
+        generate.main(["--config", preset, "--out", str(d), *overrides])  # resumes; refuses another config
+        dirs[key] = d
+    return dirs
+
+
+def train_run(run: SweepRun, size: Size, data: Path, out: Path, gpu: int | None, log: Path) -> int:
+    """Trains (or resumes) one run in a subprocess; returns its exit code."""
+    env = dict(os.environ)
+    if gpu is not None:
+        env["CUDA_VISIBLE_DEVICES"] = str(gpu)
+    cmd = [sys.executable, "-m", "wm.train", "--config", size.train, "--data", str(data), "--out", str(out),
+           f"max_minutes={size.minutes}", *run.overrides]
+    with open(log, "a") as f:
+        return subprocess.run(cmd, env=env, stdout=f, stderr=subprocess.STDOUT, check=False).returncode
+
+
+def run_sweep(name: str, size_name: str, out: Path, root: Path = Path("runs"), progress: bool = True) -> dict:
+    if name not in SWEEPS:
+        raise ValueError(f"unknown sweep {name!r}; choose from {', '.join(SWEEPS)}")
+    if size_name not in SIZES:
+        raise ValueError(f"unknown size {size_name!r}; choose from {', '.join(SIZES)}")
+    make_runs, x_label, log_x = SWEEPS[name]
+    size = SIZES[size_name]
+    runs = make_runs(size)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    _check_sweep(out, name, size_name)
+    data = ensure_data(size, [r.data for r in runs], root)
+    todo = [r for r in runs if not (out / r.name / "eval.json").exists()]
+    workers = max(1, gpu_count())
+    t0 = time.perf_counter()
+    print(f"{name} ({size_name}): {len(runs)} runs, {len(todo)} to train, {workers} at a time", flush=True)
+    with cf.ThreadPoolExecutor(workers) as pool:
+        futs = {}
+        for k, r in enumerate(todo):
+            (out / r.name).mkdir(parents=True, exist_ok=True)
+            gpu = k % workers if workers > 1 else None
+            futs[pool.submit(train_run, r, size, data[r.data], out / r.name, gpu, out / r.name / "train.log")] = r
+        for done, fut in enumerate(cf.as_completed(futs), 1):
+            r = futs[fut]
+            rc = fut.result()
+            print(f"[{done}/{len(todo)}] {r.name}: {'done' if rc == 0 else f'failed (exit {rc}), see train.log'} "
+                  f"({time.perf_counter() - t0:.0f} s)", flush=True)
+    results = collect(name, size_name, runs, out, x_label)
+    write_json_atomic(out / "results.json", results)
+    plot(results, out / "sweep.png", log_x)
+    print(results["finding"])
+    return results
+
+
+def _check_sweep(out: Path, name: str, size: str) -> None:
+    path = out / "sweep.json"
+    mine = {"sweep": name, "size": size}
+    if path.exists() and json.loads(path.read_text()) != mine:
+        raise ValueError(f"{out} holds another sweep ({json.loads(path.read_text())}); use another OUT")
+    write_json_atomic(path, mine)
+
+
+# ---- results ---------------------------------------------------------------------------------------
+
+def _get(d: dict, path):
+    for k in path:
+        if not isinstance(d, dict) or d.get(k) is None:
+            return None
+        d = d[k]
+    return d
+
+
+def mean_interval(values) -> tuple[float | None, list | None]:
+    """Mean of the finite values, and a 95% t-interval of it when there are two or more."""
+    v = np.array([x for x in values if x is not None and np.isfinite(x)], np.float64)
+    if len(v) == 0:
+        return None, None
+    if len(v) == 1:
+        return float(v[0]), None
+    from scipy import stats
+
+    half = stats.t.ppf(0.975, len(v) - 1) * v.std(ddof=1) / math.sqrt(len(v))
+    return float(v.mean()), [float(v.mean() - half), float(v.mean() + half)]
+
+
+def collect(name: str, size: str, runs: list[SweepRun], out: Path, x_label: str) -> dict:
+    """results.json: every run's figures, and per swept value their mean and interval over seeds."""
+    rows = []
+    for r in runs:
+        path = out / r.name / "eval.json"
+        ev = json.loads(path.read_text()) if path.exists() else None
+        rows.append({"x": r.x, "seed": r.seed, "run": r.name, "finished": ev is not None,
+                     **{m: _get(ev, p) if ev else None for m, p in METRICS}})
+    xs = sorted({r.x for r in runs})
+    per_x = []
+    for x in xs:
+        mine = [row for row in rows if row["x"] == x]
+        entry = {"x": x, "seeds": sum(row["finished"] for row in mine)}
+        for m, _ in METRICS:
+            entry[m], entry[f"{m}_ci"] = mean_interval([row[m] for row in mine])
+        per_x.append(entry)
+    return {"sweep": name, "size": size, "x_label": x_label, "runs": rows, "per_x": per_x,
+            "finding": finding(name, x_label, per_x)}
+
+
+def finding(name: str, x_label: str, per_x: list[dict]) -> str:
+    """One sentence of what the figures do from the smallest to the largest swept value."""
+    if len(per_x) < 2:
+        return f"{name}: fewer than two values finished."
+    a, b = per_x[0], per_x[-1]
+    parts = []
+    for m in ("success_auroc", "psnr_h8", "match_accuracy"):
+        if a[m] is not None and b[m] is not None:
+            parts.append(f"{m} {a[m]:.3g} -> {b[m]:.3g}")
+    return f"{name}: from {x_label} = {a['x']:g} to {b['x']:g}: " + ", ".join(parts) + "."
+
+
+def plot(results: dict, path: Path, log_x: bool) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    per_x = results["per_x"]
+    fig, axes = plt.subplots(1, len(METRICS), figsize=(3.0 * len(METRICS), 2.8))
+    for ax, (m, _) in zip(axes, METRICS, strict=True):
+        pts = [(e["x"], e[m], e[f"{m}_ci"]) for e in per_x if e[m] is not None]
+        for row in results["runs"]:
+            if row[m] is not None:
+                ax.plot(row["x"], row[m], ".", color="0.6", ms=4)
+        if pts:
+            x, y, ci = zip(*pts, strict=True)
+            lo = [c[0] if c else v for c, v in zip(ci, y, strict=True)]
+            hi = [c[1] if c else v for c, v in zip(ci, y, strict=True)]
+            ax.errorbar(x, y, yerr=[np.subtract(y, lo), np.subtract(hi, y)], marker="o", capsize=3)
+        if log_x:
+            ax.set_xscale("log", base=2)
+        ax.set_title(m, fontsize=9)
+        ax.set_xlabel(results["x_label"], fontsize=8)
+    fig.suptitle(f"{results['sweep']} ({results['size']})", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("sweep", choices=sorted(SWEEPS))
+    p.add_argument("--size", default="demo", choices=sorted(SIZES))
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--root", type=Path, default=Path("runs"), help="where the sweep's datasets go (ROOT/data/...)")
+    a = p.parse_args(argv)
+    run_sweep(a.sweep, a.size, a.out, a.root)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,46 @@
+"""Sweeps: the per-value statistics against hand-computed ones, results read back, bad names refused."""
+
+import json
+
+import numpy as np
+import pytest
+
+from experiments import sweep as W
+
+
+def test_mean_interval_is_a_t_interval():
+    mean, ci = W.mean_interval([0.5, 0.7, 0.9, None])
+    # mean 0.7, sd 0.2, n 3: t(0.975, 2) = 4.302653
+    half = 4.302653 * 0.2 / np.sqrt(3)
+    assert mean == pytest.approx(0.7) and ci == pytest.approx([0.7 - half, 0.7 + half], abs=1e-5)
+    assert W.mean_interval([0.3]) == (0.3, None) and W.mean_interval([None]) == (None, None)
+
+
+def test_collect_reads_every_finished_run(tmp_path):
+    runs = W.data_scaling(W.Size(train="demo", minutes=1, seeds=2, data={}))
+    assert [r.x for r in runs] == [0.125, 0.125, 0.25, 0.25, 0.5, 0.5, 1.0, 1.0]
+    assert "train_fraction=0.125" in runs[0].overrides and "seed=1" in runs[1].overrides
+    for k, r in enumerate(runs[:-1]):  # the last run has not finished
+        (tmp_path / r.name).mkdir(parents=True)
+        summary = {"psnr_h8": 20.0 + k, "success_auroc": 0.5 + 0.05 * k}
+        (tmp_path / r.name / "eval.json").write_text(json.dumps({"summary": summary}))
+    res = W.collect("data_scaling", "demo", runs, tmp_path, "share")
+    assert [e["seeds"] for e in res["per_x"]] == [2, 2, 2, 1]
+    assert res["per_x"][0]["psnr_h8"] == pytest.approx(20.5) and res["per_x"][3]["psnr_h8"] == pytest.approx(26.0)
+    assert res["per_x"][3]["psnr_h8_ci"] is None and res["per_x"][0]["match_accuracy"] is None
+    assert "0.525 -> 0.8" in res["finding"]
+    W.plot(res, tmp_path / "sweep.png", log_x=True)
+    assert (tmp_path / "sweep.png").stat().st_size > 1000
+
+
+def test_task_scaling_always_trains_on_the_evaluated_task():
+    for r in W.task_scaling(W.SIZES["demo"]):
+        tasks = next(o for o in r.overrides if o.startswith("train_tasks=")).split("=")[1].split(",")
+        assert "mug" in tasks and len(tasks) == int(r.x) and "eval_tasks=mug" in r.overrides
+
+
+def test_unknown_sweep_and_size_are_refused(tmp_path):
+    with pytest.raises(ValueError, match="unknown sweep"):
+        W.run_sweep("moon_scaling", "demo", tmp_path)
+    with pytest.raises(ValueError, match="unknown size"):
+        W.run_sweep("data_scaling", "huge", tmp_path)
