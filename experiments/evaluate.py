@@ -64,6 +64,9 @@ class EvalConfig:
       video_policies: policies per task whose episodes are kept for the report (lowest, middle and
         highest true rate first); video_episodes: kept episodes per such policy.
       gaps: true gaps of the decision analysis; decision_episodes: episodes per policy on its curve.
+      max_minutes: stop before a task that would end past this wall time (judged by the longest
+        task so far; 0: no limit), so a stage fits its time slot; a rerun evaluates the rest. It
+        does not change results and is not part of the configuration a rerun must match.
     """
 
     policies: tuple = ()
@@ -78,6 +81,7 @@ class EvalConfig:
     video_episodes: int = 2
     gaps: tuple = (0.1, 0.2)
     decision_episodes: tuple = (5, 10, 20, 50, 100, 200, 500)
+    max_minutes: float = 0.0
 
     def validate(self) -> None:
         if not self.policies:
@@ -94,7 +98,7 @@ class EvalConfig:
 
 PRESETS = {
     "demo": EvalConfig(policies=("runs/policies/demo",), wm="runs/wm/demo", episodes=8, batch=256),
-    "full": EvalConfig(policies=("runs/policies/full",), wm="runs/wm/full", episodes=200, batch=2400),
+    "full": EvalConfig(policies=("runs/policies/full",), wm="runs/wm/full", episodes=200, batch=2400, max_minutes=8.0),
 }
 
 
@@ -284,8 +288,9 @@ def decision_analysis(cfg: EvalConfig, rows: list[dict], tasks: dict, alignment:
 
 # ---- the run -----------------------------------------------------------------------------------------
 
-def run(cfg: EvalConfig, out: Path, progress: bool = True) -> dict:
-    """Evaluates (or completes the evaluation of) cfg into out; returns the results."""
+def run(cfg: EvalConfig, out: Path, progress: bool = True) -> dict | None:
+    """Evaluates (or completes the evaluation of) cfg into out; returns the results, or None when
+    cfg.max_minutes stopped it before the last task (rerun to finish)."""
     cfg.validate()
     out = Path(out)
     (out / "tasks").mkdir(parents=True, exist_ok=True)
@@ -306,14 +311,23 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True) -> dict:
     used = used_seeds(wm_data, *zoo_data)
     engine = cfg.engine or default_engine()
     results, by_name = {}, {s.name: s for s in sources}
+    t_start, longest = time.perf_counter(), 0.0
     for task in tasks:
         path = out / "tasks" / f"{task}.npz"
         task_sources = [s for s in sources if s.runs_on(task)]
         if path.exists():
             results[task] = _load_task(path)
             continue
+        elapsed = time.perf_counter() - t_start
+        if cfg.max_minutes and longest and elapsed + longest > 60 * cfg.max_minutes:
+            left = [t for t in tasks if not (out / "tasks" / f"{t}.npz").exists()]
+            print(f"stopping after {elapsed:.0f} s (max_minutes={cfg.max_minutes:g}): rerun the same command to "
+                  f"evaluate {', '.join(left)}", file=sys.stderr)
+            return None
+        t_task = time.perf_counter()
         seeds = heldout_seeds(task, cfg.episodes, cfg.seed, used)
         res = evaluate_task(cfg, task, task_sources, wm, seeds, engine, progress)
+        longest = max(longest, time.perf_counter() - t_task)
         res["seeds"] = seeds
         _save_task(path, res)
         results[task] = _load_task(path)
@@ -364,6 +378,7 @@ def _load_task(path: Path) -> dict:
 
 def _check_config(cfg: EvalConfig, out: Path) -> None:
     mine = json.loads(json.dumps(dataclasses.asdict(cfg)))
+    mine.pop("max_minutes")  # a time budget does not change what is computed
     path = out / "config.json"
     if path.exists():
         if json.loads(path.read_text()) != mine:
@@ -384,6 +399,8 @@ def main(argv=None) -> int:
         p.error(str(e))
     t0 = time.perf_counter()
     res = run(cfg, a.out)
+    if res is None:
+        return 0  # stopped by max_minutes; the message says what is left
     m = res["metrics"]["overall"]
     print(json.dumps({k: m[k] for k in ("pearson", "spearman", "mmrv", "pairwise_acc_gap10", "alignment")}, indent=1))
     print(f"{len(res['policies'])} policies in {time.perf_counter() - t0:.0f} s; results {a.out / 'results.json'}")
