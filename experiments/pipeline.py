@@ -51,8 +51,7 @@ PIPELINES = {
     "demo": Pipeline(data="demo", policies="demo", train="demo", eval="demo"),
     # the GPU preset: two tasks, scripted episodes of 5 skills, random play and the controllability
     # programs; the zoo's five lineages of 8 checkpoints evaluated over 200 held-out initial states per task
-    "full": Pipeline(data="wm_full", policies="full", train="full", eval="full", train_overrides=("w_success=0.5",),
-                     eval_overrides=("policies=runs/policies/full",)),
+    "full": Pipeline(data="wm_full", policies="full", train="full", eval="full", train_overrides=("w_success=0.5",)),
 }
 
 
