@@ -26,7 +26,7 @@ from sim_data import robot as R
 from sim_data.bench import device_name
 from sim_data.engines import default_engine
 from sim_data.generate import cached_env, cached_renderers
-from sim_data.learned import BCPolicy, PolicyNetConfig, init_params
+from sim_data.learned import BCPolicy, init_params
 from sim_data.policies import ProgramPolicy, program_params
 from sim_data.rollout import record_episodes
 from sim_data.success_table import write_json_atomic
@@ -71,8 +71,7 @@ def bench(task: str, batch: int, engine: str, repeats: int = 2) -> dict:
     norm = {"proprio_mean": np.zeros(R.PROPRIO_DIM), "proprio_std": np.ones(R.PROPRIO_DIM),
             "action_mean": np.zeros(R.ACTION_DIM), "action_std": np.ones(R.ACTION_DIM)}
     rows = []
-    for net in (zoo.conv, zoo.vit):
-        net_cfg: PolicyNetConfig = net
+    for net_cfg in (zoo.conv, zoo.vit):
         policy = BCPolicy(net_cfg)
         params = init_params(net_cfg, jax.random.PRNGKey(0), norm, use_proprio=True)
         policy_s = _timed_rollout(env, policy, params, renderers, repeats)

@@ -134,16 +134,19 @@ class Decoder(nn.Module):
         cfg, dt = self.cfg, self.cfg.compute_dtype
         p = cfg.size // LATENT_SIDE
         prev_cells = space_to_depth(prev.astype(dt) * 2.0 - 1.0, p)  # (N, 8, 8, 3 p^2)
-        if not cfg.compose:
-            prev_cells = jnp.zeros_like(prev_cells)
+
+        def from_prev(width):
+            """The previous frame's cells, embedded; nothing when the latents alone make the frame."""
+            return nn.Dense(width, dtype=dt)(prev_cells) if cfg.compose else 0.0
+
         if cfg.tokenizer == "patch":
             h = cfg.channels[-1]
-            x = nn.gelu(nn.Conv(h, (3, 3), dtype=dt)(z.astype(dt)) + nn.Dense(h, dtype=dt)(prev_cells))
+            x = nn.gelu(nn.Conv(h, (3, 3), dtype=dt)(z.astype(dt)) + from_prev(h))
             x = x + nn.gelu(nn.Dense(h, dtype=dt)(x))
             out = depth_to_space(nn.Dense(4 * p * p, dtype=jnp.float32)(x).astype(jnp.float32), p)
         else:
             chans = cfg.channels[::-1]
-            x = nn.Conv(chans[0], (3, 3), dtype=dt)(z.astype(dt)) + nn.Dense(chans[0], dtype=dt)(prev_cells)
+            x = nn.Conv(chans[0], (3, 3), dtype=dt)(z.astype(dt)) + from_prev(chans[0])
             for ch in chans:
                 x = ResBlock(x.shape[-1], dt)(x)
                 n, h, w, c = x.shape
