@@ -9,6 +9,9 @@ from experiments import evaluate as E
 from experiments import stats as S
 from experiments.report import write_report
 
+# the smoke dataset, world model and zoo are session fixtures: these files share one xdist worker
+pytestmark = pytest.mark.xdist_group("smoke")
+
 
 @pytest.fixture(scope="module")
 def evaluation(smoke_zoo, smoke_world_model, tmp_path_factory):

@@ -16,6 +16,9 @@ from wm.config import SMOKE_MODEL, make_config, override
 from wm.model import WorldModel, init_params
 from wm.train import Run, TrainingDiverged
 
+# the smoke dataset, world model and zoo are session fixtures: these files share one xdist worker
+pytestmark = pytest.mark.xdist_group("smoke")
+
 CFG = SMOKE_MODEL
 
 
@@ -30,6 +33,22 @@ def test_psnr_ssim_auroc_hand_values():
     assert M.auroc([0.5, 0.5, 0.2], [1, 0, 0]) == pytest.approx(0.75)  # a tie counts one half
     assert np.isnan(M.auroc([0.1, 0.2], [1, 1]))
     assert M.accuracy([0.2, 0.7, 0.6], [0, 1, 0]) == pytest.approx(2 / 3)
+
+
+def test_warp_shifts_pixels_bilinearly_and_clamps_at_the_border():
+    from wm.model import warp
+
+    rng = np.random.default_rng(0)
+    img = jnp.asarray(rng.random((2, 64, 64, 3)), jnp.float32)
+    np.testing.assert_array_equal(warp(img, jnp.zeros((2, 8, 8, 2))), img)
+    one_px = jnp.zeros((2, 8, 8, 2)).at[..., 1].set(1 / 8)  # one latent cell is 8 pixels at 64 px
+    got = np.asarray(warp(img, one_px))
+    np.testing.assert_allclose(got[:, :, :-1], img[:, :, 1:], atol=1e-6)  # pixel x reads x + 1
+    np.testing.assert_allclose(got[:, :, -1], img[:, :, -1], atol=1e-6)  # clamped at the right edge
+    half_up = jnp.zeros((2, 8, 8, 2)).at[..., 0].set(-0.5 / 8)
+    np.testing.assert_allclose(np.asarray(warp(img, half_up))[:, 1:], 0.5 * (img[:, 1:] + img[:, :-1]), atol=1e-6)
+    grad = jax.grad(lambda f: warp(img, f).sum())(one_px * 0.3)  # the flow learns from the pixels
+    assert float(jnp.abs(grad).max()) > 0
 
 
 @pytest.fixture(scope="module")
@@ -54,6 +73,9 @@ def test_modules_shapes_causality_and_context(model_and_inputs):
     assert x.shape == frames.shape and 0.0 <= float(x.min()) and float(x.max()) <= 1.0
     out = m.apply({"params": params}, z, proprio, action, method=WorldModel.predict)
     assert out["z"].shape == z.shape and out["proprio"].shape == proprio.shape and out["success"].shape == (2, 6)
+    assert out["flow"].shape == (2, 6, 8, 8, 2)
+    warped = m.apply({"params": params}, z, prev, out["flow"], method=WorldModel.decode)
+    assert float(jnp.abs(warped - x).max()) > 1e-3  # the flow reaches the frame
     # frame 4 changed: predictions made at frames 0..3 are unchanged, at frame 4 they change
     z2 = z.at[:, 4].set(-z[:, 4])
     out2 = m.apply({"params": params}, z2, proprio, action, method=WorldModel.predict)

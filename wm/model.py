@@ -25,6 +25,7 @@ import jax.numpy as jnp
 
 LATENT_SIDE = 8
 INPUT_CLIP = 10.0  # standardised proprio and actions are clipped to +-INPUT_CLIP, predicted proprio too
+COPY_BIAS = 4.0  # the compose mask's initial logit: an untrained decoder passes the previous frame through (98%)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -38,6 +39,9 @@ class ModelConfig:
       proprio_dim, action_dim: input sizes; dtype: compute dtype ("bfloat16" or "float32").
       compose: the decoder composes its output with the previous frame through a predicted mask
         (False: the latents alone make the frame).
+      warp: the dynamics also predicts a flow field (8x8, upsampled) that warps the previous frame
+        before the decoder composes with it, as the spatial-transformer predictors of Finn et al.
+        2016: the view turning and the arms moving become displacements of pixels already seen.
     """
 
     size: int = 64
@@ -54,6 +58,7 @@ class ModelConfig:
     action_dim: int = 20
     dtype: str = "bfloat16"
     compose: bool = True
+    warp: bool = True
 
     def validate(self) -> None:
         stages = int(round(math.log2(self.size / LATENT_SIDE)))
@@ -63,6 +68,8 @@ class ModelConfig:
             raise ValueError(f"size {self.size} needs {stages} encoder stages (channels), got {self.channels}")
         if LATENT_SIDE % self.patch or self.dim % self.heads:
             raise ValueError("patch must divide 8 and heads must divide dim")
+        if self.warp and not self.compose:
+            raise ValueError("warp needs compose: the warped previous frame is what the decoder composes with")
 
     @property
     def tokens_per_frame(self) -> int:
@@ -96,6 +103,25 @@ def depth_to_space(x, p):
     return x.reshape(n, h, w, p, p, -1).transpose(0, 1, 3, 2, 4, 5).reshape(n, h * p, w * p, -1)
 
 
+def warp(img, flow):
+    """Backward warp: (N, S, S, C) images and (N, 8, 8, 2) flows in latent cells (dy, dx; one cell is
+    S/8 pixels) -> (N, S, S, C), pixel (y, x) read bilinearly at (y + dy, x + dx), clamped at the border."""
+    n, s, _, c = img.shape
+    f = jax.image.resize(flow.astype(jnp.float32), (n, s, s, 2), "linear") * (s / LATENT_SIDE)
+    yy, xx = jnp.meshgrid(jnp.arange(s, dtype=jnp.float32), jnp.arange(s, dtype=jnp.float32), indexing="ij")
+    y, x = jnp.clip(yy + f[..., 0], 0, s - 1), jnp.clip(xx + f[..., 1], 0, s - 1)
+    y0, x0 = jnp.floor(y), jnp.floor(x)
+    wy, wx = (y - y0)[..., None], (x - x0)[..., None]
+    y0, x0 = y0.astype(jnp.int32), x0.astype(jnp.int32)
+    y1, x1 = jnp.minimum(y0 + 1, s - 1), jnp.minimum(x0 + 1, s - 1)
+    flat = img.reshape(n, s * s, c)
+
+    def at(yi, xi):
+        return jnp.take_along_axis(flat, (yi * s + xi).reshape(n, s * s, 1), axis=1).reshape(n, s, s, c)
+
+    return ((1 - wy) * ((1 - wx) * at(y0, x0) + wx * at(y0, x1)) + wy * ((1 - wx) * at(y1, x0) + wx * at(y1, x1)))
+
+
 class Encoder(nn.Module):
     """(N, S, S, 3) uint8 -> (N, 8, 8, C) latents in [-1, 1]."""
 
@@ -120,19 +146,23 @@ class Encoder(nn.Module):
 
 
 class Decoder(nn.Module):
-    """(N, 8, 8, C) latents and the previous frame (N, S, S, 3) in [0, 1] -> (N, S, S, 3) float32 in [0, 1].
+    """(N, 8, 8, C) latents, the previous frame (N, S, S, 3) in [0, 1] and optionally a flow (N, 8, 8, 2)
+    that warps it first -> (N, S, S, 3) float32 in [0, 1].
 
     The output composes a generated frame with the previous one through a predicted per-pixel mask
     (`mask * prev + (1 - mask) * generated`, as in Finn et al. 2016's CDNA), so what does not move is
-    carried over exactly and the latents spend their capacity on what changes.
+    carried over exactly and the latents spend their capacity on what changes. The mask starts near
+    1 (COPY_BIAS), so an untrained model is the copy-last-frame baseline and training departs from it.
     """
 
     cfg: ModelConfig
 
     @nn.compact
-    def __call__(self, z, prev):
+    def __call__(self, z, prev, flow=None):
         cfg, dt = self.cfg, self.cfg.compute_dtype
         p = cfg.size // LATENT_SIDE
+        if flow is not None and cfg.warp:
+            prev = warp(prev.astype(jnp.float32), flow)
         prev_cells = space_to_depth(prev.astype(dt) * 2.0 - 1.0, p)  # (N, 8, 8, 3 p^2)
 
         def from_prev(width):
@@ -156,7 +186,7 @@ class Decoder(nn.Module):
             out = nn.Conv(4, (3, 3), dtype=jnp.float32)(x).astype(jnp.float32)
         if not cfg.compose:
             return nn.sigmoid(out[..., :3])
-        mask = nn.sigmoid(out[..., 3:])
+        mask = nn.sigmoid(out[..., 3:] + COPY_BIAS)
         return mask * prev.astype(jnp.float32) + (1.0 - mask) * nn.sigmoid(out[..., :3])
 
 
@@ -208,7 +238,8 @@ class Dynamics(nn.Module):
         """z: (B, T, 8, 8, C); proprio: (B, T, 37) normalised; action: (B, T, 20) normalised;
         valid: optional (B, T) bool, False for empty slots of an imagination buffer.
         Returns {"z": (B, T, 8, 8, C), "proprio": (B, T, 37), "success": (B, T) logits,
-        "outcome": (B, T) logits}, entry t being the prediction for frame t+1."""
+        "outcome": (B, T) logits, "flow": (B, T, 8, 8, 2) in latent cells}, entry t being the
+        prediction for frame t+1 (the flow warps frame t towards it)."""
         cfg, dt = self.cfg, self.cfg.compute_dtype
         b, t = z.shape[:2]
         n = cfg.tokens_per_frame
@@ -229,12 +260,17 @@ class Dynamics(nn.Module):
         h = nn.LayerNorm(use_scale=False, use_bias=False, dtype=dt)(x) * (1 + scale) + shift
         dz = nn.Dense(cfg.patch * cfg.patch * cfg.latent, dtype=jnp.float32, kernel_init=nn.initializers.zeros)(h)
         z_next = jnp.clip(z + unpatchify(dz.astype(jnp.float32), cfg.patch, cfg.latent), -1.0, 1.0)
+        flow = nn.Dense(cfg.patch * cfg.patch * 2, dtype=jnp.float32, kernel_init=nn.initializers.zeros)(h)
+        # plus the ego-motion field straight from the body's motion (the camera rides on the neck and base)
+        ego = nn.Dense(LATENT_SIDE * LATENT_SIDE * 2, dtype=jnp.float32, kernel_init=nn.initializers.zeros)(
+            nn.silu(cond).astype(jnp.float32)).reshape(b, t, LATENT_SIDE, LATENT_SIDE, 2)
+        flow = unpatchify(flow.astype(jnp.float32), cfg.patch, 2) + ego
         pooled = h.mean(axis=2).astype(jnp.float32)
         heads = nn.Dense(cfg.proprio_dim + 2, dtype=jnp.float32)(nn.silu(nn.Dense(cfg.dim, dtype=jnp.float32)(pooled)))
         # clipped like the standardised inputs, so that a long imagined rollout cannot diverge
         p_out = jnp.clip(p_next + heads[..., :cfg.proprio_dim], -INPUT_CLIP, INPUT_CLIP)
         return {"z": z_next, "proprio": p_out,
-                "success": heads[..., cfg.proprio_dim], "outcome": heads[..., cfg.proprio_dim + 1]}
+                "success": heads[..., cfg.proprio_dim], "outcome": heads[..., cfg.proprio_dim + 1], "flow": flow}
 
     def _time_bias(self, t, n, valid):
         cfg = self.cfg
@@ -266,11 +302,12 @@ class WorldModel(nn.Module):
         z = self.encoder(frames.reshape((-1,) + frames.shape[-3:]))
         return z.reshape(lead + z.shape[1:])
 
-    def decode(self, z, prev):
-        """(..., 8, 8, C) latents and the previous frames (..., S, S, 3) in [0, 1] -> (..., S, S, 3)
-        float32 in [0, 1]."""
+    def decode(self, z, prev, flow=None):
+        """(..., 8, 8, C) latents, the previous frames (..., S, S, 3) in [0, 1] and optionally the
+        predicted flows (..., 8, 8, 2) -> (..., S, S, 3) float32 in [0, 1]."""
         lead = z.shape[:-3]
-        x = self.decoder(z.reshape((-1,) + z.shape[-3:]), prev.reshape((-1,) + prev.shape[-3:]))
+        flat = None if flow is None else flow.reshape((-1,) + flow.shape[-3:])
+        x = self.decoder(z.reshape((-1,) + z.shape[-3:]), prev.reshape((-1,) + prev.shape[-3:]), flat)
         return x.reshape(lead + x.shape[1:])
 
     def predict(self, z, proprio, action, valid=None):

@@ -92,7 +92,7 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None):
     for k in range(1 + cfg.rollout_passes):
         pred = model.apply({"params": params}, z_in, p_in, action, method=WorldModel.predict)
         zp = pred["z"][:, :-1]
-        pixels = model.apply({"params": params}, zp, prev, method=WorldModel.decode)
+        pixels = model.apply({"params": params}, zp, prev, pred["flow"][:, :-1], method=WorldModel.decode)
         latent = jnp.mean((zp - z_target) ** 2)
         pixel = jnp.mean((pixels - target) ** 2)
         prop = jnp.mean((pred["proprio"][:, :-1] - proprio[:, 1:]) ** 2)
