@@ -55,7 +55,7 @@ render-check: setup
 	$(PY) -m sim_data.render_check --states 50 --out runs/render_check.json
 
 test: setup
-	$(PY) -m pytest -q -n 2 --dist loadgroup
+	$(PY) -m pytest -q -n 2 --dist loadfile
 
 test-slow: setup
 	$(PY) -m pytest -q -m slow

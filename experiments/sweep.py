@@ -13,6 +13,18 @@ several GPUs the runs are spread over them (one training process per GPU).
 Sweeps:
 - `data_scaling`: 1/8, 1/4, 1/2 and all of the training episodes (nested subsets).
 - `task_scaling`: 1, 2, 4 tasks, always including the evaluated task (mug), evaluated on mug.
+- `transfer`: shelf alone (x=1) against shelf and arcade (x=2), evaluated on shelf.
+- `airfryer_transfer`: without (x=0: mug only, the air fryer standing in every scene) and with
+  (x=1) air-fryer interaction data, evaluated on the air fryer.
+- `held_out_object`: one model, evaluated on test scenes like its training ones (x=0) and on
+  scenes with the plant it never saw (x=1).
+- `autonomous_rollouts`: scripted demonstrations only (x=0) against the same number of episodes of
+  which half are the zoo's `conv_noproprio` rollouts, failures included (x=0.5); both evaluated
+  on the mixed dataset's test split.
+
+A run whose `eval_data` is another dataset than its training data trains with `--no-eval` and is
+evaluated by `python -m wm.evaluate` on that dataset; a run with `model_of` trains nothing and
+evaluates the model of the named run.
 """
 
 from __future__ import annotations
@@ -41,21 +53,34 @@ METRICS = (
     ("success_auroc", ("summary", "success_auroc")),
     ("match_accuracy", ("summary", "match_accuracy")),
     ("delta_psnr_db", ("summary", "delta_psnr_db")),
+    ("pooled_gain_h8_db", ("summary", "pooled_gain_over_copy_last_h8_db")),
 )
 
 
 @dataclasses.dataclass(frozen=True)
 class SweepRun:
-    """One training: its swept value x, seed, dataset key and `wm.train` overrides."""
+    """One training: its swept value x, seed, dataset key and `wm.train` overrides; eval_data: the
+    dataset key it is evaluated on (None: its own); model_of: the run whose model it evaluates
+    instead of training one."""
 
     x: float
     seed: int
     data: str
     overrides: tuple
+    eval_data: str | None = None
+    model_of: str | None = None
 
     @property
     def name(self) -> str:
         return f"x={self.x:g}/seed={self.seed}"
+
+    @property
+    def trains(self) -> bool:
+        return self.model_of is None
+
+    @property
+    def evaluated_apart(self) -> bool:
+        return not self.trains or (self.eval_data is not None and self.eval_data != self.data)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -65,17 +90,27 @@ class Size:
     train: str
     minutes: float
     seeds: int
-    data: dict  # dataset key -> (generate preset, overrides)
+    data: dict  # dataset key -> (generate preset, overrides); "{zoo}" in an override is the zoo's directory
+    zoo: str = ""  # the zoo preset trained on the "base" dataset, for sweeps with policy rollouts
 
 
 SIZES = {
-    "demo": Size(train="demo", minutes=1.5, seeds=1, data={
+    "demo": Size(train="demo", minutes=1.5, seeds=1, zoo="demo", data={
         "base": ("demo", ()),
         "tasks4": ("demo", ("tasks=mug,step_back,wipe,shelf", "episodes=6", "play=4")),
+        "shelf_arcade": ("demo", ("tasks=shelf,arcade", "episodes=6", "play=4")),
+        "airfryer_mug": ("demo", ("tasks=airfryer,mug", "episodes=6", "play=4")),
+        "heldout": ("demo", ("heldout=true",)),
+        "mixed": ("demo", ("episodes=4", "policies={zoo}#conv_noproprio", "policy_episodes=1")),
     }),
-    "full": Size(train="full", minutes=2.5, seeds=3, data={
+    "full": Size(train="full", minutes=2.5, seeds=3, zoo="full", data={
         "base": ("wm_full", ()),
         "tasks4": ("wm_full", ("tasks=mug,wipe,shelf,arcade", "episodes=300", "play=300", "batch=600")),
+        "shelf_arcade": ("wm_full", ("tasks=shelf,arcade", "episodes=300", "play=300", "batch=600")),
+        "airfryer_mug": ("wm_full", ("tasks=airfryer,mug", "episodes=300", "play=300", "batch=600")),
+        "heldout": ("wm_full", ("heldout=true", "episodes=100", "play=100", "programs=8")),
+        # 5 skills x 300 scripted + 8 checkpoints x 150 rollouts: 2700 task episodes as in 5 x 600 - 300
+        "mixed": ("wm_full", ("episodes=300", "policies={zoo}#conv_noproprio", "policy_episodes=150")),
     }),
 }
 
@@ -89,15 +124,40 @@ TASK_SETS = {1: "mug", 2: "mug,step_back", 4: "mug,step_back,wipe,shelf"}
 TASK_SETS_FULL = {1: "mug", 2: "mug,wipe", 4: "mug,wipe,shelf,arcade"}
 
 
+def _task_sets(size: Size, data: str, sets: dict, evaluated: str) -> list[SweepRun]:
+    return [SweepRun(float(x), s, data, (f"train_tasks={tasks}", f"eval_tasks={evaluated}", f"seed={s}"))
+            for x, tasks in sets.items() for s in range(size.seeds)]
+
+
 def task_scaling(size: Size) -> list[SweepRun]:
-    sets = TASK_SETS_FULL if size.train == "full" else TASK_SETS
-    return [SweepRun(float(n), s, "tasks4", (f"train_tasks={tasks}", "eval_tasks=mug", f"seed={s}"))
-            for n, tasks in sets.items() for s in range(size.seeds)]
+    return _task_sets(size, "tasks4", TASK_SETS_FULL if size.train == "full" else TASK_SETS, "mug")
+
+
+def transfer(size: Size) -> list[SweepRun]:
+    return _task_sets(size, "shelf_arcade", {1: "shelf", 2: "shelf,arcade"}, "shelf")
+
+
+def airfryer_transfer(size: Size) -> list[SweepRun]:
+    return _task_sets(size, "airfryer_mug", {0: "mug", 1: "airfryer,mug"}, "airfryer")
+
+
+def held_out_object(size: Size) -> list[SweepRun]:
+    seen = [SweepRun(0.0, s, "base", (f"seed={s}",)) for s in range(size.seeds)]
+    return seen + [SweepRun(1.0, r.seed, "base", r.overrides, eval_data="heldout", model_of=r.name) for r in seen]
+
+
+def autonomous_rollouts(size: Size) -> list[SweepRun]:
+    return [SweepRun(x, s, data, (f"seed={s}",), eval_data="mixed")
+            for x, data in ((0.0, "base"), (0.5, "mixed")) for s in range(size.seeds)]
 
 
 SWEEPS = {
     "data_scaling": (data_scaling, "share of the training episodes", True),
     "task_scaling": (task_scaling, "tasks trained on (evaluated on mug)", False),
+    "transfer": (transfer, "tasks trained on (1: shelf, 2: + arcade; evaluated on shelf)", False),
+    "airfryer_transfer": (airfryer_transfer, "air-fryer data (0: mug only, 1: + air fryer; evaluated on it)", False),
+    "held_out_object": (held_out_object, "test scenes (0: as in training, 1: with the unseen plant)", False),
+    "autonomous_rollouts": (autonomous_rollouts, "share of policy rollouts in the training data", False),
 }
 
 
@@ -112,28 +172,51 @@ def gpu_count() -> int:
 
 
 def ensure_data(size: Size, keys, root: Path) -> dict:
-    """Generates (or completes) each dataset the sweep needs; returns key -> directory."""
+    """Generates (or completes) each dataset the sweep needs, and the zoo first where one needs
+    policy rollouts; returns key -> directory."""
     from sim_data import generate
 
-    dirs = {}
-    for key in sorted(set(keys)):
+    def place(key):
         preset, overrides = size.data[key]
         # a preset as it is is the pipeline's own dataset (runs/data/<preset>), shared
-        d = root / "data" / (preset if not overrides else f"sweep_{preset}_{key}")
-        generate.main(["--config", preset, "--out", str(d), *overrides])  # resumes; refuses another config
-        dirs[key] = d
+        return root / "data" / (preset if not overrides else f"sweep_{preset}_{key}")
+
+    keys = sorted(set(keys))
+    zoo_dir = root / "policies" / size.zoo
+    if any("{zoo}" in o for k in keys for o in size.data[k][1]):
+        from sim_data import zoo
+
+        generate.main(["--config", size.data["base"][0], "--out", str(place("base")), *size.data["base"][1]])
+        if not (zoo_dir / "policies.json").exists():
+            zoo.main(["--config", size.zoo, "--data", str(place("base")), "--out", str(zoo_dir)])
+    dirs = {}
+    for key in keys:
+        preset, overrides = size.data[key]
+        overrides = [o.replace("{zoo}", str(zoo_dir)) for o in overrides]
+        generate.main(["--config", preset, "--out", str(place(key)), *overrides])  # resumes; refuses another config
+        dirs[key] = place(key)
     return dirs
 
 
 def train_run(run: SweepRun, size: Size, data: Path, out: Path, gpu: int | None, log: Path) -> int:
     """Trains (or resumes) one run in a subprocess; returns its exit code."""
+    cmd = ["-m", "wm.train", "--config", size.train, "--data", str(data), "--out", str(out),
+           f"max_minutes={size.minutes}", *run.overrides, *(["--no-eval"] if run.evaluated_apart else [])]
+    return _subprocess(cmd, gpu, log)
+
+
+def evaluate_run(model: Path, data: Path, out: Path, gpu: int | None, log: Path) -> int:
+    """Writes out/eval.json: the trained model in `model` evaluated on the dataset `data`."""
+    return _subprocess(["-m", "wm.evaluate", "--wm", str(model), "--data", str(data), "--out", str(out)], gpu, log)
+
+
+def _subprocess(args: list, gpu: int | None, log: Path) -> int:
     env = dict(os.environ)
     if gpu is not None:
         env["CUDA_VISIBLE_DEVICES"] = str(gpu)
-    cmd = [sys.executable, "-m", "wm.train", "--config", size.train, "--data", str(data), "--out", str(out),
-           f"max_minutes={size.minutes}", *run.overrides]
     with open(log, "a") as f:
-        return subprocess.run(cmd, env=env, stdout=f, stderr=subprocess.STDOUT, check=False).returncode
+        return subprocess.run([sys.executable, *args], env=env, stdout=f, stderr=subprocess.STDOUT,
+                              check=False).returncode
 
 
 def run_sweep(name: str, size_name: str, out: Path, root: Path = Path("runs"), progress: bool = True) -> dict:
@@ -147,22 +230,34 @@ def run_sweep(name: str, size_name: str, out: Path, root: Path = Path("runs"), p
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     _check_sweep(out, name, size_name)
-    data = ensure_data(size, [r.data for r in runs], root)
+    data = ensure_data(size, [r.data for r in runs] + [r.eval_data for r in runs if r.eval_data], root)
     todo = [r for r in runs if not (out / r.name / "eval.json").exists()]
     workers = max(1, gpu_count())
     t0 = time.perf_counter()
-    print(f"{name} ({size_name}): {len(runs)} runs, {len(todo)} to train, {workers} at a time", flush=True)
-    with cf.ThreadPoolExecutor(workers) as pool:
-        futs = {}
-        for k, r in enumerate(todo):
-            (out / r.name).mkdir(parents=True, exist_ok=True)
-            gpu = k % workers if workers > 1 else None
-            futs[pool.submit(train_run, r, size, data[r.data], out / r.name, gpu, out / r.name / "train.log")] = r
-        for done, fut in enumerate(cf.as_completed(futs), 1):
-            r = futs[fut]
-            rc = fut.result()
-            print(f"[{done}/{len(todo)}] {r.name}: {'done' if rc == 0 else f'failed (exit {rc}), see train.log'} "
-                  f"({time.perf_counter() - t0:.0f} s)", flush=True)
+    print(f"{name} ({size_name}): {len(runs)} runs, {len(todo)} to train or evaluate, {workers} at a time", flush=True)
+
+    def one(k: int, r: SweepRun) -> int:
+        gpu = k % workers if workers > 1 else None
+        log, trained = out / r.name / "train.log", out / r.name / "trained"
+        if r.trains and not trained.exists():
+            rc = train_run(r, size, data[r.data], out / r.name, gpu, log)
+            if rc or not r.evaluated_apart:
+                return rc
+            trained.touch()  # its evaluation apart may fail or be stopped: a rerun does not train again
+        return evaluate_run(out / (r.model_of or r.name), data[r.eval_data or r.data], out / r.name, gpu, log)
+
+    # runs that evaluate another run's model wait for it: the training runs go first
+    for stage in ([r for r in todo if r.trains], [r for r in todo if not r.trains]):
+        with cf.ThreadPoolExecutor(workers) as pool:
+            futs = {}
+            for k, r in enumerate(stage):
+                (out / r.name).mkdir(parents=True, exist_ok=True)
+                futs[pool.submit(one, k, r)] = r
+            for fut in cf.as_completed(futs):
+                r = futs[fut]
+                rc = fut.result()
+                print(f"{r.name}: {'done' if rc == 0 else f'failed (exit {rc}), see train.log'} "
+                      f"({time.perf_counter() - t0:.0f} s)", flush=True)
     results = collect(name, size_name, runs, out, x_label)
     write_json_atomic(out / "results.json", results)
     plot(results, out / "sweep.png", log_x)

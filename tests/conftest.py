@@ -1,4 +1,8 @@
+import fcntl
+import json
 import os
+import shutil
+from pathlib import Path
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -39,33 +43,56 @@ def np_rng():
     return np.random.default_rng(0)
 
 
-@pytest.fixture(scope="session")
-def smoke_dataset(tmp_path_factory):
-    """(config, directory, stats) of `make data CONFIG=smoke` (2 mug episodes, cpu, with its cache).
-    Shared: tests copy it before changing anything."""
-    from sim_data import generate as G
-
-    out = tmp_path_factory.mktemp("smoke")
-    cfg = G.make_config("smoke")
-    return cfg, out, G.generate(cfg, out, progress=False)
-
-
-@pytest.fixture(scope="session")
-def smoke_world_model(smoke_dataset, tmp_path_factory):
-    """Directory of `make train CONFIG=smoke` on the smoke dataset (best/, norm.json, eval.json)."""
-    from wm.train import main
-
-    _, data, _ = smoke_dataset
-    out = tmp_path_factory.mktemp("wm") / "train"
-    assert main(["--config", "smoke", "--data", str(data), "--out", str(out)]) == 0
+def build_once(tmp_path_factory, worker_id: str, name: str, build) -> Path:
+    """A directory that `build(directory)` fills once per test session: under xdist the first worker
+    to need it builds it under a file lock in the session's shared temporary directory and the other
+    workers wait for it and reuse it."""
+    if worker_id == "master":
+        out = tmp_path_factory.mktemp(name)
+        build(out)
+        return out
+    root = tmp_path_factory.getbasetemp().parent  # shared by this session's workers
+    out = root / name
+    with open(root / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (out / ".built").exists():
+            shutil.rmtree(out, ignore_errors=True)
+            out.mkdir()
+            build(out)
+            (out / ".built").touch()
     return out
 
 
 @pytest.fixture(scope="session")
-def smoke_zoo(smoke_dataset, tmp_path_factory):
+def smoke_dataset(tmp_path_factory, worker_id):
+    """(config, directory, stats) of `make data CONFIG=smoke` (2 mug episodes, cpu, with its cache).
+    Shared: tests copy it before changing anything."""
+    from sim_data import generate as G
+
+    cfg = G.make_config("smoke")
+    out = build_once(tmp_path_factory, worker_id, "smoke", lambda d: G.generate(cfg, d, progress=False))
+    return cfg, out, json.loads((out / "stats.json").read_text())
+
+
+@pytest.fixture(scope="session")
+def smoke_world_model(smoke_dataset, tmp_path_factory, worker_id):
+    """Directory of `make train CONFIG=smoke` on the smoke dataset (best/, norm.json, eval.json)."""
+    from wm.train import main
+
+    _, data, _ = smoke_dataset
+
+    def train(d):
+        assert main(["--config", "smoke", "--data", str(data), "--out", str(d / "train")]) == 0
+
+    return build_once(tmp_path_factory, worker_id, "wm", train) / "train"
+
+
+@pytest.fixture(scope="session")
+def smoke_zoo(smoke_dataset, tmp_path_factory, worker_id):
     """(directory, registry) of `make policies CONFIG=smoke` on the smoke dataset."""
     from sim_data import zoo
 
     _, data, _ = smoke_dataset
-    out = tmp_path_factory.mktemp("zoo") / "policies"
-    return out, zoo.train_zoo(zoo.make_config("smoke"), data, out, progress=False)
+    out = build_once(tmp_path_factory, worker_id,
+                     "zoo", lambda d: zoo.train_zoo(zoo.make_config("smoke"), data, d / "policies", progress=False))
+    return out / "policies", json.loads((out / "policies" / "policies.json").read_text())["policies"]

@@ -10,9 +10,6 @@ from sim_data import cache as C
 from sim_data.episodes import CorruptEpisode, read_episode
 from sim_data.replay import replay_files, summarize
 
-# the smoke dataset, world model and zoo are session fixtures: these files share one xdist worker
-pytestmark = pytest.mark.xdist_group("smoke")
-
 
 @pytest.fixture(scope="module")
 def two_shards(smoke_dataset, tmp_path_factory):

@@ -9,18 +9,17 @@ from experiments import evaluate as E
 from experiments import stats as S
 from experiments.report import write_report
 
-# the smoke dataset, world model and zoo are session fixtures: these files share one xdist worker
-pytestmark = pytest.mark.xdist_group("smoke")
+from conftest import build_once
 
 
 @pytest.fixture(scope="module")
-def evaluation(smoke_zoo, smoke_world_model, tmp_path_factory):
+def evaluation(smoke_zoo, smoke_world_model, tmp_path_factory, worker_id):
     zoo_dir, _ = smoke_zoo
     cfg = E.EvalConfig(policies=(f"{zoo_dir}#conv_proprio+conv_noproprio", "examples.plugin_policy:make"),
                        wm=str(smoke_world_model), tasks=("mug",), episodes=2, batch=64, video_policies=2,
                        video_episodes=1, decision_episodes=(5, 50))
-    out = tmp_path_factory.mktemp("eval") / "run"
-    return cfg, out, E.run(cfg, out, progress=False)
+    out = build_once(tmp_path_factory, worker_id, "eval", lambda d: E.run(cfg, d / "run", progress=False)) / "run"
+    return cfg, out, json.loads((out / "results.json").read_text())
 
 
 def test_results_hold_every_policy_with_statistics_from_the_episodes(evaluation, smoke_dataset):

@@ -12,9 +12,6 @@ from mcap.reader import make_reader
 from sim_data import generate as G
 from sim_data.policies import PROGRAMS
 
-# the smoke dataset, world model and zoo are session fixtures: these files share one xdist worker
-pytestmark = pytest.mark.xdist_group("smoke")
-
 TOPICS = {"/head_cam/image", "/ext_cam/image", "/robot_state", "/action", "/task_state", "/sim_state"}
 
 

@@ -44,3 +44,26 @@ def test_unknown_sweep_and_size_are_refused(tmp_path):
         W.run_sweep("moon_scaling", "demo", tmp_path)
     with pytest.raises(ValueError, match="unknown size"):
         W.run_sweep("data_scaling", "huge", tmp_path)
+
+
+def test_transfer_held_out_and_rollout_sweeps_are_built_as_described():
+    size = W.SIZES["demo"]
+    runs = W.transfer(size)
+    assert [(r.x, r.data) for r in runs] == [(1.0, "shelf_arcade"), (2.0, "shelf_arcade")]
+    assert all("eval_tasks=shelf" in r.overrides for r in runs) and "train_tasks=shelf" in runs[0].overrides
+    held = W.held_out_object(size)
+    assert [(r.x, r.trains, r.evaluated_apart, r.eval_data) for r in held] == [
+        (0.0, True, False, None), (1.0, False, True, "heldout")]
+    assert held[1].model_of == held[0].name  # the same model, judged on the unseen scenes
+    auto = W.autonomous_rollouts(size)
+    assert [(r.x, r.data, r.eval_data, r.evaluated_apart) for r in auto] == [
+        (0.0, "base", "mixed", True), (0.5, "mixed", "mixed", False)]
+    assert any("{zoo}" in o for o in size.data["mixed"][1])  # the rollouts come from the zoo
+
+
+def test_evaluating_elsewhere_refuses_training_settings(capsys):
+    from wm import evaluate
+
+    with pytest.raises(SystemExit):
+        evaluate.main(["--wm", "x", "--data", "y", "--out", "z", "lr=0.1"])
+    assert "only evaluation settings" in capsys.readouterr().err

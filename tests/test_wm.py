@@ -16,9 +16,6 @@ from wm.config import SMOKE_MODEL, make_config, override
 from wm.model import WorldModel, init_params
 from wm.train import Run, TrainingDiverged
 
-# the smoke dataset, world model and zoo are session fixtures: these files share one xdist worker
-pytestmark = pytest.mark.xdist_group("smoke")
-
 CFG = SMOKE_MODEL
 
 

@@ -15,9 +15,6 @@ from sim_data.learned import StackedPolicy, stack_params
 from sim_data.rollout import run_episodes
 from sim_data.sources import resolve
 
-# the smoke dataset, world model and zoo are session fixtures: these files share one xdist worker
-pytestmark = pytest.mark.xdist_group("smoke")
-
 
 def test_zoo_registry_checkpoints_and_resume(smoke_zoo, smoke_dataset):
     out, registry = smoke_zoo

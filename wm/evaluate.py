@@ -14,19 +14,27 @@
   from the initial frame, imagine `control_horizon` steps under each program; match accuracy (each
   prediction is closest, in mean squared error, to its own program's true future) and delta-PSNR
   (Genie's: PSNR of true actions minus PSNR of another program's actions, against the truth).
+
+`wm.train` writes eval.json at the end of training; a trained model is evaluated on another
+dataset (held-out scenes, another task) with
+
+    python -m wm.evaluate --wm runs/wm/demo --data runs/data/heldout --out runs/wm/demo_on_heldout [eval_tasks=mug]
 """
 
 from __future__ import annotations
 
+import argparse
+import json
+import sys
 from pathlib import Path
 
 import numpy as np
 
 from sim_data.cache import TrainingCache
-from wm.config import TrainConfig
+from wm.config import TrainConfig, override
 from wm.imagine import Norm, episode_success, open_loop
 from wm.metrics import accuracy, auroc, psnr, ssim
-from wm.train import write_json_atomic
+from wm.train import load_trained, write_json_atomic
 
 CHUNK = 64
 
@@ -239,3 +247,35 @@ def _save_strip(path: Path, pictures: dict, horizons) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+EVAL_KEYS = ("eval_context", "eval_episodes", "eval_horizons", "control_horizon", "eval_tasks")
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description="Evaluates a trained world model on a dataset: OUT/eval.json")
+    p.add_argument("--wm", type=Path, required=True, help="a training run's directory (make train OUT)")
+    p.add_argument("--data", type=Path, required=True, help="a dataset directory with its cache (make data OUT)")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("overrides", nargs="*", help=f"key=value, keys among {', '.join(EVAL_KEYS)}")
+    a = p.parse_args(argv)
+    bad = [o for o in a.overrides if o.split("=")[0] not in EVAL_KEYS]
+    if bad:
+        p.error(f"only evaluation settings can be overridden ({', '.join(EVAL_KEYS)}), got {bad}")
+    cfg, params, norm = load_trained(a.wm)
+    cfg = override(cfg, a.overrides)
+    cache = TrainingCache(a.data)
+    if cfg.camera not in cache.cameras or cache.index["size"] != cfg.model.size:
+        p.error(f"{a.data} has {cache.cameras} at {cache.index['size']} px; the model needs {cfg.camera} at "
+                f"{cfg.model.size} px")
+    bad = [t for t in cfg.eval_tasks if t not in cache.tasks]
+    if bad:
+        p.error(f"eval_tasks {bad} are not in {a.data} (it has {cache.tasks})")
+    a.out.mkdir(parents=True, exist_ok=True)
+    report = evaluate(cfg, params, norm, cache, a.out)
+    print(json.dumps(report["summary"], indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
