@@ -47,9 +47,9 @@ policies: setup
 eval: setup
 	$(PY) -m experiments.evaluate --config $(CONFIG) --out $(if $(filter command line,$(origin OUT)),$(OUT),runs/eval/$(CONFIG)) $(ARGS)
 
-# make report RUN=runs/eval/demo
+# make report RUN=runs/eval/demo [SWEEPS=runs/sweeps: a section per sweep]
 report: setup
-	$(PY) -m experiments.report $(or $(RUN),runs/eval/$(CONFIG))
+	$(PY) -m experiments.report $(or $(RUN),runs/eval/$(CONFIG)) $(if $(SWEEPS),--sweeps $(SWEEPS))
 
 render-check: setup
 	$(PY) -m sim_data.render_check --states 50 --out runs/render_check.json

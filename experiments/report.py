@@ -2,7 +2,7 @@
 summary, from an evaluation directory (experiments.evaluate).
 
     python -m experiments.report RUN          # writes RUN/report.html and RUN/report.md
-    make report RUN=runs/eval/demo
+    make report RUN=runs/eval/demo [SWEEPS=runs/sweeps]   # plus a section per sweep (make sweep)
 """
 
 from __future__ import annotations
@@ -309,11 +309,50 @@ def build(run: Path) -> tuple[str, str]:
     return "\n".join(h), "\n".join(md)
 
 
-def write_report(run: Path) -> Path:
+SWEEP_COLUMNS = (("psnr_h8", "PSNR h8"), ("pooled_gain_h8_db", "pooled gain h8 (dB)"),
+                 ("success_auroc", "success AUROC"), ("match_accuracy", "match acc"), ("delta_psnr_db", "delta-PSNR"))
+
+
+def _file_uri(path: Path) -> str:
+    return "data:image/png;base64," + base64.b64encode(path.read_bytes()).decode()
+
+
+def sweep_sections(root: Path) -> tuple[list[str], list[str]]:
+    """(HTML, Markdown) parts with one section per sweep under root (`make sweep` OUT directories,
+    each with results.json and sweep.png): its finding, a table per swept value (mean over seeds),
+    its curves, and the real-against-imagined strip of its largest value's first run."""
+    h, md = [], []
+    for res_path in sorted(Path(root).glob("*/results.json")):
+        d = res_path.parent
+        res = json.loads(res_path.read_text())
+        if "per_x" not in res:
+            continue
+        rows = [[res["x_label"], "seeds"] + [label for _, label in SWEEP_COLUMNS]]
+        rows += [[f"{e['x']:g}", str(e["seeds"])] + [_fmt(e.get(k)) for k, _ in SWEEP_COLUMNS] for e in res["per_x"]]
+        title = f"Sweep {res['sweep']} ({res['size']})"
+        h += [f"<h2>{html.escape(title)}</h2>", f"<p>{html.escape(res['finding'])}</p>", _html_table(rows)]
+        md += [f"## {title}", "", res["finding"], "", _md_table(rows), ""]
+        if (d / "sweep.png").exists():
+            h.append(f"<img src='{_file_uri(d / 'sweep.png')}'>")
+        last = [r["run"] for r in res["runs"] if r["x"] == res["per_x"][-1]["x"] and r["finished"]]
+        strip = d / last[0] / "eval_frames.png" if last else None
+        if strip is not None and strip.exists():
+            h += [f"<p>True and imagined frames of {html.escape(last[0])}:</p>", f"<img src='{_file_uri(strip)}'>"]
+    return h, md
+
+
+def write_report(run: Path, sweeps: Path | None = None) -> Path:
+    """report.html and report.md of the evaluation in run, with a section per sweep under `sweeps`."""
     run = Path(run)
     if not (run / "results.json").exists():
         raise FileNotFoundError(f"{run}/results.json is missing: run make eval first")
     page, md = build(run)
+    if sweeps is not None:
+        sh, smd = sweep_sections(Path(sweeps))
+        if not sh:
+            raise FileNotFoundError(f"{sweeps} holds no sweep results (make sweep OUT=...)")
+        page = page.replace("<h2>Configuration and versions</h2>", "\n".join(sh) + "<h2>Configuration and versions</h2>")
+        md = md + "\n" + "\n".join(smd)
     for name, text in (("report.html", page), ("report.md", md)):
         tmp = run / (name + ".tmp")
         tmp.write_text(text)
@@ -324,8 +363,9 @@ def write_report(run: Path) -> Path:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("run", type=Path, help="an evaluation directory (make eval OUT)")
+    p.add_argument("--sweeps", type=Path, help="a directory of sweeps (make sweep OUT=DIR/<name>) to add a section each")
     a = p.parse_args(argv)
-    print(write_report(a.run).absolute())
+    print(write_report(a.run, a.sweeps).absolute())
     return 0
 
 

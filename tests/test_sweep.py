@@ -1,5 +1,6 @@
 """Sweeps: the per-value statistics against hand-computed ones, results read back, bad names refused."""
 
+import html
 import json
 
 import numpy as np
@@ -67,3 +68,22 @@ def test_evaluating_elsewhere_refuses_training_settings(capsys):
     with pytest.raises(SystemExit):
         evaluate.main(["--wm", "x", "--data", "y", "--out", "z", "lr=0.1"])
     assert "only evaluation settings" in capsys.readouterr().err
+
+
+def test_report_gains_a_section_per_sweep(tmp_path):
+    from experiments.report import sweep_sections
+
+    runs = W.held_out_object(W.Size(train="demo", minutes=1, seeds=1, data={}))
+    d = tmp_path / "held_out_object_demo"
+    for k, r in enumerate(runs):
+        (d / r.name).mkdir(parents=True)
+        (d / r.name / "eval.json").write_text(json.dumps({"summary": {"psnr_h8": 18.0 - k, "success_auroc": 0.7}}))
+    res = W.collect("held_out_object", "demo", runs, d, "test scenes")
+    (d / "results.json").write_text(json.dumps(res))
+    W.plot(res, d / "sweep.png", log_x=False)
+    (d / runs[1].name / "eval_frames.png").write_bytes((d / "sweep.png").read_bytes())
+    parts, md = sweep_sections(tmp_path)
+    page = "\n".join(parts)
+    assert "Sweep held_out_object (demo)" in page and html.escape(res["finding"]) in page
+    assert page.count("data:image/png;base64,") == 2  # the curves and the last value's frames
+    assert "| 1 | 1 | 17.000 |" in "\n".join(md)
