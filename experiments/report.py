@@ -244,8 +244,8 @@ th{background:#f3f3f3}img{max-width:100%}img.anim{width:300px;image-rendering:pi
 .ok{color:#070}.bad{color:#b00}code{background:#f3f3f3;padding:1px 4px}"""
 
 
-def build(run: Path) -> tuple[str, str]:
-    """(HTML, Markdown) of the evaluation in run."""
+def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
+    """(HTML, Markdown) of the evaluation in run, with a section per sweep under `sweeps` if given."""
     res = json.loads((run / "results.json").read_text())
     tasks, policies, metrics = res["tasks"], res["policies"], res["metrics"]
     with np.load(run / "videos.npz") as z:
@@ -292,6 +292,10 @@ def build(run: Path) -> tuple[str, str]:
         h += ["<h2>Controllability: one start, four action programs</h2>", f"<img src='{strip_figure(panel)}'>"]
         for p, v in sorted(panel.items()):
             h.append(f"<div class='vid'><img class='anim' src='{animation(v['real'], v['imagined'])}'><br>{html.escape(p)}</div>")
+    sweep_html, sweep_md = sweep_sections(Path(sweeps)) if sweeps is not None else ([], [])
+    if sweeps is not None and not sweep_html:
+        raise FileNotFoundError(f"{sweeps} holds no sweep results (make sweep OUT=...)")
+    h += sweep_html
     h += ["<h2>Configuration and versions</h2>", f"<pre>{html.escape(json.dumps(res['config'], indent=1))}</pre>",
           f"<pre>{html.escape(json.dumps(res['versions'], indent=1))}</pre>",
           f"<pre>{html.escape(json.dumps(res['timing'], indent=1))}</pre>", "</body></html>"]
@@ -306,7 +310,7 @@ def build(run: Path) -> tuple[str, str]:
         md += ["## Verdicts", ""] + [
             f"- {v['task']}, {v['comparison']}: the world model prefers {v['world_model_prefers']}, truly better is "
             f"{v['truly_better']} ({'agree' if v['agree'] else 'disagree'})" for v in verd] + [""]
-    return "\n".join(h), "\n".join(md)
+    return "\n".join(h), "\n".join(md + sweep_md)
 
 
 SWEEP_COLUMNS = (("psnr_h8", "PSNR h8"), ("pooled_gain_h8_db", "pooled gain h8 (dB)"),
@@ -346,13 +350,7 @@ def write_report(run: Path, sweeps: Path | None = None) -> Path:
     run = Path(run)
     if not (run / "results.json").exists():
         raise FileNotFoundError(f"{run}/results.json is missing: run make eval first")
-    page, md = build(run)
-    if sweeps is not None:
-        sh, smd = sweep_sections(Path(sweeps))
-        if not sh:
-            raise FileNotFoundError(f"{sweeps} holds no sweep results (make sweep OUT=...)")
-        page = page.replace("<h2>Configuration and versions</h2>", "\n".join(sh) + "<h2>Configuration and versions</h2>")
-        md = md + "\n" + "\n".join(smd)
+    page, md = build(run, sweeps)
     for name, text in (("report.html", page), ("report.md", md)):
         tmp = run / (name + ".tmp")
         tmp.write_text(text)

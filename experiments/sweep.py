@@ -181,17 +181,16 @@ def ensure_data(size: Size, keys, root: Path) -> dict:
         # a preset as it is is the pipeline's own dataset (runs/data/<preset>), shared
         return root / "data" / (preset if not overrides else f"sweep_{preset}_{key}")
 
-    keys = sorted(set(keys))
+    keys = sorted(set(keys), key=lambda k: (k != "base", k))  # the zoo trains on base: it goes first
     zoo_dir = root / "policies" / size.zoo
-    if any("{zoo}" in o for k in keys for o in size.data[k][1]):
-        from sim_data import zoo
-
-        generate.main(["--config", size.data["base"][0], "--out", str(place("base")), *size.data["base"][1]])
-        if not (zoo_dir / "policies.json").exists():
-            zoo.main(["--config", size.zoo, "--data", str(place("base")), "--out", str(zoo_dir)])
+    needs_zoo = {k for k in size.data if any("{zoo}" in o for o in size.data[k][1])}
     dirs = {}
-    for key in keys:
+    for key in (["base"] if needs_zoo & set(keys) and "base" not in keys else []) + keys:
         preset, overrides = size.data[key]
+        if key in needs_zoo and not (zoo_dir / "policies.json").exists():
+            from sim_data import zoo
+
+            zoo.main(["--config", size.zoo, "--data", str(dirs["base"]), "--out", str(zoo_dir)])
         overrides = [o.replace("{zoo}", str(zoo_dir)) for o in overrides]
         generate.main(["--config", preset, "--out", str(place(key)), *overrides])  # resumes; refuses another config
         dirs[key] = place(key)

@@ -24,6 +24,7 @@ dataset (held-out scenes, another task) with
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -34,7 +35,7 @@ from sim_data.cache import TrainingCache
 from wm.config import TrainConfig, override
 from wm.imagine import Norm, episode_success, open_loop
 from wm.metrics import accuracy, auroc, psnr, ssim
-from wm.train import load_trained, write_json_atomic
+from wm.train import check_dataset, load_trained, write_json_atomic
 
 CHUNK = 64
 
@@ -172,7 +173,8 @@ def evaluate(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, out: Pa
     """Computes and writes OUT/eval.json (and eval_frames.png); returns the report."""
     tasks = list(cfg.eval_tasks) or None
     split, test = _held_out(cache, tasks, lambda e: True, "episodes")
-    fq, pictures = frame_quality(cfg, params, norm, cache, _spread(test, cfg.eval_episodes))
+    test = _spread(test, cfg.eval_episodes)
+    fq, pictures = frame_quality(cfg, params, norm, cache, test)
     # random play is in the frame figures; success is judged on episodes that attempt the task
     success_split, tasked = _held_out(cache, tasks, lambda e: e.get("policy_kind") != "play", "task episodes")
     sp = success_prediction(cfg, params, norm, cache, _spread(tasked, cfg.eval_episodes))
@@ -188,7 +190,7 @@ def evaluate(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, out: Pa
         "match_accuracy": ctrl.get("match_accuracy"), "delta_psnr_db": ctrl.get("delta_psnr_db"),
     }
     report = {"summary": summary, "frame_quality": fq, "success_prediction": sp, "controllability": ctrl,
-              "episodes": len(_spread(test, cfg.eval_episodes)), "split": split}
+              "episodes": len(test), "split": split}
     write_json_atomic(Path(out) / "eval.json", no_nan(report))
     _save_strip(Path(out) / "eval_frames.png", pictures, fq["horizons"])
     return report
@@ -265,12 +267,10 @@ def main(argv=None) -> int:
     cfg, params, norm = load_trained(a.wm)
     cfg = override(cfg, a.overrides)
     cache = TrainingCache(a.data)
-    if cfg.camera not in cache.cameras or cache.index["size"] != cfg.model.size:
-        p.error(f"{a.data} has {cache.cameras} at {cache.index['size']} px; the model needs {cfg.camera} at "
-                f"{cfg.model.size} px")
-    bad = [t for t in cfg.eval_tasks if t not in cache.tasks]
-    if bad:
-        p.error(f"eval_tasks {bad} are not in {a.data} (it has {cache.tasks})")
+    try:
+        check_dataset(dataclasses.replace(cfg, train_tasks=()), cache)  # the training tasks need not be here
+    except ValueError as e:
+        p.error(f"{a.data}: {e}")
     a.out.mkdir(parents=True, exist_ok=True)
     report = evaluate(cfg, params, norm, cache, a.out)
     print(json.dumps(report["summary"], indent=1))

@@ -169,6 +169,17 @@ def put_batch(batch: dict, mesh) -> dict:
 
 # ---- the run ---------------------------------------------------------------------------------------
 
+def check_dataset(cfg: TrainConfig, cache: TrainingCache) -> None:
+    """Raises ValueError unless the dataset holds the model's camera at its size and every task named."""
+    if cfg.camera not in cache.cameras:
+        raise ValueError(f"camera {cfg.camera} is not in the dataset's cache ({cache.cameras})")
+    if cache.index["size"] != cfg.model.size:
+        raise ValueError(f"the dataset's frames are {cache.index['size']} px, model.size is {cfg.model.size}")
+    bad = [t for t in cfg.train_tasks + cfg.eval_tasks if t not in cache.tasks]
+    if bad:
+        raise ValueError(f"tasks {bad} are not in the dataset (it has {cache.tasks})")
+
+
 class Run:
     """Everything one training run holds: config, data, model state, checkpoints, logs."""
 
@@ -177,17 +188,11 @@ class Run:
         self.out.mkdir(parents=True, exist_ok=True)
         _check_config(cfg, data, self.out)
         self.cache = TrainingCache(self.data)
-        if cfg.camera not in self.cache.cameras:
-            raise ValueError(f"camera {cfg.camera} is not in the dataset's cache ({self.cache.cameras})")
-        if self.cache.index["size"] != cfg.model.size:
-            raise ValueError(f"the dataset's frames are {self.cache.index['size']} px, model.size is {cfg.model.size}")
+        check_dataset(cfg, self.cache)
         bad = self.cache.non_finite()
         if bad:
             print(f"warning: {len(bad)} episodes hold NaN or inf in proprio or actions and are left out "
                   f"(first: {', '.join(bad[:5])})", file=sys.stderr)
-        bad = [t for t in cfg.train_tasks + cfg.eval_tasks if t not in self.cache.tasks]
-        if bad:
-            raise ValueError(f"tasks {bad} are not in the dataset (it has {self.cache.tasks})")
         if cfg.batch % jax.device_count():
             raise ValueError(f"batch {cfg.batch} must be a multiple of the device count {jax.device_count()}")
         local = cfg.batch // jax.process_count()
