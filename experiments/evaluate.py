@@ -8,8 +8,10 @@ initial states per task (seeds checked against every seed of the world model's a
 datasets):
 - true success: closed-loop episodes in the simulator, the policy seeing the rendered head camera;
 - predicted success: closed-loop episodes in the world model from the same initial frame and
-  proprioception, for the task's episode length; an episode's predicted probability is the success
-  probability of its final imagined frame (thresholded at `threshold` for its outcome).
+  proprioception, for the task's episode length; an episode's predicted probability is the episode
+  judge's (`wm.judge`, trained with the world model) where the world model has one that knows the
+  task, else the highest per-step success probability (thresholded at `threshold` for its outcome).
+  The per-step rule's statistics are reported beside the judge's ("per_step_rule").
 
 Policies of one architecture run as one batch (their parameters stacked), so one compiled rollout
 serves a whole checkpoint series. Each task is saved when done (`OUT/tasks/<task>.npz`) and a
@@ -46,6 +48,7 @@ from sim_data.sources import resolve
 from sim_data.success_table import write_json_atomic
 from wm.evaluate import no_nan, program_panel
 from wm.imagine import closed_loop, episode_success
+from wm.judge import check_features, load_judge
 from wm.train import load_trained
 
 CAMERA = "head_cam"
@@ -156,14 +159,15 @@ def _chunks(group, n: int, batch: int):
 def evaluate_task(cfg: EvalConfig, task: str, sources, wm, seeds, engine: str, progress: bool) -> dict:
     """True and predicted outcomes of every source on task from the held-out seeds.
 
-    Returns {"names": [P], "true": (P, N) bool, "prob": (P, N) float, "videos": {key: (T+1, S, S, 3)},
+    Returns {"names": [P], "true": (P, N) bool, "prob": (P, N) float (the judge's, or the rule's),
+    "prob_rule": (P, N) float (the per-step rule's), "videos": {key: (T+1, S, S, 3)},
     "video_index": [...], "sim_s", "wm_s", "steps"}.
     """
-    wm_cfg, wm_params, norm = wm
+    wm_cfg, wm_params, norm, judge = wm
     n = len(seeds)
     reset_keys = np.stack([np.asarray(jax.random.PRNGKey(s)) for s in seeds])
     renderer = cached_renderers(wm_cfg.model.size, (CAMERA,))
-    names, true, prob, kept = [], [], [], {}
+    names, true, prob, rule, kept = [], [], [], [], {}
     sim_s = wm_s = 0.0
     steps = None
     todo = [(g, part, padded) for g in _groups(sources) for part, padded in _chunks(g, n, cfg.batch)]
@@ -184,19 +188,22 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, wm, seeds, engine: str, p
         frames0, proprio0 = rec.frames[CAMERA][:, :1], rec.proprio[:, :1]
         got = closed_loop(wm_cfg.model, policy, steps, wm_params, norm, params, frames0, proprio0,
                           np.zeros((b, 0, R.ACTION_DIM), np.float32), jax.random.fold_in(rng, 1))
-        p = np.asarray(episode_success(got["success"]), np.float64).reshape(len(padded), n)[: len(part)]
+        r = np.asarray(episode_success(got["success"]), np.float64).reshape(len(padded), n)[: len(part)]
+        p = judge.probability(got["features"], task).astype(np.float64).reshape(len(padded), n)[: len(part)] \
+            if judge is not None and judge.knows(task) else r
         wm_s += time.perf_counter() - t0
         for j, src in enumerate(part):
             names.append(src.name)
             true.append(outcome[j])
             prob.append(p[j])
+            rule.append(r[j])
             kept[src.name] = _keep_examples(cfg, src.name, j, n, outcome[j], p[j], rec.frames[CAMERA], got["frames"])
         bar.update(len(part) * n)
     bar.close()
     true, prob = np.stack(true), np.stack(prob)
     videos, index = _select_videos(cfg, task, names, true, kept)
-    return {"names": names, "true": true, "prob": prob, "videos": videos, "video_index": index, "sim_s": sim_s,
-            "wm_s": wm_s, "steps": steps}
+    return {"names": names, "true": true, "prob": prob, "prob_rule": np.stack(rule), "videos": videos,
+            "video_index": index, "sim_s": sim_s, "wm_s": wm_s, "steps": steps}
 
 
 def _keep_examples(cfg, name, j, n, outcome, p, real, imagined) -> list:
@@ -238,7 +245,7 @@ def _interval_of_mean(x) -> list:
 
 def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) -> list[dict]:
     rows = []
-    for name, t, p in zip(res["names"], res["true"], res["prob"], strict=True):
+    for name, t, p, r in zip(res["names"], res["true"], res["prob"], res["prob_rule"], strict=True):
         rec = sources_by_name[name].record
         k, n = int(t.sum()), len(t)
         kp = int((p >= cfg.threshold).sum())
@@ -247,7 +254,7 @@ def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) ->
                      "true_ci": list(S.wilson_interval(k, n)), "pred_rate": float(p.mean()),
                      "pred_ci": _interval_of_mean(p), "pred_rate_thresholded": kp / n,
                      "pred_thresholded_ci": list(S.wilson_interval(kp, n)), "val_loss": rec.get("val_loss"),
-                     "alignment": S.alignment(p >= cfg.threshold, t)})
+                     "alignment": S.alignment(p >= cfg.threshold, t), "pred_rate_rule": float(r.mean())})
     return rows
 
 
@@ -259,6 +266,8 @@ def ranking_block(rows: list[dict], true_eps, prob_eps, threshold: float) -> dic
     out["alignment"] = S.alignment(prob_eps >= threshold, true_eps)
     thr = S.ranking_metrics([r["pred_rate_thresholded"] for r in rows], true)
     out["thresholded"] = {k: thr[k] for k in ("pearson", "spearman", "mmrv", "pairwise_acc_gap10")}
+    rule = S.ranking_metrics([r["pred_rate_rule"] for r in rows], true)
+    out["per_step_rule"] = {k: rule[k] for k in ("pearson", "spearman", "mmrv", "pairwise_acc_gap10")}
     with_loss = [r for r in rows if r["val_loss"] is not None]
     if len(with_loss) >= 2:  # lower imitation loss predicts higher success
         out["baseline"] = S.ranking_metrics([-r["val_loss"] for r in with_loss], [r["true_rate"] for r in with_loss])
@@ -299,8 +308,11 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True) -> dict | None:
     tasks = list(cfg.tasks) or sorted({s.task for s in sources if s.task})
     if not tasks:
         raise ValueError("no task to evaluate: the policies are all plug-ins; name tasks=...")
-    wm = load_trained(Path(cfg.wm))
-    wm_cfg, _, _ = wm
+    wm_cfg, wm_params, norm = load_trained(Path(cfg.wm))
+    judge = load_judge(Path(cfg.wm))
+    if judge is not None:
+        check_features(wm_cfg.model, judge)
+    wm = (wm_cfg, wm_params, norm, judge)
     wm_data = json.loads((Path(cfg.wm) / "config.json").read_text())["data"]
     wm_cache = TrainingCache(wm_data) if (Path(wm_data) / "cache" / "index.json").exists() else None
     wm_tasks = wm_cache.tasks if wm_cache is not None else tasks
@@ -338,7 +350,16 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True) -> dict | None:
     for t in tasks:
         metrics["per_task"][t] = ranking_block([r for r in rows if r["task"] == t], results[t]["true"],
                                                results[t]["prob"], cfg.threshold)
-    panel = program_panel(wm_cfg, wm[1], wm[2], wm_cache, horizon=48) if wm_cache is not None else {}
+    # the policies whose own rollouts the world model never saw in training
+    seen = {e["policy"].split(":", 1)[1] for e in (wm_cache.episodes if wm_cache is not None else ())
+            if e.get("policy_kind") == "learned"}
+    for r in rows:
+        r["in_wm_data"] = r["name"] in seen
+    unseen = [r for r in rows if not r["in_wm_data"]]
+    if seen and len(unseen) >= 3:
+        ut, up = _episodes_of(results, tasks, lambda name: name not in seen)
+        metrics["unseen"] = ranking_block(unseen, ut, up, cfg.threshold)
+    panel = program_panel(wm_cfg, wm_params, norm, wm_cache, horizon=48) if wm_cache is not None else {}
     videos = {k: v for t in tasks for k, v in results[t]["videos"].items()}
     videos.update({f"controllability/{p}/{kind}": v[kind] for p, v in panel.items() for kind in ("real", "imagined")})
     tmp = out / "videos.tmp.npz"
@@ -347,7 +368,9 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True) -> dict | None:
     report = {
         "config": json.loads(json.dumps(dataclasses.asdict(cfg))), "engine": engine, "device": device_name(),
         "versions": package_versions(("jax", "flax", "optax", "orbax-checkpoint", "mujoco", "mujoco-mjx", "numpy")),
-        "world_model": {"run": cfg.wm, "data": wm_data, "train_tasks": wm_tasks},
+        "world_model": {"run": cfg.wm, "data": wm_data, "train_tasks": wm_tasks,
+                        "rule": {t: "episode judge" if judge is not None and judge.knows(t)
+                                 else "highest per-step probability" for t in tasks}},
         "tasks": tasks, "policies": rows, "metrics": metrics,
         "decision": decision_analysis(cfg, rows, results, metrics["overall"]["alignment"]),
         "videos": [v for t in tasks for v in results[t]["video_index"]],
@@ -359,10 +382,18 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True) -> dict | None:
     return report
 
 
+def _episodes_of(results: dict, tasks, keep) -> tuple:
+    """(true, prob), each (P', N) stacked over tasks, of the policies whose name `keep` accepts."""
+    rows = [(results[t]["true"][j], results[t]["prob"][j]) for t in tasks
+            for j, name in enumerate(results[t]["names"]) if keep(name)]
+    return np.stack([r[0] for r in rows]), np.stack([r[1] for r in rows])
+
+
 def _save_task(path: Path, res: dict) -> None:
     meta = {"names": res["names"], "video_index": res["video_index"], "sim_s": res["sim_s"], "wm_s": res["wm_s"],
             "steps": res["steps"], "seeds": res["seeds"]}
-    arrays = {"true": res["true"], "prob": res["prob"], "meta": np.frombuffer(json.dumps(meta).encode(), np.uint8)}
+    arrays = {"true": res["true"], "prob": res["prob"], "prob_rule": res["prob_rule"],
+              "meta": np.frombuffer(json.dumps(meta).encode(), np.uint8)}
     arrays.update({f"video:{k}": v for k, v in res["videos"].items()})
     tmp = path.with_name(path.stem + ".tmp.npz")
     np.savez_compressed(tmp, **arrays)
@@ -373,7 +404,8 @@ def _load_task(path: Path) -> dict:
     with np.load(path) as z:
         meta = json.loads(z["meta"].tobytes().decode())
         videos = {k[len("video:"):]: z[k] for k in z.files if k.startswith("video:")}
-        return {**meta, "true": z["true"].astype(bool), "prob": z["prob"], "videos": videos}
+        return {**meta, "true": z["true"].astype(bool), "prob": z["prob"], "prob_rule": z["prob_rule"],
+                "videos": videos}
 
 
 def _check_config(cfg: EvalConfig, out: Path) -> None:

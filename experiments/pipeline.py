@@ -1,4 +1,4 @@
-"""The whole chain in stages: data -> policies -> world model -> evaluation -> report.
+"""The whole chain in stages: data -> policies -> rollouts -> world model -> evaluation -> report.
 
     python -m experiments.pipeline demo                 # every stage, on the CPU (make demo)
     python -m experiments.pipeline full --stage data    # one stage (make full STAGE=data)
@@ -11,7 +11,13 @@ modules' own entry points with the preset's configurations:
 |----------|------------------------|-------------------|
 | data     | sim_data.generate      | runs/data/<data>  |
 | policies | sim_data.zoo           | runs/policies/<p> |
+| rollouts | sim_data.generate      | runs/data/<data>_<p>_rollouts (the data and the lineage's rollouts) |
 | train    | wm.train               | runs/wm/<p>       |
+
+The world model learns from the scripted episodes and from the rollouts of one lineage of the zoo,
+failures included (the published work's most useful source: what the evaluated policies do, not
+only what demonstrations do); the evaluation reports its statistics over every policy and over the
+policies whose rollouts the world model never saw (`metrics.unseen`).
 | eval     | experiments.evaluate   | runs/eval/<p>     |
 | report   | experiments.report     | runs/eval/<p>/report.html |
 """
@@ -24,7 +30,7 @@ import sys
 import time
 from pathlib import Path
 
-STAGES = ("data", "policies", "train", "eval", "report")
+STAGES = ("data", "policies", "rollouts", "train", "eval", "report")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -36,6 +42,8 @@ class Pipeline:
     train: str
     eval: str
     root: str = "runs"
+    rollouts: str = ""  # a zoo selector (sim_data.sources) whose checkpoints' rollouts join the world model's data
+    rollout_episodes: int = 0  # episodes per selected checkpoint
     data_overrides: tuple = ()
     policies_overrides: tuple = ()
     train_overrides: tuple = ()
@@ -43,15 +51,19 @@ class Pipeline:
 
     def dirs(self, name: str) -> dict:
         r = Path(self.root)
-        return {"data": r / "data" / self.data, "policies": r / "policies" / name, "wm": r / "wm" / name,
-                "eval": r / "eval" / name}
+        data = r / "data" / self.data
+        return {"data": data, "policies": r / "policies" / name, "wm": r / "wm" / name, "eval": r / "eval" / name,
+                "wm_data": data.with_name(f"{self.data}_{name}_rollouts") if self.rollouts else data}
 
 
 PIPELINES = {
-    "demo": Pipeline(data="demo", policies="demo", train="demo", eval="demo"),
+    "demo": Pipeline(data="demo", policies="demo", train="demo", eval="demo", rollouts="conv_noproprio",
+                     rollout_episodes=4),
     # the GPU preset: two tasks, scripted episodes of 5 skills, random play and the controllability
-    # programs; the zoo's five lineages of 8 checkpoints evaluated over 200 held-out initial states per task
-    "full": Pipeline(data="wm_full", policies="full", train="full", eval="full", train_overrides=("w_success=0.5",)),
+    # programs, the conv_noproprio lineage's rollouts; the zoo's five lineages of 8 checkpoints
+    # evaluated over 200 held-out initial states per task
+    "full": Pipeline(data="wm_full", policies="full", train="full", eval="full", train_overrides=("w_success=0.5",),
+                     rollouts="conv_noproprio", rollout_episodes=64),
 }
 
 
@@ -69,13 +81,22 @@ def run_stage(name: str, stage: str, extra=()) -> None:
 
         zoo.main(["--config", p.policies, "--data", str(d["data"]), "--out", str(d["policies"]),
                   *p.policies_overrides, *extra])
+    elif stage == "rollouts":
+        if not p.rollouts:
+            print(f"{name} trains its world model on the data alone; skipping", file=sys.stderr)
+            return
+        from sim_data import generate
+
+        generate.main(["--config", p.data, "--out", str(d["wm_data"]), "--reuse", str(d["data"]), *p.data_overrides,
+                       f"policies={d['policies']}#{p.rollouts}", f"policy_episodes={p.rollout_episodes}", *extra])
     elif stage == "train":
         if (d["wm"] / "eval.json").exists():
             print(f"{d['wm']} is trained (eval.json exists); skipping", file=sys.stderr)
             return
         from wm import train
 
-        train.main(["--config", p.train, "--data", str(d["data"]), "--out", str(d["wm"]), *p.train_overrides, *extra])
+        train.main(["--config", p.train, "--data", str(d["wm_data"]), "--out", str(d["wm"]), *p.train_overrides,
+                    *extra])
     elif stage == "eval":
         from experiments import evaluate
 

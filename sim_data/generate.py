@@ -21,6 +21,7 @@ import hashlib
 import json
 import multiprocessing
 import os
+import shutil
 import sys
 import time
 from importlib import metadata as importlib_metadata
@@ -125,8 +126,8 @@ PRESETS = {
     "full": DataConfig(skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=600, batch=1200, workers=12, programs=32),
     # the world model's GPU set: two tasks, a spread of skills, random play, the controllability
     # programs, head camera
-    "wm_full": DataConfig(tasks=("mug", "wipe"), skills=(0.0, 0.25, 0.5, 0.75, 1.0), episodes=500, batch=500,
-                          cameras=("head_cam",), workers=14, programs=32, play=500),
+    "wm_full": DataConfig(tasks=("mug", "wipe"), skills=(0.0, 0.25, 0.5, 0.75, 1.0), episodes=400, batch=400,
+                          cameras=("head_cam",), workers=14, programs=32, play=400),
     "heldout_plant": DataConfig(heldout=True, episodes=100, batch=600, workers=12),
     "shelf": DataConfig(tasks=("shelf",), skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=600, batch=1200, workers=12),
     "shelf_arcade": DataConfig(tasks=("shelf", "arcade"), skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=300,
@@ -236,8 +237,43 @@ def _episode_meta(cfg, task, source, i, success, num_steps, engine):
     }
 
 
-def generate(cfg: DataConfig, out: Path, progress: bool = True) -> dict:
-    """Generates (or completes) the dataset of cfg in out; returns the stats written to stats.json."""
+# settings that change which episodes a dataset holds but not the bytes of an episode both hold
+_ADDITIONS = ("policies", "policy_episodes", "workers")
+
+
+def link_shared_episodes(cfg: DataConfig, out: Path, reuse: Path, learned=()) -> int:
+    """Hard-links (or copies) into out the episode files of the dataset in `reuse` that cfg's plan
+    also holds, so they are not simulated again; returns how many. The reused dataset's configuration
+    must equal cfg apart from the learned policies it adds (and the worker count): the same seeds
+    then give the same bytes."""
+    reuse = Path(reuse)
+    theirs = json.loads((reuse / "config.json").read_text()) if (reuse / "config.json").exists() else None
+    if theirs is None:
+        raise FileNotFoundError(f"{reuse} holds no dataset (config.json): generate it first")
+    mine = json.loads(json.dumps(dataclasses.asdict(cfg)))
+    diff = sorted(k for k in mine if k not in _ADDITIONS and theirs.get(k) != mine[k])
+    if diff:
+        raise ValueError(f"{reuse} was generated with other settings ({diff}); its episodes cannot be reused")
+    linked = 0
+    for task, source, idx in _plan(cfg, learned):
+        for i in idx:
+            name = f"{episode_id(task, source, i)}.mcap"
+            src, dst = reuse / "episodes" / name, out / "episodes" / name
+            if dst.exists() or not src.exists():
+                continue
+            tmp = dst.with_name(name + ".tmp")
+            try:
+                os.link(src, tmp)
+            except OSError:
+                shutil.copyfile(src, tmp)
+            os.replace(tmp, dst)
+            linked += 1
+    return linked
+
+
+def generate(cfg: DataConfig, out: Path, progress: bool = True, reuse: Path | None = None) -> dict:
+    """Generates (or completes) the dataset of cfg in out; returns the stats written to stats.json.
+    reuse: a dataset whose shared episodes are linked instead of simulated (link_shared_episodes)."""
     cfg.validate()
     out = Path(out)
     (out / "episodes").mkdir(parents=True, exist_ok=True)
@@ -246,6 +282,10 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True) -> dict:
     learned = resolve_sources(cfg.policies)
     for stale in (out / "episodes").glob("*.tmp"):
         stale.unlink()  # a killed run's half-written file
+    if reuse is not None:
+        n = link_shared_episodes(cfg, out, reuse, learned)
+        if progress:
+            print(f"reused {n} episodes of {reuse}", file=sys.stderr)
     # a chunk with any episode missing is simulated whole (its batch fixes every episode's noise) and
     # only the missing episodes are written
     todo = [(task, skill, idx, {i for i in idx if not (out / "episodes" / f"{episode_id(task, skill, i)}.mcap").exists()})
@@ -389,13 +429,18 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--config", default="demo", help=f"preset: {', '.join(PRESETS)}")
     p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--reuse", type=Path, help="a dataset of the same settings whose episodes are linked, not simulated "
+                                              "again (to add policies' rollouts to a generated dataset)")
     p.add_argument("overrides", nargs="*", help="key=value overrides of the preset (e.g. episodes=16 tasks=mug,wipe)")
     a = p.parse_args(argv)
     try:
         cfg = make_config(a.config, a.overrides)
     except ValueError as e:
         p.error(str(e))
-    stats = generate(cfg, a.out)
+    try:
+        stats = generate(cfg, a.out, reuse=a.reuse)
+    except (FileNotFoundError, ValueError) as e:
+        p.error(str(e))
     print(json.dumps({"episodes": stats["episodes"], **stats["throughput"]}, indent=1))
     return 0
 

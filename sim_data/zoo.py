@@ -65,6 +65,8 @@ class ZooConfig:
       conv, vit: the networks of the two encoders. steps: optimiser steps per lineage;
       checkpoints: checkpoints per lineage, at steps spaced geometrically from first_step to steps.
       batch, lr, weight_decay: AdamW. val_batches: validation batches of `batch` samples. seed.
+      shift: random-shift augmentation of the training images (DrQ's: each image padded by `shift`
+        pixels at its edges and cropped back at a random offset; 0: none).
     """
 
     tasks: tuple = ("mug", "wipe")
@@ -79,6 +81,7 @@ class ZooConfig:
     weight_decay: float = 1e-4
     val_batches: int = 8
     seed: int = 0
+    shift: int = 0
 
     def validate(self) -> None:
         if not self.tasks or not self.lineages:
@@ -119,6 +122,7 @@ PRESETS = {
                       batch=32, val_batches=4, conv=PolicyNetConfig(width=16, hidden=128),
                       vit=PolicyNetConfig(encoder="vit", width=32, depth=2, hidden=128)),
     "full": ZooConfig(tasks=("mug", "wipe"), steps=5000, checkpoints=8, first_step=20, batch=256, val_batches=8,
+                      shift=4,
                       lineages=LINEAGES_MAIN + (Lineage("conv_noproprio_few", proprio=False, demos=24),
                                                 Lineage("conv_noproprio_lowskill", proprio=False, skills=(0.5, 0.75),
                                                         successes_only=False))),
@@ -179,9 +183,12 @@ def imitation_loss(cfg: PolicyNetConfig, params, batch: dict):
     return (err.mean(-1) * batch["mask"]).sum() / jnp.maximum(batch["mask"].sum(), 1.0)
 
 
-def _make_step(cfg: PolicyNetConfig, opt):
+def _make_step(cfg: PolicyNetConfig, opt, shift: int = 0):
     @jax.jit
-    def step(params, opt_state, batch):
+    def step(params, opt_state, batch, key):
+        if shift:  # augmented on the device: a host-side crop would hold up the step loop
+            batch = {**batch, "image": random_shift(batch["image"], shift, key)}
+
         def loss(net):
             return imitation_loss(cfg, {**params, "net": net}, batch)
 
@@ -197,6 +204,15 @@ def _batches(samples: dict, batch: int, rng: np.random.Generator, count: int):
     for _ in range(count):
         idx = np.sort(rng.integers(0, n, batch))
         yield {k: v[idx] for k, v in samples.items()}
+
+
+def random_shift(images, shift: int, key):
+    """(B, S, S, C) images, each padded by `shift` edge pixels and cropped back at an offset drawn
+    uniformly from [0, 2 shift] on each axis (jax.random.randint(key, (B, 2), 0, 2 shift + 1))."""
+    b, s, _, c = images.shape
+    padded = jnp.pad(images, ((0, 0), (shift, shift), (shift, shift), (0, 0)), mode="edge")
+    off = jax.random.randint(key, (b, 2), 0, 2 * shift + 1)
+    return jax.vmap(lambda im, o: jax.lax.dynamic_slice(im, (o[0], o[1], 0), (s, s, c)))(padded, off)
 
 
 def _val_loss(loss, params, val_batches: list) -> float:
@@ -229,7 +245,8 @@ def train_lineage(cfg: ZooConfig, cache: TrainingCache, task: str, lineage: Line
     params = init_params(net, jax.random.PRNGKey(seed), norm, lineage.proprio)
     opt = optax.adamw(optax.cosine_decay_schedule(cfg.lr, cfg.steps, alpha=0.05), weight_decay=cfg.weight_decay)
     opt_state = opt.init(params["net"])
-    step_fn = _make_step(net, opt)
+    step_fn = _make_step(net, opt, cfg.shift)
+    shift_key = jax.random.PRNGKey(seed + 17)
     val_loss = jax.jit(functools.partial(imitation_loss, net))
     rng = np.random.default_rng(seed)
     val_batches = list(_batches(val, cfg.batch, np.random.default_rng(7), cfg.val_batches))
@@ -238,7 +255,7 @@ def train_lineage(cfg: ZooConfig, cache: TrainingCache, task: str, lineage: Line
     bar = tqdm(total=cfg.steps, desc=f"{task}/{lineage.name}", unit="step", disable=not progress, leave=False)
     t0 = time.perf_counter()
     for step, batch in enumerate(_batches(samples, cfg.batch, rng, cfg.steps), start=1):
-        params, opt_state, loss = step_fn(params, opt_state, batch)
+        params, opt_state, loss = step_fn(params, opt_state, batch, jax.random.fold_in(shift_key, step))
         losses.append(loss)
         bar.update(1)
         if step not in marks:

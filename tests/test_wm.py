@@ -191,3 +191,33 @@ def test_make_train_smoke_writes_eval_json(smoke_world_model):
     assert report["controllability"]["groups"] == 1 and 0.0 <= report["controllability"]["match_accuracy"] <= 1.0
     assert report["success_prediction"]["episodes"] >= 1 and (out / "eval_frames.png").stat().st_size > 0
     assert (out / "best").is_dir() and (out / "metrics.jsonl").exists()
+
+
+def _synthetic_episodes(rng, n, t_max=12, f=5):
+    """Episodes of two tasks whose success is an integral: the mean of feature 0 over valid steps > 0."""
+    lengths = rng.integers(6, t_max + 1, n)
+    x = rng.normal(size=(n, t_max, f)).astype(np.float32) + rng.normal(size=(n, 1, f)).astype(np.float32)
+    mask = np.arange(t_max)[None] < lengths[:, None]
+    x = np.where(mask[..., None], x, 0.0)
+    label = (x[..., 0] * mask).sum(1) / lengths > 0
+    return {"features": x, "mask": mask, "task": ["a" if i % 2 else "b" for i in range(n)], "label": label}
+
+
+def test_episode_judge_learns_an_integral_and_round_trips(tmp_path):
+    from wm import judge as J
+
+    rng = np.random.default_rng(0)
+    train, val = _synthetic_episodes(rng, 256), _synthetic_episodes(rng, 128)
+    judge, metrics = J.fit(train, val, ("a", "b"), steps=400, progress=False)
+    p = J.judge_episodes(judge, val)
+    assert M.accuracy(p, val["label"]) >= 0.85 and metrics["val_auroc"] >= 0.9
+    J.save_judge(judge, metrics, tmp_path)
+    back = J.load_judge(tmp_path)
+    assert back.tasks == ("a", "b")
+    np.testing.assert_allclose(J.judge_episodes(back, val), p, rtol=1e-5, atol=1e-6)
+    assert json.loads((tmp_path / "judge.json").read_text())["metrics"]["kept_step"] >= 25
+    with pytest.raises(ValueError, match="not 'c'"):
+        back.probability(val["features"][:2], "c")
+    with pytest.raises(ValueError, match="successes and failures"):
+        J.fit({**train, "label": np.zeros(256, bool)}, None, ("a", "b"), steps=5, progress=False)
+    assert J.load_judge(tmp_path / "nothing") is None

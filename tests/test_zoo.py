@@ -1,7 +1,6 @@
 """The policy zoo, the plug-in point and policy rollouts in the data generator."""
 
 import json
-import shutil
 
 import jax
 import jax.numpy as jnp
@@ -85,12 +84,16 @@ def test_mixed_dataset_records_policy_rollouts(smoke_dataset, smoke_zoo, tmp_pat
     cfg, data, _ = smoke_dataset
     zoo_dir, registry = smoke_zoo
     out = tmp_path / "mixed"
-    shutil.copytree(data, out)  # the scripted episodes exist; only the policies' rollouts are new
-    (out / "config.json").unlink()
     last = max(r["step"] for r in registry if r["lineage"] == "conv_proprio")
     mixed = G.make_config("smoke", [f"policies={zoo_dir}#mug/conv_proprio/{last},examples.plugin_policy:make",
                                     "policy_episodes=1"])
-    G.generate(mixed, out, progress=False)
+    with pytest.raises(ValueError, match=r"other settings \(\['seed'\]\)"):
+        G.generate(G.make_config("smoke", ["seed=5"]), tmp_path / "other", progress=False, reuse=data)
+    # the scripted episodes are linked from the dataset they were generated in; only the rollouts are new
+    stats = G.generate(mixed, out, progress=False, reuse=data)
+    assert stats["throughput"]["episodes_generated"] == 2
+    for f in (data / "episodes").iterdir():
+        assert (out / "episodes" / f.name).read_bytes() == f.read_bytes()
     rows = [json.loads(line) for line in (out / "manifest.jsonl").read_text().splitlines()]
     kinds = {r["policy_kind"] for r in rows}
     assert kinds == {"scripted", "program", "learned", "plugin"}
@@ -100,3 +103,15 @@ def test_mixed_dataset_records_policy_rollouts(smoke_dataset, smoke_zoo, tmp_pat
     assert learned[0]["seed"] == scripted_seed  # the same initial state as scripted episode 0
     meta = G.read_episode_meta(out / learned[0]["file"])
     assert meta["policy_source"]["lineage"] == "conv_proprio"
+
+
+def test_random_shift_crops_the_edge_padded_image():
+    rng = np.random.default_rng(3)
+    images = rng.integers(0, 256, (5, 8, 8, 3), dtype=np.uint8)
+    key = jax.random.PRNGKey(1)
+    got = np.asarray(zoo.random_shift(jnp.asarray(images), 2, key))
+    off = np.asarray(jax.random.randint(key, (5, 2), 0, 5))
+    for i in range(5):
+        padded = np.pad(images[i], ((2, 2), (2, 2), (0, 0)), mode="edge")
+        assert (got[i] == padded[off[i, 0]:off[i, 0] + 8, off[i, 1]:off[i, 1] + 8]).all()
+    assert (got != images).any()  # some offset differs from the centre

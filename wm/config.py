@@ -30,6 +30,8 @@ class TrainConfig:
       train_fraction: the share of training episodes used (a fixed nested subset: the episodes of
         1/8 are among those of 1/4); train_tasks: the tasks trained on (empty: all);
         eval_tasks: the tasks of eval.json (empty: all). The sweeps vary these.
+      judge_episodes: training episodes the episode judge (wm.judge) learns from, imagined whole after
+        training (0: no judge; the per-step rule decides); judge_steps: its optimiser steps.
     """
 
     model: ModelConfig = ModelConfig()
@@ -63,6 +65,8 @@ class TrainConfig:
     train_fraction: float = 1.0
     train_tasks: tuple = ()
     eval_tasks: tuple = ()
+    judge_episodes: int = 1024
+    judge_steps: int = 1500
 
     def validate(self) -> None:
         self.model.validate()
@@ -76,6 +80,8 @@ class TrainConfig:
             raise ValueError(f"eval_context must be in 1..model.context ({self.model.context})")
         if not 0 < self.train_fraction <= 1:
             raise ValueError(f"train_fraction must be in (0, 1], got {self.train_fraction}")
+        if self.judge_episodes < 0 or self.judge_steps < 1:
+            raise ValueError("judge_episodes >= 0 and judge_steps >= 1 are required")
         if self.rollout_passes < 0 or self.lr <= 0:
             raise ValueError("rollout_passes >= 0 and lr > 0 are required")
 
@@ -88,12 +94,12 @@ PRESETS = {
     "default": TrainConfig(),
     "smoke": TrainConfig(model=SMOKE_MODEL, batch=2, window=6, steps=30, lr=3e-3, warmup=5, log_every=5,
                          eval_every=10, ckpt_every=10, val_batches=1, eval_context=2, eval_episodes=2,
-                         eval_horizons=(1, 4), control_horizon=4),
+                         eval_horizons=(1, 4), control_horizon=4, judge_episodes=8, judge_steps=20),
     "demo": TrainConfig(model=DEMO_MODEL, batch=8, window=10, steps=100000, max_minutes=5.0, lr=1e-3, warmup=50,
                         log_every=25, eval_every=250, ckpt_every=250, val_batches=2, eval_context=4, eval_episodes=24,
-                        eval_horizons=(1, 4, 8, 16), control_horizon=16),
-    # with compilation and eval.json, one 10-minute GPU command
-    "full": TrainConfig(max_minutes=7.0, rollout_passes=2, rollout_grad=True),
+                        eval_horizons=(1, 4, 8, 16), control_horizon=16, judge_steps=600),
+    # with compilation, the episode judge and eval.json, one 10-minute GPU command
+    "full": TrainConfig(max_minutes=6.0, rollout_passes=2, rollout_grad=True),
 }
 
 

@@ -6,10 +6,11 @@
   frames counted at 100 dB); because a still robot's frames are identical, that mean rewards exact
   copies heavily, so the PSNR of the samples' mean squared error ("pooled") and the share of
   samples whose true frame equals the last context frame ("static_share") are reported beside it.
-- Success prediction: from each test episode's first `eval_context` observations (random play left
-  out), imagine to its last frame under the logged actions; the predicted outcome is the highest
-  per-step success probability (`wm.imagine.episode_success`; the final frame's and the outcome
-  head's are reported beside it). Accuracy (threshold 0.5) and AUROC against the simulator's outcome.
+- Success prediction: from each test episode's first observation (random play left out), as the
+  evaluator starts, imagine to its last frame under the logged actions; the predicted outcome is the
+  episode judge's (`wm.judge`) where the run has one, the highest per-step success probability
+  (`wm.imagine.episode_success`) otherwise; the per-step rule's, the final frame's and the outcome
+  head's are reported beside it. Accuracy (threshold 0.5) and AUROC against the simulator's outcome.
 - Controllability: the action programs recorded from shared initial states (split "programs"):
   from the initial frame, imagine `control_horizon` steps under each program; match accuracy (each
   prediction is closest, in mean squared error, to its own program's true future) and delta-PSNR
@@ -33,33 +34,10 @@ import numpy as np
 
 from sim_data.cache import TrainingCache
 from wm.config import TrainConfig, override
-from wm.imagine import Norm, episode_success, open_loop
+from wm.imagine import Norm, context_sample, open_loop_chunked
+from wm.judge import EpisodeJudge, imagine_episodes, judge_episodes, load_judge
 from wm.metrics import accuracy, auroc, psnr, ssim
 from wm.train import check_dataset, load_trained, write_json_atomic
-
-CHUNK = 64
-
-
-def _imagine(cfg: TrainConfig, params, norm: Norm, samples: list[dict], horizon: int) -> dict:
-    """Open-loop predictions for samples {"frames" (C, S, S, 3), "proprio" (C, 37), "context_actions"
-    (C-1, 20), "actions" (horizon, 20)}, in chunks of CHUNK (the last one padded)."""
-    outs = []
-    for i in range(0, len(samples), CHUNK):
-        part = samples[i:i + CHUNK]
-        pad = CHUNK - len(part) if len(samples) > CHUNK else 0
-        part = part + [part[-1]] * pad
-        stack = {k: np.stack([s[k] for s in part]) for k in part[0]}
-        got = open_loop(cfg.model, params, norm, stack["frames"], stack["proprio"], stack["context_actions"],
-                        stack["actions"][:, :horizon])
-        outs.append({k: np.asarray(v)[: len(part) - pad] for k, v in got.items()})
-    return {k: np.concatenate([o[k] for o in outs]) for k in outs[0]}
-
-
-def _sample(ep: dict, camera: str, start: int, context: int, horizon: int) -> dict:
-    c0, c1 = start, start + context
-    return {"frames": ep["frames"][camera][c0:c1], "proprio": ep["proprio"][c0:c1],
-            "context_actions": ep["action"][c0:c1 - 1], "actions": ep["action"][c1 - 1:c1 - 1 + horizon]}
-
 
 def frame_quality(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, episodes: list[int]) -> tuple[dict, dict]:
     c, hmax = cfg.eval_context, max(cfg.eval_horizons)
@@ -71,12 +49,12 @@ def frame_quality(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, ep
             continue
         span = n - c - hmax
         for start in sorted({round(span * f) for f in (0.125, 0.375, 0.625, 0.875)}):  # spread over the episode
-            samples.append(_sample(ep, cfg.camera, start, c, hmax))
+            samples.append(context_sample(ep, cfg.camera, start, c, hmax))
             truths.append(ep["frames"][cfg.camera][start + c:start + c + hmax])
             lasts.append(ep["frames"][cfg.camera][start + c - 1])
     if not samples:
         raise ValueError(f"no test episode is long enough for context {c} + horizon {hmax}")
-    pred = _imagine(cfg, params, norm, samples, hmax)["frames"]
+    pred = open_loop_chunked(cfg.model, params, norm, samples, hmax)["frames"]
     truth = np.stack(truths)
     copy = np.repeat(np.stack(lasts)[:, None], hmax, axis=1)
     keys = ("psnr", "ssim", "pooled_psnr", "copy_last_psnr", "copy_last_ssim", "copy_last_pooled_psnr", "static_share")
@@ -98,24 +76,28 @@ def _finite_mean(x) -> float:
     return float(np.mean(np.minimum(x, 100.0)))
 
 
-def success_prediction(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, episodes: list[int]) -> dict:
-    c = cfg.eval_context
-    by_len: dict = {}
-    for i in episodes:
-        by_len.setdefault(cache.episodes[i]["length"], []).append(i)
-    probs, finals, heads, labels = [], [], [], []
-    for n, ids in sorted(by_len.items()):
-        samples = [_sample(cache.episode(i, cameras=[cfg.camera]), cfg.camera, 0, c, n - c) for i in ids]
-        got = _imagine(cfg, params, norm, samples, n - c)
-        probs += list(np.asarray(episode_success(got["success"])))
-        finals += list(got["success"][:, -1])
-        heads += list(got["outcome"][:, -1])
-        labels += [cache.episodes[i]["success"] for i in ids]
-    labels = np.array(labels, bool)
-    return {"episodes": len(labels), "positive_rate": float(labels.mean()), "rule": "highest per-step probability",
-            "accuracy": accuracy(probs, labels), "auroc": auroc(probs, labels),
-            "final_frame_accuracy": accuracy(finals, labels), "final_frame_auroc": auroc(finals, labels),
-            "outcome_head_accuracy": accuracy(heads, labels), "outcome_head_auroc": auroc(heads, labels)}
+def success_prediction(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, episodes: list[int],
+                       judge: EpisodeJudge | None = None) -> dict:
+    """Each episode imagined whole from its first observation under its logged actions (as the
+    evaluator starts); the per-step rule's, the final frame's, the outcome head's and (if given) the
+    episode judge's accuracy and AUROC against the simulator's outcome."""
+    got = imagine_episodes(cfg.model, params, norm, cache, episodes, cfg.camera, progress=False)
+    labels = got["label"]
+    last = got["mask"].sum(axis=1) - 1
+    rows = np.arange(len(labels))
+    success = np.where(got["mask"], got["features"][..., -2], 0.0)
+    rules = {"": success.max(axis=1), "final_frame_": got["features"][rows, last, -2],
+             "outcome_head_": got["features"][rows, last, -1]}
+    if judge is not None and all(judge.knows(t) for t in got["task"]):
+        rules["judge_"] = judge_episodes(judge, got)
+    out = {"episodes": len(labels), "positive_rate": float(labels.mean()), "context": 1,
+           "rule": "episode judge" if "judge_" in rules else "highest per-step probability"}
+    for tag, p in rules.items():
+        out.update({f"{tag}accuracy": accuracy(p, labels), f"{tag}auroc": auroc(p, labels)})
+    if "judge_" in rules:  # the headline figures are the judge's, the rule's stay beside them
+        out.update({"per_step_rule_accuracy": out["accuracy"], "per_step_rule_auroc": out["auroc"],
+                    "accuracy": out["judge_accuracy"], "auroc": out["judge_auroc"]})
+    return out
 
 
 def controllability(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, tasks=None) -> dict:
@@ -132,12 +114,12 @@ def controllability(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, 
     for g in groups.values():
         eps = [cache.episode(g[p], cameras=[cfg.camera]) for p in programs]
         for j, ep in enumerate(eps):
-            samples.append(_sample(ep, cfg.camera, 0, 1, h))
+            samples.append(context_sample(ep, cfg.camera, 0, 1, h))
             other = eps[(j + 1) % len(eps)]
             shuffled.append({**samples[-1], "actions": other["action"][:h]})
             truths.append(ep["frames"][cfg.camera][1:1 + h])
-    pred = _imagine(cfg, params, norm, samples, h)["frames"].astype(np.float64)
-    wrong = _imagine(cfg, params, norm, shuffled, h)["frames"]
+    pred = open_loop_chunked(cfg.model, params, norm, samples, h)["frames"].astype(np.float64)
+    wrong = open_loop_chunked(cfg.model, params, norm, shuffled, h)["frames"]
     truth = np.stack(truths).astype(np.float64)
     k = len(programs)
     pred_g, truth_g = pred.reshape((-1, k) + pred.shape[1:]), truth.reshape((-1, k) + truth.shape[1:])
@@ -163,13 +145,15 @@ def program_panel(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, ho
         return {}
     eps = {p: cache.episode(full[0][p], cameras=[cfg.camera]) for p in programs}
     h = min(horizon, min(ep["record"]["length"] for ep in eps.values()) - 1)
-    pred = _imagine(cfg, params, norm, [_sample(eps[p], cfg.camera, 0, 1, h) for p in programs], h)["frames"]
+    samples = [context_sample(eps[p], cfg.camera, 0, 1, h) for p in programs]
+    pred = open_loop_chunked(cfg.model, params, norm, samples, h)["frames"]
     return {p.split(":")[-1]: {"real": eps[p]["frames"][cfg.camera][: h + 1],
                                "imagined": np.concatenate([eps[p]["frames"][cfg.camera][:1], pred[j]])}
             for j, p in enumerate(programs)}
 
 
-def evaluate(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, out: Path) -> dict:
+def evaluate(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, out: Path,
+             judge: EpisodeJudge | None = None) -> dict:
     """Computes and writes OUT/eval.json (and eval_frames.png); returns the report."""
     tasks = list(cfg.eval_tasks) or None
     split, test = _held_out(cache, tasks, lambda e: True, "episodes")
@@ -177,7 +161,7 @@ def evaluate(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, out: Pa
     fq, pictures = frame_quality(cfg, params, norm, cache, test)
     # random play is in the frame figures; success is judged on episodes that attempt the task
     success_split, tasked = _held_out(cache, tasks, lambda e: e.get("policy_kind") != "play", "task episodes")
-    sp = success_prediction(cfg, params, norm, cache, _spread(tasked, cfg.eval_episodes))
+    sp = success_prediction(cfg, params, norm, cache, _spread(tasked, cfg.eval_episodes), judge)
     sp["split"] = success_split
     ctrl = controllability(cfg, params, norm, cache, tasks)
     at = dict(zip(fq["horizons"], range(len(fq["horizons"])), strict=True))
@@ -272,7 +256,7 @@ def main(argv=None) -> int:
     except ValueError as e:
         p.error(f"{a.data}: {e}")
     a.out.mkdir(parents=True, exist_ok=True)
-    report = evaluate(cfg, params, norm, cache, a.out)
+    report = evaluate(cfg, params, norm, cache, a.out, load_judge(a.wm))
     print(json.dumps(report["summary"], indent=1))
     return 0
 

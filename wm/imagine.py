@@ -115,6 +115,21 @@ def episode_success(success):
     return jnp.max(jnp.asarray(success), axis=1)
 
 
+def step_features(norm: Norm, state: ImagineState, action) -> jax.Array:
+    """What the episode judge (wm.judge) reads of one imagined step, (B, F) with F = feature_dim(cfg):
+    the predicted proprioception (standardised), the action taken (standardised), the new latent grid
+    pooled to 2x2 cells, and the per-step success and outcome probabilities."""
+    z = state.z[:, -1]
+    b, s, _, c = z.shape
+    pooled = z.reshape(b, 2, s // 2, 2, s // 2, c).mean(axis=(2, 4)).reshape(b, 4 * c)
+    return jnp.concatenate([state.proprio[:, -1], norm.action(action), pooled, state.success[:, None],
+                            state.outcome[:, None]], axis=-1)
+
+
+def feature_dim(cfg: ModelConfig) -> int:
+    return cfg.proprio_dim + cfg.action_dim + 4 * cfg.latent + 2
+
+
 def current_observation(norm: Norm, state: ImagineState) -> dict:
     """What a policy sees: {"image": (B, S, S, 3) uint8 current frame, "proprio": (B, 37)}."""
     return {"image": to_uint8(state.frame), "proprio": norm.unproprio(state.proprio[:, -1])}
@@ -131,16 +146,18 @@ def open_loop(cfg: ModelConfig, params, norm: Norm, frames, proprio, context_act
     frames (B, C, S, S, 3) uint8, proprio (B, C, 37), context_actions (B, C-1, 20), actions (B, H, 20)
     (action h follows imagined frame h-1, the first follows the last context frame).
     Returns {"frames": (B, H, S, S, 3) uint8, "proprio": (B, H, 37), "success": (B, H),
-    "outcome": (B, H)} for frames C .. C+H-1 after the context.
+    "outcome": (B, H), "features": (B, H, F) (step_features)} for frames C .. C+H-1 after the context.
     """
     state = init_state(cfg, params, norm, frames, proprio, context_actions)
 
     def body(st, a):
         st = step(cfg, params, norm, st, a)
-        return st, (to_uint8(st.frame), norm.unproprio(st.proprio[:, -1]), st.success, st.outcome)
+        return st, (to_uint8(st.frame), norm.unproprio(st.proprio[:, -1]), st.success, st.outcome,
+                    step_features(norm, st, a))
 
-    _, (f, p, s, o) = jax.lax.scan(body, state, jnp.swapaxes(actions, 0, 1))
-    return {"frames": jnp.swapaxes(f, 0, 1), "proprio": jnp.swapaxes(p, 0, 1), "success": s.T, "outcome": o.T}
+    _, (f, p, s, o, x) = jax.lax.scan(body, state, jnp.swapaxes(actions, 0, 1))
+    sw = functools.partial(jnp.swapaxes, axis1=0, axis2=1)
+    return {"frames": sw(f), "proprio": sw(p), "success": s.T, "outcome": o.T, "features": sw(x)}
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1, 2))
@@ -150,7 +167,7 @@ def closed_loop(cfg: ModelConfig, policy, horizon: int, params, norm: Norm, poli
 
     The policy's carry starts from `policy.init_carry(policy_params, obs, None, rng)` on the last
     context observation. Returns {"frames": (B, horizon, S, S, 3) uint8, "proprio": (B, horizon, 37),
-    "success": (B, horizon), "outcome": (B, horizon), "action": (B, horizon, 20)}.
+    "success": (B, horizon), "outcome": (B, horizon), "action": (B, horizon, 20), "features": (B, horizon, F)}.
     """
     state = init_state(cfg, params, norm, frames, proprio, context_actions)
     k_init, k_act = jax.random.split(rng)
@@ -162,8 +179,36 @@ def closed_loop(cfg: ModelConfig, policy, horizon: int, params, norm: Norm, poli
         action, pc = policy.act(policy_params, ob, pc, jax.random.fold_in(k_act, t))
         st = step(cfg, params, norm, st, action)
         ob = current_observation(norm, st)
-        return (st, ob, pc), (ob["image"], ob["proprio"], st.success, st.outcome, action)
+        return (st, ob, pc), (ob["image"], ob["proprio"], st.success, st.outcome, action,
+                              step_features(norm, st, action))
 
-    _, (f, p, s, o, a) = jax.lax.scan(body, (state, obs, carry), jnp.arange(horizon))
+    _, (f, p, s, o, a, x) = jax.lax.scan(body, (state, obs, carry), jnp.arange(horizon))
     sw = functools.partial(jnp.swapaxes, axis1=0, axis2=1)
-    return {"frames": sw(f), "proprio": sw(p), "success": s.T, "outcome": o.T, "action": sw(a)}
+    return {"frames": sw(f), "proprio": sw(p), "success": s.T, "outcome": o.T, "action": sw(a), "features": sw(x)}
+
+
+CHUNK = 64
+
+
+def context_sample(ep: dict, camera: str, start: int, context: int, horizon: int) -> dict:
+    """From an episode (sim_data.cache's episode dict): `context` observations from `start` and the
+    `horizon` logged actions that follow, as open_loop_chunked takes them."""
+    c0, c1 = start, start + context
+    return {"frames": ep["frames"][camera][c0:c1], "proprio": ep["proprio"][c0:c1],
+            "context_actions": ep["action"][c0:c1 - 1], "actions": ep["action"][c1 - 1:c1 - 1 + horizon]}
+
+
+def open_loop_chunked(cfg: ModelConfig, params, norm: Norm, samples: list[dict], horizon: int) -> dict:
+    """open_loop over samples {"frames" (C, S, S, 3), "proprio" (C, 37), "context_actions" (C-1, 20),
+    "actions" (horizon, 20)} in chunks of CHUNK (the last one padded, so one compilation serves all);
+    numpy arrays with a leading axis of len(samples)."""
+    outs = []
+    for i in range(0, len(samples), CHUNK):
+        part = samples[i:i + CHUNK]
+        pad = CHUNK - len(part) if len(samples) > CHUNK else 0
+        part = part + [part[-1]] * pad
+        stack = {k: np.stack([s[k] for s in part]) for k in part[0]}
+        got = open_loop(cfg, params, norm, stack["frames"], stack["proprio"], stack["context_actions"],
+                        stack["actions"][:, :horizon])
+        outs.append({k: np.asarray(v)[: len(part) - pad] for k, v in got.items()})
+    return {k: np.concatenate([o[k] for o in outs]) for k in outs[0]}

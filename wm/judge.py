@@ -1,0 +1,246 @@
+"""The episode judge: an imagined episode's success, read from everything the world model imagined
+over the whole episode.
+
+The dynamics' per-step success head reads only the last K imagined frames. On the simulator's own
+frames it is good (teacher-forced), but over a long imagined episode the frames drift and blur, and
+a task's success may depend on more than K frames show (stepping back half a metre is a sum of
+velocities). The judge is a small network over the sequence of `wm.imagine.step_features` (predicted
+proprioception, actions, pooled latents, the per-step success and outcome probabilities) and the
+task's name, pooled over time (mean, max, first, last): the mean integrates what the proprioception
+says about the body's motion, the max keeps a success reached and lost. It is trained on the world
+model's own open-loop imaginations of the training episodes from their first frame (as the evaluator
+starts) under their logged actions, labelled with the simulator's outcome, so it learns what success
+looks like in imagination rather than in the simulator's frames; the best parameters on the
+validation episodes' imaginations are kept.
+
+Written to `OUT/judge.json` (configuration, feature standardisation, tasks, fit metrics) and
+`OUT/judge.msgpack` (parameters) by `wm.train` after training; `load_judge(OUT)` reads them back.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import os
+import sys
+from pathlib import Path
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import serialization
+from tqdm import tqdm
+
+from wm.imagine import Norm, context_sample, feature_dim, open_loop_chunked
+from wm.metrics import accuracy, auroc
+from wm.model import ModelConfig
+
+WIDTH = 64
+LR = 2e-3
+WEIGHT_DECAY = 0.05
+BATCH = 256
+
+
+class JudgeNet(nn.Module):
+    """(B, T, F) standardised step features, (B, T) bool mask, (B,) int task -> (B,) success logits."""
+
+    n_tasks: int
+    width: int = WIDTH
+
+    @nn.compact
+    def __call__(self, x, mask, task):
+        h = nn.gelu(nn.Dense(self.width)(x))
+        h = nn.gelu(nn.Dense(self.width)(h))
+        m = mask[..., None].astype(h.dtype)
+        n = jnp.maximum(m.sum(axis=1), 1.0)
+        mean = (h * m).sum(axis=1) / n
+        top = jnp.where(m > 0, h, -1e9).max(axis=1)
+        last = jnp.take_along_axis(h, (n[:, 0].astype(jnp.int32) - 1)[:, None, None], axis=1)[:, 0]
+        y = jnp.concatenate([mean, top, h[:, 0], last, nn.Embed(self.n_tasks, self.width)(task)], axis=-1)
+        return nn.Dense(1)(nn.gelu(nn.Dense(self.width)(y)))[..., 0]
+
+
+@dataclasses.dataclass(frozen=True)
+class EpisodeJudge:
+    """A fitted judge: parameters, feature standardisation (F,), the tasks it knows (in embedding order)."""
+
+    params: dict
+    mean: np.ndarray
+    std: np.ndarray
+    tasks: tuple
+
+    def knows(self, task: str) -> bool:
+        return task in self.tasks
+
+    def probability(self, features, task: str, mask=None) -> np.ndarray:
+        """features (B, T, F) of imagined episodes of `task` (mask (B, T) bool, default all steps)
+        -> (B,) predicted probability of success."""
+        if task not in self.tasks:
+            raise ValueError(f"the judge was trained on tasks {list(self.tasks)}, not {task!r}")
+        x = np.asarray(features, np.float32)
+        mask = np.ones(x.shape[:2], bool) if mask is None else mask
+        ids = np.full(x.shape[0], self.tasks.index(task), np.int32)
+        return np.asarray(_probability(len(self.tasks), self.params, (x - self.mean) / self.std, mask, ids))
+
+
+@functools.partial(jax.jit, static_argnums=(0,))
+def _probability(n_tasks, params, x, mask, task):
+    return jax.nn.sigmoid(JudgeNet(n_tasks).apply({"params": params}, x, mask, task))
+
+
+# ---- imagined episodes -----------------------------------------------------------------------------
+
+def imagine_episodes(cfg: ModelConfig, params, norm: Norm, cache, ids: list[int], camera: str,
+                     progress: bool = True) -> dict:
+    """Open-loop imaginations of whole episodes from their first observation under their logged actions.
+
+    Returns {"features": (N, T, F) float32 (padded to the longest), "mask": (N, T) bool, "task": [N] str,
+    "label": (N,) bool the simulator's outcome}, in the order of ids.
+    """
+    by_len: dict = {}
+    for i in ids:
+        by_len.setdefault(cache.episodes[i]["length"], []).append(i)
+    t_max = max(by_len) - 1
+    feats, masks, order = [], [], []
+    bar = tqdm(total=len(ids), desc="judge: imagine", unit="ep", disable=not progress)
+    for n, group in sorted(by_len.items()):
+        samples = [context_sample(cache.episode(i, cameras=[camera]), camera, 0, 1, n - 1) for i in group]
+        x = open_loop_chunked(cfg, params, norm, samples, n - 1)["features"]
+        feats.append(np.pad(x, ((0, 0), (0, t_max - x.shape[1]), (0, 0))))
+        masks.append(np.arange(t_max)[None].repeat(len(group), 0) < x.shape[1])
+        order += group
+        bar.update(len(group))
+    bar.close()
+    back = np.array([order.index(i) for i in ids])  # rows in the order of ids
+    return {"features": np.concatenate(feats)[back].astype(np.float32), "mask": np.concatenate(masks)[back],
+            "task": [cache.episodes[i]["task"] for i in ids],
+            "label": np.array([cache.episodes[i]["success"] for i in ids], bool)}
+
+
+# ---- fitting ---------------------------------------------------------------------------------------
+
+def _standardisation(x, mask):
+    v = x[mask]
+    return v.mean(0), np.maximum(v.std(0), 1e-3)
+
+
+def fit(train: dict, val: dict | None, tasks: tuple, steps: int, seed: int = 0,
+        progress: bool = True) -> tuple[EpisodeJudge, dict]:
+    """Fits a judge to imagined episodes (imagine_episodes' dicts); returns it and its fit metrics
+    (accuracy and AUROC on train and val; the kept step, the best on val's loss, or the last)."""
+    if len(set(train["label"].tolist())) < 2:
+        raise ValueError("the judge needs successes and failures among its training episodes")
+    mean, std = _standardisation(train["features"], train["mask"])
+    net = JudgeNet(len(tasks))
+
+    def arrays(d):
+        return ((d["features"] - mean) / std, d["mask"], np.array([tasks.index(t) for t in d["task"]], np.int32),
+                d["label"].astype(np.float32))
+
+    tr = arrays(train)
+    va = arrays(val) if val is not None and len(val["label"]) else None
+    params = net.init(jax.random.PRNGKey(seed), *tr[:3])["params"]
+    opt = optax.adamw(LR, weight_decay=WEIGHT_DECAY)
+
+    def loss_fn(p, x, m, t, y):
+        return optax.sigmoid_binary_cross_entropy(net.apply({"params": p}, x, m, t), y).mean()
+
+    @jax.jit
+    def update(p, o, x, m, t, y):
+        loss, g = jax.value_and_grad(loss_fn)(p, x, m, t, y)
+        u, o = opt.update(g, o, p)
+        return optax.apply_updates(p, u), o, loss
+
+    eval_loss = jax.jit(loss_fn)
+    state, rng = opt.init(params), np.random.default_rng(seed)
+    best, best_loss, best_step = params, np.inf, steps
+    n = len(tr[3])
+    for k in tqdm(range(1, steps + 1), desc="judge: fit", unit="step", disable=not progress):
+        idx = rng.choice(n, BATCH, replace=True) if n > BATCH else np.arange(n)
+        params, state, _ = update(params, state, *(a[idx] for a in tr))
+        if va is not None and (k % 25 == 0 or k == steps):
+            v = float(eval_loss(params, *va))
+            if v < best_loss:
+                best, best_loss, best_step = params, v, k
+    if va is None:
+        best = params
+    judge = EpisodeJudge(params=jax.device_get(best), mean=mean, std=std, tasks=tuple(tasks))
+    metrics = {"episodes_train": n, "steps": steps, "kept_step": best_step}
+    for tag, d in (("train", train), ("val", val)):
+        if d is None or not len(d["label"]):
+            continue
+        p = judge_episodes(judge, d)
+        metrics.update({f"{tag}_episodes": len(p), f"{tag}_accuracy": accuracy(p, d["label"]),
+                        f"{tag}_auroc": auroc(p, d["label"])})
+    return judge, metrics
+
+
+def judge_episodes(judge: EpisodeJudge, d: dict) -> np.ndarray:
+    """(N,) the judge's probabilities for imagine_episodes' dict d (episodes of several tasks)."""
+    p = np.zeros(len(d["label"]))
+    tasks = np.array(d["task"])
+    for t in sorted(set(d["task"])):
+        rows = np.flatnonzero(tasks == t)
+        p[rows] = judge.probability(d["features"][rows], t, d["mask"][rows])
+    return p
+
+
+def fit_judge(cfg, params, norm: Norm, cache, train_ids: list[int], out: Path, progress: bool = True) -> dict:
+    """Imagines cfg.judge_episodes training episodes (and up to a quarter as many validation episodes),
+    fits the judge and saves it in out; returns its metrics. cfg is the world model's TrainConfig."""
+    tasks = tuple(sorted({cache.episodes[i]["task"] for i in train_ids}))
+    train_ids = _spread(train_ids, cfg.judge_episodes)
+    val_ids = _spread([i for i in cache.select("val") if cache.episodes[i]["task"] in tasks],
+                      max(1, cfg.judge_episodes // 4))
+    labels = {bool(cache.episodes[i]["success"]) for i in train_ids}
+    if len(labels) < 2:
+        what = "successes" if labels == {True} else "failures"
+        print(f"warning: the judge's {len(train_ids)} training episodes are all {what}; no judge (the per-step "
+              "rule decides)", file=sys.stderr)
+        return {"skipped": "one outcome only among the training episodes"}
+    train = imagine_episodes(cfg.model, params, norm, cache, train_ids, cfg.camera, progress)
+    val = imagine_episodes(cfg.model, params, norm, cache, val_ids, cfg.camera, progress) if val_ids else None
+    judge, metrics = fit(train, val, tasks, cfg.judge_steps, cfg.seed, progress)
+    save_judge(judge, metrics, Path(out))
+    return metrics
+
+
+def _spread(ids: list[int], n: int) -> list[int]:
+    return list(ids[:: max(1, len(ids) // n)][:n])
+
+
+# ---- files -----------------------------------------------------------------------------------------
+
+def save_judge(judge: EpisodeJudge, metrics: dict, out: Path) -> None:
+    blob = out / "judge.msgpack"
+    tmp = blob.with_name(blob.name + ".tmp")
+    tmp.write_bytes(serialization.to_bytes(judge.params))
+    os.replace(tmp, blob)
+    meta = {"tasks": list(judge.tasks), "mean": judge.mean.tolist(), "std": judge.std.tolist(), "width": WIDTH,
+            "metrics": metrics}
+    tmp = out / "judge.json.tmp"
+    tmp.write_text(json.dumps(meta, indent=1))
+    os.replace(tmp, out / "judge.json")
+
+
+def load_judge(out: Path) -> EpisodeJudge | None:
+    """The judge saved with a training run in out, or None when it has none."""
+    out = Path(out)
+    if not (out / "judge.json").exists() or not (out / "judge.msgpack").exists():
+        return None
+    meta = json.loads((out / "judge.json").read_text())
+    mean = np.asarray(meta["mean"], np.float32)
+    net = JudgeNet(len(meta["tasks"]), meta["width"])
+    shapes = jax.eval_shape(lambda: net.init(jax.random.PRNGKey(0), jnp.zeros((1, 2, len(mean))),
+                                             jnp.ones((1, 2), bool), jnp.zeros((1,), jnp.int32))["params"])
+    params = serialization.from_bytes(jax.tree_util.tree_map(lambda s: np.zeros(s.shape, s.dtype), shapes),
+                                      (out / "judge.msgpack").read_bytes())
+    return EpisodeJudge(params=params, mean=mean, std=np.asarray(meta["std"], np.float32), tasks=tuple(meta["tasks"]))
+
+
+def check_features(cfg: ModelConfig, judge: EpisodeJudge) -> None:
+    if len(judge.mean) != feature_dim(cfg):
+        raise ValueError(f"the judge reads {len(judge.mean)} features, the world model makes {feature_dim(cfg)}")
