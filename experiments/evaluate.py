@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import hashlib
 import json
 import math
 import sys
@@ -44,7 +43,7 @@ from sim_data.engines import ENGINES, default_engine
 from sim_data.generate import cached_env, cached_renderers, package_versions
 from sim_data.learned import StackedPolicy, stack_params
 from sim_data.rollout import record_episodes
-from sim_data.sources import resolve
+from sim_data.sources import group_by_policy, heldout_seeds, padded_chunks, resolve, used_seeds
 from sim_data.success_table import write_json_atomic
 from wm.evaluate import no_nan, program_panel
 from wm.imagine import closed_loop, episode_success
@@ -113,48 +112,7 @@ def make_config(preset: str, overrides=()) -> EvalConfig:
     return cfg
 
 
-# ---- held-out initial states ----------------------------------------------------------------------
-
-def used_seeds(*datasets) -> set:
-    """Every initial-state seed in the manifests of the given dataset directories."""
-    seeds = set()
-    for d in datasets:
-        manifest = Path(d) / "manifest.jsonl"
-        if manifest.exists():
-            seeds |= {json.loads(line)["seed"] for line in manifest.read_text().splitlines() if line}
-    return seeds
-
-
-def heldout_seeds(task: str, n: int, seed: int, used: set) -> list[int]:
-    """n initial-state seeds of task that no training dataset used (a seed space of its own, with
-    the rare collision skipped)."""
-    out, i = [], 0
-    while len(out) < n:
-        digest = hashlib.sha256(f"heldout-eval/{seed}/{task}/{i}".encode()).digest()
-        s = int.from_bytes(digest[:4], "little") & 0x7FFFFFFF
-        if s not in used:
-            out.append(s)
-        i += 1
-    return out
-
-
 # ---- one task ------------------------------------------------------------------------------------
-
-def _groups(sources):
-    """Sources sharing one policy object (and so one compiled rollout), in a fixed order."""
-    groups: dict = {}
-    for s in sources:
-        groups.setdefault(s.policy, []).append(s)
-    return list(groups.values())
-
-
-def _chunks(group, n: int, batch: int):
-    """Chunks of at most batch // n policies, the last padded by repeating its last policy."""
-    per = max(1, batch // n)
-    for i in range(0, len(group), per):
-        part = group[i:i + per]
-        yield part, part + [part[-1]] * (min(per, len(group)) - len(part))
-
 
 def evaluate_task(cfg: EvalConfig, task: str, sources, wm, seeds, engine: str, progress: bool) -> dict:
     """True and predicted outcomes of every source on task from the held-out seeds.
@@ -170,7 +128,7 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, wm, seeds, engine: str, p
     names, true, prob, rule, kept = [], [], [], [], {}
     sim_s = wm_s = 0.0
     steps = None
-    todo = [(g, part, padded) for g in _groups(sources) for part, padded in _chunks(g, n, cfg.batch)]
+    todo = [(g, part, padded) for g in group_by_policy(sources) for part, padded in padded_chunks(g, n, cfg.batch)]
     bar = tqdm(total=len(sources) * n, desc=f"{task}", unit="ep", disable=not progress)
     for k, (group, part, padded) in enumerate(todo):
         policy = StackedPolicy(group[0].policy)

@@ -1,6 +1,6 @@
 """What share of a rendered rollout's time the learned policies take; writes JSON.
 
-    python -m sim_data.bench_policy --out runs/bench/policy.json [--task mug] [--batch 64] [--engine cpu]
+    python -m sim_data.bench_policy --out runs/bench/policy.json [--task mug] [--batch 64] [--engine cpu] [--repeats 2]
 
 For each policy network of the zoo (`conv` and `vit` at the `full` preset's sizes, fresh
 parameters: speed does not depend on what was learned) one batch of whole episodes is recorded with
@@ -92,10 +92,11 @@ def main(argv=None) -> int:
     p.add_argument("--task", default="mug")
     p.add_argument("--batch", type=int, default=0, help="episodes per batch (0: 16 on cpu, 1024 on mjx)")
     p.add_argument("--engine", default="", help="cpu or mjx (default: mjx where a GPU is present)")
+    p.add_argument("--repeats", type=int, default=2, help="timed rollouts per variant after the compiling one")
     a = p.parse_args(argv)
     engine = a.engine or default_engine()
     batch = a.batch or (1024 if engine == "mjx" else 16)
-    res = bench(a.task, batch, engine)
+    res = bench(a.task, batch, engine, a.repeats)
     res.update(device=device_name(), host=platform.node(), jax=jax.__version__)
     a.out.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(a.out, res)

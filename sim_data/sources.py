@@ -21,7 +21,9 @@ A policy spec is one of
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import importlib
+import json
 import re
 from pathlib import Path
 
@@ -111,4 +113,45 @@ def resolve(specs) -> list[PolicySource]:
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
         raise ValueError(f"policy names repeat: {dup}; give plug-ins distinct names with name=module:attribute")
+    return out
+
+
+# ---- where and how policies are run -------------------------------------------------------------
+
+def group_by_policy(sources):
+    """Sources sharing one policy object (and so one compiled rollout), in a fixed order."""
+    groups: dict = {}
+    for s in sources:
+        groups.setdefault(s.policy, []).append(s)
+    return list(groups.values())
+
+
+def padded_chunks(group, n: int, batch: int):
+    """Chunks of at most batch // n policies, the last padded by repeating its last policy."""
+    per = max(1, batch // n)
+    for i in range(0, len(group), per):
+        part = group[i:i + per]
+        yield part, part + [part[-1]] * (min(per, len(group)) - len(part))
+
+
+def used_seeds(*datasets) -> set:
+    """Every initial-state seed in the manifests of the given dataset directories."""
+    seeds = set()
+    for d in datasets:
+        manifest = Path(d) / "manifest.jsonl"
+        if manifest.exists():
+            seeds |= {json.loads(line)["seed"] for line in manifest.read_text().splitlines() if line}
+    return seeds
+
+
+def heldout_seeds(task: str, n: int, seed: int, used: set) -> list[int]:
+    """n initial-state seeds of task that no training dataset used (a seed space of its own, with
+    the rare collision skipped)."""
+    out, i = [], 0
+    while len(out) < n:
+        digest = hashlib.sha256(f"heldout-eval/{seed}/{task}/{i}".encode()).digest()
+        s = int.from_bytes(digest[:4], "little") & 0x7FFFFFFF
+        if s not in used:
+            out.append(s)
+        i += 1
     return out

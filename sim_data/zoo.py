@@ -16,6 +16,11 @@ val_loss, train_loss, checkpoint, net} (checkpoint relative to OUT).
 
 The validation imitation loss of every checkpoint is measured on one fixed set per task: the
 val-split scripted demonstrations of skill 1.0 that succeeded, whatever the lineage was trained on.
+
+`--measure N` then measures every checkpoint's true success in the simulator (the head camera
+rendered, as the evaluator does) from N initial states per task that no dataset of the zoo used,
+into `OUT/success.json` (per checkpoint: successes, n, rate and its 95% Wilson interval), without a
+world model; each task is saved when done and a rerun measures the rest.
 """
 
 from __future__ import annotations
@@ -39,7 +44,7 @@ from tqdm import tqdm
 from sim_data.cache import TrainingCache
 from sim_data.config import override
 from sim_data.learned import BCPolicy, PolicyNetConfig, init_params, predict_chunk, to_numpy
-from sim_data.success_table import write_json_atomic
+from sim_data.success_table import wilson_interval, write_json_atomic
 
 CAMERA = "head_cam"
 
@@ -312,6 +317,10 @@ def _check_config(cfg: ZooConfig, data: Path, out: Path) -> None:
     path = out / "config.json"
     if path.exists():
         theirs = json.loads(path.read_text())
+        # a setting added since that zoo was trained counts as its default there
+        defaults = json.loads(json.dumps(dataclasses.asdict(ZooConfig())))
+        theirs["config"] = {**{k: v for k, v in defaults.items() if k not in theirs.get("config", {})},
+                            **theirs.get("config", {})}
         if theirs != mine:
             raise ValueError(f"{out} holds a zoo of another configuration or dataset; use another OUT")
     else:
@@ -341,11 +350,60 @@ def load_policy(record: dict) -> tuple[BCPolicy, dict]:
     return BCPolicy(net), load_params(Path(record["checkpoint"]))
 
 
+def measure_success(out: Path, episodes: int, seed: int = 0, engine: str = "", batch: int = 2048,
+                    progress: bool = True) -> dict:
+    """True success of every checkpoint of the zoo in out over `episodes` held-out initial states per
+    task; writes and returns OUT/success.json {"episodes", "engine", "seed", "policies": [{name, task,
+    lineage, step, successes, n, rate, ci95}]}."""
+    from sim_data.engines import default_engine
+    from sim_data.generate import cached_env, cached_renderers
+    from sim_data.learned import StackedPolicy, stack_params
+    from sim_data.rollout import record_episodes
+    from sim_data.sources import group_by_policy, heldout_seeds, load_registry_sources, padded_chunks, used_seeds
+
+    out, engine = Path(out), engine or default_engine()
+    sources = load_registry_sources(str(out))
+    used = used_seeds(*{s.record["data"] for s in sources if s.record.get("data")})
+    rows = []
+    for task in sorted({s.task for s in sources}):
+        part_path = out / f"success_{task}.json"
+        if part_path.exists():
+            rows += json.loads(part_path.read_text())
+            continue
+        task_sources = [s for s in sources if s.task == task]
+        seeds = heldout_seeds(task, episodes, seed, used)
+        keys = np.stack([np.asarray(jax.random.PRNGKey(x)) for x in seeds])
+        got = []
+        bar = tqdm(total=len(task_sources) * episodes, desc=f"measure {task}", unit="ep", disable=not progress)
+        for k, (part, padded) in enumerate(p for g in group_by_policy(task_sources)
+                                           for p in padded_chunks(g, episodes, batch)):
+            env = cached_env(task, len(padded) * episodes, engine, False)
+            renderers = cached_renderers(part[0].policy.cfg.size, ("head_cam",))
+            _, rec = record_episodes(env, StackedPolicy(part[0].policy), stack_params([s.params for s in padded]),
+                                     jax.random.PRNGKey(seed * 7919 + k), renderers,
+                                     reset_keys=np.tile(keys, (len(padded), 1)))
+            outcome = np.asarray(rec.success[:, -1]).reshape(len(padded), episodes)
+            for j, src in enumerate(part):
+                n_ok = int(outcome[j].sum())
+                got.append({"name": src.name, "task": task, "lineage": src.record["lineage"],
+                            "step": src.record["step"], "successes": n_ok, "n": episodes, "rate": n_ok / episodes,
+                            "ci95": list(wilson_interval(n_ok, episodes))})
+            bar.update(len(part) * episodes)
+        bar.close()
+        write_json_atomic(part_path, got)
+        rows += got
+    report = {"episodes": episodes, "engine": engine, "seed": seed, "policies": rows}
+    write_json_atomic(out / "success.json", report)
+    return report
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--config", default="demo", help=f"preset: {', '.join(PRESETS)}")
     p.add_argument("--data", type=Path, required=True, help="a dataset directory with its cache")
     p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--measure", type=int, default=0, metavar="N",
+                   help="then measure each checkpoint's true success over N held-out initial states per task")
     p.add_argument("overrides", nargs="*", help="key=value overrides (e.g. steps=500 conv.width=32)")
     a = p.parse_args(argv)
     try:
@@ -355,6 +413,12 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     registry = train_zoo(cfg, a.data, a.out)
     print(f"{len(registry)} checkpoints in {time.perf_counter() - t0:.0f} s; registry {a.out / 'policies.json'}")
+    if a.measure:
+        t0 = time.perf_counter()
+        report = measure_success(a.out, a.measure)
+        for r in report["policies"]:
+            print(f"{r['name']:40s} {r['rate']:.3f} [{r['ci95'][0]:.3f}, {r['ci95'][1]:.3f}]")
+        print(f"measured in {time.perf_counter() - t0:.0f} s: {a.out / 'success.json'}")
     return 0
 
 
