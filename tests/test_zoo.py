@@ -80,7 +80,7 @@ def test_bad_policy_specs_are_refused():
         resolve(["examples.plugin_policy:make", "examples.plugin_policy:make"])
 
 
-def test_mixed_dataset_records_policy_rollouts(smoke_dataset, smoke_zoo, tmp_path):
+def test_mixed_dataset_records_policy_rollouts(smoke_dataset, smoke_zoo, smoke_world_model, tmp_path):
     cfg, data, _ = smoke_dataset
     zoo_dir, registry = smoke_zoo
     out = tmp_path / "mixed"
@@ -103,6 +103,25 @@ def test_mixed_dataset_records_policy_rollouts(smoke_dataset, smoke_zoo, tmp_pat
     assert learned[0]["seed"] == scripted_seed  # the same initial state as scripted episode 0
     meta = G.read_episode_meta(out / learned[0]["file"])
     assert meta["policy_source"]["lineage"] == "conv_proprio"
+    # the episode judge imagines a policy's own rollout closed loop, with that policy acting
+    from sim_data.cache import TrainingCache
+    from wm.imagine import closed_loop
+    from wm.judge import dataset_policies, imagine_episodes
+    from wm.train import load_trained
+
+    wm_cfg, wm_params, norm = load_trained(smoke_world_model)
+    cache = TrainingCache(out)
+    pols = dataset_policies(out)
+    i = next(k for k, e in enumerate(cache.episodes) if e["policy_kind"] == "learned")
+    src = pols[cache.episodes[i]["policy"]]
+    got = imagine_episodes(wm_cfg.model, wm_params, norm, cache, [i], "head_cam", False, pols, seed=3)
+    ep = cache.episode(i, cameras=["head_cam"])
+    want = closed_loop(wm_cfg.model, StackedPolicy(src.policy), ep["record"]["length"] - 1, wm_params, norm,
+                       stack_params([src.params]), ep["frames"]["head_cam"][None, :1], ep["proprio"][None, :1],
+                       np.zeros((1, 0, 20), np.float32), jax.random.PRNGKey(3))
+    np.testing.assert_allclose(got["features"][0], np.asarray(want["features"][0]), rtol=1e-5, atol=1e-5)
+    logged = imagine_episodes(wm_cfg.model, wm_params, norm, cache, [i], "head_cam", False)
+    assert not np.allclose(logged["features"][0], got["features"][0])  # not the logged actions replayed
 
 
 def test_random_shift_crops_the_edge_padded_image():

@@ -8,10 +8,12 @@ velocities). The judge is a small network over the sequence of `wm.imagine.step_
 proprioception, actions, pooled latents, the per-step success and outcome probabilities) and the
 task's name, pooled over time (mean, max, first, last): the mean integrates what the proprioception
 says about the body's motion, the max keeps a success reached and lost. It is trained on the world
-model's own open-loop imaginations of the training episodes from their first frame (as the evaluator
-starts) under their logged actions, labelled with the simulator's outcome, so it learns what success
-looks like in imagination rather than in the simulator's frames; the best parameters on the
-validation episodes' imaginations are kept.
+model's own imaginations of the training episodes from their first frame (as the evaluator starts),
+labelled with the simulator's outcome: open loop under their logged actions, and, for the rollouts
+of learned policies in the data, closed loop with that policy acting on the imagined frames
+(exactly what the evaluator imagines). So it learns what success looks like in imagination rather
+than in the simulator's frames. The parameters best on the validation episodes' imaginations are
+kept.
 
 Written to `OUT/judge.json` (configuration, feature standardisation, tasks, fit metrics) and
 `OUT/judge.msgpack` (parameters) by `wm.train` after training; `load_judge(OUT)` reads them back.
@@ -34,7 +36,7 @@ import optax
 from flax import serialization
 from tqdm import tqdm
 
-from wm.imagine import Norm, context_sample, feature_dim, open_loop_chunked
+from wm.imagine import CHUNK, Norm, closed_loop, context_sample, feature_dim, open_loop_chunked
 from wm.metrics import accuracy, auroc
 from wm.model import ModelConfig
 
@@ -94,30 +96,74 @@ def _probability(n_tasks, params, x, mask, task):
 # ---- imagined episodes -----------------------------------------------------------------------------
 
 def imagine_episodes(cfg: ModelConfig, params, norm: Norm, cache, ids: list[int], camera: str,
-                     progress: bool = True) -> dict:
-    """Open-loop imaginations of whole episodes from their first observation under their logged actions.
+                     progress: bool = True, policies: dict | None = None, seed: int = 0) -> dict:
+    """Imaginations of whole episodes from their first observation: open loop under their logged
+    actions, or, for an episode of a policy in `policies` ({cache policy name: PolicySource}, see
+    dataset_policies), closed loop with that policy acting on the imagined frames, as the evaluator
+    runs it.
 
     Returns {"features": (N, T, F) float32 (padded to the longest), "mask": (N, T) bool, "task": [N] str,
     "label": (N,) bool the simulator's outcome}, in the order of ids.
     """
-    by_len: dict = {}
+    groups: dict = {}
     for i in ids:
-        by_len.setdefault(cache.episodes[i]["length"], []).append(i)
-    t_max = max(by_len) - 1
+        e = cache.episodes[i]
+        src = (policies or {}).get(e["policy"])
+        groups.setdefault((e["length"], None if src is None else src.policy), []).append((i, src))
+    t_max = max(n for n, _ in groups) - 1
     feats, masks, order = [], [], []
     bar = tqdm(total=len(ids), desc="judge: imagine", unit="ep", disable=not progress)
-    for n, group in sorted(by_len.items()):
-        samples = [context_sample(cache.episode(i, cameras=[camera]), camera, 0, 1, n - 1) for i in group]
-        x = open_loop_chunked(cfg, params, norm, samples, n - 1)["features"]
+    for (n, policy), group in groups.items():
+        if policy is None:
+            samples = [context_sample(cache.episode(i, cameras=[camera]), camera, 0, 1, n - 1) for i, _ in group]
+            x = open_loop_chunked(cfg, params, norm, samples, n - 1)["features"]
+        else:
+            x = _closed_loop_features(cfg, params, norm, cache, group, camera, n - 1, policy, seed)
         feats.append(np.pad(x, ((0, 0), (0, t_max - x.shape[1]), (0, 0))))
         masks.append(np.arange(t_max)[None].repeat(len(group), 0) < x.shape[1])
-        order += group
+        order += [i for i, _ in group]
         bar.update(len(group))
     bar.close()
     back = np.array([order.index(i) for i in ids])  # rows in the order of ids
     return {"features": np.concatenate(feats)[back].astype(np.float32), "mask": np.concatenate(masks)[back],
             "task": [cache.episodes[i]["task"] for i in ids],
             "label": np.array([cache.episodes[i]["success"] for i in ids], bool)}
+
+
+def _closed_loop_features(cfg: ModelConfig, params, norm: Norm, cache, group, camera: str, horizon: int, policy,
+                          seed: int):
+    """(len(group), horizon, F) step features of closed-loop imaginations, each episode of group
+    [(cache id, PolicySource)] with its own policy's parameters (one architecture), in chunks of CHUNK."""
+    from sim_data.learned import StackedPolicy, stack_params
+
+    outs = []
+    for k in range(0, len(group), CHUNK):
+        part = group[k:k + CHUNK]
+        pad = CHUNK - len(part) if len(group) > CHUNK else 0
+        part = part + [part[-1]] * pad
+        eps = [cache.episode(i, cameras=[camera]) for i, _ in part]
+        got = closed_loop(cfg, StackedPolicy(policy), horizon, params, norm, stack_params([s.params for _, s in part]),
+                          np.stack([ep["frames"][camera][:1] for ep in eps]), np.stack([ep["proprio"][:1] for ep in eps]),
+                          np.zeros((len(part), 0, cfg.action_dim), np.float32), jax.random.PRNGKey(seed + k))
+        outs.append(np.asarray(got["features"])[: len(part) - pad])
+    return np.concatenate(outs)
+
+
+def dataset_policies(data: Path) -> dict:
+    """{cache policy name: PolicySource} of the learned policies and plug-ins whose rollouts the dataset
+    in `data` holds (its configuration's policy specs); {} when none, or when they cannot be loaded
+    (their episodes are then imagined open loop)."""
+    specs = json.loads((Path(data) / "config.json").read_text()).get("policies") or []
+    if not specs:
+        return {}
+    from sim_data.sources import resolve
+
+    try:
+        return {f"{s.kind}:{s.name}": s for s in resolve(specs)}
+    except (FileNotFoundError, ValueError, ImportError) as e:
+        print(f"warning: the policies of {data} cannot be loaded ({e}); the judge imagines their episodes open loop",
+              file=sys.stderr)
+        return {}
 
 
 # ---- fitting ---------------------------------------------------------------------------------------
@@ -201,8 +247,11 @@ def fit_judge(cfg, params, norm: Norm, cache, train_ids: list[int], out: Path, p
         print(f"warning: the judge's {len(train_ids)} training episodes are all {what}; no judge (the per-step "
               "rule decides)", file=sys.stderr)
         return {"skipped": "one outcome only among the training episodes"}
-    train = imagine_episodes(cfg.model, params, norm, cache, train_ids, cfg.camera, progress)
-    val = imagine_episodes(cfg.model, params, norm, cache, val_ids, cfg.camera, progress) if val_ids else None
+    # the policies' own rollouts are imagined closed loop, as the evaluator imagines every policy
+    pols = dataset_policies(cache.root.parent)
+    train = imagine_episodes(cfg.model, params, norm, cache, train_ids, cfg.camera, progress, pols, cfg.seed)
+    val = imagine_episodes(cfg.model, params, norm, cache, val_ids, cfg.camera, progress, pols, cfg.seed + 1) \
+        if val_ids else None
     judge, metrics = fit(train, val, tasks, cfg.judge_steps, cfg.seed, progress)
     save_judge(judge, metrics, Path(out))
     return metrics
