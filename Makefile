@@ -24,7 +24,7 @@ setup: $(STAMP)
 demo: setup
 	$(PY) -m experiments.pipeline demo
 
-# The GPU preset in stages that each fit one 10-minute command and resume: make full STAGE=data|policies|train|eval|report
+# The GPU preset in stages that each fit one 10-minute command and resume: make full STAGE=data|policies|rollouts|train|eval|report
 STAGE ?= all
 full: setup
 	$(PY) -m experiments.pipeline full --stage $(STAGE)

@@ -202,15 +202,15 @@ def verdicts(policies: list[dict], tasks: list[str]) -> list[dict]:
 # ---- the documents ------------------------------------------------------------------------------------
 
 def _metrics_table(metrics: dict) -> list[list[str]]:
-    rows = [["statistic", "world model", "imitation-loss baseline", "target (full preset)"]]
-    base = metrics.get("baseline", {})
+    rows = [["statistic", "world model", "its per-step rule", "imitation-loss baseline", "target (full preset)"]]
+    base, rule = metrics.get("baseline", {}), metrics.get("per_step_rule", {})
     for k in HEADLINE:
         tgt = TARGETS.get(k)
         val = _fmt(metrics.get(k))
         if k == "pearson":
             ci, bs = metrics.get("pearson_ci", [None, None]), metrics.get("pearson_ci_bootstrap", [None, None])
             val += f" (Fisher {_fmt(ci[0], 2)}..{_fmt(ci[1], 2)}; bootstrap {_fmt(bs[0], 2)}..{_fmt(bs[1], 2)})"
-        rows.append([k, val, _fmt(base.get(k)) if k != "alignment" else "-",
+        rows.append([k, val, _fmt(rule.get(k)) if k in rule else "-", _fmt(base.get(k)) if k != "alignment" else "-",
                      f"{tgt[0]} {tgt[1]}" if tgt else "-"])
     return rows
 
@@ -257,6 +257,8 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
          f"per task; world model <code>{html.escape(res['world_model']['run'])}</code>; engine {res['engine']}; "
          f"device {html.escape(str(res['device']))}.</p>",
          "<h2>Headline statistics (all policies)</h2>", _html_table(_metrics_table(metrics["overall"])),
+         *(["<h2>Policies whose rollouts the world model never saw</h2>",
+            _html_table(_metrics_table(metrics["unseen"]))] if "unseen" in metrics else []),
          "<h2>Predicted against true success</h2>", f"<img src='{scatter_figure(policies, metrics, tasks)}'>",
          "<h2>Rank comparison</h2>", f"<img src='{rank_figure(policies, tasks)}'>"]
     base = baseline_figure(policies, tasks)
@@ -303,6 +305,9 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
           f"World model `{res['world_model']['run']}`, {res['config']['episodes']} held-out initial states per task, "
           f"engine {res['engine']}, device {res['device']}. Full report: `report.html`.", "",
           "## All policies", "", _md_table(_metrics_table(metrics["overall"])), ""]
+    if "unseen" in metrics:
+        md += ["## Policies whose rollouts the world model never saw", "", _md_table(_metrics_table(metrics["unseen"])),
+               ""]
     for t in tasks:
         md += [f"## {t}", "", _md_table(_metrics_table(metrics["per_task"][t])), "",
                _md_table(_policy_table([p for p in policies if p["task"] == t])), ""]
