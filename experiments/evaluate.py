@@ -42,7 +42,7 @@ from sim_data.config import override
 from sim_data.engines import ENGINES, default_engine
 from sim_data.generate import cached_env, cached_renderers, package_versions
 from sim_data.learned import StackedPolicy, stack_params
-from sim_data.rollout import record_episodes
+from sim_data.rollout import record_policies
 from sim_data.sources import group_by_policy, heldout_seeds, padded_chunks, resolve, used_seeds
 from sim_data.success_table import write_json_atomic
 from wm.evaluate import no_nan, program_panel
@@ -136,11 +136,10 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, wm, seeds, engine: str, p
         b = len(padded) * n
         env = cached_env(task, b, engine, False)
         steps = env.episode_steps
-        keys = np.tile(reset_keys, (len(padded), 1))
         rng = jax.random.PRNGKey(cfg.seed * 7919 + k)
         t0 = time.perf_counter()
-        _, rec = record_episodes(env, policy, params, rng, renderer, reset_keys=keys)
-        outcome = np.asarray(rec.success[:, -1]).reshape(len(padded), n)[: len(part)]
+        outcome, rec = record_policies(env, policy, params, reset_keys, rng, renderer)
+        outcome = outcome[: len(part)]
         sim_s += time.perf_counter() - t0
         t0 = time.perf_counter()
         frames0, proprio0 = rec.frames[CAMERA][:, :1], rec.proprio[:, :1]

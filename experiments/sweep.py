@@ -191,9 +191,9 @@ def ensure_data(size: Size, keys, root: Path) -> dict:
             from sim_data import zoo
 
             zoo.main(["--config", size.zoo, "--data", str(dirs["base"]), "--out", str(zoo_dir)])
-        overrides = [o.replace("{zoo}", str(zoo_dir)) for o in overrides]
-        generate.main(["--config", preset, "--out", str(place(key)), *overrides])  # resumes; refuses another config
         dirs[key] = place(key)
+        overrides = [o.replace("{zoo}", str(zoo_dir)) for o in overrides]
+        generate.main(["--config", preset, "--out", str(dirs[key]), *overrides])  # resumes; refuses another config
     return dirs
 
 

@@ -247,9 +247,9 @@ def link_shared_episodes(cfg: DataConfig, out: Path, reuse: Path, learned=()) ->
     must equal cfg apart from the learned policies it adds (and the worker count): the same seeds
     then give the same bytes."""
     reuse = Path(reuse)
-    theirs = json.loads((reuse / "config.json").read_text()) if (reuse / "config.json").exists() else None
-    if theirs is None:
+    if not (reuse / "config.json").exists():
         raise FileNotFoundError(f"{reuse} holds no dataset (config.json): generate it first")
+    theirs = json.loads((reuse / "config.json").read_text())
     mine = json.loads(json.dumps(dataclasses.asdict(cfg)))
     diff = sorted(k for k in mine if k not in _ADDITIONS and theirs.get(k) != mine[k])
     if diff:

@@ -10,6 +10,7 @@ import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from sim_data.env import HomeEnv, State
@@ -195,3 +196,12 @@ def _scan_recorded(env: HomeEnv, policy, renderers, num_steps: int, params, stat
 
     (state, _, _), (rest, actions) = jax.lax.scan(body, (state, carry, obs), jnp.arange(num_steps))
     return state, (frames, rec), rest, actions
+
+
+def record_policies(env: HomeEnv, policy, params, reset_keys, rng: jax.Array, renderers=()) -> tuple:
+    """P policies (a `sim_data.learned.StackedPolicy` and its stacked parameters, leading axis P),
+    each from the same n initial states (reset_keys (n, 2)), as one batch of P*n episodes
+    (env.batch_size). Returns ((P, n) bool final success, the Recording)."""
+    p = jax.tree_util.tree_leaves(params)[0].shape[0]
+    _, rec = record_episodes(env, policy, params, rng, renderers, reset_keys=np.tile(np.asarray(reset_keys), (p, 1)))
+    return np.asarray(rec.success[:, -1]).reshape(p, len(reset_keys)), rec

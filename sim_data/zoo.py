@@ -358,7 +358,7 @@ def measure_success(out: Path, episodes: int, seed: int = 0, engine: str = "", b
     from sim_data.engines import default_engine
     from sim_data.generate import cached_env, cached_renderers
     from sim_data.learned import StackedPolicy, stack_params
-    from sim_data.rollout import record_episodes
+    from sim_data.rollout import record_policies
     from sim_data.sources import group_by_policy, heldout_seeds, load_registry_sources, padded_chunks, used_seeds
 
     out, engine = Path(out), engine or default_engine()
@@ -379,10 +379,8 @@ def measure_success(out: Path, episodes: int, seed: int = 0, engine: str = "", b
                                            for p in padded_chunks(g, episodes, batch)):
             env = cached_env(task, len(padded) * episodes, engine, False)
             renderers = cached_renderers(part[0].policy.cfg.size, ("head_cam",))
-            _, rec = record_episodes(env, StackedPolicy(part[0].policy), stack_params([s.params for s in padded]),
-                                     jax.random.PRNGKey(seed * 7919 + k), renderers,
-                                     reset_keys=np.tile(keys, (len(padded), 1)))
-            outcome = np.asarray(rec.success[:, -1]).reshape(len(padded), episodes)
+            outcome, _ = record_policies(env, StackedPolicy(part[0].policy), stack_params([s.params for s in padded]),
+                                         keys, jax.random.PRNGKey(seed * 7919 + k), renderers)
             for j, src in enumerate(part):
                 n_ok = int(outcome[j].sum())
                 got.append({"name": src.name, "task": task, "lineage": src.record["lineage"],

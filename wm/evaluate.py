@@ -34,8 +34,8 @@ import numpy as np
 
 from sim_data.cache import TrainingCache
 from wm.config import TrainConfig, override
-from wm.imagine import Norm, context_sample, open_loop_chunked
-from wm.judge import EpisodeJudge, imagine_episodes, judge_episodes, load_judge
+from wm.imagine import OUTCOME_FEATURE, SUCCESS_FEATURE, Norm, context_sample, open_loop_chunked
+from wm.judge import EpisodeJudge, imagine_episodes, judge_episodes, load_judge, spread
 from wm.metrics import accuracy, auroc, psnr, ssim
 from wm.train import check_dataset, load_trained, write_json_atomic
 
@@ -85,9 +85,9 @@ def success_prediction(cfg: TrainConfig, params, norm: Norm, cache: TrainingCach
     labels = got["label"]
     last = got["mask"].sum(axis=1) - 1
     rows = np.arange(len(labels))
-    success = np.where(got["mask"], got["features"][..., -2], 0.0)
-    rules = {"": success.max(axis=1), "final_frame_": got["features"][rows, last, -2],
-             "outcome_head_": got["features"][rows, last, -1]}
+    success = np.where(got["mask"], got["features"][..., SUCCESS_FEATURE], 0.0)
+    rules = {"": success.max(axis=1), "final_frame_": got["features"][rows, last, SUCCESS_FEATURE],
+             "outcome_head_": got["features"][rows, last, OUTCOME_FEATURE]}
     if judge is not None and all(judge.knows(t) for t in got["task"]):
         rules["judge_"] = judge_episodes(judge, got)
     out = {"episodes": len(labels), "positive_rate": float(labels.mean()), "context": 1,
@@ -157,11 +157,11 @@ def evaluate(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, out: Pa
     """Computes and writes OUT/eval.json (and eval_frames.png); returns the report."""
     tasks = list(cfg.eval_tasks) or None
     split, test = _held_out(cache, tasks, lambda e: True, "episodes")
-    test = _spread(test, cfg.eval_episodes)
+    test = spread(test, cfg.eval_episodes)
     fq, pictures = frame_quality(cfg, params, norm, cache, test)
     # random play is in the frame figures; success is judged on episodes that attempt the task
     success_split, tasked = _held_out(cache, tasks, lambda e: e.get("policy_kind") != "play", "task episodes")
-    sp = success_prediction(cfg, params, norm, cache, _spread(tasked, cfg.eval_episodes), judge)
+    sp = success_prediction(cfg, params, norm, cache, spread(tasked, cfg.eval_episodes), judge)
     sp["split"] = success_split
     ctrl = controllability(cfg, params, norm, cache, tasks)
     at = dict(zip(fq["horizons"], range(len(fq["horizons"])), strict=True))
@@ -189,11 +189,6 @@ def _held_out(cache: TrainingCache, tasks, keep, what: str) -> tuple[str, list[i
                 print(f"warning: no test {what}; evaluating on the {split} split (figures are not held-out)")
             return split, ids
     raise ValueError(f"the dataset has no test, val or train {what} to evaluate on")
-
-
-def _spread(ids: list[int], n: int) -> list[int]:
-    """At most n of ids, evenly spaced (the cache orders episodes by task and policy)."""
-    return ids[:: max(1, len(ids) // n)][:n]
 
 
 def no_nan(x):

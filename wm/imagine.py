@@ -126,6 +126,9 @@ def step_features(norm: Norm, state: ImagineState, action) -> jax.Array:
                             state.outcome[:, None]], axis=-1)
 
 
+SUCCESS_FEATURE, OUTCOME_FEATURE = -2, -1  # where step_features keeps the per-step probabilities
+
+
 def feature_dim(cfg: ModelConfig) -> int:
     return cfg.proprio_dim + cfg.action_dim + 4 * cfg.latent + 2
 

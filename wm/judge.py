@@ -124,7 +124,8 @@ def imagine_episodes(cfg: ModelConfig, params, norm: Norm, cache, ids: list[int]
         order += [i for i, _ in group]
         bar.update(len(group))
     bar.close()
-    back = np.array([order.index(i) for i in ids])  # rows in the order of ids
+    row_of = {i: k for k, i in enumerate(order)}
+    back = np.array([row_of[i] for i in ids])  # rows in the order of ids
     return {"features": np.concatenate(feats)[back].astype(np.float32), "mask": np.concatenate(masks)[back],
             "task": [cache.episodes[i]["task"] for i in ids],
             "label": np.array([cache.episodes[i]["success"] for i in ids], bool)}
@@ -238,8 +239,8 @@ def fit_judge(cfg, params, norm: Norm, cache, train_ids: list[int], out: Path, p
     """Imagines cfg.judge_episodes training episodes (and up to a quarter as many validation episodes),
     fits the judge and saves it in out; returns its metrics. cfg is the world model's TrainConfig."""
     tasks = tuple(sorted({cache.episodes[i]["task"] for i in train_ids}))
-    train_ids = _spread(train_ids, cfg.judge_episodes)
-    val_ids = _spread([i for i in cache.select("val") if cache.episodes[i]["task"] in tasks],
+    train_ids = spread(train_ids, cfg.judge_episodes)
+    val_ids = spread([i for i in cache.select("val") if cache.episodes[i]["task"] in tasks],
                       max(1, cfg.judge_episodes // 4))
     labels = {bool(cache.episodes[i]["success"]) for i in train_ids}
     if len(labels) < 2:
@@ -257,7 +258,8 @@ def fit_judge(cfg, params, norm: Norm, cache, train_ids: list[int], out: Path, p
     return metrics
 
 
-def _spread(ids: list[int], n: int) -> list[int]:
+def spread(ids: list[int], n: int) -> list[int]:
+    """At most n of ids, evenly spaced (the cache orders episodes by task and policy)."""
     return list(ids[:: max(1, len(ids) // n)][:n])
 
 

@@ -397,16 +397,19 @@ def main(argv=None) -> int:
     run = Run(cfg, a.data, a.out)
     summary = run.train()
     print(json.dumps(summary, indent=1))
-    if jax.process_index() == 0 and cfg.judge_episodes and not (a.out / "judge.json").exists():
+    if jax.process_index() != 0:
+        return 0
+    best = run.best_params() if (cfg.judge_episodes or not a.no_eval) else None
+    if cfg.judge_episodes and not (a.out / "judge.json").exists():
         from wm.judge import fit_judge
 
-        print(json.dumps({"judge": fit_judge(cfg, run.best_params(), run.norm, run.cache,
-                                             [int(i) for i in run.loader.episodes], a.out)}, indent=1))
-    if not a.no_eval and jax.process_index() == 0:
+        print(json.dumps({"judge": fit_judge(cfg, best, run.norm, run.cache, [int(i) for i in run.loader.episodes],
+                                             a.out)}, indent=1))
+    if not a.no_eval:
         from wm.evaluate import evaluate
         from wm.judge import load_judge
 
-        report = evaluate(cfg, run.best_params(), run.norm, run.cache, a.out, load_judge(a.out))
+        report = evaluate(cfg, best, run.norm, run.cache, a.out, load_judge(a.out))
         print(json.dumps(report["summary"], indent=1))
     return 0
 
