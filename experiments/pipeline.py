@@ -61,7 +61,7 @@ PIPELINES = {
                      rollout_episodes=4),
     # the GPU preset: two tasks, scripted episodes of 5 skills, random play and the controllability
     # programs, the conv_noproprio lineage's rollouts; the zoo's five lineages of 8 checkpoints
-    # evaluated over 200 held-out initial states per task
+    # evaluated over 100 held-out initial states per task
     "full": Pipeline(data="wm_full", policies="full", train="full", eval="full", train_overrides=("w_success=0.5",),
                      rollouts="conv_noproprio", rollout_episodes=64),
 }

@@ -126,8 +126,8 @@ PRESETS = {
     "full": DataConfig(skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=600, batch=1200, workers=12, programs=32),
     # the world model's GPU set: two tasks, a spread of skills, random play, the controllability
     # programs, head camera
-    "wm_full": DataConfig(tasks=("mug", "wipe"), skills=(0.0, 0.25, 0.5, 0.75, 1.0), episodes=400, batch=400,
-                          cameras=("head_cam",), workers=14, programs=32, play=400),
+    "wm_full": DataConfig(tasks=("mug", "wipe"), skills=(0.0, 0.25, 0.5, 0.75, 1.0), episodes=240, batch=240,
+                          cameras=("head_cam",), workers=14, programs=32, play=240),
     "heldout_plant": DataConfig(heldout=True, episodes=100, batch=600, workers=12),
     "shelf": DataConfig(tasks=("shelf",), skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=600, batch=1200, workers=12),
     "shelf_arcade": DataConfig(tasks=("shelf", "arcade"), skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=300,
