@@ -100,7 +100,7 @@ class EvalConfig:
 
 PRESETS = {
     "demo": EvalConfig(policies=("runs/policies/demo",), wm="runs/wm/demo", episodes=8, batch=256),
-    "full": EvalConfig(policies=("runs/policies/full",), wm="runs/wm/full", episodes=100, batch=2400, max_minutes=8.0),
+    "full": EvalConfig(policies=("runs/policies/full",), wm="runs/wm/full", episodes=64, batch=2400, max_minutes=8.0),
 }
 
 

@@ -300,20 +300,24 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True, reuse: Path | No
     pending = []
     versions = package_versions()
     for task, skill, idx, missing in todo:
-        b = len(idx)
+        # on the GPU a short chunk runs padded to the batch size (its last episode repeated, the copies
+        # discarded): one compilation then serves every chunk of a policy (the programs and play share
+        # one), and compiling, not simulating, is most of a chunk's time there
+        rows = idx + [idx[-1]] * (cfg.batch - len(idx)) if engine == "mjx" else idx
+        b = len(rows)
         env = cached_env(task, b, engine, cfg.heldout)
         renderers = cached_renderers(cfg.size, tuple(cfg.cameras))
         if isinstance(skill, PolicySource):
             policy, params = skill.policy, skill.params
         elif skill == PLAY:
-            seeds = [_initial_seed_of(cfg, task, skill, i) + 1 for i in idx]  # not the initial state's own seed
+            seeds = [_initial_seed_of(cfg, task, skill, i) + 1 for i in rows]  # not the initial state's own seed
             policy, params = ProgramPolicy(env.episode_steps), play_params(seeds, env.episode_steps, env.idx.robot.action_low,
                                                                    env.idx.robot.action_high)
         elif isinstance(skill, str):
             policy, params = ProgramPolicy(env.episode_steps), program_params([skill] * b, env.episode_steps)
         else:
             policy, params = _policy(task), {"skill": np.full((b,), skill, np.float32)}
-        reset_keys = jax.numpy.stack([jax.random.PRNGKey(_initial_seed_of(cfg, task, skill, i)) for i in idx])
+        reset_keys = jax.numpy.stack([jax.random.PRNGKey(_initial_seed_of(cfg, task, skill, i)) for i in rows])
         chunk_key = jax.random.PRNGKey(initial_seed(cfg, f"{task}/{_source_key(skill)}", idx[0]))
         ts = time.perf_counter()
         _, rec = record_episodes(env, policy, params, chunk_key, renderers, reset_keys=reset_keys)
@@ -328,8 +332,8 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True, reuse: Path | No
             episode = {"frames": ep.frames, "proprio": ep.proprio, "qpos": ep.qpos, "qvel": ep.qvel,
                        "mocap_pos": ep.mocap_pos, "success": ep.success, "action": ep.action}
             pending.append(pool.submit(write_episode_mcap, out / meta["file"], episode, meta, cfg.jpeg_quality))
-        steps_done += b * (rec.action.shape[1] + 1)
-        frames_done += b * (rec.action.shape[1] + 1) * len(cfg.cameras)
+        steps_done += len(idx) * (rec.action.shape[1] + 1)
+        frames_done += len(idx) * (rec.action.shape[1] + 1) * len(cfg.cameras)
         tw = time.perf_counter()
         pending = _drain(pending, bar, wait_all=False)
         while len(pending) > cfg.batch:  # at most one chunk waits for the writers while the next simulates
