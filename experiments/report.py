@@ -319,7 +319,9 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
 
 
 SWEEP_COLUMNS = (("psnr_h8", "PSNR h8"), ("pooled_gain_h8_db", "pooled gain h8 (dB)"),
-                 ("success_auroc", "success AUROC"), ("match_accuracy", "match acc"), ("delta_psnr_db", "delta-PSNR"))
+                 ("success_auroc", "success AUROC"), ("match_accuracy", "match acc"), ("delta_psnr_db", "delta-PSNR"),
+                 ("view_shift_h8_px", "view shift h8 (px)"), ("body_psnr_h8", "air-fryer body PSNR h8"),
+                 ("rest_psnr_h8", "rest of frame PSNR h8"))
 
 
 def _file_uri(path: Path) -> str:
@@ -336,8 +338,9 @@ def sweep_sections(root: Path) -> tuple[list[str], list[str]]:
         res = json.loads(res_path.read_text())
         if "per_x" not in res:
             continue
-        rows = [[res["x_label"], "seeds"] + [label for _, label in SWEEP_COLUMNS]]
-        rows += [[f"{e['x']:g}", str(e["seeds"])] + [_fmt(e.get(k)) for k, _ in SWEEP_COLUMNS] for e in res["per_x"]]
+        cols = [(k, label) for k, label in SWEEP_COLUMNS if any(e.get(k) is not None for e in res["per_x"])]
+        rows = [[res["x_label"], "seeds"] + [label for _, label in cols]]
+        rows += [[f"{e['x']:g}", str(e["seeds"])] + [_fmt(e.get(k)) for k, _ in cols] for e in res["per_x"]]
         title = f"Sweep {res['sweep']} ({res['size']})"
         h += [f"<h2>{html.escape(title)}</h2>", f"<p>{html.escape(res['finding'])}</p>", _html_table(rows)]
         md += [f"## {title}", "", res["finding"], "", _md_table(rows), ""]

@@ -15,7 +15,8 @@ Sweeps:
 - `task_scaling`: 1, 2, 4 tasks, always including the evaluated task (mug), evaluated on mug.
 - `transfer`: shelf alone (x=1) against shelf and arcade (x=2), evaluated on shelf.
 - `airfryer_transfer`: without (x=0: mug only, the air fryer standing in every scene) and with
-  (x=1) air-fryer interaction data, evaluated on the air fryer.
+  (x=1) air-fryer interaction data, evaluated on the air fryer; each run also gets
+  `experiments.body_in_place` (does the imagined fryer's body stay in place while the tray slides).
 - `held_out_object`: one model, evaluated on test scenes like its training ones (x=0) and on
   scenes with the plant it never saw (x=1).
 - `autonomous_rollouts`: scripted demonstrations only (x=0) against the same number of episodes of
@@ -54,7 +55,13 @@ METRICS = (
     ("match_accuracy", ("summary", "match_accuracy")),
     ("delta_psnr_db", ("summary", "delta_psnr_db")),
     ("pooled_gain_h8_db", ("summary", "pooled_gain_over_copy_last_h8_db")),
+    ("view_shift_h8_px", ("summary", "view_shift_h8_px")),
+    # from BODY_FILE, where the sweep measures it (MEASURED)
+    ("body_psnr_h8", ("body_in_place", "summary", "body_psnr_h8")),
+    ("rest_psnr_h8", ("body_in_place", "summary", "rest_psnr_h8")),
 )
+BODY_FILE = "body_in_place.json"  # experiments.body_in_place's figures of a run
+MEASURED = {"airfryer_transfer"}  # sweeps whose runs also get the body-in-place measurement
 
 
 @dataclasses.dataclass(frozen=True)
@@ -257,6 +264,12 @@ def run_sweep(name: str, size_name: str, out: Path, root: Path = Path("runs"), p
                 rc = fut.result()
                 print(f"{r.name}: {'done' if rc == 0 else f'failed (exit {rc}), see train.log'} "
                       f"({time.perf_counter() - t0:.0f} s)", flush=True)
+    if name in MEASURED:
+        for r in runs:
+            if (out / r.name / "eval.json").exists() and not (out / r.name / BODY_FILE).exists():
+                _subprocess(["-m", "experiments.body_in_place", "--wm", str(out / (r.model_of or r.name)),
+                             "--data", str(data[r.eval_data or r.data]), "--out", str(out / r.name / BODY_FILE)],
+                            None, out / r.name / "train.log")
     results = collect(name, size_name, runs, out, x_label)
     write_json_atomic(out / "results.json", results)
     plot(results, out / "sweep.png", log_x)
@@ -299,8 +312,10 @@ def collect(name: str, size: str, runs: list[SweepRun], out: Path, x_label: str)
     """results.json: every run's figures, and per swept value their mean and interval over seeds."""
     rows = []
     for r in runs:
-        path = out / r.name / "eval.json"
+        path, body = out / r.name / "eval.json", out / r.name / BODY_FILE
         ev = json.loads(path.read_text()) if path.exists() else None
+        if ev is not None and body.exists():
+            ev["body_in_place"] = json.loads(body.read_text())
         rows.append({"x": r.x, "seed": r.seed, "run": r.name, "finished": ev is not None,
                      **{m: _get(ev, p) if ev else None for m, p in METRICS}})
     xs = sorted({r.x for r in runs})
@@ -321,7 +336,7 @@ def finding(name: str, x_label: str, per_x: list[dict]) -> str:
         return f"{name}: fewer than two values finished."
     a, b = per_x[0], per_x[-1]
     parts = []
-    for m in ("success_auroc", "psnr_h8", "match_accuracy"):
+    for m in ("success_auroc", "psnr_h8", "match_accuracy", "view_shift_h8_px"):
         if a[m] is not None and b[m] is not None:
             parts.append(f"{m} {a[m]:.3g} -> {b[m]:.3g}")
     return f"{name}: from {x_label} = {a['x']:g} to {b['x']:g}: " + ", ".join(parts) + "."

@@ -72,3 +72,30 @@ def test_bad_evaluation_settings_are_refused():
         E.make_config("demo", ["episodes=1"])
     with pytest.raises(ValueError, match="unknown preset"):
         E.make_config("huge")
+
+
+def test_air_fryer_body_mask_covers_the_body_pixels_of_the_frame():
+    """The body's pixels found from a recorded state are the fryer's colour in the rendered frame
+    (chromaticity, which the scene's white lights keep), and the pixels bordering them are not."""
+    import jax
+    from scipy.ndimage import binary_dilation
+
+    from experiments.body_in_place import _scene, body_masks
+    from sim_data.env import HomeEnv
+    from sim_data.render import Renderer, RenderConfig, episode_rgb
+
+    env = HomeEnv("airfryer", 1, engine="cpu")
+    state = env.reset(jax.random.PRNGKey(3))
+    renderer = Renderer(_scene()[0], RenderConfig(camera="head_cam"))
+    colors = episode_rgb(renderer.geometry, state.task.colors)
+    frame = np.asarray(renderer.render(env.poses(state), colors)["rgb"])[0].astype(np.float64)
+    mask = body_masks(np.asarray(state.qpos), np.asarray(state.mocap_pos))[0]
+    assert mask.mean() > 0.02
+    fryer = np.asarray(colors)[0, _scene()[1][0]]
+
+    def chroma(x):
+        return x / np.maximum(x.sum(-1, keepdims=True), 1e-6)
+
+    near = np.abs(chroma(frame) - chroma(fryer)).sum(-1) < 0.05
+    ring = binary_dilation(mask) & ~mask  # a mask one pixel off puts about 0.3 of its ring on the body
+    assert near[mask].mean() > 0.9 and near[ring].mean() < 0.1

@@ -25,8 +25,11 @@ def test_collect_reads_every_finished_run(tmp_path):
         (tmp_path / r.name).mkdir(parents=True)
         summary = {"psnr_h8": 20.0 + k, "success_auroc": 0.5 + 0.05 * k}
         (tmp_path / r.name / "eval.json").write_text(json.dumps({"summary": summary}))
+    (tmp_path / runs[0].name / W.BODY_FILE).write_text(json.dumps({"summary": {"body_psnr_h8": 18.0}}))
     res = W.collect("data_scaling", "demo", runs, tmp_path, "share")
     assert [e["seeds"] for e in res["per_x"]] == [2, 2, 2, 1]
+    assert res["runs"][0]["body_psnr_h8"] == 18.0 and res["per_x"][0]["body_psnr_h8"] == 18.0  # the other seed has none
+    assert res["per_x"][1]["body_psnr_h8"] is None
     assert res["per_x"][0]["psnr_h8"] == pytest.approx(20.5) and res["per_x"][3]["psnr_h8"] == pytest.approx(26.0)
     assert res["per_x"][3]["psnr_h8_ci"] is None and res["per_x"][0]["match_accuracy"] is None
     assert "0.525 -> 0.8" in res["finding"]

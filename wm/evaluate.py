@@ -6,6 +6,10 @@
   frames counted at 100 dB); because a still robot's frames are identical, that mean rewards exact
   copies heavily, so the PSNR of the samples' mean squared error ("pooled") and the share of
   samples whose true frame equals the last context frame ("static_share") are reported beside it.
+  The view held still ("view_shift_px"): over the samples whose true head-camera view moved less
+  than a pixel since the last context frame ("still_share"), how many pixels the imagined view is
+  shifted from the true one (`wm.metrics.view_shift`): a model that moves the robot's body, or the
+  whole scene, while only an arm or an object moves (the air fryer's sliding tray) shifts its view.
 - Success prediction: from each test episode's first observation (random play left out), as the
   evaluator starts, imagine to its last frame under the logged actions; the predicted outcome is the
   episode judge's (`wm.judge`) where the run has one, the highest per-step success probability
@@ -36,19 +40,25 @@ from sim_data.cache import TrainingCache
 from wm.config import TrainConfig, override
 from wm.imagine import OUTCOME_FEATURE, SUCCESS_FEATURE, Norm, context_sample, open_loop_chunked
 from wm.judge import EpisodeJudge, imagine_episodes, judge_episodes, load_judge, spread
-from wm.metrics import accuracy, auroc, psnr, ssim
+from wm.metrics import accuracy, auroc, psnr, ssim, view_shift
 from wm.train import check_dataset, load_trained, write_json_atomic
+
+STILL_PX = 1.0  # a true view that moved less than this (pixels) counts as still
+
+
+def sample_starts(length: int, context: int, horizon: int) -> list[int]:
+    """Up to four starts spread over an episode of `length` frames, each leaving room for
+    `context` observations and `horizon` imagined steps (none if the episode is too short)."""
+    span = length - context - horizon
+    return sorted({round(span * f) for f in (0.125, 0.375, 0.625, 0.875)}) if span >= 0 else []
+
 
 def frame_quality(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, episodes: list[int]) -> tuple[dict, dict]:
     c, hmax = cfg.eval_context, max(cfg.eval_horizons)
     samples, truths, lasts = [], [], []
     for i in episodes:
         ep = cache.episode(i, cameras=[cfg.camera])
-        n = ep["record"]["length"]
-        if n < c + hmax:
-            continue
-        span = n - c - hmax
-        for start in sorted({round(span * f) for f in (0.125, 0.375, 0.625, 0.875)}):  # spread over the episode
+        for start in sample_starts(ep["record"]["length"], c, hmax):
             samples.append(context_sample(ep, cfg.camera, start, c, hmax))
             truths.append(ep["frames"][cfg.camera][start + c:start + c + hmax])
             lasts.append(ep["frames"][cfg.camera][start + c - 1])
@@ -57,7 +67,8 @@ def frame_quality(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, ep
     pred = open_loop_chunked(cfg.model, params, norm, samples, hmax)["frames"]
     truth = np.stack(truths)
     copy = np.repeat(np.stack(lasts)[:, None], hmax, axis=1)
-    keys = ("psnr", "ssim", "pooled_psnr", "copy_last_psnr", "copy_last_ssim", "copy_last_pooled_psnr", "static_share")
+    keys = ("psnr", "ssim", "pooled_psnr", "copy_last_psnr", "copy_last_ssim", "copy_last_pooled_psnr", "static_share",
+            "still_share", "view_shift_px")
     res = {"horizons": list(cfg.eval_horizons), "samples": len(samples), **{k: [] for k in keys}}
     for h in cfg.eval_horizons:
         for tag, x in (("", pred[:, h - 1]), ("copy_last_", copy[:, h - 1])):
@@ -65,6 +76,12 @@ def frame_quality(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, ep
             res[f"{tag}ssim"].append(float(ssim(x, truth[:, h - 1]).mean()))
             res[f"{tag}pooled_psnr"].append(float(psnr(x, truth[:, h - 1], axis=None)))
         res["static_share"].append(float((copy[:, h - 1] == truth[:, h - 1]).all(axis=(1, 2, 3)).mean()))
+        # over the samples whose true view moved less than a pixel since the last context frame,
+        # how far the imagined view has moved from the true one
+        still = view_shift(copy[:, h - 1], truth[:, h - 1]) < STILL_PX
+        res["still_share"].append(float(still.mean()))
+        res["view_shift_px"].append(float(view_shift(pred[still, h - 1], truth[still, h - 1]).mean())
+                                    if still.any() else None)
     res["gain_over_copy_last_db"] = [a - b for a, b in zip(res["psnr"], res["copy_last_psnr"], strict=True)]
     res["pooled_gain_over_copy_last_db"] = [a - b for a, b in zip(res["pooled_psnr"], res["copy_last_pooled_psnr"],
                                                                   strict=True)]
@@ -170,6 +187,7 @@ def evaluate(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, out: Pa
         "gain_over_copy_last_h8_db": fq["gain_over_copy_last_db"][at[8]] if 8 in at else None,
         "gain_over_copy_last_h16_db": fq["gain_over_copy_last_db"][at[16]] if 16 in at else None,
         "pooled_gain_over_copy_last_h8_db": fq["pooled_gain_over_copy_last_db"][at[8]] if 8 in at else None,
+        "view_shift_h8_px": fq["view_shift_px"][at[8]] if 8 in at else None,
         "success_accuracy": sp["accuracy"], "success_auroc": sp["auroc"],
         "match_accuracy": ctrl.get("match_accuracy"), "delta_psnr_db": ctrl.get("delta_psnr_db"),
     }

@@ -54,3 +54,17 @@ def auroc(scores, labels) -> float:
 
 def accuracy(prob, labels, threshold: float = 0.5) -> float:
     return float(np.mean((np.asarray(prob) >= threshold) == np.asarray(labels, bool)))
+
+
+def view_shift(a, b) -> np.ndarray:
+    """How far the whole view moved between images a and b, (N, H, W, 3) uint8 each: the length in
+    pixels of the global translation that registers b onto a (phase correlation of the grey images
+    under a Hann window, OpenCV's sub-pixel peak), per pair: (N,) float. A robot whose body stays in
+    place keeps its head camera's view still, so an imagined frame that shifts against the true one
+    has moved the body."""
+    import cv2
+
+    a = np.asarray(a, np.float32).mean(axis=-1)
+    b = np.asarray(b, np.float32).mean(axis=-1)
+    window = cv2.createHanningWindow(a.shape[-1:-3:-1], cv2.CV_32F)
+    return np.array([np.hypot(*cv2.phaseCorrelate(x, y, window)[0]) for x, y in zip(a, b, strict=True)])
