@@ -62,7 +62,8 @@ PIPELINES = {
     # the GPU preset: two tasks, scripted episodes of 5 skills, random play and the controllability
     # programs, the conv_noproprio lineage's rollouts; the zoo's five lineages of 8 checkpoints
     # evaluated over 64 held-out initial states per task; sized so that the whole chain fits one
-    # 30-minute GPU session (H200: data 513 s, policies 227 s, rollouts 199 s, train 383 s, eval 225 s a task)
+    # 30-minute GPU session (H200, session 8: data 341 s, policies 206 s, rollouts 181 s, train 381 s,
+    # eval 364 s for both tasks, report 9 s)
     "full": Pipeline(data="wm_full", policies="full", train="full", eval="full",
                      train_overrides=("w_success=0.5", "max_minutes=3.5"),
                      rollouts="conv_noproprio", rollout_episodes=64),

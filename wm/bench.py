@@ -6,7 +6,7 @@ with a policy in the loop; writes JSON.
 MFU = (FLOPs of one train step from XLA's cost analysis of the lowered, not yet optimised, step) x
 (steps/s) / (the bf16 matrix-multiply rate measured on the same device: 8192^3 products, best of 10).
 The compiled step's cost analysis is not used: on GPUs it leaves out the matrix products and
-convolutions XLA hands to cuBLAS and cuDNN (jax-ml/jax#22249), which made an earlier figure 15x low.
+convolutions XLA hands to cuBLAS and cuDNN (jax-ml/jax#22249), which made an earlier figure about 16x low.
 Inputs are random frames and actions of the configured shapes, so no dataset is needed.
 Imagination: `wm.imagine.closed_loop` with a small convolutional policy (image and proprio in,
 action out) over `--horizon` steps; a frame is one imagined step of one episode, decoded.

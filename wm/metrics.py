@@ -60,8 +60,8 @@ def view_shift(a, b) -> np.ndarray:
     """How far the whole view moved between images a and b, (N, H, W, 3) uint8 each: the length in
     pixels of the global translation that registers b onto a (phase correlation of the grey images
     under a Hann window, OpenCV's sub-pixel peak), per pair: (N,) float. A robot whose body stays in
-    place keeps its head camera's view still, so an imagined frame that shifts against the true one
-    has moved the body."""
+    place keeps its head camera's view still, so an imagined frame shifted against the true one has
+    moved the body, or the whole scene."""
     import cv2
 
     a = np.asarray(a, np.float32).mean(axis=-1)
