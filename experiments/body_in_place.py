@@ -127,7 +127,6 @@ def main(argv=None) -> int:
     p.add_argument("--max-episodes", type=int, default=64)
     a = p.parse_args(argv)
     res = measure(a.wm, a.data, max_episodes=a.max_episodes)
-    a.out.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(a.out, res)
     print(json.dumps(res, indent=1))
     return 0

@@ -13,13 +13,13 @@ modules' own entry points with the preset's configurations:
 | policies | sim_data.zoo           | runs/policies/<p> |
 | rollouts | sim_data.generate      | runs/data/<data>_<p>_rollouts (the data and the lineage's rollouts) |
 | train    | wm.train               | runs/wm/<p>       |
+| eval     | experiments.evaluate   | runs/eval/<p>     |
+| report   | experiments.report     | runs/eval/<p>/report.html |
 
 The world model learns from the scripted episodes and from the rollouts of one lineage of the zoo,
 failures included (the published work's most useful source: what the evaluated policies do, not
 only what demonstrations do); the evaluation reports its statistics over every policy and over the
 policies whose rollouts the world model never saw (`metrics.unseen`).
-| eval     | experiments.evaluate   | runs/eval/<p>     |
-| report   | experiments.report     | runs/eval/<p>/report.html |
 """
 
 from __future__ import annotations

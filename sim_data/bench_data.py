@@ -74,7 +74,6 @@ def main(argv=None) -> int:
         "cache_build_s": tp.get("cache_s"), "cache_frames_per_s": tp["cache_frames"] * len(cfg.cameras) / tp["cache_s"],
         "loader": loader,
     }
-    a.out.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(a.out, report)
     print(json.dumps(report, indent=1))
     return 0

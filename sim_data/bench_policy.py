@@ -98,7 +98,6 @@ def main(argv=None) -> int:
     batch = a.batch or (1024 if engine == "mjx" else 16)
     res = bench(a.task, batch, engine, a.repeats)
     res.update(device=device_name(), host=platform.node(), jax=jax.__version__)
-    a.out.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(a.out, res)
     print(json.dumps(res, indent=1))
     return 0

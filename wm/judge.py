@@ -39,6 +39,7 @@ from tqdm import tqdm
 from wm.imagine import CHUNK, Norm, closed_loop, context_sample, feature_dim, open_loop_chunked
 from wm.metrics import accuracy, auroc
 from wm.model import ModelConfig
+from wm.train import write_json_atomic
 
 WIDTH = 64
 LR = 2e-3
@@ -270,11 +271,8 @@ def save_judge(judge: EpisodeJudge, metrics: dict, out: Path) -> None:
     tmp = blob.with_name(blob.name + ".tmp")
     tmp.write_bytes(serialization.to_bytes(judge.params))
     os.replace(tmp, blob)
-    meta = {"tasks": list(judge.tasks), "mean": judge.mean.tolist(), "std": judge.std.tolist(), "width": WIDTH,
-            "metrics": metrics}
-    tmp = out / "judge.json.tmp"
-    tmp.write_text(json.dumps(meta, indent=1))
-    os.replace(tmp, out / "judge.json")
+    write_json_atomic(out / "judge.json", {"tasks": list(judge.tasks), "mean": judge.mean.tolist(),
+                                           "std": judge.std.tolist(), "width": WIDTH, "metrics": metrics})
 
 
 def load_judge(out: Path) -> EpisodeJudge | None:
