@@ -1,9 +1,12 @@
 """MJX speed of model-design variants of the full scene, side by side (GPU notes for the README).
 
-    python -m sim_data.bench_variants --out runs/bench/mjx_variants.json --batch 8192
+    python -m sim_data.bench_variants --out runs/bench/mjx_variants.json --batch 8192 [--stages]
 
 Each variant changes one thing about `home.xml` (contacts, limits, solver settings) and is
-stepped exactly as `sim_data.bench` steps the real model.
+stepped exactly as `sim_data.bench` steps the real model. `--stages` also times each stage of
+one MJX step (kinematics, collision, constraint rows, solver, integrator) on its own, so a
+variant's gain can be traced to where the time goes; `--dump NAME` writes a variant's MJCF
+(to check its tasks with `sim_data.success_table` after copying it over `home.xml`).
 """
 
 from __future__ import annotations
@@ -13,12 +16,14 @@ import json
 import re
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+from mujoco import mjx
 
 from sim_data import scene as S
 from sim_data.bench import device_name, ready_controls, time_mjx
@@ -61,6 +66,11 @@ def variants(which: str = "all") -> dict[str, str]:
         "home.xml, CG 2/4 (unstable: the cloth sinks through the counter at rest)":
             _edit(home.replace('solver="Newton"', 'solver="CG"'), iterations=2, ls_iterations=4),
         "home.xml, elliptic cones, all condim 3": home.replace('cone="pyramidal"', 'cone="elliptic"').replace(' condim="1"', ""),
+        "home.xml, Euler (damping explicit)": _edit(home, integrator="Euler"),
+        "home.xml, Euler (damping implicit)": _edit(home, integrator="Euler").replace('eulerdamp="disable"', 'eulerdamp="enable"'),
+        "home.xml, Newton 3/3": _edit(home, ls_iterations=3),
+        "home.xml, sparse Jacobian": _edit(home, jacobian="sparse"),
+        "home.xml without object-floor pairs": re.sub(r'\s*<pair geom1="(?:mug|block)" geom2="floor"/>', "", home),
     }
     if which != "all":
         out = {k: v for k, v in out.items() if any(w in k for w in which.split(","))}
@@ -80,14 +90,59 @@ def _carry_qpos(qpos, base: mujoco.MjModel, m: mujoco.MjModel):
     return out
 
 
-def bench_xml(xml: str, batch: int, nsteps: int = 100) -> dict:
-    """Steps a variant's MJCF exactly as `sim_data.bench` steps home.xml, from `mug` initial states."""
+def compile_xml(xml: str) -> mujoco.MjModel:
+    """A variant's MjModel (compiled beside home.xml, whose relative paths it shares)."""
     with tempfile.NamedTemporaryFile("w", suffix=".xml", dir=ASSETS, delete=False) as f:
         f.write(xml)
     try:
-        m = mujoco.MjModel.from_xml_path(f.name)
+        return mujoco.MjModel.from_xml_path(f.name)
     finally:
         Path(f.name).unlink()
+
+
+def _best_seconds(fn, x, repeats: int = 5) -> float:
+    jax.block_until_ready(fn(x))
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(x))
+        times.append(time.perf_counter() - t0)
+    return min(times)
+
+
+def stage_times(mx, d) -> dict:
+    """Seconds of each stage of one MJX step over a batch `d` (vmapped), each jitted on its own.
+
+    The stages chain as `mjx.step` chains them (MJX 3.x internals), each fed its predecessor's
+    output; their sum exceeds the fused step by what XLA saves across stage boundaries.
+    """
+    from mujoco.mjx._src import collision_driver, constraint, forward, smooth, solver
+
+    def smooth_position(m, x):
+        for f in (smooth.kinematics, smooth.com_pos, smooth.camlight, smooth.tendon, smooth.crb,
+                  smooth.tendon_armature, smooth.factor_m):
+            x = f(m, x)
+        return x
+
+    integrate = {mujoco.mjtIntegrator.mjINT_EULER: forward.euler,
+                 mujoco.mjtIntegrator.mjINT_IMPLICITFAST: forward.implicit}[int(mx.opt.integrator)]
+    stages = [("kinematics, inertia, factor M", smooth_position), ("collision", collision_driver.collision),
+              ("constraint rows", constraint.make_constraint), ("transmission", smooth.transmission),
+              ("velocity (passive, rne)", forward.fwd_velocity), ("actuation", forward.fwd_actuation),
+              ("smooth acceleration", forward.fwd_acceleration), ("solver", solver.solve),
+              ("integrator", integrate)]
+    out = {}
+    for name, f in stages:
+        fn = jax.jit(jax.vmap(lambda x, f=f: f(mx, x)))
+        out[name] = _best_seconds(fn, d)
+        d = fn(d)
+    out["whole step (fused)"] = _best_seconds(jax.jit(jax.vmap(lambda x: mjx.step(mx, x))), d)
+    return out
+
+
+def bench_xml(xml: str, batch: int, nsteps: int = 100, stages: bool = False) -> dict:
+    """Steps a variant's MJCF exactly as `sim_data.bench` steps home.xml, from `mug` initial states."""
+    m = compile_xml(xml)
     base = S.load_model()
     idx = S.scene_index(base)
     keys = jax.random.split(jax.random.PRNGKey(0), batch)
@@ -98,8 +153,11 @@ def bench_xml(xml: str, batch: int, nsteps: int = 100) -> dict:
     ctrl = ready_controls(idx.robot, batch)
     ctrl = jnp.pad(jnp.asarray(ctrl), ((0, 0), (0, m.nu - ctrl.shape[1])))  # v0's leg actuators come last
     best, _, d = time_mjx(engine, physics, ctrl, mocap, nsteps)
-    return {"batch": batch, "steps_per_s": batch * nsteps / best, "ncon_slots": int(d._impl.contact.dist.shape[1]),
-            "nefc": int(d._impl.efc_J.shape[1]), "nv": m.nv, "npair": m.npair}
+    out = {"batch": batch, "steps_per_s": batch * nsteps / best, "ncon_slots": int(d._impl.contact.dist.shape[1]),
+           "nefc": int(d._impl.efc_J.shape[1]), "nv": m.nv, "npair": m.npair}
+    if stages:
+        out["stage_ms"] = {k: 1e3 * v for k, v in stage_times(engine.mx, d).items()}
+    return out
 
 
 def main(argv=None) -> int:
@@ -107,10 +165,18 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--batch", type=int, default=8192)
     p.add_argument("--only", default="all", help="comma list of substrings of variant names")
+    p.add_argument("--stages", action="store_true", help="also time each stage of one step")
+    p.add_argument("--dump", metavar="NAME", help="write the MJCF of the one variant matching NAME to --out and stop")
     a = p.parse_args(argv)
+    if a.dump:
+        found = variants(a.dump)
+        if len(found) != 1:
+            p.error(f"--dump {a.dump!r} matches {len(found)} variants: {list(found) or list(variants())}")
+        a.out.write_text(next(iter(found.values())))
+        return 0
     report = {"device": device_name(), "what": "MJX physics substeps/s of scene variants", "results": {}}
     for name, xml in variants(a.only).items():
-        r = bench_xml(xml, a.batch)
+        r = bench_xml(xml, a.batch, stages=a.stages)
         report["results"][name] = r
         print(name, json.dumps(r), flush=True)
         write_json_atomic(a.out, report)

@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -28,7 +30,7 @@ import numpy as np
 from wm.config import make_config
 from wm.imagine import Norm, closed_loop
 from wm.model import init_params
-from wm.train import _jitted_step, make_optimizer
+from wm.train import _jitted_step, make_optimizer, write_json_atomic
 
 
 def device_name() -> str:
@@ -51,14 +53,8 @@ def matmul_rate(n: int = 8192, reps: int = 10) -> float:
     return 2 * n**3 / best
 
 
-def _flops(lowered) -> float:
-    cost = lowered.cost_analysis()
-    if isinstance(cost, list | tuple):
-        cost = cost[0]
-    return float(cost.get("flops", 0.0))
-
-
-def train_rate(cfg, steps: int = 20) -> dict:
+def step_inputs(cfg):
+    """(state, batch, norm) of one train step: fresh parameters, random frames and actions."""
     m = cfg.model
     params = init_params(m, jax.random.PRNGKey(0), window=cfg.window)
     state = {"params": params, "opt": make_optimizer(cfg).init(params), "step": jnp.zeros((), jnp.int32)}
@@ -69,11 +65,36 @@ def train_rate(cfg, steps: int = 20) -> dict:
              "action": jnp.asarray(rng.normal(size=(b, t, m.action_dim)), jnp.float32),
              "success": jnp.zeros((b, t), bool), "outcome": jnp.zeros((b,), bool)}
     norm = Norm(jnp.zeros(m.proprio_dim), jnp.ones(m.proprio_dim), jnp.zeros(m.action_dim), jnp.ones(m.action_dim))
+    return state, batch, norm
+
+
+def step_flops(preset: str, overrides=()) -> float:
+    """FLOPs of one train step by XLA's cost analysis of the lowered, not yet optimised, step.
+
+    `Lowered.cost_analysis` is not implemented on plugin backends such as the GPU's (it returns None),
+    so off the CPU the count runs in a child process restricted to the CPU; the HLO is the same.
+    """
+    if jax.default_backend() != "cpu":
+        child = subprocess.run([sys.executable, "-m", "wm.bench", "--flops-only", "--config", preset, *overrides],
+                               env={**os.environ, "JAX_PLATFORMS": "cpu"}, capture_output=True, text=True)
+        if child.returncode:
+            raise RuntimeError(f"counting FLOPs on the CPU failed:\n{child.stderr[-2000:]}")
+        return float(child.stdout.split()[-1])
+    cfg = make_config(preset, overrides)
+    args = jax.eval_shape(lambda: step_inputs(cfg))
+    cost = _jitted_step.lower(cfg, *args).cost_analysis()
+    if isinstance(cost, list | tuple):
+        cost = cost[0]
+    if not cost or "flops" not in cost:
+        raise RuntimeError(f"XLA gave no cost analysis on {jax.default_backend()} (jax {jax.__version__})")
+    return float(cost["flops"])
+
+
+def train_rate(cfg, steps: int = 20) -> dict:
+    state, batch, norm = step_inputs(cfg)
     t0 = time.perf_counter()
-    lowered = _jitted_step.lower(cfg, state, batch, norm)
-    compiled = lowered.compile()
+    compiled = _jitted_step.lower(cfg, state, batch, norm).compile()
     compile_s = time.perf_counter() - t0
-    flops = _flops(lowered)
     for _ in range(3):
         state, parts = compiled(state, batch, norm)
     jax.block_until_ready(parts)
@@ -82,9 +103,9 @@ def train_rate(cfg, steps: int = 20) -> dict:
         state, parts = compiled(state, batch, norm)
     jax.block_until_ready(parts)
     dt = (time.perf_counter() - t0) / steps
-    return {"batch": b, "window": t, "params": int(sum(x.size for x in jax.tree_util.tree_leaves(params))),
-            "step_s": dt, "frames_per_s": b * t / dt, "flops_per_step": flops, "achieved_flops_per_s": flops / dt,
-            "compile_s": compile_s}
+    return {"batch": cfg.batch, "window": cfg.window,
+            "params": int(sum(x.size for x in jax.tree_util.tree_leaves(state["params"]))),
+            "step_s": dt, "frames_per_s": cfg.batch * cfg.window / dt, "compile_s": compile_s}
 
 
 class ConvPolicy(nn.Module):
@@ -134,22 +155,31 @@ def imagine_rate(cfg, batch: int, horizon: int) -> dict:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--out", type=Path)
     p.add_argument("--config", default=None, help="training preset (default: full on a GPU, demo on the CPU)")
     p.add_argument("--imagine-batch", type=int, default=None)
     p.add_argument("--horizon", type=int, default=32)
     p.add_argument("overrides", nargs="*")
+    p.add_argument("--flops-only", action="store_true", help="print the FLOPs of one train step and stop")
     a = p.parse_args(argv)
     gpu = jax.devices()[0].platform != "cpu"
-    cfg = make_config(a.config or ("full" if gpu else "demo"), a.overrides)
+    preset = a.config or ("full" if gpu else "demo")
+    if a.flops_only:
+        print(step_flops(preset, a.overrides))
+        return 0
+    if a.out is None:
+        p.error("--out is required")
+    cfg = make_config(preset, a.overrides)
     rate = matmul_rate()
     train = train_rate(cfg)
+    train["flops_per_step"] = step_flops(preset, a.overrides)
+    train["achieved_flops_per_s"] = train["flops_per_step"] / train["step_s"]
     train["mfu"] = train["achieved_flops_per_s"] / rate
     imag = imagine_rate(cfg, a.imagine_batch or (1024 if gpu else 16), a.horizon)
-    report = {"device": device_name(), "config": a.config or ("full" if gpu else "demo"),
+    report = {"device": device_name(), "config": preset, "overrides": list(a.overrides),
               "bf16_matmul_flops_per_s": rate, "train": train, "imagine": imag}
     a.out.parent.mkdir(parents=True, exist_ok=True)
-    a.out.write_text(json.dumps(report, indent=1))
+    write_json_atomic(a.out, report)
     print(json.dumps(report, indent=1))
     return 0
 
