@@ -23,6 +23,11 @@ Sweeps:
   which half are the zoo's `conv_noproprio` rollouts, failures included (x=0.5); both evaluated
   on the mixed dataset's test split.
 
+The sweeps `data_scaling`, `task_scaling` and `autonomous_rollouts` also rank the zoo's mug
+policies (the `Size`'s zoo preset, trained on the "base" dataset if missing) with each run's model
+against the simulator (`experiments.evaluate` into `<run>/ranking/`): Pearson, Spearman, MMRV,
+pairwise accuracy on gaps of 10 points and alignment join the run's figures.
+
 A run whose `eval_data` is another dataset than its training data trains with `--no-eval` and is
 evaluated by `python -m wm.evaluate` on that dataset; a run with `model_of` trains nothing and
 evaluates the model of the named run.
@@ -59,9 +64,17 @@ METRICS = (
     # from BODY_FILE, where the sweep measures it (MEASURED)
     ("body_psnr_h8", ("body_in_place", "summary", "body_psnr_h8")),
     ("rest_psnr_h8", ("body_in_place", "summary", "rest_psnr_h8")),
+    # from RANK_DIR's results.json (experiments.evaluate), where the sweep ranks the zoo (RANKED)
+    ("pearson", ("ranking", "pearson")),
+    ("spearman", ("ranking", "spearman")),
+    ("mmrv", ("ranking", "mmrv")),
+    ("pairwise_acc_gap10", ("ranking", "pairwise_acc_gap10")),
+    ("alignment", ("ranking", "alignment")),
 )
 BODY_FILE = "body_in_place.json"  # experiments.body_in_place's figures of a run
 MEASURED = {"airfryer_transfer"}  # sweeps whose runs also get the body-in-place measurement
+RANK_DIR = "ranking"  # experiments.evaluate's OUT within a run: the zoo's policies ranked by its model
+RANKED = {"data_scaling": "mug", "task_scaling": "mug", "autonomous_rollouts": "mug"}  # sweep -> ranked task
 
 
 @dataclasses.dataclass(frozen=True)
@@ -98,11 +111,12 @@ class Size:
     minutes: float
     seeds: int
     data: dict  # dataset key -> (generate preset, overrides); "{zoo}" in an override is the zoo's directory
-    zoo: str = ""  # the zoo preset trained on the "base" dataset, for sweeps with policy rollouts
+    zoo: str = ""  # the zoo preset trained on the "base" dataset, for policy rollouts and rankings
+    eval: str = ""  # the experiments.evaluate preset that ranks the zoo by each run's model
 
 
 SIZES = {
-    "demo": Size(train="demo", minutes=1.5, seeds=1, zoo="demo", data={
+    "demo": Size(train="demo", minutes=1.5, seeds=1, zoo="demo", eval="demo", data={
         "base": ("demo", ()),
         "tasks4": ("demo", ("tasks=mug,step_back,wipe,shelf", "episodes=6", "play=4")),
         "shelf_arcade": ("demo", ("tasks=shelf,arcade", "episodes=6", "play=4")),
@@ -110,7 +124,7 @@ SIZES = {
         "heldout": ("demo", ("heldout=true",)),
         "mixed": ("demo", ("episodes=4", "policies={zoo}#conv_noproprio", "policy_episodes=1")),
     }),
-    "full": Size(train="full", minutes=2.5, seeds=3, zoo="full", data={
+    "full": Size(train="full", minutes=2.5, seeds=3, zoo="full", eval="full", data={
         "base": ("wm_full", ()),
         "tasks4": ("wm_full", ("tasks=mug,wipe,shelf,arcade", "episodes=300", "play=300", "batch=600")),
         "shelf_arcade": ("wm_full", ("tasks=shelf,arcade", "episodes=300", "play=300", "batch=600")),
@@ -178,9 +192,9 @@ def gpu_count() -> int:
     return sum(line.startswith("GPU ") for line in out.splitlines())
 
 
-def ensure_data(size: Size, keys, root: Path) -> dict:
-    """Generates (or completes) each dataset the sweep needs, and the zoo first where one needs
-    policy rollouts; returns key -> directory."""
+def ensure_data(size: Size, keys, root: Path, zoo_needed: bool = False) -> dict:
+    """Generates (or completes) each dataset the sweep needs, and the zoo (on "base") first where
+    one needs policy rollouts, or where zoo_needed; returns key -> directory."""
     from sim_data import generate
 
     def place(key):
@@ -192,16 +206,30 @@ def ensure_data(size: Size, keys, root: Path) -> dict:
     zoo_dir = root / "policies" / size.zoo
     needs_zoo = {k for k in size.data if any("{zoo}" in o for o in size.data[k][1])}
     dirs = {}
-    for key in (["base"] if needs_zoo & set(keys) and "base" not in keys else []) + keys:
+    for key in (["base"] if (zoo_needed or needs_zoo & set(keys)) and "base" not in keys else []) + keys:
         preset, overrides = size.data[key]
-        if key in needs_zoo and not (zoo_dir / "policies.json").exists():
-            from sim_data import zoo
-
-            zoo.main(["--config", size.zoo, "--data", str(dirs["base"]), "--out", str(zoo_dir)])
+        if key in needs_zoo:
+            _ensure_zoo(size, dirs["base"], zoo_dir)
         dirs[key] = place(key)
         overrides = [o.replace("{zoo}", str(zoo_dir)) for o in overrides]
         generate.main(["--config", preset, "--out", str(dirs[key]), *overrides])  # resumes; refuses another config
+    if zoo_needed:
+        _ensure_zoo(size, dirs["base"], zoo_dir)
     return dirs
+
+
+def _ensure_zoo(size: Size, data: Path, zoo_dir: Path) -> None:
+    if not (zoo_dir / "policies.json").exists():
+        from sim_data import zoo
+
+        zoo.main(["--config", size.zoo, "--data", str(data), "--out", str(zoo_dir)])
+
+
+def rank_run(model: Path, zoo: Path, task: str, size: Size, out: Path, log: Path) -> int:
+    """Writes out/results.json: the zoo's policies on task ranked by the model in `model` against
+    the simulator (experiments.evaluate; no videos)."""
+    return _subprocess(["-m", "experiments.evaluate", "--config", size.eval, "--out", str(out), f"wm={model}",
+                        f"policies={zoo}", f"tasks={task}", "video_policies=0"], None, log)
 
 
 def train_run(run: SweepRun, size: Size, data: Path, out: Path, gpu: int | None, log: Path) -> int:
@@ -236,7 +264,8 @@ def run_sweep(name: str, size_name: str, out: Path, root: Path = Path("runs"), p
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     _check_sweep(out, name, size_name)
-    data = ensure_data(size, [r.data for r in runs] + [r.eval_data for r in runs if r.eval_data], root)
+    data = ensure_data(size, [r.data for r in runs] + [r.eval_data for r in runs if r.eval_data], root,
+                       zoo_needed=name in RANKED)
     todo = [r for r in runs if not (out / r.name / "eval.json").exists()]
     workers = max(1, gpu_count())
     t0 = time.perf_counter()
@@ -270,6 +299,12 @@ def run_sweep(name: str, size_name: str, out: Path, root: Path = Path("runs"), p
                 _subprocess(["-m", "experiments.body_in_place", "--wm", str(out / (r.model_of or r.name)),
                              "--data", str(data[r.eval_data or r.data]), "--out", str(out / r.name / BODY_FILE)],
                             None, out / r.name / "train.log")
+    if name in RANKED:
+        for r in runs:
+            if (out / r.name / "eval.json").exists() and not (out / r.name / RANK_DIR / "results.json").exists():
+                print(f"{r.name}: ranking the zoo's {RANKED[name]} policies", flush=True)
+                rank_run(out / (r.model_of or r.name), root / "policies" / size.zoo, RANKED[name], size,
+                         out / r.name / RANK_DIR, out / r.name / "train.log")
     results = collect(name, size_name, runs, out, x_label)
     write_json_atomic(out / "results.json", results)
     plot(results, out / "sweep.png", log_x)
@@ -313,9 +348,12 @@ def collect(name: str, size: str, runs: list[SweepRun], out: Path, x_label: str)
     rows = []
     for r in runs:
         path, body = out / r.name / "eval.json", out / r.name / BODY_FILE
+        ranking = out / r.name / RANK_DIR / "results.json"
         ev = json.loads(path.read_text()) if path.exists() else None
         if ev is not None and body.exists():
             ev["body_in_place"] = json.loads(body.read_text())
+        if ev is not None and ranking.exists():
+            ev["ranking"] = json.loads(ranking.read_text())["metrics"]["overall"]
         rows.append({"x": r.x, "seed": r.seed, "run": r.name, "finished": ev is not None,
                      **{m: _get(ev, p) if ev else None for m, p in METRICS}})
     xs = sorted({r.x for r in runs})
@@ -336,7 +374,7 @@ def finding(name: str, x_label: str, per_x: list[dict]) -> str:
         return f"{name}: fewer than two values finished."
     a, b = per_x[0], per_x[-1]
     parts = []
-    for m in ("success_auroc", "psnr_h8", "match_accuracy", "view_shift_h8_px"):
+    for m in ("success_auroc", "psnr_h8", "match_accuracy", "view_shift_h8_px", "pearson", "mmrv"):
         if a[m] is not None and b[m] is not None:
             parts.append(f"{m} {a[m]:.3g} -> {b[m]:.3g}")
     return f"{name}: from {x_label} = {a['x']:g} to {b['x']:g}: " + ", ".join(parts) + "."
@@ -349,8 +387,9 @@ def plot(results: dict, path: Path, log_x: bool) -> None:
     import matplotlib.pyplot as plt
 
     per_x = results["per_x"]
-    fig, axes = plt.subplots(1, len(METRICS), figsize=(3.0 * len(METRICS), 2.8))
-    for ax, (m, _) in zip(axes, METRICS, strict=True):
+    shown = [m for m, _ in METRICS if any(e[m] is not None for e in per_x)] or [METRICS[0][0]]
+    fig, axes = plt.subplots(1, len(shown), figsize=(3.0 * len(shown), 2.8), squeeze=False)
+    for ax, m in zip(axes[0], shown, strict=True):
         pts = [(e["x"], e[m], e[f"{m}_ci"]) for e in per_x if e[m] is not None]
         for row in results["runs"]:
             if row[m] is not None:

@@ -26,12 +26,18 @@ def test_collect_reads_every_finished_run(tmp_path):
         summary = {"psnr_h8": 20.0 + k, "success_auroc": 0.5 + 0.05 * k}
         (tmp_path / r.name / "eval.json").write_text(json.dumps({"summary": summary}))
     (tmp_path / runs[0].name / W.BODY_FILE).write_text(json.dumps({"summary": {"body_psnr_h8": 18.0}}))
+    for k, r in enumerate(runs[:2]):  # experiments.evaluate's results.json of the zoo ranked by each model
+        (tmp_path / r.name / W.RANK_DIR).mkdir()
+        overall = {"pearson": 0.6 + 0.2 * k, "mmrv": 0.2, "alignment": 0.75}
+        (tmp_path / r.name / W.RANK_DIR / "results.json").write_text(json.dumps({"metrics": {"overall": overall}}))
     res = W.collect("data_scaling", "demo", runs, tmp_path, "share")
     assert [e["seeds"] for e in res["per_x"]] == [2, 2, 2, 1]
     assert res["runs"][0]["body_psnr_h8"] == 18.0 and res["per_x"][0]["body_psnr_h8"] == 18.0  # the other seed has none
     assert res["per_x"][1]["body_psnr_h8"] is None
     assert res["per_x"][0]["psnr_h8"] == pytest.approx(20.5) and res["per_x"][3]["psnr_h8"] == pytest.approx(26.0)
     assert res["per_x"][3]["psnr_h8_ci"] is None and res["per_x"][0]["match_accuracy"] is None
+    assert res["per_x"][0]["pearson"] == pytest.approx(0.7) and res["per_x"][0]["mmrv_ci"] == pytest.approx([0.2, 0.2])
+    assert res["runs"][2]["pearson"] is None and res["per_x"][1]["alignment"] is None
     assert "0.525 -> 0.8" in res["finding"]
     W.plot(res, tmp_path / "sweep.png", log_x=True)
     assert (tmp_path / "sweep.png").stat().st_size > 1000
