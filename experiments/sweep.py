@@ -303,8 +303,10 @@ def run_sweep(name: str, size_name: str, out: Path, root: Path = Path("runs"), p
         for r in runs:
             if (out / r.name / "eval.json").exists() and not (out / r.name / RANK_DIR / "results.json").exists():
                 print(f"{r.name}: ranking the zoo's {RANKED[name]} policies", flush=True)
-                rank_run(out / (r.model_of or r.name), root / "policies" / size.zoo, RANKED[name], size,
-                         out / r.name / RANK_DIR, out / r.name / "train.log")
+                rc = rank_run(out / (r.model_of or r.name), root / "policies" / size.zoo, RANKED[name], size,
+                              out / r.name / RANK_DIR, out / r.name / "train.log")
+                if rc:
+                    print(f"{r.name}: ranking failed (exit {rc}), see train.log", flush=True)
     results = collect(name, size_name, runs, out, x_label)
     write_json_atomic(out / "results.json", results)
     plot(results, out / "sweep.png", log_x)
