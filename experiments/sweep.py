@@ -390,8 +390,12 @@ def plot(results: dict, path: Path, log_x: bool) -> None:
 
     per_x = results["per_x"]
     shown = [m for m, _ in METRICS if any(e[m] is not None for e in per_x)] or [METRICS[0][0]]
-    fig, axes = plt.subplots(1, len(shown), figsize=(3.0 * len(shown), 2.8), squeeze=False)
-    for ax, m in zip(axes[0], shown, strict=True):
+    cols = min(5, len(shown))
+    rows = -(-len(shown) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.0 * cols, 2.8 * rows), squeeze=False)
+    for ax in axes.flat[len(shown):]:
+        ax.set_visible(False)
+    for ax, m in zip(axes.flat, shown, strict=False):
         pts = [(e["x"], e[m], e[f"{m}_ci"]) for e in per_x if e[m] is not None]
         for row in results["runs"]:
             if row[m] is not None:
