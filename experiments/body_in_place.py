@@ -34,6 +34,7 @@ from sim_data.scene import load_model
 from sim_data.success_table import write_json_atomic
 from wm.evaluate import sample_starts
 from wm.imagine import context_sample, open_loop_chunked
+from wm.metrics import psnr
 from wm.train import load_trained
 
 BODY, TRAY = "fryer", "fryer_tray"
@@ -72,11 +73,7 @@ def _renderer(camera: str, size: int) -> Renderer:
 
 def _pooled_psnr(pred, true, mask) -> float | None:
     """PSNR of the squared error pooled over the masked pixels of every sample (None if none)."""
-    if not mask.any():
-        return None
-    err = (pred.astype(np.float64) - true.astype(np.float64)) ** 2
-    mse = err[mask].mean()
-    return float(10 * np.log10(255.0**2 / mse)) if mse > 0 else float("inf")
+    return float(psnr(pred[mask], true[mask], axis=None)) if mask.any() else None
 
 
 def measure(wm_run: Path, data: Path, horizons=(1, 4, 8, 16), context: int = 4, max_episodes: int = 64) -> dict:
