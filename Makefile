@@ -60,11 +60,12 @@ test: setup
 test-slow: setup
 	$(PY) -m pytest -q -m slow
 
-# make sweep SWEEP=data_scaling|task_scaling SIZE=demo|full OUT=runs/sweeps/<name>
+# make sweep SWEEP=data_scaling|task_scaling|... SIZE=demo|full OUT=runs/sweeps/<name>
+# (SWEEP="a b c": several sharing the GPUs, into OUT/<name>)
 SWEEP ?= data_scaling
 SIZE ?= demo
 sweep: setup
-	$(PY) -m experiments.sweep $(SWEEP) --size $(SIZE) --out $(or $(OUT),runs/sweeps/$(SWEEP)_$(SIZE))
+	$(PY) -m experiments.sweep $(SWEEP) --size $(SIZE) --out $(or $(OUT),$(if $(word 2,$(SWEEP)),runs/sweeps/$(SIZE),runs/sweeps/$(SWEEP)_$(SIZE)))
 
 bench: setup
 	$(PY) -m sim_data.bench --out runs/bench/physics_$$(hostname).json

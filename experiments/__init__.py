@@ -1,1 +1,3 @@
-"""Policy evaluation in the world model against the simulator, statistics, reports, sweeps: not built yet."""
+"""Experiments over the world model and the simulator: policy evaluation against the simulator
+(`evaluate`), its statistics (`stats`), the HTML report (`report`), sweeps (`sweep`), the body-in-place
+measurement (`body_in_place`) and the `make demo` / `make full` chain (`pipeline`)."""

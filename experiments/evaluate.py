@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import json
 import math
 import sys
@@ -69,6 +70,10 @@ class EvalConfig:
       max_minutes: stop before a task that would end past this wall time (judged by the longest
         task so far; 0: no limit), so a stage fits its time slot; a rerun evaluates the rest. It
         does not change results and is not part of the configuration a rerun must match.
+      truth_cache: a directory where the simulator's side of each batch (outcomes, first frames and
+        proprioception) is kept and reused by later evaluations of the same policies from the same
+        states, whatever the world model (a sweep ranks one zoo with many models); "" keeps none.
+        Used only with video_policies=0, as it keeps no real videos.
     """
 
     policies: tuple = ()
@@ -84,6 +89,7 @@ class EvalConfig:
     gaps: tuple = (0.1, 0.2)
     decision_episodes: tuple = (5, 10, 20, 50, 100, 200, 500)
     max_minutes: float = 0.0
+    truth_cache: str = ""
 
     def validate(self) -> None:
         if not self.policies:
@@ -96,6 +102,8 @@ class EvalConfig:
             raise ValueError(f"engine must be one of {ENGINES} or empty, got {self.engine!r}")
         if not 0 < self.threshold < 1:
             raise ValueError(f"threshold must be in (0, 1), got {self.threshold}")
+        if self.truth_cache and self.video_policies:
+            raise ValueError("truth_cache keeps no real videos: use it with video_policies=0")
 
 
 PRESETS = {
@@ -133,16 +141,15 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, wm, seeds, engine: str, p
     for k, (group, part, padded) in enumerate(todo):
         policy = StackedPolicy(group[0].policy)
         params = stack_params([s.params for s in padded])
-        b = len(padded) * n
-        env = cached_env(task, b, engine, False)
-        steps = env.episode_steps
         rng = jax.random.PRNGKey(cfg.seed * 7919 + k)
         t0 = time.perf_counter()
-        outcome, rec = record_policies(env, policy, params, reset_keys, rng, renderer)
-        outcome = outcome[: len(part)]
+        truth = simulate_truth(cfg, task, policy, params, seeds, reset_keys, rng, engine, renderer)
+        steps = truth["steps"]
+        outcome = truth["outcome"][: len(part)]
         sim_s += time.perf_counter() - t0
         t0 = time.perf_counter()
-        frames0, proprio0 = rec.frames[CAMERA][:, :1], rec.proprio[:, :1]
+        frames0, proprio0 = truth["frames0"], truth["proprio0"]
+        b = len(frames0)
         got = closed_loop(wm_cfg.model, policy, steps, wm_params, norm, params, frames0, proprio0,
                           np.zeros((b, 0, R.ACTION_DIM), np.float32), jax.random.fold_in(rng, 1))
         r = np.asarray(episode_success(got["success"]), np.float64).reshape(len(padded), n)[: len(part)]
@@ -154,7 +161,8 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, wm, seeds, engine: str, p
             true.append(outcome[j])
             prob.append(p[j])
             rule.append(r[j])
-            kept[src.name] = _keep_examples(cfg, src.name, j, n, outcome[j], p[j], rec.frames[CAMERA], got["frames"])
+            kept[src.name] = _keep_examples(cfg, src.name, j, n, outcome[j], p[j], truth.get("frames"),
+                                            got["frames"])
         bar.update(len(part) * n)
     bar.close()
     true, prob = np.stack(true), np.stack(prob)
@@ -163,8 +171,46 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, wm, seeds, engine: str, p
             "video_index": index, "sim_s": sim_s, "wm_s": wm_s, "steps": steps}
 
 
+def simulate_truth(cfg: EvalConfig, task: str, policy, params, seeds, reset_keys, rng, engine: str,
+                   renderer) -> dict:
+    """Closed-loop simulator episodes of P stacked policies from n initial states, or the same read
+    back from cfg.truth_cache. Returns {"outcome": (P, n) bool, "frames0": (P*n, 1, S, S, 3) uint8,
+    "proprio0": (P*n, 1, 37), "steps": int, and "frames": (P*n, T+1, S, S, 3) where simulated}."""
+    p = jax.tree_util.tree_leaves(params)[0].shape[0]
+    path = None
+    if cfg.truth_cache:
+        path = Path(cfg.truth_cache) / f"{task}-{_truth_key(task, policy, params, seeds, rng, engine, renderer)}.npz"
+        if path.exists():
+            with np.load(path) as z:
+                return {k: z[k] for k in ("outcome", "frames0", "proprio0")} | {"steps": int(z["steps"])}
+    env = cached_env(task, p * len(seeds), engine, False)
+    outcome, rec = record_policies(env, policy, params, reset_keys, rng, renderer)
+    truth = {"outcome": outcome, "frames0": np.asarray(rec.frames[CAMERA][:, :1]),
+             "proprio0": np.asarray(rec.proprio[:, :1]), "steps": env.episode_steps}
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez(tmp, **truth)
+        tmp.replace(path)
+    return truth | {"frames": rec.frames[CAMERA]}
+
+
+def _truth_key(task, policy, params, seeds, rng, engine, renderer) -> str:
+    """A digest of everything a batch of simulated episodes depends on: the task, the policies (their
+    class, configuration and parameters), the initial states, the random key, the engine, the camera."""
+    h = hashlib.sha256(json.dumps([task, repr(policy), [int(s) for s in seeds], np.asarray(rng).tolist(), engine,
+                                   [repr(r.cfg) for r in renderer]], default=str).encode())
+    for leaf in jax.tree_util.tree_leaves(params):
+        a = np.ascontiguousarray(np.asarray(leaf))
+        h.update(str((a.shape, a.dtype)).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()[:20]
+
+
 def _keep_examples(cfg, name, j, n, outcome, p, real, imagined) -> list:
     """Up to video_episodes episodes of one policy (a success and a failure first), real and imagined."""
+    if real is None or not cfg.video_policies:
+        return []
     order = [int(np.argmax(outcome)), int(np.argmin(outcome))] + list(range(n))
     picked = list(dict.fromkeys(order))[: cfg.video_episodes]
     out = []

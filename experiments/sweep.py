@@ -7,8 +7,14 @@ repeated over seeds, on datasets it generates or reuses (`make data` presets wit
 `runs/data/`). Every run trains with `wm.train` in its own directory and is judged by the `eval.json`
 it writes; the sweep collects the figures of every run into `OUT/results.json` (per run, and per
 value: the mean over seeds with a 95% t-interval where there are several) and `OUT/sweep.png`.
-Rerunning resumes: finished runs are read back, unfinished ones resume from their checkpoints. With
-several GPUs the runs are spread over them (one training process per GPU).
+Rerunning resumes: finished runs are read back, unfinished ones resume from their checkpoints.
+
+Every piece of work runs in a subprocess pinned to one GPU (CUDA_VISIBLE_DEVICES's, or all of the
+host's; one at a time without GPUs): the datasets side by side (the zoo after the base dataset it
+trains on), then one chain per run (training, evaluation, measurements, ranking). Several sweeps
+named together share the GPUs, in the order named, each into OUT/<sweep>:
+
+    python -m experiments.sweep data_scaling held_out_object transfer --size full --out runs/sweeps/full
 
 Sweeps:
 - `data_scaling`: 1/8, 1/4, 1/2 and all of the training episodes (nested subsets).
@@ -26,7 +32,8 @@ Sweeps:
 The sweeps `data_scaling`, `task_scaling` and `autonomous_rollouts` also rank the zoo's mug
 policies (the `Size`'s zoo preset, trained on the "base" dataset if missing) with each run's model
 against the simulator (`experiments.evaluate` into `<run>/ranking/`): Pearson, Spearman, MMRV,
-pairwise accuracy on gaps of 10 points and alignment join the run's figures.
+pairwise accuracy on gaps of 10 points and alignment join the run's figures. The simulated side of
+the ranking is cached (ROOT/cache/truth) and shared by every model ranked from the same states.
 
 A run whose `eval_data` is another dataset than its training data trains with `--no-eval` and is
 evaluated by `python -m wm.evaluate` on that dataset; a run with `model_of` trains nothing and
@@ -36,14 +43,15 @@ evaluates the model of the named run.
 from __future__ import annotations
 
 import argparse
-import concurrent.futures as cf
 import dataclasses
+import functools
 import json
 import math
 import os
 import shutil
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -124,7 +132,7 @@ SIZES = {
         "heldout": ("demo", ("heldout=true",)),
         "mixed": ("demo", ("episodes=4", "policies={zoo}#conv_noproprio", "policy_episodes=1")),
     }),
-    "full": Size(train="full", minutes=2.5, seeds=3, zoo="full", eval="full", data={
+    "full": Size(train="full", minutes=2.0, seeds=3, zoo="full", eval="full", data={
         "base": ("wm_full", ()),
         "tasks4": ("wm_full", ("tasks=mug,wipe,shelf,arcade", "episodes=300", "play=300", "batch=600")),
         "shelf_arcade": ("wm_full", ("tasks=shelf,arcade", "episodes=300", "play=300", "batch=600")),
@@ -192,59 +200,135 @@ def gpu_count() -> int:
     return sum(line.startswith("GPU ") for line in out.splitlines())
 
 
-def ensure_data(size: Size, keys, root: Path, zoo_needed: bool = False) -> dict:
-    """Generates (or completes) each dataset the sweep needs, and the zoo (on "base") first where
-    one needs policy rollouts, or where zoo_needed; returns key -> directory."""
-    from sim_data import generate
+def gpu_ids() -> list:
+    """The GPUs the jobs are spread over, one job per GPU: CUDA_VISIBLE_DEVICES's where it is set,
+    else every GPU of the host; [None] (one job at a time, devices left as they are) without GPUs."""
+    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+    ids = [v.strip() for v in visible.split(",") if v.strip()] if visible is not None else range(gpu_count())
+    return list(ids) or [None]
 
-    def place(key):
-        preset, overrides = size.data[key]
-        # a preset as it is is the pipeline's own dataset (runs/data/<preset>), shared
-        return root / "data" / (preset if not overrides else f"sweep_{preset}_{key}")
 
-    keys = sorted(set(keys), key=lambda k: (k != "base", k))  # the zoo trains on base: it goes first
-    zoo_dir = root / "policies" / size.zoo
+@dataclasses.dataclass(frozen=True)
+class Job:
+    """A piece of work for one GPU: fn(gpu) -> True on success; it starts once every job named in
+    `needs` has succeeded, and is dropped (failed) when one of them failed."""
+
+    name: str
+    fn: object
+    needs: frozenset = frozenset()
+
+
+def on_gpus(jobs: list, gpus: list) -> dict:
+    """Runs the jobs, one per GPU at a time (threads; the work itself is in subprocesses), each
+    GPU taking the first job in the list whose needs are met; returns name -> succeeded."""
+    cond, pending, done, running = threading.Condition(), list(jobs), {}, [0]
+    known = {j.name for j in jobs}
+    for j in jobs:
+        if j.needs - known:
+            raise ValueError(f"job {j.name} needs {sorted(j.needs - known)}, which no job makes")
+
+    def take():
+        with cond:
+            while pending:
+                for j in [j for j in pending if any(done.get(n) is False for n in j.needs)]:
+                    pending.remove(j)
+                    done[j.name] = False
+                    print(f"{j.name}: skipped, as {', '.join(n for n in j.needs if done.get(n) is False)} failed",
+                          flush=True)
+                ready = next((j for j in pending if all(done.get(n) for n in j.needs)), None)
+                if ready is not None:
+                    pending.remove(ready)
+                    running[0] += 1
+                    return ready
+                if pending:
+                    cond.wait()
+            return None
+
+    def worker(gpu):
+        while (job := take()) is not None:
+            try:
+                ok = bool(job.fn(gpu))
+            except Exception as e:  # noqa: BLE001 -- one job's failure must not stop the others
+                print(f"{job.name}: {type(e).__name__}: {e}", flush=True)
+                ok = False
+            with cond:
+                done[job.name] = ok
+                running[0] -= 1
+                cond.notify_all()
+
+    threads = [threading.Thread(target=worker, args=(g,)) for g in gpus]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return done
+
+
+def data_dir(size: Size, key: str, root: Path) -> Path:
+    """Where a sweep's dataset lives: a preset as it is is the pipeline's own (runs/data/<preset>), shared."""
+    preset, overrides = size.data[key]
+    return root / "data" / (preset if not overrides else f"sweep_{preset}_{key}")
+
+
+def data_jobs(size: Size, keys, root: Path, zoo_needed: bool = False) -> tuple[dict, list]:
+    """The jobs that generate (or complete) each dataset the sweeps need (job "data:<key>"), and the
+    zoo trained on "base" (job "zoo") where one needs policy rollouts or where zoo_needed. Returns
+    (key -> directory, jobs). Each one's log is <its directory>.log."""
     needs_zoo = {k for k in size.data if any("{zoo}" in o for o in size.data[k][1])}
-    dirs = {}
-    for key in (["base"] if (zoo_needed or needs_zoo & set(keys)) and "base" not in keys else []) + keys:
+    keys = set(keys) | ({"base"} if zoo_needed or needs_zoo & set(keys) else set())
+    dirs = {k: data_dir(size, k, root) for k in keys}
+    zoo_dir = root / "policies" / size.zoo
+
+    def generate(key, gpu):
         preset, overrides = size.data[key]
-        if key in needs_zoo:
-            _ensure_zoo(size, dirs["base"], zoo_dir)
-        dirs[key] = place(key)
         overrides = [o.replace("{zoo}", str(zoo_dir)) for o in overrides]
-        generate.main(["--config", preset, "--out", str(dirs[key]), *overrides])  # resumes; refuses another config
-    if zoo_needed:
-        _ensure_zoo(size, dirs["base"], zoo_dir)
-    return dirs
+        log = dirs[key].parent / f"{dirs[key].name}.log"
+        log.parent.mkdir(parents=True, exist_ok=True)
+        rc = _subprocess(["-m", "sim_data.generate", "--config", preset, "--out", str(dirs[key]), *overrides], gpu, log)
+        print(f"dataset {key}: {'ready in ' + str(dirs[key]) if rc == 0 else f'failed (exit {rc}), see {log}'}",
+              flush=True)
+        return rc == 0
+
+    jobs = [Job(f"data:{k}", functools.partial(generate, k), frozenset({"zoo"} if k in needs_zoo else ()))
+            for k in sorted(keys, key=lambda k: (k != "base", k in needs_zoo, k))]
+    if zoo_needed or needs_zoo & keys:
+        jobs.insert(1, Job("zoo", functools.partial(ensure_zoo, size, dirs["base"], zoo_dir),
+                           frozenset({"data:base"})))
+    return dirs, jobs
 
 
-def _ensure_zoo(size: Size, data: Path, zoo_dir: Path) -> None:
-    if not (zoo_dir / "policies.json").exists():
-        from sim_data import zoo
+def ensure_zoo(size: Size, data: Path, zoo_dir: Path, gpu=None) -> bool:
+    """Trains the size's zoo on `data` into zoo_dir unless its registry is there; True on success."""
+    if (zoo_dir / "policies.json").exists():
+        return True
+    log = zoo_dir.parent / f"{zoo_dir.name}.log"
+    log.parent.mkdir(parents=True, exist_ok=True)
+    rc = _subprocess(["-m", "sim_data.zoo", "--config", size.zoo, "--data", str(data), "--out", str(zoo_dir)], gpu, log)
+    print(f"zoo: {'trained into ' + str(zoo_dir) if rc == 0 else f'failed (exit {rc}), see {log}'}", flush=True)
+    return rc == 0
 
-        zoo.main(["--config", size.zoo, "--data", str(data), "--out", str(zoo_dir)])
 
-
-def rank_run(model: Path, zoo: Path, task: str, size: Size, out: Path, log: Path) -> int:
+def rank_run(model: Path, zoo: Path, task: str, size: Size, out: Path, gpu, log: Path, truth: Path) -> int:
     """Writes out/results.json: the zoo's policies on task ranked by the model in `model` against
-    the simulator (experiments.evaluate; no videos)."""
+    the simulator (experiments.evaluate; no videos; the simulated side cached in `truth` and shared
+    by every model ranked from the same held-out states)."""
     return _subprocess(["-m", "experiments.evaluate", "--config", size.eval, "--out", str(out), f"wm={model}",
-                        f"policies={zoo}", f"tasks={task}", "video_policies=0"], None, log)
+                        f"policies={zoo}", f"tasks={task}", "video_policies=0", f"truth_cache={truth}"], gpu, log)
 
 
-def train_run(run: SweepRun, size: Size, data: Path, out: Path, gpu: int | None, log: Path) -> int:
+def train_run(run: SweepRun, size: Size, data: Path, out: Path, gpu, log: Path) -> int:
     """Trains (or resumes) one run in a subprocess; returns its exit code."""
     cmd = ["-m", "wm.train", "--config", size.train, "--data", str(data), "--out", str(out),
            f"max_minutes={size.minutes}", *run.overrides, *(["--no-eval"] if run.evaluated_apart else [])]
     return _subprocess(cmd, gpu, log)
 
 
-def evaluate_run(model: Path, data: Path, out: Path, gpu: int | None, log: Path) -> int:
+def evaluate_run(model: Path, data: Path, out: Path, gpu, log: Path) -> int:
     """Writes out/eval.json: the trained model in `model` evaluated on the dataset `data`."""
     return _subprocess(["-m", "wm.evaluate", "--wm", str(model), "--data", str(data), "--out", str(out)], gpu, log)
 
 
-def _subprocess(args: list, gpu: int | None, log: Path) -> int:
+def _subprocess(args: list, gpu, log: Path) -> int:
     env = dict(os.environ)
     if gpu is not None:
         env["CUDA_VISIBLE_DEVICES"] = str(gpu)
@@ -253,64 +337,151 @@ def _subprocess(args: list, gpu: int | None, log: Path) -> int:
                               check=False).returncode
 
 
-def run_sweep(name: str, size_name: str, out: Path, root: Path = Path("runs"), progress: bool = True) -> dict:
-    if name not in SWEEPS:
-        raise ValueError(f"unknown sweep {name!r}; choose from {', '.join(SWEEPS)}")
+@dataclasses.dataclass
+class Plan:
+    """One sweep under way: its name, size, runs, output directory, x label and scale."""
+
+    name: str
+    size_name: str
+    runs: list
+    out: Path
+    x_label: str
+    log_x: bool
+    lock: threading.Lock = dataclasses.field(default_factory=threading.Lock)
+
+    @property
+    def size(self) -> Size:
+        return SIZES[self.size_name]
+
+    def write_results(self) -> dict:
+        """Collects the finished runs into out/results.json and out/sweep.png (thread-safe)."""
+        with self.lock:
+            results = collect(self.name, self.size_name, self.runs, self.out, self.x_label)
+            write_json_atomic(self.out / "results.json", results)
+            plot(results, self.out / "sweep.png", self.log_x)
+        return results
+
+
+def run_jobs(plan: Plan, data: dict, root: Path, t0: float) -> list:
+    """The jobs of one sweep: per run, its training (or resuming) and its evaluation where it is judged
+    apart or evaluates another run's model (job "<sweep>/<run>"), then the body-in-place measurement
+    and the zoo's ranking where the sweep has them. Each step is skipped when its output is there."""
+    jobs = []
+    for run in plan.runs:
+        key = f"{plan.name}/{run.name}"
+        needs = {f"data:{run.data}", f"data:{run.eval_data or run.data}"}
+        if run.model_of:
+            needs.add(f"{plan.name}/{run.model_of}")
+        jobs.append(Job(key, functools.partial(train_and_evaluate, plan, run, data, t0), frozenset(needs)))
+        if plan.name in MEASURED:
+            jobs.append(Job(f"{key}:body", functools.partial(measure_body, plan, run, data), frozenset({key})))
+        if plan.name in RANKED:
+            jobs.append(Job(f"{key}:ranking", functools.partial(rank, plan, run, root, t0), frozenset({key, "zoo"})))
+    return jobs
+
+
+def train_and_evaluate(plan: Plan, run: SweepRun, data: dict, t0: float, gpu) -> bool:
+    d, log = plan.out / run.name, plan.out / run.name / "train.log"
+    d.mkdir(parents=True, exist_ok=True)
+    if not (d / "eval.json").exists():
+        trained = d / "trained"
+        if run.trains and not trained.exists():
+            if not _ran(plan, run, "training", train_run(run, plan.size, data[run.data], d, gpu, log), log):
+                return False
+            if run.evaluated_apart:
+                trained.touch()  # its evaluation apart may fail or be stopped: a rerun does not train again
+        if run.evaluated_apart and not _ran(plan, run, "evaluation", evaluate_run(
+                plan.out / (run.model_of or run.name), data[run.eval_data or run.data], d, gpu, log), log):
+            return False
+    print(f"{plan.name} {run.name}: evaluated ({time.perf_counter() - t0:.0f} s)", flush=True)
+    plan.write_results()
+    return True
+
+
+def measure_body(plan: Plan, run: SweepRun, data: dict, gpu) -> bool:
+    d = plan.out / run.name
+    if not (d / BODY_FILE).exists():
+        rc = _subprocess(["-m", "experiments.body_in_place", "--wm", str(plan.out / (run.model_of or run.name)),
+                          "--data", str(data[run.eval_data or run.data]), "--out", str(d / BODY_FILE)],
+                         gpu, d / "train.log")
+        if not _ran(plan, run, "body in place", rc, d / "train.log"):
+            return False
+    plan.write_results()
+    return True
+
+
+def rank(plan: Plan, run: SweepRun, root: Path, t0: float, gpu) -> bool:
+    d = plan.out / run.name
+    if not (d / RANK_DIR / "results.json").exists():
+        rc = rank_run(plan.out / (run.model_of or run.name), root / "policies" / plan.size.zoo, RANKED[plan.name],
+                      plan.size, d / RANK_DIR, gpu, d / "train.log", root / "cache" / "truth")
+        if not _ran(plan, run, "ranking", rc, d / "train.log"):
+            return False
+        print(f"{plan.name} {run.name}: ranked ({time.perf_counter() - t0:.0f} s)", flush=True)
+    plan.write_results()
+    return True
+
+
+def _ran(plan: Plan, run: SweepRun, what: str, rc: int, log: Path) -> bool:
+    if rc:
+        print(f"{plan.name} {run.name}: {what} failed (exit {rc}), see {log}", flush=True)
+    return rc == 0
+
+
+def in_sweep_order(data: list, sweeps: list) -> list:
+    """The data jobs and each sweep's jobs in one list, each data job just before the first sweep that
+    needs it (the zoo's with the base dataset's), so that an earlier sweep's work comes first."""
+    placed, out = set(), []
+    by_name = {j.name: j for j in data}
+
+    def place(name):
+        if name in by_name and name not in placed:
+            placed.add(name)
+            for need in sorted(by_name[name].needs):
+                place(need)
+            out.append(by_name[name])
+
+    for jobs in sweeps:
+        for j in jobs:
+            for need in sorted(j.needs):
+                place(need)
+        out += jobs
+    return out + [j for j in data if j.name not in placed]
+
+
+def run_sweeps(names: list, size_name: str, out: Path, root: Path = Path("runs")) -> dict:
+    """Runs the named sweeps as one pool of jobs over the GPUs (gpu_ids): the datasets, the zoo and
+    every run's steps, each starting once what it needs is there, earlier sweeps first: one sweep
+    into `out`, several into out/<name>. Returns name -> results."""
+    for name in names:
+        if name not in SWEEPS:
+            raise ValueError(f"unknown sweep {name!r}; choose from {', '.join(SWEEPS)}")
     if size_name not in SIZES:
         raise ValueError(f"unknown size {size_name!r}; choose from {', '.join(SIZES)}")
-    make_runs, x_label, log_x = SWEEPS[name]
-    size = SIZES[size_name]
-    runs = make_runs(size)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    _check_sweep(out, name, size_name)
-    data = ensure_data(size, [r.data for r in runs] + [r.eval_data for r in runs if r.eval_data], root,
-                       zoo_needed=name in RANKED)
-    todo = [r for r in runs if not (out / r.name / "eval.json").exists()]
-    workers = max(1, gpu_count())
+    size, out = SIZES[size_name], Path(out)
+    plans = []
+    for name in dict.fromkeys(names):
+        make_runs, x_label, log_x = SWEEPS[name]
+        plan = Plan(name, size_name, make_runs(size), out if len(names) == 1 else out / name, x_label, log_x)
+        plan.out.mkdir(parents=True, exist_ok=True)
+        _check_sweep(plan.out, name, size_name)
+        plans.append(plan)
+        print(f"{plan.name} ({size_name}): {len(plan.runs)} runs into {plan.out}", flush=True)
+    runs = [r for p in plans for r in p.runs]
+    data, jobs = data_jobs(size, [r.data for r in runs] + [r.eval_data for r in runs if r.eval_data], root,
+                           zoo_needed=any(p.name in RANKED for p in plans))
     t0 = time.perf_counter()
-    print(f"{name} ({size_name}): {len(runs)} runs, {len(todo)} to train or evaluate, {workers} at a time", flush=True)
-
-    def one(k: int, r: SweepRun) -> int:
-        gpu = k % workers if workers > 1 else None
-        log, trained = out / r.name / "train.log", out / r.name / "trained"
-        if r.trains and not trained.exists():
-            rc = train_run(r, size, data[r.data], out / r.name, gpu, log)
-            if rc or not r.evaluated_apart:
-                return rc
-            trained.touch()  # its evaluation apart may fail or be stopped: a rerun does not train again
-        return evaluate_run(out / (r.model_of or r.name), data[r.eval_data or r.data], out / r.name, gpu, log)
-
-    # runs that evaluate another run's model wait for it: the training runs go first
-    for stage in ([r for r in todo if r.trains], [r for r in todo if not r.trains]):
-        with cf.ThreadPoolExecutor(workers) as pool:
-            futs = {}
-            for k, r in enumerate(stage):
-                (out / r.name).mkdir(parents=True, exist_ok=True)
-                futs[pool.submit(one, k, r)] = r
-            for fut in cf.as_completed(futs):
-                r = futs[fut]
-                rc = fut.result()
-                print(f"{r.name}: {'done' if rc == 0 else f'failed (exit {rc}), see train.log'} "
-                      f"({time.perf_counter() - t0:.0f} s)", flush=True)
-    if name in MEASURED:
-        for r in runs:
-            if (out / r.name / "eval.json").exists() and not (out / r.name / BODY_FILE).exists():
-                _subprocess(["-m", "experiments.body_in_place", "--wm", str(out / (r.model_of or r.name)),
-                             "--data", str(data[r.eval_data or r.data]), "--out", str(out / r.name / BODY_FILE)],
-                            None, out / r.name / "train.log")
-    if name in RANKED:
-        for r in runs:
-            if (out / r.name / "eval.json").exists() and not (out / r.name / RANK_DIR / "results.json").exists():
-                print(f"{r.name}: ranking the zoo's {RANKED[name]} policies", flush=True)
-                rc = rank_run(out / (r.model_of or r.name), root / "policies" / size.zoo, RANKED[name], size,
-                              out / r.name / RANK_DIR, out / r.name / "train.log")
-                if rc:
-                    print(f"{r.name}: ranking failed (exit {rc}), see train.log", flush=True)
-    results = collect(name, size_name, runs, out, x_label)
-    write_json_atomic(out / "results.json", results)
-    plot(results, out / "sweep.png", log_x)
-    print(results["finding"])
+    jobs = in_sweep_order(jobs, [run_jobs(plan, data, root, t0) for plan in plans])
+    gpus = gpu_ids()
+    print(f"{len(jobs)} jobs, {len(gpus) if gpus != [None] else 1} at a time", flush=True)
+    done = on_gpus(jobs, gpus)
+    failed = [name for name, ok in done.items() if not ok]
+    if failed:
+        print(f"{len(failed)} jobs failed or were skipped: {', '.join(failed)}; rerun to retry them", flush=True)
+    results = {}
+    for plan in plans:
+        results[plan.name] = plan.write_results()
+        print(results[plan.name]["finding"])
     return results
 
 
@@ -417,12 +588,12 @@ def plot(results: dict, path: Path, log_x: bool) -> None:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("sweep", choices=sorted(SWEEPS))
+    p.add_argument("sweep", nargs="+", choices=sorted(SWEEPS), help="one sweep, or several sharing the GPUs")
     p.add_argument("--size", default="demo", choices=sorted(SIZES))
-    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--out", type=Path, required=True, help="the sweep's directory; with several, OUT/<sweep>")
     p.add_argument("--root", type=Path, default=Path("runs"), help="where the sweep's datasets go (ROOT/data/...)")
     a = p.parse_args(argv)
-    run_sweep(a.sweep, a.size, a.out, a.root)
+    run_sweeps(a.sweep, a.size, a.out, a.root)
     return 0
 
 

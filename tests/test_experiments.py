@@ -99,3 +99,35 @@ def test_air_fryer_body_mask_covers_the_body_pixels_of_the_frame():
     near = np.abs(chroma(frame) - chroma(fryer)).sum(-1) < 0.05
     ring = binary_dilation(mask) & ~mask  # a mask one pixel off puts about 0.3 of its ring on the body
     assert near[mask].mean() > 0.9 and near[ring].mean() < 0.1
+
+
+def test_truth_cache_returns_the_simulated_batch_and_misses_on_other_parameters(smoke_zoo, tmp_path, monkeypatch):
+    from sim_data.generate import cached_renderers
+    from sim_data.learned import StackedPolicy, stack_params
+    from sim_data.sources import resolve
+
+    zoo_dir, _ = smoke_zoo
+    sources = resolve([f"{zoo_dir}#conv_noproprio"])[:2]
+    cfg = E.EvalConfig(policies=("x",), wm="y", truth_cache=str(tmp_path / "truth"), video_policies=0)
+    policy, params = StackedPolicy(sources[0].policy), stack_params([s.params for s in sources])
+    seeds = [11, 12]
+    keys = np.stack([np.asarray(E.jax.random.PRNGKey(s)) for s in seeds])
+    renderer = cached_renderers(64, (E.CAMERA,))
+    rng = E.jax.random.PRNGKey(3)
+    first = E.simulate_truth(cfg, "mug", policy, params, seeds, keys, rng, "cpu", renderer)
+    assert first["outcome"].shape == (2, 2) and first["frames0"].shape == (4, 1, 64, 64, 3)
+    assert np.array_equal(first["frames0"][:, 0], np.asarray(first["frames"][:, 0]))
+    assert len(list((tmp_path / "truth").glob("mug-*.npz"))) == 1
+
+    def no_simulation(*a, **k):
+        raise AssertionError("simulated although the cache holds this batch")
+
+    monkeypatch.setattr(E, "record_policies", no_simulation)
+    again = E.simulate_truth(cfg, "mug", policy, params, seeds, keys, rng, "cpu", renderer)
+    for k in ("outcome", "frames0", "proprio0", "steps"):
+        assert np.array_equal(again[k], first[k])
+    other = E.jax.tree_util.tree_map(lambda x: x + 1e-3 if x.dtype.kind == "f" else x, params)
+    with pytest.raises(AssertionError, match="simulated although"):
+        E.simulate_truth(cfg, "mug", policy, other, seeds, keys, rng, "cpu", renderer)
+    with pytest.raises(ValueError, match="video_policies=0"):
+        E.make_config("demo", ["truth_cache=/tmp/t"])

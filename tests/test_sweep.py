@@ -51,9 +51,9 @@ def test_task_scaling_always_trains_on_the_evaluated_task():
 
 def test_unknown_sweep_and_size_are_refused(tmp_path):
     with pytest.raises(ValueError, match="unknown sweep"):
-        W.run_sweep("moon_scaling", "demo", tmp_path)
+        W.run_sweeps(["data_scaling", "moon_scaling"], "demo", tmp_path)
     with pytest.raises(ValueError, match="unknown size"):
-        W.run_sweep("data_scaling", "huge", tmp_path)
+        W.run_sweeps(["data_scaling"], "huge", tmp_path)
 
 
 def test_transfer_held_out_and_rollout_sweeps_are_built_as_described():
@@ -96,3 +96,53 @@ def test_report_gains_a_section_per_sweep(tmp_path):
     assert "Sweep held_out_object (demo)" in page and html.escape(res["finding"]) in page
     assert page.count("data:image/png;base64,") == 2  # the curves and the last value's frames
     assert "| 1 | 1 | 17.000 |" in "\n".join(md)
+
+
+def test_jobs_wait_for_what_they_need_and_are_dropped_when_it_failed():
+    order, lock = [], __import__("threading").Lock()
+
+    def job(name, ok=True):
+        def fn(gpu):
+            with lock:
+                order.append((name, gpu))
+            return ok
+        return fn
+
+    jobs = [W.Job("run", job("run"), frozenset({"data", "zoo"})),
+            W.Job("data", job("data")),
+            W.Job("zoo", job("zoo", ok=False), frozenset({"data"})),
+            W.Job("train", job("train"), frozenset({"data"})),
+            W.Job("rank", job("rank"), frozenset({"train", "zoo"}))]
+    done = W.on_gpus(jobs, ["0", "1"])
+    assert done == {"data": True, "zoo": False, "train": True, "run": False, "rank": False}
+    names = [n for n, _ in order]
+    assert names[0] == "data" and set(names) == {"data", "zoo", "train"}  # run and rank never started
+    assert {g for _, g in order} <= {"0", "1"}
+    with pytest.raises(ValueError, match="which no job makes"):
+        W.on_gpus([W.Job("a", job("a"), frozenset({"b"}))], [None])
+
+
+def test_a_run_evaluating_another_runs_model_waits_for_it(tmp_path):
+    plan = W.Plan("held_out_object", "demo", W.held_out_object(W.SIZES["demo"]), tmp_path, "x", False)
+    data, jobs = W.data_jobs(W.SIZES["demo"], ["base", "heldout"], tmp_path)
+    jobs += W.run_jobs(plan, data, tmp_path, 0.0)
+    needs = {j.name: j.needs for j in jobs}
+    assert needs["held_out_object/x=1/seed=0"] == {"data:base", "data:heldout", "held_out_object/x=0/seed=0"}
+    assert needs["held_out_object/x=0/seed=0"] == {"data:base"} and "zoo" not in needs
+    ranked = W.Plan("autonomous_rollouts", "demo", W.autonomous_rollouts(W.SIZES["demo"]), tmp_path, "x", False)
+    data, jobs = W.data_jobs(W.SIZES["demo"], ["base", "mixed"], tmp_path, zoo_needed=True)
+    needs = {j.name: j.needs for j in jobs + W.run_jobs(ranked, data, tmp_path, 0.0)}
+    assert needs["zoo"] == {"data:base"} and needs["data:mixed"] == {"zoo"}  # the mixed data hold the zoo's rollouts
+    assert needs["autonomous_rollouts/x=0/seed=0:ranking"] == {"autonomous_rollouts/x=0/seed=0", "zoo"}
+
+
+def test_data_jobs_come_just_before_the_first_sweep_that_needs_them(tmp_path):
+    size = W.SIZES["demo"]
+    plans = [W.Plan(n, "demo", W.SWEEPS[n][0](size), tmp_path / n, "x", False)
+             for n in ("held_out_object", "transfer", "data_scaling")]
+    data, jobs = W.data_jobs(size, ["base", "heldout", "shelf_arcade"], tmp_path, zoo_needed=True)
+    names = [j.name for j in W.in_sweep_order(jobs, [W.run_jobs(p, data, tmp_path, 0.0) for p in plans])]
+    assert names[:4] == ["data:base", "data:heldout", "held_out_object/x=0/seed=0", "held_out_object/x=1/seed=0"]
+    assert names[4:6] == ["data:shelf_arcade", "transfer/x=1/seed=0"]
+    assert names.index("zoo") == names.index("data_scaling/x=0.125/seed=0") - 1
+    assert len(names) == len(set(names)) == len(jobs) + 2 + 2 + 8
