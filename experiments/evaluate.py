@@ -27,6 +27,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -189,7 +190,7 @@ def simulate_truth(cfg: EvalConfig, task: str, policy, params, seeds, reset_keys
              "proprio0": np.asarray(rec.proprio[:, :1]), "steps": env.episode_steps}
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp.npz")
+        tmp = path.with_name(f"{path.stem}.tmp{os.getpid()}.npz")  # rankings on other GPUs may write it too
         np.savez(tmp, **truth)
         tmp.replace(path)
     return truth | {"frames": rec.frames[CAMERA]}
