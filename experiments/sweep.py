@@ -79,6 +79,9 @@ METRICS = (
     ("pairwise_acc_gap10", ("ranking", "pairwise_acc_gap10")),
     ("alignment", ("ranking", "alignment")),
 )
+# the range of the metrics that have one: a t-interval over few seeds is clipped to it
+BOUNDS = {**dict.fromkeys(("success_accuracy", "success_auroc", "match_accuracy", "mmrv", "pairwise_acc_gap10",
+                           "alignment"), (0.0, 1.0)), "pearson": (-1.0, 1.0), "spearman": (-1.0, 1.0)}
 BODY_FILE = "body_in_place.json"  # experiments.body_in_place's figures of a run
 MEASURED = {"airfryer_transfer"}  # sweeps whose runs also get the body-in-place measurement
 RANK_DIR = "ranking"  # experiments.evaluate's OUT within a run: the zoo's policies ranked by its model
@@ -503,8 +506,9 @@ def _get(d: dict, path):
     return d
 
 
-def mean_interval(values) -> tuple[float | None, list | None]:
-    """Mean of the finite values, and a 95% t-interval of it when there are two or more."""
+def mean_interval(values, bounds=None) -> tuple[float | None, list | None]:
+    """Mean of the finite values, and a 95% t-interval of it when there are two or more, clipped to
+    bounds (lo, hi) where given."""
     v = np.array([x for x in values if x is not None and np.isfinite(x)], np.float64)
     if len(v) == 0:
         return None, None
@@ -513,7 +517,8 @@ def mean_interval(values) -> tuple[float | None, list | None]:
     from scipy import stats
 
     half = stats.t.ppf(0.975, len(v) - 1) * v.std(ddof=1) / math.sqrt(len(v))
-    return float(v.mean()), [float(v.mean() - half), float(v.mean() + half)]
+    lo, hi = bounds or (-math.inf, math.inf)
+    return float(v.mean()), [float(max(lo, v.mean() - half)), float(min(hi, v.mean() + half))]
 
 
 def collect(name: str, size: str, runs: list[SweepRun], out: Path, x_label: str) -> dict:
@@ -535,7 +540,7 @@ def collect(name: str, size: str, runs: list[SweepRun], out: Path, x_label: str)
         mine = [row for row in rows if row["x"] == x]
         entry = {"x": x, "seeds": sum(row["finished"] for row in mine)}
         for m, _ in METRICS:
-            entry[m], entry[f"{m}_ci"] = mean_interval([row[m] for row in mine])
+            entry[m], entry[f"{m}_ci"] = mean_interval([row[m] for row in mine], BOUNDS.get(m))
         per_x.append(entry)
     return {"sweep": name, "size": size, "x_label": x_label, "runs": rows, "per_x": per_x,
             "finding": finding(name, x_label, per_x)}

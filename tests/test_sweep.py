@@ -15,6 +15,7 @@ def test_mean_interval_is_a_t_interval():
     half = 4.302653 * 0.2 / np.sqrt(3)
     assert mean == pytest.approx(0.7) and ci == pytest.approx([0.7 - half, 0.7 + half], abs=1e-5)
     assert W.mean_interval([0.3]) == (0.3, None) and W.mean_interval([None]) == (None, None)
+    assert W.mean_interval([0.5, 0.7, 0.9], (0.0, 0.8))[1] == pytest.approx([0.7 - half, 0.8])  # a rate's range
 
 
 def test_collect_reads_every_finished_run(tmp_path):
