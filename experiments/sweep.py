@@ -293,10 +293,9 @@ def data_jobs(size: Size, keys, root: Path, zoo_needed: bool = False) -> tuple[d
         return rc == 0
 
     jobs = [Job(f"data:{k}", functools.partial(generate, k), frozenset({"zoo"} if k in needs_zoo else ()))
-            for k in sorted(keys, key=lambda k: (k != "base", k in needs_zoo, k))]
+            for k in sorted(keys)]  # their order is in_sweep_order's, by what needs them
     if zoo_needed or needs_zoo & keys:
-        jobs.insert(1, Job("zoo", functools.partial(ensure_zoo, size, dirs["base"], zoo_dir),
-                           frozenset({"data:base"})))
+        jobs.append(Job("zoo", functools.partial(ensure_zoo, size, dirs["base"], zoo_dir), frozenset({"data:base"})))
     return dirs, jobs
 
 
