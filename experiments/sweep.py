@@ -81,7 +81,8 @@ METRICS = (
 )
 # the range of the metrics that have one: a t-interval over few seeds is clipped to it
 BOUNDS = {**dict.fromkeys(("success_accuracy", "success_auroc", "match_accuracy", "mmrv", "pairwise_acc_gap10",
-                           "alignment"), (0.0, 1.0)), "pearson": (-1.0, 1.0), "spearman": (-1.0, 1.0)}
+                           "alignment"), (0.0, 1.0)), "pearson": (-1.0, 1.0), "spearman": (-1.0, 1.0),
+          "view_shift_h8_px": (0.0, math.inf)}
 BODY_FILE = "body_in_place.json"  # experiments.body_in_place's figures of a run
 MEASURED = {"airfryer_transfer"}  # sweeps whose runs also get the body-in-place measurement
 RANK_DIR = "ranking"  # experiments.evaluate's OUT within a run: the zoo's policies ranked by its model
@@ -582,9 +583,11 @@ def plot(results: dict, path: Path, log_x: bool) -> None:
             ax.errorbar(x, y, yerr=[np.subtract(y, lo), np.subtract(hi, y)], marker="o", capsize=3)
         if log_x:
             ax.set_xscale("log", base=2)
+        xs = sorted({e["x"] for e in per_x})
+        ax.set_xticks(xs, [f"{x:g}" for x in xs])
         ax.set_title(m, fontsize=9)
-        ax.set_xlabel(results["x_label"], fontsize=8)
     fig.suptitle(f"{results['sweep']} ({results['size']})", fontsize=10)
+    fig.supxlabel(results["x_label"], fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
