@@ -161,6 +161,7 @@ def main(argv=None) -> int:
     p.add_argument("--horizon", type=int, default=32)
     p.add_argument("overrides", nargs="*")
     p.add_argument("--flops-only", action="store_true", help="print the FLOPs of one train step and stop")
+    p.add_argument("--train-only", action="store_true", help="time training only, not imagination")
     a = p.parse_args(argv)
     gpu = jax.devices()[0].platform != "cpu"
     preset = a.config or ("full" if gpu else "demo")
@@ -175,7 +176,7 @@ def main(argv=None) -> int:
     train["flops_per_step"] = step_flops(preset, a.overrides)
     train["achieved_flops_per_s"] = train["flops_per_step"] / train["step_s"]
     train["mfu"] = train["achieved_flops_per_s"] / rate
-    imag = imagine_rate(cfg, a.imagine_batch or (1024 if gpu else 16), a.horizon)
+    imag = None if a.train_only else imagine_rate(cfg, a.imagine_batch or (1024 if gpu else 16), a.horizon)
     report = {"device": device_name(), "config": preset, "overrides": list(a.overrides),
               "bf16_matmul_flops_per_s": rate, "train": train, "imagine": imag}
     a.out.parent.mkdir(parents=True, exist_ok=True)
