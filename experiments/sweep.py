@@ -111,8 +111,18 @@ class SweepRun:
         return self.model_of is None
 
     @property
+    def evaluated_on(self) -> str:
+        """The dataset key of its evaluation."""
+        return self.eval_data or self.data
+
+    @property
+    def model_run(self) -> str:
+        """The run whose model it evaluates: its own, or model_of."""
+        return self.model_of or self.name
+
+    @property
     def evaluated_apart(self) -> bool:
-        return not self.trains or (self.eval_data is not None and self.eval_data != self.data)
+        return not self.trains or self.evaluated_on != self.data
 
 
 @dataclasses.dataclass(frozen=True)
@@ -289,9 +299,7 @@ def data_jobs(size: Size, keys, root: Path, zoo_needed: bool = False) -> tuple[d
         log = dirs[key].parent / f"{dirs[key].name}.log"
         log.parent.mkdir(parents=True, exist_ok=True)
         rc = _subprocess(["-m", "sim_data.generate", "--config", preset, "--out", str(dirs[key]), *overrides], gpu, log)
-        print(f"dataset {key}: {'ready in ' + str(dirs[key]) if rc == 0 else f'failed (exit {rc}), see {log}'}",
-              flush=True)
-        return rc == 0
+        return _announce(f"dataset {key}", rc, f"ready in {dirs[key]}", log)
 
     jobs = [Job(f"data:{k}", functools.partial(generate, k), frozenset({"zoo"} if k in needs_zoo else ()))
             for k in sorted(keys)]  # their order is in_sweep_order's, by what needs them
@@ -307,7 +315,12 @@ def ensure_zoo(size: Size, data: Path, zoo_dir: Path, gpu=None) -> bool:
     log = zoo_dir.parent / f"{zoo_dir.name}.log"
     log.parent.mkdir(parents=True, exist_ok=True)
     rc = _subprocess(["-m", "sim_data.zoo", "--config", size.zoo, "--data", str(data), "--out", str(zoo_dir)], gpu, log)
-    print(f"zoo: {'trained into ' + str(zoo_dir) if rc == 0 else f'failed (exit {rc}), see {log}'}", flush=True)
+    return _announce("zoo", rc, f"trained into {zoo_dir}", log)
+
+
+def _announce(what: str, rc: int, success: str, log: Path) -> bool:
+    """Prints how a subprocess ended (its success, or its exit code and log); True on success."""
+    print(f"{what}: {success if rc == 0 else f'failed (exit {rc}), see {log}'}", flush=True)
     return rc == 0
 
 
@@ -372,7 +385,7 @@ def run_jobs(plan: Plan, data: dict, root: Path, t0: float) -> list:
     jobs = []
     for run in plan.runs:
         key = f"{plan.name}/{run.name}"
-        needs = {f"data:{run.data}", f"data:{run.eval_data or run.data}"}
+        needs = {f"data:{run.data}", f"data:{run.evaluated_on}"}
         if run.model_of:
             needs.add(f"{plan.name}/{run.model_of}")
         jobs.append(Job(key, functools.partial(train_and_evaluate, plan, run, data, t0), frozenset(needs)))
@@ -394,7 +407,7 @@ def train_and_evaluate(plan: Plan, run: SweepRun, data: dict, t0: float, gpu) ->
             if run.evaluated_apart:
                 trained.touch()  # its evaluation apart may fail or be stopped: a rerun does not train again
         if run.evaluated_apart and not _ran(plan, run, "evaluation", evaluate_run(
-                plan.out / (run.model_of or run.name), data[run.eval_data or run.data], d, gpu, log), log):
+                plan.out / run.model_run, data[run.evaluated_on], d, gpu, log), log):
             return False
     print(f"{plan.name} {run.name}: evaluated ({time.perf_counter() - t0:.0f} s)", flush=True)
     plan.write_results()
@@ -404,8 +417,8 @@ def train_and_evaluate(plan: Plan, run: SweepRun, data: dict, t0: float, gpu) ->
 def measure_body(plan: Plan, run: SweepRun, data: dict, gpu) -> bool:
     d = plan.out / run.name
     if not (d / BODY_FILE).exists():
-        rc = _subprocess(["-m", "experiments.body_in_place", "--wm", str(plan.out / (run.model_of or run.name)),
-                          "--data", str(data[run.eval_data or run.data]), "--out", str(d / BODY_FILE)],
+        rc = _subprocess(["-m", "experiments.body_in_place", "--wm", str(plan.out / run.model_run),
+                          "--data", str(data[run.evaluated_on]), "--out", str(d / BODY_FILE)],
                          gpu, d / "train.log")
         if not _ran(plan, run, "body in place", rc, d / "train.log"):
             return False
@@ -416,7 +429,7 @@ def measure_body(plan: Plan, run: SweepRun, data: dict, gpu) -> bool:
 def rank(plan: Plan, run: SweepRun, root: Path, t0: float, gpu) -> bool:
     d = plan.out / run.name
     if not (d / RANK_DIR / "results.json").exists():
-        rc = rank_run(plan.out / (run.model_of or run.name), root / "policies" / plan.size.zoo, RANKED[plan.name],
+        rc = rank_run(plan.out / run.model_run, root / "policies" / plan.size.zoo, RANKED[plan.name],
                       plan.size, d / RANK_DIR, gpu, d / "train.log", root / "cache" / "truth")
         if not _ran(plan, run, "ranking", rc, d / "train.log"):
             return False
@@ -471,7 +484,7 @@ def run_sweeps(names: list, size_name: str, out: Path, root: Path = Path("runs")
         plans.append(plan)
         print(f"{plan.name} ({size_name}): {len(plan.runs)} runs into {plan.out}", flush=True)
     runs = [r for p in plans for r in p.runs]
-    data, jobs = data_jobs(size, [r.data for r in runs] + [r.eval_data for r in runs if r.eval_data], root,
+    data, jobs = data_jobs(size, [r.data for r in runs] + [r.evaluated_on for r in runs], root,
                            zoo_needed=any(p.name in RANKED for p in plans))
     t0 = time.perf_counter()
     jobs = in_sweep_order(jobs, [run_jobs(plan, data, root, t0) for plan in plans])
