@@ -233,13 +233,16 @@ class Job:
 
 
 def on_gpus(jobs: list, gpus: list) -> dict:
-    """Runs the jobs, one per GPU at a time (threads; the work itself is in subprocesses), each
-    GPU taking the first job in the list whose needs are met; returns name -> succeeded."""
+    """Runs the jobs, one per GPU at a time (threads; the work itself is in subprocesses), each GPU
+    taking, of the jobs whose needs are met, the one that heads the longest chain of jobs waiting on
+    it (the first in the list among equals), so that a GPU trains the run whose evaluation and
+    ranking wait on it before it ranks another; returns name -> succeeded."""
     cond, pending, done, running = threading.Condition(), list(jobs), {}, [0]
     known = {j.name for j in jobs}
     for j in jobs:
         if j.needs - known:
             raise ValueError(f"job {j.name} needs {sorted(j.needs - known)}, which no job makes")
+    chain = chain_lengths(jobs)
 
     def take():
         with cond:
@@ -249,7 +252,8 @@ def on_gpus(jobs: list, gpus: list) -> dict:
                     done[j.name] = False
                     print(f"{j.name}: skipped, as {', '.join(n for n in j.needs if done.get(n) is False)} failed",
                           flush=True)
-                ready = next((j for j in pending if all(done.get(n) for n in j.needs)), None)
+                ready = max((j for j in pending if all(done.get(n) for n in j.needs)),
+                            key=lambda j: chain[j.name], default=None)
                 if ready is not None:
                     pending.remove(ready)
                     running[0] += 1
@@ -276,6 +280,21 @@ def on_gpus(jobs: list, gpus: list) -> dict:
     for t in threads:
         t.join()
     return done
+
+
+def chain_lengths(jobs: list) -> dict:
+    """name -> the number of jobs in the longest chain that starts at it (1: nothing waits on it)."""
+    waiting = {j.name: [k.name for k in jobs if j.name in k.needs] for j in jobs}
+    out = {}
+
+    def length(name):
+        if name not in out:
+            out[name] = 1 + max((length(w) for w in waiting[name]), default=0)
+        return out[name]
+
+    for j in jobs:
+        length(j.name)
+    return out
 
 
 def data_dir(size: Size, key: str, root: Path) -> Path:
@@ -380,14 +399,26 @@ class Plan:
 
 def run_jobs(plan: Plan, data: dict, root: Path, t0: float) -> list:
     """The jobs of one sweep: per run, its training (or resuming) and its evaluation where it is judged
-    apart or evaluates another run's model (job "<sweep>/<run>"), then the body-in-place measurement
-    and the zoo's ranking where the sweep has them. Each step is skipped when its output is there."""
-    jobs = []
+    apart or evaluates another run's model (job "<sweep>/<run>"; a run that trains and is judged
+    apart trains in a job of its own, "<sweep>/<run>:train", which needs only its training data),
+    then the body-in-place measurement and the zoo's ranking where the sweep has them. Each step is
+    skipped when its output is there."""
+    jobs, by_name = [], {r.name: r for r in plan.runs}
+
+    def trained_by(run: SweepRun) -> str:
+        key = f"{plan.name}/{run.name}"
+        return f"{key}:train" if run.trains and run.evaluated_apart else key
+
     for run in plan.runs:
         key = f"{plan.name}/{run.name}"
-        needs = {f"data:{run.data}", f"data:{run.evaluated_on}"}
+        needs = {f"data:{run.evaluated_on}"}
         if run.model_of:
-            needs.add(f"{plan.name}/{run.model_of}")
+            needs.add(trained_by(by_name[run.model_of]))
+        elif run.evaluated_apart:
+            jobs.append(Job(f"{key}:train", functools.partial(train_only, plan, run, data), frozenset({f"data:{run.data}"})))
+            needs.add(f"{key}:train")
+        else:
+            needs.add(f"data:{run.data}")
         jobs.append(Job(key, functools.partial(train_and_evaluate, plan, run, data, t0), frozenset(needs)))
         if plan.name in MEASURED:
             jobs.append(Job(f"{key}:body", functools.partial(measure_body, plan, run, data), frozenset({key})))
@@ -396,19 +427,31 @@ def run_jobs(plan: Plan, data: dict, root: Path, t0: float) -> list:
     return jobs
 
 
+def train_only(plan: Plan, run: SweepRun, data: dict, gpu) -> bool:
+    """Trains a run judged apart (its evaluation is the next job) unless it has been; True on success."""
+    d, log = plan.out / run.name, plan.out / run.name / "train.log"
+    d.mkdir(parents=True, exist_ok=True)
+    if (d / "eval.json").exists() or (d / "trained").exists():
+        return True
+    if not _ran(plan, run, "training", train_run(run, plan.size, data[run.data], d, gpu, log), log):
+        return False
+    (d / "trained").touch()  # its evaluation apart may fail or be stopped: a rerun does not train again
+    return True
+
+
 def train_and_evaluate(plan: Plan, run: SweepRun, data: dict, t0: float, gpu) -> bool:
     d, log = plan.out / run.name, plan.out / run.name / "train.log"
     d.mkdir(parents=True, exist_ok=True)
     if not (d / "eval.json").exists():
-        trained = d / "trained"
-        if run.trains and not trained.exists():
+        if not run.evaluated_apart:
             if not _ran(plan, run, "training", train_run(run, plan.size, data[run.data], d, gpu, log), log):
                 return False
-            if run.evaluated_apart:
-                trained.touch()  # its evaluation apart may fail or be stopped: a rerun does not train again
-        if run.evaluated_apart and not _ran(plan, run, "evaluation", evaluate_run(
-                plan.out / run.model_run, data[run.evaluated_on], d, gpu, log), log):
-            return False
+        else:
+            if run.trains and not train_only(plan, run, data, gpu):  # trained by its own job: returns at once
+                return False
+            if not _ran(plan, run, "evaluation", evaluate_run(
+                    plan.out / run.model_run, data[run.evaluated_on], d, gpu, log), log):
+                return False
     print(f"{plan.name} {run.name}: evaluated ({time.perf_counter() - t0:.0f} s)", flush=True)
     plan.write_results()
     return True

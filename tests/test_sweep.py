@@ -123,18 +123,36 @@ def test_jobs_wait_for_what_they_need_and_are_dropped_when_it_failed():
         W.on_gpus([W.Job("a", job("a"), frozenset({"b"}))], [None])
 
 
+def test_a_gpu_takes_the_ready_job_that_heads_the_longest_chain():
+    order = []
+    job = lambda name: lambda gpu: order.append(name) or True
+    jobs = [W.Job("rank_a", job("rank_a"), frozenset({"eval_a"})),
+            W.Job("eval_a", job("eval_a"), frozenset({"train_a"})),
+            W.Job("lone", job("lone")),
+            W.Job("train_a", job("train_a")),
+            W.Job("train_b", job("train_b")),
+            W.Job("eval_b", job("eval_b"), frozenset({"train_b"}))]
+    assert W.chain_lengths(jobs) == {"rank_a": 1, "eval_a": 2, "lone": 1, "train_a": 3, "train_b": 2, "eval_b": 1}
+    W.on_gpus(jobs, [None])
+    # longest chain first; among equals the first in the list (eval_a before train_b, lone before eval_b)
+    assert order == ["train_a", "eval_a", "train_b", "rank_a", "lone", "eval_b"]
+
+
 def test_a_run_evaluating_another_runs_model_waits_for_it(tmp_path):
     plan = W.Plan("held_out_object", "demo", W.held_out_object(W.SIZES["demo"]), tmp_path, "x", False)
     data, jobs = W.data_jobs(W.SIZES["demo"], ["base", "heldout"], tmp_path)
     jobs += W.run_jobs(plan, data, tmp_path, 0.0)
     needs = {j.name: j.needs for j in jobs}
-    assert needs["held_out_object/x=1/seed=0"] == {"data:base", "data:heldout", "held_out_object/x=0/seed=0"}
+    assert needs["held_out_object/x=1/seed=0"] == {"data:heldout", "held_out_object/x=0/seed=0"}
     assert needs["held_out_object/x=0/seed=0"] == {"data:base"} and "zoo" not in needs
     ranked = W.Plan("autonomous_rollouts", "demo", W.autonomous_rollouts(W.SIZES["demo"]), tmp_path, "x", False)
     data, jobs = W.data_jobs(W.SIZES["demo"], ["base", "mixed"], tmp_path, zoo_needed=True)
     needs = {j.name: j.needs for j in jobs + W.run_jobs(ranked, data, tmp_path, 0.0)}
     assert needs["zoo"] == {"data:base"} and needs["data:mixed"] == {"zoo"}  # the mixed data hold the zoo's rollouts
     assert needs["autonomous_rollouts/x=0/seed=0:ranking"] == {"autonomous_rollouts/x=0/seed=0", "zoo"}
+    # judged on the mixed data, the scripted-only run trains while the zoo and the mixed data are made
+    assert needs["autonomous_rollouts/x=0/seed=0:train"] == {"data:base"}
+    assert needs["autonomous_rollouts/x=0/seed=0"] == {"autonomous_rollouts/x=0/seed=0:train", "data:mixed"}
 
 
 def test_data_jobs_come_just_before_the_first_sweep_that_needs_them(tmp_path):
