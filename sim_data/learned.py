@@ -9,8 +9,11 @@ so the same checkpoint runs in the simulator (either engine) and inside the worl
 The network sees the current frame, the proprioception (multiplied by `params["proprio_gate"]`: 0
 for the lineages trained without it, so every checkpoint of one encoder shares one compiled
 program), and the time since the episode began, which the policy counts in its carry (its only
-memory). It predicts the next `chunk` actions; the first is executed and the chunk is predicted
-again at every step (the rest of the chunk is an auxiliary target).
+memory). It predicts the next `chunk` actions and predicts the chunk again at every step. By
+default the newest chunk's first action is executed (the rest of the chunk is an auxiliary target);
+with `ensemble` set, the action executed at step t is the mean of what every chunk still covering t
+predicted for it (ACT's temporal ensembling, with weights exp(-ensemble * age), age 0 the newest);
+the carry then also holds the last `chunk` predicted chunks.
 
 params: {"net": Flax parameters, "norm": {"proprio_mean", "proprio_std", "action_mean",
 "action_std"}, "proprio_gate": ()}.
@@ -40,6 +43,9 @@ class PolicyNetConfig:
       encoder: "conv" (three strided convolutions) or "vit" (patch tokens through a small transformer).
       width: channels of the convolutions / the transformer's token width. depth: transformer layers.
       hidden: the MLP head's width. chunk: actions predicted per step. size: frame height = width.
+      ensemble: None to execute the newest chunk's first action; a number to execute the mean over
+        the chunks covering the step with weights exp(-ensemble * age) (0: uniform; negative: the
+        older predictions weigh more, as in ACT).
     """
 
     encoder: str = "conv"
@@ -48,6 +54,7 @@ class PolicyNetConfig:
     hidden: int = 256
     chunk: int = 4
     size: int = 64
+    ensemble: float | None = None
 
     def validate(self) -> None:
         if self.encoder not in ENCODERS:
@@ -139,21 +146,41 @@ def init_params(cfg: PolicyNetConfig, rng, norm: dict, use_proprio: bool) -> dic
             "proprio_gate": jnp.asarray(1.0 if use_proprio else 0.0, jnp.float32)}
 
 
+def ensembled_action(past, age_weights):
+    """The action of this step from the last C chunks past (B, C, C, 20), past[:, k] predicted k
+    steps ago (zeros where no chunk was predicted yet), each chunk's prediction for this step being
+    past[:, k, k]; age_weights (B, C) are 0 for the missing chunks. Returns (B, 20)."""
+    c = past.shape[1]
+    for_now = past[:, jnp.arange(c), jnp.arange(c)]  # (B, C, 20)
+    w = age_weights / jnp.sum(age_weights, axis=1, keepdims=True)
+    return jnp.einsum("bk,bka->ba", w, for_now)
+
+
 @dataclasses.dataclass(frozen=True)
 class BCPolicy:
     """A behaviour-cloning policy of the project's protocol (see the module doc); the carry is the
-    step count (B,) int32."""
+    step count (B,) int32, or with `cfg.ensemble` set {"t": (B,) int32, "past": (B, C, C, 20) the last
+    C predicted chunks, newest first}."""
 
     cfg: PolicyNetConfig
 
     def init_carry(self, params, obs, task_state, rng):
         del params, task_state, rng
-        return jnp.zeros((obs["proprio"].shape[0],), jnp.int32)
+        t = jnp.zeros((obs["proprio"].shape[0],), jnp.int32)
+        if self.cfg.ensemble is None:
+            return t
+        return {"t": t, "past": jnp.zeros((t.shape[0], self.cfg.chunk, self.cfg.chunk, R.ACTION_DIM), jnp.float32)}
 
     def act(self, params, obs, carry, rng):
         del rng
-        chunk = predict_chunk(self.cfg, params, obs["image"], obs["proprio"], carry)
-        return chunk[:, 0], carry + 1
+        t = carry if self.cfg.ensemble is None else carry["t"]
+        chunk = predict_chunk(self.cfg, params, obs["image"], obs["proprio"], t)
+        if self.cfg.ensemble is None:
+            return chunk[:, 0], t + 1
+        past = jnp.concatenate([chunk[:, None].astype(jnp.float32), carry["past"][:, :-1]], axis=1)
+        age = jnp.arange(self.cfg.chunk)
+        weights = jnp.exp(-self.cfg.ensemble * age)[None] * (age[None] <= t[:, None])
+        return ensembled_action(past, weights), {"t": t + 1, "past": past}
 
 
 @dataclasses.dataclass(frozen=True)

@@ -10,7 +10,7 @@ import pytest
 from sim_data import generate as G
 from sim_data import zoo
 from sim_data.env import HomeEnv
-from sim_data.learned import StackedPolicy, stack_params
+from sim_data.learned import BCPolicy, StackedPolicy, predict_chunk, stack_params
 from sim_data.rollout import run_episodes
 from sim_data.sources import resolve
 
@@ -122,6 +122,28 @@ def test_mixed_dataset_records_policy_rollouts(smoke_dataset, smoke_zoo, smoke_w
     np.testing.assert_allclose(got["features"][0], np.asarray(want["features"][0]), rtol=1e-5, atol=1e-5)
     logged = imagine_episodes(wm_cfg.model, wm_params, norm, cache, [i], "head_cam", False)
     assert not np.allclose(logged["features"][0], got["features"][0])  # not the logged actions replayed
+
+
+def test_temporal_ensembling_executes_the_weighted_mean_of_the_chunks_covering_the_step(smoke_zoo):
+    import dataclasses
+    out, _ = smoke_zoo
+    src = resolve([f"{out}#conv_noproprio"])[-1]
+    rng = np.random.default_rng(1)
+    frames = [jnp.asarray(rng.integers(0, 255, (2, 64, 64, 3), dtype=np.uint8)) for _ in range(6)]
+    proprio = jnp.zeros((2, 37), jnp.float32)
+    cfg = src.policy.cfg
+    chunks = [np.asarray(predict_chunk(cfg, src.params, f, proprio, jnp.full((2,), t, jnp.int32)))
+              for t, f in enumerate(frames)]
+    for decay in (0.0, -0.5):
+        policy = BCPolicy(dataclasses.replace(cfg, ensemble=decay))
+        carry = policy.init_carry(src.params, {"image": frames[0], "proprio": proprio}, None, jax.random.PRNGKey(0))
+        for t, f in enumerate(frames):
+            a, carry = policy.act(src.params, {"image": f, "proprio": proprio}, carry, jax.random.PRNGKey(0))
+            ages = range(min(t, cfg.chunk - 1) + 1)  # chunk predicted `age` steps ago, its entry for step t
+            w = np.array([np.exp(-decay * k) for k in ages])
+            want = sum(wk * chunks[t - k][:, k] for wk, k in zip(w, ages)) / w.sum()
+            np.testing.assert_allclose(np.asarray(a), want, rtol=1e-4, atol=1e-5)
+    assert len(frames) > cfg.chunk and not np.allclose(want, chunks[-1][:, 0])  # it differs from the newest chunk
 
 
 def test_random_shift_crops_the_edge_padded_image():
