@@ -402,6 +402,8 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--measure", type=int, default=0, metavar="N",
                    help="then measure each checkpoint's true success over N held-out initial states per task")
+    p.add_argument("--engine", default="", choices=["", "cpu", "mjx"],
+                   help="the engine of --measure (default: mjx where a GPU is, else cpu)")
     p.add_argument("overrides", nargs="*", help="key=value overrides (e.g. steps=500 conv.width=32)")
     a = p.parse_args(argv)
     try:
@@ -413,7 +415,7 @@ def main(argv=None) -> int:
     print(f"{len(registry)} checkpoints in {time.perf_counter() - t0:.0f} s; registry {a.out / 'policies.json'}")
     if a.measure:
         t0 = time.perf_counter()
-        report = measure_success(a.out, a.measure)
+        report = measure_success(a.out, a.measure, engine=a.engine)
         for r in report["policies"]:
             print(f"{r['name']:40s} {r['rate']:.3f} [{r['ci95'][0]:.3f}, {r['ci95'][1]:.3f}]")
         print(f"measured in {time.perf_counter() - t0:.0f} s: {a.out / 'success.json'}")
