@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import subprocess
 import sys
 import time
@@ -88,6 +89,49 @@ def step_flops(preset: str, overrides=()) -> float:
     if not cost or "flops" not in cost:
         raise RuntimeError(f"XLA gave no cost analysis on {jax.default_backend()} (jax {jax.__version__})")
     return float(cost["flops"])
+
+
+_HLO_SHAPE = r"[a-z0-9]+\[([0-9,]*)\]"
+
+
+def _dims(text: str) -> tuple:
+    return tuple(int(x) for x in text.split(",") if x)
+
+
+def matmul_flops_by_shape(hlo: str) -> dict:
+    """FLOPs of the convolutions and dot products in an HLO module's text (`Lowered.as_text(dialect=
+    "hlo")`), summed over the instructions of one op, element type, operand shapes and window:
+    {(op, dtype, lhs shape, rhs shape, window or contracting dims, out shape): FLOPs}. A dot counts
+    2 x output elements x contracted size; a convolution 2 x output elements x the kernel operand's
+    elements / its output features (the weight gradient's "kernel" being an activation) / the input
+    dilation's factors (an input gradient skips the zeros it dilates its input with); the products
+    with a convolution's zero padding are counted."""
+    shapes = {m.group(1): _dims(m.group(2)) for m in re.finditer(r"^\s*([\w.\-]+) = " + _HLO_SHAPE, hlo, re.M)}
+    out = {}
+    for line in hlo.splitlines():
+        m = re.search(r"= ([a-z0-9]+)\[([0-9,]*)\]\{[^}]*\} (convolution|dot)\(([\w.\-]+), ([\w.\-]+)\)", line)
+        if m is None:
+            continue
+        dtype, result, op, lhs, rhs = m.group(1), _dims(m.group(2)), m.group(3), shapes[m.group(4)], shapes[m.group(5)]
+        if op == "dot":
+            contracting = _dims(re.search(r"lhs_contracting_dims=\{([0-9,]*)\}", line).group(1))
+            per_output, how = int(np.prod([lhs[i] for i in contracting])), f"contracting {contracting}"
+        else:
+            kernel_labels = re.search(r"dim_labels=\w+_(\w+)->", line).group(1)
+            how = re.search(r"window=\{([^}]*)\}", line).group(1)
+            dilation = re.search(r"lhs_dilate=([0-9x]+)", how)  # an input gradient's: only 1 in d^2 inputs is not 0
+            per_output = np.prod(rhs) / rhs[kernel_labels.index("o")] / np.prod(
+                [int(d) for d in dilation.group(1).split("x")] if dilation else [1])
+        key = (op, dtype, lhs, rhs, how, result)
+        out[key] = out.get(key, 0.0) + 2.0 * float(np.prod(result)) * per_output
+    return out
+
+
+def step_flops_by_shape(preset: str, overrides=()) -> dict:
+    """matmul_flops_by_shape of one train step, lowered on the CPU (run it with JAX_PLATFORMS=cpu)."""
+    cfg = make_config(preset, overrides)
+    args = jax.eval_shape(lambda: step_inputs(cfg))
+    return matmul_flops_by_shape(_jitted_step.lower(cfg, *args).as_text(dialect="hlo"))
 
 
 def train_rate(cfg, steps: int = 20) -> dict:
@@ -162,11 +206,20 @@ def main(argv=None) -> int:
     p.add_argument("overrides", nargs="*")
     p.add_argument("--flops-only", action="store_true", help="print the FLOPs of one train step and stop")
     p.add_argument("--train-only", action="store_true", help="time training only, not imagination")
+    p.add_argument("--flops-by-shape", type=int, default=0, metavar="N",
+                   help="print the N convolution and dot shapes of one train step with the most FLOPs and stop")
     a = p.parse_args(argv)
     gpu = jax.devices()[0].platform != "cpu"
     preset = a.config or ("full" if gpu else "demo")
     if a.flops_only:
         print(step_flops(preset, a.overrides))
+        return 0
+    if a.flops_by_shape:
+        by = step_flops_by_shape(preset, a.overrides)
+        total = sum(by.values())
+        print(f"{total / 1e12:.3f} TFLOP in convolutions and dot products; the largest shares:")
+        for (op, dtype, lhs, rhs, how, result), f in sorted(by.items(), key=lambda kv: -kv[1])[:a.flops_by_shape]:
+            print(f"{f / total:6.1%}  {op:11s} {dtype} {lhs} x {rhs} -> {result}  {how}")
         return 0
     if a.out is None:
         p.error("--out is required")
