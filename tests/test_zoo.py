@@ -1,5 +1,6 @@
 """The policy zoo, the plug-in point and policy rollouts in the data generator."""
 
+import dataclasses
 import json
 
 import jax
@@ -125,7 +126,6 @@ def test_mixed_dataset_records_policy_rollouts(smoke_dataset, smoke_zoo, smoke_w
 
 
 def test_temporal_ensembling_executes_the_weighted_mean_of_the_chunks_covering_the_step(smoke_zoo):
-    import dataclasses
     out, _ = smoke_zoo
     src = resolve([f"{out}#conv_noproprio"])[-1]
     rng = np.random.default_rng(1)

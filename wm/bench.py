@@ -128,7 +128,7 @@ def matmul_flops_by_shape(hlo: str) -> dict:
 
 
 def step_flops_by_shape(preset: str, overrides=()) -> dict:
-    """matmul_flops_by_shape of one train step, lowered on the CPU (run it with JAX_PLATFORMS=cpu)."""
+    """matmul_flops_by_shape of one train step of the preset, lowered (not compiled) on this backend."""
     cfg = make_config(preset, overrides)
     args = jax.eval_shape(lambda: step_inputs(cfg))
     return matmul_flops_by_shape(_jitted_step.lower(cfg, *args).as_text(dialect="hlo"))
