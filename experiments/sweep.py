@@ -237,7 +237,7 @@ def on_gpus(jobs: list, gpus: list) -> dict:
     taking, of the jobs whose needs are met, the one that heads the longest chain of jobs waiting on
     it (the first in the list among equals), so that a GPU trains the run whose evaluation and
     ranking wait on it before it ranks another; returns name -> succeeded."""
-    cond, pending, done, running = threading.Condition(), list(jobs), {}, [0]
+    cond, pending, done = threading.Condition(), list(jobs), {}
     known = {j.name for j in jobs}
     for j in jobs:
         if j.needs - known:
@@ -256,7 +256,6 @@ def on_gpus(jobs: list, gpus: list) -> dict:
                             key=lambda j: chain[j.name], default=None)
                 if ready is not None:
                     pending.remove(ready)
-                    running[0] += 1
                     return ready
                 if pending:
                     cond.wait()
@@ -271,7 +270,6 @@ def on_gpus(jobs: list, gpus: list) -> dict:
                 ok = False
             with cond:
                 done[job.name] = ok
-                running[0] -= 1
                 cond.notify_all()
 
     threads = [threading.Thread(target=worker, args=(g,)) for g in gpus]
@@ -443,15 +441,13 @@ def train_and_evaluate(plan: Plan, run: SweepRun, data: dict, t0: float, gpu) ->
     d, log = plan.out / run.name, plan.out / run.name / "train.log"
     d.mkdir(parents=True, exist_ok=True)
     if not (d / "eval.json").exists():
+        # a run judged apart was trained by its ":train" job (or is another run's model)
         if not run.evaluated_apart:
             if not _ran(plan, run, "training", train_run(run, plan.size, data[run.data], d, gpu, log), log):
                 return False
-        else:
-            if run.trains and not train_only(plan, run, data, gpu):  # trained by its own job: returns at once
-                return False
-            if not _ran(plan, run, "evaluation", evaluate_run(
-                    plan.out / run.model_run, data[run.evaluated_on], d, gpu, log), log):
-                return False
+        elif not _ran(plan, run, "evaluation", evaluate_run(
+                plan.out / run.model_run, data[run.evaluated_on], d, gpu, log), log):
+            return False
     print(f"{plan.name} {run.name}: evaluated ({time.perf_counter() - t0:.0f} s)", flush=True)
     plan.write_results()
     return True
@@ -532,7 +528,7 @@ def run_sweeps(names: list, size_name: str, out: Path, root: Path = Path("runs")
     t0 = time.perf_counter()
     jobs = in_sweep_order(jobs, [run_jobs(plan, data, root, t0) for plan in plans])
     gpus = gpu_ids()
-    print(f"{len(jobs)} jobs, {len(gpus) if gpus != [None] else 1} at a time", flush=True)
+    print(f"{len(jobs)} jobs, {len(gpus)} at a time", flush=True)
     done = on_gpus(jobs, gpus)
     failed = [name for name, ok in done.items() if not ok]
     if failed:
