@@ -23,7 +23,9 @@ real and imagined episodes and the controllability panel for the report.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import fcntl
 import hashlib
 import json
 import math
@@ -175,25 +177,43 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, wm, seeds, engine: str, p
 def simulate_truth(cfg: EvalConfig, task: str, policy, params, seeds, reset_keys, rng, engine: str,
                    renderer) -> dict:
     """Closed-loop simulator episodes of P stacked policies from n initial states, or the same read
-    back from cfg.truth_cache. Returns {"outcome": (P, n) bool, "frames0": (P*n, 1, S, S, 3) uint8,
+    back from cfg.truth_cache (a process that finds another simulating the same batch waits for it,
+    under a lock file beside the cache entry, and reads its outcomes). Returns {"outcome": (P, n) bool, "frames0": (P*n, 1, S, S, 3) uint8,
     "proprio0": (P*n, 1, 37), "steps": int, and "frames": (P*n, T+1, S, S, 3) where simulated}."""
-    p = jax.tree_util.tree_leaves(params)[0].shape[0]
-    path = None
-    if cfg.truth_cache:
-        path = Path(cfg.truth_cache) / f"{task}-{_truth_key(task, policy, params, seeds, rng, engine, renderer)}.npz"
+    if not cfg.truth_cache:
+        return _simulate(task, policy, params, seeds, reset_keys, rng, engine, renderer)
+    path = Path(cfg.truth_cache) / f"{task}-{_truth_key(task, policy, params, seeds, rng, engine, renderer)}.npz"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    # Rankings on other GPUs wait for the one simulating this batch: the simulator on a GPU is not
+    # bit-reproducible, and models compared must be compared against the same outcomes.
+    with _exclusive(path.with_suffix(".lock")):
         if path.exists():
             with np.load(path) as z:
                 return {k: z[k] for k in ("outcome", "frames0", "proprio0")} | {"steps": int(z["steps"])}
+        truth = _simulate(task, policy, params, seeds, reset_keys, rng, engine, renderer)
+        tmp = path.with_name(f"{path.stem}.tmp{os.getpid()}.npz")
+        np.savez(tmp, **{k: v for k, v in truth.items() if k != "frames"})
+        tmp.replace(path)
+    return truth
+
+
+def _simulate(task, policy, params, seeds, reset_keys, rng, engine, renderer) -> dict:
+    p = jax.tree_util.tree_leaves(params)[0].shape[0]
     env = cached_env(task, p * len(seeds), engine, False)
     outcome, rec = record_policies(env, policy, params, reset_keys, rng, renderer)
-    truth = {"outcome": outcome, "frames0": np.asarray(rec.frames[CAMERA][:, :1]),
-             "proprio0": np.asarray(rec.proprio[:, :1]), "steps": env.episode_steps}
-    if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f"{path.stem}.tmp{os.getpid()}.npz")  # rankings on other GPUs may write it too
-        np.savez(tmp, **truth)
-        tmp.replace(path)
-    return truth | {"frames": rec.frames[CAMERA]}
+    return {"outcome": outcome, "frames0": np.asarray(rec.frames[CAMERA][:, :1]),
+            "proprio0": np.asarray(rec.proprio[:, :1]), "steps": env.episode_steps, "frames": rec.frames[CAMERA]}
+
+
+@contextlib.contextmanager
+def _exclusive(lock: Path):
+    """Holds an exclusive lock on the file `lock` (created if missing) across processes."""
+    with open(lock, "a") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
 
 
 def _truth_key(task, policy, params, seeds, rng, engine, renderer) -> str:

@@ -33,7 +33,9 @@ The sweeps `data_scaling`, `task_scaling` and `autonomous_rollouts` also rank th
 policies (the `Size`'s zoo preset, trained on the "base" dataset if missing) with each run's model
 against the simulator (`experiments.evaluate` into `<run>/ranking/`): Pearson, Spearman, MMRV,
 pairwise accuracy on gaps of 10 points and alignment join the run's figures. The simulated side of
-the ranking is cached (ROOT/cache/truth) and shared by every model ranked from the same states.
+the ranking is cached (ROOT/cache/truth) and shared by every model ranked from the same states: the
+first ranking simulates it while those on other GPUs wait, as the simulator on a GPU is not
+bit-reproducible and models must be compared against the same outcomes.
 
 A run whose `eval_data` is another dataset than its training data trains with `--no-eval` and is
 evaluated by `python -m wm.evaluate` on that dataset; a run with `model_of` trains nothing and

@@ -1,6 +1,8 @@
 """The evaluator and the report end to end on the smoke world model and zoo (CPU, tiny)."""
 
 import json
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -101,7 +103,7 @@ def test_air_fryer_body_mask_covers_the_body_pixels_of_the_frame():
     assert near[mask].mean() > 0.9 and near[ring].mean() < 0.1
 
 
-def test_truth_cache_returns_the_simulated_batch_and_misses_on_other_parameters(smoke_zoo, tmp_path, monkeypatch):
+def test_truth_cache_returns_the_simulated_batch_waits_for_a_writer_and_misses_on_other_parameters(smoke_zoo, tmp_path, monkeypatch):
     from sim_data.generate import cached_renderers
     from sim_data.learned import StackedPolicy, stack_params
     from sim_data.sources import resolve
@@ -126,6 +128,20 @@ def test_truth_cache_returns_the_simulated_batch_and_misses_on_other_parameters(
     again = E.simulate_truth(cfg, "mug", policy, params, seeds, keys, rng, "cpu", renderer)
     for k in ("outcome", "frames0", "proprio0", "steps"):
         assert np.array_equal(again[k], first[k])
+    # a ranking that finds another simulating the batch (holding its lock) waits and reads its outcomes
+    (entry,) = (tmp_path / "truth").glob("mug-*.npz")
+    held = entry.read_bytes()
+    entry.unlink()
+    got = {}
+    with E._exclusive(entry.with_suffix(".lock")):
+        waiting = threading.Thread(target=lambda: got.update(E.simulate_truth(
+            cfg, "mug", policy, params, seeds, keys, rng, "cpu", renderer)))
+        waiting.start()
+        time.sleep(1.0)
+        assert waiting.is_alive() and not got
+        entry.write_bytes(held)
+    waiting.join(60)
+    assert np.array_equal(got["outcome"], first["outcome"])
     other = E.jax.tree_util.tree_map(lambda x: x + 1e-3 if x.dtype.kind == "f" else x, params)
     with pytest.raises(AssertionError, match="simulated although"):
         E.simulate_truth(cfg, "mug", policy, other, seeds, keys, rng, "cpu", renderer)
