@@ -1,3 +1,4 @@
 """Experiments over the world model and the simulator: policy evaluation against the simulator
-(`evaluate`), its statistics (`stats`), the HTML report (`report`), sweeps (`sweep`), the body-in-place
-measurement (`body_in_place`) and the `make demo` / `make full` chain (`pipeline`)."""
+(`evaluate`), rankings by an ensemble of world models (`ensemble`), their statistics (`stats`), the
+HTML report (`report`), sweeps (`sweep`), the body-in-place measurement (`body_in_place`) and the
+`make demo` / `make full` chain (`pipeline`)."""

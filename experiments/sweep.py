@@ -32,7 +32,9 @@ Sweeps:
 The sweeps `data_scaling`, `task_scaling` and `autonomous_rollouts` also rank the zoo's mug
 policies (the `Size`'s zoo preset, trained on the "base" dataset if missing) with each run's model
 against the simulator (`experiments.evaluate` into `<run>/ranking/`): Pearson, Spearman, MMRV,
-pairwise accuracy on gaps of 10 points and alignment join the run's figures. The simulated side of
+pairwise accuracy on gaps of 10 points and alignment join the run's figures, and per swept value
+(and over the whole sweep) those of the ensemble of its seeds' models (`experiments.ensemble`: their
+predicted rates averaged) as `ensemble_<statistic>`. The simulated side of
 the ranking is cached (ROOT/cache/truth) and shared by every model ranked from the same states: the
 first ranking simulates it while those on other GPUs wait, as the simulator on a GPU is not
 bit-reproducible and models must be compared against the same outcomes.
@@ -59,6 +61,7 @@ from pathlib import Path
 
 import numpy as np
 
+from experiments import ensemble
 from sim_data.success_table import write_json_atomic
 
 # eval.json figures compared across runs: (name in results.json, path in eval.json)
@@ -595,9 +598,22 @@ def collect(name: str, size: str, runs: list[SweepRun], out: Path, x_label: str)
         entry = {"x": x, "seeds": sum(row["finished"] for row in mine)}
         for m, _ in METRICS:
             entry[m], entry[f"{m}_ci"] = mean_interval([row[m] for row in mine], BOUNDS.get(m))
+        entry |= ensemble_figures(out, [r for r in runs if r.x == x])
         per_x.append(entry)
     return {"sweep": name, "size": size, "x_label": x_label, "runs": rows, "per_x": per_x,
-            "finding": finding(name, x_label, per_x)}
+            "ensemble": ensemble_figures(out, runs), "finding": finding(name, x_label, per_x)}
+
+
+def ensemble_figures(out: Path, runs: list[SweepRun]) -> dict:
+    """The ranking statistics of the ensemble of the runs' models (experiments.ensemble: their
+    predicted rates averaged), as ensemble_<statistic> and ensemble_models; {} where fewer than two
+    of them have ranked the zoo."""
+    ranked = [out / r.name / RANK_DIR / "results.json" for r in runs]
+    ranked = [json.loads(p.read_text()) for p in ranked if p.exists()]
+    if len(ranked) < 2:
+        return {}
+    m = ensemble.combine(ranked)["metrics"]["overall"]
+    return {"ensemble_models": len(ranked), **{f"ensemble_{s}": m[s] for s in ensemble.MEMBER_STATS}}
 
 
 def finding(name: str, x_label: str, per_x: list[dict]) -> str:
@@ -606,8 +622,8 @@ def finding(name: str, x_label: str, per_x: list[dict]) -> str:
         return f"{name}: fewer than two values finished."
     a, b = per_x[0], per_x[-1]
     parts = []
-    for m in ("success_auroc", "psnr_h8", "match_accuracy", "view_shift_h8_px", "pearson", "mmrv"):
-        if a[m] is not None and b[m] is not None:
+    for m in ("success_auroc", "psnr_h8", "match_accuracy", "view_shift_h8_px", "pearson", "mmrv", "ensemble_pearson"):
+        if a.get(m) is not None and b.get(m) is not None:
             parts.append(f"{m} {a[m]:.3g} -> {b[m]:.3g}")
     return f"{name}: from {x_label} = {a['x']:g} to {b['x']:g}: " + ", ".join(parts) + "."
 

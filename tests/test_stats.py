@@ -1,5 +1,6 @@
 """experiments.stats against values worked out by hand (and scipy where it has the same statistic)."""
 
+import json
 import math
 
 import numpy as np
@@ -81,3 +82,39 @@ def test_decision_analysis_by_hand_and_against_resampling():
     assert got == pytest.approx(S.p_pick_better(1.0, 0.2, [1, 10]), abs=0.015)
     with pytest.raises(ValueError, match="base"):
         S.p_pick_better(0.9, 0.5, 10, base=0.7)
+
+
+def _evaluation(pred, true, names=("a", "b", "c", "d"), n=64):
+    return {"policies": [{"name": k, "task": "mug", "lineage": "conv", "n": n, "true_rate": t, "pred_rate": p}
+                         for k, p, t in zip(names, pred, true, strict=True)]}
+
+
+def test_an_ensemble_ranks_by_the_mean_of_its_models_predicted_rates(tmp_path):
+    from experiments import ensemble as ENS
+
+    true = [0.1, 0.5, 0.9, 0.3]
+    one, two = [0.2, 0.4, 0.9, 0.5], [0.4, 0.2, 0.7, 0.1]
+    res = ENS.combine([_evaluation(one, true), _evaluation(two, [0.1, 0.5, 0.9, 0.4])])
+    rows = res["policies"]
+    assert res["models"] == 2 and [r["pred_rate"] for r in rows] == pytest.approx([0.3, 0.3, 0.8, 0.3])
+    assert rows[3]["true_rate"] == pytest.approx(0.35) and rows[3]["true_spread"] == pytest.approx(0.1)
+    mean_true = [0.1, 0.5, 0.9, 0.35]
+    m = res["metrics"]["overall"]
+    assert m["pearson"] == pytest.approx(np.corrcoef([0.3, 0.3, 0.8, 0.3], mean_true)[0, 1])
+    assert m["members"]["pearson"] == pytest.approx([np.corrcoef(one, mean_true)[0, 1], np.corrcoef(two, mean_true)[0, 1]])
+    assert m["members_mean"]["pearson"] == pytest.approx(np.mean(m["members"]["pearson"]))
+    assert res["metrics"]["mug"]["pearson"] == pytest.approx(m["pearson"])
+    with pytest.raises(ValueError, match="at least two"):
+        ENS.combine([_evaluation(one, true)])
+    with pytest.raises(ValueError, match="other policies"):
+        ENS.combine([_evaluation(one, true), _evaluation(two, true, names=("a", "b", "c", "e"))])
+    with pytest.raises(ValueError, match="same held-out states"):
+        ENS.combine([_evaluation(one, true), _evaluation(two, true, n=32)])
+    for k, pred in enumerate((one, two)):  # the command line reads evaluate OUT directories
+        (tmp_path / f"m{k}").mkdir()
+        (tmp_path / f"m{k}" / "results.json").write_text(json.dumps(_evaluation(pred, true)))
+    assert ENS.main([str(tmp_path / "m0"), str(tmp_path / "m1"), "--out", str(tmp_path / "ens")]) == 0
+    back = json.loads((tmp_path / "ens" / "results.json").read_text())
+    assert back["models"] == 2 and back["runs"] == [str(tmp_path / "m0"), str(tmp_path / "m1")]
+    with pytest.raises(FileNotFoundError, match="experiments.evaluate OUT"):
+        ENS.read_results(tmp_path / "nothing")

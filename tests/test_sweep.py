@@ -27,10 +27,14 @@ def test_collect_reads_every_finished_run(tmp_path):
         summary = {"psnr_h8": 20.0 + k, "success_auroc": 0.5 + 0.05 * k}
         (tmp_path / r.name / "eval.json").write_text(json.dumps({"summary": summary}))
     (tmp_path / runs[0].name / W.BODY_FILE).write_text(json.dumps({"summary": {"body_psnr_h8": 18.0}}))
+    true, preds = [0.1, 0.5, 0.9], ([0.2, 0.4, 0.9], [0.4, 0.2, 0.7])
     for k, r in enumerate(runs[:2]):  # experiments.evaluate's results.json of the zoo ranked by each model
         (tmp_path / r.name / W.RANK_DIR).mkdir()
         overall = {"pearson": 0.6 + 0.2 * k, "mmrv": 0.2, "alignment": 0.75}
-        (tmp_path / r.name / W.RANK_DIR / "results.json").write_text(json.dumps({"metrics": {"overall": overall}}))
+        policies = [{"name": n, "task": "mug", "n": 64, "true_rate": t, "pred_rate": p}
+                    for n, t, p in zip("abc", true, preds[k], strict=True)]
+        (tmp_path / r.name / W.RANK_DIR / "results.json").write_text(
+            json.dumps({"metrics": {"overall": overall}, "policies": policies}))
     res = W.collect("data_scaling", "demo", runs, tmp_path, "share")
     assert [e["seeds"] for e in res["per_x"]] == [2, 2, 2, 1]
     assert res["runs"][0]["body_psnr_h8"] == 18.0 and res["per_x"][0]["body_psnr_h8"] == 18.0  # the other seed has none
@@ -40,6 +44,10 @@ def test_collect_reads_every_finished_run(tmp_path):
     assert res["per_x"][0]["pearson"] == pytest.approx(0.7) and res["per_x"][0]["mmrv_ci"] == pytest.approx([0.2, 0.2])
     assert res["runs"][2]["pearson"] is None and res["per_x"][1]["alignment"] is None
     assert "0.525 -> 0.8" in res["finding"]
+    # the two seeds' models ranked together: their predicted rates averaged, (0.3, 0.3, 0.8)
+    ens = np.corrcoef([0.3, 0.3, 0.8], true)[0, 1]
+    assert res["per_x"][0]["ensemble_pearson"] == pytest.approx(ens) and res["per_x"][0]["ensemble_models"] == 2
+    assert "ensemble_pearson" not in res["per_x"][1] and res["ensemble"]["ensemble_pearson"] == pytest.approx(ens)
     W.plot(res, tmp_path / "sweep.png", log_x=True)
     assert (tmp_path / "sweep.png").stat().st_size > 1000
 

@@ -1,0 +1,101 @@
+"""Policy rankings by an ensemble of world models: `python -m experiments.ensemble RUN RUN ... --out DIR`.
+
+    python -m experiments.ensemble runs/eval/seed0 runs/eval/seed1 runs/eval/seed2 --out runs/eval/ensemble
+
+Each RUN is an `experiments.evaluate` OUT (its results.json) over the same policies from the same
+held-out states, by a different world model (another seed, size or dataset). A policy's ensemble
+prediction is the mean of the models' predicted rates; as each rate is the mean success
+probability over the states, this is the rate of the per-episode mean probability. The true rate
+is the mean of the runs' (identical where they share `truth_cache`; `true_spread` says by how much
+they differ otherwise). DIR/results.json holds per policy its rates, and overall and per task the
+rate-level statistics of the ensemble (`experiments.stats.ranking_metrics`) beside those of each
+model alone against the same true rates. Per-episode alignment needs each episode's probability,
+which results.json does not keep, so it is not part of an ensemble's figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from experiments import stats as S
+from sim_data.success_table import write_json_atomic
+
+MEMBER_STATS = ("pearson", "spearman", "mmrv", "pairwise_acc_gap10")
+
+
+def combine(results: list[dict]) -> dict:
+    """The ensemble's results.json from K >= 2 `experiments.evaluate` results over the same
+    policies: {"models": K, "policies": [{name, task, lineage, n, true_rate, true_spread, pred_rate,
+    pred_rates (K,)}], "metrics": {"overall" and per task: ranking_metrics + "members"}}."""
+    if len(results) < 2:
+        raise ValueError(f"an ensemble needs at least two evaluations, got {len(results)}")
+    by_key = [{(p["task"], p["name"]): p for p in r["policies"]} for r in results]
+    first = [(p["task"], p["name"]) for p in results[0]["policies"]]
+    for i, b in enumerate(by_key[1:], 1):
+        if set(b) != set(first):
+            missing = sorted(set(first) ^ set(b))[:3]
+            raise ValueError(f"evaluation {i} ranks other policies than evaluation 0 (for instance {missing}): "
+                             "evaluate the same policies on the same tasks with every model")
+    rows = []
+    for key in first:
+        ps = [b[key] for b in by_key]
+        if len({p["n"] for p in ps}) != 1:
+            raise ValueError(f"{key[1]} on {key[0]} was evaluated over {sorted({p['n'] for p in ps})} states: "
+                             "use the same held-out states (episodes, seed) with every model")
+        true = [p["true_rate"] for p in ps]
+        pred = [p["pred_rate"] for p in ps]
+        rows.append({"name": key[1], "task": key[0], "lineage": ps[0].get("lineage"), "n": ps[0]["n"],
+                     "true_rate": float(np.mean(true)), "true_spread": float(np.ptp(true)),
+                     "pred_rate": float(np.mean(pred)), "pred_rates": pred})
+    metrics = {"overall": ensemble_metrics(rows)}
+    for task in dict.fromkeys(r["task"] for r in rows):
+        mine = [r for r in rows if r["task"] == task]
+        if len(mine) >= 3:
+            metrics[task] = ensemble_metrics(mine)
+    return {"models": len(results), "policies": rows, "metrics": metrics}
+
+
+def ensemble_metrics(rows: list[dict]) -> dict:
+    """ranking_metrics of the rows' ensemble predictions, and "members": each model's alone and
+    their mean, against the same true rates."""
+    true = [r["true_rate"] for r in rows]
+    out = S.ranking_metrics([r["pred_rate"] for r in rows], true)
+    k = len(rows[0]["pred_rates"])
+    members = [S.ranking_metrics([r["pred_rates"][i] for r in rows], true) for i in range(k)]
+    out["members"] = {s: [m[s] for m in members] for s in MEMBER_STATS}
+    out["members_mean"] = {s: float(np.nanmean(out["members"][s])) for s in MEMBER_STATS}
+    return out
+
+
+def read_results(run: Path) -> dict:
+    """An evaluate OUT's results.json (run may be the directory or the file)."""
+    path = run / "results.json" if run.is_dir() else run
+    if not path.exists():
+        raise FileNotFoundError(f"{path} not found: give experiments.evaluate OUT directories (make eval OUT=...)")
+    res = json.loads(path.read_text())
+    if "policies" not in res:
+        raise ValueError(f"{path} is not an experiments.evaluate results.json (no 'policies')")
+    return res
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("runs", nargs="+", type=Path, help="experiments.evaluate OUT directories, one per world model")
+    p.add_argument("--out", type=Path, required=True, help="where results.json of the ensemble goes")
+    a = p.parse_args(argv)
+    res = combine([read_results(r) for r in a.runs]) | {"runs": [str(r) for r in a.runs]}
+    a.out.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(a.out / "results.json", res)
+    m = res["metrics"]["overall"]
+    print(json.dumps({"models": res["models"], **{s: m[s] for s in MEMBER_STATS},
+                      "members_mean": m["members_mean"]}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
