@@ -509,23 +509,38 @@ def in_sweep_order(data: list, sweeps: list) -> list:
     return out + [j for j in data if j.name not in placed]
 
 
-def run_sweeps(names: list, size_name: str, out: Path, root: Path = Path("runs")) -> dict:
-    """Runs the named sweeps as one pool of jobs over the GPUs (gpu_ids): the datasets, the zoo and
-    every run's steps, each starting once what it needs is there, earlier sweeps first: one sweep
-    into `out`, several into out/<name>. Returns name -> results."""
+def plans_of(names: list, size_name: str, out: Path) -> list[Plan]:
+    """The named sweeps' plans: one sweep into `out`, several into out/<name> (checked against what
+    each directory holds)."""
     for name in names:
         if name not in SWEEPS:
             raise ValueError(f"unknown sweep {name!r}; choose from {', '.join(SWEEPS)}")
     if size_name not in SIZES:
         raise ValueError(f"unknown size {size_name!r}; choose from {', '.join(SIZES)}")
-    size, out = SIZES[size_name], Path(out)
     plans = []
     for name in dict.fromkeys(names):
         make_runs, x_label, log_x = SWEEPS[name]
-        plan = Plan(name, size_name, make_runs(size), out if len(names) == 1 else out / name, x_label, log_x)
+        plan = Plan(name, size_name, make_runs(SIZES[size_name]), Path(out) if len(names) == 1 else Path(out) / name,
+                    x_label, log_x)
         plan.out.mkdir(parents=True, exist_ok=True)
         _check_sweep(plan.out, name, size_name)
         plans.append(plan)
+    return plans
+
+
+def collect_sweeps(names: list, size_name: str, out: Path) -> dict:
+    """Rewrites each named sweep's results.json and sweep.png from the runs' files that are there,
+    running nothing (after a change to what is collected, or where only the figures were copied).
+    Returns name -> results."""
+    return {plan.name: plan.write_results() for plan in plans_of(names, size_name, out)}
+
+
+def run_sweeps(names: list, size_name: str, out: Path, root: Path = Path("runs")) -> dict:
+    """Runs the named sweeps as one pool of jobs over the GPUs (gpu_ids): the datasets, the zoo and
+    every run's steps, each starting once what it needs is there, earlier sweeps first: one sweep
+    into `out`, several into out/<name>. Returns name -> results."""
+    plans, size = plans_of(names, size_name, out), SIZES[size_name]
+    for plan in plans:
         print(f"{plan.name} ({size_name}): {len(plan.runs)} runs into {plan.out}", flush=True)
     runs = [r for p in plans for r in p.runs]
     data, jobs = data_jobs(size, [r.data for r in runs] + [r.evaluated_on for r in runs], root,
@@ -651,6 +666,10 @@ def plot(results: dict, path: Path, log_x: bool) -> None:
             lo = [c[0] if c else v for c, v in zip(ci, y, strict=True)]
             hi = [c[1] if c else v for c, v in zip(ci, y, strict=True)]
             ax.errorbar(x, y, yerr=[np.subtract(y, lo), np.subtract(hi, y)], marker="o", capsize=3)
+        ens = [(e["x"], e[f"ensemble_{m}"]) for e in per_x if e.get(f"ensemble_{m}") is not None]
+        if ens:
+            ax.plot(*zip(*ens, strict=True), "D--", color="tab:red", ms=5, label="seeds' ensemble")
+            ax.legend(fontsize=7)
         if log_x:
             ax.set_xscale("log", base=2)
         xs = sorted({e["x"] for e in per_x})
@@ -669,8 +688,14 @@ def main(argv=None) -> int:
     p.add_argument("--size", default="demo", choices=sorted(SIZES))
     p.add_argument("--out", type=Path, required=True, help="the sweep's directory; with several, OUT/<sweep>")
     p.add_argument("--root", type=Path, default=Path("runs"), help="where the sweep's datasets go (ROOT/data/...)")
+    p.add_argument("--collect", action="store_true",
+                   help="only rewrite results.json and sweep.png from the runs' files that are there")
     a = p.parse_args(argv)
-    run_sweeps(a.sweep, a.size, a.out, a.root)
+    if a.collect:
+        for res in collect_sweeps(a.sweep, a.size, a.out).values():
+            print(res["finding"])
+    else:
+        run_sweeps(a.sweep, a.size, a.out, a.root)
     return 0
 
 

@@ -96,9 +96,9 @@ def test_report_gains_a_section_per_sweep(tmp_path):
     for k, r in enumerate(runs):
         (d / r.name).mkdir(parents=True)
         (d / r.name / "eval.json").write_text(json.dumps({"summary": {"psnr_h8": 18.0 - k, "success_auroc": 0.7}}))
-    res = W.collect("held_out_object", "demo", runs, d, "test scenes")
-    (d / "results.json").write_text(json.dumps(res))
-    W.plot(res, d / "sweep.png", log_x=False)
+    assert W.main(["held_out_object", "--size", "demo", "--out", str(d), "--collect"]) == 0  # runs nothing
+    res = json.loads((d / "results.json").read_text())
+    assert res == W.collect("held_out_object", "demo", runs, d, W.SWEEPS["held_out_object"][1])
     (d / runs[1].name / "eval_frames.png").write_bytes((d / "sweep.png").read_bytes())
     parts, md = sweep_sections(tmp_path)
     page = "\n".join(parts)
