@@ -34,10 +34,10 @@ policies (the `Size`'s zoo preset, trained on the "base" dataset if missing) wit
 against the simulator (`experiments.evaluate` into `<run>/ranking/`): Pearson, Spearman, MMRV,
 pairwise accuracy on gaps of 10 points and alignment join the run's figures, and per swept value
 (and over the whole sweep) those of the ensemble of its seeds' models (`experiments.ensemble`: their
-predicted rates averaged) as `ensemble_<statistic>`. The simulated side of
-the ranking is cached (ROOT/cache/truth) and shared by every model ranked from the same states: the
-first ranking simulates it while those on other GPUs wait, as the simulator on a GPU is not
-bit-reproducible and models must be compared against the same outcomes.
+predicted rates averaged) as `ensemble_<statistic>`. The simulated side of the ranking is cached
+(ROOT/cache/truth) and shared by every model ranked from the same states: the first ranking
+simulates it while those on other GPUs wait, as the simulator on a GPU is not bit-reproducible and
+models must be compared against the same outcomes.
 
 A run whose `eval_data` is another dataset than its training data trains with `--no-eval` and is
 evaluated by `python -m wm.evaluate` on that dataset; a run with `model_of` trains nothing and
@@ -622,12 +622,15 @@ def collect(name: str, size: str, runs: list[SweepRun], out: Path, x_label: str)
 def ensemble_figures(out: Path, runs: list[SweepRun]) -> dict:
     """The ranking statistics of the ensemble of the runs' models (experiments.ensemble: their
     predicted rates averaged), as ensemble_<statistic> and ensemble_models; {} where fewer than two
-    of them have ranked the zoo."""
+    of them have ranked the zoo, and the reason alone where their rankings cannot be combined."""
     ranked = [out / r.name / RANK_DIR / "results.json" for r in runs]
     ranked = [json.loads(p.read_text()) for p in ranked if p.exists()]
     if len(ranked) < 2:
         return {}
-    m = ensemble.combine(ranked)["metrics"]["overall"]
+    try:
+        m = ensemble.combine(ranked)["metrics"]["overall"]
+    except ValueError as e:  # say why in results.json rather than fail the job that collects
+        return {"ensemble_not_combined": str(e)}
     return {"ensemble_models": len(ranked), **{f"ensemble_{s}": m[s] for s in ensemble.MEMBER_STATS}}
 
 
