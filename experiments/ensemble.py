@@ -9,8 +9,11 @@ probability over the states, this is the rate of the per-episode mean probabilit
 is the mean of the runs' (identical where they share `truth_cache`; `true_spread` says by how much
 they differ otherwise). DIR/results.json holds per policy its rates, and overall and per task the
 rate-level statistics of the ensemble (`experiments.stats.ranking_metrics`) beside those of each
-model alone against the same true rates. Per-episode alignment needs each episode's probability,
-which results.json does not keep, so it is not part of an ensemble's figures.
+model alone against the same true rates. Where every run keeps each episode's probability and
+outcome (`pred_episodes`, `true_episodes`: evaluations since session 13) and the runs share the
+true outcomes, the ensemble's per-episode probability is the models' mean, and the per-episode
+alignment (at the first run's `threshold`) and Pearson's bootstrap interval over initial states
+join the figures.
 """
 
 from __future__ import annotations
@@ -49,26 +52,42 @@ def combine(results: list[dict]) -> dict:
                              "use the same held-out states (episodes, seed) with every model")
         true = [p["true_rate"] for p in ps]
         pred = [p["pred_rate"] for p in ps]
-        rows.append({"name": key[1], "task": key[0], "lineage": ps[0].get("lineage"), "n": ps[0]["n"],
-                     "true_rate": float(np.mean(true)), "true_spread": float(np.ptp(true)),
-                     "pred_rate": float(np.mean(pred)), "pred_rates": pred})
-    metrics = {"overall": ensemble_metrics(rows)}
+        row = {"name": key[1], "task": key[0], "lineage": ps[0].get("lineage"), "n": ps[0]["n"],
+               "true_rate": float(np.mean(true)), "true_spread": float(np.ptp(true)),
+               "pred_rate": float(np.mean(pred)), "pred_rates": pred}
+        if all("pred_episodes" in p for p in ps) and all(p["true_episodes"] == ps[0]["true_episodes"] for p in ps):
+            row["true_episodes"] = ps[0]["true_episodes"]
+            row["pred_episodes_each"] = [p["pred_episodes"] for p in ps]
+            row["pred_episodes"] = np.mean(row["pred_episodes_each"], axis=0).tolist()
+        rows.append(row)
+    threshold = results[0].get("config", {}).get("threshold", 0.5)
+    metrics = {"overall": ensemble_metrics(rows, threshold)}
     for task in dict.fromkeys(r["task"] for r in rows):
         mine = [r for r in rows if r["task"] == task]
         if len(mine) >= 3:
-            metrics[task] = ensemble_metrics(mine)
+            metrics[task] = ensemble_metrics(mine, threshold)
     return {"models": len(results), "policies": rows, "metrics": metrics}
 
 
-def ensemble_metrics(rows: list[dict]) -> dict:
+def ensemble_metrics(rows: list[dict], threshold: float = 0.5) -> dict:
     """ranking_metrics of the rows' ensemble predictions, and "members": each model's alone and
-    their mean, against the same true rates."""
+    their mean, against the same true rates; with the per-episode alignment (each episode's mean
+    probability at `threshold`) and Pearson's bootstrap interval where every row has its episodes."""
     true = [r["true_rate"] for r in rows]
     out = S.ranking_metrics([r["pred_rate"] for r in rows], true)
     k = len(rows[0]["pred_rates"])
     members = [S.ranking_metrics([r["pred_rates"][i] for r in rows], true) for i in range(k)]
-    out["members"] = {s: [m[s] for m in members] for s in MEMBER_STATS}
-    out["members_mean"] = {s: float(np.nanmean(out["members"][s])) for s in MEMBER_STATS}
+    stats = MEMBER_STATS
+    if all("pred_episodes" in r for r in rows):
+        true_eps = np.array([r["true_episodes"] for r in rows], bool)
+        prob_eps = np.array([r["pred_episodes"] for r in rows])
+        out["alignment"] = S.alignment(prob_eps >= threshold, true_eps)
+        out["pearson_ci_bootstrap"] = list(S.bootstrap_pearson(prob_eps, true_eps, draws=1000))
+        for i, m in enumerate(members):
+            m["alignment"] = S.alignment(np.array([r["pred_episodes_each"][i] for r in rows]) >= threshold, true_eps)
+        stats = (*MEMBER_STATS, "alignment")
+    out["members"] = {s: [m[s] for m in members] for s in stats}
+    out["members_mean"] = {s: float(np.nanmean(out["members"][s])) for s in stats}
     return out
 
 
@@ -92,7 +111,7 @@ def main(argv=None) -> int:
     a.out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(a.out / "results.json", res)
     m = res["metrics"]["overall"]
-    print(json.dumps({"models": res["models"], **{s: m[s] for s in MEMBER_STATS},
+    print(json.dumps({"models": res["models"], **{s: m[s] for s in (*MEMBER_STATS, "alignment") if s in m},
                       "members_mean": m["members_mean"]}, indent=1))
     return 0
 

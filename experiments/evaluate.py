@@ -279,7 +279,9 @@ def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) ->
                      "true_ci": list(S.wilson_interval(k, n)), "pred_rate": float(p.mean()),
                      "pred_ci": _interval_of_mean(p), "pred_rate_thresholded": kp / n,
                      "pred_thresholded_ci": list(S.wilson_interval(kp, n)), "val_loss": rec.get("val_loss"),
-                     "alignment": S.alignment(p >= cfg.threshold, t), "pred_rate_rule": float(r.mean())})
+                     "alignment": S.alignment(p >= cfg.threshold, t), "pred_rate_rule": float(r.mean()),
+                     # per held-out state, in the order of the seeds: for ensembles (experiments.ensemble)
+                     "true_episodes": t.astype(int).tolist(), "pred_episodes": np.round(p, 5).tolist()})
     return rows
 
 

@@ -631,7 +631,8 @@ def ensemble_figures(out: Path, runs: list[SweepRun]) -> dict:
         m = ensemble.combine(ranked)["metrics"]["overall"]
     except ValueError as e:  # say why in results.json rather than fail the job that collects
         return {"ensemble_not_combined": str(e)}
-    return {"ensemble_models": len(ranked), **{f"ensemble_{s}": m[s] for s in ensemble.MEMBER_STATS}}
+    return {"ensemble_models": len(ranked),
+            **{f"ensemble_{s}": m[s] for s in (*ensemble.MEMBER_STATS, "alignment") if s in m}}
 
 
 def finding(name: str, x_label: str, per_x: list[dict]) -> str:

@@ -37,6 +37,7 @@ def test_results_hold_every_policy_with_statistics_from_the_episodes(evaluation,
         assert row["true_rate"] == t.mean() and row["n"] == 2
         assert row["true_ci"] == pytest.approx(list(S.wilson_interval(int(t.sum()), 2)))
         assert row["pred_rate"] == pytest.approx(p.mean()) and 0 <= row["pred_rate"] <= 1
+        assert row["true_episodes"] == t.astype(int).tolist() and row["pred_episodes"] == pytest.approx(p, abs=1e-5)
     m = res["metrics"]["overall"]
     assert m["alignment"] == pytest.approx(S.alignment(prob >= cfg.threshold, true))
     assert m["mmrv"] == pytest.approx(S.mmrv([p["pred_rate"] for p in res["policies"]],

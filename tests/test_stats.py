@@ -118,3 +118,26 @@ def test_an_ensemble_ranks_by_the_mean_of_its_models_predicted_rates(tmp_path):
     assert back["models"] == 2 and back["runs"] == [str(tmp_path / "m0"), str(tmp_path / "m1")]
     with pytest.raises(FileNotFoundError, match="experiments.evaluate OUT"):
         ENS.read_results(tmp_path / "nothing")
+
+
+def test_an_ensemble_with_episodes_aligns_by_the_mean_probability_of_each_episode():
+    from experiments import ensemble as ENS
+
+    true = {"a": [1, 0, 1, 0], "b": [0, 0, 0, 0], "c": [1, 1, 1, 1]}
+    probs = ({"a": [0.9, 0.6, 0.4, 0.1], "b": [0.1, 0.2, 0.3, 0.7], "c": [0.9, 0.9, 0.9, 0.9]},
+             {"a": [0.7, 0.2, 0.8, 0.3], "b": [0.1, 0.1, 0.1, 0.1], "c": [0.4, 0.6, 0.6, 0.6]})
+
+    def evaluation(prob):
+        return {"config": {"threshold": 0.5}, "policies": [
+            {"name": k, "task": "mug", "n": 4, "true_rate": float(np.mean(t)), "pred_rate": float(np.mean(prob[k])),
+             "true_episodes": t, "pred_episodes": prob[k]} for k, t in true.items()]}
+
+    res = ENS.combine([evaluation(p) for p in probs])
+    assert res["policies"][0]["pred_episodes"] == pytest.approx([0.8, 0.4, 0.6, 0.2])
+    m = res["metrics"]["overall"]
+    # the mean probabilities threshold to every true outcome; model 1 alone to 9 of 12, model 2 to 11
+    assert m["alignment"] == 1.0 and m["members"]["alignment"] == pytest.approx([9 / 12, 11 / 12])
+    assert len(m["pearson_ci_bootstrap"]) == 2
+    other = evaluation(probs[1])
+    other["policies"][0]["true_episodes"] = [0, 1, 1, 0]  # another simulated truth: no per-episode figures
+    assert "alignment" not in ENS.combine([evaluation(probs[0]), other])["metrics"]["overall"]
