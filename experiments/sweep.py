@@ -596,14 +596,15 @@ def mean_interval(values, bounds=None) -> tuple[float | None, list | None]:
 def collect(name: str, size: str, runs: list[SweepRun], out: Path, x_label: str) -> dict:
     """results.json: every run's figures, and per swept value their mean and interval over seeds."""
     rows = []
+    rankings = {r.name: json.loads(p.read_text()) for r in runs
+                if (p := out / r.name / RANK_DIR / "results.json").exists()}
     for r in runs:
         path, body = out / r.name / "eval.json", out / r.name / BODY_FILE
-        ranking = out / r.name / RANK_DIR / "results.json"
         ev = json.loads(path.read_text()) if path.exists() else None
         if ev is not None and body.exists():
             ev["body_in_place"] = json.loads(body.read_text())
-        if ev is not None and ranking.exists():
-            ev["ranking"] = json.loads(ranking.read_text())["metrics"]["overall"]
+        if ev is not None and r.name in rankings:
+            ev["ranking"] = rankings[r.name]["metrics"]["overall"]
         rows.append({"x": r.x, "seed": r.seed, "run": r.name, "finished": ev is not None,
                      **{m: _get(ev, p) if ev else None for m, p in METRICS}})
     xs = sorted({r.x for r in runs})
@@ -613,18 +614,17 @@ def collect(name: str, size: str, runs: list[SweepRun], out: Path, x_label: str)
         entry = {"x": x, "seeds": sum(row["finished"] for row in mine)}
         for m, _ in METRICS:
             entry[m], entry[f"{m}_ci"] = mean_interval([row[m] for row in mine], BOUNDS.get(m))
-        entry |= ensemble_figures(out, [r for r in runs if r.x == x])
+        entry |= ensemble_figures([rankings[r.name] for r in runs if r.x == x and r.name in rankings])
         per_x.append(entry)
     return {"sweep": name, "size": size, "x_label": x_label, "runs": rows, "per_x": per_x,
-            "ensemble": ensemble_figures(out, runs), "finding": finding(name, x_label, per_x)}
+            "ensemble": ensemble_figures(list(rankings.values())), "finding": finding(name, x_label, per_x)}
 
 
-def ensemble_figures(out: Path, runs: list[SweepRun]) -> dict:
-    """The ranking statistics of the ensemble of the runs' models (experiments.ensemble: their
-    predicted rates averaged), as ensemble_<statistic> and ensemble_models; {} where fewer than two
-    of them have ranked the zoo, and the reason alone where their rankings cannot be combined."""
-    ranked = [out / r.name / RANK_DIR / "results.json" for r in runs]
-    ranked = [json.loads(p.read_text()) for p in ranked if p.exists()]
+def ensemble_figures(ranked: list[dict]) -> dict:
+    """The ranking statistics of the ensemble of the models whose rankings (experiments.evaluate's
+    results.json) are given (experiments.ensemble: their predicted rates averaged), as
+    ensemble_<statistic> and ensemble_models; {} for fewer than two, and the reason alone where they
+    cannot be combined."""
     if len(ranked) < 2:
         return {}
     try:
