@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -75,20 +76,32 @@ def ensemble_metrics(rows: list[dict], threshold: float = 0.5) -> dict:
     probability at `threshold`) and Pearson's bootstrap interval where every row has its episodes."""
     true = [r["true_rate"] for r in rows]
     out = S.ranking_metrics([r["pred_rate"] for r in rows], true)
-    k = len(rows[0]["pred_rates"])
-    members = [S.ranking_metrics([r["pred_rates"][i] for r in rows], true) for i in range(k)]
-    stats = MEMBER_STATS
+    member_rates = np.array([r["pred_rates"] for r in rows]).T
     if all("pred_episodes" in r for r in rows):
         true_eps = np.array([r["true_episodes"] for r in rows], bool)
         prob_eps = np.array([r["pred_episodes"] for r in rows])
         out["alignment"] = S.alignment(prob_eps >= threshold, true_eps)
         out["pearson_ci_bootstrap"] = list(S.bootstrap_pearson(prob_eps, true_eps, draws=1000))
-        for i, m in enumerate(members):
-            m["alignment"] = S.alignment(np.array([r["pred_episodes_each"][i] for r in rows]) >= threshold, true_eps)
+        member_eps = np.array([r["pred_episodes_each"] for r in rows]).transpose(1, 0, 2)
+        return out | member_metrics(member_rates, true, member_eps, true_eps, threshold)
+    return out | member_metrics(member_rates, true)
+
+
+def member_metrics(member_rates, true_rates, member_eps=None, true_eps=None, threshold: float = 0.5) -> dict:
+    """Each ensemble member's ranking alone against the same true rates, and the members' mean.
+
+    member_rates: (K, P) predicted rates; true_rates: (P,); member_eps: (K, P, N) per-episode
+    probabilities and true_eps (P, N) outcomes, for each member's alignment at `threshold`.
+    Returns {"members": {stat: [K]}, "members_mean": {stat: float}} over MEMBER_STATS (+ alignment)."""
+    members = [S.ranking_metrics(list(m), list(true_rates)) for m in np.asarray(member_rates)]
+    stats = MEMBER_STATS
+    if member_eps is not None:
+        for m, eps in zip(members, member_eps, strict=True):
+            m["alignment"] = S.alignment(np.asarray(eps) >= threshold, np.asarray(true_eps, bool))
         stats = (*MEMBER_STATS, "alignment")
-    out["members"] = {s: [m[s] for m in members] for s in stats}
-    out["members_mean"] = {s: float(np.nanmean(out["members"][s])) for s in stats}
-    return out
+    table = {s: [m[s] for m in members] for s in stats}
+    mean = {s: float(np.nanmean(v)) if np.isfinite(np.asarray(v, float)).any() else math.nan for s, v in table.items()}
+    return {"members": table, "members_mean": mean}
 
 
 def read_results(run: Path) -> dict:

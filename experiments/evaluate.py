@@ -12,6 +12,10 @@ datasets):
   judge's (`wm.judge`, trained with the world model) where the world model has one that knows the
   task, else the highest per-step success probability (thresholded at `threshold` for its outcome).
   The per-step rule's statistics are reported beside the judge's ("per_step_rule").
+- with several world models (`wm=RUN,RUN,...`: an ensemble, say of training seeds), each imagines
+  every episode and the predicted probability is their mean; every model's own ranking statistics
+  are kept beside the ensemble's ("members"). One model's training seed moves its ranking more than
+  most design choices do; the mean of a few cancels much of that luck.
 
 Policies of one architecture run as one batch (their parameters stacked), so one compiled rollout
 serves a whole checkpoint series. Each task is saved when done (`OUT/tasks/<task>.npz`) and a
@@ -23,9 +27,7 @@ real and imagined episodes and the controllability panel for the report.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import dataclasses
-import fcntl
 import hashlib
 import json
 import math
@@ -39,6 +41,7 @@ import numpy as np
 from tqdm import tqdm
 
 from experiments import stats as S
+from experiments.ensemble import member_metrics
 from sim_data import robot as R
 from sim_data.bench import device_name
 from sim_data.cache import TrainingCache
@@ -46,6 +49,7 @@ from sim_data.config import override
 from sim_data.engines import ENGINES, default_engine
 from sim_data.generate import cached_env, cached_renderers, package_versions
 from sim_data.learned import StackedPolicy, stack_params
+from sim_data.parts import exclusive, parse_part, take
 from sim_data.rollout import record_policies
 from sim_data.sources import group_by_policy, heldout_seeds, padded_chunks, resolve, used_seeds
 from sim_data.success_table import write_json_atomic
@@ -61,7 +65,8 @@ CAMERA = "head_cam"
 class EvalConfig:
     """Attributes:
       policies: policy specs (`sim_data.sources`: zoo registries, plug-ins).
-      wm: the world model's training run directory (make train OUT).
+      wm: the world model's training run directory (make train OUT), or several, comma-separated:
+        an ensemble whose mean probability is the prediction (their frames must be of one size).
       tasks: tasks to evaluate (empty: every task of the learned policies).
       episodes: held-out initial states per task (each policy runs from all of them).
       seed: names the held-out initial states. engine: "cpu", "mjx" or "" (mjx on a GPU).
@@ -107,6 +112,13 @@ class EvalConfig:
             raise ValueError(f"threshold must be in (0, 1), got {self.threshold}")
         if self.truth_cache and self.video_policies:
             raise ValueError("truth_cache keeps no real videos: use it with video_policies=0")
+        if len(set(self.wm_runs)) != len(self.wm_runs):
+            raise ValueError(f"wm names a run twice: {self.wm}")
+
+    @property
+    def wm_runs(self) -> tuple:
+        """The world models' run directories (one, or an ensemble's)."""
+        return tuple(w.strip() for w in self.wm.split(",") if w.strip())
 
 
 PRESETS = {
@@ -125,18 +137,19 @@ def make_config(preset: str, overrides=()) -> EvalConfig:
 
 # ---- one task ------------------------------------------------------------------------------------
 
-def evaluate_task(cfg: EvalConfig, task: str, sources, wm, seeds, engine: str, progress: bool) -> dict:
-    """True and predicted outcomes of every source on task from the held-out seeds.
+def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: str, progress: bool) -> dict:
+    """True and predicted outcomes of every source on task from the held-out seeds, predicted by
+    each of K world models (`models`: a list of (config, params, norm, judge)).
 
-    Returns {"names": [P], "true": (P, N) bool, "prob": (P, N) float (the judge's, or the rule's),
-    "prob_rule": (P, N) float (the per-step rule's), "videos": {key: (T+1, S, S, 3)},
-    "video_index": [...], "sim_s", "wm_s", "steps"}.
+    Returns {"names": [P], "true": (P, N) bool, "prob": (P, N) float (the judge's, or the rule's;
+    the models' mean), "prob_rule": (P, N) float (the per-step rule's; the mean), "prob_members":
+    (K, P, N), "videos": {key: (T+1, S, S, 3)} (the first model's imagination), "video_index": [...],
+    "sim_s", "wm_s", "steps"}.
     """
-    wm_cfg, wm_params, norm, judge = wm
     n = len(seeds)
     reset_keys = np.stack([np.asarray(jax.random.PRNGKey(s)) for s in seeds])
-    renderer = cached_renderers(wm_cfg.model.size, (CAMERA,))
-    names, true, prob, rule, kept = [], [], [], [], {}
+    renderer = cached_renderers(models[0][0].model.size, (CAMERA,))
+    names, true, prob, rule, members, kept = [], [], [], [], [], {}
     sim_s = wm_s = 0.0
     steps = None
     todo = [(g, part, padded) for g in group_by_policy(sources) for part, padded in padded_chunks(g, n, cfg.batch)]
@@ -152,26 +165,39 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, wm, seeds, engine: str, p
         sim_s += time.perf_counter() - t0
         t0 = time.perf_counter()
         frames0, proprio0 = truth["frames0"], truth["proprio0"]
-        b = len(frames0)
-        got = closed_loop(wm_cfg.model, policy, steps, wm_params, norm, params, frames0, proprio0,
-                          np.zeros((b, 0, R.ACTION_DIM), np.float32), jax.random.fold_in(rng, 1))
-        r = np.asarray(episode_success(got["success"]), np.float64).reshape(len(padded), n)[: len(part)]
-        p = judge.probability(got["features"], task).astype(np.float64).reshape(len(padded), n)[: len(part)] \
-            if judge is not None and judge.knows(task) else r
+        each = [_imagine(m, task, policy, params, frames0, proprio0, steps, jax.random.fold_in(rng, 1))
+                for m in models]
+        p_each = np.stack([p for p, _, _ in each]).reshape(len(models), len(padded), n)[:, : len(part)]
+        r = np.mean([r for _, r, _ in each], axis=0).reshape(len(padded), n)[: len(part)]
+        p = p_each.mean(0)
         wm_s += time.perf_counter() - t0
         for j, src in enumerate(part):
             names.append(src.name)
             true.append(outcome[j])
             prob.append(p[j])
             rule.append(r[j])
+            members.append(p_each[:, j])
             kept[src.name] = _keep_examples(cfg, src.name, j, n, outcome[j], p[j], truth.get("frames"),
-                                            got["frames"])
+                                            each[0][2])
         bar.update(len(part) * n)
     bar.close()
     true, prob = np.stack(true), np.stack(prob)
     videos, index = _select_videos(cfg, task, names, true, kept)
-    return {"names": names, "true": true, "prob": prob, "prob_rule": np.stack(rule), "videos": videos,
-            "video_index": index, "sim_s": sim_s, "wm_s": wm_s, "steps": steps}
+    return {"names": names, "true": true, "prob": prob, "prob_rule": np.stack(rule),
+            "prob_members": np.stack(members, axis=1), "videos": videos, "video_index": index, "sim_s": sim_s,
+            "wm_s": wm_s, "steps": steps}
+
+
+def _imagine(model, task, policy, params, frames0, proprio0, steps, rng) -> tuple:
+    """One world model's closed-loop episodes of a batch: (probability (B,) float64: the judge's, or
+    the per-step rule's where no judge knows the task; the rule's (B,); imagined frames (B, T, S, S, 3))."""
+    wm_cfg, wm_params, norm, judge = model
+    got = closed_loop(wm_cfg.model, policy, steps, wm_params, norm, params, frames0, proprio0,
+                      np.zeros((len(frames0), 0, R.ACTION_DIM), np.float32), rng)
+    rule = np.asarray(episode_success(got["success"]), np.float64)
+    p = judge.probability(got["features"], task).astype(np.float64) if judge is not None and judge.knows(task) \
+        else rule
+    return p, rule, got["frames"]
 
 
 def simulate_truth(cfg: EvalConfig, task: str, policy, params, seeds, reset_keys, rng, engine: str,
@@ -187,7 +213,7 @@ def simulate_truth(cfg: EvalConfig, task: str, policy, params, seeds, reset_keys
     path.parent.mkdir(parents=True, exist_ok=True)
     # Rankings on other GPUs wait for the one simulating this batch: the simulator on a GPU is not
     # bit-reproducible, and models compared must be compared against the same outcomes.
-    with _exclusive(path.with_suffix(".lock")):
+    with exclusive(path.with_suffix(".lock")):
         if path.exists():
             with np.load(path) as z:
                 return {k: z[k] for k in ("outcome", "frames0", "proprio0")} | {"steps": int(z["steps"])}
@@ -204,17 +230,6 @@ def _simulate(task, policy, params, seeds, reset_keys, rng, engine, renderer) ->
     outcome, rec = record_policies(env, policy, params, reset_keys, rng, renderer)
     return {"outcome": outcome, "frames0": np.asarray(rec.frames[CAMERA][:, :1]),
             "proprio0": np.asarray(rec.proprio[:, :1]), "steps": env.episode_steps, "frames": rec.frames[CAMERA]}
-
-
-@contextlib.contextmanager
-def _exclusive(lock: Path):
-    """Holds an exclusive lock on the file `lock` (created if missing) across processes."""
-    with open(lock, "a") as f:
-        fcntl.flock(f, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(f, fcntl.LOCK_UN)
 
 
 def _truth_key(task, policy, params, seeds, rng, engine, renderer) -> str:
@@ -270,7 +285,8 @@ def _interval_of_mean(x) -> list:
 
 def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) -> list[dict]:
     rows = []
-    for name, t, p, r in zip(res["names"], res["true"], res["prob"], res["prob_rule"], strict=True):
+    members = res["prob_members"].transpose(1, 0, 2)  # (P, K, N)
+    for name, t, p, r, pk in zip(res["names"], res["true"], res["prob"], res["prob_rule"], members, strict=True):
         rec = sources_by_name[name].record
         k, n = int(t.sum()), len(t)
         kp = int((p >= cfg.threshold).sum())
@@ -282,11 +298,14 @@ def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) ->
                      "alignment": S.alignment(p >= cfg.threshold, t), "pred_rate_rule": float(r.mean()),
                      # per held-out state, in the order of the seeds: for ensembles (experiments.ensemble)
                      "true_episodes": t.astype(int).tolist(), "pred_episodes": np.round(p, 5).tolist()})
+        if len(pk) > 1:
+            rows[-1]["pred_rates"] = pk.mean(1).tolist()  # each ensemble member's
     return rows
 
 
-def ranking_block(rows: list[dict], true_eps, prob_eps, threshold: float) -> dict:
-    """The world model's statistics and the imitation-loss baseline's over one set of policies."""
+def ranking_block(rows: list[dict], true_eps, prob_eps, threshold: float, member_eps=None) -> dict:
+    """The world model's statistics and the imitation-loss baseline's over one set of policies;
+    with an ensemble's member_eps (K, P, N), each member's own statistics ("members")."""
     true = [r["true_rate"] for r in rows]
     out = S.ranking_metrics([r["pred_rate"] for r in rows], true)
     out["pearson_ci_bootstrap"] = list(S.bootstrap_pearson(prob_eps, true_eps, draws=1000))
@@ -295,6 +314,8 @@ def ranking_block(rows: list[dict], true_eps, prob_eps, threshold: float) -> dic
     out["thresholded"] = {k: thr[k] for k in ("pearson", "spearman", "mmrv", "pairwise_acc_gap10")}
     rule = S.ranking_metrics([r["pred_rate_rule"] for r in rows], true)
     out["per_step_rule"] = {k: rule[k] for k in ("pearson", "spearman", "mmrv", "pairwise_acc_gap10")}
+    if member_eps is not None and len(member_eps) > 1:
+        out |= member_metrics(np.asarray(member_eps).mean(-1), true, member_eps, true_eps, threshold)
     with_loss = [r for r in rows if r["val_loss"] is not None]
     if len(with_loss) >= 2:  # lower imitation loss predicts higher success
         out["baseline"] = S.ranking_metrics([-r["val_loss"] for r in with_loss], [r["true_rate"] for r in with_loss])
@@ -324,9 +345,11 @@ def decision_analysis(cfg: EvalConfig, rows: list[dict], tasks: dict, alignment:
 
 # ---- the run -----------------------------------------------------------------------------------------
 
-def run(cfg: EvalConfig, out: Path, progress: bool = True) -> dict | None:
+def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int] | None = None) -> dict | None:
     """Evaluates (or completes the evaluation of) cfg into out; returns the results, or None when
-    cfg.max_minutes stopped it before the last task (rerun to finish)."""
+    cfg.max_minutes stopped it before the last task (rerun to finish). part: (K, N) evaluates every
+    N-th task from the K-th and returns None (sim_data.parts: one process per GPU; a run without a
+    part gathers the tasks' files into results.json)."""
     cfg.validate()
     out = Path(out)
     (out / "tasks").mkdir(parents=True, exist_ok=True)
@@ -335,12 +358,9 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True) -> dict | None:
     tasks = list(cfg.tasks) or sorted({s.task for s in sources if s.task})
     if not tasks:
         raise ValueError("no task to evaluate: the policies are all plug-ins; name tasks=...")
-    wm_cfg, wm_params, norm = load_trained(Path(cfg.wm))
-    judge = load_judge(Path(cfg.wm))
-    if judge is not None:
-        check_features(wm_cfg.model, judge)
-    wm = (wm_cfg, wm_params, norm, judge)
-    wm_data = json.loads((Path(cfg.wm) / "config.json").read_text())["data"]
+    models = load_models(cfg.wm_runs)
+    wm_cfg, wm_params, norm, judge = models[0]
+    wm_data = json.loads((Path(cfg.wm_runs[0]) / "config.json").read_text())["data"]
     wm_cache = TrainingCache(wm_data) if (Path(wm_data) / "cache" / "index.json").exists() else None
     wm_tasks = wm_cache.tasks if wm_cache is not None else tasks
     unseen = [t for t in tasks if t not in wm_tasks]
@@ -351,7 +371,7 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True) -> dict | None:
     engine = cfg.engine or default_engine()
     results, by_name = {}, {s.name: s for s in sources}
     t_start, longest = time.perf_counter(), 0.0
-    for task in tasks:
+    for task in take(tasks, part):
         path = out / "tasks" / f"{task}.npz"
         task_sources = [s for s in sources if s.runs_on(task)]
         if path.exists():
@@ -365,18 +385,19 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True) -> dict | None:
             return None
         t_task = time.perf_counter()
         seeds = heldout_seeds(task, cfg.episodes, cfg.seed, used)
-        res = evaluate_task(cfg, task, task_sources, wm, seeds, engine, progress)
+        res = evaluate_task(cfg, task, task_sources, models, seeds, engine, progress)
         longest = max(longest, time.perf_counter() - t_task)
         res["seeds"] = seeds
         _save_task(path, res)
         results[task] = _load_task(path)
+    if part is not None:
+        return None
     rows = [r for task in tasks for r in policy_rows(cfg, task, results[task], by_name)]
-    overall_true = np.concatenate([results[t]["true"] for t in tasks])
-    overall_prob = np.concatenate([results[t]["prob"] for t in tasks])
-    metrics = {"overall": ranking_block(rows, overall_true, overall_prob, cfg.threshold), "per_task": {}}
+    true_eps, prob_eps, member_eps = _episodes_of(results, tasks, lambda name: True)
+    metrics = {"overall": ranking_block(rows, true_eps, prob_eps, cfg.threshold, member_eps), "per_task": {}}
     for t in tasks:
         metrics["per_task"][t] = ranking_block([r for r in rows if r["task"] == t], results[t]["true"],
-                                               results[t]["prob"], cfg.threshold)
+                                               results[t]["prob"], cfg.threshold, results[t]["prob_members"])
     # the policies whose own rollouts the world model never saw in training
     seen = {e["policy"].split(":", 1)[1] for e in (wm_cache.episodes if wm_cache is not None else ())
             if e.get("policy_kind") == "learned"}
@@ -384,8 +405,8 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True) -> dict | None:
         r["in_wm_data"] = r["name"] in seen
     unseen = [r for r in rows if not r["in_wm_data"]]
     if seen and len(unseen) >= 3:
-        ut, up = _episodes_of(results, tasks, lambda name: name not in seen)
-        metrics["unseen"] = ranking_block(unseen, ut, up, cfg.threshold)
+        true_eps, prob_eps, member_eps = _episodes_of(results, tasks, lambda name: name not in seen)
+        metrics["unseen"] = ranking_block(unseen, true_eps, prob_eps, cfg.threshold, member_eps)
     panel = program_panel(wm_cfg, wm_params, norm, wm_cache, horizon=48) if wm_cache is not None else {}
     videos = {k: v for t in tasks for k, v in results[t]["videos"].items()}
     videos.update({f"controllability/{p}/{kind}": v[kind] for p, v in panel.items() for kind in ("real", "imagined")})
@@ -395,7 +416,7 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True) -> dict | None:
     report = {
         "config": json.loads(json.dumps(dataclasses.asdict(cfg))), "engine": engine, "device": device_name(),
         "versions": package_versions(("jax", "flax", "optax", "orbax-checkpoint", "mujoco", "mujoco-mjx", "numpy")),
-        "world_model": {"run": cfg.wm, "data": wm_data, "train_tasks": wm_tasks,
+        "world_model": {"run": cfg.wm, "runs": list(cfg.wm_runs), "data": wm_data, "train_tasks": wm_tasks,
                         "rule": {t: "episode judge" if judge is not None and judge.knows(t)
                                  else "highest per-step probability" for t in tasks}},
         "tasks": tasks, "policies": rows, "metrics": metrics,
@@ -410,16 +431,34 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True) -> dict | None:
 
 
 def _episodes_of(results: dict, tasks, keep) -> tuple:
-    """(true, prob), each (P', N) stacked over tasks, of the policies whose name `keep` accepts."""
-    rows = [(results[t]["true"][j], results[t]["prob"][j]) for t in tasks
-            for j, name in enumerate(results[t]["names"]) if keep(name)]
-    return np.stack([r[0] for r in rows]), np.stack([r[1] for r in rows])
+    """(true (P', N), prob (P', N), the members' prob (K, P', N)), stacked over tasks, of the policies
+    whose name `keep` accepts."""
+    picked = [(t, j) for t in tasks for j, name in enumerate(results[t]["names"]) if keep(name)]
+    return (np.stack([results[t]["true"][j] for t, j in picked]), np.stack([results[t]["prob"][j] for t, j in picked]),
+            np.stack([results[t]["prob_members"][:, j] for t, j in picked], axis=1))
+
+
+def load_models(runs) -> list:
+    """[(TrainConfig, params, Norm, judge or None)] of world-model run directories, checked to draw
+    frames of one size (the simulator renders the first frame once for all of them)."""
+    models = []
+    for run in runs:
+        wm_cfg, params, norm = load_trained(Path(run))
+        judge = load_judge(Path(run))
+        if judge is not None:
+            check_features(wm_cfg.model, judge)
+        models.append((wm_cfg, params, norm, judge))
+    sizes = {m[0].model.size for m in models}
+    if len(sizes) > 1:
+        raise ValueError(f"the world models {list(runs)} draw frames of sizes {sorted(sizes)}: an ensemble needs one")
+    return models
 
 
 def _save_task(path: Path, res: dict) -> None:
     meta = {"names": res["names"], "video_index": res["video_index"], "sim_s": res["sim_s"], "wm_s": res["wm_s"],
             "steps": res["steps"], "seeds": res["seeds"]}
     arrays = {"true": res["true"], "prob": res["prob"], "prob_rule": res["prob_rule"],
+              "prob_members": res["prob_members"],
               "meta": np.frombuffer(json.dumps(meta).encode(), np.uint8)}
     arrays.update({f"video:{k}": v for k, v in res["videos"].items()})
     tmp = path.with_name(path.stem + ".tmp.npz")
@@ -431,8 +470,9 @@ def _load_task(path: Path) -> dict:
     with np.load(path) as z:
         meta = json.loads(z["meta"].tobytes().decode())
         videos = {k[len("video:"):]: z[k] for k in z.files if k.startswith("video:")}
+        members = z["prob_members"] if "prob_members" in z.files else z["prob"][None]  # before ensembles
         return {**meta, "true": z["true"].astype(bool), "prob": z["prob"], "prob_rule": z["prob_rule"],
-                "videos": videos}
+                "prob_members": members, "videos": videos}
 
 
 def _check_config(cfg: EvalConfig, out: Path) -> None:
@@ -450,16 +490,19 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--config", default="demo", help=f"preset: {', '.join(PRESETS)}")
     p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--part", help="K/N: evaluate every N-th task from the K-th and stop (one process per GPU; then "
+                                  "run without --part to gather results.json: sim_data.parts)")
     p.add_argument("overrides", nargs="*", help="key=value overrides (e.g. episodes=50 policies=DIR,mod:attr)")
     a = p.parse_args(argv)
     try:
         cfg = make_config(a.config, a.overrides)
+        part = parse_part(a.part)
     except ValueError as e:
         p.error(str(e))
     t0 = time.perf_counter()
-    res = run(cfg, a.out)
+    res = run(cfg, a.out, part=part)
     if res is None:
-        return 0  # stopped by max_minutes; the message says what is left
+        return 0  # a part, or stopped by max_minutes (the message says what is left)
     m = res["metrics"]["overall"]
     print(json.dumps({k: m[k] for k in ("pearson", "spearman", "mmrv", "pairwise_acc_gap10", "alignment")}, indent=1))
     print(f"{len(res['policies'])} policies in {time.perf_counter() - t0:.0f} s; results {a.out / 'results.json'}")

@@ -12,7 +12,7 @@ modules' own entry points with the preset's configurations:
 | data     | sim_data.generate      | runs/data/<data>  |
 | policies | sim_data.zoo           | runs/policies/<p> |
 | rollouts | sim_data.generate      | runs/data/<data>_<p>_rollouts (the data and the lineage's rollouts) |
-| train    | wm.train               | runs/wm/<p>       |
+| train    | wm.train               | runs/wm/<p> (and runs/wm/<p>_seed<k>: an ensemble's members) |
 | eval     | experiments.evaluate   | runs/eval/<p>     |
 | report   | experiments.report     | runs/eval/<p>/report.html |
 
@@ -20,6 +20,14 @@ The world model learns from the scripted episodes and from the rollouts of one l
 failures included (the published work's most useful source: what the evaluated policies do, not
 only what demonstrations do); the evaluation reports its statistics over every policy and over the
 policies whose rollouts the world model never saw (`metrics.unseen`).
+
+A preset may train an ensemble (`members`): world models that differ only in their training seed,
+whose mean probability ranks the policies (one model's seed moves its ranking more than most design
+choices; experiments.ensemble). On a host with several GPUs (`--gpus`, default every visible GPU)
+each stage spreads over them, one process per GPU (sim_data.parts): the data generator's chunks, the
+zoo's lineages, the ensemble's members and the evaluator's tasks; with one GPU or none the stages run
+in this process, and the train stage trains one member a command (rerun it for the next), so that
+each fits a 10-minute command.
 """
 
 from __future__ import annotations
@@ -29,6 +37,8 @@ import dataclasses
 import sys
 import time
 from pathlib import Path
+
+from sim_data.parts import local_gpus, module_command, run_parallel
 
 STAGES = ("data", "policies", "rollouts", "train", "eval", "report")
 
@@ -44,6 +54,7 @@ class Pipeline:
     root: str = "runs"
     rollouts: str = ""  # a zoo selector (sim_data.sources) whose checkpoints' rollouts join the world model's data
     rollout_episodes: int = 0  # episodes per selected checkpoint
+    members: int = 1  # world models trained with seeds 0..members-1; their ensemble evaluates the policies
     data_overrides: tuple = ()
     policies_overrides: tuple = ()
     train_overrides: tuple = ()
@@ -52,7 +63,8 @@ class Pipeline:
     def dirs(self, name: str) -> dict:
         r = Path(self.root)
         data = r / "data" / self.data
-        return {"data": data, "policies": r / "policies" / name, "wm": r / "wm" / name, "eval": r / "eval" / name,
+        wm = [r / "wm" / name] + [r / "wm" / f"{name}_seed{k}" for k in range(1, self.members)]
+        return {"data": data, "policies": r / "policies" / name, "wm": wm[0], "members": wm, "eval": r / "eval" / name,
                 "wm_data": data.with_name(f"{self.data}_{name}_rollouts") if self.rollouts else data}
 
 
@@ -61,68 +73,126 @@ PIPELINES = {
                      rollout_episodes=4),
     # the GPU preset: two tasks, scripted episodes of 5 skills, random play and the controllability
     # programs, the conv_noproprio lineage's rollouts; the zoo's five lineages of 8 checkpoints
-    # evaluated over 64 held-out initial states per task; sized so that the whole chain fits one
-    # 30-minute GPU session (H200, session 8: data 341 s, policies 206 s, rollouts 181 s, train 381 s,
-    # eval 364 s for both tasks, report 9 s)
+    # evaluated over 64 held-out initial states per task by an ensemble of 3 world models; on one H200
+    # (session 8, one world model) data 341 s, policies 206 s, rollouts 181 s, train 381 s a member,
+    # eval 364 s for both tasks, report 9 s
     "full": Pipeline(data="wm_full", policies="full", train="full", eval="full",
                      train_overrides=("w_success=0.5", "max_minutes=3.5"),
-                     rollouts="conv_noproprio", rollout_episodes=64),
+                     rollouts="conv_noproprio", rollout_episodes=64, members=3),
 }
 
 
-def run_stage(name: str, stage: str, extra=()) -> None:
+def run_stage(name: str, stage: str, extra=(), gpus=()) -> bool:
+    """Runs one stage of pipeline `name`, spread over `gpus` (ids) where there are several; returns
+    False where the stage must run again to finish (an ensemble's members left to train)."""
     p = PIPELINES[name]
     d = p.dirs(name)
     t0 = time.perf_counter()
-    print(f"== {name}: {stage}", file=sys.stderr, flush=True)
+    print(f"== {name}: {stage}" + (f" on {len(gpus)} GPUs" if len(gpus) > 1 else ""), file=sys.stderr, flush=True)
+    done = True
     if stage == "data":
         from sim_data import generate
 
-        generate.main(["--config", p.data, "--out", str(d["data"]), *p.data_overrides, *extra])
+        args = ["--config", p.data, "--out", str(d["data"]), *p.data_overrides, *extra]
+        _spread("sim_data.generate", args, gpus, p, name, "data")
+        generate.main(args)
     elif stage == "policies":
         from sim_data import zoo
 
-        zoo.main(["--config", p.policies, "--data", str(d["data"]), "--out", str(d["policies"]),
-                  *p.policies_overrides, *extra])
+        args = ["--config", p.policies, "--data", str(d["data"]), "--out", str(d["policies"]), *p.policies_overrides,
+                *extra]
+        _spread("sim_data.zoo", args, gpus, p, name, "policies")
+        zoo.main(args)
     elif stage == "rollouts":
         if not p.rollouts:
             print(f"{name} trains its world model on the data alone; skipping", file=sys.stderr)
-            return
+            return True
         from sim_data import generate
 
-        generate.main(["--config", p.data, "--out", str(d["wm_data"]), "--reuse", str(d["data"]), *p.data_overrides,
-                       f"policies={d['policies']}#{p.rollouts}", f"policy_episodes={p.rollout_episodes}", *extra])
+        args = ["--config", p.data, "--out", str(d["wm_data"]), "--reuse", str(d["data"]), *p.data_overrides,
+                f"policies={d['policies']}#{p.rollouts}", f"policy_episodes={p.rollout_episodes}", *extra]
+        _spread("sim_data.generate", args, gpus, p, name, "rollouts")
+        generate.main(args)
     elif stage == "train":
-        if (d["wm"] / "eval.json").exists():
-            print(f"{d['wm']} is trained (eval.json exists); skipping", file=sys.stderr)
-            return
-        from wm import train
-
-        train.main(["--config", p.train, "--data", str(d["wm_data"]), "--out", str(d["wm"]), *p.train_overrides,
-                    *extra])
+        done = train_members(name, extra, gpus)
     elif stage == "eval":
         from experiments import evaluate
 
-        evaluate.main(["--config", p.eval, "--out", str(d["eval"]), f"policies={d['policies']}", f"wm={d['wm']}",
-                       *p.eval_overrides, *extra])
+        untrained = [str(m) for m in d["members"] if not (m / "eval.json").exists()]
+        if untrained:
+            raise SystemExit(f"{', '.join(untrained)} not trained yet: run the train stage (make full STAGE=train) "
+                             "until it says every member is trained")
+        args = ["--config", p.eval, "--out", str(d["eval"]), f"policies={d['policies']}",
+                "wm=" + ",".join(str(m) for m in d["members"]), *p.eval_overrides, *extra]
+        _spread("experiments.evaluate", args, gpus, p, name, "eval")
+        evaluate.main(args)
     elif stage == "report":
         from experiments import report
 
         report.main([str(d["eval"])])
-    print(f"== {name}: {stage} done in {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
+    print(f"== {name}: {stage} {'done' if done else 'to be continued'} in {time.perf_counter() - t0:.0f} s",
+          file=sys.stderr, flush=True)
+    return done
+
+
+def train_members(name: str, extra=(), gpus=()) -> bool:
+    """Trains the world models of pipeline `name` not yet trained: member k with seed=k, one per GPU
+    at a time (one in this process without several GPUs); returns whether every member is trained."""
+    p = PIPELINES[name]
+    d = p.dirs(name)
+    todo = [(k, m) for k, m in enumerate(d["members"]) if not (m / "eval.json").exists()]
+    if not todo:
+        print(f"{', '.join(str(m) for m in d['members'])}: trained (eval.json exists); skipping", file=sys.stderr)
+        return True
+    todo = todo[: max(len(gpus), 1)]  # a round that fits one command; the stage's next run trains the rest
+    commands = [["--config", p.train, "--data", str(d["wm_data"]), "--out", str(m), *p.train_overrides,
+                 *([f"seed={k}"] if k else []), *extra] for k, m in todo]
+    if len(gpus) > 1:
+        run_parallel([module_command("wm.train", c) for c in commands], gpus, _logs(p, name), "train-member")
+    else:
+        from wm import train
+
+        print(f"member {todo[0][0]} of {p.members}: {todo[0][1]}", file=sys.stderr)
+        train.main(commands[0])
+    left = [str(m) for m in d["members"] if not (m / "eval.json").exists()]
+    if left:
+        print(f"{len(left)} of {p.members} world models left to train ({', '.join(left)}): run the train stage again",
+              file=sys.stderr)
+    return not left
+
+
+def _spread(module: str, args, gpus, p: Pipeline, name: str, stage: str) -> None:
+    """With several GPUs, `python -m module args --part K/N` on each of them (sim_data.parts); the
+    caller then runs the module once more without a part to gather."""
+    if len(gpus) > 1:
+        n = len(gpus)
+        run_parallel([module_command(module, [*args, "--part", f"{k}/{n}"]) for k in range(n)], gpus,
+                     _logs(p, name), f"{stage}-part")
+
+
+def _logs(p: Pipeline, name: str) -> Path:
+    return Path(p.root) / "logs" / name
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("pipeline", choices=sorted(PIPELINES))
     ap.add_argument("--stage", choices=STAGES + ("all",), default="all")
+    ap.add_argument("--gpus", type=int, default=None,
+                    help="how many of the visible GPUs the stages spread over (default: all of them)")
     ap.add_argument("overrides", nargs="*", help="key=value overrides passed to the one stage run")
     a = ap.parse_intermixed_args(argv)
     if a.stage == "all" and a.overrides:
         ap.error("overrides need one --stage")
+    gpus = local_gpus()
+    if a.gpus is not None:
+        if not 0 <= a.gpus <= len(gpus):
+            ap.error(f"--gpus {a.gpus}: this host shows {len(gpus)} GPUs")
+        gpus = gpus[: a.gpus]
     t0 = time.perf_counter()
     for stage in STAGES if a.stage == "all" else (a.stage,):
-        run_stage(a.pipeline, stage, a.overrides)
+        while not run_stage(a.pipeline, stage, a.overrides, gpus) and a.stage == "all":
+            pass
     if a.stage in ("all", "report"):
         print(f"report: {(PIPELINES[a.pipeline].dirs(a.pipeline)['eval'] / 'report.html').absolute()} "
               f"({time.perf_counter() - t0:.0f} s)")

@@ -202,17 +202,38 @@ def verdicts(policies: list[dict], tasks: list[str]) -> list[dict]:
 # ---- the documents ------------------------------------------------------------------------------------
 
 def _metrics_table(metrics: dict) -> list[list[str]]:
-    rows = [["statistic", "world model", "its per-step rule", "imitation-loss baseline", "target (full preset)"]]
+    """Headline statistics against the targets; with an ensemble's, each member's alone beside them."""
+    members = metrics.get("members", {})
+    k = len(next(iter(members.values()))) if members else 0
+    rows = [["statistic", f"ensemble of {k} world models" if k else "world model", "its per-step rule",
+             "imitation-loss baseline", "target (full preset)"]]
+    if k:
+        rows[0].insert(2, "each model alone: mean (min..max)")
     base, rule = metrics.get("baseline", {}), metrics.get("per_step_rule", {})
-    for k in HEADLINE:
-        tgt = TARGETS.get(k)
-        val = _fmt(metrics.get(k))
-        if k == "pearson":
+    for s in HEADLINE:
+        tgt = TARGETS.get(s)
+        val = _fmt(metrics.get(s))
+        if s == "pearson":
             ci, bs = metrics.get("pearson_ci", [None, None]), metrics.get("pearson_ci_bootstrap", [None, None])
             val += f" (Fisher {_fmt(ci[0], 2)}..{_fmt(ci[1], 2)}; bootstrap {_fmt(bs[0], 2)}..{_fmt(bs[1], 2)})"
-        rows.append([k, val, _fmt(rule.get(k)) if k in rule else "-", _fmt(base.get(k)) if k != "alignment" else "-",
-                     f"{tgt[0]} {tgt[1]}" if tgt else "-"])
+        row = [s, val, _fmt(rule.get(s)) if s in rule else "-", _fmt(base.get(s)) if s != "alignment" else "-",
+               f"{tgt[0]} {tgt[1]}" if tgt else "-"]
+        if k:
+            each = [v for v in members.get(s, ()) if v is not None and not math.isnan(v)]  # NaN: null in JSON
+            row.insert(2, f"{_fmt(metrics['members_mean'][s])} ({_fmt(min(each), 2)}..{_fmt(max(each), 2)})"
+                       if each else "-")
+        rows.append(row)
     return rows
+
+
+def _models_phrase(res: dict, code, capital: bool = False) -> str:
+    """'world model X', or 'an ensemble of K world models (their mean probability): X, Y, Z'."""
+    runs = res["world_model"].get("runs") or [res["world_model"]["run"]]
+    if len(runs) == 1:
+        out = f"world model {code(runs[0])}"
+    else:
+        out = f"an ensemble of {len(runs)} world models (their mean probability): {', '.join(code(r) for r in runs)}"
+    return out[0].upper() + out[1:] if capital else out
 
 
 def _policy_table(rows: list[dict]) -> list[list[str]]:
@@ -254,7 +275,7 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
     h = [f"<html><head><meta charset='utf-8'><title>World-model policy evaluation</title><style>{CSS}</style>"
          "</head><body>", "<h1>Policy evaluation in the world model against the simulator</h1>",
          f"<p>{len(policies)} policies on {', '.join(tasks)}; {res['config']['episodes']} held-out initial states "
-         f"per task; world model <code>{html.escape(res['world_model']['run'])}</code>; engine {res['engine']}; "
+         f"per task; {_models_phrase(res, lambda r: f'<code>{html.escape(r)}</code>')}; engine {res['engine']}; "
          f"device {html.escape(str(res['device']))}.</p>",
          "<h2>Headline statistics (all policies)</h2>", _html_table(_metrics_table(metrics["overall"])),
          *(["<h2>Policies whose rollouts the world model never saw</h2>",
@@ -302,7 +323,7 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
           f"<pre>{html.escape(json.dumps(res['versions'], indent=1))}</pre>",
           f"<pre>{html.escape(json.dumps(res['timing'], indent=1))}</pre>", "</body></html>"]
     md = [f"# Policy evaluation: {len(policies)} policies on {', '.join(tasks)}", "",
-          f"World model `{res['world_model']['run']}`, {res['config']['episodes']} held-out initial states per task, "
+          f"{_models_phrase(res, lambda r: f'`{r}`', capital=True)}, {res['config']['episodes']} held-out initial states per task, "
           f"engine {res['engine']}, device {res['device']}. Full report: `report.html`.", "",
           "## All policies", "", _md_table(_metrics_table(metrics["overall"])), ""]
     if "unseen" in metrics:

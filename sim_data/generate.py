@@ -37,6 +37,7 @@ from sim_data.config import override
 from sim_data.engines import ENGINES, default_engine
 from sim_data.env import HomeEnv
 from sim_data.episodes import CorruptEpisode, read_episode_meta, write_episode_mcap  # noqa: F401 (re-exported)
+from sim_data.parts import exclusive, parse_part, take
 from sim_data.policies import PROGRAMS, ProgramPolicy, ScriptedPolicy, play_params, program_params
 from sim_data.render import RenderConfig, Renderer
 from sim_data.rollout import record_episodes
@@ -271,26 +272,31 @@ def link_shared_episodes(cfg: DataConfig, out: Path, reuse: Path, learned=()) ->
     return linked
 
 
-def generate(cfg: DataConfig, out: Path, progress: bool = True, reuse: Path | None = None) -> dict:
+def generate(cfg: DataConfig, out: Path, progress: bool = True, reuse: Path | None = None,
+             part: tuple[int, int] | None = None) -> dict | None:
     """Generates (or completes) the dataset of cfg in out; returns the stats written to stats.json.
-    reuse: a dataset whose shared episodes are linked instead of simulated (link_shared_episodes)."""
+    reuse: a dataset whose shared episodes are linked instead of simulated (link_shared_episodes).
+    part: (K, N) simulates every N-th chunk from the K-th and returns None, leaving the manifest,
+    the cache and stats.json to a run without a part (sim_data.parts: one process per GPU)."""
     cfg.validate()
     out = Path(out)
     (out / "episodes").mkdir(parents=True, exist_ok=True)
-    _check_config_matches(cfg, out)
     engine = cfg.engine or default_engine()
     learned = resolve_sources(cfg.policies)
-    for stale in (out / "episodes").glob("*.tmp"):
-        stale.unlink()  # a killed run's half-written file
-    if reuse is not None:
-        n = link_shared_episodes(cfg, out, reuse, learned)
-        if progress:
-            print(f"reused {n} episodes of {reuse}", file=sys.stderr)
+    with exclusive(out / "episodes.lock"):  # the parts of one dataset start together
+        _check_config_matches(cfg, out)
+        if part is None:  # (a part's writers may be busy with theirs)
+            for stale in (out / "episodes").glob("*.tmp"):
+                stale.unlink()  # a killed run's half-written file
+        if reuse is not None:
+            n = link_shared_episodes(cfg, out, reuse, learned)
+            if progress:
+                print(f"reused {n} episodes of {reuse}", file=sys.stderr)
     # a chunk with any episode missing is simulated whole (its batch fixes every episode's noise) and
     # only the missing episodes are written
     todo = [(task, skill, idx, {i for i in idx if not (out / "episodes" / f"{episode_id(task, skill, i)}.mcap").exists()})
             for task, skill, idx in _plan(cfg, learned)]
-    todo = [c for c in todo if c[3]]
+    todo = take([c for c in todo if c[3]], part)
     total = sum(len(c[3]) for c in todo)
     bar = tqdm(total=total, unit="ep", desc="episodes", disable=not progress or total == 0)
     t0, frames_done, steps_done = time.perf_counter(), 0, 0
@@ -347,6 +353,8 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True, reuse: Path | No
     pool.shutdown()
     bar.close()
     wall = time.perf_counter() - t0
+    if part is not None:
+        return None
     manifest = build_manifest(cfg, out, learned)
     stats = _stats(manifest, {"wall_s": wall, "episodes_generated": total, "steps_generated": steps_done,
                               "frames_generated": frames_done, "frames_per_s": frames_done / wall if total else None,
@@ -435,16 +443,22 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--reuse", type=Path, help="a dataset of the same settings whose episodes are linked, not simulated "
                                               "again (to add policies' rollouts to a generated dataset)")
+    p.add_argument("--part", help="K/N: simulate every N-th chunk from the K-th and stop (one process per GPU; "
+                                  "then run without --part to gather: sim_data.parts)")
     p.add_argument("overrides", nargs="*", help="key=value overrides of the preset (e.g. episodes=16 tasks=mug,wipe)")
     a = p.parse_args(argv)
     try:
         cfg = make_config(a.config, a.overrides)
+        part = parse_part(a.part)
     except ValueError as e:
         p.error(str(e))
     try:
-        stats = generate(cfg, a.out, reuse=a.reuse)
+        stats = generate(cfg, a.out, reuse=a.reuse, part=part)
     except (FileNotFoundError, ValueError) as e:
         p.error(str(e))
+    if stats is None:
+        print(f"part {a.part} done; run without --part to gather the dataset", file=sys.stderr)
+        return 0
     print(json.dumps({"episodes": stats["episodes"], **stats["throughput"]}, indent=1))
     return 0
 

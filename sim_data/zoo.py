@@ -44,6 +44,7 @@ from tqdm import tqdm
 from sim_data.cache import TrainingCache
 from sim_data.config import override
 from sim_data.learned import BCPolicy, PolicyNetConfig, init_params, predict_chunk, to_numpy
+from sim_data.parts import parse_part, take
 from sim_data.success_table import wilson_interval, write_json_atomic
 
 CAMERA = "head_cam"
@@ -284,8 +285,11 @@ def train_lineage(cfg: ZooConfig, cache: TrainingCache, task: str, lineage: Line
     return records
 
 
-def train_zoo(cfg: ZooConfig, data: Path, out: Path, progress: bool = True) -> list[dict]:
-    """Trains (or completes) every lineage of every task; writes and returns the registry."""
+def train_zoo(cfg: ZooConfig, data: Path, out: Path, progress: bool = True,
+              part: tuple[int, int] | None = None) -> list[dict] | None:
+    """Trains (or completes) every lineage of every task; writes and returns the registry. part:
+    (K, N) trains every N-th (task, lineage) from the K-th and returns None, leaving the registry
+    to a run without a part (sim_data.parts: one process per GPU)."""
     cfg.validate()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -298,16 +302,21 @@ def train_zoo(cfg: ZooConfig, data: Path, out: Path, progress: bool = True) -> l
         raise ValueError(f"tasks {missing} are not in the dataset {data} (it has {cache.tasks})")
     registry = []
     jobs = [(t, lin) for t in cfg.tasks for lin in cfg.lineages]
+    mine = take(range(len(jobs)), part)
     for n, (task, lin) in enumerate(jobs, start=1):
         done = out / task / lin.name / "lineage.json"
         if done.exists():
             registry += json.loads(done.read_text())
+            continue
+        if n - 1 not in mine:
             continue
         if progress:
             print(f"[{n}/{len(jobs)}] {task}/{lin.name}", file=sys.stderr)
         val_eps = _episodes(cache, task, "val", (1.0,), True, 0) or _episodes(cache, task, "train", (1.0,), True, 0)
         val = load_samples(cache, val_eps, cfg.net(lin).chunk)
         registry += train_lineage(cfg, cache, task, lin, out, val, progress)
+    if part is not None:
+        return None
     write_json_atomic(out / "policies.json", {"data": str(Path(data)), "policies": registry})
     return registry
 
@@ -404,14 +413,20 @@ def main(argv=None) -> int:
                    help="then measure each checkpoint's true success over N held-out initial states per task")
     p.add_argument("--engine", default="", choices=["", "cpu", "mjx"],
                    help="the engine of --measure (default: mjx where a GPU is, else cpu)")
+    p.add_argument("--part", help="K/N: train every N-th lineage from the K-th and stop (one process per GPU; then "
+                                  "run without --part to write the registry: sim_data.parts)")
     p.add_argument("overrides", nargs="*", help="key=value overrides (e.g. steps=500 conv.width=32)")
     a = p.parse_args(argv)
     try:
         cfg = make_config(a.config, a.overrides)
+        part = parse_part(a.part)
     except ValueError as e:
         p.error(str(e))
     t0 = time.perf_counter()
-    registry = train_zoo(cfg, a.data, a.out)
+    registry = train_zoo(cfg, a.data, a.out, part=part)
+    if registry is None:
+        print(f"part {a.part} done; run without --part to write the registry", file=sys.stderr)
+        return 0
     print(f"{len(registry)} checkpoints in {time.perf_counter() - t0:.0f} s; registry {a.out / 'policies.json'}")
     if a.measure:
         t0 = time.perf_counter()

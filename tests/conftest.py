@@ -2,6 +2,7 @@ import fcntl
 import json
 import os
 import shutil
+import uuid
 from pathlib import Path
 
 os.environ.setdefault("MUJOCO_GL", "egl")
@@ -10,6 +11,25 @@ import jax  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
+
+# Most of the suite's time is XLA compiling the same small functions (the cpu engine's rollout pieces, the
+# policies) in each test process: one compilation cache per run lets the second pytest-xdist worker load
+# what the first compiled. Each run has its own, removed at its end: nothing is reused between runs.
+JAX_CACHE = "/tmp/wmlab-test-jax-cache-{}"
+if os.environ.get("PYTEST_XDIST_TESTRUNUID"):
+    jax.config.update("jax_compilation_cache_dir", JAX_CACHE.format(os.environ["PYTEST_XDIST_TESTRUNUID"]))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+def pytest_configure(config):
+    if not hasattr(config, "workerinput") and getattr(config.option, "testrunuid", "") is None:
+        config.option.testrunuid = uuid.uuid4().hex  # the workers' run id, known here to remove the cache
+
+
+def pytest_unconfigure(config):
+    if not hasattr(config, "workerinput") and getattr(config.option, "testrunuid", None):
+        shutil.rmtree(JAX_CACHE.format(config.option.testrunuid), ignore_errors=True)
 
 from sim_data import scene as S  # noqa: E402
 

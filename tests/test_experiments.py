@@ -1,6 +1,8 @@
 """The evaluator and the report end to end on the smoke world model and zoo (CPU, tiny)."""
 
+import dataclasses
 import json
+import shutil
 import threading
 import time
 
@@ -10,6 +12,7 @@ import pytest
 from experiments import evaluate as E
 from experiments import stats as S
 from experiments.report import write_report
+from sim_data.parts import exclusive
 
 from conftest import build_once
 
@@ -66,6 +69,38 @@ def test_report_renders_figures_and_videos(evaluation):
     assert "Decision analysis" in page and "imitation-loss baseline" in page
     md = (out / "report.md").read_text()
     assert "| pearson |" in md and "examples.plugin_policy:make" in md
+
+
+def test_an_ensemble_averages_its_members_probabilities(evaluation, smoke_world_model, tmp_path):
+    cfg, out, res = evaluation
+    # a second member: the same network reading the actions on another scale, so that it predicts otherwise
+    other = tmp_path / "other"
+    shutil.copytree(smoke_world_model, other)
+    norm = json.loads((other / "norm.json").read_text())
+    norm["action_std"] = [0.25 * s for s in norm["action_std"]]
+    (other / "norm.json").write_text(json.dumps(norm))
+    E.run(dataclasses.replace(cfg, wm=f"{smoke_world_model},{other}"), tmp_path / "ens", progress=False)
+    got = json.loads((tmp_path / "ens" / "results.json").read_text())
+    with np.load(out / "tasks" / "mug.npz") as z:
+        true, prob = z["true"].astype(bool), z["prob"]
+    with np.load(tmp_path / "ens" / "tasks" / "mug.npz") as z:
+        assert (z["true"] == true).all()
+        members, mean = z["prob_members"], z["prob"]
+    assert members.shape == (2, *prob.shape) and np.abs(members[1] - members[0]).max() > 1e-3
+    np.testing.assert_allclose(members[0], prob, atol=1e-6)  # the first member alone is the single evaluation
+    np.testing.assert_allclose(mean, members.mean(0), atol=1e-6)
+    for row, each in zip(got["policies"], members.transpose(1, 0, 2), strict=True):
+        assert row["pred_rates"] == pytest.approx(each.mean(1)) and row["pred_rate"] == pytest.approx(each.mean())
+    m, single = got["metrics"]["overall"], res["metrics"]["overall"]
+    for stat in ("pearson", "mmrv", "alignment"):
+        assert m["members"][stat][0] == single[stat] or m["members"][stat][0] == pytest.approx(single[stat])
+    assert m["members"]["alignment"][1] == pytest.approx(S.alignment(members[1] >= cfg.threshold, true))
+    assert m["alignment"] == pytest.approx(S.alignment(mean >= cfg.threshold, true))
+    assert got["world_model"]["runs"] == [str(smoke_world_model), str(other)]
+    page = write_report(tmp_path / "ens").read_text()
+    assert "an ensemble of 2 world models" in page and "each model alone" in page
+    with pytest.raises(ValueError, match="twice"):
+        E.make_config("demo", [f"wm={other},{other}"])
 
 
 def test_bad_evaluation_settings_are_refused():
@@ -134,7 +169,7 @@ def test_truth_cache_returns_the_simulated_batch_waits_for_a_writer_and_misses_o
     held = entry.read_bytes()
     entry.unlink()
     got = {}
-    with E._exclusive(entry.with_suffix(".lock")):
+    with exclusive(entry.with_suffix(".lock")):
         waiting = threading.Thread(target=lambda: got.update(E.simulate_truth(
             cfg, "mug", policy, params, seeds, keys, rng, "cpu", renderer)))
         waiting.start()

@@ -64,12 +64,17 @@ def test_mcap_reads_back_with_every_image_decoded(smoke):
     assert successes[-1] == row["success"] == meta["success"] and meta["config"]["episodes"] == cfg.episodes
 
 
-def test_same_config_gives_same_bytes_and_resume_completes(smoke, tmp_path):
+def test_same_config_gives_same_bytes_in_parts_and_resume_completes(smoke, tmp_path):
     cfg, out, _ = smoke
-    again = tmp_path / "again"
-    G.generate(cfg, again, progress=False)
-    assert (again / "manifest.jsonl").read_bytes() == (out / "manifest.jsonl").read_bytes()
     files = sorted(p.name for p in (out / "episodes").iterdir())
+    again = tmp_path / "again"
+    # in two parts, as on two GPUs (sim_data.parts), each a share of the chunks, then gathered
+    assert G.generate(cfg, again, progress=False, part=(0, 2)) is None
+    first = sorted(p.name for p in (again / "episodes").iterdir())
+    assert 0 < len(first) < len(files) and not (again / "manifest.jsonl").exists()
+    assert G.generate(cfg, again, progress=False, part=(1, 2)) is None
+    assert G.generate(cfg, again, progress=False)["throughput"]["episodes_generated"] == 0
+    assert (again / "manifest.jsonl").read_bytes() == (out / "manifest.jsonl").read_bytes()
     for name in files:
         assert (again / "episodes" / name).read_bytes() == (out / "episodes" / name).read_bytes()
     cached = sorted(p.relative_to(out) for p in (out / "cache").rglob("*") if p.is_file())

@@ -13,7 +13,7 @@ import pytest
 from wm import imagine as I
 from wm import metrics as M
 from wm.config import SMOKE_MODEL, make_config, override
-from wm.model import WorldModel, init_params
+from wm.model import Decoder, WorldModel, depth_to_space, init_params, space_to_depth
 from wm.train import Run, TrainingDiverged
 
 CFG = SMOKE_MODEL
@@ -57,6 +57,21 @@ def test_warp_shifts_pixels_bilinearly_and_clamps_at_the_border():
     assert float(jnp.abs(grad).max()) > 0
 
 
+def test_sub_pixel_decoder_unfolds_channels_into_pixels():
+    x = np.arange(2 * 4 * 4 * 12, dtype=np.float32).reshape(2, 4, 4, 12)
+    np.testing.assert_array_equal(space_to_depth(depth_to_space(x, 2), 2), x)
+    # output pixel (2i+a, 2j+b), channel c, is input (i, j)'s channel (2a+b)C + c
+    np.testing.assert_array_equal(depth_to_space(x, 2)[:, 3, 1, 2], x[:, 1, 0, (2 * 1 + 1) * 3 + 2])
+    cfg = dataclasses.replace(CFG, upsample="shuffle")
+    dec = Decoder(cfg)
+    z, prev = jnp.zeros((2, 8, 8, cfg.latent)), jnp.full((2, 64, 64, 3), 0.25)
+    params = dec.init(jax.random.PRNGKey(0), z, prev)
+    convs = [v["kernel"].shape for k, v in params["params"].items() if k.startswith("Conv_")]
+    assert [s[-1] for s in convs[1:4]] == [4 * c for c in cfg.channels[::-1]]  # 4x wider, at the lower resolution
+    out = dec.apply(params, z, prev)
+    assert out.shape == (2, 64, 64, 3) and abs(float(out.mean()) - 0.25) < 0.05  # starts near a copy of prev
+
+
 @pytest.fixture(scope="module")
 def model_and_inputs():
     params = init_params(CFG, jax.random.PRNGKey(0), window=6)
@@ -64,8 +79,9 @@ def model_and_inputs():
     frames = rng.integers(0, 255, (2, 6, 64, 64, 3)).astype(np.uint8)
     proprio = rng.normal(size=(2, 6, 37)).astype(np.float32)
     action = rng.normal(size=(2, 6, 20)).astype(np.float32)
-    # non-zero output layers, so that every input reaches the predictions
-    params = jax.tree_util.tree_map(lambda x: x + 0.05 * jax.random.normal(jax.random.PRNGKey(1), x.shape), params)
+    # non-zero output layers, so that every input reaches the predictions (numpy's noise: no compilation)
+    noise = np.random.default_rng(1)
+    params = jax.tree_util.tree_map(lambda x: x + 0.05 * noise.standard_normal(x.shape).astype(np.float32), params)
     return params, frames, proprio, action
 
 

@@ -1,0 +1,106 @@
+"""A long job spread over the GPUs of one host, one process per GPU.
+
+The data generator, the zoo and the evaluator take `--part K/N`: that process does every N-th piece
+of the work (chunks of episodes, lineages, tasks) from the K-th, saves each piece as the whole job
+would, and stops without gathering. A last run of the same command without `--part` then finds
+every piece done and gathers them (manifest and cache, registry, results). `run_parallel` starts
+the processes, one per GPU (`CUDA_VISIBLE_DEVICES`), and fails naming the first that failed and
+the tail of its log.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+
+@contextlib.contextmanager
+def exclusive(lock: Path):
+    """Holds an exclusive lock on the file `lock` (created if missing) across processes."""
+    with open(lock, "a") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def parse_part(text: str | None) -> tuple[int, int] | None:
+    """'K/N' -> (K, N) with 0 <= K < N; None stays None."""
+    if text is None:
+        return None
+    try:
+        k, n = (int(x) for x in text.split("/"))
+    except ValueError:
+        raise ValueError(f"--part takes K/N (this process's index and the number of processes), got {text!r}") from None
+    if not 0 <= k < n:
+        raise ValueError(f"--part K/N needs 0 <= K < N, got {text!r}")
+    return k, n
+
+
+def take(items, part: tuple[int, int] | None) -> list:
+    """The items of this part (every N-th from the K-th), or all of them without a part."""
+    items = list(items)
+    return items if part is None else items[part[0]::part[1]]
+
+
+def local_gpus() -> list[str]:
+    """The ids of this host's GPUs that a child process may be given (CUDA_VISIBLE_DEVICES where set,
+    else nvidia-smi's list); [] without a GPU."""
+    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if visible is not None:
+        return [g for g in visible.split(",") if g.strip() and g.strip() != "-1"]
+    if shutil.which("nvidia-smi") is None:
+        return []
+    try:
+        out = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True, timeout=30).stdout
+    except (OSError, subprocess.TimeoutExpired):
+        return []
+    return [str(i) for i, line in enumerate(out.splitlines()) if line.startswith("GPU ")]
+
+
+def run_parallel(commands: list[list[str]], gpus: list[str], logs: Path, label: str = "part") -> None:
+    """Runs each command (an argv) in a child process given one GPU, at most one per GPU at a time,
+    in order. The first child writes to this terminal; the others to logs/<label>-<i>.log. Raises
+    RuntimeError with a log's tail if any fails (after the others end)."""
+    if not gpus:
+        raise ValueError("run_parallel needs at least one GPU")
+    logs.mkdir(parents=True, exist_ok=True)
+    waiting = list(enumerate(commands))
+    running: dict[str, tuple] = {}
+    failed = []
+    while waiting or running:
+        for gpu in [g for g in gpus if g not in running]:
+            if not waiting:
+                break
+            i, cmd = waiting.pop(0)
+            log = logs / f"{label}-{i}.log"
+            out = None if i == 0 else open(log, "w")
+            env = {**os.environ, "CUDA_VISIBLE_DEVICES": gpu}
+            running[gpu] = (i, subprocess.Popen(cmd, env=env, stdout=out, stderr=subprocess.STDOUT if out else None),
+                            out, log)
+            print(f"{label} {i} on GPU {gpu}" + (f" (log {log})" if out else ""), file=sys.stderr, flush=True)
+        time.sleep(1.0)
+        for gpu, (i, proc, out, log) in list(running.items()):
+            if proc.poll() is None:
+                continue
+            del running[gpu]
+            if out is not None:
+                out.close()
+            if proc.returncode:
+                failed.append((i, proc.returncode, log if out is not None else None))
+    if failed:
+        i, rc, log = failed[0]
+        tail = "\n".join(log.read_text().splitlines()[-30:]) if log is not None else "(its output is above)"
+        raise RuntimeError(f"{len(failed)} of {len(commands)} processes failed; {label} {i} exited with {rc}:\n{tail}")
+
+
+def module_command(module: str, args) -> list[str]:
+    """The argv that runs `python -m module args...` with this interpreter."""
+    return [sys.executable, "-m", module, *[str(a) for a in args]]

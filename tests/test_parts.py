@@ -1,0 +1,30 @@
+"""sim_data.parts: a job spread over processes, one per GPU."""
+
+import sys
+
+import pytest
+
+from sim_data.parts import local_gpus, parse_part, run_parallel, take
+
+
+def test_parts_cover_the_work_once():
+    assert parse_part("1/3") == (1, 3) and parse_part(None) is None
+    items = list(range(10))
+    shares = [take(items, (k, 3)) for k in range(3)]
+    assert shares == [[0, 3, 6, 9], [1, 4, 7], [2, 5, 8]] and take(items, None) == items
+    for bad in ("3/3", "-1/2", "1", "a/b"):
+        with pytest.raises(ValueError, match="K/N"):
+            parse_part(bad)
+
+
+def test_processes_get_one_gpu_each_and_a_failure_names_its_log(tmp_path, monkeypatch):
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "4,7")
+    assert local_gpus() == ["4", "7"]
+    write = "import os, sys; open(sys.argv[1], 'w').write(os.environ['CUDA_VISIBLE_DEVICES'])"
+    outs = [tmp_path / f"gpu{i}" for i in range(3)]
+    run_parallel([[sys.executable, "-c", write, str(o)] for o in outs], ["4", "7"], tmp_path / "logs")
+    seen = [o.read_text() for o in outs]
+    assert sorted(seen[:2]) == ["4", "7"] and seen[2] in ("4", "7")  # the third waits for a free GPU
+    fail = "import sys; print('the reason'); sys.exit(3)"
+    with pytest.raises(RuntimeError, match=r"(?s)1 of 2 processes failed; part 1 exited with 3.*the reason"):
+        run_parallel([[sys.executable, "-c", "pass"], [sys.executable, "-c", fail]], ["0", "1"], tmp_path / "logs")
