@@ -296,7 +296,7 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True, reuse: Path | No
     # only the missing episodes are written
     todo = [(task, skill, idx, {i for i in idx if not (out / "episodes" / f"{episode_id(task, skill, i)}.mcap").exists()})
             for task, skill, idx in _plan(cfg, learned)]
-    todo = take([c for c in todo if c[3]], part)
+    todo = [c for c in take(todo, part) if c[3]]  # a part's share of the whole plan, whatever is done
     total = sum(len(c[3]) for c in todo)
     bar = tqdm(total=total, unit="ep", desc="episodes", disable=not progress or total == 0)
     t0, frames_done, steps_done = time.perf_counter(), 0, 0
