@@ -360,14 +360,15 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
         raise ValueError("no task to evaluate: the policies are all plug-ins; name tasks=...")
     models = load_models(cfg.wm_runs)
     wm_cfg, wm_params, norm, judge = models[0]
-    wm_data = json.loads((Path(cfg.wm_runs[0]) / "config.json").read_text())["data"]
+    datas = [json.loads((Path(run) / "config.json").read_text())["data"] for run in cfg.wm_runs]
+    wm_data = datas[0]  # the first model's data says which tasks and policies the world model saw
     wm_cache = TrainingCache(wm_data) if (Path(wm_data) / "cache" / "index.json").exists() else None
     wm_tasks = wm_cache.tasks if wm_cache is not None else tasks
     unseen = [t for t in tasks if t not in wm_tasks]
     if unseen:
         print(f"warning: the world model never saw tasks {unseen} in training", file=sys.stderr)
     zoo_data = {s.record.get("data") for s in sources} - {None}
-    used = used_seeds(wm_data, *zoo_data)
+    used = used_seeds(*dict.fromkeys(datas), *zoo_data)  # held out from every model's data
     engine = cfg.engine or default_engine()
     results, by_name = {}, {s.name: s for s in sources}
     t_start, longest = time.perf_counter(), 0.0

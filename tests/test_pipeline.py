@@ -1,0 +1,64 @@
+"""experiments.pipeline: the stages' order of work, an ensemble's members, a host's GPUs (no training here:
+the modules' entry points are replaced by recorders)."""
+
+import json
+
+import pytest
+
+from experiments import pipeline as P
+
+
+@pytest.fixture
+def tiny(tmp_path, monkeypatch):
+    """A pipeline of 3 members under tmp_path whose training entry point records its arguments and
+    writes the eval.json a finished training leaves."""
+    monkeypatch.setitem(P.PIPELINES, "tiny", P.Pipeline(data="d", policies="p", train="t", eval="e",
+                                                        root=str(tmp_path), members=3,
+                                                        train_overrides=("max_minutes=1",)))
+    calls = []
+
+    def fake_train(argv):
+        calls.append(argv)
+        out = argv[argv.index("--out") + 1]
+        (tmp_path / out).mkdir(parents=True, exist_ok=True)
+        (tmp_path / out / "eval.json").write_text(json.dumps({}))
+
+    import wm.train
+
+    monkeypatch.setattr(wm.train, "main", fake_train)
+    return calls, P.PIPELINES["tiny"].dirs("tiny")
+
+
+def test_without_gpus_the_train_stage_trains_one_member_a_run_and_eval_waits_for_all(tiny, monkeypatch):
+    calls, d = tiny
+    assert [m.name for m in d["members"]] == ["tiny", "tiny_seed1", "tiny_seed2"]
+    with pytest.raises(SystemExit, match="not trained yet"):
+        P.run_stage("tiny", "eval")
+    assert P.run_stage("tiny", "train") is False and P.run_stage("tiny", "train") is False
+    assert P.run_stage("tiny", "train") is True and len(calls) == 3
+    assert "seed=1" in calls[1] and "seed=2" in calls[2] and not any(a.startswith("seed=") for a in calls[0])
+    assert all("max_minutes=1" in c for c in calls)
+    assert P.run_stage("tiny", "train") is True and len(calls) == 3  # all trained: nothing more
+    got = []
+    import experiments.evaluate
+
+    monkeypatch.setattr(experiments.evaluate, "main", got.append)
+    P.run_stage("tiny", "eval")
+    assert f"wm={d['members'][0]},{d['members'][1]},{d['members'][2]}" in got[0]
+
+
+def test_with_several_gpus_stages_run_in_parts_and_members_side_by_side(tiny, monkeypatch):
+    calls, d = tiny
+    spawned = []
+    monkeypatch.setattr(P, "run_parallel", lambda cmds, gpus, logs, label: spawned.append((cmds, gpus, label)))
+    import sim_data.generate
+
+    gathered = []
+    monkeypatch.setattr(sim_data.generate, "main", gathered.append)
+    P.run_stage("tiny", "data", gpus=["0", "1"])
+    cmds, gpus, _ = spawned[0]
+    assert gpus == ["0", "1"] and [c[c.index("--part") + 1] for c in cmds] == ["0/2", "1/2"]
+    assert all(c[1:3] == ["-m", "sim_data.generate"] for c in cmds) and "--part" not in gathered[0]
+    P.run_stage("tiny", "train", gpus=["0", "1"])  # two members at once, the third in the next run
+    cmds, _, label = spawned[1]
+    assert label == "train-member" and len(cmds) == 2 and "seed=1" in cmds[1]
