@@ -353,14 +353,19 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True, reuse: Path | No
     pool.shutdown()
     bar.close()
     wall = time.perf_counter() - t0
-    if part is not None:
+    throughput = {"wall_s": wall, "episodes_generated": total, "steps_generated": steps_done,
+                  "frames_generated": frames_done, "frames_per_s": frames_done / wall if total else None,
+                  "episodes_per_s": total / wall if total else None, "engine": engine, "simulate_s": sim_s,
+                  "wait_for_writers_s": wait_s, "workers": cfg.workers, "device": device_name()}
+    parts_dir = out / "parts"
+    if part is not None:  # what this part did, for the gathering run's stats.json
+        parts_dir.mkdir(exist_ok=True)
+        write_json_atomic(parts_dir / f"part-{part[0]}-of-{part[1]}.json", throughput)
         return None
     manifest = build_manifest(cfg, out, learned)
-    stats = _stats(manifest, {"wall_s": wall, "episodes_generated": total, "steps_generated": steps_done,
-                              "frames_generated": frames_done, "frames_per_s": frames_done / wall if total else None,
-                              "episodes_per_s": total / wall if total else None, "engine": engine,
-                              "simulate_s": sim_s, "wait_for_writers_s": wait_s, "workers": cfg.workers,
-                              "device": device_name()})
+    if parts_dir.is_dir():
+        throughput["parts"] = [json.loads(f.read_text()) for f in sorted(parts_dir.glob("part-*.json"))]
+    stats = _stats(manifest, throughput)
     if cfg.cache:
         t1 = time.perf_counter()
         index = build_cache(out, workers=cfg.workers, progress=progress)

@@ -73,7 +73,9 @@ def test_same_config_gives_same_bytes_in_parts_and_resume_completes(smoke, tmp_p
     first = sorted(p.name for p in (again / "episodes").iterdir())
     assert 0 < len(first) < len(files) and not (again / "manifest.jsonl").exists()
     assert G.generate(cfg, again, progress=False, part=(1, 2)) is None
-    assert G.generate(cfg, again, progress=False)["throughput"]["episodes_generated"] == 0
+    gathered = G.generate(cfg, again, progress=False)["throughput"]
+    assert gathered["episodes_generated"] == 0
+    assert sorted(t["episodes_generated"] for t in gathered["parts"]) == sorted([len(first), len(files) - len(first)])
     assert (again / "manifest.jsonl").read_bytes() == (out / "manifest.jsonl").read_bytes()
     for name in files:
         assert (again / "episodes" / name).read_bytes() == (out / "episodes" / name).read_bytes()
