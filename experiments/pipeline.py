@@ -88,7 +88,8 @@ def run_stage(name: str, stage: str, extra=(), gpus=()) -> bool:
     p = PIPELINES[name]
     d = p.dirs(name)
     t0 = time.perf_counter()
-    print(f"== {name}: {stage}" + (f" on {len(gpus)} GPUs" if len(gpus) > 1 else ""), file=sys.stderr, flush=True)
+    spread = len(gpus) > 1 and stage != "report"
+    print(f"== {name}: {stage}" + (f" on {len(gpus)} GPUs" if spread else ""), file=sys.stderr, flush=True)
     done = True
     if stage == "data":
         from sim_data import generate
