@@ -315,7 +315,7 @@ def ranking_block(rows: list[dict], true_eps, prob_eps, threshold: float, member
     rule = S.ranking_metrics([r["pred_rate_rule"] for r in rows], true)
     out["per_step_rule"] = {k: rule[k] for k in ("pearson", "spearman", "mmrv", "pairwise_acc_gap10")}
     if member_eps is not None and len(member_eps) > 1:
-        out |= member_metrics(np.asarray(member_eps).mean(-1), true, member_eps, true_eps, threshold)
+        out |= member_metrics(np.array([r["pred_rates"] for r in rows]).T, true, member_eps, true_eps, threshold)
     with_loss = [r for r in rows if r["val_loss"] is not None]
     if len(with_loss) >= 2:  # lower imitation loss predicts higher success
         out["baseline"] = S.ranking_metrics([-r["val_loss"] for r in with_loss], [r["true_rate"] for r in with_loss])

@@ -95,14 +95,14 @@ def run_stage(name: str, stage: str, extra=(), gpus=()) -> bool:
         from sim_data import generate
 
         args = ["--config", p.data, "--out", str(d["data"]), *p.data_overrides, *extra]
-        _spread("sim_data.generate", args, gpus, p, name, "data")
+        _spread("sim_data.generate", args, gpus, _logs(p, name), "data")
         generate.main(args)
     elif stage == "policies":
         from sim_data import zoo
 
         args = ["--config", p.policies, "--data", str(d["data"]), "--out", str(d["policies"]), *p.policies_overrides,
                 *extra]
-        _spread("sim_data.zoo", args, gpus, p, name, "policies")
+        _spread("sim_data.zoo", args, gpus, _logs(p, name), "policies")
         zoo.main(args)
     elif stage == "rollouts":
         if not p.rollouts:
@@ -112,7 +112,7 @@ def run_stage(name: str, stage: str, extra=(), gpus=()) -> bool:
 
         args = ["--config", p.data, "--out", str(d["wm_data"]), "--reuse", str(d["data"]), *p.data_overrides,
                 f"policies={d['policies']}#{p.rollouts}", f"policy_episodes={p.rollout_episodes}", *extra]
-        _spread("sim_data.generate", args, gpus, p, name, "rollouts")
+        _spread("sim_data.generate", args, gpus, _logs(p, name), "rollouts")
         generate.main(args)
     elif stage == "train":
         done = train_members(name, extra, gpus)
@@ -125,7 +125,7 @@ def run_stage(name: str, stage: str, extra=(), gpus=()) -> bool:
                              "until it says every member is trained")
         args = ["--config", p.eval, "--out", str(d["eval"]), f"policies={d['policies']}",
                 "wm=" + ",".join(str(m) for m in d["members"]), *p.eval_overrides, *extra]
-        _spread("experiments.evaluate", args, gpus, p, name, "eval")
+        _spread("experiments.evaluate", args, gpus, _logs(p, name), "eval")
         evaluate.main(args)
     elif stage == "report":
         from experiments import report
@@ -162,13 +162,13 @@ def train_members(name: str, extra=(), gpus=()) -> bool:
     return not left
 
 
-def _spread(module: str, args, gpus, p: Pipeline, name: str, stage: str) -> None:
+def _spread(module: str, args, gpus, logs: Path, stage: str) -> None:
     """With several GPUs, `python -m module args --part K/N` on each of them (sim_data.parts); the
     caller then runs the module once more without a part to gather."""
     if len(gpus) > 1:
         n = len(gpus)
-        run_parallel([module_command(module, [*args, "--part", f"{k}/{n}"]) for k in range(n)], gpus,
-                     _logs(p, name), f"{stage}-part")
+        run_parallel([module_command(module, [*args, "--part", f"{k}/{n}"]) for k in range(n)], gpus, logs,
+                     f"{stage}-part")
 
 
 def _logs(p: Pipeline, name: str) -> Path:

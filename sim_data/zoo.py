@@ -302,13 +302,10 @@ def train_zoo(cfg: ZooConfig, data: Path, out: Path, progress: bool = True,
         raise ValueError(f"tasks {missing} are not in the dataset {data} (it has {cache.tasks})")
     registry = []
     jobs = [(t, lin) for t in cfg.tasks for lin in cfg.lineages]
-    mine = take(range(len(jobs)), part)
-    for n, (task, lin) in enumerate(jobs, start=1):
+    for n, (task, lin) in take(enumerate(jobs, start=1), part):
         done = out / task / lin.name / "lineage.json"
         if done.exists():
             registry += json.loads(done.read_text())
-            continue
-        if n - 1 not in mine:
             continue
         if progress:
             print(f"[{n}/{len(jobs)}] {task}/{lin.name}", file=sys.stderr)
