@@ -72,6 +72,19 @@ def test_sub_pixel_decoder_unfolds_channels_into_pixels():
     assert out.shape == (2, 64, 64, 3) and abs(float(out.mean()) - 0.25) < 0.05  # starts near a copy of prev
 
 
+def test_bfloat16_decoder_frames_agree_with_float32(model_and_inputs):
+    """Mixed precision (every convolution in bf16, the output conv included) moves a decoded frame by
+    little more than bf16's rounding: the same parameters decode alike in both dtypes."""
+    params, frames, _, _ = model_and_inputs
+    z = WorldModel(CFG).apply({"params": params}, frames, method=WorldModel.encode)
+    prev = frames.astype(np.float32) / 255.0
+    out = {dt: WorldModel(dataclasses.replace(CFG, dtype=dt)).apply({"params": params}, z, prev,
+                                                                    method=WorldModel.decode)
+           for dt in ("float32", "bfloat16")}
+    err = np.abs(np.asarray(out["bfloat16"]) - np.asarray(out["float32"]))
+    assert out["bfloat16"].dtype == jnp.float32 and err.mean() < 5e-4 and err.max() < 0.01, (err.mean(), err.max())
+
+
 @pytest.fixture(scope="module")
 def model_and_inputs():
     params = init_params(CFG, jax.random.PRNGKey(0), window=6)

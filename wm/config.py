@@ -100,7 +100,8 @@ PRESETS = {
                         eval_horizons=(1, 4, 8, 16), control_horizon=16, judge_steps=600),
     # with compilation, the episode judge and eval.json, one 10-minute GPU command; the sub-pixel decoder
     # (session 14, one H200: a train step 0.119 s against 0.153 s with resize-then-convolve, 39.6% MFU
-    # against 31.9%; trained 3.5 minutes its eval.json lies within the spread of three seeds of the other)
+    # against 31.9%; trained 3.5 minutes its eval.json lies within the spread of three seeds of the other);
+    # session 15: the decoder's output convolution in bf16 as well, 0.112 s
     "full": TrainConfig(model=ModelConfig(upsample="shuffle"), max_minutes=6.0, rollout_passes=2, rollout_grad=True),
 }
 

@@ -194,7 +194,9 @@ class Decoder(nn.Module):
                     x = jax.image.resize(x, (n, 2 * h, 2 * w, c), "nearest")
                     x = nn.Conv(ch, (3, 3), dtype=dt)(x)
             x = nn.silu(nn.GroupNorm(8, dtype=dt)(x))
-            out = nn.Conv(4, (3, 3), dtype=jnp.float32)(x).astype(jnp.float32)
+            # in the compute dtype like every other convolution: in float32 (TF32 kernels) its weight
+            # gradient alone took 9 of the 118 ms of a `full` train step on an H200
+            out = nn.Conv(4, (3, 3), dtype=dt)(x).astype(jnp.float32)
         if not cfg.compose:
             return nn.sigmoid(out[..., :3])
         mask = nn.sigmoid(out[..., 3:] + COPY_BIAS)
