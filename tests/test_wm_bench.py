@@ -28,3 +28,36 @@ def test_matmul_flops_by_shape_counts_convolutions_and_dots_by_hand():
     grads = jax.jit(jax.grad(f, argnums=(0, 1))).lower(*args).as_text(dialect="hlo")
     convs = [v for k, v in matmul_flops_by_shape(grads).items() if k[0] == "convolution"]
     assert convs == [2.0 * (2 * 4 * 4 * 5) * 27] * 2
+
+
+def test_kernel_profile_sums_device_kernels_by_kind_per_step():
+    import pytest
+
+    from wm.bench import kernel_profile
+
+    meta = [{"ph": "M", "name": "process_name", "pid": 1, "args": {"name": "/device:GPU:0"}},
+            {"ph": "M", "name": "process_name", "pid": 7, "args": {"name": "/host:CPU"}}]
+    kernels = [("sm90_xmma_fprop_implicit_gemm_bf16", 600.0), ("nvjet_sm90_tst_128x128", 200.0),
+               ("loop_add_fusion_12", 100.0), ("loop_add_fusion_3", 50.0), ("loop_convert_fusion_1", 50.0)]
+    events = meta + [{"ph": "X", "pid": 1, "tid": 1, "name": n, "dur": d} for n, d in kernels]
+    events.append({"ph": "X", "pid": 7, "tid": 1, "name": "PjitFunction(jit(train_step))", "dur": 5000.0})  # host
+    r = kernel_profile({"traceEvents": events}, steps=2)
+    assert r["step_ms"] == pytest.approx(0.5)  # 1000 us of device kernels over 2 steps
+    assert r["matrix_share"] == pytest.approx(0.8)
+    assert r["by_kind"] == pytest.approx({"matrix kernels": 0.4, "loop_add_fusion": 0.075, "loop_convert_fusion": 0.025})
+    assert r["top"][0] == {"name": "sm90_xmma_fprop_implicit_gemm_bf16", "ms": 0.3, "calls": 0.5}
+    with pytest.raises(ValueError, match="GPU"):
+        kernel_profile({"traceEvents": meta[1:] + events[-1:]}, steps=1)
+
+
+def test_profile_step_traces_the_step_and_refuses_a_trace_without_a_gpu():
+    import jax
+    import pytest
+
+    from wm.bench import profile_step
+    from wm.config import make_config
+
+    if jax.devices()[0].platform != "cpu":
+        pytest.skip("on a GPU the profile has kernels to sum")
+    with pytest.raises(ValueError, match="no device kernels"):  # the trace was written and read back
+        profile_step(make_config("smoke"), steps=1)

@@ -2,6 +2,7 @@
 with a policy in the loop; writes JSON.
 
     python -m wm.bench --out runs/bench/wm.json [--config full] [--imagine-batch 1024] [key=value ...]
+    python -m wm.bench --train-only --profile 5 --out runs/bench/wm_profile.json   # + GPU time by kernel
 
 MFU = (FLOPs of one train step from XLA's cost analysis of the lowered, not yet optimised, step) x
 (steps/s) / (the bf16 matrix-multiply rate measured on the same device: 8192^3 products, best of 10).
@@ -10,16 +11,21 @@ convolutions XLA hands to cuBLAS and cuDNN (jax-ml/jax#22249), which made an ear
 Inputs are random frames and actions of the configured shapes, so no dataset is needed.
 Imagination: `wm.imagine.closed_loop` with a small convolutional policy (image and proprio in,
 action out) over `--horizon` steps; a frame is one imagined step of one episode, decoded.
+`--profile N` traces N train steps with `jax.profiler` and sums the GPU's kernels by name
+(`kernel_profile`): where a step's time goes, matrix kernels against the fused elementwise ones.
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
+import gzip
 import json
 import os
 import re
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -155,6 +161,61 @@ def train_rate(cfg, steps: int = 20) -> dict:
             "step_s": dt, "frames_per_s": cfg.batch * cfg.window / dt, "compile_s": compile_s}
 
 
+MATRIX_KERNEL = re.compile(r"gemm|xmma|cutlass|nvjet|wgmma", re.I)
+
+
+def kernel_profile(trace: dict, steps: int, top: int = 25) -> dict:
+    """Device time per step by kernel from a Chrome/perfetto trace (`jax.profiler`'s
+    perfetto_trace.json): the complete events ("ph": "X", durations in microseconds) of every process
+    named /device:..., summed by name. Matrix kernels (cuBLAS, cuDNN, CUTLASS: names with gemm, xmma,
+    cutlass, nvjet) are one kind; every other kernel's kind is its name less a trailing number
+    (XLA's fusions: loop_add_fusion_12 -> loop_add_fusion).
+
+    Returns {"step_ms", "matrix_share", "by_kind": {kind: ms a step}, "top": [{"name", "ms", "calls"}]}
+    (ms and calls per step); raises ValueError when the trace holds no device events (a CPU run)."""
+    events = trace["traceEvents"] if isinstance(trace, dict) else trace
+    devices = {e["pid"] for e in events if e.get("ph") == "M" and e.get("name") == "process_name"
+               and str(e.get("args", {}).get("name", "")).startswith("/device:")}
+    time_us, calls = collections.Counter(), collections.Counter()
+    for e in events:
+        if e.get("ph") == "X" and e.get("pid") in devices:
+            time_us[e["name"]] += float(e.get("dur", 0.0))
+            calls[e["name"]] += 1
+    if not time_us:
+        raise ValueError("the trace holds no device kernels: profile on a GPU")
+    by_kind = collections.Counter()
+    for name, us in time_us.items():
+        by_kind["matrix kernels" if MATRIX_KERNEL.search(name) else re.sub(r"[_.]?\d+$", "", name)] += us
+    total = sum(time_us.values())
+
+    def ms(us):
+        return us / 1e3 / steps
+
+    return {"step_ms": ms(total), "matrix_share": by_kind["matrix kernels"] / total,
+            "by_kind": {k: ms(v) for k, v in by_kind.most_common()},
+            "top": [{"name": n, "ms": ms(us), "calls": calls[n] / steps} for n, us in time_us.most_common(top)]}
+
+
+def profile_step(cfg, steps: int) -> dict:
+    """kernel_profile of `steps` train steps of cfg (compiled and run 3 times first)."""
+    state, batch, norm = step_inputs(cfg)
+    compiled = _jitted_step.lower(cfg, state, batch, norm).compile()
+    for _ in range(3):
+        state, parts = compiled(state, batch, norm)
+    jax.block_until_ready(parts)
+    with tempfile.TemporaryDirectory() as d:
+        jax.profiler.start_trace(d, create_perfetto_trace=True)
+        for _ in range(steps):
+            state, parts = compiled(state, batch, norm)
+        jax.block_until_ready(parts)
+        jax.profiler.stop_trace()
+        found = sorted(Path(d).rglob("perfetto_trace.json.gz"))
+        if not found:
+            raise RuntimeError(f"jax.profiler wrote no perfetto_trace.json.gz under {d}")
+        with gzip.open(found[-1], "rt") as f:
+            return kernel_profile(json.load(f), steps)
+
+
 class ConvPolicy(nn.Module):
     """A small image + proprio -> action network (the shape of the behaviour-cloning policies)."""
 
@@ -209,6 +270,8 @@ def main(argv=None) -> int:
     p.add_argument("overrides", nargs="*")
     p.add_argument("--flops-only", action="store_true", help="print the FLOPs of one train step and stop")
     p.add_argument("--train-only", action="store_true", help="time training only, not imagination")
+    p.add_argument("--profile", type=int, default=0, metavar="N",
+                   help="also trace N train steps and write the GPU's time by kernel (a GPU only)")
     p.add_argument("--flops-by-shape", type=int, default=0, metavar="N",
                    help="print the N convolution and dot shapes of one train step with the most FLOPs and stop")
     a = p.parse_args(argv)
@@ -227,6 +290,8 @@ def main(argv=None) -> int:
     if a.out is None:
         p.error("--out is required")
     cfg = make_config(preset, a.overrides)
+    if a.profile and not gpu:
+        p.error("--profile sums the GPU's kernels: run it on a GPU")
     rate = matmul_rate()
     train = train_rate(cfg)
     train["flops_per_step"] = step_flops(preset, a.overrides)
@@ -234,7 +299,8 @@ def main(argv=None) -> int:
     train["mfu"] = train["achieved_flops_per_s"] / rate
     imag = None if a.train_only else imagine_rate(cfg, a.imagine_batch or (1024 if gpu else 16), a.horizon)
     report = {"device": device_name(), "config": preset, "overrides": list(a.overrides),
-              "bf16_matmul_flops_per_s": rate, "train": train, "imagine": imag}
+              "bf16_matmul_flops_per_s": rate, "train": train, "imagine": imag,
+              "profile": profile_step(cfg, a.profile) if a.profile else None}
     a.out.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(a.out, report)
     print(json.dumps(report, indent=1))
