@@ -50,14 +50,14 @@ def test_kernel_profile_sums_device_kernels_by_kind_per_step():
         kernel_profile({"traceEvents": meta[1:] + events[-1:]}, steps=1)
 
 
-def test_profile_step_traces_the_step_and_refuses_a_trace_without_a_gpu():
+def test_train_rate_traces_the_step_and_refuses_a_profile_without_a_gpu():
     import jax
     import pytest
 
-    from wm.bench import profile_step
+    from wm.bench import train_rate
     from wm.config import make_config
 
     if jax.devices()[0].platform != "cpu":
         pytest.skip("on a GPU the profile has kernels to sum")
     with pytest.raises(ValueError, match="no device kernels"):  # the trace was written and read back
-        profile_step(make_config("smoke"), steps=1)
+        train_rate(make_config("smoke"), steps=1, profile=1)

@@ -143,7 +143,9 @@ def step_flops_by_shape(preset: str, overrides=()) -> dict:
     return matmul_flops_by_shape(_jitted_step.lower(cfg, *args).as_text(dialect="hlo"))
 
 
-def train_rate(cfg, steps: int = 20) -> dict:
+def train_rate(cfg, steps: int = 20, profile: int = 0) -> dict:
+    """Time of one train step of cfg (mean of `steps` after 3 untimed ones) and, where profile > 0,
+    the kernel_profile of `profile` more steps traced with jax.profiler (under "profile")."""
     state, batch, norm = step_inputs(cfg)
     t0 = time.perf_counter()
     compiled = _jitted_step.lower(cfg, state, batch, norm).compile()
@@ -156,9 +158,22 @@ def train_rate(cfg, steps: int = 20) -> dict:
         state, parts = compiled(state, batch, norm)
     jax.block_until_ready(parts)
     dt = (time.perf_counter() - t0) / steps
-    return {"batch": cfg.batch, "window": cfg.window,
-            "params": int(sum(x.size for x in jax.tree_util.tree_leaves(state["params"]))),
-            "step_s": dt, "frames_per_s": cfg.batch * cfg.window / dt, "compile_s": compile_s}
+    out = {"batch": cfg.batch, "window": cfg.window,
+           "params": int(sum(x.size for x in jax.tree_util.tree_leaves(state["params"]))),
+           "step_s": dt, "frames_per_s": cfg.batch * cfg.window / dt, "compile_s": compile_s}
+    if profile:
+        with tempfile.TemporaryDirectory() as d:
+            jax.profiler.start_trace(d, create_perfetto_trace=True)
+            for _ in range(profile):
+                state, parts = compiled(state, batch, norm)
+            jax.block_until_ready(parts)
+            jax.profiler.stop_trace()
+            found = sorted(Path(d).rglob("perfetto_trace.json.gz"))
+            if not found:
+                raise RuntimeError(f"jax.profiler wrote no perfetto_trace.json.gz under {d}")
+            with gzip.open(found[-1], "rt") as f:
+                out["profile"] = kernel_profile(json.load(f), profile)
+    return out
 
 
 MATRIX_KERNEL = re.compile(r"gemm|xmma|cutlass|nvjet|wgmma", re.I)
@@ -194,26 +209,6 @@ def kernel_profile(trace: dict, steps: int, top: int = 25) -> dict:
     return {"step_ms": ms(total), "matrix_share": by_kind["matrix kernels"] / total,
             "by_kind": {k: ms(v) for k, v in by_kind.most_common()},
             "top": [{"name": n, "ms": ms(us), "calls": calls[n] / steps} for n, us in time_us.most_common(top)]}
-
-
-def profile_step(cfg, steps: int) -> dict:
-    """kernel_profile of `steps` train steps of cfg (compiled and run 3 times first)."""
-    state, batch, norm = step_inputs(cfg)
-    compiled = _jitted_step.lower(cfg, state, batch, norm).compile()
-    for _ in range(3):
-        state, parts = compiled(state, batch, norm)
-    jax.block_until_ready(parts)
-    with tempfile.TemporaryDirectory() as d:
-        jax.profiler.start_trace(d, create_perfetto_trace=True)
-        for _ in range(steps):
-            state, parts = compiled(state, batch, norm)
-        jax.block_until_ready(parts)
-        jax.profiler.stop_trace()
-        found = sorted(Path(d).rglob("perfetto_trace.json.gz"))
-        if not found:
-            raise RuntimeError(f"jax.profiler wrote no perfetto_trace.json.gz under {d}")
-        with gzip.open(found[-1], "rt") as f:
-            return kernel_profile(json.load(f), steps)
 
 
 class ConvPolicy(nn.Module):
@@ -293,14 +288,15 @@ def main(argv=None) -> int:
     if a.profile and not gpu:
         p.error("--profile sums the GPU's kernels: run it on a GPU")
     rate = matmul_rate()
-    train = train_rate(cfg)
+    train = train_rate(cfg, profile=a.profile)
+    profile = train.pop("profile", None)
     train["flops_per_step"] = step_flops(preset, a.overrides)
     train["achieved_flops_per_s"] = train["flops_per_step"] / train["step_s"]
     train["mfu"] = train["achieved_flops_per_s"] / rate
     imag = None if a.train_only else imagine_rate(cfg, a.imagine_batch or (1024 if gpu else 16), a.horizon)
     report = {"device": device_name(), "config": preset, "overrides": list(a.overrides),
               "bf16_matmul_flops_per_s": rate, "train": train, "imagine": imag,
-              "profile": profile_step(cfg, a.profile) if a.profile else None}
+              "profile": profile}
     a.out.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(a.out, report)
     print(json.dumps(report, indent=1))
