@@ -39,6 +39,9 @@ def test_view_shift_measures_a_known_translation():
     img = (gaussian_filter(rng.random((64, 64, 3)), (2, 2, 0)) * 2550 % 255).astype(np.uint8)[None]
     moved = np.concatenate([np.roll(img, (dy, dx), axis=(1, 2)) for dy, dx in ((0, 0), (0, 2), (3, 0), (4, 3))])
     np.testing.assert_allclose(M.view_shift(np.repeat(img, 4, axis=0), moved), [0, 2, 3, 5], atol=0.25)
+    # an unrelated pair registers at no translation: NaN, not a centroid of noise hundreds of pixels away
+    other = (gaussian_filter(rng.random((64, 64, 3)), (2, 2, 0)) * 2550 % 255).astype(np.uint8)[None]
+    assert np.isnan(M.view_shift(img, other)).all()
 
 
 def test_warp_shifts_pixels_bilinearly_and_clamps_at_the_border():
@@ -227,6 +230,7 @@ def test_make_train_smoke_writes_eval_json(smoke_world_model):
     fq = report["frame_quality"]
     assert fq["horizons"] == [1, 4] and len(fq["psnr"]) == 2 and len(fq["copy_last_psnr"]) == 2
     assert len(fq["view_shift_px"]) == 2 and all(0.0 <= x <= 1.0 for x in fq["still_share"])
+    assert len(fq["view_shift_unregistered"]) == 2
     assert report["controllability"]["groups"] == 1 and 0.0 <= report["controllability"]["match_accuracy"] <= 1.0
     assert report["success_prediction"]["episodes"] >= 1 and (out / "eval_frames.png").stat().st_size > 0
     assert (out / "best").is_dir() and (out / "metrics.jsonl").exists()

@@ -9,7 +9,8 @@
   The view held still ("view_shift_px"): over the samples whose true head-camera view moved less
   than a pixel since the last context frame ("still_share"), how many pixels the imagined view is
   shifted from the true one (`wm.metrics.view_shift`): a model that moves the robot's body, or the
-  whole scene, while only an arm or an object moves (the air fryer's sliding tray) shifts its view.
+  whole scene, while only an arm or an object moves (the air fryer's sliding tray) shifts its view;
+  the mean leaves out the pairs no translation registers ("view_shift_unregistered" counts them).
 - Success prediction: from each test episode's first observation (random play left out), as the
   evaluator starts, imagine to its last frame under the logged actions; the predicted outcome is the
   episode judge's (`wm.judge`) where the run has one, the highest per-step success probability
@@ -68,7 +69,7 @@ def frame_quality(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, ep
     truth = np.stack(truths)
     copy = np.repeat(np.stack(lasts)[:, None], hmax, axis=1)
     keys = ("psnr", "ssim", "pooled_psnr", "copy_last_psnr", "copy_last_ssim", "copy_last_pooled_psnr", "static_share",
-            "still_share", "view_shift_px")
+            "still_share", "view_shift_px", "view_shift_unregistered")
     res = {"horizons": list(cfg.eval_horizons), "samples": len(samples), **{k: [] for k in keys}}
     for h in cfg.eval_horizons:
         for tag, x in (("", pred[:, h - 1]), ("copy_last_", copy[:, h - 1])):
@@ -80,8 +81,9 @@ def frame_quality(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, ep
         # how far the imagined view has moved from the true one
         still = view_shift(copy[:, h - 1], truth[:, h - 1]) < STILL_PX
         res["still_share"].append(float(still.mean()))
-        res["view_shift_px"].append(float(view_shift(pred[still, h - 1], truth[still, h - 1]).mean())
-                                    if still.any() else None)
+        shift = view_shift(pred[still, h - 1], truth[still, h - 1])
+        res["view_shift_px"].append(float(np.nanmean(shift)) if np.isfinite(shift).any() else None)
+        res["view_shift_unregistered"].append(int(np.isnan(shift).sum()))
     res["gain_over_copy_last_db"] = [a - b for a, b in zip(res["psnr"], res["copy_last_psnr"], strict=True)]
     res["pooled_gain_over_copy_last_db"] = [a - b for a, b in zip(res["pooled_psnr"], res["copy_last_pooled_psnr"],
                                                                   strict=True)]

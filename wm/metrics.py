@@ -61,10 +61,21 @@ def view_shift(a, b) -> np.ndarray:
     pixels of the global translation that registers b onto a (phase correlation of the grey images
     under a Hann window, OpenCV's sub-pixel peak), per pair: (N,) float. A robot whose body stays in
     place keeps its head camera's view still, so an imagined frame shifted against the true one has
-    moved the body, or the whole scene."""
+    moved the body, or the whole scene.
+
+    NaN where no translation registers the pair: the correlation's peak is no higher than
+    4 / sqrt(H W) (about the highest value an unrelated pair's surface reaches, whose values spread
+    as 1 / sqrt(H W); OpenCV's sub-pixel centroid of such a surface can land hundreds of pixels away),
+    or the shift exceeds half the frame (phase correlation wraps around there)."""
     import cv2
 
     a = np.asarray(a, np.float32).mean(axis=-1)
     b = np.asarray(b, np.float32).mean(axis=-1)
-    window = cv2.createHanningWindow(a.shape[-1:-3:-1], cv2.CV_32F)
-    return np.array([np.hypot(*cv2.phaseCorrelate(x, y, window)[0]) for x, y in zip(a, b, strict=True)])
+    h, w = a.shape[-2:]
+    window = cv2.createHanningWindow((w, h), cv2.CV_32F)
+    out = []
+    for x, y in zip(a, b, strict=True):
+        (dx, dy), peak = cv2.phaseCorrelate(x, y, window)
+        measurable = peak > 4.0 / np.sqrt(h * w) and abs(dx) <= w / 2 and abs(dy) <= h / 2
+        out.append(np.hypot(dx, dy) if measurable else np.nan)
+    return np.array(out)
