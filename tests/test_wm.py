@@ -88,6 +88,46 @@ def test_bfloat16_decoder_frames_agree_with_float32(model_and_inputs):
     assert out["bfloat16"].dtype == jnp.float32 and err.mean() < 5e-4 and err.max() < 0.01, (err.mean(), err.max())
 
 
+def test_keep_gate_copies_the_unwarped_previous_frame_exactly():
+    cfg = dataclasses.replace(CFG, keep=True)
+    dec = Decoder(cfg)
+    rng = np.random.default_rng(0)
+    z = jnp.asarray(rng.normal(size=(2, 8, 8, cfg.latent)), jnp.float32)
+    prev = jnp.asarray(rng.integers(0, 256, (2, 64, 64, 3)) / 255.0, jnp.float32)
+    flow = jnp.full((2, 8, 8, 2), 0.3)  # a warp that alone would move every pixel
+    params = dec.init(jax.random.PRNGKey(0), z, prev, flow)
+    out_conv = next(k for k, v in params["params"].items() if k.startswith("Conv_") and v["kernel"].shape[-1] == 5)
+
+    def with_keep_bias(b):
+        p = jax.tree_util.tree_map(lambda x: x, params)
+        p["params"][out_conv]["bias"] = p["params"][out_conv]["bias"].at[4].set(b)
+        return dec.apply(p, z, prev, flow, with_keep=True)
+
+    kept, logits = with_keep_bias(50.0)
+    assert logits.shape == (2, 64, 64) and bool((logits > 0).all())
+    np.testing.assert_array_equal(np.asarray(kept), np.asarray(prev))  # exactly, warp or not
+    composed, logits = with_keep_bias(-50.0)
+    assert bool((logits < 0).all()) and float(jnp.abs(composed - prev).max()) > 1e-3
+    with pytest.raises(ValueError, match="w_keep"):
+        make_config("smoke", ["model.keep=true", "w_keep=0"])
+    with pytest.raises(ValueError, match="keep needs compose"):
+        dataclasses.replace(CFG, keep=True, compose=False, warp=False).validate()
+
+
+def test_keep_loss_labels_the_pixels_the_next_frame_leaves_unchanged():
+    from wm.train import _keep_loss
+
+    prev = np.zeros((1, 2, 2, 3), np.float32)
+    target = prev.copy()
+    target[0, 0, 1, 2] = 1.0 / 255  # one channel of one pixel changes by a level
+    target[0, 1, 1] = 0.4 / 255  # under half a level: the same 8-bit value
+    logits = np.array([[[3.0, -2.0], [1.0, 0.5]]], np.float32)
+    labels = np.array([[[1.0, 0.0], [1.0, 1.0]]])
+    want = np.mean(np.maximum(logits, 0) - logits * labels + np.log1p(np.exp(-np.abs(logits))))
+    np.testing.assert_allclose(float(_keep_loss(jnp.asarray(logits), jnp.asarray(target), jnp.asarray(prev))), want,
+                               rtol=1e-6)
+
+
 @pytest.fixture(scope="module")
 def model_and_inputs():
     params = init_params(CFG, jax.random.PRNGKey(0), window=6)

@@ -21,7 +21,8 @@ class TrainConfig:
         (training k+1-step open-loop predictions end to end) instead of stopping the gradient.
       context_noise: the largest std of Gaussian noise added to the input latents (each window draws
         its level uniformly below it; 0: none), as GameNGen's noise augmentation.
-      w_recon, w_latent, w_pixel, w_proprio, w_success: loss weights.
+      w_recon, w_latent, w_pixel, w_proprio, w_success: loss weights; w_keep: of the keep gate's
+        cross-entropy against the pixels the true next frame leaves unchanged (model.keep).
       log_every, eval_every, ckpt_every: in steps (eval and checkpoints at multiples of log_every).
       val_batches: validation batches per evaluation. param_sharding: "replicated" (data parallel)
         or "fsdp" (parameters and optimiser state sharded over the data axis).
@@ -52,6 +53,7 @@ class TrainConfig:
     w_pixel: float = 1.0
     w_proprio: float = 0.1
     w_success: float = 0.05
+    w_keep: float = 0.02
     log_every: int = 50
     eval_every: int = 500
     ckpt_every: int = 500
@@ -82,6 +84,8 @@ class TrainConfig:
             raise ValueError(f"train_fraction must be in (0, 1], got {self.train_fraction}")
         if self.judge_episodes < 0 or self.judge_steps < 1:
             raise ValueError("judge_episodes >= 0 and judge_steps >= 1 are required")
+        if self.model.keep and self.w_keep <= 0:
+            raise ValueError("model.keep needs w_keep > 0: the keep gate learns from its cross-entropy alone")
         if self.rollout_passes < 0 or self.lr <= 0:
             raise ValueError("rollout_passes >= 0 and lr > 0 are required")
 

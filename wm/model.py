@@ -47,6 +47,9 @@ class ModelConfig:
         convolution at the doubled resolution) or "shuffle" (a 3x3 convolution to 4x the channels at
         the lower resolution, then depth-to-space: Shi et al. 2016's sub-pixel convolution; the same
         products over a quarter of the positions with 4x wider outputs).
+      keep: the decoder also predicts, per pixel, whether it keeps the previous frame's value exactly
+        (unwarped): a still robot in a still scene renders identical frames, which a warp of even a
+        fraction of a pixel, or a composition mask short of 1, would blur (needs compose).
     """
 
     size: int = 64
@@ -65,6 +68,7 @@ class ModelConfig:
     compose: bool = True
     warp: bool = True
     upsample: str = "resize"
+    keep: bool = False
 
     def validate(self) -> None:
         stages = int(round(math.log2(self.size / LATENT_SIDE)))
@@ -78,6 +82,8 @@ class ModelConfig:
             raise ValueError(f"upsample must be resize or shuffle, got {self.upsample!r}")
         if self.warp and not self.compose:
             raise ValueError("warp needs compose: the warped previous frame is what the decoder composes with")
+        if self.keep and not self.compose:
+            raise ValueError("keep needs compose: it gates the composed frame against the previous one")
 
     @property
     def tokens_per_frame(self) -> int:
@@ -161,27 +167,33 @@ class Decoder(nn.Module):
     (`mask * prev + (1 - mask) * generated`, as in Finn et al. 2016's CDNA), so what does not move is
     carried over exactly and the latents spend their capacity on what changes. The mask starts near
     1 (COPY_BIAS), so an untrained model is the copy-last-frame baseline and training departs from it.
+    With cfg.keep a fifth output is the keep gate's logit: where it is positive the pixel is the
+    previous frame's own (unwarped) value, exactly; a hard choice, learnt from its cross-entropy
+    against the pixels that truly stay the same (`wm.train`), not through the frame.
     """
 
     cfg: ModelConfig
 
     @nn.compact
-    def __call__(self, z, prev, flow=None):
+    def __call__(self, z, prev, flow=None, with_keep=False):
+        """with_keep: also return the keep gate's logits (N, S, S) (None without cfg.keep)."""
         cfg, dt = self.cfg, self.cfg.compute_dtype
         p = cfg.size // LATENT_SIDE
+        still = prev.astype(jnp.float32)
         if flow is not None and cfg.warp:
-            prev = warp(prev.astype(jnp.float32), flow)
+            prev = warp(still, flow)
         prev_cells = space_to_depth(prev.astype(dt) * 2.0 - 1.0, p)  # (N, 8, 8, 3 p^2)
 
         def from_prev(width):
             """The previous frame's cells, embedded; nothing when the latents alone make the frame."""
             return nn.Dense(width, dtype=dt)(prev_cells) if cfg.compose else 0.0
 
+        outs = 5 if cfg.keep else 4  # generated RGB, compose mask[, keep gate]
         if cfg.tokenizer == "patch":
             h = cfg.channels[-1]
             x = nn.gelu(nn.Conv(h, (3, 3), dtype=dt)(z.astype(dt)) + from_prev(h))
             x = x + nn.gelu(nn.Dense(h, dtype=dt)(x))
-            out = depth_to_space(nn.Dense(4 * p * p, dtype=jnp.float32)(x).astype(jnp.float32), p)
+            out = depth_to_space(nn.Dense(outs * p * p, dtype=jnp.float32)(x).astype(jnp.float32), p)
         else:
             chans = cfg.channels[::-1]
             x = nn.Conv(chans[0], (3, 3), dtype=dt)(z.astype(dt)) + from_prev(chans[0])
@@ -196,11 +208,17 @@ class Decoder(nn.Module):
             x = nn.silu(nn.GroupNorm(8, dtype=dt)(x))
             # in the compute dtype like every other convolution: in float32 (TF32 kernels) its weight
             # gradient alone took 9 of the 118 ms of a `full` train step on an H200
-            out = nn.Conv(4, (3, 3), dtype=dt)(x).astype(jnp.float32)
+            out = nn.Conv(outs, (3, 3), dtype=dt)(x).astype(jnp.float32)
         if not cfg.compose:
-            return nn.sigmoid(out[..., :3])
-        mask = nn.sigmoid(out[..., 3:] + COPY_BIAS)
-        return mask * prev.astype(jnp.float32) + (1.0 - mask) * nn.sigmoid(out[..., :3])
+            frame = nn.sigmoid(out[..., :3])
+            return (frame, None) if with_keep else frame
+        mask = nn.sigmoid(out[..., 3:4] + COPY_BIAS)
+        frame = mask * prev.astype(jnp.float32) + (1.0 - mask) * nn.sigmoid(out[..., :3])
+        keep = None
+        if cfg.keep:
+            keep = out[..., 4]
+            frame = jnp.where(keep[..., None] > 0.0, still, frame)
+        return (frame, keep) if with_keep else frame
 
 
 def patchify(z, p):
@@ -315,13 +333,17 @@ class WorldModel(nn.Module):
         z = self.encoder(frames.reshape((-1,) + frames.shape[-3:]))
         return z.reshape(lead + z.shape[1:])
 
-    def decode(self, z, prev, flow=None):
+    def decode(self, z, prev, flow=None, with_keep=False):
         """(..., 8, 8, C) latents, the previous frames (..., S, S, 3) in [0, 1] and optionally the
-        predicted flows (..., 8, 8, 2) -> (..., S, S, 3) float32 in [0, 1]."""
+        predicted flows (..., 8, 8, 2) -> (..., S, S, 3) float32 in [0, 1]; with_keep: and the keep
+        gate's logits (..., S, S) (None without cfg.keep)."""
         lead = z.shape[:-3]
         flat = None if flow is None else flow.reshape((-1,) + flow.shape[-3:])
-        x = self.decoder(z.reshape((-1,) + z.shape[-3:]), prev.reshape((-1,) + prev.shape[-3:]), flat)
-        return x.reshape(lead + x.shape[1:])
+        x, keep = self.decoder(z.reshape((-1,) + z.shape[-3:]), prev.reshape((-1,) + prev.shape[-3:]), flat, True)
+        x = x.reshape(lead + x.shape[1:])
+        if not with_keep:
+            return x
+        return x, None if keep is None else keep.reshape(lead + keep.shape[1:])
 
     def predict(self, z, proprio, action, valid=None):
         return self.dynamics(z, proprio, action, valid)

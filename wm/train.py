@@ -68,6 +68,13 @@ def _bce(logits, labels):
     return optax.sigmoid_binary_cross_entropy(logits, labels.astype(jnp.float32)).mean()
 
 
+def _keep_loss(keep, target, prev):
+    """Cross-entropy of the keep gate's logits (..., S, S) against the pixels whose 8-bit value the
+    target frame shares with the previous one (frames (..., S, S, 3) in [0, 1])."""
+    same = jnp.all(jnp.round(target * 255.0) == jnp.round(prev * 255.0), axis=-1)
+    return _bce(keep, jax.lax.stop_gradient(same))
+
+
 def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None):
     """Scalar loss and its parts for one batch (frames (B, T, S, S, 3) uint8, ...); rng draws the
     context noise (None: none, as in validation)."""
@@ -78,8 +85,10 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None):
     z = model.apply({"params": params}, frames, method=WorldModel.encode)
     # reconstruction of every 4th frame from its true latents and the true previous frame; the
     # decoder also learns from every predicted frame below
-    recon = model.apply({"params": params}, z[:, 1::4], pix[:, 0:-1:4], method=WorldModel.decode)
+    recon, keep = model.apply({"params": params}, z[:, 1::4], pix[:, 0:-1:4], with_keep=True, method=WorldModel.decode)
     parts = {"recon": jnp.mean((recon - pix[:, 1::4]) ** 2)}
+    if keep is not None:
+        parts["keep_recon"] = _keep_loss(keep, pix[:, 1::4], pix[:, 0:-1:4])
     proprio, action = norm.proprio(batch["proprio"]), norm.action(batch["action"])
     z_in, p_in, prev = z, proprio, pix[:, :-1]
     if cfg.context_noise > 0 and rng is not None:  # corrupted inputs: the past cannot be copied forward exactly
@@ -87,12 +96,13 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None):
         level = jax.random.uniform(k1, (z.shape[0],) + (1,) * (z.ndim - 1), maxval=cfg.context_noise)
         z_in = jnp.clip(z + level * jax.random.normal(k2, z.shape), -1.0, 1.0)
     z_target = jax.lax.stop_gradient(z[:, 1:])
-    total = cfg.w_recon * parts["recon"]
+    total = cfg.w_recon * parts["recon"] + cfg.w_keep * parts.get("keep_recon", 0.0)
     hold = (lambda x: x) if cfg.rollout_grad else jax.lax.stop_gradient
     for k in range(1 + cfg.rollout_passes):
         pred = model.apply({"params": params}, z_in, p_in, action, method=WorldModel.predict)
         zp = pred["z"][:, :-1]
-        pixels = model.apply({"params": params}, zp, prev, pred["flow"][:, :-1], method=WorldModel.decode)
+        pixels, keep = model.apply({"params": params}, zp, prev, pred["flow"][:, :-1], with_keep=True,
+                                   method=WorldModel.decode)
         latent = jnp.mean((zp - z_target) ** 2)
         pixel = jnp.mean((pixels - target) ** 2)
         prop = jnp.mean((pred["proprio"][:, :-1] - proprio[:, 1:]) ** 2)
@@ -102,6 +112,9 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None):
         tag = "" if k == 0 else f"_pass{k}"
         parts.update({f"latent{tag}": latent, f"pixel{tag}": pixel, f"proprio{tag}": prop, f"success{tag}": succ,
                       f"outcome{tag}": outc})
+        if keep is not None:
+            parts[f"keep{tag}"] = _keep_loss(keep, target, prev)
+            total = total + cfg.w_keep * parts[f"keep{tag}"]
         # the next pass reads this pass's predictions of frames 1..T-1: latents and proprio (with their
         # gradient if rollout_grad, so earlier steps learn what later ones need), and the decoded
         # frames as the previous frames of the decoder (always stop-gradient)
