@@ -53,7 +53,7 @@ class TrainConfig:
     w_pixel: float = 1.0
     w_proprio: float = 0.1
     w_success: float = 0.05
-    w_keep: float = 0.02
+    w_keep: float = 0.2
     log_every: int = 50
     eval_every: int = 500
     ckpt_every: int = 500
@@ -91,8 +91,10 @@ class TrainConfig:
 
 
 SMOKE_MODEL = ModelConfig(channels=(8, 16, 16), latent=4, dim=32, depth=1, heads=2, context=4, dtype="float32")
+# keep (session 15, demo preset, 5 minutes on 2 cores, same data): per-frame PSNR h8 26.2 dB against
+# 17.4 without the gate (w_keep 0.02: 20.3), pooled PSNR level (16.1 against 16.2)
 DEMO_MODEL = ModelConfig(tokenizer="patch", channels=(128,), latent=16, dim=96, depth=2, heads=4, context=6,
-                         dtype="float32")
+                         dtype="float32", keep=True)
 
 PRESETS = {
     "default": TrainConfig(),
