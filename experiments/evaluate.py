@@ -49,7 +49,7 @@ from sim_data.config import override
 from sim_data.engines import ENGINES, default_engine
 from sim_data.generate import cached_env, cached_renderers, package_versions
 from sim_data.learned import StackedPolicy, stack_params
-from sim_data.parts import exclusive, parse_part, take
+from sim_data.parts import add_part_argument, exclusive, parse_part, take
 from sim_data.rollout import record_policies
 from sim_data.sources import group_by_policy, heldout_seeds, padded_chunks, resolve, used_seeds
 from sim_data.success_table import write_json_atomic
@@ -491,8 +491,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--config", default="demo", help=f"preset: {', '.join(PRESETS)}")
     p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--part", help="K/N: evaluate every N-th task from the K-th and stop (one process per GPU; then "
-                                  "run without --part to gather results.json: sim_data.parts)")
+    add_part_argument(p, "evaluate every N-th task", "gather results.json")
     p.add_argument("overrides", nargs="*", help="key=value overrides (e.g. episodes=50 policies=DIR,mod:attr)")
     a = p.parse_args(argv)
     try:

@@ -37,7 +37,7 @@ from sim_data.config import override
 from sim_data.engines import ENGINES, default_engine
 from sim_data.env import HomeEnv
 from sim_data.episodes import CorruptEpisode, read_episode_meta, write_episode_mcap  # noqa: F401 (re-exported)
-from sim_data.parts import exclusive, parse_part, take
+from sim_data.parts import add_part_argument, exclusive, parse_part, take
 from sim_data.policies import PROGRAMS, ProgramPolicy, ScriptedPolicy, play_params, program_params
 from sim_data.render import RenderConfig, Renderer
 from sim_data.rollout import record_episodes
@@ -448,8 +448,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--reuse", type=Path, help="a dataset of the same settings whose episodes are linked, not simulated "
                                               "again (to add policies' rollouts to a generated dataset)")
-    p.add_argument("--part", help="K/N: simulate every N-th chunk from the K-th and stop (one process per GPU; "
-                                  "then run without --part to gather: sim_data.parts)")
+    add_part_argument(p, "simulate every N-th chunk", "gather the dataset")
     p.add_argument("overrides", nargs="*", help="key=value overrides of the preset (e.g. episodes=16 tasks=mug,wipe)")
     a = p.parse_args(argv)
     try:

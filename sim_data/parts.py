@@ -44,6 +44,13 @@ def parse_part(text: str | None) -> tuple[int, int] | None:
     return k, n
 
 
+def add_part_argument(parser, pieces: str, gather: str) -> None:
+    """The `--part K/N` option of a module that spreads its `pieces` over processes and, run
+    without it, does `gather`; read it with parse_part."""
+    parser.add_argument("--part", help=f"K/N: {pieces} from the K-th and stop (one process per GPU; then run "
+                                       f"without --part to {gather}: sim_data.parts)")
+
+
 def take(items, part: tuple[int, int] | None) -> list:
     """The items of this part (every N-th from the K-th), or all of them without a part."""
     items = list(items)

@@ -44,7 +44,7 @@ from tqdm import tqdm
 from sim_data.cache import TrainingCache
 from sim_data.config import override
 from sim_data.learned import BCPolicy, PolicyNetConfig, init_params, predict_chunk, to_numpy
-from sim_data.parts import parse_part, take
+from sim_data.parts import add_part_argument, parse_part, take
 from sim_data.success_table import wilson_interval, write_json_atomic
 
 CAMERA = "head_cam"
@@ -410,8 +410,7 @@ def main(argv=None) -> int:
                    help="then measure each checkpoint's true success over N held-out initial states per task")
     p.add_argument("--engine", default="", choices=["", "cpu", "mjx"],
                    help="the engine of --measure (default: mjx where a GPU is, else cpu)")
-    p.add_argument("--part", help="K/N: train every N-th lineage from the K-th and stop (one process per GPU; then "
-                                  "run without --part to write the registry: sim_data.parts)")
+    add_part_argument(p, "train every N-th lineage", "write the registry")
     p.add_argument("overrides", nargs="*", help="key=value overrides (e.g. steps=500 conv.width=32)")
     a = p.parse_args(argv)
     try:

@@ -71,8 +71,7 @@ def _bce(logits, labels):
 def _keep_loss(keep, target, prev):
     """Cross-entropy of the keep gate's logits (..., S, S) against the pixels whose 8-bit value the
     target frame shares with the previous one (frames (..., S, S, 3) in [0, 1])."""
-    same = jnp.all(jnp.round(target * 255.0) == jnp.round(prev * 255.0), axis=-1)
-    return _bce(keep, jax.lax.stop_gradient(same))
+    return _bce(keep, jnp.all(jnp.round(target * 255.0) == jnp.round(prev * 255.0), axis=-1))
 
 
 def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None):
@@ -87,8 +86,10 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None):
     # decoder also learns from every predicted frame below
     recon, keep = model.apply({"params": params}, z[:, 1::4], pix[:, 0:-1:4], with_keep=True, method=WorldModel.decode)
     parts = {"recon": jnp.mean((recon - pix[:, 1::4]) ** 2)}
+    total = cfg.w_recon * parts["recon"]
     if keep is not None:
         parts["keep_recon"] = _keep_loss(keep, pix[:, 1::4], pix[:, 0:-1:4])
+        total = total + cfg.w_keep * parts["keep_recon"]
     proprio, action = norm.proprio(batch["proprio"]), norm.action(batch["action"])
     z_in, p_in, prev = z, proprio, pix[:, :-1]
     if cfg.context_noise > 0 and rng is not None:  # corrupted inputs: the past cannot be copied forward exactly
@@ -96,7 +97,6 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None):
         level = jax.random.uniform(k1, (z.shape[0],) + (1,) * (z.ndim - 1), maxval=cfg.context_noise)
         z_in = jnp.clip(z + level * jax.random.normal(k2, z.shape), -1.0, 1.0)
     z_target = jax.lax.stop_gradient(z[:, 1:])
-    total = cfg.w_recon * parts["recon"] + cfg.w_keep * parts.get("keep_recon", 0.0)
     hold = (lambda x: x) if cfg.rollout_grad else jax.lax.stop_gradient
     for k in range(1 + cfg.rollout_passes):
         pred = model.apply({"params": params}, z_in, p_in, action, method=WorldModel.predict)
