@@ -157,7 +157,8 @@ SIZES = {
         "shelf_arcade": ("wm_full", ("tasks=shelf,arcade", "episodes=300", "play=300", "batch=600")),
         "airfryer_mug": ("wm_full", ("tasks=airfryer,mug", "episodes=300", "play=300", "batch=600")),
         "heldout": ("wm_full", ("heldout=true", "episodes=100", "play=100", "programs=8")),
-        # 5 skills x 300 scripted + 8 checkpoints x 150 rollouts: 2700 task episodes as in 5 x 600 - 300
+        # per task, wm_full's skills x 300 scripted episodes + 8 checkpoints x 150 rollouts (sessions 9-15, with
+        # 5 skills: 2700 task episodes)
         "mixed": ("wm_full", ("episodes=300", "policies={zoo}#conv_noproprio", "policy_episodes=150")),
     }),
 }

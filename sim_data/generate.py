@@ -125,9 +125,10 @@ PRESETS = {
     "demo": DataConfig(tasks=("mug", "step_back"), skills=(0.3, 1.0), episodes=8, batch=8, programs=1, play=8,
                        cameras=("head_cam",), test_frac=0.25),
     "full": DataConfig(skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=600, batch=1200, workers=12, programs=32),
-    # the world model's GPU set: two tasks, a spread of skills, random play, the controllability
-    # programs, head camera
-    "wm_full": DataConfig(tasks=("mug", "wipe"), skills=(0.0, 0.25, 0.5, 0.75, 1.0), episodes=240, batch=240,
+    # the world model's and the zoo's GPU set: three tasks, a spread of skills (1.0 for the zoo's
+    # demonstrations, 0.5 and 0.75 for its low-skill lineage), random play, the controllability programs,
+    # head camera; about 611k frames, so that the data stage fits a 10-minute command on one GPU
+    "wm_full": DataConfig(tasks=("mug", "wipe", "airfryer"), skills=(0.0, 0.5, 0.75, 1.0), episodes=240, batch=240,
                           cameras=("head_cam",), workers=14, programs=32, play=240),
     "heldout_plant": DataConfig(heldout=True, episodes=100, batch=600, workers=12),
     "shelf": DataConfig(tasks=("shelf",), skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=600, batch=1200, workers=12),

@@ -127,7 +127,7 @@ PRESETS = {
     "demo": ZooConfig(tasks=("mug", "step_back"), lineages=LINEAGES_MAIN, steps=300, checkpoints=8, first_step=5,
                       batch=32, val_batches=4, conv=PolicyNetConfig(width=16, hidden=128),
                       vit=PolicyNetConfig(encoder="vit", width=32, depth=2, hidden=128)),
-    "full": ZooConfig(tasks=("mug", "wipe"), steps=5000, checkpoints=8, first_step=20, batch=256, val_batches=8,
+    "full": ZooConfig(tasks=("mug", "wipe", "airfryer"), steps=5000, checkpoints=8, first_step=20, batch=256, val_batches=8,
                       shift=4,
                       lineages=LINEAGES_MAIN + (Lineage("conv_noproprio_few", proprio=False, demos=24),
                                                 Lineage("conv_noproprio_lowskill", proprio=False, skills=(0.5, 0.75),
