@@ -13,7 +13,8 @@ import pytest
 from wm import imagine as I
 from wm import metrics as M
 from wm.config import SMOKE_MODEL, make_config, override
-from wm.model import Decoder, WorldModel, depth_to_space, init_params, space_to_depth
+from wm.model import (Decoder, WorldModel, attention_logits, attention_mask, depth_to_space, init_params,
+                      relative_time_bias, space_to_depth)
 from wm.train import Run, TrainingDiverged
 
 CFG = SMOKE_MODEL
@@ -139,6 +140,41 @@ def model_and_inputs():
     noise = np.random.default_rng(1)
     params = jax.tree_util.tree_map(lambda x: x + 0.05 * noise.standard_normal(x.shape).astype(np.float32), params)
     return params, frames, proprio, action
+
+
+def test_time_bias_in_the_product_equals_an_added_bias_and_its_gradient():
+    """The learned bias by frame distance, folded into the query-key product, gives the logits and the
+    table's gradient of a bias added to the logits by hand; the mask is causal over `context` frames
+    and masks empty key slots."""
+    t, n, h, d, context = 5, 3, 2, 4, 3
+    kq, kk, kt, kw = jax.random.split(jax.random.PRNGKey(0), 4)
+    q, k = jax.random.normal(kq, (2, t * n, h, d)), jax.random.normal(kk, (2, t * n, h, d))
+    table, weight = jax.random.normal(kt, (h, context)), jax.random.normal(kw, (2, h, t * n, t * n))
+    frame = np.arange(t * n) // n
+
+    def by_hand(table):
+        bias = np.zeros((h, t * n, t * n), np.float32)
+        out = jnp.asarray(bias)
+        for i in range(t * n):
+            for j in range(t * n):
+                if 0 <= frame[i] - frame[j] < context:
+                    out = out.at[:, i, j].set(table[:, frame[i] - frame[j]])
+        return jnp.einsum("bqhd,bkhd->bhqk", q, k) / np.sqrt(d) + out[None]
+
+    folded = lambda table: attention_logits(q, k, relative_time_bias(table, t), n)  # noqa: E731
+    np.testing.assert_allclose(folded(table), by_hand(table), rtol=1e-5, atol=1e-5)
+    g_folded = jax.grad(lambda tb: jnp.sum(folded(tb) * weight))(table)
+    g_hand = jax.grad(lambda tb: jnp.sum(by_hand(tb) * weight))(table)
+    np.testing.assert_allclose(g_folded, g_hand, rtol=1e-4, atol=1e-4)
+    assert np.abs(g_hand).min() > 0
+
+    valid = np.ones((2, t), bool)
+    valid[1, 0] = False
+    mask = np.asarray(attention_mask(t, n, context, jnp.asarray(valid)))
+    assert mask.shape == (2, 1, t * n, t * n)
+    allowed = (frame[:, None] - frame[None, :] >= 0) & (frame[:, None] - frame[None, :] < context)
+    np.testing.assert_array_equal(mask[0, 0] == 0, allowed)
+    np.testing.assert_array_equal(mask[1, 0] == 0, allowed & (frame[None, :] != 0))
 
 
 def test_modules_shapes_causality_and_context(model_and_inputs):
