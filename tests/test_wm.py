@@ -109,6 +109,13 @@ def test_keep_gate_copies_the_unwarped_previous_frame_exactly():
     np.testing.assert_array_equal(np.asarray(kept), np.asarray(prev))  # exactly, warp or not
     composed, logits = with_keep_bias(-50.0)
     assert bool((logits < 0).all()) and float(jnp.abs(composed - prev).max()) > 1e-3
+    # a threshold above the logits keeps nothing: the frame is the composed one of the same parameters
+    p = jax.tree_util.tree_map(lambda x: x, params)
+    p["params"][out_conv]["bias"] = p["params"][out_conv]["bias"].at[4].set(50.0)
+    strict = Decoder(dataclasses.replace(cfg, keep_threshold=1e9)).apply(p, z, prev, flow)
+    np.testing.assert_array_equal(np.asarray(strict), np.asarray(Decoder(dataclasses.replace(cfg, keep=False)).apply(
+        {"params": {**p["params"], out_conv: {"kernel": p["params"][out_conv]["kernel"][..., :4],
+                                              "bias": p["params"][out_conv]["bias"][:4]}}}, z, prev, flow)))
     with pytest.raises(ValueError, match="w_keep"):
         make_config("smoke", ["model.keep=true", "w_keep=0"])
     with pytest.raises(ValueError, match="keep needs compose"):

@@ -50,6 +50,9 @@ class ModelConfig:
       keep: the decoder also predicts, per pixel, whether it keeps the previous frame's value exactly
         (unwarped): a still robot in a still scene renders identical frames, which a warp of even a
         fraction of a pixel, or a composition mask short of 1, would blur (needs compose).
+      keep_threshold: the gate keeps a pixel where its logit exceeds this (0: probability 0.5); the
+        gate learns from its cross-entropy whatever the threshold, so a trained model may be evaluated
+        at another (`python -m wm.evaluate ... model.keep_threshold=2`).
     """
 
     size: int = 64
@@ -69,6 +72,7 @@ class ModelConfig:
     warp: bool = True
     upsample: str = "resize"
     keep: bool = False
+    keep_threshold: float = 0.0
 
     def validate(self) -> None:
         stages = int(round(math.log2(self.size / LATENT_SIDE)))
@@ -217,7 +221,7 @@ class Decoder(nn.Module):
         keep = None
         if cfg.keep:
             keep = out[..., 4]
-            frame = jnp.where(keep[..., None] > 0.0, still, frame)
+            frame = jnp.where(keep[..., None] > cfg.keep_threshold, still, frame)
         return (frame, keep) if with_keep else frame
 
 
