@@ -171,8 +171,8 @@ class Decoder(nn.Module):
     (`mask * prev + (1 - mask) * generated`, as in Finn et al. 2016's CDNA), so what does not move is
     carried over exactly and the latents spend their capacity on what changes. The mask starts near
     1 (COPY_BIAS), so an untrained model is the copy-last-frame baseline and training departs from it.
-    With cfg.keep a fifth output is the keep gate's logit: where it is positive the pixel is the
-    previous frame's own (unwarped) value, exactly; a hard choice, learnt from its cross-entropy
+    With cfg.keep a fifth output is the keep gate's logit: where it exceeds cfg.keep_threshold (0:
+    probability 0.5) the pixel is the previous frame's own (unwarped) value, exactly; a hard choice, learnt from its cross-entropy
     against the pixels that truly stay the same (`wm.train`), not through the frame.
     """
 
@@ -240,11 +240,17 @@ def unpatchify(x, p, c):
     return x.reshape(b, t, g * p, g * p, c)
 
 
+def _frame_window(t, context):
+    """Query frame minus key frame (T, T) int, and whether the key is one of the `context` frames up to
+    the query (T, T) bool."""
+    dist = jnp.arange(t)[:, None] - jnp.arange(t)[None, :]
+    return dist, (dist >= 0) & (dist < context)
+
+
 def relative_time_bias(table, t):
     """(heads, K) learned bias by frame distance -> (heads, T, T): entry [h, i, j] is table[h, i - j]
     where key frame j is one of the K frames up to query frame i, else 0 (attention_mask masks those)."""
-    dist = jnp.arange(t)[:, None] - jnp.arange(t)[None, :]
-    allowed = (dist >= 0) & (dist < table.shape[1])
+    dist, allowed = _frame_window(t, table.shape[1])
     return jnp.where(allowed[None], table[:, jnp.clip(dist, 0, table.shape[1] - 1)], 0.0)
 
 
@@ -252,8 +258,7 @@ def attention_mask(t, n, context, valid=None):
     """The constant additive mask (B or 1, 1, T*N, T*N) of causal attention over the last `context`
     frames of N tokens each, 0 where allowed and -1e9 elsewhere; valid: optional (B, T) bool, False for
     key frames that are empty slots."""
-    dist = jnp.arange(t)[:, None] - jnp.arange(t)[None, :]
-    allowed = jnp.repeat(jnp.repeat((dist >= 0) & (dist < context), n, axis=0), n, axis=1)[None, None]
+    allowed = jnp.repeat(jnp.repeat(_frame_window(t, context)[1], n, axis=0), n, axis=1)[None, None]
     if valid is not None:
         allowed = allowed & jnp.repeat(valid, n, axis=1)[:, None, None, :]
     return jnp.where(allowed, 0.0, -1e9).astype(jnp.float32)
