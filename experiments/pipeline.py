@@ -82,10 +82,22 @@ PIPELINES = {
 }
 
 
-def run_stage(name: str, stage: str, extra=(), gpus=()) -> bool:
-    """Runs one stage of pipeline `name`, spread over `gpus` (ids) where there are several; returns
-    False where the stage must run again to finish (an ensemble's members left to train)."""
+def pipeline(name: str, members: int | None = None) -> Pipeline:
+    """The preset `name`, with an ensemble of `members` world models in place of the preset's where
+    given (a smaller ensemble for a host with fewer GPUs or less time)."""
     p = PIPELINES[name]
+    if members is None:
+        return p
+    if members < 1:
+        raise ValueError(f"members={members}: an ensemble needs at least one world model")
+    return dataclasses.replace(p, members=members)
+
+
+def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = None) -> bool:
+    """Runs one stage of pipeline `name` (with `members` world models, see pipeline), spread over
+    `gpus` (ids) where there are several; returns False where the stage must run again to finish
+    (an ensemble's members left to train)."""
+    p = pipeline(name, members)
     d = p.dirs(name)
     t0 = time.perf_counter()
     spread = len(gpus) > 1 and stage != "report"
@@ -115,7 +127,7 @@ def run_stage(name: str, stage: str, extra=(), gpus=()) -> bool:
         _spread("sim_data.generate", args, gpus, _logs(p, name), "rollouts")
         generate.main(args)
     elif stage == "train":
-        done = train_members(name, extra, gpus)
+        done = train_members(name, extra, gpus, members)
     elif stage == "eval":
         from experiments import evaluate
 
@@ -136,10 +148,10 @@ def run_stage(name: str, stage: str, extra=(), gpus=()) -> bool:
     return done
 
 
-def train_members(name: str, extra=(), gpus=()) -> bool:
+def train_members(name: str, extra=(), gpus=(), members: int | None = None) -> bool:
     """Trains the world models of pipeline `name` not yet trained: member k with seed=k, one per GPU
     at a time (one in this process without several GPUs); returns whether every member is trained."""
-    p = PIPELINES[name]
+    p = pipeline(name, members)
     d = p.dirs(name)
     todo = [(k, m) for k, m in enumerate(d["members"]) if not (m / "eval.json").exists()]
     if not todo:
@@ -181,10 +193,14 @@ def main(argv=None) -> int:
     ap.add_argument("--stage", choices=STAGES + ("all",), default="all")
     ap.add_argument("--gpus", type=int, default=None,
                     help="how many of the visible GPUs the stages spread over (default: all of them)")
+    ap.add_argument("--members", type=int, default=None,
+                    help="world models in the ensemble (default: the preset's); give the same to every stage")
     ap.add_argument("overrides", nargs="*", help="key=value overrides passed to the one stage run")
     a = ap.parse_intermixed_args(argv)
     if a.stage == "all" and a.overrides:
         ap.error("overrides need one --stage")
+    if a.members is not None and a.members < 1:
+        ap.error(f"--members {a.members}: an ensemble needs at least one world model")
     gpus = local_gpus()
     if a.gpus is not None:
         if not 0 <= a.gpus <= len(gpus):
@@ -192,10 +208,10 @@ def main(argv=None) -> int:
         gpus = gpus[: a.gpus]
     t0 = time.perf_counter()
     for stage in STAGES if a.stage == "all" else (a.stage,):
-        while not run_stage(a.pipeline, stage, a.overrides, gpus) and a.stage == "all":
+        while not run_stage(a.pipeline, stage, a.overrides, gpus, a.members) and a.stage == "all":
             pass
     if a.stage in ("all", "report"):
-        print(f"report: {(PIPELINES[a.pipeline].dirs(a.pipeline)['eval'] / 'report.html').absolute()} "
+        print(f"report: {(pipeline(a.pipeline).dirs(a.pipeline)['eval'] / 'report.html').absolute()} "
               f"({time.perf_counter() - t0:.0f} s)")
     return 0
 

@@ -62,3 +62,19 @@ def test_with_several_gpus_stages_run_in_parts_and_members_side_by_side(tiny, mo
     P.run_stage("tiny", "train", gpus=["0", "1"])  # two members at once, the third in the next run
     cmds, _, label = spawned[1]
     assert label == "train-member" and len(cmds) == 2 and "seed=1" in cmds[1]
+
+
+def test_a_smaller_ensemble_trains_and_evaluates_only_its_members(tiny, monkeypatch):
+    calls, d = tiny
+    assert P.run_stage("tiny", "train", members=2) is False
+    assert P.run_stage("tiny", "train", members=2) is True and len(calls) == 2
+    got = []
+    import experiments.evaluate
+
+    monkeypatch.setattr(experiments.evaluate, "main", got.append)
+    P.run_stage("tiny", "eval", members=2)
+    assert f"wm={d['members'][0]},{d['members'][1]}" in got[0] and str(d["members"][2]) not in " ".join(got[0])
+    with pytest.raises(SystemExit, match="not trained yet"):
+        P.run_stage("tiny", "eval")  # the preset's three members
+    with pytest.raises(ValueError, match="at least one"):
+        P.pipeline("tiny", 0)
