@@ -4,7 +4,9 @@ the evaluator and the report.
 A policy spec is one of
 - a zoo registry: `runs/policies/demo` or `runs/policies/demo/policies.json` (every checkpoint),
   optionally narrowed with `#` and `+`-separated names, lineages or tasks:
-  `runs/policies/demo#conv_proprio+vit_noproprio`, `runs/policies/demo#mug/conv_proprio/300`;
+  `runs/policies/demo#conv_proprio+vit_noproprio`, `runs/policies/demo#mug/conv_proprio/300`,
+  and thinned with `@K/N`: every N-th checkpoint of each lineage and task, from the K-th, in the
+  order of training steps (`runs/policies/demo#@0/2`: the 1st, 3rd, 5th, ... of every lineage);
 - a plug-in: `package.module:attribute`, where the attribute is a callable returning
   `(policy, params)` (or is that pair itself). `policy` follows the project's protocol,
 
@@ -91,9 +93,13 @@ def load_registry_sources(spec: str) -> list[PolicySource]:
     from sim_data.zoo import load_policy, load_registry  # the zoo imports flax training code: load it on use
 
     path, _, sel = spec.partition("#")
-    wanted = {s for s in sel.split("+") if s}
+    terms = [s for s in sel.split("+") if s]
+    wanted = {s for s in terms if not s.startswith("@")}
     records = load_registry(Path(path))
     chosen = [r for r in records if not wanted or wanted & {r["name"], r["lineage"], r["task"]}]
+    for term in terms:
+        if term.startswith("@"):
+            chosen = every_nth_checkpoint(chosen, term, spec)
     if not chosen:
         raise ValueError(f"{spec!r} selects no policy; the registry has lineages "
                          f"{sorted({r['lineage'] for r in records})} and tasks {sorted({r['task'] for r in records})}")
@@ -102,6 +108,25 @@ def load_registry_sources(spec: str) -> list[PolicySource]:
         policy, params = load_policy(r)
         out.append(PolicySource(name=r["name"], kind="learned", task=r["task"], policy=policy, params=params, record=r))
     return out
+
+
+def every_nth_checkpoint(records: list[dict], term: str, spec: str = "") -> list[dict]:
+    """The records a `@K/N` selector keeps: of each (task, lineage), sorted by training step, the
+    K-th, (K+N)-th, ... checkpoints; in the registry's order."""
+    try:
+        k, n = (int(x) for x in term[1:].split("/"))
+    except ValueError:
+        raise ValueError(f"{spec or term!r}: a checkpoint selector is @K/N (every N-th from the K-th), "
+                         f"got {term!r}") from None
+    if not 0 <= k < n:
+        raise ValueError(f"{spec or term!r}: @K/N needs 0 <= K < N, got {term!r}")
+    groups: dict = {}
+    for r in records:
+        groups.setdefault((r["task"], r["lineage"]), []).append(r)
+    keep = set()
+    for group in groups.values():
+        keep |= {r["name"] for r in sorted(group, key=lambda r: r.get("step") or 0)[k::n]}
+    return [r for r in records if r["name"] in keep]
 
 
 def resolve(specs) -> list[PolicySource]:

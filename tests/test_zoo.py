@@ -13,7 +13,7 @@ from sim_data import zoo
 from sim_data.env import HomeEnv
 from sim_data.learned import BCPolicy, StackedPolicy, predict_chunk, stack_params
 from sim_data.rollout import run_episodes
-from sim_data.sources import resolve
+from sim_data.sources import every_nth_checkpoint, resolve
 
 
 def test_zoo_registry_checkpoints_and_resume(smoke_zoo, smoke_dataset):
@@ -79,6 +79,20 @@ def test_bad_policy_specs_are_refused():
         resolve(["runs/no/such/zoo"])
     with pytest.raises(ValueError, match="repeat"):
         resolve(["examples.plugin_policy:make", "examples.plugin_policy:make"])
+
+
+def test_every_nth_checkpoint_thins_each_lineage_by_training_step():
+    records = [{"name": f"{t}/{lin}/{s}", "task": t, "lineage": lin, "step": s}
+               for t in ("mug", "wipe") for lin in ("a", "b") for s in (300, 5, 80, 20, 160)]  # steps out of order
+    even = every_nth_checkpoint(records, "@0/2")
+    odd = every_nth_checkpoint(records, "@1/2")
+    assert [r["name"] for r in even if r["task"] == "mug" and r["lineage"] == "a"] == ["mug/a/300", "mug/a/5", "mug/a/80"]
+    assert [r["name"] for r in odd if r["task"] == "wipe" and r["lineage"] == "b"] == ["wipe/b/20", "wipe/b/160"]
+    assert len(even) == 12 and len(odd) == 8 and not {r["name"] for r in even} & {r["name"] for r in odd}
+    assert [r["step"] for r in every_nth_checkpoint(records, "@2/3") if r["name"].startswith("mug/b/")] == [80]
+    for bad in ("@2/2", "@x", "@1"):
+        with pytest.raises(ValueError, match="@K/N"):
+            every_nth_checkpoint(records, bad)
 
 
 def test_mixed_dataset_records_policy_rollouts(smoke_dataset, smoke_zoo, smoke_world_model, tmp_path):
