@@ -19,7 +19,10 @@ datasets):
 
 Policies of one architecture run as one batch (their parameters stacked), so one compiled rollout
 serves a whole checkpoint series. Each task is saved when done (`OUT/tasks/<task>.npz`) and a
-rerun resumes. `OUT/results.json` holds the per-policy rates and intervals and the statistics
+rerun resumes. On several GPUs (`--part K/N`, one process each, sim_data.parts) every task's batches
+are spread over the parts, the largest first onto the least loaded, whatever the number of tasks;
+each part saves its share (`OUT/tasks/<task>.partKofN.npz`) and the run without a part merges them,
+with the outcomes and probabilities of one unsplit run. `OUT/results.json` holds the per-policy rates and intervals and the statistics
 (experiments.stats), overall and per task, beside the imitation-loss baseline; `OUT/videos.npz`
 real and imagined episodes and the controllability panel for the report.
 """
@@ -32,6 +35,7 @@ import hashlib
 import json
 import math
 import os
+import re
 import sys
 import time
 from pathlib import Path
@@ -49,7 +53,7 @@ from sim_data.config import override
 from sim_data.engines import ENGINES, default_engine
 from sim_data.generate import cached_env, cached_renderers, package_versions
 from sim_data.learned import StackedPolicy, stack_params
-from sim_data.parts import add_part_argument, exclusive, parse_part, take
+from sim_data.parts import add_part_argument, exclusive, parse_part
 from sim_data.rollout import record_policies
 from sim_data.sources import group_by_policy, heldout_seeds, padded_chunks, resolve, used_seeds
 from sim_data.success_table import write_json_atomic
@@ -137,9 +141,29 @@ def make_config(preset: str, overrides=()) -> EvalConfig:
 
 # ---- one task ------------------------------------------------------------------------------------
 
-def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: str, progress: bool) -> dict:
+def task_chunks(cfg: EvalConfig, sources, n: int) -> list:
+    """The batches a task's sources run in: [(policies, padded)], policies sharing one compiled
+    rollout, at most cfg.batch // n of them (n initial states each), the last padded."""
+    return [(part, padded) for g in group_by_policy(sources) for part, padded in padded_chunks(g, n, cfg.batch)]
+
+
+def balance_chunks(sizes: dict, n_parts: int) -> dict:
+    """{key: part} spreading the chunks `sizes` ({key: episodes}) over n_parts processes, largest
+    first onto the least loaded (ties to the lower part): a task's chunks may go to several parts."""
+    load = [0] * n_parts
+    out = {}
+    for key in sorted(sizes, key=lambda k: -sizes[k]):  # stable: equal sizes keep their order
+        k = load.index(min(load))
+        out[key] = k
+        load[k] += sizes[key]
+    return out
+
+
+def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: str, progress: bool,
+                  chunks=None) -> dict:
     """True and predicted outcomes of every source on task from the held-out seeds, predicted by
-    each of K world models (`models`: a list of (config, params, norm, judge)).
+    each of K world models (`models`: a list of (config, params, norm, judge)); with `chunks` (indices
+    into task_chunks), of those batches' sources only (a part of the task, for merge_task_parts).
 
     Returns {"names": [P], "true": (P, N) bool, "prob": (P, N) float (the judge's, or the rule's;
     the models' mean), "prob_rule": (P, N) float (the per-step rule's; the mean), "prob_members":
@@ -152,10 +176,11 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
     names, true, prob, rule, members, kept = [], [], [], [], [], {}
     sim_s = wm_s = 0.0
     steps = None
-    todo = [(g, part, padded) for g in group_by_policy(sources) for part, padded in padded_chunks(g, n, cfg.batch)]
-    bar = tqdm(total=len(sources) * n, desc=f"{task}", unit="ep", disable=not progress)
-    for k, (group, part, padded) in enumerate(todo):
-        policy = StackedPolicy(group[0].policy)
+    todo = [(k, part, padded) for k, (part, padded) in enumerate(task_chunks(cfg, sources, n))
+            if chunks is None or k in chunks]
+    bar = tqdm(total=sum(len(part) for _, part, _ in todo) * n, desc=f"{task}", unit="ep", disable=not progress)
+    for k, part, padded in todo:
+        policy = StackedPolicy(part[0].policy)
         params = stack_params([s.params for s in padded])
         rng = jax.random.PRNGKey(cfg.seed * 7919 + k)
         t0 = time.perf_counter()
@@ -181,11 +206,44 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
                                             each[0][2])
         bar.update(len(part) * n)
     bar.close()
+    if not names:  # a part given none of this task's batches
+        empty = np.zeros((0, n))
+        return {"names": [], "true": empty.astype(bool), "prob": empty, "prob_rule": empty,
+                "prob_members": np.zeros((len(models), 0, n)), "videos": {}, "video_index": [], "sim_s": 0.0,
+                "wm_s": 0.0, "steps": None}
     true, prob = np.stack(true), np.stack(prob)
     videos, index = _select_videos(cfg, task, names, true, kept)
     return {"names": names, "true": true, "prob": prob, "prob_rule": np.stack(rule),
             "prob_members": np.stack(members, axis=1), "videos": videos, "video_index": index, "sim_s": sim_s,
             "wm_s": wm_s, "steps": steps}
+
+
+def merge_task_parts(cfg: EvalConfig, parts: list, order: list) -> dict:
+    """One task's results from its parts' (evaluate_task with chunks), policies in `order` (the
+    names as evaluate_task without chunks lists them); the videos of the policies cfg.video_policies
+    picks among those the parts filmed (the least and most successful are always among them)."""
+    names = [x for p in parts for x in p["names"]]
+    if sorted(names) != sorted(order):
+        raise ValueError(f"the parts hold {len(names)} policies, not the task's {len(order)}: "
+                         "rerun the parts (--part K/N) of this evaluation")
+    at = [names.index(x) for x in order]
+
+    def cat(key, axis=0):
+        return np.concatenate([p[key] for p in parts], axis=axis).take(at, axis=axis)
+
+    true = cat("true")
+    filmed = {v["policy"] for p in parts for v in p["video_index"]}
+    shown = [i for i, x in enumerate(order) if x in filmed]
+    rates = true[shown].mean(1)
+    rank = [shown[i] for i in np.argsort(rates, kind="stable")]
+    picks = [rank[0], rank[len(rank) // 2], rank[-1]] + rank if rank else []
+    chosen = {order[i] for i in list(dict.fromkeys(picks))[: cfg.video_policies]}
+    index = [v for p in parts for v in p["video_index"] if v["policy"] in chosen]
+    videos = {k: v for p in parts for k, v in p["videos"].items() if k.rsplit("/", 1)[0] in {i["key"] for i in index}}
+    return {"names": list(order), "true": true, "prob": cat("prob"), "prob_rule": cat("prob_rule"),
+            "prob_members": cat("prob_members", axis=1), "videos": videos, "video_index": index,
+            "sim_s": sum(p["sim_s"] for p in parts), "wm_s": sum(p["wm_s"] for p in parts),
+            "steps": next((p["steps"] for p in parts if p["steps"] is not None), None), "seeds": parts[0]["seeds"]}
 
 
 def _imagine(model, task, policy, params, frames0, proprio0, steps, rng) -> tuple:
@@ -347,9 +405,9 @@ def decision_analysis(cfg: EvalConfig, rows: list[dict], tasks: dict, alignment:
 
 def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int] | None = None) -> dict | None:
     """Evaluates (or completes the evaluation of) cfg into out; returns the results, or None when
-    cfg.max_minutes stopped it before the last task (rerun to finish). part: (K, N) evaluates every
-    N-th task from the K-th and returns None (sim_data.parts: one process per GPU; a run without a
-    part gathers the tasks' files into results.json)."""
+    cfg.max_minutes stopped it before the last task (rerun to finish). part: (K, N) evaluates the K-th
+    of N shares of every task's batches (balance_chunks) and returns None (sim_data.parts: one
+    process per GPU; a run without a part merges the shares and gathers results.json)."""
     cfg.validate()
     out = Path(out)
     (out / "tasks").mkdir(parents=True, exist_ok=True)
@@ -371,10 +429,18 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
     used = used_seeds(*dict.fromkeys(datas), *zoo_data)  # held out from every model's data
     engine = cfg.engine or default_engine()
     results, by_name = {}, {s.name: s for s in sources}
+    by_task = {t: [s for s in sources if s.runs_on(t)] for t in tasks}
+    if part is not None:  # every task's batches spread over the parts, the largest first
+        sizes = {(t, k): len(padded) * cfg.episodes for t in tasks
+                 for k, (_, padded) in enumerate(task_chunks(cfg, by_task[t], cfg.episodes))}
+        mine = {key for key, k in balance_chunks(sizes, part[1]).items() if k == part[0]}
     t_start, longest = time.perf_counter(), 0.0
-    for task in take(tasks, part):
-        path = out / "tasks" / f"{task}.npz"
-        task_sources = [s for s in sources if s.runs_on(task)]
+    for task in tasks:
+        path = out / "tasks" / (f"{task}.npz" if part is None else f"{task}.part{part[0]}of{part[1]}.npz")
+        if not path.exists() and part is None and (merged := _merged_parts(cfg, out, task, by_task[task])):
+            _save_task(path, merged)
+        if part is not None and (out / "tasks" / f"{task}.npz").exists():
+            continue  # gathered already
         if path.exists():
             results[task] = _load_task(path)
             continue
@@ -386,7 +452,8 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
             return None
         t_task = time.perf_counter()
         seeds = heldout_seeds(task, cfg.episodes, cfg.seed, used)
-        res = evaluate_task(cfg, task, task_sources, models, seeds, engine, progress)
+        chunks = None if part is None else {k for t, k in mine if t == task}
+        res = evaluate_task(cfg, task, by_task[task], models, seeds, engine, progress, chunks)
         longest = max(longest, time.perf_counter() - t_task)
         res["seeds"] = seeds
         _save_task(path, res)
@@ -455,6 +522,17 @@ def load_models(runs) -> list:
     return models
 
 
+def _merged_parts(cfg: EvalConfig, out: Path, task: str, sources) -> dict | None:
+    """The task's results merged from a complete set of its parts' files (`--part K/N` runs), or None."""
+    for n in sorted({int(m.group(1)) for f in (out / "tasks").glob(f"{task}.part*of*.npz")
+                     if (m := re.fullmatch(rf"{re.escape(task)}\.part\d+of(\d+)\.npz", f.name))}):
+        files = [out / "tasks" / f"{task}.part{k}of{n}.npz" for k in range(n)]
+        if all(f.exists() for f in files):
+            order = [s.name for part, _ in task_chunks(cfg, sources, cfg.episodes) for s in part]
+            return merge_task_parts(cfg, [_load_task(f) for f in files], order)
+    return None
+
+
 def _save_task(path: Path, res: dict) -> None:
     meta = {"names": res["names"], "video_index": res["video_index"], "sim_s": res["sim_s"], "wm_s": res["wm_s"],
             "steps": res["steps"], "seeds": res["seeds"]}
@@ -491,7 +569,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--config", default="demo", help=f"preset: {', '.join(PRESETS)}")
     p.add_argument("--out", type=Path, required=True)
-    add_part_argument(p, "evaluate every N-th task", "gather results.json")
+    add_part_argument(p, "evaluate this part's share of every task's batches", "gather results.json")
     p.add_argument("overrides", nargs="*", help="key=value overrides (e.g. episodes=50 policies=DIR,mod:attr)")
     a = p.parse_args(argv)
     try:

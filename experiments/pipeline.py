@@ -25,7 +25,7 @@ A preset may train an ensemble (`members`): world models that differ only in the
 whose mean probability ranks the policies (one model's seed moves its ranking more than most design
 choices; experiments.ensemble). On a host with several GPUs (`--gpus`, default every visible GPU)
 each stage spreads over them, one process per GPU (sim_data.parts): the data generator's chunks, the
-zoo's lineages, the ensemble's members and the evaluator's tasks; with one GPU or none the stages run
+zoo's lineages, the ensemble's members and the evaluator's batches of policies; with one GPU or none the stages run
 in this process, and the train stage trains one member a command (rerun it for the next), so that
 each fits a 10-minute command.
 """

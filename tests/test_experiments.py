@@ -61,6 +61,32 @@ def test_rerun_resumes_and_other_config_is_refused(evaluation):
         E.run(E.EvalConfig(**{**cfg.__dict__, "episodes": 3}), out, progress=False)
 
 
+def test_parts_share_out_a_tasks_batches_and_merge_into_the_unsplit_results(evaluation, tmp_path):
+    cfg, out, res = evaluation
+    assert E.balance_chunks({"a": 5, "b": 3, "c": 3, "d": 1}, 2) == {"a": 0, "b": 1, "c": 1, "d": 0}
+    split = tmp_path / "split"
+    for k in range(2):
+        assert E.run(cfg, split, progress=False, part=(k, 2)) is None
+    shares = [E._load_task(split / "tasks" / f"mug.part{k}of2.npz")["names"] for k in range(2)]
+    assert all(shares) and sorted(shares[0] + shares[1]) == sorted(p["name"] for p in res["policies"])
+    assert not (split / "tasks" / "mug.npz").exists()
+    got = E.run(cfg, split, progress=False)  # merges the parts
+    whole, merged = E._load_task(out / "tasks" / "mug.npz"), E._load_task(split / "tasks" / "mug.npz")
+    assert merged["names"] == whole["names"] and merged["seeds"] == whole["seeds"]
+    for key in ("true", "prob", "prob_rule", "prob_members"):
+        np.testing.assert_allclose(merged[key], whole[key], atol=1e-5, err_msg=key)
+    for mine, theirs in zip(got["policies"], res["policies"], strict=True):
+        assert mine["name"] == theirs["name"] and mine["true_rate"] == theirs["true_rate"]
+        assert mine["pred_rate"] == pytest.approx(theirs["pred_rate"], abs=1e-5)
+    filmed = {v["policy"] for v in merged["video_index"]}
+    assert 0 < len(filmed) <= cfg.video_policies and set(merged["videos"]) == {
+        f"{v['key']}/{kind}" for v in merged["video_index"] for kind in ("real", "imagined")}
+    (split / "tasks" / "mug.npz").unlink()
+    (split / "tasks" / "mug.part1of2.npz").unlink()
+    with pytest.raises(ValueError, match="rerun the parts"):
+        E.merge_task_parts(cfg, [E._load_task(split / "tasks" / "mug.part0of2.npz")], whole["names"])
+
+
 def test_report_renders_figures_and_videos(evaluation):
     _, out, res = evaluation
     page = write_report(out).read_text()
