@@ -23,8 +23,9 @@ rerun resumes. On several GPUs (`--part K/N`, one process each, sim_data.parts) 
 are spread over the parts, the largest first onto the least loaded, whatever the number of tasks;
 each part saves its share (`OUT/tasks/<task>.partKofN.npz`) and the run without a part merges them,
 with the outcomes and probabilities of one unsplit run. `OUT/results.json` holds the per-policy
-rates and intervals and the statistics (experiments.stats), overall and per task, beside the imitation-loss baseline; `OUT/videos.npz`
-real and imagined episodes and the controllability panel for the report.
+rates and intervals and the statistics (experiments.stats), overall and per task, beside the
+imitation-loss baseline; `OUT/videos.npz` real and imagined episodes and the controllability panel
+for the report.
 """
 
 from __future__ import annotations
