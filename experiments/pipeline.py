@@ -25,15 +25,18 @@ A preset may train an ensemble (`members`): world models that differ only in the
 whose mean probability ranks the policies (one model's seed moves its ranking more than most design
 choices; experiments.ensemble). On a host with several GPUs (`--gpus`, default every visible GPU)
 each stage spreads over them, one process per GPU (sim_data.parts): the data generator's chunks, the
-zoo's lineages, the ensemble's members and the evaluator's batches of policies; with one GPU or none the stages run
-in this process, and the train stage trains one member a command (rerun it for the next), so that
-each fits a 10-minute command.
+zoo's lineages, the ensemble's members and the evaluator's batches of policies; with one GPU or none
+the stages run in this process, and the train stage trains one member a command (rerun it for the
+next), so that each fits a 10-minute command. Every stage shares JAX's persistent compilation cache
+(`runs/jax_cache`, or JAX_COMPILATION_CACHE_DIR): what one process compiled, a rerun, a later stage
+or another GPU's part loads.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import sys
 import time
 from pathlib import Path
@@ -174,6 +177,17 @@ def train_members(name: str, extra=(), gpus=(), members: int | None = None) -> b
     return not left
 
 
+def use_compilation_cache(root: str) -> str:
+    """Turns on JAX's persistent compilation cache in root/jax_cache (or where JAX_COMPILATION_CACHE_DIR
+    says), for this process and the stages' child processes: a stage run again, a later stage and
+    the other GPUs' parts load what one process compiled. Returns the directory."""
+    path = os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(Path(root).absolute() / "jax_cache"))
+    import jax
+
+    jax.config.update("jax_compilation_cache_dir", path)
+    return path
+
+
 def _spread(module: str, args, gpus, logs: Path, stage: str) -> None:
     """With several GPUs, `python -m module args --part K/N` on each of them (sim_data.parts); the
     caller then runs the module once more without a part to gather."""
@@ -206,6 +220,7 @@ def main(argv=None) -> int:
         if not 0 <= a.gpus <= len(gpus):
             ap.error(f"--gpus {a.gpus}: this host shows {len(gpus)} GPUs")
         gpus = gpus[: a.gpus]
+    use_compilation_cache(PIPELINES[a.pipeline].root)
     t0 = time.perf_counter()
     for stage in STAGES if a.stage == "all" else (a.stage,):
         while not run_stage(a.pipeline, stage, a.overrides, gpus, a.members) and a.stage == "all":

@@ -223,6 +223,27 @@ def _plan(cfg: DataConfig, learned=()):
                 yield task, source, list(range(start, min(n, start + cfg.batch)))
 
 
+def rollout_key(task: str, source) -> tuple:
+    """What one compiled rollout serves: a task's scripted skills, its programs and random play
+    (one ProgramPolicy), or a learned policy's checkpoints (one architecture)."""
+    if isinstance(source, PolicySource):
+        return task, source.policy
+    return task, "program" if isinstance(source, str) else "scripted"
+
+
+def staggered(chunks: list, key, keys: list, part: tuple[int, int] | None) -> list:
+    """A part's chunks reordered so that the parts begin on different compiled rollouts: the K-th of
+    N starts K/N of the way through `keys` (every chunk's key(chunk), in the whole plan's order) and
+    keeps the chunks of one key in their order; without a part, as given. The parts compile side by
+    side, and with JAX's persistent compilation cache (experiments.pipeline sets one) a part that
+    comes to a rollout another has compiled loads it instead."""
+    if part is None or len(keys) < 2:
+        return list(chunks)
+    shift = part[0] * len(keys) // part[1]
+    rank = {k: (i - shift) % len(keys) for i, k in enumerate(keys)}
+    return sorted(chunks, key=lambda c: rank[key(c)])
+
+
 def _episode_meta(cfg, task, source, i, success, num_steps, engine):
     seed = _initial_seed_of(cfg, task, source, i)
     kind = policy_kind(source)
@@ -297,7 +318,9 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True, reuse: Path | No
     # only the missing episodes are written
     todo = [(task, skill, idx, {i for i in idx if not (out / "episodes" / f"{episode_id(task, skill, i)}.mcap").exists()})
             for task, skill, idx in _plan(cfg, learned)]
+    keys = list(dict.fromkeys(rollout_key(task, skill) for task, skill, _, _ in todo))
     todo = [c for c in take(todo, part) if c[3]]  # a part's share of the whole plan, whatever is done
+    todo = staggered(todo, lambda c: rollout_key(c[0], c[1]), keys, part)
     total = sum(len(c[3]) for c in todo)
     bar = tqdm(total=total, unit="ep", desc="episodes", disable=not progress or total == 0)
     t0, frames_done, steps_done = time.perf_counter(), 0, 0

@@ -2,7 +2,9 @@
 the modules' entry points are replaced by recorders)."""
 
 import json
+import os
 
+import jax
 import pytest
 
 from experiments import pipeline as P
@@ -78,3 +80,14 @@ def test_a_smaller_ensemble_trains_and_evaluates_only_its_members(tiny, monkeypa
         P.run_stage("tiny", "eval")  # the preset's three members
     with pytest.raises(ValueError, match="at least one"):
         P.pipeline("tiny", 0)
+
+
+def test_the_pipeline_shares_one_compilation_cache_with_its_child_processes(tmp_path, monkeypatch):
+    calls = []
+    monkeypatch.setattr(jax.config, "update", lambda *a: calls.append(a))
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
+    path = P.use_compilation_cache(str(tmp_path))
+    assert path == str(tmp_path.absolute() / "jax_cache") and calls == [("jax_compilation_cache_dir", path)]
+    assert os.environ["JAX_COMPILATION_CACHE_DIR"] == path  # inherited by the stages' processes
+    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", "/elsewhere")
+    assert P.use_compilation_cache(str(tmp_path)) == "/elsewhere"
