@@ -221,6 +221,24 @@ def test_imagination_step_equals_the_teacher_forced_prediction(model_and_inputs)
     assert got["success"].shape == (2, 4) and float(got["success"].min()) >= 0.0
 
 
+def test_reencoding_imagination_feeds_back_the_latents_of_the_decoded_8_bit_frame(model_and_inputs):
+    params, frames, proprio, action = model_and_inputs
+    norm = I.Norm(jnp.zeros(37), jnp.ones(37), jnp.zeros(20), jnp.ones(20))
+    m = WorldModel(CFG)
+    c = 3
+    st0 = I.init_state(CFG, params, norm, frames[:, :c], proprio[:, :c], action[:, :c - 1])
+    plain = I.step(CFG, params, norm, st0, action[:, c - 1])
+    re_cfg = dataclasses.replace(CFG, reencode=True)
+    again = I.step(re_cfg, params, norm, st0, action[:, c - 1])
+    np.testing.assert_array_equal(again.frame, plain.frame)  # the same prediction and frame
+    np.testing.assert_allclose(again.proprio, plain.proprio, atol=1e-6)
+    shown = I.to_uint8(again.frame)
+    np.testing.assert_allclose(again.z[:, -1], m.apply({"params": params}, shown, method=WorldModel.encode),
+                               atol=1e-5)
+    np.testing.assert_allclose(again.z[:, :-1], plain.z[:, :-1])
+    assert float(jnp.abs(again.z[:, -1] - plain.z[:, -1]).max()) > 1e-3
+
+
 class HoldStill:
     """A policy of the protocol that counts its steps and sends a constant action."""
 

@@ -250,7 +250,8 @@ def _save_strip(path: Path, pictures: dict, horizons) -> None:
     plt.close(fig)
 
 
-EVAL_KEYS = ("eval_context", "eval_episodes", "eval_horizons", "control_horizon", "eval_tasks", "model.keep_threshold")
+EVAL_KEYS = ("eval_context", "eval_episodes", "eval_horizons", "control_horizon", "eval_tasks", "model.keep_threshold",
+             "model.reencode")
 
 
 def main(argv=None) -> int:

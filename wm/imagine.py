@@ -101,7 +101,10 @@ def step(cfg: ModelConfig, params, norm: Norm, state: ImagineState, action) -> I
     frame = model.apply({"params": params}, z_next, state.frame, out["flow"][:, -1], method=WorldModel.decode)
     # kept on the uint8 grid: a change under half a level vanishes instead of accumulating over a long
     # rollout, so what the model leaves still stays exactly still (and the policy sees this frame)
-    frame = to_uint8(frame).astype(jnp.float32) / 255.0
+    frame = to_uint8(frame)
+    if cfg.reencode:
+        z_next = model.apply({"params": params}, frame, method=WorldModel.encode)
+    frame = frame.astype(jnp.float32) / 255.0
     return ImagineState(
         z=push(state.z, z_next), proprio=push(state.proprio, out["proprio"][:, -1]),
         action=push(acts, jnp.zeros_like(acts[:, -1])), valid=push(state.valid, jnp.ones_like(state.valid[:, -1])),

@@ -53,6 +53,10 @@ class ModelConfig:
       keep_threshold: the gate keeps a pixel where its logit exceeds this (0: probability 0.5); the
         gate learns from its cross-entropy whatever the threshold, so a trained model may be evaluated
         at another (`python -m wm.evaluate ... model.keep_threshold=2`).
+      reencode: imagination feeds each decoded frame back through the encoder (its 8-bit image, as
+        a real frame would be) instead of the predicted latents, so that the dynamics always reads
+        latents of images (what teacher-forced training shows it) however far it imagines;
+        an imagination setting (wm.imagine.step), without effect on training.
     """
 
     size: int = 64
@@ -73,6 +77,7 @@ class ModelConfig:
     upsample: str = "resize"
     keep: bool = False
     keep_threshold: float = 0.0
+    reencode: bool = False
 
     def validate(self) -> None:
         stages = int(round(math.log2(self.size / LATENT_SIDE)))
