@@ -239,6 +239,26 @@ def test_reencoding_imagination_feeds_back_the_latents_of_the_decoded_8_bit_fram
     assert float(jnp.abs(again.z[:, -1] - plain.z[:, -1]).max()) > 1e-3
 
 
+def test_reencoded_rollout_passes_change_only_the_passes(model_and_inputs):
+    from wm.train import loss_fn
+
+    params, frames, proprio, action = model_and_inputs
+    norm = I.Norm(jnp.zeros(37), jnp.ones(37), jnp.zeros(20), jnp.ones(20))
+    batch = {"frames": frames, "proprio": proprio, "action": action, "success": np.zeros((2, 6), bool),
+             "outcome": np.zeros((2,), bool)}
+    cfg = make_config("smoke")
+    parts = {}
+    for model_re, passes_re in ((False, False), (True, False), (True, True)):
+        c = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, reencode=model_re), reencode_passes=passes_re)
+        parts[model_re, passes_re] = loss_fn(params, batch, norm, c)[1]
+    plain, only_model, both = parts[False, False], parts[True, False], parts[True, True]
+    for k in plain:  # model.reencode alone is an imagination setting: training is unchanged
+        np.testing.assert_allclose(only_model[k], plain[k], rtol=1e-6, err_msg=k)
+    for k in ("latent", "pixel", "proprio", "recon"):  # teacher forcing: the same
+        np.testing.assert_allclose(both[k], plain[k], rtol=1e-6, err_msg=k)
+    assert abs(float(both["latent_pass1"]) - float(plain["latent_pass1"])) > 1e-6
+
+
 class HoldStill:
     """A policy of the protocol that counts its steps and sends a constant action."""
 

@@ -21,6 +21,8 @@ class TrainConfig:
         (training k+1-step open-loop predictions end to end) instead of stopping the gradient.
       context_noise: the largest std of Gaussian noise added to the input latents (each window draws
         its level uniformly below it; 0: none), as GameNGen's noise augmentation.
+      reencode_passes: with model.reencode, the rollout passes read the latents of their decoded
+        frames' 8-bit images, as imagination does, instead of the predicted latents.
       w_recon, w_latent, w_pixel, w_proprio, w_success: loss weights; w_keep: of the keep gate's
         cross-entropy against the pixels the true next frame leaves unchanged (model.keep).
       log_every, eval_every, ckpt_every: in steps (eval and checkpoints at multiples of log_every).
@@ -48,6 +50,7 @@ class TrainConfig:
     rollout_passes: int = 1
     rollout_grad: bool = False
     context_noise: float = 0.0
+    reencode_passes: bool = False
     w_recon: float = 1.0
     w_latent: float = 1.0
     w_pixel: float = 1.0

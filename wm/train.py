@@ -34,7 +34,7 @@ from tqdm import tqdm
 
 from sim_data.cache import TrainingCache, WindowLoader
 from wm.config import TrainConfig, from_dict, make_config, to_dict
-from wm.imagine import Norm
+from wm.imagine import Norm, to_uint8
 from wm.model import WorldModel, init_params
 
 
@@ -118,7 +118,11 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None):
         # the next pass reads this pass's predictions of frames 1..T-1: latents and proprio (with their
         # gradient if rollout_grad, so earlier steps learn what later ones need), and the decoded
         # frames as the previous frames of the decoder (always stop-gradient)
-        z_in = jnp.concatenate([z[:, :1], hold(zp)], axis=1)
+        if cfg.model.reencode and cfg.reencode_passes:  # as imagination reads them: latents of the 8-bit frames
+            seen = to_uint8(jax.lax.stop_gradient(pixels))
+            z_in = jnp.concatenate([z[:, :1], model.apply({"params": params}, seen, method=WorldModel.encode)], axis=1)
+        else:
+            z_in = jnp.concatenate([z[:, :1], hold(zp)], axis=1)
         p_in = jnp.concatenate([proprio[:, :1], hold(pred["proprio"][:, :-1])], axis=1)
         prev = jnp.concatenate([pix[:, :1], jax.lax.stop_gradient(pixels[:, :-1])], axis=1)
     parts["loss"] = total
