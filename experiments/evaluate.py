@@ -404,11 +404,14 @@ def decision_analysis(cfg: EvalConfig, rows: list[dict], tasks: dict, alignment:
 
 # ---- the run -----------------------------------------------------------------------------------------
 
-def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int] | None = None) -> dict | None:
+def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int] | None = None,
+        partial: bool = False) -> dict | None:
     """Evaluates (or completes the evaluation of) cfg into out; returns the results, or None when
     cfg.max_minutes stopped it before the last task (rerun to finish). part: (K, N) evaluates the K-th
     of N shares of every task's batches (balance_chunks) and returns None (sim_data.parts: one
-    process per GPU; a run without a part merges the shares and gathers results.json)."""
+    process per GPU; a run without a part merges the shares and gathers results.json). partial:
+    evaluate nothing more and gather the tasks finished so far (a run cut short); results.json
+    lists the others in "missing_tasks"."""
     cfg.validate()
     out = Path(out)
     (out / "tasks").mkdir(parents=True, exist_ok=True)
@@ -445,6 +448,8 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
         if path.exists():
             results[task] = _load_task(path)
             continue
+        if partial:
+            continue
         elapsed = time.perf_counter() - t_start
         if cfg.max_minutes and longest and elapsed + longest > 60 * cfg.max_minutes:
             left = [t for t in tasks if not (out / "tasks" / f"{t}.npz").exists()]
@@ -461,6 +466,10 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
         results[task] = _load_task(path)
     if part is not None:
         return None
+    missing = [t for t in tasks if t not in results]
+    if not results:
+        raise ValueError(f"{out}: no task is finished yet ({', '.join(missing)}); run without --partial")
+    tasks = [t for t in tasks if t in results]
     rows = [r for task in tasks for r in policy_rows(cfg, task, results[task], by_name)]
     true_eps, prob_eps, member_eps = _episodes_of(results, tasks, lambda name: True)
     metrics = {"overall": ranking_block(rows, true_eps, prob_eps, cfg.threshold, member_eps), "per_task": {}}
@@ -488,7 +497,7 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
         "world_model": {"run": cfg.wm, "runs": list(cfg.wm_runs), "data": wm_data, "train_tasks": wm_tasks,
                         "rule": {t: "episode judge" if judge is not None and judge.knows(t)
                                  else "highest per-step probability" for t in tasks}},
-        "tasks": tasks, "policies": rows, "metrics": metrics,
+        "tasks": tasks, "missing_tasks": missing, "policies": rows, "metrics": metrics,
         "decision": decision_analysis(cfg, rows, results, metrics["overall"]["alignment"]),
         "videos": [v for t in tasks for v in results[t]["video_index"]],
         "controllability": sorted(panel),
@@ -571,6 +580,8 @@ def main(argv=None) -> int:
     p.add_argument("--config", default="demo", help=f"preset: {', '.join(PRESETS)}")
     p.add_argument("--out", type=Path, required=True)
     add_part_argument(p, "evaluate this part's share of every task's batches", "gather results.json")
+    p.add_argument("--partial", action="store_true",
+                   help="evaluate nothing more: results.json over the tasks finished so far (a run cut short)")
     p.add_argument("overrides", nargs="*", help="key=value overrides (e.g. episodes=50 policies=DIR,mod:attr)")
     a = p.parse_args(argv)
     try:
@@ -579,7 +590,9 @@ def main(argv=None) -> int:
     except ValueError as e:
         p.error(str(e))
     t0 = time.perf_counter()
-    res = run(cfg, a.out, part=part)
+    if a.partial and part is not None:
+        p.error("--partial gathers; it takes no --part")
+    res = run(cfg, a.out, part=part, partial=a.partial)
     if res is None:
         return 0  # a part, or stopped by max_minutes (the message says what is left)
     m = res["metrics"]["overall"]

@@ -262,7 +262,7 @@ def _md_table(rows) -> str:
 CSS = """body{font-family:system-ui,sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;color:#222}
 table{border-collapse:collapse;font-size:13px;margin:0.5em 0 1.5em}td,th{border:1px solid #ccc;padding:3px 7px}
 th{background:#f3f3f3}img{max-width:100%}img.anim{width:300px;image-rendering:pixelated}.vid{display:inline-block;margin:6px;text-align:center;font-size:12px}
-.ok{color:#070}.bad{color:#b00}code{background:#f3f3f3;padding:1px 4px}"""
+.ok{color:#070}.bad{color:#b00}.warn{color:#b00;font-weight:bold}code{background:#f3f3f3;padding:1px 4px}"""
 
 
 def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
@@ -277,6 +277,8 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
          f"<p>{len(policies)} policies on {', '.join(tasks)}; {res['config']['episodes']} held-out initial states "
          f"per task; {_models_phrase(res, lambda r: f'<code>{html.escape(r)}</code>')}; engine {res['engine']}; "
          f"device {html.escape(str(res['device']))}.</p>",
+         *([f"<p class='warn'>Partial: tasks {html.escape(', '.join(res['missing_tasks']))} were not evaluated; "
+            "every statistic below leaves them out.</p>"] if res.get("missing_tasks") else []),
          "<h2>Headline statistics (all policies)</h2>", _html_table(_metrics_table(metrics["overall"])),
          *(["<h2>Policies whose rollouts the world model never saw</h2>",
             _html_table(_metrics_table(metrics["unseen"]))] if "unseen" in metrics else []),
@@ -325,6 +327,8 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
     md = [f"# Policy evaluation: {len(policies)} policies on {', '.join(tasks)}", "",
           f"{_models_phrase(res, lambda r: f'`{r}`', capital=True)}, {res['config']['episodes']} held-out initial states per task, "
           f"engine {res['engine']}, device {res['device']}. Full report: `report.html`.", "",
+          *([f"**Partial**: tasks {', '.join(res['missing_tasks'])} were not evaluated; every statistic below "
+             "leaves them out.", ""] if res.get("missing_tasks") else []),
           "## All policies", "", _md_table(_metrics_table(metrics["overall"])), ""]
     if "unseen" in metrics:
         md += ["## Policies whose rollouts the world model never saw", "", _md_table(_metrics_table(metrics["unseen"])),

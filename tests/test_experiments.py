@@ -87,6 +87,21 @@ def test_parts_share_out_a_tasks_batches_and_merge_into_the_unsplit_results(eval
         E.merge_task_parts(cfg, [E._load_task(split / "tasks" / "mug.part0of2.npz")], whole["names"])
 
 
+def test_a_partial_gather_reports_the_finished_tasks_and_names_the_rest(evaluation, tmp_path):
+    cfg, out, res = evaluation
+    both = dataclasses.replace(cfg, tasks=("mug", "step_back"))
+    cut = tmp_path / "cut"
+    with pytest.raises(ValueError, match="no task is finished"):
+        E.run(both, cut, progress=False, partial=True)
+    shutil.copy(out / "tasks" / "mug.npz", cut / "tasks" / "mug.npz")  # as a run stopped after mug leaves it
+    got = E.run(both, cut, progress=False, partial=True)
+    assert got["tasks"] == ["mug"] and got["missing_tasks"] == ["step_back"]
+    assert [p["name"] for p in got["policies"]] == [p["name"] for p in res["policies"]]
+    assert got["metrics"]["overall"]["alignment"] == pytest.approx(res["metrics"]["overall"]["alignment"])
+    assert not (cut / "tasks" / "step_back.npz").exists() and res["missing_tasks"] == []
+    assert "**Partial**: tasks step_back were not evaluated" in write_report(cut).with_suffix(".md").read_text()
+
+
 def test_report_renders_figures_and_videos(evaluation):
     _, out, res = evaluation
     page = write_report(out).read_text()
