@@ -235,12 +235,10 @@ def merge_task_parts(cfg: EvalConfig, parts: list, order: list) -> dict:
     true = cat("true")
     filmed = {v["policy"] for p in parts for v in p["video_index"]}
     shown = [i for i, x in enumerate(order) if x in filmed]
-    rates = true[shown].mean(1)
-    rank = [shown[i] for i in np.argsort(rates, kind="stable")]
-    picks = [rank[0], rank[len(rank) // 2], rank[-1]] + rank if rank else []
-    chosen = {order[i] for i in list(dict.fromkeys(picks))[: cfg.video_policies]}
+    chosen = {order[shown[i]] for i in filmed_policies(true[shown].mean(1), cfg.video_policies)}
     index = [v for p in parts for v in p["video_index"] if v["policy"] in chosen]
-    videos = {k: v for p in parts for k, v in p["videos"].items() if k.rsplit("/", 1)[0] in {i["key"] for i in index}}
+    keys = {i["key"] for i in index}
+    videos = {k: v for p in parts for k, v in p["videos"].items() if k.rsplit("/", 1)[0] in keys}
     return {"names": list(order), "true": true, "prob": cat("prob"), "prob_rule": cat("prob_rule"),
             "prob_members": cat("prob_members", axis=1), "videos": videos, "video_index": index,
             "sim_s": sum(p["sim_s"] for p in parts), "wm_s": sum(p["wm_s"] for p in parts),
@@ -319,11 +317,18 @@ def _keep_examples(cfg, name, j, n, outcome, p, real, imagined) -> list:
     return out
 
 
+def filmed_policies(rates, limit: int) -> list[int]:
+    """Which policies (indices into rates) the report films: the least, the median and the most
+    successful first, then the others by rate, at most `limit`."""
+    order = [int(i) for i in np.argsort(rates, kind="stable")]
+    if not order:
+        return []
+    picks = [order[0], order[len(order) // 2], order[-1]] + order
+    return list(dict.fromkeys(picks))[:limit]
+
+
 def _select_videos(cfg, task, names, true, kept):
-    rates = true.mean(1)
-    order = np.argsort(rates, kind="stable")
-    picks = [order[0], order[len(order) // 2], order[-1]] + list(order)
-    chosen = list(dict.fromkeys(int(i) for i in picks))[: cfg.video_policies]
+    chosen = filmed_policies(true.mean(1), cfg.video_policies)
     videos, index = {}, []
     for i in chosen:
         for ex in kept[names[i]]:

@@ -177,8 +177,9 @@ class Decoder(nn.Module):
     carried over exactly and the latents spend their capacity on what changes. The mask starts near
     1 (COPY_BIAS), so an untrained model is the copy-last-frame baseline and training departs from it.
     With cfg.keep a fifth output is the keep gate's logit: where it exceeds cfg.keep_threshold (0:
-    probability 0.5) the pixel is the previous frame's own (unwarped) value, exactly; a hard choice, learnt from its cross-entropy
-    against the pixels that truly stay the same (`wm.train`), not through the frame.
+    probability 0.5) the pixel is the previous frame's own (unwarped) value, exactly; a hard choice,
+    learnt from its cross-entropy against the pixels that truly stay the same (`wm.train`), not
+    through the frame.
     """
 
     cfg: ModelConfig
