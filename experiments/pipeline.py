@@ -77,8 +77,8 @@ PIPELINES = {
     # the GPU preset: three tasks (mug, wipe, airfryer since session 16), scripted episodes of 4 skills,
     # random play and the controllability programs, the conv_noproprio lineage's rollouts; the zoo's five
     # lineages of 8 checkpoints evaluated over 64 held-out initial states per task by an ensemble of 3
-    # world models; on one H200 with two tasks (session 8, one world model) data 341 s, policies 206 s,
-    # rollouts 181 s, train 381 s a member, eval 364 s for both tasks, report 9 s
+    # world models; on 2 H200s (session 18, --members 2, 48 rollouts and held-out states, 2.5 training
+    # minutes) data 424 s, policies 181 s, rollouts 185 s, train 367 s, eval 321 s, report 8 s
     "full": Pipeline(data="wm_full", policies="full", train="full", eval="full",
                      train_overrides=("w_success=0.5", "max_minutes=3.5"),
                      rollouts="conv_noproprio", rollout_episodes=64, members=3),
