@@ -39,6 +39,7 @@ import os
 import re
 import sys
 import time
+from collections import Counter
 from pathlib import Path
 
 import jax
@@ -386,23 +387,25 @@ def ranking_block(rows: list[dict], true_eps, prob_eps, threshold: float, member
     return out
 
 
-def decision_analysis(cfg: EvalConfig, rows: list[dict], tasks: dict, alignment: float) -> dict:
+def decision_analysis(cfg: EvalConfig, rows: list[dict], tasks: dict, alignment: float, most: int = 30) -> dict:
     """The binomial model's curve per gap, beside resampling the world model's actual outcomes of the
-    policy pairs (same task) whose true gap is within 0.05 of it."""
+    policy pairs (same task) whose true gap is within 0.05 of it: up to `most` pairs, spread evenly
+    over every task's (`pair_tasks` counts them by task)."""
     eps = list(cfg.decision_episodes)
-    out = {"alignment": alignment, "episodes": eps, "model": {}, "resampled": {}, "pairs": {}}
+    out = {"alignment": alignment, "episodes": eps, "model": {}, "resampled": {}, "pairs": {}, "pair_tasks": {}}
     for g in cfg.gaps:
         out["model"][str(g)] = S.p_pick_better(min(max(alignment, 0.0), 1.0), g, eps).tolist()
-        curves = []
+        pairs = []
         for task, res in tasks.items():
             rates = res["true"].mean(1)
-            for a in range(len(rates)):
-                for b in range(len(rates)):
-                    if abs(rates[a] - rates[b] - g) <= 0.05 and len(curves) < 30:
-                        curves.append(S.resampled_pick_better(res["prob"][a] >= cfg.threshold,
-                                                              res["prob"][b] >= cfg.threshold, eps, draws=500,
-                                                              seed=len(curves)))
+            pairs += [(task, a, b) for a in range(len(rates)) for b in range(len(rates))
+                      if abs(rates[a] - rates[b] - g) <= 0.05]
+        spread = np.unique(np.linspace(0, len(pairs) - 1, min(most, len(pairs))).round().astype(int))
+        chosen = [pairs[i] for i in spread]
+        curves = [S.resampled_pick_better(tasks[t]["prob"][a] >= cfg.threshold, tasks[t]["prob"][b] >= cfg.threshold,
+                                          eps, draws=500, seed=k) for k, (t, a, b) in enumerate(chosen)]
         out["pairs"][str(g)] = len(curves)
+        out["pair_tasks"][str(g)] = dict(Counter(t for t, _, _ in chosen))
         out["resampled"][str(g)] = np.mean(curves, axis=0).tolist() if curves else None
     return out
 

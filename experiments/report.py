@@ -126,7 +126,9 @@ def decision_figure(decision: dict) -> str:
         if res:
             ax.plot(eps, res, "o", color=c, ms=5, label=f"resampled ({decision['pairs'][g]} pairs), gap {float(g):.0%}")
     ax.set_xscale("log")
-    ax.set_ylim(0.45, 1.01)
+    ax.axhline(0.5, color="grey", lw=0.8, ls="--")  # a coin's choice
+    shown = [v for curve in (*decision["model"].values(), *decision["resampled"].values()) if curve for v in curve]
+    ax.set_ylim(min(0.45, min(shown, default=0.45) - 0.03), 1.01)  # resampled pairs may pick worse than a coin
     ax.set_xlabel("episodes per policy in the world model")
     ax.set_ylabel("P(pick the truly better policy)")
     ax.set_title(f"decision analysis at alignment {decision['alignment']:.2f}", fontsize=10)

@@ -144,6 +144,21 @@ def test_an_ensemble_averages_its_members_probabilities(evaluation, smoke_world_
         E.make_config("demo", [f"wm={other},{other}"])
 
 
+def test_decision_analysis_resamples_pairs_spread_over_every_task():
+    cfg = E.make_config("demo")
+    true = (np.arange(20)[None, :] < 2 * np.arange(10)[:, None]).astype(float)  # policy i succeeds 2i times of 20
+    tasks = {t: {"true": true, "prob": true} for t in ("a", "b")}  # a world model that agrees on every episode
+    out = E.decision_analysis(cfg, [], tasks, alignment=1.0, most=6)
+    assert out["pairs"] == {"0.1": 6, "0.2": 6}  # of 9 and 8 pairs per task
+    assert out["pair_tasks"]["0.1"] == {"a": 3, "b": 3} and out["pair_tasks"]["0.2"] == {"a": 3, "b": 3}
+    # the pairs spread over the 18 (16): the 1st, 4th, 8th, ... of task a's then b's, worse policy's rate as
+    # `base`; with episodes that agree, resampling them is the binomial model at alignment 1 at that base
+    worse = {"0.1": [0.0, 0.3, 0.7, 0.1, 0.5, 0.8], "0.2": [0.0, 0.3, 0.6, 0.1, 0.4, 0.7]}
+    for g, bases in worse.items():
+        hand = np.mean([S.p_pick_better(1.0, float(g), cfg.decision_episodes, base=b) for b in bases], axis=0)
+        np.testing.assert_allclose(out["resampled"][g], hand, atol=0.03)
+
+
 def test_bad_evaluation_settings_are_refused():
     with pytest.raises(ValueError, match="policy spec"):
         E.make_config("demo", ["policies="])

@@ -135,11 +135,26 @@ def make_optimizer(cfg: TrainConfig):
     return optax.chain(optax.clip_by_global_norm(cfg.grad_clip), optax.adamw(sched, weight_decay=cfg.weight_decay))
 
 
-def train_step(cfg: TrainConfig, state: dict, batch: dict, norm: Norm):
-    """One optimiser step: state {"params", "opt", "step"} -> (state, metrics)."""
+def cooldown_scale(cfg: TrainConfig, elapsed_s: float, start_s: float = 0.0) -> float:
+    """The factor on the learning rate after elapsed_s seconds of a run limited by cfg.max_minutes
+    whose first step (its compilation) ended at start_s: 1 until the last cfg.cooldown share of the
+    time from start_s to the limit, then falling linearly to 0 at the limit (the decay of a
+    warmup-stable-decay schedule, placed by time because a time-limited run does not know its last
+    step); 1 throughout without a time limit or a cooldown."""
+    if not (cfg.cooldown and cfg.max_minutes):
+        return 1.0
+    limit = 60.0 * cfg.max_minutes
+    left = (limit - elapsed_s) / max(limit - start_s, 1e-9)
+    return float(min(1.0, max(left / cfg.cooldown, 0.0)))
+
+
+def train_step(cfg: TrainConfig, state: dict, batch: dict, norm: Norm, lr_scale=1.0):
+    """One optimiser step: state {"params", "opt", "step"} -> (state, metrics); lr_scale (a scalar)
+    multiplies the schedule's learning rate (cooldown_scale)."""
     rng = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), state["step"])
     (_, parts), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"], batch, norm, cfg, rng)
     updates, opt = make_optimizer(cfg).update(grads, state["opt"], state["params"])
+    updates = jax.tree_util.tree_map(lambda u: u * lr_scale, updates)  # AdamW's update (decay included) is linear in lr
     params = optax.apply_updates(state["params"], updates)
     parts["grad_norm"] = optax.tree.norm(grads)
     return {"params": params, "opt": opt, "step": state["step"] + 1}, parts
@@ -275,13 +290,17 @@ class Run:
         start = self.restore()
         log = MetricLog(self.out)
         bar = tqdm(total=cfg.steps, initial=start, unit="step", desc="train", disable=not progress)
-        t_start = time.perf_counter()
+        t_start, t_compiled = time.perf_counter(), None
         t_log, acc, n_acc = time.perf_counter(), None, 0
         step = start
         last = {}
         while step < cfg.steps:
             batch = put_batch(model_batch(next(self.loader), cfg.camera), self.mesh)
-            self.state, parts = self._step(self.state, batch, self.norm)
+            scale = cooldown_scale(cfg, time.perf_counter() - t_start, t_compiled or 0.0)
+            self.state, parts = self._step(self.state, batch, self.norm, jnp.float32(scale))
+            if t_compiled is None:  # the cooldown's share counts from here, compilation left out
+                jax.block_until_ready(parts)
+                t_compiled = time.perf_counter() - t_start
             acc = parts if acc is None else jax.tree_util.tree_map(jnp.add, acc, parts)
             n_acc += 1
             step += 1
@@ -296,7 +315,8 @@ class Run:
                     f"(step {self.latest.latest_step()}) in {self.out / 'checkpoints'} is untouched. Lower lr or "
                     f"raise warmup, and rerun.")
             dt = time.perf_counter() - t_log
-            means.update(step=step, steps_per_s=n_acc / dt, frames_per_s=n_acc * cfg.batch * cfg.window / dt)
+            means.update(step=step, lr_scale=scale, steps_per_s=n_acc / dt,
+                         frames_per_s=n_acc * cfg.batch * cfg.window / dt)
             acc, n_acc, t_log = None, 0, time.perf_counter()
             out_of_time = cfg.max_minutes and (time.perf_counter() - t_start) / 60 >= cfg.max_minutes
             is_best = False
