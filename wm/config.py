@@ -123,10 +123,10 @@ PRESETS = {
     # session 15: the decoder's output convolution in bf16 as well, 0.112 s; session 16: the keep gate (4-GPU
     # host, wm_full data, 3.5 minutes each, 3 seeds against 2): per-frame PSNR h8 21.5 against 20.8 dB, match
     # accuracy 0.62 against 0.25, success AUROC level (0.87), pooled gain over copy-last +0.64 against +1.13 dB
-    # (reencode and cooldown are the demo's findings; with reencode, session 18's chain of 550 steps a model
-    # still lost the scene within 8 imagined steps; cooldown has not yet run on a GPU)
+    # (reencode is the demo's finding; with it, session 18's chain of 550 steps a model still lost the scene
+    # within 8 imagined steps; the demo's cooldown stays off here until a GPU run has measured it)
     "full": TrainConfig(model=ModelConfig(upsample="shuffle", keep=True, reencode=True), max_minutes=6.0,
-                        rollout_passes=2, rollout_grad=True, cooldown=0.3),
+                        rollout_passes=2, rollout_grad=True),
 }
 
 
