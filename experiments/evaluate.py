@@ -387,7 +387,7 @@ def ranking_block(rows: list[dict], true_eps, prob_eps, threshold: float, member
     return out
 
 
-def decision_analysis(cfg: EvalConfig, rows: list[dict], tasks: dict, alignment: float, most: int = 30) -> dict:
+def decision_analysis(cfg: EvalConfig, tasks: dict, alignment: float, most: int = 30) -> dict:
     """The binomial model's curve per gap, beside resampling the world model's actual outcomes of the
     policy pairs (same task) whose true gap is within 0.05 of it: up to `most` pairs, spread evenly
     over every task's (`pair_tasks` counts them by task)."""
@@ -506,7 +506,7 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
                         "rule": {t: "episode judge" if judge is not None and judge.knows(t)
                                  else "highest per-step probability" for t in tasks}},
         "tasks": tasks, "missing_tasks": missing, "policies": rows, "metrics": metrics,
-        "decision": decision_analysis(cfg, rows, results, metrics["overall"]["alignment"]),
+        "decision": decision_analysis(cfg, results, metrics["overall"]["alignment"]),
         "videos": [v for t in tasks for v in results[t]["video_index"]],
         "controllability": sorted(panel),
         "timing": {t: {"simulate_s": results[t]["sim_s"], "imagine_s": results[t]["wm_s"],

@@ -148,7 +148,7 @@ def test_decision_analysis_resamples_pairs_spread_over_every_task():
     cfg = E.make_config("demo")
     true = (np.arange(20)[None, :] < 2 * np.arange(10)[:, None]).astype(float)  # policy i succeeds 2i times of 20
     tasks = {t: {"true": true, "prob": true} for t in ("a", "b")}  # a world model that agrees on every episode
-    out = E.decision_analysis(cfg, [], tasks, alignment=1.0, most=6)
+    out = E.decision_analysis(cfg, tasks, alignment=1.0, most=6)
     assert out["pairs"] == {"0.1": 6, "0.2": 6}  # of 9 and 8 pairs per task
     assert out["pair_tasks"]["0.1"] == {"a": 3, "b": 3} and out["pair_tasks"]["0.2"] == {"a": 3, "b": 3}
     # the pairs spread over the 18 (16): the 1st, 4th, 8th, ... of task a's then b's, worse policy's rate as
