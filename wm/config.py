@@ -13,15 +13,16 @@ class TrainConfig:
     """Attributes:
       model: the architecture. camera: the frames the model learns (head_cam).
       batch: windows per step (over all devices); window: frames per window.
-      steps: optimiser steps; max_minutes: stop training after this wall time (0: no limit), so a
-        stage fits its time slot; a rerun resumes. lr, warmup, weight_decay, grad_clip: AdamW.
+      steps: optimiser steps, the whole budget: the same command on the same machine kind trains the
+        same model. max_minutes: a safety stop only (0: none): a run that reaches it stops, saves, and is
+        marked cut short (train_status.json, eval.json, the evaluation's results.json); rerunning the
+        same command resumes it to `steps`. lr, warmup, weight_decay, grad_clip: AdamW.
       rollout_passes: extra passes in which the dynamics reads its own (stop-gradient) predictions
         instead of encoded frames (0: teacher forcing only); each pass extends the errors it learns
         to correct by one step. rollout_grad: backpropagate through those passes' latents and proprio
         (training k+1-step open-loop predictions end to end) instead of stopping the gradient.
-      cooldown: with max_minutes, the last share of the time after the first step's compilation
-        over which the learning rate falls linearly to 0 (wm.train.cooldown_scale; 0: none): a run
-        stopped by the clock ends annealed instead of at the schedule's peak rate.
+      cooldown: the last share of `steps` over which the learning rate falls linearly to 0 after a
+        constant rate (warmup-stable-decay, wm.train.learning_rate); 0: a cosine decay instead.
       context_noise: the largest std of Gaussian noise added to the input latents (each window draws
         its level uniformly below it; 0: none), as GameNGen's noise augmentation.
       reencode_passes: with model.reencode, the rollout passes read the latents of their decoded
@@ -94,16 +95,15 @@ class TrainConfig:
         if self.model.keep and self.w_keep <= 0:
             raise ValueError("model.keep needs w_keep > 0: the keep gate learns from its cross-entropy alone")
         if not 0.0 <= self.cooldown <= 1.0:
-            raise ValueError(f"cooldown is a share of max_minutes, in [0, 1]; got {self.cooldown}")
+            raise ValueError(f"cooldown is a share of steps, in [0, 1]; got {self.cooldown}")
+        if self.max_minutes < 0:
+            raise ValueError(f"max_minutes is a safety stop in minutes (0: none), got {self.max_minutes}")
         if self.rollout_passes < 0 or self.lr <= 0:
             raise ValueError("rollout_passes >= 0 and lr > 0 are required")
 
 
 SMOKE_MODEL = ModelConfig(channels=(8, 16, 16), latent=4, dim=32, depth=1, heads=2, context=4, dtype="float32")
-# keep (session 15, demo preset, 5 minutes on 2 cores, same data): per-frame PSNR h8 26.2 dB against
-# 17.4 without the gate (w_keep 0.02: 20.3), pooled PSNR level (16.1 against 16.2); reencode (session 17,
-# the demo chain's data and zoo, 6 minutes each): per-frame PSNR h16 18.3 against 16.5 dB, the demo
-# ranking's Pearson 0.91 against 0.84, MMRV 0.34 against 0.45 (README, World model)
+# the keep gate and re-encoding imagination: measured in docs/world-model.md
 DEMO_MODEL = ModelConfig(tokenizer="patch", channels=(128,), latent=16, dim=96, depth=2, heads=4, context=6,
                          dtype="float32", keep=True, reencode=True)
 
@@ -112,21 +112,14 @@ PRESETS = {
     "smoke": TrainConfig(model=SMOKE_MODEL, batch=2, window=6, steps=30, lr=3e-3, warmup=5, log_every=5,
                          eval_every=10, ckpt_every=10, val_batches=1, eval_context=2, eval_episodes=2,
                          eval_horizons=(1, 4), control_horizon=4, judge_episodes=8, judge_steps=20),
-    # cooldown (session 18, 4 seeds of each on the demo chain's data): per-frame PSNR h8 21.3 against 20.1 dB
-    # (higher in every seed), at h16 1.3 dB nearer copy-last, the ranking level (Pearson 0.77 both)
-    "demo": TrainConfig(model=DEMO_MODEL, batch=8, window=10, steps=100000, max_minutes=5.0, lr=1e-3, warmup=50,
+    # 1000 steps fill about 5 minutes of the demo's 2-core machine; max_minutes is the safety stop
+    "demo": TrainConfig(model=DEMO_MODEL, batch=8, window=10, steps=1000, max_minutes=12.0, lr=1e-3, warmup=50,
                         cooldown=0.3, log_every=25, eval_every=250, ckpt_every=250, val_batches=2, eval_context=4,
                         eval_episodes=24, eval_horizons=(1, 4, 8, 16), control_horizon=16, judge_steps=600),
-    # with compilation, the episode judge and eval.json, one 10-minute GPU command; the sub-pixel decoder
-    # (session 14, one H200: a train step 0.119 s against 0.153 s with resize-then-convolve, 39.6% MFU
-    # against 31.9%; trained 3.5 minutes its eval.json lies within the spread of three seeds of the other);
-    # session 15: the decoder's output convolution in bf16 as well, 0.112 s; session 16: the keep gate (4-GPU
-    # host, wm_full data, 3.5 minutes each, 3 seeds against 2): per-frame PSNR h8 21.5 against 20.8 dB, match
-    # accuracy 0.62 against 0.25, success AUROC level (0.87), pooled gain over copy-last +0.64 against +1.13 dB
-    # (reencode is the demo's finding; with it, session 18's chain of 550 steps a model still lost the scene
-    # within 8 imagined steps; the demo's cooldown stays off here until a GPU run has measured it)
-    "full": TrainConfig(model=ModelConfig(upsample="shuffle", keep=True, reencode=True), max_minutes=6.0,
-                        rollout_passes=2, rollout_grad=True),
+    # the sub-pixel decoder (a faster step at equal quality), the keep gate and re-encoding imagination:
+    # measured in docs/world-model.md
+    "full": TrainConfig(model=ModelConfig(upsample="shuffle", keep=True, reencode=True), steps=9000, cooldown=0.2,
+                        max_minutes=8.5, rollout_passes=2, rollout_grad=True),
 }
 
 

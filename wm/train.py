@@ -129,38 +129,36 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None):
     return total, parts
 
 
+def learning_rate(cfg: TrainConfig):
+    """The learning rate by step (an optax schedule). Without cooldown: a linear warmup to cfg.lr,
+    then a cosine decay to 5% of it at cfg.steps. With cooldown: warmup-stable-decay, the rate held at
+    cfg.lr after the warmup and falling linearly to 0 over the last cfg.cooldown share of cfg.steps."""
+    warmup = max(cfg.warmup, 1)
+    if not cfg.cooldown:
+        return optax.warmup_cosine_decay_schedule(0.0, cfg.lr, warmup, max(cfg.steps, cfg.warmup + 1),
+                                                  end_value=cfg.lr * 0.05)
+    decay = max(round(cfg.cooldown * cfg.steps), 1)
+    stable = max(cfg.steps - decay - warmup, 0)
+    return optax.join_schedules(
+        [optax.linear_schedule(0.0, cfg.lr, warmup), optax.constant_schedule(cfg.lr),
+         optax.linear_schedule(cfg.lr, 0.0, decay)], [warmup, warmup + stable])
+
+
 def make_optimizer(cfg: TrainConfig):
-    sched = optax.warmup_cosine_decay_schedule(0.0, cfg.lr, max(cfg.warmup, 1), max(cfg.steps, cfg.warmup + 1),
-                                               end_value=cfg.lr * 0.05)
-    return optax.chain(optax.clip_by_global_norm(cfg.grad_clip), optax.adamw(sched, weight_decay=cfg.weight_decay))
+    return optax.chain(optax.clip_by_global_norm(cfg.grad_clip),
+                       optax.adamw(learning_rate(cfg), weight_decay=cfg.weight_decay))
 
 
-def cooldown_scale(cfg: TrainConfig, elapsed_s: float, start_s: float = 0.0) -> float:
-    """The factor on the learning rate after elapsed_s seconds of a run limited by cfg.max_minutes
-    whose first step (its compilation) ended at start_s: 1 until the last cfg.cooldown share of the
-    time from start_s to the limit, then falling linearly to 0 at the limit (the decay of a
-    warmup-stable-decay schedule, placed by time because a time-limited run does not know its last
-    step); 1 throughout without a time limit or a cooldown."""
-    if not (cfg.cooldown and cfg.max_minutes):
-        return 1.0
-    limit = 60.0 * cfg.max_minutes
-    left = (limit - elapsed_s) / max(limit - start_s, 1e-9)
-    return float(min(1.0, max(left / cfg.cooldown, 0.0)))
-
-
-def train_step(cfg: TrainConfig, state: dict, batch: dict, norm: Norm, lr_scale=1.0):
-    """One optimiser step: state {"params", "opt", "step"} -> (state, metrics); lr_scale (a scalar)
-    multiplies the schedule's learning rate (cooldown_scale)."""
+def train_step(cfg: TrainConfig, state: dict, batch: dict, norm: Norm):
+    """One optimiser step: state {"params", "opt", "step"} -> (state, metrics)."""
     rng = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), state["step"])
     (_, parts), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"], batch, norm, cfg, rng)
     updates, opt = make_optimizer(cfg).update(grads, state["opt"], state["params"])
-    updates = jax.tree_util.tree_map(lambda u: u * lr_scale, updates)  # AdamW's update (decay included) is linear in lr
     params = optax.apply_updates(state["params"], updates)
     parts["grad_norm"] = optax.tree.norm(grads)
     return {"params": params, "opt": opt, "step": state["step"] + 1}, parts
 
 
-# jitted once per configuration (shared by every Run of it); parameter shardings follow the inputs
 _jitted_step = jax.jit(train_step, static_argnums=(0,), donate_argnums=(1,))
 _jitted_loss = jax.jit(lambda cfg, p, b, n: loss_fn(p, b, n, cfg)[1], static_argnums=(0,))
 
@@ -267,13 +265,15 @@ class Run:
 
     def save(self, step: int, best: bool) -> None:
         meta = {"train": self.loader.state(), "best_val": self.best_val}
-        self.latest.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(self.state),
-                                                       loader=ocp.args.JsonSave(meta)), force=True)
+        # best before latest: a run killed between the two resumes before this step and, retracing the
+        # same steps, finds the same best again
         if best:
             self.best.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave({"params": self.state["params"]}),
                                                          loader=ocp.args.JsonSave(meta)), force=True)
+            self.best.wait_until_finished()
+        self.latest.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(self.state),
+                                                       loader=ocp.args.JsonSave(meta)), force=True)
         self.latest.wait_until_finished()
-        self.best.wait_until_finished()
 
     def validate(self) -> dict:
         if self.val is None:
@@ -290,17 +290,14 @@ class Run:
         start = self.restore()
         log = MetricLog(self.out)
         bar = tqdm(total=cfg.steps, initial=start, unit="step", desc="train", disable=not progress)
-        t_start, t_compiled = time.perf_counter(), None
+        t_start = time.perf_counter()
+        schedule = learning_rate(cfg)
         t_log, acc, n_acc = time.perf_counter(), None, 0
         step = start
         last = {}
         while step < cfg.steps:
             batch = put_batch(model_batch(next(self.loader), cfg.camera), self.mesh)
-            scale = cooldown_scale(cfg, time.perf_counter() - t_start, t_compiled or 0.0)
-            self.state, parts = self._step(self.state, batch, self.norm, jnp.float32(scale))
-            if t_compiled is None:  # the cooldown's share counts from here, compilation left out
-                jax.block_until_ready(parts)
-                t_compiled = time.perf_counter() - t_start
+            self.state, parts = self._step(self.state, batch, self.norm)
             acc = parts if acc is None else jax.tree_util.tree_map(jnp.add, acc, parts)
             n_acc += 1
             step += 1
@@ -315,7 +312,7 @@ class Run:
                     f"(step {self.latest.latest_step()}) in {self.out / 'checkpoints'} is untouched. Lower lr or "
                     f"raise warmup, and rerun.")
             dt = time.perf_counter() - t_log
-            means.update(step=step, lr_scale=scale, steps_per_s=n_acc / dt,
+            means.update(step=step, lr=float(schedule(step - 1)), steps_per_s=n_acc / dt,
                          frames_per_s=n_acc * cfg.batch * cfg.window / dt)
             acc, n_acc, t_log = None, 0, time.perf_counter()
             out_of_time = cfg.max_minutes and (time.perf_counter() - t_start) / 60 >= cfg.max_minutes
@@ -337,7 +334,12 @@ class Run:
         self.loader.close()
         if self.best.latest_step() is None:  # e.g. a run that resumed at its last step
             self.save(step, True)
-        return {"step": step, **last}
+        status = {"step": step, "steps": cfg.steps, "cut_short": step < cfg.steps}
+        write_json_atomic(self.out / "train_status.json", status)
+        if status["cut_short"]:
+            print(f"stopped by the safety limit max_minutes={cfg.max_minutes:g} at step {step} of {cfg.steps}: "
+                  "the model is marked cut short; rerun the same command to finish it", file=sys.stderr)
+        return {**status, **last}
 
     def best_params(self):
         step = self.best.latest_step()
@@ -386,6 +388,7 @@ def _check_config(cfg: TrainConfig, data: Path, out: Path) -> None:
     mine = json.loads(json.dumps({"train": to_dict(cfg), "data": str(Path(data).absolute())}))
     if path.exists():
         theirs = json.loads(path.read_text())
+        theirs["train"]["max_minutes"] = cfg.max_minutes  # a safety stop does not change what is computed
         if theirs != mine:
             raise ValueError(f"{out} holds a run of another configuration or dataset; use another OUT "
                              f"(differs: {sorted(k for k in mine['train'] if mine['train'][k] != theirs['train'].get(k))})")
@@ -396,6 +399,15 @@ def _check_config(cfg: TrainConfig, data: Path, out: Path) -> None:
 def load_run_config(out: Path) -> tuple[TrainConfig, Path]:
     d = json.loads((Path(out) / "config.json").read_text())
     return from_dict(d["train"]), Path(d["data"])
+
+
+def training_status(out: Path) -> dict:
+    """{"step", "steps", "cut_short"} of a training run (train_status.json); cut_short is None for a
+    run that never finished a command."""
+    path = Path(out) / "train_status.json"
+    if not path.exists():
+        return {"step": None, "steps": None, "cut_short": None}
+    return json.loads(path.read_text())
 
 
 def load_trained(out: Path):
