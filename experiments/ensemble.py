@@ -7,13 +7,13 @@ held-out states, by a different world model (another seed, size or dataset). A p
 prediction is the mean of the models' predicted rates; as each rate is the mean success
 probability over the states, this is the rate of the per-episode mean probability. The true rate
 is the mean of the runs' (identical where they share `truth_cache`; `true_spread` says by how much
-they differ otherwise). DIR/results.json holds per policy its rates, and overall and per task the
+they differ otherwise). DIR/results.json holds per policy its rates, and pooled over tasks and per task the
 rate-level statistics of the ensemble (`experiments.stats.ranking_metrics`) beside those of each
 model alone against the same true rates. Where every run keeps each episode's probability and
-outcome (`pred_episodes`, `true_episodes`: evaluations since session 13) and the runs share the
-true outcomes, the ensemble's per-episode probability is the models' mean, and the per-episode
-alignment (at the first run's `threshold`) and Pearson's bootstrap interval over initial states
-join the figures.
+outcome (`pred_episodes`, `true_episodes`; evaluations written before those fields existed lack
+them) and the runs share the true outcomes, the ensemble's per-episode probability is the models'
+mean, and the per-episode alignment (at the first run's `threshold`) and Pearson's bootstrap
+interval over initial states join the figures.
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ MEMBER_STATS = ("pearson", "spearman", "mmrv", "pairwise_acc_gap10")
 def combine(results: list[dict]) -> dict:
     """The ensemble's results.json from K >= 2 `experiments.evaluate` results over the same
     policies: {"models": K, "policies": [{name, task, lineage, n, true_rate, true_spread, pred_rate,
-    pred_rates (K,)}], "metrics": {"overall" and per task: ranking_metrics + "members"}}."""
+    pred_rates (K,)}], "metrics": {"pooled" and per task: ranking_metrics + "members"}}."""
     if len(results) < 2:
         raise ValueError(f"an ensemble needs at least two evaluations, got {len(results)}")
     by_key = [{(p["task"], p["name"]): p for p in r["policies"]} for r in results]
@@ -62,7 +62,7 @@ def combine(results: list[dict]) -> dict:
             row["pred_episodes"] = np.mean(row["pred_episodes_each"], axis=0).tolist()
         rows.append(row)
     threshold = results[0].get("config", {}).get("threshold", 0.5)
-    metrics = {"overall": ensemble_metrics(rows, threshold)}
+    metrics = {"pooled": ensemble_metrics(rows, threshold)}
     for task in dict.fromkeys(r["task"] for r in rows):
         mine = [r for r in rows if r["task"] == task]
         if len(mine) >= 3:
@@ -123,7 +123,7 @@ def main(argv=None) -> int:
     res = combine([read_results(r) for r in a.runs]) | {"runs": [str(r) for r in a.runs]}
     a.out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(a.out / "results.json", res)
-    m = res["metrics"]["overall"]
+    m = res["metrics"]["pooled"]
     print(json.dumps({"models": res["models"], **{s: m[s] for s in (*MEMBER_STATS, "alignment") if s in m},
                       "members_mean": m["members_mean"]}, indent=1))
     return 0

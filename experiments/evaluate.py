@@ -23,8 +23,10 @@ rerun resumes. On several GPUs (`--part K/N`, one process each, sim_data.parts) 
 are spread over the parts, the largest first onto the least loaded, whatever the number of tasks;
 each part saves its share (`OUT/tasks/<task>.partKofN.npz`) and the run without a part merges them,
 with the outcomes and probabilities of one unsplit run. `OUT/results.json` holds the per-policy
-rates and intervals and the statistics (experiments.stats), overall and per task, beside the
-imitation-loss baseline; `OUT/videos.npz` real and imagined episodes and the controllability panel
+rates and intervals and the statistics (experiments.stats): the headline within each task (their
+mean over tasks, with bootstrap intervals over policies and initial states), per task, and pooled
+over tasks (secondary: tasks of different difficulty correlate for free), beside the imitation-loss
+proxy; `OUT/videos.npz` real and imagined episodes and the controllability panel
 for the report.
 """
 
@@ -62,7 +64,7 @@ from sim_data.success_table import write_json_atomic
 from wm.evaluate import no_nan, program_panel
 from wm.imagine import closed_loop, episode_success
 from wm.judge import check_features, load_judge
-from wm.train import load_trained
+from wm.train import load_trained, training_status
 
 CAMERA = "head_cam"
 
@@ -387,6 +389,20 @@ def ranking_block(rows: list[dict], true_eps, prob_eps, threshold: float, member
     return out
 
 
+def within_task_block(results: dict, tasks, rows: list[dict], threshold: float, keep) -> dict:
+    """The within-task headline (experiments.stats.within_task) of the world model beside the
+    imitation-loss proxy (minus each checkpoint's validation loss; policies without one, such as
+    plug-ins, are left out of the proxy's statistics), over the policies whose name `keep` accepts."""
+    true, wm, proxy = {}, {}, {}
+    for t in tasks:
+        names = results[t]["names"]
+        loss = {r["name"]: r["val_loss"] for r in rows if r["task"] == t}
+        picked = [j for j, name in enumerate(names) if keep(name)]
+        true[t], wm[t] = results[t]["true"][picked], results[t]["prob"][picked]
+        proxy[t] = np.array([math.nan if loss[names[j]] is None else -loss[names[j]] for j in picked])
+    return S.within_task(true, {"world_model": wm, "proxy": proxy}, threshold)
+
+
 def decision_analysis(cfg: EvalConfig, tasks: dict, alignment: float, most: int = 30) -> dict:
     """The binomial model's curve per gap, beside resampling the world model's actual outcomes of the
     policy pairs (same task) whose true gap is within 0.05 of it: up to `most` pairs, spread evenly
@@ -413,13 +429,14 @@ def decision_analysis(cfg: EvalConfig, tasks: dict, alignment: float, most: int 
 # ---- the run -----------------------------------------------------------------------------------------
 
 def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int] | None = None,
-        partial: bool = False) -> dict | None:
+        partial: bool = False, preset: str = "") -> dict | None:
     """Evaluates (or completes the evaluation of) cfg into out; returns the results, or None when
     cfg.max_minutes stopped it before the last task (rerun to finish). part: (K, N) evaluates the K-th
     of N shares of every task's batches (balance_chunks) and returns None (sim_data.parts: one
     process per GPU; a run without a part merges the shares and gathers results.json). partial:
     evaluate nothing more and gather the tasks finished so far (a run cut short); results.json
-    lists the others in "missing_tasks"."""
+    lists the others in "missing_tasks". preset: the name of cfg's preset, recorded so that the
+    report shows that preset's targets."""
     cfg.validate()
     out = Path(out)
     (out / "tasks").mkdir(parents=True, exist_ok=True)
@@ -480,7 +497,8 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
     tasks = [t for t in tasks if t in results]
     rows = [r for task in tasks for r in policy_rows(cfg, task, results[task], by_name)]
     true_eps, prob_eps, member_eps = _episodes_of(results, tasks, lambda name: True)
-    metrics = {"overall": ranking_block(rows, true_eps, prob_eps, cfg.threshold, member_eps), "per_task": {}}
+    metrics = {"within_task": within_task_block(results, tasks, rows, cfg.threshold, lambda name: True),
+               "pooled": ranking_block(rows, true_eps, prob_eps, cfg.threshold, member_eps), "per_task": {}}
     for t in tasks:
         metrics["per_task"][t] = ranking_block([r for r in rows if r["task"] == t], results[t]["true"],
                                                results[t]["prob"], cfg.threshold, results[t]["prob_members"])
@@ -493,6 +511,8 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
     if seen and len(unseen) >= 3:
         true_eps, prob_eps, member_eps = _episodes_of(results, tasks, lambda name: name not in seen)
         metrics["unseen"] = ranking_block(unseen, true_eps, prob_eps, cfg.threshold, member_eps)
+        metrics["unseen_within_task"] = within_task_block(results, tasks, rows, cfg.threshold,
+                                                          lambda name: name not in seen)
     panel = program_panel(wm_cfg, wm_params, norm, wm_cache, horizon=48) if wm_cache is not None else {}
     videos = {k: v for t in tasks for k, v in results[t]["videos"].items()}
     videos.update({f"controllability/{p}/{kind}": v[kind] for p, v in panel.items() for kind in ("real", "imagined")})
@@ -500,13 +520,16 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
     np.savez_compressed(tmp, **videos)
     tmp.replace(out / "videos.npz")
     report = {
-        "config": json.loads(json.dumps(dataclasses.asdict(cfg))), "engine": engine, "device": device_name(),
+        "config": json.loads(json.dumps(dataclasses.asdict(cfg))), "preset": preset, "engine": engine, "device": device_name(),
         "versions": package_versions(("jax", "flax", "optax", "orbax-checkpoint", "mujoco", "mujoco-mjx", "numpy")),
         "world_model": {"run": cfg.wm, "runs": list(cfg.wm_runs), "data": wm_data, "train_tasks": wm_tasks,
+                        "training": [training_status(Path(r)) for r in cfg.wm_runs],
+                        "cut_short": any(training_status(Path(r))["cut_short"] for r in cfg.wm_runs),
                         "rule": {t: "episode judge" if judge is not None and judge.knows(t)
                                  else "highest per-step probability" for t in tasks}},
         "tasks": tasks, "missing_tasks": missing, "policies": rows, "metrics": metrics,
-        "decision": decision_analysis(cfg, results, metrics["overall"]["alignment"]),
+        "checkpoint_selection": S.checkpoint_selection(rows),
+        "decision": decision_analysis(cfg, results, metrics["pooled"]["alignment"]),
         "videos": [v for t in tasks for v in results[t]["video_index"]],
         "controllability": sorted(panel),
         "timing": {t: {"simulate_s": results[t]["sim_s"], "imagine_s": results[t]["wm_s"],
@@ -600,11 +623,12 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     if a.partial and part is not None:
         p.error("--partial gathers; it takes no --part")
-    res = run(cfg, a.out, part=part, partial=a.partial)
+    res = run(cfg, a.out, part=part, partial=a.partial, preset=a.config)
     if res is None:
         return 0  # a part, or stopped by max_minutes (the message says what is left)
-    m = res["metrics"]["overall"]
-    print(json.dumps({k: m[k] for k in ("pearson", "spearman", "mmrv", "pairwise_acc_gap10", "alignment")}, indent=1))
+    w = res["metrics"]["within_task"]
+    print(json.dumps({"within_task_mean": {who: {k: [w[who]["mean"][k], w[who]["mean_ci"][k]] for k in S.WITHIN_TASK}
+                                           for who in ("world_model", "proxy")}}, indent=1))
     print(f"{len(res['policies'])} policies in {time.perf_counter() - t0:.0f} s; results {a.out / 'results.json'}")
     return 0
 

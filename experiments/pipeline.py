@@ -4,7 +4,7 @@
     python -m experiments.pipeline full --stage data    # one stage (make full STAGE=data)
 
 Each stage resumes what an earlier run of it left and skips what is finished, so a killed run, or
-a GPU session cut into 10-minute commands, continues where it stopped. The stages call the
+a GPU lease cut into 10-minute commands, continues where it stopped. The stages call the
 modules' own entry points with the preset's configurations:
 
 | stage    | module                 | writes            |
@@ -74,13 +74,12 @@ class Pipeline:
 PIPELINES = {
     "demo": Pipeline(data="demo", policies="demo", train="demo", eval="demo", rollouts="conv_noproprio",
                      rollout_episodes=4),
-    # the GPU preset: three tasks (mug, wipe, airfryer since session 16), scripted episodes of 4 skills,
-    # random play and the controllability programs, the conv_noproprio lineage's rollouts; the zoo's five
-    # lineages of 8 checkpoints evaluated over 64 held-out initial states per task by an ensemble of 3
-    # world models; on 2 H200s (session 18, --members 2, 48 rollouts and held-out states, 2.5 training
-    # minutes) data 424 s, policies 181 s, rollouts 185 s, train 367 s, eval 321 s, report 8 s
+    # the GPU preset: three tasks (mug, wipe, airfryer), scripted episodes of 4 skills, random play and the
+    # controllability programs, the conv_noproprio lineage's rollouts; the zoo's five lineages of 8
+    # checkpoints evaluated from the evaluation preset's held-out initial states by an ensemble of world
+    # models (stage times: docs/benchmarks.md)
     "full": Pipeline(data="wm_full", policies="full", train="full", eval="full",
-                     train_overrides=("w_success=0.5", "max_minutes=3.5"),
+                     train_overrides=("w_success=0.5",),
                      rollouts="conv_noproprio", rollout_episodes=64, members=3),
 }
 

@@ -8,6 +8,7 @@ states for every policy of a task).
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 from scipy import stats as sps
@@ -30,25 +31,21 @@ def pearson(predicted, true) -> tuple[float, tuple[float, float]]:
     NaN when either side is constant; the interval is (-1, 1) for n <= 3.
     """
     p, t = _pair(predicted, true)
-    if len(p) < 2 or p.std() == 0 or t.std() == 0:
+    if len(p) < 2 or np.ptp(p) == 0 or np.ptp(t) == 0:
         return math.nan, (math.nan, math.nan)
-    r = float(np.corrcoef(p, t)[0, 1])
+    res = sps.pearsonr(p, t)
+    r = float(np.clip(res.statistic, -1.0, 1.0))
     if len(p) <= 3:
         return r, (-1.0, 1.0)
-    z, se = math.atanh(min(max(r, -0.999999), 0.999999)), 1.0 / math.sqrt(len(p) - 3)
-    return r, (math.tanh(z - Z95 * se), math.tanh(z + Z95 * se))
+    if abs(r) >= 1.0:
+        return r, (r, r)
+    ci = res.confidence_interval(0.95)
+    return r, (float(ci.low), float(ci.high))
 
 
 def rank(x) -> np.ndarray:
     """Ranks 1..n, tied values sharing their mean rank."""
-    x = np.asarray(x, np.float64)
-    order = np.argsort(x, kind="stable")
-    ranks = np.empty(len(x))
-    ranks[order] = np.arange(1, len(x) + 1)
-    for v in np.unique(x):
-        tie = x == v
-        ranks[tie] = ranks[tie].mean()
-    return ranks
+    return sps.rankdata(np.asarray(x, np.float64))
 
 
 def spearman(predicted, true) -> float:
@@ -58,14 +55,11 @@ def spearman(predicted, true) -> float:
 
 
 def kendall(predicted, true) -> float:
-    """Kendall's tau-b: (concordant - discordant) / sqrt((n0 - ties_p) (n0 - ties_t)) over all pairs."""
+    """Kendall's tau-b (scipy); NaN when either side is constant."""
     p, t = _pair(predicted, true)
-    i, j = np.triu_indices(len(p), 1)
-    dp, dt = np.sign(p[i] - p[j]), np.sign(t[i] - t[j])
-    n0 = len(i)
-    ties_p, ties_t = int((dp == 0).sum()), int((dt == 0).sum())
-    denom = math.sqrt((n0 - ties_p) * (n0 - ties_t))
-    return float((dp * dt).sum() / denom) if denom else math.nan
+    if len(p) < 2 or np.ptp(p) == 0 or np.ptp(t) == 0:
+        return math.nan
+    return float(sps.kendalltau(p, t).statistic)
 
 
 def mmrv(predicted, true) -> float:
@@ -179,3 +173,125 @@ def resampled_pick_better(pred_better, pred_worse, episodes, draws: int = 2000, 
         mb = b[rng.integers(0, len(b), (draws, int(n)))].mean(1)
         out.append(float(((ma > mb) + 0.5 * (ma == mb)).mean()))
     return np.asarray(out)
+
+
+# ---- the within-task headline ------------------------------------------------------------------------
+
+WITHIN_TASK = ("pearson", "spearman", "mmrv", "pairwise_acc_gap10", "alignment")
+LOWER_IS_BETTER = ("mmrv",)
+
+
+def task_statistics(pred, true, threshold: float = 0.5) -> dict:
+    """The within-task statistics (WITHIN_TASK) of one task's ranking.
+
+    pred: (P, N) per-episode predicted probabilities (a world model), or (P,) one score per policy (a
+    proxy such as minus the imitation loss; NaN where a policy has none: left out, and alignment is
+    NaN). true: (P, N) per-episode outcomes (bool or 0/1) from the same N initial states.
+    """
+    pred, true = np.asarray(pred, np.float64), np.asarray(true, np.float64)
+    if pred.ndim == 1:
+        keep = ~np.isnan(pred)
+        p, t, aligned = pred[keep], true[keep].mean(1), math.nan
+    else:
+        if pred.shape != true.shape:
+            raise ValueError(f"per-episode predictions {pred.shape} and outcomes {true.shape} differ in shape")
+        p, t = pred.mean(1), true.mean(1)
+        aligned = alignment(pred >= threshold, true > 0.5)
+    if len(p) < 2:
+        return dict.fromkeys(WITHIN_TASK, math.nan)
+    return {"pearson": pearson(p, t)[0], "spearman": spearman(p, t), "mmrv": mmrv(p, t),
+            "pairwise_acc_gap10": pairwise_accuracy(p, t, 0.10), "alignment": aligned}
+
+
+def _percentiles(x) -> list:
+    x = np.asarray(x, np.float64)
+    x = x[~np.isnan(x)]
+    return [float(np.percentile(x, 2.5)), float(np.percentile(x, 97.5))] if len(x) else [math.nan, math.nan]
+
+
+def within_task(true: dict, predictors: dict, threshold: float = 0.5, draws: int = 1000, seed: int = 0) -> dict:
+    """Each predictor's within-task statistics, per task and their mean over tasks, with 95% percentile
+    intervals from one bootstrap shared by every predictor: each draw resamples, within every task, its
+    policies and its initial states (with replacement; the same states for each policy of the task,
+    as they were run), and recomputes every statistic; a mean over tasks skips a task whose statistic
+    is undefined (NaN) in that draw.
+
+    true: {task: (P, N) outcomes}. predictors: {name: {task: (P, N) probabilities or (P,) scores}}
+    (task_statistics). Returns {"tasks", "draws", "resamples", name: {"mean": {stat: x}, "mean_ci":
+    {stat: [lo, hi]}, "per_task": {task: {stat: x}}, "per_task_ci": {task: {stat: [lo, hi]}}}, and for
+    every later predictor the paired difference of the first minus it: "difference": {name: {"mean",
+    "mean_ci", "per_task", "per_task_ci"}} (for mmrv a negative difference favours the first)}.
+    """
+    tasks = list(true)
+    names = list(predictors)
+    for name in names:
+        if sorted(predictors[name]) != sorted(tasks):
+            raise ValueError(f"predictor {name!r} covers tasks {sorted(predictors[name])}, not {sorted(tasks)}")
+    point = {n: {t: task_statistics(predictors[n][t], true[t], threshold) for t in tasks} for n in names}
+    rng = np.random.default_rng(seed)
+    boot = {n: {t: {k: np.empty(draws) for k in WITHIN_TASK} for t in tasks} for n in names}
+    for d in range(draws):
+        for t in tasks:
+            tt = np.asarray(true[t])
+            rows = rng.integers(0, tt.shape[0], tt.shape[0])
+            cols = rng.integers(0, tt.shape[1], tt.shape[1])
+            tr = tt[rows][:, cols]
+            for n in names:
+                pr = np.asarray(predictors[n][t])
+                pr = pr[rows] if pr.ndim == 1 else pr[rows][:, cols]
+                for k, v in task_statistics(pr, tr, threshold).items():
+                    boot[n][t][k][d] = v
+
+    def summary(stat_of, samples_of) -> dict:
+        with warnings.catch_warnings():  # a mean over nothing but NaN stays NaN, silently
+            warnings.simplefilter("ignore", RuntimeWarning)
+            mean = {k: float(np.nanmean([stat_of(t)[k] for t in tasks])) for k in WITHIN_TASK}
+            mean_ci = {k: _percentiles(np.nanmean(np.stack([samples_of(t)[k] for t in tasks]), 0))
+                       for k in WITHIN_TASK}
+        return {"mean": mean, "mean_ci": mean_ci, "per_task": {t: stat_of(t) for t in tasks},
+                "per_task_ci": {t: {k: _percentiles(samples_of(t)[k]) for k in WITHIN_TASK} for t in tasks}}
+
+    out = {"tasks": tasks, "draws": draws,
+           "resamples": "policies and initial states, within each task (the same states for each policy)"}
+    for n in names:
+        out[n] = summary(lambda t, n=n: point[n][t], lambda t, n=n: boot[n][t])
+    first = names[0]
+    out["difference"] = {
+        n: summary(lambda t, n=n: {k: point[first][t][k] - point[n][t][k] for k in WITHIN_TASK},
+                   lambda t, n=n: {k: boot[first][t][k] - boot[n][t][k] for k in WITHIN_TASK})
+        for n in names[1:]}
+    return out
+
+
+
+# ---- checkpoint selection ------------------------------------------------------------------------------
+
+def checkpoint_selection(rows: list[dict]) -> dict:
+    """Does the world model pick each training run's best checkpoint? Per (task, lineage) with two or
+    more checkpoints (rows: {"task", "lineage", "step", "true_rate", "pred_rate", "true_ci"} per
+    policy; rows without a step, such as plug-ins, are left out): the checkpoint with the highest
+    predicted rate (ties: the later step) against the truly best one.
+
+    Returns {"lineages": [{"task", "lineage", "picked_step", "best_step", "picked_true", "best_true",
+    "regret" (best_true - picked_true), "exact" (the picked one's true rate is the highest),
+    "within_ci" (the picked one's true rate lies inside the best one's 95% interval)}], "exact_share",
+    "within_ci_share", "mean_regret", "n"} (shares and mean NaN when no lineage qualifies).
+    """
+    groups: dict = {}
+    for r in rows:
+        if r.get("step") is not None and r.get("pred_rate") is not None:
+            groups.setdefault((r["task"], r["lineage"]), []).append(r)
+    out = []
+    for (task, lineage), rs in sorted(groups.items()):
+        if len(rs) < 2:
+            continue
+        picked = max(rs, key=lambda r: (r["pred_rate"], r["step"]))
+        best = max(rs, key=lambda r: (r["true_rate"], r["step"]))
+        out.append({"task": task, "lineage": lineage, "picked_step": picked["step"], "best_step": best["step"],
+                    "picked_true": picked["true_rate"], "best_true": best["true_rate"],
+                    "regret": best["true_rate"] - picked["true_rate"],
+                    "exact": picked["true_rate"] >= best["true_rate"],
+                    "within_ci": picked["true_rate"] >= best["true_ci"][0]})
+    share = (lambda k: float(np.mean([x[k] for x in out]))) if out else (lambda k: math.nan)
+    return {"lineages": out, "exact_share": share("exact"), "within_ci_share": share("within_ci"),
+            "mean_regret": share("regret"), "n": len(out)}

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import sys
 import time
@@ -20,6 +19,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy import stats as sps
 from tqdm import tqdm
 
 from sim_data.engines import ENGINES, default_engine
@@ -29,15 +29,12 @@ from sim_data.rollout import run_episodes
 from sim_data.tasks import TASK_NAMES
 
 
-def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
-    """95% Wilson score interval of a binomial proportion."""
+def wilson_interval(successes: int, n: int) -> tuple[float, float]:
+    """95% Wilson score interval of a binomial proportion (scipy's); (0, 1) for n = 0."""
     if n == 0:
         return (0.0, 1.0)
-    p = successes / n
-    den = 1 + z * z / n
-    centre = (p + z * z / (2 * n)) / den
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
-    return (max(0.0, centre - half), min(1.0, centre + half))
+    ci = sps.binomtest(int(successes), int(n)).proportion_ci(0.95, method="wilson")
+    return (float(ci.low), float(ci.high))
 
 
 def write_json_atomic(path: Path, obj) -> None:

@@ -41,7 +41,7 @@ def test_results_hold_every_policy_with_statistics_from_the_episodes(evaluation,
         assert row["true_ci"] == pytest.approx(list(S.wilson_interval(int(t.sum()), 2)))
         assert row["pred_rate"] == pytest.approx(p.mean()) and 0 <= row["pred_rate"] <= 1
         assert row["true_episodes"] == t.astype(int).tolist() and row["pred_episodes"] == pytest.approx(p, abs=1e-5)
-    m = res["metrics"]["overall"]
+    m = res["metrics"]["pooled"]
     assert m["alignment"] == pytest.approx(S.alignment(prob >= cfg.threshold, true))
     assert m["mmrv"] == pytest.approx(S.mmrv([p["pred_rate"] for p in res["policies"]],
                                              [p["true_rate"] for p in res["policies"]]))
@@ -97,7 +97,7 @@ def test_a_partial_gather_reports_the_finished_tasks_and_names_the_rest(evaluati
     got = E.run(both, cut, progress=False, partial=True)
     assert got["tasks"] == ["mug"] and got["missing_tasks"] == ["step_back"]
     assert [p["name"] for p in got["policies"]] == [p["name"] for p in res["policies"]]
-    assert got["metrics"]["overall"]["alignment"] == pytest.approx(res["metrics"]["overall"]["alignment"])
+    assert got["metrics"]["pooled"]["alignment"] == pytest.approx(res["metrics"]["pooled"]["alignment"])
     assert not (cut / "tasks" / "step_back.npz").exists() and res["missing_tasks"] == []
     assert "**Partial**: tasks step_back were not evaluated" in write_report(cut).with_suffix(".md").read_text()
 
@@ -107,9 +107,20 @@ def test_report_renders_figures_and_videos(evaluation):
     page = write_report(out).read_text()
     assert page.count("data:image/png;base64,") >= 4  # scatter, ranks, baseline, decision (+ controllability)
     assert page.count("data:image/webp;base64,") == len(res["videos"]) + len(res["controllability"])
-    assert "Decision analysis" in page and "imitation-loss baseline" in page
+    assert "Decision analysis" in page and "imitation-loss baseline" in page and "Checkpoint selection" in page
     md = (out / "report.md").read_text()
     assert "| pearson |" in md and "examples.plugin_policy:make" in md
+    # the verdict first, then the within-task table with the proxy beside the world model, the pooled row last
+    verdict, within, pooled = (md.index(x) for x in ("mean within-task Pearson r", "## Within-task ranking",
+                                                     "## Pooled over tasks (secondary)"))
+    assert verdict < within < pooled and "| imitation-loss proxy |" in md
+    assert "Cut short" not in md
+    cut = dict(res, world_model=dict(res["world_model"], cut_short=True))
+    (out / "results.json").write_text(json.dumps(cut))
+    try:
+        assert "Cut short" in write_report(out).with_suffix(".md").read_text()
+    finally:
+        (out / "results.json").write_text(json.dumps(res))
 
 
 def test_an_ensemble_averages_its_members_probabilities(evaluation, smoke_world_model, tmp_path):
@@ -132,7 +143,7 @@ def test_an_ensemble_averages_its_members_probabilities(evaluation, smoke_world_
     np.testing.assert_allclose(mean, members.mean(0), atol=1e-6)
     for row, each in zip(got["policies"], members.transpose(1, 0, 2), strict=True):
         assert row["pred_rates"] == pytest.approx(each.mean(1)) and row["pred_rate"] == pytest.approx(each.mean())
-    m, single = got["metrics"]["overall"], res["metrics"]["overall"]
+    m, single = got["metrics"]["pooled"], res["metrics"]["pooled"]
     for stat in ("pearson", "mmrv", "alignment"):
         assert m["members"][stat][0] == single[stat] or m["members"][stat][0] == pytest.approx(single[stat])
     assert m["members"]["alignment"][1] == pytest.approx(S.alignment(members[1] >= cfg.threshold, true))
@@ -239,3 +250,16 @@ def test_truth_cache_returns_the_simulated_batch_waits_for_a_writer_and_misses_o
         E.simulate_truth(cfg, "mug", policy, other, seeds, keys, rng, "cpu", renderer)
     with pytest.raises(ValueError, match="video_policies=0"):
         E.make_config("demo", ["truth_cache=/tmp/t"])
+
+
+def test_within_task_headline_and_checkpoint_selection_from_the_episodes(evaluation):
+    from wm.evaluate import no_nan
+
+    cfg, out, res = evaluation
+    with np.load(out / "tasks" / "mug.npz") as z:
+        true, prob = z["true"].astype(bool), z["prob"]
+    proxy = np.array([np.nan if p["val_loss"] is None else -p["val_loss"] for p in res["policies"]])
+    want = S.within_task({"mug": true}, {"world_model": {"mug": prob}, "proxy": {"mug": proxy}}, cfg.threshold)
+    assert res["metrics"]["within_task"] == json.loads(json.dumps(no_nan(want)))
+    assert res["checkpoint_selection"] == json.loads(json.dumps(no_nan(S.checkpoint_selection(res["policies"]))))
+    assert res["world_model"]["cut_short"] is False and res["world_model"]["training"][0]["steps"] == 30

@@ -99,7 +99,7 @@ def test_an_ensemble_ranks_by_the_mean_of_its_models_predicted_rates(tmp_path):
     assert res["models"] == 2 and [r["pred_rate"] for r in rows] == pytest.approx([0.3, 0.3, 0.8, 0.3])
     assert rows[3]["true_rate"] == pytest.approx(0.35) and rows[3]["true_spread"] == pytest.approx(0.1)
     mean_true = [0.1, 0.5, 0.9, 0.35]
-    m = res["metrics"]["overall"]
+    m = res["metrics"]["pooled"]
     assert m["pearson"] == pytest.approx(np.corrcoef([0.3, 0.3, 0.8, 0.3], mean_true)[0, 1])
     assert m["members"]["pearson"] == pytest.approx([np.corrcoef(one, mean_true)[0, 1], np.corrcoef(two, mean_true)[0, 1]])
     assert m["members_mean"]["pearson"] == pytest.approx(np.mean(m["members"]["pearson"]))
@@ -134,10 +134,76 @@ def test_an_ensemble_with_episodes_aligns_by_the_mean_probability_of_each_episod
 
     res = ENS.combine([evaluation(p) for p in probs])
     assert res["policies"][0]["pred_episodes"] == pytest.approx([0.8, 0.4, 0.6, 0.2])
-    m = res["metrics"]["overall"]
+    m = res["metrics"]["pooled"]
     # the mean probabilities threshold to every true outcome; model 1 alone to 9 of 12, model 2 to 11
     assert m["alignment"] == 1.0 and m["members"]["alignment"] == pytest.approx([9 / 12, 11 / 12])
     assert len(m["pearson_ci_bootstrap"]) == 2
     other = evaluation(probs[1])
     other["policies"][0]["true_episodes"] = [0, 1, 1, 0]  # another simulated truth: no per-episode figures
-    assert "alignment" not in ENS.combine([evaluation(probs[0]), other])["metrics"]["overall"]
+    assert "alignment" not in ENS.combine([evaluation(probs[0]), other])["metrics"]["pooled"]
+
+
+def _two_tasks():
+    # task a: the world model's rates (0.9, 0.5, 0.1) = 0.1 + 0.8 x true (1, 0.5, 0): a perfect ranking;
+    # task b: its rates (0.2, 0.8, 0.5) against true (1, 0, 0.5): exactly reversed
+    true = {"a": np.array([[1, 1], [1, 0], [0, 0]], bool), "b": np.array([[1, 1], [0, 0], [1, 0]], bool)}
+    wm = {"a": np.array([[0.9, 0.9], [0.7, 0.3], [0.1, 0.1]]), "b": np.array([[0.2, 0.2], [0.8, 0.8], [0.5, 0.5]])}
+    proxy = {"a": np.array([-1.0, -2.0, -3.0]), "b": np.array([3.0, np.nan, 1.0])}  # b's second has no loss
+    return true, wm, proxy
+
+
+def test_task_statistics_by_hand():
+    true, wm, proxy = _two_tasks()
+    a = S.task_statistics(wm["a"], true["a"])
+    assert a == pytest.approx({"pearson": 1.0, "spearman": 1.0, "mmrv": 0.0, "pairwise_acc_gap10": 1.0,
+                               "alignment": 1.0})
+    b = S.task_statistics(wm["b"], true["b"])
+    # every pair misordered: the max violations 1, 1 and 0.5; thresholded at 0.5, one episode of six agrees
+    assert b == pytest.approx({"pearson": -1.0, "spearman": -1.0, "mmrv": 2.5 / 3, "pairwise_acc_gap10": 0.0,
+                               "alignment": 1 / 6})
+    # a per-policy score leaves out the policy without one and has no per-episode alignment
+    p = S.task_statistics(proxy["b"], true["b"])
+    assert p["pearson"] == pytest.approx(1.0) and p["mmrv"] == 0.0 and math.isnan(p["alignment"])
+    with pytest.raises(ValueError, match="shape"):
+        S.task_statistics(wm["a"][:, :1], true["a"])
+
+
+def test_within_task_mean_intervals_and_difference():
+    true, wm, proxy = _two_tasks()
+    got = S.within_task(true, {"world_model": wm, "proxy": proxy}, draws=200, seed=3)
+    m = got["world_model"]["mean"]
+    assert m == pytest.approx({"pearson": 0.0, "spearman": 0.0, "mmrv": 2.5 / 6, "pairwise_acc_gap10": 0.5,
+                               "alignment": 7 / 12})
+    assert got["proxy"]["mean"]["pearson"] == pytest.approx(1.0)
+    assert got["difference"]["proxy"]["mean"]["pearson"] == pytest.approx(-1.0)
+    assert got["difference"]["proxy"]["per_task"]["b"]["pearson"] == pytest.approx(-2.0)
+    # resampled, every pair of task a whose true rates differ stays ordered, and task b stays reversed
+    assert got["world_model"]["per_task_ci"]["a"]["pairwise_acc_gap10"] == pytest.approx([1.0, 1.0])
+    assert got["world_model"]["per_task_ci"]["b"]["pearson"][1] < 0
+    for k in S.WITHIN_TASK:
+        lo, hi = got["world_model"]["mean_ci"][k]
+        assert lo <= m[k] + 1e-9 and m[k] <= hi + 1e-9, k
+    assert got["draws"] == 200 and "initial states" in got["resamples"]
+    again = S.within_task(true, {"world_model": wm, "proxy": proxy}, draws=200, seed=3)
+    assert again["world_model"]["mean_ci"] == got["world_model"]["mean_ci"]  # seeded: reproducible
+    with pytest.raises(ValueError, match="covers tasks"):
+        S.within_task(true, {"world_model": {"a": wm["a"]}})
+
+
+def test_checkpoint_selection_by_hand():
+    def row(task, lineage, step, true, pred):
+        return {"task": task, "lineage": lineage, "step": step, "true_rate": true, "pred_rate": pred,
+                "true_ci": [true - 0.1, true + 0.1]}
+
+    rows = [row("mug", "a", 10, 0.2, 0.1), row("mug", "a", 100, 0.9, 0.3), row("mug", "a", 1000, 0.85, 0.8),
+            row("mug", "b", 10, 0.5, 0.5), row("mug", "b", 100, 0.7, 0.6),
+            row("mug", "c", 10, 0.4, 0.4),  # one checkpoint: nothing to pick
+            {"task": "mug", "lineage": "plugin", "step": None, "true_rate": 1.0, "pred_rate": 1.0, "true_ci": [0, 1]}]
+    got = S.checkpoint_selection(rows)
+    a, b = got["lineages"]
+    assert (a["picked_step"], a["best_step"], a["exact"], a["within_ci"]) == (1000, 100, False, True)
+    assert a["regret"] == pytest.approx(0.05)
+    assert (b["picked_step"], b["best_step"], b["exact"], b["regret"]) == (100, 100, True, 0.0)
+    assert got["n"] == 2 and got["exact_share"] == 0.5 and got["within_ci_share"] == 1.0
+    assert got["mean_regret"] == pytest.approx(0.025)
+    assert math.isnan(S.checkpoint_selection(rows[-2:])["exact_share"])

@@ -19,7 +19,7 @@ def test_mean_interval_is_a_t_interval():
 
 
 def test_collect_reads_every_finished_run(tmp_path):
-    runs = W.data_scaling(W.Size(train="demo", minutes=1, seeds=2, data={}))
+    runs = W.data_scaling(W.Size(train="demo", steps=100, seeds=2, data={}))
     assert [r.x for r in runs] == [0.125, 0.125, 0.25, 0.25, 0.5, 0.5, 1.0, 1.0]
     assert "train_fraction=0.125" in runs[0].overrides and "seed=1" in runs[1].overrides
     for k, r in enumerate(runs[:-1]):  # the last run has not finished
@@ -34,7 +34,7 @@ def test_collect_reads_every_finished_run(tmp_path):
         policies = [{"name": n, "task": "mug", "n": 64, "true_rate": t, "pred_rate": p}
                     for n, t, p in zip("abc", true, preds[k], strict=True)]
         (tmp_path / r.name / W.RANK_DIR / "results.json").write_text(
-            json.dumps({"metrics": {"overall": overall}, "policies": policies}))
+            json.dumps({"metrics": {"pooled": overall}, "policies": policies}))
     res = W.collect("data_scaling", "demo", runs, tmp_path, "share")
     assert [e["seeds"] for e in res["per_x"]] == [2, 2, 2, 1]
     assert res["runs"][0]["body_psnr_h8"] == 18.0 and res["per_x"][0]["body_psnr_h8"] == 18.0  # the other seed has none
@@ -91,7 +91,7 @@ def test_evaluating_elsewhere_refuses_training_settings(capsys):
 def test_report_gains_a_section_per_sweep(tmp_path):
     from experiments.report import sweep_sections
 
-    runs = W.held_out_object(W.Size(train="demo", minutes=1, seeds=1, data={}))
+    runs = W.held_out_object(W.Size(train="demo", steps=100, seeds=1, data={}))
     d = tmp_path / "held_out_object_demo"
     for k, r in enumerate(runs):
         (d / r.name).mkdir(parents=True)
