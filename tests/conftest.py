@@ -64,14 +64,14 @@ def np_rng():
 
 
 def build_once(tmp_path_factory, worker_id: str, name: str, build) -> Path:
-    """A directory that `build(directory)` fills once per test session: under xdist the first worker
-    to need it builds it under a file lock in the session's shared temporary directory and the other
+    """A directory that `build(directory)` fills once per pytest run: under xdist the first worker
+    to need it builds it under a file lock in the run's shared base temporary directory and the other
     workers wait for it and reuse it."""
     if worker_id == "master":
         out = tmp_path_factory.mktemp(name)
         build(out)
         return out
-    root = tmp_path_factory.getbasetemp().parent  # shared by this session's workers
+    root = tmp_path_factory.getbasetemp().parent  # shared by all of this run's workers
     out = root / name
     with open(root / f"{name}.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
