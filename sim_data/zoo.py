@@ -43,6 +43,7 @@ from tqdm import tqdm
 
 from sim_data.cache import TrainingCache
 from sim_data.config import override
+from sim_data.degrade import KNOBS, DegradedPolicy, degrade_params
 from sim_data.learned import BCPolicy, PolicyNetConfig, init_params, predict_chunk, to_numpy
 from sim_data.parts import add_part_argument, parse_part, take
 from sim_data.success_table import wilson_interval, write_json_atomic
@@ -65,6 +66,17 @@ class Lineage:
 
 
 @dataclasses.dataclass(frozen=True)
+class Family:
+    """A counterfactual family (sim_data.degrade): the last checkpoint of lineage `base`, its actions
+    degraded by `knob` (noise, delay, grip or drive) at each of `levels`; no training of its own."""
+
+    name: str
+    base: str
+    knob: str
+    levels: tuple = ()
+
+
+@dataclasses.dataclass(frozen=True)
 class ZooConfig:
     """Attributes:
       tasks: tasks with one lineage series each. lineages: the Lineage records.
@@ -73,6 +85,8 @@ class ZooConfig:
       batch, lr, weight_decay: AdamW. val_batches: validation batches of `batch` samples. seed.
       shift: random-shift augmentation of the training images (DrQ's: each image padded by `shift`
         pixels at its edges and cropped back at a random offset; 0: none).
+      families: counterfactual families (Family) registered beside the lineages, so that each task's
+        zoo spans the range of true success with policies whose differences are known.
     """
 
     tasks: tuple = ("mug", "wipe")
@@ -88,6 +102,7 @@ class ZooConfig:
     val_batches: int = 8
     seed: int = 0
     shift: int = 0
+    families: tuple = ()
 
     def validate(self) -> None:
         if not self.tasks or not self.lineages:
@@ -101,6 +116,15 @@ class ZooConfig:
         for lin in self.lineages:
             if lin.encoder not in ("conv", "vit"):
                 raise ValueError(f"lineage {lin.name}: encoder must be conv or vit, got {lin.encoder!r}")
+        for fam in self.families:
+            if fam.base not in names:
+                raise ValueError(f"family {fam.name}: base lineage {fam.base!r} is not among {names}")
+            if fam.name in names:
+                raise ValueError(f"family {fam.name}: the name is a lineage's")
+            if fam.knob not in KNOBS or not fam.levels:
+                raise ValueError(f"family {fam.name}: knob must be one of {KNOBS} with at least one level")
+            for level in fam.levels:
+                degrade_params(None, **{fam.knob: level})  # raises on a level out of range
         self.conv.validate()
         self.vit.validate()
 
@@ -123,15 +147,23 @@ LINEAGES_MAIN = (
 PRESETS = {
     "smoke": ZooConfig(tasks=("mug",), lineages=LINEAGES_MAIN, steps=4, checkpoints=2, first_step=2, batch=8,
                        val_batches=1, conv=PolicyNetConfig(width=8, hidden=32),
-                       vit=PolicyNetConfig(encoder="vit", width=16, depth=1, hidden=32)),
-    "demo": ZooConfig(tasks=("mug", "step_back"), lineages=LINEAGES_MAIN, steps=300, checkpoints=8, first_step=5,
+                       vit=PolicyNetConfig(encoder="vit", width=16, depth=1, hidden=32),
+                       families=(Family("conv_proprio~grip", "conv_proprio", "grip", (0.0, 1.0)),)),
+    # 4 checkpoints a lineage and two families leave the evaluation 16 episodes a policy in the demo's time
+    "demo": ZooConfig(tasks=("mug", "step_back"), lineages=LINEAGES_MAIN, steps=300, checkpoints=4, first_step=5,
                       batch=32, val_batches=4, conv=PolicyNetConfig(width=16, hidden=128),
-                      vit=PolicyNetConfig(encoder="vit", width=32, depth=2, hidden=128)),
+                      vit=PolicyNetConfig(encoder="vit", width=32, depth=2, hidden=128),
+                      families=(Family("conv_proprio~noise", "conv_proprio", "noise", (0.1, 0.3, 0.6)),
+                                Family("conv_proprio~drive", "conv_proprio", "drive", (0.5, 1.5, 2.0)))),
     "full": ZooConfig(tasks=("mug", "wipe", "airfryer"), steps=5000, checkpoints=8, first_step=20, batch=256,
                       val_batches=8, shift=4,
                       lineages=LINEAGES_MAIN + (Lineage("conv_noproprio_few", proprio=False, demos=24),
                                                 Lineage("conv_noproprio_lowskill", proprio=False, skills=(0.5, 0.75),
-                                                        successes_only=False))),
+                                                        successes_only=False)),
+                      families=(Family("conv_noproprio~noise", "conv_noproprio", "noise", (0.05, 0.1, 0.2, 0.4)),
+                                Family("conv_noproprio~delay", "conv_noproprio", "delay", (2, 4, 8)),
+                                Family("conv_noproprio~grip", "conv_noproprio", "grip", (0.2, 0.5)),
+                                Family("conv_noproprio~drive", "conv_noproprio", "drive", (0.5, 0.75, 1.5)))),
 }
 
 
@@ -314,8 +346,26 @@ def train_zoo(cfg: ZooConfig, data: Path, out: Path, progress: bool = True,
         registry += train_lineage(cfg, cache, task, lin, out, val, progress)
     if part is not None:
         return None
+    registry += family_records(cfg, registry)
     write_json_atomic(out / "policies.json", {"data": str(Path(data)), "policies": registry})
     return registry
+
+
+def family_records(cfg: ZooConfig, registry: list[dict]) -> list[dict]:
+    """The registry records of cfg.families: per task and family, one record per level, sharing the
+    checkpoint of the base lineage's last step ("degrade": {knob: level}, "base": its name; no step
+    and no imitation loss: the network is the base's, which the loss alone cannot tell apart)."""
+    out = []
+    for task in cfg.tasks:
+        for fam in cfg.families:
+            base = max((r for r in registry if r["task"] == task and r["lineage"] == fam.base),
+                       key=lambda r: r["step"])
+            for level in fam.levels:
+                out.append({"name": f"{task}/{fam.name}/{level:g}", "task": task, "lineage": fam.name, "step": None,
+                            "variant": {**base["variant"], "family": fam.name, "base": base["name"], fam.knob: level},
+                            "degrade": {fam.knob: level}, "base": base["name"], "val_loss": None,
+                            "train_loss": None, "checkpoint": base["checkpoint"], "net": base["net"]})
+    return out
 
 
 def _check_config(cfg: ZooConfig, data: Path, out: Path) -> None:
@@ -350,10 +400,14 @@ def load_registry(path: Path) -> list[dict]:
     return records
 
 
-def load_policy(record: dict) -> tuple[BCPolicy, dict]:
-    """(policy, params) of one registry record."""
+def load_policy(record: dict) -> tuple:
+    """(policy, params) of one registry record: a BCPolicy, or for a family's record the
+    DegradedPolicy around it."""
     net = PolicyNetConfig(**record["net"])
-    return BCPolicy(net), load_params(Path(record["checkpoint"]))
+    params = load_params(Path(record["checkpoint"]))
+    if record.get("degrade"):
+        return DegradedPolicy(BCPolicy(net)), degrade_params(params, **record["degrade"])
+    return BCPolicy(net), params
 
 
 def measure_success(out: Path, episodes: int, seed: int = 0, engine: str = "", batch: int = 2048,

@@ -19,10 +19,16 @@ from sim_data.sources import every_nth_checkpoint, resolve
 def test_zoo_registry_checkpoints_and_resume(smoke_zoo, smoke_dataset):
     out, registry = smoke_zoo
     cfg = zoo.make_config("smoke")
-    assert len(registry) == len(cfg.lineages) * len(cfg.checkpoint_steps())
-    assert {r["lineage"] for r in registry} == {"conv_proprio", "conv_noproprio", "vit_noproprio"}
-    for r in registry:
+    trained = [r for r in registry if not r.get("degrade")]
+    assert len(trained) == len(cfg.lineages) * len(cfg.checkpoint_steps())
+    assert {r["lineage"] for r in trained} == {"conv_proprio", "conv_noproprio", "vit_noproprio"}
+    for r in trained:
         assert np.isfinite(r["val_loss"]) and (out / r["checkpoint"]).exists()
+    # the family: the base lineage's last checkpoint at each level, no imitation loss of its own
+    last = max((r for r in trained if r["lineage"] == "conv_proprio"), key=lambda r: r["step"])
+    family = [r for r in registry if r.get("degrade")]
+    assert [r["name"] for r in family] == ["mug/conv_proprio~grip/0", "mug/conv_proprio~grip/1"]
+    assert all(r["checkpoint"] == last["checkpoint"] and r["val_loss"] is None and r["step"] is None for r in family)
     assert {r["variant"]["proprio"] for r in registry} == {True, False}
     # a rerun finds every lineage complete and trains nothing
     stamp = {p: p.stat().st_mtime_ns for p in out.rglob("*.msgpack")}
@@ -31,6 +37,29 @@ def test_zoo_registry_checkpoints_and_resume(smoke_zoo, smoke_dataset):
     assert stamp == {p: p.stat().st_mtime_ns for p in out.rglob("*.msgpack")}
     with pytest.raises(ValueError, match="another configuration"):
         zoo.train_zoo(zoo.make_config("smoke", ["steps=6"]), smoke_dataset[1], out, progress=False)
+
+
+def test_a_family_level_runs_its_base_checkpoint_with_the_knob_applied(smoke_zoo):
+    from sim_data.degrade import DegradedPolicy
+
+    out, registry = smoke_zoo
+    weak, same = resolve([f"{out}#conv_proprio~grip"])
+    last = max((r for r in registry if r["lineage"] == "conv_proprio"), key=lambda r: r["step"] or 0)
+    base = resolve([f"{out}#{last['name']}"])[0]
+    assert isinstance(weak.policy, DegradedPolicy) and weak.policy == same.policy and weak.policy.base == base.policy
+    rng = np.random.default_rng(1)
+    obs = {"image": jnp.asarray(rng.integers(0, 255, (2, 64, 64, 3), dtype=np.uint8)),
+           "proprio": jnp.asarray(rng.normal(size=(2, 37)), jnp.float32)}
+
+    def first_action(src):
+        carry = src.policy.init_carry(src.params, obs, None, jax.random.PRNGKey(0))
+        return np.asarray(src.policy.act(src.params, obs, carry, jax.random.PRNGKey(0))[0])
+
+    want = first_action(base)
+    np.testing.assert_allclose(first_action(same), want, atol=1e-6)
+    got = first_action(weak)
+    np.testing.assert_array_equal(got[:, 16:18], 0.0)
+    np.testing.assert_allclose(got[:, :16], want[:, :16], atol=1e-6)
 
 
 def test_learned_policies_follow_the_protocol_and_stack(smoke_zoo):

@@ -1,0 +1,73 @@
+"""sim_data.degrade: each knob changes a base policy's actions exactly as documented."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from sim_data import robot as R
+from sim_data.degrade import MAX_DELAY, DegradedPolicy, degrade_params
+from sim_data.learned import StackedPolicy, stack_params
+
+
+@dataclasses.dataclass(frozen=True)
+class Ramp:
+    """A base policy whose action at step t is params["slope"] * (t + 1) in every dimension."""
+
+    cfg: object = None
+
+    def init_carry(self, params, obs, task_state, rng):
+        return jnp.zeros((obs["proprio"].shape[0],), jnp.int32)
+
+    def act(self, params, obs, carry, rng):
+        a = jnp.broadcast_to(params["slope"] * (carry + 1.0)[:, None], (carry.shape[0], R.ACTION_DIM))
+        return a, carry + 1
+
+
+def _run(policy, params, steps=12, b=3):
+    obs = {"image": jnp.zeros((b, 8, 8, 3), jnp.uint8), "proprio": jnp.zeros((b, R.PROPRIO_DIM))}
+    carry = policy.init_carry(params, obs, None, jax.random.PRNGKey(0))
+    out = []
+    for t in range(steps):
+        a, carry = policy.act(params, obs, carry, jax.random.PRNGKey(t))
+        out.append(np.asarray(a))
+    return np.stack(out, 1)  # (B, T, 20)
+
+
+def test_neutral_knobs_leave_the_actions_unchanged():
+    base = {"slope": jnp.float32(0.5)}
+    np.testing.assert_array_equal(_run(DegradedPolicy(Ramp()), degrade_params(base)), _run(Ramp(), base))
+
+
+def test_delay_grip_and_drive_by_hand():
+    base = {"slope": jnp.float32(1.0)}
+    got = _run(DegradedPolicy(Ramp()), degrade_params(base, delay=3))[0, :, 0]
+    # the base sends 1, 2, 3, ...; three steps late, the first action is held until then
+    np.testing.assert_array_equal(got, [1, 1, 1, 1, 2, 3, 4, 5, 6, 7, 8, 9])
+    got = _run(DegradedPolicy(Ramp()), degrade_params(base, grip=0.25, drive=-2.0))[0, 1]
+    np.testing.assert_allclose(got[R.HAND_CLOSURE], [0.5, 0.5])
+    np.testing.assert_allclose(got[R.DRIVE], [-4.0, -4.0])
+    np.testing.assert_allclose(got[:16], 2.0)
+
+
+def test_noise_has_its_std_on_the_joints_only():
+    base = {"slope": jnp.float32(0.0)}
+    got = _run(DegradedPolicy(Ramp()), degrade_params(base, noise=0.3), steps=40, b=64)
+    assert abs(got[..., :16].std() - 0.3) < 0.01 and abs(got[..., :16].mean()) < 0.01
+    np.testing.assert_array_equal(got[..., 16:], 0.0)
+
+
+def test_levels_stack_into_one_program_and_bad_levels_are_refused():
+    base = {"slope": jnp.float32(1.0)}
+    levels = [degrade_params(base, delay=d) for d in (0, 2, 5)]
+    stacked = StackedPolicy(DegradedPolicy(Ramp()))
+    got = _run(stacked, stack_params(levels), steps=8, b=6)  # 3 levels x 2 episodes
+    for k, d in enumerate((0, 2, 5)):
+        np.testing.assert_array_equal(got[2 * k:2 * k + 2], _run(DegradedPolicy(Ramp()), levels[k], steps=8, b=2))
+        assert got[2 * k, 7, 0] == 8 - d
+    with pytest.raises(ValueError, match="delay"):
+        degrade_params(base, delay=MAX_DELAY + 1)
+    with pytest.raises(ValueError, match="unknown degradation"):
+        degrade_params(base, speed=2)
