@@ -287,8 +287,8 @@ def verdict(res: dict) -> str:
     return (f"{head}: mean within-task Pearson r {_ci(wm['mean']['pearson'], wm['mean_ci']['pearson'])} against "
             f"{_ci(px['mean']['pearson'], px['mean_ci']['pearson'])} (difference "
             f"{_ci(diff['mean']['pearson'], diff['mean_ci']['pearson'])}; 95% intervals resampling "
-            f"{w['resamples']}); ahead of the proxy with confidence in {len(ahead)} of {len(tasks)} tasks"
-            f"{' (' + ', '.join(ahead) + ')' if ahead else ''}, behind in {len(behind)}"
+            f"{w['resamples']}). Per task, the difference's interval lies above 0 in {len(ahead)} of {len(tasks)}"
+            f"{' (' + ', '.join(ahead) + ')' if ahead else ''} and below 0 in {len(behind)}"
             f"{' (' + ', '.join(behind) + ')' if behind else ''}.")
 
 

@@ -7,6 +7,8 @@ is shared JAX code in `sim_data.env`.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 from typing import Any
 
@@ -16,6 +18,17 @@ import mujoco
 import mujoco.batch  # noqa: F401  (a submodule, not imported by `import mujoco`)
 import numpy as np
 from flax import struct
+
+
+def _import_mjx():
+    """mujoco.mjx without the lines it prints when its optional Warp backend is absent: the project
+    runs MJX's JAX implementation, for which Warp plays no part."""
+    with contextlib.redirect_stdout(io.StringIO()):
+        from mujoco import mjx as module
+    return module
+
+
+mjx = _import_mjx()
 
 ENGINES = ("cpu", "mjx")
 POSE_FIELDS = ("geom_xpos", "geom_xmat", "cam_xpos", "cam_xmat")
@@ -91,8 +104,6 @@ class MjxEngine:
     name = "mjx"
 
     def __init__(self, model: mujoco.MjModel, batch_size: int):
-        from mujoco import mjx
-
         self._mjx = mjx
         self.model = model
         self.batch_size = batch_size

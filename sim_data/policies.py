@@ -33,6 +33,7 @@ from flax import struct
 from sim_data import robot as R
 from sim_data import scene as S
 from sim_data import tasks as T
+from sim_data.engines import mjx
 
 IK_DAMPING = 0.05
 IK_ITERS = 2
@@ -65,8 +66,6 @@ class Kinematics:
     """Site poses and Jacobians of the two grip sites from qpos, with MJX's kinematics."""
 
     def __init__(self, model):
-        from mujoco import mjx
-
         self._mjx = mjx
         self.mx = mjx.put_model(model, impl="jax")
         self.d0 = mjx.make_data(self.mx, impl="jax")
