@@ -29,13 +29,13 @@ import numpy as np
 
 from sim_data.cache import TrainingCache
 from sim_data.episodes import read_episode
-from sim_data.render import Renderer, RenderConfig, poses_from_arrays
+from sim_data.render import RenderConfig, Renderer, poses_from_arrays
 from sim_data.scene import load_model
-from sim_data.success_table import write_json_atomic
+from sim_data.util import write_json_atomic
+from wm.checkpoint import load_trained
 from wm.evaluate import sample_starts
 from wm.imagine import context_sample, open_loop_chunked
 from wm.metrics import psnr
-from wm.train import load_trained
 
 BODY, TRAY = "fryer", "fryer_tray"
 TASK = "airfryer"

@@ -51,7 +51,6 @@ from tqdm import tqdm
 from experiments import stats as S
 from experiments.ensemble import member_metrics
 from sim_data import robot as R
-from sim_data.bench import device_name
 from sim_data.cache import TrainingCache
 from sim_data.config import override
 from sim_data.engines import ENGINES, default_engine
@@ -59,12 +58,18 @@ from sim_data.generate import cached_env, cached_renderers, package_versions
 from sim_data.learned import StackedPolicy, stack_params
 from sim_data.parts import add_part_argument, exclusive, parse_part
 from sim_data.rollout import record_policies
-from sim_data.sources import group_by_policy, heldout_seeds, padded_chunks, resolve, used_seeds
-from sim_data.success_table import write_json_atomic
+from sim_data.sources import (
+    group_by_policy,
+    heldout_seeds,
+    padded_chunks,
+    resolve,
+    used_seeds,
+)
+from sim_data.util import device_name, write_json_atomic
+from wm.checkpoint import load_trained, training_status
 from wm.evaluate import no_nan, program_panel
 from wm.imagine import closed_loop, episode_success
 from wm.judge import check_features, load_judge
-from wm.train import load_trained, training_status
 
 CAMERA = "head_cam"
 

@@ -13,7 +13,7 @@ import warnings
 import numpy as np
 from scipy import stats as sps
 
-from sim_data.success_table import wilson_interval  # noqa: F401 (the one Wilson interval, re-exported)
+from sim_data.util import wilson_interval  # noqa: F401 (re-exported beside the statistics)
 
 Z95 = 1.959963984540054
 

@@ -27,7 +27,7 @@ import numpy as np
 from sim_data import robot as R
 from sim_data import scene as S
 from sim_data.env import HomeEnv
-from sim_data.success_table import write_json_atomic
+from sim_data.util import device_name, write_json_atomic
 
 
 def ready_controls(idx: R.RobotIndex, b: int, seed: int = 0) -> np.ndarray:
@@ -50,11 +50,6 @@ def time_mjx(engine, physics, ctrl, mocap_pos, nsteps: int, repeats: int = 1):
         d = jax.block_until_ready(run(d))
         times.append(time.perf_counter() - t0)
     return min(times), compile_s, d
-
-
-def device_name() -> str:
-    d = jax.devices()[0]
-    return getattr(d, "device_kind", d.platform)
 
 
 def bench_cpu(batch: int, seconds: float = 3.0, nthread: int | None = None) -> dict:

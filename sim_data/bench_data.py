@@ -20,10 +20,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from sim_data.bench import device_name
 from sim_data.cache import TrainingCache, WindowLoader
 from sim_data.generate import generate, make_config
-from sim_data.success_table import write_json_atomic
+from sim_data.util import device_name, write_json_atomic
 
 
 def loader_rate(out: Path, window: int, batch: int, batches: int) -> dict:

@@ -23,13 +23,12 @@ import jax
 import numpy as np
 
 from sim_data import robot as R
-from sim_data.bench import device_name
 from sim_data.engines import default_engine
 from sim_data.generate import cached_env, cached_renderers
 from sim_data.learned import BCPolicy, init_params
 from sim_data.policies import ProgramPolicy, program_params
 from sim_data.rollout import record_episodes
-from sim_data.success_table import write_json_atomic
+from sim_data.util import device_name, write_json_atomic
 from sim_data.zoo import PRESETS as ZOO_PRESETS
 
 CAMERA = "head_cam"

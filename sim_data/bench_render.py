@@ -25,11 +25,10 @@ import mujoco
 import numpy as np
 
 from sim_data import scene as S
-from sim_data.bench import device_name
-from sim_data.render import Poses, Renderer, RenderConfig, episode_rgb
+from sim_data.render import Poses, RenderConfig, Renderer, episode_rgb
 from sim_data.render_check import poses_of, random_states
-from sim_data.success_table import write_json_atomic
 from sim_data.tasks import TASK_NAMES
+from sim_data.util import device_name, write_json_atomic
 
 
 def state_pool(per_task: int = 8, seed: int = 0):

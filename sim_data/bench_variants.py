@@ -26,10 +26,10 @@ import numpy as np
 from mujoco import mjx
 
 from sim_data import scene as S
-from sim_data.bench import device_name, ready_controls, time_mjx
+from sim_data.bench import ready_controls, time_mjx
 from sim_data.engines import MjxEngine
-from sim_data.success_table import write_json_atomic
 from sim_data.tasks import TASKS, sample_initial
+from sim_data.util import device_name, write_json_atomic
 
 ASSETS = Path(__file__).parent / "assets"
 

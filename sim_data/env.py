@@ -21,7 +21,15 @@ from sim_data import robot as R
 from sim_data import scene as S
 from sim_data.engines import default_engine, make_engine
 from sim_data.render import Poses, poses_from_arrays
-from sim_data.tasks import PHYSICS_SUBSTEPS, Task, TaskState, dirt_mocap_z, get_task, sample_initial, update_task
+from sim_data.tasks import (
+    PHYSICS_SUBSTEPS,
+    Task,
+    TaskState,
+    dirt_mocap_z,
+    get_task,
+    sample_initial,
+    update_task,
+)
 
 
 @struct.dataclass

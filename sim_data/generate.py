@@ -31,21 +31,26 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
-from sim_data.bench import device_name
 from sim_data.cache import build_cache
 from sim_data.config import override
 from sim_data.engines import ENGINES, default_engine
 from sim_data.env import HomeEnv
 from sim_data.episodes import CorruptEpisode, read_episode_meta, write_episode_mcap  # noqa: F401 (re-exported)
 from sim_data.parts import add_part_argument, exclusive, parse_part, take
-from sim_data.policies import PROGRAMS, ProgramPolicy, ScriptedPolicy, play_params, program_params
+from sim_data.policies import (
+    PROGRAMS,
+    ProgramPolicy,
+    ScriptedPolicy,
+    play_params,
+    program_params,
+)
 from sim_data.render import RenderConfig, Renderer
 from sim_data.rollout import record_episodes
 from sim_data.scene import load_model
 from sim_data.sources import PolicySource
 from sim_data.sources import resolve as resolve_sources
-from sim_data.success_table import wilson_interval, write_json_atomic
 from sim_data.tasks import TASK_NAMES
+from sim_data.util import device_name, wilson_interval, write_json_atomic
 
 CAMERAS = ("head_cam", "ext_cam")
 SPLITS = ("train", "val", "test", "programs")
@@ -122,7 +127,9 @@ PRESETS = {
     "default": DataConfig(),
     "smoke": DataConfig(tasks=("mug",), skills=(1.0,), episodes=2, batch=2, programs=1),
     # the CPU chain's set: the demo zoo's two tasks, two skills, random play, the programs, head camera
-    "demo": DataConfig(tasks=("mug", "step_back"), skills=(0.3, 1.0), episodes=8, batch=8, programs=1, play=8,
+    # 24 episodes a skill: about 18 demonstrations of skill 1.0 a task for the zoo, from which its
+    # image-only lineages learn the mug (docs/results.md, the demo zoo)
+    "demo": DataConfig(tasks=("mug", "step_back"), skills=(0.3, 1.0), episodes=24, batch=8, programs=1, play=8,
                        cameras=("head_cam",), test_frac=0.25),
     "full": DataConfig(skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=600, batch=1200, workers=12, programs=32),
     # the world model's and the zoo's GPU set: three tasks, a spread of skills (1.0 for the zoo's

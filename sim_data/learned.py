@@ -22,8 +22,11 @@ params: {"net": Flax parameters, "norm": {"proprio_mean", "proprio_std", "action
 from __future__ import annotations
 
 import dataclasses
+import os
+from pathlib import Path
 
 import flax.linen as nn
+import flax.serialization
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -222,3 +225,16 @@ def stack_params(params_list: list) -> dict:
 
 def to_numpy(params) -> dict:
     return jax.tree_util.tree_map(lambda x: np.asarray(x), params)
+
+
+def save_params(path: Path, params) -> None:
+    """Writes a parameter tree as msgpack, atomically (a temporary file, then a rename)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
+    tmp.write_bytes(flax.serialization.msgpack_serialize(to_numpy(params)))
+    os.replace(tmp, path)
+
+
+def load_params(path: Path) -> dict:
+    """The parameters saved by save_params, as jax arrays."""
+    return jax.tree_util.tree_map(jnp.asarray, flax.serialization.msgpack_restore(Path(path).read_bytes()))

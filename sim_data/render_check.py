@@ -18,10 +18,16 @@ import numpy as np
 from sim_data import scene as S
 from sim_data.env import HomeEnv
 from sim_data.policies import ScriptedPolicy
-from sim_data.render import Poses, Renderer, RenderConfig, episode_rgb, poses_from_arrays
+from sim_data.render import (
+    Poses,
+    RenderConfig,
+    Renderer,
+    episode_rgb,
+    poses_from_arrays,
+)
 from sim_data.rollout import run_episodes
-from sim_data.success_table import write_json_atomic
 from sim_data.tasks import TASK_NAMES
+from sim_data.util import write_json_atomic
 
 ID_TARGET, DEPTH_TARGET = 0.98, 0.01
 CAMERAS = ("head_cam", "ext_cam")

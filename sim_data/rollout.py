@@ -13,8 +13,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from sim_data.env import HomeEnv, State
 from sim_data.engines import CpuEngine
+from sim_data.env import HomeEnv, State
 from sim_data.render import Poses, Renderer, episode_rgb, poses_from_arrays
 
 

@@ -29,6 +29,9 @@ import json
 import re
 from pathlib import Path
 
+from sim_data.degrade import DegradedPolicy, degrade_params
+from sim_data.learned import BCPolicy, PolicyNetConfig, load_params
+
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class PolicySource:
@@ -90,8 +93,6 @@ def load_plugin(spec: str) -> PolicySource:
 
 def load_registry_sources(spec: str) -> list[PolicySource]:
     """`PATH[#selector+...]` -> the registry's checkpoints whose name, lineage or task is selected."""
-    from sim_data.zoo import load_policy, load_registry  # the zoo imports flax training code: load it on use
-
     path, _, sel = spec.partition("#")
     terms = [s for s in sel.split("+") if s]
     wanted = {s for s in terms if not s.startswith("@")}
@@ -139,6 +140,31 @@ def resolve(specs) -> list[PolicySource]:
     if dup:
         raise ValueError(f"policy names repeat: {dup}; give plug-ins distinct names with name=module:attribute")
     return out
+
+
+def load_registry(path: Path) -> list[dict]:
+    """The registry's records, each with `checkpoint` made absolute and the zoo's `data` directory. path: policies.json or its directory."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "policies.json"
+    if not path.exists():
+        raise FileNotFoundError(f"{path} is missing: train a zoo first (make policies)")
+    registry = json.loads(path.read_text())
+    records = registry["policies"]
+    for r in records:
+        r["checkpoint"] = str(path.parent / r["checkpoint"])
+        r["data"] = registry["data"]
+    return records
+
+
+def load_policy(record: dict) -> tuple:
+    """(policy, params) of one registry record: a BCPolicy, or for a family's record the
+    DegradedPolicy around it."""
+    net = PolicyNetConfig(**record["net"])
+    params = load_params(Path(record["checkpoint"]))
+    if record.get("degrade"):
+        return DegradedPolicy(BCPolicy(net)), degrade_params(params, **record["degrade"])
+    return BCPolicy(net), params
 
 
 # ---- where and how policies are run -------------------------------------------------------------

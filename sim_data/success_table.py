@@ -10,8 +10,6 @@ skills are compared on the same scenes.
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -19,7 +17,6 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy import stats as sps
 from tqdm import tqdm
 
 from sim_data.engines import ENGINES, default_engine
@@ -27,22 +24,7 @@ from sim_data.env import HomeEnv
 from sim_data.policies import ScriptedPolicy
 from sim_data.rollout import run_episodes
 from sim_data.tasks import TASK_NAMES
-
-
-def wilson_interval(successes: int, n: int) -> tuple[float, float]:
-    """95% Wilson score interval of a binomial proportion (scipy's); (0, 1) for n = 0."""
-    if n == 0:
-        return (0.0, 1.0)
-    ci = sps.binomtest(int(successes), int(n)).proportion_ci(0.95, method="wilson")
-    return (float(ci.low), float(ci.high))
-
-
-def write_json_atomic(path: Path, obj) -> None:
-    """Writes obj as JSON to path through a temporary file and a rename."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    tmp.write_text(json.dumps(obj, indent=2, sort_keys=False) + "\n")
-    os.replace(tmp, path)
+from sim_data.util import wilson_interval, write_json_atomic
 
 
 def parse_skills(text: str) -> list[str]:

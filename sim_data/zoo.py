@@ -29,12 +29,10 @@ import argparse
 import dataclasses
 import functools
 import json
-import os
 import sys
 import time
 from pathlib import Path
 
-import flax.serialization
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -43,10 +41,27 @@ from tqdm import tqdm
 
 from sim_data.cache import TrainingCache
 from sim_data.config import override
-from sim_data.degrade import KNOBS, DegradedPolicy, degrade_params
-from sim_data.learned import BCPolicy, PolicyNetConfig, init_params, predict_chunk, to_numpy
+from sim_data.degrade import KNOBS, degrade_params
+from sim_data.engines import default_engine
+from sim_data.generate import cached_env, cached_renderers
+from sim_data.learned import (
+    PolicyNetConfig,
+    StackedPolicy,
+    init_params,
+    predict_chunk,
+    save_params,
+    stack_params,
+)
 from sim_data.parts import add_part_argument, parse_part, take
-from sim_data.success_table import wilson_interval, write_json_atomic
+from sim_data.rollout import record_policies
+from sim_data.sources import (
+    group_by_policy,
+    heldout_seeds,
+    load_registry_sources,
+    padded_chunks,
+    used_seeds,
+)
+from sim_data.util import wilson_interval, write_json_atomic
 
 CAMERA = "head_cam"
 
@@ -149,12 +164,13 @@ PRESETS = {
                        val_batches=1, conv=PolicyNetConfig(width=8, hidden=32),
                        vit=PolicyNetConfig(encoder="vit", width=16, depth=1, hidden=32),
                        families=(Family("conv_proprio~grip", "conv_proprio", "grip", (0.0, 1.0)),)),
-    # 4 checkpoints a lineage and two families leave the evaluation 16 episodes a policy in the demo's time
-    "demo": ZooConfig(tasks=("mug", "step_back"), lineages=LINEAGES_MAIN, steps=300, checkpoints=4, first_step=5,
+    # 4 checkpoints a lineage and two families leave the evaluation 16 episodes a policy in the demo's time;
+    # the families degrade conv_noproprio, the lineage that learns the mug (conv_proprio fails it)
+    "demo": ZooConfig(tasks=("mug", "step_back"), lineages=LINEAGES_MAIN, steps=1000, checkpoints=4, first_step=5,
                       batch=32, val_batches=4, conv=PolicyNetConfig(width=16, hidden=128),
                       vit=PolicyNetConfig(encoder="vit", width=32, depth=2, hidden=128),
-                      families=(Family("conv_proprio~noise", "conv_proprio", "noise", (0.1, 0.3, 0.6)),
-                                Family("conv_proprio~drive", "conv_proprio", "drive", (0.5, 1.5, 2.0)))),
+                      families=(Family("conv_noproprio~noise", "conv_noproprio", "noise", (0.1, 0.2, 0.4)),
+                                Family("conv_noproprio~drive", "conv_noproprio", "drive", (0.5, 1.5, 2.0)))),
     "full": ZooConfig(tasks=("mug", "wipe", "airfryer"), steps=5000, checkpoints=8, first_step=20, batch=256,
                       val_batches=8, shift=4,
                       lineages=LINEAGES_MAIN + (Lineage("conv_noproprio_few", proprio=False, demos=24),
@@ -256,17 +272,6 @@ def random_shift(images, shift: int, key):
 def _val_loss(loss, params, val_batches: list) -> float:
     """loss: the jitted imitation loss of the lineage's network (compiled once per lineage)."""
     return float(np.mean([float(loss(params, b)) for b in val_batches]))
-
-
-def save_params(path: Path, params) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    tmp.write_bytes(flax.serialization.msgpack_serialize(to_numpy(params)))
-    os.replace(tmp, path)
-
-
-def load_params(path: Path) -> dict:
-    return jax.tree_util.tree_map(jnp.asarray, flax.serialization.msgpack_restore(Path(path).read_bytes()))
 
 
 def train_lineage(cfg: ZooConfig, cache: TrainingCache, task: str, lineage: Lineage, out: Path, val: dict,
@@ -385,42 +390,11 @@ def _check_config(cfg: ZooConfig, data: Path, out: Path) -> None:
 
 # ---- the registry ---------------------------------------------------------------------------------
 
-def load_registry(path: Path) -> list[dict]:
-    """The registry's records, each with `checkpoint` made absolute and the zoo's `data` directory. path: policies.json or its directory."""
-    path = Path(path)
-    if path.is_dir():
-        path = path / "policies.json"
-    if not path.exists():
-        raise FileNotFoundError(f"{path} is missing: train a zoo first (make policies)")
-    registry = json.loads(path.read_text())
-    records = registry["policies"]
-    for r in records:
-        r["checkpoint"] = str(path.parent / r["checkpoint"])
-        r["data"] = registry["data"]
-    return records
-
-
-def load_policy(record: dict) -> tuple:
-    """(policy, params) of one registry record: a BCPolicy, or for a family's record the
-    DegradedPolicy around it."""
-    net = PolicyNetConfig(**record["net"])
-    params = load_params(Path(record["checkpoint"]))
-    if record.get("degrade"):
-        return DegradedPolicy(BCPolicy(net)), degrade_params(params, **record["degrade"])
-    return BCPolicy(net), params
-
-
 def measure_success(out: Path, episodes: int, seed: int = 0, engine: str = "", batch: int = 2048,
                     progress: bool = True) -> dict:
     """True success of every checkpoint of the zoo in out over `episodes` held-out initial states per
     task; writes and returns OUT/success.json {"episodes", "engine", "seed", "policies": [{name, task,
     lineage, step, successes, n, rate, ci95}]}."""
-    from sim_data.engines import default_engine
-    from sim_data.generate import cached_env, cached_renderers
-    from sim_data.learned import StackedPolicy, stack_params
-    from sim_data.rollout import record_policies
-    from sim_data.sources import group_by_policy, heldout_seeds, load_registry_sources, padded_chunks, used_seeds
-
     out, engine = Path(out), engine or default_engine()
     sources = load_registry_sources(str(out))
     used = used_seeds(*{s.record["data"] for s in sources if s.record.get("data")})

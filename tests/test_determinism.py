@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from experiments import evaluate as E
-from wm.train import load_trained, training_status
+from wm.checkpoint import load_trained, training_status
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -8,13 +8,12 @@ import time
 
 import numpy as np
 import pytest
+from conftest import build_once
 
 from experiments import evaluate as E
 from experiments import stats as S
 from experiments.report import write_report
 from sim_data.parts import exclusive
-
-from conftest import build_once
 
 
 @pytest.fixture(scope="module")
@@ -187,7 +186,7 @@ def test_air_fryer_body_mask_covers_the_body_pixels_of_the_frame():
 
     from experiments.body_in_place import _scene, body_masks
     from sim_data.env import HomeEnv
-    from sim_data.render import Renderer, RenderConfig, episode_rgb
+    from sim_data.render import RenderConfig, Renderer, episode_rgb
 
     env = HomeEnv("airfryer", 1, engine="cpu")
     state = env.reset(jax.random.PRNGKey(3))

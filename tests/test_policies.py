@@ -8,7 +8,15 @@ import pytest
 from sim_data import robot as R
 from sim_data import scene as S
 from sim_data.env import HomeEnv
-from sim_data.policies import PROGRAMS, Kinematics, ScriptedPolicy, action_program, ik_step, play_params, play_program
+from sim_data.policies import (
+    PROGRAMS,
+    Kinematics,
+    ScriptedPolicy,
+    action_program,
+    ik_step,
+    play_params,
+    play_program,
+)
 
 
 @pytest.fixture(scope="module")

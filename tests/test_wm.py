@@ -13,8 +13,16 @@ import pytest
 from wm import imagine as I
 from wm import metrics as M
 from wm.config import SMOKE_MODEL, make_config, override
-from wm.model import (Decoder, WorldModel, attention_logits, attention_mask, depth_to_space, init_params,
-                      relative_time_bias, space_to_depth)
+from wm.model import (
+    Decoder,
+    WorldModel,
+    attention_logits,
+    attention_mask,
+    depth_to_space,
+    init_params,
+    relative_time_bias,
+    space_to_depth,
+)
 from wm.train import Run, TrainingDiverged
 
 CFG = SMOKE_MODEL

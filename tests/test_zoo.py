@@ -150,9 +150,9 @@ def test_mixed_dataset_records_policy_rollouts(smoke_dataset, smoke_zoo, smoke_w
     assert meta["policy_source"]["lineage"] == "conv_proprio"
     # the episode judge imagines a policy's own rollout closed loop, with that policy acting
     from sim_data.cache import TrainingCache
+    from wm.checkpoint import load_trained
     from wm.imagine import closed_loop
     from wm.judge import dataset_policies, imagine_episodes
-    from wm.train import load_trained
 
     wm_cfg, wm_params, norm = load_trained(smoke_world_model)
     cache = TrainingCache(out)

@@ -34,10 +34,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from sim_data.util import write_json_atomic
 from wm.config import make_config
 from wm.imagine import Norm, closed_loop
 from wm.model import init_params
-from wm.train import _jitted_step, make_optimizer, write_json_atomic
+from wm.train import _jitted_step, make_optimizer
 
 
 def device_name() -> str:

@@ -112,8 +112,8 @@ PRESETS = {
     "smoke": TrainConfig(model=SMOKE_MODEL, batch=2, window=6, steps=30, lr=3e-3, warmup=5, log_every=5,
                          eval_every=10, ckpt_every=10, val_batches=1, eval_context=2, eval_episodes=2,
                          eval_horizons=(1, 4), control_horizon=4, judge_episodes=8, judge_steps=20),
-    # 1000 steps fill about 5 minutes of the demo's 2-core machine; max_minutes is the safety stop
-    "demo": TrainConfig(model=DEMO_MODEL, batch=8, window=10, steps=1000, max_minutes=12.0, lr=1e-3, warmup=50,
+    # 2000 steps fill about 6 minutes of the demo's 2-core machine; max_minutes is the safety stop
+    "demo": TrainConfig(model=DEMO_MODEL, batch=8, window=10, steps=2000, max_minutes=15.0, lr=1e-3, warmup=50,
                         cooldown=0.3, log_every=25, eval_every=250, ckpt_every=250, val_batches=2, eval_context=4,
                         eval_episodes=24, eval_horizons=(1, 4, 8, 16), control_horizon=16, judge_steps=600),
     # the sub-pixel decoder (a faster step at equal quality), the keep gate and re-encoding imagination:
@@ -139,3 +139,14 @@ def from_dict(d: dict) -> TrainConfig:
     d = dict(d)
     model = ModelConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.pop("model").items()})
     return TrainConfig(model=model, **{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
+
+
+def check_dataset(cfg: TrainConfig, cache) -> None:
+    """Raises ValueError unless the dataset's training cache (sim_data.cache.TrainingCache) holds the model's camera at its size and every task named."""
+    if cfg.camera not in cache.cameras:
+        raise ValueError(f"camera {cfg.camera} is not in the dataset's cache ({cache.cameras})")
+    if cache.index["size"] != cfg.model.size:
+        raise ValueError(f"the dataset's frames are {cache.index['size']} px, model.size is {cfg.model.size}")
+    bad = [t for t in cfg.train_tasks + cfg.eval_tasks if t not in cache.tasks]
+    if bad:
+        raise ValueError(f"tasks {bad} are not in the dataset (it has {cache.tasks})")

@@ -38,11 +38,18 @@ from pathlib import Path
 import numpy as np
 
 from sim_data.cache import TrainingCache
-from wm.config import TrainConfig, override
-from wm.imagine import OUTCOME_FEATURE, SUCCESS_FEATURE, Norm, context_sample, open_loop_chunked
+from sim_data.util import write_json_atomic
+from wm.checkpoint import load_trained
+from wm.config import TrainConfig, check_dataset, override
+from wm.imagine import (
+    OUTCOME_FEATURE,
+    SUCCESS_FEATURE,
+    Norm,
+    context_sample,
+    open_loop_chunked,
+)
 from wm.judge import EpisodeJudge, imagine_episodes, judge_episodes, load_judge, spread
 from wm.metrics import accuracy, auroc, psnr, ssim, view_shift
-from wm.train import check_dataset, load_trained, write_json_atomic
 
 STILL_PX = 1.0  # a true view that moved less than this (pixels) counts as still
 

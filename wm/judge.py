@@ -36,10 +36,19 @@ import optax
 from flax import serialization
 from tqdm import tqdm
 
-from wm.imagine import CHUNK, Norm, closed_loop, context_sample, feature_dim, open_loop_chunked
+from sim_data.learned import StackedPolicy, stack_params
+from sim_data.sources import resolve
+from sim_data.util import write_json_atomic
+from wm.imagine import (
+    CHUNK,
+    Norm,
+    closed_loop,
+    context_sample,
+    feature_dim,
+    open_loop_chunked,
+)
 from wm.metrics import accuracy, auroc
 from wm.model import ModelConfig
-from wm.train import write_json_atomic
 
 WIDTH = 64
 LR = 2e-3
@@ -136,8 +145,6 @@ def _closed_loop_features(cfg: ModelConfig, params, norm: Norm, cache, group, ca
                           seed: int):
     """(len(group), horizon, F) step features of closed-loop imaginations, each episode of group
     [(cache id, PolicySource)] with its own policy's parameters (one architecture), in chunks of CHUNK."""
-    from sim_data.learned import StackedPolicy, stack_params
-
     outs = []
     for k in range(0, len(group), CHUNK):
         part = group[k:k + CHUNK]
@@ -158,8 +165,6 @@ def dataset_policies(data: Path) -> dict:
     specs = json.loads((Path(data) / "config.json").read_text()).get("policies") or []
     if not specs:
         return {}
-    from sim_data.sources import resolve
-
     try:
         return {f"{s.kind}:{s.name}": s for s in resolve(specs)}
     except (FileNotFoundError, ValueError, ImportError) as e:

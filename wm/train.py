@@ -18,7 +18,6 @@ import argparse
 import functools
 import json
 import math
-import os
 import sys
 import time
 from pathlib import Path
@@ -33,8 +32,11 @@ from jax.sharding import PartitionSpec as P
 from tqdm import tqdm
 
 from sim_data.cache import TrainingCache, WindowLoader
-from wm.config import TrainConfig, from_dict, make_config, to_dict
+from sim_data.util import write_json_atomic
+from wm.config import TrainConfig, check_dataset, make_config, to_dict
+from wm.evaluate import evaluate
 from wm.imagine import Norm, to_uint8
+from wm.judge import fit_judge, load_judge
 from wm.model import WorldModel, init_params
 
 
@@ -198,17 +200,6 @@ def put_batch(batch: dict, mesh) -> dict:
 
 
 # ---- the run ---------------------------------------------------------------------------------------
-
-def check_dataset(cfg: TrainConfig, cache: TrainingCache) -> None:
-    """Raises ValueError unless the dataset holds the model's camera at its size and every task named."""
-    if cfg.camera not in cache.cameras:
-        raise ValueError(f"camera {cfg.camera} is not in the dataset's cache ({cache.cameras})")
-    if cache.index["size"] != cfg.model.size:
-        raise ValueError(f"the dataset's frames are {cache.index['size']} px, model.size is {cfg.model.size}")
-    bad = [t for t in cfg.train_tasks + cfg.eval_tasks if t not in cache.tasks]
-    if bad:
-        raise ValueError(f"tasks {bad} are not in the dataset (it has {cache.tasks})")
-
 
 class Run:
     """Everything one training run holds: config, data, model state, checkpoints, logs."""
@@ -376,12 +367,6 @@ class MetricLog:
             self.tb.close()
 
 
-def write_json_atomic(path: Path, obj) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=1))
-    os.replace(tmp, path)
-
-
 def _check_config(cfg: TrainConfig, data: Path, out: Path) -> None:
     """Saves the resolved configuration; refuses to resume a run of another one."""
     path = out / "config.json"
@@ -394,38 +379,6 @@ def _check_config(cfg: TrainConfig, data: Path, out: Path) -> None:
                              f"(differs: {sorted(k for k in mine['train'] if mine['train'][k] != theirs['train'].get(k))})")
     else:
         write_json_atomic(path, mine)
-
-
-def load_run_config(out: Path) -> tuple[TrainConfig, Path]:
-    d = json.loads((Path(out) / "config.json").read_text())
-    return from_dict(d["train"]), Path(d["data"])
-
-
-def training_status(out: Path) -> dict:
-    """{"step", "steps", "cut_short"} of a training run (train_status.json); cut_short is None for a
-    run that never finished a command."""
-    path = Path(out) / "train_status.json"
-    if not path.exists():
-        return {"step": None, "steps": None, "cut_short": None}
-    return json.loads(path.read_text())
-
-
-def load_trained(out: Path):
-    """(TrainConfig, best parameters, Norm) of a finished training run in out."""
-    out = Path(out)
-    if not (out / "config.json").exists() or not (out / "best").exists():
-        raise FileNotFoundError(f"{out} holds no trained world model (config.json and best/): run make train first")
-    cfg, _ = load_run_config(out)
-    norm = Norm.from_dict(json.loads((out / "norm.json").read_text()))
-    shapes = jax.eval_shape(lambda: init_params(cfg.model, jax.random.PRNGKey(0), window=cfg.window))
-    mgr = ocp.CheckpointManager(out.absolute() / "best", options=ocp.CheckpointManagerOptions(create=False))
-    step = mgr.latest_step()
-    if step is None:
-        raise FileNotFoundError(f"{out}/best holds no checkpoint")
-    abstract = {"params": jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), shapes)}
-    got = mgr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract),
-                                                     loader=ocp.args.JsonRestore()))
-    return cfg, got["state"]["params"], norm
 
 
 def main(argv=None) -> int:
@@ -450,14 +403,9 @@ def main(argv=None) -> int:
         return 0
     best = run.best_params() if (cfg.judge_episodes or not a.no_eval) else None
     if cfg.judge_episodes and not (a.out / "judge.json").exists():
-        from wm.judge import fit_judge
-
         print(json.dumps({"judge": fit_judge(cfg, best, run.norm, run.cache, [int(i) for i in run.loader.episodes],
                                              a.out)}, indent=1))
     if not a.no_eval:
-        from wm.evaluate import evaluate
-        from wm.judge import load_judge
-
         report = evaluate(cfg, best, run.norm, run.cache, a.out, load_judge(a.out))
         print(json.dumps(report["summary"], indent=1))
     return 0

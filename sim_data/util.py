@@ -1,0 +1,33 @@
+"""Small helpers every package uses: atomic JSON files, the device's name, the Wilson interval."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import jax
+from scipy import stats as sps
+
+
+def write_json_atomic(path: Path, obj) -> None:
+    """Writes obj as JSON to path through a temporary file and a rename (a reader never sees half a file)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
+    tmp.write_text(json.dumps(obj, indent=2, sort_keys=False) + "\n")
+    os.replace(tmp, path)
+
+
+def device_name() -> str:
+    """The first JAX device's kind ("NVIDIA H200", "cpu")."""
+    d = jax.devices()[0]
+    return getattr(d, "device_kind", d.platform)
+
+
+def wilson_interval(successes: int, n: int) -> tuple[float, float]:
+    """95% Wilson score interval of a binomial proportion (scipy's); (0, 1) for n = 0."""
+    if n == 0:
+        return (0.0, 1.0)
+    ci = sps.binomtest(int(successes), int(n)).proportion_ci(0.95, method="wilson")
+    return (float(ci.low), float(ci.high))
