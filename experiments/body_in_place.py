@@ -31,7 +31,7 @@ from sim_data.cache import TrainingCache
 from sim_data.episodes import read_episode
 from sim_data.render import RenderConfig, Renderer, poses_from_arrays
 from sim_data.scene import load_model
-from sim_data.util import write_json_atomic
+from sim_data.util import run_cli, write_json_atomic
 from wm.checkpoint import load_trained
 from wm.evaluate import sample_starts
 from wm.imagine import context_sample, open_loop_chunked
@@ -130,4 +130,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

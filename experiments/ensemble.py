@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from experiments import stats as S
-from sim_data.util import write_json_atomic
+from sim_data.util import run_cli, write_json_atomic
 
 MEMBER_STATS = ("pearson", "spearman", "mmrv", "pairwise_acc_gap10")
 
@@ -130,4 +130,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

@@ -65,7 +65,7 @@ from sim_data.sources import (
     resolve,
     used_seeds,
 )
-from sim_data.util import device_name, write_json_atomic
+from sim_data.util import device_name, make_output_dir, run_cli, write_json_atomic
 from wm.checkpoint import load_trained, training_status
 from wm.evaluate import no_nan, program_panel
 from wm.imagine import closed_loop, episode_success
@@ -446,7 +446,7 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
     report shows that preset's targets."""
     cfg.validate()
     out = Path(out)
-    (out / "tasks").mkdir(parents=True, exist_ok=True)
+    make_output_dir(out / "tasks")
     _check_config(cfg, out)
     sources = resolve(cfg.policies)
     tasks = list(cfg.tasks) or sorted({s.task for s in sources if s.task})
@@ -641,4 +641,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

@@ -42,6 +42,7 @@ import time
 from pathlib import Path
 
 from sim_data.parts import local_gpus, module_command, run_parallel
+from sim_data.util import run_cli
 
 STAGES = ("data", "policies", "rollouts", "train", "eval", "report")
 
@@ -231,4 +232,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

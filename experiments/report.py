@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from sim_data.util import run_cli
+
 # each evaluation preset's own targets for the within-task means (docs/results.md)
 TARGETS = {"demo": {"pearson": (">=", 0.7)},
            "full": {"pearson": (">=", 0.9), "mmrv": ("<=", 0.05), "pairwise_acc_gap10": (">=", 0.9)}}
@@ -541,4 +543,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

@@ -62,7 +62,7 @@ from pathlib import Path
 import numpy as np
 
 from experiments import ensemble
-from sim_data.util import write_json_atomic
+from sim_data.util import run_cli, write_json_atomic
 
 # eval.json figures compared across runs: (name in results.json, path in eval.json)
 METRICS = (
@@ -706,4 +706,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

@@ -27,7 +27,7 @@ import numpy as np
 from sim_data import robot as R
 from sim_data import scene as S
 from sim_data.env import HomeEnv
-from sim_data.util import device_name, write_json_atomic
+from sim_data.util import device_name, run_cli, write_json_atomic
 
 
 def ready_controls(idx: R.RobotIndex, b: int, seed: int = 0) -> np.ndarray:
@@ -111,4 +111,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

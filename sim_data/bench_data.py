@@ -22,7 +22,7 @@ from pathlib import Path
 
 from sim_data.cache import TrainingCache, WindowLoader
 from sim_data.generate import generate, make_config
-from sim_data.util import device_name, write_json_atomic
+from sim_data.util import device_name, run_cli, write_json_atomic
 
 
 def loader_rate(out: Path, window: int, batch: int, batches: int) -> dict:
@@ -79,4 +79,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

@@ -28,7 +28,7 @@ from sim_data.generate import cached_env, cached_renderers
 from sim_data.learned import BCPolicy, init_params
 from sim_data.policies import ProgramPolicy, program_params
 from sim_data.rollout import record_episodes
-from sim_data.util import device_name, write_json_atomic
+from sim_data.util import device_name, run_cli, write_json_atomic
 from sim_data.zoo import PRESETS as ZOO_PRESETS
 
 CAMERA = "head_cam"
@@ -103,4 +103,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

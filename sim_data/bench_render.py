@@ -28,7 +28,7 @@ from sim_data import scene as S
 from sim_data.render import Poses, RenderConfig, Renderer, episode_rgb
 from sim_data.render_check import poses_of, random_states
 from sim_data.tasks import TASK_NAMES
-from sim_data.util import device_name, write_json_atomic
+from sim_data.util import device_name, run_cli, write_json_atomic
 
 
 def state_pool(per_task: int = 8, seed: int = 0):
@@ -216,4 +216,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

@@ -29,7 +29,7 @@ from sim_data import scene as S
 from sim_data.bench import ready_controls, time_mjx
 from sim_data.engines import MjxEngine
 from sim_data.tasks import TASKS, sample_initial
-from sim_data.util import device_name, write_json_atomic
+from sim_data.util import device_name, run_cli, write_json_atomic
 
 ASSETS = Path(__file__).parent / "assets"
 
@@ -184,4 +184,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

@@ -32,6 +32,7 @@ import numpy as np
 from tqdm import tqdm
 
 from sim_data.episodes import CorruptEpisode, read_episode, read_episode_meta
+from sim_data.util import run_cli
 
 FORMAT = 1
 EPISODE_KEYS = ("episode_id", "task", "policy", "policy_kind", "skill", "seed", "success", "split", "heldout")
@@ -407,4 +408,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

@@ -50,7 +50,13 @@ from sim_data.scene import load_model
 from sim_data.sources import PolicySource
 from sim_data.sources import resolve as resolve_sources
 from sim_data.tasks import TASK_NAMES
-from sim_data.util import device_name, wilson_interval, write_json_atomic
+from sim_data.util import (
+    device_name,
+    make_output_dir,
+    run_cli,
+    wilson_interval,
+    write_json_atomic,
+)
 
 CAMERAS = ("head_cam", "ext_cam")
 SPLITS = ("train", "val", "test", "programs")
@@ -309,7 +315,7 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True, reuse: Path | No
     the cache and stats.json to a run without a part (sim_data.parts: one process per GPU)."""
     cfg.validate()
     out = Path(out)
-    (out / "episodes").mkdir(parents=True, exist_ok=True)
+    make_output_dir(out / "episodes")
     engine = cfg.engine or default_engine()
     learned = resolve_sources(cfg.policies)
     with exclusive(out / "episodes.lock"):  # the parts of one dataset start together
@@ -499,4 +505,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

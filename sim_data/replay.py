@@ -22,6 +22,7 @@ from tqdm import tqdm
 
 from sim_data.env import HomeEnv
 from sim_data.episodes import read_episode
+from sim_data.util import run_cli
 
 
 def replay_files(paths, engine: str | None = None, progress: bool = False) -> list[dict]:
@@ -99,4 +100,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

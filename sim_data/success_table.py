@@ -24,7 +24,7 @@ from sim_data.env import HomeEnv
 from sim_data.policies import ScriptedPolicy
 from sim_data.rollout import run_episodes
 from sim_data.tasks import TASK_NAMES
-from sim_data.util import wilson_interval, write_json_atomic
+from sim_data.util import run_cli, wilson_interval, write_json_atomic
 
 
 def parse_skills(text: str) -> list[str]:
@@ -104,4 +104,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

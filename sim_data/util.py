@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 from pathlib import Path
 
 import jax
@@ -31,3 +32,25 @@ def wilson_interval(successes: int, n: int) -> tuple[float, float]:
         return (0.0, 1.0)
     ci = sps.binomtest(int(successes), int(n)).proportion_ci(0.95, method="wilson")
     return (float(ci.low), float(ci.high))
+
+
+def run_cli(main) -> int:
+    """Runs a command's main() for `python -m`: a user's mistake (a bad path, preset, value, plug-in
+    or selector, raised as FileNotFoundError, NotADirectoryError or ValueError with a message that
+    names the input) ends in that one line and exit status 2, without a traceback."""
+    try:
+        return main()
+    except (FileNotFoundError, NotADirectoryError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+
+
+def make_output_dir(path: Path) -> Path:
+    """Creates the output directory `path` (and its parents); a file or a non-directory on the way is
+    refused with a message naming it."""
+    path = Path(path)
+    for p in (path, *path.parents):
+        if p.exists() and not p.is_dir():
+            raise NotADirectoryError(f"the output {path} cannot be a directory: {p} is a file; name another path")
+    path.mkdir(parents=True, exist_ok=True)
+    return path

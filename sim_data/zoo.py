@@ -61,7 +61,7 @@ from sim_data.sources import (
     padded_chunks,
     used_seeds,
 )
-from sim_data.util import wilson_interval, write_json_atomic
+from sim_data.util import make_output_dir, run_cli, wilson_interval, write_json_atomic
 
 CAMERA = "head_cam"
 
@@ -329,7 +329,7 @@ def train_zoo(cfg: ZooConfig, data: Path, out: Path, progress: bool = True,
     to a run without a part (sim_data.parts: one process per GPU)."""
     cfg.validate()
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    make_output_dir(out)
     _check_config(cfg, data, out)
     cache = TrainingCache(data)
     if CAMERA not in cache.cameras:
@@ -462,4 +462,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

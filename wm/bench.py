@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sim_data.util import write_json_atomic
+from sim_data.util import run_cli, write_json_atomic
 from wm.config import make_config
 from wm.imagine import Norm, closed_loop
 from wm.model import init_params
@@ -305,4 +305,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

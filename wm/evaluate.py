@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from sim_data.cache import TrainingCache
-from sim_data.util import write_json_atomic
+from sim_data.util import run_cli, write_json_atomic
 from wm.checkpoint import load_trained
 from wm.config import TrainConfig, check_dataset, override
 from wm.imagine import (
@@ -285,4 +285,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

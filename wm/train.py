@@ -32,7 +32,7 @@ from jax.sharding import PartitionSpec as P
 from tqdm import tqdm
 
 from sim_data.cache import TrainingCache, WindowLoader
-from sim_data.util import write_json_atomic
+from sim_data.util import make_output_dir, run_cli, write_json_atomic
 from wm.config import TrainConfig, check_dataset, make_config, to_dict
 from wm.evaluate import evaluate
 from wm.imagine import Norm, to_uint8
@@ -206,7 +206,7 @@ class Run:
 
     def __init__(self, cfg: TrainConfig, data: Path, out: Path):
         self.cfg, self.data, self.out = cfg, Path(data), Path(out)
-        self.out.mkdir(parents=True, exist_ok=True)
+        make_output_dir(self.out)
         _check_config(cfg, data, self.out)
         self.cache = TrainingCache(self.data)
         check_dataset(cfg, self.cache)
@@ -412,4 +412,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

@@ -1,0 +1,29 @@
+"""sim_data.util: atomic JSON, the Wilson interval, output directories and users' mistakes."""
+
+import json
+
+import pytest
+
+from sim_data.util import make_output_dir, run_cli, wilson_interval, write_json_atomic
+
+
+def test_a_users_mistake_is_one_line_and_exit_status_2(tmp_path, capsys):
+    afile = tmp_path / "afile"
+    afile.write_text("")
+
+    def main():
+        make_output_dir(afile / "tasks")
+        return 0
+
+    assert run_cli(main) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(afile) in err[0] and "is a file" in err[0]
+    assert make_output_dir(tmp_path / "a" / "b").is_dir()
+
+
+def test_json_is_written_whole_and_the_interval_is_scipys_wilson(tmp_path):
+    write_json_atomic(tmp_path / "d" / "x.json", {"a": [1, 2]})
+    assert json.loads((tmp_path / "d" / "x.json").read_text()) == {"a": [1, 2]}
+    assert [p.name for p in (tmp_path / "d").iterdir()] == ["x.json"]
+    assert wilson_interval(0, 0) == (0.0, 1.0)
+    assert wilson_interval(80, 100) == pytest.approx((0.7112, 0.8666), abs=1e-4)
