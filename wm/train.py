@@ -7,9 +7,10 @@ parameters) on shuffled windows from the dataset's training cache, data parallel
 `jax.sharding` mesh of every local device (`param_sharding=fsdp` also shards parameters and
 optimiser state); `--distributed` calls `jax.distributed.initialize()` for several hosts.
 Orbax keeps the latest checkpoint (model, optimiser and data-iterator state; rerunning the same
-command resumes) and the best one on validation loss. Metrics go to `metrics.jsonl` and TensorBoard
-(`tb/`); a non-finite loss stops the run before any checkpoint of it is written. At the end
-`eval.json` is written from the best checkpoint (`wm.evaluate`).
+command resumes) and the best one on validation loss. Metrics go to `metrics.jsonl`; a non-finite
+loss stops the run before any checkpoint of it is written. The budget is `steps`; `max_minutes` is a
+safety stop that marks the run cut short (`train_status.json`). At the end the episode judge is fitted
+(`wm.judge`) and `eval.json` written from the best checkpoint (`wm.evaluate`).
 """
 
 from __future__ import annotations
@@ -342,29 +343,17 @@ class Run:
 
 
 class MetricLog:
-    """metrics.jsonl (appended) and TensorBoard scalars."""
+    """metrics.jsonl, one JSON object per logged step, appended (a resumed run continues the file)."""
 
     def __init__(self, out: Path):
         self.path = out / "metrics.jsonl"
-        try:
-            from tensorboardX import SummaryWriter
-
-            self.tb = SummaryWriter(str(out / "tb"))
-        except ImportError:  # TensorBoard is optional; the JSONL log is not
-            self.tb = None
 
     def write(self, metrics: dict) -> None:
         with open(self.path, "a") as f:
             f.write(json.dumps(metrics) + "\n")
-        if self.tb is not None:
-            for k, v in metrics.items():
-                if k != "step":
-                    self.tb.add_scalar(k, v, metrics["step"])
-            self.tb.flush()
 
     def close(self):
-        if self.tb is not None:
-            self.tb.close()
+        pass
 
 
 def _check_config(cfg: TrainConfig, data: Path, out: Path) -> None:
