@@ -30,7 +30,7 @@ full: setup
 	$(PY) -m experiments.pipeline full --stage $(STAGE)
 
 success-table: setup
-	$(PY) -m sim_data.success_table --episodes 100 --skills 0.2,0.6,1.0 --out runs/success_table.json
+	$(PY) -m sim_data.bench.success_table --episodes 100 --skills 0.2,0.6,1.0 --out runs/success_table.json
 
 data: setup
 	$(PY) -m sim_data.generate --config $(CONFIG) --out $(if $(filter command line,$(origin OUT)),$(OUT),runs/data/$(CONFIG))
@@ -52,7 +52,7 @@ report: setup
 	$(PY) -m experiments.report $(or $(RUN),runs/eval/$(CONFIG)) $(if $(SWEEPS),--sweeps $(SWEEPS))
 
 render-check: setup
-	$(PY) -m sim_data.render_check --states 50 --out runs/render_check.json
+	$(PY) -m sim_data.bench.render_check --states 50 --out runs/render_check.json
 
 test: setup
 	$(PY) -m pytest -q -n 2 --dist loadfile
@@ -68,10 +68,10 @@ sweep: setup
 	$(PY) -m experiments.sweep $(SWEEP) --size $(SIZE) --out $(or $(OUT),$(if $(word 2,$(SWEEP)),runs/sweeps/$(SIZE),runs/sweeps/$(SWEEP)_$(SIZE)))
 
 bench: setup
-	$(PY) -m sim_data.bench --out runs/bench/physics_$$(hostname).json
-	$(PY) -m sim_data.bench_render --out runs/bench/render_$$(hostname).json
-	$(PY) -m sim_data.bench_data --out runs/bench/data_$$(hostname).json
-	$(PY) -m sim_data.bench_policy --out runs/bench/policy_$$(hostname).json
+	$(PY) -m sim_data.bench.physics --out runs/bench/physics_$$(hostname).json
+	$(PY) -m sim_data.bench.render --out runs/bench/render_$$(hostname).json
+	$(PY) -m sim_data.bench.data --out runs/bench/data_$$(hostname).json
+	$(PY) -m sim_data.bench.policy --out runs/bench/policy_$$(hostname).json
 	$(PY) -m wm.bench --out runs/bench/wm_$$(hostname).json
 
 clean:

@@ -6,15 +6,15 @@ import numpy as np
 import pytest
 
 from sim_data import scene as S
-from sim_data.env import HomeEnv
-from sim_data.render import RenderConfig, Renderer, episode_rgb, poses_from_arrays
-from sim_data.render_check import (
+from sim_data.bench.render_check import (
     ID_TARGET,
     compare,
     mujoco_reference,
     poses_of,
     random_states,
 )
+from sim_data.env import HomeEnv
+from sim_data.render import RenderConfig, Renderer, episode_rgb, poses_from_arrays
 from sim_data.tasks import TASK_NAMES
 
 PRIMITIVES_XML = """

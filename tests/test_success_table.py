@@ -5,7 +5,7 @@ import math
 
 import pytest
 
-from sim_data.success_table import main, wilson_interval
+from sim_data.bench.success_table import main, wilson_interval
 
 
 def test_wilson_interval_hand_computed():

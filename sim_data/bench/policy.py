@@ -1,6 +1,6 @@
 """What share of a rendered rollout's time the learned policies take; writes JSON.
 
-    python -m sim_data.bench_policy --out runs/bench/policy.json [--task mug] [--batch 64] [--engine cpu] [--repeats 2]
+    python -m sim_data.bench.policy --out runs/bench/policy.json [--task mug] [--batch 64] [--engine cpu] [--repeats 2]
 
 For each policy network of the zoo (`conv` and `vit` at the `full` preset's sizes, fresh
 parameters: speed does not depend on what was learned) one batch of whole episodes is recorded with

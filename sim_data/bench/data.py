@@ -1,8 +1,8 @@
 """Dataset throughput end to end: simulation, rendering, JPEG/JSON/zstd encoding and finished MCAP
 files, then the training cache and its window loader; writes JSON.
 
-    python -m sim_data.bench_data --out runs/bench/data.json            # 2-core defaults (cpu engine)
-    python -m sim_data.bench_data --out F --tasks mug,wipe --episodes 4096 --batch 2048 --workers 14
+    python -m sim_data.bench.data --out runs/bench/data.json            # 2-core defaults (cpu engine)
+    python -m sim_data.bench.data --out F --tasks mug,wipe --episodes 4096 --batch 2048 --workers 14
 
 A warm-up run of one chunk per task compiles everything first (compilation is a one-off per
 task and batch size, reported separately); the measured run then generates `episodes` episodes

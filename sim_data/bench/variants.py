@@ -1,12 +1,12 @@
 """MJX speed of model-design variants of the full scene, side by side (GPU notes for the README).
 
-    python -m sim_data.bench_variants --out runs/bench/mjx_variants.json --batch 8192 [--stages]
+    python -m sim_data.bench.variants --out runs/bench/mjx_variants.json --batch 8192 [--stages]
 
 Each variant changes one thing about `home.xml` (contacts, limits, solver settings) and is
-stepped exactly as `sim_data.bench` steps the real model. `--stages` also times each stage of
+stepped exactly as `sim_data.bench.physics` steps the real model. `--stages` also times each stage of
 one MJX step (kinematics, collision, constraint rows, solver, integrator) on its own, so a
 variant's gain can be traced to where the time goes; `--dump NAME` writes a variant's MJCF
-(to check its tasks with `sim_data.success_table` after copying it over `home.xml`).
+(to check its tasks with `sim_data.bench.success_table` after copying it over `home.xml`).
 """
 
 from __future__ import annotations
@@ -26,12 +26,12 @@ import numpy as np
 from mujoco import mjx
 
 from sim_data import scene as S
-from sim_data.bench import ready_controls, time_mjx
+from sim_data.bench.physics import ready_controls, time_mjx
 from sim_data.engines import MjxEngine
 from sim_data.tasks import TASKS, sample_initial
 from sim_data.util import device_name, run_cli, write_json_atomic
 
-ASSETS = Path(__file__).parent / "assets"
+ASSETS = Path(__file__).parents[1] / "assets"
 
 
 def _edit(xml: str, **opt) -> str:
@@ -141,7 +141,7 @@ def stage_times(mx, d) -> dict:
 
 
 def bench_xml(xml: str, batch: int, nsteps: int = 100, stages: bool = False) -> dict:
-    """Steps a variant's MJCF exactly as `sim_data.bench` steps home.xml, from `mug` initial states."""
+    """Steps a variant's MJCF exactly as `sim_data.bench.physics` steps home.xml, from `mug` initial states."""
     m = compile_xml(xml)
     base = S.load_model()
     idx = S.scene_index(base)

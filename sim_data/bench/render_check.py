@@ -1,6 +1,6 @@
 """The JAX renderer against MuJoCo's OpenGL renderer: geom ids and depth on states of every task.
 
-`python -m sim_data.render_check --states 50` prints and writes the agreement per task and camera;
+`python -m sim_data.bench.render_check --states 50` prints and writes the agreement per task and camera;
 `tests/test_render.py` runs a smaller version.
 """
 

@@ -1,6 +1,6 @@
 """Physics throughput of the full home scene on both engines; writes JSON.
 
-    python -m sim_data.bench --out runs/bench/physics.json [--engines cpu,mjx] [--batches 64,256]
+    python -m sim_data.bench.physics --out runs/bench/physics.json [--engines cpu,mjx] [--batches 64,256]
 
 A "step" is one physics substep (5 ms of simulated time) of one simulation. The simulations start
 from the `mug` task's initial states (every object of the scene present, resting on its support)

@@ -1,6 +1,6 @@
 """Success rates of the scripted policies for every task at several skills.
 
-    python -m sim_data.success_table --backend cpu --episodes 100 --skills 0.2,0.6,1.0 --out runs/success.json
+    python -m sim_data.bench.success_table --backend cpu --episodes 100 --skills 0.2,0.6,1.0 --out runs/success.json
 
 writes `{task: {skill: success_rate}}` (skill keys as given) and prints a table with 95% Wilson
 intervals. Episodes of one task share their initial states across skills (same seed), so the

@@ -1,6 +1,6 @@
 """Rendering throughput: the JAX ray-cast renderer and MuJoCo's OpenGL renderer side by side.
 
-    python -m sim_data.bench_render --out runs/bench/render.json [--batches 64,256] [--sizes 64,128]
+    python -m sim_data.bench.render --out runs/bench/render.json [--batches 64,256] [--sizes 64,128]
 
 Frames are of the full home scene from initial states of every task with the arms and neck at
 random targets (poses from MuJoCo's kinematics, tiled up to the batch size). The JAX figure is a jitted batched call on the
@@ -25,8 +25,8 @@ import mujoco
 import numpy as np
 
 from sim_data import scene as S
+from sim_data.bench.render_check import poses_of, random_states
 from sim_data.render import Poses, RenderConfig, Renderer, episode_rgb
-from sim_data.render_check import poses_of, random_states
 from sim_data.tasks import TASK_NAMES
 from sim_data.util import device_name, run_cli, write_json_atomic
 
