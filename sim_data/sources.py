@@ -27,10 +27,24 @@ import hashlib
 import importlib
 import json
 import re
+import typing
 from pathlib import Path
 
 from sim_data.degrade import DegradedPolicy, degrade_params
 from sim_data.learned import BCPolicy, PolicyNetConfig, load_params
+
+
+@typing.runtime_checkable
+class Policy(typing.Protocol):
+    """The policy protocol (see the module doc): batched over a leading axis B, jittable, hashable.
+
+    init_carry(params, obs, task_state, rng) -> carry; act(params, obs, carry, rng) -> (action (B, 20),
+    carry), with obs {"image": (B, S, S, 3) uint8, "proprio": (B, 37)} and task_state None in the
+    world model."""
+
+    def init_carry(self, params, obs, task_state, rng): ...
+
+    def act(self, params, obs, carry, rng): ...
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -80,9 +94,10 @@ def load_plugin(spec: str) -> PolicySource:
     if not (isinstance(got, tuple) and len(got) == 2):
         raise ValueError(f"plug-in {spec!r} must give (policy, params), got {type(got).__name__}")
     policy, params = got
-    for method in ("init_carry", "act"):
-        if not callable(getattr(policy, method, None)):
-            raise ValueError(f"plug-in {spec!r}: the policy has no {method}() (see sim_data.sources)")
+    if not isinstance(policy, Policy):
+        missing = [m for m in ("init_carry", "act") if not callable(getattr(policy, m, None))]
+        raise ValueError(f"plug-in {spec!r}: the policy has no {', '.join(missing)}() "
+                         "(the protocol: sim_data.sources.Policy)")
     try:
         hash(policy)
     except TypeError:
@@ -143,7 +158,8 @@ def resolve(specs) -> list[PolicySource]:
 
 
 def load_registry(path: Path) -> list[dict]:
-    """The registry's records, each with `checkpoint` made absolute and the zoo's `data` directory. path: policies.json or its directory."""
+    """The registry's records, each with `checkpoint` made absolute and the zoo's `data` directory.
+    path: policies.json or its directory."""
     path = Path(path)
     if path.is_dir():
         path = path / "policies.json"

@@ -71,3 +71,18 @@ def test_levels_stack_into_one_program_and_bad_levels_are_refused():
         degrade_params(base, delay=MAX_DELAY + 1)
     with pytest.raises(ValueError, match="unknown degradation"):
         degrade_params(base, speed=2)
+
+
+def test_every_policy_of_the_project_follows_the_protocol():
+    from examples.plugin_policy import BackAway
+    from sim_data.learned import BCPolicy, PolicyNetConfig
+    from sim_data.policies import ProgramPolicy, ScriptedPolicy
+    from sim_data.sources import Policy
+
+    bc = BCPolicy(PolicyNetConfig())
+    for policy in (bc, DegradedPolicy(bc), StackedPolicy(bc), BackAway(), Ramp()):
+        assert isinstance(policy, Policy), type(policy).__name__
+        hash(policy)
+    for cls in (ScriptedPolicy, ProgramPolicy):
+        assert callable(getattr(cls, "init_carry")) and callable(getattr(cls, "act")), cls.__name__
+    assert not isinstance(object(), Policy)
