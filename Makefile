@@ -41,7 +41,7 @@ train: setup
 
 # make policies CONFIG=demo DATA=runs/data/demo OUT=runs/policies/demo
 policies: setup
-	$(PY) -m sim_data.zoo --config $(CONFIG) --data $(or $(DATA),runs/data/$(CONFIG)) --out $(if $(filter command line,$(origin OUT)),$(OUT),runs/policies/$(CONFIG))
+	$(PY) -m sim_data.policies.zoo --config $(CONFIG) --data $(or $(DATA),runs/data/$(CONFIG)) --out $(if $(filter command line,$(origin OUT)),$(OUT),runs/policies/$(CONFIG))
 
 # make eval CONFIG=demo OUT=runs/eval/demo [ARGS="policies=runs/policies/demo,examples.plugin_policy:make wm=runs/wm/demo"]
 eval: setup

@@ -2,7 +2,7 @@
 
     python -m sim_data.generate --config smoke --out runs/data/mine tasks=step_back policies=examples.plugin_policy:make
 
-It follows the policy protocol (`sim_data.sources`): hashable, batched, jittable, params shared by
+It follows the policy protocol (`sim_data.policies.registry`): hashable, batched, jittable, params shared by
 the batch. It backs away from the counter for `params["seconds"]` at `params["speed"]` m/s,
 holding the arms, neck and hands in the ready pose, and counts control steps in its carry.
 """
@@ -12,7 +12,7 @@ import dataclasses
 import jax.numpy as jnp
 
 from sim_data import robot
-from sim_data.policies import action_program
+from sim_data.policies.scripted import action_program
 from sim_data.tasks import CONTROL_DT
 
 

@@ -18,7 +18,7 @@ COMMANDS = {
     "demo": ("experiments.pipeline", "the whole chain at a preset's scale (`wmlab demo` = pipeline demo)"),
     "pipeline": ("experiments.pipeline", "the chain's stages: data, policies, rollouts, train, eval, report"),
     "data": ("sim_data.generate", "generate a dataset (MCAP episodes, manifest, training cache)"),
-    "policies": ("sim_data.zoo", "train the policy zoo and register its checkpoints and families"),
+    "policies": ("sim_data.policies.zoo", "train the policy zoo and register its checkpoints and families"),
     "train": ("wm.train", "train a world model"),
     "wm-eval": ("wm.evaluate", "a world model's frame, success and controllability figures (eval.json)"),
     "eval": ("experiments.evaluate", "rank policies in the world model against the simulator"),

@@ -55,16 +55,16 @@ from sim_data.cache import TrainingCache
 from sim_data.config import override
 from sim_data.engines import ENGINES, default_engine
 from sim_data.generate import cached_env, cached_renderers, package_versions
-from sim_data.learned import StackedPolicy, stack_params
 from sim_data.parts import add_part_argument, exclusive, parse_part
-from sim_data.rollout import record_policies
-from sim_data.sources import (
+from sim_data.policies.bc import StackedPolicy, stack_params
+from sim_data.policies.registry import (
     group_by_policy,
     heldout_seeds,
     padded_chunks,
     resolve,
     used_seeds,
 )
+from sim_data.rollout import record_policies
 from sim_data.util import device_name, make_output_dir, run_cli, write_json_atomic
 from wm.checkpoint import load_trained, training_status
 from wm.evaluate import no_nan, program_panel
@@ -77,7 +77,7 @@ CAMERA = "head_cam"
 @dataclasses.dataclass(frozen=True)
 class EvalConfig:
     """Attributes:
-      policies: policy specs (`sim_data.sources`: zoo registries, plug-ins).
+      policies: policy specs (`sim_data.policies.registry`: zoo registries, plug-ins).
       wm: the world model's training run directory (make train OUT), or several, comma-separated:
         an ensemble whose mean probability is the prediction (their frames must be of one size).
       tasks: tasks to evaluate (empty: every task of the learned policies).

@@ -10,7 +10,7 @@ modules' own entry points with the preset's configurations:
 | stage    | module                 | writes            |
 |----------|------------------------|-------------------|
 | data     | sim_data.generate      | runs/data/<data>  |
-| policies | sim_data.zoo           | runs/policies/<p> |
+| policies | sim_data.policies.zoo           | runs/policies/<p> |
 | rollouts | sim_data.generate      | runs/data/<data>_<p>_rollouts (the data and the lineage's rollouts) |
 | train    | wm.train               | runs/wm/<p> (and runs/wm/<p>_seed<k>: an ensemble's members) |
 | eval     | experiments.evaluate   | runs/eval/<p>     |
@@ -56,7 +56,7 @@ class Pipeline:
     train: str
     eval: str
     root: str = "runs"
-    rollouts: str = ""  # a zoo selector (sim_data.sources) whose checkpoints' rollouts join the world model's data
+    rollouts: str = ""  # a zoo selector (sim_data.policies.registry) whose checkpoints' rollouts join the world model's data
     rollout_episodes: int = 0  # episodes per selected checkpoint
     members: int = 1  # world models trained with seeds 0..members-1; their ensemble evaluates the policies
     data_overrides: tuple = ()
@@ -113,11 +113,11 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
         _spread("sim_data.generate", args, gpus, _logs(p, name), "data")
         generate.main(args)
     elif stage == "policies":
-        from sim_data import zoo
+        from sim_data.policies import zoo
 
         args = ["--config", p.policies, "--data", str(d["data"]), "--out", str(d["policies"]), *p.policies_overrides,
                 *extra]
-        _spread("sim_data.zoo", args, gpus, _logs(p, name), "policies")
+        _spread("sim_data.policies.zoo", args, gpus, _logs(p, name), "policies")
         zoo.main(args)
     elif stage == "rollouts":
         if not p.rollouts:

@@ -338,7 +338,7 @@ def ensure_zoo(size: Size, data: Path, zoo_dir: Path, gpu=None) -> bool:
         return True
     log = zoo_dir.parent / f"{zoo_dir.name}.log"
     log.parent.mkdir(parents=True, exist_ok=True)
-    rc = _subprocess(["-m", "sim_data.zoo", "--config", size.zoo, "--data", str(data), "--out", str(zoo_dir)], gpu, log)
+    rc = _subprocess(["-m", "sim_data.policies.zoo", "--config", size.zoo, "--data", str(data), "--out", str(zoo_dir)], gpu, log)
     return _announce("zoo", rc, f"trained into {zoo_dir}", log)
 
 

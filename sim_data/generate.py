@@ -37,7 +37,9 @@ from sim_data.engines import ENGINES, default_engine
 from sim_data.env import HomeEnv
 from sim_data.episodes import CorruptEpisode, read_episode_meta, write_episode_mcap  # noqa: F401 (re-exported)
 from sim_data.parts import add_part_argument, exclusive, parse_part, take
-from sim_data.policies import (
+from sim_data.policies.registry import PolicySource
+from sim_data.policies.registry import resolve as resolve_sources
+from sim_data.policies.scripted import (
     PROGRAMS,
     ProgramPolicy,
     ScriptedPolicy,
@@ -47,8 +49,6 @@ from sim_data.policies import (
 from sim_data.render import RenderConfig, Renderer
 from sim_data.rollout import record_episodes
 from sim_data.scene import load_model
-from sim_data.sources import PolicySource
-from sim_data.sources import resolve as resolve_sources
 from sim_data.tasks import TASK_NAMES
 from sim_data.util import (
     device_name,
@@ -60,7 +60,7 @@ from sim_data.util import (
 
 CAMERAS = ("head_cam", "ext_cam")
 SPLITS = ("train", "val", "test", "programs")
-PLAY = "play"  # the source of random play episodes (sim_data.policies.play_program)
+PLAY = "play"  # the source of random play episodes (sim_data.policies.scripted.play_program)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -79,10 +79,10 @@ class DataConfig:
       jpeg_quality: 1..100. workers: processes encoding and writing files.
       cache: build the training cache (sim_data.cache) at the end.
       programs: initial states per task (split "programs", never train/val/test) from which every
-        action program of `sim_data.policies.PROGRAMS` is recorded: the world model's controllability set.
-      play: episodes per task of random play (`sim_data.policies.play_program`, policy "play"), in
+        action program of `sim_data.policies.scripted.PROGRAMS` is recorded: the world model's controllability set.
+      play: episodes per task of random play (`sim_data.policies.scripted.play_program`, policy "play"), in
         train/val/test like the scripted ones: they show the world model what every action does.
-      policies: policy specs (`sim_data.sources`: zoo registries, plug-ins) whose own rollouts join
+      policies: policy specs (`sim_data.policies.registry`: zoo registries, plug-ins) whose own rollouts join
         the dataset, failures included; policy_episodes: episodes per policy and task (0: `episodes`),
         from the same initial states as the scripted episodes 0, 1, ...
     """

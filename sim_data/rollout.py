@@ -199,7 +199,7 @@ def _scan_recorded(env: HomeEnv, policy, renderers, num_steps: int, params, stat
 
 
 def record_policies(env: HomeEnv, policy, params, reset_keys, rng: jax.Array, renderers=()) -> tuple:
-    """P policies (a `sim_data.learned.StackedPolicy` and its stacked parameters, leading axis P),
+    """P policies (a `sim_data.policies.bc.StackedPolicy` and its stacked parameters, leading axis P),
     each from the same n initial states (reset_keys (n, 2)), as one batch of P*n episodes
     (env.batch_size). Returns ((P, n) bool final success, the Recording)."""
     p = jax.tree_util.tree_leaves(params)[0].shape[0]

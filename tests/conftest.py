@@ -110,7 +110,7 @@ def smoke_world_model(smoke_dataset, tmp_path_factory, worker_id):
 @pytest.fixture(scope="session")
 def smoke_zoo(smoke_dataset, tmp_path_factory, worker_id):
     """(directory, registry) of `make policies CONFIG=smoke` on the smoke dataset."""
-    from sim_data import zoo
+    from sim_data.policies import zoo
 
     _, data, _ = smoke_dataset
     out = build_once(tmp_path_factory, worker_id,

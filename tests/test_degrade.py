@@ -1,4 +1,4 @@
-"""sim_data.degrade: each knob changes a base policy's actions exactly as documented."""
+"""sim_data.policies.degrade: each knob changes a base policy's actions exactly as documented."""
 
 import dataclasses
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from sim_data import robot as R
-from sim_data.degrade import MAX_DELAY, DegradedPolicy, degrade_params
-from sim_data.learned import StackedPolicy, stack_params
+from sim_data.policies.bc import StackedPolicy, stack_params
+from sim_data.policies.degrade import MAX_DELAY, DegradedPolicy, degrade_params
 
 
 @dataclasses.dataclass(frozen=True)
@@ -75,9 +75,9 @@ def test_levels_stack_into_one_program_and_bad_levels_are_refused():
 
 def test_every_policy_of_the_project_follows_the_protocol():
     from examples.plugin_policy import BackAway
-    from sim_data.learned import BCPolicy, PolicyNetConfig
-    from sim_data.policies import ProgramPolicy, ScriptedPolicy
-    from sim_data.sources import Policy
+    from sim_data.policies.bc import BCPolicy, PolicyNetConfig
+    from sim_data.policies.registry import Policy
+    from sim_data.policies.scripted import ProgramPolicy, ScriptedPolicy
 
     bc = BCPolicy(PolicyNetConfig())
     for policy in (bc, DegradedPolicy(bc), StackedPolicy(bc), BackAway(), Ramp()):

@@ -13,7 +13,7 @@ import pytest
 
 from sim_data import robot as R
 from sim_data.env import HomeEnv
-from sim_data.policies import ScriptedPolicy
+from sim_data.policies.scripted import ScriptedPolicy
 from sim_data.rollout import run_episodes
 from sim_data.tasks import PHYSICS_SUBSTEPS, TASK_NAMES
 

@@ -10,7 +10,7 @@ import pytest
 from mcap.reader import make_reader
 
 from sim_data import generate as G
-from sim_data.policies import PROGRAMS
+from sim_data.policies.scripted import PROGRAMS
 
 TOPICS = {"/head_cam/image", "/ext_cam/image", "/robot_state", "/action", "/task_state", "/sim_state"}
 

@@ -8,7 +8,7 @@ import pytest
 from sim_data import robot as R
 from sim_data import scene as S
 from sim_data.env import HomeEnv
-from sim_data.policies import (
+from sim_data.policies.scripted import (
     PROGRAMS,
     Kinematics,
     ScriptedPolicy,

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from sim_data import generate as G
-from sim_data import zoo
 from sim_data.env import HomeEnv
-from sim_data.learned import BCPolicy, StackedPolicy, predict_chunk, stack_params
+from sim_data.policies import zoo
+from sim_data.policies.bc import BCPolicy, StackedPolicy, predict_chunk, stack_params
+from sim_data.policies.registry import every_nth_checkpoint, resolve
 from sim_data.rollout import run_episodes
-from sim_data.sources import every_nth_checkpoint, resolve
 
 
 def test_zoo_registry_checkpoints_and_resume(smoke_zoo, smoke_dataset):
@@ -40,7 +40,7 @@ def test_zoo_registry_checkpoints_and_resume(smoke_zoo, smoke_dataset):
 
 
 def test_a_family_level_runs_its_base_checkpoint_with_the_knob_applied(smoke_zoo):
-    from sim_data.degrade import DegradedPolicy
+    from sim_data.policies.degrade import DegradedPolicy
 
     out, registry = smoke_zoo
     weak, same = resolve([f"{out}#conv_proprio~grip"])

@@ -36,8 +36,8 @@ import optax
 from flax import serialization
 from tqdm import tqdm
 
-from sim_data.learned import StackedPolicy, stack_params
-from sim_data.sources import resolve
+from sim_data.policies.bc import StackedPolicy, stack_params
+from sim_data.policies.registry import resolve
 from sim_data.util import write_json_atomic
 from wm.imagine import (
     CHUNK,

@@ -17,7 +17,7 @@ import numpy as np
 
 from sim_data import scene as S
 from sim_data.env import HomeEnv
-from sim_data.policies import ScriptedPolicy
+from sim_data.policies.scripted import ScriptedPolicy
 from sim_data.render import (
     Poses,
     RenderConfig,

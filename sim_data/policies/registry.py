@@ -30,8 +30,8 @@ import re
 import typing
 from pathlib import Path
 
-from sim_data.degrade import DegradedPolicy, degrade_params
-from sim_data.learned import BCPolicy, PolicyNetConfig, load_params
+from sim_data.policies.bc import BCPolicy, PolicyNetConfig, load_params
+from sim_data.policies.degrade import DegradedPolicy, degrade_params
 
 
 @typing.runtime_checkable
@@ -97,7 +97,7 @@ def load_plugin(spec: str) -> PolicySource:
     if not isinstance(policy, Policy):
         missing = [m for m in ("init_carry", "act") if not callable(getattr(policy, m, None))]
         raise ValueError(f"plug-in {spec!r}: the policy has no {', '.join(missing)}() "
-                         "(the protocol: sim_data.sources.Policy)")
+                         "(the protocol: sim_data.policies.registry.Policy)")
     try:
         hash(policy)
     except TypeError:

@@ -1,7 +1,7 @@
-"""The policy zoo: behaviour-cloning policies (`sim_data.learned`) trained from a dataset's scripted
+"""The policy zoo: behaviour-cloning policies (`sim_data.policies.bc`) trained from a dataset's scripted
 demonstrations in several lineages, with checkpoints saved along training, and a registry.
 
-    python -m sim_data.zoo --config demo --data runs/data/demo --out runs/policies/demo [key=value ...]
+    python -m sim_data.policies.zoo --config demo --data runs/data/demo --out runs/policies/demo [key=value ...]
     make policies CONFIG=demo DATA=runs/data/demo OUT=runs/policies/demo
 
 A lineage is one training run of one task: an encoder (conv or vit), with or without
@@ -41,10 +41,10 @@ from tqdm import tqdm
 
 from sim_data.cache import TrainingCache
 from sim_data.config import override
-from sim_data.degrade import KNOBS, degrade_params
 from sim_data.engines import default_engine
 from sim_data.generate import cached_env, cached_renderers
-from sim_data.learned import (
+from sim_data.parts import add_part_argument, parse_part, take
+from sim_data.policies.bc import (
     PolicyNetConfig,
     StackedPolicy,
     init_params,
@@ -52,15 +52,15 @@ from sim_data.learned import (
     save_params,
     stack_params,
 )
-from sim_data.parts import add_part_argument, parse_part, take
-from sim_data.rollout import record_policies
-from sim_data.sources import (
+from sim_data.policies.degrade import KNOBS, degrade_params
+from sim_data.policies.registry import (
     group_by_policy,
     heldout_seeds,
     load_registry_sources,
     padded_chunks,
     used_seeds,
 )
+from sim_data.rollout import record_policies
 from sim_data.util import make_output_dir, run_cli, wilson_interval, write_json_atomic
 
 CAMERA = "head_cam"
@@ -82,7 +82,7 @@ class Lineage:
 
 @dataclasses.dataclass(frozen=True)
 class Family:
-    """A counterfactual family (sim_data.degrade): the last checkpoint of lineage `base`, its actions
+    """A counterfactual family (sim_data.policies.degrade): the last checkpoint of lineage `base`, its actions
     degraded by `knob` (noise, delay, grip or drive) at each of `levels`; no training of its own."""
 
     name: str

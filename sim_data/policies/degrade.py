@@ -1,6 +1,6 @@
 """Policies degraded by known amounts: counterfactual families built from one checkpoint.
 
-A degraded policy runs a base policy of the protocol (`sim_data.sources`) and changes its actions by
+A degraded policy runs a base policy of the protocol (`sim_data.policies.registry`) and changes its actions by
 four knobs, all data (so every level of every family of one base network runs in one compiled
 rollout, their parameters stacked):
 
