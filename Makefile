@@ -33,7 +33,7 @@ success-table: setup
 	$(PY) -m sim_data.bench.success_table --episodes 100 --skills 0.2,0.6,1.0 --out runs/success_table.json
 
 data: setup
-	$(PY) -m sim_data.generate --config $(CONFIG) --out $(if $(filter command line,$(origin OUT)),$(OUT),runs/data/$(CONFIG))
+	$(PY) -m sim_data.dataset.generate --config $(CONFIG) --out $(if $(filter command line,$(origin OUT)),$(OUT),runs/data/$(CONFIG))
 
 # make train CONFIG=demo DATA=runs/data/demo OUT=runs/wm/demo
 train: setup

@@ -1,6 +1,6 @@
 """A user's own policy, evaluated without editing the project: the README's plug-in example.
 
-    python -m sim_data.generate --config smoke --out runs/data/mine tasks=step_back policies=examples.plugin_policy:make
+    python -m sim_data.dataset.generate --config smoke --out runs/data/mine tasks=step_back policies=examples.plugin_policy:make
 
 It follows the policy protocol (`sim_data.policies.registry`): hashable, batched, jittable, params shared by
 the batch. It backs away from the counter for `params["seconds"]` at `params["speed"]` m/s,

@@ -27,8 +27,8 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from sim_data.cache import TrainingCache
-from sim_data.episodes import read_episode
+from sim_data.dataset.cache import TrainingCache
+from sim_data.dataset.episodes import read_episode
 from sim_data.render import RenderConfig, Renderer, poses_from_arrays
 from sim_data.scene import load_model
 from sim_data.util import run_cli, write_json_atomic

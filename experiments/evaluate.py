@@ -51,10 +51,10 @@ from tqdm import tqdm
 from experiments import stats as S
 from experiments.ensemble import member_metrics
 from sim_data import robot as R
-from sim_data.cache import TrainingCache
 from sim_data.config import override
+from sim_data.dataset.cache import TrainingCache
+from sim_data.dataset.generate import cached_env, cached_renderers, package_versions
 from sim_data.engines import ENGINES, default_engine
-from sim_data.generate import cached_env, cached_renderers, package_versions
 from sim_data.parts import add_part_argument, exclusive, parse_part
 from sim_data.policies.bc import StackedPolicy, stack_params
 from sim_data.policies.registry import (

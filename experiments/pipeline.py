@@ -9,9 +9,9 @@ modules' own entry points with the preset's configurations:
 
 | stage    | module                 | writes            |
 |----------|------------------------|-------------------|
-| data     | sim_data.generate      | runs/data/<data>  |
+| data     | sim_data.dataset.generate      | runs/data/<data>  |
 | policies | sim_data.policies.zoo           | runs/policies/<p> |
-| rollouts | sim_data.generate      | runs/data/<data>_<p>_rollouts (the data and the lineage's rollouts) |
+| rollouts | sim_data.dataset.generate      | runs/data/<data>_<p>_rollouts (the data and the lineage's rollouts) |
 | train    | wm.train               | runs/wm/<p> (and runs/wm/<p>_seed<k>: an ensemble's members) |
 | eval     | experiments.evaluate   | runs/eval/<p>     |
 | report   | experiments.report     | runs/eval/<p>/report.html |
@@ -107,10 +107,10 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
     print(f"== {name}: {stage}" + (f" on {len(gpus)} GPUs" if spread else ""), file=sys.stderr, flush=True)
     done = True
     if stage == "data":
-        from sim_data import generate
+        from sim_data.dataset import generate
 
         args = ["--config", p.data, "--out", str(d["data"]), *p.data_overrides, *extra]
-        _spread("sim_data.generate", args, gpus, _logs(p, name), "data")
+        _spread("sim_data.dataset.generate", args, gpus, _logs(p, name), "data")
         generate.main(args)
     elif stage == "policies":
         from sim_data.policies import zoo
@@ -123,11 +123,11 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
         if not p.rollouts:
             print(f"{name} trains its world model on the data alone; skipping", file=sys.stderr)
             return True
-        from sim_data import generate
+        from sim_data.dataset import generate
 
         args = ["--config", p.data, "--out", str(d["wm_data"]), "--reuse", str(d["data"]), *p.data_overrides,
                 f"policies={d['policies']}#{p.rollouts}", f"policy_episodes={p.rollout_episodes}", *extra]
-        _spread("sim_data.generate", args, gpus, _logs(p, name), "rollouts")
+        _spread("sim_data.dataset.generate", args, gpus, _logs(p, name), "rollouts")
         generate.main(args)
     elif stage == "train":
         done = train_members(name, extra, gpus, members)

@@ -322,7 +322,7 @@ def data_jobs(size: Size, keys, root: Path, zoo_needed: bool = False) -> tuple[d
         overrides = [o.replace("{zoo}", str(zoo_dir)) for o in overrides]
         log = dirs[key].parent / f"{dirs[key].name}.log"
         log.parent.mkdir(parents=True, exist_ok=True)
-        rc = _subprocess(["-m", "sim_data.generate", "--config", preset, "--out", str(dirs[key]), *overrides], gpu, log)
+        rc = _subprocess(["-m", "sim_data.dataset.generate", "--config", preset, "--out", str(dirs[key]), *overrides], gpu, log)
         return _announce(f"dataset {key}", rc, f"ready in {dirs[key]}", log)
 
     jobs = [Job(f"data:{k}", functools.partial(generate, k), frozenset({"zoo"} if k in needs_zoo else ()))

@@ -87,7 +87,7 @@ def build_once(tmp_path_factory, worker_id: str, name: str, build) -> Path:
 def smoke_dataset(tmp_path_factory, worker_id):
     """(config, directory, stats) of `make data CONFIG=smoke` (2 mug episodes, cpu, with its cache).
     Shared: tests copy it before changing anything."""
-    from sim_data import generate as G
+    from sim_data.dataset import generate as G
 
     cfg = G.make_config("smoke")
     out = build_once(tmp_path_factory, worker_id, "smoke", lambda d: G.generate(cfg, d, progress=False))

@@ -6,9 +6,9 @@ import shutil
 import numpy as np
 import pytest
 
-from sim_data import cache as C
-from sim_data.episodes import CorruptEpisode, read_episode
-from sim_data.replay import replay_files, summarize
+from sim_data.dataset import cache as C
+from sim_data.dataset.episodes import CorruptEpisode, read_episode
+from sim_data.dataset.replay import replay_files, summarize
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from sim_data import generate as G
+from sim_data.dataset import generate as G
 from sim_data.policies.scripted import PROGRAMS
 
 TOPICS = {"/head_cam/image", "/ext_cam/image", "/robot_state", "/action", "/task_state", "/sim_state"}

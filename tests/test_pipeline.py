@@ -53,14 +53,14 @@ def test_with_several_gpus_stages_run_in_parts_and_members_side_by_side(tiny, mo
     calls, d = tiny
     spawned = []
     monkeypatch.setattr(P, "run_parallel", lambda cmds, gpus, logs, label: spawned.append((cmds, gpus, label)))
-    import sim_data.generate
+    import sim_data.dataset.generate
 
     gathered = []
-    monkeypatch.setattr(sim_data.generate, "main", gathered.append)
+    monkeypatch.setattr(sim_data.dataset.generate, "main", gathered.append)
     P.run_stage("tiny", "data", gpus=["0", "1"])
     cmds, gpus, _ = spawned[0]
     assert gpus == ["0", "1"] and [c[c.index("--part") + 1] for c in cmds] == ["0/2", "1/2"]
-    assert all(c[1:3] == ["-m", "sim_data.generate"] for c in cmds) and "--part" not in gathered[0]
+    assert all(c[1:3] == ["-m", "sim_data.dataset.generate"] for c in cmds) and "--part" not in gathered[0]
     P.run_stage("tiny", "train", gpus=["0", "1"])  # two members at once, the third in the next run
     cmds, _, label = spawned[1]
     assert label == "train-member" and len(cmds) == 2 and "seed=1" in cmds[1]

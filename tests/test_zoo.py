@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sim_data import generate as G
+from sim_data.dataset import generate as G
 from sim_data.env import HomeEnv
 from sim_data.policies import zoo
 from sim_data.policies.bc import BCPolicy, StackedPolicy, predict_chunk, stack_params
@@ -149,7 +149,7 @@ def test_mixed_dataset_records_policy_rollouts(smoke_dataset, smoke_zoo, smoke_w
     meta = G.read_episode_meta(out / learned[0]["file"])
     assert meta["policy_source"]["lineage"] == "conv_proprio"
     # the episode judge imagines a policy's own rollout closed loop, with that policy acting
-    from sim_data.cache import TrainingCache
+    from sim_data.dataset.cache import TrainingCache
     from wm.checkpoint import load_trained
     from wm.imagine import closed_loop
     from wm.judge import dataset_policies, imagine_episodes

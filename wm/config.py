@@ -142,7 +142,7 @@ def from_dict(d: dict) -> TrainConfig:
 
 
 def check_dataset(cfg: TrainConfig, cache) -> None:
-    """Raises ValueError unless the dataset's training cache (sim_data.cache.TrainingCache) holds the model's camera at its size and every task named."""
+    """Raises ValueError unless the dataset's training cache (sim_data.dataset.cache.TrainingCache) holds the model's camera at its size and every task named."""
     if cfg.camera not in cache.cameras:
         raise ValueError(f"camera {cfg.camera} is not in the dataset's cache ({cache.cameras})")
     if cache.index["size"] != cfg.model.size:

@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim_data.cache import TrainingCache
+from sim_data.dataset.cache import TrainingCache
 from sim_data.util import run_cli, write_json_atomic
 from wm.checkpoint import load_trained
 from wm.config import TrainConfig, check_dataset, override

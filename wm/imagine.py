@@ -197,7 +197,7 @@ CHUNK = 64
 
 
 def context_sample(ep: dict, camera: str, start: int, context: int, horizon: int) -> dict:
-    """From an episode (sim_data.cache's episode dict): `context` observations from `start` and the
+    """From an episode (sim_data.dataset.cache's episode dict): `context` observations from `start` and the
     `horizon` logged actions that follow, as open_loop_chunked takes them."""
     c0, c1 = start, start + context
     return {"frames": ep["frames"][camera][c0:c1], "proprio": ep["proprio"][c0:c1],

@@ -32,7 +32,7 @@ from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 from tqdm import tqdm
 
-from sim_data.cache import TrainingCache, WindowLoader
+from sim_data.dataset.cache import TrainingCache, WindowLoader
 from sim_data.util import make_output_dir, run_cli, write_json_atomic
 from wm.config import TrainConfig, check_dataset, make_config, to_dict
 from wm.evaluate import evaluate

@@ -20,8 +20,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from sim_data.cache import TrainingCache, WindowLoader
-from sim_data.generate import generate, make_config
+from sim_data.dataset.cache import TrainingCache, WindowLoader
+from sim_data.dataset.generate import generate, make_config
 from sim_data.util import device_name, run_cli, write_json_atomic
 
 

@@ -23,8 +23,8 @@ import jax
 import numpy as np
 
 from sim_data import robot as R
+from sim_data.dataset.generate import cached_env, cached_renderers
 from sim_data.engines import default_engine
-from sim_data.generate import cached_env, cached_renderers
 from sim_data.policies.bc import BCPolicy, init_params
 from sim_data.policies.scripted import ProgramPolicy, program_params
 from sim_data.policies.zoo import PRESETS as ZOO_PRESETS

@@ -39,10 +39,10 @@ import numpy as np
 import optax
 from tqdm import tqdm
 
-from sim_data.cache import TrainingCache
 from sim_data.config import override
+from sim_data.dataset.cache import TrainingCache
+from sim_data.dataset.generate import cached_env, cached_renderers
 from sim_data.engines import default_engine
-from sim_data.generate import cached_env, cached_renderers
 from sim_data.parts import add_part_argument, parse_part, take
 from sim_data.policies.bc import (
     PolicyNetConfig,

@@ -1,8 +1,8 @@
 """Replay: re-simulate recorded episodes from their initial seed and recorded actions, and check
 that the simulator reproduces what the files say (initial state, per-step success, final outcome).
 
-    python -m sim_data.replay OUT                 # every episode of a dataset
-    python -m sim_data.replay OUT --limit 20 --engine cpu
+    python -m sim_data.dataset.replay OUT                 # every episode of a dataset
+    python -m sim_data.dataset.replay OUT --limit 20 --engine cpu
 
 The initial state comes from `env.reset` with the episode's seed and is checked against the
 recorded `/sim_state` at t = 0; the recorded actions then drive the simulator open loop (the
@@ -20,8 +20,8 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
+from sim_data.dataset.episodes import read_episode
 from sim_data.env import HomeEnv
-from sim_data.episodes import read_episode
 from sim_data.util import run_cli
 
 

@@ -1,10 +1,10 @@
 """Dataset generation: episodes of tasks x policies x seeds into MCAP files, a manifest and stats.
 
-    python -m sim_data.generate --config smoke --out runs/data/smoke [key=value ...]
+    python -m sim_data.dataset.generate --config smoke --out runs/data/smoke [key=value ...]
     make data CONFIG=demo OUT=runs/data/demo
 
 Each episode is one MCAP file (`episodes/<episode_id>.mcap`); its channels and metadata record
-are described in `sim_data.episodes`.
+are described in `sim_data.dataset.episodes`.
 
 Episodes are written under a temporary name and renamed when whole, so a rerun of the same
 command skips finished episodes and completes the dataset. `manifest.jsonl` (one line per
@@ -31,11 +31,15 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
-from sim_data.cache import build_cache
 from sim_data.config import override
+from sim_data.dataset.cache import build_cache
+from sim_data.dataset.episodes import (  # noqa: F401 (re-exported)
+    CorruptEpisode,
+    read_episode_meta,
+    write_episode_mcap,
+)
 from sim_data.engines import ENGINES, default_engine
 from sim_data.env import HomeEnv
-from sim_data.episodes import CorruptEpisode, read_episode_meta, write_episode_mcap  # noqa: F401 (re-exported)
 from sim_data.parts import add_part_argument, exclusive, parse_part, take
 from sim_data.policies.registry import PolicySource
 from sim_data.policies.registry import resolve as resolve_sources
@@ -77,7 +81,7 @@ class DataConfig:
       heldout: scenes with the held-out plant.
       batch: episodes simulated together. val_frac, test_frac: shares of initial states per split.
       jpeg_quality: 1..100. workers: processes encoding and writing files.
-      cache: build the training cache (sim_data.cache) at the end.
+      cache: build the training cache (sim_data.dataset.cache) at the end.
       programs: initial states per task (split "programs", never train/val/test) from which every
         action program of `sim_data.policies.scripted.PROGRAMS` is recorded: the world model's controllability set.
       play: episodes per task of random play (`sim_data.policies.scripted.play_program`, policy "play"), in

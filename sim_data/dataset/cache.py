@@ -1,10 +1,10 @@
 """The training cache: a dataset's episodes as memory-mapped arrays, built from its MCAP files alone,
 and a loader of shuffled fixed-length windows.
 
-    python -m sim_data.cache build OUT            # build, or finish a killed build
-    python -m sim_data.cache rebuild OUT          # from scratch, from OUT/episodes/*.mcap alone
-    python -m sim_data.cache rebuild OUT --skip-corrupt   # leave out unreadable files, listed in index.json
-    python -m sim_data.cache info OUT
+    python -m sim_data.dataset.cache build OUT            # build, or finish a killed build
+    python -m sim_data.dataset.cache rebuild OUT          # from scratch, from OUT/episodes/*.mcap alone
+    python -m sim_data.dataset.cache rebuild OUT --skip-corrupt   # leave out unreadable files, listed in index.json
+    python -m sim_data.dataset.cache info OUT
 
 Layout of `OUT/cache/`: shards `shard-00000/` .. of up to `shard_episodes` episodes (files in name
 order), each holding `<camera>.npy` (N, H, W, 3) uint8, `proprio.npy` (N, 37) float32,
@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from sim_data.episodes import CorruptEpisode, read_episode, read_episode_meta
+from sim_data.dataset.episodes import CorruptEpisode, read_episode, read_episode_meta
 from sim_data.util import run_cli
 
 FORMAT = 1
@@ -131,7 +131,7 @@ def build_cache(out: Path, skip_corrupt: bool = False, workers: int | None = Non
                 if "error" in d:
                     if not skip_corrupt:
                         pool.shutdown(cancel_futures=True)
-                        raise CorruptEpisode(d["error"] + " (python -m sim_data.cache rebuild OUT --skip-corrupt "
+                        raise CorruptEpisode(d["error"] + " (python -m sim_data.dataset.cache rebuild OUT --skip-corrupt "
                                              "leaves such files out and lists them)")
                     d["file"] = f"episodes/{f.name}"
                 decoded.append(d)
@@ -194,7 +194,7 @@ class TrainingCache:
     def __init__(self, out: Path):
         path = cache_dir(out) / "index.json"
         if not path.exists():
-            raise FileNotFoundError(f"{path} is missing: build the cache with python -m sim_data.cache build {out}")
+            raise FileNotFoundError(f"{path} is missing: build the cache with python -m sim_data.dataset.cache build {out}")
         self.root = cache_dir(out)
         self.index = json.loads(path.read_text())
         if self.index.get("format") != FORMAT:

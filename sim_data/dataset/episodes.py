@@ -134,7 +134,7 @@ def read_episode_meta(path: Path) -> dict:
                     return {k: _maybe_json(v) for k, v in rec.metadata.items()}
     except Exception as e:  # the mcap reader raises several types on damaged files
         raise CorruptEpisode(f"{path}: not a readable MCAP file ({type(e).__name__}: {e})") from e
-    raise CorruptEpisode(f"{path}: no 'episode' metadata record (truncated or not written by sim_data.generate)")
+    raise CorruptEpisode(f"{path}: no 'episode' metadata record (truncated or not written by sim_data.dataset.generate)")
 
 
 def decode_jpeg(data: bytes) -> np.ndarray:
