@@ -11,9 +11,9 @@ import dataclasses
 
 import jax.numpy as jnp
 
-from sim_data import robot
 from sim_data.policies.scripted import action_program
-from sim_data.tasks import CONTROL_DT
+from sim_data.sim import robot
+from sim_data.sim.tasks import CONTROL_DT
 
 
 @dataclasses.dataclass(frozen=True)

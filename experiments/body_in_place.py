@@ -29,8 +29,8 @@ import numpy as np
 
 from sim_data.dataset.cache import TrainingCache
 from sim_data.dataset.episodes import read_episode
-from sim_data.render import RenderConfig, Renderer, poses_from_arrays
-from sim_data.scene import load_model
+from sim_data.sim.render import RenderConfig, Renderer, poses_from_arrays
+from sim_data.sim.scene import load_model
 from sim_data.util import run_cli, write_json_atomic
 from wm.checkpoint import load_trained
 from wm.evaluate import sample_starts

@@ -50,11 +50,9 @@ from tqdm import tqdm
 
 from experiments import stats as S
 from experiments.ensemble import member_metrics
-from sim_data import robot as R
 from sim_data.config import override
 from sim_data.dataset.cache import TrainingCache
 from sim_data.dataset.generate import cached_env, cached_renderers, package_versions
-from sim_data.engines import ENGINES, default_engine
 from sim_data.parts import add_part_argument, exclusive, parse_part
 from sim_data.policies.bc import StackedPolicy, stack_params
 from sim_data.policies.registry import (
@@ -64,7 +62,9 @@ from sim_data.policies.registry import (
     resolve,
     used_seeds,
 )
-from sim_data.rollout import record_policies
+from sim_data.sim import robot as R
+from sim_data.sim.engines import ENGINES, default_engine
+from sim_data.sim.rollout import record_policies
 from sim_data.util import device_name, make_output_dir, run_cli, write_json_atomic
 from wm.checkpoint import load_trained, training_status
 from wm.evaluate import no_nan, program_panel

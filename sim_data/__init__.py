@@ -5,13 +5,13 @@ import os
 
 os.environ.setdefault("MUJOCO_GL", "egl")  # headless OpenGL for MuJoCo's renderer
 
-from sim_data import robot  # noqa: E402
-from sim_data.env import HomeEnv, State  # noqa: E402
-from sim_data.gym_env import ENV_ID, register  # noqa: E402
 from sim_data.policies.scripted import PROGRAMS, ScriptedPolicy, action_program  # noqa: E402
-from sim_data.rollout import Trajectory, run_episodes  # noqa: E402
-from sim_data.scene import load_model, scene_index  # noqa: E402
-from sim_data.tasks import TASK_NAMES, TASKS, get_task  # noqa: E402
+from sim_data.sim import robot  # noqa: E402
+from sim_data.sim.env import HomeEnv, State  # noqa: E402
+from sim_data.sim.gym_env import ENV_ID, register  # noqa: E402
+from sim_data.sim.rollout import Trajectory, run_episodes  # noqa: E402
+from sim_data.sim.scene import load_model, scene_index  # noqa: E402
+from sim_data.sim.tasks import TASK_NAMES, TASKS, get_task  # noqa: E402
 
 register()
 

@@ -31,7 +31,7 @@ def pytest_unconfigure(config):
     if not hasattr(config, "workerinput") and getattr(config.option, "testrunuid", None):
         shutil.rmtree(JAX_CACHE.format(config.option.testrunuid), ignore_errors=True)
 
-from sim_data import scene as S  # noqa: E402
+from sim_data.sim import scene as S  # noqa: E402
 
 
 @pytest.fixture(scope="session")
@@ -51,7 +51,7 @@ def rng():
 
 def sample_state(task: str, key, heldout: bool = False):
     """Initial (qpos, mocap, TaskState) of one episode, batched with B=1."""
-    from sim_data.env import HomeEnv
+    from sim_data.sim.env import HomeEnv
 
     env = HomeEnv(task, 1, engine="cpu")
     st = env.reset(key[None] if key.ndim == 1 else key)

@@ -7,9 +7,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sim_data import robot as R
 from sim_data.policies.bc import StackedPolicy, stack_params
 from sim_data.policies.degrade import MAX_DELAY, DegradedPolicy, degrade_params
+from sim_data.sim import robot as R
 
 
 @dataclasses.dataclass(frozen=True)

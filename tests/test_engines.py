@@ -11,11 +11,11 @@ import mujoco
 import numpy as np
 import pytest
 
-from sim_data import robot as R
-from sim_data.env import HomeEnv
 from sim_data.policies.scripted import ScriptedPolicy
-from sim_data.rollout import run_episodes
-from sim_data.tasks import PHYSICS_SUBSTEPS, TASK_NAMES
+from sim_data.sim import robot as R
+from sim_data.sim.env import HomeEnv
+from sim_data.sim.rollout import run_episodes
+from sim_data.sim.tasks import PHYSICS_SUBSTEPS, TASK_NAMES
 
 PARITY_TOL = 2e-3
 

@@ -185,8 +185,8 @@ def test_air_fryer_body_mask_covers_the_body_pixels_of_the_frame():
     from scipy.ndimage import binary_dilation
 
     from experiments.body_in_place import _scene, body_masks
-    from sim_data.env import HomeEnv
-    from sim_data.render import RenderConfig, Renderer, episode_rgb
+    from sim_data.sim.env import HomeEnv
+    from sim_data.sim.render import RenderConfig, Renderer, episode_rgb
 
     env = HomeEnv("airfryer", 1, engine="cpu")
     state = env.reset(jax.random.PRNGKey(3))

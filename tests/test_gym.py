@@ -33,8 +33,8 @@ def test_reset_is_seeded_and_task_is_an_option(env):
 def test_step_back_program_succeeds_and_renders(env):
     obs, _ = env.reset(seed=1, options={"task": "step_back"})
     action = np.zeros(20, np.float32)
-    action[:14] = np.concatenate([sim_data.scene.READY_ARM] * 2)
-    action[15] = sim_data.scene.READY_NECK_PITCH
+    action[:14] = np.concatenate([sim_data.sim.scene.READY_ARM] * 2)
+    action[15] = sim_data.sim.scene.READY_NECK_PITCH
     action[18] = -0.3
     success, truncated = False, False
     for t in range(200):

@@ -5,9 +5,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sim_data import robot as R
-from sim_data import scene as S
-from sim_data.env import HomeEnv
 from sim_data.policies.scripted import (
     PROGRAMS,
     Kinematics,
@@ -17,6 +14,9 @@ from sim_data.policies.scripted import (
     play_params,
     play_program,
 )
+from sim_data.sim import robot as R
+from sim_data.sim import scene as S
+from sim_data.sim.env import HomeEnv
 
 
 @pytest.fixture(scope="module")
@@ -73,7 +73,7 @@ def test_skill_changes_the_plan_deterministically(model):
 def test_scripted_arcade_succeeds_at_full_skill_and_actions_are_valid(model):
     env = HomeEnv("arcade", 2, engine="cpu")
     pol = ScriptedPolicy.create("arcade", model)
-    from sim_data.rollout import run_episodes
+    from sim_data.sim.rollout import run_episodes
 
     st, traj = run_episodes(env, pol, {"skill": jnp.ones(2)}, jax.random.PRNGKey(3), record=True)
     assert np.asarray(st.success).all()

@@ -5,7 +5,6 @@ import mujoco
 import numpy as np
 import pytest
 
-from sim_data import scene as S
 from sim_data.bench.render_check import (
     ID_TARGET,
     compare,
@@ -13,9 +12,10 @@ from sim_data.bench.render_check import (
     poses_of,
     random_states,
 )
-from sim_data.env import HomeEnv
-from sim_data.render import RenderConfig, Renderer, episode_rgb, poses_from_arrays
-from sim_data.tasks import TASK_NAMES
+from sim_data.sim import scene as S
+from sim_data.sim.env import HomeEnv
+from sim_data.sim.render import RenderConfig, Renderer, episode_rgb, poses_from_arrays
+from sim_data.sim.tasks import TASK_NAMES
 
 PRIMITIVES_XML = """
 <mujoco>

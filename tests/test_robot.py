@@ -3,7 +3,7 @@
 import jax.numpy as jnp
 import numpy as np
 
-from sim_data import robot as R
+from sim_data.sim import robot as R
 
 
 def test_action_layout_names_real_joints(model):

@@ -5,9 +5,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sim_data import scene as S
-from sim_data import tasks as T
-from sim_data.env import HomeEnv
+from sim_data.sim import scene as S
+from sim_data.sim import tasks as T
+from sim_data.sim.env import HomeEnv
 
 
 def initial(task, seed=0, batch=1, heldout=False):

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from sim_data.dataset import generate as G
-from sim_data.env import HomeEnv
 from sim_data.policies import zoo
 from sim_data.policies.bc import BCPolicy, StackedPolicy, predict_chunk, stack_params
 from sim_data.policies.registry import every_nth_checkpoint, resolve
-from sim_data.rollout import run_episodes
+from sim_data.sim.env import HomeEnv
+from sim_data.sim.rollout import run_episodes
 
 
 def test_zoo_registry_checkpoints_and_resume(smoke_zoo, smoke_dataset):

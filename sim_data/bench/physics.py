@@ -24,9 +24,9 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from sim_data import robot as R
-from sim_data import scene as S
-from sim_data.env import HomeEnv
+from sim_data.sim import robot as R
+from sim_data.sim import scene as S
+from sim_data.sim.env import HomeEnv
 from sim_data.util import device_name, run_cli, write_json_atomic
 
 

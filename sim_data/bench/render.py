@@ -24,10 +24,10 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from sim_data import scene as S
 from sim_data.bench.render_check import poses_of, random_states
-from sim_data.render import Poses, RenderConfig, Renderer, episode_rgb
-from sim_data.tasks import TASK_NAMES
+from sim_data.sim import scene as S
+from sim_data.sim.render import Poses, RenderConfig, Renderer, episode_rgb
+from sim_data.sim.tasks import TASK_NAMES
 from sim_data.util import device_name, run_cli, write_json_atomic
 
 
@@ -123,7 +123,7 @@ def bench_e2e(batch: int, size: int = 64, steps: int = 100, task: str = "mug") -
     """MJX physics + JAX renderer (head camera) + a small CNN policy, one jitted scan of `steps` control steps."""
     import flax.linen as nn
 
-    from sim_data.env import HomeEnv
+    from sim_data.sim.env import HomeEnv
 
     class SmallCNN(nn.Module):
         @nn.compact

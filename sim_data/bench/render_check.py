@@ -15,18 +15,18 @@ import jax
 import mujoco
 import numpy as np
 
-from sim_data import scene as S
-from sim_data.env import HomeEnv
 from sim_data.policies.scripted import ScriptedPolicy
-from sim_data.render import (
+from sim_data.sim import scene as S
+from sim_data.sim.env import HomeEnv
+from sim_data.sim.render import (
     Poses,
     RenderConfig,
     Renderer,
     episode_rgb,
     poses_from_arrays,
 )
-from sim_data.rollout import run_episodes
-from sim_data.tasks import TASK_NAMES
+from sim_data.sim.rollout import run_episodes
+from sim_data.sim.tasks import TASK_NAMES
 from sim_data.util import write_json_atomic
 
 ID_TARGET, DEPTH_TARGET = 0.98, 0.01

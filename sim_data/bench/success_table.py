@@ -19,11 +19,11 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from sim_data.engines import ENGINES, default_engine
-from sim_data.env import HomeEnv
 from sim_data.policies.scripted import ScriptedPolicy
-from sim_data.rollout import run_episodes
-from sim_data.tasks import TASK_NAMES
+from sim_data.sim.engines import ENGINES, default_engine
+from sim_data.sim.env import HomeEnv
+from sim_data.sim.rollout import run_episodes
+from sim_data.sim.tasks import TASK_NAMES
 from sim_data.util import run_cli, wilson_interval, write_json_atomic
 
 

@@ -25,13 +25,13 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
-from sim_data import scene as S
 from sim_data.bench.physics import ready_controls, time_mjx
-from sim_data.engines import MjxEngine
-from sim_data.tasks import TASKS, sample_initial
+from sim_data.sim import scene as S
+from sim_data.sim.engines import MjxEngine
+from sim_data.sim.tasks import TASKS, sample_initial
 from sim_data.util import device_name, run_cli, write_json_atomic
 
-ASSETS = Path(__file__).parents[1] / "assets"
+ASSETS = S.MODEL_PATH.parent
 
 
 def _edit(xml: str, **opt) -> str:

@@ -26,9 +26,9 @@ import orjson
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
-from sim_data.robot import ACTION_NAMES, PROPRIO_NAMES
+from sim_data.sim.robot import ACTION_NAMES, PROPRIO_NAMES
 
-CONTROL_DT = 0.05  # s; equals sim_data.tasks.CONTROL_DT (kept here so readers need no JAX)
+CONTROL_DT = 0.05  # s; equals sim_data.sim.tasks.CONTROL_DT (kept here so readers need no JAX)
 IMAGE_SCHEMA = {
     "title": "foxglove.CompressedImage", "type": "object",
     "properties": {

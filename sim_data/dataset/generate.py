@@ -38,8 +38,6 @@ from sim_data.dataset.episodes import (  # noqa: F401 (re-exported)
     read_episode_meta,
     write_episode_mcap,
 )
-from sim_data.engines import ENGINES, default_engine
-from sim_data.env import HomeEnv
 from sim_data.parts import add_part_argument, exclusive, parse_part, take
 from sim_data.policies.registry import PolicySource
 from sim_data.policies.registry import resolve as resolve_sources
@@ -50,10 +48,12 @@ from sim_data.policies.scripted import (
     play_params,
     program_params,
 )
-from sim_data.render import RenderConfig, Renderer
-from sim_data.rollout import record_episodes
-from sim_data.scene import load_model
-from sim_data.tasks import TASK_NAMES
+from sim_data.sim.engines import ENGINES, default_engine
+from sim_data.sim.env import HomeEnv
+from sim_data.sim.render import RenderConfig, Renderer
+from sim_data.sim.rollout import record_episodes
+from sim_data.sim.scene import load_model
+from sim_data.sim.tasks import TASK_NAMES
 from sim_data.util import (
     device_name,
     make_output_dir,
@@ -271,7 +271,7 @@ def _episode_meta(cfg, task, source, i, success, num_steps, engine):
         "seed": seed, "success": bool(success), "num_steps": int(num_steps),
         "split": "programs" if program else split_of(cfg, seed), "file": f"episodes/{episode_id(task, source, i)}.mcap",
         "engine": engine,
-        "renderer": "sim_data.render (JAX ray casting)", "heldout": cfg.heldout, "size": cfg.size,
+        "renderer": "sim_data.sim.render (JAX ray casting)", "heldout": cfg.heldout, "size": cfg.size,
         "cameras": list(cfg.cameras),
         "policy_source": source.record if isinstance(source, PolicySource) else None,
     }

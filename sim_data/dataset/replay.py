@@ -21,7 +21,7 @@ import numpy as np
 from tqdm import tqdm
 
 from sim_data.dataset.episodes import read_episode
-from sim_data.env import HomeEnv
+from sim_data.sim.env import HomeEnv
 from sim_data.util import run_cli
 
 

@@ -31,8 +31,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sim_data import robot as R
-from sim_data.tasks import CONTROL_DT
+from sim_data.sim import robot as R
+from sim_data.sim.tasks import CONTROL_DT
 
 ENCODERS = ("conv", "vit")
 PROPRIO_CLIP = 5.0

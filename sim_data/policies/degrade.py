@@ -22,7 +22,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from sim_data import robot as R
+from sim_data.sim import robot as R
 
 MAX_DELAY = 8
 KNOBS = ("noise", "delay", "grip", "drive")

@@ -30,10 +30,10 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from sim_data import robot as R
-from sim_data import scene as S
-from sim_data import tasks as T
-from sim_data.engines import mjx
+from sim_data.sim import robot as R
+from sim_data.sim import scene as S
+from sim_data.sim import tasks as T
+from sim_data.sim.engines import mjx
 
 IK_DAMPING = 0.05
 IK_ITERS = 2
@@ -227,7 +227,7 @@ class ScriptedPolicy:
 
     Args:
       task: a task name.
-      model: the compiled home scene (`sim_data.scene.load_model()`).
+      model: the compiled home scene (`sim_data.sim.scene.load_model()`).
     """
 
     task: str

@@ -42,7 +42,6 @@ from tqdm import tqdm
 from sim_data.config import override
 from sim_data.dataset.cache import TrainingCache
 from sim_data.dataset.generate import cached_env, cached_renderers
-from sim_data.engines import default_engine
 from sim_data.parts import add_part_argument, parse_part, take
 from sim_data.policies.bc import (
     PolicyNetConfig,
@@ -60,7 +59,8 @@ from sim_data.policies.registry import (
     padded_chunks,
     used_seeds,
 )
-from sim_data.rollout import record_policies
+from sim_data.sim.engines import default_engine
+from sim_data.sim.rollout import record_policies
 from sim_data.util import make_output_dir, run_cli, wilson_interval, write_json_atomic
 
 CAMERA = "head_cam"

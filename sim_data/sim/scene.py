@@ -23,7 +23,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from sim_data.robot import RobotIndex, robot_index
+from sim_data.sim.robot import RobotIndex, robot_index
 
 MODEL_PATH = Path(__file__).parent / "assets" / "home.xml"
 

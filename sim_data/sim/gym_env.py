@@ -4,7 +4,7 @@
     env = gym.make("WMLab/HomeHumanoid-v0", task="mug", render_mode="rgb_array")
     obs, info = env.reset(seed=0, options={"task": "wipe"})   # the task can change at reset
 
-Observation: the 37-float proprioception vector (`sim_data.robot`). Action: the 20-float action
+Observation: the 37-float proprioception vector (`sim_data.sim.robot`). Action: the 20-float action
 vector, bounded by the joint ranges, closures [0, 1], speed +-0.5 m/s, yaw rate +-1 rad/s.
 Reward: 1.0 at steps where the task's success flag holds, else 0. `truncated` when the task's
 episode time is up; `info["success"]` carries the flag. `render()` draws the external camera with
@@ -20,10 +20,10 @@ import jax
 import mujoco
 import numpy as np
 
-from sim_data import robot as R
-from sim_data.env import HomeEnv
-from sim_data.scene import paint
-from sim_data.tasks import TASK_NAMES, get_task
+from sim_data.sim import robot as R
+from sim_data.sim.env import HomeEnv
+from sim_data.sim.scene import paint
+from sim_data.sim.tasks import TASK_NAMES, get_task
 
 ENV_ID = "WMLab/HomeHumanoid-v0"
 
@@ -99,4 +99,4 @@ class HomeGymEnv(gym.Env):
 def register() -> None:
     """Registers ENV_ID with Gymnasium (idempotent)."""
     if ENV_ID not in gym.registry:
-        gym.register(id=ENV_ID, entry_point="sim_data.gym_env:HomeGymEnv", max_episode_steps=None)
+        gym.register(id=ENV_ID, entry_point="sim_data.sim.gym_env:HomeGymEnv", max_episode_steps=None)

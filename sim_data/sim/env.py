@@ -17,11 +17,11 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from sim_data import robot as R
-from sim_data import scene as S
-from sim_data.engines import default_engine, make_engine
-from sim_data.render import Poses, poses_from_arrays
-from sim_data.tasks import (
+from sim_data.sim import robot as R
+from sim_data.sim import scene as S
+from sim_data.sim.engines import default_engine, make_engine
+from sim_data.sim.render import Poses, poses_from_arrays
+from sim_data.sim.tasks import (
     PHYSICS_SUBSTEPS,
     Task,
     TaskState,
@@ -68,7 +68,7 @@ class HomeEnv:
     """B simulations of one task in the home scene, on the `cpu` or `mjx` engine.
 
     Args:
-      task: a name from `sim_data.tasks.TASK_NAMES`.
+      task: a name from `sim_data.sim.tasks.TASK_NAMES`.
       batch_size: B.
       engine: "cpu", "mjx" or None for the default (mjx where a GPU is present).
       heldout: put the held-out plant into the scenes.
@@ -141,7 +141,7 @@ class HomeEnv:
             success=jnp.zeros((b,), bool), done=jnp.zeros((b,), bool), step=jnp.zeros((b,), jnp.int32))
 
     def poses(self, state: State) -> Poses:
-        """`sim_data.render.Poses` of the batch (traceable with the `mjx` engine)."""
+        """`sim_data.sim.render.Poses` of the batch (traceable with the `mjx` engine)."""
         p = self.engine.poses(state.physics)
         return poses_from_arrays(p["geom_xpos"], p["geom_xmat"], p["cam_xpos"], p["cam_xmat"])
 

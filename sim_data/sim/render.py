@@ -28,7 +28,7 @@ import mujoco
 import numpy as np
 from flax import struct
 
-from sim_data import scene as S
+from sim_data.sim import scene as S
 
 T = mujoco.mjtGeom
 PRIMITIVES = (T.mjGEOM_PLANE, T.mjGEOM_SPHERE, T.mjGEOM_CAPSULE, T.mjGEOM_ELLIPSOID, T.mjGEOM_CYLINDER, T.mjGEOM_BOX)

@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from sim_data import scene as S
+from sim_data.sim import scene as S
 
 TASK_NAMES = ("mug", "wipe", "airfryer", "arcade", "shelf", "step_back")
 CONTROL_DT = 0.05  # 20 Hz control

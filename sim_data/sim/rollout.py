@@ -13,9 +13,9 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from sim_data.engines import CpuEngine
-from sim_data.env import HomeEnv, State
-from sim_data.render import Poses, Renderer, episode_rgb, poses_from_arrays
+from sim_data.sim.engines import CpuEngine
+from sim_data.sim.env import HomeEnv, State
+from sim_data.sim.render import Poses, Renderer, episode_rgb, poses_from_arrays
 
 
 @struct.dataclass

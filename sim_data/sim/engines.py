@@ -2,7 +2,7 @@
 
 An engine turns initial positions into its physics state and advances a batch of simulations by
 a number of substeps under constant controls. Everything else (tasks, actions, observations)
-is shared JAX code in `sim_data.env`.
+is shared JAX code in `sim_data.sim.env`.
 """
 
 from __future__ import annotations
