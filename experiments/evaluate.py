@@ -503,31 +503,17 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
         raise ValueError(f"{out}: no task is finished yet ({', '.join(missing)}); run without --partial")
     tasks = [t for t in tasks if t in results]
     rows = [r for task in tasks for r in policy_rows(cfg, task, results[task], by_name)]
-    true_eps, prob_eps, member_eps = _episodes_of(results, tasks, lambda name: True)
-    metrics = {"within_task": within_task_block(results, tasks, rows, cfg.threshold, lambda name: True),
-               "pooled": ranking_block(rows, true_eps, prob_eps, cfg.threshold, member_eps), "per_task": {}}
-    for t in tasks:
-        metrics["per_task"][t] = ranking_block([r for r in rows if r["task"] == t], results[t]["true"],
-                                               results[t]["prob"], cfg.threshold, results[t]["prob_members"])
     # the policies whose own rollouts the world model never saw in training
     seen = {e["policy"].split(":", 1)[1] for e in (wm_cache.episodes if wm_cache is not None else ())
             if e.get("policy_kind") == "learned"}
     for r in rows:
         r["in_wm_data"] = r["name"] in seen
-    unseen = [r for r in rows if not r["in_wm_data"]]
-    if seen and len(unseen) >= 3:
-        true_eps, prob_eps, member_eps = _episodes_of(results, tasks, lambda name: name not in seen)
-        metrics["unseen"] = ranking_block(unseen, true_eps, prob_eps, cfg.threshold, member_eps)
-        metrics["unseen_within_task"] = within_task_block(results, tasks, rows, cfg.threshold,
-                                                          lambda name: name not in seen)
+    metrics = all_metrics(cfg, results, tasks, rows, seen)
     panel = program_panel(wm_cfg, wm_params, norm, wm_cache, horizon=48) if wm_cache is not None else {}
-    videos = {k: v for t in tasks for k, v in results[t]["videos"].items()}
-    videos.update({f"controllability/{p}/{kind}": v[kind] for p, v in panel.items() for kind in ("real", "imagined")})
-    tmp = out / "videos.tmp.npz"
-    np.savez_compressed(tmp, **videos)
-    tmp.replace(out / "videos.npz")
+    _write_videos(out, results, tasks, panel)
     report = {
-        "config": json.loads(json.dumps(dataclasses.asdict(cfg))), "preset": preset, "engine": engine, "device": device_name(),
+        "config": json.loads(json.dumps(dataclasses.asdict(cfg))), "preset": preset, "engine": engine,
+        "device": device_name(),
         "versions": package_versions(("jax", "flax", "optax", "orbax-checkpoint", "mujoco", "mujoco-mjx", "numpy")),
         "world_model": {"run": cfg.wm, "runs": list(cfg.wm_runs), "data": wm_data, "train_tasks": wm_tasks,
                         "training": [training_status(Path(r)) for r in cfg.wm_runs],
@@ -544,6 +530,34 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
     }
     write_json_atomic(out / "results.json", no_nan(report))
     return report
+
+
+def all_metrics(cfg: EvalConfig, results: dict, tasks, rows: list[dict], seen: set) -> dict:
+    """results.json's "metrics": the within-task headline, pooled and per task; the same for the
+    policies not in `seen` (those whose rollouts the world model never saw) where there are three or
+    more of them and the world model saw any."""
+    true_eps, prob_eps, member_eps = _episodes_of(results, tasks, lambda name: True)
+    metrics = {"within_task": within_task_block(results, tasks, rows, cfg.threshold, lambda name: True),
+               "pooled": ranking_block(rows, true_eps, prob_eps, cfg.threshold, member_eps), "per_task": {}}
+    for t in tasks:
+        metrics["per_task"][t] = ranking_block([r for r in rows if r["task"] == t], results[t]["true"],
+                                               results[t]["prob"], cfg.threshold, results[t]["prob_members"])
+    unseen = [r for r in rows if r["name"] not in seen]
+    if seen and len(unseen) >= 3:
+        true_eps, prob_eps, member_eps = _episodes_of(results, tasks, lambda name: name not in seen)
+        metrics["unseen"] = ranking_block(unseen, true_eps, prob_eps, cfg.threshold, member_eps)
+        metrics["unseen_within_task"] = within_task_block(results, tasks, rows, cfg.threshold,
+                                                          lambda name: name not in seen)
+    return metrics
+
+
+def _write_videos(out: Path, results: dict, tasks, panel: dict) -> None:
+    """OUT/videos.npz: the kept real and imagined episodes of every task and the controllability panel."""
+    videos = {k: v for t in tasks for k, v in results[t]["videos"].items()}
+    videos.update({f"controllability/{p}/{kind}": v[kind] for p, v in panel.items() for kind in ("real", "imagined")})
+    tmp = out / "videos.tmp.npz"
+    np.savez_compressed(tmp, **videos)
+    tmp.replace(out / "videos.npz")
 
 
 def _episodes_of(results: dict, tasks, keep) -> tuple:
