@@ -50,7 +50,7 @@ from tqdm import tqdm
 
 from experiments import stats as S
 from experiments.ensemble import member_metrics
-from sim_data.config import override
+from sim_data.config import preset_config
 from sim_data.dataset.cache import TrainingCache
 from sim_data.dataset.generate import cached_env, cached_renderers, package_versions
 from sim_data.parts import add_part_argument, exclusive, parse_part
@@ -143,11 +143,7 @@ PRESETS = {
 
 
 def make_config(preset: str, overrides=()) -> EvalConfig:
-    if preset not in PRESETS:
-        raise ValueError(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
-    cfg = override(PRESETS[preset], overrides)
-    cfg.validate()
-    return cfg
+    return preset_config(PRESETS, preset, overrides)
 
 
 # ---- one task ------------------------------------------------------------------------------------
@@ -509,6 +505,7 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
     for r in rows:
         r["in_wm_data"] = r["name"] in seen
     metrics = all_metrics(cfg, results, tasks, rows, seen)
+    training = [training_status(Path(r)) for r in cfg.wm_runs]
     panel = program_panel(wm_cfg, wm_params, norm, wm_cache, horizon=48) if wm_cache is not None else {}
     _write_videos(out, results, tasks, panel)
     report = {
@@ -516,8 +513,7 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
         "device": device_name(),
         "versions": package_versions(("jax", "flax", "optax", "orbax-checkpoint", "mujoco", "mujoco-mjx", "numpy")),
         "world_model": {"run": cfg.wm, "runs": list(cfg.wm_runs), "data": wm_data, "train_tasks": wm_tasks,
-                        "training": [training_status(Path(r)) for r in cfg.wm_runs],
-                        "cut_short": any(training_status(Path(r))["cut_short"] for r in cfg.wm_runs),
+                        "training": training, "cut_short": any(t["cut_short"] for t in training),
                         "rule": {t: "episode judge" if judge is not None and judge.knows(t)
                                  else "highest per-step probability" for t in tasks}},
         "tasks": tasks, "missing_tasks": missing, "policies": rows, "metrics": metrics,

@@ -39,3 +39,13 @@ def _set(obj, path, value, full):
     cur = getattr(obj, path[0])
     new = _set(cur, path[1:], value, full) if len(path) > 1 else parse_value(cur, value, full)
     return dataclasses.replace(obj, **{path[0]: new})
+
+
+def preset_config(presets: dict, preset: str, overrides=()):
+    """presets[preset] with dotted `key=value` overrides applied and validated (its `validate()`);
+    an unknown preset names the known ones."""
+    if preset not in presets:
+        raise ValueError(f"unknown preset {preset!r}; choose from {', '.join(presets)}")
+    cfg = override(presets[preset], overrides)
+    cfg.validate()
+    return cfg

@@ -10,9 +10,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from sim_data.config import override
 from wm import imagine as I
 from wm import metrics as M
-from wm.config import SMOKE_MODEL, make_config, override
+from wm.config import SMOKE_MODEL, make_config
 from wm.model import (
     Decoder,
     WorldModel,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from sim_data.config import override
+from sim_data.config import preset_config
 from wm.model import ModelConfig
 
 
@@ -124,11 +124,7 @@ PRESETS = {
 
 
 def make_config(preset: str, overrides=()) -> TrainConfig:
-    if preset not in PRESETS:
-        raise ValueError(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
-    cfg = override(PRESETS[preset], overrides)
-    cfg.validate()
-    return cfg
+    return preset_config(PRESETS, preset, overrides)
 
 
 def to_dict(cfg) -> dict:

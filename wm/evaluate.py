@@ -37,10 +37,11 @@ from pathlib import Path
 
 import numpy as np
 
+from sim_data.config import override
 from sim_data.dataset.cache import TrainingCache
 from sim_data.util import run_cli, write_json_atomic
 from wm.checkpoint import load_trained
-from wm.config import TrainConfig, check_dataset, override
+from wm.config import TrainConfig, check_dataset
 from wm.imagine import (
     OUTCOME_FEATURE,
     SUCCESS_FEATURE,

@@ -322,7 +322,6 @@ class Run:
             if out_of_time:
                 break
         bar.close()
-        log.close()
         self.loader.close()
         if self.best.latest_step() is None:  # e.g. a run that resumed at its last step
             self.save(step, True)
@@ -351,9 +350,6 @@ class MetricLog:
     def write(self, metrics: dict) -> None:
         with open(self.path, "a") as f:
             f.write(json.dumps(metrics) + "\n")
-
-    def close(self):
-        pass
 
 
 def _check_config(cfg: TrainConfig, data: Path, out: Path) -> None:

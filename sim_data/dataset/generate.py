@@ -31,7 +31,7 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
-from sim_data.config import override
+from sim_data.config import preset_config
 from sim_data.dataset.cache import build_cache
 from sim_data.dataset.episodes import (  # noqa: F401 (re-exported)
     CorruptEpisode,
@@ -158,11 +158,7 @@ PRESETS = {
 
 def make_config(preset: str, overrides=()) -> DataConfig:
     """The preset with `key=value` overrides applied, validated."""
-    if preset not in PRESETS:
-        raise ValueError(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
-    cfg = override(PRESETS[preset], overrides)
-    cfg.validate()
-    return cfg
+    return preset_config(PRESETS, preset, overrides)
 
 
 # ---- episode identity ---------------------------------------------------------------------------

@@ -39,7 +39,7 @@ import numpy as np
 import optax
 from tqdm import tqdm
 
-from sim_data.config import override
+from sim_data.config import preset_config
 from sim_data.dataset.cache import TrainingCache
 from sim_data.dataset.generate import cached_env, cached_renderers
 from sim_data.parts import add_part_argument, parse_part, take
@@ -184,11 +184,7 @@ PRESETS = {
 
 
 def make_config(preset: str, overrides=()) -> ZooConfig:
-    if preset not in PRESETS:
-        raise ValueError(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
-    cfg = override(PRESETS[preset], overrides)
-    cfg.validate()
-    return cfg
+    return preset_config(PRESETS, preset, overrides)
 
 
 # ---- data ----------------------------------------------------------------------------------------
