@@ -68,7 +68,7 @@ from sim_data.sim.rollout import record_policies
 from sim_data.util import device_name, make_output_dir, run_cli, write_json_atomic
 from wm.checkpoint import load_trained, training_status
 from wm.evaluate import no_nan, program_panel
-from wm.imagine import closed_loop, episode_success
+from wm.imagine import SUCCESS_FEATURE, closed_loop, episode_success, observed_features
 from wm.judge import check_features, load_judge
 
 CAMERA = "head_cam"
@@ -173,14 +173,16 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
     into task_chunks), of those batches' sources only (a part of the task, for merge_task_parts).
 
     Returns {"names": [P], "true": (P, N) bool, "prob": (P, N) float (the judge's, or the rule's;
-    the models' mean), "prob_rule": (P, N) float (the per-step rule's; the mean), "prob_members":
+    the models' mean), "prob_rule": (P, N) float (the per-step rule's; the mean), "prob_observed":
+    (P, N) float (the judge applied to the simulated episodes themselves, _judge_truth; the mean;
+    NaN where the outcomes came from cfg.truth_cache without frames), "prob_members":
     (K, P, N), "videos": {key: (T+1, S, S, 3)} (the first model's imagination), "video_index": [...],
     "sim_s", "wm_s", "steps"}.
     """
     n = len(seeds)
     reset_keys = np.stack([np.asarray(jax.random.PRNGKey(s)) for s in seeds])
     renderer = cached_renderers(models[0][0].model.size, (CAMERA,))
-    names, true, prob, rule, members, kept = [], [], [], [], [], {}
+    names, true, prob, rule, members, observed, kept = [], [], [], [], [], [], {}
     sim_s = wm_s = 0.0
     steps = None
     todo = [(k, part, padded) for k, (part, padded) in enumerate(task_chunks(cfg, sources, n))
@@ -202,6 +204,7 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
         p_each = np.stack([p for p, _, _ in each]).reshape(len(models), len(padded), n)[:, : len(part)]
         r = np.mean([r for _, r, _ in each], axis=0).reshape(len(padded), n)[: len(part)]
         p = p_each.mean(0)
+        o = np.mean([_judge_truth(m, task, truth) for m in models], axis=0).reshape(len(padded), n)[: len(part)]
         wm_s += time.perf_counter() - t0
         for j, src in enumerate(part):
             names.append(src.name)
@@ -209,19 +212,20 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
             prob.append(p[j])
             rule.append(r[j])
             members.append(p_each[:, j])
+            observed.append(o[j])
             kept[src.name] = _keep_examples(cfg, src.name, j, n, outcome[j], p[j], truth.get("frames"),
                                             each[0][2])
         bar.update(len(part) * n)
     bar.close()
     if not names:  # a part given none of this task's batches
         empty = np.zeros((0, n))
-        return {"names": [], "true": empty.astype(bool), "prob": empty, "prob_rule": empty,
+        return {"names": [], "true": empty.astype(bool), "prob": empty, "prob_rule": empty, "prob_observed": empty,
                 "prob_members": np.zeros((len(models), 0, n)), "videos": {}, "video_index": [], "sim_s": 0.0,
                 "wm_s": 0.0, "steps": None}
     true, prob = np.stack(true), np.stack(prob)
     videos, index = _select_videos(cfg, task, names, true, kept)
     return {"names": names, "true": true, "prob": prob, "prob_rule": np.stack(rule),
-            "prob_members": np.stack(members, axis=1), "videos": videos, "video_index": index, "sim_s": sim_s,
+            "prob_observed": np.stack(observed), "prob_members": np.stack(members, axis=1), "videos": videos, "video_index": index, "sim_s": sim_s,
             "wm_s": wm_s, "steps": steps}
 
 
@@ -246,6 +250,7 @@ def merge_task_parts(cfg: EvalConfig, parts: list, order: list) -> dict:
     keys = {i["key"] for i in index}
     videos = {k: v for p in parts for k, v in p["videos"].items() if k.rsplit("/", 1)[0] in keys}
     return {"names": list(order), "true": true, "prob": cat("prob"), "prob_rule": cat("prob_rule"),
+            "prob_observed": cat("prob_observed"),
             "prob_members": cat("prob_members", axis=1), "videos": videos, "video_index": index,
             "sim_s": sum(p["sim_s"] for p in parts), "wm_s": sum(p["wm_s"] for p in parts),
             "steps": next((p["steps"] for p in parts if p["steps"] is not None), None), "seeds": parts[0]["seeds"]}
@@ -263,13 +268,28 @@ def _imagine(model, task, policy, params, frames0, proprio0, steps, rng) -> tupl
     return p, rule, got["frames"]
 
 
+def _judge_truth(model, task, truth: dict) -> np.ndarray:
+    """One world model's judge (or per-step rule) applied to the simulated episodes themselves, as if
+    imagination were exact (wm.imagine.observed_features): (B,) float64, the upper bound of what the
+    judge reads from imagined episodes; NaN where the truth's frames are not at hand (read back from
+    the truth cache)."""
+    if "frames" not in truth:
+        return np.full(len(truth["frames0"]), np.nan)
+    wm_cfg, wm_params, norm, judge = model
+    x = np.asarray(observed_features(wm_cfg.model, wm_params, norm, truth["frames"], truth["proprio"],
+                                     truth["action"]))
+    if judge is not None and judge.knows(task):
+        return judge.probability(x, task).astype(np.float64)
+    return np.asarray(episode_success(x[..., SUCCESS_FEATURE]), np.float64)
+
+
 def simulate_truth(cfg: EvalConfig, task: str, policy, params, seeds, reset_keys, rng, engine: str,
                    renderer) -> dict:
     """Closed-loop simulator episodes of P stacked policies from n initial states, or the same read
     back from cfg.truth_cache (a process that finds another simulating the same batch waits for it,
     under a lock file beside the cache entry, and reads its outcomes). Returns {"outcome": (P, n)
     bool, "frames0": (P*n, 1, S, S, 3) uint8, "proprio0": (P*n, 1, 37), "steps": int, and "frames":
-    (P*n, T+1, S, S, 3) where simulated}."""
+    (P*n, T+1, S, S, 3), "proprio": (P*n, T+1, 37) and "action": (P*n, T, 20) where simulated}."""
     if not cfg.truth_cache:
         return _simulate(task, policy, params, seeds, reset_keys, rng, engine, renderer)
     path = Path(cfg.truth_cache) / f"{task}-{_truth_key(task, policy, params, seeds, rng, engine, renderer)}.npz"
@@ -282,7 +302,7 @@ def simulate_truth(cfg: EvalConfig, task: str, policy, params, seeds, reset_keys
                 return {k: z[k] for k in ("outcome", "frames0", "proprio0")} | {"steps": int(z["steps"])}
         truth = _simulate(task, policy, params, seeds, reset_keys, rng, engine, renderer)
         tmp = path.with_name(f"{path.stem}.tmp{os.getpid()}.npz")
-        np.savez(tmp, **{k: v for k, v in truth.items() if k != "frames"})
+        np.savez(tmp, **{k: v for k, v in truth.items() if k not in ("frames", "proprio", "action")})
         tmp.replace(path)
     return truth
 
@@ -292,7 +312,8 @@ def _simulate(task, policy, params, seeds, reset_keys, rng, engine, renderer) ->
     env = cached_env(task, p * len(seeds), engine, False)
     outcome, rec = record_policies(env, policy, params, reset_keys, rng, renderer)
     return {"outcome": outcome, "frames0": np.asarray(rec.frames[CAMERA][:, :1]),
-            "proprio0": np.asarray(rec.proprio[:, :1]), "steps": env.episode_steps, "frames": rec.frames[CAMERA]}
+            "proprio0": np.asarray(rec.proprio[:, :1]), "steps": env.episode_steps, "frames": rec.frames[CAMERA],
+            "proprio": rec.proprio, "action": rec.action}
 
 
 def _truth_key(task, policy, params, seeds, rng, engine, renderer) -> str:
@@ -395,15 +416,21 @@ def ranking_block(rows: list[dict], true_eps, prob_eps, threshold: float, member
 def within_task_block(results: dict, tasks, rows: list[dict], threshold: float, keep) -> dict:
     """The within-task headline (experiments.stats.within_task) of the world model beside the
     imitation-loss proxy (minus each checkpoint's validation loss; policies without one, such as
-    plug-ins, are left out of the proxy's statistics), over the policies whose name `keep` accepts."""
-    true, wm, proxy = {}, {}, {}
+    plug-ins, are left out of the proxy's statistics), and, where every task has it, the judge applied
+    to the simulated episodes themselves ("judge_on_truth", _judge_truth: the upper bound of what the
+    world model's judge can read), over the policies whose name `keep` accepts."""
+    true, wm, proxy, observed = {}, {}, {}, {}
     for t in tasks:
         names = results[t]["names"]
         loss = {r["name"]: r["val_loss"] for r in rows if r["task"] == t}
         picked = [j for j, name in enumerate(names) if keep(name)]
         true[t], wm[t] = results[t]["true"][picked], results[t]["prob"][picked]
         proxy[t] = np.array([math.nan if loss[names[j]] is None else -loss[names[j]] for j in picked])
-    return S.within_task(true, {"world_model": wm, "proxy": proxy}, threshold)
+        observed[t] = results[t]["prob_observed"][picked]
+    predictors = {"world_model": wm, "proxy": proxy}
+    if all(np.isfinite(o).all() for o in observed.values()):
+        predictors["judge_on_truth"] = observed
+    return S.within_task(true, predictors, threshold)
 
 
 def decision_analysis(cfg: EvalConfig, tasks: dict, alignment: float, most: int = 30) -> dict:
@@ -595,7 +622,7 @@ def _save_task(path: Path, res: dict) -> None:
     meta = {"names": res["names"], "video_index": res["video_index"], "sim_s": res["sim_s"], "wm_s": res["wm_s"],
             "steps": res["steps"], "seeds": res["seeds"]}
     arrays = {"true": res["true"], "prob": res["prob"], "prob_rule": res["prob_rule"],
-              "prob_members": res["prob_members"],
+              "prob_observed": res["prob_observed"], "prob_members": res["prob_members"],
               "meta": np.frombuffer(json.dumps(meta).encode(), np.uint8)}
     arrays.update({f"video:{k}": v for k, v in res["videos"].items()})
     tmp = path.with_name(path.stem + ".tmp.npz")
@@ -608,8 +635,9 @@ def _load_task(path: Path) -> dict:
         meta = json.loads(z["meta"].tobytes().decode())
         videos = {k[len("video:"):]: z[k] for k in z.files if k.startswith("video:")}
         members = z["prob_members"] if "prob_members" in z.files else z["prob"][None]  # before ensembles
+        observed = z["prob_observed"] if "prob_observed" in z.files else np.full(z["prob"].shape, np.nan)
         return {**meta, "true": z["true"].astype(bool), "prob": z["prob"], "prob_rule": z["prob_rule"],
-                "prob_members": members, "videos": videos}
+                "prob_observed": observed, "prob_members": members, "videos": videos}
 
 
 def _check_config(cfg: EvalConfig, out: Path) -> None:

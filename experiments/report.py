@@ -294,30 +294,38 @@ def verdict(res: dict) -> str:
             f"{' (' + ', '.join(behind) + ')' if behind else ''}.")
 
 
+UPPER = "judge on the true episodes (upper bound)"
+
+
 def within_task_table(res: dict) -> list[list[str]]:
     """The headline: each within-task statistic's mean over tasks for the world model and the proxy,
-    their difference, and the preset's target."""
+    their difference, the judge applied to the simulated episodes themselves (where measured: how
+    well the world model could rank were its imagination exact), and the preset's target."""
     w = res["metrics"]["within_task"]
+    upper = "judge_on_truth" in w
     targets = TARGETS.get(res.get("preset", ""), {})
     rows = [["statistic (mean over tasks)", "world model", "imitation-loss proxy", "world model - proxy",
-             f"target ({res.get('preset') or 'none'} preset)"]]
+             *([UPPER] if upper else []), f"target ({res.get('preset') or 'none'} preset)"]]
     for k in w["world_model"]["mean"]:
         tgt = targets.get(k)
         px = "-" if k == "alignment" else _ci(w["proxy"]["mean"][k], w["proxy"]["mean_ci"][k])
         df = "-" if k == "alignment" else _ci(w["difference"]["proxy"]["mean"][k], w["difference"]["proxy"]["mean_ci"][k])
+        up = [_ci(w["judge_on_truth"]["mean"][k], w["judge_on_truth"]["mean_ci"][k])] if upper else []
         rows.append([LABELS.get(k, k), _ci(w["world_model"]["mean"][k], w["world_model"]["mean_ci"][k]), px, df,
-                     f"{tgt[0]} {tgt[1]}" if tgt else "-"])
+                     *up, f"{tgt[0]} {tgt[1]}" if tgt else "-"])
     return rows
 
 
 def per_task_table(res: dict, key: str = "within_task") -> list[list[str]]:
     """Every task's within-task statistics (95% bootstrap intervals), the world model's row above the
-    proxy's."""
+    proxy's and, where measured, the judge's on the true episodes."""
     w = res["metrics"][key]
     stats = list(w["world_model"]["mean"])
     rows = [["task", "predictor", *[LABELS.get(k, k) for k in stats]]]
+    who_label = [("world_model", "world model"), ("proxy", "imitation-loss proxy")]
+    who_label += [("judge_on_truth", UPPER)] if "judge_on_truth" in w else []
     for t in w["tasks"]:
-        for who, label in (("world_model", "world model"), ("proxy", "imitation-loss proxy")):
+        for who, label in who_label:
             rows.append([t, label, *[_ci(w[who]["per_task"][t][k], w[who]["per_task_ci"][t][k])
                                      if not (who == "proxy" and k == "alignment") else "-" for k in stats]])
     return rows

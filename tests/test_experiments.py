@@ -113,6 +113,7 @@ def test_report_renders_figures_and_videos(evaluation):
     verdict, within, pooled = (md.index(x) for x in ("mean within-task Pearson r", "## Within-task ranking",
                                                      "## Pooled over tasks (secondary)"))
     assert verdict < within < pooled and "| imitation-loss proxy |" in md
+    assert "| judge on the true episodes (upper bound) |" in md  # a row of the per-task table
     assert "Cut short" not in md
     cut = dict(res, world_model=dict(res["world_model"], cut_short=True))
     (out / "results.json").write_text(json.dumps(cut))
@@ -256,9 +257,12 @@ def test_within_task_headline_and_checkpoint_selection_from_the_episodes(evaluat
 
     cfg, out, res = evaluation
     with np.load(out / "tasks" / "mug.npz") as z:
-        true, prob = z["true"].astype(bool), z["prob"]
+        true, prob, observed = z["true"].astype(bool), z["prob"], z["prob_observed"]
+    # the judge (here the per-step rule: the smoke model has none) on the simulated episodes themselves
+    assert observed.shape == prob.shape and np.all((observed >= 0) & (observed <= 1))
     proxy = np.array([np.nan if p["val_loss"] is None else -p["val_loss"] for p in res["policies"]])
-    want = S.within_task({"mug": true}, {"world_model": {"mug": prob}, "proxy": {"mug": proxy}}, cfg.threshold)
+    want = S.within_task({"mug": true}, {"world_model": {"mug": prob}, "proxy": {"mug": proxy},
+                                         "judge_on_truth": {"mug": observed}}, cfg.threshold)
     assert res["metrics"]["within_task"] == json.loads(json.dumps(no_nan(want)))
     assert res["checkpoint_selection"] == json.loads(json.dumps(no_nan(S.checkpoint_selection(res["policies"]))))
     assert res["world_model"]["cut_short"] is False and res["world_model"]["training"][0]["steps"] == 30

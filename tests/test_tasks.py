@@ -145,6 +145,10 @@ def test_step_back_distance_and_hits():
     q[0, b[1]] = y0 - 0.51 * np.sin(yaw0)
     ts, ok = update(env, st, q)
     assert bool(ok[0])
+    for beyond in (0.49, 0.81):  # outside the band of stopping distances, short or long
+        q[0, b[0]], q[0, b[1]] = x0 - beyond * np.cos(yaw0), y0 - beyond * np.sin(yaw0)
+        _, ok = update(env, st, q)
+        assert not bool(ok[0]), beyond
     stool = np.asarray(st.mocap_pos[0, env.idx.stool_mocap, :2])
     q[0, b[0]], q[0, b[1]] = stool[0] + S.STOOL_HALF + S.BASE_RADIUS - 0.01, stool[1]
     ts, ok = update(env, st.replace(task=ts), q)

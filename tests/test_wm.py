@@ -230,6 +230,21 @@ def test_imagination_step_equals_the_teacher_forced_prediction(model_and_inputs)
     assert got["success"].shape == (2, 4) and float(got["success"].min()) >= 0.0
 
 
+def test_observed_features_read_the_true_episode_as_exact_imagination_would(model_and_inputs):
+    params, frames, proprio, action = model_and_inputs
+    norm = I.Norm(jnp.full(37, 0.1), jnp.full(37, 2.0), jnp.full(20, -0.2), jnp.full(20, 0.5))
+    m = WorldModel(CFG)
+    x = np.asarray(I.observed_features(CFG, params, norm, frames, proprio, action[:, :5]))
+    assert x.shape == (2, 5, I.feature_dim(CFG))
+    for t in (0, 1, 4):  # one frame of context, two, and a full context of 4 with the oldest dropped
+        c0 = max(0, t + 1 - CFG.context)
+        st = I.init_state(CFG, params, norm, frames[:, c0:t + 1], proprio[:, c0:t + 1], action[:, c0:t])
+        st = I.step(CFG, params, norm, st, action[:, t])
+        truth = st.replace(z=st.z.at[:, -1].set(m.apply({"params": params}, frames[:, t + 1], method=WorldModel.encode)),
+                           proprio=st.proprio.at[:, -1].set(norm.proprio(proprio[:, t + 1])))
+        np.testing.assert_allclose(x[:, t], I.step_features(norm, truth, action[:, t]), atol=2e-5, err_msg=str(t))
+
+
 def test_reencoding_imagination_feeds_back_the_latents_of_the_decoded_8_bit_frame(model_and_inputs):
     params, frames, proprio, action = model_and_inputs
     norm = I.Norm(jnp.zeros(37), jnp.ones(37), jnp.zeros(20), jnp.ones(20))

@@ -122,11 +122,14 @@ def step_features(norm: Norm, state: ImagineState, action) -> jax.Array:
     """What the episode judge (wm.judge) reads of one imagined step, (B, F) with F = feature_dim(cfg):
     the predicted proprioception (standardised), the action taken (standardised), the new latent grid
     pooled to 2x2 cells, and the per-step success and outcome probabilities."""
-    z = state.z[:, -1]
+    return jnp.concatenate([state.proprio[:, -1], norm.action(action), pool_latents(state.z[:, -1]),
+                            state.success[:, None], state.outcome[:, None]], axis=-1)
+
+
+def pool_latents(z) -> jax.Array:
+    """(B, s, s, C) latent grids -> (B, 4C): their means over 2x2 cells."""
     b, s, _, c = z.shape
-    pooled = z.reshape(b, 2, s // 2, 2, s // 2, c).mean(axis=(2, 4)).reshape(b, 4 * c)
-    return jnp.concatenate([state.proprio[:, -1], norm.action(action), pooled, state.success[:, None],
-                            state.outcome[:, None]], axis=-1)
+    return z.reshape(b, 2, s // 2, 2, s // 2, c).mean(axis=(2, 4)).reshape(b, 4 * c)
 
 
 SUCCESS_FEATURE, OUTCOME_FEATURE = -2, -1  # where step_features keeps the per-step probabilities
@@ -191,6 +194,36 @@ def closed_loop(cfg: ModelConfig, policy, horizon: int, params, norm: Norm, poli
     _, (f, p, s, o, a, x) = jax.lax.scan(body, (state, obs, carry), jnp.arange(horizon))
     sw = functools.partial(jnp.swapaxes, axis1=0, axis2=1)
     return {"frames": sw(f), "proprio": sw(p), "success": s.T, "outcome": o.T, "action": sw(a), "features": sw(x)}
+
+
+@functools.partial(jax.jit, static_argnums=(0,))
+def observed_features(cfg: ModelConfig, params, norm: Norm, frames, proprio, actions) -> jax.Array:
+    """The episode judge's features of a true episode: what step_features would read had the world
+    model imagined every frame exactly. frames (B, T+1, S, S, 3) uint8, proprio (B, T+1, 37), actions
+    (B, T, 20) -> (B, T, F): for step t, the true proprioception and encoded frame t+1, action t, and
+    the success and outcome heads' probabilities given the true context up to frame t and action t.
+    The judge's reading of these is an upper bound on what it can read from imagination."""
+    model = WorldModel(cfg)
+    b, t1 = frames.shape[:2]
+    z = jax.lax.map(lambda f: model.apply({"params": params}, f, method=WorldModel.encode),
+                    jnp.swapaxes(frames, 0, 1))  # (T+1, B, 8, 8, C), a frame at a time
+    p, a = jnp.swapaxes(norm.proprio(proprio), 0, 1), jnp.swapaxes(norm.action(actions), 0, 1)
+    k = cfg.context
+
+    def push(buf, new):
+        return jnp.concatenate([buf[:, 1:], new[:, None]], axis=1)
+
+    def body(buf, t):
+        zb, pb, ab, vb = (push(x, y) for x, y in zip(buf, (z[t], p[t], a[t], jnp.ones((b,), bool))))
+        out = model.apply({"params": params}, zb, pb, ab, vb, method=WorldModel.predict)
+        x = jnp.concatenate([p[t + 1], a[t], pool_latents(z[t + 1]), jax.nn.sigmoid(out["success"][:, -1])[:, None],
+                             jax.nn.sigmoid(out["outcome"][:, -1])[:, None]], axis=-1)
+        return (zb, pb, ab, vb), x
+
+    buf = (jnp.zeros((b, k) + z.shape[2:], z.dtype), jnp.zeros((b, k, p.shape[-1])),
+           jnp.zeros((b, k, a.shape[-1])), jnp.zeros((b, k), bool))
+    _, x = jax.lax.scan(body, buf, jnp.arange(t1 - 1))
+    return jnp.swapaxes(x, 0, 1)
 
 
 CHUNK = 64
