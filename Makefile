@@ -10,7 +10,7 @@ export XLA_FLAGS ?= --xla_cpu_multi_thread_eigen=false
 
 CONFIG ?= demo
 
-.PHONY: setup demo full test test-slow bench success-table data render-check train policies eval report sweep clean
+.PHONY: setup demo full test test-slow bench success-table data render-check train bundle policies eval report sweep clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -38,6 +38,11 @@ data: setup
 # make train CONFIG=demo DATA=runs/data/demo OUT=runs/wm/demo
 train: setup
 	$(PY) -m wm.train --config $(CONFIG) --data $(or $(DATA),runs/data/$(CONFIG)) --out $(if $(filter command line,$(origin OUT)),$(OUT),runs/wm/$(CONFIG))
+
+# make bundle RUN=runs/wm/demo OUT=runs/bundles/demo: the trained model in files to copy to another machine
+# (bfloat16 shards of <= 15 MiB, hashed); make eval ARGS="wm=runs/bundles/demo" loads it like a run
+bundle: setup
+	$(PY) -m wm.checkpoint $(or $(RUN),runs/wm/$(CONFIG)) $(or $(OUT),runs/bundles/$(CONFIG))
 
 # make policies CONFIG=demo DATA=runs/data/demo OUT=runs/policies/demo
 policies: setup

@@ -66,7 +66,7 @@ from sim_data.sim import robot as R
 from sim_data.sim.engines import ENGINES, default_engine
 from sim_data.sim.rollout import record_policies
 from sim_data.util import device_name, make_output_dir, run_cli, write_json_atomic
-from wm.checkpoint import load_trained, training_status
+from wm.checkpoint import load_run_config, load_trained, training_seeds, training_status
 from wm.evaluate import no_nan, program_panel
 from wm.imagine import SUCCESS_FEATURE, closed_loop, episode_success, observed_features
 from wm.judge import check_features, load_judge
@@ -477,7 +477,7 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
         raise ValueError("no task to evaluate: the policies are all plug-ins; name tasks=...")
     models = load_models(cfg.wm_runs)
     wm_cfg, wm_params, norm, judge = models[0]
-    datas = [json.loads((Path(run) / "config.json").read_text())["data"] for run in cfg.wm_runs]
+    datas = [str(load_run_config(Path(run))[1]) for run in cfg.wm_runs]
     wm_data = datas[0]  # the first model's data says which tasks and policies the world model saw
     wm_cache = TrainingCache(wm_data) if (Path(wm_data) / "cache" / "index.json").exists() else None
     wm_tasks = wm_cache.tasks if wm_cache is not None else tasks
@@ -485,7 +485,8 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
     if unseen:
         print(f"warning: the world model never saw tasks {unseen} in training", file=sys.stderr)
     zoo_data = {s.record.get("data") for s in sources} - {None}
-    used = used_seeds(*dict.fromkeys(datas), *zoo_data)  # held out from every model's data
+    # held out from every model's data (a bundle's copy of its seeds where the data is elsewhere)
+    used = used_seeds(*zoo_data).union(*(training_seeds(Path(run)) for run in cfg.wm_runs))
     engine = cfg.engine or default_engine()
     results, by_name = {}, {s.name: s for s in sources}
     by_task = {t: [s for s in sources if s.runs_on(t)] for t in tasks}

@@ -4,6 +4,7 @@ a non-finite loss stopping the run, make train's smoke preset with eval.json."""
 
 import dataclasses
 import json
+import shutil
 
 import jax
 import jax.numpy as jnp
@@ -24,6 +25,9 @@ from wm.model import (
     relative_time_bias,
     space_to_depth,
 )
+from wm.checkpoint import load_run_config, load_trained, training_seeds, training_status, write_bundle
+from wm.checkpoint import main as checkpoint_main
+from wm.judge import load_judge
 from wm.train import Run, TrainingDiverged
 
 CFG = SMOKE_MODEL
@@ -423,3 +427,32 @@ def test_episode_judge_learns_an_integral_and_round_trips(tmp_path):
     with pytest.raises(ValueError, match="successes and failures"):
         J.fit({**train, "label": np.zeros(256, bool)}, None, ("a", "b"), steps=5, progress=False)
     assert J.load_judge(tmp_path / "nothing") is None
+
+
+def test_a_bundle_carries_the_model_in_bfloat16_and_refuses_a_damaged_copy(smoke_world_model, tmp_path):
+    from wm import judge as J
+
+    run = tmp_path / "run"
+    shutil.copytree(smoke_world_model, run)
+    episodes = _synthetic_episodes(np.random.default_rng(0), 32)
+    judge, metrics = J.fit(episodes, None, ("a", "b"), steps=5, progress=False)
+    J.save_judge(judge, metrics, run)
+    bundle = tmp_path / "bundle"
+    assert checkpoint_main([str(run), str(bundle)]) == 0
+    cfg, params, norm = load_trained(run)
+    b_cfg, b_params, b_norm = load_trained(bundle)
+    assert b_cfg == cfg and b_norm.to_dict() == norm.to_dict()
+    for a, b in zip(jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(b_params), strict=True):
+        np.testing.assert_array_equal(np.asarray(b), np.asarray(jnp.asarray(a, jnp.bfloat16), np.float32))
+    assert training_status(bundle) == training_status(run) and training_seeds(bundle) == training_seeds(run)
+    assert load_run_config(bundle) == load_run_config(run) and len(training_seeds(run)) > 0
+    np.testing.assert_array_equal(J.judge_episodes(load_judge(bundle), episodes), J.judge_episodes(judge, episodes))
+    assert all(f.stat().st_size <= 15 * 2**20 for f in bundle.iterdir())
+    shard = bundle / "params-0.msgpack"
+    data = bytearray(shard.read_bytes())
+    data[-1] ^= 1
+    shard.write_bytes(bytes(data))
+    with pytest.raises(ValueError, match="params-0.msgpack does not match its SHA-256"):
+        load_trained(bundle)
+    with pytest.raises(ValueError, match="not a bundle"):
+        write_bundle(run, run / "..")

@@ -1,45 +1,207 @@
-"""A finished training run read back: its configuration, best parameters, normalisation and status."""
+"""A finished training run read back (its configuration, best parameters, normalisation, status),
+from its run directory or from its portable bundle.
+
+A bundle (`python -m wm.checkpoint RUN BUNDLE`) is a directory small enough to copy between machines:
+`bundle.json` (the run's configuration, normalisation, training status, eval.json, the judge's
+standardisation, the training data's initial-state seeds and a SHA-256 of every other file), the best parameters in bfloat16 split into
+`params-K.msgpack` shards of at most 15 MiB, and `judge.msgpack`. It is written under a temporary name
+and renamed when whole. Every reader here (and `wm.judge.load_judge`) takes either kind of directory,
+so `make eval ARGS="wm=BUNDLE"` evaluates a model trained on another machine.
+"""
 
 from __future__ import annotations
 
+import argparse
+import hashlib
 import json
+import os
+import shutil
+import sys
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
+import numpy as np
 import orbax.checkpoint as ocp
+from flax import serialization, traverse_util
 
+from sim_data.policies.registry import used_seeds
+from sim_data.util import run_cli, write_json_atomic
 from wm.config import TrainConfig, from_dict
 from wm.imagine import Norm
 from wm.model import init_params
 
+BUNDLE = "bundle.json"
+SHARD_BYTES = 15 * 2**20
+BUNDLE_FORMAT = 1
+
+
+def is_bundle(out: Path) -> bool:
+    return (Path(out) / BUNDLE).exists()
+
+
+def bundle_meta(out: Path) -> dict:
+    """The bundle.json of a bundle directory."""
+    return json.loads((Path(out) / BUNDLE).read_text())
+
+
+def run_file(out: Path, name: str) -> dict | None:
+    """A run's small JSON file (config.json, norm.json, train_status.json, eval.json, judge.json) from a
+    run directory, or its copy inside a bundle; None where there is none."""
+    out = Path(out)
+    if is_bundle(out):
+        return bundle_meta(out)["files"].get(name)
+    path = out / name
+    return json.loads(path.read_text()) if path.exists() else None
+
 
 def load_run_config(out: Path) -> tuple[TrainConfig, Path]:
-    d = json.loads((Path(out) / "config.json").read_text())
+    """(TrainConfig, the training data's directory) of a run or bundle."""
+    d = run_file(out, "config.json")
+    if d is None:
+        raise FileNotFoundError(f"{out} holds no world model (config.json or {BUNDLE}): run make train first")
     return from_dict(d["train"]), Path(d["data"])
 
 
 def training_status(out: Path) -> dict:
     """{"step", "steps", "cut_short"} of a training run (train_status.json); cut_short is None for a
     run that never finished a command."""
-    path = Path(out) / "train_status.json"
-    if not path.exists():
-        return {"step": None, "steps": None, "cut_short": None}
-    return json.loads(path.read_text())
+    return run_file(out, "train_status.json") or {"step": None, "steps": None, "cut_short": None}
+
+
+def training_seeds(out: Path) -> set:
+    """The initial-state seeds of a run's training data (its manifest, or the copy in its bundle), which
+    an evaluation holds out."""
+    if is_bundle(out):
+        return set(bundle_meta(out).get("data_seeds", ()))
+    return used_seeds(load_run_config(out)[1])
 
 
 def load_trained(out: Path):
-    """(TrainConfig, best parameters, Norm) of a finished training run in out."""
+    """(TrainConfig, best parameters (float32), Norm) of a finished training run in out, or of its bundle."""
     out = Path(out)
+    if is_bundle(out):
+        return _load_bundle(out)
     if not (out / "config.json").exists() or not (out / "best").exists():
-        raise FileNotFoundError(f"{out} holds no trained world model (config.json and best/): run make train first")
+        raise FileNotFoundError(f"{out} holds no trained world model (config.json and best/, or {BUNDLE}): "
+                                "run make train first")
     cfg, _ = load_run_config(out)
     norm = Norm.from_dict(json.loads((out / "norm.json").read_text()))
-    shapes = jax.eval_shape(lambda: init_params(cfg.model, jax.random.PRNGKey(0), window=cfg.window))
     mgr = ocp.CheckpointManager(out.absolute() / "best", options=ocp.CheckpointManagerOptions(create=False))
     step = mgr.latest_step()
     if step is None:
         raise FileNotFoundError(f"{out}/best holds no checkpoint")
-    abstract = {"params": jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), shapes)}
+    abstract = {"params": jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), _shapes(cfg))}
     got = mgr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract),
                                                      loader=ocp.args.JsonRestore()))
     return cfg, got["state"]["params"], norm
+
+
+def _shapes(cfg: TrainConfig):
+    return jax.eval_shape(lambda: init_params(cfg.model, jax.random.PRNGKey(0), window=cfg.window))
+
+
+# ---- bundles ---------------------------------------------------------------------------------------------
+
+def write_bundle(run: Path, out: Path, dtype: str = "bfloat16") -> dict:
+    """Writes the bundle of the finished training run `run` into `out` (replacing one there); returns
+    its bundle.json. The parameters are cast to `dtype` ("bfloat16" or "float32")."""
+    run, out = Path(run), Path(out)
+    if is_bundle(run):
+        raise ValueError(f"{run} is a bundle already")
+    if out.exists() and not is_bundle(out):
+        raise ValueError(f"{out} exists and is not a bundle: choose another directory")
+    if dtype not in ("bfloat16", "float32"):
+        raise ValueError(f"dtype must be bfloat16 or float32, got {dtype!r}")
+    _, params, _ = load_trained(run)
+    tmp = out.with_name(out.name + f".tmp{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    flat = traverse_util.flatten_dict(jax.device_get(params), sep="/")
+    shards, current, size = [], {}, 0
+    for key in sorted(flat):
+        a = np.asarray(jnp.asarray(flat[key], dtype))
+        if current and size + a.nbytes > SHARD_BYTES:
+            shards.append(current)
+            current, size = {}, 0
+        current[key], size = a, size + a.nbytes
+    shards.append(current)
+    hashes = {}
+    for k, shard in enumerate(shards):
+        name = f"params-{k}.msgpack"
+        (tmp / name).write_bytes(serialization.msgpack_serialize({key: _to_bytes(a) for key, a in shard.items()}))
+        hashes[name] = _sha256(tmp / name)
+    if (run / "judge.msgpack").exists():
+        shutil.copyfile(run / "judge.msgpack", tmp / "judge.msgpack")
+        hashes["judge.msgpack"] = _sha256(tmp / "judge.msgpack")
+    names = ("config.json", "norm.json", "train_status.json", "eval.json", "judge.json")
+    meta = {"format": BUNDLE_FORMAT, "source": str(run.absolute()), "dtype": dtype,
+            "parameters": int(sum(a.size for a in flat.values())), "sha256": hashes,
+            "files": {n: run_file(run, n) for n in names if (run / n).exists()},
+            "data_seeds": sorted(training_seeds(run))}
+    write_json_atomic(tmp / BUNDLE, meta)
+    if out.exists():
+        shutil.rmtree(out)
+    os.replace(tmp, out)
+    return meta
+
+
+def _to_bytes(a: np.ndarray) -> dict:
+    return {"dtype": str(a.dtype), "shape": list(a.shape), "data": a.tobytes()}
+
+
+def _from_bytes(d: dict) -> np.ndarray:
+    dtype = jnp.bfloat16 if d["dtype"] == "bfloat16" else np.dtype(d["dtype"])
+    return np.frombuffer(d["data"], dtype).reshape(d["shape"]).astype(np.float32)
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def check_bundle(out: Path) -> dict:
+    """bundle.json of the bundle in out, after checking each of its files against its SHA-256."""
+    out = Path(out)
+    meta = bundle_meta(out)
+    if meta.get("format") != BUNDLE_FORMAT:
+        raise ValueError(f"{out}: bundle format {meta.get('format')}, this code reads {BUNDLE_FORMAT}")
+    for name, digest in meta["sha256"].items():
+        if not (out / name).exists():
+            raise FileNotFoundError(f"{out}/{name} is missing: copy the whole bundle directory")
+        if _sha256(out / name) != digest:
+            raise ValueError(f"{out}/{name} does not match its SHA-256 in {BUNDLE}: the copy is damaged")
+    return meta
+
+
+def _load_bundle(out: Path):
+    meta = check_bundle(out)
+    cfg, _ = load_run_config(out)
+    flat = {}
+    for name in sorted(n for n in meta["sha256"] if n.startswith("params-")):
+        flat.update({k: _from_bytes(v) for k, v in serialization.msgpack_restore((out / name).read_bytes()).items()})
+    shapes = traverse_util.flatten_dict(_shapes(cfg), sep="/")
+    if sorted(flat) != sorted(shapes) or any(flat[k].shape != shapes[k].shape for k in shapes):
+        raise ValueError(f"{out}: the bundle's parameters do not fit its configuration's model")
+    params = traverse_util.unflatten_dict({k: jnp.asarray(v) for k, v in flat.items()}, sep="/")
+    return cfg, params, Norm.from_dict(meta["files"]["norm.json"])
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("run", type=Path, help="a finished training run (make train's OUT)")
+    p.add_argument("out", type=Path, help="the bundle's directory")
+    p.add_argument("--dtype", default="bfloat16", choices=("bfloat16", "float32"))
+    a = p.parse_args(argv)
+    meta = write_bundle(a.run, a.out, a.dtype)
+    sizes = {f.name: f.stat().st_size for f in a.out.iterdir()}
+    print(f"{a.out}: {meta['parameters']:,} parameters in {meta['dtype']}, {len(sizes)} files, "
+          f"{sum(sizes.values()) / 2**20:.1f} MiB (largest {max(sizes.values()) / 2**20:.1f} MiB)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run_cli(main))

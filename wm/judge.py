@@ -39,6 +39,7 @@ from tqdm import tqdm
 from sim_data.policies.bc import StackedPolicy, stack_params
 from sim_data.policies.registry import resolve
 from sim_data.util import write_json_atomic
+from wm.checkpoint import run_file
 from wm.imagine import (
     CHUNK,
     Norm,
@@ -281,11 +282,11 @@ def save_judge(judge: EpisodeJudge, metrics: dict, out: Path) -> None:
 
 
 def load_judge(out: Path) -> EpisodeJudge | None:
-    """The judge saved with a training run in out, or None when it has none."""
+    """The judge saved with a training run in out (or its bundle, wm.checkpoint), or None when it has none."""
     out = Path(out)
-    if not (out / "judge.json").exists() or not (out / "judge.msgpack").exists():
+    meta = run_file(out, "judge.json")
+    if meta is None or not (out / "judge.msgpack").exists():
         return None
-    meta = json.loads((out / "judge.json").read_text())
     mean = np.asarray(meta["mean"], np.float32)
     net = JudgeNet(len(meta["tasks"]), meta["width"])
     shapes = jax.eval_shape(lambda: net.init(jax.random.PRNGKey(0), jnp.zeros((1, 2, len(mean))),
