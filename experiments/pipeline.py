@@ -30,21 +30,47 @@ the stages run in this process, and the train stage trains one member a command 
 next), so that each fits a 10-minute command. Every stage shares JAX's persistent compilation cache
 (`runs/jax_cache`, or JAX_COMPILATION_CACHE_DIR): what one process compiled, a rerun, a later stage
 or another GPU's part loads.
+
+Each stage command appends a row to the evaluation directory's `timing.json`: its wall seconds, the
+seconds this process spent compiling (JAX's compile events; a stage spread over GPUs compiles in its
+child processes, which this does not count) and the programs it compiled, and what the stage has
+produced (frames, training steps, episodes). The report shows the table.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import os
 import sys
 import time
 from pathlib import Path
 
+import jax
+
+from experiments import evaluate, report
+from sim_data.dataset import generate
 from sim_data.parts import local_gpus, module_command, run_parallel
-from sim_data.util import run_cli
+from sim_data.policies import zoo
+from sim_data.util import device_name, run_cli, write_json_atomic
+from wm import train
 
 STAGES = ("data", "policies", "rollouts", "train", "eval", "report")
+TIMING = "timing.json"  # in the evaluation's directory: one row per stage command
+# JAX's compile events (jax.monitoring): tracing, lowering to MLIR and the backend's compilation
+COMPILE_EVENTS = ("/jax/core/compile/jaxpr_trace_duration", "/jax/core/compile/jaxpr_to_mlir_module_duration",
+                  "/jax/core/compile/backend_compile_duration")
+_compile = {"seconds": 0.0, "programs": 0}
+
+
+def _count_compile(event: str, seconds: float, **_) -> None:
+    if event in COMPILE_EVENTS:
+        _compile["seconds"] += seconds
+        _compile["programs"] += event == COMPILE_EVENTS[-1]
+
+
+jax.monitoring.register_event_duration_secs_listener(_count_compile)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -103,18 +129,15 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
     p = pipeline(name, members)
     d = p.dirs(name)
     t0 = time.perf_counter()
+    compiled = dict(_compile)
     spread = len(gpus) > 1 and stage != "report"
     print(f"== {name}: {stage}" + (f" on {len(gpus)} GPUs" if spread else ""), file=sys.stderr, flush=True)
     done = True
     if stage == "data":
-        from sim_data.dataset import generate
-
         args = ["--config", p.data, "--out", str(d["data"]), *p.data_overrides, *extra]
         _spread("sim_data.dataset.generate", args, gpus, _logs(p, name), "data")
         generate.main(args)
     elif stage == "policies":
-        from sim_data.policies import zoo
-
         args = ["--config", p.policies, "--data", str(d["data"]), "--out", str(d["policies"]), *p.policies_overrides,
                 *extra]
         _spread("sim_data.policies.zoo", args, gpus, _logs(p, name), "policies")
@@ -123,8 +146,6 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
         if not p.rollouts:
             print(f"{name} trains its world model on the data alone; skipping", file=sys.stderr)
             return True
-        from sim_data.dataset import generate
-
         args = ["--config", p.data, "--out", str(d["wm_data"]), "--reuse", str(d["data"]), *p.data_overrides,
                 f"policies={d['policies']}#{p.rollouts}", f"policy_episodes={p.rollout_episodes}", *extra]
         _spread("sim_data.dataset.generate", args, gpus, _logs(p, name), "rollouts")
@@ -132,8 +153,6 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
     elif stage == "train":
         done = train_members(name, extra, gpus, members)
     elif stage == "eval":
-        from experiments import evaluate
-
         untrained = [str(m) for m in d["members"] if not (m / "eval.json").exists()]
         if untrained:
             raise SystemExit(f"{', '.join(untrained)} not trained yet: run the train stage (make full STAGE=train) "
@@ -143,12 +162,41 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
         _spread("experiments.evaluate", args, gpus, _logs(p, name), "eval")
         evaluate.main(args)
     elif stage == "report":
-        from experiments import report
-
         report.main([str(d["eval"])])
-    print(f"== {name}: {stage} {'done' if done else 'to be continued'} in {time.perf_counter() - t0:.0f} s",
-          file=sys.stderr, flush=True)
+    wall = time.perf_counter() - t0
+    record_timing(d["eval"] / TIMING, {
+        "stage": stage, "done": done, "wall_s": round(wall, 3),
+        "compile_s": round(_compile["seconds"] - compiled["seconds"], 3),
+        "programs_compiled": _compile["programs"] - compiled["programs"],
+        "gpus": max(len(gpus), 1) if spread else 1, "device": device_name(), **stage_throughput(p, name, stage)})
+    print(f"== {name}: {stage} {'done' if done else 'to be continued'} in {wall:.0f} s "
+          f"({_compile['seconds'] - compiled['seconds']:.0f} s compiling in this process)", file=sys.stderr, flush=True)
     return done
+
+
+def record_timing(path: Path, row: dict) -> None:
+    """Appends one stage command's row to the timing table at path (a JSON list, rewritten atomically)."""
+    rows = json.loads(path.read_text()) if path.exists() else []
+    write_json_atomic(path, [*rows, row])
+
+
+def stage_throughput(p: Pipeline, name: str, stage: str) -> dict:
+    """What a stage produced, read from its outputs: a dataset's frames generated by this command and
+    their rate, the world models' training steps so far, the evaluation's episodes."""
+    d = p.dirs(name)
+    if stage in ("data", "rollouts"):
+        stats = d["data" if stage == "data" else "wm_data"] / "stats.json"
+        if not stats.exists():
+            return {}
+        t = json.loads(stats.read_text())["throughput"]
+        return {k: t.get(k) for k in ("frames_generated", "frames_per_s", "simulate_s", "cache_frames")}
+    if stage == "train":
+        status = [d_ / "train_status.json" for d_ in d["members"]]
+        return {"train_steps": [json.loads(s.read_text())["step"] if s.exists() else None for s in status]}
+    if stage == "eval" and (d["eval"] / "results.json").exists():
+        timing = json.loads((d["eval"] / "results.json").read_text())["timing"]
+        return {"episodes": sum(t["episodes"] for t in timing.values())}
+    return {}
 
 
 def train_members(name: str, extra=(), gpus=(), members: int | None = None) -> bool:
@@ -166,8 +214,6 @@ def train_members(name: str, extra=(), gpus=(), members: int | None = None) -> b
     if len(gpus) > 1:
         run_parallel([module_command("wm.train", c) for c in commands], gpus, _logs(p, name), "train-member")
     else:
-        from wm import train
-
         print(f"member {todo[0][0]} of {p.members}: {todo[0][1]}", file=sys.stderr)
         train.main(commands[0])
     left = [str(m) for m in d["members"] if not (m / "eval.json").exists()]
@@ -182,8 +228,6 @@ def use_compilation_cache(root: str) -> str:
     says), for this process and the stages' child processes: a stage run again, a later stage and
     the other GPUs' parts load what one process compiled. Returns the directory."""
     path = os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(Path(root).absolute() / "jax_cache"))
-    import jax
-
     jax.config.update("jax_compilation_cache_dir", path)
     return path
 

@@ -401,6 +401,24 @@ def _selection_md(res: dict) -> str:
     return _selection_summary(sel) + ("\n\n" + _md_table(selection_table(sel)) if sel["n"] else "")
 
 
+TIMING_COLUMNS = (("stage", "stage"), ("wall_s", "wall s"), ("compile_s", "compiling s"),
+                  ("programs_compiled", "programs compiled"), ("frames_generated", "frames"),
+                  ("frames_per_s", "frames/s"), ("train_steps", "training steps"), ("episodes", "episodes"),
+                  ("gpus", "GPUs"), ("device", "device"))
+
+
+def timing_table(rows: list[dict]) -> list[list[str]]:
+    """The pipeline's timing.json (experiments.pipeline): one row per stage command, and the total."""
+    def cell(v):
+        return "-" if v is None else _fmt(v, 1) if isinstance(v, float) else str(v)
+
+    out = [[label for _, label in TIMING_COLUMNS]]
+    out += [[cell(r.get(k)) for k, _ in TIMING_COLUMNS] for r in rows]
+    out.append(["total", cell(sum(r["wall_s"] for r in rows)), cell(sum(r["compile_s"] for r in rows)),
+                *["" for _ in TIMING_COLUMNS[3:]]])
+    return out
+
+
 def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
     """(HTML, Markdown) of the evaluation in run, with a section per sweep under `sweeps` if given."""
     res = json.loads((run / "results.json").read_text())
@@ -466,6 +484,10 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
     if sweeps is not None and not sweep_html:
         raise FileNotFoundError(f"{sweeps} holds no sweep results (make sweep OUT=...)")
     h += sweep_html
+    timing = json.loads((run / "timing.json").read_text()) if (run / "timing.json").exists() else []
+    if timing:
+        h += ["<h2>Pipeline timing</h2>", "<p>Per stage command: wall seconds and the seconds spent compiling "
+              "(counted in the pipeline's own process).</p>", _html_table(timing_table(timing))]
     h += ["<h2>Configuration and versions</h2>", f"<pre>{html.escape(json.dumps(res['config'], indent=1))}</pre>",
           f"<pre>{html.escape(json.dumps(res['versions'], indent=1))}</pre>",
           f"<pre>{html.escape(json.dumps(res['timing'], indent=1))}</pre>", "</body></html>"]
@@ -488,6 +510,8 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
         md += ["## Verdicts", ""] + [
             f"- {v['task']}, {v['comparison']}: the world model prefers {v['world_model_prefers']}, truly better is "
             f"{v['truly_better']} ({'agree' if v['agree'] else 'disagree'})" for v in verd] + [""]
+    if timing:
+        md += ["## Pipeline timing", "", _md_table(timing_table(timing)), ""]
     return "\n".join(h), "\n".join(md + sweep_md)
 
 

@@ -91,3 +91,31 @@ def test_the_pipeline_shares_one_compilation_cache_with_its_child_processes(tmp_
     assert os.environ["JAX_COMPILATION_CACHE_DIR"] == path  # inherited by the stages' processes
     monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", "/elsewhere")
     assert P.use_compilation_cache(str(tmp_path)) == "/elsewhere"
+
+
+def test_each_stage_command_appends_its_wall_and_compile_seconds_to_the_timing_table(tiny, monkeypatch):
+    import jax.numpy as jnp
+    import wm.train
+
+    from experiments.report import timing_table
+
+    calls, d = tiny
+
+    def compiling_train(argv):  # compiles one new program, then leaves what a finished training leaves
+        jax.jit(lambda x: jnp.tanh(x) * len(calls))(jnp.ones(3)).block_until_ready()
+        calls.append(argv)
+        out = d["members"][len(calls) - 1]
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "eval.json").write_text("{}")
+        (out / "train_status.json").write_text(json.dumps({"step": 7, "steps": 7, "cut_short": False}))
+
+    monkeypatch.setattr(wm.train, "main", compiling_train)
+    P.run_stage("tiny", "train")
+    P.run_stage("tiny", "train")
+    rows = json.loads((d["eval"] / P.TIMING).read_text())
+    assert [r["stage"] for r in rows] == ["train", "train"] and [r["done"] for r in rows] == [False, False]
+    assert all(r["programs_compiled"] >= 1 and 0 < r["compile_s"] <= r["wall_s"] for r in rows)
+    assert rows[1]["train_steps"] == [7, 7, None]
+    table = timing_table(rows)
+    assert table[-1][:3] == ["total", f"{rows[0]['wall_s'] + rows[1]['wall_s']:.1f}",
+                             f"{rows[0]['compile_s'] + rows[1]['compile_s']:.1f}"]
