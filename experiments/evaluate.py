@@ -476,19 +476,31 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
     if not tasks:
         raise ValueError("no task to evaluate: the policies are all plug-ins; name tasks=...")
     models = load_models(cfg.wm_runs)
-    wm_cfg, wm_params, norm, judge = models[0]
-    datas = [str(load_run_config(Path(run))[1]) for run in cfg.wm_runs]
-    wm_data = datas[0]  # the first model's data says which tasks and policies the world model saw
+    wm_data = str(load_run_config(Path(cfg.wm_runs[0]))[1])  # the first model's data: the tasks and policies it saw
     wm_cache = TrainingCache(wm_data) if (Path(wm_data) / "cache" / "index.json").exists() else None
-    wm_tasks = wm_cache.tasks if wm_cache is not None else tasks
-    unseen = [t for t in tasks if t not in wm_tasks]
+    unseen = [t for t in tasks if wm_cache is not None and t not in wm_cache.tasks]
     if unseen:
         print(f"warning: the world model never saw tasks {unseen} in training", file=sys.stderr)
     zoo_data = {s.record.get("data") for s in sources} - {None}
     # held out from every model's data (a bundle's copy of its seeds where the data is elsewhere)
-    used = used_seeds(*zoo_data).union(*(training_seeds(Path(run)) for run in cfg.wm_runs))
+    used = used_seeds(*zoo_data).union(*(training_seeds(Path(r)) for r in cfg.wm_runs))
     engine = cfg.engine or default_engine()
-    results, by_name = {}, {s.name: s for s in sources}
+    results = evaluate_tasks(cfg, out, tasks, sources, models, used, engine, progress, part, partial)
+    if results is None:
+        return None
+    if not results:
+        raise ValueError(f"{out}: no task is finished yet ({', '.join(tasks)}); run without --partial")
+    report = gather(cfg, out, tasks, results, sources, models, wm_data, wm_cache, engine, preset)
+    write_json_atomic(out / "results.json", no_nan(report))
+    return report
+
+
+def evaluate_tasks(cfg: EvalConfig, out: Path, tasks, sources, models, used: set, engine: str, progress: bool,
+                   part: tuple[int, int] | None, partial: bool) -> dict | None:
+    """{task: results (evaluate_task)} of every task evaluated, read back from out/tasks where a
+    run before evaluated it (or its parts did, merged here); None for a part, or when cfg.max_minutes
+    stops before a task (see run)."""
+    results = {}
     by_task = {t: [s for s in sources if s.runs_on(t)] for t in tasks}
     if part is not None:  # every task's batches spread over the parts, the largest first
         sizes = {(t, k): len(padded) * cfg.episodes for t in tasks
@@ -520,12 +532,17 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
         res["seeds"] = seeds
         _save_task(path, res)
         results[task] = _load_task(path)
-    if part is not None:
-        return None
+    return None if part is not None else results
+
+
+def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, models, wm_data: str, wm_cache, engine: str,
+           preset: str) -> dict:
+    """results.json's contents from the finished tasks' results (the others listed as missing), and
+    out/videos.npz."""
+    train_tasks = wm_cache.tasks if wm_cache is not None else list(tasks)
     missing = [t for t in tasks if t not in results]
-    if not results:
-        raise ValueError(f"{out}: no task is finished yet ({', '.join(missing)}); run without --partial")
     tasks = [t for t in tasks if t in results]
+    by_name = {s.name: s for s in sources}
     rows = [r for task in tasks for r in policy_rows(cfg, task, results[task], by_name)]
     # the policies whose own rollouts the world model never saw in training
     seen = {e["policy"].split(":", 1)[1] for e in (wm_cache.episodes if wm_cache is not None else ())
@@ -534,13 +551,15 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
         r["in_wm_data"] = r["name"] in seen
     metrics = all_metrics(cfg, results, tasks, rows, seen)
     training = [training_status(Path(r)) for r in cfg.wm_runs]
+    wm_cfg, wm_params, norm, judge = models[0]
     panel = program_panel(wm_cfg, wm_params, norm, wm_cache, horizon=48) if wm_cache is not None else {}
     _write_videos(out, results, tasks, panel)
-    report = {
+    return {
         "config": json.loads(json.dumps(dataclasses.asdict(cfg))), "preset": preset, "engine": engine,
         "device": device_name(),
         "versions": package_versions(("jax", "flax", "optax", "orbax-checkpoint", "mujoco", "mujoco-mjx", "numpy")),
-        "world_model": {"run": cfg.wm, "runs": list(cfg.wm_runs), "data": wm_data, "train_tasks": wm_tasks,
+        "world_model": {"run": cfg.wm, "runs": list(cfg.wm_runs), "data": wm_data,
+                        "train_tasks": train_tasks,
                         "training": training, "cut_short": any(t["cut_short"] for t in training),
                         "rule": {t: "episode judge" if judge is not None and judge.knows(t)
                                  else "highest per-step probability" for t in tasks}},
@@ -552,8 +571,6 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
         "timing": {t: {"simulate_s": results[t]["sim_s"], "imagine_s": results[t]["wm_s"],
                        "episodes": int(results[t]["true"].size), "steps": results[t]["steps"]} for t in tasks},
     }
-    write_json_atomic(out / "results.json", no_nan(report))
-    return report
 
 
 def all_metrics(cfg: EvalConfig, results: dict, tasks, rows: list[dict], seen: set) -> dict:
