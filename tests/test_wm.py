@@ -238,9 +238,12 @@ def test_observed_features_read_the_true_episode_as_exact_imagination_would(mode
     params, frames, proprio, action = model_and_inputs
     norm = I.Norm(jnp.full(37, 0.1), jnp.full(37, 2.0), jnp.full(20, -0.2), jnp.full(20, 0.5))
     m = WorldModel(CFG)
-    x = np.asarray(I.observed_features(CFG, params, norm, frames, proprio, action[:, :5]))
-    assert x.shape == (2, 5, I.feature_dim(CFG))
-    for t in (0, 1, 4):  # one frame of context, two, and a full context of 4 with the oldest dropped
+    t_max = I.SEGMENT + 3  # two compiled segments, the second padded
+    frames, proprio, action = (np.concatenate([x] * 5, axis=1)[:, :t_max + 1] for x in (frames, proprio, action))
+    x = np.asarray(I.observed_features(CFG, params, norm, frames, proprio, action[:, :t_max]))
+    assert x.shape == (2, t_max, I.feature_dim(CFG))
+    # one frame of context, two, a full context of 4 with the oldest dropped, across the segments' seam
+    for t in (0, 1, 4, I.SEGMENT - 1, I.SEGMENT, t_max - 1):
         c0 = max(0, t + 1 - CFG.context)
         st = I.init_state(CFG, params, norm, frames[:, c0:t + 1], proprio[:, c0:t + 1], action[:, c0:t])
         st = I.step(CFG, params, norm, st, action[:, t])
@@ -323,6 +326,14 @@ def test_closed_loop_with_a_policy(model_and_inputs):
                         proprio[:, :2], action[:, :1], jax.random.PRNGKey(0))
     assert got["frames"].shape == (2, 5, 64, 64, 3) and got["proprio"].shape == (2, 5, 37)
     np.testing.assert_allclose(got["action"], 0.3)
+    # across compiled segments: the same steps as one open-loop scan under the same actions
+    h = I.SEGMENT + 2
+    longer = I.closed_loop(CFG, HoldStill(), h, params, norm, {"action": jnp.full((20,), 0.3)}, frames[:, :2],
+                           proprio[:, :2], action[:, :1], jax.random.PRNGKey(0))
+    scan = I.open_loop(CFG, params, norm, frames[:, :2], proprio[:, :2], action[:, :1], jnp.full((2, h, 20), 0.3))
+    assert longer["frames"].shape[1] == h
+    for k in ("frames", "success", "features"):
+        np.testing.assert_allclose(np.asarray(longer[k], np.float32), np.asarray(scan[k], np.float32), atol=1e-4)
 
 
 def test_loss_falls_on_a_tiny_dataset(smoke_dataset, tmp_path):

@@ -169,20 +169,38 @@ def open_loop(cfg: ModelConfig, params, norm: Norm, frames, proprio, context_act
     return {"frames": sw(f), "proprio": sw(p), "success": s.T, "outcome": o.T, "features": sw(x)}
 
 
-@functools.partial(jax.jit, static_argnums=(0, 1, 2))
+SEGMENT = 20  # imagined steps per compiled call: one program serves every horizon
+
+
 def closed_loop(cfg: ModelConfig, policy, horizon: int, params, norm: Norm, policy_params, frames, proprio,
                 context_actions, rng) -> dict:
     """A policy acting inside the world model for `horizon` steps from C context observations.
 
     The policy's carry starts from `policy.init_carry(policy_params, obs, None, rng)` on the last
-    context observation. Returns {"frames": (B, horizon, S, S, 3) uint8, "proprio": (B, horizon, 37),
-    "success": (B, horizon), "outcome": (B, horizon), "action": (B, horizon, 20), "features": (B, horizon, F)}.
+    context observation. The steps run in compiled segments of SEGMENT steps, so that horizons of
+    every task share one program (the last segment's surplus steps are dropped). Returns {"frames":
+    (B, horizon, S, S, 3) uint8, "proprio": (B, horizon, 37), "success": (B, horizon), "outcome":
+    (B, horizon), "action": (B, horizon, 20), "features": (B, horizon, F)}.
     """
+    carry, k_act = _closed_loop_start(cfg, policy, params, norm, policy_params, frames, proprio, context_actions, rng)
+    parts = []
+    for t0 in range(0, horizon, SEGMENT):
+        carry, got = _closed_loop_segment(cfg, policy, params, norm, policy_params, carry, k_act, t0)
+        parts.append(got)
+    return {k: jnp.concatenate([p[k] for p in parts], axis=1)[:, :horizon] for k in parts[0]}
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _closed_loop_start(cfg: ModelConfig, policy, params, norm: Norm, policy_params, frames, proprio, context_actions,
+                       rng):
     state = init_state(cfg, params, norm, frames, proprio, context_actions)
     k_init, k_act = jax.random.split(rng)
     obs = {"image": frames[:, -1], "proprio": proprio[:, -1]}
-    carry = policy.init_carry(policy_params, obs, None, k_init)
+    return (state, obs, policy.init_carry(policy_params, obs, None, k_init)), k_act
 
+
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _closed_loop_segment(cfg: ModelConfig, policy, params, norm: Norm, policy_params, carry, k_act, t0):
     def body(c, t):
         st, ob, pc = c
         action, pc = policy.act(policy_params, ob, pc, jax.random.fold_in(k_act, t))
@@ -191,24 +209,46 @@ def closed_loop(cfg: ModelConfig, policy, horizon: int, params, norm: Norm, poli
         return (st, ob, pc), (ob["image"], ob["proprio"], st.success, st.outcome, action,
                               step_features(norm, st, action))
 
-    _, (f, p, s, o, a, x) = jax.lax.scan(body, (state, obs, carry), jnp.arange(horizon))
+    carry, (f, p, s, o, a, x) = jax.lax.scan(body, carry, t0 + jnp.arange(SEGMENT))
     sw = functools.partial(jnp.swapaxes, axis1=0, axis2=1)
-    return {"frames": sw(f), "proprio": sw(p), "success": s.T, "outcome": o.T, "action": sw(a), "features": sw(x)}
+    return carry, {"frames": sw(f), "proprio": sw(p), "success": s.T, "outcome": o.T, "action": sw(a),
+                   "features": sw(x)}
 
 
-@functools.partial(jax.jit, static_argnums=(0,))
 def observed_features(cfg: ModelConfig, params, norm: Norm, frames, proprio, actions) -> jax.Array:
     """The episode judge's features of a true episode: what step_features would read had the world
     model imagined every frame exactly. frames (B, T+1, S, S, 3) uint8, proprio (B, T+1, 37), actions
     (B, T, 20) -> (B, T, F): for step t, the true proprioception and encoded frame t+1, action t, and
     the success and outcome heads' probabilities given the true context up to frame t and action t.
-    The judge's reading of these is an upper bound on what it can read from imagination."""
-    model = WorldModel(cfg)
-    b, t1 = frames.shape[:2]
-    z = jax.lax.map(lambda f: model.apply({"params": params}, f, method=WorldModel.encode),
-                    jnp.swapaxes(frames, 0, 1))  # (T+1, B, 8, 8, C), a frame at a time
-    p, a = jnp.swapaxes(norm.proprio(proprio), 0, 1), jnp.swapaxes(norm.action(actions), 0, 1)
+    The judge's reading of these is an upper bound on what it can read from imagination. Runs in
+    compiled segments of SEGMENT steps (the last one padded), so every episode length shares one program."""
+    b, t = actions.shape[:2]
     k = cfg.context
+    latent = jax.eval_shape(lambda f: WorldModel(cfg).apply({"params": params}, f, method=WorldModel.encode),
+                            jax.ShapeDtypeStruct((b,) + frames.shape[2:], frames.dtype))
+    buf = (jnp.zeros((b, k) + latent.shape[1:], latent.dtype), jnp.zeros((b, k, proprio.shape[-1])),
+           jnp.zeros((b, k, actions.shape[-1])), jnp.zeros((b, k), bool))
+    parts = []
+    for t0 in range(0, t, SEGMENT):
+        n = min(SEGMENT, t - t0)
+        pad = ((0, 0), (0, SEGMENT - n)) + ((0, 0),) * (frames.ndim - 2)
+        f = np.pad(np.asarray(frames[:, t0:t0 + n + 1]), pad, mode="edge")
+        p = np.pad(np.asarray(proprio[:, t0:t0 + n + 1]), pad[:3], mode="edge")
+        a = np.pad(np.asarray(actions[:, t0:t0 + n]), pad[:3])
+        buf, x = _observed_segment(cfg, params, norm, buf, f, p, a)
+        parts.append(x[:, :n])
+    return jnp.concatenate(parts, axis=1)
+
+
+@functools.partial(jax.jit, static_argnums=(0,))
+def _observed_segment(cfg: ModelConfig, params, norm: Norm, buf, frames, proprio, actions):
+    """SEGMENT steps of observed_features: frames (B, SEGMENT+1, ...), proprio (B, SEGMENT+1, 37),
+    actions (B, SEGMENT, 20); buf: the context buffers (latents, proprio, actions, valid) carried over."""
+    model = WorldModel(cfg)
+    b = frames.shape[0]
+    z = jax.lax.map(lambda f: model.apply({"params": params}, f, method=WorldModel.encode),
+                    jnp.swapaxes(frames, 0, 1))  # (SEGMENT+1, B, 8, 8, C), a frame at a time
+    p, a = jnp.swapaxes(norm.proprio(proprio), 0, 1), jnp.swapaxes(norm.action(actions), 0, 1)
 
     def push(buf, new):
         return jnp.concatenate([buf[:, 1:], new[:, None]], axis=1)
@@ -220,10 +260,8 @@ def observed_features(cfg: ModelConfig, params, norm: Norm, frames, proprio, act
                              jax.nn.sigmoid(out["outcome"][:, -1])[:, None]], axis=-1)
         return (zb, pb, ab, vb), x
 
-    buf = (jnp.zeros((b, k) + z.shape[2:], z.dtype), jnp.zeros((b, k, p.shape[-1])),
-           jnp.zeros((b, k, a.shape[-1])), jnp.zeros((b, k), bool))
-    _, x = jax.lax.scan(body, buf, jnp.arange(t1 - 1))
-    return jnp.swapaxes(x, 0, 1)
+    buf, x = jax.lax.scan(body, buf, jnp.arange(SEGMENT))
+    return buf, jnp.swapaxes(x, 0, 1)
 
 
 CHUNK = 64
