@@ -270,8 +270,9 @@ def _imagine(model, task, policy, params, frames0, proprio0, steps, rng) -> tupl
 
 def _judge_truth(model, task, truth: dict) -> np.ndarray:
     """One world model's judge (or per-step rule) applied to the simulated episodes themselves, as if
-    imagination were exact (wm.imagine.observed_features): (B,) float64, the upper bound of what the
-    judge reads from imagined episodes; NaN where the truth's frames are not at hand (read back from
+    imagination were exact (wm.imagine.observed_features): (B,) float64. Above the world model's own
+    figure, imagination loses what decides the outcome; below it, the judge (fit to imagined
+    episodes) reads true ones worse; NaN where the truth's frames are not at hand (read back from
     the truth cache)."""
     if "frames" not in truth:
         return np.full(len(truth["frames0"]), np.nan)
@@ -417,8 +418,8 @@ def within_task_block(results: dict, tasks, rows: list[dict], threshold: float, 
     """The within-task headline (experiments.stats.within_task) of the world model beside the
     imitation-loss proxy (minus each checkpoint's validation loss; policies without one, such as
     plug-ins, are left out of the proxy's statistics), and, where every task has it, the judge applied
-    to the simulated episodes themselves ("judge_on_truth", _judge_truth: the upper bound of what the
-    world model's judge can read), over the policies whose name `keep` accepts."""
+    to the simulated episodes themselves ("judge_on_truth", _judge_truth: what the judge reads where
+    imagination is exact), over the policies whose name `keep` accepts."""
     true, wm, proxy, observed = {}, {}, {}, {}
     for t in tasks:
         names = results[t]["names"]

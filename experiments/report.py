@@ -294,7 +294,7 @@ def verdict(res: dict) -> str:
             f"{' (' + ', '.join(behind) + ')' if behind else ''}.")
 
 
-UPPER = "judge on the true episodes (upper bound)"
+UPPER = "judge on the true episodes"
 
 
 def within_task_table(res: dict) -> list[list[str]]:

@@ -220,7 +220,7 @@ def observed_features(cfg: ModelConfig, params, norm: Norm, frames, proprio, act
     model imagined every frame exactly. frames (B, T+1, S, S, 3) uint8, proprio (B, T+1, 37), actions
     (B, T, 20) -> (B, T, F): for step t, the true proprioception and encoded frame t+1, action t, and
     the success and outcome heads' probabilities given the true context up to frame t and action t.
-    The judge's reading of these is an upper bound on what it can read from imagination. Runs in
+    The judge's reading of these is what it would read were imagination exact. Runs in
     compiled segments of SEGMENT steps (the last one padded), so every episode length shares one program."""
     b, t = actions.shape[:2]
     k = cfg.context
