@@ -14,7 +14,7 @@ import pytest
 from sim_data.policies.scripted import ScriptedPolicy
 from sim_data.sim import robot as R
 from sim_data.sim.env import HomeEnv
-from sim_data.sim.rollout import run_episodes
+from sim_data.sim.rollout import SEGMENT, _scan_segment, run_episodes
 from sim_data.sim.tasks import PHYSICS_SUBSTEPS, TASK_NAMES
 
 PARITY_TOL = 2e-3
@@ -74,6 +74,20 @@ def test_closed_loop_success_flags_agree(task):
     a, _ = run_episodes(cpu, pol, params, rng)
     m, _ = run_episodes(mj, pol, params, rng)
     np.testing.assert_array_equal(np.asarray(a.success), np.asarray(m.success))
+
+
+@pytest.mark.slow
+def test_mjx_rollout_compiles_once_for_every_task():
+    """One compiled segment of SEGMENT control steps runs the episodes of tasks of any length."""
+    pol = ScriptedPolicy.create()
+    params, rng = {"skill": jnp.ones(1)}, jax.random.PRNGKey(2)
+    compiled = _scan_segment._cache_size()
+    for task in ("step_back", "mug"):
+        env = HomeEnv(task, 1, engine="mjx")
+        state, traj = run_episodes(env, pol, params, rng, record=True)
+        assert traj.success.shape == (1, env.episode_steps) and env.episode_steps % SEGMENT == 0
+        assert np.asarray(state.done).all() and np.asarray(state.success).all(), task
+    assert _scan_segment._cache_size() == compiled + 1
 
 
 def test_unknown_engine_is_a_clear_error():

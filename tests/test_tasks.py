@@ -1,13 +1,18 @@
-"""Samplers and success predicates on hand-built states."""
+"""Samplers and success predicates on hand-built states; the task as data in one compiled program."""
+
+import contextlib
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from jax._src.dispatch import BACKEND_COMPILE_EVENT
 
+from sim_data.policies.scripted import ScriptedPolicy
 from sim_data.sim import scene as S
 from sim_data.sim import tasks as T
 from sim_data.sim.env import HomeEnv
+from sim_data.sim.rollout import _jitted_act, _jitted_init, run_episodes
 
 
 def initial(task, seed=0, batch=1, heldout=False):
@@ -17,7 +22,7 @@ def initial(task, seed=0, batch=1, heldout=False):
 
 def update(env, st, qpos, qvel=None):
     qvel = jnp.zeros_like(st.qvel) if qvel is None else qvel
-    return T.update_task(env.task, st.task, jnp.asarray(qpos), qvel, st.mocap_pos, env.idx)
+    return T.update_task(st.task, jnp.asarray(qpos), qvel, st.mocap_pos, env.idx)
 
 
 def test_sampler_is_deterministic_and_in_range():
@@ -158,3 +163,61 @@ def test_step_back_distance_and_hits():
 def test_unknown_task_is_a_clear_error():
     with pytest.raises(ValueError, match="unknown task 'dance'.*mug"):
         HomeEnv("dance", 1, engine="cpu")
+
+
+@contextlib.contextmanager
+def counted_compiles():
+    """Yields a list that collects the duration of every XLA compilation made inside the block."""
+    got = []
+
+    def listener(event, duration, **_):
+        if event == BACKEND_COMPILE_EVENT:
+            got.append(duration)
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        yield got
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+
+
+def test_every_task_gets_its_own_station_plant_and_stool_from_its_id():
+    for name in T.TASK_NAMES:
+        env, st = initial(name, heldout=True)
+        assert int(st.task.task_id[0]) == T.TASKS[name].id == T.TASK_NAMES.index(name)
+        assert abs(float(st.qpos[0, env.idx.robot.base_qpos[1]]) - T.TASKS[name].station_y) <= 0.03 + 1e-6
+        np.testing.assert_allclose(np.asarray(st.mocap_pos[0, env.idx.plant_mocap, :2]), T.TASKS[name].plant_xy)
+        stool = np.asarray(st.mocap_pos[0, env.idx.stool_mocap])
+        assert (stool[2] == 0.0) == (name == "step_back"), name  # on the floor behind the robot, else hidden
+
+
+def mug_rule(qpos, idx):
+    """(B, T) success of the mug from its rule alone: lifted 8 cm for 10 control steps, latched."""
+    lifted = np.asarray(T.mug_lifted(qpos, idx))
+    run = np.zeros(lifted.shape, int)
+    for t in range(lifted.shape[1]):
+        run[:, t] = (run[:, t - 1] + 1 if t else 1) * lifted[:, t]
+    return np.maximum.accumulate(run >= 10, axis=1)
+
+
+def test_one_compiled_episode_serves_every_task_and_keeps_each_tasks_rules():
+    """Envs of two tasks share one core; a scripted episode of the second task compiles nothing
+    new, and each task's success flags follow its own rule."""
+    envs = {name: HomeEnv(name, 2, engine="cpu") for name in ("step_back", "mug")}
+    assert envs["mug"].core is envs["step_back"].core
+    policies = {name: ScriptedPolicy.create(name, env.model) for name, env in envs.items()}
+    assert policies["mug"] == policies["step_back"] and hash(policies["mug"]) == hash(policies["step_back"])
+    params, rng = {"skill": jnp.ones(2)}, jax.random.PRNGKey(5)
+    back, traj_back = run_episodes(envs["step_back"], policies["step_back"], params, rng, record=True)
+    with counted_compiles() as compiles:
+        mug, traj_mug = run_episodes(envs["mug"], policies["mug"], params, rng, record=True)
+    assert compiles == [], f"{len(compiles)} compilations for the second task"
+    core = envs["mug"].core
+    for jitted in (core._sample, core._pre, core._post, _jitted_init(policies["mug"]), _jitted_act(policies["mug"])):
+        assert jitted._cache_size() == 1
+    assert traj_mug.success.shape == (2, T.TASKS["mug"].episode_steps) and np.asarray(mug.done).all()
+    assert traj_back.success.shape == (2, T.TASKS["step_back"].episode_steps) and np.asarray(back.done).all()
+    np.testing.assert_array_equal(np.asarray(traj_mug.success), mug_rule(traj_mug.qpos, core.idx))
+    d = np.asarray(T.backward_distance(back.task, traj_back.qpos[:, -1], core.idx))
+    assert np.asarray(back.success).all() and np.all((d >= T.STEP_BACK_BAND[0]) & (d <= T.STEP_BACK_BAND[1]))
+    assert np.asarray(mug.success).all()

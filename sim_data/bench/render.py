@@ -147,7 +147,7 @@ def bench_e2e(batch: int, size: int = 64, steps: int = 100, task: str = "mug") -
         def body(s, _):
             image = r.render_batch(env.poses(s), rgb)["rgb"]
             action = ready + 0.1 * net.apply(params, image, s.obs["proprio"])
-            return env._mjx_step(s, action), jnp.mean(image)
+            return env.core.mjx_step(s, action), jnp.mean(image)
         return jax.lax.scan(body, state, None, length=steps)
 
     t0 = time.perf_counter()

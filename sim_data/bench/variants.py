@@ -146,7 +146,7 @@ def bench_xml(xml: str, batch: int, nsteps: int = 100, stages: bool = False) -> 
     base = S.load_model()
     idx = S.scene_index(base)
     keys = jax.random.split(jax.random.PRNGKey(0), batch)
-    sample = jax.vmap(lambda k: sample_initial(TASKS["mug"], k, idx, base.qpos0, S.default_mocap_pos(base), False))
+    sample = jax.vmap(lambda k: sample_initial(TASKS["mug"].id, k, idx, base.qpos0, S.default_mocap_pos(base), False))
     qpos, mocap, _ = jax.jit(sample)(keys)
     engine = MjxEngine(m, batch)
     physics = jax.jit(engine.init)(_carry_qpos(qpos, base, m), mocap)

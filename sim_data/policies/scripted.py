@@ -7,7 +7,9 @@ Every policy follows the project's protocol, batched and jittable:
     action, carry = policy.act(params, obs, carry, rng)
 
 with `params = {"skill": (B,) float}` for the scripted policies. Scripted policies read
-privileged simulator state (`obs["qpos"]`, `obs["time"]`).
+privileged simulator state (`obs["qpos"]`, `obs["time"]`) and each episode's task from its task
+state at reset (`TaskState.task_id`), so one ScriptedPolicy (and one compiled rollout) serves every
+task.
 
 How skill degrades a policy (u = 1 - skill, drawn once per episode from the policy's rng):
 - noisy perception: object positions off by N(0, (0.05 u)^2) per horizontal axis, yaw by
@@ -24,6 +26,7 @@ How skill degrades a policy (u = 1 - skill, drawn once per episode from the poli
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -51,6 +54,7 @@ class ScriptCarry:
       closure: (B, K) right-hand closure at each keyframe.
       release_at: (B,) time after which the hand opens (inf: never).
       drive: (B, 2) step_back: target distance, yaw-rate bias.
+      task_id: (B,) int32, the episode's task (`sim_data.sim.tasks.TaskState.task_id`).
     """
 
     q_cmd: jax.Array
@@ -60,10 +64,15 @@ class ScriptCarry:
     closure: jax.Array
     release_at: jax.Array
     drive: jax.Array
+    task_id: jax.Array
 
 
 class Kinematics:
-    """Site poses and Jacobians of the two grip sites from qpos, with MJX's kinematics."""
+    """Site poses and Jacobians of the two grip sites from qpos, with MJX's kinematics.
+
+    Hashed by identity: `kinematics(model)` gives one per model, so that policies built on it
+    compare equal and share their compiled programs.
+    """
 
     def __init__(self, model):
         self._mjx = mjx
@@ -83,6 +92,12 @@ class Kinematics:
         jacp, jacr = mjx.jac(self.mx, d, p, int(self.idx.hand_body[side]))
         dofs = self.idx.robot.arm_qvel[7 * side : 7 * side + 7]
         return p, rot, jnp.concatenate([jacp[dofs].T, jacr[dofs].T], axis=0)
+
+
+@functools.lru_cache(maxsize=8)
+def kinematics(model) -> Kinematics:
+    """The Kinematics of model, one per model object."""
+    return Kinematics(model)
 
 
 def _yaw_down(yaw):
@@ -132,10 +147,17 @@ def _pinch_yaw(obj_yaw):
     return jnp.mod(obj_yaw + jnp.pi / 4, jnp.pi / 2) - jnp.pi / 4
 
 
+# keyframes of the longest script (wipe); a shorter one is led by copies of its first keyframe: they
+# share its time 0, from which keyframe_target interpolates past the last of them, so the script
+# plays exactly as unpadded, and every task's carry has one shape
+MAX_KEYFRAMES = 11
+
+
 def _script(task: str, qpos, ts: T.TaskState, noise, idx: S.SceneIndex, hand0):
     """Keyframes of one task's script for one episode.
 
     Args:
+      task: a task name with a script (not step_back, which drives instead).
       qpos: (nq,) state at reset; ts: unbatched TaskState; noise: dict of this episode's
         perception and grasp errors; hand0: (3,) right grip at reset.
     Returns:
@@ -213,6 +235,7 @@ def _script(task: str, qpos, ts: T.TaskState, noise, idx: S.SceneIndex, hand0):
         transport = (jnp.inf, jnp.inf)
     else:
         raise ValueError(f"no script for task {task!r}")
+    keys = [keys[0]] * (MAX_KEYFRAMES - len(keys)) + keys
     times = jnp.array([k[0] for k in keys]) * noise["stretch"]
     pos = jnp.stack([jnp.asarray(k[1], jnp.float32) for k in keys])
     yaw = jnp.stack([jnp.asarray(k[2], jnp.float32) for k in keys])
@@ -223,20 +246,22 @@ def _script(task: str, qpos, ts: T.TaskState, noise, idx: S.SceneIndex, hand0):
 
 @dataclasses.dataclass(frozen=True)
 class ScriptedPolicy:
-    """The scripted policy of one task, with the skill knob described in the module doc.
+    """The scripted policies of every task, with the skill knob described in the module doc; each
+    episode plays the script of its own task (its TaskState.task_id at reset).
 
     Args:
-      task: a task name.
-      model: the compiled home scene (`sim_data.sim.scene.load_model()`).
+      kin: the Kinematics of the home scene (`kinematics(model)`).
     """
 
-    task: str
     kin: Kinematics
 
     @classmethod
-    def create(cls, task: str, model=None):
-        T.get_task(task)
-        return cls(task, Kinematics(model if model is not None else S.load_model()))
+    def create(cls, task: str | None = None, model=None):
+        """The policy over model (default: `sim_data.sim.scene.load_model()`). task, if given, is only
+        checked to be a task's name: the policy plays every task, each episode its own."""
+        if task is not None:
+            T.get_task(task)
+        return cls(kinematics(model if model is not None else S.load_model()))
 
     def _noise(self, rng, skill):
         u = 1.0 - jnp.clip(skill, 0.0, 1.0)
@@ -258,48 +283,68 @@ class ScriptedPolicy:
             "yaw_bias": 0.6 * u * n(jax.random.fold_in(rng, 2)),
         }
 
+    def _plan(self, task_id, qpos, ts, noise, hand0):
+        """Keyframes (times (K,), pos (K, 3), yaw (K,), closure (K,)) and the transport phase (t0, t1)
+        of the script of task task_id (() int32); K = MAX_KEYFRAMES. Every task's script is planned
+        and the episode's own selected (it compiles faster than a lax.switch, which vmap turns into
+        the same selection)."""
+        def plan(name):
+            if name == "step_back":  # drives: the hand stays where it is
+                still = jnp.zeros(MAX_KEYFRAMES)
+                inf = jnp.float32(jnp.inf)
+                return still, jnp.broadcast_to(hand0, (MAX_KEYFRAMES, 3)), still, still, (inf, inf)
+            return _script(name, qpos, ts, noise, self.kin.idx, hand0)
+
+        return T.select_task(task_id, [plan(name) for name in T.TASK_NAMES])
+
     def _init_one(self, skill, qpos, ts, rng):
         idx = self.kin.idx
         noise = self._noise(rng, skill)
         q_cmd = qpos[idx.robot.arm_qpos]
         hand0, _, _ = self.kin.grip(qpos, 1)
-        if self.task == "step_back":
-            times, pos, yaw, closure = jnp.zeros(2), jnp.stack([hand0, hand0]), jnp.zeros(2), jnp.zeros(2)
-            t0, t1 = jnp.inf, jnp.inf
-        else:
-            times, pos, yaw, closure, (t0, t1) = _script(self.task, qpos, ts, noise, idx, hand0)
+        times, pos, yaw, closure, (t0, t1) = self._plan(ts.task_id, qpos, ts, noise, hand0)
         release_at = jnp.where(noise["release"], t0 + (t1 - t0) * noise["release_frac"], jnp.inf)
         drive = jnp.stack([noise["distance"], noise["yaw_bias"]])
-        return ScriptCarry(q_cmd=q_cmd, times=times, pos=pos, yaw=yaw, closure=closure, release_at=release_at, drive=drive)
+        return ScriptCarry(q_cmd=q_cmd, times=times, pos=pos, yaw=yaw, closure=closure, release_at=release_at,
+                           drive=drive, task_id=ts.task_id)
 
     def init_carry(self, params, obs, task_state, rng):
         """Draws each episode's imperfections and plans its keyframes.
 
         Args:
           params: {"skill": (B,)}; obs: the environment's observation at reset; task_state: the
-            env's TaskState at reset (cue order, patch); rng: one PRNG key.
+            env's TaskState at reset (task, cue order, patch); rng: one PRNG key.
         """
         b = obs["qpos"].shape[0]
         keys = jax.random.split(rng, b)
         return jax.vmap(self._init_one)(params["skill"], obs["qpos"], task_state, keys)
 
-    def _act_one(self, qpos, t, c: ScriptCarry):
-        action = jnp.zeros(R.ACTION_DIM)
-        action = action.at[R.NECK].set(jnp.array([0.0, S.READY_NECK_PITCH]))
-        if self.task == "step_back":
-            dist, bias = c.drive[0], c.drive[1]
-            speed = jnp.where(t < jnp.abs(dist) / 0.3, -0.3 * jnp.sign(dist), 0.0)
-            w = jnp.where(speed != 0.0, bias, 0.0)
-            action = action.at[R.FORWARD_SPEED].set(speed).at[R.YAW_RATE].set(w)
-            return action.at[R.ARMS].set(c.q_cmd), c
+    @staticmethod
+    def _drive_action(t, c: ScriptCarry, action):
+        """step_back: drive back the episode's distance at 0.3 m/s, arms held."""
+        dist, bias = c.drive[0], c.drive[1]
+        speed = jnp.where(t < jnp.abs(dist) / 0.3, -0.3 * jnp.sign(dist), 0.0)
+        w = jnp.where(speed != 0.0, bias, 0.0)
+        action = action.at[R.FORWARD_SPEED].set(speed).at[R.YAW_RATE].set(w)
+        return action.at[R.ARMS].set(c.q_cmd)
+
+    def _reach_action(self, qpos, t, c: ScriptCarry, action):
+        """The scripted tasks: the right hand follows the keyframes through IK. Returns (action, q_cmd (14,))."""
         target, yaw, closure = keyframe_target(t, c.times, c.pos, c.yaw, c.closure)
         closure = jnp.where(t >= c.release_at, 0.0, closure)
         q_right = c.q_cmd[7:]
         for _ in range(IK_ITERS):
             q_right = ik_step(self.kin, qpos, q_right, target, yaw, side=1)
         q_cmd = c.q_cmd.at[7:].set(q_right)
-        action = action.at[R.ARMS].set(q_cmd).at[R.RIGHT_HAND].set(closure)
-        return action, c.replace(q_cmd=q_cmd)
+        return action.at[R.ARMS].set(q_cmd).at[R.RIGHT_HAND].set(closure), q_cmd
+
+    def _act_one(self, qpos, t, c: ScriptCarry):
+        action = jnp.zeros(R.ACTION_DIM)
+        action = action.at[R.NECK].set(jnp.array([0.0, S.READY_NECK_PITCH]))
+        reach, q_cmd = self._reach_action(qpos, t, c, action)
+        driving = c.task_id == T.TASK_NAMES.index("step_back")
+        action = jnp.where(driving, self._drive_action(t, c, action), reach)
+        return action, c.replace(q_cmd=jnp.where(driving, c.q_cmd, q_cmd))
 
     def act(self, params, obs, carry, rng):
         """Batched actions (B, 20) and the updated carry, from privileged observations."""
@@ -428,7 +473,8 @@ class ProgramPolicy:
     row t of its episode's program at control step t (the last row after the end).
 
     params: {"table": (B, num_steps, 20)}, e.g. `program_params(names, num_steps)`; one compiled
-    rollout serves every program.
+    rollout serves every program, and, with the tables padded to one length (`pad_programs`, e.g.
+    to `sim_data.sim.tasks.MAX_EPISODE_STEPS`), every task.
     """
 
     num_steps: int
@@ -447,3 +493,14 @@ class ProgramPolicy:
 def program_params(names, num_steps: int) -> dict:
     """ProgramPolicy parameters for one episode per program name."""
     return {"table": np.stack([action_program(n, num_steps) for n in names])}
+
+
+def pad_programs(params: dict, rows: int) -> dict:
+    """ProgramPolicy parameters with each table (B, n, 20) lengthened to (B, rows, 20) by repeating
+    its last row, which the policy plays after the end anyway: episodes of any length up to `rows`
+    then share one compiled rollout (`ProgramPolicy(rows)`)."""
+    table = np.asarray(params["table"])
+    if table.shape[1] > rows:
+        raise ValueError(f"a program of {table.shape[1]} steps does not fit {rows} rows")
+    tail = np.repeat(table[:, -1:], rows - table.shape[1], axis=1)
+    return {**params, "table": np.concatenate([table, tail], axis=1)}

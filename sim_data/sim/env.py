@@ -5,10 +5,15 @@ One control step (20 Hz) is: actions -> actuator controls (shared JAX), `PHYSICS
 physics substeps in the chosen engine, then task state, success and observations (shared JAX).
 With the `mjx` engine the whole step is one jitted function; with `cpu` the two shared halves
 are jitted and the C engine runs between them.
+
+The task is data (`TaskState.task_id`): the jitted functions belong to an `EnvCore` (model, engine,
+batch size, held-out flag), which every `HomeEnv` of those settings shares whatever its task, so
+they compile once for all tasks.
 """
 
 from __future__ import annotations
 
+import functools
 import warnings
 from typing import Any
 
@@ -26,6 +31,7 @@ from sim_data.sim.tasks import (
     Task,
     TaskState,
     dirt_mocap_z,
+    episode_done,
     get_task,
     sample_initial,
     update_task,
@@ -45,7 +51,7 @@ class State:
       obs: {"proprio": (B, 37), "qpos", "qvel", "time": (B,)}; the last three are privileged
         and read only by scripted policies.
       success: (B,) bool, the task's success flag at this step.
-      done: (B,) bool, the episode's time is up.
+      done: (B,) bool, the episode's time is up (its task's episode_steps).
       step: (B,) int32 control steps taken.
     """
 
@@ -64,72 +70,62 @@ def _observe(qpos, qvel, ts: TaskState, idx: S.SceneIndex) -> dict:
     return {"proprio": R.proprioception(qpos, qvel, idx.robot), "qpos": qpos, "qvel": qvel, "time": ts.time}
 
 
-class HomeEnv:
-    """B simulations of one task in the home scene, on the `cpu` or `mjx` engine.
+class EnvCore:
+    """What the jitted steps of an environment depend on: the model, the engine, B and the held-out
+    flag, not the task (that is data in the state). Hashable by identity and shared through
+    `env_core`, so that envs of different tasks reuse its compiled functions, and usable as a static
+    argument of `jax.jit` (`sim_data.sim.rollout`).
 
     Args:
-      task: a name from `sim_data.sim.tasks.TASK_NAMES`.
-      batch_size: B.
-      engine: "cpu", "mjx" or None for the default (mjx where a GPU is present).
-      heldout: put the held-out plant into the scenes.
+      batch_size: B. engine: "cpu" or "mjx". heldout: put the held-out plant into the scenes.
       nthread: threads of the `cpu` engine (default: all cores, at most B).
     """
 
-    def __init__(self, task: str, batch_size: int, engine: str | None = None, heldout: bool = False,
-                 nthread: int | None = None):
-        if batch_size < 1:
-            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
-        self.task: Task = get_task(task)
+    def __init__(self, batch_size: int, engine: str, heldout: bool, nthread: int | None):
         self.batch_size = batch_size
         self.heldout = heldout
         self.model = S.load_model()
         self.idx = S.scene_index(self.model)
-        self.engine = make_engine(engine or default_engine(), self.model, batch_size, nthread)
-        if self.engine.name == "mjx" and batch_size > 2 and default_engine() == "cpu":
-            warnings.warn("the mjx engine is meant for GPUs: on XLA:CPU its whole-episode scan can stall at batch "
-                          "sizes above 2 (see README, known issues); use engine='cpu' here", stacklevel=2)
+        self.engine = make_engine(engine, self.model, batch_size, nthread)
         self._qpos0 = np.asarray(self.model.qpos0, np.float32)
         self._mocap0 = S.default_mocap_pos(self.model)
-        self._sample = jax.jit(jax.vmap(lambda k: sample_initial(self.task, k, self.idx, self._qpos0, self._mocap0, heldout)))
-        self._pre = jax.jit(self._pre_step)
-        self._post = jax.jit(self._post_step)
+        self._sample = jax.jit(jax.vmap(self._sample_one))
+        self._pre = jax.jit(self.pre_step)
+        self._post = jax.jit(self.post_step)
         if self.engine.name == "mjx":
-            self._step = jax.jit(self._mjx_step)
+            self._step = jax.jit(self.mjx_step)
             self._init = jax.jit(self.engine.init)
 
-    @property
-    def episode_steps(self) -> int:
-        return self.task.episode_steps
+    def _sample_one(self, key, task_id):
+        return sample_initial(task_id, key, self.idx, self._qpos0, self._mocap0, self.heldout)
 
     # ---- shared halves of a control step -------------------------------------------------------
-    def _pre_step(self, state: State, action):
+    def pre_step(self, state: State, action):
+        """Actuator controls (B, nu) and mocap positions of a step under action (B, 20)."""
         yaw = state.qpos[:, self.idx.robot.base_qpos[2]]
         ctrl = R.action_to_ctrl(action, yaw, self.idx.robot)
         return ctrl, state.mocap_pos
 
-    def _post_step(self, state: State, action, qpos, qvel):
+    def post_step(self, state: State, action, qpos, qvel):
+        """The State after the physics reached qpos (B, nq), qvel (B, nv): task, success, observations."""
         qpos, qvel = qpos.astype(jnp.float32), qvel.astype(jnp.float32)
-        ts, success = update_task(self.task, state.task, qpos, qvel, state.mocap_pos, self.idx)
+        ts, success = update_task(state.task, qpos, qvel, state.mocap_pos, self.idx)
         mocap = state.mocap_pos.at[:, self.idx.dirt_mocap, 2].set(dirt_mocap_z(ts))
         step = state.step + 1
         return state.replace(
             qpos=qpos, qvel=qvel, mocap_pos=mocap, task=ts, obs=_observe(qpos, qvel, ts, self.idx),
-            success=success, done=step >= self.task.episode_steps, step=step)
+            success=success, done=episode_done(ts, step), step=step)
 
-    def _mjx_step(self, state: State, action):
-        ctrl, mocap = self._pre_step(state, action)
+    def mjx_step(self, state: State, action):
+        """One control step with the `mjx` engine (traceable)."""
+        ctrl, mocap = self.pre_step(state, action)
         physics, qpos, qvel = self.engine.advance(state.physics, ctrl, mocap, PHYSICS_SUBSTEPS)
-        return self._post_step(state.replace(physics=physics), action, qpos, qvel)
+        return self.post_step(state.replace(physics=physics), action, qpos, qvel)
 
-    # ---- public API ----------------------------------------------------------------------------
-    def reset(self, rng: jax.Array) -> State:
-        """Samples B initial states. rng: one PRNG key, or (B,) keys (one per episode)."""
-        keys = jnp.asarray(rng)
-        if keys.ndim == 1 and not jnp.issubdtype(keys.dtype, jax.dtypes.prng_key):
-            keys = jax.random.split(keys, self.batch_size) if keys.shape == (2,) else keys
-        if keys.shape[0] != self.batch_size:
-            raise ValueError(f"reset got {keys.shape[0]} keys for a batch of {self.batch_size}")
-        qpos, mocap, ts = self._sample(keys)
+    # ---- batched API ---------------------------------------------------------------------------
+    def reset(self, keys, task_ids) -> State:
+        """B initial states from keys (B, 2) of episodes of tasks task_ids (B,) int32."""
+        qpos, mocap, ts = self._sample(keys, task_ids)
         if self.engine.name == "mjx":
             physics = self._init(qpos, mocap)
         else:
@@ -146,13 +142,68 @@ class HomeEnv:
         return poses_from_arrays(p["geom_xpos"], p["geom_xmat"], p["cam_xpos"], p["cam_xmat"])
 
     def step(self, state: State, action) -> State:
-        """Advances every simulation by one control step (CONTROL_DT) under action (B, 20)."""
-        action = jnp.asarray(action, jnp.float32)
-        if action.shape != (self.batch_size, R.ACTION_DIM):
-            raise ValueError(f"action must have shape ({self.batch_size}, {R.ACTION_DIM}), got {action.shape}")
+        """Advances every simulation by one control step under action (B, 20) float32."""
         if self.engine.name == "mjx":
             return self._step(state, action)
         bare = state.replace(physics=None)  # float64 C state rows stay out of (float32) jit
         ctrl, mocap = self._pre(bare, action)
         physics, qpos, qvel = self.engine.advance(state.physics, np.asarray(ctrl), np.asarray(mocap), PHYSICS_SUBSTEPS)
         return self._post(bare, action, qpos.astype(np.float32), qvel.astype(np.float32)).replace(physics=physics)
+
+
+@functools.lru_cache(maxsize=32)
+def env_core(batch_size: int, engine: str, heldout: bool, nthread: int | None = None) -> EnvCore:
+    """The EnvCore of these settings, one per process: every task's env shares it and its compiles."""
+    return EnvCore(batch_size, engine, heldout, nthread)
+
+
+class HomeEnv:
+    """B simulations of one task in the home scene, on the `cpu` or `mjx` engine.
+
+    Args:
+      task: a name from `sim_data.sim.tasks.TASK_NAMES`.
+      batch_size: B.
+      engine: "cpu", "mjx" or None for the default (mjx where a GPU is present).
+      heldout: put the held-out plant into the scenes.
+      nthread: threads of the `cpu` engine (default: all cores, at most B).
+
+    Attributes:
+      core: the shared, task-free EnvCore that runs the steps.
+    """
+
+    def __init__(self, task: str, batch_size: int, engine: str | None = None, heldout: bool = False,
+                 nthread: int | None = None):
+        if batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        self.task: Task = get_task(task)
+        self.batch_size = batch_size
+        self.heldout = heldout
+        self.core = env_core(batch_size, engine or default_engine(), heldout, nthread)
+        self.model, self.idx, self.engine = self.core.model, self.core.idx, self.core.engine
+        if self.engine.name == "mjx" and batch_size > 2 and default_engine() == "cpu":
+            warnings.warn("the mjx engine is meant for GPUs: on XLA:CPU its episode scans can stall at batch "
+                          "sizes above 2 (see README, known issues); use engine='cpu' here", stacklevel=2)
+
+    @property
+    def episode_steps(self) -> int:
+        return self.task.episode_steps
+
+    def reset(self, rng: jax.Array) -> State:
+        """Samples B initial states. rng: one PRNG key, or (B,) keys (one per episode)."""
+        keys = jnp.asarray(rng)
+        if keys.ndim == 1 and not jnp.issubdtype(keys.dtype, jax.dtypes.prng_key):
+            keys = jax.random.split(keys, self.batch_size) if keys.shape == (2,) else keys
+        if keys.shape[0] != self.batch_size:
+            raise ValueError(f"reset got {keys.shape[0]} keys for a batch of {self.batch_size}")
+        return self.core.reset(keys, jnp.full((self.batch_size,), self.task.id, jnp.int32))
+
+    def poses(self, state: State) -> Poses:
+        """`sim_data.sim.render.Poses` of the batch (traceable with the `mjx` engine)."""
+        return self.core.poses(state)
+
+    def step(self, state: State, action) -> State:
+        """Advances every simulation by one control step (CONTROL_DT) under action (B, 20)."""
+        action = jnp.asarray(action, jnp.float32)
+        if action.shape != (self.batch_size, R.ACTION_DIM):
+            raise ValueError(f"action must have shape ({self.batch_size}, {R.ACTION_DIM}), got {action.shape}")
+        return self.core.step(state, action)

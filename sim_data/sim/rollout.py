@@ -1,7 +1,10 @@
 """Batched closed-loop episodes of a policy in the environment, on either engine.
 
-With the `mjx` engine a whole episode is one jitted `lax.scan` (policy, controls, physics, task);
-with `cpu` the jitted policy and task halves run around the threaded C engine each control step.
+With the `mjx` engine an episode runs as segments of SEGMENT control steps, each one call of a
+jitted `lax.scan` (policy, controls, physics, task); with `cpu` the jitted policy and task halves
+run around the threaded C engine each control step. The compiled programs take the env's task-free
+`EnvCore` and the policy as static arguments and the task as data, so one compilation per engine,
+batch size, policy and renderers serves every task and episode length.
 """
 
 from __future__ import annotations
@@ -14,8 +17,12 @@ import numpy as np
 from flax import struct
 
 from sim_data.sim.engines import CpuEngine
-from sim_data.sim.env import HomeEnv, State
+from sim_data.sim.env import EnvCore, HomeEnv, State
 from sim_data.sim.render import Poses, Renderer, episode_rgb, poses_from_arrays
+from sim_data.sim.tasks import EPISODE_STEPS
+
+SEGMENT = 20  # control steps per compiled scan: every task's episode_steps is a multiple
+assert not (EPISODE_STEPS % SEGMENT).any(), "an episode must be whole segments"
 
 
 @struct.dataclass
@@ -42,6 +49,15 @@ def _to_batch_major(traj: Trajectory) -> Trajectory:
     return jax.tree_util.tree_map(lambda x: jnp.swapaxes(x, 0, 1), traj)
 
 
+def _concat_time(segments):
+    """Time-major pytrees (SEGMENT, ...) of consecutive segments -> one (T, ...) pytree."""
+    return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs, axis=0), *segments)
+
+
+def _segment_starts(env: HomeEnv) -> range:
+    return range(0, env.episode_steps, SEGMENT)
+
+
 def run_episodes(env: HomeEnv, policy, params, rng: jax.Array, record: bool = False, progress=None):
     """Runs env.batch_size episodes of env's task to the end.
 
@@ -60,8 +76,11 @@ def run_episodes(env: HomeEnv, policy, params, rng: jax.Array, record: bool = Fa
     state = env.reset(k_reset)
     carry = _jitted_init(policy)(params, state.obs, state.task, k_pol)
     if env.engine.name == "mjx":
-        state, traj = _scan_episode(env, policy, env.episode_steps, record, params, state, carry, k_act)
-        return state, (_to_batch_major(traj) if record else None)
+        segments = []
+        for start in _segment_starts(env):
+            state, carry, traj = _scan_segment(env.core, policy, record, params, state, carry, k_act, jnp.int32(start))
+            segments.append(traj)
+        return state, (_to_batch_major(_concat_time(segments)) if record else None)
     act = _jitted_act(policy)
     steps = []
     for t in range(env.episode_steps):
@@ -71,7 +90,8 @@ def run_episodes(env: HomeEnv, policy, params, rng: jax.Array, record: bool = Fa
             steps.append(_record(state, action))
         if progress is not None:
             progress(1)
-    traj = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs, axis=1), *steps) if record else None
+    # stacked on the host, where the cpu engine's arrays are: jnp.stack would compile for every length
+    traj = jax.tree_util.tree_map(lambda *xs: jax.device_put(np.stack(xs, axis=1)), *steps) if record else None
     return state, traj
 
 
@@ -85,16 +105,19 @@ def _jitted_init(policy):
     return jax.jit(policy.init_carry)  # eager, its many small ops would each compile
 
 
-@functools.partial(jax.jit, static_argnums=(0, 1, 2, 3))
-def _scan_episode(env: HomeEnv, policy, num_steps: int, record: bool, params, state, carry, rng):
+@functools.partial(jax.jit, static_argnums=(0, 1, 2))
+def _scan_segment(core: EnvCore, policy, record: bool, params, state, carry, rng, start):
+    """SEGMENT control steps from step `start` (an int32 array: data, not static) with the `mjx`
+    engine; the policy's noise at step t is fold_in(rng, t). Returns (state, carry, Trajectory of
+    (SEGMENT, B, ...) leaves or None)."""
     def body(c, t):
         st, pc = c
         action, pc = policy.act(params, st.obs, pc, jax.random.fold_in(rng, t))
-        st = env._mjx_step(st, action)
+        st = core.mjx_step(st, action)
         return (st, pc), (_record(st, action) if record else None)
 
-    (state, _), traj = jax.lax.scan(body, (state, carry), jnp.arange(num_steps))
-    return state, traj
+    (state, carry), traj = jax.lax.scan(body, (state, carry), start + jnp.arange(SEGMENT, dtype=jnp.int32))
+    return state, carry, traj
 
 
 @struct.dataclass
@@ -126,14 +149,16 @@ def _observation(poses: Poses, state: State, renderers, rgb):
     return obs, frames, rec
 
 
-def _stack_recording(first, rest, actions) -> Recording:
-    """first: (frames, rec) of the reset state; rest: the same stacked over T steps (time-major)."""
+def _stack_recording(first, rest, actions, xp=jnp) -> Recording:
+    """first: (frames, rec) of the reset state; rest: the same stacked over T steps (time-major).
+    xp: the array module of the stacking: numpy for the cpu engine's host arrays (jax.numpy would
+    compile for every episode length), jax.numpy for the device's."""
     def cat(a, b):
-        return jnp.concatenate([a[:, None], jnp.swapaxes(b, 0, 1)], axis=1)
+        return xp.concatenate([a[:, None], xp.swapaxes(b, 0, 1)], axis=1)
 
     frames = {k: cat(first[0][k], rest[0][k]) for k in first[0]}
     rec = {k: cat(first[1][k], rest[1][k]) for k in first[1]}
-    return Recording(frames=frames, action=jnp.swapaxes(actions, 0, 1), **rec)
+    return jax.device_put(Recording(frames=frames, action=xp.swapaxes(actions, 0, 1), **rec))
 
 
 def record_episodes(env: HomeEnv, policy, params, rng: jax.Array, renderers: tuple[Renderer, ...] = (),
@@ -151,9 +176,14 @@ def record_episodes(env: HomeEnv, policy, params, rng: jax.Array, renderers: tup
     rgb = episode_rgb(renderers[0].geometry, state.task.colors) if renderers else None
     carry = _jitted_init(policy)(params, state.obs, state.task, k_pol)
     if env.engine.name == "mjx":
-        state, first, rest, actions = _scan_recorded(env, policy, renderers, env.episode_steps, params, state, carry,
-                                                     k_act, rgb)
-        return state, _stack_recording(first, rest, actions)
+        obs, frames, rec = _observe_mjx(env.core, renderers, state, rgb)
+        segments = []
+        for start in _segment_starts(env):
+            state, carry, obs, seg = _scan_recorded(env.core, policy, renderers, params, state, carry, obs, k_act,
+                                                    jnp.int32(start), rgb)
+            segments.append(seg)
+        rest, actions = _concat_time(segments)
+        return state, _stack_recording((frames, rec), rest, actions)
     jitted = _jitted_cpu_observe(renderers)
 
     def observe(st, colors):
@@ -170,8 +200,9 @@ def record_episodes(env: HomeEnv, policy, params, rng: jax.Array, renderers: tup
         actions.append(action)
         if progress is not None:
             progress(1)
-    rest = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *steps)
-    return state, _stack_recording(first, rest, jnp.stack(actions))
+    first, steps, actions = jax.device_get((first, steps, actions))
+    rest = jax.tree_util.tree_map(lambda *xs: np.stack(xs), *steps)
+    return state, _stack_recording(first, rest, np.stack(actions), xp=np)
 
 
 @functools.lru_cache(maxsize=64)
@@ -183,19 +214,26 @@ def _jitted_cpu_observe(renderers):
     return jax.jit(observe)
 
 
-@functools.partial(jax.jit, static_argnums=(0, 1, 2, 3))
-def _scan_recorded(env: HomeEnv, policy, renderers, num_steps: int, params, state, carry, rng, rgb):
-    obs, frames, rec = _observation(env.poses(state), state, renderers, rgb)
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _observe_mjx(core: EnvCore, renderers, state, rgb):
+    """(observation, frames, record) of a state of the `mjx` engine."""
+    return _observation(core.poses(state), state, renderers, rgb)
 
+
+@functools.partial(jax.jit, static_argnums=(0, 1, 2))
+def _scan_recorded(core: EnvCore, policy, renderers, params, state, carry, obs, rng, start, rgb):
+    """SEGMENT recorded control steps from step `start` (int32 data) with the `mjx` engine, obs the
+    policy's observation of `state`. Returns (state, carry, obs, ((frames, record), actions)), the
+    last with (SEGMENT, B, ...) leaves."""
     def body(c, t):
         st, pc, ob = c
         action, pc = policy.act(params, ob, pc, jax.random.fold_in(rng, t))
-        st = env._mjx_step(st, action)
-        ob, fr, rc = _observation(env.poses(st), st, renderers, rgb)
+        st = core.mjx_step(st, action)
+        ob, fr, rc = _observation(core.poses(st), st, renderers, rgb)
         return (st, pc, ob), ((fr, rc), action)
 
-    (state, _, _), (rest, actions) = jax.lax.scan(body, (state, carry, obs), jnp.arange(num_steps))
-    return state, (frames, rec), rest, actions
+    (state, carry, obs), seg = jax.lax.scan(body, (state, carry, obs), start + jnp.arange(SEGMENT, dtype=jnp.int32))
+    return state, carry, obs, seg
 
 
 def record_policies(env: HomeEnv, policy, params, reset_keys, rng: jax.Array, renderers=()) -> tuple:

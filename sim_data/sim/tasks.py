@@ -4,6 +4,10 @@ Every function here is pure `jax.numpy` over batched arrays, so the `cpu` and th
 share one task code path: tasks read only `qpos`/`qvel` (object poses come straight from their
 free joints) and write only mocap positions (cue markers, dirt cells, stool, plant).
 
+The task is data: each episode's `TaskState.task_id` (its index in TASK_NAMES) picks its station,
+plant spot, stool, update rule, success rule and length, so one compiled program serves every task
+(and batches that mix tasks).
+
 Per-episode randomisation (uniform within these ranges; yaw in radians):
 
 | what              | range                                                                   |
@@ -68,6 +72,7 @@ class TaskState:
       patch: (B, 2) dirty-patch centre.
       colors: (B, 4, 3) RGB of mug, cloth, block, fryer.
       heldout: (B,) bool, the plant is in the scene.
+      task_id: (B,) int32, the episode's task: its index in TASK_NAMES.
     """
 
     time: jax.Array
@@ -82,6 +87,7 @@ class TaskState:
     patch: jax.Array
     colors: jax.Array
     heldout: jax.Array
+    task_id: jax.Array
 
 
 @dataclasses.dataclass(frozen=True)
@@ -91,12 +97,18 @@ class Task:
     name: str
     episode_seconds: float
     station_y: float  # nominal base y at reset
+    plant_xy: tuple  # where the held-out plant stands: beside the station, in view
     update: Callable  # (TaskState, qpos, qvel, mocap_pos, idx) -> TaskState
     success: Callable  # (TaskState, qpos, qvel, mocap_pos, idx) -> (B,) bool
 
     @property
     def episode_steps(self) -> int:
         return int(round(self.episode_seconds / CONTROL_DT))
+
+    @property
+    def id(self) -> int:
+        """The task's index in TASK_NAMES: its `TaskState.task_id`."""
+        return TASK_NAMES.index(self.name)
 
 
 def _yaw_quat(yaw):
@@ -117,18 +129,11 @@ def dirt_cell_xy(patch):
     return patch[..., None, :] + offs
 
 
-def _plant_spot(task_name: str):
-    return {
-        "mug": (1.0, 0.45), "wipe": (1.0, -0.05), "airfryer": (1.0, -0.6), "arcade": (0.72, 1.33),
-        "shelf": (1.0, 0.25), "step_back": (1.0, 0.45),
-    }[task_name]
-
-
-def sample_initial(task: Task, key: jax.Array, idx: S.SceneIndex, qpos0: jax.Array, mocap0: jax.Array, heldout: bool):
+def sample_initial(task_id, key: jax.Array, idx: S.SceneIndex, qpos0: jax.Array, mocap0: jax.Array, heldout: bool):
     """Samples one episode's initial state.
 
     Args:
-      task: the task.
+      task_id: () int, the task's index in TASK_NAMES (traceable).
       key: a PRNG key.
       idx: scene addresses.
       qpos0: (nq,) the model's qpos0; mocap0: (nmocap, 3) default mocap positions.
@@ -140,7 +145,9 @@ def sample_initial(task: Task, key: jax.Array, idx: S.SceneIndex, qpos0: jax.Arr
     u = lambda kk, lo, hi, shape=(): jax.random.uniform(kk, shape, minval=lo, maxval=hi)
     r = idx.robot
     qpos = jnp.asarray(qpos0, jnp.float32)
-    base = jnp.array([BASE_X, task.station_y, 0.0]) + u(k[0], -1, 1, (3,)) * jnp.array([0.02, 0.03, 0.05])
+    task_id = jnp.asarray(task_id, jnp.int32)
+    station = jnp.stack([jnp.float32(BASE_X), jnp.asarray(STATION_Y)[task_id], jnp.float32(0.0)])
+    base = station + u(k[0], -1, 1, (3,)) * jnp.array([0.02, 0.03, 0.05])
     qpos = qpos.at[r.base_qpos].set(base)
     ready = np.concatenate([S.READY_ARM, S.READY_ARM])
     qpos = qpos.at[r.arm_qpos].set(ready)
@@ -172,23 +179,20 @@ def sample_initial(task: Task, key: jax.Array, idx: S.SceneIndex, qpos0: jax.Arr
         mocap = mocap.at[idx.cue_mocap[i]].set(cue)
     cells = dirt_cell_xy(patch)
     mocap = mocap.at[idx.dirt_mocap].set(jnp.concatenate([cells, jnp.full((NUM_DIRT, 1), S.COUNTER_TOP + 0.0005)], -1))
-    if task.name == "step_back":
-        back, side = u(k[10], STOOL_BACK[0], STOOL_BACK[1]), u(k[11], -0.25, 0.25)
-        c, s = jnp.cos(base[2]), jnp.sin(base[2])
-        stool = jnp.array([base[0] - back * c - side * s, base[1] - back * s + side * c, 0.0])
-    else:
-        stool = jnp.array([-1.5, 2.6, S.HIDDEN_Z])
+    back, side = u(k[10], STOOL_BACK[0], STOOL_BACK[1]), u(k[11], -0.25, 0.25)
+    c, s = jnp.cos(base[2]), jnp.sin(base[2])
+    behind = jnp.stack([base[0] - back * c - side * s, base[1] - back * s + side * c, jnp.float32(0.0)])
+    stool = jnp.where(task_id == TASK_NAMES.index("step_back"), behind, jnp.array([-1.5, 2.6, S.HIDDEN_Z]))
     mocap = mocap.at[idx.stool_mocap].set(stool)
-    px, py = _plant_spot(task.name)
     plant_z = S.COUNTER_TOP if heldout else S.HIDDEN_Z
-    mocap = mocap.at[idx.plant_mocap].set(jnp.array([px, py, plant_z]))
+    mocap = mocap.at[idx.plant_mocap].set(jnp.append(jnp.asarray(PLANT_XY)[task_id], jnp.float32(plant_z)))
 
     colors = u(jax.random.fold_in(key, 99), 0.1, 0.9, (4, 3))
     ts = TaskState(
         time=jnp.zeros(()), hold=jnp.zeros(()), achieved=jnp.zeros((), bool), failed=jnp.zeros((), bool),
         progress=jnp.zeros((), jnp.int32), pressed=jnp.zeros((3,), bool), wiped=jnp.zeros((NUM_DIRT,), bool),
         sequence=sequence, ref=jnp.concatenate([jnp.concatenate([fryer_xy, jnp.array([S.COUNTER_TOP + 0.15])]), base]),
-        patch=patch, colors=colors, heldout=jnp.asarray(heldout),
+        patch=patch, colors=colors, heldout=jnp.asarray(heldout), task_id=task_id,
     )
     return qpos, mocap, ts
 
@@ -329,13 +333,20 @@ def _no_update(ts, qpos, qvel, mocap, idx):
 
 
 TASKS: dict[str, Task] = {
-    "mug": Task("mug", 6.0, MUG_XY[1] + SHOULDER_Y, _mug_update, _latched),
-    "wipe": Task("wipe", 10.0, PATCH_XY[1] - 0.04 + SHOULDER_Y, _wipe_update, _wipe_success),
-    "airfryer": Task("airfryer", 7.0, FRYER_XY[1] + SHOULDER_Y, _airfryer_update, _airfryer_success),
-    "arcade": Task("arcade", 8.0, BUTTON_XY[1][1] + SHOULDER_Y, _arcade_update, _latched),
-    "shelf": Task("shelf", 9.0, 0.62 + SHOULDER_Y, _no_update, _shelf_success),
-    "step_back": Task("step_back", 5.0, 0.25, _step_back_update, _step_back_success),
+    "mug": Task("mug", 6.0, MUG_XY[1] + SHOULDER_Y, (1.0, 0.45), _mug_update, _latched),
+    "wipe": Task("wipe", 10.0, PATCH_XY[1] - 0.04 + SHOULDER_Y, (1.0, -0.05), _wipe_update, _wipe_success),
+    "airfryer": Task("airfryer", 7.0, FRYER_XY[1] + SHOULDER_Y, (1.0, -0.6), _airfryer_update, _airfryer_success),
+    "arcade": Task("arcade", 8.0, BUTTON_XY[1][1] + SHOULDER_Y, (0.72, 1.33), _arcade_update, _latched),
+    "shelf": Task("shelf", 9.0, 0.62 + SHOULDER_Y, (1.0, 0.25), _no_update, _shelf_success),
+    "step_back": Task("step_back", 5.0, 0.25, (1.0, 0.45), _step_back_update, _step_back_success),
 }
+assert tuple(TASKS) == TASK_NAMES  # a task's id is its index in both
+
+# per-task constants indexed by TaskState.task_id
+STATION_Y = np.array([TASKS[n].station_y for n in TASK_NAMES], np.float32)
+PLANT_XY = np.array([TASKS[n].plant_xy for n in TASK_NAMES], np.float32)
+EPISODE_STEPS = np.array([TASKS[n].episode_steps for n in TASK_NAMES], np.int32)
+MAX_EPISODE_STEPS = int(EPISODE_STEPS.max())
 
 
 def get_task(name: str) -> Task:
@@ -345,14 +356,36 @@ def get_task(name: str) -> Task:
     return TASKS[name]
 
 
-def update_task(task: Task, ts: TaskState, qpos, qvel, mocap_pos, idx: S.SceneIndex):
-    """Advances the task state by one control step and evaluates success.
+def select_task(task_id, options):
+    """Each episode's own task's entry of `options`: one pytree per task (in TASK_NAMES order) whose
+    leaves lead with task_id's shape ((B,) or () for one episode). Every option is computed, as a
+    vmapped lax.switch would compute them, so a batch may mix tasks; it compiles no slower than
+    the switch, and the rules are small next to a physics step."""
+    def pick(*leaves):
+        out = leaves[0]
+        for k, leaf in enumerate(leaves[1:], start=1):
+            out = jnp.where((task_id == k).reshape(task_id.shape + (1,) * (leaf.ndim - task_id.ndim)), leaf, out)
+        return out
+
+    return jax.tree_util.tree_map(pick, *options)
+
+
+def update_task(ts: TaskState, qpos, qvel, mocap_pos, idx: S.SceneIndex):
+    """Advances the task state by one control step and evaluates success, by each episode's task
+    (ts.task_id).
 
     Args:
-      task: the task; ts: batched TaskState; qpos (B, nq), qvel (B, nv), mocap_pos (B, nmocap, 3)
-        after the step; idx: scene addresses.
+      ts: batched TaskState; qpos (B, nq), qvel (B, nv), mocap_pos (B, nmocap, 3) after the step;
+        idx: scene addresses.
     Returns:
       (TaskState, success (B,) bool).
     """
-    ts = task.update(ts, qpos, qvel, mocap_pos, idx)
-    return ts, task.success(ts, qpos, qvel, mocap_pos, idx)
+    tasks = [TASKS[n] for n in TASK_NAMES]
+    updated = [t.update(ts, qpos, qvel, mocap_pos, idx) for t in tasks]
+    success = [t.success(u, qpos, qvel, mocap_pos, idx) for t, u in zip(tasks, updated)]
+    return select_task(ts.task_id, updated), select_task(ts.task_id, success)
+
+
+def episode_done(ts: TaskState, step):
+    """(B,) bool: step (B,) control steps have used up each episode's time."""
+    return step >= jnp.asarray(EPISODE_STEPS)[ts.task_id]
