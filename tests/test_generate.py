@@ -124,13 +124,12 @@ def test_another_config_is_not_mixed_into_a_dataset(smoke, tmp_path):
         G.generate(G.make_config("smoke", ["seed=5"]), copy, progress=False)
 
 
-def test_parts_begin_on_different_compiled_rollouts_and_keep_each_ones_chunks_in_order():
+def test_chunks_group_by_compiled_rollout_across_tasks_and_parts_begin_on_different_ones():
     plan = [("mug", 1.0, [0]), ("mug", 0.5, [1]), ("mug", "play", [2]), ("wipe", 1.0, [3]), ("wipe", "reach_mug", [4]),
             ("wipe", "play", [5])]
-    key = lambda c: G.rollout_key(c[0], c[1])  # noqa: E731
+    key = lambda c: G.rollout_key(c[1])  # noqa: E731
     keys = list(dict.fromkeys(key(c) for c in plan))
-    assert keys == [("mug", "scripted"), ("mug", "program"), ("wipe", "scripted"), ("wipe", "program")]
-    assert G.staggered(plan, key, keys, None) == plan == G.staggered(plan, key, keys, (0, 2))
-    second = G.staggered(plan, key, keys, (1, 2))
-    assert [c[2][0] for c in second] == [3, 4, 5, 0, 1, 2]  # wipe's rollouts first, then mug's
-    assert [c[2][0] for c in G.staggered(plan, key, keys, (1, 4))] == [2, 3, 4, 5, 0, 1]
+    assert keys == ["scripted", "program"]  # the task is data: one rollout serves both tasks
+    grouped = G.staggered(plan, key, keys, None)
+    assert [c[2][0] for c in grouped] == [0, 1, 3, 2, 4, 5] == [c[2][0] for c in G.staggered(plan, key, keys, (0, 2))]
+    assert [c[2][0] for c in G.staggered(plan, key, keys, (1, 2))] == [2, 4, 5, 0, 1, 3]  # the programs first

@@ -45,6 +45,7 @@ from sim_data.policies.scripted import (
     PROGRAMS,
     ProgramPolicy,
     ScriptedPolicy,
+    pad_programs,
     play_params,
     program_params,
 )
@@ -53,7 +54,7 @@ from sim_data.sim.env import HomeEnv
 from sim_data.sim.render import RenderConfig, Renderer
 from sim_data.sim.rollout import record_episodes
 from sim_data.sim.scene import load_model
-from sim_data.sim.tasks import TASK_NAMES
+from sim_data.sim.tasks import MAX_EPISODE_STEPS, TASK_NAMES
 from sim_data.util import (
     device_name,
     make_output_dir,
@@ -236,23 +237,23 @@ def _plan(cfg: DataConfig, learned=()):
                 yield task, source, list(range(start, min(n, start + cfg.batch)))
 
 
-def rollout_key(task: str, source) -> tuple:
-    """What one compiled rollout serves: a task's scripted skills, its programs and random play
-    (one ProgramPolicy), or a learned policy's checkpoints (one architecture)."""
+def rollout_key(source) -> object:
+    """What one compiled rollout serves, for every task (the task is data in the rollout): the
+    scripted skills, the programs and random play (one ProgramPolicy), or a learned policy's
+    checkpoints (one architecture)."""
     if isinstance(source, PolicySource):
-        return task, source.policy
-    return task, "program" if isinstance(source, str) else "scripted"
+        return source.policy
+    return "program" if isinstance(source, str) else "scripted"
 
 
 def staggered(chunks: list, key, keys: list, part: tuple[int, int] | None) -> list:
-    """A part's chunks reordered so that the parts begin on different compiled rollouts: the K-th of
-    N starts K/N of the way through `keys` (every chunk's key(chunk), in the whole plan's order) and
-    keeps the chunks of one key in their order; without a part, as given. The parts compile side by
-    side, and with JAX's persistent compilation cache (experiments.pipeline sets one) a part that
-    comes to a rollout another has compiled loads it instead."""
-    if part is None or len(keys) < 2:
-        return list(chunks)
-    shift = part[0] * len(keys) // part[1]
+    """Chunks grouped by compiled rollout, in the order of `keys` (every chunk's key(chunk), in the
+    whole plan's order), each key's chunks in their order, so that each rollout compiles and runs
+    through every task at once; a part (K, N) starts K/N of the way through `keys`, so that the parts
+    begin on different rollouts. The parts compile side by side, and with JAX's persistent
+    compilation cache (experiments.pipeline sets one) a part that comes to a rollout another has
+    compiled loads it instead."""
+    shift = 0 if part is None else part[0] * len(keys) // part[1]
     rank = {k: (i - shift) % len(keys) for i, k in enumerate(keys)}
     return sorted(chunks, key=lambda c: rank[key(c)])
 
@@ -331,9 +332,9 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True, reuse: Path | No
     # only the missing episodes are written
     todo = [(task, skill, idx, {i for i in idx if not (out / "episodes" / f"{episode_id(task, skill, i)}.mcap").exists()})
             for task, skill, idx in _plan(cfg, learned)]
-    keys = list(dict.fromkeys(rollout_key(task, skill) for task, skill, _, _ in todo))
+    keys = list(dict.fromkeys(rollout_key(skill) for _, skill, _, _ in todo))
     todo = [c for c in take(todo, part) if c[3]]  # a part's share of the whole plan, whatever is done
-    todo = staggered(todo, lambda c: rollout_key(c[0], c[1]), keys, part)
+    todo = staggered(todo, lambda c: rollout_key(c[1]), keys, part)
     total = sum(len(c[3]) for c in todo)
     bar = tqdm(total=total, unit="ep", desc="episodes", disable=not progress or total == 0)
     t0, frames_done, steps_done = time.perf_counter(), 0, 0
@@ -344,8 +345,8 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True, reuse: Path | No
     versions = package_versions()
     for task, skill, idx, missing in todo:
         # on the GPU a short chunk runs padded to the batch size (its last episode repeated, the copies
-        # discarded): one compilation then serves every chunk of a policy (the programs and play share
-        # one), and compiling, not simulating, is most of a chunk's time there
+        # discarded): one compilation then serves every chunk of a policy in every task (the programs
+        # and play share one), and compiling, not simulating, is most of a chunk's time there
         rows = idx + [idx[-1]] * (cfg.batch - len(idx)) if engine == "mjx" else idx
         b = len(rows)
         env = cached_env(task, b, engine, cfg.heldout)
@@ -354,12 +355,13 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True, reuse: Path | No
             policy, params = skill.policy, skill.params
         elif skill == PLAY:
             seeds = [_initial_seed_of(cfg, task, skill, i) + 1 for i in rows]  # not the initial state's own seed
-            policy, params = ProgramPolicy(env.episode_steps), play_params(seeds, env.episode_steps, env.idx.robot.action_low,
-                                                                   env.idx.robot.action_high)
+            table = play_params(seeds, env.episode_steps, env.idx.robot.action_low, env.idx.robot.action_high)
+            policy, params = ProgramPolicy(MAX_EPISODE_STEPS), pad_programs(table, MAX_EPISODE_STEPS)
         elif isinstance(skill, str):
-            policy, params = ProgramPolicy(env.episode_steps), program_params([skill] * b, env.episode_steps)
+            table = program_params([skill] * b, env.episode_steps)
+            policy, params = ProgramPolicy(MAX_EPISODE_STEPS), pad_programs(table, MAX_EPISODE_STEPS)
         else:
-            policy, params = _policy(task), {"skill": np.full((b,), skill, np.float32)}
+            policy, params = _policy(), {"skill": np.full((b,), skill, np.float32)}
         reset_keys = jax.numpy.stack([jax.random.PRNGKey(_initial_seed_of(cfg, task, skill, i)) for i in rows])
         chunk_key = jax.random.PRNGKey(initial_seed(cfg, f"{task}/{_source_key(skill)}", idx[0]))
         ts = time.perf_counter()
@@ -413,12 +415,13 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True, reuse: Path | No
 
 @functools.lru_cache(maxsize=32)
 def cached_env(task, batch, engine, heldout) -> HomeEnv:
-    return HomeEnv(task, batch, engine=engine, heldout=heldout)  # cached: its jitted steps compile once
+    """The env of a task; the envs of one (batch, engine, heldout) share one EnvCore and its compiles."""
+    return HomeEnv(task, batch, engine=engine, heldout=heldout)
 
 
 @functools.cache
-def _policy(task) -> ScriptedPolicy:
-    return ScriptedPolicy.create(task, load_model())
+def _policy() -> ScriptedPolicy:
+    return ScriptedPolicy.create(model=load_model())
 
 
 @functools.lru_cache(maxsize=8)
