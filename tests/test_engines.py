@@ -66,7 +66,7 @@ def test_mjx_replays_cpu_episode_within_tolerance(mug_episode):
 @pytest.mark.slow
 @pytest.mark.parametrize("task", TASK_NAMES)
 def test_closed_loop_success_flags_agree(task):
-    b = 2  # XLA:CPU can wedge on the whole-episode MJX scan at larger batches (README, known issues)
+    b = 2  # XLA:CPU can wedge on the MJX episode scans at larger batches (README, known issues)
     cpu, mj = HomeEnv(task, b, engine="cpu"), HomeEnv(task, b, engine="mjx")
     pol = ScriptedPolicy.create(task, cpu.model)
     params = {"skill": jnp.array([0.2, 1.0])}
