@@ -213,7 +213,6 @@ def test_one_compiled_episode_serves_every_task_and_keeps_each_tasks_rules():
         mug, traj_mug = run_episodes(envs["mug"], policies["mug"], params, rng, record=True)
     assert compiles == [], f"{len(compiles)} compilations for the second task"
     core = envs["mug"].core
-    core = envs["mug"].core
     assert traj_mug.success.shape == (2, T.TASKS["mug"].episode_steps) and np.asarray(mug.done).all()
     assert traj_back.success.shape == (2, T.TASKS["step_back"].episode_steps) and np.asarray(back.done).all()
     np.testing.assert_array_equal(np.asarray(traj_mug.success), mug_rule(traj_mug.qpos, core.idx))
