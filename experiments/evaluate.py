@@ -53,7 +53,7 @@ from experiments.ensemble import member_metrics
 from sim_data.config import preset_config
 from sim_data.dataset.cache import TrainingCache
 from sim_data.dataset.generate import cached_env, cached_renderers, package_versions
-from sim_data.parts import add_part_argument, exclusive, parse_part
+from sim_data.parts import add_part_argument, config_and_part, exclusive
 from sim_data.policies.bc import StackedPolicy, stack_params
 from sim_data.policies.registry import (
     group_by_policy,
@@ -679,11 +679,7 @@ def main(argv=None) -> int:
                    help="evaluate nothing more: results.json over the tasks finished so far (a run cut short)")
     p.add_argument("overrides", nargs="*", help="key=value overrides (e.g. episodes=50 policies=DIR,mod:attr)")
     a = p.parse_args(argv)
-    try:
-        cfg = make_config(a.config, a.overrides)
-        part = parse_part(a.part)
-    except ValueError as e:
-        p.error(str(e))
+    cfg, part = config_and_part(p, a, make_config)
     t0 = time.perf_counter()
     if a.partial and part is not None:
         p.error("--partial gathers; it takes no --part")

@@ -44,6 +44,15 @@ def parse_part(text: str | None) -> tuple[int, int] | None:
     return k, n
 
 
+def config_and_part(parser, args, make_config) -> tuple:
+    """(make_config(args.config, args.overrides), parse_part(args.part)) of a module's parsed
+    arguments; a bad preset, override or part ends in parser.error, naming it."""
+    try:
+        return make_config(args.config, args.overrides), parse_part(args.part)
+    except ValueError as e:
+        parser.error(str(e))
+
+
 def add_part_argument(parser, pieces: str, gather: str) -> None:
     """The `--part K/N` option of a module that spreads its `pieces` over processes and, run
     without it, does `gather`; read it with parse_part."""

@@ -232,9 +232,9 @@ def observed_features(cfg: ModelConfig, params, norm: Norm, frames, proprio, act
     for t0 in range(0, t, SEGMENT):
         n = min(SEGMENT, t - t0)
         pad = ((0, 0), (0, SEGMENT - n)) + ((0, 0),) * (frames.ndim - 2)
-        f = np.pad(np.asarray(frames[:, t0:t0 + n + 1]), pad, mode="edge")
-        p = np.pad(np.asarray(proprio[:, t0:t0 + n + 1]), pad[:3], mode="edge")
-        a = np.pad(np.asarray(actions[:, t0:t0 + n]), pad[:3])
+        f = jnp.pad(frames[:, t0:t0 + n + 1], pad, mode="edge")  # on the device the episodes are on
+        p = jnp.pad(proprio[:, t0:t0 + n + 1], pad[:3], mode="edge")
+        a = jnp.pad(actions[:, t0:t0 + n], pad[:3])
         buf, x = _observed_segment(cfg, params, norm, buf, f, p, a)
         parts.append(x[:, :n])
     return jnp.concatenate(parts, axis=1)

@@ -38,7 +38,7 @@ from sim_data.dataset.episodes import (  # noqa: F401 (re-exported)
     read_episode_meta,
     write_episode_mcap,
 )
-from sim_data.parts import add_part_argument, exclusive, parse_part, take
+from sim_data.parts import add_part_argument, config_and_part, exclusive, take
 from sim_data.policies.registry import PolicySource
 from sim_data.policies.registry import resolve as resolve_sources
 from sim_data.policies.scripted import (
@@ -491,11 +491,7 @@ def main(argv=None) -> int:
     add_part_argument(p, "simulate every N-th chunk", "gather the dataset")
     p.add_argument("overrides", nargs="*", help="key=value overrides of the preset (e.g. episodes=16 tasks=mug,wipe)")
     a = p.parse_args(argv)
-    try:
-        cfg = make_config(a.config, a.overrides)
-        part = parse_part(a.part)
-    except ValueError as e:
-        p.error(str(e))
+    cfg, part = config_and_part(p, a, make_config)
     try:
         stats = generate(cfg, a.out, reuse=a.reuse, part=part)
     except (FileNotFoundError, ValueError) as e:

@@ -42,7 +42,7 @@ from tqdm import tqdm
 from sim_data.config import preset_config
 from sim_data.dataset.cache import TrainingCache
 from sim_data.dataset.generate import cached_env, cached_renderers
-from sim_data.parts import add_part_argument, parse_part, take
+from sim_data.parts import add_part_argument, config_and_part, take
 from sim_data.policies.bc import (
     PolicyNetConfig,
     StackedPolicy,
@@ -437,11 +437,7 @@ def main(argv=None) -> int:
     add_part_argument(p, "train every N-th lineage", "write the registry")
     p.add_argument("overrides", nargs="*", help="key=value overrides (e.g. steps=500 conv.width=32)")
     a = p.parse_args(argv)
-    try:
-        cfg = make_config(a.config, a.overrides)
-        part = parse_part(a.part)
-    except ValueError as e:
-        p.error(str(e))
+    cfg, part = config_and_part(p, a, make_config)
     t0 = time.perf_counter()
     registry = train_zoo(cfg, a.data, a.out, part=part)
     if registry is None:
