@@ -29,6 +29,7 @@ from wm.checkpoint import load_run_config, load_trained, training_seeds, trainin
 from wm.checkpoint import main as checkpoint_main
 from wm.judge import load_judge
 from wm.train import Run, TrainingDiverged
+from wm.train import main as train_main
 
 CFG = SMOKE_MODEL
 
@@ -379,6 +380,20 @@ def test_resume_after_a_kill_matches_an_uninterrupted_run(smoke_dataset, tmp_pat
     for a, b in zip(jax.tree_util.tree_leaves(whole.state["params"]), jax.tree_util.tree_leaves(again.state["params"]),
                     strict=True):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-6)
+
+
+def test_a_run_cut_short_is_left_unevaluated_and_the_rerun_finishes_it(smoke_dataset, tmp_path):
+    _, data, _ = smoke_dataset
+    out = tmp_path / "run"
+    args = ["--config", "smoke", "--data", str(data), "--out", str(out)]
+    assert train_main([*args, "max_minutes=1e-6"]) == 0  # stops at its first logged step
+    assert json.loads((out / "train_status.json").read_text()) == {"step": 5, "steps": 30, "cut_short": True}
+    assert not (out / "eval.json").exists()
+    assert train_main(args) == 0
+    assert json.loads((out / "train_status.json").read_text())["cut_short"] is False
+    assert (out / "eval.json").exists()
+    steps = [json.loads(line)["step"] for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert steps == [5, 10, 15, 20, 25, 30]
 
 
 def test_non_finite_loss_stops_without_a_checkpoint(smoke_dataset, tmp_path):

@@ -14,9 +14,10 @@ class TrainConfig:
       model: the architecture. camera: the frames the model learns (head_cam).
       batch: windows per step (over all devices); window: frames per window.
       steps: optimiser steps, the whole budget: the same command on the same machine kind trains the
-        same model. max_minutes: a safety stop only (0: none): a run that reaches it stops, saves, and is
-        marked cut short (train_status.json, eval.json, the evaluation's results.json); rerunning the
-        same command resumes it to `steps`. lr, warmup, weight_decay, grad_clip: AdamW.
+        same model. max_minutes: a safety stop only (0: none): a run that reaches it stops, saves, is
+        marked cut short (train_status.json) and left unjudged and unevaluated; rerunning the same
+        command resumes it to `steps` (a budget spread over several commands). lr, warmup,
+        weight_decay, grad_clip: AdamW.
       rollout_passes: extra passes in which the dynamics reads its own (stop-gradient) predictions
         instead of encoded frames (0: teacher forcing only); each pass extends the errors it learns
         to correct by one step. rollout_grad: backpropagate through those passes' latents and proprio

@@ -9,8 +9,10 @@ optimiser state); `--distributed` calls `jax.distributed.initialize()` for sever
 Orbax keeps the latest checkpoint (model, optimiser and data-iterator state; rerunning the same
 command resumes) and the best one on validation loss. Metrics go to `metrics.jsonl`; a non-finite
 loss stops the run before any checkpoint of it is written. The budget is `steps`; `max_minutes` is a
-safety stop that marks the run cut short (`train_status.json`). At the end the episode judge is fitted
-(`wm.judge`) and `eval.json` written from the best checkpoint (`wm.evaluate`).
+safety stop that marks the run cut short (`train_status.json`) and leaves the rest to a rerun of the
+same command, so that a budget longer than one command trains over several. When `steps` are done
+the episode judge is fitted (`wm.judge`) and `eval.json` written from the best checkpoint
+(`wm.evaluate`).
 """
 
 from __future__ import annotations
@@ -384,8 +386,8 @@ def main(argv=None) -> int:
     run = Run(cfg, a.data, a.out)
     summary = run.train()
     print(json.dumps(summary, indent=1))
-    if jax.process_index() != 0:
-        return 0
+    if jax.process_index() != 0 or summary["cut_short"]:
+        return 0  # a run cut short is fitted and evaluated by the rerun that finishes it
     best = run.best_params() if (cfg.judge_episodes or not a.no_eval) else None
     if cfg.judge_episodes and not (a.out / "judge.json").exists():
         print(json.dumps({"judge": fit_judge(cfg, best, run.norm, run.cache, [int(i) for i in run.loader.episodes],
