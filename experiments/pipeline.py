@@ -160,7 +160,10 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
         args = ["--config", p.eval, "--out", str(d["eval"]), f"policies={d['policies']}",
                 "wm=" + ",".join(str(m) for m in d["members"]), *p.eval_overrides, *extra]
         _spread("experiments.evaluate", args, gpus, _logs(p, name), "eval")
+        results = d["eval"] / "results.json"
+        before = results.stat().st_mtime_ns if results.exists() else None
         evaluate.main(args)
+        done = results.exists() and results.stat().st_mtime_ns != before  # else max_minutes left tasks to do
     elif stage == "report":
         report.main([str(d["eval"])])
     wall = time.perf_counter() - t0
@@ -253,6 +256,10 @@ def main(argv=None) -> int:
                     help="how many of the visible GPUs the stages spread over (default: all of them)")
     ap.add_argument("--members", type=int, default=None,
                     help="world models in the ensemble (default: the preset's); give the same to every stage")
+    ap.add_argument("--minutes", type=float, default=0.0,
+                    help="a command's time slot (0: none): no stage starts after it, and the train and eval "
+                         "stages stop at it by their safety limit (max_minutes), so that the same command, "
+                         "rerun, continues the chain (a GPU lease of 10-minute commands)")
     ap.add_argument("overrides", nargs="*", help="key=value overrides passed to the one stage run")
     a = ap.parse_intermixed_args(argv)
     if a.stage == "all" and a.overrides:
@@ -264,11 +271,20 @@ def main(argv=None) -> int:
         if not 0 <= a.gpus <= len(gpus):
             ap.error(f"--gpus {a.gpus}: this host shows {len(gpus)} GPUs")
         gpus = gpus[: a.gpus]
+    if a.minutes < 0:
+        ap.error(f"--minutes {a.minutes}: give a positive time slot, or 0 for none")
     use_compilation_cache(PIPELINES[a.pipeline].root)
     t0 = time.perf_counter()
     for stage in STAGES if a.stage == "all" else (a.stage,):
-        while not run_stage(a.pipeline, stage, a.overrides, gpus, a.members) and a.stage == "all":
-            pass
+        while True:
+            left = a.minutes - (time.perf_counter() - t0) / 60
+            if a.minutes and left < 1.0:  # no stage starts, compiles and loads its inputs in less
+                print(f"== {a.pipeline}: the {a.minutes:g}-minute slot is used; rerun the same command to continue "
+                      f"from the {stage} stage", file=sys.stderr)
+                return 0
+            slot = [f"max_minutes={left:.3f}"] if a.minutes and stage in ("train", "eval") else []
+            if run_stage(a.pipeline, stage, [*a.overrides, *slot], gpus, a.members) or a.stage != "all":
+                break
     if a.stage in ("all", "report"):
         print(f"report: {(pipeline(a.pipeline).dirs(a.pipeline)['eval'] / 'report.html').absolute()} "
               f"({time.perf_counter() - t0:.0f} s)")

@@ -119,3 +119,26 @@ def test_each_stage_command_appends_its_wall_and_compile_seconds_to_the_timing_t
     table = timing_table(rows)
     assert table[-1][:3] == ["total", f"{rows[0]['wall_s'] + rows[1]['wall_s']:.1f}",
                              f"{rows[0]['compile_s'] + rows[1]['compile_s']:.1f}"]
+
+
+def test_a_time_slot_passes_what_is_left_to_train_and_eval_and_starts_no_stage_after_it(monkeypatch, capsys):
+    clock = [0.0]
+    ran = []
+
+    def fake_stage(name, stage, extra=(), gpus=(), members=None):
+        ran.append((stage, list(extra)))
+        clock[0] += {"data": 120.0, "policies": 150.0, "train": 180.0}.get(stage, 10.0)
+        return stage != "train" or len([r for r in ran if r[0] == "train"]) > 1  # train ends on its second run
+
+    monkeypatch.setattr(P, "run_stage", fake_stage)
+    monkeypatch.setattr(P.time, "perf_counter", lambda: clock[0])
+    monkeypatch.setattr(P, "use_compilation_cache", lambda root: "")
+    assert P.main(["full", "--minutes", "9"]) == 0
+    assert [s for s, _ in ran] == ["data", "policies", "rollouts", "train", "train"]
+    assert [e for s, e in ran if s in ("data", "policies", "rollouts")] == [[], [], []]
+    assert ran[3][1] == ["max_minutes=4.333"] and ran[4][1] == ["max_minutes=1.333"]
+    assert "rerun the same command to continue from the eval stage" in capsys.readouterr().err
+    ran.clear()
+    clock[0] = 0.0
+    assert P.main(["full", "--minutes", "9", "--stage", "eval", "episodes=8"]) == 0
+    assert ran == [("eval", ["episodes=8", "max_minutes=9.000"])]
