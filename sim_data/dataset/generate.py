@@ -146,8 +146,9 @@ PRESETS = {
     "full": DataConfig(skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=600, batch=1200, workers=12, programs=32),
     # the world model's and the zoo's GPU set: three tasks, a spread of skills (1.0 for the zoo's
     # demonstrations, 0.5 and 0.75 for its low-skill lineage), random play, the controllability programs,
-    # head camera; about 611k frames, so that the data stage fits a 10-minute command on one GPU
-    "wm_full": DataConfig(tasks=("mug", "wipe", "airfryer"), skills=(0.0, 0.5, 0.75, 1.0), episodes=240, batch=240,
+    # head camera; about 611k frames, so that the data stage fits a 10-minute command on one GPU.
+    # batch 480: per task 2x480 scripted, 1x368 program+play, rollouts 2x(4x64) rows, none padded; 9 chunks for parts
+    "wm_full": DataConfig(tasks=("mug", "wipe", "airfryer"), skills=(0.0, 0.5, 0.75, 1.0), episodes=240, batch=480,
                           cameras=("head_cam",), workers=14, programs=32, play=240),
     "heldout_plant": DataConfig(heldout=True, episodes=100, batch=600, workers=12),
     "shelf": DataConfig(tasks=("shelf",), skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=600, batch=1200, workers=12),
