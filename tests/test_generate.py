@@ -1,6 +1,7 @@
 """make data's generator: files read back, determinism, resume, bad input."""
 
 import base64
+import dataclasses
 import json
 import shutil
 
@@ -10,6 +11,8 @@ import pytest
 from mcap.reader import make_reader
 
 from sim_data.dataset import generate as G
+from sim_data.dataset.episodes import read_episode
+from sim_data.policies.registry import PolicySource
 from sim_data.policies.scripted import PROGRAMS
 
 TOPICS = {"/head_cam/image", "/ext_cam/image", "/robot_state", "/action", "/task_state", "/sim_state"}
@@ -133,3 +136,81 @@ def test_chunks_group_by_compiled_rollout_across_tasks_and_parts_begin_on_differ
     grouped = G.staggered(plan, key, keys, None)
     assert [c[2][0] for c in grouped] == [0, 1, 3, 2, 4, 5] == [c[2][0] for c in G.staggered(plan, key, keys, (0, 2))]
     assert [c[2][0] for c in G.staggered(plan, key, keys, (1, 2))] == [2, 4, 5, 0, 1, 3]  # the programs first
+
+
+@dataclasses.dataclass(frozen=True)
+class _Arch:
+    """A stand-in policy object: learned sources sharing one share a compiled rollout."""
+
+    name: str
+
+
+def _rows(chunk, padded=False):
+    return [(s.name if isinstance(s, PolicySource) else s, i) for s, i in chunk.rows(padded)]
+
+
+def test_a_tasks_rows_of_one_rollout_share_chunks_cut_evenly_and_padded_only_to_the_chunk_size():
+    cfg = G.make_config("smoke", ["tasks=mug,wipe", "skills=0.5,1.0", "episodes=3", "batch=4", "play=2",
+                                  "policy_episodes=2"])
+    a, b = _Arch("a"), _Arch("b")
+    learned = [PolicySource(f"mug/a/{k}", "learned", "mug", a, None, {}) for k in range(3)]
+    learned += [PolicySource("wipe/b/0", "learned", "wipe", b, None, {})]
+    plan = G._plan(cfg, learned)
+    mug = [c for c in plan if c.task == "mug"]
+    assert [c.key for c in mug] == ["scripted", "scripted", "program", "program", a, a]
+    # 6 scripted rows in the fewest chunks of at most 4: two of 3, not 4 and 2 padded to 4
+    assert [_rows(c) for c in mug[:2]] == [[(0.5, 0), (0.5, 1), (0.5, 2)], [(1.0, 0), (1.0, 1), (1.0, 2)]]
+    # the programs and random play share ProgramPolicy: one set of 4 programs and 2 play episodes
+    assert [_rows(c) for c in mug[2:4]] == [[("reach_mug", 0), ("wipe_counter", 0), ("step_backwards", 0)],
+                                            [("air_guitar", 0), ("play", 0), ("play", 1)]]
+    # learned checkpoints run whole (a checkpoint's rows side by side, StackedPolicy), 4 // 2 a chunk,
+    # two chunks of 2 for 3; the last repeats its checkpoint on the GPU
+    assert [_rows(c) for c in mug[4:]] == [[("mug/a/0", 0), ("mug/a/0", 1), ("mug/a/1", 0), ("mug/a/1", 1)],
+                                           [("mug/a/2", 0), ("mug/a/2", 1)]]
+    assert _rows(mug[5], padded=True) == [("mug/a/2", 0), ("mug/a/2", 1)] * 2 and mug[5].width == 2
+    assert [c.key for c in plan if c.task == "wipe"][-1] == b
+    # every episode once, in the manifest's order within a rollout
+    ids = [e for c in plan for e in c.episode_ids()]
+    assert sorted(ids) == sorted(G.episode_id(t, s, i) for t, s, i in G._episodes(cfg, learned))
+    assert len(set(ids)) == len(ids)
+    assert all(len(c.rows(padded=True)) == len(plan[k - 1].rows(padded=True))
+               for k, c in enumerate(plan) if k and c.task == plan[k - 1].task and c.key == plan[k - 1].key)
+    # more episodes of a checkpoint than a batch: each checkpoint over chunks of its own
+    long = G._plan(G.make_config("smoke", ["batch=4", "policy_episodes=5"]), learned[:1])
+    assert [_rows(c) for c in long if c.key == a] == [[("mug/a/0", 0), ("mug/a/0", 1), ("mug/a/0", 2)],
+                                                      [("mug/a/0", 3), ("mug/a/0", 4)]]
+    assert _rows(long[-1], padded=True) == [("mug/a/0", 3), ("mug/a/0", 4), ("mug/a/0", 4)]
+    assert G.even_pieces(list(range(7)), 3) == ([[0, 1, 2], [3, 4, 5], [6]], 3)
+
+
+def test_a_chunk_mixing_skills_writes_each_episode_once_and_a_rerun_rewrites_only_the_missing_one(tmp_path):
+    cfg = G.make_config("smoke", ["skills=0.0,0.5,1.0", "episodes=2", "batch=4", "programs=0", "cameras=head_cam",
+                                  "cache=false", "workers=1"])
+    plan = G._plan(cfg)
+    assert [_rows(c) for c in plan] == [[(0.0, 0), (0.0, 1), (0.5, 0)], [(0.5, 1), (1.0, 0), (1.0, 1)]]
+    out = tmp_path / "mixed"
+    stats = G.generate(cfg, out, progress=False)
+    steps = 120  # mug
+    assert stats["throughput"]["episodes_generated"] == 6 == stats["episodes"]
+    assert stats["throughput"]["frames_generated"] == 6 * (steps + 1)
+    rows = [json.loads(line) for line in (out / "manifest.jsonl").read_text().splitlines()]
+    assert [(r["skill"], r["policy"]) for r in rows] == [(s, f"scripted@{s:.2f}") for s in (0.0, 0.5, 1.0) for _ in "ab"]
+    eps = {r["episode_id"]: read_episode(out / r["file"], cameras=()) for r in rows}
+    for r in rows:
+        ep = eps[r["episode_id"]]
+        assert ep["meta"]["skill"] == r["skill"] and ep["meta"]["policy_kind"] == "scripted"
+        assert ep["meta"]["success"] == r["success"] == bool(ep["success"][-1]) and ep["action"].shape == (steps, 20)
+    # episode 0 of skills 0.0 and 0.5, side by side in one chunk: one initial state, each skill's own actions
+    first, second = eps["mug-s000-000000"], eps["mug-s050-000000"]
+    np.testing.assert_array_equal(first["qpos"][0], second["qpos"][0])
+    assert not np.allclose(first["action"], second["action"])
+    # a killed run: the chunk of the missing episode is simulated whole, only that episode written
+    files = {p.name: p.read_bytes() for p in (out / "episodes").iterdir()}
+    stamps = {p.name: p.stat().st_mtime_ns for p in (out / "episodes").iterdir()}
+    victim = out / "episodes" / "mug-s050-000001.mcap"
+    victim.unlink()
+    again = G.generate(cfg, out, progress=False)["throughput"]
+    assert again["episodes_generated"] == 1 and again["frames_generated"] == steps + 1
+    assert {p.name: p.read_bytes() for p in (out / "episodes").iterdir()} == files
+    assert {p.name: p.stat().st_mtime_ns for p in (out / "episodes").iterdir() if p != victim} == \
+        {k: v for k, v in stamps.items() if k != victim.name}

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from sim_data.dataset import generate as G
+from sim_data.dataset.episodes import read_episode
 from sim_data.policies import zoo
 from sim_data.policies.bc import BCPolicy, StackedPolicy, predict_chunk, stack_params
 from sim_data.policies.registry import every_nth_checkpoint, resolve
@@ -167,6 +168,27 @@ def test_mixed_dataset_records_policy_rollouts(smoke_dataset, smoke_zoo, smoke_w
     np.testing.assert_allclose(got["features"][0], np.asarray(want["features"][0]), rtol=1e-5, atol=1e-5)
     logged = imagine_episodes(wm_cfg.model, wm_params, norm, cache, [i], "head_cam", False)
     assert not np.allclose(logged["features"][0], got["features"][0])  # not the logged actions replayed
+
+
+def test_checkpoints_of_one_architecture_run_stacked_in_one_chunk_as_each_runs_alone(smoke_dataset, smoke_zoo,
+                                                                                      tmp_path):
+    _, data, _ = smoke_dataset
+    zoo_dir, _ = smoke_zoo
+    cfg = G.make_config("smoke", [f"policies={zoo_dir}#conv_proprio", "policy_episodes=1"])
+    sources = resolve(cfg.policies)
+    assert len(sources) == 2 and sources[0].policy == sources[1].policy
+    (chunk,) = [c for c in G._plan(cfg, sources) if c.key == sources[0].policy]
+    assert [s for s, _ in chunk.slots] == sources  # batch 2: both checkpoints, one episode each
+    out = tmp_path / "stacked"
+    assert G.generate(cfg, out, progress=False, reuse=data)["throughput"]["episodes_generated"] == 2
+    eps = [read_episode(out / "episodes" / f"{G.episode_id('mug', s, 0)}.mcap", cameras=()) for s in sources]
+    for src, ep in zip(sources, eps):
+        assert ep["meta"]["policy"] == f"learned:{src.name}" and ep["meta"]["policy_source"]["name"] == src.name
+        # alone, the checkpoint acts as it did beside the other
+        _, alone = G.simulate_chunk(cfg, G.Chunk("mug", src.policy, ((src, (0,)),), 1, 1), "cpu")
+        np.testing.assert_allclose(alone.action[0], ep["action"], atol=1e-5)
+    np.testing.assert_array_equal(eps[0]["qpos"][0], eps[1]["qpos"][0])  # one initial state
+    assert not np.allclose(eps[0]["action"], eps[1]["action"])
 
 
 def test_temporal_ensembling_executes_the_weighted_mean_of_the_chunks_covering_the_step(smoke_zoo):

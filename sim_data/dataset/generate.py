@@ -39,6 +39,7 @@ from sim_data.dataset.episodes import (  # noqa: F401 (re-exported)
     write_episode_mcap,
 )
 from sim_data.parts import add_part_argument, config_and_part, exclusive, take
+from sim_data.policies.bc import StackedPolicy, stack_params
 from sim_data.policies.registry import PolicySource
 from sim_data.policies.registry import resolve as resolve_sources
 from sim_data.policies.scripted import (
@@ -145,8 +146,9 @@ PRESETS = {
     "full": DataConfig(skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=600, batch=1200, workers=12, programs=32),
     # the world model's and the zoo's GPU set: three tasks, a spread of skills (1.0 for the zoo's
     # demonstrations, 0.5 and 0.75 for its low-skill lineage), random play, the controllability programs,
-    # head camera; about 611k frames, so that the data stage fits a 10-minute command on one GPU
-    "wm_full": DataConfig(tasks=("mug", "wipe", "airfryer"), skills=(0.0, 0.5, 0.75, 1.0), episodes=240, batch=240,
+    # head camera; about 611k frames, so that the data stage fits a 10-minute command on one GPU.
+    # batch 480: per task 2x480 scripted, 1x368 program+play, rollouts 2x(4x64) rows, none padded; 9 chunks for parts
+    "wm_full": DataConfig(tasks=("mug", "wipe", "airfryer"), skills=(0.0, 0.5, 0.75, 1.0), episodes=240, batch=480,
                           cameras=("head_cam",), workers=14, programs=32, play=240),
     "heldout_plant": DataConfig(heldout=True, episodes=100, batch=600, workers=12),
     "shelf": DataConfig(tasks=("shelf",), skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=600, batch=1200, workers=12),
@@ -225,16 +227,101 @@ def package_versions(packages=("mujoco", "mujoco-mjx", "jax", "numpy", "opencv-p
     return out
 
 
-def _plan(cfg: DataConfig, learned=()):
-    """Chunks of work: (task, source, [episode indices]) in a fixed order; a source is a scripted
-    skill (float), an action program (str) or a PolicySource of `learned` (cfg.policies resolved)."""
+def _sources(cfg: DataConfig, task: str, learned=()) -> list:
+    """[(source, episodes)] of task in the plan's order: the scripted skills, the programs, random
+    play, then the PolicySources of `learned` (cfg.policies resolved) that run on task."""
+    sources = [(float(s), cfg.episodes) for s in cfg.skills] + [(p, cfg.programs) for p in PROGRAMS if cfg.programs]
+    sources += [(PLAY, cfg.play)] if cfg.play else []
+    return sources + [(src, cfg.policy_episodes or cfg.episodes) for src in learned if src.runs_on(task)]
+
+
+def _episodes(cfg: DataConfig, learned=()):
+    """Every episode of cfg's plan as (task, source, i), in the manifest's order."""
     for task in cfg.tasks:
-        sources = [(float(s), cfg.episodes) for s in cfg.skills] + [(p, cfg.programs) for p in PROGRAMS if cfg.programs]
-        sources += [(PLAY, cfg.play)] if cfg.play else []
-        sources += [(src, cfg.policy_episodes or cfg.episodes) for src in learned if src.runs_on(task)]
-        for source, n in sources:
-            for start in range(0, n, cfg.batch):
-                yield task, source, list(range(start, min(n, start + cfg.batch)))
+        for source, n in _sources(cfg, task, learned):
+            for i in range(n):
+                yield task, source, i
+
+
+@dataclasses.dataclass(frozen=True)
+class Chunk:
+    """Episodes of one task simulated as one batch by one compiled rollout.
+
+    Attributes:
+      task: the task. key: the rollout_key of every source in it.
+      slots: ((source, (episode index, ...)), ...), in row order. A learned policy's chunk stacks one
+        checkpoint's parameters per slot (StackedPolicy: slot k fills rows [k*width, (k+1)*width));
+        the other chunks hold one episode a slot.
+      width: rows a slot fills (1 for the scripted, program and play sources).
+      size: the slots it is padded to (the `mjx` engine), the same for every chunk of its key in its
+        task, and so in every task for the scripted, program and play sources (one compilation each).
+    """
+
+    task: str
+    key: object
+    slots: tuple
+    width: int
+    size: int
+
+    @property
+    def first(self) -> tuple:
+        """(source, episode index) of the chunk's first row: what seeds its policy noise."""
+        return self.slots[0][0], self.slots[0][1][0]
+
+    def episode_ids(self) -> list[str]:
+        return [episode_id(self.task, src, i) for src, idx in self.slots for i in idx]
+
+    def rows(self, padded: bool) -> list:
+        """[(source, episode index)] of the simulated batch (B = width * size padded, rows of the
+        same slot consecutive): padded, each slot is filled to width by repeating its last episode
+        and the slots to size by repeating the last slot, whose copies are simulated and discarded."""
+        slots = [(src, list(idx)) for src, idx in self.slots]
+        if padded:
+            slots = [(src, idx + [idx[-1]] * (self.width - len(idx))) for src, idx in slots]
+            slots += [slots[-1]] * (self.size - len(slots))
+        return [(src, i) for src, idx in slots for i in idx]
+
+
+def even_pieces(items: list, most: int) -> tuple[list, int]:
+    """items cut into the fewest consecutive pieces of at most `most`, all of one size but the last,
+    which is shorter by less than the number of pieces: (pieces, size). Padding the last piece to
+    size then costs fewer rows than the pieces, where pieces of `most` would pad up to most - 1."""
+    count = -(-len(items) // most)
+    size = -(-len(items) // count)
+    return [items[k:k + size] for k in range(0, len(items), size)], size
+
+
+def _task_chunks(task: str, key, group: list, batch: int) -> list[Chunk]:
+    """The chunks of the sources `group` ([(source, episodes)]) of one rollout key in task, of at
+    most `batch` rows each (even_pieces). The scripted, program and play sources' episodes are cut
+    as one list of rows, skills or programs side by side in a chunk. A learned policy's checkpoints
+    run whole, at most batch // n of them a chunk (StackedPolicy needs the same n episodes of each),
+    or, where n > batch, each over several chunks of its own."""
+    if not isinstance(group[0][0], PolicySource):
+        rows = [(src, (i,)) for src, n in group for i in range(n)]
+        pieces, size = even_pieces(rows, batch)
+        return [Chunk(task, key, tuple(p), 1, size) for p in pieces]
+    n = group[0][1]  # policy_episodes, the same for every learned source
+    if n <= batch:
+        pieces, size = even_pieces([(src, tuple(range(n))) for src, _ in group], batch // n)
+        return [Chunk(task, key, tuple(p), n, size) for p in pieces]
+    pieces, width = even_pieces(list(range(n)), batch)
+    return [Chunk(task, key, ((src, tuple(p)),), width, 1) for src, _ in group for p in pieces]
+
+
+def _plan(cfg: DataConfig, learned=()) -> list[Chunk]:
+    """The chunks of work in a fixed order: per task, its sources grouped by rollout key (in the
+    order of _sources), each key's rows cut into chunks of at most cfg.batch rows (_task_chunks).
+    A task's learned sources are grouped by policy object, scripted skills, programs and play by
+    the compiled rollout they share; only the last chunk of a key in a task needs padding."""
+    out = []
+    for task in cfg.tasks:
+        groups: dict = {}
+        for source, n in _sources(cfg, task, learned):
+            groups.setdefault(rollout_key(source), []).append((source, n))
+        for key, group in groups.items():
+            out += _task_chunks(task, key, group, cfg.batch)
+    return out
 
 
 def rollout_key(source) -> object:
@@ -292,19 +379,18 @@ def link_shared_episodes(cfg: DataConfig, out: Path, reuse: Path, learned=()) ->
     if diff:
         raise ValueError(f"{reuse} was generated with other settings ({diff}); its episodes cannot be reused")
     linked = 0
-    for task, source, idx in _plan(cfg, learned):
-        for i in idx:
-            name = f"{episode_id(task, source, i)}.mcap"
-            src, dst = reuse / "episodes" / name, out / "episodes" / name
-            if dst.exists() or not src.exists():
-                continue
-            tmp = dst.with_name(name + ".tmp")
-            try:
-                os.link(src, tmp)
-            except OSError:
-                shutil.copyfile(src, tmp)
-            os.replace(tmp, dst)
-            linked += 1
+    for task, source, i in _episodes(cfg, learned):
+        name = f"{episode_id(task, source, i)}.mcap"
+        src, dst = reuse / "episodes" / name, out / "episodes" / name
+        if dst.exists() or not src.exists():
+            continue
+        tmp = dst.with_name(name + ".tmp")
+        try:
+            os.link(src, tmp)
+        except OSError:
+            shutil.copyfile(src, tmp)
+        os.replace(tmp, dst)
+        linked += 1
     return linked
 
 
@@ -330,12 +416,12 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True, reuse: Path | No
                 print(f"reused {n} episodes of {reuse}", file=sys.stderr)
     # a chunk with any episode missing is simulated whole (its batch fixes every episode's noise) and
     # only the missing episodes are written
-    todo = [(task, skill, idx, {i for i in idx if not (out / "episodes" / f"{episode_id(task, skill, i)}.mcap").exists()})
-            for task, skill, idx in _plan(cfg, learned)]
-    keys = list(dict.fromkeys(rollout_key(skill) for _, skill, _, _ in todo))
-    todo = [c for c in take(todo, part) if c[3]]  # a part's share of the whole plan, whatever is done
-    todo = staggered(todo, lambda c: rollout_key(c[1]), keys, part)
-    total = sum(len(c[3]) for c in todo)
+    todo = [(chunk, {e for e in chunk.episode_ids() if not (out / "episodes" / f"{e}.mcap").exists()})
+            for chunk in _plan(cfg, learned)]
+    keys = list(dict.fromkeys(chunk.key for chunk, _ in todo))
+    todo = [c for c in take(todo, part) if c[1]]  # a part's share of the whole plan, whatever is done
+    todo = staggered(todo, lambda c: c[0].key, keys, part)
+    total = sum(len(missing) for _, missing in todo)
     bar = tqdm(total=total, unit="ep", desc="episodes", disable=not progress or total == 0)
     t0, frames_done, steps_done = time.perf_counter(), 0, 0
     sim_s = wait_s = 0.0  # simulating and rendering (with the copy to the host); waiting on writers
@@ -343,42 +429,14 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True, reuse: Path | No
     pool = cf.ProcessPoolExecutor(cfg.workers, mp_context=multiprocessing.get_context("spawn"))
     pending = []
     versions = package_versions()
-    for task, skill, idx, missing in todo:
-        # on the GPU a short chunk runs padded to the batch size (its last episode repeated, the copies
-        # discarded): one compilation then serves every chunk of a policy in every task (the programs
-        # and play share one), and compiling, not simulating, is most of a chunk's time there
-        rows = idx + [idx[-1]] * (cfg.batch - len(idx)) if engine == "mjx" else idx
-        b = len(rows)
-        env = cached_env(task, b, engine, cfg.heldout)
-        renderers = cached_renderers(cfg.size, tuple(cfg.cameras))
-        if isinstance(skill, PolicySource):
-            policy, params = skill.policy, skill.params
-        elif skill == PLAY:
-            seeds = [_initial_seed_of(cfg, task, skill, i) + 1 for i in rows]  # not the initial state's own seed
-            table = play_params(seeds, env.episode_steps, env.idx.robot.action_low, env.idx.robot.action_high)
-            policy, params = ProgramPolicy(MAX_EPISODE_STEPS), pad_programs(table, MAX_EPISODE_STEPS)
-        elif isinstance(skill, str):
-            table = program_params([skill] * b, env.episode_steps)
-            policy, params = ProgramPolicy(MAX_EPISODE_STEPS), pad_programs(table, MAX_EPISODE_STEPS)
-        else:
-            policy, params = _policy(), {"skill": np.full((b,), skill, np.float32)}
-        reset_keys = jax.numpy.stack([jax.random.PRNGKey(_initial_seed_of(cfg, task, skill, i)) for i in rows])
-        chunk_key = jax.random.PRNGKey(initial_seed(cfg, f"{task}/{_source_key(skill)}", idx[0]))
+    for chunk, missing in todo:
         ts = time.perf_counter()
-        _, rec = record_episodes(env, policy, params, chunk_key, renderers, reset_keys=reset_keys)
-        rec = jax.tree_util.tree_map(np.asarray, rec)
+        rows, rec = simulate_chunk(cfg, chunk, engine)
         sim_s += time.perf_counter() - ts
-        for row, i in enumerate(idx):
-            if i not in missing:
-                continue
-            ep = jax.tree_util.tree_map(lambda x, row=row: x[row], rec)
-            meta = _episode_meta(cfg, task, skill, i, ep.success[-1], ep.action.shape[0], engine)
-            meta.update(config=dataclasses.asdict(cfg), versions=versions)
-            episode = {"frames": ep.frames, "proprio": ep.proprio, "qpos": ep.qpos, "qvel": ep.qvel,
-                       "mocap_pos": ep.mocap_pos, "success": ep.success, "action": ep.action}
-            pending.append(pool.submit(write_episode_mcap, out / meta["file"], episode, meta, cfg.jpeg_quality))
-        steps_done += len(idx) * (rec.action.shape[1] + 1)
-        frames_done += len(idx) * (rec.action.shape[1] + 1) * len(cfg.cameras)
+        submitted = _submit_episodes(pool, cfg, out, chunk.task, rows, rec, missing, engine, versions)
+        pending += submitted
+        steps_done += len(submitted) * (rec.action.shape[1] + 1)  # the episodes written, not the padding
+        frames_done += len(submitted) * (rec.action.shape[1] + 1) * len(cfg.cameras)
         tw = time.perf_counter()
         pending = _drain(pending, bar, wait_all=False)
         while len(pending) > cfg.batch:  # at most one chunk waits for the writers while the next simulates
@@ -411,6 +469,65 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True, reuse: Path | No
         stats["throughput"].update(cache_s=time.perf_counter() - t1, cache_frames=index["frames"])
     write_json_atomic(out / "stats.json", stats)
     return stats
+
+
+def _submit_episodes(pool, cfg: DataConfig, out: Path, task: str, rows: list, rec, missing: set, engine: str,
+                     versions: dict) -> list:
+    """Hands the writers each episode of `missing` (ids) found in the simulated rows ([(source,
+    episode index)], rec's (B, ...) leaves), from its first row: a padding copy comes after it.
+    Returns the writers' futures, one per episode."""
+    futures, seen = [], set()
+    for row, (source, i) in enumerate(rows):
+        eid = episode_id(task, source, i)
+        if eid not in missing or eid in seen:
+            continue
+        seen.add(eid)
+        ep = jax.tree_util.tree_map(lambda x, row=row: x[row], rec)
+        meta = _episode_meta(cfg, task, source, i, ep.success[-1], ep.action.shape[0], engine)
+        meta.update(config=dataclasses.asdict(cfg), versions=versions)
+        episode = {"frames": ep.frames, "proprio": ep.proprio, "qpos": ep.qpos, "qvel": ep.qvel,
+                   "mocap_pos": ep.mocap_pos, "success": ep.success, "action": ep.action}
+        futures.append(pool.submit(write_episode_mcap, out / meta["file"], episode, meta, cfg.jpeg_quality))
+    return futures
+
+
+def simulate_chunk(cfg: DataConfig, chunk: Chunk, engine: str) -> tuple[list, object]:
+    """Simulates and renders one chunk: ([(source, episode index)] of its B rows, the Recording
+    with (B, ...) numpy leaves). With the `mjx` engine the chunk runs padded (Chunk.rows): one
+    compilation then serves every chunk of a rollout key of that size in every task, and compiling,
+    not simulating, is most of a chunk's time there."""
+    rows = chunk.rows(padded=engine == "mjx")
+    env = cached_env(chunk.task, len(rows), engine, cfg.heldout)
+    policy, params = _policy_and_params(cfg, chunk, rows, env)
+    reset_keys = jax.numpy.stack([jax.random.PRNGKey(_initial_seed_of(cfg, chunk.task, src, i)) for src, i in rows])
+    source, i = chunk.first
+    chunk_key = jax.random.PRNGKey(initial_seed(cfg, f"{chunk.task}/{_source_key(source)}", i))
+    _, rec = record_episodes(env, policy, params, chunk_key, cached_renderers(cfg.size, tuple(cfg.cameras)),
+                             reset_keys=reset_keys)
+    return rows, jax.tree_util.tree_map(np.asarray, rec)
+
+
+def _policy_and_params(cfg: DataConfig, chunk: Chunk, rows: list, env: HomeEnv) -> tuple:
+    """(policy, params) running the B rows ([(source, episode index)]) of chunk in env: a learned
+    policy's checkpoints stacked (one per slot of chunk.width rows), the scripted policy with a skill
+    per row (params {"skill": (B,)}), or ProgramPolicy with an action table per row ((B, steps, 20))."""
+    kind = chunk.key if isinstance(chunk.key, str) else "learned"
+    if kind == "scripted":
+        return _policy(), {"skill": np.array([float(src) for src, _ in rows], np.float32)}
+    if kind == "program":
+        table = np.stack([_program_table(cfg, chunk.task, src, i, env) for src, i in rows])
+        return ProgramPolicy(MAX_EPISODE_STEPS), pad_programs({"table": table}, MAX_EPISODE_STEPS)
+    slots = [rows[k][0] for k in range(0, len(rows), chunk.width)]
+    return StackedPolicy(chunk.key), stack_params([src.params for src in slots])
+
+
+def _program_table(cfg: DataConfig, task: str, source: str, i: int, env: HomeEnv) -> np.ndarray:
+    """The action table (env.episode_steps, 20) of a program episode (source: a program's name) or
+    of play episode i (source PLAY)."""
+    if source == PLAY:
+        seed = _initial_seed_of(cfg, task, source, i) + 1  # not the initial state's own seed
+        return play_params([seed], env.episode_steps, env.idx.robot.action_low, env.idx.robot.action_high)["table"][0]
+    return program_params([source], env.episode_steps)["table"][0]
 
 
 @functools.lru_cache(maxsize=32)
@@ -459,10 +576,9 @@ def build_manifest(cfg: DataConfig, out: Path, learned=()) -> list:
     keys = ("episode_id", "task", "policy", "policy_kind", "skill", "seed", "success", "num_steps", "split", "file",
             "engine", "renderer", "heldout")
     rows = []
-    for task, skill, idx in _plan(cfg, learned):
-        for i in idx:
-            meta = read_episode_meta(out / "episodes" / f"{episode_id(task, skill, i)}.mcap")
-            rows.append({k: meta[k] for k in keys})
+    for task, source, i in _episodes(cfg, learned):
+        meta = read_episode_meta(out / "episodes" / f"{episode_id(task, source, i)}.mcap")
+        rows.append({k: meta[k] for k in keys})
     tmp = out / f"manifest.jsonl.tmp{os.getpid()}"
     tmp.write_text("".join(json.dumps(r) + "\n" for r in rows))
     os.replace(tmp, out / "manifest.jsonl")
