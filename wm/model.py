@@ -313,16 +313,6 @@ class Block(nn.Module):
         return x + g2 * h
 
 
-class ScannedBlock(nn.Module):
-    """A Block in the (carry, output) form of `nn.scan`: the depth's blocks trace and compile once."""
-
-    cfg: ModelConfig
-
-    @nn.compact
-    def __call__(self, x, cond, time_bias, mask):
-        return Block(self.cfg)(x, cond, time_bias, mask), None
-
-
 class Dynamics(nn.Module):
     """Latents, proprio, actions (B, T, ...) of frames 0..T-1 -> predictions for frames 1..T."""
 
@@ -349,9 +339,8 @@ class Dynamics(nn.Module):
         cond = nn.Dense(cfg.dim, dtype=dt)(nn.silu(nn.Dense(cfg.dim, dtype=dt)(cond_in)))
         table = self.param("time_bias", nn.initializers.zeros, (cfg.heads, cfg.context))
         time_bias, mask = relative_time_bias(table, t), attention_mask(t, n, cfg.context, valid)
-        blocks = nn.scan(ScannedBlock, variable_axes={"params": 0}, split_rngs={"params": True},
-                         in_axes=(nn.broadcast, nn.broadcast, nn.broadcast), length=cfg.depth)
-        x, _ = blocks(cfg, name="blocks")(x, cond, time_bias, mask)
+        for _ in range(cfg.depth):
+            x = Block(cfg)(x, cond, time_bias, mask)
         mod = nn.Dense(2 * cfg.dim, dtype=dt, kernel_init=nn.initializers.zeros)(nn.silu(cond))[:, :, None]
         shift, scale = jnp.split(mod, 2, axis=-1)
         h = nn.LayerNorm(use_scale=False, use_bias=False, dtype=dt)(x) * (1 + scale) + shift
