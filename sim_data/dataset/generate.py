@@ -508,10 +508,10 @@ def simulate_chunk(cfg: DataConfig, chunk: Chunk, engine: str) -> tuple[list, ob
 
 
 def _policy_and_params(cfg: DataConfig, chunk: Chunk, rows: list, env: HomeEnv) -> tuple:
-    """(policy, params) running the B rows ([(source, episode index)]) of chunk in env: a learned
-    policy's checkpoints stacked (one per slot of chunk.width rows), the scripted policy with a skill
-    per row (params {"skill": (B,)}), or ProgramPolicy with an action table per row ((B, steps, 20))."""
-    kind = chunk.key if isinstance(chunk.key, str) else "learned"
+    """(policy, params) running the B rows ([(source, episode index)]) of chunk in env: the scripted
+    policy with a skill per row (params {"skill": (B,)}), ProgramPolicy with an action table per row
+    ((B, steps, 20)), or a policy's checkpoints stacked (one per slot of chunk.width rows)."""
+    kind = chunk.key if isinstance(chunk.key, str) else "stacked"  # a policy object: learned or a plug-in
     if kind == "scripted":
         return _policy(), {"skill": np.array([float(src) for src, _ in rows], np.float32)}
     if kind == "program":
