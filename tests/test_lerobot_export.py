@@ -12,7 +12,12 @@ import pyarrow.parquet as pq
 import pytest
 
 from sim_data.dataset import lerobot as L
-from sim_data.dataset.episodes import CorruptEpisode, read_episode
+from sim_data.dataset.episodes import (
+    CorruptEpisode,
+    read_episode,
+    read_episode_meta,
+    write_episode_mcap,
+)
 from sim_data.sim.robot import ACTION_NAMES, PROPRIO_NAMES
 from sim_data.sim.tasks import TASK_TEXT
 
@@ -145,7 +150,16 @@ def test_inputs_and_outputs_are_checked_before_writing(export, tmp_path):
         L.export(data, tmp_path / "file")
     with pytest.raises(ValueError, match="not empty"):
         L.export(data, out)
-    assert not (tmp_path / "a").exists()
+    # an episode recorded with the external camera only
+    row = json.loads((data / "manifest.jsonl").read_text().splitlines()[0])
+    ep = read_episode(data / row["file"], cameras=("ext_cam",))
+    meta = dict(read_episode_meta(data / row["file"]), cameras=["ext_cam"])
+    (tmp_path / "ext" / "episodes").mkdir(parents=True)
+    write_episode_mcap(tmp_path / "ext" / row["file"], ep, meta, jpeg_quality=90)
+    (tmp_path / "ext" / "manifest.jsonl").write_text(json.dumps(row) + "\n")
+    with pytest.raises(ValueError, match="without the head_cam camera"):
+        L.export(tmp_path / "ext", tmp_path / "a")
+    assert not (tmp_path / "a").exists() and not (tmp_path / "a.tmp").exists()
 
 
 def test_a_failed_export_leaves_nothing_and_overwrite_replaces(export, tmp_path):

@@ -37,7 +37,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from tqdm import tqdm
 
-from sim_data.dataset.episodes import CONTROL_DT, read_episode
+from sim_data.dataset.episodes import CONTROL_DT, read_episode, read_episode_meta
 from sim_data.sim.robot import ACTION_NAMES, PROPRIO_NAMES
 from sim_data.sim.tasks import TASK_TEXT
 from sim_data.util import run_cli
@@ -108,6 +108,13 @@ def read_manifest(data: Path) -> list[dict]:
         raise ValueError(f"{path}: tasks {unknown} have no instruction in sim_data.sim.tasks.TASK_TEXT")
     rank = {s: i for i, s in enumerate(SPLIT_ORDER)}
     return sorted(rows, key=lambda r: rank.get(r["split"], len(rank)))
+
+
+def check_cameras(data: Path, rows: list[dict]) -> None:
+    """Raises ValueError naming the first episode recorded without the head camera."""
+    for r in rows:
+        if CAMERA not in read_episode_meta(Path(data) / r["file"]).get("cameras", []):
+            raise ValueError(f"{Path(data) / r['file']}: recorded without the {CAMERA} camera, which the export needs")
 
 
 def _check_out(out: Path, overwrite: bool) -> None:
@@ -303,17 +310,27 @@ def export(data: Path, out: Path, overwrite: bool = False, progress: bool = Fals
     data, out = Path(data), Path(out)
     rows = read_manifest(data)
     _check_out(out, overwrite)
+    check_cameras(data, rows)
     tmp = out.with_name(out.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
+    try:
+        info = _write(data, tmp, rows, progress)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    _replace_dir(tmp, out)
+    return info
+
+
+def _write(data: Path, tmp: Path, rows: list[dict], progress: bool) -> dict:
+    """Every file of the export into tmp; returns info.json's contents."""
     tasks = list(dict.fromkeys(TASK_TEXT[r["task"]] for r in rows))
     data_files, videos = _DataFiles(tmp), _VideoFiles(tmp, VIDEO_KEY)
     records, per_episode, total, size = [], [], 0, None
     try:
         for i, row in enumerate(tqdm(rows, desc="export", unit="ep", disable=not progress)):
             ep = read_episode(data / row["file"], cameras=(CAMERA,), sim_state=False)
-            if CAMERA not in ep["meta"].get("cameras", []):
-                raise ValueError(f"{data / row['file']}: no {CAMERA} frames to export")
             task = TASK_TEXT[row["task"]]
             table = frame_table(ep, i, total, tasks.index(task))
             n = table.num_rows
@@ -334,7 +351,6 @@ def export(data: Path, out: Path, overwrite: bool = False, progress: bool = Fals
     except BaseException:
         data_files.close()
         videos.abort()
-        shutil.rmtree(tmp, ignore_errors=True)
         raise
     pq.write_table(_episodes_table(records), _FileIndex().path(tmp, EPISODES_PATH))
     pq.write_table(_tasks_table(tasks), tmp / "meta" / "tasks.parquet")
@@ -344,7 +360,6 @@ def export(data: Path, out: Path, overwrite: bool = False, progress: bool = Fals
             "chunks_size": CHUNKS_SIZE, "data_files_size_in_mb": DATA_FILE_MB, "video_files_size_in_mb": VIDEO_FILE_MB,
             "splits": _splits(rows), "data_path": DATA_PATH, "video_path": VIDEO_PATH, "features": features(*size)}
     (tmp / "meta" / "info.json").write_text(json.dumps(info, indent=2))
-    _replace_dir(tmp, out)
     return info
 
 
