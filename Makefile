@@ -10,7 +10,7 @@ export XLA_FLAGS ?= --xla_cpu_multi_thread_eigen=false
 
 CONFIG ?= demo
 
-.PHONY: setup demo full test test-slow bench success-table data render-check train bundle policies eval report sweep clean
+.PHONY: setup demo full test test-slow bench success-table data render-check train bundle policies eval report videos export-lerobot sweep clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -55,6 +55,14 @@ eval: setup
 # make report RUN=runs/eval/demo [SWEEPS=runs/sweeps: a section per sweep]
 report: setup
 	$(PY) -m experiments.report $(or $(RUN),runs/eval/$(CONFIG)) $(if $(SWEEPS),--sweeps $(SWEEPS))
+
+# make videos RUN=runs/eval/demo: RUN/videos/*.mp4, real and imagined episodes side by side per policy, and the controllability panel
+videos: setup
+	$(PY) -m experiments.videos $(or $(RUN),runs/eval/$(CONFIG))
+
+# make export-lerobot DATA=runs/data/demo OUT=runs/lerobot/demo: the dataset in LeRobot's layout v3.0
+export-lerobot: setup
+	$(PY) -m sim_data.dataset.lerobot $(or $(DATA),runs/data/$(CONFIG)) $(or $(OUT),runs/lerobot/$(CONFIG))
 
 render-check: setup
 	$(PY) -m sim_data.bench.render_check --states 50 --out runs/render_check.json

@@ -23,6 +23,8 @@ COMMANDS = {
     "wm-eval": ("wm.evaluate", "a world model's frame, success and controllability figures (eval.json)"),
     "eval": ("experiments.evaluate", "rank policies in the world model against the simulator"),
     "report": ("experiments.report", "the HTML and Markdown report of an evaluation"),
+    "videos": ("experiments.videos", "MP4 files of an evaluation's real and imagined episodes"),
+    "export-lerobot": ("sim_data.dataset.lerobot", "a dataset in LeRobot's layout v3.0 (parquet, mp4)"),
     "sweep": ("experiments.sweep", "sweeps over data, tasks and sources"),
     "ensemble": ("experiments.ensemble", "combine the rankings of several world models"),
     "cache": ("sim_data.dataset.cache", "build or check a dataset's training cache"),

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from experiments.videos import read_index
 from sim_data.util import run_cli
 
 # each evaluation preset's own targets for the within-task means (docs/results.md)
@@ -419,6 +420,17 @@ def timing_table(rows: list[dict]) -> list[list[str]]:
     return out
 
 
+def video_links(index: dict | None) -> list[tuple[str, str]]:
+    """(label, path relative to the run) of each MP4 file of `make videos` (experiments.videos's
+    index.json): the policies' files, then the controllability panel's; [] without an index."""
+    if index is None:
+        return []
+    links = [(e["policy"], "videos/" + e["file"]) for e in index["policies"]]
+    if index["controllability"] is not None:
+        links.append(("controllability panel", "videos/" + index["controllability"]["file"]))
+    return links
+
+
 def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
     """(HTML, Markdown) of the evaluation in run, with a section per sweep under `sweeps` if given."""
     res = json.loads((run / "results.json").read_text())
@@ -466,6 +478,10 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
         h += [f"<h2>Task {html.escape(t)}</h2>", _html_table(_metrics_table(metrics["per_task"][t])),
               _html_table(_policy_table([p for p in policies if p["task"] == t]))]
     h.append("<h2>Real (left) and imagined (right) episodes</h2>")
+    mp4 = video_links(read_index(run))
+    if mp4:
+        h.append("<p>MP4 files (<code>make videos</code>): " + ", ".join(
+            f"<a href='{html.escape(href)}'>{html.escape(label)}</a>" for label, href in mp4) + "</p>")
     for v in res["videos"]:
         key = v["key"]
         if key + "/real" not in videos:
@@ -510,6 +526,9 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
         md += ["## Verdicts", ""] + [
             f"- {v['task']}, {v['comparison']}: the world model prefers {v['world_model_prefers']}, truly better is "
             f"{v['truly_better']} ({'agree' if v['agree'] else 'disagree'})" for v in verd] + [""]
+    if mp4:
+        md += ["## Videos", "", "Real (left) and imagined (right), MP4:", ""]
+        md += [f"- [{label}]({href})" for label, href in mp4] + [""]
     if timing:
         md += ["## Pipeline timing", "", _md_table(timing_table(timing)), ""]
     return "\n".join(h), "\n".join(md + sweep_md)

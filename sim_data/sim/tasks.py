@@ -342,6 +342,17 @@ TASKS: dict[str, Task] = {
 }
 assert tuple(TASKS) == TASK_NAMES  # a task's id is its index in both
 
+# One instruction per task, as a dataset's language annotation (the LeRobot export's task text)
+TASK_TEXT: dict[str, str] = {
+    "mug": "Pick up the mug from the counter and hold it up.",
+    "wipe": "Wipe the dirty patch on the counter with the cloth.",
+    "airfryer": "Pull the air fryer's tray out without moving the fryer.",
+    "arcade": "Press the arcade button marked by the yellow sphere, then the one marked by the white cube.",
+    "shelf": "Put the block on the shelf.",
+    "step_back": "Step back from the counter without hitting the stool behind you.",
+}
+assert tuple(TASK_TEXT) == TASK_NAMES
+
 # per-task constants indexed by TaskState.task_id
 STATION_Y = np.array([TASKS[n].station_y for n in TASK_NAMES], np.float32)
 PLANT_XY = np.array([TASKS[n].plant_xy for n in TASK_NAMES], np.float32)
