@@ -25,9 +25,10 @@ demo: setup
 	$(PY) -m experiments.pipeline demo
 
 # The GPU preset in stages that each fit one 10-minute command and resume: make full STAGE=data|policies|rollouts|train|eval|report
+# (ARGS="--minutes 9": every stage in order within a 9-minute slot; rerun to continue)
 STAGE ?= all
 full: setup
-	$(PY) -m experiments.pipeline full --stage $(STAGE)
+	$(PY) -m experiments.pipeline full --stage $(STAGE) $(ARGS)
 
 success-table: setup
 	$(PY) -m sim_data.bench.success_table --episodes 100 --skills 0.2,0.6,1.0 --out runs/success_table.json
