@@ -175,14 +175,15 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
     Returns {"names": [P], "true": (P, N) bool, "prob": (P, N) float (the judge's, or the rule's;
     the models' mean), "prob_rule": (P, N) float (the per-step rule's; the mean), "prob_observed":
     (P, N) float (the judge applied to the simulated episodes themselves, _judge_truth; the mean;
-    NaN where the outcomes came from cfg.truth_cache without frames), "prob_members":
-    (K, P, N), "videos": {key: (T+1, S, S, 3)} (the first model's imagination), "video_index": [...],
+    NaN where the outcomes came from cfg.truth_cache without frames), "sim_finite": (P, N) bool
+    (the simulated episode's proprioception and actions all finite; True where read from the
+    truth cache), "prob_members": (K, P, N), "videos": {key: (T+1, S, S, 3)} (the first model's imagination), "video_index": [...],
     "sim_s", "wm_s", "steps"}.
     """
     n = len(seeds)
     reset_keys = np.stack([np.asarray(jax.random.PRNGKey(s)) for s in seeds])
     renderer = cached_renderers(models[0][0].model.size, (CAMERA,))
-    names, true, prob, rule, members, observed, kept = [], [], [], [], [], [], {}
+    names, true, prob, rule, members, observed, finite, kept = [], [], [], [], [], [], [], {}
     sim_s = wm_s = 0.0
     steps = None
     todo = [(k, part, padded) for k, (part, padded) in enumerate(task_chunks(cfg, sources, n))
@@ -205,6 +206,7 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
         r = np.mean([r for _, r, _ in each], axis=0).reshape(len(padded), n)[: len(part)]
         p = p_each.mean(0)
         o = np.mean([_judge_truth(m, task, truth) for m in models], axis=0).reshape(len(padded), n)[: len(part)]
+        f = simulated_finite(truth).reshape(len(padded), n)[: len(part)]
         wm_s += time.perf_counter() - t0
         for j, src in enumerate(part):
             names.append(src.name)
@@ -213,6 +215,7 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
             rule.append(r[j])
             members.append(p_each[:, j])
             observed.append(o[j])
+            finite.append(f[j])
             kept[src.name] = _keep_examples(cfg, src.name, j, n, outcome[j], p[j], truth.get("frames"),
                                             each[0][2])
         bar.update(len(part) * n)
@@ -220,12 +223,13 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
     if not names:  # a part given none of this task's batches
         empty = np.zeros((0, n))
         return {"names": [], "true": empty.astype(bool), "prob": empty, "prob_rule": empty, "prob_observed": empty,
+                "sim_finite": np.ones((0, n), bool),
                 "prob_members": np.zeros((len(models), 0, n)), "videos": {}, "video_index": [], "sim_s": 0.0,
                 "wm_s": 0.0, "steps": None}
     true, prob = np.stack(true), np.stack(prob)
     videos, index = _select_videos(cfg, task, names, true, kept)
     return {"names": names, "true": true, "prob": prob, "prob_rule": np.stack(rule),
-            "prob_observed": np.stack(observed), "prob_members": np.stack(members, axis=1), "videos": videos, "video_index": index, "sim_s": sim_s,
+            "prob_observed": np.stack(observed), "sim_finite": np.stack(finite), "prob_members": np.stack(members, axis=1), "videos": videos, "video_index": index, "sim_s": sim_s,
             "wm_s": wm_s, "steps": steps}
 
 
@@ -250,7 +254,7 @@ def merge_task_parts(cfg: EvalConfig, parts: list, order: list) -> dict:
     keys = {i["key"] for i in index}
     videos = {k: v for p in parts for k, v in p["videos"].items() if k.rsplit("/", 1)[0] in keys}
     return {"names": list(order), "true": true, "prob": cat("prob"), "prob_rule": cat("prob_rule"),
-            "prob_observed": cat("prob_observed"),
+            "prob_observed": cat("prob_observed"), "sim_finite": cat("sim_finite"),
             "prob_members": cat("prob_members", axis=1), "videos": videos, "video_index": index,
             "sim_s": sum(p["sim_s"] for p in parts), "wm_s": sum(p["wm_s"] for p in parts),
             "steps": next((p["steps"] for p in parts if p["steps"] is not None), None), "seeds": parts[0]["seeds"]}
@@ -282,6 +286,16 @@ def _judge_truth(model, task, truth: dict) -> np.ndarray:
     if judge is not None and judge.knows(task):
         return judge.probability(x, task).astype(np.float64)
     return np.asarray(episode_success(x[..., SUCCESS_FEATURE]), np.float64)
+
+
+def simulated_finite(truth: dict) -> np.ndarray:
+    """(B,) bool: each simulated episode's proprioception and actions are all finite (an engine whose
+    state diverged leaves NaN or inf, and its outcome means little); True where the truth came back
+    from the truth cache without them."""
+    if "proprio" not in truth:
+        return np.ones(len(truth["frames0"]), bool)
+    ok = lambda x: np.isfinite(np.asarray(x)).reshape(len(x), -1).all(axis=1)
+    return ok(truth["proprio"]) & ok(truth["action"])
 
 
 def simulate_truth(cfg: EvalConfig, task: str, policy, params, seeds, reset_keys, rng, engine: str,
@@ -378,7 +392,8 @@ def _interval_of_mean(x) -> list:
 def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) -> list[dict]:
     rows = []
     members = res["prob_members"].transpose(1, 0, 2)  # (P, K, N)
-    for name, t, p, r, pk in zip(res["names"], res["true"], res["prob"], res["prob_rule"], members, strict=True):
+    for name, t, p, r, pk, ok in zip(res["names"], res["true"], res["prob"], res["prob_rule"], members,
+                                     res["sim_finite"], strict=True):
         rec = sources_by_name[name].record
         k, n = int(t.sum()), len(t)
         kp = int((p >= cfg.threshold).sum())
@@ -388,6 +403,7 @@ def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) ->
                      "pred_ci": _interval_of_mean(p), "pred_rate_thresholded": kp / n,
                      "pred_thresholded_ci": list(S.wilson_interval(kp, n)), "val_loss": rec.get("val_loss"),
                      "alignment": S.alignment(p >= cfg.threshold, t), "pred_rate_rule": float(r.mean()),
+                     "nonfinite_episodes": int((~ok).sum()),
                      # per held-out state, in the order of the seeds: for ensembles (experiments.ensemble)
                      "true_episodes": t.astype(int).tolist(), "pred_episodes": np.round(p, 5).tolist()})
         if len(pk) > 1:
@@ -545,6 +561,10 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, models, wm
     tasks = [t for t in tasks if t in results]
     by_name = {s.name: s for s in sources}
     rows = [r for task in tasks for r in policy_rows(cfg, task, results[task], by_name)]
+    bad = {t: int((~results[t]["sim_finite"]).sum()) for t in tasks if not results[t]["sim_finite"].all()}
+    if bad:
+        print(f"warning: simulated episodes whose state went non-finite (their true outcome is doubtful; the judge "
+              f"on truth is left out): {bad}", file=sys.stderr)
     # the policies whose own rollouts the world model never saw in training
     seen = {e["policy"].split(":", 1)[1] for e in (wm_cache.episodes if wm_cache is not None else ())
             if e.get("policy_kind") == "learned"}
@@ -570,7 +590,8 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, models, wm
         "videos": [v for t in tasks for v in results[t]["video_index"]],
         "controllability": sorted(panel),
         "timing": {t: {"simulate_s": results[t]["sim_s"], "imagine_s": results[t]["wm_s"],
-                       "episodes": int(results[t]["true"].size), "steps": results[t]["steps"]} for t in tasks},
+                       "episodes": int(results[t]["true"].size), "steps": results[t]["steps"],
+                       "nonfinite_sim_episodes": int((~results[t]["sim_finite"]).sum())} for t in tasks},
     }
 
 
@@ -641,7 +662,7 @@ def _save_task(path: Path, res: dict) -> None:
     meta = {"names": res["names"], "video_index": res["video_index"], "sim_s": res["sim_s"], "wm_s": res["wm_s"],
             "steps": res["steps"], "seeds": res["seeds"]}
     arrays = {"true": res["true"], "prob": res["prob"], "prob_rule": res["prob_rule"],
-              "prob_observed": res["prob_observed"], "prob_members": res["prob_members"],
+              "prob_observed": res["prob_observed"], "sim_finite": res["sim_finite"], "prob_members": res["prob_members"],
               "meta": np.frombuffer(json.dumps(meta).encode(), np.uint8)}
     arrays.update({f"video:{k}": v for k, v in res["videos"].items()})
     tmp = path.with_name(path.stem + ".tmp.npz")
@@ -655,8 +676,9 @@ def _load_task(path: Path) -> dict:
         videos = {k[len("video:"):]: z[k] for k in z.files if k.startswith("video:")}
         members = z["prob_members"] if "prob_members" in z.files else z["prob"][None]  # before ensembles
         observed = z["prob_observed"] if "prob_observed" in z.files else np.full(z["prob"].shape, np.nan)
+        finite = z["sim_finite"] if "sim_finite" in z.files else np.ones(z["prob"].shape, bool)
         return {**meta, "true": z["true"].astype(bool), "prob": z["prob"], "prob_rule": z["prob_rule"],
-                "prob_observed": observed, "prob_members": members, "videos": videos}
+                "prob_observed": observed, "sim_finite": finite, "prob_members": members, "videos": videos}
 
 
 def _check_config(cfg: EvalConfig, out: Path) -> None:

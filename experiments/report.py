@@ -18,7 +18,6 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.videos import read_index
 from sim_data.util import run_cli
 
 # each evaluation preset's own targets for the within-task means (docs/results.md)
@@ -418,6 +417,12 @@ def timing_table(rows: list[dict]) -> list[list[str]]:
     out.append(["total", cell(sum(r["wall_s"] for r in rows)), cell(sum(r["compile_s"] for r in rows)),
                 *["" for _ in TIMING_COLUMNS[3:]]])
     return out
+
+
+def read_index(run: Path) -> dict | None:
+    """RUN/videos/index.json (what experiments.videos wrote), or None where the run has no videos yet."""
+    path = Path(run) / "videos" / "index.json"
+    return json.loads(path.read_text()) if path.exists() else None
 
 
 def video_links(index: dict | None) -> list[tuple[str, str]]:

@@ -29,6 +29,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from experiments.report import read_index
 from sim_data.dataset.episodes import CONTROL_DT
 from sim_data.util import run_cli, write_json_atomic
 from sim_data.video import write_mp4
@@ -125,12 +126,6 @@ def controllability_video(videos: dict, out: Path, scale: int = SCALE) -> dict |
     panel = {p: {kind: videos[f"controllability/{p}/{kind}"] for kind in ("real", "imagined")} for p in programs}
     write_mp4(out / "controllability.mp4", panel_grid(panel, scale), FPS)
     return {"file": "controllability.mp4", "programs": programs}
-
-
-def read_index(run: Path) -> dict | None:
-    """RUN/videos/index.json (what write_videos wrote), or None where the run has no videos yet."""
-    path = Path(run) / "videos" / "index.json"
-    return json.loads(path.read_text()) if path.exists() else None
 
 
 def write_videos(run: Path, scale: int = SCALE) -> Path:

@@ -45,6 +45,8 @@ def test_results_hold_every_policy_with_statistics_from_the_episodes(evaluation,
     assert m["mmrv"] == pytest.approx(S.mmrv([p["pred_rate"] for p in res["policies"]],
                                              [p["true_rate"] for p in res["policies"]]))
     assert "baseline" in m and res["metrics"]["per_task"]["mug"]["n_policies"] == 5
+    assert all(row["nonfinite_episodes"] == 0 for row in res["policies"])
+    assert res["timing"]["mug"]["nonfinite_sim_episodes"] == 0
     # the initial states are held out from the training data
     used = {json.loads(line)["seed"] for line in (smoke_dataset[1] / "manifest.jsonl").read_text().splitlines()}
     assert not set(meta["seeds"]) & used and len(set(meta["seeds"])) == 2
@@ -153,6 +155,17 @@ def test_an_ensemble_averages_its_members_probabilities(evaluation, smoke_world_
     assert "an ensemble of 2 world models" in page and "each model alone" in page
     with pytest.raises(ValueError, match="twice"):
         E.make_config("demo", [f"wm={other},{other}"])
+
+
+def test_an_episode_whose_simulation_went_non_finite_is_flagged():
+    proprio = np.zeros((3, 5, 37), np.float32)
+    action = np.zeros((3, 4, 20), np.float32)
+    proprio[1, 4, 7] = np.nan
+    action[2, 0, 3] = np.inf
+    truth = {"frames0": np.zeros((3, 1, 8, 8, 3), np.uint8), "proprio": proprio, "action": action}
+    assert E.simulated_finite(truth).tolist() == [True, False, False]
+    cached = {"frames0": truth["frames0"]}  # read back from the truth cache: nothing to check
+    assert E.simulated_finite(cached).tolist() == [True, True, True]
 
 
 def test_decision_analysis_resamples_pairs_spread_over_every_task():

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from experiments import videos as V
-from experiments.report import video_links
+from experiments.report import read_index, video_links
 
 H = W = 64
 SCALE = 2
@@ -70,7 +70,7 @@ def _shrink(frames: np.ndarray) -> np.ndarray:
 def test_each_policy_gets_one_file_of_its_episodes_real_left_imagined_right(run):
     run, arrays, _ = run
     out = V.write_videos(run, scale=SCALE)
-    index = V.read_index(run)
+    index = read_index(run)
     assert index["fps"] == 20 and [e["policy"] for e in index["policies"]] == ["mug/conv_proprio/5",
                                                                                "examples.plugin_policy:make"]
     for entry in index["policies"]:
@@ -92,7 +92,7 @@ def test_each_policy_gets_one_file_of_its_episodes_real_left_imagined_right(run)
 def test_the_controllability_panel_has_a_row_per_program(run):
     run, arrays, _ = run
     out = V.write_videos(run, scale=SCALE)
-    entry = V.read_index(run)["controllability"]
+    entry = read_index(run)["controllability"]
     assert entry["programs"] == ["air_guitar", "reach_mug"]
     video = _read(out / entry["file"])
     row = (H + V.CAPTION + V.GAP) * SCALE
@@ -104,9 +104,9 @@ def test_the_controllability_panel_has_a_row_per_program(run):
 
 def test_the_report_links_the_files_and_a_run_without_videos_has_none(run):
     run, _, _ = run
-    assert video_links(V.read_index(run)) == []
+    assert video_links(read_index(run)) == []
     V.write_videos(run, scale=SCALE)
-    links = video_links(V.read_index(run))
+    links = video_links(read_index(run))
     assert [label for label, _ in links] == ["mug/conv_proprio/5", "examples.plugin_policy:make",
                                              "controllability panel"]
     assert all((run / href).is_file() for _, href in links)
