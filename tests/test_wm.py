@@ -455,6 +455,38 @@ def test_episode_judge_learns_an_integral_and_round_trips(tmp_path):
     assert J.load_judge(tmp_path / "nothing") is None
 
 
+def test_a_judge_reads_only_its_chosen_feature_columns(tmp_path):
+    from wm import judge as J
+    from wm.imagine import OUTCOME_FEATURE, SUCCESS_FEATURE, feature_columns, feature_dim
+
+    cfg = SMOKE_MODEL
+    f = feature_dim(cfg)
+    assert feature_columns(cfg, ("success",)).tolist() == [f + SUCCESS_FEATURE]
+    assert feature_columns(cfg, ("outcome",)).tolist() == [f + OUTCOME_FEATURE]
+    assert feature_columns(cfg, ("action",)).tolist() == list(range(cfg.proprio_dim, cfg.proprio_dim + cfg.action_dim))
+    without_actions = feature_columns(cfg, ("proprio", "latent", "success", "outcome"))
+    assert len(without_actions) == f - cfg.action_dim and not set(without_actions) & set(feature_columns(cfg, ("action",)))
+    with pytest.raises(ValueError, match="feature groups"):
+        feature_columns(cfg, ("pixels",))
+
+    rng = np.random.default_rng(0)
+    train, val = _synthetic_episodes(rng, 256), _synthetic_episodes(rng, 64)
+    judge, metrics = J.fit(train, val, ("a", "b"), steps=200, progress=False, columns=[0, 1])
+    scrambled = {**val, "features": val["features"].copy()}
+    scrambled["features"][..., 2:] = rng.normal(size=scrambled["features"][..., 2:].shape)
+    np.testing.assert_array_equal(J.judge_episodes(judge, scrambled), J.judge_episodes(judge, val))
+    J.save_judge(judge, metrics, tmp_path)
+    back = J.load_judge(tmp_path)
+    assert back.columns.tolist() == [0, 1] and back.feature_dim == 5
+    np.testing.assert_allclose(J.judge_episodes(back, val), J.judge_episodes(judge, val), rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match="5 columns"):
+        back.probability(val["features"][:2, :, :4], "a")
+    meta = json.loads((tmp_path / "judge.json").read_text())
+    del meta["columns"], meta["feature_dim"]  # a judge saved before input selection read every column
+    (tmp_path / "judge.json").write_text(json.dumps(meta))
+    assert J.load_judge(tmp_path).columns.tolist() == [0, 1]
+
+
 def test_a_bundle_carries_the_model_in_bfloat16_and_refuses_a_damaged_copy(smoke_world_model, tmp_path):
     from wm import judge as J
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 
 from sim_data.config import preset_config
+from wm.imagine import FEATURE_GROUPS
 from wm.model import ModelConfig
 
 
@@ -39,7 +40,10 @@ class TrainConfig:
         1/8 are among those of 1/4); train_tasks: the tasks trained on (empty: all);
         eval_tasks: the tasks of eval.json (empty: all). The sweeps vary these.
       judge_episodes: training episodes the episode judge (wm.judge) learns from, imagined whole after
-        training (0: no judge; the per-step rule decides); judge_steps: its optimiser steps.
+        training (0: no judge; the per-step rule decides); judge_steps: its optimiser steps;
+        judge_inputs: the blocks of the imagined step features it reads (wm.imagine.FEATURE_GROUPS:
+        proprio, action, latent, success, outcome); leaving out "action" makes it judge what the
+        actions did in imagination rather than what they look like.
     """
 
     model: ModelConfig = ModelConfig()
@@ -78,6 +82,7 @@ class TrainConfig:
     eval_tasks: tuple = ()
     judge_episodes: int = 1024
     judge_steps: int = 1500
+    judge_inputs: tuple = FEATURE_GROUPS
 
     def validate(self) -> None:
         self.model.validate()
@@ -93,6 +98,8 @@ class TrainConfig:
             raise ValueError(f"train_fraction must be in (0, 1], got {self.train_fraction}")
         if self.judge_episodes < 0 or self.judge_steps < 1:
             raise ValueError("judge_episodes >= 0 and judge_steps >= 1 are required")
+        if not self.judge_inputs or set(self.judge_inputs) - set(FEATURE_GROUPS):
+            raise ValueError(f"judge_inputs are among {', '.join(FEATURE_GROUPS)}; got {list(self.judge_inputs)}")
         if self.model.keep and self.w_keep <= 0:
             raise ValueError("model.keep needs w_keep > 0: the keep gate learns from its cross-entropy alone")
         if not 0.0 <= self.cooldown <= 1.0:

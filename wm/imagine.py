@@ -139,6 +139,19 @@ def feature_dim(cfg: ModelConfig) -> int:
     return cfg.proprio_dim + cfg.action_dim + 4 * cfg.latent + 2
 
 
+FEATURE_GROUPS = ("proprio", "action", "latent", "success", "outcome")  # step_features' blocks, in order
+
+
+def feature_columns(cfg: ModelConfig, groups) -> np.ndarray:
+    """The columns of step_features holding the named FEATURE_GROUPS, in feature order: (K,) int."""
+    unknown = set(groups) - set(FEATURE_GROUPS)
+    if unknown or not groups:
+        raise ValueError(f"feature groups are among {', '.join(FEATURE_GROUPS)}; got {list(groups)}")
+    sizes = (cfg.proprio_dim, cfg.action_dim, 4 * cfg.latent, 1, 1)
+    starts = np.cumsum((0,) + sizes)
+    return np.concatenate([np.arange(starts[k], starts[k + 1]) for k, g in enumerate(FEATURE_GROUPS) if g in groups])
+
+
 def current_observation(norm: Norm, state: ImagineState) -> dict:
     """What a policy sees: {"image": (B, S, S, 3) uint8 current frame, "proprio": (B, 37)}."""
     return {"image": to_uint8(state.frame), "proprio": norm.unproprio(state.proprio[:, -1])}

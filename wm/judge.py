@@ -45,6 +45,7 @@ from wm.imagine import (
     Norm,
     closed_loop,
     context_sample,
+    feature_columns,
     feature_dim,
     open_loop_chunked,
 )
@@ -78,12 +79,16 @@ class JudgeNet(nn.Module):
 
 @dataclasses.dataclass(frozen=True)
 class EpisodeJudge:
-    """A fitted judge: parameters, feature standardisation (F,), the tasks it knows (in embedding order)."""
+    """A fitted judge: parameters, the step features it reads (`columns` (K,) int of the F that
+    wm.imagine.step_features makes, `feature_dim` F), their standardisation (K,), the tasks it knows
+    (in embedding order)."""
 
     params: dict
     mean: np.ndarray
     std: np.ndarray
     tasks: tuple
+    columns: np.ndarray
+    feature_dim: int
 
     def knows(self, task: str) -> bool:
         return task in self.tasks
@@ -94,6 +99,9 @@ class EpisodeJudge:
         if task not in self.tasks:
             raise ValueError(f"the judge was trained on tasks {list(self.tasks)}, not {task!r}")
         x = np.asarray(features, np.float32)
+        if x.shape[-1] != self.feature_dim:
+            raise ValueError(f"the judge reads step features of {self.feature_dim} columns, got {x.shape[-1]}")
+        x = x[..., self.columns]
         mask = np.ones(x.shape[:2], bool) if mask is None else mask
         ids = np.full(x.shape[0], self.tasks.index(task), np.int32)
         return np.asarray(_probability(len(self.tasks), self.params, (x - self.mean) / self.std, mask, ids))
@@ -182,17 +190,20 @@ def _standardisation(x, mask):
 
 
 def fit(train: dict, val: dict | None, tasks: tuple, steps: int, seed: int = 0,
-        progress: bool = True) -> tuple[EpisodeJudge, dict]:
-    """Fits a judge to imagined episodes (imagine_episodes' dicts); returns it and its fit metrics
-    (accuracy and AUROC on train and val; the kept step, the best on val's loss, or the last)."""
+        progress: bool = True, columns=None) -> tuple[EpisodeJudge, dict]:
+    """Fits a judge to imagined episodes (imagine_episodes' dicts), reading the step features'
+    `columns` (default all; wm.imagine.feature_columns); returns it and its fit metrics (accuracy
+    and AUROC on train and val; the kept step, the best on val's loss, or the last)."""
     if len(set(train["label"].tolist())) < 2:
         raise ValueError("the judge needs successes and failures among its training episodes")
-    mean, std = _standardisation(train["features"], train["mask"])
+    dim = train["features"].shape[-1]
+    columns = np.arange(dim) if columns is None else np.asarray(columns)
+    mean, std = _standardisation(train["features"][..., columns], train["mask"])
     net = JudgeNet(len(tasks))
 
     def arrays(d):
-        return ((d["features"] - mean) / std, d["mask"], np.array([tasks.index(t) for t in d["task"]], np.int32),
-                d["label"].astype(np.float32))
+        return ((d["features"][..., columns] - mean) / std, d["mask"],
+                np.array([tasks.index(t) for t in d["task"]], np.int32), d["label"].astype(np.float32))
 
     tr = arrays(train)
     va = arrays(val) if val is not None and len(val["label"]) else None
@@ -221,7 +232,8 @@ def fit(train: dict, val: dict | None, tasks: tuple, steps: int, seed: int = 0,
                 best, best_loss, best_step = params, v, k
     if va is None:
         best = params
-    judge = EpisodeJudge(params=jax.device_get(best), mean=mean, std=std, tasks=tuple(tasks))
+    judge = EpisodeJudge(params=jax.device_get(best), mean=mean, std=std, tasks=tuple(tasks), columns=columns,
+                         feature_dim=dim)
     metrics = {"episodes_train": n, "steps": steps, "kept_step": best_step}
     for tag, d in (("train", train), ("val", val)):
         if d is None or not len(d["label"]):
@@ -260,7 +272,8 @@ def fit_judge(cfg, params, norm: Norm, cache, train_ids: list[int], out: Path, p
     train = imagine_episodes(cfg.model, params, norm, cache, train_ids, cfg.camera, progress, pols, cfg.seed)
     val = imagine_episodes(cfg.model, params, norm, cache, val_ids, cfg.camera, progress, pols, cfg.seed + 1) \
         if val_ids else None
-    judge, metrics = fit(train, val, tasks, cfg.judge_steps, cfg.seed, progress)
+    judge, metrics = fit(train, val, tasks, cfg.judge_steps, cfg.seed, progress,
+                         feature_columns(cfg.model, cfg.judge_inputs))
     save_judge(judge, metrics, Path(out))
     return metrics
 
@@ -278,7 +291,9 @@ def save_judge(judge: EpisodeJudge, metrics: dict, out: Path) -> None:
     tmp.write_bytes(serialization.to_bytes(judge.params))
     os.replace(tmp, blob)
     write_json_atomic(out / "judge.json", {"tasks": list(judge.tasks), "mean": judge.mean.tolist(),
-                                           "std": judge.std.tolist(), "width": WIDTH, "metrics": metrics})
+                                           "std": judge.std.tolist(), "width": WIDTH,
+                                           "columns": judge.columns.tolist(), "feature_dim": judge.feature_dim,
+                                           "metrics": metrics})
 
 
 def load_judge(out: Path) -> EpisodeJudge | None:
@@ -293,9 +308,12 @@ def load_judge(out: Path) -> EpisodeJudge | None:
                                              jnp.ones((1, 2), bool), jnp.zeros((1,), jnp.int32))["params"])
     params = serialization.from_bytes(jax.tree_util.tree_map(lambda s: np.zeros(s.shape, s.dtype), shapes),
                                       (out / "judge.msgpack").read_bytes())
-    return EpisodeJudge(params=params, mean=mean, std=np.asarray(meta["std"], np.float32), tasks=tuple(meta["tasks"]))
+    columns = np.asarray(meta.get("columns", range(len(mean))), np.int64)  # a judge saved before input selection reads all
+    return EpisodeJudge(params=params, mean=mean, std=np.asarray(meta["std"], np.float32), tasks=tuple(meta["tasks"]),
+                        columns=columns, feature_dim=int(meta.get("feature_dim", len(mean))))
 
 
 def check_features(cfg: ModelConfig, judge: EpisodeJudge) -> None:
-    if len(judge.mean) != feature_dim(cfg):
-        raise ValueError(f"the judge reads {len(judge.mean)} features, the world model makes {feature_dim(cfg)}")
+    if judge.feature_dim != feature_dim(cfg):
+        raise ValueError(f"the judge reads step features of {judge.feature_dim} columns, the world model makes "
+                         f"{feature_dim(cfg)}")

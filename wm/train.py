@@ -361,6 +361,9 @@ def _check_config(cfg: TrainConfig, data: Path, out: Path) -> None:
     if path.exists():
         theirs = json.loads(path.read_text())
         theirs["train"]["max_minutes"] = cfg.max_minutes  # a safety stop does not change what is computed
+        defaults = json.loads(json.dumps(to_dict(TrainConfig())))
+        for k in mine["train"].keys() - theirs["train"].keys():  # a setting added since: the run had its default
+            theirs["train"][k] = defaults[k]
         if theirs != mine:
             raise ValueError(f"{out} holds a run of another configuration or dataset; use another OUT "
                              f"(differs: {sorted(k for k in mine['train'] if mine['train'][k] != theirs['train'].get(k))})")
