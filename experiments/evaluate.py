@@ -17,8 +17,9 @@ datasets):
   are kept beside the ensemble's ("members"). One model's training seed moves its ranking more than
   most design choices do; the mean of a few cancels much of that luck.
 
-Policies of one architecture run as one batch (their parameters stacked), so one compiled rollout
-serves a whole checkpoint series. Each task is saved when done (`OUT/tasks/<task>.npz`) and a
+Policies run in batches of up to `batch` episodes whatever their architectures: each architecture's
+checkpoints with their parameters stacked, the architectures side by side (a MixedPolicy), so one
+compiled rollout serves a whole zoo. Each task is saved when done (`OUT/tasks/<task>.npz`) and a
 rerun resumes. On several GPUs (`--part K/N`, one process each, sim_data.parts) every task's batches
 are spread over the parts, the largest first onto the least loaded, whatever the number of tasks;
 each part saves its share (`OUT/tasks/<task>.partKofN.npz`) and the run without a part merges them,
@@ -54,7 +55,7 @@ from sim_data.config import preset_config
 from sim_data.dataset.cache import TrainingCache
 from sim_data.dataset.generate import cached_env, cached_renderers, package_versions
 from sim_data.parts import add_part_argument, config_and_part, exclusive
-from sim_data.policies.bc import StackedPolicy, stack_params
+from sim_data.policies.bc import MixedPolicy, StackedPolicy, stack_params
 from sim_data.policies.registry import (
     group_by_policy,
     heldout_seeds,
@@ -149,9 +150,22 @@ def make_config(preset: str, overrides=()) -> EvalConfig:
 # ---- one task ------------------------------------------------------------------------------------
 
 def task_chunks(cfg: EvalConfig, sources, n: int) -> list:
-    """The batches a task's sources run in: [(policies, padded)], policies sharing one compiled
-    rollout, at most cfg.batch // n of them (n initial states each), the last padded."""
-    return [(part, padded) for g in group_by_policy(sources) for part, padded in padded_chunks(g, n, cfg.batch)]
+    """The batches a task's sources run in: [(policies, padded)], at most cfg.batch // n policies (n
+    initial states each) a batch whatever their architectures (chunk_policy), those of one
+    architecture next to each other, the last batch padded by repeating its last policy."""
+    return list(padded_chunks([s for g in group_by_policy(sources) for s in g], n, cfg.batch))
+
+
+def chunk_policy(padded, n: int) -> tuple:
+    """(policy, params) running a batch's sources side by side, n episodes each: a StackedPolicy of each
+    architecture's checkpoints, in a MixedPolicy where the batch holds several architectures (one
+    compiled rollout, in the simulator and in the world model, for all of them)."""
+    groups = group_by_policy(padded)
+    stacked = [(StackedPolicy(g[0].policy), stack_params([s.params for s in g])) for g in groups]
+    if len(stacked) == 1:
+        return stacked[0]
+    return (MixedPolicy(tuple(p for p, _ in stacked), tuple(len(g) * n for g in groups)),
+            tuple(q for _, q in stacked))
 
 
 def balance_chunks(sizes: dict, n_parts: int) -> dict:
@@ -190,8 +204,7 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
             if chunks is None or k in chunks]
     bar = tqdm(total=sum(len(part) for _, part, _ in todo) * n, desc=f"{task}", unit="ep", disable=not progress)
     for k, part, padded in todo:
-        policy = StackedPolicy(part[0].policy)
-        params = stack_params([s.params for s in padded])
+        policy, params = chunk_policy(padded, n)
         rng = jax.random.PRNGKey(cfg.seed * 7919 + k)
         t0 = time.perf_counter()
         truth = simulate_truth(cfg, task, policy, params, seeds, reset_keys, rng, engine, renderer)
@@ -323,7 +336,8 @@ def simulate_truth(cfg: EvalConfig, task: str, policy, params, seeds, reset_keys
 
 
 def _simulate(task, policy, params, seeds, reset_keys, rng, engine, renderer) -> dict:
-    p = jax.tree_util.tree_leaves(params)[0].shape[0]
+    trees = params if isinstance(policy, MixedPolicy) else (params,)
+    p = sum(jax.tree_util.tree_leaves(q)[0].shape[0] for q in trees)
     env = cached_env(task, p * len(seeds), engine, False)
     outcome, rec = record_policies(env, policy, params, reset_keys, rng, renderer)
     return {"outcome": outcome, "frames0": np.asarray(rec.frames[CAMERA][:, :1]),

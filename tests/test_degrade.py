@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sim_data.policies.bc import StackedPolicy, stack_params
+from sim_data.policies.bc import MixedPolicy, StackedPolicy, stack_params
 from sim_data.policies.degrade import MAX_DELAY, DegradedPolicy, degrade_params
 from sim_data.sim import robot as R
 
@@ -73,6 +73,37 @@ def test_levels_stack_into_one_program_and_bad_levels_are_refused():
         degrade_params(base, speed=2)
 
 
+def test_a_mixed_batch_acts_as_its_policies_run_apart():
+    """Noisy degraded ramps (2 levels x 2 episodes) beside plain ramps (3 levels x 2 episodes): every
+    row's actions are those of its own policy run alone on its rows with its share of the key."""
+    noisy = StackedPolicy(DegradedPolicy(Ramp()))
+    noisy_params = stack_params([degrade_params({"slope": jnp.float32(s)}, noise=0.2, delay=2) for s in (1.0, 2.0)])
+    plain = StackedPolicy(Ramp())
+    plain_params = stack_params([{"slope": jnp.float32(s)} for s in (0.5, -1.0, 3.0)])
+    mixed = MixedPolicy((noisy, plain), (4, 6))
+    params = (noisy_params, plain_params)
+    obs = {"image": jnp.zeros((10, 8, 8, 3), jnp.uint8),
+           "proprio": jnp.arange(10.0)[:, None] * jnp.ones((10, R.PROPRIO_DIM))}
+    carry = mixed.init_carry(params, obs, None, jax.random.PRNGKey(0))
+    apart = [pol.init_carry(q, {k: v[s] for k, v in obs.items()}, None, key)
+             for pol, q, s, key in zip((noisy, plain), params, (slice(0, 4), slice(4, 10)),
+                                       jax.random.split(jax.random.PRNGKey(0), 2))]
+    for t in range(5):
+        rng = jax.random.PRNGKey(100 + t)
+        action, carry = mixed.act(params, obs, carry, rng)
+        keys = jax.random.split(rng, 2)
+        want = []
+        for k, (pol, q, s) in enumerate(zip((noisy, plain), params, (slice(0, 4), slice(4, 10)))):
+            a, apart[k] = pol.act(q, {n: v[s] for n, v in obs.items()}, apart[k], keys[k])
+            want.append(np.asarray(a))
+        np.testing.assert_array_equal(np.asarray(action), np.concatenate(want))
+    np.testing.assert_allclose(np.asarray(action)[4:6, 0], 0.5 * 5)  # plain ramp at slope 0.5, step 5
+    with pytest.raises(ValueError, match="10 rows"):
+        mixed.act(params, {k: v[:8] for k, v in obs.items()}, carry, rng)
+    with pytest.raises(ValueError, match="one positive row count"):
+        MixedPolicy((noisy, plain), (4,))
+
+
 def test_every_policy_of_the_project_follows_the_protocol():
     from examples.plugin_policy import BackAway
     from sim_data.policies.bc import BCPolicy, PolicyNetConfig
@@ -80,7 +111,8 @@ def test_every_policy_of_the_project_follows_the_protocol():
     from sim_data.policies.scripted import ProgramPolicy, ScriptedPolicy
 
     bc = BCPolicy(PolicyNetConfig())
-    for policy in (bc, DegradedPolicy(bc), StackedPolicy(bc), BackAway(), Ramp()):
+    mixed = MixedPolicy((bc, Ramp()), (2, 2))
+    for policy in (bc, DegradedPolicy(bc), StackedPolicy(bc), mixed, BackAway(), Ramp()):
         assert isinstance(policy, Policy), type(policy).__name__
         hash(policy)
     for cls in (ScriptedPolicy, ProgramPolicy):

@@ -6,6 +6,7 @@ import shutil
 import threading
 import time
 
+import jax
 import numpy as np
 import pytest
 from conftest import build_once
@@ -14,13 +15,16 @@ from experiments import evaluate as E
 from experiments import stats as S
 from experiments.report import write_report
 from sim_data.parts import exclusive
+from sim_data.policies.bc import MixedPolicy, StackedPolicy
+from sim_data.policies.registry import resolve
 
 
 @pytest.fixture(scope="module")
 def evaluation(smoke_zoo, smoke_world_model, tmp_path_factory, worker_id):
     zoo_dir, _ = smoke_zoo
+    # batches of 3 policies x 2 states: two batches, each mixing architectures (MixedPolicy)
     cfg = E.EvalConfig(policies=(f"{zoo_dir}#conv_proprio+conv_noproprio", "examples.plugin_policy:make"),
-                       wm=str(smoke_world_model), tasks=("mug",), episodes=2, batch=64, video_policies=2,
+                       wm=str(smoke_world_model), tasks=("mug",), episodes=2, batch=6, video_policies=2,
                        video_episodes=1, decision_episodes=(5, 50))
     out = build_once(tmp_path_factory, worker_id, "eval", lambda d: E.run(cfg, d / "run", progress=False)) / "run"
     return cfg, out, json.loads((out / "results.json").read_text())
@@ -50,6 +54,22 @@ def test_results_hold_every_policy_with_statistics_from_the_episodes(evaluation,
     # the initial states are held out from the training data
     used = {json.loads(line)["seed"] for line in (smoke_dataset[1] / "manifest.jsonl").read_text().splitlines()}
     assert not set(meta["seeds"]) & used and len(set(meta["seeds"])) == 2
+
+
+def test_a_batch_runs_policies_of_different_architectures_side_by_side(evaluation):
+    cfg, _, res = evaluation
+    chunks = E.task_chunks(cfg, resolve(cfg.policies), cfg.episodes)
+    assert [len(part) for part, _ in chunks] == [3, 2] and [len(padded) for _, padded in chunks] == [3, 3]
+    assert [s.name for part, _ in chunks for s in part] == [p["name"] for p in res["policies"]]
+    kinds = [len({s.policy for s in padded}) for _, padded in chunks]
+    assert kinds[1] == 2  # a learned policy beside the plug-in
+    for (_, padded), k in zip(chunks, kinds, strict=True):
+        policy, params = E.chunk_policy(padded, cfg.episodes)
+        if k == 1:
+            assert isinstance(policy, StackedPolicy) and len(jax.tree_util.tree_leaves(params)[0]) == 3
+        else:
+            assert isinstance(policy, MixedPolicy) and policy.rows == (cfg.episodes, 2 * cfg.episodes)
+            assert len(params) == len(policy.policies) == k
 
 
 def test_rerun_resumes_and_other_config_is_refused(evaluation):

@@ -218,6 +218,47 @@ class StackedPolicy:
         return merge(action), merge(carry)
 
 
+@dataclasses.dataclass(frozen=True)
+class MixedPolicy:
+    """Policy objects of different architectures side by side in one batch: the first rows[0] rows
+    run policies[0] with params[0], the next rows[1] policies[1] with params[1], and so on (params: a
+    tuple, one tree per policy; the carry a tuple likewise). One compiled rollout then serves a whole
+    zoo, whatever its architectures, instead of one per architecture."""
+
+    policies: tuple
+    rows: tuple
+
+    def __post_init__(self):
+        if len(self.policies) != len(self.rows) or not self.rows or min(self.rows) < 1:
+            raise ValueError(f"one positive row count per policy, got {len(self.policies)} policies and rows {self.rows}")
+
+    def _slices(self) -> list[slice]:
+        ends = np.cumsum(self.rows)
+        return [slice(int(e - r), int(e)) for e, r in zip(ends, self.rows, strict=True)]
+
+    def _check(self, obs):
+        b = jax.tree_util.tree_leaves(obs)[0].shape[0]
+        if b != sum(self.rows):
+            raise ValueError(f"a batch of {b} rows for policies of {sum(self.rows)} rows {self.rows}")
+
+    def init_carry(self, params, obs, task_state, rng):
+        self._check(obs)
+        keys = jax.random.split(rng, len(self.policies))
+        return tuple(pol.init_carry(p, _rows(obs, s), None if task_state is None else _rows(task_state, s), k)
+                     for pol, p, s, k in zip(self.policies, params, self._slices(), keys, strict=True))
+
+    def act(self, params, obs, carry, rng):
+        self._check(obs)
+        keys = jax.random.split(rng, len(self.policies))
+        out = [pol.act(p, _rows(obs, s), c, k)
+               for pol, p, s, c, k in zip(self.policies, params, self._slices(), carry, keys, strict=True)]
+        return jnp.concatenate([a.astype(jnp.float32) for a, _ in out]), tuple(c for _, c in out)
+
+
+def _rows(tree, s: slice):
+    return jax.tree_util.tree_map(lambda x: x[s], tree)
+
+
 def stack_params(params_list: list) -> dict:
     """Stacks P parameter trees of one structure along a new leading axis."""
     return jax.tree_util.tree_map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *params_list)

@@ -237,9 +237,11 @@ def _scan_recorded(core: EnvCore, policy, renderers, params, state, carry, obs, 
 
 
 def record_policies(env: HomeEnv, policy, params, reset_keys, rng: jax.Array, renderers=()) -> tuple:
-    """P policies (a `sim_data.policies.bc.StackedPolicy` and its stacked parameters, leading axis P),
-    each from the same n initial states (reset_keys (n, 2)), as one batch of P*n episodes
-    (env.batch_size). Returns ((P, n) bool final success, the Recording)."""
-    p = jax.tree_util.tree_leaves(params)[0].shape[0]
+    """P policies (a `sim_data.policies.bc.StackedPolicy` and its stacked parameters, leading axis P,
+    or a MixedPolicy of such), each from the same n initial states (reset_keys (n, 2)), as one batch of
+    P*n episodes (env.batch_size). Returns ((P, n) bool final success, the Recording)."""
+    p, rest = divmod(env.batch_size, len(reset_keys))
+    if rest:
+        raise ValueError(f"a batch of {env.batch_size} is not whole runs of {len(reset_keys)} initial states")
     _, rec = record_episodes(env, policy, params, rng, renderers, reset_keys=np.tile(np.asarray(reset_keys), (p, 1)))
     return np.asarray(rec.success[:, -1]).reshape(p, len(reset_keys)), rec
