@@ -54,3 +54,12 @@ def make_output_dir(path: Path) -> Path:
             raise NotADirectoryError(f"the output {path} cannot be a directory: {p} is a file; name another path")
     path.mkdir(parents=True, exist_ok=True)
     return path
+
+
+def even_pieces(items: list, most: int) -> tuple[list, int]:
+    """items cut into the fewest consecutive pieces of at most `most`, all of one size but the last,
+    which is shorter by less than the number of pieces: (pieces, size). Padding the last piece to
+    size then costs fewer rows than the pieces, where pieces of `most` would pad up to most - 1."""
+    count = -(-len(items) // most)
+    size = -(-len(items) // count)
+    return [items[k:k + size] for k in range(0, len(items), size)], size

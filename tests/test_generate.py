@@ -14,6 +14,7 @@ from sim_data.dataset import generate as G
 from sim_data.dataset.episodes import read_episode
 from sim_data.policies.registry import PolicySource
 from sim_data.policies.scripted import PROGRAMS
+from sim_data.util import even_pieces
 
 TOPICS = {"/head_cam/image", "/ext_cam/image", "/robot_state", "/action", "/task_state", "/sim_state"}
 
@@ -180,7 +181,7 @@ def test_a_tasks_rows_of_one_rollout_share_chunks_cut_evenly_and_padded_only_to_
     assert [_rows(c) for c in long if c.key == a] == [[("mug/a/0", 0), ("mug/a/0", 1), ("mug/a/0", 2)],
                                                       [("mug/a/0", 3), ("mug/a/0", 4)]]
     assert _rows(long[-1], padded=True) == [("mug/a/0", 3), ("mug/a/0", 4), ("mug/a/0", 4)]
-    assert G.even_pieces(list(range(7)), 3) == ([[0, 1, 2], [3, 4, 5], [6]], 3)
+    assert even_pieces(list(range(7)), 3) == ([[0, 1, 2], [3, 4, 5], [6]], 3)
 
 
 def test_a_chunk_mixing_skills_writes_each_episode_once_and_a_rerun_rewrites_only_the_missing_one(tmp_path):

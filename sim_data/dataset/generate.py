@@ -58,6 +58,7 @@ from sim_data.sim.scene import load_model
 from sim_data.sim.tasks import MAX_EPISODE_STEPS, TASK_NAMES
 from sim_data.util import (
     device_name,
+    even_pieces,
     make_output_dir,
     run_cli,
     wilson_interval,
@@ -280,15 +281,6 @@ class Chunk:
             slots = [(src, idx + [idx[-1]] * (self.width - len(idx))) for src, idx in slots]
             slots += [slots[-1]] * (self.size - len(slots))
         return [(src, i) for src, idx in slots for i in idx]
-
-
-def even_pieces(items: list, most: int) -> tuple[list, int]:
-    """items cut into the fewest consecutive pieces of at most `most`, all of one size but the last,
-    which is shorter by less than the number of pieces: (pieces, size). Padding the last piece to
-    size then costs fewer rows than the pieces, where pieces of `most` would pad up to most - 1."""
-    count = -(-len(items) // most)
-    size = -(-len(items) // count)
-    return [items[k:k + size] for k in range(0, len(items), size)], size
 
 
 def _task_chunks(task: str, key, group: list, batch: int) -> list[Chunk]:

@@ -32,6 +32,7 @@ from pathlib import Path
 
 from sim_data.policies.bc import BCPolicy, PolicyNetConfig, load_params
 from sim_data.policies.degrade import DegradedPolicy, degrade_params
+from sim_data.util import even_pieces
 
 
 @typing.runtime_checkable
@@ -194,11 +195,12 @@ def group_by_policy(sources):
 
 
 def padded_chunks(group, n: int, batch: int):
-    """Chunks of at most batch // n policies, the last padded by repeating its last policy."""
-    per = max(1, batch // n)
-    for i in range(0, len(group), per):
-        part = group[i:i + per]
-        yield part, part + [part[-1]] * (min(per, len(group)) - len(part))
+    """(policies, padded) chunks of at most batch // n policies, as even as possible (even_pieces), the
+    last padded to the others' size by repeating its last policy: one batch shape, and fewer padded
+    policies than chunks."""
+    pieces, size = even_pieces(list(group), max(1, batch // n))
+    for part in pieces:
+        yield part, part + [part[-1]] * (size - len(part))
 
 
 def used_seeds(*datasets) -> set:
