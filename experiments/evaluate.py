@@ -191,8 +191,8 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
     (P, N) float (the judge applied to the simulated episodes themselves, _judge_truth; the mean;
     NaN where the outcomes came from cfg.truth_cache without frames), "sim_finite": (P, N) bool
     (the simulated episode's proprioception and actions all finite; True where read from the
-    truth cache), "prob_members": (K, P, N), "videos": {key: (T+1, S, S, 3)} (the first model's imagination), "video_index": [...],
-    "sim_s", "wm_s", "steps"}.
+    truth cache), "prob_members": (K, P, N), "videos": {key: (T+1, S, S, 3)} (the first model's
+    imagination), "video_index": [...], "sim_s", "wm_s", "steps"}.
     """
     n = len(seeds)
     reset_keys = np.stack([np.asarray(jax.random.PRNGKey(s)) for s in seeds])
@@ -242,7 +242,8 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
     true, prob = np.stack(true), np.stack(prob)
     videos, index = _select_videos(cfg, task, names, true, kept)
     return {"names": names, "true": true, "prob": prob, "prob_rule": np.stack(rule),
-            "prob_observed": np.stack(observed), "sim_finite": np.stack(finite), "prob_members": np.stack(members, axis=1), "videos": videos, "video_index": index, "sim_s": sim_s,
+            "prob_observed": np.stack(observed), "sim_finite": np.stack(finite),
+            "prob_members": np.stack(members, axis=1), "videos": videos, "video_index": index, "sim_s": sim_s,
             "wm_s": wm_s, "steps": steps}
 
 
