@@ -17,30 +17,32 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from matplotlib import colormaps
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+from PIL import Image
 
+from experiments.stats import rank
 from sim_data.util import run_cli
 
 # each evaluation preset's own targets for the within-task means (docs/results.md)
 TARGETS = {"demo": {"pearson": (">=", 0.7)},
            "full": {"pearson": (">=", 0.9), "mmrv": ("<=", 0.05), "pairwise_acc_gap10": (">=", 0.9)}}
+TAB10 = colormaps["tab10"]
 HEADLINE = ("pearson", "spearman", "kendall", "mmrv", "pairwise_acc", "pairwise_acc_gap10", "alignment")
 LABELS = {"pearson": "Pearson r", "spearman": "Spearman rho", "mmrv": "MMRV (lower is better)",
           "pairwise_acc_gap10": "pairwise accuracy, gaps >= 10 points", "alignment": "per-episode alignment"}
 
 
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+def _subplots(nrows: int = 1, ncols: int = 1, figsize=None, **kw):
+    """(figure, axes) drawn off screen: a bare matplotlib Figure, no pyplot state or backend."""
+    fig = Figure(figsize=figsize)
+    return fig, fig.subplots(nrows, ncols, **kw)
 
 
 def _png(fig) -> str:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
-    _plt().close(fig)
     return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode()
 
 
@@ -55,12 +57,11 @@ def _fmt(x, digits=3) -> str:
 def scatter_figure(policies: list[dict], metrics: dict, tasks: list[str]) -> str:
     """Predicted vs true success per policy with 95% intervals, one panel per task, then the tasks
     pooled (secondary: the gap between tasks correlates for free)."""
-    plt = _plt()
     panels = [(t, [p for p in policies if p["task"] == t], metrics["per_task"][t]) for t in tasks]
     panels += [("pooled over tasks", policies, metrics["pooled"])]
-    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 4.2), squeeze=False)
+    fig, axes = _subplots(1, len(panels), figsize=(4.2 * len(panels), 4.2), squeeze=False)
     lineages = sorted({p["lineage"] for p in policies})
-    colors = {lin: plt.cm.tab10(i % 10) for i, lin in enumerate(lineages)}
+    colors = {lin: TAB10(i % 10) for i, lin in enumerate(lineages)}
     markers = dict(zip(tasks, "osD^vP*X", strict=False))
     for ax, (title, rows, m) in zip(axes[0], panels, strict=True):
         rows = [p for p in rows if p["pred_rate"] is not None]
@@ -80,8 +81,8 @@ def scatter_figure(policies: list[dict], metrics: dict, tasks: list[str]) -> str
         ax.set_xlabel("true success (simulator)")
         ax.set_ylabel("predicted success (world model)")
         ax.set_title(f"{title}: r={_fmt(m.get('pearson'), 2)}, MMRV={_fmt(m.get('mmrv'), 3)}", fontsize=10)
-    handles = [plt.Line2D([], [], color=colors[lin], marker="o", ls="", label=lin) for lin in lineages]
-    handles += [plt.Line2D([], [], color="grey", marker=markers[t], ls="", label=t) for t in tasks if t in markers]
+    handles = [Line2D([], [], color=colors[lin], marker="o", ls="", label=lin) for lin in lineages]
+    handles += [Line2D([], [], color="grey", marker=markers[t], ls="", label=t) for t in tasks if t in markers]
     axes[0][-1].legend(handles=handles, fontsize=7, loc="lower right")
     return _png(fig)
 
@@ -91,8 +92,7 @@ def baseline_figure(policies: list[dict], tasks: list[str]) -> str | None:
     rows = [p for p in policies if p["val_loss"] is not None]
     if not rows:
         return None
-    plt = _plt()
-    fig, axes = plt.subplots(1, len(tasks), figsize=(4.2 * len(tasks), 3.6), squeeze=False)
+    fig, axes = _subplots(1, len(tasks), figsize=(4.2 * len(tasks), 3.6), squeeze=False)
     for ax, t in zip(axes[0], tasks, strict=True):
         rs = [p for p in rows if p["task"] == t]
         ax.scatter([p["val_loss"] for p in rs], [p["true_rate"] for p in rs], s=14)
@@ -105,10 +105,7 @@ def baseline_figure(policies: list[dict], tasks: list[str]) -> str | None:
 
 def rank_figure(policies: list[dict], tasks: list[str]) -> str:
     """True rank against predicted rank per task (a perfect ranking lies on the diagonal)."""
-    from experiments.stats import rank
-
-    plt = _plt()
-    fig, axes = plt.subplots(1, len(tasks), figsize=(4.2 * len(tasks), 4), squeeze=False)
+    fig, axes = _subplots(1, len(tasks), figsize=(4.2 * len(tasks), 4), squeeze=False)
     for ax, t in zip(axes[0], tasks, strict=True):
         rs = [p for p in policies if p["task"] == t]
         rs = [p for p in rs if p["pred_rate"] is not None]
@@ -122,11 +119,10 @@ def rank_figure(policies: list[dict], tasks: list[str]) -> str:
 
 
 def decision_figure(decision: dict) -> str:
-    plt = _plt()
-    fig, ax = plt.subplots(figsize=(5.5, 3.8))
+    fig, ax = _subplots(figsize=(5.5, 3.8))
     eps = decision["episodes"]
     for i, (g, curve) in enumerate(decision["model"].items()):
-        c = plt.cm.tab10(i)
+        c = TAB10(i)
         ax.plot(eps, curve, color=c, label=f"binomial model, gap {float(g):.0%}")
         res = decision["resampled"].get(g)
         if res:
@@ -146,8 +142,6 @@ def decision_figure(decision: dict) -> str:
 def animation(real: np.ndarray, imagined: np.ndarray, every: int = 2) -> str:
     """An animated WebP (data URI; a sixth of a GIF's size): real | imagined side by side, every
     `every`-th frame at the control rate's pace."""
-    from PIL import Image
-
     n = min(len(real), len(imagined))
     gap = np.full((real.shape[1], 2, 3), 255, np.uint8)
     frames = [Image.fromarray(np.concatenate([real[t], gap, imagined[t]], axis=1)) for t in range(0, n, every)]
@@ -159,10 +153,9 @@ def animation(real: np.ndarray, imagined: np.ndarray, every: int = 2) -> str:
 
 def strip_figure(panel: dict, times=(0, 8, 16, 24, 32, 48)) -> str:
     """The controllability panel: one start, each program; rows real and imagined at several times."""
-    plt = _plt()
     progs = sorted(panel)
     times = [t for t in times if t < len(panel[progs[0]]["real"])]
-    fig, axes = plt.subplots(2 * len(progs), len(times), figsize=(1.3 * len(times), 1.35 * 2 * len(progs)),
+    fig, axes = _subplots(2 * len(progs), len(times), figsize=(1.3 * len(times), 1.35 * 2 * len(progs)),
                              squeeze=False)
     for r, p in enumerate(progs):
         for k, kind in enumerate(("real", "imagined")):
@@ -346,10 +339,9 @@ def selection_figure(policies: list[dict], tasks: list[str]) -> str | None:
     rows = [p for p in policies if p["step"] is not None and p["pred_rate"] is not None]
     if not rows:
         return None
-    plt = _plt()
-    fig, axes = plt.subplots(1, len(tasks), figsize=(4.6 * len(tasks), 3.8), squeeze=False)
+    fig, axes = _subplots(1, len(tasks), figsize=(4.6 * len(tasks), 3.8), squeeze=False)
     lineages = sorted({p["lineage"] for p in rows})
-    colors = {lin: plt.cm.tab10(i % 10) for i, lin in enumerate(lineages)}
+    colors = {lin: TAB10(i % 10) for i, lin in enumerate(lineages)}
     for ax, t in zip(axes[0], tasks, strict=True):
         for lin in lineages:
             rs = sorted((p for p in rows if p["task"] == t and p["lineage"] == lin), key=lambda p: p["step"])
