@@ -337,9 +337,7 @@ def simulate_truth(cfg: EvalConfig, task: str, policy, params, seeds, reset_keys
 
 
 def _simulate(task, policy, params, seeds, reset_keys, rng, engine, renderer) -> dict:
-    trees = params if isinstance(policy, MixedPolicy) else (params,)
-    p = sum(jax.tree_util.tree_leaves(q)[0].shape[0] for q in trees)
-    env = cached_env(task, p * len(seeds), engine, False)
+    env = cached_env(task, policy.count(params) * len(seeds), engine, False)
     outcome, rec = record_policies(env, policy, params, reset_keys, rng, renderer)
     return {"outcome": outcome, "frames0": np.asarray(rec.frames[CAMERA][:, :1]),
             "proprio0": np.asarray(rec.proprio[:, :1]), "steps": env.episode_steps, "frames": rec.frames[CAMERA],

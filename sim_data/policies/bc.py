@@ -198,11 +198,12 @@ class StackedPolicy:
     def _split(x, p):
         return x.reshape((p, x.shape[0] // p) + x.shape[1:])
 
-    def _p(self, params):
+    def count(self, params) -> int:
+        """P, the parameter sets stacked in params."""
         return jax.tree_util.tree_leaves(params)[0].shape[0]
 
     def init_carry(self, params, obs, task_state, rng):
-        p = self._p(params)
+        p = self.count(params)
         obs = jax.tree_util.tree_map(lambda x: self._split(x, p), obs)
         ts = None if task_state is None else jax.tree_util.tree_map(lambda x: self._split(x, p), task_state)
         keys = jax.random.split(rng, p)
@@ -210,7 +211,7 @@ class StackedPolicy:
         return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), carry)
 
     def act(self, params, obs, carry, rng):
-        p = self._p(params)
+        p = self.count(params)
         split = lambda tree: jax.tree_util.tree_map(lambda x: self._split(x, p), tree)
         keys = jax.random.split(rng, p)
         action, carry = jax.vmap(self.policy.act)(params, split(obs), split(carry), keys)
@@ -235,6 +236,10 @@ class MixedPolicy:
     def _slices(self) -> list[slice]:
         ends = np.cumsum(self.rows)
         return [slice(int(e - r), int(e)) for e, r in zip(ends, self.rows, strict=True)]
+
+    def count(self, params) -> int:
+        """The parameter sets of every policy in params (each a StackedPolicy's, or another with count)."""
+        return sum(pol.count(p) for pol, p in zip(self.policies, params, strict=True))
 
     def _check(self, obs):
         b = jax.tree_util.tree_leaves(obs)[0].shape[0]
