@@ -66,6 +66,7 @@ from sim_data.policies.registry import (
 from sim_data.sim import robot as R
 from sim_data.sim.engines import ENGINES, default_engine
 from sim_data.sim.rollout import record_policies
+from sim_data.sim.tasks import TASK_NAMES
 from sim_data.util import device_name, make_output_dir, run_cli, write_json_atomic
 from wm.checkpoint import load_run_config, load_trained, training_seeds, training_status
 from wm.evaluate import no_nan, program_panel
@@ -126,6 +127,9 @@ class EvalConfig:
             raise ValueError(f"threshold must be in (0, 1), got {self.threshold}")
         if self.truth_cache and self.video_policies:
             raise ValueError("truth_cache keeps no real videos: use it with video_policies=0")
+        unknown = [t for t in self.tasks if t not in TASK_NAMES]
+        if unknown:
+            raise ValueError(f"unknown tasks {unknown}; choose among {', '.join(TASK_NAMES)}")
         if len(set(self.wm_runs)) != len(self.wm_runs):
             raise ValueError(f"wm names a run twice: {self.wm}")
 

@@ -60,6 +60,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+from matplotlib.figure import Figure
+from scipy import stats
 
 from experiments import ensemble
 from sim_data.util import run_cli, write_json_atomic
@@ -588,8 +590,6 @@ def mean_interval(values, bounds=None) -> tuple[float | None, list | None]:
         return None, None
     if len(v) == 1:
         return float(v[0]), None
-    from scipy import stats
-
     half = stats.t.ppf(0.975, len(v) - 1) * v.std(ddof=1) / math.sqrt(len(v))
     lo, hi = bounds or (-math.inf, math.inf)
     return float(v.mean()), [float(max(lo, v.mean() - half)), float(min(hi, v.mean() + half))]
@@ -650,16 +650,12 @@ def finding(name: str, x_label: str, per_x: list[dict]) -> str:
 
 
 def plot(results: dict, path: Path, log_x: bool) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     per_x = results["per_x"]
     shown = [m for m, _ in METRICS if any(e[m] is not None for e in per_x)] or [METRICS[0][0]]
     cols = min(5, len(shown))
     rows = -(-len(shown) // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(3.0 * cols, 2.8 * rows), squeeze=False)
+    fig = Figure(figsize=(3.0 * cols, 2.8 * rows))
+    axes = fig.subplots(rows, cols, squeeze=False)
     for ax in axes.flat[len(shown):]:
         ax.set_visible(False)
     for ax, m in zip(axes.flat, shown, strict=False):
@@ -685,7 +681,6 @@ def plot(results: dict, path: Path, log_x: bool) -> None:
     fig.supxlabel(results["x_label"], fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
-    plt.close(fig)
 
 
 def main(argv=None) -> int:

@@ -34,17 +34,17 @@ def pytest_unconfigure(config):
 from sim_data.sim import scene as S  # noqa: E402
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def model() -> mujoco.MjModel:
     return S.load_model()
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def idx(model) -> S.SceneIndex:
     return S.scene_index(model)
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def rng():
     return jax.random.PRNGKey(0)
 
@@ -83,7 +83,7 @@ def build_once(tmp_path_factory, worker_id: str, name: str, build) -> Path:
     return out
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def smoke_dataset(tmp_path_factory, worker_id):
     """(config, directory, stats) of `make data CONFIG=smoke` (2 mug episodes, cpu, with its cache).
     Shared: tests copy it before changing anything."""
@@ -94,7 +94,7 @@ def smoke_dataset(tmp_path_factory, worker_id):
     return cfg, out, json.loads((out / "stats.json").read_text())
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def smoke_world_model(smoke_dataset, tmp_path_factory, worker_id):
     """Directory of `make train CONFIG=smoke` on the smoke dataset (best/, norm.json, eval.json)."""
     from wm.train import main
@@ -107,7 +107,7 @@ def smoke_world_model(smoke_dataset, tmp_path_factory, worker_id):
     return build_once(tmp_path_factory, worker_id, "wm", train) / "train"
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def smoke_zoo(smoke_dataset, tmp_path_factory, worker_id):
     """(directory, registry) of `make policies CONFIG=smoke` on the smoke dataset."""
     from sim_data.policies import zoo

@@ -210,6 +210,8 @@ def test_bad_evaluation_settings_are_refused():
         E.make_config("demo", ["episodes=1"])
     with pytest.raises(ValueError, match="unknown preset"):
         E.make_config("huge")
+    with pytest.raises(ValueError, match=r"unknown tasks \['mugg'\]; choose among mug, wipe"):
+        E.make_config("demo", ["tasks=mug,mugg"])
 
 
 def test_air_fryer_body_mask_covers_the_body_pixels_of_the_frame():

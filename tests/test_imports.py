@@ -56,3 +56,16 @@ def test_the_import_graph_has_no_cycle():
         if node not in state:
             visit(node, [node])
 
+
+
+def test_every_import_is_at_module_level():
+    """No import hides inside a function (to dodge a cycle or defer a cost): a module's dependencies
+    are what its top says."""
+    hidden = []
+    for pkg in PACKAGES:
+        for path in (ROOT / pkg).rglob("*.py"):
+            for fn in ast.walk(ast.parse(path.read_text())):
+                if isinstance(fn, ast.FunctionDef | ast.AsyncFunctionDef):
+                    hidden += [f"{path.relative_to(ROOT)}:{n.lineno}" for n in ast.walk(fn)
+                               if isinstance(n, ast.Import | ast.ImportFrom)]
+    assert not hidden, f"imports inside functions: {hidden}"

@@ -28,7 +28,7 @@ from wm.model import (
 from wm.checkpoint import load_run_config, load_trained, training_seeds, training_status, write_bundle
 from wm.checkpoint import main as checkpoint_main
 from wm.judge import load_judge
-from wm.train import Run, TrainingDiverged
+from wm.train import Run, TrainingDiverged, _check_config
 from wm.train import main as train_main
 
 CFG = SMOKE_MODEL
@@ -514,3 +514,13 @@ def test_a_bundle_carries_the_model_in_bfloat16_and_refuses_a_damaged_copy(smoke
         load_trained(bundle)
     with pytest.raises(ValueError, match="not a bundle"):
         write_bundle(run, run / "..")
+
+
+def test_a_run_directory_refuses_another_configuration_naming_what_differs(tmp_path):
+    cfg = make_config("demo")
+    _check_config(cfg, tmp_path / "data", tmp_path)
+    _check_config(cfg, tmp_path / "data", tmp_path)  # the same run resumes
+    with pytest.raises(ValueError, match=r"differs: data\)"):
+        _check_config(cfg, tmp_path / "other", tmp_path)
+    with pytest.raises(ValueError, match=r"differs: lr\)"):
+        _check_config(dataclasses.replace(cfg, lr=cfg.lr * 2), tmp_path / "data", tmp_path)

@@ -36,6 +36,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from matplotlib.figure import Figure
 
 from sim_data.config import override
 from sim_data.dataset.cache import TrainingCache
@@ -234,14 +235,10 @@ def no_nan(x):
 
 def _save_strip(path: Path, pictures: dict, horizons) -> None:
     """Rows: true and imagined frames of a few test samples at each horizon."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     pred, truth = pictures["pred"], pictures["truth"]
     rows = 2 * len(pred)
-    fig, axes = plt.subplots(rows, len(horizons), figsize=(1.4 * len(horizons), 1.4 * rows), squeeze=False)
+    fig = Figure(figsize=(1.4 * len(horizons), 1.4 * rows))
+    axes = fig.subplots(rows, len(horizons), squeeze=False)
     for r in range(len(pred)):
         for c, h in enumerate(horizons):
             for k, (img, label) in enumerate(((truth[r, h - 1], "true"), (pred[r, h - 1], "imagined"))):
@@ -255,7 +252,6 @@ def _save_strip(path: Path, pictures: dict, horizons) -> None:
                     ax.set_title(f"h={h}", fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
-    plt.close(fig)
 
 
 EVAL_KEYS = ("eval_context", "eval_episodes", "eval_horizons", "control_horizon", "eval_tasks", "model.keep_threshold",

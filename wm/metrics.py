@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
@@ -67,8 +68,6 @@ def view_shift(a, b) -> np.ndarray:
     4 / sqrt(H W) (about the highest value an unrelated pair's surface reaches, whose values spread
     as 1 / sqrt(H W); OpenCV's sub-pixel centroid of such a surface can land hundreds of pixels away),
     or the shift exceeds half the frame (phase correlation wraps around there)."""
-    import cv2
-
     a = np.asarray(a, np.float32).mean(axis=-1)
     b = np.asarray(b, np.float32).mean(axis=-1)
     h, w = a.shape[-2:]

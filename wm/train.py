@@ -365,8 +365,11 @@ def _check_config(cfg: TrainConfig, data: Path, out: Path) -> None:
         for k in mine["train"].keys() - theirs["train"].keys():  # a setting added since: the run had its default
             theirs["train"][k] = defaults[k]
         if theirs != mine:
+            keys = mine["train"].keys() | theirs["train"].keys()
+            differs = sorted(k for k in keys if mine["train"].get(k) != theirs["train"].get(k))
+            differs += ["data"] if mine["data"] != theirs.get("data") else []
             raise ValueError(f"{out} holds a run of another configuration or dataset; use another OUT "
-                             f"(differs: {sorted(k for k in mine['train'] if mine['train'][k] != theirs['train'].get(k))})")
+                             f"(differs: {', '.join(differs)})")
     else:
         write_json_atomic(path, mine)
 

@@ -19,6 +19,7 @@ import sys
 import time
 from pathlib import Path
 
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -26,6 +27,7 @@ import numpy as np
 
 from sim_data.bench.render_check import poses_of, random_states
 from sim_data.sim import scene as S
+from sim_data.sim.env import HomeEnv
 from sim_data.sim.render import Poses, RenderConfig, Renderer, episode_rgb
 from sim_data.sim.tasks import TASK_NAMES
 from sim_data.util import device_name, run_cli, write_json_atomic
@@ -121,10 +123,6 @@ def bench_variants(model, pool_poses, colors, b: int, size: int = 64, camera: st
 
 def bench_e2e(batch: int, size: int = 64, steps: int = 100, task: str = "mug") -> dict:
     """MJX physics + JAX renderer (head camera) + a small CNN policy, one jitted scan of `steps` control steps."""
-    import flax.linen as nn
-
-    from sim_data.sim.env import HomeEnv
-
     class SmallCNN(nn.Module):
         @nn.compact
         def __call__(self, image, proprio):

@@ -23,11 +23,10 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from mujoco import mjx
 
 from sim_data.bench.physics import ready_controls, time_mjx
 from sim_data.sim import scene as S
-from sim_data.sim.engines import MjxEngine
+from sim_data.sim.engines import MjxEngine, mjx
 from sim_data.sim.tasks import TASKS, sample_initial
 from sim_data.util import device_name, run_cli, write_json_atomic
 
@@ -116,7 +115,8 @@ def stage_times(mx, d) -> dict:
     The stages chain as `mjx.step` chains them (MJX 3.x internals), each fed its predecessor's
     output; their sum exceeds the fused step by what XLA saves across stage boundaries.
     """
-    from mujoco.mjx._src import collision_driver, constraint, forward, smooth, solver
+    collision_driver, constraint, forward, smooth, solver = (
+        mjx._src.collision_driver, mjx._src.constraint, mjx._src.forward, mjx._src.smooth, mjx._src.solver)
 
     def smooth_position(m, x):
         for f in (smooth.kinematics, smooth.com_pos, smooth.camlight, smooth.tendon, smooth.crb,

@@ -20,15 +20,10 @@ import numpy as np
 from flax import struct
 
 
-def _import_mjx():
-    """mujoco.mjx without the lines it prints when its optional Warp backend is absent: the project
-    runs MJX's JAX implementation, for which Warp plays no part."""
-    with contextlib.redirect_stdout(io.StringIO()):
-        from mujoco import mjx as module
-    return module
-
-
-mjx = _import_mjx()
+# mujoco.mjx prints two lines when its optional Warp backend is absent; the project runs MJX's JAX
+# implementation, for which Warp plays no part
+with contextlib.redirect_stdout(io.StringIO()):
+    from mujoco import mjx
 
 ENGINES = ("cpu", "mjx")
 POSE_FIELDS = ("geom_xpos", "geom_xmat", "cam_xpos", "cam_xmat")
