@@ -106,7 +106,7 @@ PIPELINES = {
     # checkpoints evaluated from the evaluation preset's held-out initial states by an ensemble of world
     # models (stage times: docs/benchmarks.md)
     "full": Pipeline(data="wm_full", policies="full", train="full", eval="full",
-                     train_overrides=("w_success=0.5",),
+                     train_overrides=("w_success=0.5", "w_progress=0.5"),
                      rollouts="conv_noproprio", rollout_episodes=64, members=3),
 }
 

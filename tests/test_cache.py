@@ -33,6 +33,7 @@ def test_cache_rows_equal_the_mcap_files(two_shards):
         np.testing.assert_array_equal(row["action"][:-1], ep["action"])
         assert not row["action"][-1].any()
         np.testing.assert_array_equal(row["success"], ep["success"])
+        np.testing.assert_array_equal(row["progress"], ep["progress"])
         assert rec["success"] == ep["meta"]["success"] and rec["length"] == ep["proprio"].shape[0]
 
 

@@ -61,6 +61,7 @@ def test_mcap_reads_back_with_every_image_decoded(smoke):
                 assert img.shape == (cfg.size, cfg.size, 3) and body["format"] == "jpeg"
             if channel.topic == "/task_state":
                 successes.append(body["success"])
+                assert 0.0 <= body["progress"] <= 1.0 and (body["progress"] == 1.0 or not body["success"])
         meta = G.read_episode_meta(out / row["file"])
     steps = row["num_steps"]
     assert set(counts) == TOPICS

@@ -160,6 +160,52 @@ def test_step_back_distance_and_hits():
     assert bool(ts.failed[0]) and not bool(ok[0])
 
 
+def progress(env, st, q, ts=None):
+    """The task progress after one update from st (or st with task state ts) to qpos q."""
+    st = st.replace(task=ts) if ts is not None else st
+    ts, ok = update(env, st, q)
+    return ts, float(T.task_progress(ts, jnp.asarray(q), st.qvel, st.mocap_pos, env.idx, ok)[0])
+
+
+def test_progress_measures_each_task_towards_its_success_and_is_one_at_success():
+    env, st = initial("mug")
+    q = np.asarray(st.qpos).copy()
+    q[0, env.idx.mug_qpos + 2] = S.COUNTER_TOP + S.MUG_HALF_HEIGHT + 0.04  # half the lift, no hold yet
+    assert progress(env, st, q)[1] == pytest.approx(0.25, abs=1e-5)
+    q[0, env.idx.mug_qpos + 2] += 0.05
+    ts, p = progress(env, st, q)  # lifted, held one step of 0.05 s
+    assert p == pytest.approx(0.5 + 0.5 * 0.05 / 0.5, abs=1e-5)
+    for _ in range(9):
+        ts, p = progress(env, st, q, ts)
+    assert p == 1.0
+
+    env, st = initial("wipe")
+    q = np.asarray(st.qpos).copy()
+    a = env.idx.cloth_qpos
+    q[0, a + 3 : a + 7] = [1, 0, 0, 0]
+    ts = None
+    for c in np.asarray(T.dirt_cell_xy(st.task.patch))[0][:8]:
+        q[0, a : a + 2] = c
+        ts, p = progress(env, st, q, ts)
+    assert p == pytest.approx(min(1.0, np.asarray(ts.wiped[0]).sum() / 20 / 0.8), abs=1e-6) and 0 < p < 1
+
+    env, st = initial("airfryer")
+    q = np.asarray(st.qpos).copy()
+    q[0, env.idx.tray_qpos] = 0.05
+    ts, p = progress(env, st, q)
+    assert p == pytest.approx(0.5, abs=1e-5)
+    q[0, env.idx.fryer_qpos] += 0.021  # the body moved: a failure, no progress
+    assert progress(env, st, q, ts)[1] == 0.0
+
+    env, st = initial("step_back")
+    q = np.asarray(st.qpos).copy()
+    b = env.idx.robot.base_qpos
+    x0, y0, yaw0 = (float(v) for v in np.asarray(st.task.ref[0, 3:]))
+    for back, want in ((0.2, 0.4), (0.6, 1.0), (0.85, 0.0)):  # on the way, inside the band, past it
+        q[0, b[0]], q[0, b[1]] = x0 - back * np.cos(yaw0), y0 - back * np.sin(yaw0)
+        assert progress(env, st, q)[1] == pytest.approx(want, abs=1e-4), back
+
+
 def test_unknown_task_is_a_clear_error():
     with pytest.raises(ValueError, match="unknown task 'dance'.*mug"):
         HomeEnv("dance", 1, engine="cpu")

@@ -277,7 +277,7 @@ def test_reencoded_rollout_passes_change_only_the_passes(model_and_inputs):
     params, frames, proprio, action = model_and_inputs
     norm = I.Norm(jnp.zeros(37), jnp.ones(37), jnp.zeros(20), jnp.ones(20))
     batch = {"frames": frames, "proprio": proprio, "action": action, "success": np.zeros((2, 6), bool),
-             "outcome": np.zeros((2,), bool)}
+             "progress": np.zeros((2, 6), np.float32), "outcome": np.zeros((2,), bool)}
     cfg = make_config("smoke")
     parts = {}
     for model_re, passes_re in ((False, False), (True, False), (True, True)):

@@ -29,8 +29,9 @@ class TrainConfig:
         its level uniformly below it; 0: none), as GameNGen's noise augmentation.
       reencode_passes: with model.reencode, the rollout passes read the latents of their decoded
         frames' 8-bit images, as imagination does, instead of the predicted latents.
-      w_recon, w_latent, w_pixel, w_proprio, w_success: loss weights; w_keep: of the keep gate's
-        cross-entropy against the pixels the true next frame leaves unchanged (model.keep).
+      w_recon, w_latent, w_pixel, w_proprio, w_success: loss weights; w_progress: of the per-step
+        task progress (sim_data.sim.tasks.task_progress, a soft label in [0, 1]); w_keep: of the keep
+        gate's cross-entropy against the pixels the true next frame leaves unchanged (model.keep).
       log_every, eval_every, ckpt_every: in steps (eval and checkpoints at multiples of log_every).
       val_batches: validation batches per evaluation. param_sharding: "replicated" (data parallel)
         or "fsdp" (parameters and optimiser state sharded over the data axis).
@@ -42,7 +43,7 @@ class TrainConfig:
       judge_episodes: training episodes the episode judge (wm.judge) learns from, imagined whole after
         training (0: no judge; the per-step rule decides); judge_steps: its optimiser steps;
         judge_inputs: the blocks of the imagined step features it reads (wm.imagine.FEATURE_GROUPS:
-        proprio, action, latent, success, outcome); leaving out "action" makes it judge what the
+        proprio, action, latent, success, outcome, progress); leaving out "action" makes it judge what the
         actions did in imagination rather than what they look like.
     """
 
@@ -66,6 +67,7 @@ class TrainConfig:
     w_pixel: float = 1.0
     w_proprio: float = 0.1
     w_success: float = 0.05
+    w_progress: float = 0.2
     w_keep: float = 0.2
     log_every: int = 50
     eval_every: int = 500

@@ -53,7 +53,8 @@ class ImagineState:
       z: (B, K, 8, 8, C) latents; proprio: (B, K, 37) normalised; action: (B, K, 20) normalised
       (slot K-1 is filled by the next step); valid: (B, K) bool; frame: (B, S, S, 3) float32 in
       [0, 1], the current frame (decoded, or the last context frame); success: (B,) probability that
-      the current frame is a success; outcome: (B,) predicted probability of the episode's success.
+      the current frame is a success; outcome: (B,) predicted probability of the episode's success;
+      progress: (B,) predicted task progress in [0, 1] (sim_data.sim.tasks.task_progress).
     """
 
     z: jax.Array
@@ -63,6 +64,7 @@ class ImagineState:
     frame: jax.Array
     success: jax.Array
     outcome: jax.Array
+    progress: jax.Array
 
 
 def init_state(cfg: ModelConfig, params, norm: Norm, frames, proprio, actions) -> ImagineState:
@@ -85,7 +87,7 @@ def init_state(cfg: ModelConfig, params, norm: Norm, frames, proprio, actions) -
     valid = jnp.concatenate([jnp.zeros((b, pad), bool), jnp.ones((b, c), bool)], axis=1)
     return ImagineState(z=place(z), proprio=place(norm.proprio(proprio)), action=place(acts), valid=valid,
                         frame=frames[:, -1].astype(jnp.float32) / 255.0, success=jnp.zeros((b,)),
-                        outcome=jnp.zeros((b,)))
+                        outcome=jnp.zeros((b,)), progress=jnp.zeros((b,)))
 
 
 def step(cfg: ModelConfig, params, norm: Norm, state: ImagineState, action) -> ImagineState:
@@ -108,7 +110,8 @@ def step(cfg: ModelConfig, params, norm: Norm, state: ImagineState, action) -> I
     return ImagineState(
         z=push(state.z, z_next), proprio=push(state.proprio, out["proprio"][:, -1]),
         action=push(acts, jnp.zeros_like(acts[:, -1])), valid=push(state.valid, jnp.ones_like(state.valid[:, -1])),
-        frame=frame, success=jax.nn.sigmoid(out["success"][:, -1]), outcome=jax.nn.sigmoid(out["outcome"][:, -1]))
+        frame=frame, success=jax.nn.sigmoid(out["success"][:, -1]), outcome=jax.nn.sigmoid(out["outcome"][:, -1]),
+        progress=jax.nn.sigmoid(out["progress"][:, -1]))
 
 
 def episode_success(success):
@@ -121,9 +124,9 @@ def episode_success(success):
 def step_features(norm: Norm, state: ImagineState, action) -> jax.Array:
     """What the episode judge (wm.judge) reads of one imagined step, (B, F) with F = feature_dim(cfg):
     the predicted proprioception (standardised), the action taken (standardised), the new latent grid
-    pooled to 2x2 cells, and the per-step success and outcome probabilities."""
+    pooled to 2x2 cells, the per-step success and outcome probabilities and the predicted progress."""
     return jnp.concatenate([state.proprio[:, -1], norm.action(action), pool_latents(state.z[:, -1]),
-                            state.success[:, None], state.outcome[:, None]], axis=-1)
+                            state.success[:, None], state.outcome[:, None], state.progress[:, None]], axis=-1)
 
 
 def pool_latents(z) -> jax.Array:
@@ -132,14 +135,14 @@ def pool_latents(z) -> jax.Array:
     return z.reshape(b, 2, s // 2, 2, s // 2, c).mean(axis=(2, 4)).reshape(b, 4 * c)
 
 
-SUCCESS_FEATURE, OUTCOME_FEATURE = -2, -1  # where step_features keeps the per-step probabilities
+SUCCESS_FEATURE, OUTCOME_FEATURE, PROGRESS_FEATURE = -3, -2, -1  # where step_features keeps the heads' outputs
 
 
 def feature_dim(cfg: ModelConfig) -> int:
-    return cfg.proprio_dim + cfg.action_dim + 4 * cfg.latent + 2
+    return cfg.proprio_dim + cfg.action_dim + 4 * cfg.latent + 3
 
 
-FEATURE_GROUPS = ("proprio", "action", "latent", "success", "outcome")  # step_features' blocks, in order
+FEATURE_GROUPS = ("proprio", "action", "latent", "success", "outcome", "progress")  # step_features' blocks, in order
 
 
 def feature_columns(cfg: ModelConfig, groups) -> np.ndarray:
@@ -147,7 +150,7 @@ def feature_columns(cfg: ModelConfig, groups) -> np.ndarray:
     unknown = set(groups) - set(FEATURE_GROUPS)
     if unknown or not groups:
         raise ValueError(f"feature groups are among {', '.join(FEATURE_GROUPS)}; got {list(groups)}")
-    sizes = (cfg.proprio_dim, cfg.action_dim, 4 * cfg.latent, 1, 1)
+    sizes = (cfg.proprio_dim, cfg.action_dim, 4 * cfg.latent, 1, 1, 1)
     starts = np.cumsum((0,) + sizes)
     return np.concatenate([np.arange(starts[k], starts[k + 1]) for k, g in enumerate(FEATURE_GROUPS) if g in groups])
 
@@ -168,18 +171,19 @@ def open_loop(cfg: ModelConfig, params, norm: Norm, frames, proprio, context_act
     frames (B, C, S, S, 3) uint8, proprio (B, C, 37), context_actions (B, C-1, 20), actions (B, H, 20)
     (action h follows imagined frame h-1, the first follows the last context frame).
     Returns {"frames": (B, H, S, S, 3) uint8, "proprio": (B, H, 37), "success": (B, H),
-    "outcome": (B, H), "features": (B, H, F) (step_features)} for frames C .. C+H-1 after the context.
+    "outcome": (B, H), "progress": (B, H), "features": (B, H, F) (step_features)} for frames C .. C+H-1
+    after the context.
     """
     state = init_state(cfg, params, norm, frames, proprio, context_actions)
 
     def body(st, a):
         st = step(cfg, params, norm, st, a)
-        return st, (to_uint8(st.frame), norm.unproprio(st.proprio[:, -1]), st.success, st.outcome,
+        return st, (to_uint8(st.frame), norm.unproprio(st.proprio[:, -1]), st.success, st.outcome, st.progress,
                     step_features(norm, st, a))
 
-    _, (f, p, s, o, x) = jax.lax.scan(body, state, jnp.swapaxes(actions, 0, 1))
+    _, (f, p, s, o, g, x) = jax.lax.scan(body, state, jnp.swapaxes(actions, 0, 1))
     sw = functools.partial(jnp.swapaxes, axis1=0, axis2=1)
-    return {"frames": sw(f), "proprio": sw(p), "success": s.T, "outcome": o.T, "features": sw(x)}
+    return {"frames": sw(f), "proprio": sw(p), "success": s.T, "outcome": o.T, "progress": g.T, "features": sw(x)}
 
 
 SEGMENT = 20  # imagined steps per compiled call: one program serves every horizon
@@ -193,7 +197,7 @@ def closed_loop(cfg: ModelConfig, policy, horizon: int, params, norm: Norm, poli
     context observation. The steps run in compiled segments of SEGMENT steps, so that horizons of
     every task share one program (the last segment's surplus steps are dropped). Returns {"frames":
     (B, horizon, S, S, 3) uint8, "proprio": (B, horizon, 37), "success": (B, horizon), "outcome":
-    (B, horizon), "action": (B, horizon, 20), "features": (B, horizon, F)}.
+    (B, horizon), "progress": (B, horizon), "action": (B, horizon, 20), "features": (B, horizon, F)}.
     """
     carry, k_act = _closed_loop_start(cfg, policy, params, norm, policy_params, frames, proprio, context_actions, rng)
     parts = []
@@ -219,20 +223,20 @@ def _closed_loop_segment(cfg: ModelConfig, policy, params, norm: Norm, policy_pa
         action, pc = policy.act(policy_params, ob, pc, jax.random.fold_in(k_act, t))
         st = step(cfg, params, norm, st, action)
         ob = current_observation(norm, st)
-        return (st, ob, pc), (ob["image"], ob["proprio"], st.success, st.outcome, action,
+        return (st, ob, pc), (ob["image"], ob["proprio"], st.success, st.outcome, st.progress, action,
                               step_features(norm, st, action))
 
-    carry, (f, p, s, o, a, x) = jax.lax.scan(body, carry, t0 + jnp.arange(SEGMENT))
+    carry, (f, p, s, o, g, a, x) = jax.lax.scan(body, carry, t0 + jnp.arange(SEGMENT))
     sw = functools.partial(jnp.swapaxes, axis1=0, axis2=1)
-    return carry, {"frames": sw(f), "proprio": sw(p), "success": s.T, "outcome": o.T, "action": sw(a),
-                   "features": sw(x)}
+    return carry, {"frames": sw(f), "proprio": sw(p), "success": s.T, "outcome": o.T, "progress": g.T,
+                   "action": sw(a), "features": sw(x)}
 
 
 def observed_features(cfg: ModelConfig, params, norm: Norm, frames, proprio, actions) -> jax.Array:
     """The episode judge's features of a true episode: what step_features would read had the world
     model imagined every frame exactly. frames (B, T+1, S, S, 3) uint8, proprio (B, T+1, 37), actions
     (B, T, 20) -> (B, T, F): for step t, the true proprioception and encoded frame t+1, action t, and
-    the success and outcome heads' probabilities given the true context up to frame t and action t.
+    the success, outcome and progress heads' outputs given the true context up to frame t and action t.
     The judge's reading of these is what it would read were imagination exact. Runs in
     compiled segments of SEGMENT steps (the last one padded), so every episode length shares one program."""
     b, t = actions.shape[:2]
@@ -269,8 +273,8 @@ def _observed_segment(cfg: ModelConfig, params, norm: Norm, buf, frames, proprio
     def body(buf, t):
         zb, pb, ab, vb = (push(x, y) for x, y in zip(buf, (z[t], p[t], a[t], jnp.ones((b,), bool))))
         out = model.apply({"params": params}, zb, pb, ab, vb, method=WorldModel.predict)
-        x = jnp.concatenate([p[t + 1], a[t], pool_latents(z[t + 1]), jax.nn.sigmoid(out["success"][:, -1])[:, None],
-                             jax.nn.sigmoid(out["outcome"][:, -1])[:, None]], axis=-1)
+        heads = [jax.nn.sigmoid(out[k][:, -1])[:, None] for k in ("success", "outcome", "progress")]
+        x = jnp.concatenate([p[t + 1], a[t], pool_latents(z[t + 1])] + heads, axis=-1)
         return (zb, pb, ab, vb), x
 
     buf, x = jax.lax.scan(body, buf, jnp.arange(SEGMENT))

@@ -323,7 +323,8 @@ class Dynamics(nn.Module):
         """z: (B, T, 8, 8, C); proprio: (B, T, 37) normalised; action: (B, T, 20) normalised;
         valid: optional (B, T) bool, False for empty slots of an imagination buffer.
         Returns {"z": (B, T, 8, 8, C), "proprio": (B, T, 37), "success": (B, T) logits,
-        "outcome": (B, T) logits, "flow": (B, T, 8, 8, 2) in latent cells}, entry t being the
+        "outcome": (B, T) logits, "progress": (B, T) logits of the task progress, "flow": (B, T, 8, 8, 2)
+        in latent cells}, entry t being the
         prediction for frame t+1 (the flow warps frame t towards it)."""
         cfg, dt = self.cfg, self.cfg.compute_dtype
         b, t = z.shape[:2]
@@ -352,11 +353,12 @@ class Dynamics(nn.Module):
             nn.silu(cond).astype(jnp.float32)).reshape(b, t, LATENT_SIDE, LATENT_SIDE, 2)
         flow = unpatchify(flow.astype(jnp.float32), cfg.patch, 2) + ego
         pooled = h.mean(axis=2).astype(jnp.float32)
-        heads = nn.Dense(cfg.proprio_dim + 2, dtype=jnp.float32)(nn.silu(nn.Dense(cfg.dim, dtype=jnp.float32)(pooled)))
+        heads = nn.Dense(cfg.proprio_dim + 3, dtype=jnp.float32)(nn.silu(nn.Dense(cfg.dim, dtype=jnp.float32)(pooled)))
         # clipped like the standardised inputs, so that a long imagined rollout cannot diverge
         p_out = jnp.clip(p_next + heads[..., :cfg.proprio_dim], -INPUT_CLIP, INPUT_CLIP)
         return {"z": z_next, "proprio": p_out,
-                "success": heads[..., cfg.proprio_dim], "outcome": heads[..., cfg.proprio_dim + 1], "flow": flow}
+                "success": heads[..., cfg.proprio_dim], "outcome": heads[..., cfg.proprio_dim + 1],
+                "progress": heads[..., cfg.proprio_dim + 2], "flow": flow}
 
 
 class WorldModel(nn.Module):

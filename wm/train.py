@@ -64,7 +64,7 @@ def compute_norm(cache: TrainingCache, ids=None) -> Norm:
 def model_batch(batch: dict, camera: str) -> dict:
     """The loader's batch reduced to what the model trains on."""
     return {"frames": batch["frames"][camera], "proprio": batch["proprio"], "action": batch["action"],
-            "success": batch["success"], "outcome": batch["outcome"]}
+            "success": batch["success"], "progress": batch["progress"], "outcome": batch["outcome"]}
 
 
 # ---- loss and step ---------------------------------------------------------------------------------
@@ -113,10 +113,12 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None):
         prop = jnp.mean((pred["proprio"][:, :-1] - proprio[:, 1:]) ** 2)
         succ = _bce(pred["success"][:, :-1], batch["success"][:, 1:])
         outc = _bce(pred["outcome"], jnp.broadcast_to(batch["outcome"][:, None], pred["outcome"].shape))
-        total = total + cfg.w_latent * latent + cfg.w_pixel * pixel + cfg.w_proprio * prop + cfg.w_success * (succ + outc)
+        prog = _bce(pred["progress"][:, :-1], batch["progress"][:, 1:])
+        total = (total + cfg.w_latent * latent + cfg.w_pixel * pixel + cfg.w_proprio * prop
+                 + cfg.w_success * (succ + outc) + cfg.w_progress * prog)
         tag = "" if k == 0 else f"_pass{k}"
         parts.update({f"latent{tag}": latent, f"pixel{tag}": pixel, f"proprio{tag}": prop, f"success{tag}": succ,
-                      f"outcome{tag}": outc})
+                      f"outcome{tag}": outc, f"progress{tag}": prog})
         if keep is not None:
             parts[f"keep{tag}"] = _keep_loss(keep, target, prev)
             total = total + cfg.w_keep * parts[f"keep{tag}"]

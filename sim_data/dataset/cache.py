@@ -9,7 +9,8 @@ and a loader of shuffled fixed-length windows.
 Layout of `OUT/cache/`: shards `shard-00000/` .. of up to `shard_episodes` episodes (files in name
 order), each holding `<camera>.npy` (N, H, W, 3) uint8, `proprio.npy` (N, 37) float32,
 `action.npy` (N, 20) float32 (row t is the action taken after frame t; zeros after an episode's
-last frame), `success.npy` (N,) bool and `episodes.json`; N counts frames (T+1 per episode).
+last frame), `success.npy` (N,) bool, `progress.npy` (N,) float32 (task progress in [0, 1]) and
+`episodes.json`; N counts frames (T+1 per episode).
 `index.json`, written last, lists shards, episodes (with shard, start, length) and skipped
 files. Shards are written under a temporary name and renamed when whole, so a killed build
 resumes; the same MCAP files give the same bytes.
@@ -34,9 +35,9 @@ from tqdm import tqdm
 from sim_data.dataset.episodes import CorruptEpisode, read_episode, read_episode_meta
 from sim_data.util import run_cli
 
-FORMAT = 1
+FORMAT = 2
 EPISODE_KEYS = ("episode_id", "task", "policy", "policy_kind", "skill", "seed", "success", "split", "heldout")
-ARRAYS = ("proprio", "action", "success")
+ARRAYS = ("proprio", "action", "success", "progress")
 
 
 def cache_dir(out: Path) -> Path:
@@ -65,7 +66,8 @@ def _decode(path: Path, cameras) -> dict:
     action[: n - 1] = ep["action"]
     rec = {k: ep["meta"].get(k) for k in EPISODE_KEYS}
     rec.update(file=f"episodes/{path.name}", length=n)
-    return {"record": rec, "frames": ep["frames"], "proprio": ep["proprio"], "action": action, "success": ep["success"]}
+    return {"record": rec, "frames": ep["frames"], "proprio": ep["proprio"], "action": action, "success": ep["success"],
+            "progress": ep["progress"]}
 
 
 def _write_shard(root: Path, name: str, decoded: list, cameras) -> dict:
@@ -242,7 +244,8 @@ class TrainingCache:
 
     def episode(self, i: int, cameras=None) -> dict:
         """Episode i whole: {"frames": {camera: (T+1, H, W, 3) uint8}, "proprio": (T+1, 37),
-        "action": (T+1, 20) (last row zeros), "success": (T+1,) bool, "record": its index record}."""
+        "action": (T+1, 20) (last row zeros), "success": (T+1,) bool, "progress": (T+1,) float32,
+        "record": its index record}."""
         e = self.episodes[i]
         sl = slice(e["start"], e["start"] + e["length"])
         cams = self.cameras if cameras is None else cameras
@@ -264,7 +267,7 @@ class WindowLoader:
     `state()` after a batch and `restore(state)` in a new loader continue the same sequence.
 
     Batches: {"frames": {camera: (B, T, H, W, 3) uint8}, "proprio": (B, T, 37) float32,
-    "action": (B, T, 20) float32 (action t follows frame t), "success": (B, T) bool,
+    "action": (B, T, 20) float32 (action t follows frame t), "success": (B, T) bool, "progress": (B, T) float32,
     "outcome": (B,) bool (the episode's success), "task": (B,) int32 (index into cache.tasks),
     "start": (B,) int32 (the window's first step), "episode": (B,) int32}.
     """

@@ -5,7 +5,7 @@
 | `/head_cam/image`, `/ext_cam/image` | `foxglove.CompressedImage` | JPEG frame (t = 0..T) |
 | `/robot_state` | `wmlab.RobotState` | proprioception (37) with names (t = 0..T) |
 | `/action` | `wmlab.Action` | the action (20) taken at step t (t = 0..T-1) |
-| `/task_state` | `wmlab.TaskState` | step, time, success flag (t = 0..T) |
+| `/task_state` | `wmlab.TaskState` | step, time, success flag, progress in [0, 1] (t = 0..T) |
 | `/sim_state` | `wmlab.SimState` | qpos, qvel, mocap_pos: the full simulator state (t = 0..T) |
 
 and a metadata record `episode` (task, policy, skill, seed, success, split, configuration,
@@ -50,7 +50,7 @@ SCHEMAS = {
     "/robot_state": _object("wmlab.RobotState", {"proprio": NUM_ARRAY, "names": NAMES}),
     "/action": _object("wmlab.Action", {"action": NUM_ARRAY, "names": NAMES}),
     "/task_state": _object("wmlab.TaskState", {"step": {"type": "integer"}, "time": {"type": "number"},
-                                               "success": {"type": "boolean"}}),
+                                               "success": {"type": "boolean"}, "progress": {"type": "number"}}),
     "/sim_state": _object("wmlab.SimState", {"qpos": NUM_ARRAY, "qvel": NUM_ARRAY, "mocap_pos": NUM_ARRAY}),
 }
 
@@ -74,7 +74,8 @@ def write_episode_mcap(path: Path, episode: dict, meta: dict, jpeg_quality: int)
     """Writes one episode to path atomically (a temporary name, renamed when whole).
 
     episode: frames {camera: (T+1, H, W, 3) uint8}, proprio (T+1, 37), qpos (T+1, nq),
-      qvel (T+1, nv), mocap_pos (T+1, nmocap, 3), success (T+1,) bool, action (T, 20).
+      qvel (T+1, nv), mocap_pos (T+1, nmocap, 3), success (T+1,) bool, progress (T+1,) float in
+      [0, 1] (`sim_data.sim.tasks.task_progress`), action (T, 20).
     meta: the `episode` metadata record (values that are not strings are stored as JSON).
     """
     path = Path(path)
@@ -92,6 +93,7 @@ def write_episode_mcap(path: Path, episode: dict, meta: dict, jpeg_quality: int)
         # float32 arrays, written by orjson as the shortest decimal that reads back to the same float32
         proprio, qpos, qvel, action = (np.ascontiguousarray(episode[k], np.float32)
                                        for k in ("proprio", "qpos", "qvel", "action"))
+        progress = np.asarray(episode["progress"], np.float32)
         mocap = np.ascontiguousarray(episode["mocap_pos"], np.float32).reshape(n_obs, -1)
         for t in range(n_obs):
             ns = round(t * CONTROL_DT * 1e9)
@@ -104,7 +106,8 @@ def write_episode_mcap(path: Path, episode: dict, meta: dict, jpeg_quality: int)
                 put(cam, {"timestamp": stamp, "frame_id": cam, "format": "jpeg",
                           "data": base64.b64encode(encode_jpeg(frames[t], jpeg_quality)).decode()})
             put("/robot_state", {"proprio": proprio[t], "names": proprio_names})
-            put("/task_state", {"step": t, "time": t * CONTROL_DT, "success": bool(episode["success"][t])})
+            put("/task_state", {"step": t, "time": t * CONTROL_DT, "success": bool(episode["success"][t]),
+                                "progress": progress[t]})
             put("/sim_state", {"qpos": qpos[t], "qvel": qvel[t], "mocap_pos": mocap[t]})
             if t < n_obs - 1:
                 put("/action", {"action": action[t], "names": action_names})
@@ -152,7 +155,8 @@ def read_episode(path: Path, cameras=None, sim_state: bool = True) -> dict:
       sim_state: also read qpos, qvel and mocap_pos.
     Returns:
       {"meta": the metadata record, "frames": {camera: (T+1, H, W, 3) uint8}, "proprio": (T+1, 37) f32,
-       "action": (T, 20) f32, "success": (T+1,) bool, and with sim_state "qpos" (T+1, nq) f32,
+       "action": (T, 20) f32, "success": (T+1,) bool, "progress": (T+1,) f32 (the success flag
+       where a file predates the progress field), and with sim_state "qpos" (T+1, nq) f32,
        "qvel" (T+1, nv) f32, "mocap_pos" (T+1, nmocap, 3) f32}.
     Raises:
       CorruptEpisode naming the file and what is wrong: unreadable or truncated MCAP, a failed
@@ -186,7 +190,9 @@ def read_episode(path: Path, cameras=None, sim_state: bool = True) -> dict:
             out["frames"][cam] = np.stack(frames)
         out["proprio"] = np.array([orjson.loads(m)["proprio"] for m in cols["/robot_state"]], np.float32)
         out["action"] = np.array([orjson.loads(m)["action"] for m in cols["/action"]], np.float32).reshape(n_obs - 1, -1)
-        out["success"] = np.array([orjson.loads(m)["success"] for m in cols["/task_state"]], bool)
+        task_state = [orjson.loads(m) for m in cols["/task_state"]]
+        out["success"] = np.array([m["success"] for m in task_state], bool)
+        out["progress"] = np.array([m.get("progress", m["success"]) for m in task_state], np.float32)
         if sim_state:
             sims = [orjson.loads(m) for m in cols["/sim_state"]]
             out["qpos"] = np.array([s["qpos"] for s in sims], np.float32)

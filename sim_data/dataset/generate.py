@@ -478,7 +478,7 @@ def _submit_episodes(pool, cfg: DataConfig, out: Path, task: str, rows: list, re
         meta = _episode_meta(cfg, task, source, i, ep.success[-1], ep.action.shape[0], engine)
         meta.update(config=dataclasses.asdict(cfg), versions=versions)
         episode = {"frames": ep.frames, "proprio": ep.proprio, "qpos": ep.qpos, "qvel": ep.qvel,
-                   "mocap_pos": ep.mocap_pos, "success": ep.success, "action": ep.action}
+                   "mocap_pos": ep.mocap_pos, "success": ep.success, "progress": ep.progress, "action": ep.action}
         futures.append(pool.submit(write_episode_mcap, out / meta["file"], episode, meta, cfg.jpeg_quality))
     return futures
 

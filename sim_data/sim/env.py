@@ -34,6 +34,7 @@ from sim_data.sim.tasks import (
     episode_done,
     get_task,
     sample_initial,
+    task_progress,
     update_task,
 )
 
@@ -51,6 +52,7 @@ class State:
       obs: {"proprio": (B, 37), "qpos", "qvel", "time": (B,)}; the last three are privileged
         and read only by scripted policies.
       success: (B,) bool, the task's success flag at this step.
+      progress: (B,) float32 in [0, 1], how far towards success (`sim_data.sim.tasks.task_progress`).
       done: (B,) bool, the episode's time is up (its task's episode_steps).
       step: (B,) int32 control steps taken.
     """
@@ -62,6 +64,7 @@ class State:
     task: TaskState
     obs: dict
     success: jax.Array
+    progress: jax.Array
     done: jax.Array
     step: jax.Array
 
@@ -114,7 +117,8 @@ class EnvCore:
         step = state.step + 1
         return state.replace(
             qpos=qpos, qvel=qvel, mocap_pos=mocap, task=ts, obs=_observe(qpos, qvel, ts, self.idx),
-            success=success, done=episode_done(ts, step), step=step)
+            success=success, progress=task_progress(ts, qpos, qvel, mocap, self.idx, success),
+            done=episode_done(ts, step), step=step)
 
     def mjx_step(self, state: State, action):
         """One control step with the `mjx` engine (traceable)."""
@@ -134,7 +138,8 @@ class EnvCore:
         qvel = jnp.zeros((b, self.model.nv), jnp.float32)
         return State(
             physics=physics, qpos=qpos, qvel=qvel, mocap_pos=mocap, task=ts, obs=_observe(qpos, qvel, ts, self.idx),
-            success=jnp.zeros((b,), bool), done=jnp.zeros((b,), bool), step=jnp.zeros((b,), jnp.int32))
+            success=jnp.zeros((b,), bool), progress=jnp.zeros((b,), jnp.float32), done=jnp.zeros((b,), bool),
+            step=jnp.zeros((b,), jnp.int32))
 
     def poses(self, state: State) -> Poses:
         """`sim_data.sim.render.Poses` of the batch (traceable with the `mjx` engine)."""

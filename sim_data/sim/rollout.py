@@ -31,18 +31,20 @@ class Trajectory:
 
     Attributes:
       qpos: (B, T, nq) after each step; qvel: (B, T, nv); action: (B, T, 20);
-      success: (B, T) bool; mocap_pos: (B, T, nmocap, 3).
+      success: (B, T) bool; progress: (B, T) float32; mocap_pos: (B, T, nmocap, 3).
     """
 
     qpos: jax.Array
     qvel: jax.Array
     action: jax.Array
     success: jax.Array
+    progress: jax.Array
     mocap_pos: jax.Array
 
 
 def _record(state: State, action) -> Trajectory:
-    return Trajectory(qpos=state.qpos, qvel=state.qvel, action=action, success=state.success, mocap_pos=state.mocap_pos)
+    return Trajectory(qpos=state.qpos, qvel=state.qvel, action=action, success=state.success,
+                      progress=state.progress, mocap_pos=state.mocap_pos)
 
 
 def _to_batch_major(traj: Trajectory) -> Trajectory:
@@ -127,7 +129,7 @@ class Recording:
     Attributes:
       frames: {camera name: (B, T+1, H, W, 3) uint8}, frame t seen before action t.
       proprio: (B, T+1, 37); qpos: (B, T+1, nq); qvel: (B, T+1, nv); mocap_pos: (B, T+1, nmocap, 3).
-      success: (B, T+1) bool (False at t = 0); action: (B, T, 20).
+      success: (B, T+1) bool (False at t = 0); progress: (B, T+1) float32 (0 at t = 0); action: (B, T, 20).
     """
 
     frames: dict
@@ -136,13 +138,14 @@ class Recording:
     qvel: jax.Array
     mocap_pos: jax.Array
     success: jax.Array
+    progress: jax.Array
     action: jax.Array
 
 
 def _observation(poses: Poses, state: State, renderers, rgb):
     frames = {r.cfg.camera: r.render_batch(poses, rgb)["rgb"] for r in renderers}
     rec = {"proprio": state.obs["proprio"], "qpos": state.qpos, "qvel": state.qvel, "mocap_pos": state.mocap_pos,
-           "success": state.success}
+           "success": state.success, "progress": state.progress}
     obs = dict(state.obs)
     if frames:
         obs["image"] = frames[renderers[0].cfg.camera]

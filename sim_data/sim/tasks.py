@@ -397,6 +397,57 @@ def update_task(ts: TaskState, qpos, qvel, mocap_pos, idx: S.SceneIndex):
     return select_task(ts.task_id, updated), select_task(ts.task_id, success)
 
 
+# ---- progress: a dense measure of each task's success, for the world model to learn -------------
+# The success flag is 0 over most frames of failed and successful episodes alike; a learned model
+# given only it can tell success from the task and the scene rather than from what the actions did.
+# The progress is a quantity the actions move at every step and the camera shows (the mug's height,
+# the dirt cells wiped, the tray's travel, the distance backed), scaled so that success is 1.
+
+def _mug_progress(ts, qpos, qvel, mocap, idx):
+    lift = (qpos[..., idx.mug_qpos + 2] - S.MUG_HALF_HEIGHT - S.COUNTER_TOP) / 0.08
+    return 0.5 * jnp.clip(lift, 0.0, 1.0) + 0.5 * jnp.clip(ts.hold / 0.5, 0.0, 1.0)
+
+
+def _wipe_progress(ts, qpos, qvel, mocap, idx):
+    return jnp.clip(wiped_fraction(ts) / 0.8, 0.0, 1.0)
+
+
+def _airfryer_progress(ts, qpos, qvel, mocap, idx):
+    return jnp.where(ts.failed, 0.0, jnp.clip(qpos[..., idx.tray_qpos] / 0.10, 0.0, 1.0))
+
+
+def _arcade_progress(ts, qpos, qvel, mocap, idx):
+    return jnp.where(ts.failed, 0.0, jnp.clip(ts.progress / 2.0, 0.0, 1.0))
+
+
+def _shelf_progress(ts, qpos, qvel, mocap, idx):
+    return block_on_shelf(qpos, qvel, idx).astype(jnp.float32)
+
+
+def _step_back_progress(ts, qpos, qvel, mocap, idx):
+    d = backward_distance(ts, qpos, idx)
+    inside = (d <= STEP_BACK_BAND[1]) & ~ts.failed
+    return jnp.where(inside, jnp.clip(d / STEP_BACK_BAND[0], 0.0, 1.0), 0.0)
+
+
+PROGRESS = {"mug": _mug_progress, "wipe": _wipe_progress, "airfryer": _airfryer_progress,
+            "arcade": _arcade_progress, "shelf": _shelf_progress, "step_back": _step_back_progress}
+assert tuple(PROGRESS) == TASK_NAMES
+
+
+def task_progress(ts: TaskState, qpos, qvel, mocap_pos, idx: S.SceneIndex, success):
+    """(B,) float32 in [0, 1]: how far each episode has come towards its task's success, 1 wherever
+    success (B,) holds. mug: half the lift to 8 cm plus half the hold to 0.5 s; wipe: the share of
+    dirt cells wiped, over 80%; airfryer: the tray's travel over 10 cm (0 once the body moved);
+    arcade: the cued buttons pressed, over 2 (0 after a wrong one); shelf: the success flag;
+    step_back: the distance backed over 0.5 m (0 past the band's far end or after a hit).
+
+    ts is the task state after the step (update_task's), qpos (B, nq), qvel (B, nv), mocap_pos
+    (B, nmocap, 3)."""
+    each = [PROGRESS[n](ts, qpos, qvel, mocap_pos, idx).astype(jnp.float32) for n in TASK_NAMES]
+    return jnp.where(success, 1.0, select_task(ts.task_id, each))
+
+
 def episode_done(ts: TaskState, step):
     """(B,) bool: step (B,) control steps have used up each episode's time."""
     return step >= jnp.asarray(EPISODE_STEPS)[ts.task_id]
