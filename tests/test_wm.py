@@ -13,8 +13,18 @@ import pytest
 
 from sim_data.config import override
 from wm import imagine as I
+from wm import judge as J
 from wm import metrics as M
+from wm.checkpoint import (
+    load_run_config,
+    load_trained,
+    training_seeds,
+    training_status,
+    write_bundle,
+)
+from wm.checkpoint import main as checkpoint_main
 from wm.config import SMOKE_MODEL, make_config
+from wm.judge import load_judge
 from wm.model import (
     Decoder,
     WorldModel,
@@ -25,9 +35,6 @@ from wm.model import (
     relative_time_bias,
     space_to_depth,
 )
-from wm.checkpoint import load_run_config, load_trained, training_seeds, training_status, write_bundle
-from wm.checkpoint import main as checkpoint_main
-from wm.judge import load_judge
 from wm.train import Run, TrainingDiverged, _check_config
 from wm.train import main as train_main
 
@@ -178,7 +185,7 @@ def test_time_bias_in_the_product_equals_an_added_bias_and_its_gradient():
         bias = jnp.where((dist >= 0) & (dist < context), table[:, np.clip(dist, 0, context - 1)], 0.0)
         return jnp.einsum("bqhd,bkhd->bhqk", q, k) / np.sqrt(d) + bias[None]
 
-    folded = lambda table: attention_logits(q, k, relative_time_bias(table, t), n)  # noqa: E731
+    folded = lambda table: attention_logits(q, k, relative_time_bias(table, t), n)
     np.testing.assert_allclose(folded(table), by_hand(table), rtol=1e-5, atol=1e-5)
     g_folded = jax.grad(lambda tb: jnp.sum(folded(tb) * weight))(table)
     g_hand = jax.grad(lambda tb: jnp.sum(by_hand(tb) * weight))(table)
@@ -436,8 +443,6 @@ def _synthetic_episodes(rng, n, t_max=12, f=5):
 
 
 def test_episode_judge_learns_an_integral_and_round_trips(tmp_path):
-    from wm import judge as J
-
     rng = np.random.default_rng(0)
     train, val = _synthetic_episodes(rng, 256), _synthetic_episodes(rng, 128)
     judge, metrics = J.fit(train, val, ("a", "b"), steps=400, progress=False)
@@ -456,15 +461,14 @@ def test_episode_judge_learns_an_integral_and_round_trips(tmp_path):
 
 
 def test_a_judge_reads_only_its_chosen_feature_columns(tmp_path):
-    from wm import judge as J
-    from wm.imagine import OUTCOME_FEATURE, SUCCESS_FEATURE, feature_columns, feature_dim
-
     cfg = SMOKE_MODEL
-    f = feature_dim(cfg)
-    assert feature_columns(cfg, ("success",)).tolist() == [f + SUCCESS_FEATURE]
-    assert feature_columns(cfg, ("outcome",)).tolist() == [f + OUTCOME_FEATURE]
+    f = I.feature_dim(cfg)
+    feature_columns = I.feature_columns
+    assert feature_columns(cfg, ("success",)).tolist() == [f + I.SUCCESS_FEATURE]
+    assert feature_columns(cfg, ("outcome",)).tolist() == [f + I.OUTCOME_FEATURE]
+    assert feature_columns(cfg, ("progress",)).tolist() == [f + I.PROGRESS_FEATURE] == [f - 1]
     assert feature_columns(cfg, ("action",)).tolist() == list(range(cfg.proprio_dim, cfg.proprio_dim + cfg.action_dim))
-    without_actions = feature_columns(cfg, ("proprio", "latent", "success", "outcome"))
+    without_actions = feature_columns(cfg, ("proprio", "latent", "success", "outcome", "progress"))
     assert len(without_actions) == f - cfg.action_dim and not set(without_actions) & set(feature_columns(cfg, ("action",)))
     with pytest.raises(ValueError, match="feature groups"):
         feature_columns(cfg, ("pixels",))
@@ -488,8 +492,6 @@ def test_a_judge_reads_only_its_chosen_feature_columns(tmp_path):
 
 
 def test_a_bundle_carries_the_model_in_bfloat16_and_refuses_a_damaged_copy(smoke_world_model, tmp_path):
-    from wm import judge as J
-
     run = tmp_path / "run"
     shutil.copytree(smoke_world_model, run)
     episodes = _synthetic_episodes(np.random.default_rng(0), 32)
