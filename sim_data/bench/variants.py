@@ -3,9 +3,10 @@
     python -m sim_data.bench.variants --out runs/bench/mjx_variants.json --batch 8192 [--stages]
 
 Each variant changes one thing about `home.xml` (contacts, limits, solver settings) and is
-stepped exactly as `sim_data.bench.physics` steps the real model. `--stages` also times each stage of
+stepped exactly as `sim_data.bench.physics` steps the real model; the first design, v0, is composed
+from home.xml in MuJoCo (`sim_data.sim.scene_v0`, an MjSpec). `--stages` also times each stage of
 one MJX step (kinematics, collision, constraint rows, solver, integrator) on its own, so a
-variant's gain can be traced to where the time goes; `--dump NAME` writes a variant's MJCF
+variant's gain can be traced to where the time goes; `--dump NAME` writes an MJCF variant's text
 (to check its tasks with `sim_data.bench.success_table` after copying it over `home.xml`).
 """
 
@@ -26,6 +27,7 @@ import numpy as np
 
 from sim_data.bench.physics import ready_controls, time_mjx
 from sim_data.sim import scene as S
+from sim_data.sim import scene_v0
 from sim_data.sim.engines import MjxEngine, mjx
 from sim_data.sim.tasks import TASKS, sample_initial
 from sim_data.util import device_name, run_cli, write_json_atomic
@@ -51,12 +53,13 @@ def _no_left_pairs(xml: str) -> str:
     return re.sub(r'\s*<pair geom1="left_finger_[ab]"[^>]*/>', "", xml)
 
 
-def variants(which: str = "all") -> dict[str, str]:
-    """name -> MJCF text. Names say what each variant changes and, where it broke the tasks, how."""
+def variants(which: str = "all") -> dict[str, str | mujoco.MjSpec]:
+    """name -> MJCF text, or an MjSpec for v0. Names say what each variant changes and, where it
+    broke the tasks, how."""
     home = S.MODEL_PATH.read_text()
     out = {
         "v0: box fingers (4 contacts/pair), friction everywhere, limits on all joints, jointed legs, Newton 4/8":
-            (ASSETS / "variant_v0_box_fingers.xml").read_text(),
+            scene_v0.spec(),
         "home.xml: capsule pads, condim-1 buttons/counter, servo joints unlimited, static legs, Newton 3/6": home,
         "home.xml, Newton 4/8": _edit(home, iterations=4, ls_iterations=8),
         "home.xml, Newton 2/4 (breaks tasks: wipe 0/8, shelf 3/8 at skill 1)": _edit(home, iterations=2, ls_iterations=4),
@@ -89,8 +92,10 @@ def _carry_qpos(qpos, base: mujoco.MjModel, m: mujoco.MjModel):
     return out
 
 
-def compile_xml(xml: str) -> mujoco.MjModel:
-    """A variant's MjModel (compiled beside home.xml, whose relative paths it shares)."""
+def compile_xml(xml: str | mujoco.MjSpec) -> mujoco.MjModel:
+    """A variant's MjModel (MJCF text is compiled beside home.xml, whose relative paths it shares)."""
+    if isinstance(xml, mujoco.MjSpec):
+        return xml.compile()
     with tempfile.NamedTemporaryFile("w", suffix=".xml", dir=ASSETS, delete=False) as f:
         f.write(xml)
     try:
@@ -140,7 +145,7 @@ def stage_times(mx, d) -> dict:
     return out
 
 
-def bench_xml(xml: str, batch: int, nsteps: int = 100, stages: bool = False) -> dict:
+def bench_xml(xml: str | mujoco.MjSpec, batch: int, nsteps: int = 100, stages: bool = False) -> dict:
     """Steps a variant's MJCF exactly as `sim_data.bench.physics` steps home.xml, from `mug` initial states."""
     m = compile_xml(xml)
     base = S.load_model()
@@ -172,7 +177,12 @@ def main(argv=None) -> int:
         found = variants(a.dump)
         if len(found) != 1:
             p.error(f"--dump {a.dump!r} matches {len(found)} variants: {list(found) or list(variants())}")
-        a.out.write_text(next(iter(found.values())))
+        xml = next(iter(found.values()))
+        if isinstance(xml, mujoco.MjSpec):
+            # MjSpec.to_xml (mujoco 4.0) writes the default classes empty: its text compiles to another model
+            p.error(f"--dump {a.dump!r}: v0 is composed in MuJoCo (sim_data.sim.scene_v0) and has no MJCF text of "
+                    "its own; compile it with scene_v0.spec().compile()")
+        a.out.write_text(xml)
         return 0
     report = {"device": device_name(), "what": "MJX physics substeps/s of scene variants", "results": {}}
     for name, xml in variants(a.only).items():
