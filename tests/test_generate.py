@@ -16,7 +16,7 @@ from sim_data.policies.registry import PolicySource
 from sim_data.policies.scripted import PROGRAMS
 from sim_data.util import even_pieces
 
-TOPICS = {"/head_cam/image", "/ext_cam/image", "/robot_state", "/action", "/task_state", "/sim_state"}
+TOPICS = {"/head_cam/image", "/ext_cam/image", "/robot_state", "/action", "/task_state", "/sim_state", "/tf", "/scene"}
 
 
 @pytest.fixture
@@ -65,7 +65,8 @@ def test_mcap_reads_back_with_every_image_decoded(smoke):
         meta = G.read_episode_meta(out / row["file"])
     steps = row["num_steps"]
     assert set(counts) == TOPICS
-    assert counts["/action"] == steps and counts["/head_cam/image"] == counts["/sim_state"] == steps + 1
+    assert counts["/action"] == steps and counts["/head_cam/image"] == counts["/sim_state"] == counts["/tf"] == steps + 1
+    assert counts["/scene"] == 1
     assert successes[-1] == row["success"] == meta["success"] and meta["config"]["episodes"] == cfg.episodes
 
 

@@ -3,14 +3,25 @@
 | topic | schema (jsonschema, JSON messages) | content per control step (20 Hz) |
 |---|---|---|
 | `/head_cam/image`, `/ext_cam/image` | `foxglove.CompressedImage` | JPEG frame (t = 0..T) |
-| `/robot_state` | `wmlab.RobotState` | proprioception (37) with names (t = 0..T) |
-| `/action` | `wmlab.Action` | the action (20) taken at step t (t = 0..T-1) |
+| `/robot_state` | `wmlab.RobotState` | proprioception: one field per `PROPRIO_NAMES` entry (t = 0..T) |
+| `/action` | `wmlab.Action` | the action taken at step t: one field per `ACTION_NAMES` entry (t = 0..T-1) |
 | `/task_state` | `wmlab.TaskState` | step, time, success flag, progress in [0, 1] (t = 0..T) |
 | `/sim_state` | `wmlab.SimState` | qpos, qvel, mocap_pos: the full simulator state (t = 0..T) |
+| `/tf` | `foxglove.FrameTransforms` | world poses of the bodies that move, camera frames (t = 0..T) |
+| `/scene` | `foxglove.SceneUpdate` | every visible geom as a primitive, once (t = 0) |
 
 and a metadata record `episode` (task, policy, skill, seed, success, split, configuration,
 package versions). Observation t is seen before action t; the last one follows the last action.
-Files are chunked (1 MiB), zstd-compressed and indexed; they open in Foxglove without plugins.
+Named fields (`/robot_state.pos_left_elbow`, `/action.forward_speed`) are what Foxglove's Plot
+panel addresses; `/tf` and `/scene` are its 3D panel's input (`sim_data.dataset.foxglove`).
+
+Time: every episode starts at EPOCH_NS, 2026-01-01T00:00:00Z, and step t is logged at
+EPOCH_NS + t * CONTROL_DT. A fixed epoch rather than the wall clock of the run, because the same
+configuration and seed must give the same bytes; one epoch for all episodes, so that two files
+opened side by side line up step by step.
+
+Files are chunked (1 MiB), zstd-compressed, indexed and checksummed (each chunk's CRC and the
+data section's CRC, both checked by `read_episode`); they open in Foxglove without plugins.
 """
 
 from __future__ import annotations
@@ -23,12 +34,15 @@ from pathlib import Path
 import cv2
 import numpy as np
 import orjson
-from mcap.reader import make_reader
+from mcap.reader import NonSeekingReader, make_reader
 from mcap.writer import CompressionType, Writer
 
+from sim_data.dataset import foxglove
 from sim_data.sim.robot import ACTION_NAMES, PROPRIO_NAMES
+from sim_data.sim.scene import load_model
 
 CONTROL_DT = 0.05  # s; equals sim_data.sim.tasks.CONTROL_DT (kept here so readers need no JAX)
+EPOCH_NS = 1_767_225_600 * 10**9  # 2026-01-01T00:00:00Z: the log time of every episode's first step
 IMAGE_SCHEMA = {
     "title": "foxglove.CompressedImage", "type": "object",
     "properties": {
@@ -39,20 +53,21 @@ IMAGE_SCHEMA = {
     },
 }
 NUM_ARRAY = {"type": "array", "items": {"type": "number"}}
-NAMES = {"type": "array", "items": {"type": "string"}}
 
 
 def _object(title: str, fields: dict) -> dict:
-    return {"title": title, "type": "object", "properties": fields}
+    return {"title": title, "type": "object", "properties": fields, "required": list(fields)}
 
 
 SCHEMAS = {
-    "/robot_state": _object("wmlab.RobotState", {"proprio": NUM_ARRAY, "names": NAMES}),
-    "/action": _object("wmlab.Action", {"action": NUM_ARRAY, "names": NAMES}),
+    "/robot_state": _object("wmlab.RobotState", {n: {"type": "number"} for n in PROPRIO_NAMES}),
+    "/action": _object("wmlab.Action", {n: {"type": "number"} for n in ACTION_NAMES}),
     "/task_state": _object("wmlab.TaskState", {"step": {"type": "integer"}, "time": {"type": "number"},
                                                "success": {"type": "boolean"}, "progress": {"type": "number"}}),
     "/sim_state": _object("wmlab.SimState", {"qpos": NUM_ARRAY, "qvel": NUM_ARRAY, "mocap_pos": NUM_ARRAY}),
 }
+# written for viewers, not read back: derived from /sim_state
+VIEW_SCHEMAS = {"/tf": foxglove.FRAME_TRANSFORMS_SCHEMA, "/scene": foxglove.SCENE_UPDATE_SCHEMA}
 
 
 NUMPY = orjson.OPT_SERIALIZE_NUMPY
@@ -80,37 +95,43 @@ def write_episode_mcap(path: Path, episode: dict, meta: dict, jpeg_quality: int)
     """
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
-    proprio_names, action_names = list(PROPRIO_NAMES), list(ACTION_NAMES)
+    n_obs = episode["proprio"].shape[0]
+    # float32 arrays, written by orjson as the shortest decimal that reads back to the same float32
+    proprio, qpos, qvel, action = (np.ascontiguousarray(episode[k], np.float32)
+                                   for k in ("proprio", "qpos", "qvel", "action"))
+    progress = np.asarray(episode["progress"], np.float32)
+    mocap = np.ascontiguousarray(episode["mocap_pos"], np.float32).reshape(n_obs, -1, 3)
+    # the 3D view from the stored (float32) state, so that a reader recomputing it from /sim_state agrees
+    model = load_model()
+    pos, quat = foxglove.body_poses(model, qpos.astype(np.float64), mocap.astype(np.float64))
+    moving = foxglove.moving_frames(model, pos, quat)
     with open(tmp, "wb") as f:
-        w = Writer(f, chunk_size=1 << 20, compression=CompressionType.ZSTD)
+        w = Writer(f, chunk_size=1 << 20, compression=CompressionType.ZSTD, enable_crcs=True, enable_data_crcs=True)
         w.start(profile="", library="wmlab")
         image_schema = w.register_schema("foxglove.CompressedImage", "jsonschema", json.dumps(IMAGE_SCHEMA).encode())
         channels = {cam: w.register_channel(f"/{cam}/image", "json", image_schema) for cam in episode["frames"]}
-        for topic, schema in SCHEMAS.items():
+        for topic, schema in {**SCHEMAS, **VIEW_SCHEMAS}.items():
             sid = w.register_schema(schema["title"], "jsonschema", json.dumps(schema).encode())
             channels[topic] = w.register_channel(topic, "json", sid)
-        n_obs = episode["proprio"].shape[0]
-        # float32 arrays, written by orjson as the shortest decimal that reads back to the same float32
-        proprio, qpos, qvel, action = (np.ascontiguousarray(episode[k], np.float32)
-                                       for k in ("proprio", "qpos", "qvel", "action"))
-        progress = np.asarray(episode["progress"], np.float32)
-        mocap = np.ascontiguousarray(episode["mocap_pos"], np.float32).reshape(n_obs, -1)
         for t in range(n_obs):
-            ns = round(t * CONTROL_DT * 1e9)
+            ns = EPOCH_NS + round(t * CONTROL_DT * 1e9)
             stamp = {"sec": ns // 10**9, "nsec": ns % 10**9}
 
             def put(key, obj, ns=ns):
                 w.add_message(channels[key], log_time=ns, publish_time=ns, data=orjson.dumps(obj, option=NUMPY))
 
+            if t == 0:
+                put("/scene", foxglove.scene_update(model, moving, qpos[0], mocap[0], stamp))
             for cam, frames in episode["frames"].items():
                 put(cam, {"timestamp": stamp, "frame_id": cam, "format": "jpeg",
                           "data": base64.b64encode(encode_jpeg(frames[t], jpeg_quality)).decode()})
-            put("/robot_state", {"proprio": proprio[t], "names": proprio_names})
+            put("/robot_state", dict(zip(PROPRIO_NAMES, proprio[t])))
             put("/task_state", {"step": t, "time": t * CONTROL_DT, "success": bool(episode["success"][t]),
                                 "progress": progress[t]})
-            put("/sim_state", {"qpos": qpos[t], "qvel": qvel[t], "mocap_pos": mocap[t]})
+            put("/sim_state", {"qpos": qpos[t], "qvel": qvel[t], "mocap_pos": mocap[t].reshape(-1)})
+            put("/tf", foxglove.frame_transforms(model, moving, pos, quat, t, stamp, list(episode["frames"])))
             if t < n_obs - 1:
-                put("/action", {"action": action[t], "names": action_names})
+                put("/action", dict(zip(ACTION_NAMES, action[t])))
         w.add_metadata("episode", {k: v if isinstance(v, str) else json.dumps(v) for k, v in meta.items()})
         w.finish()
         f.flush()
@@ -146,6 +167,16 @@ def decode_jpeg(data: bytes) -> np.ndarray:
     return None if img is None else cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
+def _named(messages: list, legacy_key: str, names) -> np.ndarray:
+    """(N, len(names)) float32 from N JSON messages with one field per name, in `names` order; a
+    file written before named fields holds the row under `legacy_key` instead."""
+    rows = []
+    for m in messages:
+        obj = orjson.loads(m)
+        rows.append(obj[legacy_key] if legacy_key in obj else [obj[n] for n in names])
+    return np.array(rows, np.float32)
+
+
 def read_episode(path: Path, cameras=None, sim_state: bool = True) -> dict:
     """Reads a whole episode back and checks it.
 
@@ -169,8 +200,8 @@ def read_episode(path: Path, cameras=None, sim_state: bool = True) -> dict:
     skip = {"/sim_state"} if not sim_state else set()
     cols: dict = {t: [] for t in list(topics) + [t for t in SCHEMAS if t not in skip]}
     try:
-        with open(path, "rb") as f:
-            for _, channel, message in make_reader(f).iter_messages(topics=list(cols)):
+        with open(path, "rb") as f:  # a sequential read checks each chunk's CRC and the data section's
+            for _, channel, message in NonSeekingReader(f, validate_crcs=True).iter_messages(topics=list(cols)):
                 cols[channel.topic].append(message.data)
     except Exception as e:
         raise CorruptEpisode(f"{path}: messages unreadable ({type(e).__name__}: {e})") from e
@@ -188,8 +219,8 @@ def read_episode(path: Path, cameras=None, sim_state: bool = True) -> dict:
                     raise CorruptEpisode(f"{path}: {topic} frame {t} is not a decodable JPEG")
                 frames.append(img)
             out["frames"][cam] = np.stack(frames)
-        out["proprio"] = np.array([orjson.loads(m)["proprio"] for m in cols["/robot_state"]], np.float32)
-        out["action"] = np.array([orjson.loads(m)["action"] for m in cols["/action"]], np.float32).reshape(n_obs - 1, -1)
+        out["proprio"] = _named(cols["/robot_state"], "proprio", PROPRIO_NAMES)
+        out["action"] = _named(cols["/action"], "action", ACTION_NAMES).reshape(n_obs - 1, len(ACTION_NAMES))
         task_state = [orjson.loads(m) for m in cols["/task_state"]]
         out["success"] = np.array([m["success"] for m in task_state], bool)
         out["progress"] = np.array([m.get("progress", m["success"]) for m in task_state], np.float32)
