@@ -51,6 +51,10 @@ def test_psnr_ssim_auroc_hand_values():
     assert M.auroc([0.1, 0.4, 0.35, 0.8], [0, 0, 1, 1]) == pytest.approx(0.75)
     assert M.auroc([0.5, 0.5, 0.2], [1, 0, 0]) == pytest.approx(0.75)  # a tie counts one half
     assert np.isnan(M.auroc([0.1, 0.2], [1, 1]))
+    rng = np.random.default_rng(0)  # against counting every positive-negative pair, ties one half
+    s, y = np.round(rng.random(60), 1), np.arange(60) % 3 == 0
+    pairs = s[y][:, None] - s[~y][None]
+    assert M.auroc(s, y) == pytest.approx(((pairs > 0).sum() + 0.5 * (pairs == 0).sum()) / pairs.size)
     assert M.accuracy([0.2, 0.7, 0.6], [0, 1, 0]) == pytest.approx(2 / 3)
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 from scipy.ndimage import gaussian_filter
+from scipy.stats import mannwhitneyu
 
 
 def psnr(pred, true, axis=(-3, -2, -1)) -> np.ndarray:
@@ -37,20 +38,14 @@ def ssim(pred, true) -> np.ndarray:
 
 def auroc(scores, labels) -> float:
     """Area under the ROC curve (the probability that a random positive scores above a random
-    negative, ties counting one half); nan when a class is absent."""
+    negative, ties counting one half): scipy's Mann-Whitney U of the positives over the pairs; nan
+    when a class is absent."""
     s = np.asarray(scores, np.float64)
     y = np.asarray(labels, bool)
     pos, neg = s[y], s[~y]
     if len(pos) == 0 or len(neg) == 0:
         return float("nan")
-    order = np.argsort(np.concatenate([pos, neg]), kind="mergesort")
-    ranks = np.empty(len(order))
-    ranks[order] = np.arange(1, len(order) + 1)
-    allv = np.concatenate([pos, neg])
-    for v in np.unique(allv):  # average ranks of ties
-        m = allv == v
-        ranks[m] = ranks[m].mean()
-    return float((ranks[: len(pos)].sum() - len(pos) * (len(pos) + 1) / 2) / (len(pos) * len(neg)))
+    return float(mannwhitneyu(pos, neg).statistic / (len(pos) * len(neg)))
 
 
 def accuracy(prob, labels, threshold: float = 0.5) -> float:
