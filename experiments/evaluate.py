@@ -51,7 +51,7 @@ from tqdm import tqdm
 
 from experiments import stats as S
 from experiments.ensemble import member_metrics
-from sim_data.config import preset_config
+from sim_data.config import preset_config, preset_help
 from sim_data.dataset.cache import TrainingCache
 from sim_data.dataset.generate import cached_env, cached_renderers, package_versions
 from sim_data.parts import add_part_argument, config_and_part, exclusive
@@ -710,7 +710,8 @@ def _check_config(cfg: EvalConfig, out: Path) -> None:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+                                epilog=preset_help(PRESETS))
     p.add_argument("--config", default="demo", help=f"preset: {', '.join(PRESETS)}")
     p.add_argument("--out", type=Path, required=True)
     add_part_argument(p, "evaluate this part's share of every task's batches", "gather results.json")

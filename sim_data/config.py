@@ -49,3 +49,33 @@ def preset_config(presets: dict, preset: str, overrides=()):
     cfg = override(presets[preset], overrides)
     cfg.validate()
     return cfg
+
+
+def flat_settings(cfg, prefix: str = "") -> list:
+    """[(dotted key, value)] of a dataclass's settings, nested dataclasses' included."""
+    out = []
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        if dataclasses.is_dataclass(value):
+            out += flat_settings(value, f"{prefix}{f.name}.")
+        else:
+            out.append((f"{prefix}{f.name}", value))
+    return out
+
+
+def _show(value) -> str:
+    return ",".join(map(str, value)) if isinstance(value, tuple) else str(value)
+
+
+def preset_help(presets: dict) -> str:
+    """The epilog of a preset-driven command's --help: its presets and every key a `key=value`
+    override may set, with its value in each preset (one value where they agree)."""
+    names = list(presets)
+    values = {n: dict(flat_settings(presets[n])) for n in names}
+    lines = [f"presets (--config): {', '.join(names)}. Settings, as key=value overrides, with each preset's value:"]
+    for key, _ in flat_settings(presets[names[0]]):
+        each = [values[n][key] for n in names]
+        shown = _show(each[0]) if all(v == each[0] for v in each) else \
+            "; ".join(f"{n}: {_show(v)}" for n, v in zip(names, each))
+        lines.append(f"  {key} = {shown}")
+    return "\n".join(lines)

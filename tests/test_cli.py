@@ -5,6 +5,7 @@ import importlib
 import pytest
 
 from experiments import cli
+from sim_data.config import flat_settings
 
 
 def test_help_lists_every_command_and_each_module_has_a_main(capsys):
@@ -21,3 +22,20 @@ def test_a_command_runs_its_module_and_an_unknown_one_is_refused(capsys):
     assert e.value.code == 0 and "usage: wmlab report" in capsys.readouterr().out
     assert cli.main(["nosuch"]) == 2
     assert "unknown command 'nosuch'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command, presets", [("data", "sim_data.dataset.generate"), ("policies", "sim_data.policies.zoo"),
+                                              ("train", "wm.config"), ("eval", "experiments.evaluate")])
+def test_a_preset_commands_help_lists_its_presets_and_every_setting_with_its_values(command, presets, capsys):
+    table = importlib.import_module(presets).PRESETS
+    with pytest.raises(SystemExit) as e:
+        cli.main([command, "--help"])
+    out = capsys.readouterr().out
+    assert e.value.code == 0 and f"presets (--config): {', '.join(table)}." in out
+    first, *others = table.values()
+    keys = [line.split(" = ")[0].strip() for line in out.splitlines() if line.startswith("  ") and " = " in line]
+    assert keys == [k for k, _ in flat_settings(first)]
+    for (key, value), *rest in zip(flat_settings(first), *(flat_settings(o) for o in others)):
+        line = next(x for x in out.splitlines() if x.startswith(f"  {key} = "))
+        shown = ",".join(map(str, value)) if isinstance(value, tuple) else str(value)
+        assert shown in line and (len(table) == 1 or all(r[1] == value for r in rest) or "; " in line)

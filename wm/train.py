@@ -34,9 +34,10 @@ from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 from tqdm import tqdm
 
+from sim_data.config import preset_help
 from sim_data.dataset.cache import TrainingCache, WindowLoader
 from sim_data.util import make_output_dir, run_cli, write_json_atomic
-from wm.config import TrainConfig, check_dataset, make_config, to_dict
+from wm.config import PRESETS, TrainConfig, check_dataset, make_config, to_dict
 from wm.evaluate import evaluate
 from wm.imagine import Norm, to_uint8
 from wm.judge import fit_judge, load_judge
@@ -377,7 +378,8 @@ def _check_config(cfg: TrainConfig, data: Path, out: Path) -> None:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+                                epilog=preset_help(PRESETS))
     p.add_argument("--config", default="demo")
     p.add_argument("--data", type=Path, required=True, help="a dataset directory (make data) with its cache")
     p.add_argument("--out", type=Path, required=True)

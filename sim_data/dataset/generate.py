@@ -31,7 +31,7 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
-from sim_data.config import preset_config
+from sim_data.config import preset_config, preset_help
 from sim_data.dataset.cache import build_cache
 from sim_data.dataset.episodes import (  # noqa: F401 (re-exported)
     CorruptEpisode,
@@ -591,7 +591,8 @@ def _stats(rows: list, throughput: dict) -> dict:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+                                epilog=preset_help(PRESETS))
     p.add_argument("--config", default="demo", help=f"preset: {', '.join(PRESETS)}")
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--reuse", type=Path, help="a dataset of the same settings whose episodes are linked, not simulated "

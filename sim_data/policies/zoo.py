@@ -39,7 +39,7 @@ import numpy as np
 import optax
 from tqdm import tqdm
 
-from sim_data.config import preset_config
+from sim_data.config import preset_config, preset_help
 from sim_data.dataset.cache import TrainingCache
 from sim_data.dataset.generate import cached_env, cached_renderers
 from sim_data.parts import add_part_argument, config_and_part, take
@@ -426,7 +426,8 @@ def measure_success(out: Path, episodes: int, seed: int = 0, engine: str = "", b
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+                                epilog=preset_help(PRESETS))
     p.add_argument("--config", default="demo", help=f"preset: {', '.join(PRESETS)}")
     p.add_argument("--data", type=Path, required=True, help="a dataset directory with its cache")
     p.add_argument("--out", type=Path, required=True)
