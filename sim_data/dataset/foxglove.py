@@ -1,9 +1,10 @@
 """Foxglove 3D messages of an episode: the scene's geometry once, the moving bodies' poses per step.
 
 The messages follow Foxglove's own schemas (`foxglove.SceneUpdate`, `foxglove.FrameTransforms`),
-JSON-encoded with the jsonschema subset written here. JSON rather than protobuf because the GPU
-image that writes datasets has no internet and carries its wheels: `foxglove-sdk` is a native
-wheel and `foxglove-schemas-protobuf` brings protobuf, while JSON needs nothing beyond orjson.
+JSON-encoded with the jsonschema subset written here. JSON rather than protobuf: once the chunks
+are zstd-compressed protobuf saves nothing measurable (docs/design.md, the dataset format), and the
+GPU image that writes datasets has no internet and carries its wheels, while JSON needs nothing
+beyond orjson.
 
 Frames: `world` (MuJoCo's world frame, z up, the name of MuJoCo's world body), one frame per
 *frame body* (a body with a joint or a mocap body; bodies welded to their parent, like the
