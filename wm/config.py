@@ -15,7 +15,8 @@ class TrainConfig:
       model: the architecture. camera: the frames the model learns (head_cam).
       batch: windows per step (over all devices); window: frames per window.
       steps: optimiser steps, the whole budget: the same command on the same machine kind trains the
-        same model. max_minutes: a safety stop only (0: none): a run that reaches it stops, saves, is
+        same model. max_minutes: a safety stop only (0: none), counted from the run's start (data,
+        compilation and restoring included): a run that reaches it stops, saves, is
         marked cut short (train_status.json) and left unjudged and unevaluated; rerunning the same
         command resumes it to `steps` (a budget spread over several commands). lr, warmup,
         weight_decay, grad_clip: AdamW.

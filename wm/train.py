@@ -211,6 +211,9 @@ class Run:
     """Everything one training run holds: config, data, model state, checkpoints, logs."""
 
     def __init__(self, cfg: TrainConfig, data: Path, out: Path):
+        # the safety stop counts from here: loading the data, compiling and restoring take a share of
+        # the command slot that max_minutes is meant to fit
+        self.t_created = time.perf_counter()
         self.cfg, self.data, self.out = cfg, Path(data), Path(out)
         make_output_dir(self.out)
         _check_config(cfg, data, self.out)
@@ -287,7 +290,7 @@ class Run:
         start = self.restore()
         log = MetricLog(self.out)
         bar = tqdm(total=cfg.steps, initial=start, unit="step", desc="train", disable=not progress)
-        t_start = time.perf_counter()
+        t_start = self.t_created
         schedule = learning_rate(cfg)
         t_log, acc, n_acc = time.perf_counter(), None, 0
         step = start
