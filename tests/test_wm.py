@@ -520,6 +520,13 @@ def test_a_bundle_carries_the_model_in_bfloat16_and_refuses_a_damaged_copy(smoke
         load_trained(bundle)
     with pytest.raises(ValueError, match="not a bundle"):
         write_bundle(run, run / "..")
+    other = tmp_path / "other"  # a bundle whose configuration names another model than its parameters
+    write_bundle(run, other)
+    meta = json.loads((other / "bundle.json").read_text())
+    meta["files"]["config.json"]["train"]["model"]["dim"] *= 2
+    (other / "bundle.json").write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match="do not fit its configuration's model .* another version of wm.model"):
+        load_trained(other)
 
 
 def test_a_run_directory_refuses_another_configuration_naming_what_differs(tmp_path):

@@ -185,7 +185,11 @@ def _load_bundle(out: Path):
         flat.update({k: _from_bytes(v) for k, v in serialization.msgpack_restore((out / name).read_bytes()).items()})
     shapes = traverse_util.flatten_dict(_shapes(cfg), sep="/")
     if sorted(flat) != sorted(shapes) or any(flat[k].shape != shapes[k].shape for k in shapes):
-        raise ValueError(f"{out}: the bundle's parameters do not fit its configuration's model")
+        differ = sorted(k for k in shapes if k not in flat or flat[k].shape != shapes[k].shape)
+        differ += sorted(k for k in flat if k not in shapes)
+        raise ValueError(f"{out}: the bundle's parameters do not fit its configuration's model ({len(differ)} "
+                         f"differ, first {differ[0]}): it was written by another version of wm.model; evaluate it "
+                         f"with the commit that trained it, or train anew")
     params = traverse_util.unflatten_dict({k: jnp.asarray(v) for k, v in flat.items()}, sep="/")
     return cfg, params, Norm.from_dict(meta["files"]["norm.json"])
 
