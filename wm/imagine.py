@@ -125,8 +125,14 @@ def step_features(norm: Norm, state: ImagineState, action) -> jax.Array:
     """What the episode judge (wm.judge) reads of one imagined step, (B, F) with F = feature_dim(cfg):
     the predicted proprioception (standardised), the action taken (standardised), the new latent grid
     pooled to 2x2 cells, the per-step success and outcome probabilities and the predicted progress."""
-    return jnp.concatenate([state.proprio[:, -1], norm.action(action), pool_latents(state.z[:, -1]),
-                            state.success[:, None], state.outcome[:, None], state.progress[:, None]], axis=-1)
+    return _join_features(state.proprio[:, -1], norm.action(action), state.z[:, -1],
+                          (state.success, state.outcome, state.progress))
+
+
+def _join_features(proprio, action, z, heads) -> jax.Array:
+    """(B, F) step features, blocks in FEATURE_GROUPS order: proprio (B, 37) and action (B, 20)
+    standardised, the latent grid z (B, s, s, C) pooled, heads (success, outcome, progress) each (B,)."""
+    return jnp.concatenate([proprio, action, pool_latents(z)] + [h[:, None] for h in heads], axis=-1)
 
 
 def pool_latents(z) -> jax.Array:
@@ -138,8 +144,13 @@ def pool_latents(z) -> jax.Array:
 SUCCESS_FEATURE, OUTCOME_FEATURE, PROGRESS_FEATURE = -3, -2, -1  # where step_features keeps the heads' outputs
 
 
+def _feature_sizes(cfg: ModelConfig) -> tuple:
+    """The widths of step_features' blocks, in FEATURE_GROUPS order."""
+    return (cfg.proprio_dim, cfg.action_dim, 4 * cfg.latent, 1, 1, 1)
+
+
 def feature_dim(cfg: ModelConfig) -> int:
-    return cfg.proprio_dim + cfg.action_dim + 4 * cfg.latent + 3
+    return sum(_feature_sizes(cfg))
 
 
 FEATURE_GROUPS = ("proprio", "action", "latent", "success", "outcome", "progress")  # step_features' blocks, in order
@@ -150,8 +161,7 @@ def feature_columns(cfg: ModelConfig, groups) -> np.ndarray:
     unknown = set(groups) - set(FEATURE_GROUPS)
     if unknown or not groups:
         raise ValueError(f"feature groups are among {', '.join(FEATURE_GROUPS)}; got {list(groups)}")
-    sizes = (cfg.proprio_dim, cfg.action_dim, 4 * cfg.latent, 1, 1, 1)
-    starts = np.cumsum((0,) + sizes)
+    starts = np.cumsum((0,) + _feature_sizes(cfg))
     return np.concatenate([np.arange(starts[k], starts[k + 1]) for k, g in enumerate(FEATURE_GROUPS) if g in groups])
 
 
@@ -273,8 +283,8 @@ def _observed_segment(cfg: ModelConfig, params, norm: Norm, buf, frames, proprio
     def body(buf, t):
         zb, pb, ab, vb = (push(x, y) for x, y in zip(buf, (z[t], p[t], a[t], jnp.ones((b,), bool))))
         out = model.apply({"params": params}, zb, pb, ab, vb, method=WorldModel.predict)
-        heads = [jax.nn.sigmoid(out[k][:, -1])[:, None] for k in ("success", "outcome", "progress")]
-        x = jnp.concatenate([p[t + 1], a[t], pool_latents(z[t + 1])] + heads, axis=-1)
+        x = _join_features(p[t + 1], a[t], z[t + 1],
+                           [jax.nn.sigmoid(out[k][:, -1]) for k in ("success", "outcome", "progress")])
         return (zb, pb, ab, vb), x
 
     buf, x = jax.lax.scan(body, buf, jnp.arange(SEGMENT))

@@ -105,6 +105,7 @@ def write_episode_mcap(path: Path, episode: dict, meta: dict, jpeg_quality: int)
     model = load_model()
     pos, quat = foxglove.body_poses(model, qpos.astype(np.float64), mocap.astype(np.float64))
     moving = foxglove.moving_frames(model, pos, quat)
+    tree = foxglove.transform_tree(model, moving, list(episode["frames"]))
     with open(tmp, "wb") as f:
         w = Writer(f, chunk_size=1 << 20, compression=CompressionType.ZSTD, enable_crcs=True, enable_data_crcs=True)
         w.start(profile="", library="wmlab")
@@ -129,7 +130,7 @@ def write_episode_mcap(path: Path, episode: dict, meta: dict, jpeg_quality: int)
             put("/task_state", {"step": t, "time": t * CONTROL_DT, "success": bool(episode["success"][t]),
                                 "progress": progress[t]})
             put("/sim_state", {"qpos": qpos[t], "qvel": qvel[t], "mocap_pos": mocap[t].reshape(-1)})
-            put("/tf", foxglove.frame_transforms(model, moving, pos, quat, t, stamp, list(episode["frames"])))
+            put("/tf", foxglove.frame_transforms(model, tree, pos, quat, t, stamp))
             if t < n_obs - 1:
                 put("/action", dict(zip(ACTION_NAMES, action[t])))
         w.add_metadata("episode", {k: v if isinstance(v, str) else json.dumps(v) for k, v in meta.items()})

@@ -150,28 +150,36 @@ def frame_parents(model: mujoco.MjModel, moving: list[int]) -> dict:
             for b in moving}
 
 
-def frame_transforms(model: mujoco.MjModel, moving: list[int], pos: np.ndarray, quat: np.ndarray, t: int,
-                     stamp: dict, cameras) -> dict:
+def transform_tree(model: mujoco.MjModel, moving: list[int], cameras) -> tuple[dict, dict]:
+    """The episode's transform tree, worked out once for all its steps: ({moving frame body: its
+    parent}, `frame_parents`; {camera name: the frame its optical frame hangs from}, its frame body
+    where that moves, else 0, the world)."""
+    owner = frame_bodies(model)
+    cam_parent = {}
+    for cam in cameras:
+        body = int(owner[model.camera(cam).bodyid[0]])
+        cam_parent[cam] = body if body in moving else 0
+    return frame_parents(model, moving), cam_parent
+
+
+def frame_transforms(model: mujoco.MjModel, tree: tuple[dict, dict], pos: np.ndarray, quat: np.ndarray, t: int,
+                     stamp: dict) -> dict:
     """One `foxglove.FrameTransforms` message for step t: each moving frame body in its parent's
     frame (`frame_parents`: a tree like the robot's, where a joint's transform changes only in its
-    own degrees of freedom, which keeps the numbers few and the files small), and each of
-    `cameras` (names) as an optical frame in its frame body's frame (in `world` when that body
-    does not move).
+    own degrees of freedom, which keeps the numbers few and the files small), and each camera as an
+    optical frame in its frame body's frame (in `world` when that body does not move).
 
-    pos, quat: (T+1, nbody, 3), (T+1, nbody, 4) world poses from `body_poses`; stamp: {"sec", "nsec"}.
+    tree: `transform_tree`'s; pos, quat: (T+1, nbody, 3), (T+1, nbody, 4) world poses from
+    `body_poses`; stamp: {"sec", "nsec"}.
     """
+    parents, cam_parent = tree
     tf = []
-    for b, parent in frame_parents(model, moving).items():
+    for b, parent in parents.items():
         p, q = _relative(pos[t, parent], quat[t, parent], pos[t, b], quat[t, b])
         tf.append({"timestamp": stamp, "parent_frame_id": model.body(parent).name, "child_frame_id": model.body(b).name,
                    "translation": _vec(p), "rotation": _rot(q)})
-    owner = frame_bodies(model)
-    for cam in cameras:
-        c = model.camera(cam)
-        body = int(owner[c.bodyid[0]])
-        if body not in moving:
-            body = 0
-        cam_pos, cam_quat = _camera_world(model, c, pos[t], quat[t])
+    for cam, body in cam_parent.items():
+        cam_pos, cam_quat = _camera_world(model, model.camera(cam), pos[t], quat[t])
         p, q = _relative(pos[t, body], quat[t, body], cam_pos, _quat_mul(cam_quat, _CAM_TO_OPTICAL))
         tf.append({"timestamp": stamp, "parent_frame_id": model.body(body).name,
                    "child_frame_id": cam, "translation": _vec(p), "rotation": _rot(q)})

@@ -53,6 +53,11 @@ SHOULDER_Y = 0.245  # right shoulder is this far to the robot's right of the bas
 BASE_X = 0.25
 STEP_BACK_BAND = (0.5, 0.8)  # m behind the start at the episode's end
 STOOL_BACK = (1.30, 1.45)  # m from the base's start to the stool's centre
+# Success thresholds, shared by the success predicates and the progress that measures towards them
+MUG_LIFT = 0.08  # m, the mug's bottom above the counter
+MUG_HOLD = 0.5  # s held that high
+WIPE_SHARE = 0.8  # of the dirt cells
+TRAY_OUT = 0.10  # m of the air fryer's tray travel
 
 
 @struct.dataclass
@@ -207,14 +212,19 @@ def _tick(ts):
 
 
 # ---- mug: lift at least 8 cm above the counter and hold for 0.5 s -----------------------------
+def mug_height(qpos, idx):
+    """(B,) m of the mug's bottom above the counter top."""
+    return qpos[..., idx.mug_qpos + 2] - S.MUG_HALF_HEIGHT - S.COUNTER_TOP
+
+
 def mug_lifted(qpos, idx):
     """(B,) bool: the mug's bottom is at least 8 cm above the counter top."""
-    return qpos[..., idx.mug_qpos + 2] - S.MUG_HALF_HEIGHT >= S.COUNTER_TOP + 0.08
+    return qpos[..., idx.mug_qpos + 2] - S.MUG_HALF_HEIGHT >= S.COUNTER_TOP + MUG_LIFT
 
 
 def _mug_update(ts, qpos, qvel, mocap, idx):
     hold = jnp.where(mug_lifted(qpos, idx), ts.hold + CONTROL_DT, 0.0)
-    return _tick(ts.replace(hold=hold, achieved=ts.achieved | (hold >= 0.5 - 1e-6)))
+    return _tick(ts.replace(hold=hold, achieved=ts.achieved | (hold >= MUG_HOLD - 1e-6)))
 
 
 def _latched(ts, qpos, qvel, mocap, idx):
@@ -243,7 +253,7 @@ def _wipe_update(ts, qpos, qvel, mocap, idx):
 
 
 def _wipe_success(ts, qpos, qvel, mocap, idx):
-    return wiped_fraction(ts) >= 0.8 - 1e-6
+    return wiped_fraction(ts) >= WIPE_SHARE - 1e-6
 
 
 # ---- airfryer: tray out at least 10 cm while the body moves less than 2 cm ----------------------
@@ -256,7 +266,7 @@ def _airfryer_update(ts, qpos, qvel, mocap, idx):
 
 
 def _airfryer_success(ts, qpos, qvel, mocap, idx):
-    return (qpos[..., idx.tray_qpos] >= 0.10) & ~ts.failed
+    return (qpos[..., idx.tray_qpos] >= TRAY_OUT) & ~ts.failed
 
 
 # ---- arcade: press the cued buttons in the cued order -------------------------------------------
@@ -404,16 +414,16 @@ def update_task(ts: TaskState, qpos, qvel, mocap_pos, idx: S.SceneIndex):
 # the dirt cells wiped, the tray's travel, the distance backed), scaled so that success is 1.
 
 def _mug_progress(ts, qpos, qvel, mocap, idx):
-    lift = (qpos[..., idx.mug_qpos + 2] - S.MUG_HALF_HEIGHT - S.COUNTER_TOP) / 0.08
-    return 0.5 * jnp.clip(lift, 0.0, 1.0) + 0.5 * jnp.clip(ts.hold / 0.5, 0.0, 1.0)
+    lift = mug_height(qpos, idx) / MUG_LIFT
+    return 0.5 * jnp.clip(lift, 0.0, 1.0) + 0.5 * jnp.clip(ts.hold / MUG_HOLD, 0.0, 1.0)
 
 
 def _wipe_progress(ts, qpos, qvel, mocap, idx):
-    return jnp.clip(wiped_fraction(ts) / 0.8, 0.0, 1.0)
+    return jnp.clip(wiped_fraction(ts) / WIPE_SHARE, 0.0, 1.0)
 
 
 def _airfryer_progress(ts, qpos, qvel, mocap, idx):
-    return jnp.where(ts.failed, 0.0, jnp.clip(qpos[..., idx.tray_qpos] / 0.10, 0.0, 1.0))
+    return jnp.where(ts.failed, 0.0, jnp.clip(qpos[..., idx.tray_qpos] / TRAY_OUT, 0.0, 1.0))
 
 
 def _arcade_progress(ts, qpos, qvel, mocap, idx):
