@@ -74,6 +74,8 @@ from wm.imagine import SUCCESS_FEATURE, closed_loop, episode_success, observed_f
 from wm.judge import check_features, load_judge
 
 CAMERA = "head_cam"
+# Per-step arrays (P, N, T) saved with each task: imagined success and progress, the simulator's progress
+TRACES = ("trace_success", "trace_progress", "true_progress")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -195,13 +197,17 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
     (P, N) float (the judge applied to the simulated episodes themselves, _judge_truth; the mean;
     NaN where the outcomes came from cfg.truth_cache without frames), "sim_finite": (P, N) bool
     (the simulated episode's proprioception and actions all finite; True where read from the
-    truth cache), "prob_members": (K, P, N), "videos": {key: (T+1, S, S, 3)} (the first model's
-    imagination), "video_index": [...], "sim_s", "wm_s", "steps"}.
+    truth cache), "prob_members": (K, P, N), "trace_success" and "trace_progress": (P, N, T) float16
+    (the per-step success probability and predicted progress of each imagined episode; the models'
+    mean), "true_progress": (P, N, T) float16 (the simulator's progress; NaN where read from the truth
+    cache), "videos": {key: (T+1, S, S, 3)} (the first model's imagination), "video_index": [...],
+    "sim_s", "wm_s", "steps"}.
     """
     n = len(seeds)
     reset_keys = np.stack([np.asarray(jax.random.PRNGKey(s)) for s in seeds])
     renderer = cached_renderers(models[0][0].model.size, (CAMERA,))
     names, true, prob, rule, members, observed, finite, kept = [], [], [], [], [], [], [], {}
+    traces = {"trace_success": [], "trace_progress": [], "true_progress": []}
     sim_s = wm_s = 0.0
     steps = None
     todo = [(k, part, padded) for k, (part, padded) in enumerate(task_chunks(cfg, sources, n))
@@ -219,8 +225,13 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
         frames0, proprio0 = truth["frames0"], truth["proprio0"]
         each = [_imagine(m, task, policy, params, frames0, proprio0, steps, jax.random.fold_in(rng, 1))
                 for m in models]
-        p_each = np.stack([p for p, _, _ in each]).reshape(len(models), len(padded), n)[:, : len(part)]
-        r = np.mean([r for _, r, _ in each], axis=0).reshape(len(padded), n)[: len(part)]
+        p_each = np.stack([e["prob"] for e in each]).reshape(len(models), len(padded), n)[:, : len(part)]
+        r = np.mean([e["rule"] for e in each], axis=0).reshape(len(padded), n)[: len(part)]
+        batch_traces = {"trace_success": np.mean([e["success"] for e in each], axis=0),
+                        "trace_progress": np.mean([e["progress"] for e in each], axis=0),
+                        "true_progress": truth.get("progress", np.full((len(padded) * n, steps), np.nan))}
+        batch_traces = {k: v.reshape(len(padded), n, -1)[: len(part)].astype(np.float16)
+                        for k, v in batch_traces.items()}
         p = p_each.mean(0)
         o = np.mean([_judge_truth(m, task, truth) for m in models], axis=0).reshape(len(padded), n)[: len(part)]
         f = simulated_finite(truth).reshape(len(padded), n)[: len(part)]
@@ -233,22 +244,26 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
             members.append(p_each[:, j])
             observed.append(o[j])
             finite.append(f[j])
+            for key, v in batch_traces.items():
+                traces[key].append(v[j])
             kept[src.name] = _keep_examples(cfg, src.name, j, n, outcome[j], p[j], truth.get("frames"),
-                                            each[0][2])
+                                            each[0]["frames"])
         bar.update(len(part) * n)
     bar.close()
     if not names:  # a part given none of this task's batches
         empty = np.zeros((0, n))
+        no_trace = np.zeros((0, n, 0), np.float16)
         return {"names": [], "true": empty.astype(bool), "prob": empty, "prob_rule": empty, "prob_observed": empty,
-                "sim_finite": np.ones((0, n), bool),
+                "sim_finite": np.ones((0, n), bool), "trace_success": no_trace, "trace_progress": no_trace,
+                "true_progress": no_trace,
                 "prob_members": np.zeros((len(models), 0, n)), "videos": {}, "video_index": [], "sim_s": 0.0,
                 "wm_s": 0.0, "steps": None}
     true, prob = np.stack(true), np.stack(prob)
     videos, index = _select_videos(cfg, task, names, true, kept)
     return {"names": names, "true": true, "prob": prob, "prob_rule": np.stack(rule),
             "prob_observed": np.stack(observed), "sim_finite": np.stack(finite),
-            "prob_members": np.stack(members, axis=1), "videos": videos, "video_index": index, "sim_s": sim_s,
-            "wm_s": wm_s, "steps": steps}
+            "prob_members": np.stack(members, axis=1), **{k: np.stack(v) for k, v in traces.items()},
+            "videos": videos, "video_index": index, "sim_s": sim_s, "wm_s": wm_s, "steps": steps}
 
 
 def merge_task_parts(cfg: EvalConfig, parts: list, order: list) -> dict:
@@ -273,21 +288,24 @@ def merge_task_parts(cfg: EvalConfig, parts: list, order: list) -> dict:
     videos = {k: v for p in parts for k, v in p["videos"].items() if k.rsplit("/", 1)[0] in keys}
     return {"names": list(order), "true": true, "prob": cat("prob"), "prob_rule": cat("prob_rule"),
             "prob_observed": cat("prob_observed"), "sim_finite": cat("sim_finite"),
-            "prob_members": cat("prob_members", axis=1), "videos": videos, "video_index": index,
+            "prob_members": cat("prob_members", axis=1), **{k: cat(k) for k in TRACES}, "videos": videos,
+            "video_index": index,
             "sim_s": sum(p["sim_s"] for p in parts), "wm_s": sum(p["wm_s"] for p in parts),
             "steps": next((p["steps"] for p in parts if p["steps"] is not None), None), "seeds": parts[0]["seeds"]}
 
 
-def _imagine(model, task, policy, params, frames0, proprio0, steps, rng) -> tuple:
-    """One world model's closed-loop episodes of a batch: (probability (B,) float64: the judge's, or
-    the per-step rule's where no judge knows the task; the rule's (B,); imagined frames (B, T, S, S, 3))."""
+def _imagine(model, task, policy, params, frames0, proprio0, steps, rng) -> dict:
+    """One world model's closed-loop episodes of a batch: {"prob": (B,) float64 (the judge's, or the
+    per-step rule's where no judge knows the task), "rule": (B,) the rule's, "success" and "progress":
+    (B, T) float32 the per-step heads' outputs, "frames": (B, T, S, S, 3) uint8 imagined}."""
     wm_cfg, wm_params, norm, judge = model
     got = closed_loop(wm_cfg.model, policy, steps, wm_params, norm, params, frames0, proprio0,
                       np.zeros((len(frames0), 0, R.ACTION_DIM), np.float32), rng)
     rule = np.asarray(episode_success(got["success"]), np.float64)
     p = judge.probability(got["features"], task).astype(np.float64) if judge is not None and judge.knows(task) \
         else rule
-    return p, rule, got["frames"]
+    return {"prob": p, "rule": rule, "success": np.asarray(got["success"], np.float32),
+            "progress": np.asarray(got["progress"], np.float32), "frames": got["frames"]}
 
 
 def _judge_truth(model, task, truth: dict) -> np.ndarray:
@@ -332,7 +350,8 @@ def simulate_truth(cfg: EvalConfig, task: str, policy, params, seeds, reset_keys
     with exclusive(path.with_suffix(".lock")):
         if path.exists():
             with np.load(path) as z:
-                return {k: z[k] for k in ("outcome", "frames0", "proprio0")} | {"steps": int(z["steps"])}
+                return {k: z[k] for k in ("outcome", "frames0", "proprio0", "progress") if k in z.files} | {
+                "steps": int(z["steps"])}
         truth = _simulate(task, policy, params, seeds, reset_keys, rng, engine, renderer)
         tmp = path.with_name(f"{path.stem}.tmp{os.getpid()}.npz")
         np.savez(tmp, **{k: v for k, v in truth.items() if k not in ("frames", "proprio", "action")})
@@ -345,7 +364,7 @@ def _simulate(task, policy, params, seeds, reset_keys, rng, engine, renderer) ->
     outcome, rec = record_policies(env, policy, params, reset_keys, rng, renderer)
     return {"outcome": outcome, "frames0": np.asarray(rec.frames[CAMERA][:, :1]),
             "proprio0": np.asarray(rec.proprio[:, :1]), "steps": env.episode_steps, "frames": rec.frames[CAMERA],
-            "proprio": rec.proprio, "action": rec.action}
+            "proprio": rec.proprio, "action": rec.action, "progress": np.asarray(rec.progress[:, 1:], np.float32)}
 
 
 def _truth_key(task, policy, params, seeds, rng, engine, renderer) -> str:
@@ -680,6 +699,7 @@ def _save_task(path: Path, res: dict) -> None:
             "steps": res["steps"], "seeds": res["seeds"]}
     arrays = {"true": res["true"], "prob": res["prob"], "prob_rule": res["prob_rule"],
               "prob_observed": res["prob_observed"], "sim_finite": res["sim_finite"], "prob_members": res["prob_members"],
+              **{k: res[k] for k in TRACES},
               "meta": np.frombuffer(json.dumps(meta).encode(), np.uint8)}
     arrays.update({f"video:{k}": v for k, v in res["videos"].items()})
     tmp = path.with_name(path.stem + ".tmp.npz")
@@ -694,8 +714,10 @@ def _load_task(path: Path) -> dict:
         members = z["prob_members"] if "prob_members" in z.files else z["prob"][None]  # before ensembles
         observed = z["prob_observed"] if "prob_observed" in z.files else np.full(z["prob"].shape, np.nan)
         finite = z["sim_finite"] if "sim_finite" in z.files else np.ones(z["prob"].shape, bool)
+        traces = {k: z[k] if k in z.files else np.zeros(z["prob"].shape + (0,), np.float16) for k in TRACES}
         return {**meta, "true": z["true"].astype(bool), "prob": z["prob"], "prob_rule": z["prob_rule"],
-                "prob_observed": observed, "sim_finite": finite, "prob_members": members, "videos": videos}
+                "prob_observed": observed, "sim_finite": finite, "prob_members": members, **traces,
+                "videos": videos}
 
 
 def _check_config(cfg: EvalConfig, out: Path) -> None:

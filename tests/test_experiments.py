@@ -82,6 +82,19 @@ def test_rerun_resumes_and_other_config_is_refused(evaluation):
         E.run(E.EvalConfig(**{**cfg.__dict__, "episodes": 3}), out, progress=False)
 
 
+def test_saved_traces_agree_with_the_episodes_outcomes(evaluation):
+    cfg, out, res = evaluation
+    task = E._load_task(out / "tasks" / "mug.npz")
+    p, n = task["true"].shape
+    for key in E.TRACES:
+        assert task[key].shape == (p, n, task["steps"]), key
+    # the simulator's progress is 1 at the last step exactly where the episode succeeded
+    np.testing.assert_array_equal(task["true_progress"][..., -1] == 1.0, task["true"])
+    assert np.all((task["true_progress"] >= 0) & (task["true_progress"] <= 1))
+    # the per-step rule is the highest imagined success probability of the episode
+    np.testing.assert_allclose(task["trace_success"].max(-1), task["prob_rule"], atol=2e-3)
+
+
 def test_parts_share_out_a_tasks_batches_and_merge_into_the_unsplit_results(evaluation, tmp_path):
     cfg, out, res = evaluation
     assert E.balance_chunks({"a": 5, "b": 3, "c": 3, "d": 1}, 2) == {"a": 0, "b": 1, "c": 1, "d": 0}
@@ -94,8 +107,8 @@ def test_parts_share_out_a_tasks_batches_and_merge_into_the_unsplit_results(eval
     got = E.run(cfg, split, progress=False)  # merges the parts
     whole, merged = E._load_task(out / "tasks" / "mug.npz"), E._load_task(split / "tasks" / "mug.npz")
     assert merged["names"] == whole["names"] and merged["seeds"] == whole["seeds"]
-    for key in ("true", "prob", "prob_rule", "prob_members"):
-        np.testing.assert_allclose(merged[key], whole[key], atol=1e-5, err_msg=key)
+    for key in ("true", "prob", "prob_rule", "prob_members") + E.TRACES:
+        np.testing.assert_allclose(merged[key], whole[key], atol=1e-3, err_msg=key)
     for mine, theirs in zip(got["policies"], res["policies"], strict=True):
         assert mine["name"] == theirs["name"] and mine["true_rate"] == theirs["true_rate"]
         assert mine["pred_rate"] == pytest.approx(theirs["pred_rate"], abs=1e-5)
