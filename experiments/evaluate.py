@@ -8,10 +8,16 @@ initial states per task (seeds checked against every seed of the world model's a
 datasets):
 - true success: closed-loop episodes in the simulator, the policy seeing the rendered head camera;
 - predicted success: closed-loop episodes in the world model from the same initial frame and
-  proprioception, for the task's episode length; an episode's predicted probability is the episode
-  judge's (`wm.judge`, trained with the world model) where the world model has one that knows the
-  task, else the highest per-step success probability (thresholded at `threshold` for its outcome).
-  The per-step rule's statistics are reported beside the judge's ("per_step_rule").
+  proprioception, for the task's episode length; an episode's predicted probability is read from
+  the imagined episode by `readout` (thresholded at `threshold` for its outcome): "judge", the
+  episode judge's (`wm.judge`, trained with the world model on imaginations of its training
+  episodes) where it knows the task; "progress", the progress head's value at the last step
+  (clipped to [0, 1]; every task's progress is 1 exactly where it succeeded); "success", the
+  highest per-step success probability. Every read-out's statistics are reported beside the
+  chosen one's ("readouts" and "readout_<name>"): which reads imagination best depends on the model.
+  A judge fit to closed-loop imaginations of learned policies (the chain's rollouts) ranked the
+  demo zoo far better than the heads; a judge fit to scripted episodes alone ranked the `full` zoo
+  far worse than the progress head (docs/results.md).
 - with several world models (`wm=RUN,RUN,...`: an ensemble, say of training seeds), each imagines
   every episode and the predicted probability is their mean; every model's own ranking statistics
   are kept beside the ensemble's ("members"). One model's training seed moves its ranking more than
@@ -70,12 +76,22 @@ from sim_data.sim.tasks import TASK_NAMES
 from sim_data.util import device_name, make_output_dir, run_cli, write_json_atomic
 from wm.checkpoint import load_run_config, load_trained, training_seeds, training_status
 from wm.evaluate import no_nan, program_panel
-from wm.imagine import SUCCESS_FEATURE, closed_loop, episode_success, observed_features
+from wm.imagine import (
+    PROGRESS_FEATURE,
+    SUCCESS_FEATURE,
+    closed_loop,
+    episode_success,
+    observed_features,
+)
 from wm.judge import check_features, load_judge
 
 CAMERA = "head_cam"
 # Per-step arrays (P, N, T) saved with each task: imagined success and progress, the simulator's progress
 TRACES = ("trace_success", "trace_progress", "true_progress")
+READOUTS = ("progress", "judge", "success")
+READOUT_KEYS = tuple(f"readout_{r}" for r in READOUTS)
+READOUT_LABELS = {"progress": "progress head at the last step", "judge": "episode judge",
+                  "success": "highest per-step success probability"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -88,6 +104,8 @@ class EvalConfig:
       episodes: held-out initial states per task (each policy runs from all of them).
       seed: names the held-out initial states. engine: "cpu", "mjx" or "" (mjx on a GPU).
       batch: episodes simulated or imagined together (policies x initial states).
+      readout: how an imagined episode's success probability is read: "progress", "judge" or
+        "success" (above; "judge" falls back to "success" for a task the judge does not know).
       threshold: a predicted probability at or above it is a predicted success.
       video_policies: policies per task whose episodes are kept for the report (lowest, middle and
         highest true rate first); video_episodes: kept episodes per such policy.
@@ -108,6 +126,7 @@ class EvalConfig:
     seed: int = 0
     engine: str = ""
     batch: int = 2048
+    readout: str = "judge"
     threshold: float = 0.5
     video_policies: int = 4
     video_episodes: int = 2
@@ -125,6 +144,8 @@ class EvalConfig:
             raise ValueError(f"episodes must be >= 2 and batch >= 1, got {self.episodes}, {self.batch}")
         if self.engine not in ("",) + ENGINES:
             raise ValueError(f"engine must be one of {ENGINES} or empty, got {self.engine!r}")
+        if self.readout not in READOUTS:
+            raise ValueError(f"readout must be one of {READOUTS}, got {self.readout!r}")
         if not 0 < self.threshold < 1:
             raise ValueError(f"threshold must be in (0, 1), got {self.threshold}")
         if self.truth_cache and self.video_policies:
@@ -192,10 +213,10 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
     each of K world models (`models`: a list of (config, params, norm, judge)); with `chunks` (indices
     into task_chunks), of those batches' sources only (a part of the task, for merge_task_parts).
 
-    Returns {"names": [P], "true": (P, N) bool, "prob": (P, N) float (the judge's, or the rule's;
-    the models' mean), "prob_rule": (P, N) float (the per-step rule's; the mean), "prob_observed":
-    (P, N) float (the judge applied to the simulated episodes themselves, _judge_truth; the mean;
-    NaN where the outcomes came from cfg.truth_cache without frames), "sim_finite": (P, N) bool
+    Returns {"names": [P], "true": (P, N) bool, "prob": (P, N) float (cfg.readout's; the models'
+    mean), "readout_<name>": (P, N) float for each of READOUTS (the mean), "prob_observed": (P, N)
+    float (cfg.readout applied to the simulated episodes themselves, _read_truth; the mean; NaN
+    where the outcomes came from cfg.truth_cache without frames), "sim_finite": (P, N) bool
     (the simulated episode's proprioception and actions all finite; True where read from the
     truth cache), "prob_members": (K, P, N), "trace_success" and "trace_progress": (P, N, T) float16
     (the per-step success probability and predicted progress of each imagined episode; the models'
@@ -206,8 +227,8 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
     n = len(seeds)
     reset_keys = np.stack([np.asarray(jax.random.PRNGKey(s)) for s in seeds])
     renderer = cached_renderers(models[0][0].model.size, (CAMERA,))
-    names, true, prob, rule, members, observed, finite, kept = [], [], [], [], [], [], [], {}
-    traces = {"trace_success": [], "trace_progress": [], "true_progress": []}
+    names, true, prob, members, observed, finite, kept = [], [], [], [], [], [], {}
+    arrays = {k: [] for k in TRACES + READOUT_KEYS}
     sim_s = wm_s = 0.0
     steps = None
     todo = [(k, part, padded) for k, (part, padded) in enumerate(task_chunks(cfg, sources, n))
@@ -225,44 +246,40 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
         frames0, proprio0 = truth["frames0"], truth["proprio0"]
         each = [_imagine(m, task, policy, params, frames0, proprio0, steps, jax.random.fold_in(rng, 1))
                 for m in models]
-        p_each = np.stack([e["prob"] for e in each]).reshape(len(models), len(padded), n)[:, : len(part)]
-        r = np.mean([e["rule"] for e in each], axis=0).reshape(len(padded), n)[: len(part)]
-        batch_traces = {"trace_success": np.mean([e["success"] for e in each], axis=0),
-                        "trace_progress": np.mean([e["progress"] for e in each], axis=0),
-                        "true_progress": truth.get("progress", np.full((len(padded) * n, steps), np.nan))}
-        batch_traces = {k: v.reshape(len(padded), n, -1)[: len(part)].astype(np.float16)
-                        for k, v in batch_traces.items()}
+        p_each = np.stack([e[cfg.readout] for e in each]).reshape(len(models), len(padded), n)[:, : len(part)]
+        batch = {k: np.mean([e[k] for e in each], axis=0).astype(np.float16) for k in ("trace_success", "trace_progress")}
+        batch["true_progress"] = truth.get("progress", np.full((len(padded) * n, steps), np.nan)).astype(np.float16)
+        batch |= {f"readout_{r}": np.mean([e[r] for e in each], axis=0) for r in READOUTS}
+        batch = {k: v.reshape((len(padded), n) + v.shape[1:])[: len(part)] for k, v in batch.items()}
         p = p_each.mean(0)
-        o = np.mean([_judge_truth(m, task, truth) for m in models], axis=0).reshape(len(padded), n)[: len(part)]
+        o = np.mean([_read_truth(m, task, truth, cfg.readout) for m in models], axis=0)
+        o = o.reshape(len(padded), n)[: len(part)]
         f = simulated_finite(truth).reshape(len(padded), n)[: len(part)]
         wm_s += time.perf_counter() - t0
         for j, src in enumerate(part):
             names.append(src.name)
             true.append(outcome[j])
             prob.append(p[j])
-            rule.append(r[j])
             members.append(p_each[:, j])
             observed.append(o[j])
             finite.append(f[j])
-            for key, v in batch_traces.items():
-                traces[key].append(v[j])
+            for key, v in batch.items():
+                arrays[key].append(v[j])
             kept[src.name] = _keep_examples(cfg, src.name, j, n, outcome[j], p[j], truth.get("frames"),
                                             each[0]["frames"])
         bar.update(len(part) * n)
     bar.close()
     if not names:  # a part given none of this task's batches
         empty = np.zeros((0, n))
-        no_trace = np.zeros((0, n, 0), np.float16)
-        return {"names": [], "true": empty.astype(bool), "prob": empty, "prob_rule": empty, "prob_observed": empty,
-                "sim_finite": np.ones((0, n), bool), "trace_success": no_trace, "trace_progress": no_trace,
-                "true_progress": no_trace,
+        return {"names": [], "true": empty.astype(bool), "prob": empty, "prob_observed": empty,
+                "sim_finite": np.ones((0, n), bool), **{k: np.zeros((0, n, 0), np.float16) for k in TRACES},
+                **{k: empty for k in READOUT_KEYS},
                 "prob_members": np.zeros((len(models), 0, n)), "videos": {}, "video_index": [], "sim_s": 0.0,
                 "wm_s": 0.0, "steps": None}
     true, prob = np.stack(true), np.stack(prob)
     videos, index = _select_videos(cfg, task, names, true, kept)
-    return {"names": names, "true": true, "prob": prob, "prob_rule": np.stack(rule),
-            "prob_observed": np.stack(observed), "sim_finite": np.stack(finite),
-            "prob_members": np.stack(members, axis=1), **{k: np.stack(v) for k, v in traces.items()},
+    return {"names": names, "true": true, "prob": prob, "prob_observed": np.stack(observed), "sim_finite": np.stack(finite),
+            "prob_members": np.stack(members, axis=1), **{k: np.stack(v) for k, v in arrays.items()},
             "videos": videos, "video_index": index, "sim_s": sim_s, "wm_s": wm_s, "steps": steps}
 
 
@@ -286,7 +303,7 @@ def merge_task_parts(cfg: EvalConfig, parts: list, order: list) -> dict:
     index = [v for p in parts for v in p["video_index"] if v["policy"] in chosen]
     keys = {i["key"] for i in index}
     videos = {k: v for p in parts for k, v in p["videos"].items() if k.rsplit("/", 1)[0] in keys}
-    return {"names": list(order), "true": true, "prob": cat("prob"), "prob_rule": cat("prob_rule"),
+    return {"names": list(order), "true": true, "prob": cat("prob"), **{k: cat(k) for k in READOUT_KEYS},
             "prob_observed": cat("prob_observed"), "sim_finite": cat("sim_finite"),
             "prob_members": cat("prob_members", axis=1), **{k: cat(k) for k in TRACES}, "videos": videos,
             "video_index": index,
@@ -295,33 +312,40 @@ def merge_task_parts(cfg: EvalConfig, parts: list, order: list) -> dict:
 
 
 def _imagine(model, task, policy, params, frames0, proprio0, steps, rng) -> dict:
-    """One world model's closed-loop episodes of a batch: {"prob": (B,) float64 (the judge's, or the
-    per-step rule's where no judge knows the task), "rule": (B,) the rule's, "success" and "progress":
-    (B, T) float32 the per-step heads' outputs, "frames": (B, T, S, S, 3) uint8 imagined}."""
+    """One world model's closed-loop episodes of a batch: {read-out name: (B,) float64 the episode's
+    success probability by that read-out (read_episodes), "trace_success" and "trace_progress": (B, T)
+    float32 the per-step heads' outputs, "frames": (B, T, S, S, 3) uint8 imagined}."""
     wm_cfg, wm_params, norm, judge = model
     got = closed_loop(wm_cfg.model, policy, steps, wm_params, norm, params, frames0, proprio0,
                       np.zeros((len(frames0), 0, R.ACTION_DIM), np.float32), rng)
-    rule = np.asarray(episode_success(got["success"]), np.float64)
-    p = judge.probability(got["features"], task).astype(np.float64) if judge is not None and judge.knows(task) \
-        else rule
-    return {"prob": p, "rule": rule, "success": np.asarray(got["success"], np.float32),
-            "progress": np.asarray(got["progress"], np.float32), "frames": got["frames"]}
+    return {**read_episodes(judge, task, got["features"]), "trace_success": np.asarray(got["success"], np.float32),
+            "trace_progress": np.asarray(got["progress"], np.float32), "frames": got["frames"]}
 
 
-def _judge_truth(model, task, truth: dict) -> np.ndarray:
-    """One world model's judge (or per-step rule) applied to the simulated episodes themselves, as if
-    imagination were exact (wm.imagine.observed_features): (B,) float64. Above the world model's own
-    figure, imagination loses what decides the outcome; below it, the judge (fit to imagined
-    episodes) reads true ones worse; NaN where the truth's frames are not at hand (read back from
-    the truth cache)."""
+def read_episodes(judge, task: str, features) -> dict:
+    """Every read-out of episodes' success from their step features ((B, T, F), wm.imagine.step_features
+    or observed_features): {"progress": (B,) the progress head's last value clipped to [0, 1],
+    "success": (B,) the highest per-step success probability, "judge": (B,) the episode judge's
+    (the "success" read-out where no judge knows the task)}, float64."""
+    x = np.asarray(features)
+    out = {"progress": np.clip(x[:, -1, PROGRESS_FEATURE], 0.0, 1.0).astype(np.float64),
+           "success": np.asarray(episode_success(x[..., SUCCESS_FEATURE]), np.float64)}
+    out["judge"] = judge.probability(x, task).astype(np.float64) if judge is not None and judge.knows(task) \
+        else out["success"]
+    return out
+
+
+def _read_truth(model, task, truth: dict, readout: str) -> np.ndarray:
+    """One world model's read-out applied to the simulated episodes themselves, as if imagination
+    were exact (wm.imagine.observed_features): (B,) float64. Above the world model's own figure,
+    imagination loses what decides the outcome; where low, the heads (or the judge) cannot read the
+    outcome even from true frames; NaN where the truth's frames are not at hand (read back from the
+    truth cache)."""
     if "frames" not in truth:
         return np.full(len(truth["frames0"]), np.nan)
     wm_cfg, wm_params, norm, judge = model
-    x = np.asarray(observed_features(wm_cfg.model, wm_params, norm, truth["frames"], truth["proprio"],
-                                     truth["action"]))
-    if judge is not None and judge.knows(task):
-        return judge.probability(x, task).astype(np.float64)
-    return np.asarray(episode_success(x[..., SUCCESS_FEATURE]), np.float64)
+    x = observed_features(wm_cfg.model, wm_params, norm, truth["frames"], truth["proprio"], truth["action"])
+    return read_episodes(judge, task, x)[readout]
 
 
 def simulated_finite(truth: dict) -> np.ndarray:
@@ -425,11 +449,23 @@ def _interval_of_mean(x) -> list:
     return [max(0.0, x.mean() - half), min(1.0, x.mean() + half)]
 
 
+def _mean_curve(x) -> list:
+    """(N, T) per-episode values -> their mean at each step (NaN episodes left out; null where all are),
+    rounded to 3 decimals for results.json."""
+    x = np.asarray(x, np.float64)
+    ok = np.isfinite(x)
+    n = ok.sum(0)
+    m = np.where(ok, x, 0.0).sum(0) / np.maximum(n, 1)
+    return [round(float(v), 3) if k else None for v, k in zip(m, n, strict=True)]
+
+
 def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) -> list[dict]:
     rows = []
     members = res["prob_members"].transpose(1, 0, 2)  # (P, K, N)
-    for name, t, p, r, pk, ok in zip(res["names"], res["true"], res["prob"], res["prob_rule"], members,
-                                     res["sim_finite"], strict=True):
+    readouts = np.stack([res[k] for k in READOUT_KEYS], axis=1)  # (P, R, N)
+    for name, t, p, r, pk, ok, tp, ip in zip(res["names"], res["true"], res["prob"], readouts, members,
+                                             res["sim_finite"], res["true_progress"], res["trace_progress"],
+                                             strict=True):
         rec = sources_by_name[name].record
         k, n = int(t.sum()), len(t)
         kp = int((p >= cfg.threshold).sum())
@@ -438,8 +474,10 @@ def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) ->
                      "true_ci": list(S.wilson_interval(k, n)), "pred_rate": float(p.mean()),
                      "pred_ci": _interval_of_mean(p), "pred_rate_thresholded": kp / n,
                      "pred_thresholded_ci": list(S.wilson_interval(kp, n)), "val_loss": rec.get("val_loss"),
-                     "alignment": S.alignment(p >= cfg.threshold, t), "pred_rate_rule": float(r.mean()),
+                     "alignment": S.alignment(p >= cfg.threshold, t), "pred_rate_readouts": dict(zip(READOUTS, r.mean(1).tolist())),
                      "nonfinite_episodes": int((~ok).sum()),
+                     # mean progress over the episodes at each step, the simulator's and the imagined
+                     "progress_true": _mean_curve(tp), "progress_imagined": _mean_curve(ip),
                      # per held-out state, in the order of the seeds: for ensembles (experiments.ensemble)
                      "true_episodes": t.astype(int).tolist(), "pred_episodes": np.round(p, 5).tolist()})
         if len(pk) > 1:
@@ -456,8 +494,10 @@ def ranking_block(rows: list[dict], true_eps, prob_eps, threshold: float, member
     out["alignment"] = S.alignment(prob_eps >= threshold, true_eps)
     thr = S.ranking_metrics([r["pred_rate_thresholded"] for r in rows], true)
     out["thresholded"] = {k: thr[k] for k in ("pearson", "spearman", "mmrv", "pairwise_acc_gap10")}
-    rule = S.ranking_metrics([r["pred_rate_rule"] for r in rows], true)
-    out["per_step_rule"] = {k: rule[k] for k in ("pearson", "spearman", "mmrv", "pairwise_acc_gap10")}
+    out["readouts"] = {}
+    for name in READOUTS:
+        m = S.ranking_metrics([r["pred_rate_readouts"][name] for r in rows], true)
+        out["readouts"][name] = {k: m[k] for k in ("pearson", "spearman", "mmrv", "pairwise_acc_gap10")}
     if member_eps is not None and len(member_eps) > 1:
         out |= member_metrics(np.array([r["pred_rates"] for r in rows]).T, true, member_eps, true_eps, threshold)
     with_loss = [r for r in rows if r["val_loss"] is not None]
@@ -466,13 +506,15 @@ def ranking_block(rows: list[dict], true_eps, prob_eps, threshold: float, member
     return out
 
 
-def within_task_block(results: dict, tasks, rows: list[dict], threshold: float, keep) -> dict:
-    """The within-task headline (experiments.stats.within_task) of the world model beside the
-    imitation-loss proxy (minus each checkpoint's validation loss; policies without one, such as
-    plug-ins, are left out of the proxy's statistics), and, where every task has it, the judge applied
-    to the simulated episodes themselves ("judge_on_truth", _judge_truth: what the judge reads where
-    imagination is exact), over the policies whose name `keep` accepts."""
+def within_task_block(results: dict, tasks, rows: list[dict], cfg: EvalConfig, keep) -> dict:
+    """The within-task headline (experiments.stats.within_task) of the world model (cfg.readout)
+    beside the imitation-loss proxy (minus each checkpoint's validation loss; policies without one,
+    such as plug-ins, are left out of the proxy's statistics), the world model's other read-outs
+    ("readout_<name>"), and, where every episode has it, the read-out applied to the simulated
+    episodes themselves ("on_truth", _read_truth: what it reads where imagination is exact), over
+    the policies whose name `keep` accepts."""
     true, wm, proxy, observed = {}, {}, {}, {}
+    others = {f"readout_{r}": {} for r in READOUTS if r != cfg.readout}
     for t in tasks:
         names = results[t]["names"]
         loss = {r["name"]: r["val_loss"] for r in rows if r["task"] == t}
@@ -480,10 +522,12 @@ def within_task_block(results: dict, tasks, rows: list[dict], threshold: float, 
         true[t], wm[t] = results[t]["true"][picked], results[t]["prob"][picked]
         proxy[t] = np.array([math.nan if loss[names[j]] is None else -loss[names[j]] for j in picked])
         observed[t] = results[t]["prob_observed"][picked]
-    predictors = {"world_model": wm, "proxy": proxy}
+        for key, got in others.items():
+            got[t] = results[t][key][picked]
+    predictors = {"world_model": wm, "proxy": proxy, **others}
     if all(np.isfinite(o).all() for o in observed.values()):
-        predictors["judge_on_truth"] = observed
-    return S.within_task(true, predictors, threshold)
+        predictors["on_truth"] = observed
+    return S.within_task(true, predictors, cfg.threshold)
 
 
 def decision_analysis(cfg: EvalConfig, tasks: dict, alignment: float, most: int = 30) -> dict:
@@ -618,8 +662,10 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, models, wm
         "world_model": {"run": cfg.wm, "runs": list(cfg.wm_runs), "data": wm_data,
                         "train_tasks": train_tasks,
                         "training": training, "cut_short": any(t["cut_short"] for t in training),
-                        "rule": {t: "episode judge" if judge is not None and judge.knows(t)
-                                 else "highest per-step probability" for t in tasks}},
+                        "readout": cfg.readout,
+                        "rule": {t: READOUT_LABELS["success"] if cfg.readout == "judge" and not
+                                 (judge is not None and judge.knows(t)) else READOUT_LABELS[cfg.readout]
+                                 for t in tasks}},
         "tasks": tasks, "missing_tasks": missing, "policies": rows, "metrics": metrics,
         "checkpoint_selection": S.checkpoint_selection(rows),
         "decision": decision_analysis(cfg, results, metrics["pooled"]["alignment"]),
@@ -636,7 +682,7 @@ def all_metrics(cfg: EvalConfig, results: dict, tasks, rows: list[dict], seen: s
     policies not in `seen` (those whose rollouts the world model never saw) where there are three or
     more of them and the world model saw any."""
     true_eps, prob_eps, member_eps = _episodes_of(results, tasks, lambda name: True)
-    metrics = {"within_task": within_task_block(results, tasks, rows, cfg.threshold, lambda name: True),
+    metrics = {"within_task": within_task_block(results, tasks, rows, cfg, lambda name: True),
                "pooled": ranking_block(rows, true_eps, prob_eps, cfg.threshold, member_eps), "per_task": {}}
     for t in tasks:
         metrics["per_task"][t] = ranking_block([r for r in rows if r["task"] == t], results[t]["true"],
@@ -645,7 +691,7 @@ def all_metrics(cfg: EvalConfig, results: dict, tasks, rows: list[dict], seen: s
     if seen and len(unseen) >= 3:
         true_eps, prob_eps, member_eps = _episodes_of(results, tasks, lambda name: name not in seen)
         metrics["unseen"] = ranking_block(unseen, true_eps, prob_eps, cfg.threshold, member_eps)
-        metrics["unseen_within_task"] = within_task_block(results, tasks, rows, cfg.threshold,
+        metrics["unseen_within_task"] = within_task_block(results, tasks, rows, cfg,
                                                           lambda name: name not in seen)
     return metrics
 
@@ -697,7 +743,7 @@ def _merged_parts(cfg: EvalConfig, out: Path, task: str, sources) -> dict | None
 def _save_task(path: Path, res: dict) -> None:
     meta = {"names": res["names"], "video_index": res["video_index"], "sim_s": res["sim_s"], "wm_s": res["wm_s"],
             "steps": res["steps"], "seeds": res["seeds"]}
-    arrays = {"true": res["true"], "prob": res["prob"], "prob_rule": res["prob_rule"],
+    arrays = {"true": res["true"], "prob": res["prob"], **{k: res[k] for k in READOUT_KEYS},
               "prob_observed": res["prob_observed"], "sim_finite": res["sim_finite"], "prob_members": res["prob_members"],
               **{k: res[k] for k in TRACES},
               "meta": np.frombuffer(json.dumps(meta).encode(), np.uint8)}
@@ -715,7 +761,7 @@ def _load_task(path: Path) -> dict:
         observed = z["prob_observed"] if "prob_observed" in z.files else np.full(z["prob"].shape, np.nan)
         finite = z["sim_finite"] if "sim_finite" in z.files else np.ones(z["prob"].shape, bool)
         traces = {k: z[k] if k in z.files else np.zeros(z["prob"].shape + (0,), np.float16) for k in TRACES}
-        return {**meta, "true": z["true"].astype(bool), "prob": z["prob"], "prob_rule": z["prob_rule"],
+        return {**meta, "true": z["true"].astype(bool), "prob": z["prob"], **{k: z[k] for k in READOUT_KEYS},
                 "prob_observed": observed, "sim_finite": finite, "prob_members": members, **traces,
                 "videos": videos}
 

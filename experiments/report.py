@@ -103,6 +103,31 @@ def baseline_figure(policies: list[dict], tasks: list[str]) -> str | None:
     return _png(fig)
 
 
+def progress_figure(policies: list[dict], tasks: list[str], per_task: int = 4) -> str | None:
+    """Each task's progress over the episode, the simulator's (solid) beside the world model's
+    imagination (dashed), averaged over the episodes of a few policies spread over the true success
+    rates (lowest to highest); None where the results hold no progress curves."""
+    panels = []
+    for t in tasks:
+        rows = sorted((p for p in policies if p["task"] == t and p.get("progress_true")), key=lambda p: p["true_rate"])
+        if rows:
+            pick = sorted({round(i * (len(rows) - 1) / max(per_task - 1, 1)) for i in range(per_task)})
+            panels.append((t, [rows[i] for i in pick]))
+    if not panels:
+        return None
+    fig, axes = _subplots(1, len(panels), figsize=(4.2 * len(panels), 3.4), squeeze=False)
+    for ax, (t, rows) in zip(axes[0], panels, strict=True):
+        for k, p in enumerate(rows):
+            c = f"C{k}"
+            true = [np.nan if v is None else v for v in p["progress_true"]]
+            imagined = [np.nan if v is None else v for v in p["progress_imagined"]]
+            ax.plot(true, color=c, label=f"{p['name'].removeprefix(t + '/')} (true {p['true_rate']:.2f})")
+            ax.plot(imagined, color=c, linestyle="--")
+        ax.set(title=f"{t}: true (solid), imagined (dashed)", xlabel="step", ylabel="mean progress", ylim=(-0.05, 1.05))
+        ax.legend(fontsize=6, loc="upper left")
+    return _png(fig)
+
+
 def rank_figure(policies: list[dict], tasks: list[str]) -> str:
     """True rank against predicted rank per task (a perfect ranking lies on the diagonal)."""
     fig, axes = _subplots(1, len(tasks), figsize=(4.2 * len(tasks), 4), squeeze=False)
@@ -203,21 +228,23 @@ def verdicts(policies: list[dict], tasks: list[str]) -> list[dict]:
 # ---- the documents ------------------------------------------------------------------------------------
 
 def _metrics_table(metrics: dict) -> list[list[str]]:
-    """Rate-level statistics of one set of policies beside the per-step rule's and the proxy's; with an
-    ensemble's, each member's alone beside them."""
+    """Rate-level statistics of one set of policies beside the world model's every read-out and the
+    proxy's; with an ensemble's, each member's alone beside them."""
     members = metrics.get("members", {})
     k = len(next(iter(members.values()))) if members else 0
-    rows = [["statistic", f"ensemble of {k} world models" if k else "world model", "its per-step rule",
-             "imitation-loss proxy"]]
+    readouts = metrics.get("readouts", {})
+    rows = [["statistic", f"ensemble of {k} world models" if k else "world model",
+             *[f"read-out: {r}" for r in readouts], "imitation-loss proxy"]]
     if k:
         rows[0].insert(2, "each model alone: mean (min..max)")
-    base, rule = metrics.get("baseline", {}), metrics.get("per_step_rule", {})
+    base = metrics.get("baseline", {})
     for s in HEADLINE:
         val = _fmt(metrics.get(s))
         if s == "pearson":
             ci, bs = metrics.get("pearson_ci", [None, None]), metrics.get("pearson_ci_bootstrap", [None, None])
             val += f" (Fisher {_fmt(ci[0], 2)}..{_fmt(ci[1], 2)}; bootstrap {_fmt(bs[0], 2)}..{_fmt(bs[1], 2)})"
-        row = [s, val, _fmt(rule.get(s)) if s in rule else "-", _fmt(base.get(s)) if s != "alignment" else "-"]
+        row = [s, val, *[_fmt(r.get(s)) if s in r else "-" for r in readouts.values()],
+               _fmt(base.get(s)) if s != "alignment" else "-"]
         if k:
             each = [v for v in members.get(s, ()) if v is not None and not math.isnan(v)]  # NaN: null in JSON
             row.insert(2, f"{_fmt(metrics['members_mean'][s])} ({_fmt(min(each), 2)}..{_fmt(max(each), 2)})"
@@ -287,36 +314,45 @@ def verdict(res: dict) -> str:
             f"{' (' + ', '.join(behind) + ')' if behind else ''}.")
 
 
-UPPER = "judge on the true episodes"
+UPPER = "the read-out of the true episodes"
+
+
+def _other_readouts(w: dict) -> list[tuple[str, str]]:
+    """(key, label) of the world model's read-outs other than the one it ranks by, in results' order."""
+    return [(k, f"world model, {k[len('readout_'):]} read-out") for k in w if k.startswith("readout_")]
 
 
 def within_task_table(res: dict) -> list[list[str]]:
     """The headline: each within-task statistic's mean over tasks for the world model and the proxy,
-    their difference, the judge applied to the simulated episodes themselves (where measured: how
-    well the world model could rank were its imagination exact), and the preset's target."""
+    their difference, the world model's other read-outs, its read-out applied to the simulated
+    episodes themselves (where measured: how well the world model could rank were its imagination
+    exact), and the preset's target."""
     w = res["metrics"]["within_task"]
-    upper = "judge_on_truth" in w
+    upper = "on_truth" in w
+    others = _other_readouts(w)
     targets = TARGETS.get(res.get("preset", ""), {})
     rows = [["statistic (mean over tasks)", "world model", "imitation-loss proxy", "world model - proxy",
-             *([UPPER] if upper else []), f"target ({res.get('preset') or 'none'} preset)"]]
+             *[label for _, label in others], *([UPPER] if upper else []),
+             f"target ({res.get('preset') or 'none'} preset)"]]
     for k in w["world_model"]["mean"]:
         tgt = targets.get(k)
         px = "-" if k == "alignment" else _ci(w["proxy"]["mean"][k], w["proxy"]["mean_ci"][k])
         df = "-" if k == "alignment" else _ci(w["difference"]["proxy"]["mean"][k], w["difference"]["proxy"]["mean_ci"][k])
-        up = [_ci(w["judge_on_truth"]["mean"][k], w["judge_on_truth"]["mean_ci"][k])] if upper else []
+        more = [_ci(w[o]["mean"][k], w[o]["mean_ci"][k]) for o, _ in others]
+        more += [_ci(w["on_truth"]["mean"][k], w["on_truth"]["mean_ci"][k])] if upper else []
         rows.append([LABELS.get(k, k), _ci(w["world_model"]["mean"][k], w["world_model"]["mean_ci"][k]), px, df,
-                     *up, f"{tgt[0]} {tgt[1]}" if tgt else "-"])
+                     *more, f"{tgt[0]} {tgt[1]}" if tgt else "-"])
     return rows
 
 
 def per_task_table(res: dict, key: str = "within_task") -> list[list[str]]:
     """Every task's within-task statistics (95% bootstrap intervals), the world model's row above the
-    proxy's and, where measured, the judge's on the true episodes."""
+    proxy's, its other read-outs' and, where measured, its read-out's of the true episodes."""
     w = res["metrics"][key]
     stats = list(w["world_model"]["mean"])
     rows = [["task", "predictor", *[LABELS.get(k, k) for k in stats]]]
     who_label = [("world_model", "world model"), ("proxy", "imitation-loss proxy")]
-    who_label += [("judge_on_truth", UPPER)] if "judge_on_truth" in w else []
+    who_label += _other_readouts(w) + ([("on_truth", UPPER)] if "on_truth" in w else [])
     for t in w["tasks"]:
         for who, label in who_label:
             rows.append([t, label, *[_ci(w[who]["per_task"][t][k], w[who]["per_task_ci"][t][k])
@@ -446,6 +482,8 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
          f"<p><b>{html.escape(verdict(res))}</b></p>",
          "<h2>Predicted against true success, per task</h2>", f"<img src='{scatter_figure(policies, metrics, tasks)}'>",
          "<h2>Within-task ranking (the headline)</h2>", _html_table(within_task_table(res)),
+         *([f"<h2>Task progress, true and imagined</h2><img src='{fig}'>"]
+           if (fig := progress_figure(policies, tasks)) else []),
          _html_table(per_task_table(res)),
          *(["<h2>Within-task ranking of the policies whose rollouts the world model never saw</h2>",
             _html_table(per_task_table(res, "unseen_within_task"))] if "unseen_within_task" in metrics else []),

@@ -91,8 +91,10 @@ def test_saved_traces_agree_with_the_episodes_outcomes(evaluation):
     # the simulator's progress is 1 at the last step exactly where the episode succeeded
     np.testing.assert_array_equal(task["true_progress"][..., -1] == 1.0, task["true"])
     assert np.all((task["true_progress"] >= 0) & (task["true_progress"] <= 1))
-    # the per-step rule is the highest imagined success probability of the episode
-    np.testing.assert_allclose(task["trace_success"].max(-1), task["prob_rule"], atol=2e-3)
+    # the read-outs: the highest imagined success probability; the last imagined progress, clipped
+    np.testing.assert_allclose(task["trace_success"].max(-1), task["readout_success"], atol=2e-3)
+    np.testing.assert_allclose(np.clip(task["trace_progress"][..., -1], 0, 1), task["readout_progress"], atol=2e-3)
+    np.testing.assert_array_equal(task["prob"], task["readout_judge"])  # the preset's read-out
 
 
 def test_parts_share_out_a_tasks_batches_and_merge_into_the_unsplit_results(evaluation, tmp_path):
@@ -107,7 +109,7 @@ def test_parts_share_out_a_tasks_batches_and_merge_into_the_unsplit_results(eval
     got = E.run(cfg, split, progress=False)  # merges the parts
     whole, merged = E._load_task(out / "tasks" / "mug.npz"), E._load_task(split / "tasks" / "mug.npz")
     assert merged["names"] == whole["names"] and merged["seeds"] == whole["seeds"]
-    for key in ("true", "prob", "prob_rule", "prob_members") + E.TRACES:
+    for key in ("true", "prob", "prob_members") + E.TRACES + E.READOUT_KEYS:
         np.testing.assert_allclose(merged[key], whole[key], atol=1e-3, err_msg=key)
     for mine, theirs in zip(got["policies"], res["policies"], strict=True):
         assert mine["name"] == theirs["name"] and mine["true_rate"] == theirs["true_rate"]
@@ -139,7 +141,10 @@ def test_a_partial_gather_reports_the_finished_tasks_and_names_the_rest(evaluati
 def test_report_renders_figures_and_videos(evaluation):
     _, out, res = evaluation
     page = write_report(out).read_text()
-    assert page.count("data:image/png;base64,") >= 4  # scatter, ranks, baseline, decision (+ controllability)
+    assert page.count("data:image/png;base64,") >= 5  # scatter, progress, ranks, baseline, decision (+ controllability)
+    assert "Task progress, true and imagined" in page
+    mug = [p for p in res["policies"] if p["task"] == "mug"]
+    assert all(len(p["progress_true"]) == len(p["progress_imagined"]) == res["timing"]["mug"]["steps"] for p in mug)
     assert page.count("data:image/webp;base64,") == len(res["videos"]) + len(res["controllability"])
     assert "Decision analysis" in page and "imitation-loss baseline" in page and "Checkpoint selection" in page
     md = (out / "report.md").read_text()
@@ -148,7 +153,9 @@ def test_report_renders_figures_and_videos(evaluation):
     verdict, within, pooled = (md.index(x) for x in ("mean within-task Pearson r", "## Within-task ranking",
                                                      "## Pooled over tasks (secondary)"))
     assert verdict < within < pooled and "| imitation-loss proxy |" in md
-    assert "| judge on the true episodes |" in md  # a row of the per-task table
+    # rows of the per-task table: the other read-outs, and the read-out of the true episodes
+    assert "| world model, progress read-out |" in md and "| world model, success read-out |" in md
+    assert "| the read-out of the true episodes |" in md
     assert "Cut short" not in md
     cut = dict(res, world_model=dict(res["world_model"], cut_short=True))
     (out / "results.json").write_text(json.dumps(cut))
@@ -306,11 +313,13 @@ def test_within_task_headline_and_checkpoint_selection_from_the_episodes(evaluat
     cfg, out, res = evaluation
     with np.load(out / "tasks" / "mug.npz") as z:
         true, prob, observed = z["true"].astype(bool), z["prob"], z["prob_observed"]
-    # the judge (here the per-step rule: the smoke model has none) on the simulated episodes themselves
-    assert observed.shape == prob.shape and np.all((observed >= 0) & (observed <= 1))
+        progress, success = z["readout_progress"], z["readout_success"]
+    # the read-out (the judge, here the per-step rule: the smoke model has none) on the simulated episodes
+    assert cfg.readout == "judge" and observed.shape == prob.shape and np.all((observed >= 0) & (observed <= 1))
     proxy = np.array([np.nan if p["val_loss"] is None else -p["val_loss"] for p in res["policies"]])
     want = S.within_task({"mug": true}, {"world_model": {"mug": prob}, "proxy": {"mug": proxy},
-                                         "judge_on_truth": {"mug": observed}}, cfg.threshold)
+                                         "readout_progress": {"mug": progress}, "readout_success": {"mug": success},
+                                         "on_truth": {"mug": observed}}, cfg.threshold)
     assert res["metrics"]["within_task"] == json.loads(json.dumps(no_nan(want)))
     assert res["checkpoint_selection"] == json.loads(json.dumps(no_nan(S.checkpoint_selection(res["policies"]))))
     assert res["world_model"]["cut_short"] is False and res["world_model"]["training"][0]["steps"] == 30

@@ -45,6 +45,7 @@ from wm.checkpoint import load_trained
 from wm.config import TrainConfig, check_dataset
 from wm.imagine import (
     OUTCOME_FEATURE,
+    PROGRESS_FEATURE,
     SUCCESS_FEATURE,
     Norm,
     context_sample,
@@ -107,14 +108,18 @@ def _finite_mean(x) -> float:
 def success_prediction(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, episodes: list[int],
                        judge: EpisodeJudge | None = None) -> dict:
     """Each episode imagined whole from its first observation under its logged actions (as the
-    evaluator starts); the per-step rule's, the final frame's, the outcome head's and (if given) the
-    episode judge's accuracy and AUROC against the simulator's outcome."""
+    evaluator starts); accuracy and AUROC against the simulator's outcome of the evaluator's read-outs:
+    the episode judge's where given (the headline "accuracy" and "auroc"; else the per-step rule's),
+    the per-step rule's ("per_step_rule_"), the progress head's last value clipped to [0, 1]
+    ("progress_"), and beside them the final frame's and the outcome head's."""
     got = imagine_episodes(cfg.model, params, norm, cache, episodes, cfg.camera, progress=False)
     labels = got["label"]
     last = got["mask"].sum(axis=1) - 1
     rows = np.arange(len(labels))
     success = np.where(got["mask"], got["features"][..., SUCCESS_FEATURE], 0.0)
-    rules = {"": success.max(axis=1), "final_frame_": got["features"][rows, last, SUCCESS_FEATURE],
+    rules = {"per_step_rule_": success.max(axis=1),
+             "progress_": np.clip(got["features"][rows, last, PROGRESS_FEATURE], 0.0, 1.0),
+             "final_frame_": got["features"][rows, last, SUCCESS_FEATURE],
              "outcome_head_": got["features"][rows, last, OUTCOME_FEATURE]}
     if judge is not None and all(judge.knows(t) for t in got["task"]):
         rules["judge_"] = judge_episodes(judge, got)
@@ -122,9 +127,8 @@ def success_prediction(cfg: TrainConfig, params, norm: Norm, cache: TrainingCach
            "rule": "episode judge" if "judge_" in rules else "highest per-step probability"}
     for tag, p in rules.items():
         out.update({f"{tag}accuracy": accuracy(p, labels), f"{tag}auroc": auroc(p, labels)})
-    if "judge_" in rules:  # the headline figures are the judge's, the rule's stay beside them
-        out.update({"per_step_rule_accuracy": out["accuracy"], "per_step_rule_auroc": out["auroc"],
-                    "accuracy": out["judge_accuracy"], "auroc": out["judge_auroc"]})
+    headline = "judge_" if "judge_" in rules else "per_step_rule_"
+    out.update({"accuracy": out[f"{headline}accuracy"], "auroc": out[f"{headline}auroc"]})
     return out
 
 
@@ -199,7 +203,7 @@ def evaluate(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, out: Pa
         "gain_over_copy_last_h16_db": fq["gain_over_copy_last_db"][at[16]] if 16 in at else None,
         "pooled_gain_over_copy_last_h8_db": fq["pooled_gain_over_copy_last_db"][at[8]] if 8 in at else None,
         "view_shift_h8_px": fq["view_shift_px"][at[8]] if 8 in at else None,
-        "success_accuracy": sp["accuracy"], "success_auroc": sp["auroc"],
+        "success_accuracy": sp["accuracy"], "success_auroc": sp["auroc"], "progress_auroc": sp["progress_auroc"],
         "match_accuracy": ctrl.get("match_accuracy"), "delta_psnr_db": ctrl.get("delta_psnr_db"),
     }
     report = {"summary": summary, "frame_quality": fq, "success_prediction": sp, "controllability": ctrl,
