@@ -84,12 +84,18 @@ from wm.imagine import (
     observed_features,
 )
 from wm.judge import check_features, load_judge
+from wm.metrics import psnr
 
 CAMERA = "head_cam"
 # Per-step arrays (P, N, T) saved with each task: imagined success and progress, the simulator's progress
 TRACES = ("trace_success", "trace_progress", "true_progress")
 READOUTS = ("progress", "judge", "success")
 READOUT_KEYS = tuple(f"readout_{r}" for r in READOUTS)
+# Steps at which imagined frames are compared with the simulator's (and the task's last step)
+FIDELITY_HORIZONS = (1, 8, 16, 32, 64)
+# Per-episode arrays of the imagination's fidelity to the simulated episode: frame PSNR and copy-first
+# PSNR at each horizon (P, N, H), the RMS gap of the policy's actions at each step (P, N, T)
+FIDELITY = ("frame_psnr", "copy_first_psnr", "action_gap")
 READOUT_LABELS = {"progress": "progress head at the last step", "judge": "episode judge",
                   "success": "highest per-step success probability"}
 
@@ -228,7 +234,7 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
     reset_keys = np.stack([np.asarray(jax.random.PRNGKey(s)) for s in seeds])
     renderer = cached_renderers(models[0][0].model.size, (CAMERA,))
     names, true, prob, members, observed, finite, kept = [], [], [], [], [], [], {}
-    arrays = {k: [] for k in TRACES + READOUT_KEYS}
+    arrays = {k: [] for k in TRACES + READOUT_KEYS + FIDELITY}
     sim_s = wm_s = 0.0
     steps = None
     todo = [(k, part, padded) for k, (part, padded) in enumerate(task_chunks(cfg, sources, n))
@@ -249,6 +255,7 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
         p_each = np.stack([e[cfg.readout] for e in each]).reshape(len(models), len(padded), n)[:, : len(part)]
         batch = {k: np.mean([e[k] for e in each], axis=0).astype(np.float16) for k in ("trace_success", "trace_progress")}
         batch["true_progress"] = truth.get("progress", np.full((len(padded) * n, steps), np.nan)).astype(np.float16)
+        batch |= imagination_fidelity(truth, each[0]["frames"], each[0]["action"], steps)
         batch |= {f"readout_{r}": np.mean([e[r] for e in each], axis=0) for r in READOUTS}
         batch = {k: v.reshape((len(padded), n) + v.shape[1:])[: len(part)] for k, v in batch.items()}
         p = p_each.mean(0)
@@ -272,7 +279,8 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
     if not names:  # a part given none of this task's batches
         empty = np.zeros((0, n))
         return {"names": [], "true": empty.astype(bool), "prob": empty, "prob_observed": empty,
-                "sim_finite": np.ones((0, n), bool), **{k: np.zeros((0, n, 0), np.float16) for k in TRACES},
+                "sim_finite": np.ones((0, n), bool),
+                **{k: np.zeros((0, n, 0), np.float16) for k in TRACES + FIDELITY},
                 **{k: empty for k in READOUT_KEYS},
                 "prob_members": np.zeros((len(models), 0, n)), "videos": {}, "video_index": [], "sim_s": 0.0,
                 "wm_s": 0.0, "steps": None}
@@ -303,7 +311,7 @@ def merge_task_parts(cfg: EvalConfig, parts: list, order: list) -> dict:
     index = [v for p in parts for v in p["video_index"] if v["policy"] in chosen]
     keys = {i["key"] for i in index}
     videos = {k: v for p in parts for k, v in p["videos"].items() if k.rsplit("/", 1)[0] in keys}
-    return {"names": list(order), "true": true, "prob": cat("prob"), **{k: cat(k) for k in READOUT_KEYS},
+    return {"names": list(order), "true": true, "prob": cat("prob"), **{k: cat(k) for k in READOUT_KEYS + FIDELITY},
             "prob_observed": cat("prob_observed"), "sim_finite": cat("sim_finite"),
             "prob_members": cat("prob_members", axis=1), **{k: cat(k) for k in TRACES}, "videos": videos,
             "video_index": index,
@@ -319,7 +327,59 @@ def _imagine(model, task, policy, params, frames0, proprio0, steps, rng) -> dict
     got = closed_loop(wm_cfg.model, policy, steps, wm_params, norm, params, frames0, proprio0,
                       np.zeros((len(frames0), 0, R.ACTION_DIM), np.float32), rng)
     return {**read_episodes(judge, task, got["features"]), "trace_success": np.asarray(got["success"], np.float32),
-            "trace_progress": np.asarray(got["progress"], np.float32), "frames": got["frames"]}
+            "trace_progress": np.asarray(got["progress"], np.float32), "frames": got["frames"],
+            "action": np.asarray(got["action"], np.float32)}
+
+
+def fidelity_horizons(steps: int) -> tuple:
+    """The horizons (1-based steps) at which an episode of `steps` steps is compared: FIDELITY_HORIZONS
+    up to its length, and its last step."""
+    return tuple(sorted({h for h in FIDELITY_HORIZONS if h <= steps} | {steps}))
+
+
+def fidelity_summary(res: dict) -> dict:
+    """One task's imagination_fidelity arrays as means over its finite episodes, at each horizon:
+    {"horizons", "frame_psnr", "copy_first_psnr", "gain_over_copy_first_db", "action_gap"} (the last:
+    the action gap at the horizon's step); None values where no episode had frames."""
+    hs = fidelity_horizons(res["steps"]) if res["steps"] else ()
+
+    def mean(x):
+        x = np.asarray(x, np.float64).reshape(-1, np.shape(x)[-1]) if np.size(x) else np.zeros((0, len(hs)))
+        ok = np.isfinite(x).sum(0)
+        m = np.where(np.isfinite(x), x, 0.0).sum(0) / np.maximum(ok, 1)
+        return [round(float(v), 3) if k else None for v, k in zip(m, ok, strict=True)]
+
+    frames, first = mean(res["frame_psnr"]), mean(res["copy_first_psnr"])
+    gap = mean(np.take(res["action_gap"], [h - 1 for h in hs], axis=-1)) if hs else []
+    return {"horizons": list(hs), "frame_psnr": frames, "copy_first_psnr": first,
+            "gain_over_copy_first_db": [None if a is None or b is None else round(a - b, 3)
+                                        for a, b in zip(frames, first, strict=True)],
+            "action_gap": gap}
+
+
+def imagination_fidelity(truth: dict, imagined, actions, steps: int) -> dict:
+    """How closely closed-loop imagination follows the simulated episode of the same policy from the
+    same start. truth: simulate_truth's ("frames" (B, T+1, S, S, 3), "action" (B, T, 20)); imagined
+    (B, T, S, S, 3) uint8, frame t after action t; actions (B, T, 20) the policy's in imagination.
+    Returns {"frame_psnr", "copy_first_psnr": (B, H) float32 dB at fidelity_horizons(steps) (the
+    imagined frame against the true one; the first true frame against it: what a model that never
+    moves scores; identical frames count 100 dB), "action_gap": (B, T) float32 the root-mean-square
+    difference of the policy's action on imagined and on true observations}; NaN where the truth
+    came from the cache without frames."""
+    hs = fidelity_horizons(steps)
+    b = len(actions)
+    if "frames" not in truth:
+        return {"frame_psnr": np.full((b, len(hs)), np.nan, np.float32),
+                "copy_first_psnr": np.full((b, len(hs)), np.nan, np.float32),
+                "action_gap": np.full((b, steps), np.nan, np.float32)}
+    real = truth["frames"]
+    at = [h - 1 for h in hs]
+    true_h = np.asarray(real[:, hs])
+    pred = np.minimum(psnr(np.asarray(imagined[:, at]), true_h), 100.0)
+    first = np.minimum(psnr(np.asarray(real[:, :1]), true_h), 100.0)
+    gap = np.sqrt(np.mean((np.asarray(actions) - np.asarray(truth["action"])) ** 2, axis=-1))
+    return {"frame_psnr": pred.astype(np.float32), "copy_first_psnr": first.astype(np.float32),
+            "action_gap": gap.astype(np.float32)}
 
 
 def read_episodes(judge, task: str, features) -> dict:
@@ -671,6 +731,7 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, models, wm
         "decision": decision_analysis(cfg, results, metrics["pooled"]["alignment"]),
         "videos": [v for t in tasks for v in results[t]["video_index"]],
         "controllability": sorted(panel),
+        "imagination": {t: fidelity_summary(results[t]) for t in tasks},
         "timing": {t: {"simulate_s": results[t]["sim_s"], "imagine_s": results[t]["wm_s"],
                        "episodes": int(results[t]["true"].size), "steps": results[t]["steps"],
                        "nonfinite_sim_episodes": int((~results[t]["sim_finite"]).sum())} for t in tasks},
@@ -743,7 +804,7 @@ def _merged_parts(cfg: EvalConfig, out: Path, task: str, sources) -> dict | None
 def _save_task(path: Path, res: dict) -> None:
     meta = {"names": res["names"], "video_index": res["video_index"], "sim_s": res["sim_s"], "wm_s": res["wm_s"],
             "steps": res["steps"], "seeds": res["seeds"]}
-    arrays = {"true": res["true"], "prob": res["prob"], **{k: res[k] for k in READOUT_KEYS},
+    arrays = {"true": res["true"], "prob": res["prob"], **{k: res[k] for k in READOUT_KEYS + FIDELITY},
               "prob_observed": res["prob_observed"], "sim_finite": res["sim_finite"], "prob_members": res["prob_members"],
               **{k: res[k] for k in TRACES},
               "meta": np.frombuffer(json.dumps(meta).encode(), np.uint8)}
@@ -761,7 +822,7 @@ def _load_task(path: Path) -> dict:
         observed = z["prob_observed"] if "prob_observed" in z.files else np.full(z["prob"].shape, np.nan)
         finite = z["sim_finite"] if "sim_finite" in z.files else np.ones(z["prob"].shape, bool)
         traces = {k: z[k] if k in z.files else np.zeros(z["prob"].shape + (0,), np.float16) for k in TRACES}
-        return {**meta, "true": z["true"].astype(bool), "prob": z["prob"], **{k: z[k] for k in READOUT_KEYS},
+        return {**meta, "true": z["true"].astype(bool), "prob": z["prob"], **{k: z[k] for k in READOUT_KEYS + FIDELITY},
                 "prob_observed": observed, "sim_finite": finite, "prob_members": members, **traces,
                 "videos": videos}
 

@@ -435,6 +435,27 @@ TIMING_COLUMNS = (("stage", "stage"), ("wall_s", "wall s"), ("compile_s", "compi
                   ("gpus", "GPUs"), ("device", "device"))
 
 
+def fidelity_table(res: dict) -> list[list[str]] | None:
+    """Per task and horizon: the imagined frame's PSNR against the simulated episode's, the first
+    true frame's (copy-first), their difference, and the RMS gap between the policy's actions in
+    imagination and in the simulator; None where the results hold none."""
+    imag = res.get("imagination")
+    if not imag:
+        return None
+    rows = [["task", "step", "imagined frame PSNR (dB)", "copy-first PSNR (dB)", "gain over copy-first (dB)",
+             "action gap (RMS)"]]
+    for t, f in imag.items():
+        for k, h in enumerate(f["horizons"]):
+            rows.append([t, str(h), _fmt(f["frame_psnr"][k], 2), _fmt(f["copy_first_psnr"][k], 2),
+                         _fmt(f["gain_over_copy_first_db"][k], 2), _fmt(f["action_gap"][k], 3)])
+    return rows
+
+
+FIDELITY_NOTE = ("The same policy from the same start, in the simulator and in the world model: how far the "
+                 "imagined episode stays with the true one (the last row of each task is its last step), and how "
+                 "far the policy's actions on imagined frames drift from those it took on true ones.")
+
+
 def timing_table(rows: list[dict]) -> list[list[str]]:
     """The pipeline's timing.json (experiments.pipeline): one row per stage command, and the total."""
     def cell(v):
@@ -484,6 +505,8 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
          "<h2>Within-task ranking (the headline)</h2>", _html_table(within_task_table(res)),
          *([f"<h2>Task progress, true and imagined</h2><img src='{fig}'>"]
            if (fig := progress_figure(policies, tasks)) else []),
+         *([f"<h2>Imagination against the simulated episode</h2><p>{html.escape(FIDELITY_NOTE)}</p>",
+            _html_table(fid)] if (fid := fidelity_table(res)) else []),
          _html_table(per_task_table(res)),
          *(["<h2>Within-task ranking of the policies whose rollouts the world model never saw</h2>",
             _html_table(per_task_table(res, "unseen_within_task"))] if "unseen_within_task" in metrics else []),
@@ -551,6 +574,8 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
           f"**{verdict(res)}**", "", "## Within-task ranking (the headline)", "", _md_table(within_task_table(res)), "",
           _md_table(per_task_table(res)), "", "## Checkpoint selection", "", _selection_md(res), "",
           "## Pooled over tasks (secondary)", "", _md_table(_metrics_table(metrics["pooled"])), ""]
+    if fid := fidelity_table(res):
+        md += ["## Imagination against the simulated episode", "", FIDELITY_NOTE, "", _md_table(fid), ""]
     if "unseen" in metrics:
         md += ["## Pooled, policies whose rollouts the world model never saw", "",
                _md_table(_metrics_table(metrics["unseen"])), ""]

@@ -17,6 +17,7 @@ from experiments.report import write_report
 from sim_data.parts import exclusive
 from sim_data.policies.bc import MixedPolicy, StackedPolicy
 from sim_data.policies.registry import resolve
+from wm.metrics import psnr
 
 
 @pytest.fixture(scope="module")
@@ -97,6 +98,31 @@ def test_saved_traces_agree_with_the_episodes_outcomes(evaluation):
     np.testing.assert_array_equal(task["prob"], task["readout_judge"])  # the preset's read-out
 
 
+def test_imagination_fidelity_against_hand_computed_frames_and_actions():
+    rng = np.random.default_rng(0)
+    real = rng.integers(0, 256, (2, 11, 4, 4, 3), dtype=np.uint8)
+    imagined = real[:, 1:].copy()
+    imagined[1, 7] = 255 - imagined[1, 7]  # episode 1's frame after 8 steps is wrong
+    true_actions = rng.normal(size=(2, 10, 20)).astype(np.float32)
+    actions = true_actions.copy()
+    actions[0, 3] += 2.0  # episode 0 acts differently at step 3
+    got = E.imagination_fidelity({"frames": real, "action": true_actions}, imagined, actions, 10)
+    assert E.fidelity_horizons(10) == (1, 8, 10)
+    want = np.minimum(psnr(imagined[:, [0, 7, 9]], real[:, [1, 8, 10]]), 100.0)
+    np.testing.assert_allclose(got["frame_psnr"], want, rtol=1e-6)
+    assert got["frame_psnr"][0].tolist() == [100.0] * 3 and got["frame_psnr"][1, 1] < 10
+    np.testing.assert_allclose(got["copy_first_psnr"], psnr(real[:, :1], real[:, [1, 8, 10]]), rtol=1e-6)
+    expect_gap = np.zeros((2, 10))
+    expect_gap[0, 3] = 2.0
+    np.testing.assert_allclose(got["action_gap"], expect_gap, atol=1e-6)
+    summary = E.fidelity_summary({"steps": 10, **{k: v[None] for k, v in got.items()}})
+    assert summary["horizons"] == [1, 8, 10] and summary["action_gap"] == [0.0, 0.0, 0.0]
+    assert summary["frame_psnr"][0] == 100.0 and summary["gain_over_copy_first_db"][1] == pytest.approx(
+        summary["frame_psnr"][1] - summary["copy_first_psnr"][1], abs=2e-3)
+    cached = E.imagination_fidelity({"frames0": real[:, :1]}, imagined, actions, 10)  # from the truth cache
+    assert np.isnan(cached["frame_psnr"]).all() and cached["action_gap"].shape == (2, 10)
+
+
 def test_parts_share_out_a_tasks_batches_and_merge_into_the_unsplit_results(evaluation, tmp_path):
     cfg, out, res = evaluation
     assert E.balance_chunks({"a": 5, "b": 3, "c": 3, "d": 1}, 2) == {"a": 0, "b": 1, "c": 1, "d": 0}
@@ -142,7 +168,9 @@ def test_report_renders_figures_and_videos(evaluation):
     _, out, res = evaluation
     page = write_report(out).read_text()
     assert page.count("data:image/png;base64,") >= 5  # scatter, progress, ranks, baseline, decision (+ controllability)
-    assert "Task progress, true and imagined" in page
+    assert "Task progress, true and imagined" in page and "Imagination against the simulated episode" in page
+    fid = res["imagination"]["mug"]
+    assert fid["horizons"][-1] == res["timing"]["mug"]["steps"] and all(v is not None for v in fid["frame_psnr"])
     mug = [p for p in res["policies"] if p["task"] == "mug"]
     assert all(len(p["progress_true"]) == len(p["progress_imagined"]) == res["timing"]["mug"]["steps"] for p in mug)
     assert page.count("data:image/webp;base64,") == len(res["videos"]) + len(res["controllability"])
