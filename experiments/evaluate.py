@@ -253,7 +253,8 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
         each = [_imagine(m, task, policy, params, frames0, proprio0, steps, jax.random.fold_in(rng, 1))
                 for m in models]
         p_each = np.stack([e[cfg.readout] for e in each]).reshape(len(models), len(padded), n)[:, : len(part)]
-        batch = {k: np.mean([e[k] for e in each], axis=0).astype(np.float16) for k in ("trace_success", "trace_progress")}
+        batch = {k: np.mean([e[k] for e in each], axis=0).astype(np.float16)
+                 for k in ("trace_success", "trace_progress")}
         batch["true_progress"] = truth.get("progress", np.full((len(padded) * n, steps), np.nan)).astype(np.float16)
         batch |= imagination_fidelity(truth, each[0]["frames"], each[0]["action"], steps)
         batch |= {f"readout_{r}": np.mean([e[r] for e in each], axis=0) for r in READOUTS}
@@ -286,7 +287,8 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
                 "wm_s": 0.0, "steps": None}
     true, prob = np.stack(true), np.stack(prob)
     videos, index = _select_videos(cfg, task, names, true, kept)
-    return {"names": names, "true": true, "prob": prob, "prob_observed": np.stack(observed), "sim_finite": np.stack(finite),
+    return {"names": names, "true": true, "prob": prob, "prob_observed": np.stack(observed),
+            "sim_finite": np.stack(finite),
             "prob_members": np.stack(members, axis=1), **{k: np.stack(v) for k, v in arrays.items()},
             "videos": videos, "video_index": index, "sim_s": sim_s, "wm_s": wm_s, "steps": steps}
 
@@ -311,10 +313,10 @@ def merge_task_parts(cfg: EvalConfig, parts: list, order: list) -> dict:
     index = [v for p in parts for v in p["video_index"] if v["policy"] in chosen]
     keys = {i["key"] for i in index}
     videos = {k: v for p in parts for k, v in p["videos"].items() if k.rsplit("/", 1)[0] in keys}
-    return {"names": list(order), "true": true, "prob": cat("prob"), **{k: cat(k) for k in READOUT_KEYS + FIDELITY},
+    return {"names": list(order), "true": true, "prob": cat("prob"),
+            **{k: cat(k) for k in READOUT_KEYS + TRACES + FIDELITY},
             "prob_observed": cat("prob_observed"), "sim_finite": cat("sim_finite"),
-            "prob_members": cat("prob_members", axis=1), **{k: cat(k) for k in TRACES}, "videos": videos,
-            "video_index": index,
+            "prob_members": cat("prob_members", axis=1), "videos": videos, "video_index": index,
             "sim_s": sum(p["sim_s"] for p in parts), "wm_s": sum(p["wm_s"] for p in parts),
             "steps": next((p["steps"] for p in parts if p["steps"] is not None), None), "seeds": parts[0]["seeds"]}
 
@@ -322,7 +324,8 @@ def merge_task_parts(cfg: EvalConfig, parts: list, order: list) -> dict:
 def _imagine(model, task, policy, params, frames0, proprio0, steps, rng) -> dict:
     """One world model's closed-loop episodes of a batch: {read-out name: (B,) float64 the episode's
     success probability by that read-out (read_episodes), "trace_success" and "trace_progress": (B, T)
-    float32 the per-step heads' outputs, "frames": (B, T, S, S, 3) uint8 imagined}."""
+    float32 the per-step heads' outputs, "frames": (B, T, S, S, 3) uint8 imagined, "action": (B, T, 20)
+    float32 the policy's actions}."""
     wm_cfg, wm_params, norm, judge = model
     got = closed_loop(wm_cfg.model, policy, steps, wm_params, norm, params, frames0, proprio0,
                       np.zeros((len(frames0), 0, R.ACTION_DIM), np.float32), rng)
@@ -534,7 +537,8 @@ def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) ->
                      "true_ci": list(S.wilson_interval(k, n)), "pred_rate": float(p.mean()),
                      "pred_ci": _interval_of_mean(p), "pred_rate_thresholded": kp / n,
                      "pred_thresholded_ci": list(S.wilson_interval(kp, n)), "val_loss": rec.get("val_loss"),
-                     "alignment": S.alignment(p >= cfg.threshold, t), "pred_rate_readouts": dict(zip(READOUTS, r.mean(1).tolist())),
+                     "alignment": S.alignment(p >= cfg.threshold, t),
+                     "pred_rate_readouts": dict(zip(READOUTS, r.mean(1).tolist(), strict=True)),
                      "nonfinite_episodes": int((~ok).sum()),
                      # mean progress over the episodes at each step, the simulator's and the imagined
                      "progress_true": _mean_curve(tp), "progress_imagined": _mean_curve(ip),

@@ -84,7 +84,7 @@ def test_rerun_resumes_and_other_config_is_refused(evaluation):
 
 
 def test_saved_traces_agree_with_the_episodes_outcomes(evaluation):
-    cfg, out, res = evaluation
+    _, out, _ = evaluation
     task = E._load_task(out / "tasks" / "mug.npz")
     p, n = task["true"].shape
     for key in E.TRACES:
