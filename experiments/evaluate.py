@@ -732,6 +732,10 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, models, wm
                                  for t in tasks}},
         "tasks": tasks, "missing_tasks": missing, "policies": rows, "metrics": metrics,
         "checkpoint_selection": S.checkpoint_selection(rows),
+        # the chosen read-out's, then each read-out's ("by_readout")
+        "families": S.family_statistics(rows) | {"by_readout": {
+            r: S.family_statistics([dict(x, rate=x["pred_rate_readouts"][r]) for x in rows], "rate")
+            for r in READOUTS}},
         "decision": decision_analysis(cfg, results, metrics["pooled"]["alignment"]),
         "videos": [v for t in tasks for v in results[t]["video_index"]],
         "controllability": sorted(panel),

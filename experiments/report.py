@@ -451,6 +451,30 @@ def fidelity_table(res: dict) -> list[list[str]] | None:
     return rows
 
 
+def family_table(res: dict) -> list[list[str]] | None:
+    """Per task and counterfactual family (a checkpoint degraded at several levels, with its base):
+    Pearson r of predicted against true success and the mean |error| by the ranked read-out, and r by
+    each read-out; None where the results hold no family."""
+    fam = res.get("families")
+    if not fam or not fam["families"]:
+        return None
+    by = fam.get("by_readout", {})
+    rows = [["task", "family", "policies", "true range", "Pearson r", "mean |predicted - true|",
+             *[f"r, {r} read-out" for r in by]]]
+    for k, f in enumerate(fam["families"]):
+        rows.append([f["task"], f["family"], str(f["n"]), f"{f['true_range'][0]:.2f}-{f['true_range'][1]:.2f}",
+                     _fmt(f["pearson"], 2), _fmt(f["mean_abs_error"], 2),
+                     *[_fmt(b["families"][k]["pearson"], 2) for b in by.values()]])
+    rows.append(["mean", "", "", "", _fmt(fam["mean_pearson"], 2), _fmt(fam["mean_abs_error"], 2),
+                 *[_fmt(b["mean_pearson"], 2) for b in by.values()]])
+    return rows
+
+
+FAMILY_NOTE = ("Counterfactual families: one checkpoint with its actions degraded by known amounts (noise, delay, "
+               "a weak grip, driving scaled), beside the undegraded checkpoint. True success moves with the "
+               "degradation; a world model that reads the actions must move its prediction the same way.")
+
+
 FIDELITY_NOTE = ("The same policy from the same start, in the simulator and in the world model: how far the "
                  "imagined episode stays with the true one (the last row of each task is its last step), and how "
                  "far the policy's actions on imagined frames drift from those it took on true ones.")
@@ -507,6 +531,8 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
            if (fig := progress_figure(policies, tasks)) else []),
          *([f"<h2>Imagination against the simulated episode</h2><p>{html.escape(FIDELITY_NOTE)}</p>",
             _html_table(fid)] if (fid := fidelity_table(res)) else []),
+         *([f"<h2>Counterfactual families</h2><p>{html.escape(FAMILY_NOTE)}</p>", _html_table(fam)]
+           if (fam := family_table(res)) else []),
          _html_table(per_task_table(res)),
          *(["<h2>Within-task ranking of the policies whose rollouts the world model never saw</h2>",
             _html_table(per_task_table(res, "unseen_within_task"))] if "unseen_within_task" in metrics else []),
@@ -576,6 +602,8 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
           "## Pooled over tasks (secondary)", "", _md_table(_metrics_table(metrics["pooled"])), ""]
     if fid := fidelity_table(res):
         md += ["## Imagination against the simulated episode", "", FIDELITY_NOTE, "", _md_table(fid), ""]
+    if fam := family_table(res):
+        md += ["## Counterfactual families", "", FAMILY_NOTE, "", _md_table(fam), ""]
     if "unseen" in metrics:
         md += ["## Pooled, policies whose rollouts the world model never saw", "",
                _md_table(_metrics_table(metrics["unseen"])), ""]

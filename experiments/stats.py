@@ -295,3 +295,37 @@ def checkpoint_selection(rows: list[dict]) -> dict:
     share = (lambda k: float(np.mean([x[k] for x in out]))) if out else (lambda k: math.nan)
     return {"lineages": out, "exact_share": share("exact"), "within_ci_share": share("within_ci"),
             "mean_regret": share("regret"), "n": len(out)}
+
+
+def family_statistics(rows: list[dict], rate: str = "pred_rate") -> dict:
+    """Do predictions follow known degradations? Per task and counterfactual family (rows whose
+    lineage is "<base lineage>~<knob>": one checkpoint degraded at several levels), the family's
+    levels together with their undegraded base (the base lineage's last checkpoint): Pearson r of
+    the predicted rate (the row's `rate` key) against the true rate, and the mean |predicted - true|.
+
+    Returns {"families": [{"task", "family", "n" (policies, base included), "pearson", "mean_abs_error",
+    "true_range": [lowest, highest]}], "mean_pearson" (over families where r is defined),
+    "mean_abs_error" (over families)}; NaN means where there is no family.
+    """
+    last = {}
+    for r in rows:
+        if r.get("step") is not None:
+            key = (r["task"], r["lineage"])
+            if key not in last or r["step"] > last[key]["step"]:
+                last[key] = r
+    groups: dict = {}
+    for r in rows:
+        if "~" in r["lineage"]:
+            groups.setdefault((r["task"], r["lineage"]), []).append(r)
+    out = []
+    for (task, family), rs in sorted(groups.items()):
+        base = last.get((task, family.split("~", 1)[0]))
+        members = rs + ([base] if base is not None else [])
+        pred = [r[rate] for r in members]
+        true = [r["true_rate"] for r in members]
+        out.append({"task": task, "family": family, "n": len(members), "pearson": pearson(pred, true)[0],
+                    "mean_abs_error": float(np.mean(np.abs(np.subtract(pred, true)))),
+                    "true_range": [min(true), max(true)]})
+    defined = [x["pearson"] for x in out if not math.isnan(x["pearson"])]
+    return {"families": out, "mean_pearson": float(np.mean(defined)) if defined else math.nan,
+            "mean_abs_error": float(np.mean([x["mean_abs_error"] for x in out])) if out else math.nan}

@@ -13,7 +13,7 @@ from conftest import build_once
 
 from experiments import evaluate as E
 from experiments import stats as S
-from experiments.report import write_report
+from experiments.report import family_table, write_report
 from sim_data.parts import exclusive
 from sim_data.policies.bc import MixedPolicy, StackedPolicy
 from sim_data.policies.registry import resolve
@@ -123,6 +123,22 @@ def test_imagination_fidelity_against_hand_computed_frames_and_actions():
     assert np.isnan(cached["frame_psnr"]).all() and cached["action_gap"].shape == (2, 10)
 
 
+def test_family_table_lists_each_family_under_each_readout():
+    rows = [{"task": "mug", "lineage": "conv", "step": 9, "true_rate": 0.9, "pred_rate": 0.8,
+             "pred_rate_readouts": {"progress": 0.8, "judge": 0.7, "success": 0.9}},
+            *({"task": "mug", "lineage": "conv~noise", "step": None, "true_rate": t, "pred_rate": p,
+               "pred_rate_readouts": {"progress": p, "judge": 0.5, "success": t}} for t, p in ((0.5, 0.4), (0.1, 0.3)))]
+    fams = S.family_statistics(rows) | {"by_readout": {
+        r: S.family_statistics([dict(x, rate=x["pred_rate_readouts"][r]) for x in rows], "rate") for r in E.READOUTS}}
+    table = family_table({"families": json.loads(json.dumps(fams))})
+    assert table[0][-3:] == ["r, progress read-out", "r, judge read-out", "r, success read-out"]
+    family, mean = table[1], table[2]
+    assert family[:4] == ["mug", "conv~noise", "3", "0.10-0.90"]
+    assert float(family[4]) == pytest.approx(np.corrcoef([0.8, 0.4, 0.3], [0.9, 0.5, 0.1])[0, 1], abs=0.005)
+    assert family[5] == "0.13" and family[-1] == "1.00" and mean[0] == "mean"
+    assert family_table({"families": {"families": []}}) is None
+
+
 def test_parts_share_out_a_tasks_batches_and_merge_into_the_unsplit_results(evaluation, tmp_path):
     cfg, out, res = evaluation
     assert E.balance_chunks({"a": 5, "b": 3, "c": 3, "d": 1}, 2) == {"a": 0, "b": 1, "c": 1, "d": 0}
@@ -169,6 +185,8 @@ def test_report_renders_figures_and_videos(evaluation):
     page = write_report(out).read_text()
     assert page.count("data:image/png;base64,") >= 5  # scatter, progress, ranks, baseline, decision (+ controllability)
     assert "Task progress, true and imagined" in page and "Imagination against the simulated episode" in page
+    # the smoke evaluation runs no counterfactual family: no section for it
+    assert res["families"]["families"] == [] and "Counterfactual families" not in page
     fid = res["imagination"]["mug"]
     assert fid["horizons"][-1] == res["timing"]["mug"]["steps"] and all(v is not None for v in fid["frame_psnr"])
     mug = [p for p in res["policies"] if p["task"] == "mug"]

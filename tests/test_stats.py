@@ -207,3 +207,23 @@ def test_checkpoint_selection_by_hand():
     assert got["n"] == 2 and got["exact_share"] == 0.5 and got["within_ci_share"] == 1.0
     assert got["mean_regret"] == pytest.approx(0.025)
     assert math.isnan(S.checkpoint_selection(rows[-2:])["exact_share"])
+
+
+def test_family_statistics_by_hand():
+    def row(lineage, step, true, pred, task="mug"):
+        return {"task": task, "lineage": lineage, "step": step, "true_rate": true, "pred_rate": pred}
+
+    rows = [row("conv", 100, 0.3, 0.5), row("conv", 1000, 0.9, 0.8),  # the base: conv's last checkpoint
+            row("conv~noise", None, 0.6, 0.7), row("conv~noise", None, 0.1, 0.4),
+            row("conv~grip", None, 0.5, 0.5), row("other", 5, 0.2, 0.2)]
+    got = S.family_statistics(rows)
+    noise, grip = (next(f for f in got["families"] if f["family"] == k) for k in ("conv~noise", "conv~grip"))
+    # noise: base (0.9, 0.8), (0.6, 0.7), (0.1, 0.4)
+    assert noise["n"] == 3 and noise["true_range"] == [0.1, 0.9]
+    assert noise["pearson"] == pytest.approx(np.corrcoef([0.8, 0.7, 0.4], [0.9, 0.6, 0.1])[0, 1])
+    assert noise["mean_abs_error"] == pytest.approx((0.1 + 0.1 + 0.3) / 3)
+    # grip: base and one level, two points: r = 1 (0.9 > 0.5 and 0.8 > 0.5)
+    assert grip["n"] == 2 and grip["pearson"] == pytest.approx(1.0) and grip["mean_abs_error"] == pytest.approx(0.05)
+    assert got["mean_pearson"] == pytest.approx((noise["pearson"] + 1.0) / 2)
+    assert got["mean_abs_error"] == pytest.approx((noise["mean_abs_error"] + 0.05) / 2)
+    assert math.isnan(S.family_statistics([row("conv", 1, 0.1, 0.2)])["mean_pearson"])
