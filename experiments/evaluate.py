@@ -346,14 +346,11 @@ def fidelity_summary(res: dict) -> dict:
     the action gap at the horizon's step); None values where no episode had frames."""
     hs = fidelity_horizons(res["steps"]) if res["steps"] else ()
 
-    def mean(x):
-        x = np.asarray(x, np.float64).reshape(-1, np.shape(x)[-1]) if np.size(x) else np.zeros((0, len(hs)))
-        ok = np.isfinite(x).sum(0)
-        m = np.where(np.isfinite(x), x, 0.0).sum(0) / np.maximum(ok, 1)
-        return [round(float(v), 3) if k else None for v, k in zip(m, ok, strict=True)]
+    def mean(x):  # (P, N, H) -> (H,) over every episode
+        return _mean_curve(np.reshape(x, (-1, len(hs)))) if hs else []
 
     frames, first = mean(res["frame_psnr"]), mean(res["copy_first_psnr"])
-    gap = mean(np.take(res["action_gap"], [h - 1 for h in hs], axis=-1)) if hs else []
+    gap = mean(np.take(res["action_gap"], [h - 1 for h in hs], axis=-1))
     return {"horizons": list(hs), "frame_psnr": frames, "copy_first_psnr": first,
             "gain_over_copy_first_db": [None if a is None or b is None else round(a - b, 3)
                                         for a, b in zip(frames, first, strict=True)],

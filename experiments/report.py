@@ -119,10 +119,8 @@ def progress_figure(policies: list[dict], tasks: list[str], per_task: int = 4) -
     for ax, (t, rows) in zip(axes[0], panels, strict=True):
         for k, p in enumerate(rows):
             c = f"C{k}"
-            true = [np.nan if v is None else v for v in p["progress_true"]]
-            imagined = [np.nan if v is None else v for v in p["progress_imagined"]]
-            ax.plot(true, color=c, label=f"{p['name'].removeprefix(t + '/')} (true {p['true_rate']:.2f})")
-            ax.plot(imagined, color=c, linestyle="--")
+            ax.plot(np.array(p["progress_true"], float), color=c, label=f"{p['name'].removeprefix(t + '/')} (true {p['true_rate']:.2f})")
+            ax.plot(np.array(p["progress_imagined"], float), color=c, linestyle="--")  # None (no episode) -> NaN
         ax.set(title=f"{t}: true (solid), imagined (dashed)", xlabel="step", ylabel="mean progress", ylim=(-0.05, 1.05))
         ax.legend(fontsize=6, loc="upper left")
     return _png(fig)
