@@ -74,7 +74,7 @@ from sim_data.sim.engines import ENGINES, default_engine
 from sim_data.sim.rollout import record_policies
 from sim_data.sim.tasks import TASK_NAMES
 from sim_data.util import device_name, make_output_dir, run_cli, write_json_atomic
-from wm.checkpoint import load_run_config, load_trained, training_seeds, training_status
+from wm.checkpoint import load_run_config, load_trained, training_policies, training_seeds, training_status
 from wm.evaluate import no_nan, program_panel
 from wm.imagine import (
     PROGRESS_FEATURE,
@@ -706,9 +706,8 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, models, wm
     if bad:
         print(f"warning: simulated episodes whose state went non-finite (their true outcome is doubtful; the judge "
               f"on truth is left out): {bad}", file=sys.stderr)
-    # the policies whose own rollouts the world model never saw in training
-    seen = {e["policy"].split(":", 1)[1] for e in (wm_cache.episodes if wm_cache is not None else ())
-            if e.get("policy_kind") == "learned"}
+    # the policies whose own rollouts some member of the ensemble saw in training
+    seen = set().union(*(training_policies(Path(r)) for r in cfg.wm_runs))
     for r in rows:
         r["in_wm_data"] = r["name"] in seen
     metrics = all_metrics(cfg, results, tasks, rows, seen)

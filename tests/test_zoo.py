@@ -12,7 +12,7 @@ from sim_data.dataset import generate as G
 from sim_data.dataset.episodes import read_episode
 from sim_data.policies import zoo
 from sim_data.policies.bc import BCPolicy, StackedPolicy, predict_chunk, stack_params
-from sim_data.policies.registry import every_nth_checkpoint, resolve
+from sim_data.policies.registry import every_nth_checkpoint, resolve, used_policies
 from sim_data.sim.env import HomeEnv
 from sim_data.sim.rollout import run_episodes
 
@@ -145,6 +145,8 @@ def test_mixed_dataset_records_policy_rollouts(smoke_dataset, smoke_zoo, smoke_w
     assert kinds == {"scripted", "program", "learned", "plugin"}
     learned = [r for r in rows if r["policy_kind"] == "learned"]
     assert learned[0]["policy"] == f"learned:mug/conv_proprio/{last}"
+    # a world model trained on it has seen that checkpoint act (the plug-in is not in the zoo)
+    assert used_policies(out) == {f"mug/conv_proprio/{last}"} and used_policies(data) == set()
     scripted_seed = next(r["seed"] for r in rows if r["policy_kind"] == "scripted" and r["episode_id"].endswith("0"))
     assert learned[0]["seed"] == scripted_seed  # the same initial state as scripted episode 0
     meta = G.read_episode_meta(out / learned[0]["file"])

@@ -3,10 +3,11 @@ from its run directory or from its portable bundle.
 
 A bundle (`python -m wm.checkpoint RUN BUNDLE`) is a directory small enough to copy between machines:
 `bundle.json` (the run's configuration, normalisation, training status, eval.json, the judge's
-standardisation, the training data's initial-state seeds and a SHA-256 of every other file), the best parameters in bfloat16 split into
-`params-K.msgpack` shards of at most 15 MiB, and `judge.msgpack`. It is written under a temporary name
-and renamed when whole. Every reader here (and `wm.judge.load_judge`) takes either kind of directory,
-so `make eval ARGS="wm=BUNDLE"` evaluates a model trained on another machine.
+standardisation, the training data's initial-state seeds and learned policies, and a SHA-256 of every
+other file), the best parameters in bfloat16 split into `params-K.msgpack` shards of at most 15 MiB,
+and `judge.msgpack`. It is written under a temporary name and renamed when whole. Every reader here
+(and `wm.judge.load_judge`) takes either kind of directory, so `make eval ARGS="wm=BUNDLE"` evaluates
+a model trained on another machine.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 from flax import serialization, traverse_util
 
-from sim_data.policies.registry import used_seeds
+from sim_data.policies.registry import used_policies, used_seeds
 from sim_data.util import run_cli, write_json_atomic
 from wm.config import TrainConfig, from_dict
 from wm.imagine import Norm
@@ -75,6 +76,14 @@ def training_seeds(out: Path) -> set:
     if is_bundle(out):
         return set(bundle_meta(out).get("data_seeds", ()))
     return used_seeds(load_run_config(out)[1])
+
+
+def training_policies(out: Path) -> set:
+    """The learned policies whose rollouts were in a run's training data (its manifest, or the copy in
+    its bundle): an evaluation reports the policies the world model never saw act apart."""
+    if is_bundle(out):
+        return set(bundle_meta(out).get("data_policies", ()))
+    return used_policies(load_run_config(out)[1])
 
 
 def load_trained(out: Path):
@@ -138,7 +147,7 @@ def write_bundle(run: Path, out: Path, dtype: str = "bfloat16") -> dict:
     meta = {"format": BUNDLE_FORMAT, "source": str(run.absolute()), "dtype": dtype,
             "parameters": int(sum(a.size for a in flat.values())), "sha256": hashes,
             "files": {n: run_file(run, n) for n in names if (run / n).exists()},
-            "data_seeds": sorted(training_seeds(run))}
+            "data_seeds": sorted(training_seeds(run)), "data_policies": sorted(training_policies(run))}
     write_json_atomic(tmp / BUNDLE, meta)
     if out.exists():
         shutil.rmtree(out)

@@ -213,6 +213,18 @@ def used_seeds(*datasets) -> set:
     return seeds
 
 
+def used_policies(*datasets) -> set:
+    """The names of the learned policies whose rollouts are in the manifests of the given dataset
+    directories (a world model trained on them has seen those policies act)."""
+    names = set()
+    for d in datasets:
+        manifest = Path(d) / "manifest.jsonl"
+        if manifest.exists():
+            rows = (json.loads(line) for line in manifest.read_text().splitlines() if line)
+            names |= {r["policy"].split(":", 1)[1] for r in rows if r.get("policy_kind") == "learned"}
+    return names
+
+
 def heldout_seeds(task: str, n: int, seed: int, used: set) -> list[int]:
     """n initial-state seeds of task that no training dataset used (a seed space of its own, with
     the rare collision skipped)."""
