@@ -26,7 +26,7 @@ def evaluation(smoke_zoo, smoke_world_model, tmp_path_factory, worker_id):
     # batches of 3 policies x 2 states: two batches, each mixing architectures (MixedPolicy)
     cfg = E.EvalConfig(policies=(f"{zoo_dir}#conv_proprio+conv_noproprio", "examples.plugin_policy:make"),
                        wm=str(smoke_world_model), tasks=("mug",), episodes=2, batch=6, video_policies=2,
-                       video_episodes=1, decision_episodes=(5, 50))
+                       video_episodes=1, decision_episodes=(5, 50), readout="judge")
     out = build_once(tmp_path_factory, worker_id, "eval", lambda d: E.run(cfg, d / "run", progress=False)) / "run"
     return cfg, out, json.loads((out / "results.json").read_text())
 
@@ -351,6 +351,21 @@ def test_truth_cache_returns_the_simulated_batch_waits_for_a_writer_and_misses_o
         E.simulate_truth(cfg, "mug", policy, other, seeds, keys, rng, "cpu", renderer)
     with pytest.raises(ValueError, match="video_policies=0"):
         E.make_config("demo", ["truth_cache=/tmp/t"])
+
+
+def test_auto_readout_picks_the_judge_only_where_every_model_saw_learned_policies_rollouts(smoke_world_model,
+                                                                                         monkeypatch):
+    runs = [str(smoke_world_model)]
+    models = E.load_models(runs)
+    assert models[0][3] is None and E.auto_readout("auto", runs, models) == "progress"  # no judge, no rollouts
+    assert E.auto_readout("success", runs, models) == "success"
+    judged = [(*m[:3], object()) for m in models]
+    assert E.auto_readout("auto", runs, judged) == "progress"  # a judge fit to scripted episodes alone
+    monkeypatch.setattr(E, "training_policies", lambda run: {"mug/conv_proprio/10"})
+    assert E.auto_readout("auto", runs, judged) == "judge"
+    assert E.auto_readout("auto", runs * 2, [judged[0], models[0]]) == "progress"  # one member without a judge
+    with pytest.raises(ValueError, match="readout must be one of"):
+        E.make_config("demo", ["readout=final"])
 
 
 def test_within_task_headline_and_checkpoint_selection_from_the_episodes(evaluation):
