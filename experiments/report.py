@@ -30,6 +30,7 @@ TARGETS = {"demo": {"pearson": (">=", 0.7)},
            "full": {"pearson": (">=", 0.9), "mmrv": ("<=", 0.05), "pairwise_acc_gap10": (">=", 0.9)}}
 TAB10 = colormaps["tab10"]
 HEADLINE = ("pearson", "spearman", "kendall", "mmrv", "pairwise_acc", "pairwise_acc_gap10", "alignment")
+VIDEOS = "videos.npz"  # in the run: the kept episodes (experiments.evaluate)
 LABELS = {"pearson": "Pearson r", "spearman": "Spearman rho", "mmrv": "MMRV (lower is better)",
           "pairwise_acc_gap10": "pairwise accuracy, gaps >= 10 points", "alignment": "per-episode alignment"}
 
@@ -507,12 +508,21 @@ def video_links(index: dict | None) -> list[tuple[str, str]]:
     return links
 
 
+def read_videos(run: Path) -> dict:
+    """{key: (T+1, S, S, 3) uint8} of RUN/videos.npz (the kept real and imagined episodes and the
+    controllability panel); {} where the run has none (results copied back without it)."""
+    path = Path(run) / VIDEOS
+    if not path.exists():
+        return {}
+    with np.load(path) as z:
+        return {k: z[k] for k in z.files}
+
+
 def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
     """(HTML, Markdown) of the evaluation in run, with a section per sweep under `sweeps` if given."""
     res = json.loads((run / "results.json").read_text())
     tasks, policies, metrics = res["tasks"], res["policies"], res["metrics"]
-    with np.load(run / "videos.npz") as z:
-        videos = {k: z[k] for k in z.files}
+    videos = read_videos(run)
     verd = verdicts(policies, tasks)
     h = [f"<html><head><meta charset='utf-8'><title>World-model policy evaluation</title><style>{CSS}</style>"
          "</head><body>", "<h1>Policy evaluation in the world model against the simulator</h1>",
@@ -560,6 +570,9 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
         h += [f"<h2>Task {html.escape(t)}</h2>", _html_table(_metrics_table(metrics["per_task"][t])),
               _html_table(_policy_table([p for p in policies if p["task"] == t]))]
     h.append("<h2>Real (left) and imagined (right) episodes</h2>")
+    if not videos:
+        h.append(f"<p>No episodes kept: {html.escape(str(run / VIDEOS))} is absent (an evaluation with "
+                 "video_policies=0, or results copied without it).</p>")
     mp4 = video_links(read_index(run))
     if mp4:
         h.append("<p>MP4 files (<code>make videos</code>): " + ", ".join(

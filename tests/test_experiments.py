@@ -211,6 +211,16 @@ def test_report_renders_figures_and_videos(evaluation):
         (out / "results.json").write_text(json.dumps(res))
 
 
+def test_a_report_of_results_copied_without_their_videos_says_so(evaluation, tmp_path):
+    _, out, res = evaluation
+    run = tmp_path / "copied"
+    shutil.copytree(out / "tasks", run / "tasks")
+    shutil.copyfile(out / "results.json", run / "results.json")
+    page = write_report(run).read_text()
+    assert "videos.npz is absent" in page and "data:image/webp;base64," not in page
+    assert page.count("data:image/png;base64,") >= 5
+
+
 def test_an_ensemble_averages_its_members_probabilities(evaluation, smoke_world_model, tmp_path):
     cfg, out, res = evaluation
     # a second member: the same network reading the actions on another scale, so that it predicts otherwise
