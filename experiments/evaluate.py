@@ -639,7 +639,7 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
         raise ValueError("no task to evaluate: the policies are all plug-ins; name tasks=...")
     models = load_models(cfg.wm_runs)
     cfg = dataclasses.replace(cfg, readout=auto_readout(cfg.readout, cfg.wm_runs, models))
-    wm_data = str(load_run_config(Path(cfg.wm_runs[0]))[1])  # the first model's data: the tasks and policies it saw
+    wm_data = str(load_run_config(Path(cfg.wm_runs[0]))[1])  # the first model's data: the tasks it saw
     wm_cache = TrainingCache(wm_data) if (Path(wm_data) / "cache" / "index.json").exists() else None
     unseen = [t for t in tasks if wm_cache is not None and t not in wm_cache.tasks]
     if unseen:
