@@ -33,17 +33,14 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import NamedSharding
+from jax.sharding import PartitionSpec as P
 
-from sim_data.util import run_cli, write_json_atomic
+from sim_data.util import device_name, run_cli, write_json_atomic
 from wm.config import make_config
 from wm.imagine import Norm, closed_loop
 from wm.model import init_params
-from wm.train import _jitted_step, make_optimizer
-
-
-def device_name() -> str:
-    d = jax.devices()[0]
-    return getattr(d, "device_kind", d.platform)
+from wm.train import jitted_train_step, make_mesh, make_optimizer, put_batch, state_shardings
 
 
 def matmul_rate(n: int = 8192, reps: int = 10, chain: int = 8) -> float:
@@ -93,7 +90,7 @@ def step_flops(preset: str, overrides=()) -> float:
         return float(child.stdout.split()[-1])
     cfg = make_config(preset, overrides)
     args = jax.eval_shape(lambda: step_inputs(cfg))
-    cost = _jitted_step.lower(cfg, *args).cost_analysis()
+    cost = jitted_train_step.lower(cfg, *args).cost_analysis()
     if isinstance(cost, list | tuple):
         cost = cost[0]
     if not cost or "flops" not in cost:
@@ -141,15 +138,20 @@ def step_flops_by_shape(preset: str, overrides=()) -> dict:
     """matmul_flops_by_shape of one train step of the preset, lowered (not compiled) on this backend."""
     cfg = make_config(preset, overrides)
     args = jax.eval_shape(lambda: step_inputs(cfg))
-    return matmul_flops_by_shape(_jitted_step.lower(cfg, *args).as_text(dialect="hlo"))
+    return matmul_flops_by_shape(jitted_train_step.lower(cfg, *args).as_text(dialect="hlo"))
 
 
-def train_rate(cfg, steps: int = 20, profile: int = 0) -> dict:
+def train_rate(cfg, steps: int = 20, profile: int = 0, mesh=None) -> dict:
     """Time of one train step of cfg (mean of `steps` after 3 untimed ones) and, where profile > 0,
-    the kernel_profile of `profile` more steps traced with jax.profiler (under "profile")."""
+    the kernel_profile of `profile` more steps traced with jax.profiler (under "profile"). With a
+    mesh, the step runs data parallel over it, parameters placed as cfg.param_sharding says."""
     state, batch, norm = step_inputs(cfg)
+    if mesh is not None:
+        state = jax.device_put(state, state_shardings(state, mesh, cfg.param_sharding == "fsdp"))
+        batch = put_batch(batch, mesh)
+        norm = jax.device_put(norm, NamedSharding(mesh, P()))
     t0 = time.perf_counter()
-    compiled = _jitted_step.lower(cfg, state, batch, norm).compile()
+    compiled = jitted_train_step.lower(cfg, state, batch, norm).compile()
     compile_s = time.perf_counter() - t0
     for _ in range(3):
         state, parts = compiled(state, batch, norm)
@@ -175,6 +177,27 @@ def train_rate(cfg, steps: int = 20, profile: int = 0) -> dict:
             with gzip.open(found[-1], "rt") as f:
                 out["profile"] = kernel_profile(json.load(f), profile)
     return out
+
+
+def scaling(preset: str, overrides=(), per_device_batch: int | None = None, counts=(1, 2, 4, 8),
+            shardings=("replicated", "fsdp"), steps: int = 20) -> list[dict]:
+    """Training throughput on the first n devices for each n in counts (those this host has), at the
+    same per-device batch (default: the preset's batch), for each parameter sharding. Each row: devices,
+    param_sharding, batch (global), step_s, frames_per_s, frames_per_s_per_device, compile_s and
+    efficiency (per-device throughput against the row of the fewest devices with that sharding)."""
+    per = per_device_batch or make_config(preset, overrides).batch
+    rows = []
+    for sharding in shardings:
+        base = None
+        for n in sorted(c for c in set(counts) if c <= jax.device_count()):
+            cfg = make_config(preset, [*overrides, f"batch={per * n}", f"param_sharding={sharding}"])
+            r = train_rate(cfg, steps, mesh=make_mesh(jax.devices()[:n]))
+            per_device = r["frames_per_s"] / n
+            base = base or per_device
+            rows.append({"devices": n, "param_sharding": sharding, "batch": per * n, "step_s": r["step_s"],
+                         "frames_per_s": r["frames_per_s"], "frames_per_s_per_device": per_device,
+                         "efficiency": per_device / base, "compile_s": r["compile_s"]})
+    return rows
 
 
 MATRIX_KERNEL = re.compile(r"gemm|xmma|cutlass|nvjet|wgmma", re.I)
@@ -270,9 +293,28 @@ def main(argv=None) -> int:
                    help="also trace N train steps and write the GPU's time by kernel (a GPU only)")
     p.add_argument("--flops-by-shape", type=int, default=0, metavar="N",
                    help="print the N convolution and dot shapes of one train step with the most FLOPs and stop")
+    p.add_argument("--scaling", default=None, metavar="N,N,...",
+                   help="only training throughput on the first N devices for each N (same per-device batch), "
+                        "replicated and fsdp: per-device frames/s and efficiency against the fewest devices")
+    p.add_argument("--per-device-batch", type=int, default=None, help="with --scaling (default: the preset's batch)")
+    p.add_argument("--steps", type=int, default=20, help="timed train steps per measurement")
     a = p.parse_args(argv)
     gpu = jax.devices()[0].platform != "cpu"
     preset = a.config or ("full" if gpu else "demo")
+    if a.scaling:
+        if a.out is None:
+            p.error("--out is required")
+        try:
+            counts = [int(c) for c in a.scaling.split(",")]
+        except ValueError:
+            p.error(f"--scaling takes device counts such as 1,2,4,8, got {a.scaling!r}")
+        rows = scaling(preset, a.overrides, a.per_device_batch, counts, steps=a.steps)
+        report = {"device": device_name(), "device_count": jax.device_count(), "config": preset,
+                  "overrides": list(a.overrides), "scaling": rows}
+        a.out.parent.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(a.out, report)
+        print(json.dumps(report, indent=1))
+        return 0
     if a.flops_only:
         print(step_flops(preset, a.overrides))
         return 0
@@ -289,7 +331,7 @@ def main(argv=None) -> int:
     if a.profile and not gpu:
         p.error("--profile sums the GPU's kernels: run it on a GPU")
     rate = matmul_rate()
-    train = train_rate(cfg, profile=a.profile)
+    train = train_rate(cfg, steps=a.steps, profile=a.profile)
     profile = train.pop("profile", None)
     train["flops_per_step"] = step_flops(preset, a.overrides)
     train["achieved_flops_per_s"] = train["flops_per_step"] / train["step_s"]

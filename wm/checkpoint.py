@@ -100,7 +100,11 @@ def load_trained(out: Path):
     step = mgr.latest_step()
     if step is None:
         raise FileNotFoundError(f"{out}/best holds no checkpoint")
-    abstract = {"params": jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), _shapes(cfg))}
+    # placed on this process's first device whatever the topology the run was trained on (several
+    # processes, fsdp): without a target sharding orbax would ask for the saved one
+    one = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+    abstract = {"params": jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=one),
+                                                 _shapes(cfg))}
     got = mgr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract),
                                                      loader=ocp.args.JsonRestore()))
     return cfg, got["state"]["params"], norm

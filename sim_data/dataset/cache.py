@@ -265,6 +265,8 @@ class WindowLoader:
     Every start position of every selected episode is one window; an epoch visits them all in
     an order drawn from (seed, epoch), in batches of `batch` (the last partial batch is dropped).
     `state()` after a batch and `restore(state)` in a new loader continue the same sequence.
+    `part=(i, n)` yields the i-th of n equal row blocks of each batch (B = batch / n rows): n
+    processes that each take their part train on the same global batches as one process would.
 
     Batches: {"frames": {camera: (B, T, H, W, 3) uint8}, "proprio": (B, T, 37) float32,
     "action": (B, T, 20) float32 (action t follows frame t), "success": (B, T) bool, "progress": (B, T) float32,
@@ -273,10 +275,15 @@ class WindowLoader:
     """
 
     def __init__(self, cache: TrainingCache, window: int, batch: int, split: str | None = "train", seed: int = 0,
-                 cameras=None, tasks=None, fraction: float = 1.0, prefetch: int = 8, threads: int = 4):
+                 cameras=None, tasks=None, fraction: float = 1.0, prefetch: int = 8, threads: int = 4,
+                 part: tuple[int, int] = (0, 1)):
         if window < 1 or batch < 1:
             raise ValueError(f"window and batch must be >= 1, got {window}, {batch}")
+        index, count = part
+        if not (count >= 1 and 0 <= index < count and batch % count == 0):
+            raise ValueError(f"part {part} must be (i, n) with 0 <= i < n and n dividing the batch {batch}")
         self.cache, self.window, self.batch, self.seed = cache, window, batch, seed
+        self.part = (int(index), int(count))
         self.cameras = list(cameras or cache.cameras[:1])
         bad = [c for c in self.cameras if c not in cache.cameras]
         if bad:
@@ -320,9 +327,10 @@ class WindowLoader:
         return order
 
     def batch_at(self, epoch: int, k: int) -> dict:
-        """Batch k of an epoch (what iteration yields there)."""
-        ids = self._order(epoch)[k * self.batch:(k + 1) * self.batch]
-        return self.gather(ids)
+        """This loader's part of batch k of an epoch (what iteration yields there)."""
+        local = self.batch // self.part[1]
+        first = k * self.batch + self.part[0] * local
+        return self.gather(self._order(epoch)[first:first + local])
 
     def gather(self, window_ids: np.ndarray) -> dict:
         """The windows with these ids (0 .. windows-1) as one batch."""
