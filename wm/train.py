@@ -195,7 +195,8 @@ def param_spec(x, n: int, fsdp: bool) -> P:
 
 
 def state_shardings(state, mesh, fsdp: bool):
-    n = mesh.devices.size
+    """NamedShardings of the state's leaves on mesh (a Mesh, or an AbstractMesh to plan without devices)."""
+    n = mesh.size
     return jax.tree_util.tree_map(lambda x: NamedSharding(mesh, param_spec(x, n, fsdp)), state)
 
 
