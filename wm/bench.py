@@ -40,7 +40,13 @@ from sim_data.util import device_name, run_cli, write_json_atomic
 from wm.config import make_config
 from wm.imagine import Norm, closed_loop
 from wm.model import init_params
-from wm.train import jitted_train_step, make_mesh, make_optimizer, put_batch, state_shardings
+from wm.train import (
+    jitted_train_step,
+    make_mesh,
+    make_optimizer,
+    put_batch,
+    state_shardings,
+)
 
 
 def matmul_rate(n: int = 8192, reps: int = 10, chain: int = 8) -> float:
