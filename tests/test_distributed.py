@@ -1,6 +1,6 @@
 """Data-parallel training over several devices and processes, on CPU devices: the loader's parts
-tile each global batch, fsdp plans a quarter of each parameter for each of 4 devices, and two processes (fsdp) train with
-the same per-step losses and parameters as one process on one device."""
+tile each global batch, fsdp plans a quarter of each parameter for each of 4 devices, and two
+processes (fsdp) train with the same per-step losses and parameters as one process on one device."""
 
 import json
 import os

@@ -103,11 +103,18 @@ def load_trained(out: Path):
     # placed on this process's first device whatever the topology the run was trained on (several
     # processes, fsdp): without a target sharding orbax would ask for the saved one
     one = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
-    abstract = {"params": jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=one),
-                                                 _shapes(cfg))}
-    got = mgr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract),
-                                                     loader=ocp.args.JsonRestore()))
-    return cfg, got["state"]["params"], norm
+    shapes = _shapes(cfg)
+    return cfg, restore_params(mgr, step, shapes, jax.tree_util.tree_map(lambda _: one, shapes)), norm
+
+
+def restore_params(manager: ocp.CheckpointManager, step: int, shapes, shardings):
+    """The parameters of a `best/` checkpoint at step: shapes (arrays or ShapeDtypeStructs) and
+    shardings, pytrees like the parameters, say what to build and where to place it, whatever
+    topology saved it (several processes, fsdp); without a target sharding orbax asks for the saved one."""
+    abstract = jax.tree_util.tree_map(lambda x, s: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=s), shapes, shardings)
+    got = manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore({"params": abstract}),
+                                                         loader=ocp.args.JsonRestore()))
+    return got["state"]["params"]
 
 
 def _shapes(cfg: TrainConfig):

@@ -38,6 +38,7 @@ from tqdm import tqdm
 from sim_data.config import preset_help
 from sim_data.dataset.cache import TrainingCache, WindowLoader
 from sim_data.util import make_output_dir, run_cli, write_json_atomic
+from wm.checkpoint import restore_params
 from wm.config import PRESETS, TrainConfig, check_dataset, make_config, to_dict
 from wm.evaluate import evaluate
 from wm.imagine import Norm, to_uint8
@@ -362,14 +363,11 @@ class Run:
         return {**status, **last}
 
     def best_params(self):
-        step = self.best.latest_step()
-        # placed as this run's state is, whatever topology saved it (a run of several processes
-        # judged and evaluated by one)
-        abstract = {"params": jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding),
-                                                     self.state["params"])}
-        got = self.best.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract),
-                                                               loader=ocp.args.JsonRestore()))
-        return got["state"]["params"]
+        """The best checkpoint's parameters, placed as this run's state is (a run trained by several
+        processes is judged and evaluated by one)."""
+        params = self.state["params"]
+        return restore_params(self.best, self.best.latest_step(), params,
+                              jax.tree_util.tree_map(lambda x: x.sharding, params))
 
 
 class MetricLog:
