@@ -1,5 +1,7 @@
 """wm.bench's FLOP count: XLA's cost analysis of the lowered train step, which grows with the batch."""
 
+import pytest
+
 from wm.bench import step_flops
 
 
@@ -61,3 +63,28 @@ def test_train_rate_traces_the_step_and_refuses_a_profile_without_a_gpu():
         pytest.skip("on a GPU the profile has kernels to sum")
     with pytest.raises(ValueError, match="no device kernels"):  # the trace was written and read back
         train_rate(make_config("smoke"), steps=1, profile=1)
+
+
+def test_scaling_measures_one_device_once_and_rates_every_row_against_it(monkeypatch):
+    import jax
+
+    from wm import bench
+
+    timed = []
+
+    def fake_rate(cfg, steps, mesh):
+        n = len(mesh)
+        timed.append((n, cfg.param_sharding, cfg.batch))
+        per_device = 100.0 * (1.0 - 0.05 * (n - 1)) * (0.9 if cfg.param_sharding == "fsdp" else 1.0)
+        return {"step_s": 1.0, "frames_per_s": per_device * n, "compile_s": 0.0}
+
+    monkeypatch.setattr(bench, "train_rate", fake_rate)
+    monkeypatch.setattr(bench, "make_mesh", lambda devices: list(devices))
+    monkeypatch.setattr(jax, "device_count", lambda: 4)
+    monkeypatch.setattr(jax, "devices", lambda: list(range(4)))
+    rows = bench.scaling("smoke", per_device_batch=3, counts=(1, 2, 4, 8))
+    # 8 devices are more than the host has; fsdp on one device is replicated's program, timed once
+    assert timed == [(1, "replicated", 3), (2, "replicated", 6), (4, "replicated", 12), (2, "fsdp", 6), (4, "fsdp", 12)]
+    eff = {(r["devices"], r["param_sharding"]): r["efficiency"] for r in rows}
+    assert eff == pytest.approx({(1, "replicated"): 1.0, (2, "replicated"): 0.95, (4, "replicated"): 0.85,
+                                 (2, "fsdp"): 0.855, (4, "fsdp"): 0.765})

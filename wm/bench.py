@@ -13,6 +13,8 @@ Imagination: `wm.imagine.closed_loop` with a small convolutional policy (image a
 action out) over `--horizon` steps; a frame is one imagined step of one episode, decoded.
 `--profile N` traces N train steps with `jax.profiler` and sums the GPU's kernels by name
 (`kernel_profile`): where a step's time goes, matrix kernels against the fused elementwise ones.
+On a host of several GPUs the report also holds `scaling` (see `scaling`; `--scaling 1,2,4` alone
+measures only that).
 """
 
 from __future__ import annotations
@@ -190,16 +192,22 @@ def scaling(preset: str, overrides=(), per_device_batch: int | None = None, coun
     """Training throughput on the first n devices for each n in counts (those this host has), at the
     same per-device batch (default: the preset's batch), for each parameter sharding. Each row: devices,
     param_sharding, batch (global), step_s, frames_per_s, frames_per_s_per_device, compile_s and
-    efficiency (per-device throughput against the row of the fewest devices with that sharding)."""
+    efficiency (per-device throughput against one device's, or against the fewest devices measured
+    where 1 is not among counts). One device is measured once: there every sharding is the same program."""
     per = per_device_batch or make_config(preset, overrides).batch
-    rows = []
+    counts = sorted(c for c in set(counts) if c <= jax.device_count())
+    rows, one_device = [], None
     for sharding in shardings:
-        base = None
-        for n in sorted(c for c in set(counts) if c <= jax.device_count()):
+        base = one_device if counts[0] == 1 else None
+        for n in counts:
+            if n == 1 and one_device is not None:
+                continue  # on one device fsdp shards nothing: the same program as replicated
             cfg = make_config(preset, [*overrides, f"batch={per * n}", f"param_sharding={sharding}"])
             r = train_rate(cfg, steps, mesh=make_mesh(jax.devices()[:n]))
             per_device = r["frames_per_s"] / n
             base = base or per_device
+            if n == 1:
+                one_device = per_device
             rows.append({"devices": n, "param_sharding": sharding, "batch": per * n, "step_s": r["step_s"],
                          "frames_per_s": r["frames_per_s"], "frames_per_s_per_device": per_device,
                          "efficiency": per_device / base, "compile_s": r["compile_s"]})
@@ -343,9 +351,11 @@ def main(argv=None) -> int:
     train["achieved_flops_per_s"] = train["flops_per_step"] / train["step_s"]
     train["mfu"] = train["achieved_flops_per_s"] / rate
     imag = None if a.train_only else imagine_rate(cfg, a.imagine_batch or (1024 if gpu else 16), a.horizon)
+    # on a host of several GPUs `make bench` also measures how training scales over them
+    counts = [c for c in (1, 2, 4, 8, 16) if c <= jax.device_count()]
     report = {"device": device_name(), "config": preset, "overrides": list(a.overrides),
-              "bf16_matmul_flops_per_s": rate, "train": train, "imagine": imag,
-              "profile": profile}
+              "bf16_matmul_flops_per_s": rate, "train": train, "imagine": imag, "profile": profile,
+              "scaling": scaling(preset, a.overrides, counts=counts, steps=a.steps) if gpu and len(counts) > 1 else None}
     a.out.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(a.out, report)
     print(json.dumps(report, indent=1))
