@@ -29,7 +29,8 @@ zoo's lineages, the ensemble's members and the evaluator's batches of policies; 
 the stages run in this process, and the train stage trains one member a command (rerun it for the
 next), so that each fits a 10-minute command. Every stage shares JAX's persistent compilation cache
 (`runs/jax_cache`, or JAX_COMPILATION_CACHE_DIR): what one process compiled, a rerun, a later stage
-or another GPU's part loads.
+or another GPU's part loads; and XLA's GPU autotuning results (`runs/xla_autotune`), which programs
+that share fusions reuse.
 
 Each stage command appends a row to the evaluation directory's `timing.json`: its wall seconds, the
 seconds this process spent compiling (JAX's compile events; a stage spread over GPUs compiles in its
@@ -228,12 +229,21 @@ def train_members(name: str, extra=(), gpus=(), members: int | None = None) -> b
     return not left
 
 
+AUTOTUNE_FLAG = "--xla_gpu_per_fusion_autotune_cache_dir"
+
+
 def use_compilation_cache(root: str) -> str:
     """Turns on JAX's persistent compilation cache in root/jax_cache (or where JAX_COMPILATION_CACHE_DIR
     says), for this process and the stages' child processes: a stage run again, a later stage and
-    the other GPUs' parts load what one process compiled. Returns the directory."""
+    the other GPUs' parts load what one process compiled. Beside it, in xla_autotune, XLA keeps its
+    GPU autotuning results per fusion (XLA_FLAGS), which every program with the same fusions reuses
+    where the whole program is not cached: most of a fresh train step's compile time. Call it before
+    JAX's backend starts (XLA reads its flags then). Returns the compilation cache's directory."""
     path = os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(Path(root).absolute() / "jax_cache"))
     jax.config.update("jax_compilation_cache_dir", path)
+    flags = os.environ.get("XLA_FLAGS", "")
+    if AUTOTUNE_FLAG not in flags:
+        os.environ["XLA_FLAGS"] = f"{flags} {AUTOTUNE_FLAG}={Path(path).parent / 'xla_autotune'}".strip()
     return path
 
 

@@ -86,11 +86,15 @@ def test_the_pipeline_shares_one_compilation_cache_with_its_child_processes(tmp_
     calls = []
     monkeypatch.setattr(jax.config, "update", lambda *a: calls.append(a))
     monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false")
     path = P.use_compilation_cache(str(tmp_path))
     assert path == str(tmp_path.absolute() / "jax_cache") and calls == [("jax_compilation_cache_dir", path)]
     assert os.environ["JAX_COMPILATION_CACHE_DIR"] == path  # inherited by the stages' processes
+    # XLA's autotuning results beside it, one flag appended to those already set
+    assert os.environ["XLA_FLAGS"] == f"--xla_cpu_multi_thread_eigen=false {P.AUTOTUNE_FLAG}={tmp_path.absolute()}/xla_autotune"
     monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", "/elsewhere")
     assert P.use_compilation_cache(str(tmp_path)) == "/elsewhere"
+    assert os.environ["XLA_FLAGS"].count(P.AUTOTUNE_FLAG) == 1
 
 
 def test_each_stage_command_appends_its_wall_and_compile_seconds_to_the_timing_table(tiny, monkeypatch):
