@@ -235,15 +235,15 @@ AUTOTUNE_FLAG = "--xla_gpu_per_fusion_autotune_cache_dir"
 def use_compilation_cache(root: str) -> str:
     """Turns on JAX's persistent compilation cache in root/jax_cache (or where JAX_COMPILATION_CACHE_DIR
     says), for this process and the stages' child processes: a stage run again, a later stage and
-    the other GPUs' parts load what one process compiled. Beside it, in xla_autotune, XLA keeps its
-    GPU autotuning results per fusion (XLA_FLAGS), which every program with the same fusions reuses
+    the other GPUs' parts load what one process compiled. In root/xla_autotune XLA keeps its GPU
+    autotuning results per fusion (XLA_FLAGS), which every program with the same fusions reuses
     where the whole program is not cached: most of a fresh train step's compile time. Call it before
     JAX's backend starts (XLA reads its flags then). Returns the compilation cache's directory."""
     path = os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(Path(root).absolute() / "jax_cache"))
     jax.config.update("jax_compilation_cache_dir", path)
     flags = os.environ.get("XLA_FLAGS", "")
     if AUTOTUNE_FLAG not in flags:
-        os.environ["XLA_FLAGS"] = f"{flags} {AUTOTUNE_FLAG}={Path(path).parent / 'xla_autotune'}".strip()
+        os.environ["XLA_FLAGS"] = f"{flags} {AUTOTUNE_FLAG}={Path(root).absolute() / 'xla_autotune'}".strip()
     return path
 
 

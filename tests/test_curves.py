@@ -30,12 +30,11 @@ def test_distances_and_verdicts_match_hand_computed_values(runs):
     ref, seed, close, far = runs
     res = curves.compare(ref, [close, far], seed)
     # relative differences: seed 0.1, 0.1, 0; close 0, 0, 0.2; far 0.3, 0, 0
-    assert res["seed_loss"]["mean_rel"] == pytest.approx(0.2 / 3)
-    assert res["runs"][str(close)]["loss"]["mean_rel"] == pytest.approx(0.2 / 3)
-    assert res["runs"][str(close)]["loss"]["within_seed_spread"]
-    assert res["runs"][str(far)]["loss"]["mean_rel"] == pytest.approx(0.1)
-    assert res["runs"][str(far)]["loss"]["max_rel"] == pytest.approx(0.3)
-    assert not res["runs"][str(far)]["loss"]["within_seed_spread"]
+    c, f = res["runs"][str(close)]["loss"], res["runs"][str(far)]["loss"]
+    assert c["seed"]["mean_rel"] == f["seed"]["mean_rel"] == pytest.approx(0.2 / 3)
+    assert c["mean_rel"] == pytest.approx(0.2 / 3) and c["within_seed_spread"]
+    assert f["mean_rel"] == pytest.approx(0.1) and f["max_rel"] == pytest.approx(0.3)
+    assert not f["within_seed_spread"]
     # validation at step 20: seed 0.1, close 0.05, far 0.25
     assert res["runs"][str(close)]["val_loss"]["within_seed_spread"]
     assert res["runs"][str(far)]["val_loss"]["mean_rel"] == pytest.approx(0.25)
@@ -45,10 +44,21 @@ def test_distances_and_verdicts_match_hand_computed_values(runs):
 def test_after_leaves_out_the_warm_up(runs):
     ref, seed, close, far = runs
     res = curves.compare(ref, [close, far], seed, after=10)
-    assert res["seed_loss"]["mean_rel"] == pytest.approx(0.05)
-    assert res["runs"][str(close)]["loss"]["mean_rel"] == pytest.approx(0.1)
-    assert not res["runs"][str(close)]["loss"]["within_seed_spread"]
-    assert res["runs"][str(far)]["loss"]["mean_rel"] == 0.0
+    c, f = res["runs"][str(close)]["loss"], res["runs"][str(far)]["loss"]
+    assert c["seed"]["mean_rel"] == pytest.approx(0.05)
+    assert c["mean_rel"] == pytest.approx(0.1) and not c["within_seed_spread"]
+    assert f["mean_rel"] == 0.0
+
+
+def test_a_shorter_run_is_held_to_the_seed_over_its_own_steps(runs, tmp_path):
+    ref, seed, _, _ = runs
+    # stopped after step 10, where the seed is 0.1 off and this run 0.05 off; no validation logged
+    short = write_run(tmp_path / "short", {10: 1.05})
+    res = curves.compare(ref, [short], seed)
+    d = res["runs"][str(short)]
+    assert d["loss"]["steps"] == d["loss"]["seed"]["steps"] == 1
+    assert d["loss"]["seed"]["mean_rel"] == pytest.approx(0.1) and d["loss"]["within_seed_spread"]
+    assert "val_loss" not in d
 
 
 def test_errors_name_the_problem(runs, tmp_path):
@@ -69,4 +79,4 @@ def test_cli_writes_json_and_plot(runs, tmp_path, capsys):
                         "--plot", str(png)]) == 0
     assert json.loads(out.read_text())["runs"][str(far)]["loss"]["within_seed_spread"] is False
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert "OUTSIDE the seed spread" in capsys.readouterr().out
+    assert "0.1000 against 0.0667 (OUTSIDE the seed spread, 3 steps" in capsys.readouterr().out

@@ -92,9 +92,12 @@ def test_the_pipeline_shares_one_compilation_cache_with_its_child_processes(tmp_
     assert os.environ["JAX_COMPILATION_CACHE_DIR"] == path  # inherited by the stages' processes
     # XLA's autotuning results beside it, one flag appended to those already set
     assert os.environ["XLA_FLAGS"] == f"--xla_cpu_multi_thread_eigen=false {P.AUTOTUNE_FLAG}={tmp_path.absolute()}/xla_autotune"
+    assert P.use_compilation_cache(str(tmp_path)) == path
+    assert os.environ["XLA_FLAGS"].count(P.AUTOTUNE_FLAG) == 1  # not appended twice
     monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", "/elsewhere")
-    assert P.use_compilation_cache(str(tmp_path)) == "/elsewhere"
-    assert os.environ["XLA_FLAGS"].count(P.AUTOTUNE_FLAG) == 1
+    monkeypatch.setenv("XLA_FLAGS", "")
+    assert P.use_compilation_cache(str(tmp_path / "other")) == "/elsewhere"
+    assert os.environ["XLA_FLAGS"] == f"{P.AUTOTUNE_FLAG}={tmp_path.absolute()}/other/xla_autotune"
 
 
 def test_each_stage_command_appends_its_wall_and_compile_seconds_to_the_timing_table(tiny, monkeypatch):

@@ -1,8 +1,12 @@
-"""wm.bench's FLOP count: XLA's cost analysis of the lowered train step, which grows with the batch."""
+"""wm.bench: the FLOP count (XLA's cost analysis of the lowered train step, which grows with the batch)
+and the scaling table over devices."""
 
+import jax
+import jax.numpy as jnp
 import pytest
 
-from wm.bench import step_flops
+from wm import bench
+from wm.bench import matmul_flops_by_shape, step_flops
 
 
 def test_step_flops_count_the_whole_batch():
@@ -13,11 +17,6 @@ def test_step_flops_count_the_whole_batch():
 
 
 def test_matmul_flops_by_shape_counts_convolutions_and_dots_by_hand():
-    import jax
-    import jax.numpy as jnp
-
-    from wm.bench import matmul_flops_by_shape
-
     def f(x, k, a, b):
         y = jax.lax.conv_general_dilated(x, k, (2, 2), "SAME", dimension_numbers=("NHWC", "HWIO", "NHWC"))
         return y.sum() + (a @ b).sum()
@@ -65,11 +64,10 @@ def test_train_rate_traces_the_step_and_refuses_a_profile_without_a_gpu():
         train_rate(make_config("smoke"), steps=1, profile=1)
 
 
-def test_scaling_measures_one_device_once_and_rates_every_row_against_it(monkeypatch):
-    import jax
-
-    from wm import bench
-
+@pytest.fixture
+def four_fake_devices(monkeypatch):
+    """scaling on a host of 4 devices whose per-device rate falls 5% a device (fsdp 10% lower); returns
+    the (devices, sharding, batch) of every train_rate call."""
     timed = []
 
     def fake_rate(cfg, steps, mesh):
@@ -82,9 +80,30 @@ def test_scaling_measures_one_device_once_and_rates_every_row_against_it(monkeyp
     monkeypatch.setattr(bench, "make_mesh", lambda devices: list(devices))
     monkeypatch.setattr(jax, "device_count", lambda: 4)
     monkeypatch.setattr(jax, "devices", lambda: list(range(4)))
+    return timed
+
+
+def test_scaling_measures_one_device_once_and_rates_every_row_against_it(four_fake_devices):
+    timed = four_fake_devices
     rows = bench.scaling("smoke", per_device_batch=3, counts=(1, 2, 4, 8))
     # 8 devices are more than the host has; fsdp on one device is replicated's program, timed once
     assert timed == [(1, "replicated", 3), (2, "replicated", 6), (4, "replicated", 12), (2, "fsdp", 6), (4, "fsdp", 12)]
     eff = {(r["devices"], r["param_sharding"]): r["efficiency"] for r in rows}
     assert eff == pytest.approx({(1, "replicated"): 1.0, (2, "replicated"): 0.95, (4, "replicated"): 0.85,
                                  (2, "fsdp"): 0.855, (4, "fsdp"): 0.765})
+
+
+def test_scaling_reuses_a_given_one_device_rate_and_rates_without_one_device_against_the_fewest(four_fake_devices):
+    rows = bench.scaling("smoke", per_device_batch=3, counts=(1, 4), shardings=("replicated",),
+                         one_device={"step_s": 1.0, "frames_per_s": 200.0, "compile_s": 5.0})
+    assert four_fake_devices == [(4, "replicated", 12)]  # one device was not timed again
+    assert [(r["devices"], r["efficiency"]) for r in rows] == [(1, 1.0), (4, pytest.approx(85.0 / 200.0))]
+    rows = bench.scaling("smoke", per_device_batch=3, counts=(2, 4), shardings=("fsdp",))
+    assert [r["efficiency"] for r in rows] == [1.0, pytest.approx(0.85 / 0.95)]
+
+
+def test_scaling_refuses_counts_the_host_cannot_run(four_fake_devices):
+    with pytest.raises(ValueError, match="fits this host's 4 devices"):
+        bench.scaling("smoke", counts=(8, 16))
+    with pytest.raises(ValueError, match=">= 1"):
+        bench.scaling("smoke", counts=(0, 2))

@@ -188,26 +188,36 @@ def train_rate(cfg, steps: int = 20, profile: int = 0, mesh=None) -> dict:
 
 
 def scaling(preset: str, overrides=(), per_device_batch: int | None = None, counts=(1, 2, 4, 8),
-            shardings=("replicated", "fsdp"), steps: int = 20) -> list[dict]:
+            shardings=("replicated", "fsdp"), steps: int = 20, one_device: dict | None = None) -> list[dict]:
     """Training throughput on the first n devices for each n in counts (those this host has), at the
     same per-device batch (default: the preset's batch), for each parameter sharding. Each row: devices,
     param_sharding, batch (global), step_s, frames_per_s, frames_per_s_per_device, compile_s and
     efficiency (per-device throughput against one device's, or against the fewest devices measured
-    where 1 is not among counts). One device is measured once: there every sharding is the same program."""
+    where 1 is not among counts). One device is measured once, since there every sharding is the same
+    program, or not at all where `one_device` gives its train_rate at that batch already."""
     per = per_device_batch or make_config(preset, overrides).batch
+    if any(c < 1 for c in counts):
+        raise ValueError(f"device counts are >= 1, got {sorted(counts)}")
     counts = sorted(c for c in set(counts) if c <= jax.device_count())
-    rows, one_device = [], None
+    if not counts:
+        raise ValueError(f"none of the device counts fits this host's {jax.device_count()} devices")
+    rows, one_rate = [], None  # one_rate: one device's frames/s, once measured
+    if one_device is not None and counts[0] == 1:
+        one_rate = one_device["frames_per_s"]
+        rows.append({"devices": 1, "param_sharding": shardings[0], "batch": per, "step_s": one_device["step_s"],
+                     "frames_per_s": one_rate, "frames_per_s_per_device": one_rate, "efficiency": 1.0,
+                     "compile_s": one_device["compile_s"]})
     for sharding in shardings:
-        base = one_device if counts[0] == 1 else None
+        base = one_rate
         for n in counts:
-            if n == 1 and one_device is not None:
+            if n == 1 and one_rate is not None:
                 continue  # on one device fsdp shards nothing: the same program as replicated
             cfg = make_config(preset, [*overrides, f"batch={per * n}", f"param_sharding={sharding}"])
             r = train_rate(cfg, steps, mesh=make_mesh(jax.devices()[:n]))
             per_device = r["frames_per_s"] / n
             base = base or per_device
             if n == 1:
-                one_device = per_device
+                one_rate = per_device
             rows.append({"devices": n, "param_sharding": sharding, "batch": per * n, "step_s": r["step_s"],
                          "frames_per_s": r["frames_per_s"], "frames_per_s_per_device": per_device,
                          "efficiency": per_device / base, "compile_s": r["compile_s"]})
@@ -309,7 +319,7 @@ def main(argv=None) -> int:
                    help="print the N convolution and dot shapes of one train step with the most FLOPs and stop")
     p.add_argument("--scaling", default=None, metavar="N,N,...",
                    help="only training throughput on the first N devices for each N (same per-device batch), "
-                        "replicated and fsdp: per-device frames/s and efficiency against the fewest devices")
+                        "replicated and fsdp: per-device frames/s and efficiency against one device's")
     p.add_argument("--per-device-batch", type=int, default=None, help="with --scaling (default: the preset's batch)")
     p.add_argument("--steps", type=int, default=20, help="timed train steps per measurement")
     a = p.parse_args(argv)
@@ -322,7 +332,10 @@ def main(argv=None) -> int:
             counts = [int(c) for c in a.scaling.split(",")]
         except ValueError:
             p.error(f"--scaling takes device counts such as 1,2,4,8, got {a.scaling!r}")
-        rows = scaling(preset, a.overrides, a.per_device_batch, counts, steps=a.steps)
+        try:
+            rows = scaling(preset, a.overrides, a.per_device_batch, counts, steps=a.steps)
+        except ValueError as e:
+            p.error(str(e))
         report = {"device": device_name(), "device_count": jax.device_count(), "config": preset,
                   "overrides": list(a.overrides), "scaling": rows}
         a.out.parent.mkdir(parents=True, exist_ok=True)
@@ -351,11 +364,13 @@ def main(argv=None) -> int:
     train["achieved_flops_per_s"] = train["flops_per_step"] / train["step_s"]
     train["mfu"] = train["achieved_flops_per_s"] / rate
     imag = None if a.train_only else imagine_rate(cfg, a.imagine_batch or (1024 if gpu else 16), a.horizon)
-    # on a host of several GPUs `make bench` also measures how training scales over them
+    # on a host of several GPUs `make bench` also measures how training scales over them (one compile
+    # per device count and sharding; the one-device row is the step timed above)
     counts = [c for c in (1, 2, 4, 8, 16) if c <= jax.device_count()]
+    grid = scaling(preset, a.overrides, counts=counts, steps=a.steps, one_device=train) \
+        if gpu and len(counts) > 1 else None
     report = {"device": device_name(), "config": preset, "overrides": list(a.overrides),
-              "bf16_matmul_flops_per_s": rate, "train": train, "imagine": imag, "profile": profile,
-              "scaling": scaling(preset, a.overrides, counts=counts, steps=a.steps) if gpu and len(counts) > 1 else None}
+              "bf16_matmul_flops_per_s": rate, "train": train, "imagine": imag, "profile": profile, "scaling": grid}
     a.out.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(a.out, report)
     print(json.dumps(report, indent=1))

@@ -5,9 +5,10 @@ parameter sharding) follow a reference run as closely as a second seed of the re
                         [--out curves.json] [--plot curves.png]
 
 Each run is a `wm.train` output folder (its metrics.jsonl). For each run the distance to REF is the
-mean, over the logged steps both share (after --after), of |run - ref| / |ref|; a run is within the
-seed spread when that distance is at most the seed run's. Validation losses (`val_<key>`), where
-logged, are compared the same way at the steps both evaluated.
+mean of |run - ref| / |ref| over the logged steps (after --after) that REF, the seed run and that run
+all share; the seed run's distance over the same steps is the spread it is held to, and the run is
+within it when its distance is at most the seed run's. Validation losses (`val_<key>`) are compared
+the same way where logged (runs without them are left out of that comparison).
 """
 
 from __future__ import annotations
@@ -38,10 +39,10 @@ def read_curve(run: Path, key: str = "loss") -> dict[int, float]:
     return curve
 
 
-def curve_distance(ref: dict, other: dict, after: int = 0) -> dict:
-    """Mean and largest relative difference |other - ref| / |ref| over the steps > after both logged,
-    and both curves' last shared value. Raises when they share no such step."""
-    steps = sorted(s for s in set(ref) & set(other) if s > after)
+def curve_distance(ref: dict, other: dict, after: int = 0, steps=None) -> dict:
+    """Mean and largest relative difference |other - ref| / |ref| over the steps > after both logged
+    (and among `steps` where given), and both curves' last such value. Raises when there is none."""
+    steps = sorted(s for s in set(ref) & set(other) & set(ref if steps is None else steps) if s > after)
     if not steps:
         raise ValueError(f"the curves share no logged step after {after}")
     rel = np.array([abs(other[s] - ref[s]) / max(abs(ref[s]), 1e-12) for s in steps])
@@ -50,21 +51,27 @@ def curve_distance(ref: dict, other: dict, after: int = 0) -> dict:
 
 
 def compare(ref: Path, runs: list[Path], seed_run: Path, key: str = "loss", after: int = 0) -> dict:
-    """Each run's curve_distance to ref beside the seed run's, for `key` and (where both logged it)
-    `val_<key>`; `within_seed_spread` per run: its mean_rel <= the seed run's."""
+    """Each run's curve_distance to ref, and the seed run's over the same steps (`seed`), for `key` and,
+    where logged, `val_<key>`; `within_seed_spread`: the run's mean_rel <= the seed run's."""
     out = {"key": key, "after": after, "reference": str(ref), "seed_run": str(seed_run), "runs": {}}
     for k in (key, f"val_{key}"):
+        cut = after if k == key else 0
         try:
             r, s = read_curve(ref, k), read_curve(seed_run, k)
         except ValueError:
             if k == key:
                 raise
             continue  # no validation curve logged
-        seed = curve_distance(r, s, after if k == key else 0)
-        out[f"seed_{k}"] = seed
         for run in runs:
-            d = curve_distance(r, read_curve(run, k), after if k == key else 0)
-            d["within_seed_spread"] = d["mean_rel"] <= seed["mean_rel"]
+            try:
+                c = read_curve(run, k)
+            except ValueError:
+                if k == key:
+                    raise
+                continue
+            d = curve_distance(r, c, cut, steps=set(s))
+            d["seed"] = curve_distance(r, s, cut, steps=set(c))
+            d["within_seed_spread"] = d["mean_rel"] <= d["seed"]["mean_rel"]
             out["runs"].setdefault(str(run), {})[k] = d
     return out
 
@@ -102,13 +109,14 @@ def main(argv=None) -> int:
     if a.plot:
         plot_curves(a.ref, a.runs, a.seed_run, a.plot, a.key)
     for k in (a.key, f"val_{a.key}"):
-        if f"seed_{k}" not in res:
-            continue
-        print(f"{k}: other seed {res[f'seed_{k}']['mean_rel']:.4f} mean relative difference")
+        print(f"{k}: mean relative difference from {a.ref}, against the other seed's over the same steps")
         for run, d in res["runs"].items():
-            verdict = "within" if d[k]["within_seed_spread"] else "OUTSIDE"
-            print(f"  {run}: {d[k]['mean_rel']:.4f} ({verdict} the seed spread; last {d[k]['last']:.4f} "
-                  f"against {d[k]['ref_last']:.4f} at step {d[k]['last_step']})")
+            if k not in d:
+                continue
+            e = d[k]
+            verdict = "within" if e["within_seed_spread"] else "OUTSIDE"
+            print(f"  {run}: {e['mean_rel']:.4f} against {e['seed']['mean_rel']:.4f} ({verdict} the seed spread, "
+                  f"{e['steps']} steps; last {e['last']:.4f} against {e['ref_last']:.4f} at step {e['last_step']})")
     return 0
 
 
