@@ -434,6 +434,9 @@ def test_make_train_smoke_writes_eval_json(smoke_world_model):
     assert len(fq["view_shift_unregistered"]) == 2
     assert report["controllability"]["groups"] == 1 and 0.0 <= report["controllability"]["match_accuracy"] <= 1.0
     assert report["success_prediction"]["episodes"] >= 1 and (out / "eval_frames.png").stat().st_size > 0
+    sens = report["action_sensitivity"]  # the smoke data's task episodes: swaps where both outcomes occur
+    assert sens["swaps"] == 0 and "note" in sens or 0.0 <= sens["follows_actions"] <= 1.0
+    assert "success_follows_actions" in report["summary"]
     assert (out / "best").is_dir() and (out / "metrics.jsonl").exists()
 
 

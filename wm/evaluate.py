@@ -16,6 +16,9 @@
   episode judge's (`wm.judge`) where the run has one, the highest per-step success probability
   (`wm.imagine.episode_success`) otherwise; the per-step rule's, the final frame's and the outcome
   head's are reported beside it. Accuracy (threshold 0.5) and AUROC against the simulator's outcome.
+- Action sensitivity (`action_sensitivity`): the same episodes imagined again under the actions of an
+  episode of the opposite outcome; whether the predicted success moves towards the donor's outcome
+  (`follows_actions`), which a model that reads success off the task and the start does not do.
 - Controllability: the action programs recorded from shared initial states (split "programs"):
   from the initial frame, imagine `control_horizon` steps under each program; match accuracy (each
   prediction is closest, in mean squared error, to its own program's true future) and delta-PSNR
@@ -132,6 +135,53 @@ def success_prediction(cfg: TrainConfig, params, norm: Norm, cache: TrainingCach
     return out
 
 
+def action_sensitivity(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, episodes: list[int],
+                       judge: EpisodeJudge | None = None) -> dict:
+    """Whether the predicted outcome follows the actions or the start. Each episode (open loop from its
+    first observation) is imagined under its own logged actions and under those of a donor: an episode
+    of the same task and length with the opposite outcome (the donors taken in turn). The probability
+    is success_prediction's headline read-out (the episode judge, else the highest per-step success).
+
+    Returns {"swaps", "success_own", "success_swapped" (mean probability of the successes under their
+    own and under a failure's actions), "failure_own", "failure_swapped", "mean_abs_change",
+    "follows_actions": the share of swaps whose probability moves towards the donor's outcome (down
+    for a success given a failure's actions, up for a failure given a success's; at or below 0.5 the
+    outcome is read from the start, not from the actions)}, or {"swaps": 0, "note"} where no task has
+    both outcomes among the episodes."""
+    groups: dict = {}
+    for i in episodes:
+        e = cache.episodes[i]
+        groups.setdefault((e["task"], e["length"]), {True: [], False: []})[bool(e["success"])].append(i)
+    use_judge = judge is not None and all(judge.knows(t) for t, _ in groups)
+    own_p, swap_p, label = [], [], []
+    for (task, n), g in sorted(groups.items()):
+        if not g[True] or not g[False]:
+            continue
+        own, swapped, lab = [], [], []
+        for outcome, donors in ((True, g[False]), (False, g[True])):
+            for k, i in enumerate(g[outcome]):
+                sample = context_sample(cache.episode(i, cameras=[cfg.camera]), cfg.camera, 0, 1, n - 1)
+                donor = cache.episode(donors[k % len(donors)], cameras=[cfg.camera])
+                own.append(sample)
+                swapped.append({**sample, "actions": donor["action"][: n - 1]})
+                lab.append(outcome)
+        for samples, out in ((own, own_p), (swapped, swap_p)):
+            feats = open_loop_chunked(cfg.model, params, norm, samples, n - 1)["features"]
+            if use_judge:
+                out.append(judge.probability(feats, task))
+            else:
+                out.append(feats[..., SUCCESS_FEATURE].max(axis=1))
+        label += lab
+    if not label:
+        return {"swaps": 0, "note": "no task has both successes and failures among the evaluated episodes"}
+    own_p, swap_p, label = np.concatenate(own_p), np.concatenate(swap_p), np.array(label)
+    change = swap_p - own_p
+    towards = np.where(label, change < 0, change > 0)
+    return {"swaps": len(label), "success_own": float(own_p[label].mean()), "success_swapped": float(swap_p[label].mean()),
+            "failure_own": float(own_p[~label].mean()), "failure_swapped": float(swap_p[~label].mean()),
+            "mean_abs_change": float(np.abs(change).mean()), "follows_actions": float(towards.mean())}
+
+
 def controllability(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, tasks=None) -> dict:
     groups: dict = {}
     for i in cache.select("programs", tasks):
@@ -195,6 +245,7 @@ def evaluate(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, out: Pa
     success_split, tasked = _held_out(cache, tasks, lambda e: e.get("policy_kind") != "play", "task episodes")
     sp = success_prediction(cfg, params, norm, cache, spread(tasked, cfg.eval_episodes), judge)
     sp["split"] = success_split
+    sens = action_sensitivity(cfg, params, norm, cache, spread(tasked, cfg.eval_episodes), judge)
     ctrl = controllability(cfg, params, norm, cache, tasks)
     at = dict(zip(fq["horizons"], range(len(fq["horizons"])), strict=True))
     summary = {
@@ -205,9 +256,10 @@ def evaluate(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, out: Pa
         "view_shift_h8_px": fq["view_shift_px"][at[8]] if 8 in at else None,
         "success_accuracy": sp["accuracy"], "success_auroc": sp["auroc"], "progress_auroc": sp["progress_auroc"],
         "match_accuracy": ctrl.get("match_accuracy"), "delta_psnr_db": ctrl.get("delta_psnr_db"),
+        "success_follows_actions": sens.get("follows_actions"),
     }
-    report = {"summary": summary, "frame_quality": fq, "success_prediction": sp, "controllability": ctrl,
-              "episodes": len(test), "split": split}
+    report = {"summary": summary, "frame_quality": fq, "success_prediction": sp, "action_sensitivity": sens,
+              "controllability": ctrl, "episodes": len(test), "split": split}
     write_json_atomic(Path(out) / "eval.json", no_nan(report))
     _save_strip(Path(out) / "eval_frames.png", pictures, fq["horizons"])
     return report
