@@ -89,8 +89,8 @@ METRICS = (
 )
 # the range of the metrics that have one: a t-interval over few seeds is clipped to it
 BOUNDS = {**dict.fromkeys(("success_accuracy", "success_auroc", "match_accuracy", "mmrv", "pairwise_acc_gap10",
-                           "alignment", "success_follows_actions"), (0.0, 1.0)), "pearson": (-1.0, 1.0), "spearman": (-1.0, 1.0),
-          "view_shift_h8_px": (0.0, math.inf)}
+                           "alignment", "success_follows_actions"), (0.0, 1.0)),
+          "pearson": (-1.0, 1.0), "spearman": (-1.0, 1.0), "view_shift_h8_px": (0.0, math.inf)}
 BODY_FILE = "body_in_place.json"  # experiments.body_in_place's figures of a run
 MEASURED = {"airfryer_transfer"}  # sweeps whose runs also get the body-in-place measurement
 RANK_DIR = "ranking"  # experiments.evaluate's OUT within a run: the zoo's policies ranked by its model

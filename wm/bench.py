@@ -202,18 +202,16 @@ def scaling(preset: str, overrides=(), per_device_batch: int | None = None, coun
     if not counts:
         raise ValueError(f"none of the device counts fits this host's {jax.device_count()} devices")
     rows, one_rate = [], None  # one_rate: one device's frames/s, once measured
-    if one_device is not None and counts[0] == 1:
-        one_rate = one_device["frames_per_s"]
-        rows.append({"devices": 1, "param_sharding": shardings[0], "batch": per, "step_s": one_device["step_s"],
-                     "frames_per_s": one_rate, "frames_per_s_per_device": one_rate, "efficiency": 1.0,
-                     "compile_s": one_device["compile_s"]})
     for sharding in shardings:
         base = one_rate
         for n in counts:
             if n == 1 and one_rate is not None:
                 continue  # on one device fsdp shards nothing: the same program as replicated
-            cfg = make_config(preset, [*overrides, f"batch={per * n}", f"param_sharding={sharding}"])
-            r = train_rate(cfg, steps, mesh=make_mesh(jax.devices()[:n]))
+            if n == 1 and one_device is not None:
+                r = one_device
+            else:
+                cfg = make_config(preset, [*overrides, f"batch={per * n}", f"param_sharding={sharding}"])
+                r = train_rate(cfg, steps, mesh=make_mesh(jax.devices()[:n]))
             per_device = r["frames_per_s"] / n
             base = base or per_device
             if n == 1:
