@@ -64,6 +64,8 @@ VARIANTS = {
 BOUND = "crossfit_bound"
 SAVED = "saved_judge"  # the judge fit with the world model, if any, on the kept (float16) features
 FOLDS = 4
+# The order variants are fit in by default: what matters most first, so a run cut short keeps it.
+DEFAULT_ORDER = (SAVED, "refit_1024", BOUND, "all", "all_no_action", "all_proprio_progress", "rollouts_only")
 RECIPE_EPISODES = 1024  # wm.config.TrainConfig.judge_episodes: the recipe's judge, whose validation set is a quarter
 
 
@@ -154,7 +156,7 @@ def study(eval_dir: Path, out: Path, wm_run: Path | None = None, data: Path | No
     """Fits every variant (VARIANTS' names in `variants`, default all) and the cross-fit bound, reads the
     kept imaginations of eval_dir with each (out/variants/<name>.npz), then scores them (score)."""
     wm_run = Path(wm_run or json.loads((eval_dir / "config.json").read_text())["wm"].split(",")[0])
-    names = list(variants or [*VARIANTS, BOUND])
+    names = list(variants or DEFAULT_ORDER)
     unknown = [n for n in names if n not in VARIANTS and n not in (BOUND, SAVED)]
     if unknown:
         raise ValueError(f"unknown variants {unknown}; choose among {', '.join([*VARIANTS, BOUND, SAVED])}")
@@ -188,13 +190,13 @@ def study(eval_dir: Path, out: Path, wm_run: Path | None = None, data: Path | No
 
         train = imagined(out / f"imagined_train_{len(ids)}.npz", make(ids, wm_cfg.seed))
         val = imagined(out / "imagined_val.npz", make(val_ids, wm_cfg.seed + 1))
-    saved = load_judge(wm_run) if SAVED in names or variants is None else None
-    todo = [n for n in names if n != SAVED]
-    todo = ([SAVED] if saved is not None else []) + todo[:1] + [n for n in todo[1:] if n == BOUND] \
-        + [n for n in todo[1:] if n != BOUND]  # the bound early: a run cut short keeps what matters most
-    for name in todo:
+    saved = load_judge(wm_run) if SAVED in names else None
+    for name in names:
         path = out / "variants" / f"{name}.npz"
         if path.exists():
+            continue
+        if name == SAVED and saved is None:
+            print(f"judge variant {name} skipped: {wm_run} saved no judge", file=sys.stderr)
             continue
         print(f"judge variant {name}", file=sys.stderr)
         try:
@@ -270,7 +272,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--wm", type=Path, default=None, help="the world model (default: the evaluation's first)")
     ap.add_argument("--data", type=Path, default=None, help="its training data (default: the run's)")
-    ap.add_argument("--variants", default="", help=f"comma-separated, among {', '.join(VARIANTS)} (default all)")
+    ap.add_argument("--variants", default="", help=f"comma-separated, fit in the order given (default {','.join(DEFAULT_ORDER)})")
     ap.add_argument("--steps", type=int, default=None, help="judge optimiser steps (default the run's judge_steps)")
     ap.add_argument("--draws", type=int, default=1000, help="bootstrap draws")
     ap.add_argument("--score-only", action="store_true",
