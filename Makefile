@@ -4,7 +4,8 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 export MUJOCO_GL ?= egl
-# XLA:CPU's multi-threaded Eigen pool can wedge on large vmapped MJX graphs (idle, never returns)
+# XLA:CPU's multi-threaded Eigen pool can wedge on large vmapped MJX graphs (idle, never returns);
+# every command sets it off itself (sim_data.util.run_cli); this line covers the tests
 export XLA_FLAGS ?= --xla_cpu_multi_thread_eigen=false
 
 

@@ -34,10 +34,26 @@ def wilson_interval(successes: int, n: int) -> tuple[float, float]:
     return (float(ci.low), float(ci.high))
 
 
+# XLA:CPU's multi-threaded Eigen pool can wedge on large vmapped MJX graphs (idle, never returns), and
+# its matrix products round differently with and without it (the ViT policies' weights differ in the
+# seventh digit after 100 steps): one setting for every command, however it is started.
+CPU_XLA_FLAG = "--xla_cpu_multi_thread_eigen"
+
+
+def set_cpu_xla_flags() -> None:
+    """Adds CPU_XLA_FLAG=false to XLA_FLAGS unless the user set it either way. XLA reads its flags when
+    JAX's backend starts, so call it before the first computation."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if CPU_XLA_FLAG not in flags:
+        os.environ["XLA_FLAGS"] = f"{flags} {CPU_XLA_FLAG}=false".strip()
+
+
 def run_cli(main) -> int:
-    """Runs a command's main() for `python -m`: a user's mistake (a bad path, preset, value, plug-in
-    or selector, raised as FileNotFoundError, NotADirectoryError or ValueError with a message that
-    names the input) ends in that one line and exit status 2, without a traceback."""
+    """Runs a command's main() for `python -m`, with XLA's CPU flags set (set_cpu_xla_flags): a user's
+    mistake (a bad path, preset, value, plug-in or selector, raised as FileNotFoundError,
+    NotADirectoryError or ValueError with a message that names the input) ends in that one line and
+    exit status 2, without a traceback."""
+    set_cpu_xla_flags()
     try:
         return main()
     except (FileNotFoundError, NotADirectoryError, ValueError) as e:

@@ -1,10 +1,11 @@
-"""sim_data.util: atomic JSON, the Wilson interval, output directories and users' mistakes."""
+"""sim_data.util: atomic JSON, the Wilson interval, output directories, users' mistakes and XLA's CPU flags."""
 
 import json
+import os
 
 import pytest
 
-from sim_data.util import make_output_dir, run_cli, wilson_interval, write_json_atomic
+from sim_data.util import CPU_XLA_FLAG, make_output_dir, run_cli, wilson_interval, write_json_atomic
 
 
 def test_a_users_mistake_is_one_line_and_exit_status_2(tmp_path, capsys):
@@ -27,3 +28,16 @@ def test_json_is_written_whole_and_the_interval_is_scipys_wilson(tmp_path):
     assert [p.name for p in (tmp_path / "d").iterdir()] == ["x.json"]
     assert wilson_interval(0, 0) == (0.0, 1.0)
     assert wilson_interval(80, 100) == pytest.approx((0.7112, 0.8666), abs=1e-4)
+
+
+def test_every_command_runs_with_the_same_cpu_xla_flags_unless_the_user_set_them(monkeypatch):
+    seen = []
+    monkeypatch.delenv("XLA_FLAGS", raising=False)
+    assert run_cli(lambda: seen.append(os.environ["XLA_FLAGS"]) or 0) == 0
+    monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
+    run_cli(lambda: seen.append(os.environ["XLA_FLAGS"]) or 0)
+    run_cli(lambda: seen.append(os.environ["XLA_FLAGS"]) or 0)  # not appended twice
+    monkeypatch.setenv("XLA_FLAGS", f"{CPU_XLA_FLAG}=true")  # the user's choice stands
+    run_cli(lambda: seen.append(os.environ["XLA_FLAGS"]) or 0)
+    assert seen == [f"{CPU_XLA_FLAG}=false", f"--xla_force_host_platform_device_count=2 {CPU_XLA_FLAG}=false",
+                    f"--xla_force_host_platform_device_count=2 {CPU_XLA_FLAG}=false", f"{CPU_XLA_FLAG}=true"]
