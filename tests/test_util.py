@@ -5,7 +5,13 @@ import os
 
 import pytest
 
-from sim_data.util import CPU_XLA_FLAG, make_output_dir, run_cli, wilson_interval, write_json_atomic
+from sim_data.util import (
+    CPU_XLA_FLAG,
+    make_output_dir,
+    run_cli,
+    wilson_interval,
+    write_json_atomic,
+)
 
 
 def test_a_users_mistake_is_one_line_and_exit_status_2(tmp_path, capsys):

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import copy
 import json
+import sys
 from pathlib import Path
 
 import jax
@@ -27,7 +28,7 @@ from sim_data.sim.render import (
 )
 from sim_data.sim.rollout import run_episodes
 from sim_data.sim.tasks import TASK_NAMES
-from sim_data.util import write_json_atomic
+from sim_data.util import run_cli, write_json_atomic
 
 ID_TARGET, DEPTH_TARGET = 0.98, 0.01
 CAMERAS = ("head_cam", "ext_cam")
@@ -153,7 +154,8 @@ def main(argv=None):
     write_json_atomic(a.out, {"states_per_task": a.states, "size": a.size, "targets": {"id": ID_TARGET, "depth_rel": DEPTH_TARGET},
                               "results": results})
     print(json.dumps({"min_id_agreement": min(r["id_agreement"] for r in results.values())}))
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_cli(main))
