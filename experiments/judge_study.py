@@ -120,11 +120,13 @@ def crossfit_bound(features: dict, true: dict, tasks: tuple, steps: int, seed: i
     k+1, kept at its best loss on fold k+1."""
     rng = np.random.default_rng(seed)
     fold_of = {t: rng.permutation(len(true[t])) % folds for t in tasks}
+    every = evaluation_episodes(features, true, {t: np.arange(len(true[t])) for t in tasks})
+    episode_fold = np.concatenate([np.repeat(fold_of[t], true[t].shape[1]) for t in tasks])  # every's rows
     out = {t: np.zeros(true[t].shape) for t in tasks}
     for k in range(folds):
         v = (k + 1) % folds
-        train = evaluation_episodes(features, true, {t: np.flatnonzero((f != k) & (f != v)) for t, f in fold_of.items()})
-        val = evaluation_episodes(features, true, {t: np.flatnonzero(f == v) for t, f in fold_of.items()})
+        train = take(every, np.flatnonzero((episode_fold != k) & (episode_fold != v)))
+        val = take(every, np.flatnonzero(episode_fold == v))
         judge, _ = fit(train, val, tasks, steps, seed + k, progress=False)
         for t in tasks:
             held = np.flatnonzero(fold_of[t] == k)
