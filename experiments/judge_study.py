@@ -155,8 +155,9 @@ def finished_tasks(eval_dir: Path) -> tuple:
 
 def study(eval_dir: Path, out: Path, wm_run: Path | None = None, data: Path | None = None, variants=None,
           steps: int | None = None, draws: int = 1000) -> dict:
-    """Fits every variant (VARIANTS' names in `variants`, default all) and the cross-fit bound, reads the
-    kept imaginations of eval_dir with each (out/variants/<name>.npz), then scores them (score)."""
+    """Fits the variants named in `variants` (VARIANTS' names, BOUND, SAVED; default DEFAULT_ORDER) in
+    that order, reads the kept imaginations of eval_dir with each (out/variants/<name>.npz), then
+    scores them (score)."""
     wm_run = Path(wm_run or json.loads((eval_dir / "config.json").read_text())["wm"].split(",")[0])
     names = list(variants or DEFAULT_ORDER)
     unknown = [n for n in names if n not in VARIANTS and n not in (BOUND, SAVED)]
