@@ -411,7 +411,8 @@ def test_a_run_cut_short_is_left_unevaluated_and_the_rerun_finishes_it(smoke_dat
 def test_non_finite_loss_stops_without_a_checkpoint(smoke_dataset, tmp_path):
     _, data, _ = smoke_dataset
     run = Run(make_config("smoke"), data, tmp_path / "nan")
-    run.norm = dataclasses.replace(run.norm, proprio_mean=jnp.full(37, jnp.nan))  # NaN inputs
+    # NaN inputs, of the norm's own float32 type (a weakly typed array would compile the step again)
+    run.norm = dataclasses.replace(run.norm, proprio_mean=jnp.full(37, jnp.nan, jnp.float32))
     with pytest.raises(TrainingDiverged, match="non-finite"):
         run.train(progress=False)
     assert run.latest.latest_step() is None
