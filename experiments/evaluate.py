@@ -75,7 +75,13 @@ from sim_data.sim.engines import ENGINES, default_engine
 from sim_data.sim.rollout import record_policies
 from sim_data.sim.tasks import TASK_NAMES
 from sim_data.util import device_name, make_output_dir, run_cli, write_json_atomic
-from wm.checkpoint import load_run_config, load_trained, training_policies, training_seeds, training_status
+from wm.checkpoint import (
+    load_run_config,
+    load_trained,
+    training_policies,
+    training_seeds,
+    training_status,
+)
 from wm.evaluate import no_nan, program_panel
 from wm.imagine import (
     PROGRESS_FEATURE,
@@ -127,6 +133,10 @@ class EvalConfig:
         proprioception) is kept and reused by later evaluations of the same policies from the same
         states, whatever the world model (a sweep ranks one zoo with many models); "" keeps none.
         Used only with video_policies=0, as it keeps no real videos.
+      keep_features: also keep every imagined episode's step features (wm.imagine.step_features, the
+        first model's) in OUT/features/<task>.npy, (P, N, T, F) float16 in the order of the task's
+        policies and states, so other read-outs of the same imaginations (judges: experiments.judge_study)
+        can be fit and compared without imagining again. Not with --part.
     """
 
     policies: tuple = ()
@@ -144,6 +154,7 @@ class EvalConfig:
     decision_episodes: tuple = (5, 10, 20, 50, 100, 200, 500)
     max_minutes: float = 0.0
     truth_cache: str = ""
+    keep_features: bool = False
 
     def validate(self) -> None:
         if not self.policies:
@@ -237,7 +248,7 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
     n = len(seeds)
     reset_keys = np.stack([np.asarray(jax.random.PRNGKey(s)) for s in seeds])
     renderer = cached_renderers(models[0][0].model.size, (CAMERA,))
-    names, true, prob, members, observed, finite, kept = [], [], [], [], [], [], {}
+    names, true, prob, members, observed, finite, kept, features = [], [], [], [], [], [], {}, []
     arrays = {k: [] for k in TRACES + READOUT_KEYS + FIDELITY}
     sim_s = wm_s = 0.0
     steps = None
@@ -267,6 +278,9 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
         o = np.mean([_read_truth(m, task, truth, cfg.readout) for m in models], axis=0)
         o = o.reshape(len(padded), n)[: len(part)]
         f = simulated_finite(truth).reshape(len(padded), n)[: len(part)]
+        if cfg.keep_features:
+            x = np.asarray(each[0]["features"], np.float16)
+            features.append(x.reshape((len(padded), n) + x.shape[1:])[: len(part)])
         wm_s += time.perf_counter() - t0
         for j, src in enumerate(part):
             names.append(src.name)
@@ -291,7 +305,8 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
                 "wm_s": 0.0, "steps": None}
     true, prob = np.stack(true), np.stack(prob)
     videos, index = _select_videos(cfg, task, names, true, kept)
-    return {"names": names, "true": true, "prob": prob, "prob_observed": np.stack(observed),
+    kept_features = {"features": np.concatenate(features)} if features else {}
+    return {**kept_features, "names": names, "true": true, "prob": prob, "prob_observed": np.stack(observed),
             "sim_finite": np.stack(finite),
             "prob_members": np.stack(members, axis=1), **{k: np.stack(v) for k, v in arrays.items()},
             "videos": videos, "video_index": index, "sim_s": sim_s, "wm_s": wm_s, "steps": steps}
@@ -335,7 +350,7 @@ def _imagine(model, task, policy, params, frames0, proprio0, steps, rng) -> dict
                       np.zeros((len(frames0), 0, R.ACTION_DIM), np.float32), rng)
     return {**read_episodes(judge, task, got["features"]), "trace_success": np.asarray(got["success"], np.float32),
             "trace_progress": np.asarray(got["progress"], np.float32), "frames": got["frames"],
-            "action": np.asarray(got["action"], np.float32)}
+            "action": np.asarray(got["action"], np.float32), "features": got["features"]}
 
 
 def fidelity_horizons(steps: int) -> tuple:
@@ -665,6 +680,8 @@ def evaluate_tasks(cfg: EvalConfig, out: Path, tasks, sources, models, used: set
     stops before a task (see run)."""
     results = {}
     by_task = {t: [s for s in sources if s.runs_on(t)] for t in tasks}
+    if part is not None and cfg.keep_features:
+        raise ValueError("keep_features keeps one run's imaginations: evaluate without --part")
     if part is not None:  # every task's batches spread over the parts, the largest first
         sizes = {(t, k): len(padded) * cfg.episodes for t in tasks
                  for k, (_, padded) in enumerate(task_chunks(cfg, by_task[t], cfg.episodes))}
@@ -677,7 +694,7 @@ def evaluate_tasks(cfg: EvalConfig, out: Path, tasks, sources, models, used: set
         if part is not None and (out / "tasks" / f"{task}.npz").exists():
             continue  # gathered already
         if path.exists():
-            results[task] = _load_task(path)
+            results[task] = load_task(path)
             continue
         if partial:
             continue
@@ -693,8 +710,10 @@ def evaluate_tasks(cfg: EvalConfig, out: Path, tasks, sources, models, used: set
         res = evaluate_task(cfg, task, by_task[task], models, seeds, engine, progress, chunks)
         longest = max(longest, time.perf_counter() - t_task)
         res["seeds"] = seeds
+        if "features" in res:
+            save_features(out, task, res.pop("features"))
         _save_task(path, res)
-        results[task] = _load_task(path)
+        results[task] = load_task(path)
     return None if part is not None else results
 
 
@@ -818,8 +837,25 @@ def _merged_parts(cfg: EvalConfig, out: Path, task: str, sources) -> dict | None
         files = [out / "tasks" / f"{task}.part{k}of{n}.npz" for k in range(n)]
         if all(f.exists() for f in files):
             order = [s.name for part, _ in task_chunks(cfg, sources, cfg.episodes) for s in part]
-            return merge_task_parts(cfg, [_load_task(f) for f in files], order)
+            return merge_task_parts(cfg, [load_task(f) for f in files], order)
     return None
+
+
+def save_features(out: Path, task: str, features) -> None:
+    """Writes one task's imagined step features (P, N, T, F) float16 to out/features/<task>.npy, atomically."""
+    path = Path(out) / "features" / f"{task}.npy"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f"{path.stem}.tmp{os.getpid()}.npy")
+    np.save(tmp, np.asarray(features, np.float16))
+    os.replace(tmp, path)
+
+
+def load_features(out: Path, task: str) -> np.ndarray:
+    """The step features an evaluation kept for task (keep_features=1): (P, N, T, F) float16."""
+    path = Path(out) / "features" / f"{task}.npy"
+    if not path.exists():
+        raise FileNotFoundError(f"{path} is missing: evaluate with keep_features=1 (and without --part)")
+    return np.load(path)
 
 
 def _save_task(path: Path, res: dict) -> None:
@@ -835,7 +871,8 @@ def _save_task(path: Path, res: dict) -> None:
     tmp.replace(path)
 
 
-def _load_task(path: Path) -> dict:
+def load_task(path: Path) -> dict:
+    """One finished task's results as evaluate_task returns them (without step features), from out/tasks."""
     with np.load(path) as z:
         meta = json.loads(z["meta"].tobytes().decode())
         videos = {k[len("video:"):]: z[k] for k in z.files if k.startswith("video:")}
@@ -853,7 +890,10 @@ def _check_config(cfg: EvalConfig, out: Path) -> None:
     mine.pop("max_minutes")  # a time budget does not change what is computed
     path = out / "config.json"
     if path.exists():
-        if json.loads(path.read_text()) != mine:
+        # a field missing from the saved configuration has its default value
+        saved = json.loads(json.dumps(dataclasses.asdict(EvalConfig()))) | json.loads(path.read_text())
+        saved.pop("max_minutes")
+        if saved != mine:
             raise ValueError(f"{out} holds an evaluation of another configuration; use another OUT")
     else:
         write_json_atomic(path, mine)

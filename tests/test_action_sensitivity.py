@@ -62,3 +62,20 @@ def test_tasks_with_one_outcome_give_no_swaps(monkeypatch):
     monkeypatch.setattr(E, "open_loop_chunked", fake_imagination(lambda start, a: a))
     got = E.action_sensitivity(CFG, None, None, FakeCache(ROWS[:2]), [0, 1])
     assert got["swaps"] == 0 and "both successes and failures" in got["note"]
+
+
+def test_imaginations_under_the_own_actions_are_read_from_those_given(monkeypatch):
+    seen = []
+
+    def swapped_only(model, params, norm, samples, horizon):
+        seen.extend(float(s["actions"].mean()) for s in samples)
+        return fake_imagination(lambda start, a: a)(model, params, norm, samples, horizon)
+
+    monkeypatch.setattr(E, "open_loop_chunked", swapped_only)
+    # the given imaginations (one row an episode, padded a step longer) read 0.6 for every episode
+    own = np.zeros((6, N, 8), np.float32)
+    own[:, : N - 1, SUCCESS_FEATURE] = 0.6
+    got = E.action_sensitivity(CFG, None, None, FakeCache(ROWS), list(range(6)), imagined={"features": own})
+    assert got["success_own"] == pytest.approx(0.6) and got["failure_own"] == pytest.approx(0.6)
+    assert got["success_swapped"] == pytest.approx((0.1 + 0.1 + 0.2) / 3)
+    assert sorted(seen) == pytest.approx(sorted([0.1, 0.1, 0.9, 0.2, 0.7, 0.7]))  # the donors' actions only

@@ -26,7 +26,7 @@ def evaluation(smoke_zoo, smoke_world_model, tmp_path_factory, worker_id):
     # batches of 3 policies x 2 states: two batches, each mixing architectures (MixedPolicy)
     cfg = E.EvalConfig(policies=(f"{zoo_dir}#conv_proprio+conv_noproprio", "examples.plugin_policy:make"),
                        wm=str(smoke_world_model), tasks=("mug",), episodes=2, batch=6, video_policies=2,
-                       video_episodes=1, decision_episodes=(5, 50), readout="judge")
+                       video_episodes=1, decision_episodes=(5, 50), readout="judge", keep_features=True)
     out = build_once(tmp_path_factory, worker_id, "eval", lambda d: E.run(cfg, d / "run", progress=False)) / "run"
     return cfg, out, json.loads((out / "results.json").read_text())
 
@@ -85,7 +85,7 @@ def test_rerun_resumes_and_other_config_is_refused(evaluation):
 
 def test_saved_traces_agree_with_the_episodes_outcomes(evaluation):
     _, out, _ = evaluation
-    task = E._load_task(out / "tasks" / "mug.npz")
+    task = E.load_task(out / "tasks" / "mug.npz")
     p, n = task["true"].shape
     for key in E.TRACES:
         assert task[key].shape == (p, n, task["steps"]), key
@@ -142,14 +142,17 @@ def test_family_table_lists_each_family_under_each_readout():
 def test_parts_share_out_a_tasks_batches_and_merge_into_the_unsplit_results(evaluation, tmp_path):
     cfg, out, res = evaluation
     assert E.balance_chunks({"a": 5, "b": 3, "c": 3, "d": 1}, 2) == {"a": 0, "b": 1, "c": 1, "d": 0}
+    with pytest.raises(ValueError, match="without --part"):
+        E.run(cfg, tmp_path / "kept", progress=False, part=(0, 2))
+    cfg = dataclasses.replace(cfg, keep_features=False)  # the step features are kept by unsplit runs only
     split = tmp_path / "split"
     for k in range(2):
         assert E.run(cfg, split, progress=False, part=(k, 2)) is None
-    shares = [E._load_task(split / "tasks" / f"mug.part{k}of2.npz")["names"] for k in range(2)]
+    shares = [E.load_task(split / "tasks" / f"mug.part{k}of2.npz")["names"] for k in range(2)]
     assert all(shares) and sorted(shares[0] + shares[1]) == sorted(p["name"] for p in res["policies"])
     assert not (split / "tasks" / "mug.npz").exists()
     got = E.run(cfg, split, progress=False)  # merges the parts
-    whole, merged = E._load_task(out / "tasks" / "mug.npz"), E._load_task(split / "tasks" / "mug.npz")
+    whole, merged = E.load_task(out / "tasks" / "mug.npz"), E.load_task(split / "tasks" / "mug.npz")
     assert merged["names"] == whole["names"] and merged["seeds"] == whole["seeds"]
     for key in ("true", "prob", "prob_members") + E.TRACES + E.READOUT_KEYS:
         np.testing.assert_allclose(merged[key], whole[key], atol=1e-3, err_msg=key)
@@ -162,7 +165,7 @@ def test_parts_share_out_a_tasks_batches_and_merge_into_the_unsplit_results(eval
     (split / "tasks" / "mug.npz").unlink()
     (split / "tasks" / "mug.part1of2.npz").unlink()
     with pytest.raises(ValueError, match="rerun the parts"):
-        E.merge_task_parts(cfg, [E._load_task(split / "tasks" / "mug.part0of2.npz")], whole["names"])
+        E.merge_task_parts(cfg, [E.load_task(split / "tasks" / "mug.part0of2.npz")], whole["names"])
 
 
 def test_a_partial_gather_reports_the_finished_tasks_and_names_the_rest(evaluation, tmp_path):
@@ -394,3 +397,16 @@ def test_within_task_headline_and_checkpoint_selection_from_the_episodes(evaluat
     assert res["metrics"]["within_task"] == json.loads(json.dumps(no_nan(want)))
     assert res["checkpoint_selection"] == json.loads(json.dumps(no_nan(S.checkpoint_selection(res["policies"]))))
     assert res["world_model"]["cut_short"] is False and res["world_model"]["training"][0]["steps"] == 30
+
+
+def test_kept_features_are_the_imaginations_the_read_outs_read(evaluation):
+    _, out, _ = evaluation
+    task = E.load_task(out / "tasks" / "mug.npz")
+    x = E.load_features(out, "mug")
+    p, n = task["true"].shape
+    assert x.dtype == np.float16 and x.shape[:2] == (p, n) and x.shape[2] == task["trace_success"].shape[-1]
+    got = E.read_episodes(None, "mug", x.reshape((p * n,) + x.shape[2:]).astype(np.float32))
+    for r in ("success", "progress"):
+        assert got[r].reshape(p, n) == pytest.approx(task[f"readout_{r}"], abs=2e-3)
+    with pytest.raises(FileNotFoundError, match="keep_features=1"):
+        E.load_features(out, "wipe")

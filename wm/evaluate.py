@@ -109,13 +109,14 @@ def _finite_mean(x) -> float:
 
 
 def success_prediction(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, episodes: list[int],
-                       judge: EpisodeJudge | None = None) -> dict:
+                       judge: EpisodeJudge | None = None, imagined: dict | None = None) -> dict:
     """Each episode imagined whole from its first observation under its logged actions (as the
-    evaluator starts); accuracy and AUROC against the simulator's outcome of the evaluator's read-outs:
+    evaluator starts; `imagined`: wm.judge.imagine_episodes' dict of `episodes`, imagined here when
+    None); accuracy and AUROC against the simulator's outcome of the evaluator's read-outs:
     the episode judge's where given (the headline "accuracy" and "auroc"; else the per-step rule's),
     the per-step rule's ("per_step_rule_"), the progress head's last value clipped to [0, 1]
     ("progress_"), and beside them the final frame's and the outcome head's."""
-    got = imagine_episodes(cfg.model, params, norm, cache, episodes, cfg.camera, progress=False)
+    got = imagined or imagine_episodes(cfg.model, params, norm, cache, episodes, cfg.camera, progress=False)
     labels = got["label"]
     last = got["mask"].sum(axis=1) - 1
     rows = np.arange(len(labels))
@@ -136,11 +137,13 @@ def success_prediction(cfg: TrainConfig, params, norm: Norm, cache: TrainingCach
 
 
 def action_sensitivity(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, episodes: list[int],
-                       judge: EpisodeJudge | None = None) -> dict:
+                       judge: EpisodeJudge | None = None, imagined: dict | None = None) -> dict:
     """Whether the predicted outcome follows the actions or the start. Each episode (open loop from its
     first observation) is imagined under its own logged actions and under those of a donor: an episode
     of the same task and length with the opposite outcome (the donors taken in turn). The probability
     is success_prediction's headline read-out (the episode judge, else the highest per-step success).
+    `imagined` (wm.judge.imagine_episodes' dict of `episodes`, as success_prediction reads them) holds
+    the imaginations under their own actions; without it they are imagined here.
 
     Returns {"swaps", "success_own", "success_swapped" (mean probability of the successes under their
     own and under a failure's actions), "failure_own", "failure_swapped", "mean_abs_change",
@@ -153,25 +156,30 @@ def action_sensitivity(cfg: TrainConfig, params, norm: Norm, cache: TrainingCach
         e = cache.episodes[i]
         groups.setdefault((e["task"], e["length"]), {True: [], False: []})[bool(e["success"])].append(i)
     use_judge = judge is not None and all(judge.knows(t) for t, _ in groups)
+    row_of = {i: k for k, i in enumerate(episodes)}
+
+    def read(feats, task):
+        return judge.probability(feats, task) if use_judge else feats[..., SUCCESS_FEATURE].max(axis=1)
+
     own_p, swap_p, label = [], [], []
     for (task, n), g in sorted(groups.items()):
         if not g[True] or not g[False]:
             continue
-        own, swapped, lab = [], [], []
+        ids, own, swapped = [], [], []
         for outcome, donors in ((True, g[False]), (False, g[True])):
             for k, i in enumerate(g[outcome]):
                 sample = context_sample(cache.episode(i, cameras=[cfg.camera]), cfg.camera, 0, 1, n - 1)
                 donor = cache.episode(donors[k % len(donors)], cameras=[cfg.camera])
+                ids.append(i)
                 own.append(sample)
                 swapped.append({**sample, "actions": donor["action"][: n - 1]})
-                lab.append(outcome)
-        for samples, out in ((own, own_p), (swapped, swap_p)):
-            feats = open_loop_chunked(cfg.model, params, norm, samples, n - 1)["features"]
-            if use_judge:
-                out.append(judge.probability(feats, task))
-            else:
-                out.append(feats[..., SUCCESS_FEATURE].max(axis=1))
-        label += lab
+                label.append(outcome)
+        if imagined is None:
+            own_feats = open_loop_chunked(cfg.model, params, norm, own, n - 1)["features"]
+        else:
+            own_feats = imagined["features"][[row_of[i] for i in ids], : n - 1]
+        own_p.append(read(own_feats, task))
+        swap_p.append(read(open_loop_chunked(cfg.model, params, norm, swapped, n - 1)["features"], task))
     if not label:
         return {"swaps": 0, "note": "no task has both successes and failures among the evaluated episodes"}
     own_p, swap_p, label = np.concatenate(own_p), np.concatenate(swap_p), np.array(label)
@@ -243,9 +251,11 @@ def evaluate(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, out: Pa
     fq, pictures = frame_quality(cfg, params, norm, cache, test)
     # random play is in the frame figures; success is judged on episodes that attempt the task
     success_split, tasked = _held_out(cache, tasks, lambda e: e.get("policy_kind") != "play", "task episodes")
-    sp = success_prediction(cfg, params, norm, cache, spread(tasked, cfg.eval_episodes), judge)
+    tasked = spread(tasked, cfg.eval_episodes)
+    own = imagine_episodes(cfg.model, params, norm, cache, tasked, cfg.camera, progress=False)
+    sp = success_prediction(cfg, params, norm, cache, tasked, judge, own)
     sp["split"] = success_split
-    sens = action_sensitivity(cfg, params, norm, cache, spread(tasked, cfg.eval_episodes), judge)
+    sens = action_sensitivity(cfg, params, norm, cache, tasked, judge, own)
     ctrl = controllability(cfg, params, norm, cache, tasks)
     at = dict(zip(fq["horizons"], range(len(fq["horizons"])), strict=True))
     summary = {

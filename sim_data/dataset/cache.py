@@ -259,6 +259,14 @@ def _unit_hash(key: str) -> float:
     return int.from_bytes(hashlib.sha256(f"subset/{key}".encode()).digest()[:4], "little") / 2**32
 
 
+def window_episodes(cache: TrainingCache, window: int, split: str | None = "train", tasks=None,
+                    fraction: float = 1.0) -> np.ndarray:
+    """(E,) int64 the episodes a WindowLoader of these arguments draws windows from: the split's
+    (tasks', fraction's: TrainingCache.select, .subset) episodes at least `window` steps long."""
+    return np.array([i for i in cache.subset(cache.select(split, tasks), fraction)
+                     if cache.episodes[i]["length"] >= window], np.int64)
+
+
 class WindowLoader:
     """Shuffled fixed-length windows of a cache's episodes, gathered ahead by background threads.
 
@@ -288,8 +296,7 @@ class WindowLoader:
         bad = [c for c in self.cameras if c not in cache.cameras]
         if bad:
             raise ValueError(f"cameras {bad} are not in the cache (it has {cache.cameras})")
-        self.episodes = np.array([i for i in cache.subset(cache.select(split, tasks), fraction)
-                                  if cache.episodes[i]["length"] >= window], np.int64)
+        self.episodes = window_episodes(cache, window, split, tasks, fraction)
         counts = np.array([cache.episodes[i]["length"] - window + 1 for i in self.episodes], np.int64)
         if counts.sum() < batch:
             raise ValueError(f"split {split!r} has {int(counts.sum())} windows of length {window}, fewer than a batch "

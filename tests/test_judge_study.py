@@ -1,0 +1,45 @@
+"""The judge study's pieces on imaginations whose outcome a feature decides."""
+
+import numpy as np
+import pytest
+
+from experiments import judge_study as J
+from experiments import stats as S
+
+
+def kept(rng, policies=12, states=16, steps=(5, 7)):
+    """Two tasks' kept features (P, N, T, 6) and outcomes: each policy's rate spread over [0, 1]; an
+    episode succeeds where its feature 0 (constant over time) is positive."""
+    features, true = {}, {}
+    for t, T in zip(("a", "b"), steps, strict=True):
+        rate = np.linspace(0.05, 0.95, policies)
+        y = rng.random((policies, states)) < rate[:, None]
+        x = rng.normal(size=(policies, states, T, 6)).astype(np.float16)
+        x[..., 0] = np.where(y, 1.0, -1.0)[..., None] + 0.1 * rng.normal(size=(policies, states, 1))
+        features[t], true[t] = x, y
+    return features, true
+
+
+def test_evaluation_episodes_pad_and_label_each_task(np_rng):
+    features, true = kept(np_rng)
+    d = J.evaluation_episodes(features, true, {"a": np.array([0, 3]), "b": np.array([1])})
+    assert d["features"].shape == (3 * 16, 7, 6) and d["task"] == ["a"] * 32 + ["b"] * 16
+    assert d["mask"][:32].sum(1).tolist() == [5] * 32 and d["mask"][32:].all()
+    assert not d["features"][:32, 5:].any()
+    assert d["label"].tolist() == true["a"][[0, 3]].reshape(-1).tolist() + true["b"][1].tolist()
+    np.testing.assert_array_equal(d["features"][16:32, :5], features["a"][3].astype(np.float32))
+
+
+def test_the_crossfit_bound_reads_an_outcome_the_imaginations_carry(np_rng):
+    features, true = kept(np_rng)
+    probs = J.crossfit_bound(features, true, ("a", "b"), steps=150, seed=0)
+    for t in ("a", "b"):
+        assert probs[t].shape == true[t].shape
+        # every fold is read by a judge that never saw its policies, and still follows feature 0
+        assert S.pearson(probs[t].mean(1), true[t].mean(1))[0] > 0.9
+        assert ((probs[t] > 0.5) == true[t]).mean() > 0.9
+
+
+def test_an_unknown_variant_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="unknown variants"):
+        J.study(tmp_path, tmp_path / "out", wm_run=tmp_path, variants=["bigger"])
