@@ -15,11 +15,15 @@ import pytest  # noqa: E402
 # Most of the suite's time is XLA compiling the same small functions (the cpu engine's rollout pieces, the
 # policies) in each test process: one compilation cache per run lets the second pytest-xdist worker load
 # what the first compiled. Each run has its own, removed at its end: nothing is reused between runs.
+# The same settings go into the environment, so that the `wm.train` processes of the determinism test
+# load the smoke train step the suite compiled instead of compiling it again.
 JAX_CACHE = "/tmp/wmlab-test-jax-cache-{}"
 if os.environ.get("PYTEST_XDIST_TESTRUNUID"):
-    jax.config.update("jax_compilation_cache_dir", JAX_CACHE.format(os.environ["PYTEST_XDIST_TESTRUNUID"]))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    _cache = {"jax_compilation_cache_dir": JAX_CACHE.format(os.environ["PYTEST_XDIST_TESTRUNUID"]),
+              "jax_persistent_cache_min_compile_time_secs": 0.0, "jax_persistent_cache_min_entry_size_bytes": 0}
+    for _name, _value in _cache.items():
+        jax.config.update(_name, _value)
+        os.environ[_name.upper()] = str(_value)
 
 
 def pytest_configure(config):

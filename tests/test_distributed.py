@@ -106,6 +106,9 @@ def two_processes(smoke_dataset, tmp_path_factory):
     return out
 
 
+# slow: two more processes, each importing jax, joining jax.distributed and compiling the fsdp train step
+# for itself (about 250 s of the 2-core machine); the fsdp plan and the loader's parts are checked above
+@pytest.mark.slow
 def test_two_processes_train_as_one_process_with_the_whole_batch(two_processes, smoke_world_model):
     """The same per-step losses and parameters as the suite's one-device smoke model (same command,
     one process): each process loads its own rows of the same global batches."""

@@ -48,6 +48,9 @@ def test_cpu_engine_is_mujoco_c_engine(model, mug_episode):
         np.testing.assert_array_equal(np.asarray(st.physics.rows[1, 1 : 1 + model.nq]), d.qpos)
 
 
+# slow: compiling the MJX step on the CPU takes minutes whatever the episode's length; the C engine's
+# test above stays in `make test`
+@pytest.mark.slow
 def test_mjx_replays_cpu_episode_within_tolerance(mug_episode):
     env, rng, state, traj = mug_episode
     mj = HomeEnv("mug", 2, engine="mjx")

@@ -349,11 +349,9 @@ def test_closed_loop_with_a_policy(model_and_inputs):
         np.testing.assert_allclose(np.asarray(longer[k], np.float32), np.asarray(scan[k], np.float32), atol=1e-4)
 
 
-def test_loss_falls_on_a_tiny_dataset(smoke_dataset, tmp_path):
-    _, data, _ = smoke_dataset
-    run = Run(make_config("smoke"), data, tmp_path / "run")
-    run.train(progress=False)
-    losses = [json.loads(line)["loss"] for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+def test_loss_falls_on_a_tiny_dataset(smoke_world_model):
+    # the log of `make train CONFIG=smoke` on the smoke dataset (Run.train's), shared with the other tests
+    losses = [json.loads(line)["loss"] for line in (smoke_world_model / "metrics.jsonl").read_text().splitlines()]
     assert len(losses) == 6 and losses[-1] < 0.6 * losses[0], losses
 
 
@@ -377,11 +375,13 @@ class DyingLoader:
         return getattr(self.loader, name)
 
 
-def test_resume_after_a_kill_matches_an_uninterrupted_run(smoke_dataset, tmp_path):
+def test_resume_after_a_kill_matches_an_uninterrupted_run(smoke_dataset, smoke_world_model, tmp_path):
     _, data, _ = smoke_dataset
     cfg = make_config("smoke")
+    # the uninterrupted run: the last checkpoint of `make train CONFIG=smoke` on the same data (a copy)
+    shutil.copytree(smoke_world_model, tmp_path / "whole")
     whole = Run(cfg, data, tmp_path / "whole")
-    whole.train(progress=False)
+    assert whole.restore() == cfg.steps
     killed = Run(cfg, data, tmp_path / "killed")
     killed.loader = DyingLoader(killed.loader, dies_at=14)  # after the checkpoint of step 10
     with pytest.raises(Killed):
@@ -411,7 +411,8 @@ def test_a_run_cut_short_is_left_unevaluated_and_the_rerun_finishes_it(smoke_dat
 def test_non_finite_loss_stops_without_a_checkpoint(smoke_dataset, tmp_path):
     _, data, _ = smoke_dataset
     run = Run(make_config("smoke"), data, tmp_path / "nan")
-    run.norm = dataclasses.replace(run.norm, proprio_mean=jnp.full(37, jnp.nan))  # NaN inputs
+    # NaN inputs, of the norm's own float32 type (a weakly typed array would compile the step again)
+    run.norm = dataclasses.replace(run.norm, proprio_mean=jnp.full(37, jnp.nan, jnp.float32))
     with pytest.raises(TrainingDiverged, match="non-finite"):
         run.train(progress=False)
     assert run.latest.latest_step() is None
