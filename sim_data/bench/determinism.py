@@ -35,8 +35,8 @@ import numpy as np
 from sim_data.dataset.generate import cached_env, cached_renderers
 from sim_data.policies.bc import BCPolicy, StackedPolicy, init_params, stack_params
 from sim_data.policies.registry import group_by_policy, resolve
+from sim_data.bench.policy import identity_norm
 from sim_data.policies.zoo import PRESETS as ZOO_PRESETS
-from sim_data.sim import robot as R
 from sim_data.sim.engines import default_engine
 from sim_data.sim.rollout import record_policies
 from sim_data.util import device_name, run_cli, write_json_atomic
@@ -50,9 +50,7 @@ def batch_policies(spec: str, task: str) -> tuple:
     two fresh `full`-zoo conv networks (seeds 0 and 1) where spec is empty."""
     if not spec:
         net = ZOO_PRESETS["full"].conv
-        norm = {"proprio_mean": np.zeros(R.PROPRIO_DIM), "proprio_std": np.ones(R.PROPRIO_DIM),
-                "action_mean": np.zeros(R.ACTION_DIM), "action_std": np.ones(R.ACTION_DIM)}
-        params = [init_params(net, jax.random.PRNGKey(k), norm, use_proprio=True) for k in range(2)]
+        params = [init_params(net, jax.random.PRNGKey(k), identity_norm(), use_proprio=True) for k in range(2)]
         return StackedPolicy(BCPolicy(net)), stack_params(params), ["fresh_conv/0", "fresh_conv/1"]
     sources = [s for s in resolve([spec]) if s.task in (None, task)]
     if not sources:

@@ -34,6 +34,12 @@ from sim_data.util import device_name, run_cli, write_json_atomic
 CAMERA = "head_cam"
 
 
+def identity_norm() -> dict:
+    """A policy's normalisation that leaves proprioception and actions as they are (fresh networks)."""
+    return {"proprio_mean": np.zeros(R.PROPRIO_DIM), "proprio_std": np.ones(R.PROPRIO_DIM),
+            "action_mean": np.zeros(R.ACTION_DIM), "action_std": np.ones(R.ACTION_DIM)}
+
+
 def _timed_rollout(env, policy, params, renderers, repeats: int) -> float:
     """Best wall seconds of recording one batch of episodes (after one warm-up run that compiles)."""
     rng = jax.random.PRNGKey(0)
@@ -67,8 +73,7 @@ def bench(task: str, batch: int, engine: str, repeats: int = 2) -> dict:
     steps = env.episode_steps
     program_s = _timed_rollout(env, ProgramPolicy(steps), program_params(["reach_mug"] * batch, steps), renderers,
                                repeats)
-    norm = {"proprio_mean": np.zeros(R.PROPRIO_DIM), "proprio_std": np.ones(R.PROPRIO_DIM),
-            "action_mean": np.zeros(R.ACTION_DIM), "action_std": np.ones(R.ACTION_DIM)}
+    norm = identity_norm()
     rows = []
     for net_cfg in (zoo.conv, zoo.vit):
         policy = BCPolicy(net_cfg)
