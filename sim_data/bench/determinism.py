@@ -32,10 +32,10 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from sim_data.bench.policy import identity_norm
 from sim_data.dataset.generate import cached_env, cached_renderers
 from sim_data.policies.bc import BCPolicy, StackedPolicy, init_params, stack_params
 from sim_data.policies.registry import group_by_policy, resolve
-from sim_data.bench.policy import identity_norm
 from sim_data.policies.zoo import PRESETS as ZOO_PRESETS
 from sim_data.sim.engines import default_engine
 from sim_data.sim.rollout import record_policies
