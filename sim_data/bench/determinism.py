@@ -2,7 +2,7 @@
 
     python -m sim_data.bench.determinism --out runs/bench/determinism.json [--task mug] [--states 64]
         [--policies runs/policies/full#mug+conv_noproprio] [--engine mjx] [--processes 2]
-        [--flags "" --flags "--xla_gpu_deterministic_ops=true"]
+        [--flags= --flags=--xla_gpu_deterministic_ops=true]
 
 The evaluator's ground truth is a batch of closed-loop episodes: policies acting on the frames the
 renderer draws, in a contact-rich simulation that amplifies the last bit of a float. For each XLA
@@ -149,7 +149,8 @@ def main(argv=None) -> int:
     p.add_argument("--engine", default="", help="cpu or mjx (default: mjx where a GPU is present)")
     p.add_argument("--processes", type=int, default=2, help="processes per flag set (>= 2)")
     p.add_argument("--flags", action="append", default=None,
-                   help=f"XLA flags of one setting, repeatable (default: {' and '.join(repr(f) for f in DEFAULT_FLAGS)})")
+                   help="XLA flags of one setting, repeatable, written --flags=VALUE since VALUE begins with dashes "
+                        f"(default: {' and '.join(repr(f) for f in DEFAULT_FLAGS)})")
     p.add_argument("--child", type=Path, help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     engine = a.engine or default_engine()
