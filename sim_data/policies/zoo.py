@@ -102,6 +102,9 @@ class ZooConfig:
         pixels at its edges and cropped back at a random offset; 0: none).
       families: counterfactual families (Family) registered beside the lineages, so that each task's
         zoo spans the range of true success with policies whose differences are known.
+      group: lineages of one network trained together as one batched program, at most this many (0:
+        all of them). A GPU runs a dozen small networks in about the time of one; a CPU runs the
+        batched convolutions slower than one at a time, so the CPU presets train one at a time.
     """
 
     tasks: tuple = ("mug", "wipe")
@@ -118,8 +121,11 @@ class ZooConfig:
     seed: int = 0
     shift: int = 0
     families: tuple = ()
+    group: int = 0
 
     def validate(self) -> None:
+        if self.group < 0:
+            raise ValueError(f"group must be >= 0 (0: every lineage of a network together), got {self.group}")
         if not self.tasks or not self.lineages:
             raise ValueError("a zoo needs at least one task and one lineage")
         if self.checkpoints < 1 or self.steps < self.checkpoints or self.first_step < 1:
@@ -161,13 +167,13 @@ LINEAGES_MAIN = (
 
 PRESETS = {
     "smoke": ZooConfig(tasks=("mug",), lineages=LINEAGES_MAIN, steps=4, checkpoints=2, first_step=2, batch=8,
-                       val_batches=1, conv=PolicyNetConfig(width=8, hidden=32),
+                       val_batches=1, group=2, conv=PolicyNetConfig(width=8, hidden=32),
                        vit=PolicyNetConfig(encoder="vit", width=16, depth=1, hidden=32),
                        families=(Family("conv_proprio~grip", "conv_proprio", "grip", (0.0, 1.0)),)),
     # 4 checkpoints a lineage and two families leave the evaluation 16 episodes a policy in the demo's time;
     # the families degrade conv_noproprio, the lineage that learns the mug (conv_proprio fails it)
     "demo": ZooConfig(tasks=("mug", "step_back"), lineages=LINEAGES_MAIN, steps=1000, checkpoints=4, first_step=5,
-                      batch=32, val_batches=4, conv=PolicyNetConfig(width=16, hidden=128),
+                      batch=32, group=1, val_batches=4, conv=PolicyNetConfig(width=16, hidden=128),
                       vit=PolicyNetConfig(encoder="vit", width=32, depth=2, hidden=128),
                       families=(Family("conv_noproprio~noise", "conv_noproprio", "noise", (0.1, 0.2, 0.4)),
                                 Family("conv_noproprio~drive", "conv_noproprio", "drive", (0.5, 1.5, 2.0)))),
@@ -233,8 +239,9 @@ def imitation_loss(cfg: PolicyNetConfig, params, batch: dict):
     return (err.mean(-1) * batch["mask"]).sum() / jnp.maximum(batch["mask"].sum(), 1.0)
 
 
-def _make_step(cfg: PolicyNetConfig, opt, shift: int = 0):
-    @jax.jit
+def _step_fn(cfg: PolicyNetConfig, opt, shift: int = 0):
+    """One optimiser step of one lineage: (params, opt_state, batch, key) -> (params, opt_state, loss)."""
+
     def step(params, opt_state, batch, key):
         if shift:  # augmented on the device: a host-side crop would hold up the step loop
             batch = {**batch, "image": random_shift(batch["image"], shift, key)}
@@ -249,10 +256,36 @@ def _make_step(cfg: PolicyNetConfig, opt, shift: int = 0):
     return step
 
 
+def _make_group_step(cfg: PolicyNetConfig, opt, shift: int = 0):
+    """The step of L lineages of one network as one program: (params, opt_state) stacked (L, ...), the
+    samples' pool on the device, idx (L, B) rows of the pool, keys (L, 2) -> the same and the (L,)
+    losses. The batches are gathered on the device, so a step moves only indices."""
+    step = _step_fn(cfg, opt, shift)
+
+    def one(params, opt_state, pool, idx, key):
+        return step(params, opt_state, {k: v[idx] for k, v in pool.items()}, key)
+
+    return jax.jit(jax.vmap(one, in_axes=(0, 0, None, 0, 0)))
+
+
+def _make_group_val_loss(cfg: PolicyNetConfig):
+    """(params stacked (L, ...), pool, idx (L, K, B)) -> (L,) mean imitation loss over each lineage's K batches."""
+
+    def one(params, pool, idx):
+        return jax.lax.map(lambda i: imitation_loss(cfg, params, {k: v[i] for k, v in pool.items()}), idx).mean()
+
+    return jax.jit(jax.vmap(one, in_axes=(0, None, 0)))
+
+
+def _batch_rows(n: int, batch: int, rng: np.random.Generator) -> np.ndarray:
+    """`batch` sorted rows of n drawn with replacement (sorted: the host reads them in order)."""
+    return np.sort(rng.integers(0, n, batch))
+
+
 def _batches(samples: dict, batch: int, rng: np.random.Generator, count: int):
     n = len(samples["t"])
     for _ in range(count):
-        idx = np.sort(rng.integers(0, n, batch))
+        idx = _batch_rows(n, batch, rng)
         yield {k: v[idx] for k, v in samples.items()}
 
 
@@ -270,28 +303,66 @@ def _val_loss(loss, params, val_batches: list) -> float:
     return float(np.mean([float(loss(params, b)) for b in val_batches]))
 
 
-def train_lineage(cfg: ZooConfig, cache: TrainingCache, task: str, lineage: Lineage, out: Path, val: dict,
-                  progress: bool = True) -> list[dict]:
-    """Trains one lineage, saving its checkpoints; returns their registry records."""
-    net = cfg.net(lineage)
+@dataclasses.dataclass(frozen=True)
+class _Job:
+    """One lineage of one task in a batched group: its training episodes and seed."""
+
+    task: str
+    lineage: Lineage
+    episodes: tuple
+    seed: int
+
+
+def _job(cfg: ZooConfig, cache: TrainingCache, task: str, lineage: Lineage) -> _Job:
     eps = _episodes(cache, task, "train", lineage.skills, lineage.successes_only, lineage.demos)
     if not eps:
         raise ValueError(f"{task}/{lineage.name}: the dataset has no train-split scripted demonstrations of skills "
                          f"{lineage.skills}{' that succeeded' if lineage.successes_only else ''}")
-    samples = load_samples(cache, eps, net.chunk)
-    norm = compute_norm(samples)
     seed = cfg.seed + 1000 * cfg.tasks.index(task) + [lin.name for lin in cfg.lineages].index(lineage.name)
-    params = init_params(net, jax.random.PRNGKey(seed), norm, lineage.proprio)
+    return _Job(task, lineage, tuple(eps), seed)
+
+
+def _record(job, step: int, net: PolicyNetConfig, val_loss: float, train_loss: float) -> dict:
+    return {"name": f"{job.task}/{job.lineage.name}/{step}", "task": job.task, "lineage": job.lineage.name,
+            "step": step, "variant": {**dataclasses.asdict(job.lineage), "demos_used": len(job.episodes)},
+            "val_loss": val_loss, "train_loss": train_loss,
+            "checkpoint": str(Path(job.task) / job.lineage.name / f"step-{step:06d}.msgpack"),
+            "net": dataclasses.asdict(net)}
+
+
+def _finish(jobs: list, records: list, out: Path, t0: float) -> list[dict]:
+    """Stamps the training time on each job's records and writes its lineage.json (its completion mark)."""
+    for job, recs in zip(jobs, records, strict=True):
+        for r in recs:
+            r["train_s"] = time.perf_counter() - t0
+        write_json_atomic(out / job.task / job.lineage.name / "lineage.json", recs)
+    return [r for recs in records for r in recs]
+
+
+def _check_finite(jobs: list, train_loss, step: int) -> None:
+    bad = [f"{j.task}/{j.lineage.name}" for j, x in zip(jobs, np.atleast_1d(train_loss), strict=True)
+           if not np.isfinite(x)]
+    if bad:
+        raise FloatingPointError(f"{', '.join(bad)}: the imitation loss is not finite at step {step}; lower lr and rerun")
+
+
+def train_lineage(cfg: ZooConfig, cache: TrainingCache, job: _Job, out: Path, val: dict,
+                  progress: bool = True) -> list[dict]:
+    """Trains one lineage on its own, its batches gathered on the host, saving its checkpoints; returns
+    their registry records. val: the samples of its task's validation set."""
+    net = cfg.net(job.lineage)
+    samples = load_samples(cache, list(job.episodes), net.chunk)
+    params = init_params(net, jax.random.PRNGKey(job.seed), compute_norm(samples), job.lineage.proprio)
     opt = optax.adamw(optax.cosine_decay_schedule(cfg.lr, cfg.steps, alpha=0.05), weight_decay=cfg.weight_decay)
     opt_state = opt.init(params["net"])
-    step_fn = _make_step(net, opt, cfg.shift)
-    shift_key = jax.random.PRNGKey(seed + 17)
+    step_fn = jax.jit(_step_fn(net, opt, cfg.shift))
+    shift_key = jax.random.PRNGKey(job.seed + 17)
     val_loss = jax.jit(functools.partial(imitation_loss, net))
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(job.seed)
     val_batches = list(_batches(val, cfg.batch, np.random.default_rng(7), cfg.val_batches))
     marks = set(cfg.checkpoint_steps())
     records, losses = [], []
-    bar = tqdm(total=cfg.steps, desc=f"{task}/{lineage.name}", unit="step", disable=not progress, leave=False)
+    bar = tqdm(total=cfg.steps, desc=f"{job.task}/{job.lineage.name}", unit="step", disable=not progress, leave=False)
     t0 = time.perf_counter()
     for step, batch in enumerate(_batches(samples, cfg.batch, rng, cfg.steps), start=1):
         params, opt_state, loss = step_fn(params, opt_state, batch, jax.random.fold_in(shift_key, step))
@@ -300,29 +371,78 @@ def train_lineage(cfg: ZooConfig, cache: TrainingCache, task: str, lineage: Line
         if step not in marks:
             continue
         train_loss = float(np.mean(jax.device_get(losses[-20:])))
-        if not np.isfinite(train_loss):
-            raise FloatingPointError(f"{task}/{lineage.name}: the imitation loss is {train_loss} at step {step}; "
-                                     f"lower lr and rerun")
-        rel = Path(task) / lineage.name / f"step-{step:06d}.msgpack"
-        save_params(out / rel, params)
-        records.append({
-            "name": f"{task}/{lineage.name}/{step}", "task": task, "lineage": lineage.name, "step": step,
-            "variant": {**dataclasses.asdict(lineage), "demos_used": len(eps)},
-            "val_loss": _val_loss(val_loss, params, val_batches), "train_loss": train_loss,
-            "checkpoint": str(rel), "net": dataclasses.asdict(net)})
+        _check_finite([job], train_loss, step)
+        records.append(_record(job, step, net, _val_loss(val_loss, params, val_batches), train_loss))
+        save_params(out / records[-1]["checkpoint"], params)
         bar.set_postfix(loss=f"{train_loss:.3f}", val=f"{records[-1]['val_loss']:.3f}")
     bar.close()
-    for r in records:
-        r["train_s"] = time.perf_counter() - t0
-    write_json_atomic(out / task / lineage.name / "lineage.json", records)
-    return records
+    return _finish([job], [records], out, t0)
+
+
+def _pool(cache: TrainingCache, episode_sets: list, chunk: int) -> tuple[dict, list[np.ndarray]]:
+    """The samples of the union of episode_sets, loaded once, and for each set its rows in the pool,
+    in the order load_samples(cache, that set) would give them."""
+    union = sorted({i for eps in episode_sets for i in eps})
+    lengths = [cache.episodes[i]["length"] - 1 for i in union]
+    start = dict(zip(union, np.concatenate([[0], np.cumsum(lengths)[:-1]]).astype(np.int64), strict=True))
+    size = dict(zip(union, lengths, strict=True))
+    rows = [np.concatenate([np.arange(start[i], start[i] + size[i]) for i in eps]) for eps in episode_sets]
+    return load_samples(cache, union, chunk), rows
+
+
+def train_group(cfg: ZooConfig, cache: TrainingCache, jobs: list[_Job], out: Path, val_eps: dict,
+                progress: bool = True) -> list[dict]:
+    """Trains lineages that share one network as one batched program (jax.vmap over lineages), each on
+    its own demonstrations, seed and batches, saving every lineage's checkpoints; returns their
+    registry records. val_eps: per task, the episodes of its fixed validation set."""
+    net = cfg.net(jobs[0].lineage)
+    assert all(cfg.net(j.lineage) == net for j in jobs), "a group shares one network"
+    pool, rows = _pool(cache, [j.episodes for j in jobs], net.chunk)
+    tasks = sorted({j.task for j in jobs})
+    val_pool, val_rows = _pool(cache, [val_eps[t] for t in tasks], net.chunk)
+    val_idx = {}  # every lineage of a task is scored on the same batches of its task's validation set
+    for t, r in zip(tasks, val_rows, strict=True):
+        vrng = np.random.default_rng(7)
+        val_idx[t] = np.stack([r[_batch_rows(len(r), cfg.batch, vrng)] for _ in range(cfg.val_batches)])
+    val_idx = jnp.asarray(np.stack([val_idx[j.task] for j in jobs]))
+    params = stack_params([init_params(net, jax.random.PRNGKey(j.seed),
+                                       compute_norm({k: v[r] for k, v in pool.items() if k in ("proprio", "target")}),
+                                       j.lineage.proprio) for j, r in zip(jobs, rows, strict=True)])
+    opt = optax.adamw(optax.cosine_decay_schedule(cfg.lr, cfg.steps, alpha=0.05), weight_decay=cfg.weight_decay)
+    opt_state = jax.vmap(opt.init)(params["net"])
+    step_fn, val_loss = _make_group_step(net, opt, cfg.shift), _make_group_val_loss(net)
+    pool, val_pool = jax.device_put(pool), jax.device_put(val_pool)
+    shift_keys = jnp.stack([jax.random.PRNGKey(j.seed + 17) for j in jobs])
+    fold = jax.jit(jax.vmap(jax.random.fold_in, in_axes=(0, None)))
+    rngs = [np.random.default_rng(j.seed) for j in jobs]
+    marks = set(cfg.checkpoint_steps())
+    records, losses = [[] for _ in jobs], []
+    bar = tqdm(total=cfg.steps, desc=f"{net.encoder} x{len(jobs)}", unit="step", disable=not progress, leave=False)
+    t0 = time.perf_counter()
+    for step in range(1, cfg.steps + 1):
+        idx = np.stack([r[_batch_rows(len(r), cfg.batch, g)] for r, g in zip(rows, rngs, strict=True)])
+        params, opt_state, loss = step_fn(params, opt_state, pool, jnp.asarray(idx), fold(shift_keys, step))
+        losses.append(loss)
+        bar.update(1)
+        if step not in marks:
+            continue
+        train_loss = np.mean(np.asarray(jax.device_get(losses[-20:])), axis=0)
+        _check_finite(jobs, train_loss, step)
+        vals = np.asarray(val_loss(params, val_pool, val_idx))
+        for k, j in enumerate(jobs):
+            records[k].append(_record(j, step, net, float(vals[k]), float(train_loss[k])))
+            save_params(out / records[k][-1]["checkpoint"], jax.tree_util.tree_map(lambda x, k=k: x[k], params))
+        bar.set_postfix(loss=f"{train_loss.mean():.3f}", val=f"{vals.mean():.3f}")
+    bar.close()
+    return _finish(jobs, records, out, t0)
 
 
 def train_zoo(cfg: ZooConfig, data: Path, out: Path, progress: bool = True,
               part: tuple[int, int] | None = None) -> list[dict] | None:
-    """Trains (or completes) every lineage of every task; writes and returns the registry. part:
-    (K, N) trains every N-th (task, lineage) from the K-th and returns None, leaving the registry
-    to a run without a part (sim_data.parts: one process per GPU)."""
+    """Trains (or completes) every lineage of every task, the lineages of one network together
+    (train_group); writes and returns the registry. part: (K, N) trains every N-th (task, lineage)
+    from the K-th and returns None, leaving the registry to a run without a part (sim_data.parts:
+    one process per GPU)."""
     cfg.validate()
     out = Path(out)
     make_output_dir(out)
@@ -333,20 +453,26 @@ def train_zoo(cfg: ZooConfig, data: Path, out: Path, progress: bool = True,
     missing = [t for t in cfg.tasks if t not in cache.tasks]
     if missing:
         raise ValueError(f"tasks {missing} are not in the dataset {data} (it has {cache.tasks})")
-    registry = []
     jobs = [(t, lin) for t in cfg.tasks for lin in cfg.lineages]
-    for n, (task, lin) in take(enumerate(jobs, start=1), part):
-        done = out / task / lin.name / "lineage.json"
-        if done.exists():
-            registry += json.loads(done.read_text())
-            continue
-        if progress:
-            print(f"[{n}/{len(jobs)}] {task}/{lin.name}", file=sys.stderr)
-        val_eps = _episodes(cache, task, "val", (1.0,), True, 0) or _episodes(cache, task, "train", (1.0,), True, 0)
-        val = load_samples(cache, val_eps, cfg.net(lin).chunk)
-        registry += train_lineage(cfg, cache, task, lin, out, val, progress)
+    todo = [(t, lin) for _, (t, lin) in take(enumerate(jobs), part)
+            if not (out / t / lin.name / "lineage.json").exists()]
+    val_eps = {t: _episodes(cache, t, "val", (1.0,), True, 0) or _episodes(cache, t, "train", (1.0,), True, 0)
+               for t in cfg.tasks}
+    for net in dict.fromkeys(cfg.net(lin) for _, lin in todo):
+        same = [_job(cfg, cache, t, lin) for t, lin in todo if cfg.net(lin) == net]
+        size = cfg.group or len(same)
+        for group in (same[i:i + size] for i in range(0, len(same), size)):
+            if progress:
+                print(f"training {', '.join(f'{j.task}/{j.lineage.name}' for j in group)} "
+                      f"({net.encoder} network{', together' if len(group) > 1 else ''})", file=sys.stderr)
+            if len(group) == 1:
+                val = load_samples(cache, val_eps[group[0].task], net.chunk)
+                train_lineage(cfg, cache, group[0], out, val, progress)
+            else:
+                train_group(cfg, cache, group, out, val_eps, progress)
     if part is not None:
         return None
+    registry = [r for t, lin in jobs for r in json.loads((out / t / lin.name / "lineage.json").read_text())]
     registry += family_records(cfg, registry)
     write_json_atomic(out / "policies.json", {"data": str(Path(data)), "policies": registry})
     return registry
