@@ -103,8 +103,8 @@ class ZooConfig:
       families: counterfactual families (Family) registered beside the lineages, so that each task's
         zoo spans the range of true success with policies whose differences are known.
       group: lineages of one network trained together as one batched program, at most this many (0:
-        all of them). A GPU runs a dozen small networks in about the time of one; a CPU runs the
-        batched convolutions slower than one at a time, so the CPU presets train one at a time.
+        all of them; 1: one at a time, the CPU presets' choice, since a CPU runs the batched
+        convolutions slower than one lineage at a time).
     """
 
     tasks: tuple = ("mug", "wipe")
@@ -121,7 +121,7 @@ class ZooConfig:
     seed: int = 0
     shift: int = 0
     families: tuple = ()
-    group: int = 0
+    group: int = 1
 
     def validate(self) -> None:
         if self.group < 0:
@@ -173,12 +173,12 @@ PRESETS = {
     # 4 checkpoints a lineage and two families leave the evaluation 16 episodes a policy in the demo's time;
     # the families degrade conv_noproprio, the lineage that learns the mug (conv_proprio fails it)
     "demo": ZooConfig(tasks=("mug", "step_back"), lineages=LINEAGES_MAIN, steps=1000, checkpoints=4, first_step=5,
-                      batch=32, group=1, val_batches=4, conv=PolicyNetConfig(width=16, hidden=128),
+                      batch=32, val_batches=4, conv=PolicyNetConfig(width=16, hidden=128),
                       vit=PolicyNetConfig(encoder="vit", width=32, depth=2, hidden=128),
                       families=(Family("conv_noproprio~noise", "conv_noproprio", "noise", (0.1, 0.2, 0.4)),
                                 Family("conv_noproprio~drive", "conv_noproprio", "drive", (0.5, 1.5, 2.0)))),
     "full": ZooConfig(tasks=("mug", "wipe", "airfryer"), steps=5000, checkpoints=8, first_step=20, batch=256,
-                      val_batches=8, shift=4,
+                      val_batches=8, shift=4, group=0,
                       lineages=LINEAGES_MAIN + (Lineage("conv_noproprio_few", proprio=False, demos=24),
                                                 Lineage("conv_noproprio_lowskill", proprio=False, skills=(0.5, 0.75),
                                                         successes_only=False)),
