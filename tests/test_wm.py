@@ -438,6 +438,9 @@ def test_make_train_smoke_writes_eval_json(smoke_world_model):
     sens = report["action_sensitivity"]  # the smoke data's task episodes: swaps where both outcomes occur
     assert sens["swaps"] == 0 and "note" in sens or 0.0 <= sens["follows_actions"] <= 1.0
     assert "success_follows_actions" in report["summary"]
+    # the smoke data holds no episode of a learned policy: the policy-in-the-loop figure says so
+    assert report["policy_in_the_loop"]["episodes"] == 0 and report["policy_in_the_loop"]["split"] is None
+    assert report["summary"]["action_divergence_h8"] is None
     assert (out / "best").is_dir() and (out / "metrics.jsonl").exists()
 
 

@@ -188,6 +188,41 @@ def test_mixed_dataset_records_policy_rollouts(smoke_dataset, smoke_zoo, smoke_w
     np.testing.assert_allclose(got["features"][0], np.asarray(want["features"][0]), rtol=1e-5, atol=1e-5)
     logged = imagine_episodes(wm_cfg.model, wm_params, norm, cache, [i], "head_cam", False)
     assert not np.allclose(logged["features"][0], got["features"][0])  # not the logged actions replayed
+    # the policy in the loop: the actions it takes on the observations imagined under its logged actions
+    # and on the first one held, against those on the true observations, by hand
+    from wm.evaluate import policy_action_divergence
+    from wm.imagine import open_loop
+
+    cfg = dataclasses.replace(wm_cfg, eval_horizons=(1, 3))
+    pil = policy_action_divergence(cfg, wm_params, norm, cache, [i], pols)
+    n = ep["record"]["length"] - 1
+    frames, prop = ep["frames"]["head_cam"][:n], ep["proprio"][:n]
+    imag = open_loop(wm_cfg.model, wm_params, norm, frames[None, :1], prop[None, :1], np.zeros((1, 0, 20), np.float32),
+                     ep["action"][None, : n - 1])
+    k_init, k_act = jax.random.split(jax.random.PRNGKey(i))
+
+    def acts(images, proprio):
+        carry = src.policy.init_carry(src.params, {"image": images[None, 0], "proprio": proprio[None, 0]}, None, k_init)
+        out = []
+        for t in range(n):
+            a, carry = src.policy.act(src.params, {"image": images[None, t], "proprio": proprio[None, t]}, carry,
+                                      jax.random.fold_in(k_act, t))
+            out.append(np.asarray(a[0]))
+        return np.asarray(norm.action(np.stack(out)))
+
+    on_true = acts(frames, prop)
+    on_imagined = acts(np.concatenate([frames[:1], np.asarray(imag["frames"][0])]),
+                       np.concatenate([prop[:1], np.asarray(imag["proprio"][0])]))
+    on_held = acts(np.repeat(frames[:1], n, 0), np.repeat(prop[:1], n, 0))
+    row = pil["tasks"]["mug"]
+    assert pil["episodes"] == 1 and pil["horizons"] == [1, 3] and row["episodes"] == 1
+    for k, h in enumerate((1, 3)):
+        np.testing.assert_allclose(row["imagined"][k], np.abs(on_imagined - on_true).mean(-1)[h], rtol=1e-3, atol=1e-5)
+        np.testing.assert_allclose(row["copy_first"][k], np.abs(on_held - on_true).mean(-1)[h], rtol=1e-3, atol=1e-5)
+    np.testing.assert_allclose(row["copy_first_mean"], np.abs(on_held - on_true).mean(), rtol=1e-3)
+    np.testing.assert_allclose(pil["logged_vs_true"], np.abs(on_true - np.asarray(norm.action(ep["action"][:n]))).mean(),
+                               rtol=1e-3, atol=1e-6)
+    assert policy_action_divergence(cfg, wm_params, norm, cache, [i], {})["episodes"] == 0
 
 
 def test_checkpoints_of_one_architecture_run_stacked_in_one_chunk_as_each_runs_alone(smoke_dataset, smoke_zoo,

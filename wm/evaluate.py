@@ -34,10 +34,13 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import sys
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 from matplotlib.figure import Figure
 
@@ -54,7 +57,14 @@ from wm.imagine import (
     context_sample,
     open_loop_chunked,
 )
-from wm.judge import EpisodeJudge, imagine_episodes, judge_episodes, load_judge, spread
+from wm.judge import (
+    EpisodeJudge,
+    dataset_policies,
+    imagine_episodes,
+    judge_episodes,
+    load_judge,
+    spread,
+)
 from wm.metrics import accuracy, auroc, psnr, ssim, view_shift
 
 STILL_PX = 1.0  # a true view that moved less than this (pixels) counts as still
@@ -190,6 +200,87 @@ def action_sensitivity(cfg: TrainConfig, params, norm: Norm, cache: TrainingCach
             "mean_abs_change": float(np.abs(change).mean()), "follows_actions": float(towards.mean())}
 
 
+@functools.partial(jax.jit, static_argnums=(0,))
+def _policy_actions(policy, params, images, proprio, rng):
+    """The actions a policy takes, step by step with its own carry, on given observations:
+    images (B, T, S, S, 3) uint8, proprio (B, T, 37) -> (B, T, 20). Every sequence starts a fresh
+    carry from its first observation and sees the same keys."""
+    k_init, k_act = jax.random.split(rng)
+    obs0 = {"image": images[:, 0], "proprio": proprio[:, 0]}
+    carry = policy.init_carry(params, obs0, None, k_init)
+
+    def body(c, x):
+        image, prop, t = x
+        action, c = policy.act(params, {"image": image, "proprio": prop}, c, jax.random.fold_in(k_act, t))
+        return c, action
+
+    xs = (jnp.swapaxes(images, 0, 1), jnp.swapaxes(proprio, 0, 1), jnp.arange(images.shape[1]))
+    return jnp.swapaxes(jax.lax.scan(body, carry, xs)[1], 0, 1)
+
+
+def policy_action_divergence(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, episodes: list[int],
+                             policies: dict) -> dict:
+    """Does a policy act in the world model as it acts in the simulator? For each held-out episode of
+    a learned policy or plug-in (`policies`: wm.judge.dataset_policies), the episode is imagined whole
+    from its first observation under its logged actions; the policy that acted is then run over the imagined
+    observations, over the true ones, and over the first observation held (copy-first), each with a
+    fresh carry and the same keys. Per step, the divergence is the mean over action dimensions of
+    |action on the imagined (or held) observation - action on the true one|, in the world model's
+    action units (divided by the data's action std).
+
+    Returns {"episodes", "horizons", "tasks": {task: {"episodes", "imagined": [mean divergence at each
+    horizon], "copy_first": [...], "imagined_mean", "copy_first_mean" (over every step)}},
+    "imagined_mean", "copy_first_mean" (over tasks), "logged_vs_true": mean divergence of the actions on
+    the true observations from the logged ones (near 0 where the policy is deterministic)}, or
+    {"episodes": 0, "note"} where no held-out episode's policy can be loaded."""
+    ids = [i for i in episodes if cache.episodes[i].get("policy") in policies]
+    if not ids:
+        return {"episodes": 0, "note": "no held-out episode of a learned policy whose registry is on this machine"}
+    horizons = list(cfg.eval_horizons)
+    longest = max(cache.episodes[i]["length"] for i in ids) - 1  # steps followed by an action
+    eps = [cache.episode(i, cameras=[cfg.camera]) for i in ids]
+    samples = []
+    for ep in eps:
+        sample = context_sample(ep, cfg.camera, 0, 1, longest)
+        pad = longest - len(sample["actions"])
+        samples.append({**sample, "actions": np.pad(sample["actions"], ((0, pad), (0, 0)))})
+    imagined = open_loop_chunked(cfg.model, params, norm, samples, longest - 1) if longest > 1 else None
+    per_task: dict = {}
+    logged = []
+    for k, (i, ep) in enumerate(zip(ids, eps, strict=True)):
+        n = cache.episodes[i]["length"] - 1
+        true_img, true_prop = ep["frames"][cfg.camera][:n], ep["proprio"][:n]
+        if imagined is not None:
+            im_img = np.concatenate([true_img[:1], imagined["frames"][k, : n - 1]])
+            im_prop = np.concatenate([true_prop[:1], imagined["proprio"][k, : n - 1]])
+        else:
+            im_img, im_prop = true_img, true_prop
+        held_img, held_prop = np.repeat(true_img[:1], n, 0), np.repeat(true_prop[:1], n, 0)
+        pad = ((0, longest - n),) + ((0, 0),) * 3
+        images = np.stack([np.pad(x, pad, mode="edge") for x in (true_img, im_img, held_img)])
+        prop = np.stack([np.pad(x, pad[:2], mode="edge") for x in (true_prop, im_prop, held_prop)])
+        src = policies[cache.episodes[i]["policy"]]
+        acts = np.asarray(_policy_actions(src.policy, src.params, images, prop, jax.random.PRNGKey(i)))[:, :n]
+        scaled = np.asarray(norm.action(acts))
+        diff = np.abs(scaled[1:] - scaled[0]).mean(-1)  # (2, n): imagined, copy-first
+        logged.append(float(np.abs(scaled[0] - np.asarray(norm.action(ep["action"][:n]))).mean()))
+        row = per_task.setdefault(cache.episodes[i]["task"], {"imagined": [], "copy_first": []})
+        row["imagined"].append(diff[0])
+        row["copy_first"].append(diff[1])
+    tasks = {}
+    for task, row in sorted(per_task.items()):
+        tasks[task] = {"episodes": len(row["imagined"])}
+        for key in ("imagined", "copy_first"):
+            # step h acts on the h-th imagined observation (step 0 on the true first one)
+            tasks[task][key] = [float(np.mean([d[h] for d in row[key] if len(d) > h]))
+                                if any(len(d) > h for d in row[key]) else None for h in horizons]
+            tasks[task][f"{key}_mean"] = float(np.mean(np.concatenate(row[key])))
+    return {"episodes": len(ids), "horizons": horizons, "tasks": tasks,
+            "imagined_mean": float(np.mean([t["imagined_mean"] for t in tasks.values()])),
+            "copy_first_mean": float(np.mean([t["copy_first_mean"] for t in tasks.values()])),
+            "logged_vs_true": float(np.mean(logged))}
+
+
 def controllability(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, tasks=None) -> dict:
     groups: dict = {}
     for i in cache.select("programs", tasks):
@@ -257,6 +348,11 @@ def evaluate(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, out: Pa
     sp["split"] = success_split
     sens = action_sensitivity(cfg, params, norm, cache, tasked, judge, own)
     ctrl = controllability(cfg, params, norm, cache, tasks)
+    policy_split, acted = _held_out(cache, tasks, lambda e: e.get("policy_kind") in ("learned", "plugin"),
+                                    "policy episodes", required=False)
+    pil = policy_action_divergence(cfg, params, norm, cache, spread(acted, cfg.eval_episodes),
+                                   dataset_policies(Path(cache.root).parent) if acted else {})
+    pil["split"] = policy_split
     at = dict(zip(fq["horizons"], range(len(fq["horizons"])), strict=True))
     summary = {
         "psnr_h8": fq["psnr"][at[8]] if 8 in at else None,
@@ -267,23 +363,37 @@ def evaluate(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, out: Pa
         "success_accuracy": sp["accuracy"], "success_auroc": sp["auroc"], "progress_auroc": sp["progress_auroc"],
         "match_accuracy": ctrl.get("match_accuracy"), "delta_psnr_db": ctrl.get("delta_psnr_db"),
         "success_follows_actions": sens.get("follows_actions"),
+        "action_divergence_h8": _at_horizon(pil, "imagined", 8),
+        "action_divergence_copy_first_h8": _at_horizon(pil, "copy_first", 8),
     }
     report = {"summary": summary, "frame_quality": fq, "success_prediction": sp, "action_sensitivity": sens,
-              "controllability": ctrl, "episodes": len(test), "split": split}
+              "controllability": ctrl, "policy_in_the_loop": pil, "episodes": len(test), "split": split}
     write_json_atomic(Path(out) / "eval.json", no_nan(report))
     _save_strip(Path(out) / "eval_frames.png", pictures, fq["horizons"])
     return report
 
 
-def _held_out(cache: TrainingCache, tasks, keep, what: str) -> tuple[str, list[int]]:
-    """The first of the test, val and train splits holding episodes that `keep` accepts, and those."""
+def _held_out(cache: TrainingCache, tasks, keep, what: str, required: bool = True) -> tuple[str | None, list[int]]:
+    """The first of the test, val and train splits holding episodes that `keep` accepts, and those;
+    (None, []) where there are none and they are not required."""
     for split in ("test", "val", "train"):
         ids = [i for i in cache.select(split, tasks) if keep(cache.episodes[i])]
         if ids:
             if split != "test":
                 print(f"warning: no test {what}; evaluating on the {split} split (figures are not held-out)")
             return split, ids
+    if not required:
+        return None, []
     raise ValueError(f"the dataset has no test, val or train {what} to evaluate on")
+
+
+def _at_horizon(pil: dict, key: str, h: int):
+    """The mean over tasks of a policy_action_divergence row at horizon h (None where not measured)."""
+    if not pil.get("episodes") or h not in pil["horizons"]:
+        return None
+    got = [t[key][pil["horizons"].index(h)] for t in pil["tasks"].values()]
+    got = [g for g in got if g is not None]
+    return float(np.mean(got)) if got else None
 
 
 def no_nan(x):
