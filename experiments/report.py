@@ -635,7 +635,8 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
 
 SWEEP_COLUMNS = (("psnr_h8", "PSNR h8"), ("pooled_gain_h8_db", "pooled gain h8 (dB)"),
                  ("success_auroc", "success AUROC"), ("match_accuracy", "match acc"), ("delta_psnr_db", "delta-PSNR"),
-                 ("view_shift_h8_px", "view shift h8 (px)"), ("body_psnr_h8", "air-fryer body PSNR h8"),
+                 ("view_shift_h8_px", "view shift h8 (px)"), ("action_divergence_h8", "policy action divergence h8"),
+                 ("body_psnr_h8", "air-fryer body PSNR h8"),
                  ("rest_psnr_h8", "rest of frame PSNR h8"), ("pearson", "ranking Pearson"), ("mmrv", "ranking MMRV"),
                  ("pairwise_acc_gap10", "pairwise acc (gap >= 10)"), ("alignment", "alignment"),
                  ("ensemble_pearson", "seeds' ensemble Pearson"), ("ensemble_mmrv", "seeds' ensemble MMRV"))

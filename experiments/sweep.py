@@ -77,6 +77,7 @@ METRICS = (
     ("pooled_gain_h8_db", ("summary", "pooled_gain_over_copy_last_h8_db")),
     ("view_shift_h8_px", ("summary", "view_shift_h8_px")),
     ("success_follows_actions", ("summary", "success_follows_actions")),
+    ("action_divergence_h8", ("summary", "action_divergence_h8")),
     # from BODY_FILE, where the sweep measures it (MEASURED)
     ("body_psnr_h8", ("body_in_place", "summary", "body_psnr_h8")),
     ("rest_psnr_h8", ("body_in_place", "summary", "rest_psnr_h8")),
@@ -90,7 +91,8 @@ METRICS = (
 # the range of the metrics that have one: a t-interval over few seeds is clipped to it
 BOUNDS = {**dict.fromkeys(("success_accuracy", "success_auroc", "match_accuracy", "mmrv", "pairwise_acc_gap10",
                            "alignment", "success_follows_actions"), (0.0, 1.0)),
-          "pearson": (-1.0, 1.0), "spearman": (-1.0, 1.0), "view_shift_h8_px": (0.0, math.inf)}
+          "pearson": (-1.0, 1.0), "spearman": (-1.0, 1.0), "view_shift_h8_px": (0.0, math.inf),
+          "action_divergence_h8": (0.0, math.inf)}
 BODY_FILE = "body_in_place.json"  # experiments.body_in_place's figures of a run
 MEASURED = {"airfryer_transfer"}  # sweeps whose runs also get the body-in-place measurement
 RANK_DIR = "ranking"  # experiments.evaluate's OUT within a run: the zoo's policies ranked by its model
