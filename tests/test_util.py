@@ -2,6 +2,8 @@
 
 import json
 import os
+import subprocess
+import sys
 
 import pytest
 
@@ -47,3 +49,12 @@ def test_every_command_runs_with_the_same_cpu_xla_flags_unless_the_user_set_them
     run_cli(lambda: seen.append(os.environ["XLA_FLAGS"]) or 0)
     assert seen == [f"{CPU_XLA_FLAG}=false", f"--xla_force_host_platform_device_count=2 {CPU_XLA_FLAG}=false",
                     f"--xla_force_host_platform_device_count=2 {CPU_XLA_FLAG}=false", f"{CPU_XLA_FLAG}=true"]
+
+
+def test_importing_the_project_sets_the_cpu_xla_flags_before_jax_starts():
+    """pytest's own process and a user's script run JAX as the commands do (the in-process smoke training
+    must equal the one a subprocess runs, bit for bit)."""
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    code = "import os, sim_data, jax; jax.numpy.zeros(1).block_until_ready(); print(os.environ['XLA_FLAGS'])"
+    got = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert got.stdout.strip() == f"{CPU_XLA_FLAG}=false"
