@@ -44,6 +44,7 @@ import argparse
 import dataclasses
 import json
 import os
+import re
 import sys
 import time
 from pathlib import Path
@@ -62,13 +63,40 @@ TIMING = "timing.json"  # in the evaluation's directory: one row per stage comma
 # JAX's compile events (jax.monitoring): tracing, lowering to MLIR and the backend's compilation
 COMPILE_EVENTS = ("/jax/core/compile/jaxpr_trace_duration", "/jax/core/compile/jaxpr_to_mlir_module_duration",
                   "/jax/core/compile/backend_compile_duration")
-_compile = {"seconds": 0.0, "programs": 0}
+_compile = {"seconds": 0.0, "programs": 0, "by_program": {}}  # by_program: function name -> [compiles, seconds]
+SLOWEST_COMPILES = 8  # the timing row names the programs that cost the most compile time
 
 
-def _count_compile(event: str, seconds: float, **_) -> None:
+def _count_compile(event: str, seconds: float, fun_name: str = "?", **_) -> None:
     if event in COMPILE_EVENTS:
+        last = event == COMPILE_EVENTS[-1]
         _compile["seconds"] += seconds
-        _compile["programs"] += event == COMPILE_EVENTS[-1]
+        _compile["programs"] += last
+        count = _compile["by_program"].setdefault(_program_name(fun_name), [0, 0.0])
+        count[0] += last
+        count[1] += seconds
+
+
+def _program_name(fun_name: str) -> str:
+    """The traced function's name: lowering and compile events name it "jit(name)", tracing "name"."""
+    m = re.fullmatch(r"(?:jit|pjit|pmap)\((.*)\)", fun_name)
+    return m.group(1) if m else fun_name
+
+
+def compile_snapshot() -> dict:
+    """A copy of this process's compile totals so far, for `slowest_compiles`."""
+    return {**_compile, "by_program": {k: list(v) for k, v in _compile["by_program"].items()}}
+
+
+def slowest_compiles(before: dict, n: int = SLOWEST_COMPILES) -> list[dict]:
+    """The n programs (jitted functions, by name) that spent the most seconds in tracing, lowering and
+    the backend's compilation since the snapshot `before`: [{"program", "compiles", "s"}], slowest first."""
+    rows = []
+    for name, (count, secs) in _compile["by_program"].items():
+        c0, s0 = before["by_program"].get(name, (0, 0.0))
+        if secs > s0:
+            rows.append({"program": name, "compiles": count - c0, "s": round(secs - s0, 3)})
+    return sorted(rows, key=lambda r: -r["s"])[:n]
 
 
 jax.monitoring.register_event_duration_secs_listener(_count_compile)
@@ -132,7 +160,7 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
     p = pipeline(name, members)
     d = p.dirs(name)
     t0 = time.perf_counter()
-    compiled = dict(_compile)
+    compiled = compile_snapshot()
     spread = len(gpus) > 1 and stage != "report"
     print(f"== {name}: {stage}" + (f" on {len(gpus)} GPUs" if spread else ""), file=sys.stderr, flush=True)
     done = True
@@ -173,7 +201,7 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
     record_timing(d["eval"] / TIMING, {
         "stage": stage, "done": done, "wall_s": round(wall, 3),
         "compile_s": round(_compile["seconds"] - compiled["seconds"], 3),
-        "programs_compiled": _compile["programs"] - compiled["programs"],
+        "programs_compiled": _compile["programs"] - compiled["programs"], "slowest_compiles": slowest_compiles(compiled),
         "gpus": max(len(gpus), 1) if spread else 1, "device": device_name(), **stage_throughput(p, name, stage)})
     print(f"== {name}: {stage} {'done' if done else 'to be continued'} in {wall:.0f} s "
           f"({_compile['seconds'] - compiled['seconds']:.0f} s compiling in this process)", file=sys.stderr, flush=True)

@@ -491,6 +491,15 @@ def timing_table(rows: list[dict]) -> list[list[str]]:
     return out
 
 
+def compile_table(rows: list[dict]) -> list[list[str]] | None:
+    """Per stage command, the programs that cost the most compile time (timing.json's
+    `slowest_compiles`); None where no row names them."""
+    out = [["stage", "program", "compiles", "compiling s"]]
+    out += [[r["stage"], c["program"], str(c["compiles"]), _fmt(c["s"], 1)]
+            for r in rows for c in r.get("slowest_compiles", [])]
+    return out if len(out) > 1 else None
+
+
 def read_index(run: Path) -> dict | None:
     """RUN/videos/index.json (what experiments.videos wrote), or None where the run has no videos yet."""
     path = Path(run) / "videos" / "index.json"
@@ -599,6 +608,9 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
     if timing:
         h += ["<h2>Pipeline timing</h2>", "<p>Per stage command: wall seconds and the seconds spent compiling "
               "(counted in the pipeline's own process).</p>", _html_table(timing_table(timing))]
+        if compile_table(timing):
+            h += ["<p>Where the compile time goes: per stage command, the jitted functions that took the most "
+                  "seconds to trace, lower and compile.</p>", _html_table(compile_table(timing))]
     h += ["<h2>Configuration and versions</h2>", f"<pre>{html.escape(json.dumps(res['config'], indent=1))}</pre>",
           f"<pre>{html.escape(json.dumps(res['versions'], indent=1))}</pre>",
           f"<pre>{html.escape(json.dumps(res['timing'], indent=1))}</pre>", "</body></html>"]
@@ -630,6 +642,8 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
         md += [f"- [{label}]({href})" for label, href in mp4] + [""]
     if timing:
         md += ["## Pipeline timing", "", _md_table(timing_table(timing)), ""]
+        if compile_table(timing):
+            md += ["Where the compile time goes:", "", _md_table(compile_table(timing)), ""]
     return "\n".join(h), "\n".join(md + sweep_md)
 
 

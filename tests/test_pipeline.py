@@ -104,12 +104,15 @@ def test_each_stage_command_appends_its_wall_and_compile_seconds_to_the_timing_t
     import jax.numpy as jnp
     import wm.train
 
-    from experiments.report import timing_table
+    from experiments.report import compile_table, timing_table
 
     calls, d = tiny
 
+    def scaled_tanh(x, scale):
+        return jnp.tanh(x) * scale
+
     def compiling_train(argv):  # compiles one new program, then leaves what a finished training leaves
-        jax.jit(lambda x: jnp.tanh(x) * len(calls))(jnp.ones(3)).block_until_ready()
+        jax.jit(scaled_tanh, static_argnums=1)(jnp.ones(3), len(calls)).block_until_ready()
         calls.append(argv)
         out = d["members"][len(calls) - 1]
         out.mkdir(parents=True, exist_ok=True)
@@ -123,6 +126,11 @@ def test_each_stage_command_appends_its_wall_and_compile_seconds_to_the_timing_t
     assert [r["stage"] for r in rows] == ["train", "train"] and [r["done"] for r in rows] == [False, False]
     assert all(r["programs_compiled"] >= 1 and 0 < r["compile_s"] <= r["wall_s"] for r in rows)
     assert rows[1]["train_steps"] == [7, 7, None]
+    for r in rows:  # each command compiled scaled_tanh once, for its own scale
+        named = [c for c in r["slowest_compiles"] if c["program"] == "scaled_tanh"]
+        assert len(named) == 1 and named[0]["compiles"] == 1 and 0 < named[0]["s"] <= r["compile_s"]
+        assert [c["s"] for c in r["slowest_compiles"]] == sorted((c["s"] for c in r["slowest_compiles"]), reverse=True)
+    assert ["train", "scaled_tanh", "1"] in [row[:3] for row in compile_table(rows)]
     table = timing_table(rows)
     assert table[-1][:3] == ["total", f"{rows[0]['wall_s'] + rows[1]['wall_s']:.1f}",
                              f"{rows[0]['compile_s'] + rows[1]['compile_s']:.1f}"]
