@@ -45,17 +45,21 @@ def test_lineages_trained_together_match_lineages_trained_one_at_a_time(smoke_zo
 
     out, registry = smoke_zoo
     assert zoo.make_config("smoke").group == 2  # the fixture trained both conv lineages as one program
-    alone = zoo.train_zoo(zoo.make_config("smoke", ["group=1"]), smoke_dataset[1], tmp_path / "alone", progress=False)
-    assert [r["name"] for r in alone] == [r["name"] for r in registry]
-    for together, single in zip(registry, alone, strict=True):
-        if together["val_loss"] is None:
-            continue
-        np.testing.assert_allclose(together["val_loss"], single["val_loss"], rtol=1e-4)
-        np.testing.assert_allclose(together["train_loss"], single["train_loss"], rtol=1e-4)
-        a, b = load_params(out / together["checkpoint"]), load_params(tmp_path / "alone" / single["checkpoint"])
-        jax.tree_util.tree_map(lambda x, y: np.testing.assert_allclose(x, y, rtol=1e-4, atol=1e-5), a, b)
+    # one at a time, and the conv lineages in turn inside their one program (lax.map)
+    for name, override in (("alone", "group=1"), ("in_turn", "sequential=conv")):
+        other = zoo.train_zoo(zoo.make_config("smoke", [override]), smoke_dataset[1], tmp_path / name, progress=False)
+        assert [r["name"] for r in other] == [r["name"] for r in registry]
+        for together, single in zip(registry, other, strict=True):
+            if together["val_loss"] is None:
+                continue
+            np.testing.assert_allclose(together["val_loss"], single["val_loss"], rtol=1e-4)
+            np.testing.assert_allclose(together["train_loss"], single["train_loss"], rtol=1e-4)
+            a, b = load_params(out / together["checkpoint"]), load_params(tmp_path / name / single["checkpoint"])
+            jax.tree_util.tree_map(lambda x, y: np.testing.assert_allclose(x, y, rtol=1e-4, atol=1e-5), a, b)
     with pytest.raises(ValueError, match="group must be >= 0"):
         zoo.make_config("smoke", ["group=-1"]).validate()
+    with pytest.raises(ValueError, match="sequential names encoders"):
+        zoo.make_config("smoke", ["sequential=mlp"]).validate()
 
 
 def test_a_family_level_runs_its_base_checkpoint_with_the_knob_applied(smoke_zoo):

@@ -105,6 +105,9 @@ class ZooConfig:
       group: lineages of one network trained together as one batched program, at most this many (0:
         all of them; 1: one at a time, the CPU presets' choice, since a CPU runs the batched
         convolutions slower than one lineage at a time).
+      sequential: encoders whose group runs its lineages one after another inside the one program
+        (lax.map) rather than side by side (vmap): XLA lowers vmapped convolutions to grouped ones,
+        which a GPU runs slower than the same convolutions in turn.
     """
 
     tasks: tuple = ("mug", "wipe")
@@ -122,10 +125,13 @@ class ZooConfig:
     shift: int = 0
     families: tuple = ()
     group: int = 1
+    sequential: tuple = ()
 
     def validate(self) -> None:
         if self.group < 0:
             raise ValueError(f"group must be >= 0 (0: every lineage of a network together), got {self.group}")
+        if not set(self.sequential) <= {"conv", "vit"}:
+            raise ValueError(f"sequential names encoders (conv, vit), got {self.sequential}")
         if not self.tasks or not self.lineages:
             raise ValueError("a zoo needs at least one task and one lineage")
         if self.checkpoints < 1 or self.steps < self.checkpoints or self.first_step < 1:
@@ -178,7 +184,7 @@ PRESETS = {
                       families=(Family("conv_noproprio~noise", "conv_noproprio", "noise", (0.1, 0.2, 0.4)),
                                 Family("conv_noproprio~drive", "conv_noproprio", "drive", (0.5, 1.5, 2.0)))),
     "full": ZooConfig(tasks=("mug", "wipe", "airfryer"), steps=5000, checkpoints=8, first_step=20, batch=256,
-                      val_batches=8, shift=4, group=0,
+                      val_batches=8, shift=4, group=0, sequential=("conv",),
                       lineages=LINEAGES_MAIN + (Lineage("conv_noproprio_few", proprio=False, demos=24),
                                                 Lineage("conv_noproprio_lowskill", proprio=False, skills=(0.5, 0.75),
                                                         successes_only=False)),
@@ -256,16 +262,20 @@ def _step_fn(cfg: PolicyNetConfig, opt, shift: int = 0):
     return step
 
 
-def _make_group_step(cfg: PolicyNetConfig, opt, shift: int = 0):
+def _make_group_step(cfg: PolicyNetConfig, opt, shift: int = 0, sequential: bool = False):
     """The step of L lineages of one network as one program: (params, opt_state) stacked (L, ...), the
     samples' pool on the device, idx (L, B) rows of the pool, keys (L, 2) -> the same and the (L,)
-    losses. The batches are gathered on the device, so a step moves only indices."""
+    losses. The batches are gathered on the device, so a step moves only indices. sequential: the
+    lineages' steps run in turn (lax.map) instead of as one batched step (vmap)."""
     step = _step_fn(cfg, opt, shift)
 
     def one(params, opt_state, pool, idx, key):
         return step(params, opt_state, {k: v[idx] for k, v in pool.items()}, key)
 
-    return jax.jit(jax.vmap(one, in_axes=(0, 0, None, 0, 0)))
+    def in_turn(params, opt_state, pool, idx, keys):
+        return jax.lax.map(lambda a: one(a[0], a[1], pool, a[2], a[3]), (params, opt_state, idx, keys))
+
+    return jax.jit(in_turn if sequential else jax.vmap(one, in_axes=(0, 0, None, 0, 0)))
 
 
 def _make_group_val_loss(cfg: PolicyNetConfig):
@@ -392,7 +402,8 @@ def _pool(cache: TrainingCache, episode_sets: list, chunk: int) -> tuple[dict, l
 
 def train_group(cfg: ZooConfig, cache: TrainingCache, jobs: list[_Job], out: Path, val_eps: dict,
                 progress: bool = True) -> list[dict]:
-    """Trains lineages that share one network as one batched program (jax.vmap over lineages), each on
+    """Trains lineages that share one network as one program (vmap over lineages, or lax.map where
+    cfg.sequential names the network's encoder), each on
     its own demonstrations, seed and batches, saving every lineage's checkpoints; returns their
     registry records. val_eps: per task, the episodes of its fixed validation set."""
     net = cfg.net(jobs[0].lineage)
@@ -410,7 +421,8 @@ def train_group(cfg: ZooConfig, cache: TrainingCache, jobs: list[_Job], out: Pat
                                        j.lineage.proprio) for j, r in zip(jobs, rows, strict=True)])
     opt = optax.adamw(optax.cosine_decay_schedule(cfg.lr, cfg.steps, alpha=0.05), weight_decay=cfg.weight_decay)
     opt_state = jax.vmap(opt.init)(params["net"])
-    step_fn, val_loss = _make_group_step(net, opt, cfg.shift), _make_group_val_loss(net)
+    step_fn = _make_group_step(net, opt, cfg.shift, sequential=net.encoder in cfg.sequential)
+    val_loss = _make_group_val_loss(net)
     pool, val_pool = jax.device_put(pool), jax.device_put(val_pool)
     shift_keys = jnp.stack([jax.random.PRNGKey(j.seed + 17) for j in jobs])
     fold = jax.jit(jax.vmap(jax.random.fold_in, in_axes=(0, None)))
