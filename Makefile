@@ -4,9 +4,9 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 export MUJOCO_GL ?= egl
-# XLA:CPU's multi-threaded Eigen pool can wedge on large vmapped MJX graphs (idle, never returns);
-# every command sets it off itself (sim_data.util.run_cli); this line covers the tests
-export XLA_FLAGS ?= --xla_cpu_multi_thread_eigen=false
+# XLA's flags of every command (sim_data.util.XLA_DEFAULT_FLAGS: XLA:CPU's Eigen pool off, a GPU's
+# deterministic ops on), which importing sim_data also sets; named here so a user sees and can change them
+export XLA_FLAGS ?= --xla_cpu_multi_thread_eigen=false --xla_gpu_deterministic_ops=true
 
 
 CONFIG ?= demo

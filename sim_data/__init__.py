@@ -5,11 +5,11 @@ import os
 
 os.environ.setdefault("MUJOCO_GL", "egl")  # headless OpenGL for MuJoCo's renderer
 
-from sim_data.util import set_cpu_xla_flags  # noqa: E402
+from sim_data.util import set_xla_flags  # noqa: E402
 
 # before JAX's backend starts: every command, test and script of the project imports this package, so
-# XLA:CPU runs with one setting however it is started (python -m, pytest, make)
-set_cpu_xla_flags()
+# XLA runs with one setting however it is started (python -m, pytest, make)
+set_xla_flags()
 
 from sim_data.policies.scripted import PROGRAMS, ScriptedPolicy, action_program  # noqa: E402
 from sim_data.sim import robot  # noqa: E402

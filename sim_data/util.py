@@ -34,26 +34,32 @@ def wilson_interval(successes: int, n: int) -> tuple[float, float]:
     return (float(ci.low), float(ci.high))
 
 
+# XLA's flags every command runs with, however it is started, unless the user set one either way.
 # XLA:CPU's multi-threaded Eigen pool can wedge on large vmapped MJX graphs (idle, never returns), and
 # its matrix products round differently with and without it (the ViT policies' weights differ in the
-# seventh digit after 100 steps): one setting for every command, however it is started.
-CPU_XLA_FLAG = "--xla_cpu_multi_thread_eigen"
+# seventh digit after 100 steps). On a GPU, XLA's default kernels (atomic scatters, autotuned
+# algorithms) let the same closed-loop batch differ between two runs, even in one process, from the
+# first step (sim_data.bench.determinism: 128 of 128 episodes on an H200); deterministic ops make them
+# bit-identical, here at no cost to the rollout and 6% to the world model's train step (docs/benchmarks.md).
+XLA_DEFAULT_FLAGS = {"--xla_cpu_multi_thread_eigen": "false", "--xla_gpu_deterministic_ops": "true"}
 
 
-def set_cpu_xla_flags() -> None:
-    """Adds CPU_XLA_FLAG=false to XLA_FLAGS unless the user set it either way. XLA reads its flags when
-    JAX's backend starts, so call it before the first computation."""
+def set_xla_flags() -> None:
+    """Adds each of XLA_DEFAULT_FLAGS to XLA_FLAGS unless the user set it either way. XLA reads its
+    flags when JAX's backend starts, so call it before the first computation."""
     flags = os.environ.get("XLA_FLAGS", "")
-    if CPU_XLA_FLAG not in flags:
-        os.environ["XLA_FLAGS"] = f"{flags} {CPU_XLA_FLAG}=false".strip()
+    for flag, value in XLA_DEFAULT_FLAGS.items():
+        if flag not in flags:
+            flags = f"{flags} {flag}={value}".strip()
+    os.environ["XLA_FLAGS"] = flags
 
 
 def run_cli(main) -> int:
-    """Runs a command's main() for `python -m`, with XLA's CPU flags set (set_cpu_xla_flags): a user's
+    """Runs a command's main() for `python -m`, with XLA's flags set (set_xla_flags): a user's
     mistake (a bad path, preset, value, plug-in or selector, raised as FileNotFoundError,
     NotADirectoryError or ValueError with a message that names the input) ends in that one line and
     exit status 2, without a traceback."""
-    set_cpu_xla_flags()
+    set_xla_flags()
     try:
         return main()
     except (FileNotFoundError, NotADirectoryError, ValueError) as e:

@@ -42,3 +42,11 @@ def test_the_commands_mistakes_are_refused(tmp_path):
         D.main([])
     with pytest.raises(FileNotFoundError, match="is missing: train a zoo first"):
         D.main(["--out", str(tmp_path / "d.json"), "--policies", str(tmp_path / "nozoo")])
+
+
+def test_a_settings_flags_replace_the_projects_flags_of_the_same_name():
+    base = "--xla_cpu_multi_thread_eigen=false --xla_gpu_deterministic_ops=true"
+    assert D.merged_flags(base, "--xla_gpu_deterministic_ops=false") == \
+        "--xla_cpu_multi_thread_eigen=false --xla_gpu_deterministic_ops=false"
+    assert D.merged_flags(base, "") == base
+    assert D.merged_flags("", "--a=1 --b") == "--a=1 --b"

@@ -1,4 +1,4 @@
-"""sim_data.util: atomic JSON, the Wilson interval, output directories, users' mistakes and XLA's CPU flags."""
+"""sim_data.util: atomic JSON, the Wilson interval, output directories, users' mistakes and XLA's flags."""
 
 import json
 import os
@@ -8,7 +8,7 @@ import sys
 import pytest
 
 from sim_data.util import (
-    CPU_XLA_FLAG,
+    XLA_DEFAULT_FLAGS,
     make_output_dir,
     run_cli,
     wilson_interval,
@@ -38,23 +38,28 @@ def test_json_is_written_whole_and_the_interval_is_scipys_wilson(tmp_path):
     assert wilson_interval(80, 100) == pytest.approx((0.7112, 0.8666), abs=1e-4)
 
 
-def test_every_command_runs_with_the_same_cpu_xla_flags_unless_the_user_set_them(monkeypatch):
+DEFAULTS = " ".join(f"{k}={v}" for k, v in XLA_DEFAULT_FLAGS.items())
+CPU_FLAG, GPU_FLAG = XLA_DEFAULT_FLAGS
+
+
+def test_every_command_runs_with_the_same_xla_flags_unless_the_user_set_them(monkeypatch):
     seen = []
     monkeypatch.delenv("XLA_FLAGS", raising=False)
     assert run_cli(lambda: seen.append(os.environ["XLA_FLAGS"]) or 0) == 0
     monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
     run_cli(lambda: seen.append(os.environ["XLA_FLAGS"]) or 0)
     run_cli(lambda: seen.append(os.environ["XLA_FLAGS"]) or 0)  # not appended twice
-    monkeypatch.setenv("XLA_FLAGS", f"{CPU_XLA_FLAG}=true")  # the user's choice stands
+    monkeypatch.setenv("XLA_FLAGS", f"{CPU_FLAG}=true {GPU_FLAG}=false")  # the user's choice stands
     run_cli(lambda: seen.append(os.environ["XLA_FLAGS"]) or 0)
-    assert seen == [f"{CPU_XLA_FLAG}=false", f"--xla_force_host_platform_device_count=2 {CPU_XLA_FLAG}=false",
-                    f"--xla_force_host_platform_device_count=2 {CPU_XLA_FLAG}=false", f"{CPU_XLA_FLAG}=true"]
+    assert seen == [DEFAULTS, f"--xla_force_host_platform_device_count=2 {DEFAULTS}",
+                    f"--xla_force_host_platform_device_count=2 {DEFAULTS}", f"{CPU_FLAG}=true {GPU_FLAG}=false"]
+    assert XLA_DEFAULT_FLAGS == {"--xla_cpu_multi_thread_eigen": "false", "--xla_gpu_deterministic_ops": "true"}
 
 
-def test_importing_the_project_sets_the_cpu_xla_flags_before_jax_starts():
+def test_importing_the_project_sets_the_xla_flags_before_jax_starts():
     """pytest's own process and a user's script run JAX as the commands do (the in-process smoke training
     must equal the one a subprocess runs, bit for bit)."""
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
     code = "import os, sim_data, jax; jax.numpy.zeros(1).block_until_ready(); print(os.environ['XLA_FLAGS'])"
     got = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-    assert got.stdout.strip() == f"{CPU_XLA_FLAG}=false"
+    assert got.stdout.strip() == DEFAULTS

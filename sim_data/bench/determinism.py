@@ -2,11 +2,12 @@
 
     python -m sim_data.bench.determinism --out runs/bench/determinism.json [--task mug] [--states 64]
         [--policies runs/policies/full#mug+conv_noproprio] [--engine mjx] [--processes 2]
-        [--flags= --flags=--xla_gpu_deterministic_ops=true]
+        [--flags=--xla_gpu_deterministic_ops=false --flags=--xla_gpu_deterministic_ops=true]
 
 The evaluator's ground truth is a batch of closed-loop episodes: policies acting on the frames the
 renderer draws, in a contact-rich simulation that amplifies the last bit of a float. For each XLA
-flag set (`--flags`, repeatable; "" is XLA's default), `--processes` fresh processes record the same
+flag set (`--flags`, repeatable; added to the project's own, `sim_data.util.XLA_DEFAULT_FLAGS`, which
+name deterministic ops unless the set names them), `--processes` fresh processes record the same
 batch (the same policies, initial states and keys), each twice; the episodes are compared bit for
 bit against the first process's. Reported per flag set: whether every process and both records in a
 process agree, how many episodes and final outcomes differ, the first step at which any episode
@@ -42,7 +43,7 @@ from sim_data.sim.rollout import record_policies
 from sim_data.util import device_name, run_cli, write_json_atomic
 
 CAMERA = "head_cam"
-DEFAULT_FLAGS = ("", "--xla_gpu_deterministic_ops=true")
+DEFAULT_FLAGS = ("--xla_gpu_deterministic_ops=false", "--xla_gpu_deterministic_ops=true")  # XLA's default, the project's
 
 
 def batch_policies(spec: str, task: str) -> tuple:
@@ -111,11 +112,17 @@ def compare(runs: list[dict]) -> dict:
             "first_divergent_step": first, "max_abs_proprio_diff": largest}
 
 
+def merged_flags(base: str, flags: str) -> str:
+    """XLA_FLAGS `base` with one setting's `flags` added, each replacing a flag of the same name."""
+    names = {f.split("=")[0] for f in flags.split()}
+    return " ".join([f for f in base.split() if f.split("=")[0] not in names] + flags.split())
+
+
 def run_setting(flags: str, processes: int, child_args: list[str], workdir: Path) -> dict:
     """`processes` child processes with `flags` added to XLA_FLAGS, at once (each allocating GPU memory
     as it needs it), compared (compare). Raises RuntimeError with a child's log where one fails."""
     env = {**os.environ, "XLA_PYTHON_CLIENT_PREALLOCATE": "false",
-           "XLA_FLAGS": f"{os.environ.get('XLA_FLAGS', '')} {flags}".strip()}
+           "XLA_FLAGS": merged_flags(os.environ.get("XLA_FLAGS", ""), flags)}
     files = [workdir / f"run{k}.npz" for k in range(processes)]
     logs = [workdir / f"run{k}.log" for k in range(processes)]
     procs = []
