@@ -10,9 +10,11 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+from mujoco import mjx
 
 from sim_data.policies.scripted import ScriptedPolicy
 from sim_data.sim import robot as R
+from sim_data.sim.engines import POSE_FIELDS
 from sim_data.sim.env import HomeEnv
 from sim_data.sim.rollout import SEGMENT, _scan_segment, run_episodes
 from sim_data.sim.tasks import PHYSICS_SUBSTEPS, TASK_NAMES
@@ -64,6 +66,26 @@ def test_mjx_replays_cpu_episode_within_tolerance(mug_episode):
     assert worst < PARITY_TOL, f"engines diverged by {worst}"
     np.testing.assert_array_equal(np.stack(flags, 1), np.asarray(traj.success))
     assert np.asarray(state.success).all()  # and the scripted episodes did succeed
+
+
+@pytest.mark.slow
+def test_mjx_init_places_what_forward_places_and_steps_the_same(mug_episode):
+    """The engine's init runs only the position stages; poses, and the step after, equal mjx.forward's."""
+    env, rng, _, _ = mug_episode
+    mj = HomeEnv("mug", 2, engine="mjx")
+    eng = mj.engine
+    state = mj.reset(jax.random.split(rng, 3)[0])
+
+    def forward(q, mp):  # what the engine's init ran before: the whole forward pass from the sampled state
+        return mjx.forward(eng.mx, mjx.make_data(eng.mx, impl="jax").replace(qpos=q, mocap_pos=mp))
+
+    full = jax.jit(jax.vmap(forward))(state.qpos, state.mocap_pos)
+    for k in ("qpos", *POSE_FIELDS):
+        np.testing.assert_allclose(np.asarray(getattr(state.physics, k)), np.asarray(getattr(full, k)), atol=1e-6)
+    action = jnp.zeros((2, R.ACTION_DIM), jnp.float32)
+    a, b = mj.step(state, action), mj.step(state.replace(physics=full), action)
+    np.testing.assert_array_equal(np.asarray(a.qpos), np.asarray(b.qpos))
+    np.testing.assert_array_equal(np.asarray(a.qvel), np.asarray(b.qvel))
 
 
 @pytest.mark.slow

@@ -105,12 +105,17 @@ class MjxEngine:
         self.mx = mjx.put_model(model, impl="jax")
 
     def init(self, qpos, mocap_pos) -> Any:
+        """Data at rest at qpos (B, nq) with mocap bodies at mocap_pos (B, nmocap, 3), its poses and
+        cameras computed. Only the position stages that place bodies, geoms and cameras run: a step
+        recomputes everything else from qpos, qvel, controls and the warm start (zero until a step),
+        so the episode is the same as after a full mjx.forward, whose collision and constraint
+        stages would compile a second time beside the step's."""
         mjx, mx = self._mjx, self.mx
 
         def one(q, mp):
             d = mjx.make_data(mx, impl="jax")
             d = d.replace(qpos=q, mocap_pos=mp)
-            return mjx.forward(mx, d)
+            return mjx.camlight(mx, mjx.com_pos(mx, mjx.kinematics(mx, d)))
 
         return jax.vmap(one)(jnp.asarray(qpos, jnp.float32), jnp.asarray(mocap_pos, jnp.float32))
 

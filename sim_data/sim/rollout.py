@@ -56,6 +56,13 @@ def _concat_time(segments):
     return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs, axis=0), *segments)
 
 
+@jax.jit
+def _trajectory_of(segments) -> Trajectory:
+    """The segments' records as one batch-major Trajectory: one program, where eager concatenations
+    and transposes would each compile for every leaf's shape."""
+    return _to_batch_major(_concat_time(segments))
+
+
 def _segment_starts(env: HomeEnv) -> range:
     return range(0, env.episode_steps, SEGMENT)
 
@@ -82,7 +89,7 @@ def run_episodes(env: HomeEnv, policy, params, rng: jax.Array, record: bool = Fa
         for start in _segment_starts(env):
             state, carry, traj = _scan_segment(env.core, policy, record, params, state, carry, k_act, jnp.int32(start))
             segments.append(traj)
-        return state, (_to_batch_major(_concat_time(segments)) if record else None)
+        return state, (_trajectory_of(segments) if record else None)
     act = _jitted_act(policy)
     steps = []
     for t in range(env.episode_steps):
@@ -161,7 +168,15 @@ def _stack_recording(first, rest, actions, xp=jnp) -> Recording:
 
     frames = {k: cat(first[0][k], rest[0][k]) for k in first[0]}
     rec = {k: cat(first[1][k], rest[1][k]) for k in first[1]}
-    return jax.device_put(Recording(frames=frames, action=xp.swapaxes(actions, 0, 1), **rec))
+    return Recording(frames=frames, action=xp.swapaxes(actions, 0, 1), **rec)
+
+
+@jax.jit
+def _recording_of(first, segments) -> Recording:
+    """The `mjx` engine's Recording from the reset state's (frames, record) and the segments'
+    ((frames, record), actions): one program rather than an eager op per leaf's shape."""
+    rest, actions = _concat_time(segments)
+    return _stack_recording(first, rest, actions)
 
 
 def record_episodes(env: HomeEnv, policy, params, rng: jax.Array, renderers: tuple[Renderer, ...] = (),
@@ -185,8 +200,7 @@ def record_episodes(env: HomeEnv, policy, params, rng: jax.Array, renderers: tup
             state, carry, obs, seg = _scan_recorded(env.core, policy, renderers, params, state, carry, obs, k_act,
                                                     jnp.int32(start), rgb)
             segments.append(seg)
-        rest, actions = _concat_time(segments)
-        return state, _stack_recording((frames, rec), rest, actions)
+        return state, _recording_of((frames, rec), segments)
     jitted = _jitted_cpu_observe(renderers)
 
     def observe(st, colors):
@@ -205,7 +219,7 @@ def record_episodes(env: HomeEnv, policy, params, rng: jax.Array, renderers: tup
             progress(1)
     first, steps, actions = jax.device_get((first, steps, actions))
     rest = jax.tree_util.tree_map(lambda *xs: np.stack(xs), *steps)
-    return state, _stack_recording(first, rest, np.stack(actions), xp=np)
+    return state, jax.device_put(_stack_recording(first, rest, np.stack(actions), xp=np))
 
 
 @functools.lru_cache(maxsize=64)
