@@ -24,7 +24,13 @@ def kin(model):
     return Kinematics(model)
 
 
-def test_kinematics_matches_mujoco(model, kin):
+@pytest.fixture(scope="module")
+def right_grip(kin):
+    """kin.grip of the right hand, compiled once: run op by op it takes half a minute of dispatch."""
+    return jax.jit(lambda qpos: kin.grip(qpos, 1))
+
+
+def test_kinematics_matches_mujoco(model, kin, right_grip):
     import mujoco
 
     d = mujoco.MjData(model)
@@ -32,7 +38,7 @@ def test_kinematics_matches_mujoco(model, kin):
     q = np.asarray(kin.idx.robot.arm_qpos)
     d.qpos[q] = np.concatenate([S.READY_ARM, S.READY_ARM])
     mujoco.mj_forward(model, d)
-    p, rot, jac = jax.jit(lambda x: kin.grip(x, 1))(jnp.asarray(d.qpos, jnp.float32))
+    p, rot, jac = right_grip(jnp.asarray(d.qpos, jnp.float32))
     np.testing.assert_allclose(np.asarray(p), d.site("right_grip").xpos, atol=1e-5)
     np.testing.assert_allclose(np.asarray(rot), d.site("right_grip").xmat.reshape(3, 3), atol=1e-5)
     jacp = np.zeros((3, model.nv))
@@ -42,14 +48,14 @@ def test_kinematics_matches_mujoco(model, kin):
     np.testing.assert_allclose(np.asarray(jac), np.concatenate([jacp[:, dofs], jacr[:, dofs]]), atol=1e-5)
 
 
-def test_ik_reaches_a_hand_down_target(model, kin):
+def test_ik_reaches_a_hand_down_target(model, kin, right_grip):
     qpos = jnp.asarray(model.qpos0, jnp.float32).at[kin.idx.robot.arm_qpos].set(np.concatenate([S.READY_ARM, S.READY_ARM]))
     target, yaw = jnp.array([0.40, -0.25, 1.0]), 0.3  # a grasp pose in front of the right shoulder
     step = jax.jit(lambda q: ik_step(kin, qpos, q, target, yaw))
     q = qpos[kin.idx.robot.arm_qpos[7:]]
     for _ in range(60):
         q = step(q)
-    p, rot, _ = kin.grip(qpos.at[kin.idx.robot.arm_qpos[7:]].set(q), 1)
+    p, rot, _ = right_grip(qpos.at[kin.idx.robot.arm_qpos[7:]].set(q))
     assert float(jnp.linalg.norm(p - target)) < 2e-3
     assert float(rot[2, 2]) > 0.999  # hand z up => fingers point down
     assert abs(float(jnp.arctan2(rot[1, 0], rot[0, 0])) - yaw) < 1e-2

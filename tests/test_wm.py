@@ -3,6 +3,7 @@ the sliding context, imagination consistent with training, the loss falling, res
 a non-finite loss stopping the run, make train's smoke preset with eval.json."""
 
 import dataclasses
+import functools
 import json
 import shutil
 
@@ -40,6 +41,18 @@ from wm.train import Run, TrainingDiverged, _check_config
 from wm.train import main as train_main
 
 CFG = SMOKE_MODEL
+
+
+@functools.cache
+def compiled(module, method=None, **kwargs):
+    """module.apply(variables, *args, method=method, **kwargs) compiled as one program: run op by op, a
+    convolutional model compiles each operation apart, which costs most of these tests' time on a CPU."""
+    return jax.jit(functools.partial(module.apply, method=method, **kwargs))
+
+
+# the imagination's pieces as the library's scans run them: compiled
+init_state = jax.jit(I.init_state, static_argnums=0)
+imagine_step = jax.jit(I.step, static_argnums=0)
 
 
 def test_psnr_ssim_auroc_hand_values():
@@ -98,7 +111,7 @@ def test_sub_pixel_decoder_unfolds_channels_into_pixels():
     params = dec.init(jax.random.PRNGKey(0), z, prev)
     convs = [v["kernel"].shape for k, v in params["params"].items() if k.startswith("Conv_")]
     assert [s[-1] for s in convs[1:4]] == [4 * c for c in cfg.channels[::-1]]  # 4x wider, at the lower resolution
-    out = dec.apply(params, z, prev)
+    out = compiled(dec)(params, z, prev)
     assert out.shape == (2, 64, 64, 3) and abs(float(out.mean()) - 0.25) < 0.05  # starts near a copy of prev
 
 
@@ -106,10 +119,9 @@ def test_bfloat16_decoder_frames_agree_with_float32(model_and_inputs):
     """Mixed precision (every convolution in bf16, the output conv included) moves a decoded frame by
     little more than bf16's rounding: the same parameters decode alike in both dtypes."""
     params, frames, _, _ = model_and_inputs
-    z = WorldModel(CFG).apply({"params": params}, frames, method=WorldModel.encode)
+    z = compiled(WorldModel(CFG), WorldModel.encode)({"params": params}, frames)
     prev = frames.astype(np.float32) / 255.0
-    out = {dt: WorldModel(dataclasses.replace(CFG, dtype=dt)).apply({"params": params}, z, prev,
-                                                                    method=WorldModel.decode)
+    out = {dt: compiled(WorldModel(dataclasses.replace(CFG, dtype=dt)), WorldModel.decode)({"params": params}, z, prev)
            for dt in ("float32", "bfloat16")}
     err = np.abs(np.asarray(out["bfloat16"]) - np.asarray(out["float32"]))
     assert out["bfloat16"].dtype == jnp.float32 and err.mean() < 5e-4 and err.max() < 0.01, (err.mean(), err.max())
@@ -128,7 +140,7 @@ def test_keep_gate_copies_the_unwarped_previous_frame_exactly():
     def with_keep_bias(b):
         p = jax.tree_util.tree_map(lambda x: x, params)
         p["params"][out_conv]["bias"] = p["params"][out_conv]["bias"].at[4].set(b)
-        return dec.apply(p, z, prev, flow, with_keep=True)
+        return compiled(dec, with_keep=True)(p, z, prev, flow)
 
     kept, logits = with_keep_bias(50.0)
     assert logits.shape == (2, 64, 64) and bool((logits > 0).all())
@@ -138,8 +150,8 @@ def test_keep_gate_copies_the_unwarped_previous_frame_exactly():
     # a threshold above the logits keeps nothing: the frame is the composed one of the same parameters
     p = jax.tree_util.tree_map(lambda x: x, params)
     p["params"][out_conv]["bias"] = p["params"][out_conv]["bias"].at[4].set(50.0)
-    strict = Decoder(dataclasses.replace(cfg, keep_threshold=1e9)).apply(p, z, prev, flow)
-    np.testing.assert_array_equal(np.asarray(strict), np.asarray(Decoder(dataclasses.replace(cfg, keep=False)).apply(
+    strict = compiled(Decoder(dataclasses.replace(cfg, keep_threshold=1e9)))(p, z, prev, flow)
+    np.testing.assert_array_equal(np.asarray(strict), np.asarray(compiled(Decoder(dataclasses.replace(cfg, keep=False)))(
         {"params": {**p["params"], out_conv: {"kernel": p["params"][out_conv]["kernel"][..., :4],
                                               "bias": p["params"][out_conv]["bias"][:4]}}}, z, prev, flow)))
     with pytest.raises(ValueError, match="w_keep"):
@@ -209,24 +221,24 @@ def test_time_bias_in_the_product_equals_an_added_bias_and_its_gradient():
 def test_modules_shapes_causality_and_context(model_and_inputs):
     params, frames, proprio, action = model_and_inputs
     m = WorldModel(CFG)
-    z = m.apply({"params": params}, frames, method=WorldModel.encode)
+    z = compiled(m, WorldModel.encode)({"params": params}, frames)
     assert z.shape == (2, 6, 8, 8, CFG.latent) and float(jnp.abs(z).max()) <= 1.0
     prev = frames.astype(np.float32) / 255.0
-    x = m.apply({"params": params}, z, prev, method=WorldModel.decode)
+    x = compiled(m, WorldModel.decode)({"params": params}, z, prev)
     assert x.shape == frames.shape and 0.0 <= float(x.min()) and float(x.max()) <= 1.0
-    out = m.apply({"params": params}, z, proprio, action, method=WorldModel.predict)
+    out = compiled(m, WorldModel.predict)({"params": params}, z, proprio, action)
     assert out["z"].shape == z.shape and out["proprio"].shape == proprio.shape and out["success"].shape == (2, 6)
     assert out["flow"].shape == (2, 6, 8, 8, 2)
-    warped = m.apply({"params": params}, z, prev, out["flow"], method=WorldModel.decode)
+    warped = compiled(m, WorldModel.decode)({"params": params}, z, prev, out["flow"])
     assert float(jnp.abs(warped - x).max()) > 1e-3  # the flow reaches the frame
     # frame 4 changed: predictions made at frames 0..3 are unchanged, at frame 4 they change
     z2 = z.at[:, 4].set(-z[:, 4])
-    out2 = m.apply({"params": params}, z2, proprio, action, method=WorldModel.predict)
+    out2 = compiled(m, WorldModel.predict)({"params": params}, z2, proprio, action)
     np.testing.assert_allclose(out2["z"][:, :4], out["z"][:, :4], atol=1e-5)
     assert float(jnp.abs(out2["z"][:, 4] - out["z"][:, 4]).max()) > 1e-3
     # the prediction at frame 5 sees frames 2..5 (context 4): frame 1 does not matter
     z3 = z.at[:, 1].set(-z[:, 1])
-    out3 = m.apply({"params": params}, z3, proprio, action, method=WorldModel.predict)
+    out3 = compiled(m, WorldModel.predict)({"params": params}, z3, proprio, action)
     np.testing.assert_allclose(out3["z"][:, 5], out["z"][:, 5], atol=1e-5)
     assert float(jnp.abs(out3["z"][:, 2] - out["z"][:, 2]).max()) > 1e-3
 
@@ -236,10 +248,10 @@ def test_imagination_step_equals_the_teacher_forced_prediction(model_and_inputs)
     norm = I.Norm(jnp.zeros(37), jnp.ones(37), jnp.zeros(20), jnp.ones(20))
     m = WorldModel(CFG)
     c = 3
-    z = m.apply({"params": params}, frames[:, :c], method=WorldModel.encode)
-    tf = m.apply({"params": params}, z, proprio[:, :c], action[:, :c], method=WorldModel.predict)
-    st = I.init_state(CFG, params, norm, frames[:, :c], proprio[:, :c], action[:, :c - 1])
-    st = I.step(CFG, params, norm, st, action[:, c - 1])
+    z = compiled(m, WorldModel.encode)({"params": params}, frames[:, :c])
+    tf = compiled(m, WorldModel.predict)({"params": params}, z, proprio[:, :c], action[:, :c])
+    st = init_state(CFG, params, norm, frames[:, :c], proprio[:, :c], action[:, :c - 1])
+    st = imagine_step(CFG, params, norm, st, action[:, c - 1])
     np.testing.assert_allclose(st.z[:, -1], tf["z"][:, -1], atol=1e-5)
     np.testing.assert_allclose(st.proprio[:, -1], tf["proprio"][:, -1], atol=1e-4)
     got = I.open_loop(CFG, params, norm, frames[:, :c], proprio[:, :c], action[:, :c - 1], action[:, c - 1:])
@@ -270,14 +282,14 @@ def test_reencoding_imagination_feeds_back_the_latents_of_the_decoded_8_bit_fram
     norm = I.Norm(jnp.zeros(37), jnp.ones(37), jnp.zeros(20), jnp.ones(20))
     m = WorldModel(CFG)
     c = 3
-    st0 = I.init_state(CFG, params, norm, frames[:, :c], proprio[:, :c], action[:, :c - 1])
-    plain = I.step(CFG, params, norm, st0, action[:, c - 1])
+    st0 = init_state(CFG, params, norm, frames[:, :c], proprio[:, :c], action[:, :c - 1])
+    plain = imagine_step(CFG, params, norm, st0, action[:, c - 1])
     re_cfg = dataclasses.replace(CFG, reencode=True)
-    again = I.step(re_cfg, params, norm, st0, action[:, c - 1])
+    again = imagine_step(re_cfg, params, norm, st0, action[:, c - 1])
     np.testing.assert_array_equal(again.frame, plain.frame)  # the same prediction and frame
     np.testing.assert_allclose(again.proprio, plain.proprio, atol=1e-6)
     shown = I.to_uint8(again.frame)
-    np.testing.assert_allclose(again.z[:, -1], m.apply({"params": params}, shown, method=WorldModel.encode),
+    np.testing.assert_allclose(again.z[:, -1], compiled(m, WorldModel.encode)({"params": params}, shown),
                                atol=1e-5)
     np.testing.assert_allclose(again.z[:, :-1], plain.z[:, :-1])
     assert float(jnp.abs(again.z[:, -1] - plain.z[:, -1]).max()) > 1e-3
