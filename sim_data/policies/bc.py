@@ -22,6 +22,7 @@ params: {"net": Flax parameters, "norm": {"proprio_mean", "proprio_std", "action
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 from pathlib import Path
 
@@ -140,11 +141,21 @@ def predict_chunk(cfg: PolicyNetConfig, params, image, proprio, t):
     return out * n["action_std"] + n["action_mean"]
 
 
+@functools.lru_cache(maxsize=16)
+def _net_init(cfg: PolicyNetConfig):
+    """The network's initialiser, rng -> parameters, as one program: run eagerly, each of its
+    initialisers' ops would compile on its own (hundreds of small programs a network)."""
+    def init(rng):
+        image = jnp.zeros((1, cfg.size, cfg.size, 3), jnp.uint8)
+        return PolicyNet(cfg).init(rng, image, jnp.zeros((1, R.PROPRIO_DIM)), jnp.zeros((1,), jnp.int32))["params"]
+
+    return jax.jit(init)
+
+
 def init_params(cfg: PolicyNetConfig, rng, norm: dict, use_proprio: bool) -> dict:
     """Fresh parameters; norm holds proprio/action mean and std ((37,), (20,))."""
     cfg.validate()
-    image = jnp.zeros((1, cfg.size, cfg.size, 3), jnp.uint8)
-    net = PolicyNet(cfg).init(rng, image, jnp.zeros((1, R.PROPRIO_DIM)), jnp.zeros((1,), jnp.int32))["params"]
+    net = _net_init(cfg)(rng)
     return {"net": net, "norm": {k: jnp.asarray(v, jnp.float32) for k, v in norm.items()},
             "proprio_gate": jnp.asarray(1.0 if use_proprio else 0.0, jnp.float32)}
 
