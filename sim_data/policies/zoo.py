@@ -403,9 +403,9 @@ def _pool(cache: TrainingCache, episode_sets: list, chunk: int) -> tuple[dict, l
 def train_group(cfg: ZooConfig, cache: TrainingCache, jobs: list[_Job], out: Path, val_eps: dict,
                 progress: bool = True) -> list[dict]:
     """Trains lineages that share one network as one program (vmap over lineages, or lax.map where
-    cfg.sequential names the network's encoder), each on
-    its own demonstrations, seed and batches, saving every lineage's checkpoints; returns their
-    registry records. val_eps: per task, the episodes of its fixed validation set."""
+    cfg.sequential names the network's encoder), each on its own demonstrations, seed and batches,
+    saving every lineage's checkpoints; returns their registry records. val_eps: per task, the
+    episodes of its fixed validation set."""
     net = cfg.net(jobs[0].lineage)
     assert all(cfg.net(j.lineage) == net for j in jobs), "a group shares one network"
     pool, rows = _pool(cache, [j.episodes for j in jobs], net.chunk)
