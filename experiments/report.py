@@ -609,8 +609,8 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
         h += ["<h2>Pipeline timing</h2>", "<p>Per stage command: wall seconds and the seconds spent compiling "
               "(counted in the pipeline's own process).</p>", _html_table(timing_table(timing))]
         if compile_table(timing):
-            h += ["<p>Where the compile time goes: per stage command, the jitted functions that took the most "
-                  "seconds to trace, lower and compile.</p>", _html_table(compile_table(timing))]
+            h += [("<p>Where the compile time goes: per stage command, the jitted functions that took the most "
+                   "seconds to trace, lower and compile.</p>"), _html_table(compile_table(timing))]
     h += ["<h2>Configuration and versions</h2>", f"<pre>{html.escape(json.dumps(res['config'], indent=1))}</pre>",
           f"<pre>{html.escape(json.dumps(res['versions'], indent=1))}</pre>",
           f"<pre>{html.escape(json.dumps(res['timing'], indent=1))}</pre>", "</body></html>"]

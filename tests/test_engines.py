@@ -71,7 +71,7 @@ def test_mjx_replays_cpu_episode_within_tolerance(mug_episode):
 @pytest.mark.slow
 def test_mjx_init_places_what_forward_places_and_steps_the_same(mug_episode):
     """The engine's init runs only the position stages; poses, and the step after, equal mjx.forward's."""
-    env, rng, _, _ = mug_episode
+    _, rng, _, _ = mug_episode
     mj = HomeEnv("mug", 2, engine="mjx")
     eng = mj.engine
     state = mj.reset(jax.random.split(rng, 3)[0])
