@@ -55,7 +55,7 @@ from experiments import evaluate, report
 from sim_data.dataset import generate
 from sim_data.parts import local_gpus, module_command, run_parallel
 from sim_data.policies import zoo
-from sim_data.util import device_name, run_cli, write_json_atomic
+from sim_data.util import device_name, run_cli, with_xla_flags, write_json_atomic
 from wm import train
 
 STAGES = ("data", "policies", "rollouts", "train", "eval", "report")
@@ -269,9 +269,8 @@ def use_compilation_cache(root: str) -> str:
     JAX's backend starts (XLA reads its flags then). Returns the compilation cache's directory."""
     path = os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(Path(root).absolute() / "jax_cache"))
     jax.config.update("jax_compilation_cache_dir", path)
-    flags = os.environ.get("XLA_FLAGS", "")
-    if AUTOTUNE_FLAG not in flags:
-        os.environ["XLA_FLAGS"] = f"{flags} {AUTOTUNE_FLAG}={Path(root).absolute() / 'xla_autotune'}".strip()
+    os.environ["XLA_FLAGS"] = with_xla_flags(os.environ.get("XLA_FLAGS", ""),
+                                             f"{AUTOTUNE_FLAG}={Path(root).absolute() / 'xla_autotune'}")
     return path
 
 

@@ -44,14 +44,25 @@ def wilson_interval(successes: int, n: int) -> tuple[float, float]:
 XLA_DEFAULT_FLAGS = {"--xla_cpu_multi_thread_eigen": "false", "--xla_gpu_deterministic_ops": "true"}
 
 
+def with_xla_flags(base: str, flags: str, override: bool = False) -> str:
+    """XLA_FLAGS `base` with `flags` ("--name=value ..."): each replaces a flag of the same name in base
+    where override, else joins only where base does not name it (a user's choice stands)."""
+    def name(flag):
+        return flag.split("=")[0]
+
+    new = flags.split()
+    if override:
+        names = {name(f) for f in new}
+        return " ".join([f for f in base.split() if name(f) not in names] + new)
+    named = {name(f) for f in base.split()}
+    return " ".join(base.split() + [f for f in new if name(f) not in named])
+
+
 def set_xla_flags() -> None:
     """Adds each of XLA_DEFAULT_FLAGS to XLA_FLAGS unless the user set it either way. XLA reads its
     flags when JAX's backend starts, so call it before the first computation."""
-    flags = os.environ.get("XLA_FLAGS", "")
-    for flag, value in XLA_DEFAULT_FLAGS.items():
-        if flag not in flags:
-            flags = f"{flags} {flag}={value}".strip()
-    os.environ["XLA_FLAGS"] = flags
+    defaults = " ".join(f"{flag}={value}" for flag, value in XLA_DEFAULT_FLAGS.items())
+    os.environ["XLA_FLAGS"] = with_xla_flags(os.environ.get("XLA_FLAGS", ""), defaults)
 
 
 def run_cli(main) -> int:

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from sim_data.bench import determinism as D
+from sim_data.util import with_xla_flags
 
 
 def episodes(rng, b=4, t=6):
@@ -46,7 +47,7 @@ def test_the_commands_mistakes_are_refused(tmp_path):
 
 def test_a_settings_flags_replace_the_projects_flags_of_the_same_name():
     base = "--xla_cpu_multi_thread_eigen=false --xla_gpu_deterministic_ops=true"
-    assert D.merged_flags(base, "--xla_gpu_deterministic_ops=false") == \
+    assert with_xla_flags(base, "--xla_gpu_deterministic_ops=false", override=True) == \
         "--xla_cpu_multi_thread_eigen=false --xla_gpu_deterministic_ops=false"
-    assert D.merged_flags(base, "") == base
-    assert D.merged_flags("", "--a=1 --b") == "--a=1 --b"
+    assert with_xla_flags(base, "", override=True) == base
+    assert with_xla_flags("", "--a=1 --b", override=True) == "--a=1 --b"

@@ -40,7 +40,7 @@ from sim_data.policies.registry import group_by_policy, resolve
 from sim_data.policies.zoo import PRESETS as ZOO_PRESETS
 from sim_data.sim.engines import default_engine
 from sim_data.sim.rollout import record_policies
-from sim_data.util import device_name, run_cli, write_json_atomic
+from sim_data.util import device_name, run_cli, with_xla_flags, write_json_atomic
 
 CAMERA = "head_cam"
 DEFAULT_FLAGS = ("--xla_gpu_deterministic_ops=false", "--xla_gpu_deterministic_ops=true")  # XLA's default, the project's
@@ -112,17 +112,11 @@ def compare(runs: list[dict]) -> dict:
             "first_divergent_step": first, "max_abs_proprio_diff": largest}
 
 
-def merged_flags(base: str, flags: str) -> str:
-    """XLA_FLAGS `base` with one setting's `flags` added, each replacing a flag of the same name."""
-    names = {f.split("=")[0] for f in flags.split()}
-    return " ".join([f for f in base.split() if f.split("=")[0] not in names] + flags.split())
-
-
 def run_setting(flags: str, processes: int, child_args: list[str], workdir: Path) -> dict:
     """`processes` child processes with `flags` added to XLA_FLAGS, at once (each allocating GPU memory
     as it needs it), compared (compare). Raises RuntimeError with a child's log where one fails."""
     env = {**os.environ, "XLA_PYTHON_CLIENT_PREALLOCATE": "false",
-           "XLA_FLAGS": merged_flags(os.environ.get("XLA_FLAGS", ""), flags)}
+           "XLA_FLAGS": with_xla_flags(os.environ.get("XLA_FLAGS", ""), flags, override=True)}
     files = [workdir / f"run{k}.npz" for k in range(processes)]
     logs = [workdir / f"run{k}.log" for k in range(processes)]
     procs = []
