@@ -605,12 +605,13 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
         raise FileNotFoundError(f"{sweeps} holds no sweep results (make sweep OUT=...)")
     h += sweep_html
     timing = json.loads((run / "timing.json").read_text()) if (run / "timing.json").exists() else []
+    compiles = compile_table(timing)
     if timing:
         h += ["<h2>Pipeline timing</h2>", "<p>Per stage command: wall seconds and the seconds spent compiling "
               "(counted in the pipeline's own process).</p>", _html_table(timing_table(timing))]
-        if compile_table(timing):
+        if compiles:
             h += [("<p>Where the compile time goes: per stage command, the jitted functions that took the most "
-                   "seconds to trace, lower and compile.</p>"), _html_table(compile_table(timing))]
+                   "seconds to trace, lower and compile.</p>"), _html_table(compiles)]
     h += ["<h2>Configuration and versions</h2>", f"<pre>{html.escape(json.dumps(res['config'], indent=1))}</pre>",
           f"<pre>{html.escape(json.dumps(res['versions'], indent=1))}</pre>",
           f"<pre>{html.escape(json.dumps(res['timing'], indent=1))}</pre>", "</body></html>"]
@@ -642,8 +643,8 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
         md += [f"- [{label}]({href})" for label, href in mp4] + [""]
     if timing:
         md += ["## Pipeline timing", "", _md_table(timing_table(timing)), ""]
-        if compile_table(timing):
-            md += ["Where the compile time goes:", "", _md_table(compile_table(timing)), ""]
+        if compiles:
+            md += ["Where the compile time goes:", "", _md_table(compiles), ""]
     return "\n".join(h), "\n".join(md + sweep_md)
 
 
