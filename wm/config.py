@@ -128,8 +128,8 @@ PRESETS = {
                         cooldown=0.3, log_every=25, eval_every=250, ckpt_every=250, val_batches=2, eval_context=4,
                         eval_episodes=24, eval_horizons=(1, 4, 8, 16), control_horizon=16, judge_steps=600),
     # the sub-pixel decoder (a faster step at equal quality), the keep gate and re-encoding imagination:
-    # measured in docs/world-model.md
-    "full": TrainConfig(model=ModelConfig(upsample="shuffle", keep=True, reencode=True), steps=9000, cooldown=0.2,
+    # measured in docs/world-model.md; 8500 steps take about 20 minutes on one H200
+    "full": TrainConfig(model=ModelConfig(upsample="shuffle", keep=True, reencode=True), steps=8500, cooldown=0.2,
                         max_minutes=8.5, rollout_passes=2, rollout_grad=True),
 }
 
