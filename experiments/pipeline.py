@@ -184,12 +184,15 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
     elif stage == "train":
         done = train_members(name, extra, gpus, members)
     elif stage == "eval":
-        untrained = [str(m) for m in d["members"] if not (m / "eval.json").exists()]
+        # wm=... names the model to evaluate (a bundle carried from another lease): the members need not be here
+        given = any(a.startswith("wm=") for a in extra)
+        untrained = [] if given else [str(m) for m in d["members"] if not (m / "eval.json").exists()]
         if untrained:
             raise SystemExit(f"{', '.join(untrained)} not trained yet: run the train stage (make full STAGE=train) "
                              "until it says every member is trained")
-        args = ["--config", p.eval, "--out", str(d["eval"]), f"policies={d['policies']}",
-                "wm=" + ",".join(str(m) for m in d["members"]), *p.eval_overrides, *extra]
+        members = [] if given else ["wm=" + ",".join(str(m) for m in d["members"])]
+        args = ["--config", p.eval, "--out", str(d["eval"]), f"policies={d['policies']}", *members,
+                *p.eval_overrides, *extra]
         _spread("experiments.evaluate", args, gpus, _logs(p, name), "eval")
         results = d["eval"] / "results.json"
         before = results.stat().st_mtime_ns if results.exists() else None

@@ -82,6 +82,15 @@ def test_a_smaller_ensemble_trains_and_evaluates_only_its_members(tiny, monkeypa
         P.pipeline("tiny", 0)
 
 
+def test_the_eval_stage_evaluates_a_model_named_by_wm_though_no_member_was_trained_here(tiny, monkeypatch):
+    got = []
+    import experiments.evaluate
+
+    monkeypatch.setattr(experiments.evaluate, "main", got.append)
+    P.run_stage("tiny", "eval", ["wm=runs/bundles/elsewhere"])
+    assert [a for a in got[0] if a.startswith("wm=")] == ["wm=runs/bundles/elsewhere"]
+
+
 def test_the_pipeline_shares_one_compilation_cache_with_its_child_processes(tmp_path, monkeypatch):
     calls = []
     monkeypatch.setattr(jax.config, "update", lambda *a: calls.append(a))
