@@ -134,8 +134,8 @@ PIPELINES = {
     # controllability programs, the rollouts of three of the zoo's five lineages (the other two, the ViT
     # and the conv network of few demonstrations, and the degraded families stay unseen); the zoo's
     # lineages of 8 checkpoints evaluated from the evaluation preset's held-out initial states by one
-    # world model trained about 20 minutes on one H200, so that the chain fits one lease (two seeds of it
-    # in docs/world-model.md; --members N for an ensemble; stage times: docs/benchmarks.md)
+    # world model trained about 20 minutes on one H200 (three runs of it in docs/world-model.md; an
+    # ensemble of N costs N times the training: --members N; stage times: docs/benchmarks.md)
     "full": Pipeline(data="wm_full", policies="full", train="full", eval="full",
                      train_overrides=("w_success=0.5", "w_progress=0.5"),
                      rollouts="conv_noproprio+conv_noproprio_lowskill+conv_proprio", rollout_episodes=32),
