@@ -6,7 +6,8 @@ A "step" is one physics substep (5 ms of simulated time) of one simulation. The 
 from the `mug` task's initial states (every object of the scene present, resting on its support)
 and hold the ready pose under small random arm targets, so the solver works on real contacts.
 The `cpu` figure is the `cpu` engine (`mujoco.batch` over all cores); `mjx` is
-`vmap(mjx.step)` inside a jitted `lax.scan` on the default JAX device.
+`vmap(MjxEngine.step)` (`mjx.step`, free bodies' gyroscopic term implicit) inside a jitted `lax.scan` on
+the default JAX device.
 """
 
 from __future__ import annotations

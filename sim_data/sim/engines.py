@@ -93,8 +93,70 @@ class CpuEngine:
         return physics.poses
 
 
+def standalone_free_bodies(model: mujoco.MjModel) -> tuple[tuple[int, int], ...]:
+    """(body id, first dof address) of every body that is a tree of its own, one free joint and no
+    child bodies: the bodies whose gyroscopic term MuJoCo's C `implicitfast` integrates implicitly."""
+    out = []
+    for j in np.flatnonzero(model.jnt_type == mujoco.mjtJoint.mjJNT_FREE):
+        b = int(model.jnt_bodyid[j])
+        if model.body_jntnum[b] == 1 and not np.any(model.body_parentid[1:] == b):
+            out.append((b, int(model.jnt_dofadr[j])))
+    return tuple(out)
+
+
+def _free_bias(omega, mass, inertia, s):
+    """Velocity-dependent bias force (6,) of a free body in its body frame: [force; torque about
+    the body origin], the terms of qfrc_bias on a free joint's dofs (qfrc_bias holds the force in
+    the world frame). omega: (3,) angular velocity; mass: (); inertia: (3, 3) about the centre of
+    mass; s: (3,) centre of mass from the body origin; all in the body frame."""
+    f = mass * jnp.cross(omega, jnp.cross(omega, s))
+    return jnp.concatenate([f, jnp.cross(omega, inertia @ omega) + jnp.cross(s, f)])
+
+
+def _free_block(mx, d, qderiv, body: int, adr: int):
+    """(6, 6) M - h * d(qfrc_smooth)/d(qvel) of one standalone free body, gyroscopic term included
+    (MuJoCo's mjd_freeMhat), and its (6, 6) block without it (what `mjx.implicit` solves with)."""
+    h = mx.opt.timestep
+    rot, irot = d.xmat[body], d.ximat[body]  # body -> world, inertia frame -> world
+    inertia = rot.T @ irot @ jnp.diag(mx.body_inertia[body]) @ irot.T @ rot
+    s = rot.T @ (d.xipos[body] - d.xpos[body])
+    dbias = jax.jacfwd(_free_bias)(d.qvel[adr + 3:adr + 6], mx.body_mass[body], inertia, s)  # (6, 3)
+    dbias = dbias.at[:3].set(rot @ dbias[:3])
+    sl = slice(adr, adr + 6)
+    plain = mjx.full_m(mx, d)[sl, sl]
+    if qderiv is not None:
+        plain = plain - h * qderiv[sl, sl]
+    return plain.at[:, 3:].add(h * dbias), plain
+
+
+def _implicitfast(mx, free: tuple, d):
+    """One `implicitfast` integration of forward-computed Data d (one simulation), with the
+    gyroscopic term of standalone free bodies implicit, as in MuJoCo's C engine.
+
+    MJX's `implicit` drops every Coriolis and centrifugal derivative, so a light, flat body spinning
+    fast (the cloth, knocked off the counter at tens of rad/s) integrates its Euler equations
+    explicitly: each substep adds h^2 |L x w|^2 to |L|^2, and the tumble grows until the state is
+    non-finite. The C engine solves each such body's 6 x 6 block with that derivative included;
+    here the same block solve replaces those rows of the force that `mjx.implicit` solves with.
+    The body's block of M - h*qDeriv is decoupled from every other dof (its own tree), so
+    (M - h*qDeriv) qacc = qfrc' gives the block solve's qacc there and the usual one elsewhere.
+    """
+    qderiv = mjx.deriv_smooth_vel(mx, d)
+    qfrc = d.qfrc_smooth + d.qfrc_constraint
+    smooth = d.qfrc_smooth
+    for body, adr in free:
+        full, plain = _free_block(mx, d, qderiv, body, adr)
+        qacc = jnp.linalg.solve(full, qfrc[adr:adr + 6])
+        smooth = smooth.at[adr:adr + 6].set(plain @ qacc - d.qfrc_constraint[adr:adr + 6])
+    return mjx.implicit(mx, d.replace(qfrc_smooth=smooth))
+
+
 class MjxEngine:
-    """MJX (impl="jax"): vmapped over simulations, substeps in `lax.scan`; `advance` is jittable."""
+    """MJX (impl="jax"): vmapped over simulations, substeps in `lax.scan`; `advance` is jittable.
+
+    A substep is `mjx.step`, except with the `implicitfast` integrator, whose gyroscopic term of
+    standalone free bodies is integrated implicitly as MuJoCo's C engine does (`_implicitfast`).
+    """
 
     name = "mjx"
 
@@ -103,6 +165,13 @@ class MjxEngine:
         self.model = model
         self.batch_size = batch_size
         self.mx = mjx.put_model(model, impl="jax")
+        self._free = standalone_free_bodies(model)
+
+    def step(self, d):
+        """One physics substep of one simulation's Data (traceable)."""
+        if self.model.opt.integrator != mujoco.mjtIntegrator.mjINT_IMPLICITFAST or not self._free:
+            return self._mjx.step(self.mx, d)
+        return _implicitfast(self.mx, self._free, self._mjx.forward(self.mx, d))
 
     def init(self, qpos, mocap_pos) -> Any:
         """Data at rest at qpos (B, nq) with mocap bodies at mocap_pos (B, nmocap, 3), its poses and
@@ -120,11 +189,10 @@ class MjxEngine:
         return jax.vmap(one)(jnp.asarray(qpos, jnp.float32), jnp.asarray(mocap_pos, jnp.float32))
 
     def advance(self, physics, ctrl, mocap_pos, nsub: int):
-        mjx, mx = self._mjx, self.mx
         d = physics.replace(ctrl=jnp.asarray(ctrl, physics.ctrl.dtype), mocap_pos=mocap_pos)
 
         def substep(dd, _):
-            return jax.vmap(lambda x: mjx.step(mx, x))(dd), None
+            return jax.vmap(self.step)(dd), None
 
         d, _ = jax.lax.scan(substep, d, None, length=nsub)
         return d, d.qpos, d.qvel
