@@ -71,7 +71,7 @@ from sim_data.policies.registry import (
     used_seeds,
 )
 from sim_data.sim import robot as R
-from sim_data.sim.engines import ENGINES, default_engine
+from sim_data.sim.engines import ENGINES, PHYSICS_REVISION, default_engine
 from sim_data.sim.rollout import record_policies
 from sim_data.sim.tasks import TASK_NAMES
 from sim_data.util import device_name, make_output_dir, run_cli, write_json_atomic
@@ -472,9 +472,10 @@ def _simulate(task, policy, params, seeds, reset_keys, rng, engine, renderer) ->
 
 def _truth_key(task, policy, params, seeds, rng, engine, renderer) -> str:
     """A digest of everything a batch of simulated episodes depends on: the task, the policies (their
-    class, configuration and parameters), the initial states, the random key, the engine, the camera."""
+    class, configuration and parameters), the initial states, the random key, the engine and its
+    physics revision, the camera."""
     h = hashlib.sha256(json.dumps([task, repr(policy), [int(s) for s in seeds], np.asarray(rng).tolist(), engine,
-                                   [repr(r.cfg) for r in renderer]], default=str).encode())
+                                   PHYSICS_REVISION, [repr(r.cfg) for r in renderer]], default=str).encode())
     for leaf in jax.tree_util.tree_leaves(params):
         a = np.ascontiguousarray(np.asarray(leaf))
         h.update(str((a.shape, a.dtype)).encode())

@@ -362,6 +362,9 @@ def test_truth_cache_returns_the_simulated_batch_waits_for_a_writer_and_misses_o
     other = E.jax.tree_util.tree_map(lambda x: x + 1e-3 if x.dtype.kind == "f" else x, params)
     with pytest.raises(AssertionError, match="simulated although"):
         E.simulate_truth(cfg, "mug", policy, other, seeds, keys, rng, "cpu", renderer)
+    monkeypatch.setattr(E, "PHYSICS_REVISION", E.PHYSICS_REVISION + 1)  # outcomes of older physics are not read
+    with pytest.raises(AssertionError, match="simulated although"):
+        E.simulate_truth(cfg, "mug", policy, params, seeds, keys, rng, "cpu", renderer)
     with pytest.raises(ValueError, match="video_policies=0"):
         E.make_config("demo", ["truth_cache=/tmp/t"])
 

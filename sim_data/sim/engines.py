@@ -26,6 +26,9 @@ with contextlib.redirect_stdout(io.StringIO()):
     from mujoco import mjx
 
 ENGINES = ("cpu", "mjx")
+# raised whenever an engine's physics changes what it simulates (the `mjx` engine's implicit gyroscopic
+# term of free bodies is revision 2): outcomes cached under an older revision are simulated again
+PHYSICS_REVISION = 2
 POSE_FIELDS = ("geom_xpos", "geom_xmat", "cam_xpos", "cam_xmat")
 
 
