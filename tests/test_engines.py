@@ -15,7 +15,12 @@ from mujoco import mjx
 from sim_data.policies.scripted import ScriptedPolicy
 from sim_data.sim import robot as R
 from sim_data.sim import scene as S
-from sim_data.sim.engines import POSE_FIELDS, CpuEngine, MjxEngine, standalone_free_bodies
+from sim_data.sim.engines import (
+    POSE_FIELDS,
+    CpuEngine,
+    MjxEngine,
+    standalone_free_bodies,
+)
 from sim_data.sim.env import HomeEnv
 from sim_data.sim.rollout import SEGMENT, _scan_segment, run_episodes
 from sim_data.sim.tasks import PHYSICS_SUBSTEPS, TASK_NAMES
