@@ -365,6 +365,65 @@ def test_closed_loop_with_a_policy(model_and_inputs):
         np.testing.assert_allclose(np.asarray(longer[k], np.float32), np.asarray(scan[k], np.float32), atol=1e-4)
 
 
+def _synthetic_episodes(rng, n, t_max=12, f=5):
+    """Episodes of two tasks whose success is an integral: the mean of feature 0 over valid steps > 0."""
+    lengths = rng.integers(6, t_max + 1, n)
+    x = rng.normal(size=(n, t_max, f)).astype(np.float32) + rng.normal(size=(n, 1, f)).astype(np.float32)
+    mask = np.arange(t_max)[None] < lengths[:, None]
+    x = np.where(mask[..., None], x, 0.0)
+    label = (x[..., 0] * mask).sum(1) / lengths > 0
+    return {"features": x, "mask": mask, "task": ["a" if i % 2 else "b" for i in range(n)], "label": label}
+
+
+def test_episode_judge_learns_an_integral_and_round_trips(tmp_path):
+    rng = np.random.default_rng(0)
+    train, val = _synthetic_episodes(rng, 256), _synthetic_episodes(rng, 128)
+    judge, metrics = J.fit(train, val, ("a", "b"), steps=400, progress=False)
+    p = J.judge_episodes(judge, val)
+    assert M.accuracy(p, val["label"]) >= 0.85 and metrics["val_auroc"] >= 0.9
+    J.save_judge(judge, metrics, tmp_path)
+    back = J.load_judge(tmp_path)
+    assert back.tasks == ("a", "b")
+    np.testing.assert_allclose(J.judge_episodes(back, val), p, rtol=1e-5, atol=1e-6)
+    assert json.loads((tmp_path / "judge.json").read_text())["metrics"]["kept_step"] >= 25
+    with pytest.raises(ValueError, match="not 'c'"):
+        back.probability(val["features"][:2], "c")
+    with pytest.raises(ValueError, match="successes and failures"):
+        J.fit({**train, "label": np.zeros(256, bool)}, None, ("a", "b"), steps=5, progress=False)
+    assert J.load_judge(tmp_path / "nothing") is None
+
+
+def test_a_judge_reads_only_its_chosen_feature_columns(tmp_path):
+    cfg = SMOKE_MODEL
+    f = I.feature_dim(cfg)
+    feature_columns = I.feature_columns
+    assert feature_columns(cfg, ("success",)).tolist() == [f + I.SUCCESS_FEATURE]
+    assert feature_columns(cfg, ("outcome",)).tolist() == [f + I.OUTCOME_FEATURE]
+    assert feature_columns(cfg, ("progress",)).tolist() == [f + I.PROGRESS_FEATURE] == [f - 1]
+    assert feature_columns(cfg, ("action",)).tolist() == list(range(cfg.proprio_dim, cfg.proprio_dim + cfg.action_dim))
+    without_actions = feature_columns(cfg, ("proprio", "latent", "success", "outcome", "progress"))
+    assert len(without_actions) == f - cfg.action_dim and not set(without_actions) & set(feature_columns(cfg, ("action",)))
+    with pytest.raises(ValueError, match="feature groups"):
+        feature_columns(cfg, ("pixels",))
+
+    rng = np.random.default_rng(0)
+    train, val = _synthetic_episodes(rng, 256), _synthetic_episodes(rng, 64)
+    judge, metrics = J.fit(train, val, ("a", "b"), steps=200, progress=False, columns=[0, 1])
+    scrambled = {**val, "features": val["features"].copy()}
+    scrambled["features"][..., 2:] = rng.normal(size=scrambled["features"][..., 2:].shape)
+    np.testing.assert_array_equal(J.judge_episodes(judge, scrambled), J.judge_episodes(judge, val))
+    J.save_judge(judge, metrics, tmp_path)
+    back = J.load_judge(tmp_path)
+    assert back.columns.tolist() == [0, 1] and back.feature_dim == 5
+    np.testing.assert_allclose(J.judge_episodes(back, val), J.judge_episodes(judge, val), rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match="5 columns"):
+        back.probability(val["features"][:2, :, :4], "a")
+    meta = json.loads((tmp_path / "judge.json").read_text())
+    del meta["columns"], meta["feature_dim"]  # a judge saved before input selection read every column
+    (tmp_path / "judge.json").write_text(json.dumps(meta))
+    assert J.load_judge(tmp_path).columns.tolist() == [0, 1]
+
+
 def test_loss_falls_on_a_tiny_dataset(smoke_world_model):
     # the log of `make train CONFIG=smoke` on the smoke dataset (Run.train's), shared with the other tests
     losses = [json.loads(line)["loss"] for line in (smoke_world_model / "metrics.jsonl").read_text().splitlines()]
@@ -458,65 +517,6 @@ def test_make_train_smoke_writes_eval_json(smoke_world_model):
     assert report["policy_in_the_loop"]["episodes"] == 0 and report["policy_in_the_loop"]["split"] is None
     assert report["summary"]["action_divergence_h8"] is None
     assert (out / "best").is_dir() and (out / "metrics.jsonl").exists()
-
-
-def _synthetic_episodes(rng, n, t_max=12, f=5):
-    """Episodes of two tasks whose success is an integral: the mean of feature 0 over valid steps > 0."""
-    lengths = rng.integers(6, t_max + 1, n)
-    x = rng.normal(size=(n, t_max, f)).astype(np.float32) + rng.normal(size=(n, 1, f)).astype(np.float32)
-    mask = np.arange(t_max)[None] < lengths[:, None]
-    x = np.where(mask[..., None], x, 0.0)
-    label = (x[..., 0] * mask).sum(1) / lengths > 0
-    return {"features": x, "mask": mask, "task": ["a" if i % 2 else "b" for i in range(n)], "label": label}
-
-
-def test_episode_judge_learns_an_integral_and_round_trips(tmp_path):
-    rng = np.random.default_rng(0)
-    train, val = _synthetic_episodes(rng, 256), _synthetic_episodes(rng, 128)
-    judge, metrics = J.fit(train, val, ("a", "b"), steps=400, progress=False)
-    p = J.judge_episodes(judge, val)
-    assert M.accuracy(p, val["label"]) >= 0.85 and metrics["val_auroc"] >= 0.9
-    J.save_judge(judge, metrics, tmp_path)
-    back = J.load_judge(tmp_path)
-    assert back.tasks == ("a", "b")
-    np.testing.assert_allclose(J.judge_episodes(back, val), p, rtol=1e-5, atol=1e-6)
-    assert json.loads((tmp_path / "judge.json").read_text())["metrics"]["kept_step"] >= 25
-    with pytest.raises(ValueError, match="not 'c'"):
-        back.probability(val["features"][:2], "c")
-    with pytest.raises(ValueError, match="successes and failures"):
-        J.fit({**train, "label": np.zeros(256, bool)}, None, ("a", "b"), steps=5, progress=False)
-    assert J.load_judge(tmp_path / "nothing") is None
-
-
-def test_a_judge_reads_only_its_chosen_feature_columns(tmp_path):
-    cfg = SMOKE_MODEL
-    f = I.feature_dim(cfg)
-    feature_columns = I.feature_columns
-    assert feature_columns(cfg, ("success",)).tolist() == [f + I.SUCCESS_FEATURE]
-    assert feature_columns(cfg, ("outcome",)).tolist() == [f + I.OUTCOME_FEATURE]
-    assert feature_columns(cfg, ("progress",)).tolist() == [f + I.PROGRESS_FEATURE] == [f - 1]
-    assert feature_columns(cfg, ("action",)).tolist() == list(range(cfg.proprio_dim, cfg.proprio_dim + cfg.action_dim))
-    without_actions = feature_columns(cfg, ("proprio", "latent", "success", "outcome", "progress"))
-    assert len(without_actions) == f - cfg.action_dim and not set(without_actions) & set(feature_columns(cfg, ("action",)))
-    with pytest.raises(ValueError, match="feature groups"):
-        feature_columns(cfg, ("pixels",))
-
-    rng = np.random.default_rng(0)
-    train, val = _synthetic_episodes(rng, 256), _synthetic_episodes(rng, 64)
-    judge, metrics = J.fit(train, val, ("a", "b"), steps=200, progress=False, columns=[0, 1])
-    scrambled = {**val, "features": val["features"].copy()}
-    scrambled["features"][..., 2:] = rng.normal(size=scrambled["features"][..., 2:].shape)
-    np.testing.assert_array_equal(J.judge_episodes(judge, scrambled), J.judge_episodes(judge, val))
-    J.save_judge(judge, metrics, tmp_path)
-    back = J.load_judge(tmp_path)
-    assert back.columns.tolist() == [0, 1] and back.feature_dim == 5
-    np.testing.assert_allclose(J.judge_episodes(back, val), J.judge_episodes(judge, val), rtol=1e-5, atol=1e-6)
-    with pytest.raises(ValueError, match="5 columns"):
-        back.probability(val["features"][:2, :, :4], "a")
-    meta = json.loads((tmp_path / "judge.json").read_text())
-    del meta["columns"], meta["feature_dim"]  # a judge saved before input selection read every column
-    (tmp_path / "judge.json").write_text(json.dumps(meta))
-    assert J.load_judge(tmp_path).columns.tolist() == [0, 1]
 
 
 def test_a_bundle_carries_the_model_in_bfloat16_and_refuses_a_damaged_copy(smoke_world_model, tmp_path):
