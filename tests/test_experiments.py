@@ -21,7 +21,8 @@ from wm.metrics import psnr
 
 
 @pytest.fixture(scope="module")
-def evaluation(smoke_zoo, smoke_world_model, tmp_path_factory, worker_id):
+def evaluation(smoke_world_model, smoke_zoo, tmp_path_factory, worker_id):
+    # the world model before the zoo: the other worker's `tests/test_wm.py` waits for it, for nothing else
     zoo_dir, _ = smoke_zoo
     # batches of 3 policies x 2 states: two batches, each mixing architectures (MixedPolicy)
     cfg = E.EvalConfig(policies=(f"{zoo_dir}#conv_proprio+conv_noproprio", "examples.plugin_policy:make"),
@@ -326,7 +327,9 @@ def test_truth_cache_returns_the_simulated_batch_waits_for_a_writer_and_misses_o
     from sim_data.policies.registry import resolve
 
     zoo_dir, _ = smoke_zoo
-    sources = resolve([f"{zoo_dir}#conv_noproprio"])[:2]
+    # the evaluation fixture's first batch (3 checkpoints of one architecture, 2 states): its compiled programs
+    sources = resolve([f"{zoo_dir}#conv_proprio+conv_noproprio"])[:3]
+    assert len({s.policy for s in sources}) == 1
     cfg = E.EvalConfig(policies=("x",), wm="y", truth_cache=str(tmp_path / "truth"), video_policies=0)
     policy, params = StackedPolicy(sources[0].policy), stack_params([s.params for s in sources])
     seeds = [11, 12]
@@ -334,7 +337,7 @@ def test_truth_cache_returns_the_simulated_batch_waits_for_a_writer_and_misses_o
     renderer = cached_renderers(64, (E.CAMERA,))
     rng = E.jax.random.PRNGKey(3)
     first = E.simulate_truth(cfg, "mug", policy, params, seeds, keys, rng, "cpu", renderer)
-    assert first["outcome"].shape == (2, 2) and first["frames0"].shape == (4, 1, 64, 64, 3)
+    assert first["outcome"].shape == (3, 2) and first["frames0"].shape == (6, 1, 64, 64, 3)
     assert np.array_equal(first["frames0"][:, 0], np.asarray(first["frames"][:, 0]))
     assert len(list((tmp_path / "truth").glob("mug-*.npz"))) == 1
 

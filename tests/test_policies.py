@@ -62,18 +62,18 @@ def test_ik_reaches_a_hand_down_target(model, kin, right_grip):
 
 
 def test_skill_changes_the_plan_deterministically(model):
-    env = HomeEnv("mug", 3, engine="cpu")
+    env = HomeEnv("mug", 2, engine="cpu")  # the dataset's smoke batch: the same compiled plan
     pol = ScriptedPolicy.create("mug", model)
     st = env.reset(jax.random.PRNGKey(0))
-    params = {"skill": jnp.array([1.0, 1.0, 0.2])}
+    params = {"skill": jnp.array([1.0, 0.2])}
     init = jax.jit(pol.init_carry)  # one compile instead of two eager plans
     c1 = init(params, st.obs, st.task, jax.random.PRNGKey(1))
     c2 = init(params, st.obs, st.task, jax.random.PRNGKey(1))
     np.testing.assert_array_equal(np.asarray(c1.pos), np.asarray(c2.pos))
     mug = np.asarray(st.qpos[:, env.idx.mug_qpos : env.idx.mug_qpos + 2])
     grasp = np.asarray(c1.pos[:, -4, :2])  # the mug's keyframe 2 of 6 (the script's last six): at the grasp
-    np.testing.assert_allclose(grasp[:2], mug[:2], atol=1e-6)  # skill 1: exact perception
-    assert np.abs(grasp[2] - mug[2]).max() > 1e-4  # skill 0.2: perception noise
+    np.testing.assert_allclose(grasp[0], mug[0], atol=1e-6)  # skill 1: exact perception
+    assert np.abs(grasp[1] - mug[1]).max() > 1e-4  # skill 0.2: perception noise
 
 
 def test_scripted_arcade_succeeds_at_full_skill_and_actions_are_valid(model):

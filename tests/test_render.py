@@ -61,22 +61,25 @@ def test_every_primitive_matches_mujoco(tile):
 
 
 def test_hand_computed_depth_and_shadow():
-    """A camera 1 m above the floor looking down sees the floor at depth 1 everywhere; a sphere
-    0.5 m above the floor under a sun slanted 1:2 casts its shadow 0.25 m along the slant."""
+    """A camera 1 m above the floor looking down sees the floor at depth 1 wherever a sphere of radius
+    0.05 m, 0.5 m above the floor, does not hide it, and the sphere's top at depth 0.45; under a sun
+    slanted 1:2 the sphere casts its shadow 0.25 m along the slant."""
     xml = PRIMITIVES_XML.replace('xyaxes="1 0 0 0 0.55 0.83"', 'xyaxes="1 0 0 0 1 0"').replace('pos="0 -1.6 1.0"', 'pos="2 2 1"')
     model = mujoco.MjModel.from_xml_string(xml)
     data = mujoco.MjData(model)
-    mujoco.mj_forward(model, data)
-    out = _ours(model, data, RenderConfig(height=16, width=16, camera="cam"))
-    assert np.all(out["geom_id"] == 0)
-    np.testing.assert_allclose(out["depth"], 1.0, rtol=1e-5)
-    model.geom_pos[model.geom("sphere").id] = [2.0, 2.0, 0.5]  # now right under the camera and the light
-    model.geom_size[model.geom("sphere").id] = [0.05, 0, 0]
+    sphere = model.geom("sphere").id
+    model.geom_pos[sphere] = [2.0, 2.0, 0.5]  # right under the camera and the light
+    model.geom_size[sphere] = [0.05, 0, 0]
     model.light_dir[0] = np.array([0.5, 0.0, -1.0]) / np.sqrt(1.25)
     mujoco.mj_forward(model, data)
     cfg = RenderConfig(height=32, width=32, camera="cam")
     lit = _ours(model, data, RenderConfig(height=32, width=32, camera="cam", shadows=False))
     shaded = _ours(model, data, cfg)
+    assert set(np.unique(lit["geom_id"]).tolist()) == {0, sphere}
+    np.testing.assert_allclose(lit["depth"][lit["geom_id"] == 0], 1.0, rtol=1e-5)
+    # the central pixels' rays pass 0.013 m off the sphere's centre: depth 0.451 there, by hand
+    on_sphere = lit["depth"][lit["geom_id"] == sphere]
+    assert 0.45 <= on_sphere.min() < 0.455 and on_sphere.max() <= 0.5
     floor_shadowed = (lit["rgb"].sum(-1) > shaded["rgb"].sum(-1)) & (shaded["geom_id"] == 0)
     assert floor_shadowed.sum() > 0
     _, ys, xs = np.nonzero(floor_shadowed)

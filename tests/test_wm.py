@@ -108,7 +108,7 @@ def test_sub_pixel_decoder_unfolds_channels_into_pixels():
     cfg = dataclasses.replace(CFG, upsample="shuffle")
     dec = Decoder(cfg)
     z, prev = jnp.zeros((2, 8, 8, cfg.latent)), jnp.full((2, 64, 64, 3), 0.25)
-    params = dec.init(jax.random.PRNGKey(0), z, prev)
+    params = jax.jit(dec.init)(jax.random.PRNGKey(0), z, prev)  # one program: op by op, each initialiser compiles apart
     convs = [v["kernel"].shape for k, v in params["params"].items() if k.startswith("Conv_")]
     assert [s[-1] for s in convs[1:4]] == [4 * c for c in cfg.channels[::-1]]  # 4x wider, at the lower resolution
     out = compiled(dec)(params, z, prev)
@@ -192,9 +192,10 @@ def test_time_bias_in_the_product_equals_an_added_bias_and_its_gradient():
     table's gradient of a bias added to the logits by hand; the mask is causal over `context` frames
     and masks empty key slots."""
     t, n, h, d, context = 5, 3, 2, 4, 3
-    kq, kk, kt, kw = jax.random.split(jax.random.PRNGKey(0), 4)
-    q, k = jax.random.normal(kq, (2, t * n, h, d)), jax.random.normal(kk, (2, t * n, h, d))
-    table, weight = jax.random.normal(kt, (h, context)), jax.random.normal(kw, (2, h, t * n, t * n))
+    rng = np.random.default_rng(0)  # numpy's noise: jax.random would compile its generator per shape
+    q, k = (rng.standard_normal((2, t * n, h, d)).astype(np.float32) for _ in "qk")
+    table = rng.standard_normal((h, context)).astype(np.float32)
+    weight = rng.standard_normal((2, h, t * n, t * n)).astype(np.float32)
     frame = np.arange(t * n) // n
 
     def by_hand(table):  # token by token: the bias of query token i and key token j
@@ -202,10 +203,11 @@ def test_time_bias_in_the_product_equals_an_added_bias_and_its_gradient():
         bias = jnp.where((dist >= 0) & (dist < context), table[:, np.clip(dist, 0, context - 1)], 0.0)
         return jnp.einsum("bqhd,bkhd->bhqk", q, k) / np.sqrt(d) + bias[None]
 
+    # each side compiled as one program (op by op, each operation compiles apart)
     folded = lambda table: attention_logits(q, k, relative_time_bias(table, t), n)
-    np.testing.assert_allclose(folded(table), by_hand(table), rtol=1e-5, atol=1e-5)
-    g_folded = jax.grad(lambda tb: jnp.sum(folded(tb) * weight))(table)
-    g_hand = jax.grad(lambda tb: jnp.sum(by_hand(tb) * weight))(table)
+    np.testing.assert_allclose(jax.jit(folded)(table), jax.jit(by_hand)(table), rtol=1e-5, atol=1e-5)
+    g_folded = jax.jit(jax.grad(lambda tb: jnp.sum(folded(tb) * weight)))(table)
+    g_hand = jax.jit(jax.grad(lambda tb: jnp.sum(by_hand(tb) * weight)))(table)
     np.testing.assert_allclose(g_folded, g_hand, rtol=1e-4, atol=1e-4)
     assert np.abs(g_hand).min() > 0
 
@@ -268,13 +270,14 @@ def test_observed_features_read_the_true_episode_as_exact_imagination_would(mode
     x = np.asarray(I.observed_features(CFG, params, norm, frames, proprio, action[:, :t_max]))
     assert x.shape == (2, t_max, I.feature_dim(CFG))
     # one frame of context, two, a full context of 4 with the oldest dropped, across the segments' seam
+    encode, features = compiled(m, WorldModel.encode), jax.jit(I.step_features)
     for t in (0, 1, 4, I.SEGMENT - 1, I.SEGMENT, t_max - 1):
         c0 = max(0, t + 1 - CFG.context)
-        st = I.init_state(CFG, params, norm, frames[:, c0:t + 1], proprio[:, c0:t + 1], action[:, c0:t])
-        st = I.step(CFG, params, norm, st, action[:, t])
-        truth = st.replace(z=st.z.at[:, -1].set(m.apply({"params": params}, frames[:, t + 1], method=WorldModel.encode)),
+        st = init_state(CFG, params, norm, frames[:, c0:t + 1], proprio[:, c0:t + 1], action[:, c0:t])
+        st = imagine_step(CFG, params, norm, st, action[:, t])
+        truth = st.replace(z=st.z.at[:, -1].set(encode({"params": params}, frames[:, t + 1])),
                            proprio=st.proprio.at[:, -1].set(norm.proprio(proprio[:, t + 1])))
-        np.testing.assert_allclose(x[:, t], I.step_features(norm, truth, action[:, t]), atol=2e-5, err_msg=str(t))
+        np.testing.assert_allclose(x[:, t], features(norm, truth, action[:, t]), atol=2e-5, err_msg=str(t))
 
 
 def test_reencoding_imagination_feeds_back_the_latents_of_the_decoded_8_bit_frame(model_and_inputs):
@@ -303,10 +306,11 @@ def test_reencoded_rollout_passes_change_only_the_passes(model_and_inputs):
     batch = {"frames": frames, "proprio": proprio, "action": action, "success": np.zeros((2, 6), bool),
              "progress": np.zeros((2, 6), np.float32), "outcome": np.zeros((2,), bool)}
     cfg = make_config("smoke")
+    loss = jax.jit(loss_fn, static_argnums=3)  # one program a configuration: op by op, each operation compiles apart
     parts = {}
     for model_re, passes_re in ((False, False), (True, False), (True, True)):
         c = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, reencode=model_re), reencode_passes=passes_re)
-        parts[model_re, passes_re] = loss_fn(params, batch, norm, c)[1]
+        parts[model_re, passes_re] = loss(params, batch, norm, c)[1]
     plain, only_model, both = parts[False, False], parts[True, False], parts[True, True]
     for k in plain:  # model.reencode alone is an imagination setting: training is unchanged
         np.testing.assert_allclose(only_model[k], plain[k], rtol=1e-6, err_msg=k)
@@ -359,6 +363,65 @@ def test_closed_loop_with_a_policy(model_and_inputs):
     assert longer["frames"].shape[1] == h
     for k in ("frames", "success", "features"):
         np.testing.assert_allclose(np.asarray(longer[k], np.float32), np.asarray(scan[k], np.float32), atol=1e-4)
+
+
+def _synthetic_episodes(rng, n, t_max=12, f=5):
+    """Episodes of two tasks whose success is an integral: the mean of feature 0 over valid steps > 0."""
+    lengths = rng.integers(6, t_max + 1, n)
+    x = rng.normal(size=(n, t_max, f)).astype(np.float32) + rng.normal(size=(n, 1, f)).astype(np.float32)
+    mask = np.arange(t_max)[None] < lengths[:, None]
+    x = np.where(mask[..., None], x, 0.0)
+    label = (x[..., 0] * mask).sum(1) / lengths > 0
+    return {"features": x, "mask": mask, "task": ["a" if i % 2 else "b" for i in range(n)], "label": label}
+
+
+def test_episode_judge_learns_an_integral_and_round_trips(tmp_path):
+    rng = np.random.default_rng(0)
+    train, val = _synthetic_episodes(rng, 256), _synthetic_episodes(rng, 128)
+    judge, metrics = J.fit(train, val, ("a", "b"), steps=400, progress=False)
+    p = J.judge_episodes(judge, val)
+    assert M.accuracy(p, val["label"]) >= 0.85 and metrics["val_auroc"] >= 0.9
+    J.save_judge(judge, metrics, tmp_path)
+    back = J.load_judge(tmp_path)
+    assert back.tasks == ("a", "b")
+    np.testing.assert_allclose(J.judge_episodes(back, val), p, rtol=1e-5, atol=1e-6)
+    assert json.loads((tmp_path / "judge.json").read_text())["metrics"]["kept_step"] >= 25
+    with pytest.raises(ValueError, match="not 'c'"):
+        back.probability(val["features"][:2], "c")
+    with pytest.raises(ValueError, match="successes and failures"):
+        J.fit({**train, "label": np.zeros(256, bool)}, None, ("a", "b"), steps=5, progress=False)
+    assert J.load_judge(tmp_path / "nothing") is None
+
+
+def test_a_judge_reads_only_its_chosen_feature_columns(tmp_path):
+    cfg = SMOKE_MODEL
+    f = I.feature_dim(cfg)
+    feature_columns = I.feature_columns
+    assert feature_columns(cfg, ("success",)).tolist() == [f + I.SUCCESS_FEATURE]
+    assert feature_columns(cfg, ("outcome",)).tolist() == [f + I.OUTCOME_FEATURE]
+    assert feature_columns(cfg, ("progress",)).tolist() == [f + I.PROGRESS_FEATURE] == [f - 1]
+    assert feature_columns(cfg, ("action",)).tolist() == list(range(cfg.proprio_dim, cfg.proprio_dim + cfg.action_dim))
+    without_actions = feature_columns(cfg, ("proprio", "latent", "success", "outcome", "progress"))
+    assert len(without_actions) == f - cfg.action_dim and not set(without_actions) & set(feature_columns(cfg, ("action",)))
+    with pytest.raises(ValueError, match="feature groups"):
+        feature_columns(cfg, ("pixels",))
+
+    rng = np.random.default_rng(0)
+    train, val = _synthetic_episodes(rng, 256), _synthetic_episodes(rng, 64)
+    judge, metrics = J.fit(train, val, ("a", "b"), steps=200, progress=False, columns=[0, 1])
+    scrambled = {**val, "features": val["features"].copy()}
+    scrambled["features"][..., 2:] = rng.normal(size=scrambled["features"][..., 2:].shape)
+    np.testing.assert_array_equal(J.judge_episodes(judge, scrambled), J.judge_episodes(judge, val))
+    J.save_judge(judge, metrics, tmp_path)
+    back = J.load_judge(tmp_path)
+    assert back.columns.tolist() == [0, 1] and back.feature_dim == 5
+    np.testing.assert_allclose(J.judge_episodes(back, val), J.judge_episodes(judge, val), rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match="5 columns"):
+        back.probability(val["features"][:2, :, :4], "a")
+    meta = json.loads((tmp_path / "judge.json").read_text())
+    del meta["columns"], meta["feature_dim"]  # a judge saved before input selection read every column
+    (tmp_path / "judge.json").write_text(json.dumps(meta))
+    assert J.load_judge(tmp_path).columns.tolist() == [0, 1]
 
 
 def test_loss_falls_on_a_tiny_dataset(smoke_world_model):
@@ -454,65 +517,6 @@ def test_make_train_smoke_writes_eval_json(smoke_world_model):
     assert report["policy_in_the_loop"]["episodes"] == 0 and report["policy_in_the_loop"]["split"] is None
     assert report["summary"]["action_divergence_h8"] is None
     assert (out / "best").is_dir() and (out / "metrics.jsonl").exists()
-
-
-def _synthetic_episodes(rng, n, t_max=12, f=5):
-    """Episodes of two tasks whose success is an integral: the mean of feature 0 over valid steps > 0."""
-    lengths = rng.integers(6, t_max + 1, n)
-    x = rng.normal(size=(n, t_max, f)).astype(np.float32) + rng.normal(size=(n, 1, f)).astype(np.float32)
-    mask = np.arange(t_max)[None] < lengths[:, None]
-    x = np.where(mask[..., None], x, 0.0)
-    label = (x[..., 0] * mask).sum(1) / lengths > 0
-    return {"features": x, "mask": mask, "task": ["a" if i % 2 else "b" for i in range(n)], "label": label}
-
-
-def test_episode_judge_learns_an_integral_and_round_trips(tmp_path):
-    rng = np.random.default_rng(0)
-    train, val = _synthetic_episodes(rng, 256), _synthetic_episodes(rng, 128)
-    judge, metrics = J.fit(train, val, ("a", "b"), steps=400, progress=False)
-    p = J.judge_episodes(judge, val)
-    assert M.accuracy(p, val["label"]) >= 0.85 and metrics["val_auroc"] >= 0.9
-    J.save_judge(judge, metrics, tmp_path)
-    back = J.load_judge(tmp_path)
-    assert back.tasks == ("a", "b")
-    np.testing.assert_allclose(J.judge_episodes(back, val), p, rtol=1e-5, atol=1e-6)
-    assert json.loads((tmp_path / "judge.json").read_text())["metrics"]["kept_step"] >= 25
-    with pytest.raises(ValueError, match="not 'c'"):
-        back.probability(val["features"][:2], "c")
-    with pytest.raises(ValueError, match="successes and failures"):
-        J.fit({**train, "label": np.zeros(256, bool)}, None, ("a", "b"), steps=5, progress=False)
-    assert J.load_judge(tmp_path / "nothing") is None
-
-
-def test_a_judge_reads_only_its_chosen_feature_columns(tmp_path):
-    cfg = SMOKE_MODEL
-    f = I.feature_dim(cfg)
-    feature_columns = I.feature_columns
-    assert feature_columns(cfg, ("success",)).tolist() == [f + I.SUCCESS_FEATURE]
-    assert feature_columns(cfg, ("outcome",)).tolist() == [f + I.OUTCOME_FEATURE]
-    assert feature_columns(cfg, ("progress",)).tolist() == [f + I.PROGRESS_FEATURE] == [f - 1]
-    assert feature_columns(cfg, ("action",)).tolist() == list(range(cfg.proprio_dim, cfg.proprio_dim + cfg.action_dim))
-    without_actions = feature_columns(cfg, ("proprio", "latent", "success", "outcome", "progress"))
-    assert len(without_actions) == f - cfg.action_dim and not set(without_actions) & set(feature_columns(cfg, ("action",)))
-    with pytest.raises(ValueError, match="feature groups"):
-        feature_columns(cfg, ("pixels",))
-
-    rng = np.random.default_rng(0)
-    train, val = _synthetic_episodes(rng, 256), _synthetic_episodes(rng, 64)
-    judge, metrics = J.fit(train, val, ("a", "b"), steps=200, progress=False, columns=[0, 1])
-    scrambled = {**val, "features": val["features"].copy()}
-    scrambled["features"][..., 2:] = rng.normal(size=scrambled["features"][..., 2:].shape)
-    np.testing.assert_array_equal(J.judge_episodes(judge, scrambled), J.judge_episodes(judge, val))
-    J.save_judge(judge, metrics, tmp_path)
-    back = J.load_judge(tmp_path)
-    assert back.columns.tolist() == [0, 1] and back.feature_dim == 5
-    np.testing.assert_allclose(J.judge_episodes(back, val), J.judge_episodes(judge, val), rtol=1e-5, atol=1e-6)
-    with pytest.raises(ValueError, match="5 columns"):
-        back.probability(val["features"][:2, :, :4], "a")
-    meta = json.loads((tmp_path / "judge.json").read_text())
-    del meta["columns"], meta["feature_dim"]  # a judge saved before input selection read every column
-    (tmp_path / "judge.json").write_text(json.dumps(meta))
-    assert J.load_judge(tmp_path).columns.tolist() == [0, 1]
 
 
 def test_a_bundle_carries_the_model_in_bfloat16_and_refuses_a_damaged_copy(smoke_world_model, tmp_path):
