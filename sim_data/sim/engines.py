@@ -116,9 +116,10 @@ def _free_bias(omega, mass, inertia, s):
     return jnp.concatenate([f, jnp.cross(omega, inertia @ omega) + jnp.cross(s, f)])
 
 
-def _free_block(mx, d, qderiv, body: int, adr: int):
+def _free_block(mx, d, mass_matrix, qderiv, body: int, adr: int):
     """(6, 6) M - h * d(qfrc_smooth)/d(qvel) of one standalone free body, gyroscopic term included
-    (MuJoCo's mjd_freeMhat), and its (6, 6) block without it (what `mjx.implicit` solves with)."""
+    (MuJoCo's mjd_freeMhat), and its (6, 6) block without it (what `mjx.implicit` solves with).
+    mass_matrix: (nv, nv) M; qderiv: (nv, nv) d(qfrc_smooth)/d(qvel)."""
     h = mx.opt.timestep
     rot, irot = d.xmat[body], d.ximat[body]  # body -> world, inertia frame -> world
     inertia = rot.T @ irot @ jnp.diag(mx.body_inertia[body]) @ irot.T @ rot
@@ -126,9 +127,7 @@ def _free_block(mx, d, qderiv, body: int, adr: int):
     dbias = jax.jacfwd(_free_bias)(d.qvel[adr + 3:adr + 6], mx.body_mass[body], inertia, s)  # (6, 3)
     dbias = dbias.at[:3].set(rot @ dbias[:3])
     sl = slice(adr, adr + 6)
-    plain = mjx.full_m(mx, d)[sl, sl]
-    if qderiv is not None:
-        plain = plain - h * qderiv[sl, sl]
+    plain = mass_matrix[sl, sl] - h * qderiv[sl, sl]
     return plain.at[:, 3:].add(h * dbias), plain
 
 
@@ -145,10 +144,11 @@ def _implicitfast(mx, free: tuple, d):
     (M - h*qDeriv) qacc = qfrc' gives the block solve's qacc there and the usual one elsewhere.
     """
     qderiv = mjx.deriv_smooth_vel(mx, d)
+    mass_matrix = mjx.full_m(mx, d)  # (nv, nv), once for every free body's block
     qfrc = d.qfrc_smooth + d.qfrc_constraint
     smooth = d.qfrc_smooth
     for body, adr in free:
-        full, plain = _free_block(mx, d, qderiv, body, adr)
+        full, plain = _free_block(mx, d, mass_matrix, qderiv, body, adr)
         qacc = jnp.linalg.solve(full, qfrc[adr:adr + 6])
         smooth = smooth.at[adr:adr + 6].set(plain @ qacc - d.qfrc_constraint[adr:adr + 6])
     return mjx.implicit(mx, d.replace(qfrc_smooth=smooth))
