@@ -197,10 +197,14 @@ def _signature(tree) -> tuple:
 
 @pytest.mark.filterwarnings("ignore:the mjx engine is meant for GPUs")
 def test_scripted_program_and_play_chunks_run_through_one_compiled_rollout(monkeypatch):
-    # per task one chunk of 3 scripted rows, two of 4 programs and play: batches that differ, unpadded
+    # per task one chunk of 3 scripted rows; the 8 programs and play alone would make two chunks of 4, with
+    # the scripted ones they make chunks of at most 3, the last padded to 3: one batch shape
     cfg = G.make_config("smoke", ["engine=mjx", "episodes=3", "batch=4", "play=4", "tasks=mug,step_back"])
     plan = G._plan(cfg)
-    assert [(c.key, len(c.rows(padded=False))) for c in plan[:3]] == [("scripted", 3), ("program", 4), ("program", 4)]
+    assert [(c.key, len(c.rows(padded=False)), len(c.rows(padded=True))) for c in plan[:4]] == \
+        [("scripted", 3, 3), ("program", 3, 3), ("program", 3, 3), ("program", 2, 3)]
+    alone = G._plan(G.make_config("smoke", ["engine=mjx", "episodes=3", "batch=4", "programs=0", "tasks=mug,step_back"]))
+    assert [c for c in plan if c.key == "scripted"] == alone  # their rows, batch and so their noise unchanged
 
     def rollout(env, policy, params, rng, renderers=(), progress=None, reset_keys=None):
         raise _Rollout(env, policy, params, rng, renderers, reset_keys)

@@ -149,7 +149,7 @@ PRESETS = {
     # the world model's and the zoo's GPU set: three tasks, a spread of skills (1.0 for the zoo's
     # demonstrations, 0.5 and 0.75 for its low-skill lineage), random play, the controllability programs,
     # head camera; about 611k frames, so that the data stage fits a 10-minute command on one GPU.
-    # batch 480: per task 2x480 scripted, 1x368 program+play (padded to 480: one compiled rollout for both),
+    # batch 480: per task 2x480 scripted, 1x368 program+play padded to 480 (one compiled rollout for both),
     # rollouts 2x(4x64) rows; 9 chunks for parts
     "wm_full": DataConfig(tasks=("mug", "wipe", "airfryer"), skills=(0.0, 0.5, 0.75, 1.0), episodes=240, batch=480,
                           cameras=("head_cam",), workers=14, programs=32, play=240),
@@ -257,7 +257,7 @@ class Chunk:
         the other chunks hold one episode a slot.
       width: rows a slot fills (1 for the scripted, program and play sources).
       size: the slots it is padded to (the `mjx` engine), the same for every chunk of its key in its
-        task, and for the scripted, program and play sources the same in every chunk of the plan
+        task, and so in every task, and for the program and play sources that of the scripted ones
         (one compiled rollout serves them all).
     """
 
@@ -308,18 +308,23 @@ def _plan(cfg: DataConfig, learned=()) -> list[Chunk]:
     """The chunks of work in a fixed order: per task, its sources grouped by rollout key (in the
     order of _sources), each key's rows cut into chunks of at most cfg.batch rows (_task_chunks).
     A task's learned sources are grouped by policy object; the scripted skills apart from the
-    programs and play, though one ScriptOrProgramPolicy runs both: their chunks are padded to the
-    largest size among them, so that every one is one batch shape of one compiled rollout (on the
-    `mjx` engine a compile costs far more than simulating the padding rows)."""
+    programs and play, though one ScriptOrProgramPolicy runs both: the programs and play are cut
+    into chunks of at most the scripted chunks' size and padded to it, so that every chunk of them
+    is one batch shape of one compiled rollout (on the `mjx` engine a compile costs far more than
+    simulating the padding rows), and the scripted chunks, whose policy noise depends on their
+    batch, are those they would be alone."""
     out = []
     for task in cfg.tasks:
         groups: dict = {}
         for source, n in _sources(cfg, task, learned):
             groups.setdefault(rollout_key(source), []).append((source, n))
-        for key, group in groups.items():
-            out += _task_chunks(task, key, group, cfg.batch)
-    size = max((c.size for c in out if isinstance(c.key, str)), default=1)
-    return [dataclasses.replace(c, size=size) if isinstance(c.key, str) else c for c in out]
+        size = cfg.batch
+        for key, group in groups.items():  # "scripted" first: _sources' order
+            chunks = _task_chunks(task, key, group, size if key == "program" else cfg.batch)
+            if key == "scripted":
+                size = chunks[0].size
+            out += [dataclasses.replace(c, size=size) for c in chunks] if key == "program" else chunks
+    return out
 
 
 def rollout_key(source) -> object:
