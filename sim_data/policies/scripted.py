@@ -9,7 +9,8 @@ Every policy follows the project's protocol, batched and jittable:
 with `params = {"skill": (B,) float}` for the scripted policies. Scripted policies read
 privileged simulator state (`obs["qpos"]`, `obs["time"]`) and each episode's task from its task
 state at reset (`TaskState.task_id`), so one ScriptedPolicy (and one compiled rollout) serves every
-task.
+task. ScriptOrProgramPolicy is both kinds in one, chosen per episode by its parameters, so that the
+data generator's scripted, program and play episodes share one compiled rollout too.
 
 How skill degrades a policy (u = 1 - skill, drawn once per episode from the policy's rng):
 - noisy perception: object positions off by N(0, (0.05 u)^2) per horizontal axis, yaw by
