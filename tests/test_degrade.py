@@ -108,13 +108,13 @@ def test_every_policy_of_the_project_follows_the_protocol():
     from examples.plugin_policy import BackAway
     from sim_data.policies.bc import BCPolicy, PolicyNetConfig
     from sim_data.policies.registry import Policy
-    from sim_data.policies.scripted import ProgramPolicy, ScriptedPolicy
+    from sim_data.policies.scripted import ProgramPolicy, ScriptedPolicy, ScriptOrProgramPolicy
 
     bc = BCPolicy(PolicyNetConfig())
     mixed = MixedPolicy((bc, Ramp()), (2, 2))
     for policy in (bc, DegradedPolicy(bc), StackedPolicy(bc), mixed, BackAway(), Ramp()):
         assert isinstance(policy, Policy), type(policy).__name__
         hash(policy)
-    for cls in (ScriptedPolicy, ProgramPolicy):
+    for cls in (ScriptedPolicy, ProgramPolicy, ScriptOrProgramPolicy):
         assert callable(getattr(cls, "init_carry")) and callable(getattr(cls, "act")), cls.__name__
     assert not isinstance(object(), Policy)

@@ -6,6 +6,7 @@ import json
 import shutil
 
 import cv2
+import jax
 import numpy as np
 import pytest
 from mcap.reader import make_reader
@@ -184,6 +185,44 @@ def test_a_tasks_rows_of_one_rollout_share_chunks_cut_evenly_and_padded_only_to_
                                                       [("mug/a/0", 3), ("mug/a/0", 4)]]
     assert _rows(long[-1], padded=True) == [("mug/a/0", 3), ("mug/a/0", 4), ("mug/a/0", 4)]
     assert even_pieces(list(range(7)), 3) == ([[0, 1, 2], [3, 4, 5], [6]], 3)
+
+
+class _Rollout(Exception):
+    """Raised by the stand-in rollout below, with the inputs simulate_chunk gave it."""
+
+
+def _signature(tree) -> tuple:
+    return jax.tree_util.tree_structure(tree), tuple((np.shape(x), np.asarray(x).dtype) for x in jax.tree.leaves(tree))
+
+
+@pytest.mark.filterwarnings("ignore:the mjx engine is meant for GPUs")
+def test_scripted_program_and_play_chunks_run_through_one_compiled_rollout(monkeypatch):
+    # per task one chunk of 3 scripted rows; the 8 programs and play alone would make two chunks of 4, with
+    # the scripted ones they make chunks of at most 3, the last padded to 3: one batch shape
+    cfg = G.make_config("smoke", ["engine=mjx", "episodes=3", "batch=4", "play=4", "tasks=mug,step_back"])
+    plan = G._plan(cfg)
+    assert [(c.key, len(c.rows(padded=False)), len(c.rows(padded=True))) for c in plan[:4]] == \
+        [("scripted", 3, 3), ("program", 3, 3), ("program", 3, 3), ("program", 2, 3)]
+    alone = G._plan(G.make_config("smoke", ["engine=mjx", "episodes=3", "batch=4", "programs=0", "tasks=mug,step_back"]))
+    assert [c for c in plan if c.key == "scripted"] == alone  # their rows, batch and so their noise unchanged
+
+    def rollout(env, policy, params, rng, renderers=(), progress=None, reset_keys=None):
+        raise _Rollout(env, policy, params, rng, renderers, reset_keys)
+
+    monkeypatch.setattr(G, "record_episodes", rollout)
+    calls = []
+    for chunk in plan:
+        with pytest.raises(_Rollout) as got:
+            G.simulate_chunk(cfg, chunk, "mjx")
+        calls.append(got.value.args)
+    # what record_episodes' compiled programs are keyed on: _scan_recorded's static arguments (the env's
+    # core, the policy, the renderers) and the shapes of its data, which follow from the core (state,
+    # observation), the policy and its parameters (carry) and the rng; reset keys feed the core's reset
+    keys = {(env.core, policy, renderers, _signature(params), _signature(rng), _signature(reset_keys))
+            for env, policy, params, rng, renderers, reset_keys in calls}
+    assert len(keys) == 1, "scripted and program chunks would compile apart"
+    kinds = {bool(p) for _, _, params, *_ in calls for p in params["program"]}
+    assert kinds == {True, False}  # both kinds went through it
 
 
 def test_a_chunk_mixing_skills_writes_each_episode_once_and_a_rerun_rewrites_only_the_missing_one(smoke, tmp_path):

@@ -9,10 +9,12 @@ from sim_data.policies.scripted import (
     PROGRAMS,
     Kinematics,
     ScriptedPolicy,
+    ScriptOrProgramPolicy,
     action_program,
     ik_step,
     play_params,
     play_program,
+    script_or_program_params,
 )
 from sim_data.sim import robot as R
 from sim_data.sim import scene as S
@@ -130,6 +132,24 @@ def test_play_is_seeded_smooth_bounded_and_varied(idx):
         assert (moved[:, part].max(axis=1) > 0.1).mean() > 0.3  # every part of the action vector is exercised
         assert (moved[:, part].max(axis=1) < 1e-6).mean() > 0.0 or part == R.HAND_CLOSURE  # and sometimes rests
     assert (table[:, :, R.FORWARD_SPEED] < -0.1).any() and (table[:, :, R.FORWARD_SPEED] > 0.1).any()
+
+
+def test_scripts_and_programs_as_one_policy_act_each_row_as_its_own_kind(model):
+    from sim_data.sim.rollout import run_episodes
+
+    env = HomeEnv("mug", 2, engine="cpu")  # the batch of the arcade test above: its ScriptedPolicy compile serves
+    both = ScriptOrProgramPolicy.create(env.episode_steps, model)
+    table = np.stack([action_program("reach_mug", env.episode_steps), action_program("air_guitar", env.episode_steps)])
+    rng = jax.random.PRNGKey(5)
+    _, mixed = run_episodes(env, both, script_or_program_params([0.4, 1.0], table, [False, True]), rng, record=True)
+    _, scripted = run_episodes(env, both.script, {"skill": jnp.array([0.4, 1.0])}, rng, record=True)
+    # row 0 is the scripted policy's episode (the same noise from the same rng), row 1 plays its table
+    np.testing.assert_array_equal(np.asarray(mixed.action[0]), np.asarray(scripted.action[0]))
+    np.testing.assert_array_equal(np.asarray(mixed.qpos[0]), np.asarray(scripted.qpos[0]))
+    np.testing.assert_array_equal(np.asarray(mixed.action[1]), table[1])
+    # a batch of programs only (the branch that skips the script) plays the tables
+    _, programs = run_episodes(env, both, script_or_program_params([1.0, 1.0], table, [True, True]), rng, record=True)
+    np.testing.assert_array_equal(np.asarray(programs.action), table)
 
 
 def test_unknown_program_is_a_clear_error():

@@ -44,15 +44,16 @@ from sim_data.policies.registry import PolicySource
 from sim_data.policies.registry import resolve as resolve_sources
 from sim_data.policies.scripted import (
     PROGRAMS,
-    ProgramPolicy,
-    ScriptedPolicy,
+    ScriptOrProgramPolicy,
     pad_programs,
     play_params,
     program_params,
+    script_or_program_params,
 )
 from sim_data.sim.engines import ENGINES, default_engine
 from sim_data.sim.env import HomeEnv
 from sim_data.sim.render import RenderConfig, Renderer
+from sim_data.sim.robot import ACTION_DIM
 from sim_data.sim.rollout import record_episodes
 from sim_data.sim.scene import load_model
 from sim_data.sim.tasks import MAX_EPISODE_STEPS, TASK_NAMES
@@ -148,7 +149,8 @@ PRESETS = {
     # the world model's and the zoo's GPU set: three tasks, a spread of skills (1.0 for the zoo's
     # demonstrations, 0.5 and 0.75 for its low-skill lineage), random play, the controllability programs,
     # head camera; about 611k frames, so that the data stage fits a 10-minute command on one GPU.
-    # batch 480: per task 2x480 scripted, 1x368 program+play, rollouts 2x(4x64) rows, none padded; 9 chunks for parts
+    # batch 480: per task 2x480 scripted, 1x368 program+play padded to 480 (one compiled rollout for both),
+    # rollouts 2x(4x64) rows; 9 chunks for parts
     "wm_full": DataConfig(tasks=("mug", "wipe", "airfryer"), skills=(0.0, 0.5, 0.75, 1.0), episodes=240, batch=480,
                           cameras=("head_cam",), workers=14, programs=32, play=240),
     "heldout_plant": DataConfig(heldout=True, episodes=100, batch=600, workers=12),
@@ -255,7 +257,8 @@ class Chunk:
         the other chunks hold one episode a slot.
       width: rows a slot fills (1 for the scripted, program and play sources).
       size: the slots it is padded to (the `mjx` engine), the same for every chunk of its key in its
-        task, and so in every task for the scripted, program and play sources (one compilation each).
+        task, and so in every task, and for the program and play sources that of the scripted ones
+        (one compiled rollout serves them all).
     """
 
     task: str
@@ -304,22 +307,32 @@ def _task_chunks(task: str, key, group: list, batch: int) -> list[Chunk]:
 def _plan(cfg: DataConfig, learned=()) -> list[Chunk]:
     """The chunks of work in a fixed order: per task, its sources grouped by rollout key (in the
     order of _sources), each key's rows cut into chunks of at most cfg.batch rows (_task_chunks).
-    A task's learned sources are grouped by policy object, scripted skills, programs and play by
-    the compiled rollout they share; only the last chunk of a key in a task needs padding."""
+    A task's learned sources are grouped by policy object; the scripted skills apart from the
+    programs and play, though one ScriptOrProgramPolicy runs both: the programs and play are cut
+    into chunks of at most the scripted chunks' size and padded to it, so that every chunk of them
+    is one batch shape of one compiled rollout (on the `mjx` engine a compile costs far more than
+    simulating the padding rows), and the scripted chunks, whose policy noise depends on their
+    batch, are those they would be alone."""
     out = []
     for task in cfg.tasks:
         groups: dict = {}
         for source, n in _sources(cfg, task, learned):
             groups.setdefault(rollout_key(source), []).append((source, n))
-        for key, group in groups.items():
-            out += _task_chunks(task, key, group, cfg.batch)
+        size = cfg.batch
+        for key, group in groups.items():  # "scripted" first: _sources' order
+            chunks = _task_chunks(task, key, group, size if key == "program" else cfg.batch)
+            if key == "scripted":
+                size = chunks[0].size
+            out += [dataclasses.replace(c, size=size) for c in chunks] if key == "program" else chunks
     return out
 
 
 def rollout_key(source) -> object:
-    """What one compiled rollout serves, for every task (the task is data in the rollout): the
-    scripted skills, the programs and random play (one ProgramPolicy), or a learned policy's
-    checkpoints (one architecture)."""
+    """The group whose rows a task's chunks cut together: the scripted skills ("scripted"), the
+    programs and random play ("program"), or a learned policy's checkpoints (its policy object: one
+    architecture). The task is data in the rollout, so one compiled rollout serves a key in every
+    task; the "scripted" and "program" groups share one too (ScriptOrProgramPolicy), and stay
+    apart so that each chunk's rows, and with them the policy noise its rng draws, are its own."""
     if isinstance(source, PolicySource):
         return source.policy
     return "program" if isinstance(source, str) else "scripted"
@@ -500,15 +513,19 @@ def simulate_chunk(cfg: DataConfig, chunk: Chunk, engine: str) -> tuple[list, ob
 
 
 def _policy_and_params(cfg: DataConfig, chunk: Chunk, rows: list, env: HomeEnv) -> tuple:
-    """(policy, params) running the B rows ([(source, episode index)]) of chunk in env: the scripted
-    policy with a skill per row (params {"skill": (B,)}), ProgramPolicy with an action table per row
-    ((B, steps, 20)), or a policy's checkpoints stacked (one per slot of chunk.width rows)."""
-    kind = chunk.key if isinstance(chunk.key, str) else "stacked"  # a policy object: learned or a plug-in
-    if kind == "scripted":
-        return _policy(), {"skill": np.array([float(src) for src, _ in rows], np.float32)}
-    if kind == "program":
-        table = np.stack([_program_table(cfg, chunk.task, src, i, env) for src, i in rows])
-        return ProgramPolicy(MAX_EPISODE_STEPS), pad_programs({"table": table}, MAX_EPISODE_STEPS)
+    """(policy, params) running the B rows ([(source, episode index)]) of chunk in env: for the
+    scripted skills, the programs and random play one ScriptOrProgramPolicy, each row a skill or an
+    action table (params {"program": (B,), "skill": (B,), "table": (B, MAX_EPISODE_STEPS, 20)}, one
+    structure for both kinds: one compiled rollout); or a policy's checkpoints stacked (one per slot
+    of chunk.width rows)."""
+    if isinstance(chunk.key, str):  # "scripted" or "program"
+        program = [isinstance(src, str) for src, _ in rows]
+        blank = np.zeros((env.episode_steps, ACTION_DIM), np.float32)  # a scripted row's table, never played
+        table = np.stack([_program_table(cfg, chunk.task, src, i, env) if p else blank
+                          for (src, i), p in zip(rows, program)])
+        skill = [1.0 if p else float(src) for (src, _), p in zip(rows, program)]
+        params = pad_programs(script_or_program_params(skill, table, program), MAX_EPISODE_STEPS)
+        return _policy(), params
     slots = [rows[k][0] for k in range(0, len(rows), chunk.width)]
     return StackedPolicy(chunk.key), stack_params([src.params for src in slots])
 
@@ -529,8 +546,8 @@ def cached_env(task, batch, engine, heldout) -> HomeEnv:
 
 
 @functools.cache
-def _policy() -> ScriptedPolicy:
-    return ScriptedPolicy.create(model=load_model())
+def _policy() -> ScriptOrProgramPolicy:
+    return ScriptOrProgramPolicy.create(MAX_EPISODE_STEPS, model=load_model())
 
 
 @functools.lru_cache(maxsize=8)

@@ -9,7 +9,8 @@ Every policy follows the project's protocol, batched and jittable:
 with `params = {"skill": (B,) float}` for the scripted policies. Scripted policies read
 privileged simulator state (`obs["qpos"]`, `obs["time"]`) and each episode's task from its task
 state at reset (`TaskState.task_id`), so one ScriptedPolicy (and one compiled rollout) serves every
-task.
+task. ScriptOrProgramPolicy is both kinds in one, chosen per episode by its parameters, so that the
+data generator's scripted, program and play episodes share one compiled rollout too.
 
 How skill degrades a policy (u = 1 - skill, drawn once per episode from the policy's rng):
 - noisy perception: object positions off by N(0, (0.05 u)^2) per horizontal axis, yaw by
@@ -488,6 +489,57 @@ class ProgramPolicy:
         table = params["table"]
         rows = jnp.arange(table.shape[0])
         return table[rows, jnp.minimum(carry, self.num_steps - 1)], carry + 1
+
+
+# ---- scripts and programs as one policy, chosen per episode by data ------------------------------
+
+@dataclasses.dataclass(frozen=True)
+class ScriptOrProgramPolicy:
+    """The scripted policies and the action programs (and random play) as one policy whose behaviour
+    each episode's parameters choose: row b plays action table `table[b]` (as ProgramPolicy) where
+    `program[b]`, else the script of its task at skill `skill[b]` (as ScriptedPolicy). Both kinds
+    then share one parameter structure, one carry and so one compiled rollout per engine and batch
+    size, whichever kind or mixture of kinds a batch holds.
+
+    params: {"program": (B,) bool, "skill": (B,) float32, "table": (B, num_steps, 20) float32}
+    (`script_or_program_params`). The scripted rows draw their imperfections exactly as
+    ScriptedPolicy does from the same rng, and program rows play their tables as ProgramPolicy does,
+    so each row's actions are those of its own kind's policy. A batch without scripted rows skips
+    the script's inverse kinematics (a `lax.cond` on the batch, which compiles both branches).
+
+    Args:
+      script: the ScriptedPolicy. program: the ProgramPolicy (its num_steps: the tables' rows).
+    """
+
+    script: ScriptedPolicy
+    program: ProgramPolicy
+
+    @classmethod
+    def create(cls, num_steps: int, model=None):
+        """The policy over model (default: `sim_data.sim.scene.load_model()`) with tables of num_steps rows."""
+        return cls(ScriptedPolicy.create(model=model), ProgramPolicy(num_steps))
+
+    def init_carry(self, params, obs, task_state, rng):
+        """{"script": ScriptCarry (leading axis B), "step": (B,) int32 the program's row}; the script's
+        carry is planned for every row (the program rows' is never read), from rng as ScriptedPolicy's."""
+        return {"script": self.script.init_carry(params, obs, task_state, rng),
+                "step": self.program.init_carry(params, obs, task_state, rng)}
+
+    def act(self, params, obs, carry, rng):
+        """Batched actions (B, 20): each row's table row or scripted action; and the updated carry."""
+        played, step = self.program.act(params, obs, carry["step"], rng)
+        program = params["program"]
+        scripted, script = jax.lax.cond(
+            jnp.all(program), lambda: (played, carry["script"]),
+            lambda: self.script.act(params, obs, carry["script"], rng))
+        return jnp.where(program[:, None], played, scripted), {"script": script, "step": step}
+
+
+def script_or_program_params(skill, table, program) -> dict:
+    """ScriptOrProgramPolicy parameters of B episodes from skill (B,), table (B, num_steps, 20) and
+    program (B,) bool (the rows that play their table rather than their task's script)."""
+    return {"program": np.asarray(program, bool), "skill": np.asarray(skill, np.float32),
+            "table": np.asarray(table, np.float32)}
 
 
 def program_params(names, num_steps: int) -> dict:
