@@ -118,6 +118,8 @@ def test_bad_configuration_is_refused_before_work(tmp_path):
         G.make_config("smoke", ["epsiodes=3"])
     with pytest.raises(ValueError, match="unknown preset"):
         G.make_config("huge")
+    with pytest.raises(ValueError, match="weak_grip must be >= 0"):
+        G.make_config("smoke", ["weak_grip=-1"])
     with pytest.raises(SystemExit):
         G.main(["--config", "smoke", "--out", str(tmp_path / "x"), "size=96"])
     assert not (tmp_path / "x").exists()
@@ -223,6 +225,38 @@ def test_scripted_program_and_play_chunks_run_through_one_compiled_rollout(monke
     assert len(keys) == 1, "scripted and program chunks would compile apart"
     kinds = {bool(p) for _, _, params, *_ in calls for p in params["program"]}
     assert kinds == {True, False}  # both kinds went through it
+
+
+@pytest.mark.filterwarnings("ignore:the mjx engine is meant for GPUs")
+def test_weak_grip_episodes_start_where_the_scripted_ones_do_and_close_the_hand_part_way(monkeypatch):
+    cfg = G.make_config("smoke", ["engine=mjx", "episodes=3", "batch=4", "weak_grip=3"])
+    plan = G._plan(cfg)
+    weak = [(c, i) for c in plan for s, i in c.rows(padded=False) if s == G.WEAK_GRIP]
+    assert [i for _, i in weak] == [0, 1, 2] and {c.key for c, _ in weak} == {"program"}  # beside the programs
+    assert [c for c in plan if c.key == "scripted"] == \
+        G._plan(G.make_config("smoke", ["engine=mjx", "episodes=3", "batch=4"]))[:1]  # the scripted chunk unchanged
+    for i in range(3):  # the scripted episode i's initial state and split, not a demonstration of skill 1
+        meta, scripted = (G._episode_meta(cfg, "mug", s, i, False, 10, "mjx") for s in (G.WEAK_GRIP, 1.0))
+        assert meta["seed"] == scripted["seed"] and meta["split"] == scripted["split"] != "programs"
+        assert (meta["policy"], meta["policy_kind"], meta["skill"]) == ("weak_grip", "weak_grip", None)
+        assert meta["episode_id"] == f"mug-weak-{i:06d}"
+    factors = np.array([G.weak_grip_factor(i) for i in range(100)])
+    lo, hi = G.WEAK_GRIP_RANGE
+    assert factors.min() >= lo and factors.max() < hi and len(np.unique(factors)) == 100
+    assert np.histogram(factors, bins=6, range=(lo, hi))[0].min() >= 15  # spread evenly: 100 / 6 each, about
+
+    def rollout(env, policy, params, rng, renderers=(), progress=None, reset_keys=None):
+        raise _Rollout(params)
+
+    monkeypatch.setattr(G, "record_episodes", rollout)
+    chunk = weak[0][0]
+    with pytest.raises(_Rollout) as got:
+        G.simulate_chunk(cfg, chunk, "mjx")
+    params = got.value.args[0]
+    for r, (s, i) in enumerate(chunk.rows(padded=True)):
+        weak_row = s == G.WEAK_GRIP
+        assert params["grip"][r] == pytest.approx(G.weak_grip_factor(i) if weak_row else 1.0)
+        assert not weak_row or (params["skill"][r] == 1.0 and not params["program"][r])
 
 
 def test_a_chunk_mixing_skills_writes_each_episode_once_and_a_rerun_rewrites_only_the_missing_one(smoke, tmp_path):

@@ -152,6 +152,23 @@ def test_scripts_and_programs_as_one_policy_act_each_row_as_its_own_kind(model):
     np.testing.assert_array_equal(np.asarray(programs.action), table)
 
 
+def test_a_weak_grip_scales_the_scripts_closures_and_the_mug_slips(model):
+    from sim_data.sim.rollout import run_episodes
+
+    env = HomeEnv("mug", 2, engine="cpu")  # the batch and policy of the test above: no new compile
+    both = ScriptOrProgramPolicy.create(env.episode_steps, model)
+    blank = np.zeros((2, env.episode_steps, R.ACTION_DIM), np.float32)
+    rng = jax.random.PRNGKey(5)
+    firm, full = run_episodes(env, both, script_or_program_params([1.0, 1.0], blank, [False, False]), rng, record=True)
+    slack, weak = run_episodes(env, both, script_or_program_params([1.0, 1.0], blank, [False, False], [1.0, 0.3]),
+                               rng, record=True)
+    closure = np.asarray(full.action[:, :, R.RIGHT_HAND])
+    assert closure.max() > 0.99  # the script closes the hand fully
+    np.testing.assert_array_equal(np.asarray(weak.action[0]), np.asarray(full.action[0]))  # grip 1: as scripted
+    np.testing.assert_allclose(np.asarray(weak.action[1, :, R.RIGHT_HAND]), 0.3 * closure[1], atol=1e-6)
+    assert bool(np.asarray(firm.success)[1]) and not bool(np.asarray(slack.success)[1])
+
+
 def test_unknown_program_is_a_clear_error():
     with pytest.raises(ValueError, match="unknown program"):
         action_program("moonwalk", 10)

@@ -69,6 +69,8 @@ from sim_data.util import (
 CAMERAS = ("head_cam", "ext_cam")
 SPLITS = ("train", "val", "test", "programs")
 PLAY = "play"  # the source of random play episodes (sim_data.policies.scripted.play_program)
+WEAK_GRIP = "weak_grip"  # the source of scripted episodes whose hand closes only part-way (DataConfig.weak_grip)
+WEAK_GRIP_RANGE = (0.1, 0.7)  # the factors on a weak grip's closures
 
 
 @dataclasses.dataclass(frozen=True)
@@ -93,6 +95,12 @@ class DataConfig:
       policies: policy specs (`sim_data.policies.registry`: zoo registries, plug-ins) whose own rollouts join
         the dataset, failures included; policy_episodes: episodes per policy and task (0: `episodes`),
         from the same initial states as the scripted episodes 0, 1, ...
+      weak_grip: episodes per task of the scripted policy at skill 1 whose every closure is scaled by
+        a factor spread over WEAK_GRIP_RANGE (weak_grip_factor), from the initial states of the
+        scripted episodes 0, 1, ... (policy "weak_grip", in train/val/test): the scripted closures
+        are 0 or 1, and these show what a hand closed part-way does to what it holds. They run in
+        the chunks of the programs and play (on the GPU, in rows those chunks would pad) and are
+        not scripted demonstrations (policy_kind "weak_grip"), so the zoo never learns from them.
     """
 
     tasks: tuple = TASK_NAMES
@@ -113,6 +121,7 @@ class DataConfig:
     play: int = 0
     policies: tuple = ()
     policy_episodes: int = 0
+    weak_grip: int = 0
 
     def validate(self) -> None:
         bad = [t for t in self.tasks if t not in TASK_NAMES]
@@ -122,9 +131,9 @@ class DataConfig:
             raise ValueError(f"skills must be in [0, 1], got {self.skills}")
         if self.episodes < 1 or self.batch < 1 or self.workers < 1:
             raise ValueError("episodes, batch and workers must be >= 1")
-        if min(self.programs, self.play, self.policy_episodes) < 0:
-            raise ValueError(f"programs, play and policy_episodes must be >= 0, got {self.programs}, {self.play}, "
-                             f"{self.policy_episodes}")
+        if min(self.programs, self.play, self.policy_episodes, self.weak_grip) < 0:
+            raise ValueError(f"programs, play, policy_episodes and weak_grip must be >= 0, got {self.programs}, "
+                             f"{self.play}, {self.policy_episodes}, {self.weak_grip}")
         if self.engine not in ("",) + ENGINES:
             raise ValueError(f"engine must be one of {ENGINES} or empty, got {self.engine!r}")
         if self.size not in (64, 128):
@@ -153,6 +162,10 @@ PRESETS = {
     # rollouts 2x(4x64) rows; 9 chunks for parts
     "wm_full": DataConfig(tasks=("mug", "wipe", "airfryer"), skills=(0.0, 0.5, 0.75, 1.0), episodes=240, batch=480,
                           cameras=("head_cam",), workers=14, programs=32, play=240),
+    # wm_full with 112 weak-grip episodes a task, in the rows that pad its program and play chunk
+    # (368 of 480): the `full_grip` pipeline's world-model data
+    "wm_full_grip": DataConfig(tasks=("mug", "wipe", "airfryer"), skills=(0.0, 0.5, 0.75, 1.0), episodes=240,
+                               batch=480, cameras=("head_cam",), workers=14, programs=32, play=240, weak_grip=112),
     "heldout_plant": DataConfig(heldout=True, episodes=100, batch=600, workers=12),
     "shelf": DataConfig(tasks=("shelf",), skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=600, batch=1200, workers=12),
     "shelf_arcade": DataConfig(tasks=("shelf", "arcade"), skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=300,
@@ -182,31 +195,33 @@ def split_of(cfg: DataConfig, seed: int) -> str:
 
 
 def policy_name(source) -> str:
-    """A source is a scripted skill (float), PLAY, an action program's name (str) or a PolicySource."""
+    """A source is a scripted skill (float), PLAY, WEAK_GRIP, an action program's name (str) or a PolicySource."""
     if isinstance(source, PolicySource):
         return f"{source.kind}:{source.name}"
-    if source == PLAY:
-        return PLAY
+    if source in (PLAY, WEAK_GRIP):
+        return source
     return f"program:{source}" if isinstance(source, str) else f"scripted@{float(source):.2f}"
 
 
 def policy_kind(source) -> str:
     if isinstance(source, PolicySource):
         return source.kind
-    return PLAY if source == PLAY else "program" if isinstance(source, str) else "scripted"
+    return source if source in (PLAY, WEAK_GRIP) else "program" if isinstance(source, str) else "scripted"
 
 
 def episode_id(task: str, source, i: int) -> str:
     if isinstance(source, PolicySource):
         return f"{task}-l{source.slug}-{i:06d}"
-    if source == PLAY:
-        return f"{task}-play-{i:06d}"
+    if source in (PLAY, WEAK_GRIP):
+        return f"{task}-{'play' if source == PLAY else 'weak'}-{i:06d}"
     if isinstance(source, str):
         return f"{task}-p{PROGRAMS.index(source)}{source}-{i:06d}"
     return f"{task}-s{round(float(source) * 100):03d}-{i:06d}"
 
 
 def _initial_seed_of(cfg, task, source, i) -> int:
+    if source == WEAK_GRIP:  # the scripted episode i's initial state: the same start, another grip
+        return initial_seed(cfg, task, i)
     if source == PLAY:
         return initial_seed(cfg, f"{task}/play", i)
     return initial_seed(cfg, f"{task}/programs" if isinstance(source, str) else task, i)
@@ -232,9 +247,10 @@ def package_versions(packages=("mujoco", "mujoco-mjx", "jax", "numpy", "opencv-p
 
 def _sources(cfg: DataConfig, task: str, learned=()) -> list:
     """[(source, episodes)] of task in the plan's order: the scripted skills, the programs, random
-    play, then the PolicySources of `learned` (cfg.policies resolved) that run on task."""
+    play, the weak grips, then the PolicySources of `learned` (cfg.policies resolved) that run on task."""
     sources = [(float(s), cfg.episodes) for s in cfg.skills] + [(p, cfg.programs) for p in PROGRAMS if cfg.programs]
     sources += [(PLAY, cfg.play)] if cfg.play else []
+    sources += [(WEAK_GRIP, cfg.weak_grip)] if cfg.weak_grip else []
     return sources + [(src, cfg.policy_episodes or cfg.episodes) for src in learned if src.runs_on(task)]
 
 
@@ -329,7 +345,7 @@ def _plan(cfg: DataConfig, learned=()) -> list[Chunk]:
 
 def rollout_key(source) -> object:
     """The group whose rows a task's chunks cut together: the scripted skills ("scripted"), the
-    programs and random play ("program"), or a learned policy's checkpoints (its policy object: one
+    programs, random play and the weak grips ("program"), or a learned policy's checkpoints (its policy object: one
     architecture). The task is data in the rollout, so one compiled rollout serves a key in every
     task; the "scripted" and "program" groups share one too (ScriptOrProgramPolicy), and stay
     apart so that each chunk's rows, and with them the policy noise its rng draws, are its own."""
@@ -514,20 +530,28 @@ def simulate_chunk(cfg: DataConfig, chunk: Chunk, engine: str) -> tuple[list, ob
 
 def _policy_and_params(cfg: DataConfig, chunk: Chunk, rows: list, env: HomeEnv) -> tuple:
     """(policy, params) running the B rows ([(source, episode index)]) of chunk in env: for the
-    scripted skills, the programs and random play one ScriptOrProgramPolicy, each row a skill or an
-    action table (params {"program": (B,), "skill": (B,), "table": (B, MAX_EPISODE_STEPS, 20)}, one
-    structure for both kinds: one compiled rollout); or a policy's checkpoints stacked (one per slot
-    of chunk.width rows)."""
+    scripted skills, the weak grips, the programs and random play one ScriptOrProgramPolicy, each row
+    a skill and a grip (weak_grip_factor), or an action table (params {"program": (B,), "skill": (B,),
+    "grip": (B,), "table": (B, MAX_EPISODE_STEPS, 20)}, one structure for every kind: one compiled
+    rollout); or a policy's checkpoints stacked (one per slot of chunk.width rows)."""
     if isinstance(chunk.key, str):  # "scripted" or "program"
-        program = [isinstance(src, str) for src, _ in rows]
+        program = [isinstance(src, str) and src != WEAK_GRIP for src, _ in rows]
         blank = np.zeros((env.episode_steps, ACTION_DIM), np.float32)  # a scripted row's table, never played
         table = np.stack([_program_table(cfg, chunk.task, src, i, env) if p else blank
                           for (src, i), p in zip(rows, program)])
-        skill = [1.0 if p else float(src) for (src, _), p in zip(rows, program)]
-        params = pad_programs(script_or_program_params(skill, table, program), MAX_EPISODE_STEPS)
+        skill = [1.0 if isinstance(src, str) else float(src) for src, _ in rows]
+        grip = [weak_grip_factor(i) if src == WEAK_GRIP else 1.0 for src, i in rows]
+        params = pad_programs(script_or_program_params(skill, table, program, grip), MAX_EPISODE_STEPS)
         return _policy(), params
     slots = [rows[k][0] for k in range(0, len(rows), chunk.width)]
     return StackedPolicy(chunk.key), stack_params([src.params for src in slots])
+
+
+def weak_grip_factor(i: int) -> float:
+    """The factor on the closures of weak-grip episode i: spread evenly over WEAK_GRIP_RANGE (a
+    golden-ratio sequence), so that any first n episodes cover the range."""
+    lo, hi = WEAK_GRIP_RANGE
+    return lo + (hi - lo) * ((i * 0.6180339887498949) % 1.0)
 
 
 def _program_table(cfg: DataConfig, task: str, source: str, i: int, env: HomeEnv) -> np.ndarray:

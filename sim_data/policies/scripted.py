@@ -6,7 +6,8 @@ Every policy follows the project's protocol, batched and jittable:
     carry = policy.init_carry(params, obs, rng)
     action, carry = policy.act(params, obs, carry, rng)
 
-with `params = {"skill": (B,) float}` for the scripted policies. Scripted policies read
+with `params = {"skill": (B,) float}` for the scripted policies, and optionally `"grip": (B,) float`, a
+factor on every closure of the episode's script (1: as scripted; the data generator's weak grips). Scripted policies read
 privileged simulator state (`obs["qpos"]`, `obs["time"]`) and each episode's task from its task
 state at reset (`TaskState.task_id`), so one ScriptedPolicy (and one compiled rollout) serves every
 task. ScriptOrProgramPolicy is both kinds in one, chosen per episode by its parameters, so that the
@@ -298,12 +299,14 @@ class ScriptedPolicy:
 
         return T.select_task(task_id, [plan(name) for name in T.TASK_NAMES])
 
-    def _init_one(self, skill, qpos, ts, rng):
+    def _init_one(self, skill, qpos, ts, rng, grip=None):
         idx = self.kin.idx
         noise = self._noise(rng, skill)
         q_cmd = qpos[idx.robot.arm_qpos]
         hand0, _, _ = self.kin.grip(qpos, 1)
         times, pos, yaw, closure, (t0, t1) = self._plan(ts.task_id, qpos, ts, noise, hand0)
+        if grip is not None:
+            closure = closure * grip
         release_at = jnp.where(noise["release"], t0 + (t1 - t0) * noise["release_frac"], jnp.inf)
         drive = jnp.stack([noise["distance"], noise["yaw_bias"]])
         return ScriptCarry(q_cmd=q_cmd, times=times, pos=pos, yaw=yaw, closure=closure, release_at=release_at,
@@ -313,12 +316,14 @@ class ScriptedPolicy:
         """Draws each episode's imperfections and plans its keyframes.
 
         Args:
-          params: {"skill": (B,)}; obs: the environment's observation at reset; task_state: the
-            env's TaskState at reset (task, cue order, patch); rng: one PRNG key.
+          params: {"skill": (B,)}, optionally with "grip": (B,) (the module doc); obs: the
+            environment's observation at reset; task_state: the env's TaskState at reset (task, cue
+            order, patch); rng: one PRNG key.
         """
         b = obs["qpos"].shape[0]
         keys = jax.random.split(rng, b)
-        return jax.vmap(self._init_one)(params["skill"], obs["qpos"], task_state, keys)
+        grip = (params["grip"],) if "grip" in params else ()
+        return jax.vmap(self._init_one)(params["skill"], obs["qpos"], task_state, keys, *grip)
 
     @staticmethod
     def _drive_action(t, c: ScriptCarry, action):
@@ -501,8 +506,8 @@ class ScriptOrProgramPolicy:
     then share one parameter structure, one carry and so one compiled rollout per engine and batch
     size, whichever kind or mixture of kinds a batch holds.
 
-    params: {"program": (B,) bool, "skill": (B,) float32, "table": (B, num_steps, 20) float32}
-    (`script_or_program_params`). The scripted rows draw their imperfections exactly as
+    params: {"program": (B,) bool, "skill": (B,) float32, "grip": (B,) float32, "table": (B,
+    num_steps, 20) float32} (`script_or_program_params`). The scripted rows draw their imperfections exactly as
     ScriptedPolicy does from the same rng, and program rows play their tables as ProgramPolicy does,
     so each row's actions are those of its own kind's policy. A batch without scripted rows skips
     the script's inverse kinematics (a `lax.cond` on the batch, which compiles both branches).
@@ -535,10 +540,12 @@ class ScriptOrProgramPolicy:
         return jnp.where(program[:, None], played, scripted), {"script": script, "step": step}
 
 
-def script_or_program_params(skill, table, program) -> dict:
-    """ScriptOrProgramPolicy parameters of B episodes from skill (B,), table (B, num_steps, 20) and
-    program (B,) bool (the rows that play their table rather than their task's script)."""
-    return {"program": np.asarray(program, bool), "skill": np.asarray(skill, np.float32),
+def script_or_program_params(skill, table, program, grip=None) -> dict:
+    """ScriptOrProgramPolicy parameters of B episodes from skill (B,), table (B, num_steps, 20),
+    program (B,) bool (the rows that play their table rather than their task's script) and grip (B,),
+    the factor on a scripted row's closures (default 1: as scripted)."""
+    grip = np.ones(len(skill), np.float32) if grip is None else np.asarray(grip, np.float32)
+    return {"program": np.asarray(program, bool), "skill": np.asarray(skill, np.float32), "grip": grip,
             "table": np.asarray(table, np.float32)}
 
 
