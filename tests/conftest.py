@@ -111,6 +111,13 @@ def smoke_world_model(smoke_dataset, tmp_path_factory, worker_id):
     return build_once(tmp_path_factory, worker_id, "wm", train) / "train"
 
 
+# The evaluation fixture's settings (tests/test_experiments.py): batches of 3 policies x 2 states. Tests
+# that evaluate other policies with them at that batch (3 checkpoints of one architecture, as the
+# fixture's first batch) run the programs the fixture compiled instead of compiling their own.
+SMOKE_EVAL = {"tasks": ("mug",), "episodes": 2, "batch": 6, "video_policies": 2, "video_episodes": 1,
+              "decision_episodes": (5, 50), "readout": "judge", "keep_features": True}
+
+
 @pytest.fixture(scope="package")
 def smoke_zoo(smoke_dataset, tmp_path_factory, worker_id):
     """(directory, registry) of `make policies CONFIG=smoke` on the smoke dataset."""

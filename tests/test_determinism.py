@@ -12,8 +12,10 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from conftest import SMOKE_EVAL
 
 from experiments import evaluate as E
+from sim_data.policies.registry import resolve
 from wm.checkpoint import load_trained, training_status
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -55,8 +57,13 @@ def test_a_killed_and_rerun_training_equals_an_uninterrupted_one(smoke_dataset, 
 
 def test_the_same_evaluation_twice_gives_the_same_figures(smoke_zoo, smoke_world_model, tmp_path):
     zoo_dir, _ = smoke_zoo
-    cfg = E.EvalConfig(policies=(f"{zoo_dir}#conv_proprio",), wm=str(smoke_world_model), tasks=("mug",),
-                       episodes=2, batch=64, video_policies=0)
+    # the evaluation fixture's first batch (3 checkpoints of one architecture from 2 states) with its
+    # settings: the programs it compiles, not a batch of its own
+    sources = resolve([f"{zoo_dir}#conv_proprio+conv_noproprio"])[:3]
+    assert len({s.policy for s in sources}) == 1
+    cfg = E.EvalConfig(policies=(f"{zoo_dir}#" + "+".join(s.name for s in sources),), wm=str(smoke_world_model),
+                       **SMOKE_EVAL)
+    assert len(E.task_chunks(cfg, resolve(cfg.policies), cfg.episodes)) == 1
     one, two = (E.run(cfg, tmp_path / name, progress=False) for name in ("one", "two"))
     for a, b in zip(one["policies"], two["policies"], strict=True):
         assert a["true_episodes"] == b["true_episodes"]

@@ -9,7 +9,7 @@ import time
 import jax
 import numpy as np
 import pytest
-from conftest import build_once
+from conftest import SMOKE_EVAL, build_once
 
 from experiments import evaluate as E
 from experiments import stats as S
@@ -26,8 +26,7 @@ def evaluation(smoke_world_model, smoke_zoo, tmp_path_factory, worker_id):
     zoo_dir, _ = smoke_zoo
     # batches of 3 policies x 2 states: two batches, each mixing architectures (MixedPolicy)
     cfg = E.EvalConfig(policies=(f"{zoo_dir}#conv_proprio+conv_noproprio", "examples.plugin_policy:make"),
-                       wm=str(smoke_world_model), tasks=("mug",), episodes=2, batch=6, video_policies=2,
-                       video_episodes=1, decision_episodes=(5, 50), readout="judge", keep_features=True)
+                       wm=str(smoke_world_model), **SMOKE_EVAL)
     out = build_once(tmp_path_factory, worker_id, "eval", lambda d: E.run(cfg, d / "run", progress=False)) / "run"
     return cfg, out, json.loads((out / "results.json").read_text())
 

@@ -19,6 +19,7 @@ from sim_data.policies.scripted import (
 from sim_data.sim import robot as R
 from sim_data.sim import scene as S
 from sim_data.sim.env import HomeEnv
+from sim_data.sim.rollout import _jitted_init, run_episodes
 
 
 @pytest.fixture(scope="module")
@@ -68,7 +69,7 @@ def test_skill_changes_the_plan_deterministically(model):
     pol = ScriptedPolicy.create("mug", model)
     st = env.reset(jax.random.PRNGKey(0))
     params = {"skill": jnp.array([1.0, 0.2])}
-    init = jax.jit(pol.init_carry)  # one compile instead of two eager plans
+    init = _jitted_init(pol)  # run_episodes' and the dataset's compiled plan, not a program of its own
     c1 = init(params, st.obs, st.task, jax.random.PRNGKey(1))
     c2 = init(params, st.obs, st.task, jax.random.PRNGKey(1))
     np.testing.assert_array_equal(np.asarray(c1.pos), np.asarray(c2.pos))
@@ -81,8 +82,6 @@ def test_skill_changes_the_plan_deterministically(model):
 def test_scripted_arcade_succeeds_at_full_skill_and_actions_are_valid(model):
     env = HomeEnv("arcade", 2, engine="cpu")
     pol = ScriptedPolicy.create("arcade", model)
-    from sim_data.sim.rollout import run_episodes
-
     st, traj = run_episodes(env, pol, {"skill": jnp.ones(2)}, jax.random.PRNGKey(3), record=True)
     assert np.asarray(st.success).all()
     a = np.asarray(traj.action)

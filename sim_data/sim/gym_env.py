@@ -35,6 +35,7 @@ with the same JAX renderer; no OpenGL is needed.
 
 from __future__ import annotations
 
+import functools
 from typing import ClassVar
 
 import gymnasium as gym
@@ -83,6 +84,19 @@ def _render_config(camera: str, height: int, width: int) -> RenderConfig:
     return RenderConfig(camera=camera, height=height, width=width, tile=tile)
 
 
+@functools.lru_cache(maxsize=16)
+def _frames_of(model, cfg: RenderConfig):
+    """Jitted frames(poses, colors) -> (B, H, W, 3) uint8 of one camera of model, shared by
+    every environment that draws it: a second `gym.make` (or vector env) reuses the traced and
+    compiled renderer instead of tracing it again (jit keeps a program per batch size)."""
+    renderer = Renderer(model, cfg)
+
+    def frames(poses, colors):
+        return renderer.render_batch(poses, episode_rgb(renderer.geometry, colors))["rgb"]
+
+    return jax.jit(frames)
+
+
 class _Batch:
     """B simulations of one task (a task chosen per episode) and their Gymnasium observations.
 
@@ -109,17 +123,8 @@ class _Batch:
             self.observation_space = gym.spaces.Dict({"image": image, "proprio": proprio})
         else:
             self.observation_space = proprio
-        self._head = Renderer(env.model, RenderConfig(camera=IMAGE_CAMERA, height=IMAGE_SIZE, width=IMAGE_SIZE))
-        self._view = Renderer(env.model, _render_config(camera, height, width))
-        self._frames = {r: jax.jit(self._frames_of(r)) for r in ("head", "view")}
-
-    def _frames_of(self, which: str):
-        renderer = self._head if which == "head" else self._view
-
-        def frames(poses, colors):
-            return renderer.render_batch(poses, episode_rgb(renderer.geometry, colors))["rgb"]
-
-        return frames
+        head = RenderConfig(camera=IMAGE_CAMERA, height=IMAGE_SIZE, width=IMAGE_SIZE)
+        self._frames = {"head": _frames_of(env.model, head), "view": _frames_of(env.model, _render_config(camera, height, width))}
 
     def env(self) -> HomeEnv:
         """The HomeEnv of the current task (every task's shares one compiled core)."""
