@@ -108,7 +108,11 @@ def test_every_policy_of_the_project_follows_the_protocol():
     from examples.plugin_policy import BackAway
     from sim_data.policies.bc import BCPolicy, PolicyNetConfig
     from sim_data.policies.registry import Policy
-    from sim_data.policies.scripted import ProgramPolicy, ScriptedPolicy, ScriptOrProgramPolicy
+    from sim_data.policies.scripted import (
+        ProgramPolicy,
+        ScriptedPolicy,
+        ScriptOrProgramPolicy,
+    )
 
     bc = BCPolicy(PolicyNetConfig())
     mixed = MixedPolicy((bc, Ramp()), (2, 2))
