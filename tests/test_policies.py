@@ -65,11 +65,11 @@ def test_ik_reaches_a_hand_down_target(model, kin, right_grip):
 
 
 def test_skill_changes_the_plan_deterministically(model):
-    env = HomeEnv("mug", 2, engine="cpu")  # the dataset's smoke batch: the same compiled plan
+    env = HomeEnv("mug", 2, engine="cpu")  # the batch of the arcade test below: the same compiled plan
     pol = ScriptedPolicy.create("mug", model)
     st = env.reset(jax.random.PRNGKey(0))
     params = {"skill": jnp.array([1.0, 0.2])}
-    init = _jitted_init(pol)  # run_episodes' and the dataset's compiled plan, not a program of its own
+    init = _jitted_init(pol)  # run_episodes' compiled plan, not a program of its own
     c1 = init(params, st.obs, st.task, jax.random.PRNGKey(1))
     c2 = init(params, st.obs, st.task, jax.random.PRNGKey(1))
     np.testing.assert_array_equal(np.asarray(c1.pos), np.asarray(c2.pos))
