@@ -212,8 +212,10 @@ def policy_kind(source) -> str:
 def episode_id(task: str, source, i: int) -> str:
     if isinstance(source, PolicySource):
         return f"{task}-l{source.slug}-{i:06d}"
-    if source in (PLAY, WEAK_GRIP):
-        return f"{task}-{'play' if source == PLAY else 'weak'}-{i:06d}"
+    if source == PLAY:
+        return f"{task}-play-{i:06d}"
+    if source == WEAK_GRIP:
+        return f"{task}-weak-{i:06d}"
     if isinstance(source, str):
         return f"{task}-p{PROGRAMS.index(source)}{source}-{i:06d}"
     return f"{task}-s{round(float(source) * 100):03d}-{i:06d}"
