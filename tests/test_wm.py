@@ -261,6 +261,26 @@ def test_imagination_step_equals_the_teacher_forced_prediction(model_and_inputs)
     assert got["success"].shape == (2, 4) and float(got["success"].min()) >= 0.0
 
 
+def test_open_loop_across_segments_equals_stepping_one_action_at_a_time(model_and_inputs):
+    params, frames, proprio, action = model_and_inputs
+    norm = I.Norm(jnp.full(37, 0.1), jnp.full(37, 2.0), jnp.full(20, -0.2), jnp.full(20, 0.5))
+    h = I.SEGMENT + 3  # two compiled segments, the second padded with actions whose steps are dropped
+    actions = jax.random.uniform(jax.random.PRNGKey(3), (2, h, 20), minval=-1.0, maxval=1.0)
+    got = I.open_loop(CFG, params, norm, frames[:, :2], proprio[:, :2], action[:, :1], actions)
+    st = init_state(CFG, params, norm, frames[:, :2], proprio[:, :2], action[:, :1])
+    frames_ref, success_ref = [], []
+    for t in range(h):
+        st = imagine_step(CFG, params, norm, st, actions[:, t])
+        frames_ref.append(I.to_uint8(st.frame))
+        success_ref.append(st.success)
+    assert got["frames"].shape == (2, h, 64, 64, 3) and got["features"].shape[:2] == (2, h)
+    diff = np.abs(np.asarray(got["frames"], np.int16) - np.asarray(jnp.stack(frames_ref, 1), np.int16))
+    assert diff.max() <= 1 and (diff > 0).mean() < 1e-3  # a rounding step at most, on a few pixels
+    np.testing.assert_allclose(got["success"], jnp.stack(success_ref, 1), atol=1e-5)
+    with pytest.raises(ValueError, match="at least one step"):
+        I.open_loop(CFG, params, norm, frames[:, :2], proprio[:, :2], action[:, :1], actions[:, :0])
+
+
 def test_observed_features_read_the_true_episode_as_exact_imagination_would(model_and_inputs):
     params, frames, proprio, action = model_and_inputs
     norm = I.Norm(jnp.full(37, 0.1), jnp.full(37, 2.0), jnp.full(20, -0.2), jnp.full(20, 0.5))

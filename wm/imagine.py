@@ -174,7 +174,9 @@ def to_uint8(x):
     return jnp.clip(jnp.round(x * 255.0), 0, 255).astype(jnp.uint8)
 
 
-@functools.partial(jax.jit, static_argnums=(0,))
+SEGMENT = 20  # imagined steps per compiled call: one program serves every horizon
+
+
 def open_loop(cfg: ModelConfig, params, norm: Norm, frames, proprio, context_actions, actions) -> dict:
     """Imagines H steps from C context observations under logged actions.
 
@@ -182,21 +184,37 @@ def open_loop(cfg: ModelConfig, params, norm: Norm, frames, proprio, context_act
     (action h follows imagined frame h-1, the first follows the last context frame).
     Returns {"frames": (B, H, S, S, 3) uint8, "proprio": (B, H, 37), "success": (B, H),
     "outcome": (B, H), "progress": (B, H), "features": (B, H, F) (step_features)} for frames C .. C+H-1
-    after the context.
+    after the context. The steps run in compiled segments of SEGMENT steps (the last one padded with
+    zero actions whose steps are dropped), so that every horizon shares one program.
     """
-    state = init_state(cfg, params, norm, frames, proprio, context_actions)
+    h = actions.shape[1]
+    if h < 1:
+        raise ValueError("open_loop imagines at least one step: actions must be (B, H >= 1, 20)")
+    state = _open_loop_start(cfg, params, norm, frames, proprio, context_actions)
+    parts = []
+    for t0 in range(0, h, SEGMENT):
+        a = jnp.asarray(actions[:, t0:t0 + SEGMENT])
+        a = jnp.pad(a, ((0, 0), (0, SEGMENT - a.shape[1]), (0, 0)))
+        state, got = _open_loop_segment(cfg, params, norm, state, a)
+        parts.append(got)
+    return {k: jnp.concatenate([p[k] for p in parts], axis=1)[:, :h] for k in parts[0]}
 
+
+_open_loop_start = jax.jit(init_state, static_argnums=(0,))
+
+
+@functools.partial(jax.jit, static_argnums=(0,))
+def _open_loop_segment(cfg: ModelConfig, params, norm: Norm, state: ImagineState, actions):
+    """SEGMENT steps of open_loop from state under actions (B, SEGMENT, 20): (state, outputs)."""
     def body(st, a):
         st = step(cfg, params, norm, st, a)
         return st, (to_uint8(st.frame), norm.unproprio(st.proprio[:, -1]), st.success, st.outcome, st.progress,
                     step_features(norm, st, a))
 
-    _, (f, p, s, o, g, x) = jax.lax.scan(body, state, jnp.swapaxes(actions, 0, 1))
+    state, (f, p, s, o, g, x) = jax.lax.scan(body, state, jnp.swapaxes(actions, 0, 1))
     sw = functools.partial(jnp.swapaxes, axis1=0, axis2=1)
-    return {"frames": sw(f), "proprio": sw(p), "success": s.T, "outcome": o.T, "progress": g.T, "features": sw(x)}
-
-
-SEGMENT = 20  # imagined steps per compiled call: one program serves every horizon
+    return state, {"frames": sw(f), "proprio": sw(p), "success": s.T, "outcome": o.T, "progress": g.T,
+                   "features": sw(x)}
 
 
 def closed_loop(cfg: ModelConfig, policy, horizon: int, params, norm: Norm, policy_params, frames, proprio,
