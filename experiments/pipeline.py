@@ -25,9 +25,10 @@ A preset may train an ensemble (`members`): world models that differ only in the
 whose mean probability ranks the policies (one model's seed moves its ranking more than most design
 choices; experiments.ensemble). On a host with several GPUs (`--gpus`, default every visible GPU)
 each stage spreads over them, one process per GPU (sim_data.parts): the data generator's chunks, the
-zoo's lineages, the ensemble's members and the evaluator's batches of policies; with one GPU or none
-the stages run in this process, and the train stage trains one member a command (rerun it for the
-next), so that each fits a 10-minute command. Every stage shares JAX's persistent compilation cache
+zoo's lineages, the ensemble's members (the GPUs shared out among the members of a round, so that
+one world model trains data-parallel on every GPU) and the evaluator's batches of policies; with one
+GPU or none the stages run in this process, and the train stage trains one member a command (rerun
+it for the next), so that each fits a 10-minute command. Every stage shares JAX's persistent compilation cache
 (`runs/jax_cache`, or JAX_COMPILATION_CACHE_DIR): what one process compiled, a rerun, a later stage
 or another GPU's part loads; and XLA's GPU autotuning results (`runs/xla_autotune`), which programs
 that share fusions reuse.
@@ -243,8 +244,10 @@ def stage_throughput(p: Pipeline, name: str, stage: str) -> dict:
 
 
 def train_members(name: str, extra=(), gpus=(), members: int | None = None) -> bool:
-    """Trains the world models of pipeline `name` not yet trained: member k with seed=k, one per GPU
-    at a time (one in this process without several GPUs); returns whether every member is trained."""
+    """Trains the world models of pipeline `name` not yet trained: member k with seed=k, as many at a
+    time as there are GPUs, the GPUs shared out among them (one member left on two GPUs trains on
+    both, data-parallel; one in this process without several GPUs); returns whether every member is
+    trained."""
     p = pipeline(name, members)
     d = p.dirs(name)
     todo = [(k, m) for k, m in enumerate(d["members"]) if not (m / "eval.json").exists()]
@@ -255,7 +258,8 @@ def train_members(name: str, extra=(), gpus=(), members: int | None = None) -> b
     commands = [["--config", p.train, "--data", str(d["wm_data"]), "--out", str(m), *p.train_overrides,
                  *([f"seed={k}"] if k else []), *extra] for k, m in todo]
     if len(gpus) > 1:
-        run_parallel([module_command("wm.train", c) for c in commands], gpus, _logs(p, name), "train-member")
+        run_parallel([module_command("wm.train", c) for c in commands], gpu_groups(gpus, len(todo)), _logs(p, name),
+                     "train-member")
     else:
         print(f"member {todo[0][0]} of {p.members}: {todo[0][1]}", file=sys.stderr)
         train.main(commands[0])
@@ -264,6 +268,16 @@ def train_members(name: str, extra=(), gpus=(), members: int | None = None) -> b
         print(f"{len(left)} of {p.members} world models left to train ({', '.join(left)}): run the train stage again",
               file=sys.stderr)
     return not left
+
+
+def gpu_groups(gpus, n: int) -> list[str]:
+    """gpus (ids) shared out among n processes in equal contiguous groups, each a CUDA_VISIBLE_DEVICES
+    value ("0,1"); the ids left over by an uneven share go unused, since a data-parallel world model
+    splits its batch evenly over its devices."""
+    if not 1 <= n <= len(gpus):
+        raise ValueError(f"{len(gpus)} GPUs cannot be shared among {n} processes")
+    k = len(gpus) // n
+    return [",".join(gpus[i * k:(i + 1) * k]) for i in range(n)]
 
 
 AUTOTUNE_FLAG = "--xla_gpu_per_fusion_autotune_cache_dir"

@@ -62,8 +62,22 @@ def test_with_several_gpus_stages_run_in_parts_and_members_side_by_side(tiny, mo
     assert gpus == ["0", "1"] and [c[c.index("--part") + 1] for c in cmds] == ["0/2", "1/2"]
     assert all(c[1:3] == ["-m", "sim_data.dataset.generate"] for c in cmds) and "--part" not in gathered[0]
     P.run_stage("tiny", "train", gpus=["0", "1"])  # two members at once, the third in the next run
-    cmds, _, label = spawned[1]
-    assert label == "train-member" and len(cmds) == 2 and "seed=1" in cmds[1]
+    cmds, gpus, label = spawned[1]
+    assert label == "train-member" and len(cmds) == 2 and "seed=1" in cmds[1] and gpus == ["0", "1"]
+    for m in d["members"][:2]:  # what a finished member leaves
+        m.mkdir(parents=True, exist_ok=True)
+        (m / "eval.json").write_text("{}")
+    P.run_stage("tiny", "train", gpus=["0", "1"])  # the one member left trains on both GPUs
+    cmds, gpus, _ = spawned[2]
+    assert len(cmds) == 1 and "seed=2" in cmds[0] and gpus == ["0,1"]
+
+
+def test_gpus_are_shared_out_in_equal_groups():
+    assert P.gpu_groups(["0", "1", "2", "3"], 2) == ["0,1", "2,3"]
+    assert P.gpu_groups(["0", "1", "2"], 2) == ["0", "1"]  # the odd one left unused
+    assert P.gpu_groups(["4", "7"], 1) == ["4,7"]
+    with pytest.raises(ValueError, match="cannot be shared"):
+        P.gpu_groups(["0"], 2)
 
 
 def test_a_smaller_ensemble_trains_and_evaluates_only_its_members(tiny, monkeypatch):
