@@ -322,12 +322,14 @@ def context_sample(ep: dict, camera: str, start: int, context: int, horizon: int
 
 def open_loop_chunked(cfg: ModelConfig, params, norm: Norm, samples: list[dict], horizon: int) -> dict:
     """open_loop over samples {"frames" (C, S, S, 3), "proprio" (C, 37), "context_actions" (C-1, 20),
-    "actions" (horizon, 20)} in chunks of CHUNK (the last one padded, so one compilation serves all);
-    numpy arrays with a leading axis of len(samples)."""
+    "actions" (horizon, 20)} in chunks of CHUNK (the last one padded, so one compilation serves all;
+    fewer samples than CHUNK padded to a power of two, so that few batch sizes compile); numpy arrays
+    with a leading axis of len(samples)."""
     outs = []
-    for i in range(0, len(samples), CHUNK):
-        part = samples[i:i + CHUNK]
-        pad = CHUNK - len(part) if len(samples) > CHUNK else 0
+    size = CHUNK if len(samples) > CHUNK else 1 << (len(samples) - 1).bit_length()
+    for i in range(0, len(samples), size):
+        part = samples[i:i + size]
+        pad = size - len(part)
         part = part + [part[-1]] * pad
         stack = {k: np.stack([s[k] for s in part]) for k in part[0]}
         got = open_loop(cfg, params, norm, stack["frames"], stack["proprio"], stack["context_actions"],
