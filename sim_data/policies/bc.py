@@ -276,8 +276,10 @@ def _rows(tree, s: slice):
 
 
 def stack_params(params_list: list) -> dict:
-    """Stacks P parameter trees of one structure along a new leading axis."""
-    return jax.tree_util.tree_map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *params_list)
+    """Stacks P parameter trees of one structure along a new leading axis. Stacked on the host, then
+    moved to the device: an eager jnp.stack compiles a program for every leaf shape and count (dozens
+    a zoo, each time a new set of policies is stacked)."""
+    return jax.tree_util.tree_map(lambda *xs: jnp.asarray(np.stack([np.asarray(x) for x in xs])), *params_list)
 
 
 def to_numpy(params) -> dict:
