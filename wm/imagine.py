@@ -184,20 +184,21 @@ def open_loop(cfg: ModelConfig, params, norm: Norm, frames, proprio, context_act
     (action h follows imagined frame h-1, the first follows the last context frame).
     Returns {"frames": (B, H, S, S, 3) uint8, "proprio": (B, H, 37), "success": (B, H),
     "outcome": (B, H), "progress": (B, H), "features": (B, H, F) (step_features)} for frames C .. C+H-1
-    after the context. The steps run in compiled segments of SEGMENT steps (the last one padded with
-    zero actions whose steps are dropped), so that every horizon shares one program.
+    after the context, numpy arrays. The steps run in compiled segments of SEGMENT steps (the last one
+    padded with zero actions whose steps are dropped), so that every horizon shares one program.
     """
     h = actions.shape[1]
     if h < 1:
         raise ValueError("open_loop imagines at least one step: actions must be (B, H >= 1, 20)")
     state = _open_loop_start(cfg, params, norm, frames, proprio, context_actions)
+    # padded and cut on the host: eager slices of a device array would compile a program per shape
+    acts = np.asarray(actions, np.float32)
+    acts = np.pad(acts, ((0, 0), (0, -h % SEGMENT), (0, 0)))
     parts = []
     for t0 in range(0, h, SEGMENT):
-        a = jnp.asarray(actions[:, t0:t0 + SEGMENT])
-        a = jnp.pad(a, ((0, 0), (0, SEGMENT - a.shape[1]), (0, 0)))
-        state, got = _open_loop_segment(cfg, params, norm, state, a)
+        state, got = _open_loop_segment(cfg, params, norm, state, acts[:, t0:t0 + SEGMENT])
         parts.append(got)
-    return {k: jnp.concatenate([p[k] for p in parts], axis=1)[:, :h] for k in parts[0]}
+    return {k: np.concatenate([np.asarray(p[k]) for p in parts], axis=1)[:, :h] for k in parts[0]}
 
 
 _open_loop_start = jax.jit(init_state, static_argnums=(0,))
