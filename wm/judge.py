@@ -153,11 +153,13 @@ def imagine_episodes(cfg: ModelConfig, params, norm: Norm, cache, ids: list[int]
 def _closed_loop_features(cfg: ModelConfig, params, norm: Norm, cache, group, camera: str, horizon: int, policy,
                           seed: int):
     """(len(group), horizon, F) step features of closed-loop imaginations, each episode of group
-    [(cache id, PolicySource)] with its own policy's parameters (one architecture), in chunks of CHUNK."""
+    [(cache id, PolicySource)] with its own policy's parameters (one architecture), in chunks of CHUNK
+    (fewer episodes padded to a power of two, as open_loop_chunked's, so that few batch sizes compile)."""
     outs = []
-    for k in range(0, len(group), CHUNK):
-        part = group[k:k + CHUNK]
-        pad = CHUNK - len(part) if len(group) > CHUNK else 0
+    size = CHUNK if len(group) > CHUNK else 1 << (len(group) - 1).bit_length()
+    for k in range(0, len(group), size):
+        part = group[k:k + size]
+        pad = size - len(part)
         part = part + [part[-1]] * pad
         eps = [cache.episode(i, cameras=[camera]) for i, _ in part]
         got = closed_loop(cfg, StackedPolicy(policy), horizon, params, norm, stack_params([s.params for _, s in part]),
