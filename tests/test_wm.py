@@ -5,6 +5,7 @@ a non-finite loss stopping the run, make train's smoke preset with eval.json."""
 import dataclasses
 import functools
 import json
+import math
 import shutil
 
 import jax
@@ -485,6 +486,45 @@ def test_resume_after_a_kill_matches_an_uninterrupted_run(smoke_dataset, smoke_w
     assert again.restore() == 10
     again.train(progress=False)
     for a, b in zip(jax.tree_util.tree_leaves(whole.state["params"]), jax.tree_util.tree_leaves(again.state["params"]),
+                    strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-6)
+
+
+def test_a_run_killed_between_its_best_and_latest_checkpoints_resumes(smoke_dataset, smoke_world_model, tmp_path):
+    _, data, _ = smoke_dataset
+    cfg = make_config("smoke")
+    shutil.copytree(smoke_world_model, tmp_path / "whole")
+    whole = Run(cfg, data, tmp_path / "whole")
+    whole.restore()
+    first = Run(cfg, data, tmp_path / "run")
+    first.loader = DyingLoader(first.loader, dies_at=14)  # after the checkpoints of step 10
+    with pytest.raises(Killed):
+        first.train(progress=False)
+
+    def resumed(dies_at_latest_save=None):
+        run = Run(cfg, data, tmp_path / "run")
+        assert run.restore() == 10
+        run.restore = lambda: 10  # already restored; best_val forgotten, so step 20 is a best
+        run.best_val = math.inf
+        if dies_at_latest_save is not None:
+            save = run.latest.save
+
+            def dying_save(step, *args, **kwargs):
+                if step == dies_at_latest_save:
+                    raise Killed
+                return save(step, *args, **kwargs)
+
+            run.latest.save = dying_save
+        return run
+
+    second = resumed(dies_at_latest_save=20)
+    with pytest.raises(Killed):
+        second.train(progress=False)
+    assert second.best.all_steps() == [20] and second.latest.all_steps() == [10]
+    third = resumed()
+    third.train(progress=False)  # saves step 20's best again: kept, not refused
+    assert third.latest.latest_step() == cfg.steps
+    for a, b in zip(jax.tree_util.tree_leaves(whole.state["params"]), jax.tree_util.tree_leaves(third.state["params"]),
                     strict=True):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-6)
 

@@ -281,8 +281,8 @@ class Run:
     def save(self, step: int, best: bool) -> None:
         meta = {"train": self.loader.state(), "best_val": self.best_val}
         # best before latest: a run killed between the two resumes before this step and, retracing the
-        # same steps, finds the same best again
-        if best:
+        # same steps, finds the same best again, whose checkpoint is then already there (and the same)
+        if best and step not in self.best.all_steps():
             self.best.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave({"params": self.state["params"]}),
                                                          loader=ocp.args.JsonSave(meta)), force=True)
             self.best.wait_until_finished()
