@@ -62,6 +62,28 @@ def sample_state(task: str, key, heldout: bool = False):
     return env, st
 
 
+def scripted(model, skill, grip=None, table=None, program=None):
+    """(policy, params) that run the scripted policy at `skill` (B,) as the data generator runs it: its
+    ScriptOrProgramPolicy over tables of MAX_EPISODE_STEPS rows (every row scripted unless `program`
+    (B,) says which rows play their `table` (B, T, 20) instead). Its scripted rows act exactly as
+    ScriptedPolicy (tests/test_policies.py), and at the smoke dataset's batch of 2 on the cpu engine
+    this is the dataset fixture's rollout program, so it loads from the run's shared compilation cache
+    instead of compiling again (about 20 s a program on the 2-core machine)."""
+    from sim_data.policies.scripted import (
+        ScriptOrProgramPolicy,
+        pad_programs,
+        script_or_program_params,
+    )
+    from sim_data.sim.robot import ACTION_DIM
+    from sim_data.sim.tasks import MAX_EPISODE_STEPS
+
+    b = len(skill)
+    table = np.zeros((b, 1, ACTION_DIM), np.float32) if table is None else table
+    program = [False] * b if program is None else program
+    params = pad_programs(script_or_program_params(skill, table, program, grip), MAX_EPISODE_STEPS)
+    return ScriptOrProgramPolicy.create(MAX_EPISODE_STEPS, model), params
+
+
 @pytest.fixture
 def np_rng():
     return np.random.default_rng(0)

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+from conftest import scripted
 from mujoco import mjx
 
 from sim_data.policies.scripted import ScriptedPolicy
@@ -31,9 +32,9 @@ PARITY_TOL = 2e-3
 @pytest.fixture(scope="module")
 def mug_episode():
     env = HomeEnv("mug", 2, engine="cpu")
-    pol = ScriptedPolicy.create("mug", env.model)
+    pol, params = scripted(env.model, [1.0, 1.0])  # the scripts through the dataset fixture's compiled rollout
     rng = jax.random.PRNGKey(5)
-    state, traj = run_episodes(env, pol, {"skill": jnp.ones(2)}, rng, record=True)
+    state, traj = run_episodes(env, pol, params, rng, record=True)
     return env, rng, state, traj
 
 

@@ -4,6 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import scripted
 
 from sim_data.policies.scripted import (
     PROGRAMS,
@@ -14,12 +15,12 @@ from sim_data.policies.scripted import (
     ik_step,
     play_params,
     play_program,
-    script_or_program_params,
 )
 from sim_data.sim import robot as R
 from sim_data.sim import scene as S
 from sim_data.sim.env import HomeEnv
 from sim_data.sim.rollout import _jitted_init, run_episodes
+from sim_data.sim.tasks import MAX_EPISODE_STEPS
 
 
 @pytest.fixture(scope="module")
@@ -136,18 +137,23 @@ def test_play_is_seeded_smooth_bounded_and_varied(idx):
 def test_scripts_and_programs_as_one_policy_act_each_row_as_its_own_kind(model):
     from sim_data.sim.rollout import run_episodes
 
-    env = HomeEnv("mug", 2, engine="cpu")  # the batch of the arcade test above: its ScriptedPolicy compile serves
-    both = ScriptOrProgramPolicy.create(env.episode_steps, model)
+    # the batch of the arcade test above (its ScriptedPolicy compile serves), and the data generator's
+    # ScriptOrProgramPolicy and table length (tables padded to MAX_EPISODE_STEPS rows): the dataset
+    # fixture's compiled rollout
+    env = HomeEnv("mug", 2, engine="cpu")
     table = np.stack([action_program("reach_mug", env.episode_steps), action_program("air_guitar", env.episode_steps)])
+    both, params = scripted(model, [0.4, 1.0], table=table, program=[False, True])
+    assert isinstance(both, ScriptOrProgramPolicy) and params["table"].shape[1] == MAX_EPISODE_STEPS
     rng = jax.random.PRNGKey(5)
-    _, mixed = run_episodes(env, both, script_or_program_params([0.4, 1.0], table, [False, True]), rng, record=True)
-    _, scripted = run_episodes(env, both.script, {"skill": jnp.array([0.4, 1.0])}, rng, record=True)
+    _, mixed = run_episodes(env, both, params, rng, record=True)
+    _, alone = run_episodes(env, both.script, {"skill": jnp.array([0.4, 1.0])}, rng, record=True)
     # row 0 is the scripted policy's episode (the same noise from the same rng), row 1 plays its table
-    np.testing.assert_array_equal(np.asarray(mixed.action[0]), np.asarray(scripted.action[0]))
-    np.testing.assert_array_equal(np.asarray(mixed.qpos[0]), np.asarray(scripted.qpos[0]))
+    np.testing.assert_array_equal(np.asarray(mixed.action[0]), np.asarray(alone.action[0]))
+    np.testing.assert_array_equal(np.asarray(mixed.qpos[0]), np.asarray(alone.qpos[0]))
     np.testing.assert_array_equal(np.asarray(mixed.action[1]), table[1])
     # a batch of programs only (the branch that skips the script) plays the tables
-    _, programs = run_episodes(env, both, script_or_program_params([1.0, 1.0], table, [True, True]), rng, record=True)
+    _, programs = run_episodes(env, both, scripted(model, [1.0, 1.0], table=table, program=[True, True])[1], rng,
+                               record=True)
     np.testing.assert_array_equal(np.asarray(programs.action), table)
 
 
@@ -155,12 +161,10 @@ def test_a_weak_grip_scales_the_scripts_closures_and_the_mug_slips(model):
     from sim_data.sim.rollout import run_episodes
 
     env = HomeEnv("mug", 2, engine="cpu")  # the batch and policy of the test above: no new compile
-    both = ScriptOrProgramPolicy.create(env.episode_steps, model)
-    blank = np.zeros((2, env.episode_steps, R.ACTION_DIM), np.float32)
+    both, params = scripted(model, [1.0, 1.0])
     rng = jax.random.PRNGKey(5)
-    firm, full = run_episodes(env, both, script_or_program_params([1.0, 1.0], blank, [False, False]), rng, record=True)
-    slack, weak = run_episodes(env, both, script_or_program_params([1.0, 1.0], blank, [False, False], [1.0, 0.3]),
-                               rng, record=True)
+    firm, full = run_episodes(env, both, params, rng, record=True)
+    slack, weak = run_episodes(env, both, scripted(model, [1.0, 1.0], grip=[1.0, 0.3])[1], rng, record=True)
     closure = np.asarray(full.action[:, :, R.RIGHT_HAND])
     assert closure.max() > 0.99  # the script closes the hand fully
     np.testing.assert_array_equal(np.asarray(weak.action[0]), np.asarray(full.action[0]))  # grip 1: as scripted

@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import scripted
 from jax._src.dispatch import BACKEND_COMPILE_EVENT
 
 from sim_data.policies.scripted import ScriptedPolicy
@@ -253,10 +254,13 @@ def test_one_compiled_episode_serves_every_task_and_keeps_each_tasks_rules():
     assert envs["mug"].core is envs["step_back"].core
     policies = {name: ScriptedPolicy.create(name, env.model) for name, env in envs.items()}
     assert policies["mug"] == policies["step_back"] and hash(policies["mug"]) == hash(policies["step_back"])
-    params, rng = {"skill": jnp.ones(2)}, jax.random.PRNGKey(5)
-    back, traj_back = run_episodes(envs["step_back"], policies["step_back"], params, rng, record=True)
+    # the scripts as the data generator runs them: the dataset fixture's compiled rollout
+    policy, params = scripted(envs["mug"].model, [1.0, 1.0])
+    assert policy.script == policies["mug"]
+    rng = jax.random.PRNGKey(5)
+    back, traj_back = run_episodes(envs["step_back"], policy, params, rng, record=True)
     with counted_compiles() as compiles:
-        mug, traj_mug = run_episodes(envs["mug"], policies["mug"], params, rng, record=True)
+        mug, traj_mug = run_episodes(envs["mug"], policy, params, rng, record=True)
     assert compiles == [], f"{len(compiles)} compilations for the second task"
     core = envs["mug"].core
     assert traj_mug.success.shape == (2, T.TASKS["mug"].episode_steps) and np.asarray(mug.done).all()

@@ -135,7 +135,7 @@ def test_keep_gate_copies_the_unwarped_previous_frame_exactly():
     z = jnp.asarray(rng.normal(size=(2, 8, 8, cfg.latent)), jnp.float32)
     prev = jnp.asarray(rng.integers(0, 256, (2, 64, 64, 3)) / 255.0, jnp.float32)
     flow = jnp.full((2, 8, 8, 2), 0.3)  # a warp that alone would move every pixel
-    params = dec.init(jax.random.PRNGKey(0), z, prev, flow)
+    params = jax.jit(dec.init)(jax.random.PRNGKey(0), z, prev, flow)  # one program, as in the test above
     out_conv = next(k for k, v in params["params"].items() if k.startswith("Conv_") and v["kernel"].shape[-1] == 5)
 
     def with_keep_bias(b):

@@ -1,6 +1,7 @@
 """The policy zoo, the plug-in point and policy rollouts in the data generator."""
 
 import dataclasses
+import functools
 import json
 
 import jax
@@ -15,6 +16,13 @@ from sim_data.policies.bc import BCPolicy, StackedPolicy, predict_chunk, stack_p
 from sim_data.policies.registry import every_nth_checkpoint, resolve, used_policies
 from sim_data.sim.env import HomeEnv
 from sim_data.sim.rollout import run_episodes
+
+
+@functools.cache
+def compiled(policy):
+    """(init_carry, act) of policy, each compiled as one program: run op by op, every operation of
+    the networks compiles apart, which costs most of a test's time on a CPU."""
+    return jax.jit(policy.init_carry), jax.jit(policy.act)
 
 
 def test_zoo_registry_checkpoints_and_resume(smoke_zoo, smoke_dataset):
@@ -75,8 +83,9 @@ def test_a_family_level_runs_its_base_checkpoint_with_the_knob_applied(smoke_zoo
            "proprio": jnp.asarray(rng.normal(size=(2, 37)), jnp.float32)}
 
     def first_action(src):
-        carry = src.policy.init_carry(src.params, obs, None, jax.random.PRNGKey(0))
-        return np.asarray(src.policy.act(src.params, obs, carry, jax.random.PRNGKey(0))[0])
+        init, act = compiled(src.policy)
+        carry = init(src.params, obs, None, jax.random.PRNGKey(0))
+        return np.asarray(act(src.params, obs, carry, jax.random.PRNGKey(0))[0])
 
     want = first_action(base)
     np.testing.assert_allclose(first_action(same), want, atol=1e-6)
@@ -93,24 +102,25 @@ def test_learned_policies_follow_the_protocol_and_stack(smoke_zoo):
     obs = {"image": jnp.asarray(rng.integers(0, 255, (6, 64, 64, 3), dtype=np.uint8)),
            "proprio": jnp.asarray(rng.normal(size=(6, 37)), jnp.float32)}
     policy = sources[0].policy
+    init, act = compiled(policy)
     singles = []
     for s in sources[:2]:
-        carry = policy.init_carry(s.params, obs, None, jax.random.PRNGKey(0))
-        a, carry = policy.act(s.params, obs, carry, jax.random.PRNGKey(1))
+        carry = init(s.params, obs, None, jax.random.PRNGKey(0))
+        a, carry = act(s.params, obs, carry, jax.random.PRNGKey(1))
         assert a.shape == (6, 20) and np.isfinite(np.asarray(a)).all() and np.all(np.asarray(carry) == 1)
         singles.append(np.asarray(a))
     # two checkpoints stacked: episodes 0-2 use the first, 3-5 the second
-    stacked = StackedPolicy(policy)
+    stacked_init, stacked_act = compiled(StackedPolicy(policy))
     params = stack_params([sources[0].params, sources[1].params])
-    carry = stacked.init_carry(params, obs, None, jax.random.PRNGKey(0))
-    a, _ = stacked.act(params, obs, carry, jax.random.PRNGKey(1))
+    carry = stacked_init(params, obs, None, jax.random.PRNGKey(0))
+    a, _ = stacked_act(params, obs, carry, jax.random.PRNGKey(1))
     np.testing.assert_allclose(np.asarray(a)[:3], singles[0][:3], atol=1e-5)
     np.testing.assert_allclose(np.asarray(a)[3:], singles[1][3:], atol=1e-5)
     # without proprioception the policy's actions ignore it
     noprop = next(s for s in sources if s.record["lineage"] == "conv_noproprio")
-    c0 = policy.init_carry(noprop.params, obs, None, jax.random.PRNGKey(0))
-    a1, _ = policy.act(noprop.params, obs, c0, jax.random.PRNGKey(0))
-    a2, _ = policy.act(noprop.params, {**obs, "proprio": obs["proprio"] + 3.0}, c0, jax.random.PRNGKey(0))
+    c0 = init(noprop.params, obs, None, jax.random.PRNGKey(0))
+    a1, _ = act(noprop.params, obs, c0, jax.random.PRNGKey(0))
+    a2, _ = act(noprop.params, {**obs, "proprio": obs["proprio"] + 3.0}, c0, jax.random.PRNGKey(0))
     np.testing.assert_array_equal(np.asarray(a1), np.asarray(a2))
 
 
@@ -153,13 +163,14 @@ def test_mixed_dataset_records_policy_rollouts(smoke_dataset, smoke_zoo, smoke_w
     zoo_dir, registry = smoke_zoo
     out = tmp_path / "mixed"
     last = max(r["step"] for r in registry if r["lineage"] == "conv_proprio")
+    # two episodes a policy: batches of the dataset fixture's 2 rows, whose compiled rendering serves
     mixed = G.make_config("smoke", [f"policies={zoo_dir}#mug/conv_proprio/{last},examples.plugin_policy:make",
-                                    "policy_episodes=1"])
+                                    "policy_episodes=2"])
     with pytest.raises(ValueError, match=r"other settings \(\['seed'\]\)"):
         G.generate(G.make_config("smoke", ["seed=5"]), tmp_path / "other", progress=False, reuse=data)
     # the scripted episodes are linked from the dataset they were generated in; only the rollouts are new
     stats = G.generate(mixed, out, progress=False, reuse=data)
-    assert stats["throughput"]["episodes_generated"] == 2
+    assert stats["throughput"]["episodes_generated"] == 4
     for f in (data / "episodes").iterdir():
         assert (out / "episodes" / f.name).read_bytes() == f.read_bytes()
     rows = [json.loads(line) for line in (out / "manifest.jsonl").read_text().splitlines()]
