@@ -35,7 +35,14 @@ def pytest_unconfigure(config):
     if not hasattr(config, "workerinput") and getattr(config.option, "testrunuid", None):
         shutil.rmtree(JAX_CACHE.format(config.option.testrunuid), ignore_errors=True)
 
+from sim_data.policies.scripted import (
+    ScriptOrProgramPolicy,
+    pad_programs,
+    script_or_program_params,
+)
 from sim_data.sim import scene as S  # noqa: E402
+from sim_data.sim.robot import ACTION_DIM
+from sim_data.sim.tasks import MAX_EPISODE_STEPS
 
 
 @pytest.fixture(scope="package")
@@ -69,14 +76,6 @@ def scripted(model, skill, grip=None, table=None, program=None):
     ScriptedPolicy (tests/test_policies.py), and at the smoke dataset's batch of 2 on the cpu engine
     this is the dataset fixture's rollout program, so it loads from the run's shared compilation cache
     instead of compiling again (about 20 s a program on the 2-core machine)."""
-    from sim_data.policies.scripted import (
-        ScriptOrProgramPolicy,
-        pad_programs,
-        script_or_program_params,
-    )
-    from sim_data.sim.robot import ACTION_DIM
-    from sim_data.sim.tasks import MAX_EPISODE_STEPS
-
     b = len(skill)
     table = np.zeros((b, 1, ACTION_DIM), np.float32) if table is None else table
     program = [False] * b if program is None else program
