@@ -253,7 +253,8 @@ class Run:
                                 part=part) if self.cache.select("val") else None
         self.mesh = make_mesh()
         params = init_params(cfg.model, jax.random.PRNGKey(cfg.seed), window=cfg.window)
-        state = {"params": params, "opt": make_optimizer(cfg).init(params), "step": jnp.zeros((), jnp.int32)}
+        # the optimiser's state made by one program, not an eager zeros per parameter shape
+        state = {"params": params, "opt": jax.jit(make_optimizer(cfg).init)(params), "step": jnp.zeros((), jnp.int32)}
         self.shardings = state_shardings(state, self.mesh, cfg.param_sharding == "fsdp")
         self.state = jax.device_put(state, self.shardings)
         opts = ocp.CheckpointManagerOptions(max_to_keep=1, create=True)

@@ -278,8 +278,8 @@ def _rows(tree, s: slice):
 def stack_params(params_list: list) -> dict:
     """Stacks P parameter trees of one structure along a new leading axis. Stacked on the host, then
     moved to the device: an eager jnp.stack compiles a program for every leaf shape and count (dozens
-    a zoo, each time a new set of policies is stacked)."""
-    return jax.tree_util.tree_map(lambda *xs: jnp.asarray(np.stack([np.asarray(x) for x in xs])), *params_list)
+    a zoo, each time a new set of policies is stacked; so would jnp.asarray of the result)."""
+    return jax.tree_util.tree_map(lambda *xs: jax.device_put(np.stack([np.asarray(x) for x in xs])), *params_list)
 
 
 def to_numpy(params) -> dict:
@@ -295,5 +295,6 @@ def save_params(path: Path, params) -> None:
 
 
 def load_params(path: Path) -> dict:
-    """The parameters saved by save_params, as jax arrays."""
-    return jax.tree_util.tree_map(jnp.asarray, flax.serialization.msgpack_restore(Path(path).read_bytes()))
+    """The parameters saved by save_params, as jax arrays (device_put: jnp.asarray of a numpy array
+    compiles a small program for every leaf shape)."""
+    return jax.tree_util.tree_map(jax.device_put, flax.serialization.msgpack_restore(Path(path).read_bytes()))

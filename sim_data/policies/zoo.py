@@ -364,7 +364,7 @@ def train_lineage(cfg: ZooConfig, cache: TrainingCache, job: _Job, out: Path, va
     samples = load_samples(cache, list(job.episodes), net.chunk)
     params = init_params(net, jax.random.PRNGKey(job.seed), compute_norm(samples), job.lineage.proprio)
     opt = optax.adamw(optax.cosine_decay_schedule(cfg.lr, cfg.steps, alpha=0.05), weight_decay=cfg.weight_decay)
-    opt_state = opt.init(params["net"])
+    opt_state = jax.jit(opt.init)(params["net"])  # one program, not an eager zeros per parameter shape
     step_fn = jax.jit(_step_fn(net, opt, cfg.shift))
     shift_key = jax.random.PRNGKey(job.seed + 17)
     val_loss = jax.jit(functools.partial(imitation_loss, net))
@@ -420,7 +420,7 @@ def train_group(cfg: ZooConfig, cache: TrainingCache, jobs: list[_Job], out: Pat
                                        compute_norm({k: v[r] for k, v in pool.items() if k in ("proprio", "target")}),
                                        j.lineage.proprio) for j, r in zip(jobs, rows, strict=True)])
     opt = optax.adamw(optax.cosine_decay_schedule(cfg.lr, cfg.steps, alpha=0.05), weight_decay=cfg.weight_decay)
-    opt_state = jax.vmap(opt.init)(params["net"])
+    opt_state = jax.jit(jax.vmap(opt.init))(params["net"])
     step_fn = _make_group_step(net, opt, cfg.shift, sequential=net.encoder in cfg.sequential)
     val_loss = _make_group_val_loss(net)
     pool, val_pool = jax.device_put(pool), jax.device_put(val_pool)
@@ -441,9 +441,10 @@ def train_group(cfg: ZooConfig, cache: TrainingCache, jobs: list[_Job], out: Pat
         train_loss = np.mean(np.asarray(jax.device_get(losses[-20:])), axis=0)
         _check_finite(jobs, train_loss, step)
         vals = np.asarray(val_loss(params, val_pool, val_idx))
+        host = jax.device_get(params)  # each lineage's slice taken on the host: no program per leaf shape
         for k, j in enumerate(jobs):
             records[k].append(_record(j, step, net, float(vals[k]), float(train_loss[k])))
-            save_params(out / records[k][-1]["checkpoint"], jax.tree_util.tree_map(lambda x, k=k: x[k], params))
+            save_params(out / records[k][-1]["checkpoint"], jax.tree_util.tree_map(lambda x, k=k: x[k], host))
         bar.set_postfix(loss=f"{train_loss.mean():.3f}", val=f"{vals.mean():.3f}")
     bar.close()
     return _finish(jobs, records, out, t0)
