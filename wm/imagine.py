@@ -313,6 +313,12 @@ def _observed_segment(cfg: ModelConfig, params, norm: Norm, buf, frames, proprio
 CHUNK = 64
 
 
+def chunk_size(n: int) -> int:
+    """The batch size that n samples are imagined in: CHUNK, or for fewer samples the next power of two
+    (so that few batch sizes compile)."""
+    return CHUNK if n > CHUNK else 1 << (n - 1).bit_length()
+
+
 def context_sample(ep: dict, camera: str, start: int, context: int, horizon: int) -> dict:
     """From an episode (sim_data.dataset.cache's episode dict): `context` observations from `start` and the
     `horizon` logged actions that follow, as open_loop_chunked takes them."""
@@ -323,11 +329,10 @@ def context_sample(ep: dict, camera: str, start: int, context: int, horizon: int
 
 def open_loop_chunked(cfg: ModelConfig, params, norm: Norm, samples: list[dict], horizon: int) -> dict:
     """open_loop over samples {"frames" (C, S, S, 3), "proprio" (C, 37), "context_actions" (C-1, 20),
-    "actions" (horizon, 20)} in chunks of CHUNK (the last one padded, so one compilation serves all;
-    fewer samples than CHUNK padded to a power of two, so that few batch sizes compile); numpy arrays
-    with a leading axis of len(samples)."""
+    "actions" (horizon, 20)} in chunks of chunk_size (the last one padded, so one compilation serves
+    all); numpy arrays with a leading axis of len(samples)."""
     outs = []
-    size = CHUNK if len(samples) > CHUNK else 1 << (len(samples) - 1).bit_length()
+    size = chunk_size(len(samples))
     for i in range(0, len(samples), size):
         part = samples[i:i + size]
         pad = size - len(part)

@@ -41,8 +41,8 @@ from sim_data.policies.registry import resolve
 from sim_data.util import write_json_atomic
 from wm.checkpoint import run_file
 from wm.imagine import (
-    CHUNK,
     Norm,
+    chunk_size,
     closed_loop,
     context_sample,
     feature_columns,
@@ -153,10 +153,10 @@ def imagine_episodes(cfg: ModelConfig, params, norm: Norm, cache, ids: list[int]
 def _closed_loop_features(cfg: ModelConfig, params, norm: Norm, cache, group, camera: str, horizon: int, policy,
                           seed: int):
     """(len(group), horizon, F) step features of closed-loop imaginations, each episode of group
-    [(cache id, PolicySource)] with its own policy's parameters (one architecture), in chunks of CHUNK
-    (fewer episodes padded to a power of two, as open_loop_chunked's, so that few batch sizes compile)."""
+    [(cache id, PolicySource)] with its own policy's parameters (one architecture), in chunks of
+    chunk_size (the last one padded)."""
     outs = []
-    size = CHUNK if len(group) > CHUNK else 1 << (len(group) - 1).bit_length()
+    size = chunk_size(len(group))
     for k in range(0, len(group), size):
         part = group[k:k + size]
         pad = size - len(part)
