@@ -34,9 +34,10 @@ or another GPU's part loads; and XLA's GPU autotuning results (`runs/xla_autotun
 that share fusions reuse.
 
 Each stage command appends a row to the evaluation directory's `timing.json`: its wall seconds, the
-seconds this process spent compiling (JAX's compile events; a stage spread over GPUs compiles in its
-child processes, which this does not count) and the programs it compiled, and what the stage has
-produced (frames, training steps, episodes). The report shows the table.
+seconds spent compiling (JAX's compile events, experiments.timing; a stage spread over GPUs adds the
+most any one of its child processes spent, and lists each child's in `parts`) and the programs
+compiled, and what the stage has produced (frames, training steps, episodes). The report shows the
+table.
 """
 
 from __future__ import annotations
@@ -45,7 +46,6 @@ import argparse
 import dataclasses
 import json
 import os
-import re
 import sys
 import time
 from pathlib import Path
@@ -53,54 +53,22 @@ from pathlib import Path
 import jax
 
 from experiments import evaluate, report
+from experiments.timing import (
+    compile_snapshot,
+    compiled_since,
+    part_command,
+    read_parts,
+    record_timing,
+    stage_row,
+)
 from sim_data.dataset import generate
-from sim_data.parts import local_gpus, module_command, run_parallel
+from sim_data.parts import local_gpus, run_parallel
 from sim_data.policies import zoo
-from sim_data.util import device_name, run_cli, with_xla_flags, write_json_atomic
+from sim_data.util import device_name, run_cli, with_xla_flags
 from wm import train
 
 STAGES = ("data", "policies", "rollouts", "train", "eval", "report")
 TIMING = "timing.json"  # in the evaluation's directory: one row per stage command
-# JAX's compile events (jax.monitoring): tracing, lowering to MLIR and the backend's compilation
-COMPILE_EVENTS = ("/jax/core/compile/jaxpr_trace_duration", "/jax/core/compile/jaxpr_to_mlir_module_duration",
-                  "/jax/core/compile/backend_compile_duration")
-_compile = {"seconds": 0.0, "programs": 0, "by_program": {}}  # by_program: function name -> [compiles, seconds]
-SLOWEST_COMPILES = 8  # the timing row names the programs that cost the most compile time
-
-
-def _count_compile(event: str, seconds: float, fun_name: str = "?", **_) -> None:
-    if event in COMPILE_EVENTS:
-        last = event == COMPILE_EVENTS[-1]
-        _compile["seconds"] += seconds
-        _compile["programs"] += last
-        count = _compile["by_program"].setdefault(_program_name(fun_name), [0, 0.0])
-        count[0] += last
-        count[1] += seconds
-
-
-def _program_name(fun_name: str) -> str:
-    """The traced function's name: lowering and compile events name it "jit(name)", tracing "name"."""
-    m = re.fullmatch(r"(?:jit|pjit|pmap)\((.*)\)", fun_name)
-    return m.group(1) if m else fun_name
-
-
-def compile_snapshot() -> dict:
-    """A copy of this process's compile totals so far, for `slowest_compiles`."""
-    return {**_compile, "by_program": {k: list(v) for k, v in _compile["by_program"].items()}}
-
-
-def slowest_compiles(before: dict, n: int = SLOWEST_COMPILES) -> list[dict]:
-    """The n programs (jitted functions, by name) that spent the most seconds in tracing, lowering and
-    the backend's compilation since the snapshot `before`: [{"program", "compiles", "s"}], slowest first."""
-    rows = []
-    for name, (count, secs) in _compile["by_program"].items():
-        c0, s0 = before["by_program"].get(name, (0, 0.0))
-        if secs > s0:
-            rows.append({"program": name, "compiles": count - c0, "s": round(secs - s0, 3)})
-    return sorted(rows, key=lambda r: -r["s"])[:n]
-
-
-jax.monitoring.register_event_duration_secs_listener(_count_compile)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -170,15 +138,15 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
     compiled = compile_snapshot()
     spread = len(gpus) > 1 and stage != "report"
     print(f"== {name}: {stage}" + (f" on {len(gpus)} GPUs" if spread else ""), file=sys.stderr, flush=True)
-    done = True
+    done, parts = True, []  # parts: the timing files of the stage's child processes
     if stage == "data":
         args = ["--config", p.data, "--out", str(d["data"]), *p.data_overrides, *extra]
-        _spread("sim_data.dataset.generate", args, gpus, _logs(p, name), "data")
+        parts = _spread("sim_data.dataset.generate", args, gpus, _logs(p, name), "data")
         generate.main(args)
     elif stage == "policies":
         args = ["--config", p.policies, "--data", str(d["data"]), "--out", str(d["policies"]), *p.policies_overrides,
                 *extra]
-        _spread("sim_data.policies.zoo", args, gpus, _logs(p, name), "policies")
+        parts = _spread("sim_data.policies.zoo", args, gpus, _logs(p, name), "policies")
         zoo.main(args)
     elif stage == "rollouts":
         if not p.rollouts:
@@ -186,10 +154,10 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
             return True
         args = ["--config", p.data, "--out", str(d["wm_data"]), "--reuse", str(d["data"]), *p.data_overrides,
                 f"policies={d['policies']}#{p.rollouts}", f"policy_episodes={p.rollout_episodes}", *extra]
-        _spread("sim_data.dataset.generate", args, gpus, _logs(p, name), "rollouts")
+        parts = _spread("sim_data.dataset.generate", args, gpus, _logs(p, name), "rollouts")
         generate.main(args)
     elif stage == "train":
-        done = train_members(name, extra, gpus, members)
+        done, parts = train_members(name, extra, gpus, members)
     elif stage == "eval":
         # wm=... names the model to evaluate (a bundle carried from another lease): the members need not be here
         given = any(a.startswith("wm=") for a in extra)
@@ -200,40 +168,43 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
         members = [] if given else ["wm=" + ",".join(str(m) for m in d["members"])]
         args = ["--config", p.eval, "--out", str(d["eval"]), f"policies={d['policies']}", *members,
                 *p.eval_overrides, *extra]
-        _spread("experiments.evaluate", args, gpus, _logs(p, name), "eval")
+        parts = _spread("experiments.evaluate", args, gpus, _logs(p, name), "eval")
         results = d["eval"] / "results.json"
         before = results.stat().st_mtime_ns if results.exists() else None
         evaluate.main(args)
         done = results.exists() and results.stat().st_mtime_ns != before  # else max_minutes left tasks to do
     elif stage == "report":
         report.main([str(d["eval"])])
-    wall = time.perf_counter() - t0
+    wall = round(time.perf_counter() - t0, 3)
+    compiling = stage_row(compiled_since(compiled), read_parts(parts))
     record_timing(d["eval"] / TIMING, {
-        "stage": stage, "done": done, "wall_s": round(wall, 3),
-        "compile_s": round(_compile["seconds"] - compiled["seconds"], 3),
-        "programs_compiled": _compile["programs"] - compiled["programs"], "slowest_compiles": slowest_compiles(compiled),
-        "gpus": max(len(gpus), 1) if spread else 1, "device": device_name(), **stage_throughput(p, name, stage)})
+        "stage": stage, "done": done, "wall_s": wall, **compiling,
+        "gpus": max(len(gpus), 1) if spread else 1, "device": device_name(), **stage_throughput(p, name, stage, wall)})
     print(f"== {name}: {stage} {'done' if done else 'to be continued'} in {wall:.0f} s "
-          f"({_compile['seconds'] - compiled['seconds']:.0f} s compiling in this process)", file=sys.stderr, flush=True)
+          f"({compiling['compile_s']:.0f} s compiling)", file=sys.stderr, flush=True)
     return done
 
 
-def record_timing(path: Path, row: dict) -> None:
-    """Appends one stage command's row to the timing table at path (a JSON list, rewritten atomically)."""
-    rows = json.loads(path.read_text()) if path.exists() else []
-    write_json_atomic(path, [*rows, row])
-
-
-def stage_throughput(p: Pipeline, name: str, stage: str) -> dict:
-    """What a stage produced, read from its outputs: a dataset's frames generated by this command and
-    their rate, the world models' training steps so far, the evaluation's episodes."""
+def stage_throughput(p: Pipeline, name: str, stage: str, wall: float) -> dict:
+    """What a stage produced, read from its outputs: a dataset's frames generated by this command
+    (those of its parts, where it was spread over GPUs), the generator's rate and the rate over the
+    stage's whole wall time (compiling, writing and caching included: end_to_end_frames_per_s), the
+    world models' training steps so far, the evaluation's episodes."""
     d = p.dirs(name)
     if stage in ("data", "rollouts"):
         stats = d["data" if stage == "data" else "wm_data"] / "stats.json"
         if not stats.exists():
             return {}
         t = json.loads(stats.read_text())["throughput"]
-        return {k: t.get(k) for k in ("frames_generated", "frames_per_s", "simulate_s", "cache_frames")}
+        row = {k: t.get(k) for k in ("frames_generated", "frames_per_s", "simulate_s", "cache_frames")}
+        if t.get("parts"):  # the gathering command generated nothing: the parts did, side by side
+            row["frames_generated"] = sum(q["frames_generated"] for q in t["parts"])
+            row["simulate_s"] = max(q["simulate_s"] for q in t["parts"])
+            slowest = max(q["wall_s"] for q in t["parts"])
+            row["frames_per_s"] = row["frames_generated"] / slowest if slowest > 0 else None
+        frames = row["frames_generated"] or 0
+        row["end_to_end_frames_per_s"] = round(frames / wall, 1) if frames and wall > 0 else None
+        return row
     if stage == "train":
         status = [d_ / "train_status.json" for d_ in d["members"]]
         return {"train_steps": [json.loads(s.read_text())["step"] if s.exists() else None for s in status]}
@@ -243,23 +214,23 @@ def stage_throughput(p: Pipeline, name: str, stage: str) -> dict:
     return {}
 
 
-def train_members(name: str, extra=(), gpus=(), members: int | None = None) -> bool:
+def train_members(name: str, extra=(), gpus=(), members: int | None = None) -> tuple[bool, list[Path]]:
     """Trains the world models of pipeline `name` not yet trained: member k with seed=k, as many at a
     time as there are GPUs, the GPUs shared out among them (one member left on two GPUs trains on
     both, data-parallel; one in this process without several GPUs); returns whether every member is
-    trained."""
+    trained, and the timing files of the child processes that trained them."""
     p = pipeline(name, members)
     d = p.dirs(name)
     todo = [(k, m) for k, m in enumerate(d["members"]) if not (m / "eval.json").exists()]
     if not todo:
         print(f"{', '.join(str(m) for m in d['members'])}: trained (eval.json exists); skipping", file=sys.stderr)
-        return True
+        return True, []
     todo = todo[: max(len(gpus), 1)]  # a round that fits one command; the stage's next run trains the rest
     commands = [["--config", p.train, "--data", str(d["wm_data"]), "--out", str(m), *p.train_overrides,
                  *([f"seed={k}"] if k else []), *extra] for k, m in todo]
+    parts = []
     if len(gpus) > 1:
-        run_parallel([module_command("wm.train", c) for c in commands], gpu_groups(gpus, len(todo)), _logs(p, name),
-                     "train-member")
+        parts = run_parts("wm.train", commands, gpu_groups(gpus, len(todo)), _logs(p, name), "train-member")
     else:
         print(f"member {todo[0][0]} of {p.members}: {todo[0][1]}", file=sys.stderr)
         train.main(commands[0])
@@ -267,7 +238,7 @@ def train_members(name: str, extra=(), gpus=(), members: int | None = None) -> b
     if left:
         print(f"{len(left)} of {p.members} world models left to train ({', '.join(left)}): run the train stage again",
               file=sys.stderr)
-    return not left
+    return not left, parts
 
 
 def gpu_groups(gpus, n: int) -> list[str]:
@@ -297,13 +268,25 @@ def use_compilation_cache(root: str) -> str:
     return path
 
 
-def _spread(module: str, args, gpus, logs: Path, stage: str) -> None:
-    """With several GPUs, `python -m module args --part K/N` on each of them (sim_data.parts); the
-    caller then runs the module once more without a part to gather."""
-    if len(gpus) > 1:
-        n = len(gpus)
-        run_parallel([module_command(module, [*args, "--part", f"{k}/{n}"]) for k in range(n)], gpus, logs,
-                     f"{stage}-part")
+def _spread(module: str, args, gpus, logs: Path, stage: str) -> list[Path]:
+    """With several GPUs, module's main(args --part K/N) on each of them (sim_data.parts), in child
+    processes; the caller then runs the module once more without a part to gather. Returns the
+    children's timing files (none without several GPUs)."""
+    if len(gpus) <= 1:
+        return []
+    n = len(gpus)
+    return run_parts(module, [[*args, "--part", f"{k}/{n}"] for k in range(n)], gpus, logs, f"{stage}-part")
+
+
+def run_parts(module: str, argvs: list[list[str]], gpus, logs: Path, label: str) -> list[Path]:
+    """Runs module's main(argv) for each argv in a child process on its GPUs (run_parallel), each writing
+    its wall and compile seconds to logs/<label>-<i>.timing.json (experiments.timing); returns those
+    paths. A file left by an earlier run is removed first, so that only this run's children count."""
+    paths = [logs / f"{label}-{i}.timing.json" for i in range(len(argvs))]
+    for path in paths:
+        path.unlink(missing_ok=True)
+    run_parallel([part_command(path, module, argv) for path, argv in zip(paths, argvs)], gpus, logs, label)
+    return paths
 
 
 def _logs(p: Pipeline, name: str) -> Path:

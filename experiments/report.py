@@ -430,7 +430,8 @@ def _selection_md(res: dict) -> str:
 
 TIMING_COLUMNS = (("stage", "stage"), ("wall_s", "wall s"), ("compile_s", "compiling s"),
                   ("programs_compiled", "programs compiled"), ("frames_generated", "frames"),
-                  ("frames_per_s", "frames/s"), ("train_steps", "training steps"), ("episodes", "episodes"),
+                  ("frames_per_s", "frames/s"),
+                  ("end_to_end_frames_per_s", "frames/s end to end"), ("train_steps", "training steps"), ("episodes", "episodes"),
                   ("gpus", "GPUs"), ("device", "device"))
 
 
@@ -495,7 +496,8 @@ def compile_table(rows: list[dict]) -> list[list[str]] | None:
     """Per stage command, the programs that cost the most compile time (timing.json's
     `slowest_compiles`); None where no row names them."""
     out = [["stage", "program", "compiles", "compiling s"]]
-    out += [[r["stage"], c["program"], str(c["compiles"]), _fmt(c["s"], 1)]
+    out += [[r["stage"], c["program"] + (f" (part {c['part']})" if "part" in c else ""), str(c["compiles"]),
+             _fmt(c["s"], 1)]
             for r in rows for c in r.get("slowest_compiles", [])]
     return out if len(out) > 1 else None
 
@@ -608,7 +610,9 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
     compiles = compile_table(timing)
     if timing:
         h += ["<h2>Pipeline timing</h2>", "<p>Per stage command: wall seconds and the seconds spent compiling "
-              "(counted in the pipeline's own process).</p>", _html_table(timing_table(timing))]
+              "(the pipeline's own process, plus for a stage spread over GPUs the most any one of its child "
+              "processes spent); frames/s end to end: the frames a data stage generated over its whole wall "
+              "time.</p>", _html_table(timing_table(timing))]
         if compiles:
             h += [("<p>Where the compile time goes: per stage command, the jitted functions that took the most "
                    "seconds to trace, lower and compile.</p>"), _html_table(compiles)]

@@ -115,8 +115,3 @@ def run_parallel(commands: list[list[str]], gpus: list[str], logs: Path, label: 
         i, rc, log = failed[0]
         tail = "\n".join(log.read_text().splitlines()[-30:]) if log is not None else "(its output is above)"
         raise RuntimeError(f"{len(failed)} of {len(commands)} processes failed; {label} {i} exited with {rc}:\n{tail}")
-
-
-def module_command(module: str, args) -> list[str]:
-    """The argv that runs `python -m module args...` with this interpreter."""
-    return [sys.executable, "-m", module, *[str(a) for a in args]]

@@ -3,6 +3,8 @@ the modules' entry points are replaced by recorders)."""
 
 import json
 import os
+import time
+from pathlib import Path
 
 import jax
 import pytest
@@ -60,7 +62,9 @@ def test_with_several_gpus_stages_run_in_parts_and_members_side_by_side(tiny, mo
     P.run_stage("tiny", "data", gpus=["0", "1"])
     cmds, gpus, _ = spawned[0]
     assert gpus == ["0", "1"] and [c[c.index("--part") + 1] for c in cmds] == ["0/2", "1/2"]
-    assert all(c[1:3] == ["-m", "sim_data.dataset.generate"] for c in cmds) and "--part" not in gathered[0]
+    assert all(c[1:3] == ["-m", "experiments.timing"] and c[4] == "sim_data.dataset.generate" for c in cmds)
+    assert [Path(c[3]).name for c in cmds] == ["data-part-0.timing.json", "data-part-1.timing.json"]
+    assert "--part" not in gathered[0]
     P.run_stage("tiny", "train", gpus=["0", "1"])  # two members at once, the third in the next run
     cmds, gpus, label = spawned[1]
     assert label == "train-member" and len(cmds) == 2 and "seed=1" in cmds[1] and gpus == ["0", "1"]
@@ -180,3 +184,69 @@ def test_a_time_slot_passes_what_is_left_to_train_and_eval_and_starts_no_stage_a
     clock[0] = 0.0
     assert P.main(["full", "--minutes", "9", "--stage", "eval", "episodes=8"]) == 0
     assert ran == [("eval", ["episodes=8", "max_minutes=9.000"])]
+
+
+def test_a_stage_spread_over_gpus_counts_its_child_processes_compiling_and_frames(tiny, monkeypatch):
+    from experiments.report import compile_table, timing_table
+
+    _, d = tiny
+    logs = P._logs(P.pipeline("tiny"), "tiny")
+    logs.mkdir(parents=True)
+    (logs / "data-part-1.timing.json").write_text(json.dumps({"compile_s": 99.0}))  # an earlier run's: not counted
+    children = {"0": (12.5, 3, "_scan_recorded"), "1": (20.0, 4, "render")}  # (compile seconds, programs, slowest)
+
+    def fake_children(cmds, gpus, logs_, label):  # each child writes its timing as experiments.timing does
+        assert label == "data-part" and not (logs / "data-part-1.timing.json").exists()
+        for cmd, gpu in zip(cmds, gpus):
+            assert cmd[1:3] == ["-m", "experiments.timing"] and cmd[4] == "sim_data.dataset.generate"
+            s, n, prog = children[gpu]
+            Path(cmd[3]).write_text(json.dumps({"module": cmd[4], "wall_s": 100.0, "compile_s": s, "programs_compiled": n,
+                                                "slowest_compiles": [{"program": prog, "compiles": 1, "s": s}],
+                                                "device": "cpu", "status": 0}))
+
+    def gather(argv):  # the gathering command generates nothing; the parts' figures are in stats.json
+        time.sleep(0.05)
+        d["data"].mkdir(parents=True, exist_ok=True)
+        parts = [{"frames_generated": 300, "wall_s": 50.0, "simulate_s": 40.0},
+                 {"frames_generated": 500, "wall_s": 80.0, "simulate_s": 70.0}]
+        (d["data"] / "stats.json").write_text(json.dumps({"throughput": {
+            "frames_generated": 0, "frames_per_s": None, "simulate_s": 0.0, "cache_frames": 800, "parts": parts}}))
+
+    import sim_data.dataset.generate
+
+    monkeypatch.setattr(P, "run_parallel", fake_children)
+    monkeypatch.setattr(sim_data.dataset.generate, "main", gather)
+    P.run_stage("tiny", "data", gpus=["0", "1"])
+    row = json.loads((d["eval"] / P.TIMING).read_text())[0]
+    assert [p["compile_s"] for p in row["parts"]] == [12.5, 20.0] and [p["part"] for p in row["parts"]] == [0, 1]
+    assert 20.0 <= row["compile_s"] < 20.0 + row["wall_s"]  # this process's own plus the slowest child's
+    assert row["programs_compiled"] >= 7 and row["gpus"] == 2
+    assert [(c["program"], c["part"]) for c in row["slowest_compiles"][:2]] == [("render", 1), ("_scan_recorded", 0)]
+    assert row["frames_generated"] == 800 and row["frames_per_s"] == 10.0 and row["simulate_s"] == 70.0
+    assert row["end_to_end_frames_per_s"] == round(800 / row["wall_s"], 1)
+    assert ["data", "render (part 1)", "1", "20.0"] in compile_table([row])
+    assert timing_table([row])[1][5:7] == ["10.0", f"{800 / row['wall_s']:.1f}"]
+
+
+def test_a_child_process_writes_its_wall_and_compile_seconds_whether_it_succeeds_or_fails(tmp_path):
+    import subprocess
+    import sys
+
+    (tmp_path / "jitting.py").write_text(
+        "import jax, jax.numpy as jnp\n"
+        "def doubled_sine(x):\n    return jnp.sin(x) * 2\n"
+        "def main(argv):\n"
+        "    if argv == ['bad']:\n        raise ValueError('bad argument: name a good one')\n"
+        "    jax.jit(doubled_sine)(jnp.ones(int(argv[0]))).block_until_ready()\n"
+        "    return 0\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), os.getcwd(), os.environ.get("PYTHONPATH", "")])}
+    ok, bad = tmp_path / "ok.json", tmp_path / "bad.json"
+    run = [sys.executable, "-m", "experiments.timing"]
+    assert subprocess.run([*run, str(ok), "jitting", "5"], env=env, check=False).returncode == 0
+    got = json.loads(ok.read_text())
+    assert got["module"] == "jitting" and got["status"] == 0 and got["programs_compiled"] >= 1
+    assert 0 < got["compile_s"] <= got["wall_s"]
+    assert [c["compiles"] for c in got["slowest_compiles"] if c["program"] == "doubled_sine"] == [1]
+    done = subprocess.run([*run, str(bad), "jitting", "bad"], env=env, check=False, capture_output=True, text=True)
+    assert done.returncode == 2 and "bad argument" in done.stderr
+    assert json.loads(bad.read_text())["status"] == 2
