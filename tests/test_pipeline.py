@@ -200,9 +200,9 @@ def test_a_stage_spread_over_gpus_counts_its_child_processes_compiling_and_frame
         for cmd, gpu in zip(cmds, gpus):
             assert cmd[1:3] == ["-m", "experiments.timing"] and cmd[4] == "sim_data.dataset.generate"
             s, n, prog = children[gpu]
-            Path(cmd[3]).write_text(json.dumps({"module": cmd[4], "wall_s": 100.0, "compile_s": s, "programs_compiled": n,
-                                                "slowest_compiles": [{"program": prog, "compiles": 1, "s": s}],
-                                                "device": "cpu", "status": 0}))
+            Path(cmd[3]).write_text(json.dumps({
+                "module": cmd[4], "wall_s": 100.0, "compile_s": s, "programs_compiled": n,
+                "slowest_compiles": [{"program": prog, "compiles": 1, "s": s}], "device": "cpu", "status": 0}))
 
     def gather(argv):  # the gathering command generates nothing; the parts' figures are in stats.json
         time.sleep(0.05)
@@ -239,7 +239,8 @@ def test_a_child_process_writes_its_wall_and_compile_seconds_whether_it_succeeds
         "    if argv == ['bad']:\n        raise ValueError('bad argument: name a good one')\n"
         "    jax.jit(doubled_sine)(jnp.ones(int(argv[0]))).block_until_ready()\n"
         "    return 0\n")
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), os.getcwd(), os.environ.get("PYTHONPATH", "")])}
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(Path(__file__).resolve().parents[1]),
+                                                     os.environ.get("PYTHONPATH", "")])}
     ok, bad = tmp_path / "ok.json", tmp_path / "bad.json"
     run = [sys.executable, "-m", "experiments.timing"]
     assert subprocess.run([*run, str(ok), "jitting", "5"], env=env, check=False).returncode == 0
