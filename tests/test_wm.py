@@ -14,6 +14,8 @@ import numpy as np
 import pytest
 
 from sim_data.config import override
+from sim_data.dataset.cache import TrainingCache
+from wm import evaluate as E
 from wm import imagine as I
 from wm import judge as J
 from wm import metrics as M
@@ -622,3 +624,30 @@ def test_a_run_directory_refuses_another_configuration_naming_what_differs(tmp_p
         _check_config(cfg, tmp_path / "other", tmp_path)
     with pytest.raises(ValueError, match=r"differs: lr\)"):
         _check_config(dataclasses.replace(cfg, lr=cfg.lr * 2), tmp_path / "data", tmp_path)
+
+
+def test_success_only_writes_each_held_out_episodes_read_outs_beside_their_summary(smoke_dataset, smoke_world_model,
+                                                                                   tmp_path):
+    _, data, _ = smoke_dataset
+    assert E.main(["--wm", str(smoke_world_model), "--data", str(data), "--out", str(tmp_path), "--success-only",
+                   "eval_episodes=50"]) == 0
+    rep = json.loads((tmp_path / "success_episodes.json").read_text())
+    cache = TrainingCache(data)
+    ids = [i for i in cache.select(rep["split"]) if cache.episodes[i]["policy_kind"] != "play"]
+    rows = rep["episodes"]
+    assert ids and [r["episode_id"] for r in rows] == [cache.episodes[i]["episode_id"] for i in ids]
+    assert [r["success"] for r in rows] == [bool(cache.episodes[i]["success"]) for i in ids]
+    assert rep["summary"]["episodes"] == len(rows) and not (tmp_path / "eval.json").exists()
+    assert all(0.0 <= r["imagined"] <= 1.0 and 0.0 <= r["on_truth"] <= 1.0 for r in rows)
+    # the summary's headline accuracy is that of the rows' imagined read-out at 0.5
+    hits = np.mean([(r["imagined"] >= 0.5) == r["success"] for r in rows])
+    assert rep["summary"]["accuracy"] == pytest.approx(hits)
+    # on_truth: the same read-out of the true episode's observed features, recomputed here
+    cfg, params, norm = load_trained(smoke_world_model)
+    ep = cache.episode(ids[0], cameras=[cfg.camera])
+    x = np.asarray(I.observed_features(cfg.model, params, norm, ep["frames"][cfg.camera][None], ep["proprio"][None],
+                                       ep["action"][None, :-1]))
+    judge = load_judge(smoke_world_model)
+    want = judge.probability(x, rows[0]["task"])[0] if judge is not None and judge.knows(rows[0]["task"]) \
+        else np.asarray(I.episode_success(x[..., I.SUCCESS_FEATURE]))[0]
+    assert rows[0]["on_truth"] == pytest.approx(float(want), abs=1e-6)

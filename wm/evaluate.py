@@ -28,6 +28,9 @@
 dataset (held-out scenes, another task) with
 
     python -m wm.evaluate --wm runs/wm/demo --data runs/data/heldout --out runs/wm/demo_on_heldout [eval_tasks=mug]
+
+and `--success-only` writes the success prediction alone, episode by episode (success_episodes), to
+read where the judge goes wrong (which policies, skills or grips).
 """
 
 from __future__ import annotations
@@ -55,6 +58,8 @@ from wm.imagine import (
     SUCCESS_FEATURE,
     Norm,
     context_sample,
+    episode_success,
+    observed_features,
     open_loop_chunked,
 )
 from wm.judge import (
@@ -373,6 +378,38 @@ def evaluate(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, out: Pa
     return report
 
 
+def success_episodes(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, out: Path,
+                     judge: EpisodeJudge | None = None) -> dict:
+    """Success prediction episode by episode, written to OUT/success_episodes.json: for each held-out
+    task episode (random play left out; at most cfg.eval_episodes, spread), its id, task, policy,
+    policy kind, skill and simulated outcome, the read-out of its imagination from the first
+    observation under its logged actions ("imagined": the episode judge's where it knows the task,
+    else the highest per-step success probability) and the same read-out of the true episode
+    ("on_truth": wm.imagine.observed_features, as the evaluator's on_truth), beside
+    success_prediction's summary of the same episodes. Returns the report."""
+    split, tasked = _held_out(cache, list(cfg.eval_tasks) or None, lambda e: e.get("policy_kind") != "play",
+                              "task episodes")
+    tasked = spread(tasked, cfg.eval_episodes)
+    got = imagine_episodes(cfg.model, params, norm, cache, tasked, cfg.camera, progress=True)
+    summary = success_prediction(cfg, params, norm, cache, tasked, judge, got)
+    use_judge = judge is not None and all(judge.knows(t) for t in got["task"])
+    success = np.where(got["mask"], got["features"][..., SUCCESS_FEATURE], 0.0)
+    imagined = judge_episodes(judge, got) if use_judge else np.asarray(episode_success(success))
+    rows = []
+    for k, i in enumerate(tasked):
+        e, ep = cache.episodes[i], cache.episode(i, cameras=[cfg.camera])
+        # the cache pads an episode's actions to its frames; the last row follows no frame
+        x = np.asarray(observed_features(cfg.model, params, norm, ep["frames"][cfg.camera][None],
+                                         ep["proprio"][None], ep["action"][None, :-1]))
+        truth = float(judge.probability(x, e["task"])[0]) if use_judge \
+            else float(np.asarray(episode_success(x[..., SUCCESS_FEATURE]))[0])
+        rows.append({**{key: e.get(key) for key in ("episode_id", "task", "policy", "policy_kind", "skill")},
+                     "success": bool(e["success"]), "imagined": float(imagined[k]), "on_truth": truth})
+    report = {"split": split, "rule": summary["rule"], "summary": summary, "episodes": rows}
+    write_json_atomic(Path(out) / "success_episodes.json", no_nan(report))
+    return report
+
+
 def _held_out(cache: TrainingCache, tasks, keep, what: str, required: bool = True) -> tuple[str | None, list[int]]:
     """The first of the test, val and train splits holding episodes that `keep` accepts, and those;
     (None, []) where there are none and they are not required."""
@@ -439,6 +476,8 @@ def main(argv=None) -> int:
     p.add_argument("--wm", type=Path, required=True, help="a training run's directory (make train OUT)")
     p.add_argument("--data", type=Path, required=True, help="a dataset directory with its cache (make data OUT)")
     p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--success-only", action="store_true",
+                   help="only success prediction, episode by episode: OUT/success_episodes.json")
     p.add_argument("overrides", nargs="*", help=f"key=value, keys among {', '.join(EVAL_KEYS)}")
     a = p.parse_args(argv)
     bad = [o for o in a.overrides if o.split("=")[0] not in EVAL_KEYS]
@@ -452,6 +491,10 @@ def main(argv=None) -> int:
     except ValueError as e:
         p.error(f"{a.data}: {e}")
     a.out.mkdir(parents=True, exist_ok=True)
+    if a.success_only:
+        report = success_episodes(cfg, params, norm, cache, a.out, load_judge(a.wm))
+        print(json.dumps({k: report["summary"][k] for k in ("episodes", "rule", "accuracy", "auroc")}, indent=1))
+        return 0
     report = evaluate(cfg, params, norm, cache, a.out, load_judge(a.wm))
     print(json.dumps(report["summary"], indent=1))
     return 0
