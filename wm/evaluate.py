@@ -46,6 +46,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from matplotlib.figure import Figure
+from tqdm import tqdm
 
 from sim_data.config import override
 from sim_data.dataset.cache import TrainingCache
@@ -396,7 +397,7 @@ def success_episodes(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache,
     success = np.where(got["mask"], got["features"][..., SUCCESS_FEATURE], 0.0)
     imagined = judge_episodes(judge, got) if use_judge else np.asarray(episode_success(success))
     rows = []
-    for k, i in enumerate(tasked):
+    for k, i in enumerate(tqdm(tasked, desc="true episodes: read", unit="ep")):
         e, ep = cache.episodes[i], cache.episode(i, cameras=[cfg.camera])
         # the cache pads an episode's actions to its frames; the last row follows no frame
         x = np.asarray(observed_features(cfg.model, params, norm, ep["frames"][cfg.camera][None],
