@@ -133,9 +133,15 @@ def success_prediction(cfg: TrainConfig, params, norm: Norm, cache: TrainingCach
     the per-step rule's ("per_step_rule_"), the progress head's last value clipped to [0, 1]
     ("progress_"), and beside them the final frame's and the outcome head's."""
     got = imagined or imagine_episodes(cfg.model, params, norm, cache, episodes, cfg.camera, progress=False)
-    labels = got["label"]
+    return _success_summary(success_readouts(got, judge), got["label"])
+
+
+def success_readouts(got: dict, judge: EpisodeJudge | None) -> dict:
+    """Each read-out of imagined episodes' success (imagine_episodes' dict), {tag: (N,)}: the per-step
+    rule's, the progress head's last value clipped to [0, 1], the final frame's, the outcome head's,
+    and the episode judge's where it knows every task ("judge_")."""
     last = got["mask"].sum(axis=1) - 1
-    rows = np.arange(len(labels))
+    rows = np.arange(len(last))
     success = np.where(got["mask"], got["features"][..., SUCCESS_FEATURE], 0.0)
     rules = {"per_step_rule_": success.max(axis=1),
              "progress_": np.clip(got["features"][rows, last, PROGRESS_FEATURE], 0.0, 1.0),
@@ -143,11 +149,21 @@ def success_prediction(cfg: TrainConfig, params, norm: Norm, cache: TrainingCach
              "outcome_head_": got["features"][rows, last, OUTCOME_FEATURE]}
     if judge is not None and all(judge.knows(t) for t in got["task"]):
         rules["judge_"] = judge_episodes(judge, got)
+    return rules
+
+
+def _headline(rules: dict) -> str:
+    return "judge_" if "judge_" in rules else "per_step_rule_"
+
+
+def _success_summary(rules: dict, labels) -> dict:
+    """Accuracy and AUROC of each read-out (success_readouts) against the outcomes; the headline's
+    (the judge's where there is one) also as "accuracy" and "auroc"."""
     out = {"episodes": len(labels), "positive_rate": float(labels.mean()), "context": 1,
            "rule": "episode judge" if "judge_" in rules else "highest per-step probability"}
     for tag, p in rules.items():
         out.update({f"{tag}accuracy": accuracy(p, labels), f"{tag}auroc": auroc(p, labels)})
-    headline = "judge_" if "judge_" in rules else "per_step_rule_"
+    headline = _headline(rules)
     out.update({"accuracy": out[f"{headline}accuracy"], "auroc": out[f"{headline}auroc"]})
     return out
 
@@ -392,23 +408,36 @@ def success_episodes(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache,
                               "task episodes")
     tasked = spread(tasked, cfg.eval_episodes)
     got = imagine_episodes(cfg.model, params, norm, cache, tasked, cfg.camera, progress=True)
-    summary = success_prediction(cfg, params, norm, cache, tasked, judge, got)
-    use_judge = judge is not None and all(judge.knows(t) for t in got["task"])
-    success = np.where(got["mask"], got["features"][..., SUCCESS_FEATURE], 0.0)
-    imagined = judge_episodes(judge, got) if use_judge else np.asarray(episode_success(success))
-    rows = []
-    for k, i in enumerate(tqdm(tasked, desc="true episodes: read", unit="ep")):
-        e, ep = cache.episodes[i], cache.episode(i, cameras=[cfg.camera])
-        # the cache pads an episode's actions to its frames; the last row follows no frame
-        x = np.asarray(observed_features(cfg.model, params, norm, ep["frames"][cfg.camera][None],
-                                         ep["proprio"][None], ep["action"][None, :-1]))
-        truth = float(judge.probability(x, e["task"])[0]) if use_judge \
-            else float(np.asarray(episode_success(x[..., SUCCESS_FEATURE]))[0])
-        rows.append({**{key: e.get(key) for key in ("episode_id", "task", "policy", "policy_kind", "skill")},
-                     "success": bool(e["success"]), "imagined": float(imagined[k]), "on_truth": truth})
+    rules = success_readouts(got, judge)
+    summary = _success_summary(rules, got["label"])
+    imagined = rules[_headline(rules)]
+    on_truth = _read_true_episodes(cfg, params, norm, cache, tasked, judge if "judge_" in rules else None)
+    keys = ("episode_id", "task", "policy", "policy_kind", "skill")
+    rows = [{**{key: cache.episodes[i].get(key) for key in keys}, "success": bool(cache.episodes[i]["success"]),
+             "imagined": float(imagined[k]), "on_truth": float(on_truth[k])} for k, i in enumerate(tasked)]
     report = {"split": split, "rule": summary["rule"], "summary": summary, "episodes": rows}
     write_json_atomic(Path(out) / "success_episodes.json", no_nan(report))
     return report
+
+
+def _read_true_episodes(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, ids: list[int],
+                        judge: EpisodeJudge | None) -> np.ndarray:
+    """(N,) the judge's read-out (or, without one, the highest per-step success probability) of the
+    true episodes ids' observed features (wm.imagine.observed_features), episodes of one length and
+    task read as one batch."""
+    out = np.zeros(len(ids))
+    groups: dict = {}
+    for k, i in enumerate(ids):
+        groups.setdefault((cache.episodes[i]["length"], cache.episodes[i]["task"]), []).append(k)
+    for (_, task), ks in tqdm(groups.items(), desc="true episodes: read", unit="group"):
+        eps = [cache.episode(ids[k], cameras=[cfg.camera]) for k in ks]
+        # the cache pads an episode's actions to its frames; the last row follows no frame
+        x = np.asarray(observed_features(cfg.model, params, norm, np.stack([e["frames"][cfg.camera] for e in eps]),
+                                         np.stack([e["proprio"] for e in eps]),
+                                         np.stack([e["action"][:-1] for e in eps])))
+        out[ks] = judge.probability(x, task) if judge is not None \
+            else np.asarray(episode_success(x[..., SUCCESS_FEATURE]))
+    return out
 
 
 def _held_out(cache: TrainingCache, tasks, keep, what: str, required: bool = True) -> tuple[str | None, list[int]]:

@@ -319,6 +319,15 @@ def chunk_size(n: int) -> int:
     return CHUNK if n > CHUNK else 1 << (n - 1).bit_length()
 
 
+def padded_chunks(items: list):
+    """(start, part, n) over items in chunks of chunk_size(len(items)): each part padded with its last
+    item to the chunk's size (one batch size, one compilation), its first n items real."""
+    size = chunk_size(len(items))
+    for start in range(0, len(items), size):
+        part = items[start:start + size]
+        yield start, part + [part[-1]] * (size - len(part)), len(part)
+
+
 def context_sample(ep: dict, camera: str, start: int, context: int, horizon: int) -> dict:
     """From an episode (sim_data.dataset.cache's episode dict): `context` observations from `start` and the
     `horizon` logged actions that follow, as open_loop_chunked takes them."""
@@ -332,13 +341,9 @@ def open_loop_chunked(cfg: ModelConfig, params, norm: Norm, samples: list[dict],
     "actions" (horizon, 20)} in chunks of chunk_size (the last one padded, so one compilation serves
     all); numpy arrays with a leading axis of len(samples)."""
     outs = []
-    size = chunk_size(len(samples))
-    for i in range(0, len(samples), size):
-        part = samples[i:i + size]
-        pad = size - len(part)
-        part = part + [part[-1]] * pad
+    for _, part, n in padded_chunks(samples):
         stack = {k: np.stack([s[k] for s in part]) for k in part[0]}
         got = open_loop(cfg, params, norm, stack["frames"], stack["proprio"], stack["context_actions"],
                         stack["actions"][:, :horizon])
-        outs.append({k: np.asarray(v)[: len(part) - pad] for k, v in got.items()})
+        outs.append({k: np.asarray(v)[:n] for k, v in got.items()})
     return {k: np.concatenate([o[k] for o in outs]) for k in outs[0]}

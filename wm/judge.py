@@ -42,12 +42,12 @@ from sim_data.util import write_json_atomic
 from wm.checkpoint import run_file
 from wm.imagine import (
     Norm,
-    chunk_size,
     closed_loop,
     context_sample,
     feature_columns,
     feature_dim,
     open_loop_chunked,
+    padded_chunks,
 )
 from wm.metrics import accuracy, auroc
 from wm.model import ModelConfig
@@ -153,19 +153,14 @@ def imagine_episodes(cfg: ModelConfig, params, norm: Norm, cache, ids: list[int]
 def _closed_loop_features(cfg: ModelConfig, params, norm: Norm, cache, group, camera: str, horizon: int, policy,
                           seed: int):
     """(len(group), horizon, F) step features of closed-loop imaginations, each episode of group
-    [(cache id, PolicySource)] with its own policy's parameters (one architecture), in chunks of
-    chunk_size (the last one padded)."""
+    [(cache id, PolicySource)] with its own policy's parameters (one architecture), in padded_chunks."""
     outs = []
-    size = chunk_size(len(group))
-    for k in range(0, len(group), size):
-        part = group[k:k + size]
-        pad = size - len(part)
-        part = part + [part[-1]] * pad
+    for k, part, n in padded_chunks(group):
         eps = [cache.episode(i, cameras=[camera]) for i, _ in part]
         got = closed_loop(cfg, StackedPolicy(policy), horizon, params, norm, stack_params([s.params for _, s in part]),
                           np.stack([ep["frames"][camera][:1] for ep in eps]), np.stack([ep["proprio"][:1] for ep in eps]),
                           np.zeros((len(part), 0, cfg.action_dim), np.float32), jax.random.PRNGKey(seed + k))
-        outs.append(np.asarray(got["features"])[: len(part) - pad])
+        outs.append(np.asarray(got["features"])[:n])
     return np.concatenate(outs)
 
 
