@@ -251,13 +251,18 @@ def judge_episodes(judge: EpisodeJudge, d: dict) -> np.ndarray:
     return p
 
 
+# enough to pick the judge's step; more only costs imagination when the judge learns from every episode
+VAL_EPISODES = 256
+
+
 def fit_judge(cfg, params, norm: Norm, cache, train_ids: list[int], out: Path, progress: bool = True) -> dict:
-    """Imagines cfg.judge_episodes training episodes (and up to a quarter as many validation episodes),
-    fits the judge and saves it in out; returns its metrics. cfg is the world model's TrainConfig."""
+    """Imagines cfg.judge_episodes training episodes (and a quarter as many validation episodes, at most
+    VAL_EPISODES), fits the judge and saves it in out; returns its metrics. cfg is the world model's
+    TrainConfig."""
     tasks = tuple(sorted({cache.episodes[i]["task"] for i in train_ids}))
     train_ids = spread(train_ids, cfg.judge_episodes)
     val_ids = spread([i for i in cache.select("val") if cache.episodes[i]["task"] in tasks],
-                      max(1, cfg.judge_episodes // 4))
+                      max(1, min(cfg.judge_episodes // 4, VAL_EPISODES)))
     labels = {bool(cache.episodes[i]["success"]) for i in train_ids}
     if len(labels) < 2:
         what = "successes" if labels == {True} else "failures"
