@@ -7,6 +7,7 @@ import functools
 import json
 import math
 import shutil
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -414,6 +415,35 @@ def test_episode_judge_learns_an_integral_and_round_trips(tmp_path):
     with pytest.raises(ValueError, match="successes and failures"):
         J.fit({**train, "label": np.zeros(256, bool)}, None, ("a", "b"), steps=5, progress=False)
     assert J.load_judge(tmp_path / "nothing") is None
+
+
+class _Episodes:
+    """A training cache's episode table alone: ids 0-5999 train, 6000-6999 validation, two tasks."""
+
+    root = Path("data/cache")
+    episodes = [{"task": "ab"[i % 2], "success": i % 4 == 0, "policy": "scripted"} for i in range(7000)]
+
+    def select(self, split):
+        return list(range(6000, 7000)) if split == "val" else list(range(6000))
+
+
+def test_the_judge_learns_from_every_training_episode_with_a_bounded_validation_set(tmp_path, monkeypatch):
+    """judge_episodes at or above the training episodes imagines every one of them; the validation
+    episodes stay at VAL_EPISODES however many the judge learns from (fit_judge's selection)."""
+    imagined = []
+    monkeypatch.setattr(J, "dataset_policies", lambda root: {})
+    monkeypatch.setattr(J, "imagine_episodes", lambda *a: imagined.append(list(a[4])) or {"ids": a[4]})
+    monkeypatch.setattr(J, "fit", lambda train, val, tasks, *a, **k: (tasks, {"n": len(train["ids"])}))
+    monkeypatch.setattr(J, "save_judge", lambda *a: None)
+    cfg = make_config("smoke", ["judge_episodes=8192"])
+    assert J.fit_judge(cfg, None, None, _Episodes(), list(range(6000)), tmp_path, progress=False) == {"n": 6000}
+    train, val = imagined
+    assert train == list(range(6000)) and len(val) == J.VAL_EPISODES == 256
+    assert set(val) <= set(range(6000, 7000)) and len(set(val)) == 256
+    imagined.clear()
+    J.fit_judge(make_config("smoke", ["judge_episodes=400"]), None, None, _Episodes(), list(range(6000)), tmp_path,
+                progress=False)
+    assert len(imagined[0]) == 400 and len(imagined[1]) == 100  # a quarter below the bound, as before
 
 
 def test_a_judge_reads_only_its_chosen_feature_columns(tmp_path):
