@@ -757,6 +757,8 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, models, wm
         "families": S.family_statistics(rows) | {"by_readout": {
             r: S.family_statistics([dict(x, rate=x["pred_rate_readouts"][r]) for x in rows], "rate")
             for r in READOUTS}},
+        # which policies carry each task's MMRV (the ranked read-out's rates)
+        "rank_violations": S.rank_violations(rows),
         "decision": decision_analysis(cfg, results, metrics["pooled"]["alignment"]),
         "videos": [v for t in tasks for v in results[t]["video_index"]],
         "controllability": sorted(panel),

@@ -469,6 +469,27 @@ def family_table(res: dict) -> list[list[str]] | None:
     return rows
 
 
+def violation_table(res: dict) -> list[list[str]] | None:
+    """Per task, the policies that carry its MMRV (results.json's rank_violations): each policy's
+    term charged to the policy it is most mis-ordered with; None where the results hold none (older
+    results) or no task has a violation."""
+    viol = res.get("rank_violations")
+    if not viol or not any(v["policies"] for v in viol.values()):
+        return None
+    rows = [["task", "MMRV", "policy", "true", "predicted", "share of the task's MMRV", "policies mis-ordered with it"]]
+    for t, v in viol.items():
+        for k, p in enumerate(v["policies"]):
+            rows.append([t if k == 0 else "", _fmt(v["mmrv"], 2) if k == 0 else "", p["name"],
+                         _fmt(p["true_rate"], 2), _fmt(p["pred_rate"], 2), f"{100 * p['share']:.0f}%",
+                         str(p["against"])])
+    return rows
+
+
+VIOLATION_NOTE = ("Where MMRV comes from: each policy's term (its largest rank violation, weighted by the true gap) "
+                  "is charged to the policy it is most mis-ordered with, so one policy read far from its truth "
+                  "shows up as the partner of many.")
+
+
 FAMILY_NOTE = ("Counterfactual families: one checkpoint with its actions degraded by known amounts (noise, delay, "
                "a weak grip, driving scaled), beside the undegraded checkpoint. True success moves with the "
                "degradation; a world model that reads the actions must move its prediction the same way.")
@@ -551,6 +572,8 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
             _html_table(fid)] if (fid := fidelity_table(res)) else []),
          *([f"<h2>Counterfactual families</h2><p>{html.escape(FAMILY_NOTE)}</p>", _html_table(fam)]
            if (fam := family_table(res)) else []),
+         *([f"<h2>Rank violations</h2><p>{html.escape(VIOLATION_NOTE)}</p>", _html_table(viol)]
+           if (viol := violation_table(res)) else []),
          _html_table(per_task_table(res)),
          *(["<h2>Within-task ranking of the policies whose rollouts the world model never saw</h2>",
             _html_table(per_task_table(res, "unseen_within_task"))] if "unseen_within_task" in metrics else []),
@@ -631,6 +654,8 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
         md += ["## Imagination against the simulated episode", "", FIDELITY_NOTE, "", _md_table(fid), ""]
     if fam := family_table(res):
         md += ["## Counterfactual families", "", FAMILY_NOTE, "", _md_table(fam), ""]
+    if viol := violation_table(res):
+        md += ["## Rank violations", "", VIOLATION_NOTE, "", _md_table(viol), ""]
     if "unseen" in metrics:
         md += ["## Pooled, policies whose rollouts the world model never saw", "",
                _md_table(_metrics_table(metrics["unseen"])), ""]

@@ -71,9 +71,37 @@ def mmrv(predicted, true) -> float:
     tied in prediction but not in truth is a violation (from the side of the truly worse policy); a
     pair tied in truth weighs 0.
     """
+    return float(mmrv_charges(predicted, true)[0].mean())
+
+
+def mmrv_charges(predicted, true) -> tuple[np.ndarray, np.ndarray]:
+    """Each policy's term of MMRV and the policy it is charged to: policy i's term is its largest
+    violation (mmrv's max over j), charged to the j that attains it (the first where several tie; i
+    itself where i has none). Returns (terms (N,), partner (N,) int); terms.mean() is mmrv."""
     p, t = _pair(predicted, true)
-    wrong = (p[:, None] < p[None, :]) != (t[:, None] < t[None, :])
-    return float((np.abs(t[:, None] - t[None, :]) * wrong).max(axis=1).mean())
+    gap = np.abs(t[:, None] - t[None, :]) * ((p[:, None] < p[None, :]) != (t[:, None] < t[None, :]))
+    terms = gap.max(axis=1)
+    return terms, np.where(terms > 0, gap.argmax(axis=1), np.arange(len(t)))
+
+
+def rank_violations(rows: list[dict], top: int = 5, rate: str = "pred_rate") -> dict:
+    """Where each task's MMRV comes from (the rows' `rate` against their true_rate, as mmrv): every
+    policy's term charged to the policy it is most mis-ordered with (mmrv_charges), so one policy read
+    far from its truth shows as the partner of many. Returns {task: {"mmrv", "policies": the `top`
+    policies charged the most, each {"name", "true_rate", "pred_rate", "share" (of the task's MMRV;
+    all the task's policies' shares sum to 1), "against" (how many policies' largest violation is with
+    it)}}}; a task whose MMRV is 0 lists none."""
+    out = {}
+    for task in sorted({r["task"] for r in rows}):
+        rs = [r for r in rows if r["task"] == task]
+        terms, partner = mmrv_charges([r[rate] for r in rs], [r["true_rate"] for r in rs])
+        charged = np.bincount(partner, weights=terms, minlength=len(rs))
+        against = np.bincount(partner[terms > 0], minlength=len(rs))
+        order = [int(k) for k in np.argsort(-charged, kind="stable") if charged[k] > 0][:top]
+        out[task] = {"mmrv": float(terms.mean()), "policies": [
+            {"name": rs[k]["name"], "true_rate": rs[k]["true_rate"], "pred_rate": rs[k][rate],
+             "share": float(charged[k] / terms.sum()), "against": int(against[k])} for k in order]}
+    return out
 
 
 def pairwise_accuracy(predicted, true, min_gap: float = 0.0) -> float:

@@ -13,7 +13,7 @@ from conftest import SMOKE_EVAL, build_once
 
 from experiments import evaluate as E
 from experiments import stats as S
-from experiments.report import family_table, write_report
+from experiments.report import family_table, violation_table, write_report
 from sim_data.parts import exclusive
 from sim_data.policies.bc import MixedPolicy, StackedPolicy
 from sim_data.policies.registry import resolve
@@ -168,6 +168,16 @@ def test_parts_share_out_a_tasks_batches_and_merge_into_the_unsplit_results(eval
         E.merge_task_parts(cfg, [E.load_task(split / "tasks" / "mug.part0of2.npz")], whole["names"])
 
 
+def test_violation_table_lists_the_policies_that_carry_each_tasks_mmrv():
+    rows = [{"task": "mug", "name": n, "pred_rate": p, "true_rate": t}
+            for n, p, t in zip("abcd", [0.9, 0.5, 0.1, 0.6], [0.1, 0.5, 0.0, 0.8])]
+    table = violation_table({"rank_violations": json.loads(json.dumps(S.rank_violations(rows)))})
+    assert table[1] == ["mug", "0.45", "a", "0.10", "0.90", "61%", "2"]
+    assert table[2] == ["", "", "d", "0.80", "0.60", "39%", "1"] and len(table) == 3
+    assert violation_table({}) is None  # results written before the table existed
+    assert violation_table({"rank_violations": {"mug": {"mmrv": 0.0, "policies": []}}}) is None
+
+
 def test_a_partial_gather_reports_the_finished_tasks_and_names_the_rest(evaluation, tmp_path):
     cfg, out, res = evaluation
     both = dataclasses.replace(cfg, tasks=("mug", "step_back"))
@@ -206,6 +216,9 @@ def test_report_renders_figures_and_videos(evaluation):
     assert "| world model, progress read-out |" in md and "| world model, success read-out |" in md
     assert "| the read-out of the true episodes |" in md
     assert "Cut short" not in md
+    viol = res["rank_violations"]["mug"]
+    assert viol["mmrv"] == pytest.approx(S.mmrv([p["pred_rate"] for p in mug], [p["true_rate"] for p in mug]))
+    assert ("## Rank violations" in md) == bool(viol["policies"])
     cut = dict(res, world_model=dict(res["world_model"], cut_short=True))
     (out / "results.json").write_text(json.dumps(cut))
     try:

@@ -41,6 +41,24 @@ def test_mmrv_weights_violations_by_true_gap_and_counts_predicted_ties():
     assert S.mmrv([0.9, 0.1], [0.5, 0.5]) == 0.0
 
 
+def test_rank_violations_charge_each_policys_mmrv_term_to_its_worst_partner():
+    # by hand: a (true 0.1) read above b (0.5) and d (0.8): a's term 0.7 (against d), b's 0.4 (against
+    # a), d's 0.7 (against a), c none; MMRV (0.7 + 0.4 + 0 + 0.7) / 4, a charged 1.1 of the 1.8, d 0.7
+    names, pred, true = "abcd", [0.9, 0.5, 0.1, 0.6], [0.1, 0.5, 0.0, 0.8]
+    terms, partner = S.mmrv_charges(pred, true)
+    np.testing.assert_allclose(terms, [0.7, 0.4, 0.0, 0.7])
+    assert partner.tolist() == [3, 0, 2, 0]
+    rows = [{"task": "t", "name": n, "pred_rate": p, "true_rate": t} for n, p, t in zip(names, pred, true)]
+    rows += [{"task": "u", "name": "e", "pred_rate": 0.2, "true_rate": 0.1},
+             {"task": "u", "name": "f", "pred_rate": 0.4, "true_rate": 0.3}]
+    v = S.rank_violations(rows)
+    assert v["t"]["mmrv"] == pytest.approx(S.mmrv(pred, true)) == pytest.approx(1.8 / 4)
+    got = [(x["name"], round(x["share"], 4), x["against"]) for x in v["t"]["policies"]]
+    assert got == [("a", round(1.1 / 1.8, 4), 2), ("d", round(0.7 / 1.8, 4), 1)]
+    assert v["u"] == {"mmrv": 0.0, "policies": []}
+    assert [x["name"] for x in S.rank_violations(rows, top=1)["t"]["policies"]] == ["a"]
+
+
 def test_pairwise_accuracy_all_pairs_and_gap_filter():
     pred, true = [0.3, 0.6, 0.1], [0.9, 0.5, 0.2]
     assert S.pairwise_accuracy(pred, true) == pytest.approx(2 / 3)
