@@ -539,13 +539,20 @@ def _mean_curve(x) -> list:
     return [round(float(v), 3) if k else None for v, k in zip(m, n, strict=True)]
 
 
+def _finite_mean(x) -> float | None:
+    """The mean of x's finite values, rounded to 4 decimals; None where none is finite."""
+    x = np.asarray(x, np.float64)
+    ok = np.isfinite(x)
+    return round(float(x[ok].mean()), 4) if ok.any() else None
+
+
 def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) -> list[dict]:
     rows = []
     members = res["prob_members"].transpose(1, 0, 2)  # (P, K, N)
     readouts = np.stack([res[k] for k in READOUT_KEYS], axis=1)  # (P, R, N)
-    for name, t, p, r, pk, ok, tp, ip in zip(res["names"], res["true"], res["prob"], readouts, members,
-                                             res["sim_finite"], res["true_progress"], res["trace_progress"],
-                                             strict=True):
+    for name, t, p, r, pk, ok, tp, ip, gap in zip(res["names"], res["true"], res["prob"], readouts, members,
+                                                  res["sim_finite"], res["true_progress"], res["trace_progress"],
+                                                  res["action_gap"], strict=True):
         rec = sources_by_name[name].record
         k, n = int(t.sum()), len(t)
         kp = int((p >= cfg.threshold).sum())
@@ -559,6 +566,8 @@ def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) ->
                      "nonfinite_episodes": int((~ok).sum()),
                      # mean progress over the episodes at each step, the simulator's and the imagined
                      "progress_true": _mean_curve(tp), "progress_imagined": _mean_curve(ip),
+                     # RMS gap of the policy's actions on imagined and on true frames, over its episodes' steps
+                     "action_gap": _finite_mean(gap),
                      # per held-out state, in the order of the seeds: for ensembles (experiments.ensemble)
                      "true_episodes": t.astype(int).tolist(), "pred_episodes": np.round(p, 5).tolist()})
         if len(pk) > 1:

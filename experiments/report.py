@@ -476,18 +476,22 @@ def violation_table(res: dict) -> list[list[str]] | None:
     viol = res.get("rank_violations")
     if not viol or not any(v["policies"] for v in viol.values()):
         return None
-    rows = [["task", "MMRV", "policy", "true", "predicted", "share of the task's MMRV", "policies mis-ordered with it"]]
+    rows = [["task", "MMRV", "policy", "true", "predicted", "share of the task's MMRV", "policies mis-ordered with it",
+             "action gap (RMS; the task's median)"]]
     for t, v in viol.items():
+        gaps = [g for p in res.get("policies", []) if p["task"] == t and (g := p.get("action_gap")) is not None]
+        median = f" ({_fmt(float(np.median(gaps)), 3)})" if gaps else ""
         for k, p in enumerate(v["policies"]):
             rows.append([t if k == 0 else "", _fmt(v["mmrv"], 2) if k == 0 else "", p["name"],
                          _fmt(p["true_rate"], 2), _fmt(p["pred_rate"], 2), f"{100 * p['share']:.0f}%",
-                         str(p["against"])])
+                         str(p["against"]), _fmt(p.get("action_gap"), 3) + median])
     return rows
 
 
 VIOLATION_NOTE = ("Where MMRV comes from: each policy's term (its largest rank violation, weighted by the true gap) "
                   "is charged to the policy it is most mis-ordered with, so one policy read far from its truth "
-                  "shows up as the partner of many.")
+                  "shows up as the partner of many. The action gap says how far its actions on imagined frames "
+                  "stray from those on true frames, beside the task's median policy.")
 
 
 FAMILY_NOTE = ("Counterfactual families: one checkpoint with its actions degraded by known amounts (noise, delay, "

@@ -90,7 +90,7 @@ def rank_violations(rows: list[dict], top: int = 5, rate: str = "pred_rate") -> 
     far from its truth shows as the partner of many. Returns {task: {"mmrv", "policies": the `top`
     policies charged the most, each {"name", "true_rate", "pred_rate", "share" (of the task's MMRV;
     all the task's policies' shares sum to 1), "against" (how many policies' largest violation is with
-    it)}}}; a task whose MMRV is 0 lists none."""
+    it), "action_gap" (the row's, where it has one)}}}; a task whose MMRV is 0 lists none."""
     out = {}
     for task in sorted({r["task"] for r in rows}):
         rs = [r for r in rows if r["task"] == task]
@@ -100,7 +100,8 @@ def rank_violations(rows: list[dict], top: int = 5, rate: str = "pred_rate") -> 
         order = [int(k) for k in np.argsort(-charged, kind="stable") if charged[k] > 0][:top]
         out[task] = {"mmrv": float(terms.mean()), "policies": [
             {"name": rs[k]["name"], "true_rate": rs[k]["true_rate"], "pred_rate": rs[k][rate],
-             "share": float(charged[k] / terms.sum()), "against": int(against[k])} for k in order]}
+             "share": float(charged[k] / terms.sum()), "against": int(against[k]),
+             "action_gap": rs[k].get("action_gap")} for k in order]}
     return out
 
 

@@ -169,11 +169,11 @@ def test_parts_share_out_a_tasks_batches_and_merge_into_the_unsplit_results(eval
 
 
 def test_violation_table_lists_the_policies_that_carry_each_tasks_mmrv():
-    rows = [{"task": "mug", "name": n, "pred_rate": p, "true_rate": t}
-            for n, p, t in zip("abcd", [0.9, 0.5, 0.1, 0.6], [0.1, 0.5, 0.0, 0.8])]
-    table = violation_table({"rank_violations": json.loads(json.dumps(S.rank_violations(rows)))})
-    assert table[1] == ["mug", "0.45", "a", "0.10", "0.90", "61%", "2"]
-    assert table[2] == ["", "", "d", "0.80", "0.60", "39%", "1"] and len(table) == 3
+    rows = [{"task": "mug", "name": n, "pred_rate": p, "true_rate": t, "action_gap": g}
+            for n, p, t, g in zip("abcd", [0.9, 0.5, 0.1, 0.6], [0.1, 0.5, 0.0, 0.8], [0.1, 0.2, 0.3, 0.4])]
+    table = violation_table({"rank_violations": json.loads(json.dumps(S.rank_violations(rows))), "policies": rows})
+    assert table[1] == ["mug", "0.45", "a", "0.10", "0.90", "61%", "2", "0.100 (0.250)"]
+    assert table[2] == ["", "", "d", "0.80", "0.60", "39%", "1", "0.400 (0.250)"] and len(table) == 3
     assert violation_table({}) is None  # results written before the table existed
     assert violation_table({"rank_violations": {"mug": {"mmrv": 0.0, "policies": []}}}) is None
 
@@ -219,6 +219,9 @@ def test_report_renders_figures_and_videos(evaluation):
     viol = res["rank_violations"]["mug"]
     assert viol["mmrv"] == pytest.approx(S.mmrv([p["pred_rate"] for p in mug], [p["true_rate"] for p in mug]))
     assert ("## Rank violations" in md) == bool(viol["policies"])
+    with np.load(out / "tasks" / "mug.npz") as z:  # each row's action gap: its episodes' mean over steps
+        np.testing.assert_allclose([p["action_gap"] for p in mug],
+                                   np.nanmean(z["action_gap"].astype(np.float64), axis=(1, 2)), atol=2e-3)
     cut = dict(res, world_model=dict(res["world_model"], cut_short=True))
     (out / "results.json").write_text(json.dumps(cut))
     try:
