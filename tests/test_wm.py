@@ -421,7 +421,9 @@ class _Episodes:
     """A training cache's episode table alone: ids 0-5999 train, 6000-6999 validation, two tasks."""
 
     root = Path("data/cache")
-    episodes = [{"task": "ab"[i % 2], "success": i % 4 == 0, "policy": "scripted"} for i in range(7000)]
+
+    def __init__(self):
+        self.episodes = [{"task": "ab"[i % 2], "success": i % 4 == 0, "policy": "scripted"} for i in range(7000)]
 
     def select(self, split):
         return list(range(6000, 7000)) if split == "val" else list(range(6000))
