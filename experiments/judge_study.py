@@ -41,7 +41,14 @@ from sim_data.dataset.cache import TrainingCache, window_episodes
 from sim_data.util import run_cli, write_json_atomic
 from wm.checkpoint import load_run_config, load_trained
 from wm.imagine import FEATURE_GROUPS, feature_columns
-from wm.judge import dataset_policies, fit, imagine_episodes, load_judge, spread
+from wm.judge import (
+    VAL_EPISODES,
+    dataset_policies,
+    fit,
+    imagine_episodes,
+    load_judge,
+    spread,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,7 +62,7 @@ class Variant:
 
 
 VARIANTS = {
-    "refit_1024": Variant(episodes=1024),  # the recipe wm.train uses (judge_episodes=1024), fit again
+    "refit_1024": Variant(episodes=1024),  # TrainConfig's default judge_episodes, fit again
     "all": Variant(),
     "all_no_action": Variant(inputs=tuple(g for g in FEATURE_GROUPS if g != "action")),
     "all_proprio_progress": Variant(inputs=("proprio", "progress")),
@@ -66,7 +73,6 @@ SAVED = "saved_judge"  # the judge fit with the world model, if any, on the kept
 FOLDS = 4
 # The order variants are fit in by default: what matters most first, so a run cut short keeps it.
 DEFAULT_ORDER = (SAVED, "refit_1024", BOUND, "all", "all_no_action", "all_proprio_progress", "rollouts_only")
-RECIPE_EPISODES = 1024  # wm.config.TrainConfig.judge_episodes: the recipe's judge, whose validation set is a quarter
 
 
 def imagined(path: Path, make) -> dict:
@@ -182,7 +188,7 @@ def study(eval_dir: Path, out: Path, wm_run: Path | None = None, data: Path | No
                                               wm_cfg.train_fraction) if cache.episodes[i]["task"] in tasks]
         if all(v.episodes and not v.rollouts_only for v in fitted):  # only what the largest subset needs
             ids = spread(ids, max(v.episodes for v in fitted))
-        val_ids = spread(cache.select("val", list(tasks)), RECIPE_EPISODES // 4)  # as wm.judge.fit_judge
+        val_ids = spread(cache.select("val", list(tasks)), VAL_EPISODES)  # as wm.judge.fit_judge
         pols = dataset_policies(data)
 
         def make(split_ids, seed):

@@ -71,17 +71,22 @@ def mmrv(predicted, true) -> float:
     tied in prediction but not in truth is a violation (from the side of the truly worse policy); a
     pair tied in truth weighs 0.
     """
-    return float(mmrv_charges(predicted, true)[0].mean())
+    return float(_violation_gaps(predicted, true).max(axis=1).mean())
+
+
+def _violation_gaps(predicted, true) -> np.ndarray:
+    """(N, N) |true_i - true_j| where the pair (i, j) is mis-ordered (mmrv's comparisons), else 0."""
+    p, t = _pair(predicted, true)
+    return np.abs(t[:, None] - t[None, :]) * ((p[:, None] < p[None, :]) != (t[:, None] < t[None, :]))
 
 
 def mmrv_charges(predicted, true) -> tuple[np.ndarray, np.ndarray]:
     """Each policy's term of MMRV and the policy it is charged to: policy i's term is its largest
     violation (mmrv's max over j), charged to the j that attains it (the first where several tie; i
     itself where i has none). Returns (terms (N,), partner (N,) int); terms.mean() is mmrv."""
-    p, t = _pair(predicted, true)
-    gap = np.abs(t[:, None] - t[None, :]) * ((p[:, None] < p[None, :]) != (t[:, None] < t[None, :]))
+    gap = _violation_gaps(predicted, true)
     terms = gap.max(axis=1)
-    return terms, np.where(terms > 0, gap.argmax(axis=1), np.arange(len(t)))
+    return terms, np.where(terms > 0, gap.argmax(axis=1), np.arange(len(terms)))
 
 
 def rank_violations(rows: list[dict], top: int = 5, rate: str = "pred_rate") -> dict:
