@@ -315,7 +315,9 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
 def merge_task_parts(cfg: EvalConfig, parts: list, order: list) -> dict:
     """One task's results from its parts' (evaluate_task with chunks), policies in `order` (the
     names as evaluate_task without chunks lists them); the videos of the policies cfg.video_policies
-    picks among those the parts filmed (the least and most successful are always among them)."""
+    picks among those the parts filmed (the least and most successful are always among them). A part
+    given none of the task's batches (more parts than batches) holds no policies and is passed over."""
+    parts = [p for p in parts if p["names"]] or parts[:1]  # an empty part's traces have no time axis
     names = [x for p in parts for x in p["names"]]
     if sorted(names) != sorted(order):
         raise ValueError(f"the parts hold {len(names)} policies, not the task's {len(order)}: "

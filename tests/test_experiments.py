@@ -163,6 +163,16 @@ def test_parts_share_out_a_tasks_batches_and_merge_into_the_unsplit_results(eval
     assert 0 < len(filmed) <= cfg.video_policies and set(merged["videos"]) == {
         f"{v['key']}/{kind}" for v in merged["video_index"] for kind in ("real", "imagined")}
     (split / "tasks" / "mug.npz").unlink()
+    # more parts than batches: the batches go to parts 0 and 1 as above, part 2 gets none
+    assert E.balance_chunks({0: 3, 1: 2}, 3) == {0: 0, 1: 1}
+    three = tmp_path / "three"
+    (three / "tasks").mkdir(parents=True)
+    for k in range(2):
+        (three / "tasks" / f"mug.part{k}of3.npz").write_bytes((split / "tasks" / f"mug.part{k}of2.npz").read_bytes())
+    assert E.run(cfg, three, progress=False, part=(2, 3)) is None
+    assert E.load_task(three / "tasks" / "mug.part2of3.npz")["names"] == []
+    E.run(cfg, three, progress=False)
+    np.testing.assert_allclose(E.load_task(three / "tasks" / "mug.npz")["prob"], whole["prob"], atol=1e-3)
     (split / "tasks" / "mug.part1of2.npz").unlink()
     with pytest.raises(ValueError, match="rerun the parts"):
         E.merge_task_parts(cfg, [E.load_task(split / "tasks" / "mug.part0of2.npz")], whole["names"])
