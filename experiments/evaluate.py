@@ -136,7 +136,9 @@ class EvalConfig:
       keep_features: also keep every imagined episode's step features (wm.imagine.step_features, the
         first model's) in OUT/features/<task>.npy, (P, N, T, F) float16 in the order of the task's
         policies and states, so other read-outs of the same imaginations (judges: experiments.judge_study)
-        can be fit and compared without imagining again. Not with --part.
+        can be fit and compared without imagining again; and those of the simulated episodes themselves
+        (truth_features) in OUT/features/<task>.observed.npy, where the simulator ran in this run. Not
+        with --part.
     """
 
     policies: tuple = ()
@@ -248,7 +250,7 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
     n = len(seeds)
     reset_keys = np.stack([np.asarray(jax.random.PRNGKey(s)) for s in seeds])
     renderer = cached_renderers(models[0][0].model.size, (CAMERA,))
-    names, true, prob, members, observed, finite, kept, features = [], [], [], [], [], [], {}, []
+    names, true, prob, members, observed, finite, kept, features, observed_kept = [], [], [], [], [], [], {}, [], []
     arrays = {k: [] for k in TRACES + READOUT_KEYS + FIDELITY}
     sim_s = wm_s = 0.0
     steps = None
@@ -275,12 +277,16 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
         batch |= {f"readout_{r}": np.mean([e[r] for e in each], axis=0) for r in READOUTS}
         batch = {k: v.reshape((len(padded), n) + v.shape[1:])[: len(part)] for k, v in batch.items()}
         p = p_each.mean(0)
-        o = np.mean([_read_truth(m, task, truth, cfg.readout) for m in models], axis=0)
+        seen = [truth_features(m, truth) for m in models]
+        o = np.mean([_read_truth(m, task, x, cfg.readout, len(truth["frames0"])) for m, x in zip(models, seen)], axis=0)
         o = o.reshape(len(padded), n)[: len(part)]
         f = simulated_finite(truth).reshape(len(padded), n)[: len(part)]
         if cfg.keep_features:
             x = np.asarray(each[0]["features"], np.float16)
             features.append(x.reshape((len(padded), n) + x.shape[1:])[: len(part)])
+            if seen[0] is not None:
+                x = np.asarray(seen[0], np.float16)
+                observed_kept.append(x.reshape((len(padded), n) + x.shape[1:])[: len(part)])
         wm_s += time.perf_counter() - t0
         for j, src in enumerate(part):
             names.append(src.name)
@@ -306,6 +312,8 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
     true, prob = np.stack(true), np.stack(prob)
     videos, index = _select_videos(cfg, task, names, true, kept)
     kept_features = {"features": np.concatenate(features)} if features else {}
+    if observed_kept and len(observed_kept) == len(features):  # every batch simulated here, not read from the truth cache
+        kept_features["features_observed"] = np.concatenate(observed_kept)
     return {**kept_features, "names": names, "true": true, "prob": prob, "prob_observed": np.stack(observed),
             "sim_finite": np.stack(finite),
             "prob_members": np.stack(members, axis=1), **{k: np.stack(v) for k, v in arrays.items()},
@@ -416,17 +424,23 @@ def read_episodes(judge, task: str, features) -> dict:
     return out
 
 
-def _read_truth(model, task, truth: dict, readout: str) -> np.ndarray:
-    """One world model's read-out applied to the simulated episodes themselves, as if imagination
-    were exact (wm.imagine.observed_features): (B,) float64. Above the world model's own figure,
-    imagination loses what decides the outcome; where low, the heads (or the judge) cannot read the
-    outcome even from true frames; NaN where the truth's frames are not at hand (read back from the
-    truth cache)."""
+def truth_features(model, truth: dict):
+    """One world model's step features of the simulated episodes themselves, as if imagination were
+    exact (wm.imagine.observed_features): (B, T, F), or None where the truth's frames are not at hand
+    (read back from the truth cache)."""
     if "frames" not in truth:
-        return np.full(len(truth["frames0"]), np.nan)
-    wm_cfg, wm_params, norm, judge = model
-    x = observed_features(wm_cfg.model, wm_params, norm, truth["frames"], truth["proprio"], truth["action"])
-    return read_episodes(judge, task, x)[readout]
+        return None
+    wm_cfg, wm_params, norm, _ = model
+    return observed_features(wm_cfg.model, wm_params, norm, truth["frames"], truth["proprio"], truth["action"])
+
+
+def _read_truth(model, task, x, readout: str, b: int) -> np.ndarray:
+    """One world model's read-out of the b simulated episodes' features x (truth_features): (B,)
+    float64. Above the world model's own figure, imagination loses what decides the outcome; where
+    low, the heads (or the judge) cannot read the outcome even from true frames; NaN where x is None."""
+    if x is None:
+        return np.full(b, np.nan)
+    return read_episodes(model[3], task, x)[readout]
 
 
 def simulated_finite(truth: dict) -> np.ndarray:
@@ -724,6 +738,8 @@ def evaluate_tasks(cfg: EvalConfig, out: Path, tasks, sources, models, used: set
         res["seeds"] = seeds
         if "features" in res:
             save_features(out, task, res.pop("features"))
+        if "features_observed" in res:
+            save_features(out, task, res.pop("features_observed"), observed=True)
         _save_task(path, res)
         results[task] = load_task(path)
     return None if part is not None else results
@@ -855,20 +871,27 @@ def _merged_parts(cfg: EvalConfig, out: Path, task: str, sources) -> dict | None
     return None
 
 
-def save_features(out: Path, task: str, features) -> None:
-    """Writes one task's imagined step features (P, N, T, F) float16 to out/features/<task>.npy, atomically."""
-    path = Path(out) / "features" / f"{task}.npy"
+def _features_path(out: Path, task: str, observed: bool) -> Path:
+    return Path(out) / "features" / (f"{task}.observed.npy" if observed else f"{task}.npy")
+
+
+def save_features(out: Path, task: str, features, observed: bool = False) -> None:
+    """Writes one task's imagined step features (P, N, T, F) float16 to out/features/<task>.npy, or
+    with `observed` those of its simulated episodes (truth_features) to <task>.observed.npy, atomically."""
+    path = _features_path(out, task, observed)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f"{path.stem}.tmp{os.getpid()}.npy")
     np.save(tmp, np.asarray(features, np.float16))
     os.replace(tmp, path)
 
 
-def load_features(out: Path, task: str) -> np.ndarray:
-    """The step features an evaluation kept for task (keep_features=1): (P, N, T, F) float16."""
-    path = Path(out) / "features" / f"{task}.npy"
+def load_features(out: Path, task: str, observed: bool = False) -> np.ndarray:
+    """The step features an evaluation kept for task (keep_features=1): (P, N, T, F) float16, of the
+    imagined episodes, or with `observed` of the simulated ones (kept where the simulator ran here)."""
+    path = _features_path(out, task, observed)
     if not path.exists():
-        raise FileNotFoundError(f"{path} is missing: evaluate with keep_features=1 (and without --part)")
+        raise FileNotFoundError(f"{path} is missing: evaluate with keep_features=1 (and without --part"
+                                + (", without truth_cache)" if observed else ")"))
     return np.load(path)
 
 

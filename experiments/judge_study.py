@@ -12,7 +12,11 @@ over policies and initial states shared by every variant), beside the evaluation
 (the judge saved with the model, the progress head, the per-step rule), for every policy and for the
 policies whose rollouts the world model never saw.
 
-Beside them a bound, not a valid evaluation: a judge cross-fit on the evaluation's own imaginations
+Beside them two bounds, neither a valid evaluation. The observed bound: a judge fit to the training
+episodes' true frames (what imagination would show were it exact) reading the evaluation's simulated
+episodes (kept by keep_features=1): how far the head camera and the proprioception decide each task's
+outcome, whatever the world model imagines; where the judges of imaginations reach it, better
+dynamics cannot help them. The cross-fit bound: a judge cross-fit on the evaluation's own imaginations
 and outcomes (each task's policies split into folds; a fold is read by a judge fit on the others).
 It measures how much of the within-task ranking the imagined episodes carry, whatever the judge
 learns from: where it is high and the trained judges are low, the judge's training data limits;
@@ -46,7 +50,9 @@ from wm.judge import (
     dataset_policies,
     fit,
     imagine_episodes,
+    join_episodes,
     load_judge,
+    observe_episodes,
     spread,
 )
 
@@ -54,11 +60,14 @@ from wm.judge import (
 @dataclasses.dataclass(frozen=True)
 class Variant:
     """A judge fit to `episodes` of the world model's imagined training episodes (0: all; "rollouts":
-    only the learned policies' closed-loop ones), reading the step-feature groups `inputs`."""
+    only the learned policies' closed-loop ones), reading the step-feature groups `inputs`; with
+    `observed`, to the same episodes read from their true frames too (wm.judge.observe_episodes, as
+    wm.train's judge_observed)."""
 
     episodes: int = 0
     inputs: tuple = FEATURE_GROUPS
     rollouts_only: bool = False
+    observed: bool = False
 
 
 VARIANTS = {
@@ -67,12 +76,19 @@ VARIANTS = {
     "all_no_action": Variant(inputs=tuple(g for g in FEATURE_GROUPS if g != "action")),
     "all_proprio_progress": Variant(inputs=("proprio", "progress")),
     "rollouts_only": Variant(rollouts_only=True),
+    "all_observed": Variant(observed=True),
 }
 BOUND = "crossfit_bound"
+# A judge fit to the training episodes' true frames alone, reading the evaluation's simulated episodes
+# (their kept observed features): how far the observations decide each task's outcome, whatever the
+# world model imagines. An upper bound on any judge of imaginations that learns from these episodes.
+OBSERVED_BOUND = "observed_bound"
 SAVED = "saved_judge"  # the judge fit with the world model, if any, on the kept (float16) features
 FOLDS = 4
 # The order variants are fit in by default: what matters most first, so a run cut short keeps it.
-DEFAULT_ORDER = (SAVED, "refit_1024", BOUND, "all", "all_no_action", "all_proprio_progress", "rollouts_only")
+DEFAULT_ORDER = (SAVED, "refit_1024", BOUND, OBSERVED_BOUND, "all", "all_observed", "all_no_action",
+                 "all_proprio_progress", "rollouts_only")
+SPECIAL = (BOUND, SAVED, OBSERVED_BOUND)
 
 
 def imagined(path: Path, make) -> dict:
@@ -140,15 +156,26 @@ def crossfit_bound(features: dict, true: dict, tasks: tuple, steps: int, seed: i
     return out
 
 
-def fit_variant(v: Variant, train: dict, val: dict, tasks: tuple, wm_cfg, steps: int) -> tuple:
-    """(EpisodeJudge, fit metrics) of variant v on the imagined training episodes."""
+def fit_variant(v: Variant, train: dict, val: dict, tasks: tuple, wm_cfg, steps: int, observed: dict | None = None) -> tuple:
+    """(EpisodeJudge, fit metrics) of variant v on the imagined training episodes (and, for an
+    `observed` variant, the same episodes' `observed` dict, observe_episodes' in train's order)."""
     rows = np.arange(len(train["label"]))
     if v.rollouts_only:
         rows = rows[train["rollout"]]
     if v.episodes and v.episodes < len(rows):
         rows = np.asarray(spread(list(rows), v.episodes))
-    return fit(take(train, rows), val, tasks, steps, wm_cfg.seed, progress=True,
-               columns=feature_columns(wm_cfg.model, v.inputs))
+    learn = take(train, rows)
+    if v.observed:
+        learn = join_episodes(learn, take(observed, rows))
+    return fit(learn, val, tasks, steps, wm_cfg.seed, progress=True, columns=feature_columns(wm_cfg.model, v.inputs))
+
+
+def observed_bound(train: dict, val: dict, features: dict, tasks: tuple, steps: int, seed: int) -> tuple:
+    """({task: (P, N)} probabilities, fit metrics) of a judge fit to the training episodes' true frames
+    (train, val: observe_episodes' dicts) reading the evaluation's simulated episodes' kept features
+    ({task: (P, N, T, F)}, load_features(..., observed=True))."""
+    judge, metrics = fit(train, val, tasks, steps, seed, progress=True)
+    return read_tasks(judge, features), metrics
 
 
 def finished_tasks(eval_dir: Path) -> tuple:
@@ -166,9 +193,9 @@ def study(eval_dir: Path, out: Path, wm_run: Path | None = None, data: Path | No
     scores them (score)."""
     wm_run = Path(wm_run or json.loads((eval_dir / "config.json").read_text())["wm"].split(",")[0])
     names = list(variants or DEFAULT_ORDER)
-    unknown = [n for n in names if n not in VARIANTS and n not in (BOUND, SAVED)]
+    unknown = [n for n in names if n not in VARIANTS and n not in SPECIAL]
     if unknown:
-        raise ValueError(f"unknown variants {unknown}; choose among {', '.join([*VARIANTS, BOUND, SAVED])}")
+        raise ValueError(f"unknown variants {unknown}; choose among {', '.join([*VARIANTS, *SPECIAL])}")
     wm_cfg, params, norm = load_trained(wm_run)
     data = Path(data or load_run_config(wm_run)[1])
     if not (data / "cache" / "index.json").exists():
@@ -179,8 +206,10 @@ def study(eval_dir: Path, out: Path, wm_run: Path | None = None, data: Path | No
     steps = steps or wm_cfg.judge_steps
     (out / "variants").mkdir(parents=True, exist_ok=True)
 
-    fitted = [VARIANTS[n] for n in names if n in VARIANTS]
+    seen = {t: load_features(eval_dir, t, observed=True) for t in tasks} if OBSERVED_BOUND in names else {}
+    fitted = [VARIANTS[n] for n in names if n in VARIANTS] + ([Variant(observed=True)] if seen else [])
     train = val = None
+    observed = observed_val = None
     ids, val_ids = [], []
     if fitted:
         cache = TrainingCache(data)
@@ -199,6 +228,12 @@ def study(eval_dir: Path, out: Path, wm_run: Path | None = None, data: Path | No
 
         train = imagined(out / f"imagined_train_{len(ids)}.npz", make(ids, wm_cfg.seed))
         val = imagined(out / "imagined_val.npz", make(val_ids, wm_cfg.seed + 1))
+        if any(v.observed for v in fitted):
+            def observe(split_ids):
+                return lambda: {**observe_episodes(wm_cfg.model, params, norm, cache, split_ids, wm_cfg.camera),
+                                "rollout": np.array([cache.episodes[i]["policy"] in pols for i in split_ids], bool)}
+            observed = imagined(out / f"observed_train_{len(ids)}.npz", observe(ids))
+            observed_val = imagined(out / "observed_val.npz", observe(val_ids))
     saved = load_judge(wm_run) if SAVED in names else None
     for name in names:
         path = out / "variants" / f"{name}.npz"
@@ -213,8 +248,10 @@ def study(eval_dir: Path, out: Path, wm_run: Path | None = None, data: Path | No
                 probs, fit_metrics = read_tasks(saved, features), {}
             elif name == BOUND:
                 probs, fit_metrics = crossfit_bound(features, true, tasks, steps, wm_cfg.seed), {"folds": FOLDS}
+            elif name == OBSERVED_BOUND:
+                probs, fit_metrics = observed_bound(observed, observed_val, seen, tasks, steps, wm_cfg.seed)
             else:
-                judge, fit_metrics = fit_variant(VARIANTS[name], train, val, tasks, wm_cfg, steps)
+                judge, fit_metrics = fit_variant(VARIANTS[name], train, val, tasks, wm_cfg, steps, observed)
                 probs = read_tasks(judge, features)
         except ValueError as e:  # one outcome only among what a variant would learn from
             print(f"warning: judge variant {name} skipped: {e}", file=sys.stderr)

@@ -5,6 +5,7 @@ import json
 import shutil
 import threading
 import time
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -17,6 +18,7 @@ from experiments.report import family_table, violation_table, write_report
 from sim_data.parts import exclusive
 from sim_data.policies.bc import MixedPolicy, StackedPolicy
 from sim_data.policies.registry import resolve
+from wm.judge import load_judge
 from wm.metrics import psnr
 
 
@@ -431,7 +433,7 @@ def test_within_task_headline_and_checkpoint_selection_from_the_episodes(evaluat
 
 
 def test_kept_features_are_the_imaginations_the_read_outs_read(evaluation):
-    _, out, _ = evaluation
+    cfg, out, _ = evaluation
     task = E.load_task(out / "tasks" / "mug.npz")
     x = E.load_features(out, "mug")
     p, n = task["true"].shape
@@ -439,5 +441,10 @@ def test_kept_features_are_the_imaginations_the_read_outs_read(evaluation):
     got = E.read_episodes(None, "mug", x.reshape((p * n,) + x.shape[2:]).astype(np.float32))
     for r in ("success", "progress"):
         assert got[r].reshape(p, n) == pytest.approx(task[f"readout_{r}"], abs=2e-3)
+    # the simulated episodes' own features: the read-out of them is the evaluation's on-truth figure
+    seen = E.load_features(out, "mug", observed=True)
+    assert seen.dtype == np.float16 and seen.shape == x.shape
+    on_truth = E.read_episodes(load_judge(Path(cfg.wm)), "mug", seen.reshape((p * n,) + x.shape[2:]).astype(np.float32))
+    assert on_truth[cfg.readout].reshape(p, n) == pytest.approx(task["prob_observed"], abs=0.02)
     with pytest.raises(FileNotFoundError, match="keep_features=1"):
         E.load_features(out, "wipe")

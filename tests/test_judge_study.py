@@ -5,6 +5,7 @@ import pytest
 
 from experiments import judge_study as J
 from experiments import stats as S
+from wm.config import make_config
 
 
 def kept(rng, policies=12, states=16, steps=(5, 7)):
@@ -43,3 +44,30 @@ def test_the_crossfit_bound_reads_an_outcome_the_imaginations_carry(np_rng):
 def test_an_unknown_variant_is_refused(tmp_path):
     with pytest.raises(ValueError, match="unknown variants"):
         J.study(tmp_path, tmp_path / "out", wm_run=tmp_path, variants=["bigger"])
+
+
+def test_the_observed_bound_reads_the_simulated_episodes_with_a_judge_of_true_frames(np_rng):
+    features, true = kept(np_rng)
+    every = {t: np.arange(len(true[t])) for t in true}
+    train = J.evaluation_episodes(*kept(np_rng), every)  # other episodes of the same kind: the training set's
+    val = J.evaluation_episodes(*kept(np_rng, states=4), every)
+    probs, metrics = J.observed_bound(train, val, features, ("a", "b"), steps=150, seed=0)
+    assert metrics["val_auroc"] > 0.95
+    for t in ("a", "b"):
+        assert probs[t].shape == true[t].shape and ((probs[t] > 0.5) == true[t]).mean() > 0.9
+
+
+def test_an_observed_variant_learns_from_both_readings_of_the_same_episodes(np_rng, monkeypatch):
+    features, true = kept(np_rng)
+    every = {t: np.arange(len(true[t])) for t in true}
+    train = J.evaluation_episodes(features, true, every)
+    seen = {**train, "features": train["features"] + 1.0}
+    got = {}
+    monkeypatch.setattr(J, "fit", lambda learn, val, *a, **k: got.update(learn=learn) or (None, {}))
+    wm_cfg = make_config("smoke")
+    J.fit_variant(J.VARIANTS["all"], train, None, ("a", "b"), wm_cfg, 10, seen)
+    assert len(got["learn"]["label"]) == len(train["label"])
+    J.fit_variant(J.VARIANTS["all_observed"], train, None, ("a", "b"), wm_cfg, 10, seen)
+    n = len(train["label"])
+    assert len(got["learn"]["label"]) == 2 * n and got["learn"]["task"] == train["task"] * 2
+    np.testing.assert_array_equal(got["learn"]["features"][n:], seen["features"])

@@ -448,6 +448,50 @@ def test_the_judge_learns_from_every_training_episode_with_a_bounded_validation_
     assert len(imagined[0]) == 400 and len(imagined[1]) == 100  # a quarter below the bound, as before
 
 
+def _readings(ids, value):
+    """An imagine_episodes-shaped dict whose every feature is `value`."""
+    return {"features": np.full((len(ids), 3, 2), value, np.float32), "mask": np.ones((len(ids), 3), bool),
+            "task": ["ab"[i % 2] for i in ids], "label": np.array([i % 4 == 0 for i in ids])}
+
+
+def test_a_judge_with_observed_episodes_learns_from_both_readings_and_is_kept_on_imaginations(tmp_path, monkeypatch):
+    got = {}
+    monkeypatch.setattr(J, "dataset_policies", lambda root: {})
+    monkeypatch.setattr(J, "imagine_episodes", lambda *a: _readings(a[4], 0.0))
+    monkeypatch.setattr(J, "observe_episodes", lambda *a: _readings(a[4], 1.0))
+    monkeypatch.setattr(J, "fit", lambda train, val, *a, **k: got.update(train=train, val=val) or (None, {}))
+    monkeypatch.setattr(J, "save_judge", lambda *a: None)
+    J.fit_judge(make_config("smoke", ["judge_episodes=8192", "judge_observed=1"]), None, None, _Episodes(),
+                list(range(6000)), tmp_path, progress=False)
+    train, val = got["train"], got["val"]
+    assert train["features"].shape == (12000, 3, 2) and train["task"] == ["ab"[i % 2] for i in range(6000)] * 2
+    assert (train["features"][:6000] == 0).all() and (train["features"][6000:] == 1).all()
+    np.testing.assert_array_equal(train["label"], np.tile([i % 4 == 0 for i in range(6000)], 2))
+    assert len(val["label"]) == J.VAL_EPISODES and (val["features"] == 0).all()  # kept on imaginations alone
+
+
+def test_observed_episodes_are_the_true_episodes_features_and_join_the_imagined(smoke_dataset, smoke_world_model):
+    _, data, _ = smoke_dataset
+    cfg, params, norm = load_trained(smoke_world_model)
+    cache = TrainingCache(data)
+    ids = cache.select("train")[:3]
+    assert len(ids) >= 2
+    seen = J.observe_episodes(cfg.model, params, norm, cache, ids, cfg.camera, progress=False)
+    for row, i in enumerate(ids):
+        ep = cache.episode(i, cameras=[cfg.camera])
+        x = np.asarray(I.observed_features(cfg.model, params, norm, ep["frames"][cfg.camera][None], ep["proprio"][None],
+                                           ep["action"][None, :-1]))[0]
+        assert seen["mask"][row].sum() == len(x) and not seen["features"][row, len(x):].any()
+        np.testing.assert_allclose(seen["features"][row, :len(x)], x, atol=1e-3)
+        assert seen["label"][row] == bool(cache.episodes[i]["success"]) and seen["task"][row] == cache.episodes[i]["task"]
+    dreamt = J.imagine_episodes(cfg.model, params, norm, cache, ids, cfg.camera, progress=False)
+    both = J.join_episodes(dreamt, seen)
+    assert both["features"].shape == (2 * len(ids),) + seen["features"].shape[1:]
+    assert both["task"] == dreamt["task"] + seen["task"]
+    np.testing.assert_array_equal(both["features"][len(ids):], seen["features"])
+    np.testing.assert_array_equal(both["label"], np.concatenate([dreamt["label"], seen["label"]]))
+
+
 def test_a_judge_reads_only_its_chosen_feature_columns(tmp_path):
     cfg = SMOKE_MODEL
     f = I.feature_dim(cfg)

@@ -45,7 +45,9 @@ class TrainConfig:
         training (0: no judge; the per-step rule decides); judge_steps: its optimiser steps;
         judge_inputs: the blocks of the imagined step features it reads (wm.imagine.FEATURE_GROUPS:
         proprio, action, latent, success, outcome, progress); leaving out "action" makes it judge what the
-        actions did in imagination rather than what they look like.
+        actions did in imagination rather than what they look like. judge_observed: the judge also
+        learns from the same training episodes read from their true frames (wm.judge.observe_episodes:
+        what imagination would show were it exact), beside their imaginations.
     """
 
     model: ModelConfig = ModelConfig()
@@ -86,6 +88,7 @@ class TrainConfig:
     judge_episodes: int = 1024
     judge_steps: int = 1500
     judge_inputs: tuple = FEATURE_GROUPS
+    judge_observed: bool = False
 
     def validate(self) -> None:
         self.model.validate()

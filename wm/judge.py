@@ -46,6 +46,7 @@ from wm.imagine import (
     context_sample,
     feature_columns,
     feature_dim,
+    observed_features,
     open_loop_chunked,
     padded_chunks,
 )
@@ -164,6 +165,47 @@ def _closed_loop_features(cfg: ModelConfig, params, norm: Norm, cache, group, ca
     return np.concatenate(outs)
 
 
+def observe_episodes(cfg: ModelConfig, params, norm: Norm, cache, ids: list[int], camera: str,
+                     progress: bool = True) -> dict:
+    """The true episodes themselves as the judge would read them were imagination exact
+    (wm.imagine.observed_features: each true frame encoded, the heads given the true context), as
+    imagine_episodes' dict in the order of ids: {"features": (N, T, F) float32 (padded to the
+    longest), "mask": (N, T) bool, "task": [N] str, "label": (N,) bool}."""
+    groups: dict = {}
+    for i in ids:
+        groups.setdefault(cache.episodes[i]["length"], []).append(i)
+    t_max = max(groups) - 1
+    feats, masks, order = [], [], []
+    bar = tqdm(total=len(ids), desc="judge: observe", unit="ep", disable=not progress)
+    for n, group in groups.items():
+        for _, part, k in padded_chunks(group):
+            eps = [cache.episode(i, cameras=[camera]) for i in part]
+            x = observed_features(cfg, params, norm, np.stack([ep["frames"][camera] for ep in eps]),
+                                  np.stack([ep["proprio"] for ep in eps]), np.stack([ep["action"][:-1] for ep in eps]))
+            feats.append(np.pad(np.asarray(x, np.float32)[:k], ((0, 0), (0, t_max - (n - 1)), (0, 0))))
+            masks.append(np.arange(t_max)[None].repeat(k, 0) < n - 1)
+            bar.update(k)
+        order += group
+    bar.close()
+    row_of = {i: k for k, i in enumerate(order)}
+    back = np.array([row_of[i] for i in ids])
+    return {"features": np.concatenate(feats)[back], "mask": np.concatenate(masks)[back],
+            "task": [cache.episodes[i]["task"] for i in ids],
+            "label": np.array([cache.episodes[i]["success"] for i in ids], bool)}
+
+
+def join_episodes(a: dict, b: dict) -> dict:
+    """Two imagine_episodes dicts as one, a's episodes first, padded to the longer; keys both hold."""
+    t = max(a["features"].shape[1], b["features"].shape[1])
+
+    def pad(x):
+        return np.pad(x, ((0, 0), (0, t - x.shape[1])) + ((0, 0),) * (x.ndim - 2))
+
+    out = {"features": np.concatenate([pad(a["features"]), pad(b["features"])]),
+           "mask": np.concatenate([pad(a["mask"]), pad(b["mask"])]), "task": list(a["task"]) + list(b["task"])}
+    return out | {k: np.concatenate([a[k], b[k]]) for k in a.keys() & b.keys() - out.keys()}
+
+
 def dataset_policies(data: Path) -> dict:
     """{cache policy name: PolicySource} of the learned policies and plug-ins whose rollouts the dataset
     in `data` holds (its configuration's policy specs); {} when none, or when they cannot be loaded
@@ -258,7 +300,8 @@ VAL_EPISODES = 256
 def fit_judge(cfg, params, norm: Norm, cache, train_ids: list[int], out: Path, progress: bool = True) -> dict:
     """Imagines cfg.judge_episodes training episodes (and a quarter as many validation episodes, at most
     VAL_EPISODES), fits the judge and saves it in out; returns its metrics. cfg is the world model's
-    TrainConfig."""
+    TrainConfig; with cfg.judge_observed the judge learns from the training episodes' true frames
+    too (observe_episodes), and is still kept at its best on the validation episodes' imaginations."""
     tasks = tuple(sorted({cache.episodes[i]["task"] for i in train_ids}))
     train_ids = spread(train_ids, cfg.judge_episodes)
     val_ids = spread([i for i in cache.select("val") if cache.episodes[i]["task"] in tasks],
@@ -272,6 +315,8 @@ def fit_judge(cfg, params, norm: Norm, cache, train_ids: list[int], out: Path, p
     # the policies' own rollouts are imagined closed loop, as the evaluator imagines every policy
     pols = dataset_policies(cache.root.parent)
     train = imagine_episodes(cfg.model, params, norm, cache, train_ids, cfg.camera, progress, pols, cfg.seed)
+    if cfg.judge_observed:  # the same episodes read from their true frames too
+        train = join_episodes(train, observe_episodes(cfg.model, params, norm, cache, train_ids, cfg.camera, progress))
     val = imagine_episodes(cfg.model, params, norm, cache, val_ids, cfg.camera, progress, pols, cfg.seed + 1) \
         if val_ids else None
     judge, metrics = fit(train, val, tasks, cfg.judge_steps, cfg.seed, progress,
