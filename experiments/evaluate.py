@@ -802,6 +802,7 @@ def all_metrics(cfg: EvalConfig, results: dict, tasks, rows: list[dict], seen: s
     more of them and the world model saw any."""
     true_eps, prob_eps, member_eps = _episodes_of(results, tasks, lambda name: True)
     metrics = {"within_task": within_task_block(results, tasks, rows, cfg, lambda name: True),
+               "mmrv_floor": S.mmrv_floor({t: results[t]["true"] for t in tasks}),
                "pooled": ranking_block(rows, true_eps, prob_eps, cfg.threshold, member_eps), "per_task": {}}
     for t in tasks:
         metrics["per_task"][t] = ranking_block([r for r in rows if r["task"] == t], results[t]["true"],

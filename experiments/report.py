@@ -325,7 +325,7 @@ def within_task_table(res: dict) -> list[list[str]]:
     """The headline: each within-task statistic's mean over tasks for the world model and the proxy,
     their difference, the world model's other read-outs, its read-out applied to the simulated
     episodes themselves (where measured: how well the world model could rank were its imagination
-    exact), and the preset's target."""
+    exact), and the preset's target, with MMRV's floor (stats.mmrv_floor) beside its target."""
     w = res["metrics"]["within_task"]
     upper = "on_truth" in w
     others = _other_readouts(w)
@@ -333,14 +333,18 @@ def within_task_table(res: dict) -> list[list[str]]:
     rows = [["statistic (mean over tasks)", "world model", "imitation-loss proxy", "world model - proxy",
              *[label for _, label in others], *([UPPER] if upper else []),
              f"target ({res.get('preset') or 'none'} preset)"]]
+    floor = res["metrics"].get("mmrv_floor")
     for k in w["world_model"]["mean"]:
         tgt = targets.get(k)
+        goal = f"{tgt[0]} {tgt[1]}" if tgt else "-"
+        if k == "mmrv" and floor:  # what the truth's own sampling noise leaves to any predictor
+            goal = (f"{goal} " if tgt else "") + f"(a perfect predictor: {floor['mean']:.3f})"
         px = "-" if k == "alignment" else _ci(w["proxy"]["mean"][k], w["proxy"]["mean_ci"][k])
         df = "-" if k == "alignment" else _ci(w["difference"]["proxy"]["mean"][k], w["difference"]["proxy"]["mean_ci"][k])
         more = [_ci(w[o]["mean"][k], w[o]["mean_ci"][k]) for o, _ in others]
         more += [_ci(w["on_truth"]["mean"][k], w["on_truth"]["mean_ci"][k])] if upper else []
         rows.append([LABELS.get(k, k), _ci(w["world_model"]["mean"][k], w["world_model"]["mean_ci"][k]), px, df,
-                     *more, f"{tgt[0]} {tgt[1]}" if tgt else "-"])
+                     *more, goal])
     return rows
 
 

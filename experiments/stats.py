@@ -300,6 +300,22 @@ def within_task(true: dict, predictors: dict, threshold: float = 0.5, draws: int
 
 # ---- checkpoint selection ------------------------------------------------------------------------------
 
+def mmrv_floor(true: dict, draws: int = 200, seed: int = 0) -> dict:
+    """The MMRV that a perfect predictor scores against ground truth measured from a finite number of
+    episodes: each task's policies' success probabilities taken to be their measured rates p (P,),
+    each draw measures them again from the same number of episodes (Binomial(N, p) / N) and scores p
+    against that measurement (mmrv); the mean over draws. A target below it cannot be met at that many
+    episodes, whatever the world model. true: {task: (P, N) outcomes}. Returns {"per_task": {task:
+    float}, "mean": the mean over tasks, "draws"}."""
+    rng = np.random.default_rng(seed)
+    per = {}
+    for t, outcomes in true.items():
+        o = np.asarray(outcomes, float)
+        p, n = o.mean(1), o.shape[1]
+        per[t] = float(np.mean([mmrv(p, rng.binomial(n, p) / n) for _ in range(draws)]))
+    return {"per_task": per, "mean": float(np.mean(list(per.values()))), "draws": draws}
+
+
 def checkpoint_selection(rows: list[dict]) -> dict:
     """Does the world model pick each training run's best checkpoint? Per (task, lineage) with two or
     more checkpoints (rows: {"task", "lineage", "step", "true_rate", "pred_rate", "true_ci"} per

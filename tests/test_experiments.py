@@ -227,6 +227,8 @@ def test_report_renders_figures_and_videos(evaluation):
     # rows of the per-task table: the other read-outs, and the read-out of the true episodes
     assert "| world model, progress read-out |" in md and "| world model, success read-out |" in md
     assert "| the read-out of the true episodes |" in md
+    floor = res["metrics"]["mmrv_floor"]["mean"]
+    assert f"(a perfect predictor: {floor:.3f}) |" in md.split("## Within-task ranking")[1].split("\n\n")[1]
     assert "Cut short" not in md
     viol = res["rank_violations"]["mug"]
     assert viol["mmrv"] == pytest.approx(S.mmrv([p["pred_rate"] for p in mug], [p["true_rate"] for p in mug]))
@@ -428,6 +430,7 @@ def test_within_task_headline_and_checkpoint_selection_from_the_episodes(evaluat
                                          "readout_progress": {"mug": progress}, "readout_success": {"mug": success},
                                          "on_truth": {"mug": observed}}, cfg.threshold)
     assert res["metrics"]["within_task"] == json.loads(json.dumps(no_nan(want)))
+    assert res["metrics"]["mmrv_floor"] == S.mmrv_floor({"mug": true})
     assert res["checkpoint_selection"] == json.loads(json.dumps(no_nan(S.checkpoint_selection(res["policies"]))))
     assert res["world_model"]["cut_short"] is False and res["world_model"]["training"][0]["steps"] == 30
 

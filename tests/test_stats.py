@@ -245,3 +245,20 @@ def test_family_statistics_by_hand():
     assert got["mean_pearson"] == pytest.approx((noise["pearson"] + 1.0) / 2)
     assert got["mean_abs_error"] == pytest.approx((noise["mean_abs_error"] + 0.05) / 2)
     assert math.isnan(S.family_statistics([row("conv", 1, 0.1, 0.2)])["mean_pearson"])
+
+
+def test_mmrv_floor_is_a_perfect_predictors_mmrv_against_resampled_truth():
+    # two policies at 0.5 measured on 2 episodes each: every rate is 0, 0.5 or 1 (1/4, 1/2, 1/4);
+    # the tied prediction charges each pair its true gap once, so MMRV = |a - b| / 2 and its
+    # expectation is E|a - b| / 2 = (0.5 * 0.5 + 0.125 * 1) / 2 = 0.1875
+    half = {"t": np.array([[1, 0], [0, 1]])}
+    got = S.mmrv_floor(half, draws=4000, seed=1)
+    assert got["per_task"]["t"] == pytest.approx(0.1875, abs=0.01) and got["draws"] == 4000
+    # rates of 0 and 1 are measured exactly again: no violation is possible
+    sure = {"a": np.array([[0, 0, 0], [1, 1, 1]]), "b": np.array([[1, 1], [1, 1], [0, 0]])}
+    assert S.mmrv_floor(sure, draws=50) == {"per_task": {"a": 0.0, "b": 0.0}, "mean": 0.0, "draws": 50}
+    both = S.mmrv_floor({**half, **sure}, draws=4000, seed=1)
+    assert both["mean"] == pytest.approx(np.mean(list(both["per_task"].values())))
+    # more episodes, a lower floor
+    many = {"t": np.array([[1, 0] * 50, [0, 1] * 50])}
+    assert S.mmrv_floor(many, draws=400)["mean"] < got["mean"] / 3
