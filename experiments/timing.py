@@ -27,7 +27,11 @@ from sim_data.util import device_name, run_cli, write_json_atomic
 COMPILE_EVENTS = ("/jax/core/compile/jaxpr_trace_duration", "/jax/core/compile/jaxpr_to_mlir_module_duration",
                   "/jax/core/compile/backend_compile_duration")
 SLOWEST_COMPILES = 8  # a timing row names the programs that cost the most compile time
-_compile = {"seconds": 0.0, "programs": 0, "by_program": {}}  # by_program: function name -> [compiles, seconds]
+# the persistent compilation cache's events: a lookup, and a lookup that found the program compiled
+CACHE_EVENTS = {"/jax/compilation_cache/compile_requests_use_cache": "cache_lookups",
+                "/jax/compilation_cache/cache_hits": "cache_hits"}
+# by_program: function name -> [compiles, seconds]
+_compile = {"seconds": 0.0, "programs": 0, "by_program": {}, "cache_lookups": 0, "cache_hits": 0}
 
 
 def _count_compile(event: str, seconds: float, fun_name: str = "?", **_) -> None:
@@ -46,7 +50,13 @@ def _program_name(fun_name: str) -> str:
     return m.group(1) if m else fun_name
 
 
+def _count_cache(event: str, **_) -> None:
+    if event in CACHE_EVENTS:
+        _compile[CACHE_EVENTS[event]] += 1
+
+
 jax.monitoring.register_event_duration_secs_listener(_count_compile)
+jax.monitoring.register_event_listener(_count_cache)
 
 
 def compile_snapshot() -> dict:
@@ -67,10 +77,13 @@ def slowest_compiles(before: dict, n: int = SLOWEST_COMPILES) -> list[dict]:
 
 def compiled_since(before: dict) -> dict:
     """This process's compiling since the snapshot `before`: {"compile_s", "programs_compiled",
-    "slowest_compiles"}."""
+    "slowest_compiles", "cache_hits", "cache_misses"} (the programs the persistent compilation cache
+    served and those it did not: a carried cache that misses shows here)."""
+    hits = _compile["cache_hits"] - before["cache_hits"]
     return {"compile_s": round(_compile["seconds"] - before["seconds"], 3),
             "programs_compiled": _compile["programs"] - before["programs"],
-            "slowest_compiles": slowest_compiles(before)}
+            "slowest_compiles": slowest_compiles(before), "cache_hits": hits,
+            "cache_misses": _compile["cache_lookups"] - before["cache_lookups"] - hits}
 
 
 def record_timing(path: Path, row: dict) -> None:
@@ -94,14 +107,15 @@ def read_parts(paths) -> list[dict]:
 def stage_row(own: dict, parts: list[dict]) -> dict:
     """A stage command's compile figures from this process's (compiled_since) and its child processes'
     rows: compile_s is this process's plus the most any one child spent (the children run side by
-    side, so that is what compiling added to the stage's wall time); programs_compiled counts every
-    process's; slowest_compiles merges them (a child's entries name their part); parts keeps each
-    child's wall and compile seconds."""
+    side, so that is what compiling added to the stage's wall time); programs_compiled and the cache's
+    hits and misses count every process's; slowest_compiles merges them (a child's entries name their
+    part); parts keeps each child's wall and compile seconds."""
     if not parts:
         return own
     merged = own["slowest_compiles"] + [{**c, "part": k} for k, p in enumerate(parts) for c in p["slowest_compiles"]]
     return {"compile_s": round(own["compile_s"] + max(p["compile_s"] for p in parts), 3),
             "programs_compiled": own["programs_compiled"] + sum(p["programs_compiled"] for p in parts),
+            **{k: own.get(k, 0) + sum(p.get(k, 0) for p in parts) for k in ("cache_hits", "cache_misses")},
             "slowest_compiles": sorted(merged, key=lambda c: -c["s"])[:SLOWEST_COMPILES],
             "parts": [{"part": k, "wall_s": p["wall_s"], "compile_s": p["compile_s"],
                        "programs_compiled": p["programs_compiled"]} for k, p in enumerate(parts)]}

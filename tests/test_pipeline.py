@@ -201,7 +201,8 @@ def test_a_stage_spread_over_gpus_counts_its_child_processes_compiling_and_frame
             assert cmd[1:3] == ["-m", "experiments.timing"] and cmd[4] == "sim_data.dataset.generate"
             s, n, prog = children[gpu]
             Path(cmd[3]).write_text(json.dumps({
-                "module": cmd[4], "wall_s": 100.0, "compile_s": s, "programs_compiled": n,
+                "module": cmd[4], "wall_s": 100.0, "compile_s": s, "programs_compiled": n, "cache_hits": n,
+                "cache_misses": 1,
                 "slowest_compiles": [{"program": prog, "compiles": 1, "s": s}], "device": "cpu", "status": 0}))
 
     def gather(argv):  # the gathering command generates nothing; the parts' figures are in stats.json
@@ -221,6 +222,7 @@ def test_a_stage_spread_over_gpus_counts_its_child_processes_compiling_and_frame
     assert [p["compile_s"] for p in row["parts"]] == [12.5, 20.0] and [p["part"] for p in row["parts"]] == [0, 1]
     assert 20.0 <= row["compile_s"] < 20.0 + row["wall_s"]  # this process's own plus the slowest child's
     assert row["programs_compiled"] >= 7 and row["gpus"] == 2
+    assert row["cache_hits"] >= 7 and row["cache_misses"] >= 2  # the children's (3 + 4, 1 + 1) and this process's
     assert [(c["program"], c["part"]) for c in row["slowest_compiles"][:2]] == [("render", 1), ("_scan_recorded", 0)]
     assert row["frames_generated"] == 800 and row["frames_per_s"] == 10.0 and row["simulate_s"] == 70.0
     assert row["end_to_end_frames_per_s"] == round(800 / row["wall_s"], 1)
@@ -248,6 +250,15 @@ def test_a_child_process_writes_its_wall_and_compile_seconds_whether_it_succeeds
     assert got["module"] == "jitting" and got["status"] == 0 and got["programs_compiled"] >= 1
     assert 0 < got["compile_s"] <= got["wall_s"]
     assert [c["compiles"] for c in got["slowest_compiles"] if c["program"] == "doubled_sine"] == [1]
+    # with a persistent compilation cache, a second process finds the program the first compiled
+    cached = {**env, "JAX_COMPILATION_CACHE_DIR": str(tmp_path / "cache"), "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0",
+              "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES": "0"}
+    first, second = tmp_path / "first.json", tmp_path / "second.json"
+    for out in (first, second):
+        assert subprocess.run([*run, str(out), "jitting", "7"], env=cached, check=False).returncode == 0
+    first, second = json.loads(first.read_text()), json.loads(second.read_text())
+    assert first["cache_hits"] == 0 and first["cache_misses"] >= 1
+    assert second["cache_hits"] == first["cache_misses"] and second["cache_misses"] == 0
     done = subprocess.run([*run, str(bad), "jitting", "bad"], env=env, check=False, capture_output=True, text=True)
     assert done.returncode == 2 and "bad argument" in done.stderr
     assert json.loads(bad.read_text())["status"] == 2
