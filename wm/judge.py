@@ -130,8 +130,7 @@ def imagine_episodes(cfg: ModelConfig, params, norm: Norm, cache, ids: list[int]
         e = cache.episodes[i]
         src = (policies or {}).get(e["policy"])
         groups.setdefault((e["length"], None if src is None else src.policy), []).append((i, src))
-    t_max = max(n for n, _ in groups) - 1
-    feats, masks, order = [], [], []
+    pieces = []  # (cache ids, (len(ids), T, F) features) of each group
     bar = tqdm(total=len(ids), desc="judge: imagine", unit="ep", disable=not progress)
     for (n, policy), group in groups.items():
         if policy is None:
@@ -139,15 +138,23 @@ def imagine_episodes(cfg: ModelConfig, params, norm: Norm, cache, ids: list[int]
             x = open_loop_chunked(cfg, params, norm, samples, n - 1)["features"]
         else:
             x = _closed_loop_features(cfg, params, norm, cache, group, camera, n - 1, policy, seed)
-        feats.append(np.pad(x, ((0, 0), (0, t_max - x.shape[1]), (0, 0))))
-        masks.append(np.arange(t_max)[None].repeat(len(group), 0) < x.shape[1])
-        order += [i for i, _ in group]
+        pieces.append(([i for i, _ in group], x))
         bar.update(len(group))
     bar.close()
+    return _episodes_in_order(cache, ids, pieces)
+
+
+def _episodes_in_order(cache, ids: list[int], pieces: list) -> dict:
+    """imagine_episodes' dict from features computed by group, pieces [(cache ids, (n, T_g, F))]:
+    each padded to the longest T_g and masked, the rows put back in the order of ids."""
+    t_max = max(x.shape[1] for _, x in pieces)
+    order = [i for group, _ in pieces for i in group]
     row_of = {i: k for k, i in enumerate(order)}
-    back = np.array([row_of[i] for i in ids])  # rows in the order of ids
-    return {"features": np.concatenate(feats)[back].astype(np.float32), "mask": np.concatenate(masks)[back],
-            "task": [cache.episodes[i]["task"] for i in ids],
+    back = np.array([row_of[i] for i in ids])
+    feats = np.concatenate([np.pad(np.asarray(x, np.float32), ((0, 0), (0, t_max - x.shape[1]), (0, 0)))
+                            for _, x in pieces])
+    masks = np.concatenate([np.arange(t_max)[None].repeat(len(x), 0) < x.shape[1] for _, x in pieces])
+    return {"features": feats[back], "mask": masks[back], "task": [cache.episodes[i]["task"] for i in ids],
             "label": np.array([cache.episodes[i]["success"] for i in ids], bool)}
 
 
@@ -174,24 +181,17 @@ def observe_episodes(cfg: ModelConfig, params, norm: Norm, cache, ids: list[int]
     groups: dict = {}
     for i in ids:
         groups.setdefault(cache.episodes[i]["length"], []).append(i)
-    t_max = max(groups) - 1
-    feats, masks, order = [], [], []
+    pieces = []
     bar = tqdm(total=len(ids), desc="judge: observe", unit="ep", disable=not progress)
-    for n, group in groups.items():
+    for group in groups.values():
         for _, part, k in padded_chunks(group):
             eps = [cache.episode(i, cameras=[camera]) for i in part]
             x = observed_features(cfg, params, norm, np.stack([ep["frames"][camera] for ep in eps]),
                                   np.stack([ep["proprio"] for ep in eps]), np.stack([ep["action"][:-1] for ep in eps]))
-            feats.append(np.pad(np.asarray(x, np.float32)[:k], ((0, 0), (0, t_max - (n - 1)), (0, 0))))
-            masks.append(np.arange(t_max)[None].repeat(k, 0) < n - 1)
+            pieces.append((part[:k], np.asarray(x)[:k]))
             bar.update(k)
-        order += group
     bar.close()
-    row_of = {i: k for k, i in enumerate(order)}
-    back = np.array([row_of[i] for i in ids])
-    return {"features": np.concatenate(feats)[back], "mask": np.concatenate(masks)[back],
-            "task": [cache.episodes[i]["task"] for i in ids],
-            "label": np.array([cache.episodes[i]["success"] for i in ids], bool)}
+    return _episodes_in_order(cache, ids, pieces)
 
 
 def join_episodes(a: dict, b: dict) -> dict:
