@@ -8,7 +8,16 @@ import numpy as np
 import pytest
 
 from sim_data.policies.bc import MixedPolicy, StackedPolicy, stack_params
-from sim_data.policies.degrade import MAX_DELAY, DegradedPolicy, degrade_params
+from sim_data.policies.degrade import (
+    KNOBS,
+    MAX_DELAY,
+    NEUTRAL,
+    PERTURB_RANGES,
+    DegradedPolicy,
+    degrade_params,
+    perturbation,
+    perturbed_params,
+)
 from sim_data.sim import robot as R
 
 
@@ -122,3 +131,20 @@ def test_every_policy_of_the_project_follows_the_protocol():
     for cls in (ScriptedPolicy, ProgramPolicy, ScriptOrProgramPolicy):
         assert callable(getattr(cls, "init_carry")) and callable(getattr(cls, "act")), cls.__name__
     assert not isinstance(object(), Policy)
+
+
+def test_per_row_knobs_act_as_each_row_run_alone_and_perturbations_cover_their_ranges():
+    base = {"slope": jnp.float32(1.0)}
+    episodes = [1, 2, 3, 5, 6, 7]  # delay, grip, drive, delay, grip, drive: noise draws are a row's own
+    rows = _run(DegradedPolicy(Ramp()), perturbed_params(base, episodes), steps=10, b=len(episodes))
+    for k, i in enumerate(episodes):
+        np.testing.assert_array_equal(rows[k], _run(DegradedPolicy(Ramp()), degrade_params(base, **perturbation(i)),
+                                                    steps=10, b=1)[0])
+    knobs = [perturbation(i) for i in range(400)]
+    for j, knob in enumerate(KNOBS):
+        levels = np.array([kn[knob] for kn in knobs[j::4]])
+        lo, hi = PERTURB_RANGES[knob]
+        assert levels.min() >= lo and levels.max() <= hi and np.ptp(levels) > 0.9 * (hi - lo)
+        assert all(kn[other] == NEUTRAL[other] for kn in knobs[j::4] for other in KNOBS if other != knob)
+    with pytest.raises(ValueError, match="whole control steps"):
+        degrade_params(base, delay=np.array([1, 2.5]))

@@ -14,6 +14,7 @@ from sim_data.dataset.episodes import read_episode
 from sim_data.policies import zoo
 from sim_data.policies.bc import BCPolicy, StackedPolicy, predict_chunk, stack_params
 from sim_data.policies.registry import every_nth_checkpoint, resolve, used_policies
+from sim_data.sim import robot as R
 from sim_data.sim.env import HomeEnv
 from sim_data.sim.rollout import run_episodes
 
@@ -238,6 +239,49 @@ def test_mixed_dataset_records_policy_rollouts(smoke_dataset, smoke_zoo, smoke_w
     np.testing.assert_allclose(pil["logged_vs_true"], np.abs(on_true - np.asarray(norm.action(ep["action"][:n]))).mean(),
                                rtol=1e-3, atol=1e-6)
     assert policy_action_divergence(cfg, wm_params, norm, cache, [i], {})["episodes"] == 0
+
+
+def test_perturbed_copies_send_their_checkpoints_actions_degraded_by_each_episodes_knob(smoke_dataset, smoke_zoo,
+                                                                                       tmp_path):
+    """A checkpoint's own rollouts beside its perturbed copy's, from the same initial states (4 each, in
+    chunks of 2 rows, so a chunk's knobs are those of its own episodes): each perturbed episode's first
+    action is the checkpoint's own first action on that state, degraded by that episode's one knob."""
+    from sim_data.dataset.cache import TrainingCache
+    from sim_data.policies.degrade import KNOBS, NEUTRAL, perturbation
+
+    _, data, _ = smoke_dataset
+    zoo_dir, registry = smoke_zoo
+    last = max(r["step"] for r in registry if r["lineage"] == "conv_proprio")
+    spec = f"{zoo_dir}#mug/conv_proprio/{last}"
+    cfg = G.make_config("smoke", [f"policies={spec}", "policy_episodes=4", f"perturbed={spec}", "perturb_episodes=4"])
+    G.generate(cfg, tmp_path / "perturbed", progress=False, reuse=data)
+    rows = [json.loads(line) for line in (tmp_path / "perturbed" / "manifest.jsonl").read_text().splitlines()]
+    own = [r for r in rows if r["policy_kind"] == "learned"]
+    copy = [r for r in rows if r["policy_kind"] == "perturbed"]
+    assert len(own) == len(copy) == 4 and {r["policy"] for r in copy} == {f"perturbed:mug/conv_proprio/{last}~perturbed"}
+    assert [r["seed"] for r in copy] == [r["seed"] for r in own]
+    assert used_policies(tmp_path / "perturbed") == {f"mug/conv_proprio/{last}"}  # the copy is not a seen policy
+    cache = TrainingCache(tmp_path / "perturbed")
+    index = {e["episode_id"]: k for k, e in enumerate(cache.episodes)}
+    first = lambda r: cache.episode(index[r["episode_id"]], cameras=["head_cam"])["action"]
+    for i, (mine, theirs) in enumerate(zip(copy, own, strict=True)):
+        knobs = G.read_episode_meta(tmp_path / "perturbed" / mine["file"])["degrade"]
+        assert knobs == perturbation(i) and [k for k in KNOBS if knobs[k] != NEUTRAL[k]] == [KNOBS[i % 4]]
+        got, want = first(mine), first(theirs)
+        if KNOBS[i] == "noise":
+            assert np.abs(got[0, :16] - want[0, :16]).max() > 1e-3
+            np.testing.assert_allclose(got[0, 16:], want[0, 16:], rtol=1e-5, atol=1e-6)
+        elif KNOBS[i] == "delay":  # the first action held for `delay` steps
+            np.testing.assert_allclose(got[:knobs["delay"] + 1], np.repeat(want[:1], knobs["delay"] + 1, 0), atol=1e-6)
+        else:
+            scaled = R.HAND_CLOSURE if KNOBS[i] == "grip" else R.DRIVE
+            expect = want[0].copy()
+            expect[scaled] *= knobs[KNOBS[i]]
+            np.testing.assert_allclose(got[0], expect, rtol=1e-5, atol=1e-6)
+            if KNOBS[i] == "grip":
+                assert np.abs(want[0, scaled]).max() > 1e-3  # the knob had something to scale (a mug policy drives late)
+    with pytest.raises(ValueError, match="can be perturbed"):
+        G.generate(G.make_config("smoke", ["perturbed=examples.plugin_policy:make"]), tmp_path / "bad", progress=False)
 
 
 def test_checkpoints_of_one_architecture_run_stacked_in_one_chunk_as_each_runs_alone(smoke_dataset, smoke_zoo,

@@ -40,7 +40,8 @@ from sim_data.dataset.episodes import (  # noqa: F401 (re-exported)
 )
 from sim_data.parts import add_part_argument, config_and_part, exclusive, take
 from sim_data.policies.bc import StackedPolicy, stack_params
-from sim_data.policies.registry import PolicySource
+from sim_data.policies.degrade import GOLDEN, perturbation
+from sim_data.policies.registry import PERTURBED, PolicySource, perturbed_copy
 from sim_data.policies.registry import resolve as resolve_sources
 from sim_data.policies.scripted import (
     PROGRAMS,
@@ -95,6 +96,12 @@ class DataConfig:
       policies: policy specs (`sim_data.policies.registry`: zoo registries, plug-ins) whose own rollouts join
         the dataset, failures included; policy_episodes: episodes per policy and task (0: `episodes`),
         from the same initial states as the scripted episodes 0, 1, ...
+      perturbed: registry specs whose checkpoints' perturbed copies (sim_data.policies.registry.perturbed_copy,
+        policy "perturbed:<name>~perturbed") join the dataset, perturb_episodes episodes each (0:
+        policy_episodes): from the same initial states as the checkpoint's own rollouts, each episode
+        with one knob of sim_data.policies.degrade at its own level (noise, latency, a weak grip, a
+        shortened or lengthened drive), so the world model sees the outcomes of actions a little off
+        a policy's own. Keep the evaluation's counterfactual families' base lineage out of them.
       weak_grip: episodes per task of the scripted policy at skill 1 whose every closure is scaled by
         a factor spread over WEAK_GRIP_RANGE (weak_grip_factor), from the initial states of the
         scripted episodes 0, 1, ... (policy "weak_grip", in train/val/test): the scripted closures
@@ -122,6 +129,8 @@ class DataConfig:
     policies: tuple = ()
     policy_episodes: int = 0
     weak_grip: int = 0
+    perturbed: tuple = ()
+    perturb_episodes: int = 0
 
     def validate(self) -> None:
         bad = [t for t in self.tasks if t not in TASK_NAMES]
@@ -131,9 +140,10 @@ class DataConfig:
             raise ValueError(f"skills must be in [0, 1], got {self.skills}")
         if self.episodes < 1 or self.batch < 1 or self.workers < 1:
             raise ValueError("episodes, batch and workers must be >= 1")
-        if min(self.programs, self.play, self.policy_episodes, self.weak_grip) < 0:
-            raise ValueError(f"programs, play, policy_episodes and weak_grip must be >= 0, got {self.programs}, "
-                             f"{self.play}, {self.policy_episodes}, {self.weak_grip}")
+        if min(self.programs, self.play, self.policy_episodes, self.weak_grip, self.perturb_episodes) < 0:
+            raise ValueError(f"programs, play, policy_episodes, weak_grip and perturb_episodes must be >= 0, got "
+                             f"{self.programs}, {self.play}, {self.policy_episodes}, {self.weak_grip}, "
+                             f"{self.perturb_episodes}")
         if self.engine not in ("",) + ENGINES:
             raise ValueError(f"engine must be one of {ENGINES} or empty, got {self.engine!r}")
         if self.size not in (64, 128):
@@ -249,11 +259,19 @@ def package_versions(packages=("mujoco", "mujoco-mjx", "jax", "numpy", "opencv-p
 
 def _sources(cfg: DataConfig, task: str, learned=()) -> list:
     """[(source, episodes)] of task in the plan's order: the scripted skills, the programs, random
-    play, the weak grips, then the PolicySources of `learned` (cfg.policies resolved) that run on task."""
+    play, the weak grips, then the PolicySources of `learned` (learned_sources(cfg)) that run on task."""
     sources = [(float(s), cfg.episodes) for s in cfg.skills] + [(p, cfg.programs) for p in PROGRAMS if cfg.programs]
     sources += [(PLAY, cfg.play)] if cfg.play else []
     sources += [(WEAK_GRIP, cfg.weak_grip)] if cfg.weak_grip else []
-    return sources + [(src, cfg.policy_episodes or cfg.episodes) for src in learned if src.runs_on(task)]
+    own = cfg.policy_episodes or cfg.episodes
+    return sources + [(src, cfg.perturb_episodes or own if src.kind == PERTURBED else own)
+                      for src in learned if src.runs_on(task)]
+
+
+def learned_sources(cfg: DataConfig) -> list:
+    """The PolicySources whose rollouts the dataset holds: cfg.policies, then the perturbed copies of
+    cfg.perturbed."""
+    return resolve_sources(cfg.policies) + [perturbed_copy(s) for s in resolve_sources(cfg.perturbed)]
 
 
 def _episodes(cfg: DataConfig, learned=()):
@@ -381,11 +399,12 @@ def _episode_meta(cfg, task, source, i, success, num_steps, engine):
         "renderer": "sim_data.sim.render (JAX ray casting)", "heldout": cfg.heldout, "size": cfg.size,
         "cameras": list(cfg.cameras),
         "policy_source": source.record if isinstance(source, PolicySource) else None,
+        "degrade": perturbation(i) if kind == PERTURBED else None,
     }
 
 
 # settings that change which episodes a dataset holds but not the bytes of an episode both hold
-_ADDITIONS = ("policies", "policy_episodes", "workers")
+_ADDITIONS = ("policies", "policy_episodes", "perturbed", "perturb_episodes", "workers")
 
 
 def link_shared_episodes(cfg: DataConfig, out: Path, reuse: Path, learned=()) -> int:
@@ -427,7 +446,7 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True, reuse: Path | No
     out = Path(out)
     make_output_dir(out / "episodes")
     engine = cfg.engine or default_engine()
-    learned = resolve_sources(cfg.policies)
+    learned = learned_sources(cfg)
     with exclusive(out / "episodes.lock"):  # the parts of one dataset start together
         _check_config_matches(cfg, out)
         if part is None:  # (a part's writers may be busy with theirs)
@@ -545,15 +564,15 @@ def _policy_and_params(cfg: DataConfig, chunk: Chunk, rows: list, env: HomeEnv) 
         grip = [weak_grip_factor(i) if src == WEAK_GRIP else 1.0 for src, i in rows]
         params = pad_programs(script_or_program_params(skill, table, program, grip), MAX_EPISODE_STEPS)
         return _policy(), params
-    slots = [rows[k][0] for k in range(0, len(rows), chunk.width)]
-    return StackedPolicy(chunk.key), stack_params([src.params for src in slots])
+    slots = [rows[k:k + chunk.width] for k in range(0, len(rows), chunk.width)]
+    return StackedPolicy(chunk.key), stack_params([slot[0][0].episodes_params([i for _, i in slot]) for slot in slots])
 
 
 def weak_grip_factor(i: int) -> float:
     """The factor on the closures of weak-grip episode i: spread evenly over WEAK_GRIP_RANGE (a
     golden-ratio sequence), so that any first n episodes cover the range."""
     lo, hi = WEAK_GRIP_RANGE
-    return lo + (hi - lo) * ((i * 0.6180339887498949) % 1.0)
+    return lo + (hi - lo) * ((i * GOLDEN) % 1.0)
 
 
 def _program_table(cfg: DataConfig, task: str, source: str, i: int, env: HomeEnv) -> np.ndarray:

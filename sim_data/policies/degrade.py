@@ -12,7 +12,8 @@ rollout, their parameters stacked):
   motions).
 
 The true success of such a family moves with the knob, which is what a world model that reads the
-actions must reproduce.
+actions must reproduce. A knob is a scalar (every row of the batch alike) or one value per row (B,):
+a perturbed copy of a checkpoint (perturbation) degrades each of its episodes by its own knob and level.
 """
 
 from __future__ import annotations
@@ -21,26 +22,48 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from sim_data.sim import robot as R
 
 MAX_DELAY = 8
 KNOBS = ("noise", "delay", "grip", "drive")
 NEUTRAL = {"noise": 0.0, "delay": 0, "grip": 1.0, "drive": 1.0}
+# the levels of a perturbed copy's episodes (perturbation): past the evaluation families' on both sides
+PERTURB_RANGES = {"noise": (0.05, 0.4), "delay": (1, MAX_DELAY), "grip": (0.1, 0.9), "drive": (0.4, 1.6)}
+GOLDEN = 0.6180339887498949
 
 
 def degrade_params(base_params, **knobs) -> dict:
-    """The parameters of a DegradedPolicy: the base's and every knob (NEUTRAL where not given)."""
+    """The parameters of a DegradedPolicy: the base's and every knob (NEUTRAL where not given), each a
+    scalar or one value per row of the batch (B,)."""
     unknown = set(knobs) - set(KNOBS)
     if unknown:
         raise ValueError(f"unknown degradation {sorted(unknown)}; the knobs are {', '.join(KNOBS)}")
-    k = {**NEUTRAL, **knobs}
-    if not 0 <= int(k["delay"]) <= MAX_DELAY:
-        raise ValueError(f"delay must be in 0..{MAX_DELAY} control steps, got {k['delay']}")
-    if k["noise"] < 0 or k["grip"] < 0:
+    k = {name: np.asarray(v) for name, v in {**NEUTRAL, **knobs}.items()}
+    if np.any(k["delay"] < 0) or np.any(k["delay"] > MAX_DELAY) or np.any(k["delay"] != np.round(k["delay"])):
+        raise ValueError(f"delay must be whole control steps in 0..{MAX_DELAY}, got {knobs['delay']}")
+    if np.any(k["noise"] < 0) or np.any(k["grip"] < 0):
         raise ValueError(f"noise and grip must be >= 0, got {k['noise']} and {k['grip']}")
-    return {"base": base_params, "noise": jnp.float32(k["noise"]), "delay": jnp.int32(k["delay"]),
-            "grip": jnp.float32(k["grip"]), "drive": jnp.float32(k["drive"])}
+    return {"base": base_params, "noise": jnp.asarray(k["noise"], jnp.float32),
+            "delay": jnp.asarray(k["delay"], jnp.int32), "grip": jnp.asarray(k["grip"], jnp.float32),
+            "drive": jnp.asarray(k["drive"], jnp.float32)}
+
+
+def perturbation(i: int) -> dict:
+    """The knobs of episode i of a perturbed copy: knob KNOBS[i % 4] at a level spread over its
+    PERTURB_RANGES by a golden-ratio sequence in i // 4 (any first 4n episodes cover every range), the
+    others NEUTRAL. Each episode changes one thing, so the world model sees what each does."""
+    knob = KNOBS[i % len(KNOBS)]
+    lo, hi = PERTURB_RANGES[knob]
+    level = lo + (hi - lo) * ((i // len(KNOBS) * GOLDEN) % 1.0)
+    return {**NEUTRAL, knob: int(round(level)) if knob == "delay" else float(level)}
+
+
+def perturbed_params(base_params, episodes) -> dict:
+    """degrade_params with one row per episode index in `episodes` (B,), each at its perturbation."""
+    rows = [perturbation(i) for i in episodes]
+    return degrade_params(base_params, **{k: np.array([r[k] for r in rows]) for k in KNOBS})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -65,11 +88,13 @@ class DegradedPolicy:
         base_key, noise_key = jax.random.split(rng)
         action, base_carry = self.base.act(params["base"], obs, carry["base"], base_key)
         action = action.astype(jnp.float32)
-        joints = jax.random.normal(noise_key, action[:, :R.NECK.stop].shape) * params["noise"]
+        b = action.shape[0]
+        per_row = lambda knob: jnp.broadcast_to(knob, (b,))[:, None]
+        joints = jax.random.normal(noise_key, action[:, :R.NECK.stop].shape) * per_row(params["noise"])
         action = action.at[:, :R.NECK.stop].add(joints)
-        action = action.at[:, R.HAND_CLOSURE].multiply(params["grip"])
-        action = action.at[:, R.DRIVE].multiply(params["drive"])
+        action = action.at[:, R.HAND_CLOSURE].multiply(per_row(params["grip"]))
+        action = action.at[:, R.DRIVE].multiply(per_row(params["drive"]))
         past = jnp.concatenate([action[:, None], carry["past"][:, :-1]], axis=1)
-        lag = jnp.minimum(params["delay"], carry["t"])  # before `delay` steps, the first action is held
+        lag = jnp.minimum(per_row(params["delay"])[:, 0], carry["t"])  # before `delay` steps, the first is held
         sent = jnp.take_along_axis(past, lag[:, None, None], axis=1)[:, 0]
         return sent, {"base": base_carry, "past": past, "t": carry["t"] + 1}

@@ -31,7 +31,7 @@ import typing
 from pathlib import Path
 
 from sim_data.policies.bc import BCPolicy, PolicyNetConfig, load_params
-from sim_data.policies.degrade import DegradedPolicy, degrade_params
+from sim_data.policies.degrade import DegradedPolicy, degrade_params, perturbed_params
 from sim_data.util import even_pieces
 
 
@@ -54,9 +54,10 @@ class PolicySource:
 
     Attributes:
       name: unique, e.g. "mug/conv_proprio/300" or "my_pkg.policies:make".
-      kind: "learned" (a registry checkpoint) or "plugin". task: the task it was trained for (None:
-      any). policy, params: the protocol object and its parameters. record: the registry record
-      (lineage, step, val_loss, ...) or {} for a plug-in.
+      kind: "learned" (a registry checkpoint), "plugin", or PERTURBED (perturbed_copy). task: the task it
+      was trained for (None: any). policy, params: the protocol object and its parameters (a perturbed
+      copy's: the base's; episodes_params gives a batch's). record: the registry record (lineage, step,
+      val_loss, ...) or {} for a plug-in.
     """
 
     name: str
@@ -73,6 +74,23 @@ class PolicySource:
 
     def runs_on(self, task: str) -> bool:
         return self.task is None or self.task == task
+
+    def episodes_params(self, episodes) -> object:
+        """The parameters that run this source's episodes `episodes` (indices, one per row of a batch)."""
+        return perturbed_params(self.params, episodes) if self.kind == PERTURBED else self.params
+
+
+PERTURBED = "perturbed"
+
+
+def perturbed_copy(source: PolicySource) -> PolicySource:
+    """A registry checkpoint whose every episode is degraded by its own knob and level
+    (sim_data.policies.degrade.perturbation): named `<name>~perturbed`, of kind PERTURBED."""
+    if source.kind != "learned" or source.record.get("degrade"):
+        raise ValueError(f"{source.name}: only a registry checkpoint (not a plug-in or a family's member) "
+                         "can be perturbed")
+    return dataclasses.replace(source, name=f"{source.name}~perturbed", kind=PERTURBED,
+                               policy=DegradedPolicy(source.policy))
 
 
 def is_plugin(spec: str) -> bool:
