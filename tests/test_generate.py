@@ -118,7 +118,7 @@ def test_bad_configuration_is_refused_before_work(tmp_path):
         G.make_config("smoke", ["epsiodes=3"])
     with pytest.raises(ValueError, match="unknown preset"):
         G.make_config("huge")
-    with pytest.raises(ValueError, match="weak_grip must be >= 0"):
+    with pytest.raises(ValueError, match="weak_grip and perturb_episodes must be >= 0"):
         G.make_config("smoke", ["weak_grip=-1"])
     with pytest.raises(SystemExit):
         G.main(["--config", "smoke", "--out", str(tmp_path / "x"), "size=96"])
