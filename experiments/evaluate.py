@@ -89,6 +89,7 @@ from wm.imagine import (
     closed_loop,
     episode_success,
     observed_features,
+    open_loop,
 )
 from wm.judge import check_features, load_judge
 from wm.metrics import psnr
@@ -139,6 +140,11 @@ class EvalConfig:
         can be fit and compared without imagining again; and those of the simulated episodes themselves
         (truth_features) in OUT/features/<task>.observed.npy, where the simulator ran in this run. Not
         with --part.
+      replay: also imagine each simulated episode open loop under its own actions, from its first
+        frame, and read it as the imagined ones (prob_replayed, "replayed" in the within-task
+        statistics): the gap between it and the read-out of the true episodes is the dynamics'
+        error under the policy's real actions; between the imagined and the replayed, what the
+        policy acting on imagined frames changes. Costs one more imagination of every episode.
     """
 
     policies: tuple = ()
@@ -157,6 +163,7 @@ class EvalConfig:
     max_minutes: float = 0.0
     truth_cache: str = ""
     keep_features: bool = False
+    replay: bool = False
 
     def validate(self) -> None:
         if not self.policies:
@@ -239,7 +246,9 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
     Returns {"names": [P], "true": (P, N) bool, "prob": (P, N) float (cfg.readout's; the models'
     mean), "readout_<name>": (P, N) float for each of READOUTS (the mean), "prob_observed": (P, N)
     float (cfg.readout applied to the simulated episodes themselves, _read_truth; the mean; NaN
-    where the outcomes came from cfg.truth_cache without frames), "sim_finite": (P, N) bool
+    where the outcomes came from cfg.truth_cache without frames), "prob_replayed": (P, N) float
+    (cfg.readout of each simulated episode's actions imagined open loop, _read_replay, with
+    cfg.replay; the mean; NaN otherwise), "sim_finite": (P, N) bool
     (the simulated episode's proprioception and actions all finite; True where read from the
     truth cache), "prob_members": (K, P, N), "trace_success" and "trace_progress": (P, N, T) float16
     (the per-step success probability and predicted progress of each imagined episode; the models'
@@ -250,7 +259,8 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
     n = len(seeds)
     reset_keys = np.stack([np.asarray(jax.random.PRNGKey(s)) for s in seeds])
     renderer = cached_renderers(models[0][0].model.size, (CAMERA,))
-    names, true, prob, members, observed, finite, kept, features, observed_kept = [], [], [], [], [], [], {}, [], []
+    names, true, prob, members, observed, replayed, finite = [], [], [], [], [], [], []
+    kept, features, observed_kept = {}, [], []
     arrays = {k: [] for k in TRACES + READOUT_KEYS + FIDELITY}
     sim_s = wm_s = 0.0
     steps = None
@@ -280,6 +290,9 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
         seen = [truth_features(m, truth) for m in models]
         o = np.mean([_read_truth(m, task, x, cfg.readout, len(truth["frames0"])) for m, x in zip(models, seen)], axis=0)
         o = o.reshape(len(padded), n)[: len(part)]
+        r = np.mean([_read_replay(m, task, truth, cfg.readout) for m in models], axis=0) if cfg.replay \
+            else np.full(len(truth["frames0"]), np.nan)
+        r = r.reshape(len(padded), n)[: len(part)]
         f = simulated_finite(truth).reshape(len(padded), n)[: len(part)]
         if cfg.keep_features:
             x = np.asarray(each[0]["features"], np.float16)
@@ -294,6 +307,7 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
             prob.append(p[j])
             members.append(p_each[:, j])
             observed.append(o[j])
+            replayed.append(r[j])
             finite.append(f[j])
             for key, v in batch.items():
                 arrays[key].append(v[j])
@@ -304,7 +318,7 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
     if not names:  # a part given none of this task's batches
         empty = np.zeros((0, n))
         return {"names": [], "true": empty.astype(bool), "prob": empty, "prob_observed": empty,
-                "sim_finite": np.ones((0, n), bool),
+                "prob_replayed": empty, "sim_finite": np.ones((0, n), bool),
                 **{k: np.zeros((0, n, 0), np.float16) for k in TRACES + FIDELITY},
                 **{k: empty for k in READOUT_KEYS},
                 "prob_members": np.zeros((len(models), 0, n)), "videos": {}, "video_index": [], "sim_s": 0.0,
@@ -315,7 +329,7 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
     if observed_kept and len(observed_kept) == len(features):  # every batch simulated here, not read from the truth cache
         kept_features["features_observed"] = np.concatenate(observed_kept)
     return {**kept_features, "names": names, "true": true, "prob": prob, "prob_observed": np.stack(observed),
-            "sim_finite": np.stack(finite),
+            "prob_replayed": np.stack(replayed), "sim_finite": np.stack(finite),
             "prob_members": np.stack(members, axis=1), **{k: np.stack(v) for k, v in arrays.items()},
             "videos": videos, "video_index": index, "sim_s": sim_s, "wm_s": wm_s, "steps": steps}
 
@@ -344,7 +358,7 @@ def merge_task_parts(cfg: EvalConfig, parts: list, order: list) -> dict:
     videos = {k: v for p in parts for k, v in p["videos"].items() if k.rsplit("/", 1)[0] in keys}
     return {"names": list(order), "true": true, "prob": cat("prob"),
             **{k: cat(k) for k in READOUT_KEYS + TRACES + FIDELITY},
-            "prob_observed": cat("prob_observed"), "sim_finite": cat("sim_finite"),
+            "prob_observed": cat("prob_observed"), "prob_replayed": cat("prob_replayed"), "sim_finite": cat("sim_finite"),
             "prob_members": cat("prob_members", axis=1), "videos": videos, "video_index": index,
             "sim_s": sum(p["sim_s"] for p in parts), "wm_s": sum(p["wm_s"] for p in parts),
             "steps": next((p["steps"] for p in parts if p["steps"] is not None), None), "seeds": parts[0]["seeds"]}
@@ -441,6 +455,19 @@ def _read_truth(model, task, x, readout: str, b: int) -> np.ndarray:
     if x is None:
         return np.full(b, np.nan)
     return read_episodes(model[3], task, x)[readout]
+
+
+def _read_replay(model, task, truth: dict, readout: str) -> np.ndarray:
+    """One world model's read-out of the simulated episodes' own actions (B, T, 20) imagined open loop
+    from their first frame and proprioception (wm.imagine.open_loop): (B,) float64; NaN where the
+    truth's actions are not at hand (read back from the truth cache)."""
+    b = len(truth["frames0"])
+    if "frames" not in truth:
+        return np.full(b, np.nan)
+    wm_cfg, wm_params, norm, judge = model
+    got = open_loop(wm_cfg.model, wm_params, norm, truth["frames0"], truth["proprio0"],
+                    np.zeros((b, 0, R.ACTION_DIM), np.float32), truth["action"])
+    return read_episodes(judge, task, got["features"])[readout]
 
 
 def simulated_finite(truth: dict) -> np.ndarray:
@@ -617,9 +644,10 @@ def within_task_block(results: dict, tasks, rows: list[dict], cfg: EvalConfig, k
     beside the imitation-loss proxy (minus each checkpoint's validation loss; policies without one,
     such as plug-ins, are left out of the proxy's statistics), the world model's other read-outs
     ("readout_<name>"), and, where every episode has it, the read-out applied to the simulated
-    episodes themselves ("on_truth", _read_truth: what it reads where imagination is exact), over
-    the policies whose name `keep` accepts."""
-    true, wm, proxy, observed = {}, {}, {}, {}
+    episodes themselves ("on_truth", _read_truth: what it reads where imagination is exact) and to
+    their own actions replayed open loop ("replayed", cfg.replay), over the policies whose name
+    `keep` accepts."""
+    true, wm, proxy, observed, replayed = {}, {}, {}, {}, {}
     others = {f"readout_{r}": {} for r in READOUTS if r != cfg.readout}
     for t in tasks:
         names = results[t]["names"]
@@ -628,11 +656,13 @@ def within_task_block(results: dict, tasks, rows: list[dict], cfg: EvalConfig, k
         true[t], wm[t] = results[t]["true"][picked], results[t]["prob"][picked]
         proxy[t] = np.array([math.nan if loss[names[j]] is None else -loss[names[j]] for j in picked])
         observed[t] = results[t]["prob_observed"][picked]
+        replayed[t] = results[t]["prob_replayed"][picked]
         for key, got in others.items():
             got[t] = results[t][key][picked]
     predictors = {"world_model": wm, "proxy": proxy, **others}
-    if all(np.isfinite(o).all() for o in observed.values()):
-        predictors["on_truth"] = observed
+    for name, got in (("on_truth", observed), ("replayed", replayed)):
+        if all(np.isfinite(o).all() for o in got.values()):
+            predictors[name] = got
     return S.within_task(true, predictors, cfg.threshold)
 
 
@@ -900,7 +930,8 @@ def _save_task(path: Path, res: dict) -> None:
     meta = {"names": res["names"], "video_index": res["video_index"], "sim_s": res["sim_s"], "wm_s": res["wm_s"],
             "steps": res["steps"], "seeds": res["seeds"]}
     arrays = {"true": res["true"], "prob": res["prob"], **{k: res[k] for k in READOUT_KEYS + FIDELITY},
-              "prob_observed": res["prob_observed"], "sim_finite": res["sim_finite"], "prob_members": res["prob_members"],
+              "prob_observed": res["prob_observed"], "prob_replayed": res["prob_replayed"], "sim_finite": res["sim_finite"],
+              "prob_members": res["prob_members"],
               **{k: res[k] for k in TRACES},
               "meta": np.frombuffer(json.dumps(meta).encode(), np.uint8)}
     arrays.update({f"video:{k}": v for k, v in res["videos"].items()})
@@ -915,11 +946,12 @@ def load_task(path: Path) -> dict:
         meta = json.loads(z["meta"].tobytes().decode())
         videos = {k[len("video:"):]: z[k] for k in z.files if k.startswith("video:")}
         members = z["prob_members"] if "prob_members" in z.files else z["prob"][None]  # before ensembles
-        observed = z["prob_observed"] if "prob_observed" in z.files else np.full(z["prob"].shape, np.nan)
+        observed, replayed = (z[k] if k in z.files else np.full(z["prob"].shape, np.nan)
+                              for k in ("prob_observed", "prob_replayed"))
         finite = z["sim_finite"] if "sim_finite" in z.files else np.ones(z["prob"].shape, bool)
         traces = {k: z[k] if k in z.files else np.zeros(z["prob"].shape + (0,), np.float16) for k in TRACES}
         return {**meta, "true": z["true"].astype(bool), "prob": z["prob"], **{k: z[k] for k in READOUT_KEYS + FIDELITY},
-                "prob_observed": observed, "sim_finite": finite, "prob_members": members, **traces,
+                "prob_observed": observed, "prob_replayed": replayed, "sim_finite": finite, "prob_members": members, **traces,
                 "videos": videos}
 
 

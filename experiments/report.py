@@ -314,25 +314,27 @@ def verdict(res: dict) -> str:
 
 
 UPPER = "the read-out of the true episodes"
+REPLAYED = "the read-out of the true actions replayed"
 
 
 def _other_readouts(w: dict) -> list[tuple[str, str]]:
-    """(key, label) of the world model's read-outs other than the one it ranks by, in results' order."""
-    return [(k, f"world model, {k[len('readout_'):]} read-out") for k in w if k.startswith("readout_")]
+    """(key, label) of the world model's read-outs other than the one it ranks by, in results' order,
+    then, where measured, its read-out of the true episodes and of their actions replayed."""
+    return ([(k, f"world model, {k[len('readout_'):]} read-out") for k in w if k.startswith("readout_")]
+            + [(k, label) for k, label in (("on_truth", UPPER), ("replayed", REPLAYED)) if k in w])
 
 
 def within_task_table(res: dict) -> list[list[str]]:
     """The headline: each within-task statistic's mean over tasks for the world model and the proxy,
     their difference, the world model's other read-outs, its read-out applied to the simulated
     episodes themselves (where measured: how well the world model could rank were its imagination
-    exact), and the preset's target, with MMRV's floor (stats.mmrv_floor) beside its target."""
+    exact) and to their actions replayed open loop (where measured: imagination without the policy
+    in the loop), and the preset's target, with MMRV's floor (stats.mmrv_floor) beside its target."""
     w = res["metrics"]["within_task"]
-    upper = "on_truth" in w
     others = _other_readouts(w)
     targets = TARGETS.get(res.get("preset", ""), {})
     rows = [["statistic (mean over tasks)", "world model", "imitation-loss proxy", "world model - proxy",
-             *[label for _, label in others], *([UPPER] if upper else []),
-             f"target ({res.get('preset') or 'none'} preset)"]]
+             *[label for _, label in others], f"target ({res.get('preset') or 'none'} preset)"]]
     floor = res["metrics"].get("mmrv_floor")
     for k in w["world_model"]["mean"]:
         tgt = targets.get(k)
@@ -342,7 +344,6 @@ def within_task_table(res: dict) -> list[list[str]]:
         px = "-" if k == "alignment" else _ci(w["proxy"]["mean"][k], w["proxy"]["mean_ci"][k])
         df = "-" if k == "alignment" else _ci(w["difference"]["proxy"]["mean"][k], w["difference"]["proxy"]["mean_ci"][k])
         more = [_ci(w[o]["mean"][k], w[o]["mean_ci"][k]) for o, _ in others]
-        more += [_ci(w["on_truth"]["mean"][k], w["on_truth"]["mean_ci"][k])] if upper else []
         rows.append([LABELS.get(k, k), _ci(w["world_model"]["mean"][k], w["world_model"]["mean_ci"][k]), px, df,
                      *more, goal])
     return rows
@@ -355,7 +356,7 @@ def per_task_table(res: dict, key: str = "within_task") -> list[list[str]]:
     stats = list(w["world_model"]["mean"])
     rows = [["task", "predictor", *[LABELS.get(k, k) for k in stats]]]
     who_label = [("world_model", "world model"), ("proxy", "imitation-loss proxy")]
-    who_label += _other_readouts(w) + ([("on_truth", UPPER)] if "on_truth" in w else [])
+    who_label += _other_readouts(w)
     for t in w["tasks"]:
         for who, label in who_label:
             rows.append([t, label, *[_ci(w[who]["per_task"][t][k], w[who]["per_task_ci"][t][k])

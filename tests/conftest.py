@@ -136,7 +136,7 @@ def smoke_world_model(smoke_dataset, tmp_path_factory, worker_id):
 # that evaluate other policies with them at that batch (3 checkpoints of one architecture, as the
 # fixture's first batch) run the programs the fixture compiled instead of compiling their own.
 SMOKE_EVAL = {"tasks": ("mug",), "episodes": 2, "batch": 6, "video_policies": 2, "video_episodes": 1,
-              "decision_episodes": (5, 50), "readout": "judge", "keep_features": True}
+              "decision_episodes": (5, 50), "readout": "judge", "keep_features": True, "replay": True}
 
 
 @pytest.fixture(scope="package")

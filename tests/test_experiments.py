@@ -421,18 +421,41 @@ def test_within_task_headline_and_checkpoint_selection_from_the_episodes(evaluat
 
     cfg, out, res = evaluation
     with np.load(out / "tasks" / "mug.npz") as z:
-        true, prob, observed = z["true"].astype(bool), z["prob"], z["prob_observed"]
+        true, prob, observed, replayed = z["true"].astype(bool), z["prob"], z["prob_observed"], z["prob_replayed"]
         progress, success = z["readout_progress"], z["readout_success"]
-    # the read-out (the judge, here the per-step rule: the smoke model has none) on the simulated episodes
+    # the read-out (the judge, here the per-step rule: the smoke model has none) on the simulated episodes,
+    # and on their actions replayed open loop
     assert cfg.readout == "judge" and observed.shape == prob.shape and np.all((observed >= 0) & (observed <= 1))
+    assert cfg.replay and replayed.shape == prob.shape and np.all((replayed >= 0) & (replayed <= 1))
     proxy = np.array([np.nan if p["val_loss"] is None else -p["val_loss"] for p in res["policies"]])
     want = S.within_task({"mug": true}, {"world_model": {"mug": prob}, "proxy": {"mug": proxy},
                                          "readout_progress": {"mug": progress}, "readout_success": {"mug": success},
-                                         "on_truth": {"mug": observed}}, cfg.threshold)
+                                         "on_truth": {"mug": observed}, "replayed": {"mug": replayed}}, cfg.threshold)
     assert res["metrics"]["within_task"] == json.loads(json.dumps(no_nan(want)))
     assert res["metrics"]["mmrv_floor"] == S.mmrv_floor({"mug": true})
     assert res["checkpoint_selection"] == json.loads(json.dumps(no_nan(S.checkpoint_selection(res["policies"]))))
     assert res["world_model"]["cut_short"] is False and res["world_model"]["training"][0]["steps"] == 30
+
+
+def test_a_replayed_episode_is_imagined_as_the_judge_imagines_its_training_episodes(smoke_world_model, smoke_dataset):
+    """The evaluation's replay (a simulated episode's own actions, open loop from its first frame) and
+    the judge's imagination of a logged training episode (wm.judge.imagine_episodes) read the same."""
+    from sim_data.dataset.cache import TrainingCache
+    from wm.checkpoint import load_trained
+    from wm.judge import imagine_episodes
+
+    wm_cfg, params, norm = load_trained(smoke_world_model)
+    cache = TrainingCache(smoke_dataset[1])
+    ep = cache.episode(0, cameras=[E.CAMERA])
+    n = ep["record"]["length"]
+    frames, proprio = ep["frames"][E.CAMERA][None], ep["proprio"][None]
+    truth = {"frames0": frames[:, :1], "proprio0": proprio[:, :1], "frames": frames, "proprio": proprio,
+             "action": ep["action"][None, : n - 1]}
+    logged = imagine_episodes(wm_cfg.model, params, norm, cache, [0], E.CAMERA, False)["features"]
+    for readout in ("success", "progress"):
+        want = E.read_episodes(None, "mug", logged)[readout]
+        assert E._read_replay((wm_cfg, params, norm, None), "mug", truth, readout) == pytest.approx(want, abs=1e-5)
+    assert np.isnan(E._read_replay((wm_cfg, params, norm, None), "mug", {"frames0": frames[:, :1]}, "success")).all()
 
 
 def test_kept_features_are_the_imaginations_the_read_outs_read(evaluation):
