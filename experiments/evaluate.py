@@ -582,6 +582,11 @@ def _mean_curve(x) -> list:
     return [round(float(v), 3) if k else None for v, k in zip(m, n, strict=True)]
 
 
+def _mean_or_none(x) -> float | None:
+    """The mean of x, or None where any of it is NaN (not measured)."""
+    return None if np.isnan(x).any() else float(np.mean(x))
+
+
 def _finite_mean(x) -> float | None:
     """The mean of x's finite values, rounded to 4 decimals; None where none is finite."""
     x = np.asarray(x, np.float64)
@@ -593,9 +598,9 @@ def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) ->
     rows = []
     members = res["prob_members"].transpose(1, 0, 2)  # (P, K, N)
     readouts = np.stack([res[k] for k in READOUT_KEYS], axis=1)  # (P, R, N)
-    for name, t, p, r, pk, ok, tp, ip, gap in zip(res["names"], res["true"], res["prob"], readouts, members,
-                                                  res["sim_finite"], res["true_progress"], res["trace_progress"],
-                                                  res["action_gap"], strict=True):
+    for name, t, p, r, pk, ok, tp, ip, gap, obs, rep in zip(
+            res["names"], res["true"], res["prob"], readouts, members, res["sim_finite"], res["true_progress"],
+            res["trace_progress"], res["action_gap"], res["prob_observed"], res["prob_replayed"], strict=True):
         rec = sources_by_name[name].record
         k, n = int(t.sum()), len(t)
         kp = int((p >= cfg.threshold).sum())
@@ -606,6 +611,8 @@ def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) ->
                      "pred_thresholded_ci": list(S.wilson_interval(kp, n)), "val_loss": rec.get("val_loss"),
                      "alignment": S.alignment(p >= cfg.threshold, t),
                      "pred_rate_readouts": dict(zip(READOUTS, r.mean(1).tolist(), strict=True)),
+                     # the read-out of the simulated episodes, and of their actions replayed (replay=1)
+                     "pred_rate_on_truth": _mean_or_none(obs), "pred_rate_replayed": _mean_or_none(rep),
                      "nonfinite_episodes": int((~ok).sum()),
                      # mean progress over the episodes at each step, the simulator's and the imagined
                      "progress_true": _mean_curve(tp), "progress_imagined": _mean_curve(ip),

@@ -481,14 +481,18 @@ def violation_table(res: dict) -> list[list[str]] | None:
     viol = res.get("rank_violations")
     if not viol or not any(v["policies"] for v in viol.values()):
         return None
-    rows = [["task", "MMRV", "policy", "true", "predicted", "share of the task's MMRV", "policies mis-ordered with it",
-             "action gap (RMS; the task's median)"]]
+    extra = [(k, label) for k, label in (("replayed", "read on its true actions replayed"),
+                                         ("on_truth", "read on its true episodes"))
+             if any(p.get(k) is not None for v in viol.values() for p in v["policies"])]
+    rows = [["task", "MMRV", "policy", "true", "predicted", *[label for _, label in extra], "share of the task's MMRV",
+             "policies mis-ordered with it", "action gap (RMS; the task's median)"]]
     for t, v in viol.items():
         gaps = [g for p in res.get("policies", []) if p["task"] == t and (g := p.get("action_gap")) is not None]
         median = f" ({_fmt(float(np.median(gaps)), 3)})" if gaps else ""
         for k, p in enumerate(v["policies"]):
             rows.append([t if k == 0 else "", _fmt(v["mmrv"], 2) if k == 0 else "", p["name"],
-                         _fmt(p["true_rate"], 2), _fmt(p["pred_rate"], 2), f"{100 * p['share']:.0f}%",
+                         _fmt(p["true_rate"], 2), _fmt(p["pred_rate"], 2), *[_fmt(p.get(k), 2) for k, _ in extra],
+                         f"{100 * p['share']:.0f}%",
                          str(p["against"]), _fmt(p.get("action_gap"), 3) + median])
     return rows
 

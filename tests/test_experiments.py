@@ -186,6 +186,13 @@ def test_violation_table_lists_the_policies_that_carry_each_tasks_mmrv():
     table = violation_table({"rank_violations": json.loads(json.dumps(S.rank_violations(rows))), "policies": rows})
     assert table[1] == ["mug", "0.45", "a", "0.10", "0.90", "61%", "2", "0.100 (0.250)"]
     assert table[2] == ["", "", "d", "0.80", "0.60", "39%", "1", "0.400 (0.250)"] and len(table) == 3
+    # where measured, what the read-out gives on the true actions replayed and on the true episodes
+    for r, rep, obs in zip(rows, [0.8, 0.5, 0.1, 0.7], [0.2, 0.5, 0.0, None], strict=True):
+        r.update(pred_rate_replayed=rep, pred_rate_on_truth=obs)
+    table = violation_table({"rank_violations": json.loads(json.dumps(S.rank_violations(rows))), "policies": rows})
+    assert table[0][5:7] == ["read on its true actions replayed", "read on its true episodes"]
+    assert table[1] == ["mug", "0.45", "a", "0.10", "0.90", "0.80", "0.20", "61%", "2", "0.100 (0.250)"]
+    assert table[2][5:7] == ["0.70", "n/a"]
     assert violation_table({}) is None  # results written before the table existed
     assert violation_table({"rank_violations": {"mug": {"mmrv": 0.0, "policies": []}}}) is None
 
@@ -427,6 +434,8 @@ def test_within_task_headline_and_checkpoint_selection_from_the_episodes(evaluat
     # and on their actions replayed open loop
     assert cfg.readout == "judge" and observed.shape == prob.shape and np.all((observed >= 0) & (observed <= 1))
     assert cfg.replay and replayed.shape == prob.shape and np.all((replayed >= 0) & (replayed <= 1))
+    for row, o, r in zip(res["policies"], observed, replayed, strict=True):
+        assert row["pred_rate_on_truth"] == pytest.approx(o.mean()) and row["pred_rate_replayed"] == pytest.approx(r.mean())
     proxy = np.array([np.nan if p["val_loss"] is None else -p["val_loss"] for p in res["policies"]])
     want = S.within_task({"mug": true}, {"world_model": {"mug": prob}, "proxy": {"mug": proxy},
                                          "readout_progress": {"mug": progress}, "readout_success": {"mug": success},
