@@ -119,6 +119,11 @@ class EvalConfig:
       episodes: held-out initial states per task (each policy runs from all of them).
       seed: names the held-out initial states. engine: "cpu", "mjx" or "" (mjx on a GPU).
       batch: episodes simulated or imagined together (policies x initial states).
+      state_batch: initial states a batch runs (0: all of them). With it every batch holds up to
+        batch // state_batch policies from state_batch of the states, and a task's states run as
+        episodes // state_batch slices of one shape: one compiled program serves every number of
+        states, and a task of few batches spreads over the parts (GPUs) slice by slice. Must divide
+        episodes.
       readout: how an imagined episode's success probability is read: "progress", "judge" or
         "success" (above; "judge" falls back to "success" for a task the judge does not know), or
         "auto": "judge" where every model was trained (and its judge fit) with rollouts of learned
@@ -154,6 +159,7 @@ class EvalConfig:
     seed: int = 0
     engine: str = ""
     batch: int = 2048
+    state_batch: int = 0
     readout: str = AUTO
     threshold: float = 0.5
     video_policies: int = 4
@@ -172,6 +178,8 @@ class EvalConfig:
             raise ValueError("name the world model's run directory (wm=runs/wm/demo)")
         if self.episodes < 2 or self.batch < 1:
             raise ValueError(f"episodes must be >= 2 and batch >= 1, got {self.episodes}, {self.batch}")
+        if self.state_batch < 0 or (self.state_batch and self.episodes % self.state_batch):
+            raise ValueError(f"state_batch must divide episodes ({self.episodes}), got {self.state_batch}")
         if self.engine not in ("",) + ENGINES:
             raise ValueError(f"engine must be one of {ENGINES} or empty, got {self.engine!r}")
         if self.readout not in READOUTS + (AUTO,):
@@ -196,7 +204,9 @@ PRESETS = {
     # enough episodes that the true rates resolve a ranking: 16 a policy (95% interval about +-0.2) on the
     # demo's CPU, 100 (+-0.1) on a GPU
     "demo": EvalConfig(policies=("runs/policies/demo",), wm="runs/wm/demo", episodes=16, batch=256),
-    "full": EvalConfig(policies=("runs/policies/full",), wm="runs/wm/full", episodes=100, batch=2600, max_minutes=8.0),
+    # 52 policies x 50 states a batch: the 100 states run as two slices of one compiled program (50 as one)
+    "full": EvalConfig(policies=("runs/policies/full",), wm="runs/wm/full", episodes=100, batch=2600, state_batch=50,
+                       max_minutes=8.0),
 }
 
 
@@ -211,6 +221,23 @@ def task_chunks(cfg: EvalConfig, sources, n: int) -> list:
     initial states each) a batch whatever their architectures (chunk_policy), those of one
     architecture next to each other, the last batch padded by repeating its last policy."""
     return list(padded_chunks([s for g in group_by_policy(sources) for s in g], n, cfg.batch))
+
+
+def state_slices(cfg: EvalConfig, n: int) -> list[tuple[int, int]]:
+    """[(start, stop)] of the n initial states each batch of a task runs: all at once, or
+    cfg.state_batch at a time."""
+    width = cfg.state_batch or n
+    return [(s, min(s + width, n)) for s in range(0, n, width)]
+
+
+def task_batches(cfg: EvalConfig, sources, n: int) -> list[tuple[int, int, list, list]]:
+    """Every batch of a task of n initial states: (chunk index k, slice index j, policies, padded), the
+    chunks (task_chunks) of as many policies as a slice's states leave room for, each run on every
+    slice (state_slices), chunk by chunk."""
+    slices = state_slices(cfg, n)
+    width = slices[0][1] - slices[0][0]
+    return [(k, j, part, padded) for k, (part, padded) in enumerate(task_chunks(cfg, sources, width))
+            for j in range(len(slices))]
 
 
 def chunk_policy(padded, n: int) -> tuple:
@@ -240,8 +267,8 @@ def balance_chunks(sizes: dict, n_parts: int) -> dict:
 def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: str, progress: bool,
                   chunks=None) -> dict:
     """True and predicted outcomes of every source on task from the held-out seeds, predicted by
-    each of K world models (`models`: a list of (config, params, norm, judge)); with `chunks` (indices
-    into task_chunks), of those batches' sources only (a part of the task, for merge_task_parts).
+    each of K world models (`models`: a list of (config, params, norm, judge)); with `chunks` (keys
+    (k, j) of task_batches), of those batches only (a part of the task, for merge_task_parts).
 
     Returns {"names": [P], "true": (P, N) bool, "prob": (P, N) float (cfg.readout's; the models'
     mean), "readout_<name>": (P, N) float for each of READOUTS (the mean), "prob_observed": (P, N)
@@ -254,112 +281,151 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
     (the per-step success probability and predicted progress of each imagined episode; the models'
     mean), "true_progress": (P, N, T) float16 (the simulator's progress; NaN where read from the truth
     cache), "videos": {key: (T+1, S, S, 3)} (the first model's imagination), "video_index": [...],
-    "sim_s", "wm_s", "steps"}.
+    "sim_s", "wm_s", "steps"}. With `chunks`, a row per policy and slice of states instead: "names"
+    repeat, "slices" [P'] gives each row's slice, and N is a slice's states (merge_task_parts joins them).
     """
-    n = len(seeds)
+    slices = state_slices(cfg, len(seeds))
     reset_keys = np.stack([np.asarray(jax.random.PRNGKey(s)) for s in seeds])
     renderer = cached_renderers(models[0][0].model.size, (CAMERA,))
-    names, true, prob, members, observed, replayed, finite = [], [], [], [], [], [], []
-    kept, features, observed_kept = {}, [], []
-    arrays = {k: [] for k in TRACES + READOUT_KEYS + FIDELITY}
+    rows, kept = [], {}  # rows: (name, slice, {key: the policy's array over the slice's states})
     sim_s = wm_s = 0.0
     steps = None
-    todo = [(k, part, padded) for k, (part, padded) in enumerate(task_chunks(cfg, sources, n))
-            if chunks is None or k in chunks]
-    bar = tqdm(total=sum(len(part) for _, part, _ in todo) * n, desc=f"{task}", unit="ep", disable=not progress)
-    for k, part, padded in todo:
+    todo = [b for b in task_batches(cfg, sources, len(seeds)) if chunks is None or b[:2] in chunks]
+    bar = tqdm(total=sum(len(part) * (slices[j][1] - slices[j][0]) for _, j, part, _ in todo), desc=f"{task}",
+               unit="ep", disable=not progress)
+    for k, j, part, padded in todo:
+        s0, s1 = slices[j]
+        n = s1 - s0
         policy, params = chunk_policy(padded, n)
         rng = jax.random.PRNGKey(cfg.seed * 7919 + k)
+        if j:  # the first slice keeps the batch's key: a task of one slice is evaluated as without slices
+            rng = jax.random.fold_in(rng, j)
         t0 = time.perf_counter()
-        truth = simulate_truth(cfg, task, policy, params, seeds, reset_keys, rng, engine, renderer)
+        truth = simulate_truth(cfg, task, policy, params, seeds[s0:s1], reset_keys[s0:s1], rng, engine, renderer)
         steps = truth["steps"]
-        outcome = truth["outcome"][: len(part)]
         sim_s += time.perf_counter() - t0
         t0 = time.perf_counter()
-        frames0, proprio0 = truth["frames0"], truth["proprio0"]
-        each = [_imagine(m, task, policy, params, frames0, proprio0, steps, jax.random.fold_in(rng, 1))
-                for m in models]
-        p_each = np.stack([e[cfg.readout] for e in each]).reshape(len(models), len(padded), n)[:, : len(part)]
-        batch = {k: np.mean([e[k] for e in each], axis=0).astype(np.float16)
-                 for k in ("trace_success", "trace_progress")}
-        batch["true_progress"] = truth.get("progress", np.full((len(padded) * n, steps), np.nan)).astype(np.float16)
-        batch |= imagination_fidelity(truth, each[0]["frames"], each[0]["action"], steps)
-        batch |= {f"readout_{r}": np.mean([e[r] for e in each], axis=0) for r in READOUTS}
-        batch = {k: v.reshape((len(padded), n) + v.shape[1:])[: len(part)] for k, v in batch.items()}
-        p = p_each.mean(0)
-        seen = [truth_features(m, truth) for m in models]
-        o = np.mean([_read_truth(m, task, x, cfg.readout, len(truth["frames0"])) for m, x in zip(models, seen)], axis=0)
-        o = o.reshape(len(padded), n)[: len(part)]
-        r = np.mean([_read_replay(m, task, truth, cfg.readout) for m in models], axis=0) if cfg.replay \
-            else np.full(len(truth["frames0"]), np.nan)
-        r = r.reshape(len(padded), n)[: len(part)]
-        f = simulated_finite(truth).reshape(len(padded), n)[: len(part)]
-        if cfg.keep_features:
-            x = np.asarray(each[0]["features"], np.float16)
-            features.append(x.reshape((len(padded), n) + x.shape[1:])[: len(part)])
-            if seen[0] is not None:
-                x = np.asarray(seen[0], np.float16)
-                observed_kept.append(x.reshape((len(padded), n) + x.shape[1:])[: len(part)])
+        got, each = _predict_batch(cfg, task, models, policy, params, truth, rng)
+        got = {key: v.reshape((len(padded), n) + v.shape[1:])[: len(part)] for key, v in got.items()}
+        got["true"] = truth["outcome"][: len(part)]
         wm_s += time.perf_counter() - t0
-        for j, src in enumerate(part):
-            names.append(src.name)
-            true.append(outcome[j])
-            prob.append(p[j])
-            members.append(p_each[:, j])
-            observed.append(o[j])
-            replayed.append(r[j])
-            finite.append(f[j])
-            for key, v in batch.items():
-                arrays[key].append(v[j])
-            kept[src.name] = _keep_examples(cfg, src.name, j, n, outcome[j], p[j], truth.get("frames"),
-                                            each[0]["frames"])
+        for i, src in enumerate(part):
+            rows.append((src.name, j, {key: v[i] for key, v in got.items()}))
+            if j == 0:  # the report's videos come from the first slice's states
+                kept[src.name] = _keep_examples(cfg, src.name, i, n, got["true"][i], got["prob"][i],
+                                                truth.get("frames"), each[0]["frames"])
         bar.update(len(part) * n)
     bar.close()
-    if not names:  # a part given none of this task's batches
-        empty = np.zeros((0, n))
-        return {"names": [], "true": empty.astype(bool), "prob": empty, "prob_observed": empty,
-                "prob_replayed": empty, "sim_finite": np.ones((0, n), bool),
-                **{k: np.zeros((0, n, 0), np.float16) for k in TRACES + FIDELITY},
-                **{k: empty for k in READOUT_KEYS},
-                "prob_members": np.zeros((len(models), 0, n)), "videos": {}, "video_index": [], "sim_s": 0.0,
-                "wm_s": 0.0, "steps": None}
-    true, prob = np.stack(true), np.stack(prob)
-    videos, index = _select_videos(cfg, task, names, true, kept)
-    kept_features = {"features": np.concatenate(features)} if features else {}
-    if observed_kept and len(observed_kept) == len(features):  # every batch simulated here, not read from the truth cache
-        kept_features["features_observed"] = np.concatenate(observed_kept)
-    return {**kept_features, "names": names, "true": true, "prob": prob, "prob_observed": np.stack(observed),
-            "prob_replayed": np.stack(replayed), "sim_finite": np.stack(finite),
-            "prob_members": np.stack(members, axis=1), **{k: np.stack(v) for k, v in arrays.items()},
-            "videos": videos, "video_index": index, "sim_s": sim_s, "wm_s": wm_s, "steps": steps}
+    timing = {"sim_s": sim_s, "wm_s": wm_s, "steps": steps}
+    if chunks is not None:
+        res = _stack_rows(rows, len(models), slices[0][1] - slices[0][0])
+        first = [r for r, j in enumerate(res["slices"]) if j == 0]
+        videos, index = _select_videos(cfg, task, [res["names"][r] for r in first], res["true"][first], kept)
+        return {**res, "videos": videos, "video_index": index, **timing}
+    res = join_slices(rows, len(models), len(seeds))
+    videos, index = _select_videos(cfg, task, res["names"], res["true"], kept)
+    return {**res, "videos": videos, "video_index": index, **timing}
+
+
+def _predict_batch(cfg: EvalConfig, task: str, models, policy, params, truth: dict, rng) -> tuple[dict, list]:
+    """Every world model's predictions for one simulated batch of B episodes: ({"prob": (B,) the
+    models' mean of cfg.readout, "prob_members": (B, K) per model, "readout_<name>", "prob_observed",
+    "prob_replayed" (B,), "sim_finite" (B,), the traces (B, T), the fidelity arrays, and with
+    cfg.keep_features "features" and "features_observed" (B, T, F) float16}, each model's _imagine)."""
+    steps, frames0, proprio0 = truth["steps"], truth["frames0"], truth["proprio0"]
+    b = len(frames0)
+    each = [_imagine(m, task, policy, params, frames0, proprio0, steps, jax.random.fold_in(rng, 1)) for m in models]
+    p_each = np.stack([e[cfg.readout] for e in each], axis=1)  # (B, K)
+    got = {"prob": p_each.mean(1), "prob_members": p_each,
+           **{k: np.mean([e[k] for e in each], axis=0).astype(np.float16) for k in ("trace_success", "trace_progress")},
+           "true_progress": truth.get("progress", np.full((b, steps), np.nan)).astype(np.float16),
+           **imagination_fidelity(truth, each[0]["frames"], each[0]["action"], steps),
+           **{f"readout_{r}": np.mean([e[r] for e in each], axis=0) for r in READOUTS}}
+    seen = [truth_features(m, truth) for m in models]
+    got["prob_observed"] = np.mean([_read_truth(m, task, x, cfg.readout, b) for m, x in zip(models, seen)], axis=0)
+    got["prob_replayed"] = (np.mean([_read_replay(m, task, truth, cfg.readout) for m in models], axis=0)
+                            if cfg.replay else np.full(b, np.nan))
+    got["sim_finite"] = simulated_finite(truth)
+    if cfg.keep_features:
+        got["features"] = np.asarray(each[0]["features"], np.float16)
+        if seen[0] is not None:
+            got["features_observed"] = np.asarray(seen[0], np.float16)
+    return got, each
+
+
+def _empty_rows(k: int, n: int) -> dict:
+    """evaluate_task's arrays for no policy (a part given none of a task's batches)."""
+    empty = np.zeros((0, n))
+    return {"names": [], "slices": [], "true": empty.astype(bool), "prob": empty, "prob_observed": empty,
+            "prob_replayed": empty, "sim_finite": np.ones((0, n), bool),
+            **{key: np.zeros((0, n, 0), np.float16) for key in TRACES + FIDELITY},
+            **{key: empty for key in READOUT_KEYS}, "prob_members": np.zeros((k, 0, n))}
+
+
+def _stack_rows(rows: list, k: int, n: int) -> dict:
+    """evaluate_task's arrays from rows [(name, slice, {key: array})] in their order (no joining):
+    "names" and "slices" per row; prob_members (K, rows, N)."""
+    if not rows:
+        return _empty_rows(k, n)
+    out = {key: np.stack([r[2][key] for r in rows]) for key in _common_keys(rows)}
+    out["prob_members"] = out["prob_members"].transpose(2, 0, 1)
+    return {"names": [r[0] for r in rows], "slices": [r[1] for r in rows], **out}
+
+
+def _common_keys(rows: list) -> list:
+    """The keys every row's arrays have, in the first row's order (a batch read from the truth cache
+    has no features of the simulated episodes)."""
+    return [key for key in rows[0][2] if all(key in r[2] for r in rows)]
+
+
+def join_slices(rows: list, k: int, n: int) -> dict:
+    """One row per policy (in the order of first appearance) from rows [(name, slice, {key: array
+    with the slice's states first, prob_members (slice states, K)})]: each policy's slices joined in
+    slice order into its n states; evaluate_task's arrays. Raises where a policy's slices do not
+    make up its n states."""
+    if not rows:
+        return {key: v for key, v in _empty_rows(k, n).items() if key != "slices"}
+    by_name: dict = {}
+    for name, j, arrays in rows:
+        by_name.setdefault(name, {})[j] = arrays
+    joined = []
+    for name, parts in by_name.items():
+        ordered = [parts[j] for j in sorted(parts)]
+        got = {key: np.concatenate([a[key] for a in ordered]) for key in _common_keys([(0, 0, a) for a in ordered])}
+        if len(got["true"]) != n:
+            raise ValueError(f"{name}: its batches hold {len(got['true'])} of the task's {n} states: rerun the parts "
+                             "(--part K/N) of this evaluation")
+        joined.append((name, 0, got))
+    out = _stack_rows(joined, k, n)
+    del out["slices"]
+    return out
 
 
 def merge_task_parts(cfg: EvalConfig, parts: list, order: list) -> dict:
-    """One task's results from its parts' (evaluate_task with chunks), policies in `order` (the
-    names as evaluate_task without chunks lists them); the videos of the policies cfg.video_policies
-    picks among those the parts filmed (the least and most successful are always among them). A part
-    given none of the task's batches (more parts than batches) holds no policies and is passed over."""
-    parts = [p for p in parts if p["names"]] or parts[:1]  # an empty part's traces have no time axis
-    names = [x for p in parts for x in p["names"]]
-    if sorted(names) != sorted(order):
-        raise ValueError(f"the parts hold {len(names)} policies, not the task's {len(order)}: "
+    """One task's results from its parts' (evaluate_task with chunks: a row per policy and slice of
+    states), policies in `order` (the names as evaluate_task without chunks lists them), each policy's
+    slices joined; the videos of the policies cfg.video_policies picks among those the parts filmed
+    (the least and most successful are always among them). A part given none of the task's batches
+    (more parts than batches) holds no rows and is passed over."""
+    parts = [p for p in parts if p["names"]] or parts[:1]
+    keys = ("true", "prob", "prob_observed", "prob_replayed", "sim_finite") + READOUT_KEYS + TRACES + FIDELITY
+    rows = [(name, j, {**{key: p[key][r] for key in keys}, "prob_members": p["prob_members"][:, r].T})
+            for p in parts for r, (name, j) in enumerate(zip(p["names"], p.get("slices") or [0] * len(p["names"])))]
+    n = len(parts[0]["seeds"])
+    if sorted({name for name, _, _ in rows}) != sorted(order):
+        raise ValueError(f"the parts hold {len({name for name, _, _ in rows})} policies, not the task's {len(order)}: "
                          "rerun the parts (--part K/N) of this evaluation")
-    at = [names.index(x) for x in order]
-
-    def cat(key, axis=0):
-        return np.concatenate([p[key] for p in parts], axis=axis).take(at, axis=axis)
-
-    true = cat("true")
+    joined = join_slices(rows, parts[0]["prob_members"].shape[0], n)
+    at = [joined["names"].index(x) for x in order]
+    merged = {key: v.take(at, axis=1 if key == "prob_members" else 0) for key, v in joined.items() if key != "names"}
+    true = merged["true"]
     filmed = {v["policy"] for p in parts for v in p["video_index"]}
     shown = [i for i, x in enumerate(order) if x in filmed]
     chosen = {order[shown[i]] for i in filmed_policies(true[shown].mean(1), cfg.video_policies)}
     index = [v for p in parts for v in p["video_index"] if v["policy"] in chosen]
     keys = {i["key"] for i in index}
     videos = {k: v for p in parts for k, v in p["videos"].items() if k.rsplit("/", 1)[0] in keys}
-    return {"names": list(order), "true": true, "prob": cat("prob"),
-            **{k: cat(k) for k in READOUT_KEYS + TRACES + FIDELITY},
-            "prob_observed": cat("prob_observed"), "prob_replayed": cat("prob_replayed"), "sim_finite": cat("sim_finite"),
-            "prob_members": cat("prob_members", axis=1), "videos": videos, "video_index": index,
+    return {**merged, "names": list(order), "videos": videos, "video_index": index,
             "sim_s": sum(p["sim_s"] for p in parts), "wm_s": sum(p["wm_s"] for p in parts),
             "steps": next((p["steps"] for p in parts if p["steps"] is not None), None), "seeds": parts[0]["seeds"]}
 
@@ -746,8 +812,8 @@ def evaluate_tasks(cfg: EvalConfig, out: Path, tasks, sources, models, used: set
     if part is not None and cfg.keep_features:
         raise ValueError("keep_features keeps one run's imaginations: evaluate without --part")
     if part is not None:  # every task's batches spread over the parts, the largest first
-        sizes = {(t, k): len(padded) * cfg.episodes for t in tasks
-                 for k, (_, padded) in enumerate(task_chunks(cfg, by_task[t], cfg.episodes))}
+        sizes = {(t, k, j): len(padded) * (cfg.state_batch or cfg.episodes) for t in tasks
+                 for k, j, _, padded in task_batches(cfg, by_task[t], cfg.episodes)}
         mine = {key for key, k in balance_chunks(sizes, part[1]).items() if k == part[0]}
     t_start, longest = time.perf_counter(), 0.0
     for task in tasks:
@@ -769,7 +835,7 @@ def evaluate_tasks(cfg: EvalConfig, out: Path, tasks, sources, models, used: set
             return None
         t_task = time.perf_counter()
         seeds = heldout_seeds(task, cfg.episodes, cfg.seed, used)
-        chunks = None if part is None else {k for t, k in mine if t == task}
+        chunks = None if part is None else {(k, j) for t, k, j in mine if t == task}
         res = evaluate_task(cfg, task, by_task[task], models, seeds, engine, progress, chunks)
         longest = max(longest, time.perf_counter() - t_task)
         res["seeds"] = seeds
@@ -904,7 +970,8 @@ def _merged_parts(cfg: EvalConfig, out: Path, task: str, sources) -> dict | None
                      if (m := re.fullmatch(rf"{re.escape(task)}\.part\d+of(\d+)\.npz", f.name))}):
         files = [out / "tasks" / f"{task}.part{k}of{n}.npz" for k in range(n)]
         if all(f.exists() for f in files):
-            order = [s.name for part, _ in task_chunks(cfg, sources, cfg.episodes) for s in part]
+            order = list(dict.fromkeys(s.name for _, _, part, _ in task_batches(cfg, sources, cfg.episodes)
+                                       for s in part))
             return merge_task_parts(cfg, [load_task(f) for f in files], order)
     return None
 
@@ -935,7 +1002,7 @@ def load_features(out: Path, task: str, observed: bool = False) -> np.ndarray:
 
 def _save_task(path: Path, res: dict) -> None:
     meta = {"names": res["names"], "video_index": res["video_index"], "sim_s": res["sim_s"], "wm_s": res["wm_s"],
-            "steps": res["steps"], "seeds": res["seeds"]}
+            "steps": res["steps"], "seeds": res["seeds"], **({"slices": res["slices"]} if "slices" in res else {})}
     arrays = {"true": res["true"], "prob": res["prob"], **{k: res[k] for k in READOUT_KEYS + FIDELITY},
               "prob_observed": res["prob_observed"], "prob_replayed": res["prob_replayed"], "sim_finite": res["sim_finite"],
               "prob_members": res["prob_members"],

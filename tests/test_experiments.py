@@ -180,6 +180,51 @@ def test_parts_share_out_a_tasks_batches_and_merge_into_the_unsplit_results(eval
         E.merge_task_parts(cfg, [E.load_task(split / "tasks" / "mug.part0of2.npz")], whole["names"])
 
 
+def test_state_slices_share_one_program_and_parts_join_them_into_the_unsliced_results(evaluation, tmp_path,
+                                                                                    monkeypatch):
+    """state_batch=1 runs the fixture's 2 states as two slices of one batch shape: the second compiles
+    nothing; the outcomes, predictions and kept features are those of the unsliced run; two parts,
+    one slice each, join into the same."""
+    from experiments.timing import compile_snapshot, compiled_since
+
+    cfg, out, res = evaluation
+    with pytest.raises(ValueError, match="state_batch must divide"):
+        dataclasses.replace(cfg, state_batch=3).validate()
+    sliced = dataclasses.replace(cfg, state_batch=1)
+    assert [(k, j, len(part)) for k, j, part, _ in E.task_batches(sliced, resolve(cfg.policies), 2)] == [
+        (0, 0, 5), (0, 1, 5)]
+    starts = []
+    simulate = E.simulate_truth
+
+    def noting(*a, **k):
+        starts.append(compile_snapshot())
+        return simulate(*a, **k)
+
+    monkeypatch.setattr(E, "simulate_truth", noting)
+    E.run(sliced, tmp_path / "sliced", progress=False)
+    assert len(starts) == 2 and compiled_since(starts[1])["programs_compiled"] == 0
+    whole, got = E.load_task(out / "tasks" / "mug.npz"), E.load_task(tmp_path / "sliced" / "tasks" / "mug.npz")
+    assert got["names"] == whole["names"] and np.array_equal(got["true"], whole["true"])
+    for key in ("prob", "prob_members", "prob_observed", "prob_replayed") + E.TRACES + E.READOUT_KEYS + E.FIDELITY:
+        np.testing.assert_allclose(got[key], whole[key], atol=2e-3, err_msg=key)
+    for observed in (False, True):
+        np.testing.assert_allclose(E.load_features(tmp_path / "sliced", "mug", observed).astype(np.float32),
+                                   E.load_features(out, "mug", observed).astype(np.float32), atol=0.02)
+    parts = tmp_path / "parts"
+    split = dataclasses.replace(sliced, keep_features=False)
+    for k in range(2):
+        assert E.run(split, parts, progress=False, part=(k, 2)) is None
+        share = E.load_task(parts / "tasks" / f"mug.part{k}of2.npz")
+        assert share["slices"] == [k] * 5 and share["true"].shape == (5, 1)  # every policy, one state
+    E.run(split, parts, progress=False)
+    merged = E.load_task(parts / "tasks" / "mug.npz")
+    assert merged["names"] == whole["names"] and np.array_equal(merged["true"], whole["true"])
+    np.testing.assert_allclose(merged["prob_members"], whole["prob_members"], atol=2e-3)
+    (parts / "tasks" / "mug.npz").unlink()
+    with pytest.raises(ValueError, match="of the task's 2 states"):
+        E.merge_task_parts(split, [E.load_task(parts / "tasks" / "mug.part0of2.npz")], whole["names"])
+
+
 def test_violation_table_lists_the_policies_that_carry_each_tasks_mmrv():
     rows = [{"task": "mug", "name": n, "pred_rate": p, "true_rate": t, "action_gap": g}
             for n, p, t, g in zip("abcd", [0.9, 0.5, 0.1, 0.6], [0.1, 0.5, 0.0, 0.8], [0.1, 0.2, 0.3, 0.4])]
