@@ -491,7 +491,7 @@ def violation_table(res: dict) -> list[list[str]] | None:
         median = f" ({_fmt(float(np.median(gaps)), 3)})" if gaps else ""
         for k, p in enumerate(v["policies"]):
             rows.append([t if k == 0 else "", _fmt(v["mmrv"], 2) if k == 0 else "", p["name"],
-                         _fmt(p["true_rate"], 2), _fmt(p["pred_rate"], 2), *[_fmt(p.get(k), 2) for k, _ in extra],
+                         _fmt(p["true_rate"], 2), _fmt(p["pred_rate"], 2), *[_fmt(p.get(key), 2) for key, _ in extra],
                          f"{100 * p['share']:.0f}%",
                          str(p["against"]), _fmt(p.get("action_gap"), 3) + median])
     return rows
