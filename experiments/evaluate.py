@@ -105,6 +105,8 @@ FIDELITY_HORIZONS = (1, 8, 16, 32, 64)
 # Per-episode arrays of the imagination's fidelity to the simulated episode: frame PSNR and copy-first
 # PSNR at each horizon (P, N, H), the RMS gap of the policy's actions at each step (P, N, T)
 FIDELITY = ("frame_psnr", "copy_first_psnr", "action_gap")
+# a task's per-policy arrays, (P, N, ...) (the ensemble members' prob_members, (K, P, N), apart)
+POLICY_ARRAYS = ("true", "prob", "prob_observed", "prob_replayed", "sim_finite") + READOUT_KEYS + TRACES + FIDELITY
 READOUT_LABELS = {"progress": "progress head at the last step", "judge": "episode judge",
                   "success": "highest per-step success probability"}
 
@@ -316,15 +318,14 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
                                                 truth.get("frames"), each[0]["frames"])
         bar.update(len(part) * n)
     bar.close()
-    timing = {"sim_s": sim_s, "wm_s": wm_s, "steps": steps}
-    if chunks is not None:
+    if chunks is None:
+        res = join_slices(rows, len(models), len(seeds))
+        first = list(range(len(res["names"])))
+    else:
         res = _stack_rows(rows, len(models), slices[0][1] - slices[0][0])
         first = [r for r, j in enumerate(res["slices"]) if j == 0]
-        videos, index = _select_videos(cfg, task, [res["names"][r] for r in first], res["true"][first], kept)
-        return {**res, "videos": videos, "video_index": index, **timing}
-    res = join_slices(rows, len(models), len(seeds))
-    videos, index = _select_videos(cfg, task, res["names"], res["true"], kept)
-    return {**res, "videos": videos, "video_index": index, **timing}
+    videos, index = _select_videos(cfg, task, [res["names"][r] for r in first], res["true"][first], kept)
+    return {**res, "videos": videos, "video_index": index, "sim_s": sim_s, "wm_s": wm_s, "steps": steps}
 
 
 def _predict_batch(cfg: EvalConfig, task: str, models, policy, params, truth: dict, rng) -> tuple[dict, list]:
@@ -408,8 +409,7 @@ def merge_task_parts(cfg: EvalConfig, parts: list, order: list) -> dict:
     (the least and most successful are always among them). A part given none of the task's batches
     (more parts than batches) holds no rows and is passed over."""
     parts = [p for p in parts if p["names"]] or parts[:1]
-    keys = ("true", "prob", "prob_observed", "prob_replayed", "sim_finite") + READOUT_KEYS + TRACES + FIDELITY
-    rows = [(name, j, {**{key: p[key][r] for key in keys}, "prob_members": p["prob_members"][:, r].T})
+    rows = [(name, j, {**{key: p[key][r] for key in POLICY_ARRAYS}, "prob_members": p["prob_members"][:, r].T})
             for p in parts for r, (name, j) in enumerate(zip(p["names"], p.get("slices") or [0] * len(p["names"])))]
     n = len(parts[0]["seeds"])
     if sorted({name for name, _, _ in rows}) != sorted(order):
@@ -1003,10 +1003,7 @@ def load_features(out: Path, task: str, observed: bool = False) -> np.ndarray:
 def _save_task(path: Path, res: dict) -> None:
     meta = {"names": res["names"], "video_index": res["video_index"], "sim_s": res["sim_s"], "wm_s": res["wm_s"],
             "steps": res["steps"], "seeds": res["seeds"], **({"slices": res["slices"]} if "slices" in res else {})}
-    arrays = {"true": res["true"], "prob": res["prob"], **{k: res[k] for k in READOUT_KEYS + FIDELITY},
-              "prob_observed": res["prob_observed"], "prob_replayed": res["prob_replayed"], "sim_finite": res["sim_finite"],
-              "prob_members": res["prob_members"],
-              **{k: res[k] for k in TRACES},
+    arrays = {**{k: res[k] for k in POLICY_ARRAYS + ("prob_members",)},
               "meta": np.frombuffer(json.dumps(meta).encode(), np.uint8)}
     arrays.update({f"video:{k}": v for k, v in res["videos"].items()})
     tmp = path.with_name(path.stem + ".tmp.npz")
