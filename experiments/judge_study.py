@@ -74,6 +74,9 @@ VARIANTS = {
     "refit_1024": Variant(episodes=1024),  # TrainConfig's default judge_episodes, fit again
     "all": Variant(),
     "all_no_action": Variant(inputs=tuple(g for g in FEATURE_GROUPS if g != "action")),
+    # without the outcome head, which learns each window's final success from what it shows so far
+    # (the task, the scene, the phase), the judge must read what the imagined steps did
+    "all_no_outcome": Variant(inputs=tuple(g for g in FEATURE_GROUPS if g != "outcome")),
     "all_proprio_progress": Variant(inputs=("proprio", "progress")),
     "rollouts_only": Variant(rollouts_only=True),
     "all_observed": Variant(observed=True),
@@ -87,7 +90,7 @@ SAVED = "saved_judge"  # the judge fit with the world model, if any, on the kept
 FOLDS = 4
 # The order variants are fit in by default: what matters most first, so a run cut short keeps it.
 DEFAULT_ORDER = (SAVED, "refit_1024", BOUND, OBSERVED_BOUND, "all", "all_observed", "all_no_action",
-                 "all_proprio_progress", "rollouts_only")
+                 "all_no_outcome", "all_proprio_progress", "rollouts_only")
 SPECIAL = (BOUND, SAVED, OBSERVED_BOUND)
 
 
