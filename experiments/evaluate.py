@@ -62,7 +62,7 @@ from sim_data.config import preset_config, preset_help
 from sim_data.dataset.cache import TrainingCache
 from sim_data.dataset.generate import cached_env, cached_renderers, package_versions
 from sim_data.parts import add_part_argument, config_and_part, exclusive
-from sim_data.policies.bc import MixedPolicy, StackedPolicy, stack_params
+from sim_data.policies.bc import MixedPolicy, stacked
 from sim_data.policies.registry import (
     group_by_policy,
     heldout_seeds,
@@ -247,11 +247,11 @@ def chunk_policy(padded, n: int) -> tuple:
     architecture's checkpoints, in a MixedPolicy where the batch holds several architectures (one
     compiled rollout, in the simulator and in the world model, for all of them)."""
     groups = group_by_policy(padded)
-    stacked = [(StackedPolicy(g[0].policy), stack_params([s.params for s in g])) for g in groups]
-    if len(stacked) == 1:
-        return stacked[0]
-    return (MixedPolicy(tuple(p for p, _ in stacked), tuple(len(g) * n for g in groups)),
-            tuple(q for _, q in stacked))
+    stacks = [stacked(g[0].policy, [s.params for s in g]) for g in groups]
+    if len(stacks) == 1:
+        return stacks[0]
+    return (MixedPolicy(tuple(p for p, _ in stacks), tuple(len(g) * n for g in groups)),
+            tuple(q for _, q in stacks))
 
 
 def balance_chunks(sizes: dict, n_parts: int) -> dict:
@@ -775,13 +775,13 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
     report shows that preset's targets."""
     cfg.validate()
     out = Path(out)
-    make_output_dir(out / "tasks")
-    _check_config(cfg, out)
-    sources = resolve(cfg.policies)
+    sources = resolve(cfg.policies)  # the policies and models are checked before OUT records the configuration
     tasks = list(cfg.tasks) or sorted({s.task for s in sources if s.task})
     if not tasks:
         raise ValueError("no task to evaluate: the policies are all plug-ins; name tasks=...")
     models = load_models(cfg.wm_runs)
+    make_output_dir(out / "tasks")
+    _check_config(cfg, out)
     cfg = dataclasses.replace(cfg, readout=auto_readout(cfg.readout, cfg.wm_runs, models))
     wm_data = str(load_run_config(Path(cfg.wm_runs[0]))[1])  # the first model's data: the tasks it saw
     wm_cache = TrainingCache(wm_data) if (Path(wm_data) / "cache" / "index.json").exists() else None

@@ -47,8 +47,12 @@ def _png(fig) -> str:
     return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode()
 
 
+def _missing(x) -> bool:
+    return x is None or (isinstance(x, float) and math.isnan(x))
+
+
 def _fmt(x, digits=3) -> str:
-    if x is None or (isinstance(x, float) and math.isnan(x)):
+    if _missing(x):
         return "n/a"
     return f"{x:.{digits}f}" if isinstance(x, float) else str(x)
 
@@ -295,6 +299,15 @@ def verdict(res: dict) -> str:
     w = res["metrics"]["within_task"]
     wm, px, diff = w["world_model"], w["proxy"], w["difference"]["proxy"]
     tasks = w["tasks"]
+    if _missing(wm["mean"]["pearson"]):
+        counts = ", ".join(f"{t} {sum(p['task'] == t for p in res['policies'])}" for t in tasks)
+        return ("No within-task ranking to judge: a task's Pearson r needs at least two of its policies whose "
+                f"true and predicted rates both vary (policies per task: {counts}).")
+    if _missing(px["mean"]["pearson"]):
+        return ("The imitation-loss proxy has no within-task figure here (it needs at least two policies of a task "
+                "with a validation loss; plug-ins have none): the world model alone ranks at a mean within-task "
+                f"Pearson r {_ci(wm['mean']['pearson'], wm['mean_ci']['pearson'])} (95% interval resampling "
+                f"{w['resamples']}).")
     ahead = [t for t in tasks if (diff["per_task_ci"][t]["pearson"][0] or -1) > 0]
     behind = [t for t in tasks if (diff["per_task_ci"][t]["pearson"][1] or 1) < 0]
     lo = diff["mean_ci"]["pearson"][0]

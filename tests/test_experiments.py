@@ -14,7 +14,7 @@ from conftest import SMOKE_EVAL, build_once
 
 from experiments import evaluate as E
 from experiments import stats as S
-from experiments.report import family_table, violation_table, write_report
+from experiments.report import family_table, verdict, violation_table, write_report
 from sim_data.parts import exclusive
 from sim_data.policies.bc import MixedPolicy, StackedPolicy
 from sim_data.policies.registry import resolve
@@ -528,3 +528,28 @@ def test_kept_features_are_the_imaginations_the_read_outs_read(evaluation):
     assert on_truth[cfg.readout].reshape(p, n) == pytest.approx(task["prob_observed"], abs=0.02)
     with pytest.raises(FileNotFoundError, match="keep_features=1"):
         E.load_features(out, "wipe")
+
+
+def _within(wm_r, proxy_r):
+    """A one-task within_task block whose mean Pearson r is wm_r for the world model, proxy_r for the proxy."""
+    def stat(r):
+        ci = [None, None] if r is None else [r - 0.1, r + 0.1]
+        return {"mean": {"pearson": r}, "mean_ci": {"pearson": ci}}
+
+    return {"tasks": ["mug"], "resamples": "policies and initial states", "world_model": stat(wm_r),
+            "proxy": stat(proxy_r), "difference": {"proxy": {**stat(None), "per_task_ci": {"mug": {"pearson": [None, None]}}}}}
+
+
+def test_the_verdict_says_when_there_is_no_ranking_or_no_proxy_to_compare():
+    one = {"policies": [{"task": "mug"}], "metrics": {"within_task": _within(None, None)}}
+    assert verdict(one).startswith("No within-task ranking to judge") and "mug 1" in verdict(one)
+    plugins = {"policies": [{"task": "mug"}] * 3, "metrics": {"within_task": _within(0.5, float("nan"))}}
+    assert verdict(plugins).startswith("The imitation-loss proxy has no within-task figure")
+    assert "0.50 [0.40, 0.60]" in verdict(plugins)
+
+
+def test_a_bad_policy_spec_fails_before_out_records_a_configuration(tmp_path):
+    cfg = E.EvalConfig(policies=("no_such_package.policies:make",), wm="runs/wm/none", tasks=("mug",))
+    with pytest.raises(ValueError, match="cannot import"):
+        E.run(cfg, tmp_path / "out", progress=False)
+    assert not (tmp_path / "out" / "config.json").exists()

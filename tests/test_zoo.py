@@ -12,7 +12,13 @@ import pytest
 from sim_data.dataset import generate as G
 from sim_data.dataset.episodes import read_episode
 from sim_data.policies import zoo
-from sim_data.policies.bc import BCPolicy, StackedPolicy, predict_chunk, stack_params
+from sim_data.policies.bc import (
+    BCPolicy,
+    StackedPolicy,
+    predict_chunk,
+    stack_params,
+    stacked,
+)
 from sim_data.policies.registry import every_nth_checkpoint, resolve, used_policies
 from sim_data.sim import robot as R
 from sim_data.sim.env import HomeEnv
@@ -131,6 +137,30 @@ def test_readme_plugin_example_runs_in_the_simulator():
     env = HomeEnv("step_back", 2, engine="cpu")
     state, _ = run_episodes(env, source.policy, source.params, jax.random.PRNGKey(3))
     assert np.asarray(state.success).all()  # it backs 0.6 m away, clear of the stool
+
+
+@dataclasses.dataclass(frozen=True)
+class _CountingSteps:
+    """A plug-in without parameters: every action entry is the number of steps it has taken."""
+
+    def init_carry(self, params, obs, task_state, rng):
+        return jnp.zeros((obs["proprio"].shape[0],), jnp.int32)
+
+    def act(self, params, obs, carry, rng):
+        return jnp.broadcast_to(carry[:, None].astype(jnp.float32), (carry.shape[0], R.ACTION_DIM)), carry + 1
+
+
+@pytest.mark.parametrize("params", [{}, None])
+def test_plugins_without_parameters_run_side_by_side(params):
+    policy, stacked_params = stacked(_CountingSteps(), [params] * 3)
+    obs = {"image": jnp.zeros((6, 64, 64, 3), jnp.uint8), "proprio": jnp.zeros((6, R.PROPRIO_DIM))}
+    carry = policy.init_carry(stacked_params, obs, None, jax.random.PRNGKey(0))
+    for k in range(2):
+        action, carry = policy.act(stacked_params, obs, carry, jax.random.PRNGKey(k))
+    assert policy.count(stacked_params) == 3 and action.shape == (6, R.ACTION_DIM)
+    assert np.all(np.asarray(action) == 1) and np.all(np.asarray(carry) == 2)
+    with pytest.raises(ValueError, match="stacked"):  # nothing to count the parameter sets from
+        StackedPolicy(_CountingSteps()).count(stacked_params)
 
 
 def test_bad_policy_specs_are_refused():

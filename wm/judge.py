@@ -36,7 +36,7 @@ import optax
 from flax import serialization
 from tqdm import tqdm
 
-from sim_data.policies.bc import StackedPolicy, stack_params
+from sim_data.policies.bc import stacked
 from sim_data.policies.registry import resolve
 from sim_data.util import write_json_atomic
 from wm.checkpoint import run_file
@@ -165,7 +165,8 @@ def _closed_loop_features(cfg: ModelConfig, params, norm: Norm, cache, group, ca
     outs = []
     for k, part, n in padded_chunks(group):
         eps = [cache.episode(i, cameras=[camera]) for i, _ in part]
-        got = closed_loop(cfg, StackedPolicy(policy), horizon, params, norm, stack_params([s.params for _, s in part]),
+        stacked_policy, policy_params = stacked(policy, [s.params for _, s in part])
+        got = closed_loop(cfg, stacked_policy, horizon, params, norm, policy_params,
                           np.stack([ep["frames"][camera][:1] for ep in eps]), np.stack([ep["proprio"][:1] for ep in eps]),
                           np.zeros((len(part), 0, cfg.action_dim), np.float32), jax.random.PRNGKey(seed + k))
         outs.append(np.asarray(got["features"])[:n])

@@ -35,7 +35,7 @@ import numpy as np
 
 from sim_data.bench.policy import identity_norm
 from sim_data.dataset.generate import cached_env, cached_renderers
-from sim_data.policies.bc import BCPolicy, StackedPolicy, init_params, stack_params
+from sim_data.policies.bc import BCPolicy, init_params, stacked
 from sim_data.policies.registry import group_by_policy, resolve
 from sim_data.policies.zoo import PRESETS as ZOO_PRESETS
 from sim_data.sim.engines import default_engine
@@ -52,14 +52,14 @@ def batch_policies(spec: str, task: str) -> tuple:
     if not spec:
         net = ZOO_PRESETS["full"].conv
         params = [init_params(net, jax.random.PRNGKey(k), identity_norm(), use_proprio=True) for k in range(2)]
-        return StackedPolicy(BCPolicy(net)), stack_params(params), ["fresh_conv/0", "fresh_conv/1"]
+        return (*stacked(BCPolicy(net), params), ["fresh_conv/0", "fresh_conv/1"])
     sources = [s for s in resolve([spec]) if s.task in (None, task)]
     if not sources:
         raise ValueError(f"{spec} selects no policy of task {task}")
     groups = group_by_policy(sources)
     if len(groups) > 1:
         raise ValueError(f"{spec} selects policies of {len(groups)} networks; select one lineage's checkpoints")
-    return StackedPolicy(sources[0].policy), stack_params([s.params for s in sources]), [s.name for s in sources]
+    return (*stacked(sources[0].policy, [s.params for s in sources]), [s.name for s in sources])
 
 
 def record(task: str, states: int, engine: str, spec: str, seed: int = 0) -> dict:

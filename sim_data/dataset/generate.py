@@ -39,7 +39,7 @@ from sim_data.dataset.episodes import (  # noqa: F401 (re-exported)
     write_episode_mcap,
 )
 from sim_data.parts import add_part_argument, config_and_part, exclusive, take
-from sim_data.policies.bc import StackedPolicy, stack_params
+from sim_data.policies.bc import stacked
 from sim_data.policies.degrade import GOLDEN, perturbation
 from sim_data.policies.registry import PERTURBED, PolicySource, perturbed_copy
 from sim_data.policies.registry import resolve as resolve_sources
@@ -565,7 +565,7 @@ def _policy_and_params(cfg: DataConfig, chunk: Chunk, rows: list, env: HomeEnv) 
         params = pad_programs(script_or_program_params(skill, table, program, grip), MAX_EPISODE_STEPS)
         return _policy(), params
     slots = [rows[k:k + chunk.width] for k in range(0, len(rows), chunk.width)]
-    return StackedPolicy(chunk.key), stack_params([slot[0][0].episodes_params([i for _, i in slot]) for slot in slots])
+    return stacked(chunk.key, [slot[0][0].episodes_params([i for _, i in slot]) for slot in slots])
 
 
 def weak_grip_factor(i: int) -> float:

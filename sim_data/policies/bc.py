@@ -201,9 +201,11 @@ class BCPolicy:
 class StackedPolicy:
     """P policies of one protocol object with stacked parameters (every leaf has a leading P axis),
     run as one batch: episodes [i*n, (i+1)*n) of a batch of B = P*n use parameters i. One compiled
-    rollout then serves a whole checkpoint series."""
+    rollout then serves a whole checkpoint series. size: P, for parameter trees without arrays to
+    count it from (a plug-in whose params are {} or None); `stacked` sets it."""
 
     policy: object
+    size: int = 0
 
     @staticmethod
     def _split(x, p):
@@ -211,7 +213,13 @@ class StackedPolicy:
 
     def count(self, params) -> int:
         """P, the parameter sets stacked in params."""
-        return jax.tree_util.tree_leaves(params)[0].shape[0]
+        leaves = jax.tree_util.tree_leaves(params)
+        if leaves:
+            return leaves[0].shape[0]
+        if self.size < 1:
+            raise ValueError("parameters without arrays: build the StackedPolicy with stacked(policy, params_list), "
+                             "which records how many sets it stacks")
+        return self.size
 
     def init_carry(self, params, obs, task_state, rng):
         p = self.count(params)
@@ -273,6 +281,12 @@ class MixedPolicy:
 
 def _rows(tree, s: slice):
     return jax.tree_util.tree_map(lambda x: x[s], tree)
+
+
+def stacked(policy, params_list: list) -> tuple:
+    """(StackedPolicy of policy, its stacked parameters): P = len(params_list) parameter sets of one
+    policy object run side by side as one batch (see StackedPolicy)."""
+    return StackedPolicy(policy, size=len(params_list)), stack_params(params_list)
 
 
 def stack_params(params_list: list) -> dict:

@@ -45,11 +45,11 @@ from sim_data.dataset.generate import cached_env, cached_renderers
 from sim_data.parts import add_part_argument, config_and_part, take
 from sim_data.policies.bc import (
     PolicyNetConfig,
-    StackedPolicy,
     init_params,
     predict_chunk,
     save_params,
     stack_params,
+    stacked,
 )
 from sim_data.policies.degrade import KNOBS, degrade_params
 from sim_data.policies.registry import (
@@ -548,8 +548,8 @@ def measure_success(out: Path, episodes: int, seed: int = 0, engine: str = "", b
                                            for p in padded_chunks(g, episodes, batch)):
             env = cached_env(task, len(padded) * episodes, engine, False)
             renderers = cached_renderers(part[0].policy.cfg.size, ("head_cam",))
-            outcome, _ = record_policies(env, StackedPolicy(part[0].policy), stack_params([s.params for s in padded]),
-                                         keys, jax.random.PRNGKey(seed * 7919 + k), renderers)
+            outcome, _ = record_policies(env, *stacked(part[0].policy, [s.params for s in padded]), keys,
+                                         jax.random.PRNGKey(seed * 7919 + k), renderers)
             for j, src in enumerate(part):
                 n_ok = int(outcome[j].sum())
                 got.append({"name": src.name, "task": task, "lineage": src.record["lineage"],
