@@ -131,6 +131,25 @@ def test_learned_policies_follow_the_protocol_and_stack(smoke_zoo):
     np.testing.assert_array_equal(np.asarray(a1), np.asarray(a2))
 
 
+def test_stacked_conv_checkpoints_run_in_turn_with_the_actions_of_side_by_side(smoke_zoo):
+    out, _ = smoke_zoo
+    sources = resolve([f"{out}#conv_proprio"])[:2]
+    assert sources[0].policy.stacks_in_turn and not resolve([f"{out}#vit_noproprio"])[0].policy.stacks_in_turn
+    policy, params = stacked(sources[0].policy, [s.params for s in sources] + [sources[0].params])
+    assert policy.in_turn and policy.count(params) == 3
+    side_by_side = dataclasses.replace(policy, in_turn=False)
+    rng = np.random.default_rng(1)
+    obs = {"image": jnp.asarray(rng.integers(0, 255, (6, 64, 64, 3), dtype=np.uint8)),
+           "proprio": jnp.asarray(rng.normal(size=(6, R.PROPRIO_DIM)), jnp.float32)}
+    got = []
+    for pol in (policy, side_by_side):
+        init, act = compiled(pol)
+        carry = init(params, obs, None, jax.random.PRNGKey(0))
+        got.append([np.asarray(x) for x in act(params, obs, carry, jax.random.PRNGKey(1))])
+    np.testing.assert_allclose(got[0][0], got[1][0], atol=1e-5)
+    np.testing.assert_array_equal(got[0][1], got[1][1])
+
+
 def test_readme_plugin_example_runs_in_the_simulator():
     (source,) = resolve(["examples.plugin_policy:make"])
     assert source.kind == "plugin" and source.runs_on("step_back") and source.runs_on("mug")

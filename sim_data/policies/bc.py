@@ -178,6 +178,11 @@ class BCPolicy:
 
     cfg: PolicyNetConfig
 
+    @property
+    def stacks_in_turn(self) -> bool:
+        """Stacked checkpoints of a convolutional encoder run one after another (StackedPolicy.in_turn)."""
+        return self.cfg.encoder == "conv"
+
     def init_carry(self, params, obs, task_state, rng):
         del params, task_state, rng
         t = jnp.zeros((obs["proprio"].shape[0],), jnp.int32)
@@ -202,10 +207,15 @@ class StackedPolicy:
     """P policies of one protocol object with stacked parameters (every leaf has a leading P axis),
     run as one batch: episodes [i*n, (i+1)*n) of a batch of B = P*n use parameters i. One compiled
     rollout then serves a whole checkpoint series. size: P, for parameter trees without arrays to
-    count it from (a plug-in whose params are {} or None); `stacked` sets it."""
+    count it from (a plug-in whose params are {} or None); `stacked` sets it. in_turn: run the P
+    policies one after another inside the program (`lax.map`) instead of side by side (`vmap`):
+    vmapped convolutions become grouped convolutions, which run several times slower than the same
+    convolutions one parameter set at a time (`stacked` sets it for policies whose `stacks_in_turn`
+    is true); the actions agree to float rounding."""
 
     policy: object
     size: int = 0
+    in_turn: bool = False
 
     @staticmethod
     def _split(x, p):
@@ -221,19 +231,24 @@ class StackedPolicy:
                              "which records how many sets it stacks")
         return self.size
 
+    def _each(self, fn, *stacks):
+        """fn applied to each of the P slices of the stacked trees, its outputs stacked again."""
+        if self.in_turn:
+            return jax.lax.map(lambda args: fn(*args), stacks)
+        return jax.vmap(fn)(*stacks)
+
     def init_carry(self, params, obs, task_state, rng):
         p = self.count(params)
-        obs = jax.tree_util.tree_map(lambda x: self._split(x, p), obs)
-        ts = None if task_state is None else jax.tree_util.tree_map(lambda x: self._split(x, p), task_state)
+        split = lambda tree: jax.tree_util.tree_map(lambda x: self._split(x, p), tree)
         keys = jax.random.split(rng, p)
-        carry = jax.vmap(self.policy.init_carry, in_axes=(0, 0, None if ts is None else 0, 0))(params, obs, ts, keys)
+        carry = self._each(self.policy.init_carry, params, split(obs), split(task_state), keys)
         return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), carry)
 
     def act(self, params, obs, carry, rng):
         p = self.count(params)
         split = lambda tree: jax.tree_util.tree_map(lambda x: self._split(x, p), tree)
         keys = jax.random.split(rng, p)
-        action, carry = jax.vmap(self.policy.act)(params, split(obs), split(carry), keys)
+        action, carry = self._each(self.policy.act, params, split(obs), split(carry), keys)
         merge = lambda tree: jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), tree)
         return merge(action), merge(carry)
 
@@ -285,8 +300,9 @@ def _rows(tree, s: slice):
 
 def stacked(policy, params_list: list) -> tuple:
     """(StackedPolicy of policy, its stacked parameters): P = len(params_list) parameter sets of one
-    policy object run side by side as one batch (see StackedPolicy)."""
-    return StackedPolicy(policy, size=len(params_list)), stack_params(params_list)
+    policy object run as one batch (see StackedPolicy), in turn where the policy's `stacks_in_turn` says so."""
+    in_turn = bool(getattr(policy, "stacks_in_turn", False))
+    return StackedPolicy(policy, size=len(params_list), in_turn=in_turn), stack_params(params_list)
 
 
 def stack_params(params_list: list) -> dict:

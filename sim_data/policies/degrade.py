@@ -79,6 +79,10 @@ class DegradedPolicy:
         """The base network's configuration (its image size is the renderer's)."""
         return self.base.cfg
 
+    @property
+    def stacks_in_turn(self) -> bool:
+        return bool(getattr(self.base, "stacks_in_turn", False))
+
     def init_carry(self, params, obs, task_state, rng):
         b = obs["proprio"].shape[0]
         return {"base": self.base.init_carry(params["base"], obs, task_state, rng),
