@@ -273,9 +273,9 @@ def test_report_renders_figures_and_videos(evaluation):
     md = (out / "report.md").read_text()
     assert "| pearson |" in md and "examples.plugin_policy:make" in md
     # the verdict first, then the within-task table with the proxy beside the world model, the pooled row last
-    verdict, within, pooled = (md.index(x) for x in ("mean within-task Pearson r", "## Within-task ranking",
-                                                     "## Pooled over tasks (secondary)"))
-    assert verdict < within < pooled and "| imitation-loss proxy |" in md
+    first, within, pooled = (md.index(x) for x in (f"**{verdict(res)}**", "## Within-task ranking",
+                                                   "## Pooled over tasks (secondary)"))
+    assert first < within < pooled and "| imitation-loss proxy |" in md
     # rows of the per-task table: the other read-outs, and the read-out of the true episodes
     assert "| world model, progress read-out |" in md and "| world model, success read-out |" in md
     assert "| the read-out of the true episodes |" in md
