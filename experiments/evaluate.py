@@ -368,15 +368,15 @@ def _stack_rows(rows: list, k: int, n: int) -> dict:
     "names" and "slices" per row; prob_members (K, rows, N)."""
     if not rows:
         return _empty_rows(k, n)
-    out = {key: np.stack([r[2][key] for r in rows]) for key in _common_keys(rows)}
+    out = {key: np.stack([r[2][key] for r in rows]) for key in _common_keys([r[2] for r in rows])}
     out["prob_members"] = out["prob_members"].transpose(2, 0, 1)
     return {"names": [r[0] for r in rows], "slices": [r[1] for r in rows], **out}
 
 
-def _common_keys(rows: list) -> list:
-    """The keys every row's arrays have, in the first row's order (a batch read from the truth cache
+def _common_keys(arrays: list) -> list:
+    """The keys every dict of arrays has, in the first one's order (a batch read from the truth cache
     has no features of the simulated episodes)."""
-    return [key for key in rows[0][2] if all(key in r[2] for r in rows)]
+    return [key for key in arrays[0] if all(key in a for a in arrays)]
 
 
 def join_slices(rows: list, k: int, n: int) -> dict:
@@ -392,7 +392,7 @@ def join_slices(rows: list, k: int, n: int) -> dict:
     joined = []
     for name, parts in by_name.items():
         ordered = [parts[j] for j in sorted(parts)]
-        got = {key: np.concatenate([a[key] for a in ordered]) for key in _common_keys([(0, 0, a) for a in ordered])}
+        got = {key: np.concatenate([a[key] for a in ordered]) for key in _common_keys(ordered)}
         if len(got["true"]) != n:
             raise ValueError(f"{name}: its batches hold {len(got['true'])} of the task's {n} states: rerun the parts "
                              "(--part K/N) of this evaluation")
