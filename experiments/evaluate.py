@@ -93,6 +93,7 @@ from wm.imagine import (
 )
 from wm.judge import check_features, load_judge
 from wm.metrics import psnr
+from wm.model import IMAGINE_MODES
 
 CAMERA = "head_cam"
 # Per-step arrays (P, N, T) saved with each task: imagined success and progress, the simulator's progress
@@ -152,6 +153,8 @@ class EvalConfig:
         statistics): the gap between it and the read-out of the true episodes is the dynamics'
         error under the policy's real actions; between the imagined and the replayed, what the
         policy acting on imagined frames changes. Costs one more imagination of every episode.
+      imagine: how the world models imagine (wm.model.ModelConfig.imagine: "window" or "cache") in
+        place of the setting each was trained with; "" keeps theirs.
     """
 
     policies: tuple = ()
@@ -172,6 +175,7 @@ class EvalConfig:
     truth_cache: str = ""
     keep_features: bool = False
     replay: bool = False
+    imagine: str = ""
 
     def validate(self) -> None:
         if not self.policies:
@@ -193,6 +197,8 @@ class EvalConfig:
         unknown = [t for t in self.tasks if t not in TASK_NAMES]
         if unknown:
             raise ValueError(f"unknown tasks {unknown}; choose among {', '.join(TASK_NAMES)}")
+        if self.imagine not in ("",) + IMAGINE_MODES:
+            raise ValueError(f"imagine must be one of {', '.join(IMAGINE_MODES)} or empty, got {self.imagine!r}")
         if len(set(self.wm_runs)) != len(self.wm_runs):
             raise ValueError(f"wm names a run twice: {self.wm}")
 
@@ -779,7 +785,7 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
     tasks = list(cfg.tasks) or sorted({s.task for s in sources if s.task})
     if not tasks:
         raise ValueError("no task to evaluate: the policies are all plug-ins; name tasks=...")
-    models = load_models(cfg.wm_runs)
+    models = load_models(cfg.wm_runs, cfg.imagine)
     make_output_dir(out / "tasks")
     _check_config(cfg, out)
     cfg = dataclasses.replace(cfg, readout=auto_readout(cfg.readout, cfg.wm_runs, models))
@@ -877,7 +883,7 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, models, wm
         "world_model": {"run": cfg.wm, "runs": list(cfg.wm_runs), "data": wm_data,
                         "train_tasks": train_tasks,
                         "training": training, "cut_short": any(t["cut_short"] for t in training),
-                        "readout": cfg.readout,
+                        "readout": cfg.readout, "imagine": wm_cfg.model.imagine,
                         "rule": {t: READOUT_LABELS["success"] if cfg.readout == "judge" and not
                                  (judge is not None and judge.knows(t)) else READOUT_LABELS[cfg.readout]
                                  for t in tasks}},
@@ -948,12 +954,15 @@ def auto_readout(readout: str, runs, models) -> str:
     return "judge" if with_rollouts else "progress"
 
 
-def load_models(runs) -> list:
+def load_models(runs, imagine: str = "") -> list:
     """[(TrainConfig, params, Norm, judge or None)] of world-model run directories, checked to draw
-    frames of one size (the simulator renders the first frame once for all of them)."""
+    frames of one size (the simulator renders the first frame once for all of them); imagine: their
+    imagination setting (wm.model.ModelConfig.imagine) in place of their own, unless empty."""
     models = []
     for run in runs:
         wm_cfg, params, norm = load_trained(Path(run))
+        if imagine:
+            wm_cfg = dataclasses.replace(wm_cfg, model=dataclasses.replace(wm_cfg.model, imagine=imagine))
         judge = load_judge(Path(run))
         if judge is not None:
             check_features(wm_cfg.model, judge)

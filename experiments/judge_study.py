@@ -200,6 +200,10 @@ def study(eval_dir: Path, out: Path, wm_run: Path | None = None, data: Path | No
     if unknown:
         raise ValueError(f"unknown variants {unknown}; choose among {', '.join([*VARIANTS, *SPECIAL])}")
     wm_cfg, params, norm = load_trained(wm_run)
+    # the evaluation's imagination setting, so that the judges learn from imaginations like those they read
+    imagine = json.loads((eval_dir / "config.json").read_text()).get("imagine", "")
+    if imagine:
+        wm_cfg = dataclasses.replace(wm_cfg, model=dataclasses.replace(wm_cfg.model, imagine=imagine))
     data = Path(data or load_run_config(wm_run)[1])
     if not (data / "cache" / "index.json").exists():
         raise FileNotFoundError(f"{data} holds no training cache: name the world model's data with --data")

@@ -304,6 +304,81 @@ def test_observed_features_read_the_true_episode_as_exact_imagination_would(mode
         np.testing.assert_allclose(x[:, t], features(norm, truth, action[:, t]), atol=2e-5, err_msg=str(t))
 
 
+# two layers: with one, a frame's prediction reads only the frames in its window whatever the mode
+DEEP = dataclasses.replace(CFG, depth=2)
+
+
+@pytest.fixture(scope="module")
+def deep_params():
+    params = init_params(DEEP, jax.random.PRNGKey(1), window=6)
+    noise = np.random.default_rng(2)
+    return jax.tree_util.tree_map(lambda x: x + 0.05 * noise.standard_normal(x.shape).astype(np.float32), params)
+
+
+def test_cached_steps_equal_the_training_forward_pass_over_a_long_window(model_and_inputs, deep_params):
+    """One frame at a time through the key-value cache gives what the training forward pass gives
+    over the whole sequence (sliding attention over K frames at every layer): each output at each
+    frame, from the first frame (no cache) to frames whose window has long slid past the start."""
+    _, frames, proprio, action = model_and_inputs
+    m, cache_cfg = WorldModel(DEEP), dataclasses.replace(DEEP, imagine="cache")
+    reps = 3  # 18 frames against a context of 4
+    frames, proprio, action = (np.concatenate([x] * reps, axis=1) for x in (frames, proprio, action))
+    proprio = proprio + np.random.default_rng(5).normal(size=proprio.shape).astype(np.float32)  # no repeats
+    z = compiled(m, WorldModel.encode)({"params": deep_params}, frames)
+    full = compiled(m, WorldModel.predict)({"params": deep_params}, z, proprio, action)
+    b, t, k = z.shape[0], z.shape[1], DEEP.context
+    cache = I.empty_cache(cache_cfg, b)
+    valid = jnp.zeros((b, k), bool)
+    one = jax.jit(functools.partial(I.predict_next, cache_cfg))
+    for i in range(t):
+        lo = max(0, i + 1 - k)
+        pad = k - (i + 1 - lo)
+        window = [np.concatenate([np.zeros((b, pad) + x.shape[2:], x.dtype), x[:, lo:i + 1]], axis=1)
+                  for x in (np.asarray(z), proprio, action)]
+        valid = jnp.concatenate([valid[:, 1:], jnp.ones((b, 1), bool)], axis=1)
+        out, cache = one(deep_params, *window, valid, cache)
+        for key in ("z", "proprio", "success", "outcome", "progress", "flow"):
+            np.testing.assert_allclose(out[key], full[key][:, i], rtol=1e-4, atol=1e-4, err_msg=f"{key} at {i}")
+    assert cache[0].shape == (b, DEEP.depth, k - 1, DEEP.tokens_per_frame, DEEP.heads, DEEP.dim // DEEP.heads)
+
+
+def test_cached_imagination_is_the_window_until_frames_leave_it_and_reads_true_episodes_as_training(
+        model_and_inputs, deep_params):
+    """Open loop from C context frames: the cache and the window agree while the buffer still holds
+    every frame (K - C + 1 steps) and part after it (the window's oldest frames lose their context,
+    the cache's keep theirs); the cached observed features are the training forward pass's heads."""
+    _, frames, proprio, action = model_and_inputs
+    norm = I.Norm(jnp.full(37, 0.1), jnp.full(37, 2.0), jnp.full(20, -0.2), jnp.full(20, 0.5))
+    cache_cfg = dataclasses.replace(DEEP, imagine="cache")
+    c, h = 2, 8
+    actions = jax.random.uniform(jax.random.PRNGKey(3), (2, h, 20), minval=-1.0, maxval=1.0)
+    args = (norm, frames[:, :c], proprio[:, :c], action[:, :c - 1], actions)
+    win, cached = I.open_loop(DEEP, deep_params, *args), I.open_loop(cache_cfg, deep_params, *args)
+    same = DEEP.context - c + 1
+    np.testing.assert_allclose(cached["success"][:, :same], win["success"][:, :same], atol=1e-5)
+    np.testing.assert_allclose(cached["features"][:, :same], win["features"][:, :same], atol=1e-4)
+    assert np.abs(cached["features"][:, same + 1:] - win["features"][:, same + 1:]).max() > 1e-3
+
+    m = WorldModel(DEEP)
+    reps = 3
+    frames, proprio, action = (np.concatenate([x] * reps, axis=1) for x in (frames, proprio, action))
+    t = frames.shape[1] - 1
+    x = np.asarray(I.observed_features(cache_cfg, deep_params, norm, frames, proprio, action[:, :t]))
+    z = compiled(m, WorldModel.encode)({"params": deep_params}, frames)
+    full = compiled(m, WorldModel.predict)({"params": deep_params}, z[:, :t], norm.proprio(proprio[:, :t]),
+                                           norm.action(action[:, :t]))
+    heads = np.stack([jax.nn.sigmoid(full[key]) for key in ("success", "outcome", "progress")], -1)
+    np.testing.assert_allclose(x[..., -3:], heads, atol=1e-5)
+    window = np.asarray(I.observed_features(DEEP, deep_params, norm, frames, proprio, action[:, :t]))
+    np.testing.assert_allclose(window[:, :DEEP.context, -3:], heads[:, :DEEP.context], atol=1e-5)
+    assert np.abs(window[:, DEEP.context + 1:, -3:] - heads[:, DEEP.context + 1:]).max() > 1e-4
+
+
+def test_imagine_mode_is_checked():
+    with pytest.raises(ValueError, match="imagine must be one of"):
+        dataclasses.replace(CFG, imagine="kv").validate()
+
+
 def test_reencoding_imagination_feeds_back_the_latents_of_the_decoded_8_bit_frame(model_and_inputs):
     params, frames, proprio, action = model_and_inputs
     norm = I.Norm(jnp.zeros(37), jnp.ones(37), jnp.zeros(20), jnp.ones(20))

@@ -3,6 +3,7 @@ with a policy in the loop; writes JSON.
 
     python -m wm.bench --out runs/bench/wm.json [--config full] [--imagine-batch 1024] [key=value ...]
     python -m wm.bench --train-only --profile 5 --out runs/bench/wm_profile.json   # + GPU time by kernel
+    python -m wm.bench --imagine-only --out runs/bench/imagine_cache.json model.imagine=cache
 
 MFU = (FLOPs of one train step from XLA's cost analysis of the lowered, not yet optimised, step) x
 (steps/s) / (the bf16 matrix-multiply rate measured on the same device: 8192^3 products, best of 10).
@@ -311,6 +312,8 @@ def main(argv=None) -> int:
     p.add_argument("overrides", nargs="*")
     p.add_argument("--flops-only", action="store_true", help="print the FLOPs of one train step and stop")
     p.add_argument("--train-only", action="store_true", help="time training only, not imagination")
+    p.add_argument("--imagine-only", action="store_true",
+                   help="time imagination only (model.imagine=window|cache picks how it reads its past)")
     p.add_argument("--profile", type=int, default=0, metavar="N",
                    help="also trace N train steps and write the GPU's time by kernel (a GPU only)")
     p.add_argument("--flops-by-shape", type=int, default=0, metavar="N",
@@ -353,6 +356,13 @@ def main(argv=None) -> int:
     if a.out is None:
         p.error("--out is required")
     cfg = make_config(preset, a.overrides)
+    if a.imagine_only:
+        report = {"device": device_name(), "config": preset, "overrides": list(a.overrides),
+                  "imagine": imagine_rate(cfg, a.imagine_batch or (1024 if gpu else 16), a.horizon)}
+        a.out.parent.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(a.out, report)
+        print(json.dumps(report, indent=1))
+        return 0
     if a.profile and not gpu:
         p.error("--profile sums the GPU's kernels: run it on a GPU")
     rate = matmul_rate()

@@ -498,7 +498,7 @@ def _save_strip(path: Path, pictures: dict, horizons) -> None:
 
 
 EVAL_KEYS = ("eval_context", "eval_episodes", "eval_horizons", "control_horizon", "eval_tasks", "model.keep_threshold",
-             "model.reencode")
+             "model.reencode", "model.imagine")
 
 
 def main(argv=None) -> int:

@@ -54,7 +54,9 @@ class ImagineState:
       (slot K-1 is filled by the next step); valid: (B, K) bool; frame: (B, S, S, 3) float32 in
       [0, 1], the current frame (decoded, or the last context frame); success: (B,) probability that
       the current frame is a success; outcome: (B,) predicted probability of the episode's success;
-      progress: (B,) predicted task progress in [0, 1] (sim_data.sim.tasks.task_progress).
+      progress: (B,) predicted task progress in [0, 1] (sim_data.sim.tasks.task_progress);
+      k, v: with cfg.imagine "cache", the attention keys and values of slots 0..K-2 at every layer
+      (B, depth, K-1, N, heads, D/heads), in the compute dtype; (B, 0) otherwise.
     """
 
     z: jax.Array
@@ -65,6 +67,8 @@ class ImagineState:
     success: jax.Array
     outcome: jax.Array
     progress: jax.Array
+    k: jax.Array
+    v: jax.Array
 
 
 def init_state(cfg: ModelConfig, params, norm: Norm, frames, proprio, actions) -> ImagineState:
@@ -85,22 +89,52 @@ def init_state(cfg: ModelConfig, params, norm: Norm, frames, proprio, actions) -
 
     acts = jnp.concatenate([norm.action(actions), jnp.zeros((b, 1, cfg.action_dim))], axis=1)
     valid = jnp.concatenate([jnp.zeros((b, pad), bool), jnp.ones((b, c), bool)], axis=1)
-    return ImagineState(z=place(z), proprio=place(norm.proprio(proprio)), action=place(acts), valid=valid,
+    z, p, a = place(z), place(norm.proprio(proprio)), place(acts)
+    k = v = jnp.zeros((b, 0))
+    if cfg.imagine == "cache":  # slot K-1's keys wait for its action: the first step computes them
+        out = model.apply({"params": params}, z, p, a, valid, with_kv=True, method=WorldModel.predict)
+        k, v = out["k"][:, :, :-1], out["v"][:, :, :-1]
+    return ImagineState(z=z, proprio=p, action=a, valid=valid,
                         frame=frames[:, -1].astype(jnp.float32) / 255.0, success=jnp.zeros((b,)),
-                        outcome=jnp.zeros((b,)), progress=jnp.zeros((b,)))
+                        outcome=jnp.zeros((b,)), progress=jnp.zeros((b,)), k=k, v=v)
+
+
+def empty_cache(cfg: ModelConfig, b: int) -> tuple:
+    """The keys and values of K-1 empty slots, (B, depth, K-1, N, heads, D/heads) each, for
+    cfg.imagine "cache"; (B, 0) otherwise."""
+    if cfg.imagine != "cache":
+        return jnp.zeros((b, 0)), jnp.zeros((b, 0))
+    shape = (b, cfg.depth, cfg.context - 1, cfg.tokens_per_frame, cfg.heads, cfg.dim // cfg.heads)
+    return jnp.zeros(shape, cfg.compute_dtype), jnp.zeros(shape, cfg.compute_dtype)
+
+
+def predict_next(cfg: ModelConfig, params, z, proprio, action, valid, cache: tuple) -> tuple[dict, tuple]:
+    """The dynamics' prediction for the frame after a buffer's last slot: z (B, K, 8, 8, C), proprio
+    (B, K, 37), action (B, K, 20) normalised, valid (B, K) bool; cache: (k, v) of slots 0..K-2 (cfg.imagine
+    "cache") or unused. Returns (predict's outputs at slot K-1, leaves (B, ...), the cache of slots
+    1..K-1: what the buffer's next step reads once it has pushed a frame)."""
+    model = WorldModel(cfg)
+    if cfg.imagine != "cache":
+        out = model.apply({"params": params}, z, proprio, action, valid, method=WorldModel.predict)
+        return {key: x[:, -1] for key, x in out.items()}, cache
+    past = {"k": cache[0], "v": cache[1], "valid": valid[:, :-1]}
+    out = model.apply({"params": params}, z[:, -1:], proprio[:, -1:], action[:, -1:], past=past,
+                      method=WorldModel.predict)
+    cache = tuple(jnp.concatenate([c[:, :, 1:], out.pop(key)], axis=2) for c, key in zip(cache, ("k", "v")))
+    return {key: x[:, -1] for key, x in out.items()}, cache
 
 
 def step(cfg: ModelConfig, params, norm: Norm, state: ImagineState, action) -> ImagineState:
     """Advances every imagined episode by one control step under action (B, 20)."""
     model = WorldModel(cfg)
     acts = state.action.at[:, -1].set(norm.action(action))
-    out = model.apply({"params": params}, state.z, state.proprio, acts, state.valid, method=WorldModel.predict)
+    out, (k, v) = predict_next(cfg, params, state.z, state.proprio, acts, state.valid, (state.k, state.v))
 
     def push(buf, new):
         return jnp.concatenate([buf[:, 1:], new[:, None]], axis=1)
 
-    z_next = out["z"][:, -1]
-    frame = model.apply({"params": params}, z_next, state.frame, out["flow"][:, -1], method=WorldModel.decode)
+    z_next = out["z"]
+    frame = model.apply({"params": params}, z_next, state.frame, out["flow"], method=WorldModel.decode)
     # kept on the uint8 grid: a change under half a level vanishes instead of accumulating over a long
     # rollout, so what the model leaves still stays exactly still (and the policy sees this frame)
     frame = to_uint8(frame)
@@ -108,10 +142,10 @@ def step(cfg: ModelConfig, params, norm: Norm, state: ImagineState, action) -> I
         z_next = model.apply({"params": params}, frame, method=WorldModel.encode)
     frame = frame.astype(jnp.float32) / 255.0
     return ImagineState(
-        z=push(state.z, z_next), proprio=push(state.proprio, out["proprio"][:, -1]),
+        z=push(state.z, z_next), proprio=push(state.proprio, out["proprio"]),
         action=push(acts, jnp.zeros_like(acts[:, -1])), valid=push(state.valid, jnp.ones_like(state.valid[:, -1])),
-        frame=frame, success=jax.nn.sigmoid(out["success"][:, -1]), outcome=jax.nn.sigmoid(out["outcome"][:, -1]),
-        progress=jax.nn.sigmoid(out["progress"][:, -1]))
+        frame=frame, success=jax.nn.sigmoid(out["success"]), outcome=jax.nn.sigmoid(out["outcome"]),
+        progress=jax.nn.sigmoid(out["progress"]), k=k, v=v)
 
 
 def episode_success(success):
@@ -273,7 +307,7 @@ def observed_features(cfg: ModelConfig, params, norm: Norm, frames, proprio, act
     latent = jax.eval_shape(lambda f: WorldModel(cfg).apply({"params": params}, f, method=WorldModel.encode),
                             jax.ShapeDtypeStruct((b,) + frames.shape[2:], frames.dtype))
     buf = (jnp.zeros((b, k) + latent.shape[1:], latent.dtype), jnp.zeros((b, k, proprio.shape[-1])),
-           jnp.zeros((b, k, actions.shape[-1])), jnp.zeros((b, k), bool))
+           jnp.zeros((b, k, actions.shape[-1])), jnp.zeros((b, k), bool), empty_cache(cfg, b))
     parts = []
     for t0 in range(0, t, SEGMENT):
         n = min(SEGMENT, t - t0)
@@ -289,7 +323,8 @@ def observed_features(cfg: ModelConfig, params, norm: Norm, frames, proprio, act
 @functools.partial(jax.jit, static_argnums=(0,))
 def _observed_segment(cfg: ModelConfig, params, norm: Norm, buf, frames, proprio, actions):
     """SEGMENT steps of observed_features: frames (B, SEGMENT+1, ...), proprio (B, SEGMENT+1, 37),
-    actions (B, SEGMENT, 20); buf: the context buffers (latents, proprio, actions, valid) carried over."""
+    actions (B, SEGMENT, 20); buf: the context buffers (latents, proprio, actions, valid, and the keys
+    and values of cfg.imagine "cache") carried over."""
     model = WorldModel(cfg)
     b = frames.shape[0]
     z = jax.lax.map(lambda f: model.apply({"params": params}, f, method=WorldModel.encode),
@@ -300,11 +335,11 @@ def _observed_segment(cfg: ModelConfig, params, norm: Norm, buf, frames, proprio
         return jnp.concatenate([buf[:, 1:], new[:, None]], axis=1)
 
     def body(buf, t):
-        zb, pb, ab, vb = (push(x, y) for x, y in zip(buf, (z[t], p[t], a[t], jnp.ones((b,), bool))))
-        out = model.apply({"params": params}, zb, pb, ab, vb, method=WorldModel.predict)
+        zb, pb, ab, vb = (push(x, y) for x, y in zip(buf[:4], (z[t], p[t], a[t], jnp.ones((b,), bool))))
+        out, cache = predict_next(cfg, params, zb, pb, ab, vb, buf[4])
         x = _join_features(p[t + 1], a[t], z[t + 1],
-                           [jax.nn.sigmoid(out[k][:, -1]) for k in ("success", "outcome", "progress")])
-        return (zb, pb, ab, vb), x
+                           [jax.nn.sigmoid(out[k]) for k in ("success", "outcome", "progress")])
+        return (zb, pb, ab, vb, cache), x
 
     buf, x = jax.lax.scan(body, buf, jnp.arange(SEGMENT))
     return buf, jnp.swapaxes(x, 0, 1)

@@ -26,6 +26,7 @@ import jax.numpy as jnp
 
 LATENT_SIDE = 8
 INPUT_CLIP = 10.0  # standardised proprio and actions are clipped to +-INPUT_CLIP, predicted proprio too
+IMAGINE_MODES = ("window", "cache")
 COPY_BIAS = 4.0  # the compose mask's initial logit: an untrained decoder passes the previous frame through (98%)
 
 
@@ -57,6 +58,13 @@ class ModelConfig:
         a real frame would be) instead of the predicted latents, so that the dynamics always reads
         latents of images (what teacher-forced training shows it) however far it imagines;
         an imagination setting (wm.imagine.step), without effect on training.
+      imagine: how imagination gives the dynamics its past (an imagination setting, without effect
+        on training): "window" runs the transformer over the last K frames at every step, so the
+        oldest frames of the buffer see only the frames still in it (what a training window's first
+        K frames see); "cache" keeps each frame's attention keys and values from the step it was
+        read, so every frame keeps what it saw then (sliding-window attention over the whole
+        episode, as in a training window's later frames) and a step runs one frame's tokens through
+        the transformer instead of K frames'.
     """
 
     size: int = 64
@@ -78,6 +86,7 @@ class ModelConfig:
     keep: bool = False
     keep_threshold: float = 0.0
     reencode: bool = False
+    imagine: str = "window"
 
     def validate(self) -> None:
         stages = int(round(math.log2(self.size / LATENT_SIDE)))
@@ -93,6 +102,8 @@ class ModelConfig:
             raise ValueError("warp needs compose: the warped previous frame is what the decoder composes with")
         if self.keep and not self.compose:
             raise ValueError("keep needs compose: it gates the composed frame against the previous one")
+        if self.imagine not in IMAGINE_MODES:
+            raise ValueError(f"imagine must be one of {', '.join(IMAGINE_MODES)}, got {self.imagine!r}")
 
     @property
     def tokens_per_frame(self) -> int:
@@ -271,8 +282,8 @@ def attention_mask(t, n, context, valid=None):
 
 
 def attention_logits(q, k, time_bias, n):
-    """q, k: (B, T*N, heads, d); time_bias: (heads, T, T) -> (B, heads, T*N, T*N) float32 logits
-    q.k / sqrt(d) + time_bias[h, frame of q, frame of k].
+    """q: (B, Tq*N, heads, d), k: (B, Tk*N, heads, d); time_bias: (heads, Tq, Tk) -> (B, heads, Tq*N,
+    Tk*N) float32 logits q.k / sqrt(d) + time_bias[h, frame of q, frame of k].
 
     The bias rides in the product itself, as T extra dimensions of each head's queries (row i of the
     head's bias) and keys (one-hot of the key's frame): its gradient then comes out of the query
@@ -281,11 +292,11 @@ def attention_logits(q, k, time_bias, n):
     step in the profile of docs/benchmarks.md).
     """
     b, tn, h, d = q.shape
-    t = time_bias.shape[1]
-    q_bias = jnp.repeat(time_bias.transpose(1, 0, 2), n, axis=0).astype(q.dtype)  # (T*N, heads, T)
-    k_onehot = jnp.repeat(jnp.eye(t, dtype=k.dtype), n, axis=0)  # (T*N, T)
+    t = time_bias.shape[2]
+    q_bias = jnp.repeat(time_bias.transpose(1, 0, 2), n, axis=0).astype(q.dtype)  # (Tq*N, heads, Tk)
+    k_onehot = jnp.repeat(jnp.eye(t, dtype=k.dtype), n, axis=0)  # (Tk*N, Tk)
     q = jnp.concatenate([q / math.sqrt(d), jnp.broadcast_to(q_bias, (b, tn, h, t))], -1)
-    k = jnp.concatenate([k, jnp.broadcast_to(k_onehot[:, None], (b, tn, h, t))], -1)
+    k = jnp.concatenate([k, jnp.broadcast_to(k_onehot[:, None], (b, k.shape[1], h, t))], -1)
     return jnp.einsum("bqhd,bkhd->bhqk", q, k).astype(jnp.float32)
 
 
@@ -293,9 +304,12 @@ class Block(nn.Module):
     cfg: ModelConfig
 
     @nn.compact
-    def __call__(self, x, cond, time_bias, mask):
-        """x: (B, T, N, D); cond: (B, T, D); time_bias: (heads, T, T) learned bias by query and key frame
-        (relative_time_bias); mask: (B or 1, 1, T*N, T*N) additive constant, 0 or -1e9."""
+    def __call__(self, x, cond, time_bias, mask, past=None):
+        """x: (B, T, N, D); cond: (B, T, D); time_bias: (heads, T, P+T) learned bias by query and key
+        frame (relative_time_bias); mask: (B or 1, 1, T*N, (P+T)*N) additive constant, 0 or -1e9;
+        past: None (P = 0), or the keys and values (B, P*N, heads, D/heads) of P earlier frames, which
+        the T frames' queries see before their own.
+        Returns (x (B, T, N, D), (keys, values) (B, T*N, heads, D/heads) of the T frames)."""
         cfg, dt = self.cfg, self.cfg.compute_dtype
         b, t, n, d = x.shape
         mod = nn.Dense(6 * d, dtype=dt, kernel_init=nn.initializers.zeros)(nn.silu(cond))[:, :, None]
@@ -304,13 +318,14 @@ class Block(nn.Module):
         h = h.reshape(b, t * n, d)
         qkv = nn.Dense(3 * d, dtype=dt)(h).reshape(b, t * n, 3, cfg.heads, d // cfg.heads)
         q, k, v = qkv[:, :, 0], qkv[:, :, 1], qkv[:, :, 2]
-        logits = attention_logits(q, k, time_bias, n) + mask
+        keys, values = (k, v) if past is None else (jnp.concatenate([past[0], k], 1), jnp.concatenate([past[1], v], 1))
+        logits = attention_logits(q, keys, time_bias, n) + mask
         att = jax.nn.softmax(logits, axis=-1).astype(dt)
-        h = jnp.einsum("bhqk,bkhd->bqhd", att, v).reshape(b, t, n, d)
+        h = jnp.einsum("bhqk,bkhd->bqhd", att, values).reshape(b, t, n, d)
         x = x + g1 * nn.Dense(d, dtype=dt)(h)
         h = nn.LayerNorm(use_scale=False, use_bias=False, dtype=dt)(x) * (1 + sc2) + sh2
         h = nn.Dense(d, dtype=dt)(nn.gelu(nn.Dense(cfg.mlp * d, dtype=dt)(h)))
-        return x + g2 * h
+        return x + g2 * h, (k, v)
 
 
 class Dynamics(nn.Module):
@@ -319,13 +334,16 @@ class Dynamics(nn.Module):
     cfg: ModelConfig
 
     @nn.compact
-    def __call__(self, z, proprio, action, valid=None):
+    def __call__(self, z, proprio, action, valid=None, past=None, with_kv=False):
         """z: (B, T, 8, 8, C); proprio: (B, T, 37) normalised; action: (B, T, 20) normalised;
         valid: optional (B, T) bool, False for empty slots of an imagination buffer.
+        past: None, or one frame (T = 1) read after K-1 earlier ones: {"k", "v": (B, depth, K-1, N,
+        heads, D/heads) their attention keys and values (with_kv's output), "valid": (B, K-1) bool}.
         Returns {"z": (B, T, 8, 8, C), "proprio": (B, T, 37), "success": (B, T) logits,
         "outcome": (B, T) logits, "progress": (B, T) logits of the task progress, "flow": (B, T, 8, 8, 2)
         in latent cells}, entry t being the
-        prediction for frame t+1 (the flow warps frame t towards it)."""
+        prediction for frame t+1 (the flow warps frame t towards it); with with_kv or past, also
+        "k", "v": (B, depth, T, N, heads, D/heads), the T frames' keys and values at every layer."""
         cfg, dt = self.cfg, self.cfg.compute_dtype
         b, t = z.shape[:2]
         n = cfg.tokens_per_frame
@@ -339,9 +357,22 @@ class Dynamics(nn.Module):
         cond_in = jnp.concatenate([action, proprio, p_next], -1).astype(dt)
         cond = nn.Dense(cfg.dim, dtype=dt)(nn.silu(nn.Dense(cfg.dim, dtype=dt)(cond_in)))
         table = self.param("time_bias", nn.initializers.zeros, (cfg.heads, cfg.context))
-        time_bias, mask = relative_time_bias(table, t), attention_mask(t, n, cfg.context, valid)
-        for _ in range(cfg.depth):
-            x = Block(cfg)(x, cond, time_bias, mask)
+        if past is None:
+            time_bias, mask = relative_time_bias(table, t), attention_mask(t, n, cfg.context, valid)
+        else:  # the last query row of a full window: this frame after the K-1 of the cache
+            k = cfg.context
+            if t != 1 or past["k"].shape[2] != k - 1:
+                raise ValueError(f"a cached step reads one frame after {k - 1} cached ones; got {t} after "
+                                 f"{past['k'].shape[2]}")
+            time_bias = relative_time_bias(table, k)[:, -1:]
+            allowed = jnp.concatenate([past["valid"], jnp.ones((b, 1), bool)], axis=1)
+            mask = jnp.where(jnp.repeat(allowed, n, axis=1), 0.0, -1e9).astype(jnp.float32)[:, None, None, :]
+        kvs = []
+        for layer in range(cfg.depth):
+            cached = None if past is None else tuple(past[key][:, layer].reshape((b, -1) + past[key].shape[4:])
+                                                     for key in ("k", "v"))
+            x, kv = Block(cfg)(x, cond, time_bias, mask, cached)
+            kvs.append(kv)
         mod = nn.Dense(2 * cfg.dim, dtype=dt, kernel_init=nn.initializers.zeros)(nn.silu(cond))[:, :, None]
         shift, scale = jnp.split(mod, 2, axis=-1)
         h = nn.LayerNorm(use_scale=False, use_bias=False, dtype=dt)(x) * (1 + scale) + shift
@@ -356,9 +387,13 @@ class Dynamics(nn.Module):
         heads = nn.Dense(cfg.proprio_dim + 3, dtype=jnp.float32)(nn.silu(nn.Dense(cfg.dim, dtype=jnp.float32)(pooled)))
         # clipped like the standardised inputs, so that a long imagined rollout cannot diverge
         p_out = jnp.clip(p_next + heads[..., :cfg.proprio_dim], -INPUT_CLIP, INPUT_CLIP)
-        return {"z": z_next, "proprio": p_out,
-                "success": heads[..., cfg.proprio_dim], "outcome": heads[..., cfg.proprio_dim + 1],
-                "progress": heads[..., cfg.proprio_dim + 2], "flow": flow}
+        out = {"z": z_next, "proprio": p_out,
+               "success": heads[..., cfg.proprio_dim], "outcome": heads[..., cfg.proprio_dim + 1],
+               "progress": heads[..., cfg.proprio_dim + 2], "flow": flow}
+        if with_kv or past is not None:
+            for i, key in enumerate(("k", "v")):
+                out[key] = jnp.stack([kv[i].reshape((b, t, n) + kv[i].shape[2:]) for kv in kvs], axis=1)
+        return out
 
 
 class WorldModel(nn.Module):
@@ -389,8 +424,8 @@ class WorldModel(nn.Module):
             return x
         return x, None if keep is None else keep.reshape(lead + keep.shape[1:])
 
-    def predict(self, z, proprio, action, valid=None):
-        return self.dynamics(z, proprio, action, valid)
+    def predict(self, z, proprio, action, valid=None, past=None, with_kv=False):
+        return self.dynamics(z, proprio, action, valid, past, with_kv)
 
     def __call__(self, frames, proprio, action):
         z = self.encode(frames)
