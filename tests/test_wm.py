@@ -305,7 +305,7 @@ def test_observed_features_read_the_true_episode_as_exact_imagination_would(mode
 
 
 # two layers: with one, a frame's prediction reads only the frames in its window whatever the mode
-DEEP = dataclasses.replace(CFG, depth=2)
+DEEP = dataclasses.replace(CFG, depth=2, imagine="window")
 
 
 @pytest.fixture(scope="module")
