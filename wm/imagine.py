@@ -1,5 +1,6 @@
 """Imagination: the world model as an environment. A pure, jittable `step(state, action) -> state`
-over a sliding buffer of the last K latent frames, an open-loop rollout from a given action
+over a sliding buffer of the last K latent frames (and, with `model.imagine="cache"`, the attention
+keys and values each of them had when it was read), an open-loop rollout from a given action
 sequence, and a closed-loop rollout in which a policy of the project's protocol
 (`act(params, obs, carry, rng) -> (action, carry)`, obs {"image", "proprio"}) sees decoded frames
 and predicted proprioception.
