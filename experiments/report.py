@@ -340,8 +340,8 @@ def _other_readouts(w: dict) -> list[tuple[str, str]]:
 def within_task_table(res: dict) -> list[list[str]]:
     """The headline: each within-task statistic's mean over tasks for the world model and the proxy,
     their difference, the world model's other read-outs, its read-out applied to the simulated
-    episodes themselves (where measured: how well the world model could rank were its imagination
-    exact) and to their actions replayed open loop (where measured: imagination without the policy
+    episodes themselves (where measured; with a judge that learnt from imaginations no bound on
+    exact imagination: experiments.judge_study's observed bound is one) and to their actions replayed open loop (where measured: imagination without the policy
     in the loop), and the preset's target, with MMRV's floor (stats.mmrv_floor) beside its target."""
     w = res["metrics"]["within_task"]
     others = _other_readouts(w)
