@@ -373,6 +373,16 @@ def test_bad_evaluation_settings_are_refused():
         E.make_config("huge")
     with pytest.raises(ValueError, match=r"unknown tasks \['mugg'\]; choose among mug, wipe"):
         E.make_config("demo", ["tasks=mug,mugg"])
+    with pytest.raises(ValueError, match="imagine must be one of window, cache or empty"):
+        E.make_config("demo", ["imagine=kv"])
+
+
+def test_imagine_replaces_the_models_own_imagination_setting(smoke_world_model):
+    runs = [str(smoke_world_model)]
+    own = E.load_models(runs)[0][0].model.imagine
+    assert own == "cache"
+    assert E.load_models(runs, "window")[0][0].model.imagine == "window"
+    assert E.load_models(runs, "")[0][0].model.imagine == own
 
 
 def test_air_fryer_body_mask_covers_the_body_pixels_of_the_frame():
