@@ -82,6 +82,7 @@ from wm.checkpoint import (
     training_seeds,
     training_status,
 )
+from wm.config import with_imagine
 from wm.evaluate import no_nan, program_panel
 from wm.imagine import (
     PROGRESS_FEATURE,
@@ -961,8 +962,7 @@ def load_models(runs, imagine: str = "") -> list:
     models = []
     for run in runs:
         wm_cfg, params, norm = load_trained(Path(run))
-        if imagine:
-            wm_cfg = dataclasses.replace(wm_cfg, model=dataclasses.replace(wm_cfg.model, imagine=imagine))
+        wm_cfg = with_imagine(wm_cfg, imagine)
         judge = load_judge(Path(run))
         if judge is not None:
             check_features(wm_cfg.model, judge)

@@ -44,6 +44,7 @@ from experiments.evaluate import READOUTS, load_features, load_task
 from sim_data.dataset.cache import TrainingCache, window_episodes
 from sim_data.util import run_cli, write_json_atomic
 from wm.checkpoint import load_run_config, load_trained
+from wm.config import with_imagine
 from wm.imagine import FEATURE_GROUPS, feature_columns
 from wm.judge import (
     VAL_EPISODES,
@@ -201,9 +202,7 @@ def study(eval_dir: Path, out: Path, wm_run: Path | None = None, data: Path | No
         raise ValueError(f"unknown variants {unknown}; choose among {', '.join([*VARIANTS, *SPECIAL])}")
     wm_cfg, params, norm = load_trained(wm_run)
     # the evaluation's imagination setting, so that the judges learn from imaginations like those they read
-    imagine = json.loads((eval_dir / "config.json").read_text()).get("imagine", "")
-    if imagine:
-        wm_cfg = dataclasses.replace(wm_cfg, model=dataclasses.replace(wm_cfg.model, imagine=imagine))
+    wm_cfg = with_imagine(wm_cfg, json.loads((eval_dir / "config.json").read_text()).get("imagine", ""))
     data = Path(data or load_run_config(wm_run)[1])
     if not (data / "cache" / "index.json").exists():
         raise FileNotFoundError(f"{data} holds no training cache: name the world model's data with --data")

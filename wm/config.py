@@ -142,6 +142,13 @@ def make_config(preset: str, overrides=()) -> TrainConfig:
     return preset_config(PRESETS, preset, overrides)
 
 
+def with_imagine(cfg: TrainConfig, imagine: str) -> TrainConfig:
+    """cfg with its model's imagination setting (ModelConfig.imagine) replaced, unless imagine is empty."""
+    if not imagine:
+        return cfg
+    return dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, imagine=imagine))
+
+
 def to_dict(cfg) -> dict:
     return dataclasses.asdict(cfg)
 
