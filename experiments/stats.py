@@ -215,6 +215,7 @@ def resampled_pick_better(pred_better, pred_worse, episodes, draws: int = 2000, 
 
 WITHIN_TASK = ("pearson", "spearman", "mmrv", "pairwise_acc_gap10", "alignment")
 LOWER_IS_BETTER = ("mmrv",)
+WITHIN_TASK_RESAMPLES = "policies and initial states, within each task (the same states for each policy)"
 
 
 def task_statistics(pred, true, threshold: float = 0.5) -> dict:
@@ -239,24 +240,21 @@ def task_statistics(pred, true, threshold: float = 0.5) -> dict:
             "pairwise_acc_gap10": pairwise_accuracy(p, t, 0.10), "alignment": aligned}
 
 
-def _percentiles(x) -> list:
+def percentile_interval(x) -> list:
+    """[2.5th, 97.5th] percentiles of bootstrap draws x, NaN draws left out ([nan, nan] if none is left)."""
     x = np.asarray(x, np.float64)
     x = x[~np.isnan(x)]
     return [float(np.percentile(x, 2.5)), float(np.percentile(x, 97.5))] if len(x) else [math.nan, math.nan]
 
 
-def within_task(true: dict, predictors: dict, threshold: float = 0.5, draws: int = 1000, seed: int = 0) -> dict:
-    """Each predictor's within-task statistics, per task and their mean over tasks, with 95% percentile
-    intervals from one bootstrap shared by every predictor: each draw resamples, within every task, its
-    policies and its initial states (with replacement; the same states for each policy of the task,
-    as they were run), and recomputes every statistic; a mean over tasks skips a task whose statistic
-    is undefined (NaN) in that draw.
+def within_task_draws(true: dict, predictors: dict, threshold: float = 0.5, draws: int = 1000,
+                      seed: int = 0) -> tuple[dict, dict]:
+    """Each predictor's within-task statistics and their bootstrap draws: each draw resamples, within
+    every task, its policies and its initial states (with replacement; the same states for each policy
+    of the task, as they were run), the same draw for every predictor, and recomputes every statistic.
 
     true: {task: (P, N) outcomes}. predictors: {name: {task: (P, N) probabilities or (P,) scores}}
-    (task_statistics). Returns {"tasks", "draws", "resamples", name: {"mean": {stat: x}, "mean_ci":
-    {stat: [lo, hi]}, "per_task": {task: {stat: x}}, "per_task_ci": {task: {stat: [lo, hi]}}}, and for
-    every later predictor the paired difference of the first minus it: "difference": {name: {"mean",
-    "mean_ci", "per_task", "per_task_ci"}} (for mmrv a negative difference favours the first)}.
+    (task_statistics). Returns (point {name: {task: {stat: x}}}, samples {name: {task: {stat: (draws,)}}}).
     """
     tasks = list(true)
     names = list(predictors)
@@ -277,18 +275,33 @@ def within_task(true: dict, predictors: dict, threshold: float = 0.5, draws: int
                 pr = pr[rows] if pr.ndim == 1 else pr[rows][:, cols]
                 for k, v in task_statistics(pr, tr, threshold).items():
                     boot[n][t][k][d] = v
+    return point, boot
+
+
+def within_task(true: dict, predictors: dict, threshold: float = 0.5, draws: int = 1000, seed: int = 0) -> dict:
+    """Each predictor's within-task statistics, per task and their mean over tasks, with 95% percentile
+    intervals from one bootstrap shared by every predictor (within_task_draws); a mean over tasks skips
+    a task whose statistic is undefined (NaN) in that draw.
+
+    true: {task: (P, N) outcomes}. predictors: {name: {task: (P, N) probabilities or (P,) scores}}
+    (task_statistics). Returns {"tasks", "draws", "resamples", name: {"mean": {stat: x}, "mean_ci":
+    {stat: [lo, hi]}, "per_task": {task: {stat: x}}, "per_task_ci": {task: {stat: [lo, hi]}}}, and for
+    every later predictor the paired difference of the first minus it: "difference": {name: {"mean",
+    "mean_ci", "per_task", "per_task_ci"}} (for mmrv a negative difference favours the first)}.
+    """
+    tasks, names = list(true), list(predictors)
+    point, boot = within_task_draws(true, predictors, threshold, draws, seed)
 
     def summary(stat_of, samples_of) -> dict:
         with warnings.catch_warnings():  # a mean over nothing but NaN stays NaN, silently
             warnings.simplefilter("ignore", RuntimeWarning)
             mean = {k: float(np.nanmean([stat_of(t)[k] for t in tasks])) for k in WITHIN_TASK}
-            mean_ci = {k: _percentiles(np.nanmean(np.stack([samples_of(t)[k] for t in tasks]), 0))
+            mean_ci = {k: percentile_interval(np.nanmean(np.stack([samples_of(t)[k] for t in tasks]), 0))
                        for k in WITHIN_TASK}
         return {"mean": mean, "mean_ci": mean_ci, "per_task": {t: stat_of(t) for t in tasks},
-                "per_task_ci": {t: {k: _percentiles(samples_of(t)[k]) for k in WITHIN_TASK} for t in tasks}}
+                "per_task_ci": {t: {k: percentile_interval(samples_of(t)[k]) for k in WITHIN_TASK} for t in tasks}}
 
-    out = {"tasks": tasks, "draws": draws,
-           "resamples": "policies and initial states, within each task (the same states for each policy)"}
+    out = {"tasks": tasks, "draws": draws, "resamples": WITHIN_TASK_RESAMPLES}
     for n in names:
         out[n] = summary(lambda t, n=n: point[n][t], lambda t, n=n: boot[n][t])
     first = names[0]

@@ -1,0 +1,184 @@
+"""Two designs of world model, each trained with several seeds, ranking the same policies:
+
+    python -m experiments.compare --base runs/eval/base_s0 runs/eval/base_s1 \\
+        --design runs/eval/patch1_s0 runs/eval/patch1_s1 --names recipe,patch1 --out runs/compare/patch1.json
+
+Each RUN is an `experiments.evaluate` OUT (its results.json) over the same policies from the same
+held-out initial states, with the same true outcomes (the same zoo, evaluation preset and seed);
+the runs differ only in their world model. A design is decided on the mean over its seeds: one
+seed moves the ranking about as much as most design choices (docs/world-model.md).
+
+For each group the output gives every run's within-task statistics (experiments.stats: the mean
+over tasks of Pearson, Spearman, MMRV, pairwise accuracy at gaps >= 10 points and per-episode
+alignment), their mean over the group's runs and their range; and the design's gain, the
+difference of the two group means (design minus base; for MMRV a negative gain is better), with a
+95% interval from one bootstrap that resamples, within each task, policies and initial states, the
+same draw for every run (stats.within_task_draws). The same over the policies that no run's world
+model learned from (`in_wm_data` false), where there are at least three a task.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from experiments import stats as S
+from experiments.ensemble import read_results
+from sim_data.util import run_cli, write_json_atomic
+
+GROUPS = ("base", "design")
+MIN_UNSEEN = 3  # policies a task, as the evaluation's own unseen block
+
+
+def episode_tables(results: list[dict]) -> tuple[dict, dict, dict]:
+    """The runs' per-episode tables over their common policies, each task's policies sorted by name:
+    (true {task: (P, N) outcomes}, pred [{task: (P, N) probabilities}] one per run, unseen {task: (P,)
+    bool}: no run's world model learned from the policy's rollouts). Raises ValueError where the runs
+    rank other policies, over other initial states or against other true outcomes."""
+    if not results:
+        raise ValueError("no evaluations to compare")
+    keyed = [{(p["task"], p["name"]): p for p in r["policies"]} for r in results]
+    keys = sorted(keyed[0])
+    for i, k in enumerate(keyed[1:], 1):
+        if sorted(k) != keys:
+            diff = sorted(set(keys) ^ set(k))[:3]
+            raise ValueError(f"evaluation {i} ranks other policies than evaluation 0 (for instance {diff}): "
+                             "evaluate the same zoo with every world model")
+    true, preds, unseen = {}, [{} for _ in results], {}
+    for task in sorted({t for t, _ in keys}):
+        names = [n for t, n in keys if t == task]
+        rows = [[k[(task, n)] for n in names] for k in keyed]
+        for i, run in enumerate(rows):
+            for p in run:
+                if "pred_episodes" not in p or "true_episodes" not in p:
+                    raise ValueError(f"evaluation {i} keeps no per-episode results for {p['name']}: rerun "
+                                     "experiments.evaluate (its results.json predates pred_episodes)")
+        t0 = np.asarray([p["true_episodes"] for p in rows[0]], np.float64)
+        for i, run in enumerate(rows[1:], 1):
+            t = np.asarray([p["true_episodes"] for p in run], np.float64)
+            if t.shape != t0.shape or not np.array_equal(t, t0):
+                raise ValueError(f"evaluation {i} has other true outcomes than evaluation 0 on {task}: compare "
+                                 "evaluations of the same zoo from the same initial states (same preset, "
+                                 "episodes and seed)")
+        true[task] = t0
+        for i, run in enumerate(rows):
+            preds[i][task] = np.asarray([p["pred_episodes"] for p in run], np.float64)
+        unseen[task] = np.asarray([not any(run[j].get("in_wm_data", True) for run in rows)
+                                   for j in range(len(names))])
+    return true, preds, unseen
+
+
+def _task_mean(per_task: dict) -> dict:
+    """{task: {stat: x or (draws,)}} -> {stat: mean over tasks}, NaN-skipping."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return {k: np.nanmean(np.stack([np.asarray(v[k], np.float64) for v in per_task.values()]), 0)
+                for k in S.WITHIN_TASK}
+
+
+def compare_groups(true: dict, groups: dict, draws: int = 1000, seed: int = 0) -> dict:
+    """The comparison of groups of predictors over one truth (the module's docstring).
+
+    true: {task: (P, N) outcomes}; groups: {"base": [{task: (P, N) probabilities}] one per run,
+    "design": [...]}. Returns {"base", "design": {"runs": [{stat: x}], "mean": {stat}, "range":
+    {stat: [min, max]}, "mean_ci": {stat: [lo, hi]}, "per_task": {task: {stat: mean over runs}}},
+    "gain": {"mean": {stat: design - base}, "mean_ci", "per_task", "per_task_ci"}}."""
+    if sorted(groups) != sorted(GROUPS) or any(not runs for runs in groups.values()):
+        raise ValueError(f"give both groups {GROUPS}, each with at least one run")
+    predictors = {f"{g}{i}": run for g in GROUPS for i, run in enumerate(groups[g])}
+    point, boot = S.within_task_draws(true, predictors, draws=draws, seed=seed)
+    tasks = list(true)
+    out = {}
+    for g in GROUPS:
+        names = [f"{g}{i}" for i in range(len(groups[g]))]
+        runs = [{k: float(v) for k, v in _task_mean(point[n]).items()} for n in names]
+        drawn = [_task_mean(boot[n]) for n in names]
+        out[g] = {"runs": runs,
+                  "mean": {k: float(np.mean([r[k] for r in runs])) for k in S.WITHIN_TASK},
+                  "range": {k: [min(r[k] for r in runs), max(r[k] for r in runs)] for k in S.WITHIN_TASK},
+                  "mean_ci": {k: S.percentile_interval(np.mean([d[k] for d in drawn], 0)) for k in S.WITHIN_TASK},
+                  "per_task": {t: {k: float(np.mean([point[n][t][k] for n in names])) for k in S.WITHIN_TASK}
+                               for t in tasks}}
+        out[g]["_draws"] = {t: {k: np.mean([boot[n][t][k] for n in names], 0) for k in S.WITHIN_TASK}
+                            for t in tasks}
+    gain_draws = {t: {k: out["design"]["_draws"][t][k] - out["base"]["_draws"][t][k] for k in S.WITHIN_TASK}
+                  for t in tasks}
+    mean_draws = _task_mean(gain_draws)
+    out["gain"] = {"mean": {k: out["design"]["mean"][k] - out["base"]["mean"][k] for k in S.WITHIN_TASK},
+                   "mean_ci": {k: S.percentile_interval(mean_draws[k]) for k in S.WITHIN_TASK},
+                   "per_task": {t: {k: out["design"]["per_task"][t][k] - out["base"]["per_task"][t][k]
+                                    for k in S.WITHIN_TASK} for t in tasks},
+                   "per_task_ci": {t: {k: S.percentile_interval(gain_draws[t][k]) for k in S.WITHIN_TASK} for t in tasks}}
+    for g in GROUPS:
+        del out[g]["_draws"]
+    return out
+
+
+def compare(base: list[dict], design: list[dict], draws: int = 1000, seed: int = 0) -> dict:
+    """Two groups of experiments.evaluate results.json over one zoo and one truth -> {"draws",
+    "resamples", "tasks", "policies": {task: P}, "all": compare_groups over every policy, "unseen": the
+    same over the policies no world model learned from (absent with fewer than MIN_UNSEEN a task)}."""
+    true, preds, unseen = episode_tables(base + design)
+    k = len(base)
+    out = {"draws": draws, "resamples": S.WITHIN_TASK_RESAMPLES, "tasks": list(true),
+           "policies": {t: int(v.shape[0]) for t, v in true.items()},
+           "all": compare_groups(true, {"base": preds[:k], "design": preds[k:]}, draws, seed)}
+    if all(u.sum() >= MIN_UNSEEN for u in unseen.values()):
+        sub = lambda table: {t: v[unseen[t]] for t, v in table.items()}  # noqa: E731
+        out["unseen_policies"] = {t: int(u.sum()) for t, u in unseen.items()}
+        out["unseen"] = compare_groups(sub(true), {"base": [sub(p) for p in preds[:k]],
+                                                   "design": [sub(p) for p in preds[k:]]}, draws, seed)
+    return out
+
+
+def markdown(res: dict, names: tuple[str, str] = GROUPS) -> str:
+    """The comparison as a markdown table: a row per group (mean over its runs [bootstrap interval],
+    range over the runs) and the gain, over every policy and over the unseen ones."""
+    stats = ("pearson", "mmrv", "pairwise_acc_gap10", "spearman")
+    fmt = lambda x: "nan" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.3f}"  # noqa: E731
+    lines = ["| policies | " + " | ".join(["model"] + list(stats)) + " |", "|" + "---|" * (len(stats) + 2)]
+    for subset in ("all", "unseen"):
+        if subset not in res:
+            continue
+        r = res[subset]
+        for g, label in zip(GROUPS, names):
+            n = len(r[g]["runs"])
+            cells = [f"{fmt(r[g]['mean'][s])} [{fmt(r[g]['mean_ci'][s][0])}, {fmt(r[g]['mean_ci'][s][1])}] "
+                     f"({fmt(r[g]['range'][s][0])}-{fmt(r[g]['range'][s][1])})" for s in stats]
+            lines.append(f"| {subset} | {label} ({n} runs) | " + " | ".join(cells) + " |")
+        cells = [f"{r['gain']['mean'][s]:+.3f} [{r['gain']['mean_ci'][s][0]:+.3f}, {r['gain']['mean_ci'][s][1]:+.3f}]"
+                 for s in stats]
+        lines.append(f"| {subset} | {names[1]} - {names[0]} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--base", nargs="+", type=Path, required=True, help="evaluations by the base design's world models")
+    p.add_argument("--design", nargs="+", type=Path, required=True, help="evaluations by the new design's world models")
+    p.add_argument("--names", default="base,design", help="the two designs' names in the table: BASE,DESIGN")
+    p.add_argument("--draws", type=int, default=1000, help="bootstrap draws")
+    p.add_argument("--out", type=Path, help="where the comparison's JSON goes (optional)")
+    a = p.parse_args(argv)
+    names = tuple(a.names.split(","))
+    if len(names) != 2 or not all(names):
+        p.error(f"--names takes two names separated by a comma, got {a.names!r}")
+    if a.draws < 1:
+        p.error(f"--draws {a.draws}: give at least one")
+    res = compare([read_results(r) for r in a.base], [read_results(r) for r in a.design], a.draws)
+    res |= {"names": list(names), "base_runs": [str(r) for r in a.base], "design_runs": [str(r) for r in a.design]}
+    if a.out:
+        a.out.parent.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(a.out, res)
+    print(markdown(res, names))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run_cli(main))

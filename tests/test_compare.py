@@ -1,0 +1,99 @@
+"""experiments.compare: two designs' seeds ranking one zoo, against the within-task statistics."""
+
+import json
+
+import numpy as np
+import pytest
+
+from experiments import compare as C
+from experiments import stats as S
+
+TASKS = ("mug", "wipe")
+P, N = 8, 12
+
+
+def _truth(seed=0):
+    rng = np.random.default_rng(seed)
+    levels = np.linspace(0.05, 0.95, P)
+    return {t: (rng.random((P, N)) < levels[:, None]).astype(int) for t in TASKS}
+
+
+def _results(true, pred, seen=()):
+    """An evaluate results.json of per-episode predictions pred {task: (P, N)}; seen: policy indices in the
+    world model's data."""
+    return {"policies": [{"task": t, "name": f"{t}/p{i}", "true_episodes": true[t][i].tolist(),
+                          "pred_episodes": pred[t][i].tolist(), "in_wm_data": i in seen}
+                         for t in TASKS for i in range(P)]}
+
+
+def _noisy(true, scale, seed):
+    rng = np.random.default_rng(seed)
+    return {t: np.clip(true[t].mean(1, keepdims=True) + scale * rng.standard_normal((P, 1)), 0, 1)
+            * np.ones((1, N)) for t in TASKS}
+
+
+def test_each_runs_figures_are_the_within_task_statistics_and_the_gain_their_difference_of_means():
+    true = _truth()
+    base = [_noisy(true, 0.3, s) for s in (1, 2)]
+    design = [_noisy(true, 0.1, s) for s in (3, 4)]
+    got = C.compare_groups(true, {"base": base, "design": design}, draws=50)
+    for g, runs in (("base", base), ("design", design)):
+        for i, run in enumerate(runs):
+            want = S.within_task(true, {"wm": run}, draws=2)["wm"]["mean"]
+            for k in S.WITHIN_TASK:
+                assert got[g]["runs"][i][k] == pytest.approx(want[k])
+        for k in S.WITHIN_TASK:
+            vals = [r[k] for r in got[g]["runs"]]
+            assert got[g]["mean"][k] == pytest.approx(np.mean(vals))
+            assert got[g]["range"][k] == [min(vals), max(vals)]
+    for k in S.WITHIN_TASK:
+        assert got["gain"]["mean"][k] == pytest.approx(got["design"]["mean"][k] - got["base"]["mean"][k])
+        per_task = np.mean([got["gain"]["per_task"][t][k] for t in TASKS])
+        assert got["gain"]["mean"][k] == pytest.approx(per_task)
+
+
+def test_a_design_that_reads_the_true_rates_wins_with_an_interval_that_excludes_zero():
+    true = _truth(1)
+    exact = {t: true[t].mean(1, keepdims=True) * np.ones((1, N)) for t in TASKS}
+    shuffled = [{t: exact[t][np.random.default_rng(s).permutation(P)] for t in TASKS} for s in (5, 6)]
+    got = C.compare_groups(true, {"base": shuffled, "design": [exact, exact]}, draws=200)
+    assert got["design"]["mean"]["pearson"] == pytest.approx(1.0)
+    assert got["design"]["mean"]["mmrv"] == pytest.approx(0.0)
+    lo, hi = got["gain"]["mean_ci"]["pearson"]
+    assert 0 < lo <= got["gain"]["mean"]["pearson"] <= hi
+    assert got["gain"]["mean_ci"]["mmrv"][1] < 0
+
+
+def test_evaluations_of_other_truth_or_other_policies_are_refused_and_unseen_means_unseen_by_every_run():
+    true = _truth()
+    a, b = _results(true, _noisy(true, 0.2, 1), seen=(0, 1)), _results(true, _noisy(true, 0.2, 2), seen=(1, 2))
+    _, preds, unseen = C.episode_tables([a, b])
+    assert len(preds) == 2 and unseen["mug"].tolist() == [False, False, False] + [True] * (P - 3)
+    other = _results({t: 1 - v for t, v in true.items()}, _noisy(true, 0.2, 2))
+    with pytest.raises(ValueError, match="other true outcomes"):
+        C.episode_tables([a, other])
+    fewer = dict(b, policies=b["policies"][1:])
+    with pytest.raises(ValueError, match="other policies"):
+        C.episode_tables([a, fewer])
+    with pytest.raises(ValueError, match="both groups"):
+        C.compare_groups(true, {"base": [], "design": [true]})
+
+
+def test_the_command_writes_both_subsets_and_prints_the_table(tmp_path, capsys):
+    true = _truth(2)
+    runs = []
+    for i, scale in enumerate((0.3, 0.3, 0.05, 0.05)):
+        d = tmp_path / f"run{i}"
+        d.mkdir()
+        (d / "results.json").write_text(json.dumps(_results(true, _noisy(true, scale, i), seen=(0, 1))))
+        runs.append(str(d))
+    out = tmp_path / "cmp" / "c.json"
+    assert C.main(["--base", *runs[:2], "--design", *runs[2:], "--names", "recipe,sharp", "--draws", "20",
+                   "--out", str(out)]) == 0
+    res = json.loads(out.read_text())
+    assert res["names"] == ["recipe", "sharp"] and res["unseen_policies"] == {"mug": P - 2, "wipe": P - 2}
+    assert len(res["all"]["base"]["runs"]) == 2 and "gain" in res["unseen"]
+    table = capsys.readouterr().out
+    assert "| all | sharp - recipe |" in table and "| unseen | recipe (2 runs) |" in table
+    with pytest.raises(SystemExit):
+        C.main(["--base", runs[0], "--design", runs[1], "--names", "one"])
