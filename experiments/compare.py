@@ -20,7 +20,6 @@ model learned from (`in_wm_data` false), where there are at least three a task.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import warnings
@@ -130,7 +129,7 @@ def compare(base: list[dict], design: list[dict], draws: int = 1000, seed: int =
            "policies": {t: int(v.shape[0]) for t, v in true.items()},
            "all": compare_groups(true, {"base": preds[:k], "design": preds[k:]}, draws, seed)}
     if all(u.sum() >= MIN_UNSEEN for u in unseen.values()):
-        sub = lambda table: {t: v[unseen[t]] for t, v in table.items()}  # noqa: E731
+        sub = lambda table: {t: v[unseen[t]] for t, v in table.items()}
         out["unseen_policies"] = {t: int(u.sum()) for t, u in unseen.items()}
         out["unseen"] = compare_groups(sub(true), {"base": [sub(p) for p in preds[:k]],
                                                    "design": [sub(p) for p in preds[k:]]}, draws, seed)
@@ -141,7 +140,7 @@ def markdown(res: dict, names: tuple[str, str] = GROUPS) -> str:
     """The comparison as a markdown table: a row per group (mean over its runs [bootstrap interval],
     range over the runs) and the gain, over every policy and over the unseen ones."""
     stats = ("pearson", "mmrv", "pairwise_acc_gap10", "spearman")
-    fmt = lambda x: "nan" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.3f}"  # noqa: E731
+    fmt = lambda x: "nan" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.3f}"
     lines = ["| policies | " + " | ".join(["model"] + list(stats)) + " |", "|" + "---|" * (len(stats) + 2)]
     for subset in ("all", "unseen"):
         if subset not in res:
