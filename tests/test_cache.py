@@ -87,6 +87,8 @@ def test_loader_windows_epochs_and_resume(two_shards):
         s = int(b["start"][j])
         np.testing.assert_array_equal(b["frames"]["ext_cam"][j], ep["frames"]["ext_cam"][s:s + window])
         np.testing.assert_array_equal(b["action"][j], ep["action"][s:s + window])
+        for cam in ("head_cam", "ext_cam"):  # and the episode's first frame beside it (the anchor)
+            np.testing.assert_array_equal(b["first_frames"][cam][j], ep["frames"][cam][0])
         assert b["outcome"][j] == ep["record"]["success"] and cache.tasks[b["task"][j]] == ep["record"]["task"]
     state = loader.state()
     expected = next(loader)

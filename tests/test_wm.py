@@ -315,18 +315,19 @@ def deep_params():
     return jax.tree_util.tree_map(lambda x: x + 0.05 * noise.standard_normal(x.shape).astype(np.float32), params)
 
 
-def test_cached_steps_equal_the_training_forward_pass_over_a_long_window(model_and_inputs, deep_params):
-    """One frame at a time through the key-value cache gives what the training forward pass gives
-    over the whole sequence (sliding attention over K frames at every layer): each output at each
-    frame, from the first frame (no cache) to frames whose window has long slid past the start."""
-    _, frames, proprio, action = model_and_inputs
-    m, cache_cfg = WorldModel(DEEP), dataclasses.replace(DEEP, imagine="cache")
-    reps = 3  # 18 frames against a context of 4
+def _long_inputs(frames, proprio, action, reps=3):
+    """The fixture's 6 frames repeated reps times (18 frames against a context of 4), proprio jittered
+    so that no frame's inputs repeat."""
     frames, proprio, action = (np.concatenate([x] * reps, axis=1) for x in (frames, proprio, action))
-    proprio = proprio + np.random.default_rng(5).normal(size=proprio.shape).astype(np.float32)  # no repeats
-    z = compiled(m, WorldModel.encode)({"params": deep_params}, frames)
-    full = compiled(m, WorldModel.predict)({"params": deep_params}, z, proprio, action)
-    b, t, k = z.shape[0], z.shape[1], DEEP.context
+    return frames, proprio + np.random.default_rng(5).normal(size=proprio.shape).astype(np.float32), action
+
+
+def _assert_cached_steps_match_the_forward_pass(cfg, params, frames, proprio, action):
+    m, cache_cfg = WorldModel(cfg), dataclasses.replace(cfg, imagine="cache")
+    z = compiled(m, WorldModel.encode)({"params": params}, frames)
+    anchor = z[:, 0] if cfg.anchor else None
+    full = compiled(m, WorldModel.predict)({"params": params}, z, proprio, action, anchor=anchor)
+    b, t, k = z.shape[0], z.shape[1], cfg.context
     cache = I.empty_cache(cache_cfg, b)
     valid = jnp.zeros((b, k), bool)
     one = jax.jit(functools.partial(I.predict_next, cache_cfg))
@@ -336,10 +337,48 @@ def test_cached_steps_equal_the_training_forward_pass_over_a_long_window(model_a
         window = [np.concatenate([np.zeros((b, pad) + x.shape[2:], x.dtype), x[:, lo:i + 1]], axis=1)
                   for x in (np.asarray(z), proprio, action)]
         valid = jnp.concatenate([valid[:, 1:], jnp.ones((b, 1), bool)], axis=1)
-        out, cache = one(deep_params, *window, valid, cache)
+        out, cache = one(params, *window, valid, cache, anchor)
         for key in ("z", "proprio", "success", "outcome", "progress", "flow"):
             np.testing.assert_allclose(out[key], full[key][:, i], rtol=1e-4, atol=1e-4, err_msg=f"{key} at {i}")
-    assert cache[0].shape == (b, DEEP.depth, k - 1, DEEP.tokens_per_frame, DEEP.heads, DEEP.dim // DEEP.heads)
+    assert cache[0].shape == (b, cfg.depth, k - 1, cfg.tokens_per_frame, cfg.heads, cfg.dim // cfg.heads)
+    return full
+
+
+def test_cached_steps_equal_the_training_forward_pass_over_a_long_window(model_and_inputs, deep_params):
+    """One frame at a time through the key-value cache gives what the training forward pass gives
+    over the whole sequence (sliding attention over K frames at every layer): each output at each
+    frame, from the first frame (no cache) to frames whose window has long slid past the start."""
+    _, frames, proprio, action = model_and_inputs
+    _assert_cached_steps_match_the_forward_pass(DEEP, deep_params, *_long_inputs(frames, proprio, action))
+
+
+ANCHORED = dataclasses.replace(DEEP, anchor=True)
+
+
+def test_an_anchored_model_sees_the_first_frame_at_every_step_and_caches_alike(model_and_inputs):
+    """With an anchor the predictions long after the context has slid past the first frame still
+    change with it (without one they cannot), and the cached steps are the forward pass's."""
+    _, frames, proprio, action = model_and_inputs
+    params = init_params(ANCHORED, jax.random.PRNGKey(1), window=6)
+    noise = np.random.default_rng(2)
+    params = jax.tree_util.tree_map(lambda x: x + 0.05 * noise.standard_normal(x.shape).astype(np.float32), params)
+    assert "anchor_kv" in params["dynamics"]["Block_0"] and "anchor_bias" in params["dynamics"]
+    frames, proprio, action = _long_inputs(frames, proprio, action)
+    full = _assert_cached_steps_match_the_forward_pass(ANCHORED, params, frames, proprio, action)
+    m = WorldModel(ANCHORED)
+    z = compiled(m, WorldModel.encode)({"params": params}, frames)
+    other = compiled(m, WorldModel.predict)({"params": params}, z, proprio, action, anchor=z[:, 3])
+    late = slice(ANCHORED.context + 2, None)  # frames whose window no longer holds frame 0 or 3
+    assert np.abs(np.asarray(other["z"][:, late]) - np.asarray(full["z"][:, late])).max() > 1e-3
+    with pytest.raises(ValueError, match="anchor"):
+        compiled(m, WorldModel.predict)({"params": params}, z, proprio, action)
+    # imagination takes the context's first frame as the anchor unless told the episode's
+    norm = I.Norm(jnp.zeros(37), jnp.ones(37), jnp.zeros(20), jnp.ones(20))
+    st = init_state(ANCHORED, params, norm, frames[:, 4:6], proprio[:, 4:6], action[:, 4:5])
+    np.testing.assert_allclose(st.anchor, z[:, 4], atol=1e-6)
+    st = init_state(ANCHORED, params, norm, frames[:, 4:6], proprio[:, 4:6], action[:, 4:5], anchor=frames[:, 0])
+    np.testing.assert_allclose(st.anchor, z[:, 0], atol=1e-6)
+    assert init_state(DEEP, params, norm, frames[:, 4:6], proprio[:, 4:6], action[:, 4:5]).anchor.shape == (2, 0)
 
 
 def test_cached_imagination_is_the_window_until_frames_leave_it_and_reads_true_episodes_as_training(
@@ -683,9 +722,11 @@ def test_a_run_killed_between_its_best_and_latest_checkpoints_resumes(smoke_data
 
 
 def test_a_run_cut_short_is_left_unevaluated_and_the_rerun_finishes_it(smoke_dataset, tmp_path):
+    """Also the whole run of a model with an anchor frame: its windows' first frames from the loader,
+    its judge's imaginations and eval.json."""
     _, data, _ = smoke_dataset
     out = tmp_path / "run"
-    args = ["--config", "smoke", "--data", str(data), "--out", str(out)]
+    args = ["--config", "smoke", "--data", str(data), "--out", str(out), "model.anchor=true"]
     assert train_main([*args, "max_minutes=1e-6"]) == 0  # stops at its first logged step
     assert json.loads((out / "train_status.json").read_text()) == {"step": 5, "steps": 30, "cut_short": True}
     assert not (out / "eval.json").exists()
@@ -694,6 +735,8 @@ def test_a_run_cut_short_is_left_unevaluated_and_the_rerun_finishes_it(smoke_dat
     assert (out / "eval.json").exists()
     steps = [json.loads(line)["step"] for line in (out / "metrics.jsonl").read_text().splitlines()]
     assert steps == [5, 10, 15, 20, 25, 30]
+    cfg, params, _ = load_trained(out)
+    assert cfg.model.anchor and "anchor_kv" in params["dynamics"]["Block_0"]
 
 
 def test_non_finite_loss_stops_without_a_checkpoint(smoke_dataset, tmp_path):

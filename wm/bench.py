@@ -81,6 +81,8 @@ def step_inputs(cfg):
              "proprio": jnp.asarray(rng.normal(size=(b, t, m.proprio_dim)), jnp.float32),
              "action": jnp.asarray(rng.normal(size=(b, t, m.action_dim)), jnp.float32),
              "success": jnp.zeros((b, t), bool), "progress": jnp.zeros((b, t)), "outcome": jnp.zeros((b,), bool)}
+    if m.anchor:
+        batch["anchor"] = batch["frames"][:, 0]
     norm = Norm(jnp.zeros(m.proprio_dim), jnp.ones(m.proprio_dim), jnp.zeros(m.action_dim), jnp.ones(m.action_dim))
     return state, batch, norm
 

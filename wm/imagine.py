@@ -58,6 +58,8 @@ class ImagineState:
       progress: (B,) predicted task progress in [0, 1] (sim_data.sim.tasks.task_progress);
       k, v: with cfg.imagine "cache", the attention keys and values of slots 0..K-2 at every layer
       (B, depth, K-1, N, heads, D/heads), in the compute dtype; (B, 0) otherwise.
+      anchor: with cfg.anchor, the latents (B, 8, 8, C) of the episode's first frame, which every
+      prediction also sees; (B, 0) otherwise.
     """
 
     z: jax.Array
@@ -70,12 +72,26 @@ class ImagineState:
     progress: jax.Array
     k: jax.Array
     v: jax.Array
+    anchor: jax.Array
 
 
-def init_state(cfg: ModelConfig, params, norm: Norm, frames, proprio, actions) -> ImagineState:
+def anchor_latents(cfg: ModelConfig, params, frames, anchor=None) -> jax.Array:
+    """The anchor of imagined episodes (ImagineState.anchor): with cfg.anchor the latents (B, 8, 8, C)
+    of anchor (B, S, S, 3) uint8, the episodes' first frames, or where it is None of the context's first
+    frames (frames (B, C, S, S, 3): right for a context that starts the episode); (B, 0) without."""
+    b = frames.shape[0]
+    if not cfg.anchor:
+        return jnp.zeros((b, 0))
+    first = frames[:, 0] if anchor is None else anchor
+    return WorldModel(cfg).apply({"params": params}, first, method=WorldModel.encode)
+
+
+def init_state(cfg: ModelConfig, params, norm: Norm, frames, proprio, actions, anchor=None) -> ImagineState:
     """A buffer from C <= K context observations.
 
-    frames: (B, C, S, S, 3) uint8; proprio: (B, C, 37); actions: (B, C-1, 20), those between them.
+    frames: (B, C, S, S, 3) uint8; proprio: (B, C, 37); actions: (B, C-1, 20), those between them;
+    anchor: (B, S, S, 3) uint8, the episodes' first frames, for a model with an anchor whose context
+    starts later in the episode (default: the context's first frames).
     """
     model = WorldModel(cfg)
     b, c = frames.shape[:2]
@@ -91,13 +107,20 @@ def init_state(cfg: ModelConfig, params, norm: Norm, frames, proprio, actions) -
     acts = jnp.concatenate([norm.action(actions), jnp.zeros((b, 1, cfg.action_dim))], axis=1)
     valid = jnp.concatenate([jnp.zeros((b, pad), bool), jnp.ones((b, c), bool)], axis=1)
     z, p, a = place(z), place(norm.proprio(proprio)), place(acts)
+    first = anchor_latents(cfg, params, frames, anchor)
     k = v = jnp.zeros((b, 0))
     if cfg.imagine == "cache":  # slot K-1's keys wait for its action: the first step computes them
-        out = model.apply({"params": params}, z, p, a, valid, with_kv=True, method=WorldModel.predict)
+        out = model.apply({"params": params}, z, p, a, valid, with_kv=True, anchor=_anchor_arg(cfg, first),
+                          method=WorldModel.predict)
         k, v = out["k"][:, :, :-1], out["v"][:, :, :-1]
     return ImagineState(z=z, proprio=p, action=a, valid=valid,
                         frame=frames[:, -1].astype(jnp.float32) / 255.0, success=jnp.zeros((b,)),
-                        outcome=jnp.zeros((b,)), progress=jnp.zeros((b,)), k=k, v=v)
+                        outcome=jnp.zeros((b,)), progress=jnp.zeros((b,)), k=k, v=v, anchor=first)
+
+
+def _anchor_arg(cfg: ModelConfig, anchor):
+    """What predict takes as its anchor: the latents with cfg.anchor, else None."""
+    return anchor if cfg.anchor else None
 
 
 def empty_cache(cfg: ModelConfig, b: int) -> tuple:
@@ -109,18 +132,19 @@ def empty_cache(cfg: ModelConfig, b: int) -> tuple:
     return jnp.zeros(shape, cfg.compute_dtype), jnp.zeros(shape, cfg.compute_dtype)
 
 
-def predict_next(cfg: ModelConfig, params, z, proprio, action, valid, cache: tuple) -> tuple[dict, tuple]:
+def predict_next(cfg: ModelConfig, params, z, proprio, action, valid, cache: tuple, anchor=None) -> tuple[dict, tuple]:
     """The dynamics' prediction for the frame after a buffer's last slot: z (B, K, 8, 8, C), proprio
     (B, K, 37), action (B, K, 20) normalised, valid (B, K) bool; cache: (k, v) of slots 0..K-2 (cfg.imagine
-    "cache") or unused. Returns (predict's outputs at slot K-1, leaves (B, ...), the cache of slots
+    "cache") or unused; anchor: ImagineState.anchor (anchor_latents). Returns (predict's outputs at slot K-1, leaves (B, ...), the cache of slots
     1..K-1: what the buffer's next step reads once it has pushed a frame)."""
     model = WorldModel(cfg)
     if cfg.imagine != "cache":
-        out = model.apply({"params": params}, z, proprio, action, valid, method=WorldModel.predict)
+        out = model.apply({"params": params}, z, proprio, action, valid, anchor=_anchor_arg(cfg, anchor),
+                          method=WorldModel.predict)
         return {key: x[:, -1] for key, x in out.items()}, cache
     past = {"k": cache[0], "v": cache[1], "valid": valid[:, :-1]}
     out = model.apply({"params": params}, z[:, -1:], proprio[:, -1:], action[:, -1:], past=past,
-                      method=WorldModel.predict)
+                      anchor=_anchor_arg(cfg, anchor), method=WorldModel.predict)
     cache = tuple(jnp.concatenate([c[:, :, 1:], out.pop(key)], axis=2) for c, key in zip(cache, ("k", "v")))
     return {key: x[:, -1] for key, x in out.items()}, cache
 
@@ -129,7 +153,8 @@ def step(cfg: ModelConfig, params, norm: Norm, state: ImagineState, action) -> I
     """Advances every imagined episode by one control step under action (B, 20)."""
     model = WorldModel(cfg)
     acts = state.action.at[:, -1].set(norm.action(action))
-    out, (k, v) = predict_next(cfg, params, state.z, state.proprio, acts, state.valid, (state.k, state.v))
+    out, (k, v) = predict_next(cfg, params, state.z, state.proprio, acts, state.valid, (state.k, state.v),
+                               state.anchor)
 
     def push(buf, new):
         return jnp.concatenate([buf[:, 1:], new[:, None]], axis=1)
@@ -146,7 +171,7 @@ def step(cfg: ModelConfig, params, norm: Norm, state: ImagineState, action) -> I
         z=push(state.z, z_next), proprio=push(state.proprio, out["proprio"]),
         action=push(acts, jnp.zeros_like(acts[:, -1])), valid=push(state.valid, jnp.ones_like(state.valid[:, -1])),
         frame=frame, success=jax.nn.sigmoid(out["success"]), outcome=jax.nn.sigmoid(out["outcome"]),
-        progress=jax.nn.sigmoid(out["progress"]), k=k, v=v)
+        progress=jax.nn.sigmoid(out["progress"]), k=k, v=v, anchor=state.anchor)
 
 
 def episode_success(success):
@@ -212,11 +237,12 @@ def to_uint8(x):
 SEGMENT = 20  # imagined steps per compiled call: one program serves every horizon
 
 
-def open_loop(cfg: ModelConfig, params, norm: Norm, frames, proprio, context_actions, actions) -> dict:
+def open_loop(cfg: ModelConfig, params, norm: Norm, frames, proprio, context_actions, actions, anchor=None) -> dict:
     """Imagines H steps from C context observations under logged actions.
 
     frames (B, C, S, S, 3) uint8, proprio (B, C, 37), context_actions (B, C-1, 20), actions (B, H, 20)
-    (action h follows imagined frame h-1, the first follows the last context frame).
+    (action h follows imagined frame h-1, the first follows the last context frame); anchor: the
+    episodes' first frames (B, S, S, 3) uint8 where the context starts later (init_state).
     Returns {"frames": (B, H, S, S, 3) uint8, "proprio": (B, H, 37), "success": (B, H),
     "outcome": (B, H), "progress": (B, H), "features": (B, H, F) (step_features)} for frames C .. C+H-1
     after the context, numpy arrays. The steps run in compiled segments of SEGMENT steps (the last one
@@ -225,7 +251,7 @@ def open_loop(cfg: ModelConfig, params, norm: Norm, frames, proprio, context_act
     h = actions.shape[1]
     if h < 1:
         raise ValueError("open_loop imagines at least one step: actions must be (B, H >= 1, 20)")
-    state = _open_loop_start(cfg, params, norm, frames, proprio, context_actions)
+    state = _open_loop_start(cfg, params, norm, frames, proprio, context_actions, anchor)
     # padded and cut on the host: eager slices of a device array would compile a program per shape
     acts = np.asarray(actions, np.float32)
     acts = np.pad(acts, ((0, 0), (0, -h % SEGMENT), (0, 0)))
@@ -308,7 +334,8 @@ def observed_features(cfg: ModelConfig, params, norm: Norm, frames, proprio, act
     latent = jax.eval_shape(lambda f: WorldModel(cfg).apply({"params": params}, f, method=WorldModel.encode),
                             jax.ShapeDtypeStruct((b,) + frames.shape[2:], frames.dtype))
     buf = (jnp.zeros((b, k) + latent.shape[1:], latent.dtype), jnp.zeros((b, k, proprio.shape[-1])),
-           jnp.zeros((b, k, actions.shape[-1])), jnp.zeros((b, k), bool), empty_cache(cfg, b))
+           jnp.zeros((b, k, actions.shape[-1])), jnp.zeros((b, k), bool), empty_cache(cfg, b),
+           _first_latents(cfg, params, frames[:, :1]))
     parts = []
     for t0 in range(0, t, SEGMENT):
         n = min(SEGMENT, t - t0)
@@ -321,11 +348,14 @@ def observed_features(cfg: ModelConfig, params, norm: Norm, frames, proprio, act
     return jnp.concatenate(parts, axis=1)
 
 
+_first_latents = jax.jit(anchor_latents, static_argnums=(0,))
+
+
 @functools.partial(jax.jit, static_argnums=(0,))
 def _observed_segment(cfg: ModelConfig, params, norm: Norm, buf, frames, proprio, actions):
     """SEGMENT steps of observed_features: frames (B, SEGMENT+1, ...), proprio (B, SEGMENT+1, 37),
-    actions (B, SEGMENT, 20); buf: the context buffers (latents, proprio, actions, valid, and the keys
-    and values of cfg.imagine "cache") carried over."""
+    actions (B, SEGMENT, 20); buf: the context buffers (latents, proprio, actions, valid, the keys
+    and values of cfg.imagine "cache", the episodes' anchor) carried over."""
     model = WorldModel(cfg)
     b = frames.shape[0]
     z = jax.lax.map(lambda f: model.apply({"params": params}, f, method=WorldModel.encode),
@@ -337,10 +367,10 @@ def _observed_segment(cfg: ModelConfig, params, norm: Norm, buf, frames, proprio
 
     def body(buf, t):
         zb, pb, ab, vb = (push(x, y) for x, y in zip(buf[:4], (z[t], p[t], a[t], jnp.ones((b,), bool))))
-        out, cache = predict_next(cfg, params, zb, pb, ab, vb, buf[4])
+        out, cache = predict_next(cfg, params, zb, pb, ab, vb, buf[4], buf[5])
         x = _join_features(p[t + 1], a[t], z[t + 1],
                            [jax.nn.sigmoid(out[k]) for k in ("success", "outcome", "progress")])
-        return (zb, pb, ab, vb, cache), x
+        return (zb, pb, ab, vb, cache, buf[5]), x
 
     buf, x = jax.lax.scan(body, buf, jnp.arange(SEGMENT))
     return buf, jnp.swapaxes(x, 0, 1)
@@ -365,21 +395,23 @@ def padded_chunks(items: list):
 
 
 def context_sample(ep: dict, camera: str, start: int, context: int, horizon: int) -> dict:
-    """From an episode (sim_data.dataset.cache's episode dict): `context` observations from `start` and the
-    `horizon` logged actions that follow, as open_loop_chunked takes them."""
+    """From an episode (sim_data.dataset.cache's episode dict): `context` observations from `start`, the
+    `horizon` logged actions that follow and the episode's first frame (the anchor), as open_loop_chunked
+    takes them."""
     c0, c1 = start, start + context
     return {"frames": ep["frames"][camera][c0:c1], "proprio": ep["proprio"][c0:c1],
-            "context_actions": ep["action"][c0:c1 - 1], "actions": ep["action"][c1 - 1:c1 - 1 + horizon]}
+            "context_actions": ep["action"][c0:c1 - 1], "actions": ep["action"][c1 - 1:c1 - 1 + horizon],
+            "anchor": ep["frames"][camera][0]}
 
 
 def open_loop_chunked(cfg: ModelConfig, params, norm: Norm, samples: list[dict], horizon: int) -> dict:
     """open_loop over samples {"frames" (C, S, S, 3), "proprio" (C, 37), "context_actions" (C-1, 20),
-    "actions" (horizon, 20)} in chunks of chunk_size (the last one padded, so one compilation serves
+    "actions" (horizon, 20), optionally "anchor" (S, S, 3) the episode's first frame} in chunks of chunk_size (the last one padded, so one compilation serves
     all); numpy arrays with a leading axis of len(samples)."""
     outs = []
     for _, part, n in padded_chunks(samples):
         stack = {k: np.stack([s[k] for s in part]) for k in part[0]}
         got = open_loop(cfg, params, norm, stack["frames"], stack["proprio"], stack["context_actions"],
-                        stack["actions"][:, :horizon])
+                        stack["actions"][:, :horizon], stack.get("anchor"))
         outs.append({k: np.asarray(v)[:n] for k, v in got.items()})
     return {k: np.concatenate([o[k] for o in outs]) for k in outs[0]}

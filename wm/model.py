@@ -66,6 +66,11 @@ class ModelConfig:
         episode, as in a training window's later frames) and a step runs one frame's tokens through
         the transformer instead of K frames'. The two rank the `full` zoo alike on one model
         (docs/world-model.md); "cache" imagines 1.6 times as fast on an H200.
+      anchor: every frame's prediction also attends to the episode's first frame (its tokens' keys
+        and values at every layer, from their own projection of the frame's input tokens, with a
+        learned attention bias per head): the scene as it was before the robot touched it, sharp
+        however far the context has slid from the start (training windows start anywhere in an
+        episode, so without it a window's frames never see the episode's first).
     """
 
     size: int = 64
@@ -88,6 +93,7 @@ class ModelConfig:
     keep_threshold: float = 0.0
     reencode: bool = False
     imagine: str = "cache"
+    anchor: bool = False
 
     def validate(self) -> None:
         stages = int(round(math.log2(self.size / LATENT_SIDE)))
@@ -305,11 +311,13 @@ class Block(nn.Module):
     cfg: ModelConfig
 
     @nn.compact
-    def __call__(self, x, cond, time_bias, mask, past=None):
-        """x: (B, T, N, D); cond: (B, T, D); time_bias: (heads, T, P+T) learned bias by query and key
-        frame (relative_time_bias); mask: (B or 1, 1, T*N, (P+T)*N) additive constant, 0 or -1e9;
-        past: None (P = 0), or the keys and values (B, P*N, heads, D/heads) of P earlier frames, which
-        the T frames' queries see before their own.
+    def __call__(self, x, cond, time_bias, mask, past=None, anchor=None):
+        """x: (B, T, N, D); cond: (B, T, D); time_bias: (heads, T, A+P+T) learned bias by query and key
+        frame (relative_time_bias, after the anchor's column); mask: (B or 1, 1, T*N, (A+P+T)*N)
+        additive constant, 0 or -1e9; past: None (P = 0), or the keys and values (B, P*N, heads,
+        D/heads) of P earlier frames, which the T frames' queries see before their own; anchor: None
+        (A = 0), or the anchor frame's input tokens (B, N, D) (A = 1), whose keys and values this
+        layer projects and every query sees first.
         Returns (x (B, T, N, D), (keys, values) (B, T*N, heads, D/heads) of the T frames)."""
         cfg, dt = self.cfg, self.cfg.compute_dtype
         b, t, n, d = x.shape
@@ -320,6 +328,10 @@ class Block(nn.Module):
         qkv = nn.Dense(3 * d, dtype=dt)(h).reshape(b, t * n, 3, cfg.heads, d // cfg.heads)
         q, k, v = qkv[:, :, 0], qkv[:, :, 1], qkv[:, :, 2]
         keys, values = (k, v) if past is None else (jnp.concatenate([past[0], k], 1), jnp.concatenate([past[1], v], 1))
+        if anchor is not None:
+            a = nn.LayerNorm(use_scale=False, use_bias=False, dtype=dt, name="anchor_norm")(anchor)
+            akv = nn.Dense(2 * d, dtype=dt, name="anchor_kv")(a).reshape(b, n, 2, cfg.heads, d // cfg.heads)
+            keys, values = jnp.concatenate([akv[:, :, 0], keys], 1), jnp.concatenate([akv[:, :, 1], values], 1)
         logits = attention_logits(q, keys, time_bias, n) + mask
         att = jax.nn.softmax(logits, axis=-1).astype(dt)
         h = jnp.einsum("bhqk,bkhd->bqhd", att, values).reshape(b, t, n, d)
@@ -335,9 +347,10 @@ class Dynamics(nn.Module):
     cfg: ModelConfig
 
     @nn.compact
-    def __call__(self, z, proprio, action, valid=None, past=None, with_kv=False):
+    def __call__(self, z, proprio, action, valid=None, past=None, with_kv=False, anchor=None):
         """z: (B, T, 8, 8, C); proprio: (B, T, 37) normalised; action: (B, T, 20) normalised;
-        valid: optional (B, T) bool, False for empty slots of an imagination buffer.
+        valid: optional (B, T) bool, False for empty slots of an imagination buffer; anchor: the
+        episode's first frame's latents (B, 8, 8, C), required with cfg.anchor and unused without.
         past: None, or one frame (T = 1) read after K-1 earlier ones: {"k", "v": (B, depth, K-1, N,
         heads, D/heads) their attention keys and values (with_kv's output), "valid": (B, K-1) bool}.
         Returns {"z": (B, T, 8, 8, C), "proprio": (B, T, 37), "success": (B, T) logits,
@@ -348,8 +361,12 @@ class Dynamics(nn.Module):
         cfg, dt = self.cfg, self.cfg.compute_dtype
         b, t = z.shape[:2]
         n = cfg.tokens_per_frame
-        x = nn.Dense(cfg.dim, dtype=dt)(patchify(z, cfg.patch).astype(dt))
-        x = x + self.param("pos", nn.initializers.normal(0.02), (n, cfg.dim)).astype(dt)
+        if cfg.anchor and anchor is None:
+            raise ValueError("a model with an anchor frame predicts from the episode's first frame: pass anchor=")
+        embed = nn.Dense(cfg.dim, dtype=dt)
+        pos = self.param("pos", nn.initializers.normal(0.02), (n, cfg.dim)).astype(dt)
+        x = embed(patchify(z, cfg.patch).astype(dt)) + pos
+        anchor_tokens = embed(patchify(anchor[:, None], cfg.patch).astype(dt))[:, 0] + pos if cfg.anchor else None
         # the robot's next state from its state and the action alone (the joints follow their targets):
         # the frame's tokens are then conditioned on where the body and camera go, not only on the command
         s = jnp.concatenate([proprio, action], -1).astype(jnp.float32)
@@ -368,11 +385,16 @@ class Dynamics(nn.Module):
             time_bias = relative_time_bias(table, k)[:, -1:]
             allowed = jnp.concatenate([past["valid"], jnp.ones((b, 1), bool)], axis=1)
             mask = jnp.where(jnp.repeat(allowed, n, axis=1), 0.0, -1e9).astype(jnp.float32)[:, None, None, :]
+        if cfg.anchor:  # the anchor's keys come first, seen by every query, with a learned bias per head
+            bias = self.param("anchor_bias", nn.initializers.zeros, (cfg.heads,))
+            time_bias = jnp.concatenate([jnp.broadcast_to(bias[:, None, None], time_bias.shape[:2] + (1,)),
+                                         time_bias], axis=2)
+            mask = jnp.concatenate([jnp.zeros(mask.shape[:3] + (n,), mask.dtype), mask], axis=3)
         kvs = []
         for layer in range(cfg.depth):
             cached = None if past is None else tuple(past[key][:, layer].reshape((b, -1) + past[key].shape[4:])
                                                      for key in ("k", "v"))
-            x, kv = Block(cfg)(x, cond, time_bias, mask, cached)
+            x, kv = Block(cfg)(x, cond, time_bias, mask, cached, anchor_tokens)
             kvs.append(kv)
         mod = nn.Dense(2 * cfg.dim, dtype=dt, kernel_init=nn.initializers.zeros)(nn.silu(cond))[:, :, None]
         shift, scale = jnp.split(mod, 2, axis=-1)
@@ -425,12 +447,12 @@ class WorldModel(nn.Module):
             return x
         return x, None if keep is None else keep.reshape(lead + keep.shape[1:])
 
-    def predict(self, z, proprio, action, valid=None, past=None, with_kv=False):
-        return self.dynamics(z, proprio, action, valid, past, with_kv)
+    def predict(self, z, proprio, action, valid=None, past=None, with_kv=False, anchor=None):
+        return self.dynamics(z, proprio, action, valid, past, with_kv, anchor)
 
     def __call__(self, frames, proprio, action):
         z = self.encode(frames)
-        return self.decode(z, frames.astype(jnp.float32) / 255.0), self.predict(z, proprio, action)
+        return self.decode(z, frames.astype(jnp.float32) / 255.0), self.predict(z, proprio, action, anchor=z[:, 0])
 
 
 def init_params(cfg: ModelConfig, rng, window: int = 4):

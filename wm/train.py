@@ -64,10 +64,12 @@ def compute_norm(cache: TrainingCache, ids=None) -> Norm:
                 action_mean=jnp.asarray(act.mean(0)), action_std=jnp.asarray(np.maximum(act.std(0), 1e-2)))
 
 
-def model_batch(batch: dict, camera: str) -> dict:
-    """The loader's batch reduced to what the model trains on."""
-    return {"frames": batch["frames"][camera], "proprio": batch["proprio"], "action": batch["action"],
-            "success": batch["success"], "progress": batch["progress"], "outcome": batch["outcome"]}
+def model_batch(batch: dict, camera: str, anchor: bool = False) -> dict:
+    """The loader's batch reduced to what the model trains on (with anchor: and the episodes' first
+    frames, "anchor" (B, S, S, 3) uint8, for a model with ModelConfig.anchor)."""
+    out = {"frames": batch["frames"][camera], "proprio": batch["proprio"], "action": batch["action"],
+           "success": batch["success"], "progress": batch["progress"], "outcome": batch["outcome"]}
+    return out | ({"anchor": batch["first_frames"][camera]} if anchor else {})
 
 
 # ---- loss and step ---------------------------------------------------------------------------------
@@ -83,8 +85,9 @@ def _keep_loss(keep, target, prev):
 
 
 def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None):
-    """Scalar loss and its parts for one batch (frames (B, T, S, S, 3) uint8, ...); rng draws the
-    context noise (None: none, as in validation)."""
+    """Scalar loss and its parts for one batch (frames (B, T, S, S, 3) uint8, ...; with an anchor frame
+    "anchor" (B, S, S, 3) uint8 too: model_batch); rng draws the context noise (None: none, as in
+    validation)."""
     model = WorldModel(cfg.model)
     frames = batch["frames"]
     pix = frames.astype(jnp.float32) / 255.0
@@ -100,6 +103,7 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None):
         total = total + cfg.w_keep * parts["keep_recon"]
     proprio, action = norm.proprio(batch["proprio"]), norm.action(batch["action"])
     z_in, p_in, prev = z, proprio, pix[:, :-1]
+    anchor = model.apply({"params": params}, batch["anchor"], method=WorldModel.encode) if cfg.model.anchor else None
     if cfg.context_noise > 0 and rng is not None:  # corrupted inputs: the past cannot be copied forward exactly
         k1, k2 = jax.random.split(rng)
         level = jax.random.uniform(k1, (z.shape[0],) + (1,) * (z.ndim - 1), maxval=cfg.context_noise)
@@ -107,7 +111,7 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None):
     z_target = jax.lax.stop_gradient(z[:, 1:])
     hold = (lambda x: x) if cfg.rollout_grad else jax.lax.stop_gradient
     for k in range(1 + cfg.rollout_passes):
-        pred = model.apply({"params": params}, z_in, p_in, action, method=WorldModel.predict)
+        pred = model.apply({"params": params}, z_in, p_in, action, anchor=anchor, method=WorldModel.predict)
         zp = pred["z"][:, :-1]
         pixels, keep = model.apply({"params": params}, zp, prev, pred["flow"][:, :-1], with_keep=True,
                                    method=WorldModel.decode)
@@ -295,7 +299,8 @@ class Run:
         if self.val is None:
             return {}
         if self._val_batches is None:  # the same batches at every evaluation: gathered once
-            self._val_batches = [put_batch(model_batch(self.val.batch_at(0, k), self.cfg.camera), self.mesh)
+            self._val_batches = [put_batch(model_batch(self.val.batch_at(0, k), self.cfg.camera, self.cfg.model.anchor),
+                                           self.mesh)
                                  for k in range(min(self.cfg.val_batches, self.val.batches_per_epoch))]
         parts = [jax.device_get(self._loss(self.state["params"], b, self.norm)) for b in self._val_batches]
         return {f"val_{k}": float(np.mean([p[k] for p in parts])) for k in parts[0]}
@@ -313,7 +318,7 @@ class Run:
         last = {}
         while step < cfg.steps:
             t_wait = time.perf_counter()
-            batch = put_batch(model_batch(next(self.loader), cfg.camera), self.mesh)
+            batch = put_batch(model_batch(next(self.loader), cfg.camera, cfg.model.anchor), self.mesh)
             waited += time.perf_counter() - t_wait
             self.state, parts = self._step(self.state, batch, self.norm)
             acc = parts if acc is None else jax.tree_util.tree_map(jnp.add, acc, parts)

@@ -279,7 +279,8 @@ class WindowLoader:
     Batches: {"frames": {camera: (B, T, H, W, 3) uint8}, "proprio": (B, T, 37) float32,
     "action": (B, T, 20) float32 (action t follows frame t), "success": (B, T) bool, "progress": (B, T) float32,
     "outcome": (B,) bool (the episode's success), "task": (B,) int32 (index into cache.tasks),
-    "start": (B,) int32 (the window's first step), "episode": (B,) int32}.
+    "start": (B,) int32 (the window's first step), "episode": (B,) int32, "first_frames": {camera: (B, H,
+    W, 3) uint8} (each window's episode's first frame)}.
     """
 
     def __init__(self, cache: TrainingCache, window: int, batch: int, split: str | None = "train", seed: int = 0,
@@ -362,6 +363,14 @@ class WindowLoader:
                 out["frames"][name] = arr
             else:
                 out[name] = arr
+        out["first_frames"] = {}  # each window's episode's first frame: the anchor of wm's ModelConfig.anchor
+        firsts = np.array([r["start"] for r in recs], np.int64)
+        for name in self.cameras:
+            arr = np.empty((b,) + out["frames"][name].shape[2:], out["frames"][name].dtype)
+            for shard in np.unique(shards):
+                sel = np.nonzero(shards == shard)[0]
+                arr[sel] = self.cache.array(shard, name)[firsts[sel]]
+            out["first_frames"][name] = arr
         return out
 
     def _advance(self, epoch: int, k: int) -> tuple[int, int]:
