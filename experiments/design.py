@@ -1,0 +1,156 @@
+"""Decide a world-model design: seeds of a preset's recipe against the same seeds with the design's
+settings, each trained and evaluated on the preset's zoo, then compared within each task.
+
+    python -m experiments.design full_grip anchor model.anchor=true --seeds 2 --steps 4000
+    python -m experiments.design full_grip patch1 model.patch=1 --seeds 2 --steps 4000 --design-steps 1750
+
+The preset's data, zoo and rollouts must exist (`python -m experiments.pipeline PRESET --stage
+data|policies|rollouts`). Every run trains with `wm.train` on the preset's world-model data and
+training settings (seed k, the given steps; the design's runs add its key=value settings, and may
+train a different number of steps for the same training time) and is evaluated by
+`experiments.evaluate` on the preset's zoo from the same held-out states. The runs go into
+runs/designs/PRESET/NAME/{recipe,NAME}_s<k>/ (`wm/`, `eval/`); `experiments.compare` then writes
+compare.json and compare.md there: each run's within-task figures, each design's mean and range
+over its seeds, and the design's gain with a 95% interval from a bootstrap of policies and states.
+
+On a host with GPUs every run goes to a child process with one GPU, as many at a time as there are
+GPUs (two seeds of each design on four GPUs run side by side; the design's runs first where they
+take longer); without one they run here one after the other. A rerun resumes: finished trainings
+and evaluations are skipped, a training cut off resumes from its checkpoints. Decide a design on
+models trained >= 15 minutes with >= 2 seeds each (docs/world-model.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from pathlib import Path
+
+from experiments import compare, evaluate
+from experiments.ensemble import read_results
+from experiments.pipeline import PIPELINES, pipeline, use_compilation_cache
+from sim_data.parts import local_gpus, run_parallel
+from sim_data.util import run_cli, write_json_atomic
+from wm import train
+
+BASE = "recipe"
+
+
+@dataclasses.dataclass(frozen=True)
+class Job:
+    """One run: a world model trained with train_argv into wm, evaluated with eval_argv into eval."""
+
+    design: str
+    seed: int
+    wm: Path
+    eval: Path
+    train_argv: tuple
+    eval_argv: tuple
+
+
+def plan(preset: str, name: str, overrides=(), seeds: int = 2, steps: int = 4000, design_steps: int | None = None,
+         episodes: int = 50, root: Path | None = None) -> list[Job]:
+    """The runs of a design decision, the design's first: for each seed k < seeds, the preset's
+    recipe (`steps` steps) and the recipe with `overrides` (`design_steps`, default `steps`)."""
+    if preset not in PIPELINES:
+        raise ValueError(f"unknown preset {preset!r}: one of {', '.join(sorted(PIPELINES))}")
+    if not name or name == BASE or "/" in name:
+        raise ValueError(f"name the design (not {BASE!r}, no '/'), got {name!r}")
+    if not overrides:
+        raise ValueError("a design is the recipe with some key=value settings changed: give at least one")
+    if any("=" not in o for o in overrides):
+        raise ValueError(f"settings are key=value, got {[o for o in overrides if '=' not in o]}")
+    if seeds < 1 or steps < 1 or (design_steps is not None and design_steps < 1) or episodes < 1:
+        raise ValueError("seeds, steps, design_steps and episodes must be >= 1")
+    p = pipeline(preset)
+    d = p.dirs(preset)
+    out = Path(root or Path(p.root) / "designs" / preset / name)
+    jobs = []
+    for design, n, extra in ((name, design_steps or steps, tuple(overrides)), (BASE, steps, ())):
+        for k in range(seeds):
+            run = out / f"{design}_s{k}"
+            jobs.append(Job(design, k, run / "wm", run / "eval",
+                            ("--config", p.train, "--data", str(d["wm_data"]), "--out", str(run / "wm"),
+                             *p.train_overrides, f"seed={k}", f"steps={n}", "max_minutes=0", *extra),
+                            ("--config", p.eval, "--out", str(run / "eval"), f"policies={d['policies']}",
+                             f"wm={run / 'wm'}", f"episodes={episodes}", "max_minutes=0", *p.eval_overrides)))
+    return jobs
+
+
+def check_inputs(preset: str) -> None:
+    """Raises SystemExit naming the pipeline stage to run where the preset's data or zoo is missing."""
+    p = pipeline(preset)
+    d = p.dirs(preset)
+    for path, stage in ((d["wm_data"] / "stats.json", "rollouts" if p.rollouts else "data"),
+                        (d["policies"] / "policies.json", "policies")):
+        if not path.exists():
+            raise SystemExit(f"{path} not found: run `python -m experiments.pipeline {preset} --stage {stage}` "
+                             "(and the stages before it) first")
+
+
+def run_job(job: Job) -> None:
+    """Trains (unless its eval.json says it is trained) and evaluates (unless results.json exists) one run."""
+    if not (job.wm / "eval.json").exists():
+        train.main(list(job.train_argv))
+    if not (job.eval / "results.json").exists():
+        evaluate.main(list(job.eval_argv))
+
+
+def write_comparison(jobs: list[Job], out: Path, draws: int = 1000) -> dict:
+    """compare.json and compare.md in out from the finished runs' evaluations."""
+    name = jobs[0].design
+    groups = {g: [read_results(j.eval) for j in jobs if j.design == g] for g in (BASE, name)}
+    res = compare.compare(groups[BASE], groups[name], draws)
+    res |= {"names": [BASE, name], "runs": {j.design + f"_s{j.seed}": {"train": list(j.train_argv)} for j in jobs}}
+    write_json_atomic(out / "compare.json", res)
+    table = compare.markdown(res, (BASE, name))
+    (out / "compare.md").write_text(table + "\n")
+    return res | {"table": table}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("preset", choices=sorted(PIPELINES), help="the pipeline preset whose recipe, data and zoo are used")
+    p.add_argument("name", help="the design's name (its runs' directories)")
+    p.add_argument("overrides", nargs="+", help="the design's key=value training settings")
+    p.add_argument("--seeds", type=int, default=2, help="seeds of each design")
+    p.add_argument("--steps", type=int, default=4000, help="training steps of the recipe's runs")
+    p.add_argument("--design-steps", type=int, default=None,
+                   help="training steps of the design's runs (default --steps; fewer for a costlier step at the "
+                        "same training time)")
+    p.add_argument("--episodes", type=int, default=50, help="held-out initial states a policy")
+    p.add_argument("--out", type=Path, default=None, help="default runs/designs/PRESET/NAME")
+    p.add_argument("--job", type=int, default=None, help=argparse.SUPPRESS)  # one run, in a child process
+    a = p.parse_intermixed_args(argv)
+    try:
+        jobs = plan(a.preset, a.name, a.overrides, a.seeds, a.steps, a.design_steps, a.episodes, a.out)
+    except ValueError as e:
+        p.error(str(e))
+    out = jobs[0].wm.parent.parent
+    use_compilation_cache(pipeline(a.preset).root)
+    if a.job is not None:
+        run_job(jobs[a.job])
+        return 0
+    check_inputs(a.preset)
+    out.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(out / "plan.json", {"preset": a.preset, "name": a.name, "overrides": a.overrides,
+                                          "jobs": [{"design": j.design, "seed": j.seed, "train": list(j.train_argv),
+                                                    "eval": list(j.eval_argv)} for j in jobs]})
+    todo = [i for i, j in enumerate(jobs) if not (j.eval / "results.json").exists()]
+    gpus = local_gpus()
+    if len(gpus) > 1 and todo:
+        base = [sys.executable, "-m", "experiments.design", *(argv if argv is not None else sys.argv[1:])]
+        run_parallel([[*base, "--job", str(i)] for i in todo], gpus, out / "logs", "run")
+    else:
+        for i in todo:
+            print(f"run {i + 1} of {len(jobs)}: {jobs[i].design}, seed {jobs[i].seed}", file=sys.stderr, flush=True)
+            run_job(jobs[i])
+    res = write_comparison(jobs, out)
+    print(res["table"])
+    print(f"comparison: {out / 'compare.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run_cli(main))

@@ -1,0 +1,78 @@
+"""experiments.design: the runs of a design decision, resumed, and their comparison."""
+
+import json
+
+import numpy as np
+import pytest
+
+from experiments import design as D
+from experiments.pipeline import pipeline
+
+TASKS = ("mug", "step_back")
+
+
+def test_the_plan_trains_each_seed_of_both_designs_on_the_presets_data_and_evaluates_them_alike(tmp_path):
+    jobs = D.plan("demo", "anchor", ["model.anchor=true"], seeds=2, steps=300, design_steps=200, episodes=8,
+                  root=tmp_path)
+    assert [(j.design, j.seed) for j in jobs] == [("anchor", 0), ("anchor", 1), ("recipe", 0), ("recipe", 1)]
+    d = pipeline("demo").dirs("demo")
+    for j in jobs:
+        t = list(j.train_argv)
+        assert t[t.index("--data") + 1] == str(d["wm_data"]) and t[t.index("--out") + 1] == str(j.wm)
+        assert f"seed={j.seed}" in t and ("model.anchor=true" in t) == (j.design == "anchor")
+        assert f"steps={200 if j.design == 'anchor' else 300}" in t
+        e = list(j.eval_argv)
+        assert e[e.index("--out") + 1] == str(j.eval) and f"wm={j.wm}" in e and "episodes=8" in e
+        assert f"policies={d['policies']}" in e
+    assert len({j.wm for j in jobs}) == 4 and all(j.wm.parent.parent == tmp_path for j in jobs)
+    for bad in ({"name": "recipe"}, {"overrides": []}, {"overrides": ["model.anchor"]}, {"seeds": 0}):
+        with pytest.raises(ValueError):
+            D.plan("demo", **({"name": "x", "overrides": ["a=1"]} | bad))
+
+
+def _results(true, rates, seen):
+    return {"policies": [{"task": t, "name": f"{t}/p{i}", "true_episodes": true[t][i].tolist(),
+                          "pred_episodes": [float(rates[t][i])] * true[t].shape[1], "in_wm_data": i in seen}
+                         for t in TASKS for i in range(len(rates[t]))]}
+
+
+def test_runs_resume_and_the_comparison_is_written(tmp_path, monkeypatch):
+    rng = np.random.default_rng(0)
+    levels = np.linspace(0.05, 0.95, 8)
+    true = {t: (rng.random((8, 10)) < levels[:, None]).astype(int) for t in TASKS}
+    calls = []
+
+    def fake_train(argv):
+        out = D.Path(argv[argv.index("--out") + 1])
+        out.mkdir(parents=True)
+        (out / "eval.json").write_text("{}")
+        calls.append(("train", out))
+
+    def fake_eval(argv):
+        out = D.Path(argv[argv.index("--out") + 1])
+        noise = 0.02 if "anchor_s" in str(out) else 0.3
+        rates = {t: np.clip(true[t].mean(1) + noise * rng.standard_normal(8), 0, 1) for t in TASKS}
+        out.mkdir(parents=True)
+        (out / "results.json").write_text(json.dumps(_results(true, rates, seen=(0, 1))))
+        calls.append(("eval", out))
+
+    monkeypatch.setattr(D.train, "main", fake_train)
+    monkeypatch.setattr(D.evaluate, "main", fake_eval)
+    monkeypatch.setattr(D, "check_inputs", lambda preset: None)
+    monkeypatch.setattr(D, "local_gpus", list)
+    monkeypatch.setattr(D, "use_compilation_cache", lambda root: None)
+    args = ["demo", "anchor", "model.anchor=true", "--seeds", "2", "--out", str(tmp_path)]
+    assert D.main(args) == 0
+    assert len(calls) == 8
+    res = json.loads((tmp_path / "compare.json").read_text())
+    assert res["names"] == ["recipe", "anchor"] and len(res["all"]["design"]["runs"]) == 2
+    assert res["all"]["gain"]["mean"]["pearson"] > 0 and "| all | anchor - recipe |" in (tmp_path / "compare.md").read_text()
+    assert json.loads((tmp_path / "plan.json").read_text())["overrides"] == ["model.anchor=true"]
+    D.main(args)  # everything finished: nothing runs again
+    assert len(calls) == 8
+
+
+def test_missing_data_names_the_stage_to_run(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit, match="--stage rollouts"):
+        D.check_inputs("demo")
