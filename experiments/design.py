@@ -24,8 +24,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import sys
 from pathlib import Path
+
+import numpy as np
 
 from experiments import compare, evaluate
 from experiments.ensemble import read_results
@@ -97,14 +100,37 @@ def run_job(job: Job) -> None:
         evaluate.main(list(job.eval_argv))
 
 
+# wm.train's eval.json figures (held-out episodes of its data) shown beside the ranking
+HELD_OUT = ("psnr_h8", "gain_over_copy_last_h8_db", "success_auroc", "match_accuracy", "delta_psnr_db",
+            "success_follows_actions")
+
+
+def held_out_table(jobs: list[Job]) -> tuple[dict, str]:
+    """Each run's held-out figures (its eval.json summary, HELD_OUT) and a markdown table of them, a row
+    per run and per design's mean."""
+    rows = {f"{j.design}_s{j.seed}": json.loads((j.wm / "eval.json").read_text()).get("summary", {}) for j in jobs}
+    lines = ["| run | " + " | ".join(HELD_OUT) + " |", "|" + "---|" * (len(HELD_OUT) + 1)]
+    fmt = lambda x: "" if x is None else f"{x:.3f}"
+    for run, summary in rows.items():
+        lines.append(f"| {run} | " + " | ".join(fmt(summary.get(k)) for k in HELD_OUT) + " |")
+    for design in dict.fromkeys(j.design for j in jobs):
+        vals = [rows[f"{j.design}_s{j.seed}"] for j in jobs if j.design == design]
+        means = [np.mean([v[k] for v in vals]) if all(k in v for v in vals) else None for k in HELD_OUT]
+        lines.append(f"| {design} (mean) | " + " | ".join(fmt(m) for m in means) + " |")
+    return rows, "\n".join(lines)
+
+
 def write_comparison(jobs: list[Job], out: Path, draws: int = 1000) -> dict:
-    """compare.json and compare.md in out from the finished runs' evaluations."""
+    """compare.json and compare.md in out from the finished runs' evaluations: the ranking within each
+    task (experiments.compare) and each run's held-out figures."""
     name = jobs[0].design
     groups = {g: [read_results(j.eval) for j in jobs if j.design == g] for g in (BASE, name)}
     res = compare.compare(groups[BASE], groups[name], draws)
-    res |= {"names": [BASE, name], "runs": {j.design + f"_s{j.seed}": {"train": list(j.train_argv)} for j in jobs}}
+    held_out, held_table = held_out_table(jobs)
+    res |= {"names": [BASE, name], "held_out": held_out,
+            "runs": {j.design + f"_s{j.seed}": {"train": list(j.train_argv)} for j in jobs}}
     write_json_atomic(out / "compare.json", res)
-    table = compare.markdown(res, (BASE, name))
+    table = compare.markdown(res, (BASE, name)) + "\n\nHeld-out episodes (`eval.json`):\n\n" + held_table
     (out / "compare.md").write_text(table + "\n")
     return res | {"table": table}
 

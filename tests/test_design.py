@@ -45,7 +45,8 @@ def test_runs_resume_and_the_comparison_is_written(tmp_path, monkeypatch):
     def fake_train(argv):
         out = D.Path(argv[argv.index("--out") + 1])
         out.mkdir(parents=True)
-        (out / "eval.json").write_text("{}")
+        auroc = 0.9 if "anchor_s" in str(out) else 0.8
+        (out / "eval.json").write_text(json.dumps({"summary": {"success_auroc": auroc, "psnr_h8": 22.0}}))
         calls.append(("train", out))
 
     def fake_eval(argv):
@@ -68,6 +69,8 @@ def test_runs_resume_and_the_comparison_is_written(tmp_path, monkeypatch):
     assert res["names"] == ["recipe", "anchor"] and len(res["all"]["design"]["runs"]) == 2
     assert res["all"]["gain"]["mean"]["pearson"] > 0 and "| all | anchor - recipe |" in (tmp_path / "compare.md").read_text()
     assert json.loads((tmp_path / "plan.json").read_text())["overrides"] == ["model.anchor=true"]
+    assert res["held_out"]["anchor_s1"]["success_auroc"] == 0.9
+    assert "| recipe (mean) | 22.000 |  | 0.800 |" in (tmp_path / "compare.md").read_text()
     D.main(args)  # everything finished: nothing runs again
     assert len(calls) == 8
 
