@@ -147,12 +147,15 @@ def main(argv=None) -> int:
                         "same training time)")
     p.add_argument("--episodes", type=int, default=50, help="held-out initial states a policy")
     p.add_argument("--out", type=Path, default=None, help="default runs/designs/PRESET/NAME")
+    p.add_argument("--draws", type=int, default=1000, help="bootstrap draws of the comparison")
     p.add_argument("--job", type=int, default=None, help=argparse.SUPPRESS)  # one run, in a child process
     a = p.parse_intermixed_args(argv)
     try:
         jobs = plan(a.preset, a.name, a.overrides, a.seeds, a.steps, a.design_steps, a.episodes, a.out)
     except ValueError as e:
         p.error(str(e))
+    if a.draws < 1:
+        p.error(f"--draws {a.draws}: give at least one")
     out = jobs[0].wm.parent.parent
     use_compilation_cache(pipeline(a.preset).root)
     if a.job is not None:
@@ -172,7 +175,7 @@ def main(argv=None) -> int:
         for i in todo:
             print(f"run {i + 1} of {len(jobs)}: {jobs[i].design}, seed {jobs[i].seed}", file=sys.stderr, flush=True)
             run_job(jobs[i])
-    res = write_comparison(jobs, out)
+    res = write_comparison(jobs, out, a.draws)
     print(res["table"])
     print(f"comparison: {out / 'compare.json'}")
     return 0

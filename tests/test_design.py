@@ -62,7 +62,7 @@ def test_runs_resume_and_the_comparison_is_written(tmp_path, monkeypatch):
     monkeypatch.setattr(D, "check_inputs", lambda preset: None)
     monkeypatch.setattr(D, "local_gpus", list)
     monkeypatch.setattr(D, "use_compilation_cache", lambda root: None)
-    args = ["demo", "anchor", "model.anchor=true", "--seeds", "2", "--out", str(tmp_path)]
+    args = ["demo", "anchor", "model.anchor=true", "--seeds", "2", "--out", str(tmp_path), "--draws", "50"]
     assert D.main(args) == 0
     assert len(calls) == 8
     res = json.loads((tmp_path / "compare.json").read_text())
