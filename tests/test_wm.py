@@ -41,7 +41,7 @@ from wm.model import (
     relative_time_bias,
     space_to_depth,
 )
-from wm.train import Run, TrainingDiverged, _check_config
+from wm.train import Run, TrainingDiverged, _check_config, model_batch
 from wm.train import main as train_main
 
 CFG = SMOKE_MODEL
@@ -722,11 +722,9 @@ def test_a_run_killed_between_its_best_and_latest_checkpoints_resumes(smoke_data
 
 
 def test_a_run_cut_short_is_left_unevaluated_and_the_rerun_finishes_it(smoke_dataset, tmp_path):
-    """Also the whole run of a model with an anchor frame: its windows' first frames from the loader,
-    its judge's imaginations and eval.json."""
     _, data, _ = smoke_dataset
     out = tmp_path / "run"
-    args = ["--config", "smoke", "--data", str(data), "--out", str(out), "model.anchor=true"]
+    args = ["--config", "smoke", "--data", str(data), "--out", str(out)]
     assert train_main([*args, "max_minutes=1e-6"]) == 0  # stops at its first logged step
     assert json.loads((out / "train_status.json").read_text()) == {"step": 5, "steps": 30, "cut_short": True}
     assert not (out / "eval.json").exists()
@@ -735,6 +733,25 @@ def test_a_run_cut_short_is_left_unevaluated_and_the_rerun_finishes_it(smoke_dat
     assert (out / "eval.json").exists()
     steps = [json.loads(line)["step"] for line in (out / "metrics.jsonl").read_text().splitlines()]
     assert steps == [5, 10, 15, 20, 25, 30]
+
+
+def test_the_loader_batch_carries_the_first_frames_only_to_an_anchored_model():
+    frames = np.arange(2 * 3 * 4 * 4 * 3, dtype=np.uint8).reshape(2, 3, 4, 4, 3)
+    batch = {"frames": {"head_cam": frames}, "first_frames": {"head_cam": frames[:, 0] + 1},
+             **{k: np.zeros((2, 3)) for k in ("proprio", "action", "success", "progress")}, "outcome": np.zeros(2)}
+    assert "anchor" not in model_batch(batch, "head_cam")
+    np.testing.assert_array_equal(model_batch(batch, "head_cam", anchor=True)["anchor"], frames[:, 0] + 1)
+
+
+@pytest.mark.slow
+def test_an_anchored_model_trains_fits_its_judge_and_writes_eval_json(smoke_dataset, tmp_path):
+    """The whole run of a model with an anchor frame: its windows' first frames from the loader, the
+    anchor through every training pass, and eval.json's open- and closed-loop imaginations."""
+    _, data, _ = smoke_dataset
+    out = tmp_path / "anchored"
+    assert train_main(["--config", "smoke", "--data", str(data), "--out", str(out), "model.anchor=true"]) == 0
+    report = json.loads((out / "eval.json").read_text())
+    assert all(np.isfinite(report["frame_quality"]["psnr"]))
     cfg, params, _ = load_trained(out)
     assert cfg.model.anchor and "anchor_kv" in params["dynamics"]["Block_0"]
 
