@@ -113,7 +113,8 @@ def compare_groups(true: dict, groups: dict, draws: int = 1000, seed: int = 0) -
                    "mean_ci": {k: S.percentile_interval(mean_draws[k]) for k in S.WITHIN_TASK},
                    "per_task": {t: {k: out["design"]["per_task"][t][k] - out["base"]["per_task"][t][k]
                                     for k in S.WITHIN_TASK} for t in tasks},
-                   "per_task_ci": {t: {k: S.percentile_interval(gain_draws[t][k]) for k in S.WITHIN_TASK} for t in tasks}}
+                   "per_task_ci": {t: {k: S.percentile_interval(gain_draws[t][k]) for k in S.WITHIN_TASK}
+                                   for t in tasks}}
     for g in GROUPS:
         del out[g]["_draws"]
     return out

@@ -67,7 +67,8 @@ def test_runs_resume_and_the_comparison_is_written(tmp_path, monkeypatch):
     assert len(calls) == 8
     res = json.loads((tmp_path / "compare.json").read_text())
     assert res["names"] == ["recipe", "anchor"] and len(res["all"]["design"]["runs"]) == 2
-    assert res["all"]["gain"]["mean"]["pearson"] > 0 and "| all | anchor - recipe |" in (tmp_path / "compare.md").read_text()
+    assert res["all"]["gain"]["mean"]["pearson"] > 0
+    assert "| all | anchor - recipe |" in (tmp_path / "compare.md").read_text()
     assert json.loads((tmp_path / "plan.json").read_text())["overrides"] == ["model.anchor=true"]
     assert res["held_out"]["anchor_s1"]["success_auroc"] == 0.9
     assert "| recipe (mean) | 22.000 |  | 0.800 |" in (tmp_path / "compare.md").read_text()

@@ -135,8 +135,9 @@ def empty_cache(cfg: ModelConfig, b: int) -> tuple:
 def predict_next(cfg: ModelConfig, params, z, proprio, action, valid, cache: tuple, anchor=None) -> tuple[dict, tuple]:
     """The dynamics' prediction for the frame after a buffer's last slot: z (B, K, 8, 8, C), proprio
     (B, K, 37), action (B, K, 20) normalised, valid (B, K) bool; cache: (k, v) of slots 0..K-2 (cfg.imagine
-    "cache") or unused; anchor: ImagineState.anchor (anchor_latents). Returns (predict's outputs at slot K-1, leaves (B, ...), the cache of slots
-    1..K-1: what the buffer's next step reads once it has pushed a frame)."""
+    "cache") or unused; anchor: ImagineState.anchor (anchor_latents). Returns (predict's outputs at slot
+    K-1, leaves (B, ...), the cache of slots 1..K-1: what the buffer's next step reads once it has pushed
+    a frame)."""
     model = WorldModel(cfg)
     if cfg.imagine != "cache":
         out = model.apply({"params": params}, z, proprio, action, valid, anchor=_anchor_arg(cfg, anchor),
@@ -406,8 +407,9 @@ def context_sample(ep: dict, camera: str, start: int, context: int, horizon: int
 
 def open_loop_chunked(cfg: ModelConfig, params, norm: Norm, samples: list[dict], horizon: int) -> dict:
     """open_loop over samples {"frames" (C, S, S, 3), "proprio" (C, 37), "context_actions" (C-1, 20),
-    "actions" (horizon, 20), optionally "anchor" (S, S, 3) the episode's first frame} in chunks of chunk_size (the last one padded, so one compilation serves
-    all); numpy arrays with a leading axis of len(samples)."""
+    "actions" (horizon, 20), optionally "anchor" (S, S, 3) the episode's first frame} in chunks of
+    chunk_size (the last one padded, so one compilation serves all); numpy arrays with a leading axis of
+    len(samples)."""
     outs = []
     for _, part, n in padded_chunks(samples):
         stack = {k: np.stack([s[k] for s in part]) for k in part[0]}

@@ -363,7 +363,7 @@ class WindowLoader:
                 out["frames"][name] = arr
             else:
                 out[name] = arr
-        out["first_frames"] = {}  # each window's episode's first frame: the anchor of wm's ModelConfig.anchor
+        out["first_frames"] = {}  # each window's episode's first frame, for a model that keeps it in view
         firsts = np.array([r["start"] for r in recs], np.int64)
         for name in self.cameras:
             arr = np.empty((b,) + out["frames"][name].shape[2:], out["frames"][name].dtype)
