@@ -8,10 +8,12 @@ The preset's data, zoo and rollouts must exist (`python -m experiments.pipeline 
 data|policies|rollouts`). Every run trains with `wm.train` on the preset's world-model data and
 training settings (seed k, the given steps; the design's runs add its key=value settings, and may
 train a different number of steps for the same training time) and is evaluated by
-`experiments.evaluate` on the preset's zoo from the same held-out states. The runs go into
-runs/designs/PRESET/NAME/{recipe,NAME}_s<k>/ (`wm/`, `eval/`); `experiments.compare` then writes
-compare.json and compare.md there: each run's within-task figures, each design's mean and range
-over its seeds, and the design's gain with a 95% interval from a bootstrap of policies and states.
+`experiments.evaluate` on the preset's zoo from the same held-out states. The design's runs go into
+runs/designs/PRESET/NAME/s<k>/, the recipe's into runs/designs/PRESET/recipe_<steps>/s<k>/ (shared by
+every design compared against the same recipe on this machine), each with `wm/` and `eval_e<episodes>/`;
+`experiments.compare` then writes compare.json and compare.md into runs/designs/PRESET/NAME/: each
+run's within-task figures, each design's mean and range over its seeds, and the design's gain with a
+95% interval from a bootstrap of policies and states.
 
 On a host with GPUs every run goes to a child process with one GPU, as many at a time as there are
 GPUs (two seeds of each design on four GPUs run side by side; the design's runs first where they
@@ -55,7 +57,8 @@ class Job:
 def plan(preset: str, name: str, overrides=(), seeds: int = 2, steps: int = 4000, design_steps: int | None = None,
          episodes: int = 50, root: Path | None = None) -> list[Job]:
     """The runs of a design decision, the design's first: for each seed k < seeds, the preset's
-    recipe (`steps` steps) and the recipe with `overrides` (`design_steps`, default `steps`)."""
+    recipe (`steps` steps) and the recipe with `overrides` (`design_steps`, default `steps`); root
+    (default runs/designs/PRESET) holds them as the module's docstring says."""
     if preset not in PIPELINES:
         raise ValueError(f"unknown preset {preset!r}: one of {', '.join(sorted(PIPELINES))}")
     if not name or name == BASE or "/" in name:
@@ -68,15 +71,16 @@ def plan(preset: str, name: str, overrides=(), seeds: int = 2, steps: int = 4000
         raise ValueError("seeds, steps, design_steps and episodes must be >= 1")
     p = pipeline(preset)
     d = p.dirs(preset)
-    out = Path(root or Path(p.root) / "designs" / preset / name)
+    root = Path(root or Path(p.root) / "designs" / preset)
     jobs = []
-    for design, n, extra in ((name, design_steps or steps, tuple(overrides)), (BASE, steps, ())):
+    for design, n, extra, where in ((name, design_steps or steps, tuple(overrides), root / name),
+                                    (BASE, steps, (), root / f"{BASE}_{steps}")):
         for k in range(seeds):
-            run = out / f"{design}_s{k}"
-            jobs.append(Job(design, k, run / "wm", run / "eval",
+            run = where / f"s{k}"
+            jobs.append(Job(design, k, run / "wm", run / f"eval_e{episodes}",
                             ("--config", p.train, "--data", str(d["wm_data"]), "--out", str(run / "wm"),
                              *p.train_overrides, f"seed={k}", f"steps={n}", "max_minutes=0", *extra),
-                            ("--config", p.eval, "--out", str(run / "eval"), f"policies={d['policies']}",
+                            ("--config", p.eval, "--out", str(run / f"eval_e{episodes}"), f"policies={d['policies']}",
                              f"wm={run / 'wm'}", f"episodes={episodes}", "max_minutes=0", *p.eval_overrides)))
     return jobs
 
@@ -146,17 +150,17 @@ def main(argv=None) -> int:
                    help="training steps of the design's runs (default --steps; fewer for a costlier step at the "
                         "same training time)")
     p.add_argument("--episodes", type=int, default=50, help="held-out initial states a policy")
-    p.add_argument("--out", type=Path, default=None, help="default runs/designs/PRESET/NAME")
+    p.add_argument("--root", type=Path, default=None, help="where the runs go (default runs/designs/PRESET)")
     p.add_argument("--draws", type=int, default=1000, help="bootstrap draws of the comparison")
     p.add_argument("--job", type=int, default=None, help=argparse.SUPPRESS)  # one run, in a child process
     a = p.parse_intermixed_args(argv)
     try:
-        jobs = plan(a.preset, a.name, a.overrides, a.seeds, a.steps, a.design_steps, a.episodes, a.out)
+        jobs = plan(a.preset, a.name, a.overrides, a.seeds, a.steps, a.design_steps, a.episodes, a.root)
     except ValueError as e:
         p.error(str(e))
     if a.draws < 1:
         p.error(f"--draws {a.draws}: give at least one")
-    out = jobs[0].wm.parent.parent
+    out = jobs[0].wm.parent.parent  # the design's directory: its plan, logs and comparison
     use_compilation_cache(pipeline(a.preset).root)
     if a.job is not None:
         run_job(jobs[a.job])

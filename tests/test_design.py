@@ -24,7 +24,8 @@ def test_the_plan_trains_each_seed_of_both_designs_on_the_presets_data_and_evalu
         e = list(j.eval_argv)
         assert e[e.index("--out") + 1] == str(j.eval) and f"wm={j.wm}" in e and "episodes=8" in e
         assert f"policies={d['policies']}" in e
-    assert len({j.wm for j in jobs}) == 4 and all(j.wm.parent.parent == tmp_path for j in jobs)
+    assert [j.wm.parent.parent for j in jobs] == [tmp_path / "anchor"] * 2 + [tmp_path / "recipe_300"] * 2
+    assert len({j.wm for j in jobs}) == 4 and all(j.eval.name == "eval_e8" for j in jobs)
     for bad in ({"name": "recipe"}, {"overrides": []}, {"overrides": ["model.anchor"]}, {"seeds": 0}):
         with pytest.raises(ValueError):
             D.plan("demo", **({"name": "x", "overrides": ["a=1"]} | bad))
@@ -36,7 +37,7 @@ def _results(true, rates, seen):
                          for t in TASKS for i in range(len(rates[t]))]}
 
 
-def test_runs_resume_and_the_comparison_is_written(tmp_path, monkeypatch):
+def test_runs_resume_share_the_recipe_and_the_comparison_is_written(tmp_path, monkeypatch):
     rng = np.random.default_rng(0)
     levels = np.linspace(0.05, 0.95, 8)
     true = {t: (rng.random((8, 10)) < levels[:, None]).astype(int) for t in TASKS}
@@ -45,13 +46,13 @@ def test_runs_resume_and_the_comparison_is_written(tmp_path, monkeypatch):
     def fake_train(argv):
         out = D.Path(argv[argv.index("--out") + 1])
         out.mkdir(parents=True)
-        auroc = 0.9 if "anchor_s" in str(out) else 0.8
+        auroc = 0.9 if "/anchor/" in str(out) else 0.8
         (out / "eval.json").write_text(json.dumps({"summary": {"success_auroc": auroc, "psnr_h8": 22.0}}))
         calls.append(("train", out))
 
     def fake_eval(argv):
         out = D.Path(argv[argv.index("--out") + 1])
-        noise = 0.02 if "anchor_s" in str(out) else 0.3
+        noise = 0.02 if "/anchor/" in str(out) else 0.3
         rates = {t: np.clip(true[t].mean(1) + noise * rng.standard_normal(8), 0, 1) for t in TASKS}
         out.mkdir(parents=True)
         (out / "results.json").write_text(json.dumps(_results(true, rates, seen=(0, 1))))
@@ -62,18 +63,20 @@ def test_runs_resume_and_the_comparison_is_written(tmp_path, monkeypatch):
     monkeypatch.setattr(D, "check_inputs", lambda preset: None)
     monkeypatch.setattr(D, "local_gpus", list)
     monkeypatch.setattr(D, "use_compilation_cache", lambda root: None)
-    args = ["demo", "anchor", "model.anchor=true", "--seeds", "2", "--out", str(tmp_path), "--draws", "50"]
+    args = ["demo", "anchor", "model.anchor=true", "--seeds", "2", "--root", str(tmp_path), "--draws", "50"]
     assert D.main(args) == 0
     assert len(calls) == 8
-    res = json.loads((tmp_path / "compare.json").read_text())
+    res = json.loads((tmp_path / "anchor" / "compare.json").read_text())
     assert res["names"] == ["recipe", "anchor"] and len(res["all"]["design"]["runs"]) == 2
     assert res["all"]["gain"]["mean"]["pearson"] > 0
-    assert "| all | anchor - recipe |" in (tmp_path / "compare.md").read_text()
-    assert json.loads((tmp_path / "plan.json").read_text())["overrides"] == ["model.anchor=true"]
+    assert "| all | anchor - recipe |" in (tmp_path / "anchor" / "compare.md").read_text()
+    assert json.loads((tmp_path / "anchor" / "plan.json").read_text())["overrides"] == ["model.anchor=true"]
     assert res["held_out"]["anchor_s1"]["success_auroc"] == 0.9
-    assert "| recipe (mean) | 22.000 |  | 0.800 |" in (tmp_path / "compare.md").read_text()
+    assert "| recipe (mean) | 22.000 |  | 0.800 |" in (tmp_path / "anchor" / "compare.md").read_text()
     D.main(args)  # everything finished: nothing runs again
     assert len(calls) == 8
+    D.main(["demo", "other", "model.dim=64", "--seeds", "2", "--root", str(tmp_path), "--draws", "50"])
+    assert len(calls) == 12 and all("/other/" in str(out) for _, out in calls[8:])  # the recipe's runs are shared
 
 
 def test_missing_data_names_the_stage_to_run(tmp_path, monkeypatch):
