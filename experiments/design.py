@@ -38,6 +38,7 @@ from experiments.pipeline import PIPELINES, pipeline, use_compilation_cache
 from sim_data.parts import local_gpus, run_parallel
 from sim_data.util import run_cli, write_json_atomic
 from wm import train
+from wm.config import make_config
 
 BASE = "recipe"
 
@@ -70,6 +71,7 @@ def plan(preset: str, name: str, overrides=(), seeds: int = 2, steps: int = 4000
     if seeds < 1 or steps < 1 or (design_steps is not None and design_steps < 1) or episodes < 1:
         raise ValueError("seeds, steps, design_steps and episodes must be >= 1")
     p = pipeline(preset)
+    make_config(p.train, [*p.train_overrides, *overrides])  # an unknown or invalid setting fails here, not in a run
     d = p.dirs(preset)
     root = Path(root or Path(p.root) / "designs" / preset)
     jobs = []

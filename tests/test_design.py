@@ -26,6 +26,8 @@ def test_the_plan_trains_each_seed_of_both_designs_on_the_presets_data_and_evalu
         assert f"policies={d['policies']}" in e
     assert [j.wm.parent.parent for j in jobs] == [tmp_path / "anchor"] * 2 + [tmp_path / "recipe_300"] * 2
     assert len({j.wm for j in jobs}) == 4 and all(j.eval.name == "eval_e8" for j in jobs)
+    with pytest.raises(ValueError, match="unknown setting"):
+        D.plan("demo", "typo", ["model.anchr=true"])
     for bad in ({"name": "recipe"}, {"overrides": []}, {"overrides": ["model.anchor"]}, {"seeds": 0}):
         with pytest.raises(ValueError):
             D.plan("demo", **({"name": "x", "overrides": ["a=1"]} | bad))
