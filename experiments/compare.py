@@ -26,6 +26,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+from matplotlib.figure import Figure
 
 from experiments import stats as S
 from experiments.ensemble import read_results
@@ -86,7 +87,8 @@ def compare_groups(true: dict, groups: dict, draws: int = 1000, seed: int = 0) -
 
     true: {task: (P, N) outcomes}; groups: {"base": [{task: (P, N) probabilities}] one per run,
     "design": [...]}. Returns {"base", "design": {"runs": [{stat: x}], "mean": {stat}, "range":
-    {stat: [min, max]}, "mean_ci": {stat: [lo, hi]}, "per_task": {task: {stat: mean over runs}}},
+    {stat: [min, max]}, "mean_ci": {stat: [lo, hi]}, "per_task": {task: {stat: mean over runs}},
+    "runs_per_task": [{task: {stat: x}}] one per run},
     "gain": {"mean": {stat: design - base}, "mean_ci", "per_task", "per_task_ci"}}."""
     if sorted(groups) != sorted(GROUPS) or any(not runs for runs in groups.values()):
         raise ValueError(f"give both groups {GROUPS}, each with at least one run")
@@ -103,7 +105,9 @@ def compare_groups(true: dict, groups: dict, draws: int = 1000, seed: int = 0) -
                   "range": {k: [min(r[k] for r in runs), max(r[k] for r in runs)] for k in S.WITHIN_TASK},
                   "mean_ci": {k: S.percentile_interval(np.mean([d[k] for d in drawn], 0)) for k in S.WITHIN_TASK},
                   "per_task": {t: {k: float(np.mean([point[n][t][k] for n in names])) for k in S.WITHIN_TASK}
-                               for t in tasks}}
+                               for t in tasks},
+                  "runs_per_task": [{t: {k: float(point[n][t][k]) for k in S.WITHIN_TASK} for t in tasks}
+                                    for n in names]}
         out[g]["_draws"] = {t: {k: np.mean([boot[n][t][k] for n in names], 0) for k in S.WITHIN_TASK}
                             for t in tasks}
     gain_draws = {t: {k: out["design"]["_draws"][t][k] - out["base"]["_draws"][t][k] for k in S.WITHIN_TASK}
@@ -158,13 +162,50 @@ def markdown(res: dict, names: tuple[str, str] = GROUPS) -> str:
     return "\n".join(lines)
 
 
+PLOTTED = ("pearson", "mmrv")
+
+
+def plot(res: dict, path: Path, names: tuple[str, str] = GROUPS, subset: str = "all") -> None:
+    """A PNG of the comparison: per statistic (Pearson, MMRV) a panel with each task and the mean over
+    tasks, each run a dot and each design's mean over its runs a bar with its 95% bootstrap interval
+    (on the mean over tasks)."""
+    r = res[subset]
+    tasks = list(r["base"]["per_task"])
+    fig = Figure(figsize=(4.2 * len(PLOTTED), 3.4))
+    axes = fig.subplots(1, len(PLOTTED))
+    x = np.arange(len(tasks) + 1)
+    for ax, stat in zip(axes, PLOTTED):
+        for j, (g, label) in enumerate(zip(GROUPS, names)):
+            off = (j - 0.5) * 0.36
+            means = [r[g]["per_task"][t][stat] for t in tasks] + [r[g]["mean"][stat]]
+            lo, hi = r[g]["mean_ci"][stat]
+            err = np.zeros((2, len(means)))
+            err[:, -1] = np.maximum([means[-1] - lo, hi - means[-1]], 0.0)  # a percentile interval may miss the point
+            ax.bar(x + off, means, 0.34, yerr=err, capsize=3, color=f"C{j}", alpha=0.55, label=f"{label} (mean)")
+            for run in r[g]["runs_per_task"]:
+                vals = [run[t][stat] for t in tasks]
+                ax.plot(x[:-1] + off, vals, "o", color=f"C{j}", ms=4)
+            for run in r[g]["runs"]:
+                ax.plot(x[-1] + off, run[stat], "o", color=f"C{j}", ms=4)
+        if stat not in S.LOWER_IS_BETTER:  # correlations near 1: show the differences, not the distance from 0
+            shown = [v for g in GROUPS for v in [*(r[g]["per_task"][t][stat] for t in tasks), r[g]["mean_ci"][stat][0]]]
+            ax.set_ylim(max(-1.0, np.nanmin(shown) - 0.1), 1.0)
+        ax.set_xticks(x, [*tasks, "mean"])
+        ax.set_title(f"within-task {stat} ({subset} policies; lower is better)" if stat in S.LOWER_IS_BETTER
+                     else f"within-task {stat} ({subset} policies)", fontsize=9)
+        ax.grid(axis="y", alpha=0.3)
+    axes[0].legend(fontsize=8, loc="lower left")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--base", nargs="+", type=Path, required=True, help="evaluations by the base design's world models")
     p.add_argument("--design", nargs="+", type=Path, required=True, help="evaluations by the new design's world models")
     p.add_argument("--names", default="base,design", help="the two designs' names in the table: BASE,DESIGN")
     p.add_argument("--draws", type=int, default=1000, help="bootstrap draws")
-    p.add_argument("--out", type=Path, help="where the comparison's JSON goes (optional)")
+    p.add_argument("--out", type=Path, help="where the comparison's JSON goes (optional; with it, a PNG beside it)")
     a = p.parse_args(argv)
     names = tuple(a.names.split(","))
     if len(names) != 2 or not all(names):
@@ -176,6 +217,7 @@ def main(argv=None) -> int:
     if a.out:
         a.out.parent.mkdir(parents=True, exist_ok=True)
         write_json_atomic(a.out, res)
+        plot(res, a.out.with_suffix(".png"), names)
     print(markdown(res, names))
     return 0
 

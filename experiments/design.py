@@ -11,7 +11,7 @@ train a different number of steps for the same training time) and is evaluated b
 `experiments.evaluate` on the preset's zoo from the same held-out states. The design's runs go into
 runs/designs/PRESET/NAME/s<k>/, the recipe's into runs/designs/PRESET/recipe_<steps>/s<k>/ (shared by
 every design compared against the same recipe on this machine), each with `wm/` and `eval_e<episodes>/`;
-`experiments.compare` then writes compare.json and compare.md into runs/designs/PRESET/NAME/: each
+`experiments.compare` then writes compare.json, compare.md and compare.png into runs/designs/PRESET/NAME/: each
 run's within-task figures, each design's mean and range over its seeds, and the design's gain with a
 95% interval from a bootstrap of policies and states.
 
@@ -127,8 +127,8 @@ def held_out_table(jobs: list[Job]) -> tuple[dict, str]:
 
 
 def write_comparison(jobs: list[Job], out: Path, draws: int = 1000) -> dict:
-    """compare.json and compare.md in out from the finished runs' evaluations: the ranking within each
-    task (experiments.compare) and each run's held-out figures."""
+    """compare.json, compare.md and compare.png in out from the finished runs' evaluations: the ranking
+    within each task (experiments.compare) and each run's held-out figures."""
     name = jobs[0].design
     groups = {g: [read_results(j.eval) for j in jobs if j.design == g] for g in (BASE, name)}
     res = compare.compare(groups[BASE], groups[name], draws)
@@ -138,6 +138,7 @@ def write_comparison(jobs: list[Job], out: Path, draws: int = 1000) -> dict:
     write_json_atomic(out / "compare.json", res)
     table = compare.markdown(res, (BASE, name)) + "\n\nHeld-out episodes (`eval.json`):\n\n" + held_table
     (out / "compare.md").write_text(table + "\n")
+    compare.plot(res, out / "compare.png", (BASE, name))
     return res | {"table": table}
 
 

@@ -91,6 +91,7 @@ def test_the_command_writes_both_subsets_and_prints_the_table(tmp_path, capsys):
     assert C.main(["--base", *runs[:2], "--design", *runs[2:], "--names", "recipe,sharp", "--draws", "20",
                    "--out", str(out)]) == 0
     res = json.loads(out.read_text())
+    assert out.with_suffix(".png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert res["names"] == ["recipe", "sharp"] and res["unseen_policies"] == {"mug": P - 2, "wipe": P - 2}
     assert len(res["all"]["base"]["runs"]) == 2 and "gain" in res["unseen"]
     table = capsys.readouterr().out

@@ -73,6 +73,7 @@ def test_runs_resume_share_the_recipe_and_the_comparison_is_written(tmp_path, mo
     assert res["all"]["gain"]["mean"]["pearson"] > 0
     assert "| all | anchor - recipe |" in (tmp_path / "anchor" / "compare.md").read_text()
     assert json.loads((tmp_path / "anchor" / "plan.json").read_text())["overrides"] == ["model.anchor=true"]
+    assert (tmp_path / "anchor" / "compare.png").stat().st_size > 0
     assert res["held_out"]["anchor_s1"]["success_auroc"] == 0.9
     assert "| recipe (mean) | 22.000 |  | 0.800 |" in (tmp_path / "anchor" / "compare.md").read_text()
     D.main(args)  # everything finished: nothing runs again
