@@ -28,6 +28,7 @@ import argparse
 import dataclasses
 import json
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -35,8 +36,9 @@ import numpy as np
 from experiments import compare, evaluate
 from experiments.ensemble import read_results
 from experiments.pipeline import PIPELINES, pipeline, use_compilation_cache
+from experiments.timing import compile_snapshot, compiled_since, record_timing
 from sim_data.parts import local_gpus, run_parallel
-from sim_data.util import run_cli, write_json_atomic
+from sim_data.util import device_name, run_cli, write_json_atomic
 from wm import train
 from wm.config import make_config
 
@@ -99,11 +101,17 @@ def check_inputs(preset: str) -> None:
 
 
 def run_job(job: Job) -> None:
-    """Trains (unless its eval.json says it is trained) and evaluates (unless results.json exists) one run."""
-    if not (job.wm / "eval.json").exists():
-        train.main(list(job.train_argv))
-    if not (job.eval / "results.json").exists():
-        evaluate.main(list(job.eval_argv))
+    """Trains (unless its eval.json says it is trained) and evaluates (unless results.json exists) one
+    run, each command's wall and compile seconds appended to the run's timing.json."""
+    for done, main, argv, stage in ((job.wm / "eval.json", train.main, job.train_argv, "train"),
+                                    (job.eval / "results.json", evaluate.main, job.eval_argv, "eval")):
+        if done.exists():
+            continue
+        before, t0 = compile_snapshot(), time.perf_counter()
+        main(list(argv))
+        record_timing(job.wm.parent / "timing.json",
+                      {"stage": stage, "wall_s": round(time.perf_counter() - t0, 3), **compiled_since(before),
+                       "device": device_name(), "argv": list(argv)})
 
 
 # wm.train's eval.json figures (held-out episodes of its data) shown beside the ranking
@@ -126,6 +134,14 @@ def held_out_table(jobs: list[Job]) -> tuple[dict, str]:
     return rows, "\n".join(lines)
 
 
+def timing_table(timing: dict) -> str:
+    """The runs' timing rows (run_job) as a markdown table."""
+    lines = ["| run | stage | wall s | compile s | device |", "|---|---|---|---|---|"]
+    for run, rows in timing.items():
+        lines += [f"| {run} | {r['stage']} | {r['wall_s']:.0f} | {r['compile_s']:.0f} | {r['device']} |" for r in rows]
+    return "\n".join(lines)
+
+
 def write_comparison(jobs: list[Job], out: Path, draws: int = 1000) -> dict:
     """compare.json, compare.md and compare.png in out from the finished runs' evaluations: the ranking
     within each task (experiments.compare) and each run's held-out figures."""
@@ -133,10 +149,14 @@ def write_comparison(jobs: list[Job], out: Path, draws: int = 1000) -> dict:
     groups = {g: [read_results(j.eval) for j in jobs if j.design == g] for g in (BASE, name)}
     res = compare.compare(groups[BASE], groups[name], draws)
     held_out, held_table = held_out_table(jobs)
-    res |= {"names": [BASE, name], "held_out": held_out,
+    timing = {f"{j.design}_s{j.seed}": json.loads(t.read_text()) if (t := j.wm.parent / "timing.json").exists()
+              else [] for j in jobs}
+    res |= {"names": [BASE, name], "held_out": held_out, "timing": timing,
             "runs": {j.design + f"_s{j.seed}": {"train": list(j.train_argv)} for j in jobs}}
     write_json_atomic(out / "compare.json", res)
-    table = compare.markdown(res, (BASE, name)) + "\n\nHeld-out episodes (`eval.json`):\n\n" + held_table
+    table = (compare.markdown(res, (BASE, name)) + "\n\nHeld-out episodes (`eval.json`):\n\n" + held_table
+             + "\n\nCommands (wall and compile seconds; a run finished by an earlier command lists it there):\n\n"
+             + timing_table(timing))
     (out / "compare.md").write_text(table + "\n")
     compare.plot(res, out / "compare.png", (BASE, name))
     return res | {"table": table}

@@ -74,6 +74,8 @@ def test_runs_resume_share_the_recipe_and_the_comparison_is_written(tmp_path, mo
     assert "| all | anchor - recipe |" in (tmp_path / "anchor" / "compare.md").read_text()
     assert json.loads((tmp_path / "anchor" / "plan.json").read_text())["overrides"] == ["model.anchor=true"]
     assert (tmp_path / "anchor" / "compare.png").stat().st_size > 0
+    assert [r["stage"] for r in res["timing"]["anchor_s0"]] == ["train", "eval"]
+    assert "| recipe_s1 | eval |" in (tmp_path / "anchor" / "compare.md").read_text()
     assert res["held_out"]["anchor_s1"]["success_auroc"] == 0.9
     assert "| recipe (mean) | 22.000 |  | 0.800 |" in (tmp_path / "anchor" / "compare.md").read_text()
     D.main(args)  # everything finished: nothing runs again
