@@ -110,9 +110,11 @@ def compare_groups(true: dict, groups: dict, draws: int = 1000, seed: int = 0) -
                                     for n in names]}
         out[g]["_draws"] = {t: {k: np.mean([boot[n][t][k] for n in names], 0) for k in S.WITHIN_TASK}
                             for t in tasks}
+        # the group's mean over runs of each run's mean over tasks, per draw: the point estimate's recipe
+        out[g]["_mean_draws"] = {k: np.mean([d[k] for d in drawn], 0) for k in S.WITHIN_TASK}
     gain_draws = {t: {k: out["design"]["_draws"][t][k] - out["base"]["_draws"][t][k] for k in S.WITHIN_TASK}
                   for t in tasks}
-    mean_draws = _task_mean(gain_draws)
+    mean_draws = {k: out["design"]["_mean_draws"][k] - out["base"]["_mean_draws"][k] for k in S.WITHIN_TASK}
     out["gain"] = {"mean": {k: out["design"]["mean"][k] - out["base"]["mean"][k] for k in S.WITHIN_TASK},
                    "mean_ci": {k: S.percentile_interval(mean_draws[k]) for k in S.WITHIN_TASK},
                    "per_task": {t: {k: out["design"]["per_task"][t][k] - out["base"]["per_task"][t][k]
@@ -120,7 +122,7 @@ def compare_groups(true: dict, groups: dict, draws: int = 1000, seed: int = 0) -
                    "per_task_ci": {t: {k: S.percentile_interval(gain_draws[t][k]) for k in S.WITHIN_TASK}
                                    for t in tasks}}
     for g in GROUPS:
-        del out[g]["_draws"]
+        del out[g]["_draws"], out[g]["_mean_draws"]
     return out
 
 

@@ -8,12 +8,14 @@ The preset's data, zoo and rollouts must exist (`python -m experiments.pipeline 
 data|policies|rollouts`). Every run trains with `wm.train` on the preset's world-model data and
 training settings (seed k, the given steps; the design's runs add its key=value settings, and may
 train a different number of steps for the same training time) and is evaluated by
-`experiments.evaluate` on the preset's zoo from the same held-out states. The design's runs go into
-runs/designs/PRESET/NAME/s<k>/, the recipe's into runs/designs/PRESET/recipe_<steps>/s<k>/ (shared by
-every design compared against the same recipe on this machine), each with `wm/` and `eval_e<episodes>/`;
-`experiments.compare` then writes compare.json, compare.md and compare.png into runs/designs/PRESET/NAME/: each
-run's within-task figures, each design's mean and range over its seeds, and the design's gain with a
-95% interval from a bootstrap of policies and states.
+`experiments.evaluate` on the preset's zoo from the same held-out states. The runs go into
+runs/designs/PRESET/{NAME,recipe}/<steps>steps_s<k>/ (`wm/`, `eval_e<episodes>/`, `timing.json`): the
+recipe's are shared by every design compared against it with the same steps. `experiments.compare`
+then writes compare.json, compare.md and compare.png into runs/designs/PRESET/NAME/: each run's
+within-task figures, each design's mean and range over its seeds, and the design's gain with a 95%
+interval from a bootstrap of policies and states, beside each run's held-out figures and timing.
+A finished run trained with other settings than the command's (the same name given other settings)
+stops the command before anything runs.
 
 On a host with GPUs every run goes to a child process with one GPU, as many at a time as there are
 GPUs (two seeds of each design on four GPUs run side by side; the design's runs first where they
@@ -37,10 +39,11 @@ from experiments import compare, evaluate
 from experiments.ensemble import read_results
 from experiments.pipeline import PIPELINES, pipeline, use_compilation_cache
 from experiments.timing import compile_snapshot, compiled_since, record_timing
-from sim_data.parts import local_gpus, run_parallel
+from sim_data.parts import exclusive, local_gpus, run_parallel
 from sim_data.util import device_name, run_cli, write_json_atomic
 from wm import train
 from wm.config import make_config
+from wm.train import check_run_config
 
 BASE = "recipe"
 
@@ -64,8 +67,8 @@ def plan(preset: str, name: str, overrides=(), seeds: int = 2, steps: int = 4000
     (default runs/designs/PRESET) holds them as the module's docstring says."""
     if preset not in PIPELINES:
         raise ValueError(f"unknown preset {preset!r}: one of {', '.join(sorted(PIPELINES))}")
-    if not name or name == BASE or "/" in name:
-        raise ValueError(f"name the design (not {BASE!r}, no '/'), got {name!r}")
+    if not name or name.startswith(BASE) or "/" in name:
+        raise ValueError(f"name the design (not starting with {BASE!r}, no '/'), got {name!r}")
     if not overrides:
         raise ValueError("a design is the recipe with some key=value settings changed: give at least one")
     if any("=" not in o for o in overrides):
@@ -77,10 +80,9 @@ def plan(preset: str, name: str, overrides=(), seeds: int = 2, steps: int = 4000
     d = p.dirs(preset)
     root = Path(root or Path(p.root) / "designs" / preset)
     jobs = []
-    for design, n, extra, where in ((name, design_steps or steps, tuple(overrides), root / name),
-                                    (BASE, steps, (), root / f"{BASE}_{steps}")):
+    for design, n, extra in ((name, design_steps or steps, tuple(overrides)), (BASE, steps, ())):
         for k in range(seeds):
-            run = where / f"s{k}"
+            run = root / design / f"{n}steps_s{k}"
             jobs.append(Job(design, k, run / "wm", run / f"eval_e{episodes}",
                             ("--config", p.train, "--data", str(d["wm_data"]), "--out", str(run / "wm"),
                              *p.train_overrides, f"seed={k}", f"steps={n}", "max_minutes=0", *extra),
@@ -100,18 +102,34 @@ def check_inputs(preset: str) -> None:
                              "(and the stages before it) first")
 
 
+def check_trained_as_planned(job: Job) -> None:
+    """Raises SystemExit where the run's directory holds a model trained with other settings or data
+    than the job's (the same name given other settings, or other steps)."""
+    a = list(job.train_argv)
+    cfg = make_config(a[a.index("--config") + 1], a[a.index("--out") + 2:])
+    try:
+        check_run_config(cfg, Path(a[a.index("--data") + 1]), job.wm)
+    except ValueError as e:
+        raise SystemExit(f"{e}: name the design anew, or remove {job.wm.parent}") from None
+
+
 def run_job(job: Job) -> None:
-    """Trains (unless its eval.json says it is trained) and evaluates (unless results.json exists) one
-    run, each command's wall and compile seconds appended to the run's timing.json."""
-    for done, main, argv, stage in ((job.wm / "eval.json", train.main, job.train_argv, "train"),
-                                    (job.eval / "results.json", evaluate.main, job.eval_argv, "eval")):
-        if done.exists():
-            continue
-        before, t0 = compile_snapshot(), time.perf_counter()
-        main(list(argv))
-        record_timing(job.wm.parent / "timing.json",
-                      {"stage": stage, "wall_s": round(time.perf_counter() - t0, 3), **compiled_since(before),
-                       "device": device_name(), "argv": list(argv)})
+    """Trains (unless its eval.json says it is trained, with the job's settings) and evaluates (unless
+    results.json exists from this model) one run, under a lock on its directory (two commands may share
+    the recipe's runs), each command's wall and compile seconds appended to the run's timing.json."""
+    job.wm.parent.mkdir(parents=True, exist_ok=True)
+    with exclusive(job.wm.parent / "run.lock"):
+        trained = (job.wm / "eval.json").exists()
+        if trained:
+            check_trained_as_planned(job)
+        for stage, main, argv in (("train", train.main, job.train_argv), ("eval", evaluate.main, job.eval_argv)):
+            if stage == "train" and trained or stage == "eval" and trained and (job.eval / "results.json").exists():
+                continue
+            before, t0 = compile_snapshot(), time.perf_counter()
+            main(list(argv))
+            record_timing(job.wm.parent / "timing.json",
+                          {"stage": stage, "wall_s": round(time.perf_counter() - t0, 3), **compiled_since(before),
+                           "device": device_name(), "argv": list(argv)})
 
 
 # wm.train's eval.json figures (held-out episodes of its data) shown beside the ranking
@@ -129,7 +147,9 @@ def held_out_table(jobs: list[Job]) -> tuple[dict, str]:
         lines.append(f"| {run} | " + " | ".join(fmt(summary.get(k)) for k in HELD_OUT) + " |")
     for design in dict.fromkeys(j.design for j in jobs):
         vals = [rows[f"{j.design}_s{j.seed}"] for j in jobs if j.design == design]
-        means = [np.mean([v[k] for v in vals]) if all(k in v for v in vals) else None for k in HELD_OUT]
+        # a figure eval.json could not compute (one class, no programs) is None: the mean is then missing too
+        means = [np.mean([v[k] for v in vals]) if all(v.get(k) is not None for v in vals) else None
+                 for k in HELD_OUT]
         lines.append(f"| {design} (mean) | " + " | ".join(fmt(m) for m in means) + " |")
     return rows, "\n".join(lines)
 
@@ -193,6 +213,9 @@ def main(argv=None) -> int:
     write_json_atomic(out / "plan.json", {"preset": a.preset, "name": a.name, "overrides": a.overrides,
                                           "jobs": [{"design": j.design, "seed": j.seed, "train": list(j.train_argv),
                                                     "eval": list(j.eval_argv)} for j in jobs]})
+    for job in jobs:  # finished runs must be the planned ones before any is skipped or compared
+        if (job.wm / "eval.json").exists():
+            check_trained_as_planned(job)
     todo = [i for i, j in enumerate(jobs) if not (j.eval / "results.json").exists()]
     gpus = local_gpus()
     if len(gpus) > 1 and todo:

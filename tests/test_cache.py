@@ -74,7 +74,8 @@ def test_corrupt_file_stops_the_build_or_is_skipped_and_listed(two_shards, tmp_p
 def test_loader_windows_epochs_and_resume(two_shards):
     cache = C.TrainingCache(two_shards)
     window, batch = 16, 8
-    loader = C.WindowLoader(cache, window, batch, split=None, seed=3, cameras=["head_cam", "ext_cam"])
+    loader = C.WindowLoader(cache, window, batch, split=None, seed=3, cameras=["head_cam", "ext_cam"],
+                            first_frames=True)
     lengths = [e["length"] for e in cache.episodes]
     assert loader.windows == sum(n - window + 1 for n in lengths)
     first = [next(loader) for _ in range(3)]
@@ -96,6 +97,7 @@ def test_loader_windows_epochs_and_resume(two_shards):
     again = C.WindowLoader(cache, window, batch, split=None, seed=3, cameras=["head_cam", "ext_cam"])
     again.restore(state)
     got = next(again)
+    assert "first_frames" not in got  # only for a loader asked for them
     np.testing.assert_array_equal(got["frames"]["head_cam"], expected["frames"]["head_cam"])
     np.testing.assert_array_equal(got["start"], expected["start"])
     # an epoch visits every window at most once

@@ -7,6 +7,7 @@ import pytest
 
 from experiments import design as D
 from experiments.pipeline import pipeline
+from wm.config import make_config
 
 TASKS = ("mug", "step_back")
 
@@ -24,11 +25,13 @@ def test_the_plan_trains_each_seed_of_both_designs_on_the_presets_data_and_evalu
         e = list(j.eval_argv)
         assert e[e.index("--out") + 1] == str(j.eval) and f"wm={j.wm}" in e and "episodes=8" in e
         assert f"policies={d['policies']}" in e
-    assert [j.wm.parent.parent for j in jobs] == [tmp_path / "anchor"] * 2 + [tmp_path / "recipe_300"] * 2
+    assert [j.wm.parent.relative_to(tmp_path) for j in jobs] == [
+        D.Path("anchor/200steps_s0"), D.Path("anchor/200steps_s1"), D.Path("recipe/300steps_s0"),
+        D.Path("recipe/300steps_s1")]
     assert len({j.wm for j in jobs}) == 4 and all(j.eval.name == "eval_e8" for j in jobs)
     with pytest.raises(ValueError, match="unknown setting"):
         D.plan("demo", "typo", ["model.anchr=true"])
-    for bad in ({"name": "recipe"}, {"overrides": []}, {"overrides": ["model.anchor"]}, {"seeds": 0}):
+    for bad in ({"name": "recipe"}, {"name": "recipe2"}, {"overrides": []}, {"overrides": ["model.anchor"]}, {"seeds": 0}):
         with pytest.raises(ValueError):
             D.plan("demo", **({"name": "x", "overrides": ["a=1"]} | bad))
 
@@ -48,6 +51,7 @@ def test_runs_resume_share_the_recipe_and_the_comparison_is_written(tmp_path, mo
     def fake_train(argv):
         out = D.Path(argv[argv.index("--out") + 1])
         out.mkdir(parents=True)
+        D.check_run_config(make_config(argv[1], argv[6:]), D.Path(argv[3]), out)  # config.json, as a run writes
         auroc = 0.9 if "/anchor/" in str(out) else 0.8
         (out / "eval.json").write_text(json.dumps({"summary": {"success_auroc": auroc, "psnr_h8": 22.0}}))
         calls.append(("train", out))
@@ -55,8 +59,8 @@ def test_runs_resume_share_the_recipe_and_the_comparison_is_written(tmp_path, mo
     def fake_eval(argv):
         out = D.Path(argv[argv.index("--out") + 1])
         noise = 0.02 if "/anchor/" in str(out) else 0.3
+        out.mkdir(parents=True, exist_ok=True)
         rates = {t: np.clip(true[t].mean(1) + noise * rng.standard_normal(8), 0, 1) for t in TASKS}
-        out.mkdir(parents=True)
         (out / "results.json").write_text(json.dumps(_results(true, rates, seen=(0, 1))))
         calls.append(("eval", out))
 
@@ -82,6 +86,8 @@ def test_runs_resume_share_the_recipe_and_the_comparison_is_written(tmp_path, mo
     assert len(calls) == 8
     D.main(["demo", "other", "model.dim=64", "--seeds", "2", "--root", str(tmp_path), "--draws", "50"])
     assert len(calls) == 12 and all("/other/" in str(out) for _, out in calls[8:])  # the recipe's runs are shared
+    with pytest.raises(SystemExit, match="name the design anew"):  # the same name, other settings
+        D.main(["demo", "anchor", "model.dim=64", "--seeds", "2", "--root", str(tmp_path), "--draws", "50"])
 
 
 def test_missing_data_names_the_stage_to_run(tmp_path, monkeypatch):

@@ -41,7 +41,7 @@ from wm.model import (
     relative_time_bias,
     space_to_depth,
 )
-from wm.train import Run, TrainingDiverged, _check_config, model_batch
+from wm.train import Run, TrainingDiverged, check_run_config, model_batch
 from wm.train import main as train_main
 
 CFG = SMOKE_MODEL
@@ -829,12 +829,20 @@ def test_a_bundle_carries_the_model_in_bfloat16_and_refuses_a_damaged_copy(smoke
 
 def test_a_run_directory_refuses_another_configuration_naming_what_differs(tmp_path):
     cfg = make_config("demo")
-    _check_config(cfg, tmp_path / "data", tmp_path)
-    _check_config(cfg, tmp_path / "data", tmp_path)  # the same run resumes
+    check_run_config(cfg, tmp_path / "data", tmp_path)
+    check_run_config(cfg, tmp_path / "data", tmp_path)  # the same run resumes
     with pytest.raises(ValueError, match=r"differs: data\)"):
-        _check_config(cfg, tmp_path / "other", tmp_path)
+        check_run_config(cfg, tmp_path / "other", tmp_path)
     with pytest.raises(ValueError, match=r"differs: lr\)"):
-        _check_config(dataclasses.replace(cfg, lr=cfg.lr * 2), tmp_path / "data", tmp_path)
+        check_run_config(dataclasses.replace(cfg, lr=cfg.lr * 2), tmp_path / "data", tmp_path)
+    # a run written before a model setting existed resumes with that setting's default, and only with it
+    saved = json.loads((tmp_path / "config.json").read_text())
+    del saved["train"]["model"]["anchor"]
+    (tmp_path / "config.json").write_text(json.dumps(saved))
+    check_run_config(cfg, tmp_path / "data", tmp_path)
+    with pytest.raises(ValueError, match=r"differs: model\)"):
+        check_run_config(dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, anchor=True)), tmp_path / "data",
+                      tmp_path)
 
 
 def test_success_only_writes_each_held_out_episodes_read_outs_beside_their_summary(smoke_dataset, smoke_world_model,

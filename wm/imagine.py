@@ -281,8 +281,9 @@ def _open_loop_segment(cfg: ModelConfig, params, norm: Norm, state: ImagineState
 
 
 def closed_loop(cfg: ModelConfig, policy, horizon: int, params, norm: Norm, policy_params, frames, proprio,
-                context_actions, rng) -> dict:
-    """A policy acting inside the world model for `horizon` steps from C context observations.
+                context_actions, rng, anchor=None) -> dict:
+    """A policy acting inside the world model for `horizon` steps from C context observations (anchor:
+    the episodes' first frames (B, S, S, 3) uint8 where the context starts later: init_state).
 
     The policy's carry starts from `policy.init_carry(policy_params, obs, None, rng)` on the last
     context observation. The steps run in compiled segments of SEGMENT steps, so that horizons of
@@ -290,7 +291,8 @@ def closed_loop(cfg: ModelConfig, policy, horizon: int, params, norm: Norm, poli
     (B, horizon, S, S, 3) uint8, "proprio": (B, horizon, 37), "success": (B, horizon), "outcome":
     (B, horizon), "progress": (B, horizon), "action": (B, horizon, 20), "features": (B, horizon, F)}.
     """
-    carry, k_act = _closed_loop_start(cfg, policy, params, norm, policy_params, frames, proprio, context_actions, rng)
+    carry, k_act = _closed_loop_start(cfg, policy, params, norm, policy_params, frames, proprio, context_actions, rng,
+                                      anchor)
     parts = []
     for t0 in range(0, horizon, SEGMENT):
         carry, got = _closed_loop_segment(cfg, policy, params, norm, policy_params, carry, k_act, t0)
@@ -300,8 +302,8 @@ def closed_loop(cfg: ModelConfig, policy, horizon: int, params, norm: Norm, poli
 
 @functools.partial(jax.jit, static_argnums=(0, 1))
 def _closed_loop_start(cfg: ModelConfig, policy, params, norm: Norm, policy_params, frames, proprio, context_actions,
-                       rng):
-    state = init_state(cfg, params, norm, frames, proprio, context_actions)
+                       rng, anchor):
+    state = init_state(cfg, params, norm, frames, proprio, context_actions, anchor)
     k_init, k_act = jax.random.split(rng)
     obs = {"image": frames[:, -1], "proprio": proprio[:, -1]}
     return (state, obs, policy.init_carry(policy_params, obs, None, k_init)), k_act

@@ -233,7 +233,7 @@ class Run:
         self.t_created = time.perf_counter()
         self.cfg, self.data, self.out = cfg, Path(data), Path(out)
         make_output_dir(self.out)
-        _check_config(cfg, data, self.out)
+        check_run_config(cfg, data, self.out)
         self.cache = TrainingCache(self.data)
         check_dataset(cfg, self.cache)
         bad = self.cache.non_finite()
@@ -246,6 +246,7 @@ class Run:
         # order, and the losses, do not depend on how many processes share the work
         part = (jax.process_index(), jax.process_count())
         self.loader = WindowLoader(self.cache, cfg.window, cfg.batch, split="train", seed=cfg.seed, part=part,
+                                   first_frames=cfg.model.anchor,
                                    cameras=[cfg.camera], tasks=cfg.train_tasks or None, fraction=cfg.train_fraction)
         norm_path = self.out / "norm.json"
         if norm_path.exists():
@@ -254,7 +255,7 @@ class Run:
             self.norm = compute_norm(self.cache, [int(i) for i in self.loader.episodes])
             write_json_atomic(norm_path, self.norm.to_dict())
         self.val = WindowLoader(self.cache, cfg.window, cfg.batch, split="val", seed=1234, cameras=[cfg.camera],
-                                part=part) if self.cache.select("val") else None
+                                part=part, first_frames=cfg.model.anchor) if self.cache.select("val") else None
         self.mesh = make_mesh()
         params = init_params(cfg.model, jax.random.PRNGKey(cfg.seed), window=cfg.window)
         # the optimiser's state made by one program, not an eager zeros per parameter shape
@@ -389,7 +390,7 @@ class MetricLog:
             f.write(json.dumps(metrics) + "\n")
 
 
-def _check_config(cfg: TrainConfig, data: Path, out: Path) -> None:
+def check_run_config(cfg: TrainConfig, data: Path, out: Path) -> None:
     """Saves the resolved configuration; refuses to resume a run of another one."""
     path = out / "config.json"
     mine = json.loads(json.dumps({"train": to_dict(cfg), "data": str(Path(data).absolute())}))
@@ -399,6 +400,8 @@ def _check_config(cfg: TrainConfig, data: Path, out: Path) -> None:
         defaults = json.loads(json.dumps(to_dict(TrainConfig())))
         for k in mine["train"].keys() - theirs["train"].keys():  # a setting added since: the run had its default
             theirs["train"][k] = defaults[k]
+        for k in mine["train"]["model"].keys() - theirs["train"].get("model", {}).keys():  # the same for the model
+            theirs["train"].setdefault("model", {})[k] = defaults["model"][k]
         if theirs != mine:
             keys = mine["train"].keys() | theirs["train"].keys()
             differs = sorted(k for k in keys if mine["train"].get(k) != theirs["train"].get(k))

@@ -279,19 +279,20 @@ class WindowLoader:
     Batches: {"frames": {camera: (B, T, H, W, 3) uint8}, "proprio": (B, T, 37) float32,
     "action": (B, T, 20) float32 (action t follows frame t), "success": (B, T) bool, "progress": (B, T) float32,
     "outcome": (B,) bool (the episode's success), "task": (B,) int32 (index into cache.tasks),
-    "start": (B,) int32 (the window's first step), "episode": (B,) int32, "first_frames": {camera: (B, H,
-    W, 3) uint8} (each window's episode's first frame)}.
+    "start": (B,) int32 (the window's first step), "episode": (B,) int32}; with first_frames, also
+    "first_frames": {camera: (B, H, W, 3) uint8} (each window's episode's first frame).
     """
 
     def __init__(self, cache: TrainingCache, window: int, batch: int, split: str | None = "train", seed: int = 0,
                  cameras=None, tasks=None, fraction: float = 1.0, prefetch: int = 8, threads: int = 4,
-                 part: tuple[int, int] = (0, 1)):
+                 part: tuple[int, int] = (0, 1), first_frames: bool = False):
         if window < 1 or batch < 1:
             raise ValueError(f"window and batch must be >= 1, got {window}, {batch}")
         index, count = part
         if not (count >= 1 and 0 <= index < count and batch % count == 0):
             raise ValueError(f"part {part} must be (i, n) with 0 <= i < n and n dividing the batch {batch}")
         self.cache, self.window, self.batch, self.seed = cache, window, batch, seed
+        self.first_frames = first_frames
         self.part = (int(index), int(count))
         self.cameras = list(cameras or cache.cameras[:1])
         bad = [c for c in self.cameras if c not in cache.cameras]
@@ -363,6 +364,8 @@ class WindowLoader:
                 out["frames"][name] = arr
             else:
                 out[name] = arr
+        if not self.first_frames:
+            return out
         out["first_frames"] = {}  # each window's episode's first frame, for a model that keeps it in view
         firsts = np.array([r["start"] for r in recs], np.int64)
         for name in self.cameras:
