@@ -95,34 +95,30 @@ def compare_groups(true: dict, groups: dict, draws: int = 1000, seed: int = 0) -
     predictors = {f"{g}{i}": run for g in GROUPS for i, run in enumerate(groups[g])}
     point, boot = S.within_task_draws(true, predictors, draws=draws, seed=seed)
     tasks = list(true)
-    out = {}
+    out, task_draws, mean_draws = {}, {}, {}
     for g in GROUPS:
         names = [f"{g}{i}" for i in range(len(groups[g]))]
         runs = [{k: float(v) for k, v in _task_mean(point[n]).items()} for n in names]
         drawn = [_task_mean(boot[n]) for n in names]
+        # per draw: the group's mean over runs of each run's mean over tasks (the point estimate's recipe),
+        # and per task the mean over runs
+        mean_draws[g] = {k: np.mean([d[k] for d in drawn], 0) for k in S.WITHIN_TASK}
+        task_draws[g] = {t: {k: np.mean([boot[n][t][k] for n in names], 0) for k in S.WITHIN_TASK} for t in tasks}
         out[g] = {"runs": runs,
                   "mean": {k: float(np.mean([r[k] for r in runs])) for k in S.WITHIN_TASK},
                   "range": {k: [min(r[k] for r in runs), max(r[k] for r in runs)] for k in S.WITHIN_TASK},
-                  "mean_ci": {k: S.percentile_interval(np.mean([d[k] for d in drawn], 0)) for k in S.WITHIN_TASK},
+                  "mean_ci": {k: S.percentile_interval(mean_draws[g][k]) for k in S.WITHIN_TASK},
                   "per_task": {t: {k: float(np.mean([point[n][t][k] for n in names])) for k in S.WITHIN_TASK}
                                for t in tasks},
                   "runs_per_task": [{t: {k: float(point[n][t][k]) for k in S.WITHIN_TASK} for t in tasks}
                                     for n in names]}
-        out[g]["_draws"] = {t: {k: np.mean([boot[n][t][k] for n in names], 0) for k in S.WITHIN_TASK}
-                            for t in tasks}
-        # the group's mean over runs of each run's mean over tasks, per draw: the point estimate's recipe
-        out[g]["_mean_draws"] = {k: np.mean([d[k] for d in drawn], 0) for k in S.WITHIN_TASK}
-    gain_draws = {t: {k: out["design"]["_draws"][t][k] - out["base"]["_draws"][t][k] for k in S.WITHIN_TASK}
-                  for t in tasks}
-    mean_draws = {k: out["design"]["_mean_draws"][k] - out["base"]["_mean_draws"][k] for k in S.WITHIN_TASK}
-    out["gain"] = {"mean": {k: out["design"]["mean"][k] - out["base"]["mean"][k] for k in S.WITHIN_TASK},
-                   "mean_ci": {k: S.percentile_interval(mean_draws[k]) for k in S.WITHIN_TASK},
-                   "per_task": {t: {k: out["design"]["per_task"][t][k] - out["base"]["per_task"][t][k]
-                                    for k in S.WITHIN_TASK} for t in tasks},
-                   "per_task_ci": {t: {k: S.percentile_interval(gain_draws[t][k]) for k in S.WITHIN_TASK}
-                                   for t in tasks}}
-    for g in GROUPS:
-        del out[g]["_draws"], out[g]["_mean_draws"]
+    d, b = "design", "base"
+    out["gain"] = {"mean": {k: out[d]["mean"][k] - out[b]["mean"][k] for k in S.WITHIN_TASK},
+                   "mean_ci": {k: S.percentile_interval(mean_draws[d][k] - mean_draws[b][k]) for k in S.WITHIN_TASK},
+                   "per_task": {t: {k: out[d]["per_task"][t][k] - out[b]["per_task"][t][k] for k in S.WITHIN_TASK}
+                                for t in tasks},
+                   "per_task_ci": {t: {k: S.percentile_interval(task_draws[d][t][k] - task_draws[b][t][k])
+                                       for k in S.WITHIN_TASK} for t in tasks}}
     return out
 
 

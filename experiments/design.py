@@ -50,14 +50,21 @@ BASE = "recipe"
 
 @dataclasses.dataclass(frozen=True)
 class Job:
-    """One run: a world model trained with train_argv into wm, evaluated with eval_argv into eval."""
+    """One run: a world model trained (`wm.train` preset `config` on `data` with `settings`) into wm,
+    evaluated with eval_argv into eval."""
 
     design: str
     seed: int
     wm: Path
     eval: Path
-    train_argv: tuple
+    config: str
+    data: Path
+    settings: tuple
     eval_argv: tuple
+
+    @property
+    def train_argv(self) -> tuple:
+        return ("--config", self.config, "--data", str(self.data), "--out", str(self.wm), *self.settings)
 
 
 def plan(preset: str, name: str, overrides=(), seeds: int = 2, steps: int = 4000, design_steps: int | None = None,
@@ -83,9 +90,8 @@ def plan(preset: str, name: str, overrides=(), seeds: int = 2, steps: int = 4000
     for design, n, extra in ((name, design_steps or steps, tuple(overrides)), (BASE, steps, ())):
         for k in range(seeds):
             run = root / design / f"{n}steps_s{k}"
-            jobs.append(Job(design, k, run / "wm", run / f"eval_e{episodes}",
-                            ("--config", p.train, "--data", str(d["wm_data"]), "--out", str(run / "wm"),
-                             *p.train_overrides, f"seed={k}", f"steps={n}", "max_minutes=0", *extra),
+            jobs.append(Job(design, k, run / "wm", run / f"eval_e{episodes}", p.train, d["wm_data"],
+                            (*p.train_overrides, f"seed={k}", f"steps={n}", "max_minutes=0", *extra),
                             ("--config", p.eval, "--out", str(run / f"eval_e{episodes}"), f"policies={d['policies']}",
                              f"wm={run / 'wm'}", f"episodes={episodes}", "max_minutes=0", *p.eval_overrides)))
     return jobs
@@ -105,10 +111,8 @@ def check_inputs(preset: str) -> None:
 def check_trained_as_planned(job: Job) -> None:
     """Raises SystemExit where the run's directory holds a model trained with other settings or data
     than the job's (the same name given other settings, or other steps)."""
-    a = list(job.train_argv)
-    cfg = make_config(a[a.index("--config") + 1], a[a.index("--out") + 2:])
     try:
-        check_run_config(cfg, Path(a[a.index("--data") + 1]), job.wm)
+        check_run_config(make_config(job.config, job.settings), job.data, job.wm)
     except ValueError as e:
         raise SystemExit(f"{e}: name the design anew, or remove {job.wm.parent}") from None
 
@@ -122,8 +126,10 @@ def run_job(job: Job) -> None:
         trained = (job.wm / "eval.json").exists()
         if trained:
             check_trained_as_planned(job)
-        for stage, main, argv in (("train", train.main, job.train_argv), ("eval", evaluate.main, job.eval_argv)):
-            if stage == "train" and trained or stage == "eval" and trained and (job.eval / "results.json").exists():
+        evaluated = trained and (job.eval / "results.json").exists()  # a model trained now is evaluated anew
+        for stage, main, argv, done in (("train", train.main, job.train_argv, trained),
+                                        ("eval", evaluate.main, job.eval_argv, evaluated)):
+            if done:
                 continue
             before, t0 = compile_snapshot(), time.perf_counter()
             main(list(argv))

@@ -110,17 +110,12 @@ def init_state(cfg: ModelConfig, params, norm: Norm, frames, proprio, actions, a
     first = anchor_latents(cfg, params, frames, anchor)
     k = v = jnp.zeros((b, 0))
     if cfg.imagine == "cache":  # slot K-1's keys wait for its action: the first step computes them
-        out = model.apply({"params": params}, z, p, a, valid, with_kv=True, anchor=_anchor_arg(cfg, first),
+        out = model.apply({"params": params}, z, p, a, valid, with_kv=True, anchor=first,
                           method=WorldModel.predict)
         k, v = out["k"][:, :, :-1], out["v"][:, :, :-1]
     return ImagineState(z=z, proprio=p, action=a, valid=valid,
                         frame=frames[:, -1].astype(jnp.float32) / 255.0, success=jnp.zeros((b,)),
                         outcome=jnp.zeros((b,)), progress=jnp.zeros((b,)), k=k, v=v, anchor=first)
-
-
-def _anchor_arg(cfg: ModelConfig, anchor):
-    """What predict takes as its anchor: the latents with cfg.anchor, else None."""
-    return anchor if cfg.anchor else None
 
 
 def empty_cache(cfg: ModelConfig, b: int) -> tuple:
@@ -140,12 +135,12 @@ def predict_next(cfg: ModelConfig, params, z, proprio, action, valid, cache: tup
     a frame)."""
     model = WorldModel(cfg)
     if cfg.imagine != "cache":
-        out = model.apply({"params": params}, z, proprio, action, valid, anchor=_anchor_arg(cfg, anchor),
+        out = model.apply({"params": params}, z, proprio, action, valid, anchor=anchor,
                           method=WorldModel.predict)
         return {key: x[:, -1] for key, x in out.items()}, cache
     past = {"k": cache[0], "v": cache[1], "valid": valid[:, :-1]}
     out = model.apply({"params": params}, z[:, -1:], proprio[:, -1:], action[:, -1:], past=past,
-                      anchor=_anchor_arg(cfg, anchor), method=WorldModel.predict)
+                      anchor=anchor, method=WorldModel.predict)
     cache = tuple(jnp.concatenate([c[:, :, 1:], out.pop(key)], axis=2) for c, key in zip(cache, ("k", "v")))
     return {key: x[:, -1] for key, x in out.items()}, cache
 

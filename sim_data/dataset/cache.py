@@ -347,34 +347,30 @@ class WindowLoader:
         starts = window_ids - self._firsts[pos]
         eps = self.episodes[pos]
         recs = [self.cache.episodes[i] for i in eps]
-        b, t = len(window_ids), self.window
         out = {"frames": {}, "outcome": np.array([r["success"] for r in recs], bool),
                "task": np.array([self._task_id[r["task"]] for r in recs], np.int32),
                "start": starts.astype(np.int32), "episode": eps.astype(np.int32)}
         shards = np.array([r["shard"] for r in recs])
-        rows = np.array([r["start"] for r in recs], np.int64) + starts
-        steps = np.arange(t)
+        firsts = np.array([r["start"] for r in recs], np.int64)  # each episode's first row in its shard
+        rows = (firsts + starts)[:, None] + np.arange(self.window)
         for name in self.cameras + list(ARRAYS):
-            first = self.cache.array(recs[0]["shard"], name)
-            arr = np.empty((b, t) + first.shape[1:], first.dtype)
-            for shard in np.unique(shards):
-                sel = np.nonzero(shards == shard)[0]
-                arr[sel] = self.cache.array(shard, name)[rows[sel, None] + steps]
+            arr = self._rows(name, shards, rows)
             if name in self.cameras:
                 out["frames"][name] = arr
             else:
                 out[name] = arr
-        if not self.first_frames:
-            return out
-        out["first_frames"] = {}  # each window's episode's first frame, for a model that keeps it in view
-        firsts = np.array([r["start"] for r in recs], np.int64)
-        for name in self.cameras:
-            arr = np.empty((b,) + out["frames"][name].shape[2:], out["frames"][name].dtype)
-            for shard in np.unique(shards):
-                sel = np.nonzero(shards == shard)[0]
-                arr[sel] = self.cache.array(shard, name)[firsts[sel]]
-            out["first_frames"][name] = arr
+        if self.first_frames:  # each window's episode's first frame, for a model that keeps it in view
+            out["first_frames"] = {name: self._rows(name, shards, firsts) for name in self.cameras}
         return out
+
+    def _rows(self, name: str, shards: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """Array `name` at rows (B, ...) int of the shards (B,): (B, ..., *the array's row shape)."""
+        first = self.cache.array(shards[0], name)
+        arr = np.empty(rows.shape + first.shape[1:], first.dtype)
+        for shard in np.unique(shards):
+            sel = np.nonzero(shards == shard)[0]
+            arr[sel] = self.cache.array(shard, name)[rows[sel]]
+        return arr
 
     def _advance(self, epoch: int, k: int) -> tuple[int, int]:
         k += 1
