@@ -34,6 +34,7 @@ from wm.judge import load_judge
 from wm.model import (
     Decoder,
     WorldModel,
+    anchor_span,
     attention_logits,
     attention_mask,
     depth_to_space,
@@ -326,7 +327,8 @@ def _assert_cached_steps_match_the_forward_pass(cfg, params, frames, proprio, ac
     m, cache_cfg = WorldModel(cfg), dataclasses.replace(cfg, imagine="cache")
     z = compiled(m, WorldModel.encode)({"params": params}, frames)
     anchor = z[:, 0] if cfg.anchor else None
-    full = compiled(m, WorldModel.predict)({"params": params}, z, proprio, action, anchor=anchor)
+    time = jnp.broadcast_to(jnp.arange(z.shape[1]), z.shape[:2])
+    full = compiled(m, WorldModel.predict)({"params": params}, z, proprio, action, anchor=anchor, time=time)
     b, t, k = z.shape[0], z.shape[1], cfg.context
     cache = I.empty_cache(cache_cfg, b)
     valid = jnp.zeros((b, k), bool)
@@ -337,7 +339,7 @@ def _assert_cached_steps_match_the_forward_pass(cfg, params, frames, proprio, ac
         window = [np.concatenate([np.zeros((b, pad) + x.shape[2:], x.dtype), x[:, lo:i + 1]], axis=1)
                   for x in (np.asarray(z), proprio, action)]
         valid = jnp.concatenate([valid[:, 1:], jnp.ones((b, 1), bool)], axis=1)
-        out, cache = one(params, *window, valid, cache, anchor)
+        out, cache = one(params, *window, valid, cache, anchor, jnp.full((b,), i))
         for key in ("z", "proprio", "success", "outcome", "progress", "flow"):
             np.testing.assert_allclose(out[key], full[key][:, i], rtol=1e-4, atol=1e-4, err_msg=f"{key} at {i}")
     assert cache[0].shape == (b, cfg.depth, k - 1, cfg.tokens_per_frame, cfg.heads, cfg.dim // cfg.heads)
@@ -367,18 +369,57 @@ def test_an_anchored_model_sees_the_first_frame_at_every_step_and_caches_alike(m
     full = _assert_cached_steps_match_the_forward_pass(ANCHORED, params, frames, proprio, action)
     m = WorldModel(ANCHORED)
     z = compiled(m, WorldModel.encode)({"params": params}, frames)
-    other = compiled(m, WorldModel.predict)({"params": params}, z, proprio, action, anchor=z[:, 3])
+    time = jnp.broadcast_to(jnp.arange(z.shape[1]), z.shape[:2])
+    other = compiled(m, WorldModel.predict)({"params": params}, z, proprio, action, anchor=z[:, 3], time=time)
     late = slice(ANCHORED.context + 2, None)  # frames whose window no longer holds frame 0 or 3
     assert np.abs(np.asarray(other["z"][:, late]) - np.asarray(full["z"][:, late])).max() > 1e-3
     with pytest.raises(ValueError, match="anchor"):
-        compiled(m, WorldModel.predict)({"params": params}, z, proprio, action)
+        compiled(m, WorldModel.predict)({"params": params}, z, proprio, action, time=time)
+    with pytest.raises(ValueError, match="time"):
+        compiled(m, WorldModel.predict)({"params": params}, z, proprio, action, anchor=z[:, 0])
     # imagination takes the context's first frame as the anchor unless told the episode's
     norm = I.Norm(jnp.zeros(37), jnp.ones(37), jnp.zeros(20), jnp.ones(20))
     st = init_state(ANCHORED, params, norm, frames[:, 4:6], proprio[:, 4:6], action[:, 4:5])
     np.testing.assert_allclose(st.anchor, z[:, 4], atol=1e-6)
     st = init_state(ANCHORED, params, norm, frames[:, 4:6], proprio[:, 4:6], action[:, 4:5], anchor=frames[:, 0])
     np.testing.assert_allclose(st.anchor, z[:, 0], atol=1e-6)
+    np.testing.assert_array_equal(st.clock, [1, 1])
+    st = init_state(ANCHORED, params, norm, frames[:, 4:6], proprio[:, 4:6], action[:, 4:5], anchor=frames[:, 0],
+                    start=jnp.array([4, 4]))
+    np.testing.assert_array_equal(st.clock, [5, 5])
+    np.testing.assert_array_equal(I.step(ANCHORED, params, norm, st, action[:, 5]).clock, [6, 6])
     assert init_state(DEEP, params, norm, frames[:, 4:6], proprio[:, 4:6], action[:, 4:5]).anchor.shape == (2, 0)
+
+
+def test_anchor_spans_group_frame_distances_as_documented():
+    got = anchor_span(jnp.array([0, 1, 2, 3, 4, 5, 6, 7, 8, 11, 12, 191, 192, 1000, -3]))
+    np.testing.assert_array_equal(got, [0, 1, 2, 3, 4, 4, 5, 5, 6, 6, 7, 14, 15, 15, 0])
+
+
+def test_the_anchor_is_weighed_by_its_age_and_dropped_per_sample(model_and_inputs):
+    """An anchored model's predictions change with the frames' indices in the episode (the anchor's
+    bias by span) and an unanchored one's cannot; a sample whose anchor is dropped predicts the same
+    whatever its anchor, while the others still see theirs."""
+    _, frames, proprio, action = model_and_inputs
+    params = init_params(ANCHORED, jax.random.PRNGKey(1), window=6)
+    noise = np.random.default_rng(2)
+    params = jax.tree_util.tree_map(lambda x: x + 0.05 * noise.standard_normal(x.shape).astype(np.float32), params)
+    m = WorldModel(ANCHORED)
+    z = compiled(m, WorldModel.encode)({"params": params}, frames)
+    predict = compiled(m, WorldModel.predict)
+    early = jnp.broadcast_to(jnp.arange(z.shape[1]), z.shape[:2])
+    a = predict({"params": params}, z, proprio, action, anchor=z[:, 0], time=early)
+    b = predict({"params": params}, z, proprio, action, anchor=z[:, 0], time=early + 100)
+    assert np.abs(np.asarray(a["z"]) - np.asarray(b["z"])).max() > 1e-3
+    keep = jnp.array([False, True])
+    c = predict({"params": params}, z, proprio, action, anchor=z[:, 0], time=early, anchor_keep=keep)
+    d = predict({"params": params}, z, proprio, action, anchor=z[:, 3], time=early, anchor_keep=keep)
+    np.testing.assert_allclose(c["z"][0], d["z"][0], atol=1e-6)
+    assert np.abs(np.asarray(c["z"][1]) - np.asarray(d["z"][1])).max() > 1e-3
+    plain = init_params(DEEP, jax.random.PRNGKey(1), window=6)
+    unanchored = compiled(WorldModel(DEEP), WorldModel.predict)
+    np.testing.assert_array_equal(unanchored({"params": plain}, z, proprio, action, time=early)["z"],
+                                  unanchored({"params": plain}, z, proprio, action, time=early + 100)["z"])
 
 
 def test_cached_imagination_is_the_window_until_frames_leave_it_and_reads_true_episodes_as_training(
@@ -737,10 +778,12 @@ def test_a_run_cut_short_is_left_unevaluated_and_the_rerun_finishes_it(smoke_dat
 
 def test_the_loader_batch_carries_the_first_frames_only_to_an_anchored_model():
     frames = np.arange(2 * 3 * 4 * 4 * 3, dtype=np.uint8).reshape(2, 3, 4, 4, 3)
-    batch = {"frames": {"head_cam": frames}, "first_frames": {"head_cam": frames[:, 0] + 1},
+    batch = {"frames": {"head_cam": frames}, "first_frames": {"head_cam": frames[:, 0] + 1}, "start": np.array([0, 7]),
              **{k: np.zeros((2, 3)) for k in ("proprio", "action", "success", "progress")}, "outcome": np.zeros(2)}
     assert "anchor" not in model_batch(batch, "head_cam")
-    np.testing.assert_array_equal(model_batch(batch, "head_cam", anchor=True)["anchor"], frames[:, 0] + 1)
+    anchored = model_batch(batch, "head_cam", anchor=True)
+    np.testing.assert_array_equal(anchored["anchor"], frames[:, 0] + 1)
+    np.testing.assert_array_equal(anchored["start"], [0, 7])
 
 
 @pytest.mark.slow

@@ -82,7 +82,7 @@ def step_inputs(cfg):
              "action": jnp.asarray(rng.normal(size=(b, t, m.action_dim)), jnp.float32),
              "success": jnp.zeros((b, t), bool), "progress": jnp.zeros((b, t)), "outcome": jnp.zeros((b,), bool)}
     if m.anchor:
-        batch["anchor"] = batch["frames"][:, 0]
+        batch["anchor"], batch["start"] = batch["frames"][:, 0], jnp.zeros((b,), jnp.int32)
     norm = Norm(jnp.zeros(m.proprio_dim), jnp.ones(m.proprio_dim), jnp.zeros(m.action_dim), jnp.ones(m.action_dim))
     return state, batch, norm
 

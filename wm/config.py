@@ -28,6 +28,9 @@ class TrainConfig:
         constant rate (warmup-stable-decay, wm.train.learning_rate); 0: a cosine decay instead.
       context_noise: the largest std of Gaussian noise added to the input latents (each window draws
         its level uniformly below it; 0: none), as GameNGen's noise augmentation.
+      anchor_drop: with model.anchor, the share of training windows that predict without their
+        anchor frame (each window draws it apart), so that the dynamics keeps learning the robot's
+        own motion from the frames it sees instead of leaning on the sharp first frame.
       reencode_passes: with model.reencode, the rollout passes read the latents of their decoded
         frames' 8-bit images, as imagination does, instead of the predicted latents.
       w_recon, w_latent, w_pixel, w_proprio, w_success: loss weights; w_progress: of the per-step
@@ -64,6 +67,7 @@ class TrainConfig:
     rollout_grad: bool = False
     cooldown: float = 0.0
     context_noise: float = 0.0
+    anchor_drop: float = 0.3
     reencode_passes: bool = False
     w_recon: float = 1.0
     w_latent: float = 1.0

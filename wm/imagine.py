@@ -60,6 +60,7 @@ class ImagineState:
       (B, depth, K-1, N, heads, D/heads), in the compute dtype; (B, 0) otherwise.
       anchor: with cfg.anchor, the latents (B, 8, 8, C) of the episode's first frame, which every
       prediction also sees; (B, 0) otherwise.
+      clock: (B,) int32, the index in its episode of the current frame (slot K-1; the first frame's is 0).
     """
 
     z: jax.Array
@@ -73,6 +74,7 @@ class ImagineState:
     k: jax.Array
     v: jax.Array
     anchor: jax.Array
+    clock: jax.Array
 
 
 def anchor_latents(cfg: ModelConfig, params, frames, anchor=None) -> jax.Array:
@@ -86,12 +88,19 @@ def anchor_latents(cfg: ModelConfig, params, frames, anchor=None) -> jax.Array:
     return WorldModel(cfg).apply({"params": params}, first, method=WorldModel.encode)
 
 
-def init_state(cfg: ModelConfig, params, norm: Norm, frames, proprio, actions, anchor=None) -> ImagineState:
+def buffer_time(clock, k: int) -> jax.Array:
+    """(B,) the episode index of a buffer's slot K-1 -> (B, K) int32 those of its K slots (negative
+    for the empty slots before an episode's first frame)."""
+    return (clock[:, None] - (k - 1) + jnp.arange(k)).astype(jnp.int32)
+
+
+def init_state(cfg: ModelConfig, params, norm: Norm, frames, proprio, actions, anchor=None, start=None) -> ImagineState:
     """A buffer from C <= K context observations.
 
     frames: (B, C, S, S, 3) uint8; proprio: (B, C, 37); actions: (B, C-1, 20), those between them;
     anchor: (B, S, S, 3) uint8, the episodes' first frames, for a model with an anchor whose context
-    starts later in the episode (default: the context's first frames).
+    starts later in the episode (default: the context's first frames); start: (B,) int, the index in
+    its episode of the context's first frame (default 0: the context starts the episode).
     """
     model = WorldModel(cfg)
     b, c = frames.shape[:2]
@@ -108,14 +117,15 @@ def init_state(cfg: ModelConfig, params, norm: Norm, frames, proprio, actions, a
     valid = jnp.concatenate([jnp.zeros((b, pad), bool), jnp.ones((b, c), bool)], axis=1)
     z, p, a = place(z), place(norm.proprio(proprio)), place(acts)
     first = anchor_latents(cfg, params, frames, anchor)
+    clock = (jnp.zeros((b,), jnp.int32) if start is None else jnp.asarray(start, jnp.int32)) + c - 1
     k = v = jnp.zeros((b, 0))
     if cfg.imagine == "cache":  # slot K-1's keys wait for its action: the first step computes them
         out = model.apply({"params": params}, z, p, a, valid, with_kv=True, anchor=first,
-                          method=WorldModel.predict)
+                          time=buffer_time(clock, cfg.context), method=WorldModel.predict)
         k, v = out["k"][:, :, :-1], out["v"][:, :, :-1]
     return ImagineState(z=z, proprio=p, action=a, valid=valid,
                         frame=frames[:, -1].astype(jnp.float32) / 255.0, success=jnp.zeros((b,)),
-                        outcome=jnp.zeros((b,)), progress=jnp.zeros((b,)), k=k, v=v, anchor=first)
+                        outcome=jnp.zeros((b,)), progress=jnp.zeros((b,)), k=k, v=v, anchor=first, clock=clock)
 
 
 def empty_cache(cfg: ModelConfig, b: int) -> tuple:
@@ -127,20 +137,20 @@ def empty_cache(cfg: ModelConfig, b: int) -> tuple:
     return jnp.zeros(shape, cfg.compute_dtype), jnp.zeros(shape, cfg.compute_dtype)
 
 
-def predict_next(cfg: ModelConfig, params, z, proprio, action, valid, cache: tuple, anchor=None) -> tuple[dict, tuple]:
+def predict_next(cfg: ModelConfig, params, z, proprio, action, valid, cache: tuple, anchor, clock) -> tuple[dict, tuple]:
     """The dynamics' prediction for the frame after a buffer's last slot: z (B, K, 8, 8, C), proprio
     (B, K, 37), action (B, K, 20) normalised, valid (B, K) bool; cache: (k, v) of slots 0..K-2 (cfg.imagine
-    "cache") or unused; anchor: ImagineState.anchor (anchor_latents). Returns (predict's outputs at slot
-    K-1, leaves (B, ...), the cache of slots 1..K-1: what the buffer's next step reads once it has pushed
-    a frame)."""
+    "cache") or unused; anchor: ImagineState.anchor (anchor_latents); clock: (B,) int, the episode index
+    of slot K-1 (ImagineState.clock). Returns (predict's outputs at slot K-1, leaves (B, ...), the cache
+    of slots 1..K-1: what the buffer's next step reads once it has pushed a frame)."""
     model = WorldModel(cfg)
     if cfg.imagine != "cache":
         out = model.apply({"params": params}, z, proprio, action, valid, anchor=anchor,
-                          method=WorldModel.predict)
+                          time=buffer_time(clock, z.shape[1]), method=WorldModel.predict)
         return {key: x[:, -1] for key, x in out.items()}, cache
     past = {"k": cache[0], "v": cache[1], "valid": valid[:, :-1]}
     out = model.apply({"params": params}, z[:, -1:], proprio[:, -1:], action[:, -1:], past=past,
-                      anchor=anchor, method=WorldModel.predict)
+                      anchor=anchor, time=clock[:, None], method=WorldModel.predict)
     cache = tuple(jnp.concatenate([c[:, :, 1:], out.pop(key)], axis=2) for c, key in zip(cache, ("k", "v")))
     return {key: x[:, -1] for key, x in out.items()}, cache
 
@@ -150,7 +160,7 @@ def step(cfg: ModelConfig, params, norm: Norm, state: ImagineState, action) -> I
     model = WorldModel(cfg)
     acts = state.action.at[:, -1].set(norm.action(action))
     out, (k, v) = predict_next(cfg, params, state.z, state.proprio, acts, state.valid, (state.k, state.v),
-                               state.anchor)
+                               state.anchor, state.clock)
 
     def push(buf, new):
         return jnp.concatenate([buf[:, 1:], new[:, None]], axis=1)
@@ -167,7 +177,7 @@ def step(cfg: ModelConfig, params, norm: Norm, state: ImagineState, action) -> I
         z=push(state.z, z_next), proprio=push(state.proprio, out["proprio"]),
         action=push(acts, jnp.zeros_like(acts[:, -1])), valid=push(state.valid, jnp.ones_like(state.valid[:, -1])),
         frame=frame, success=jax.nn.sigmoid(out["success"]), outcome=jax.nn.sigmoid(out["outcome"]),
-        progress=jax.nn.sigmoid(out["progress"]), k=k, v=v, anchor=state.anchor)
+        progress=jax.nn.sigmoid(out["progress"]), k=k, v=v, anchor=state.anchor, clock=state.clock + 1)
 
 
 def episode_success(success):
@@ -233,12 +243,14 @@ def to_uint8(x):
 SEGMENT = 20  # imagined steps per compiled call: one program serves every horizon
 
 
-def open_loop(cfg: ModelConfig, params, norm: Norm, frames, proprio, context_actions, actions, anchor=None) -> dict:
+def open_loop(cfg: ModelConfig, params, norm: Norm, frames, proprio, context_actions, actions, anchor=None,
+              start=None) -> dict:
     """Imagines H steps from C context observations under logged actions.
 
     frames (B, C, S, S, 3) uint8, proprio (B, C, 37), context_actions (B, C-1, 20), actions (B, H, 20)
-    (action h follows imagined frame h-1, the first follows the last context frame); anchor: the
-    episodes' first frames (B, S, S, 3) uint8 where the context starts later (init_state).
+    (action h follows imagined frame h-1, the first follows the last context frame); anchor, start: the
+    episodes' first frames (B, S, S, 3) uint8 and the contexts' indices (B,) in their episodes where the
+    context starts later (init_state).
     Returns {"frames": (B, H, S, S, 3) uint8, "proprio": (B, H, 37), "success": (B, H),
     "outcome": (B, H), "progress": (B, H), "features": (B, H, F) (step_features)} for frames C .. C+H-1
     after the context, numpy arrays. The steps run in compiled segments of SEGMENT steps (the last one
@@ -247,7 +259,7 @@ def open_loop(cfg: ModelConfig, params, norm: Norm, frames, proprio, context_act
     h = actions.shape[1]
     if h < 1:
         raise ValueError("open_loop imagines at least one step: actions must be (B, H >= 1, 20)")
-    state = _open_loop_start(cfg, params, norm, frames, proprio, context_actions, anchor)
+    state = _open_loop_start(cfg, params, norm, frames, proprio, context_actions, anchor, start)
     # padded and cut on the host: eager slices of a device array would compile a program per shape
     acts = np.asarray(actions, np.float32)
     acts = np.pad(acts, ((0, 0), (0, -h % SEGMENT), (0, 0)))
@@ -276,9 +288,10 @@ def _open_loop_segment(cfg: ModelConfig, params, norm: Norm, state: ImagineState
 
 
 def closed_loop(cfg: ModelConfig, policy, horizon: int, params, norm: Norm, policy_params, frames, proprio,
-                context_actions, rng, anchor=None) -> dict:
-    """A policy acting inside the world model for `horizon` steps from C context observations (anchor:
-    the episodes' first frames (B, S, S, 3) uint8 where the context starts later: init_state).
+                context_actions, rng, anchor=None, start=None) -> dict:
+    """A policy acting inside the world model for `horizon` steps from C context observations (anchor,
+    start: the episodes' first frames (B, S, S, 3) uint8 and the contexts' indices (B,) in their
+    episodes where the context starts later: init_state).
 
     The policy's carry starts from `policy.init_carry(policy_params, obs, None, rng)` on the last
     context observation. The steps run in compiled segments of SEGMENT steps, so that horizons of
@@ -287,7 +300,7 @@ def closed_loop(cfg: ModelConfig, policy, horizon: int, params, norm: Norm, poli
     (B, horizon), "progress": (B, horizon), "action": (B, horizon, 20), "features": (B, horizon, F)}.
     """
     carry, k_act = _closed_loop_start(cfg, policy, params, norm, policy_params, frames, proprio, context_actions, rng,
-                                      anchor)
+                                      anchor, start)
     parts = []
     for t0 in range(0, horizon, SEGMENT):
         carry, got = _closed_loop_segment(cfg, policy, params, norm, policy_params, carry, k_act, t0)
@@ -297,8 +310,8 @@ def closed_loop(cfg: ModelConfig, policy, horizon: int, params, norm: Norm, poli
 
 @functools.partial(jax.jit, static_argnums=(0, 1))
 def _closed_loop_start(cfg: ModelConfig, policy, params, norm: Norm, policy_params, frames, proprio, context_actions,
-                       rng, anchor):
-    state = init_state(cfg, params, norm, frames, proprio, context_actions, anchor)
+                       rng, anchor, start):
+    state = init_state(cfg, params, norm, frames, proprio, context_actions, anchor, start)
     k_init, k_act = jax.random.split(rng)
     obs = {"image": frames[:, -1], "proprio": proprio[:, -1]}
     return (state, obs, policy.init_carry(policy_params, obs, None, k_init)), k_act
@@ -333,7 +346,7 @@ def observed_features(cfg: ModelConfig, params, norm: Norm, frames, proprio, act
                             jax.ShapeDtypeStruct((b,) + frames.shape[2:], frames.dtype))
     buf = (jnp.zeros((b, k) + latent.shape[1:], latent.dtype), jnp.zeros((b, k, proprio.shape[-1])),
            jnp.zeros((b, k, actions.shape[-1])), jnp.zeros((b, k), bool), empty_cache(cfg, b),
-           _first_latents(cfg, params, frames[:, :1]))
+           _first_latents(cfg, params, frames[:, :1]), jnp.full((b,), -1, jnp.int32))
     parts = []
     for t0 in range(0, t, SEGMENT):
         n = min(SEGMENT, t - t0)
@@ -353,7 +366,8 @@ _first_latents = jax.jit(anchor_latents, static_argnums=(0,))
 def _observed_segment(cfg: ModelConfig, params, norm: Norm, buf, frames, proprio, actions):
     """SEGMENT steps of observed_features: frames (B, SEGMENT+1, ...), proprio (B, SEGMENT+1, 37),
     actions (B, SEGMENT, 20); buf: the context buffers (latents, proprio, actions, valid, the keys
-    and values of cfg.imagine "cache", the episodes' anchor) carried over."""
+    and values of cfg.imagine "cache", the episodes' anchor, the episode index of the last frame
+    pushed) carried over."""
     model = WorldModel(cfg)
     b = frames.shape[0]
     z = jax.lax.map(lambda f: model.apply({"params": params}, f, method=WorldModel.encode),
@@ -365,10 +379,11 @@ def _observed_segment(cfg: ModelConfig, params, norm: Norm, buf, frames, proprio
 
     def body(buf, t):
         zb, pb, ab, vb = (push(x, y) for x, y in zip(buf[:4], (z[t], p[t], a[t], jnp.ones((b,), bool))))
-        out, cache = predict_next(cfg, params, zb, pb, ab, vb, buf[4], buf[5])
+        clock = buf[6] + 1
+        out, cache = predict_next(cfg, params, zb, pb, ab, vb, buf[4], buf[5], clock)
         x = _join_features(p[t + 1], a[t], z[t + 1],
                            [jax.nn.sigmoid(out[k]) for k in ("success", "outcome", "progress")])
-        return (zb, pb, ab, vb, cache, buf[5]), x
+        return (zb, pb, ab, vb, cache, buf[5], clock), x
 
     buf, x = jax.lax.scan(body, buf, jnp.arange(SEGMENT))
     return buf, jnp.swapaxes(x, 0, 1)
@@ -394,23 +409,24 @@ def padded_chunks(items: list):
 
 def context_sample(ep: dict, camera: str, start: int, context: int, horizon: int) -> dict:
     """From an episode (sim_data.dataset.cache's episode dict): `context` observations from `start`, the
-    `horizon` logged actions that follow and the episode's first frame (the anchor), as open_loop_chunked
-    takes them."""
+    `horizon` logged actions that follow, the episode's first frame (the anchor) and `start`, as
+    open_loop_chunked takes them."""
     c0, c1 = start, start + context
     return {"frames": ep["frames"][camera][c0:c1], "proprio": ep["proprio"][c0:c1],
             "context_actions": ep["action"][c0:c1 - 1], "actions": ep["action"][c1 - 1:c1 - 1 + horizon],
-            "anchor": ep["frames"][camera][0]}
+            "anchor": ep["frames"][camera][0], "start": np.int32(start)}
 
 
 def open_loop_chunked(cfg: ModelConfig, params, norm: Norm, samples: list[dict], horizon: int) -> dict:
     """open_loop over samples {"frames" (C, S, S, 3), "proprio" (C, 37), "context_actions" (C-1, 20),
-    "actions" (horizon, 20), optionally "anchor" (S, S, 3) the episode's first frame} in chunks of
+    "actions" (horizon, 20), optionally "anchor" (S, S, 3) the episode's first frame and "start" () the
+    context's index in it} in chunks of
     chunk_size (the last one padded, so one compilation serves all); numpy arrays with a leading axis of
     len(samples)."""
     outs = []
     for _, part, n in padded_chunks(samples):
         stack = {k: np.stack([s[k] for s in part]) for k in part[0]}
         got = open_loop(cfg, params, norm, stack["frames"], stack["proprio"], stack["context_actions"],
-                        stack["actions"][:, :horizon], stack.get("anchor"))
+                        stack["actions"][:, :horizon], stack.get("anchor"), stack.get("start"))
         outs.append({k: np.asarray(v)[:n] for k, v in got.items()})
     return {k: np.concatenate([o[k] for o in outs]) for k in outs[0]}

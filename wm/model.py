@@ -68,9 +68,10 @@ class ModelConfig:
         (docs/world-model.md); "cache" imagines 1.6 times as fast on an H200.
       anchor: every frame's prediction also attends to the episode's first frame (its tokens' keys
         and values at every layer, from their own projection of the frame's input tokens, with a
-        learned attention bias per head): the scene as it was before the robot touched it, sharp
-        however far the context has slid from the start (training windows start anywhere in an
-        episode, so without it a window's frames never see the episode's first).
+        learned attention bias per head and per span of frames since the first, ANCHOR_SPANS): the
+        scene as it was before the robot touched it, sharp however far the context has slid from
+        the start (training windows start anywhere in an episode, so without it a window's frames
+        never see the episode's first), and weighed by how long ago it was.
     """
 
     size: int = 64
@@ -288,9 +289,22 @@ def attention_mask(t, n, context, valid=None):
     return jnp.where(allowed, 0.0, -1e9).astype(jnp.float32)
 
 
+ANCHOR_SPAN_STARTS = (0, 1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64, 96, 128, 192)
+ANCHOR_SPANS = len(ANCHOR_SPAN_STARTS)  # the anchor's bias has one value per span of frames since it
+
+
+def anchor_span(time):
+    """Frame indices in the episode (...) int -> (...) int32, the span of their distance from the
+    first frame among ANCHOR_SPAN_STARTS (0: the first frame itself; 15: 192 frames and more): exact
+    near the start, where the anchor still looks like the current view, coarser further out."""
+    starts = jnp.asarray(ANCHOR_SPAN_STARTS, jnp.int32)
+    return (jnp.searchsorted(starts, jnp.maximum(jnp.asarray(time, jnp.int32), 0), side="right") - 1).astype(jnp.int32)
+
+
 def attention_logits(q, k, time_bias, n):
-    """q: (B, Tq*N, heads, d), k: (B, Tk*N, heads, d); time_bias: (heads, Tq, Tk) -> (B, heads, Tq*N,
-    Tk*N) float32 logits q.k / sqrt(d) + time_bias[h, frame of q, frame of k].
+    """q: (B, Tq*N, heads, d), k: (B, Tk*N, heads, d); time_bias: (heads, Tq, Tk), or (B, heads, Tq, Tk)
+    for a bias that differs between samples -> (B, heads, Tq*N, Tk*N) float32 logits q.k / sqrt(d) +
+    time_bias[(b,) h, frame of q, frame of k].
 
     The bias rides in the product itself, as T extra dimensions of each head's queries (row i of the
     head's bias) and keys (one-hot of the key's frame): its gradient then comes out of the query
@@ -299,8 +313,9 @@ def attention_logits(q, k, time_bias, n):
     step in the profile of docs/benchmarks.md).
     """
     b, tn, h, d = q.shape
-    t = time_bias.shape[2]
-    q_bias = jnp.repeat(time_bias.transpose(1, 0, 2), n, axis=0).astype(q.dtype)  # (Tq*N, heads, Tk)
+    tb = time_bias if time_bias.ndim == 4 else time_bias[None]
+    t = tb.shape[3]
+    q_bias = jnp.repeat(tb.transpose(0, 2, 1, 3), n, axis=1).astype(q.dtype)  # (B or 1, Tq*N, heads, Tk)
     k_onehot = jnp.repeat(jnp.eye(t, dtype=k.dtype), n, axis=0)  # (Tk*N, Tk)
     q = jnp.concatenate([q / math.sqrt(d), jnp.broadcast_to(q_bias, (b, tn, h, t))], -1)
     k = jnp.concatenate([k, jnp.broadcast_to(k_onehot[:, None], (b, k.shape[1], h, t))], -1)
@@ -312,8 +327,9 @@ class Block(nn.Module):
 
     @nn.compact
     def __call__(self, x, cond, time_bias, mask, past=None, anchor=None):
-        """x: (B, T, N, D); cond: (B, T, D); time_bias: (heads, T, A+P+T) learned bias by query and key
-        frame (relative_time_bias, after the anchor's column); mask: (B or 1, 1, T*N, (A+P+T)*N)
+        """x: (B, T, N, D); cond: (B, T, D); time_bias: (heads, T, P+T), or with an anchor (B, heads, T,
+        A+P+T), learned bias by query and key frame (relative_time_bias, after the anchor's column);
+        mask: (B or 1, 1, T*N, (A+P+T)*N)
         additive constant, 0 or -1e9; past: None (P = 0), or the keys and values (B, P*N, heads,
         D/heads) of P earlier frames, which the T frames' queries see before their own; anchor: None
         (A = 0), or the anchor frame's input tokens (B, N, D) (A = 1), whose keys and values this
@@ -347,10 +363,14 @@ class Dynamics(nn.Module):
     cfg: ModelConfig
 
     @nn.compact
-    def __call__(self, z, proprio, action, valid=None, past=None, with_kv=False, anchor=None):
+    def __call__(self, z, proprio, action, valid=None, past=None, with_kv=False, anchor=None, time=None,
+                 anchor_keep=None):
         """z: (B, T, 8, 8, C); proprio: (B, T, 37) normalised; action: (B, T, 20) normalised;
         valid: optional (B, T) bool, False for empty slots of an imagination buffer; anchor: the
-        episode's first frame's latents (B, 8, 8, C), required with cfg.anchor and unused without.
+        episode's first frame's latents (B, 8, 8, C), and time: (B, T) int the T frames' indices in
+        their episodes (the first frame's is 0), both required with cfg.anchor and unused without;
+        anchor_keep: optional (B,) bool, False for samples that predict without their anchor
+        (training's anchor dropout).
         past: None, or one frame (T = 1) read after K-1 earlier ones: {"k", "v": (B, depth, K-1, N,
         heads, D/heads) their attention keys and values (with_kv's output), "valid": (B, K-1) bool}.
         Returns {"z": (B, T, 8, 8, C), "proprio": (B, T, 37), "success": (B, T) logits,
@@ -361,8 +381,9 @@ class Dynamics(nn.Module):
         cfg, dt = self.cfg, self.cfg.compute_dtype
         b, t = z.shape[:2]
         n = cfg.tokens_per_frame
-        if cfg.anchor and anchor is None:
-            raise ValueError("a model with an anchor frame predicts from the episode's first frame: pass anchor=")
+        if cfg.anchor and (anchor is None or time is None):
+            raise ValueError("a model with an anchor frame predicts from the episode's first frame and each "
+                             "frame's index in the episode: pass anchor= and time=")
         embed = nn.Dense(cfg.dim, dtype=dt)
         pos = self.param("pos", nn.initializers.normal(0.02), (n, cfg.dim)).astype(dt)
         x = embed(patchify(z, cfg.patch).astype(dt)) + pos
@@ -385,11 +406,14 @@ class Dynamics(nn.Module):
             time_bias = relative_time_bias(table, k)[:, -1:]
             allowed = jnp.concatenate([past["valid"], jnp.ones((b, 1), bool)], axis=1)
             mask = jnp.where(jnp.repeat(allowed, n, axis=1), 0.0, -1e9).astype(jnp.float32)[:, None, None, :]
-        if cfg.anchor:  # the anchor's keys come first, seen by every query, with a learned bias per head
-            bias = self.param("anchor_bias", nn.initializers.zeros, (cfg.heads,))
-            time_bias = jnp.concatenate([jnp.broadcast_to(bias[:, None, None], time_bias.shape[:2] + (1,)),
-                                         time_bias], axis=2)
-            mask = jnp.concatenate([jnp.zeros(mask.shape[:3] + (n,), mask.dtype), mask], axis=3)
+        if cfg.anchor:  # the anchor's keys come first, seen by every query, biased by how long ago it was
+            table_a = self.param("anchor_bias", nn.initializers.zeros, (cfg.heads, ANCHOR_SPANS))
+            column = jnp.moveaxis(table_a[:, anchor_span(time)], 0, 1)[..., None]  # (B, heads, T, 1)
+            time_bias = jnp.concatenate([column, jnp.broadcast_to(time_bias, (b,) + time_bias.shape)], axis=3)
+            seen = jnp.zeros((b, 1, 1, n), mask.dtype) if anchor_keep is None else \
+                jnp.where(anchor_keep, 0.0, -1e9).astype(mask.dtype)[:, None, None, None]
+            mask = jnp.broadcast_to(mask, (b,) + mask.shape[1:])
+            mask = jnp.concatenate([jnp.broadcast_to(seen, mask.shape[:3] + (n,)), mask], axis=3)
         kvs = []
         for layer in range(cfg.depth):
             cached = None if past is None else tuple(past[key][:, layer].reshape((b, -1) + past[key].shape[4:])
@@ -447,12 +471,15 @@ class WorldModel(nn.Module):
             return x
         return x, None if keep is None else keep.reshape(lead + keep.shape[1:])
 
-    def predict(self, z, proprio, action, valid=None, past=None, with_kv=False, anchor=None):
-        return self.dynamics(z, proprio, action, valid, past, with_kv, anchor)
+    def predict(self, z, proprio, action, valid=None, past=None, with_kv=False, anchor=None, time=None,
+                anchor_keep=None):
+        return self.dynamics(z, proprio, action, valid, past, with_kv, anchor, time, anchor_keep)
 
     def __call__(self, frames, proprio, action):
         z = self.encode(frames)
-        return self.decode(z, frames.astype(jnp.float32) / 255.0), self.predict(z, proprio, action, anchor=z[:, 0])
+        time = jnp.broadcast_to(jnp.arange(z.shape[1]), z.shape[:2])
+        return self.decode(z, frames.astype(jnp.float32) / 255.0), self.predict(z, proprio, action, anchor=z[:, 0],
+                                                                                 time=time)
 
 
 def init_params(cfg: ModelConfig, rng, window: int = 4):

@@ -66,10 +66,11 @@ def compute_norm(cache: TrainingCache, ids=None) -> Norm:
 
 def model_batch(batch: dict, camera: str, anchor: bool = False) -> dict:
     """The loader's batch reduced to what the model trains on (with anchor: and the episodes' first
-    frames, "anchor" (B, S, S, 3) uint8, for a model with ModelConfig.anchor)."""
+    frames, "anchor" (B, S, S, 3) uint8, and the windows' first steps in their episodes, "start" (B,)
+    int32, for a model with ModelConfig.anchor)."""
     out = {"frames": batch["frames"][camera], "proprio": batch["proprio"], "action": batch["action"],
            "success": batch["success"], "progress": batch["progress"], "outcome": batch["outcome"]}
-    return out | ({"anchor": batch["first_frames"][camera]} if anchor else {})
+    return out | ({"anchor": batch["first_frames"][camera], "start": batch["start"]} if anchor else {})
 
 
 # ---- loss and step ---------------------------------------------------------------------------------
@@ -86,8 +87,8 @@ def _keep_loss(keep, target, prev):
 
 def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None):
     """Scalar loss and its parts for one batch (frames (B, T, S, S, 3) uint8, ...; with an anchor frame
-    "anchor" (B, S, S, 3) uint8 too: model_batch); rng draws the context noise (None: none, as in
-    validation)."""
+    "anchor" (B, S, S, 3) uint8 and "start" (B,) int too: model_batch); rng draws the context noise and
+    the windows that train without their anchor (None: neither, as in validation)."""
     model = WorldModel(cfg.model)
     frames = batch["frames"]
     pix = frames.astype(jnp.float32) / 255.0
@@ -103,15 +104,22 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None):
         total = total + cfg.w_keep * parts["keep_recon"]
     proprio, action = norm.proprio(batch["proprio"]), norm.action(batch["action"])
     z_in, p_in, prev = z, proprio, pix[:, :-1]
-    anchor = model.apply({"params": params}, batch["anchor"], method=WorldModel.encode) if cfg.model.anchor else None
-    if cfg.context_noise > 0 and rng is not None:  # corrupted inputs: the past cannot be copied forward exactly
-        k1, k2 = jax.random.split(rng)
+    anchor = time = keep_anchor = None
+    rng_noise, rng_anchor = rng, None if rng is None else jax.random.fold_in(rng, 1)
+    if cfg.model.anchor:
+        anchor = model.apply({"params": params}, batch["anchor"], method=WorldModel.encode)
+        time = batch["start"][:, None] + jnp.arange(frames.shape[1])
+        if rng_anchor is not None and cfg.anchor_drop > 0:
+            keep_anchor = jax.random.uniform(rng_anchor, (frames.shape[0],)) >= cfg.anchor_drop
+    if cfg.context_noise > 0 and rng_noise is not None:  # corrupted inputs: the past cannot be copied forward exactly
+        k1, k2 = jax.random.split(rng_noise)
         level = jax.random.uniform(k1, (z.shape[0],) + (1,) * (z.ndim - 1), maxval=cfg.context_noise)
         z_in = jnp.clip(z + level * jax.random.normal(k2, z.shape), -1.0, 1.0)
     z_target = jax.lax.stop_gradient(z[:, 1:])
     hold = (lambda x: x) if cfg.rollout_grad else jax.lax.stop_gradient
     for k in range(1 + cfg.rollout_passes):
-        pred = model.apply({"params": params}, z_in, p_in, action, anchor=anchor, method=WorldModel.predict)
+        pred = model.apply({"params": params}, z_in, p_in, action, anchor=anchor, time=time, anchor_keep=keep_anchor,
+                           method=WorldModel.predict)
         zp = pred["z"][:, :-1]
         pixels, keep = model.apply({"params": params}, zp, prev, pred["flow"][:, :-1], with_keep=True,
                                    method=WorldModel.decode)
