@@ -420,9 +420,8 @@ def context_sample(ep: dict, camera: str, start: int, context: int, horizon: int
 def open_loop_chunked(cfg: ModelConfig, params, norm: Norm, samples: list[dict], horizon: int) -> dict:
     """open_loop over samples {"frames" (C, S, S, 3), "proprio" (C, 37), "context_actions" (C-1, 20),
     "actions" (horizon, 20), optionally "anchor" (S, S, 3) the episode's first frame and "start" () the
-    context's index in it} in chunks of
-    chunk_size (the last one padded, so one compilation serves all); numpy arrays with a leading axis of
-    len(samples)."""
+    context's index in it} in chunks of chunk_size (the last one padded, so one compilation serves
+    all); numpy arrays with a leading axis of len(samples)."""
     outs = []
     for _, part, n in padded_chunks(samples):
         stack = {k: np.stack([s[k] for s in part]) for k in part[0]}
