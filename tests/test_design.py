@@ -81,7 +81,7 @@ def test_runs_resume_share_the_recipe_and_the_comparison_is_written(tmp_path, mo
     assert [r["stage"] for r in res["timing"]["anchor_s0"]] == ["train", "eval"]
     assert "| recipe_s1 | eval |" in (tmp_path / "anchor" / "compare.md").read_text()
     assert res["held_out"]["anchor_s1"]["success_auroc"] == 0.9
-    assert "| recipe (mean) | 22.000 |  | 0.800 |" in (tmp_path / "anchor" / "compare.md").read_text()
+    assert "| recipe (mean) | 22.000 |  |  | 0.800 |" in (tmp_path / "anchor" / "compare.md").read_text()
     D.main(args)  # everything finished: nothing runs again
     assert len(calls) == 8
     D.main(["demo", "other", "model.dim=64", "--seeds", "2", "--root", str(tmp_path), "--draws", "50"])
