@@ -398,8 +398,8 @@ def test_anchor_spans_group_frame_distances_as_documented():
 
 def test_the_anchor_is_weighed_by_its_age_and_dropped_per_sample(model_and_inputs):
     """An anchored model's predictions change with the frames' indices in the episode (the anchor's
-    bias by span) and an unanchored one's cannot; a sample whose anchor is dropped predicts the same
-    whatever its anchor, while the others still see theirs."""
+    bias by span); a sample whose anchor is dropped predicts the same whatever its anchor, while the
+    others still see theirs."""
     _, frames, proprio, action = model_and_inputs
     params = init_params(ANCHORED, jax.random.PRNGKey(1), window=6)
     noise = np.random.default_rng(2)
@@ -416,10 +416,41 @@ def test_the_anchor_is_weighed_by_its_age_and_dropped_per_sample(model_and_input
     d = predict({"params": params}, z, proprio, action, anchor=z[:, 3], time=early, anchor_keep=keep)
     np.testing.assert_allclose(c["z"][0], d["z"][0], atol=1e-6)
     assert np.abs(np.asarray(c["z"][1]) - np.asarray(d["z"][1])).max() > 1e-3
-    plain = init_params(DEEP, jax.random.PRNGKey(1), window=6)
-    unanchored = compiled(WorldModel(DEEP), WorldModel.predict)
-    np.testing.assert_array_equal(unanchored({"params": plain}, z, proprio, action, time=early)["z"],
-                                  unanchored({"params": plain}, z, proprio, action, time=early + 100)["z"])
+
+
+@pytest.mark.parametrize("mode", ["cache", "window"])
+def test_anchored_imagination_gives_each_frame_its_index_in_the_episode(model_and_inputs, mode):
+    """Both imagination modes give every frame the index the training pass gives it (indices 0-4 each
+    have a span of their own, so an index off by one changes the prediction): a context of two frames
+    from frame 2 (start=2) steps to the training pass's prediction over frames 2-3 at indices 2-3, and
+    the true episode read step by step (observed_features) has the training pass's heads over frames
+    0..t at indices 0..t."""
+    _, frames, proprio, action = model_and_inputs
+    cfg = dataclasses.replace(ANCHORED, imagine=mode)
+    params = init_params(cfg, jax.random.PRNGKey(1), window=6)
+    noise = np.random.default_rng(2)
+    params = jax.tree_util.tree_map(lambda x: x + 0.05 * noise.standard_normal(x.shape).astype(np.float32), params)
+    norm = I.Norm(jnp.zeros(37), jnp.ones(37), jnp.zeros(20), jnp.ones(20))
+    proprio, action = np.asarray(norm.proprio(proprio)), np.asarray(norm.action(action))  # the model's inputs
+    m = WorldModel(cfg)
+    z = compiled(m, WorldModel.encode)({"params": params}, frames)
+    b = z.shape[0]
+    later = compiled(m, WorldModel.predict)({"params": params}, z[:, 2:4], proprio[:, 2:4], action[:, 2:4],
+                                            anchor=z[:, 0], time=jnp.broadcast_to(2 + jnp.arange(2), (b, 2)))
+    st = init_state(cfg, params, norm, frames[:, 2:4], proprio[:, 2:4], action[:, 2:3], anchor=frames[:, 0],
+                    start=jnp.array([2] * b))
+    out, _ = I.predict_next(cfg, params, st.z, st.proprio, st.action.at[:, -1].set(action[:, 3]), st.valid,
+                            (st.k, st.v), st.anchor, st.clock)
+    np.testing.assert_allclose(out["z"], later["z"][:, 1], rtol=1e-4, atol=1e-4)
+    wrong = compiled(m, WorldModel.predict)({"params": params}, z[:, 2:4], proprio[:, 2:4], action[:, 2:4],
+                                            anchor=z[:, 0], time=jnp.broadcast_to(jnp.arange(2), (b, 2)))
+    assert np.abs(np.asarray(wrong["z"][:, 1]) - np.asarray(out["z"])).max() > 1e-3  # the index matters
+    t = frames.shape[1] - 1
+    x = np.asarray(I.observed_features(cfg, params, norm, frames, proprio, action[:, :t]))
+    full = compiled(m, WorldModel.predict)({"params": params}, z[:, :t], proprio[:, :t], action[:, :t],
+                                           anchor=z[:, 0], time=jnp.broadcast_to(jnp.arange(t), (b, t)))
+    heads = np.stack([jax.nn.sigmoid(full[key]) for key in ("success", "outcome", "progress")], -1)
+    np.testing.assert_allclose(x[:, :cfg.context, -3:], heads[:, :cfg.context], atol=1e-5)
 
 
 def test_cached_imagination_is_the_window_until_frames_leave_it_and_reads_true_episodes_as_training(
@@ -514,6 +545,8 @@ def test_learning_rate_is_a_function_of_the_step():
         make_config("smoke", ["cooldown=1.5"])
     with pytest.raises(ValueError, match="max_minutes"):
         make_config("smoke", ["max_minutes=-1"])
+    with pytest.raises(ValueError, match="anchor_drop"):
+        make_config("smoke", ["anchor_drop=1.0"])
 
 
 class HoldStill:
@@ -825,7 +858,7 @@ def test_make_train_smoke_writes_eval_json(smoke_world_model):
     assert len(fq["view_shift_px"]) == 2 and all(0.0 <= x <= 1.0 for x in fq["still_share"])
     assert len(fq["view_shift_unregistered"]) == 2
     # LPIPS beside PSNR, the imagined frames' and copy-last's (whose first horizon copies a frame 1 step old)
-    assert len(fq["lpips"]) == 2 and all(x > 0 for x in fq["lpips"] + fq["copy_last_lpips"])
+    assert len(fq["lpips"]) == 2 and all(x > 0 for x in fq["lpips"]) and all(x >= 0 for x in fq["copy_last_lpips"])
     assert report["summary"]["lpips_h8"] is None  # the smoke preset's horizons stop at 4
     assert report["controllability"]["groups"] == 1 and 0.0 <= report["controllability"]["match_accuracy"] <= 1.0
     assert report["success_prediction"]["episodes"] >= 1 and (out / "eval_frames.png").stat().st_size > 0

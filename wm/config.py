@@ -114,6 +114,8 @@ class TrainConfig:
             raise ValueError("model.keep needs w_keep > 0: the keep gate learns from its cross-entropy alone")
         if not 0.0 <= self.cooldown <= 1.0:
             raise ValueError(f"cooldown is a share of steps, in [0, 1]; got {self.cooldown}")
+        if not 0.0 <= self.anchor_drop < 1.0:
+            raise ValueError(f"anchor_drop is a share of training windows, in [0, 1); got {self.anchor_drop}")
         if self.max_minutes < 0:
             raise ValueError(f"max_minutes is a safety stop in minutes (0: none), got {self.max_minutes}")
         if self.rollout_passes < 0 or self.lr <= 0:

@@ -117,7 +117,7 @@ def init_state(cfg: ModelConfig, params, norm: Norm, frames, proprio, actions, a
     valid = jnp.concatenate([jnp.zeros((b, pad), bool), jnp.ones((b, c), bool)], axis=1)
     z, p, a = place(z), place(norm.proprio(proprio)), place(acts)
     first = anchor_latents(cfg, params, frames, anchor)
-    clock = (jnp.zeros((b,), jnp.int32) if start is None else jnp.asarray(start, jnp.int32)) + c - 1
+    clock = jnp.broadcast_to(jnp.asarray(0 if start is None else start, jnp.int32), (b,)) + c - 1
     k = v = jnp.zeros((b, 0))
     if cfg.imagine == "cache":  # slot K-1's keys wait for its action: the first step computes them
         out = model.apply({"params": params}, z, p, a, valid, with_kv=True, anchor=first,

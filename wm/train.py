@@ -105,7 +105,8 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None):
     proprio, action = norm.proprio(batch["proprio"]), norm.action(batch["action"])
     z_in, p_in, prev = z, proprio, pix[:, :-1]
     anchor = time = keep_anchor = None
-    rng_noise, rng_anchor = rng, None if rng is None else jax.random.fold_in(rng, 1)
+    # the noise splits rng into counters 0 and 1 (fold_in(rng, 1) would be its second key): 2 is the anchor's own
+    rng_noise, rng_anchor = rng, None if rng is None else jax.random.fold_in(rng, 2)
     if cfg.model.anchor:
         anchor = model.apply({"params": params}, batch["anchor"], method=WorldModel.encode)
         time = batch["start"][:, None] + jnp.arange(frames.shape[1])
