@@ -410,10 +410,12 @@ class Dynamics(nn.Module):
             table_a = self.param("anchor_bias", nn.initializers.zeros, (cfg.heads, ANCHOR_SPANS))
             column = jnp.moveaxis(table_a[:, anchor_span(time)], 0, 1)[..., None]  # (B, heads, T, 1)
             time_bias = jnp.concatenate([column, jnp.broadcast_to(time_bias, (b,) + time_bias.shape)], axis=3)
-            seen = jnp.zeros((b, 1, 1, n), mask.dtype) if anchor_keep is None else \
+            # the anchor's mask column is per sample only where samples drop it (training)
+            seen = jnp.zeros((1, 1, 1, n), mask.dtype) if anchor_keep is None else \
                 jnp.where(anchor_keep, 0.0, -1e9).astype(mask.dtype)[:, None, None, None]
-            mask = jnp.broadcast_to(mask, (b,) + mask.shape[1:])
-            mask = jnp.concatenate([jnp.broadcast_to(seen, mask.shape[:3] + (n,)), mask], axis=3)
+            lead = max(seen.shape[0], mask.shape[0])
+            mask = jnp.concatenate([jnp.broadcast_to(seen, (lead,) + mask.shape[1:3] + (n,)),
+                                    jnp.broadcast_to(mask, (lead,) + mask.shape[1:])], axis=3)
         kvs = []
         for layer in range(cfg.depth):
             cached = None if past is None else tuple(past[key][:, layer].reshape((b, -1) + past[key].shape[4:])

@@ -105,15 +105,14 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None):
     proprio, action = norm.proprio(batch["proprio"]), norm.action(batch["action"])
     z_in, p_in, prev = z, proprio, pix[:, :-1]
     anchor = time = keep_anchor = None
-    # the noise splits rng into counters 0 and 1 (fold_in(rng, 1) would be its second key): 2 is the anchor's own
-    rng_noise, rng_anchor = rng, None if rng is None else jax.random.fold_in(rng, 2)
     if cfg.model.anchor:
         anchor = model.apply({"params": params}, batch["anchor"], method=WorldModel.encode)
         time = batch["start"][:, None] + jnp.arange(frames.shape[1])
-        if rng_anchor is not None and cfg.anchor_drop > 0:
-            keep_anchor = jax.random.uniform(rng_anchor, (frames.shape[0],)) >= cfg.anchor_drop
-    if cfg.context_noise > 0 and rng_noise is not None:  # corrupted inputs: the past cannot be copied forward exactly
-        k1, k2 = jax.random.split(rng_noise)
+        if rng is not None and cfg.anchor_drop > 0:
+            # the noise below splits rng into counters 0 and 1 (fold_in(rng, 1) is its second key): 2 is the anchor's
+            keep_anchor = jax.random.uniform(jax.random.fold_in(rng, 2), (frames.shape[0],)) >= cfg.anchor_drop
+    if cfg.context_noise > 0 and rng is not None:  # corrupted inputs: the past cannot be copied forward exactly
+        k1, k2 = jax.random.split(rng)
         level = jax.random.uniform(k1, (z.shape[0],) + (1,) * (z.ndim - 1), maxval=cfg.context_noise)
         z_in = jnp.clip(z + level * jax.random.normal(k2, z.shape), -1.0, 1.0)
     z_target = jax.lax.stop_gradient(z[:, 1:])
