@@ -529,6 +529,43 @@ def test_reencoded_rollout_passes_change_only_the_passes(model_and_inputs):
     assert abs(float(both["latent_pass1"]) - float(plain["latent_pass1"])) > 1e-6
 
 
+def test_the_perceptual_loss_adds_the_weighted_lpips_of_every_fourth_predicted_frame(model_and_inputs):
+    from wm import perceptual
+    from wm.train import loss_fn
+
+    params, frames, proprio, action = model_and_inputs
+    norm = I.Norm(jnp.zeros(37), jnp.ones(37), jnp.zeros(20), jnp.ones(20))
+    batch = {"frames": frames, "proprio": proprio, "action": action, "success": np.zeros((2, 6), bool),
+             "progress": np.zeros((2, 6), np.float32), "outcome": np.zeros((2,), bool)}
+    cfg = make_config("smoke")
+    loss = jax.jit(loss_fn, static_argnums=3)  # the plain configuration's program is the reencode test's
+    plain_total, plain = loss(params, batch, norm, cfg)
+    with_lpips = dataclasses.replace(cfg, w_lpips=0.5)
+    total, parts = loss(params, batch, norm, with_lpips, None, perceptual.params())
+    tags = ["lpips"] + [f"lpips_pass{k}" for k in range(1, 1 + cfg.rollout_passes)]
+    assert "lpips" not in plain and all(0.0 < float(parts[t]) < 1.0 for t in tags)
+    for k in set(plain) - {"loss"}:  # every other term as before
+        np.testing.assert_allclose(parts[k], plain[k], rtol=1e-5, err_msg=k)
+    np.testing.assert_allclose(total, plain_total + 0.5 * sum(parts[t] for t in tags), rtol=1e-5)
+
+    @jax.jit
+    def first_pass(params):  # the teacher-forced pass's decoded frames, as loss_fn decodes them
+        m = WorldModel(CFG)
+        z = m.apply({"params": params}, frames, method=WorldModel.encode)
+        pred = m.apply({"params": params}, z, proprio, action, method=WorldModel.predict)
+        return m.apply({"params": params}, pred["z"][:, :-1], frames[:, :-1] / 255.0, pred["flow"][:, :-1],
+                       method=WorldModel.decode)
+
+    # frames 1 and 5 of the window, read by LPIPS' own 8-bit path
+    shown, true = np.asarray(I.to_uint8(first_pass(params)[:, ::4])), frames[:, 1::4]
+    ref = perceptual.lpips(shown.reshape(-1, 64, 64, 3), true.reshape(-1, 64, 64, 3)).mean()
+    np.testing.assert_allclose(parts["lpips"], ref, atol=2e-3)
+    with pytest.raises(ValueError, match="w_lpips"):
+        loss_fn(params, batch, norm, with_lpips)
+    with pytest.raises(ValueError, match="w_lpips"):
+        make_config("smoke", ["w_lpips=-1"])
+
+
 def test_learning_rate_is_a_function_of_the_step():
     from wm.train import learning_rate
 

@@ -47,6 +47,7 @@ from wm.train import (
     jitted_train_step,
     make_mesh,
     make_optimizer,
+    perceptual_weights,
     put_batch,
     state_shardings,
 )
@@ -100,7 +101,7 @@ def step_flops(preset: str, overrides=()) -> float:
             raise RuntimeError(f"counting FLOPs on the CPU failed:\n{child.stderr[-2000:]}")
         return float(child.stdout.split()[-1])
     cfg = make_config(preset, overrides)
-    args = jax.eval_shape(lambda: step_inputs(cfg))
+    args = jax.eval_shape(lambda: (*step_inputs(cfg), perceptual_weights(cfg)))
     cost = jitted_train_step.lower(cfg, *args).cost_analysis()
     if isinstance(cost, list | tuple):
         cost = cost[0]
@@ -148,7 +149,7 @@ def matmul_flops_by_shape(hlo: str) -> dict:
 def step_flops_by_shape(preset: str, overrides=()) -> dict:
     """matmul_flops_by_shape of one train step of the preset, lowered (not compiled) on this backend."""
     cfg = make_config(preset, overrides)
-    args = jax.eval_shape(lambda: step_inputs(cfg))
+    args = jax.eval_shape(lambda: (*step_inputs(cfg), perceptual_weights(cfg)))
     return matmul_flops_by_shape(jitted_train_step.lower(cfg, *args).as_text(dialect="hlo"))
 
 
@@ -157,19 +158,20 @@ def train_rate(cfg, steps: int = 20, profile: int = 0, mesh=None) -> dict:
     the kernel_profile of `profile` more steps traced with jax.profiler (under "profile"). With a
     mesh, the step runs data parallel over it, parameters placed as cfg.param_sharding says."""
     state, batch, norm = step_inputs(cfg)
+    weights = perceptual_weights(cfg)
     if mesh is not None:
         state = jax.device_put(state, state_shardings(state, mesh, cfg.param_sharding == "fsdp"))
         batch = put_batch(batch, mesh)
-        norm = jax.device_put(norm, NamedSharding(mesh, P()))
+        norm, weights = jax.device_put((norm, weights), NamedSharding(mesh, P()))
     t0 = time.perf_counter()
-    compiled = jitted_train_step.lower(cfg, state, batch, norm).compile()
+    compiled = jitted_train_step.lower(cfg, state, batch, norm, weights).compile()
     compile_s = time.perf_counter() - t0
     for _ in range(3):
-        state, parts = compiled(state, batch, norm)
+        state, parts = compiled(state, batch, norm, weights)
     jax.block_until_ready(parts)
     t0 = time.perf_counter()
     for _ in range(steps):
-        state, parts = compiled(state, batch, norm)
+        state, parts = compiled(state, batch, norm, weights)
     jax.block_until_ready(parts)
     dt = (time.perf_counter() - t0) / steps
     out = {"batch": cfg.batch, "window": cfg.window,
@@ -179,7 +181,7 @@ def train_rate(cfg, steps: int = 20, profile: int = 0, mesh=None) -> dict:
         with tempfile.TemporaryDirectory() as d:
             jax.profiler.start_trace(d, create_perfetto_trace=True)
             for _ in range(profile):
-                state, parts = compiled(state, batch, norm)
+                state, parts = compiled(state, batch, norm, weights)
             jax.block_until_ready(parts)
             jax.profiler.stop_trace()
             found = sorted(Path(d).rglob("perfetto_trace.json.gz"))

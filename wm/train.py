@@ -18,7 +18,6 @@ the episode judge is fitted (`wm.judge`) and `eval.json` written from the best c
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import math
 import sys
@@ -38,6 +37,7 @@ from tqdm import tqdm
 from sim_data.config import preset_help
 from sim_data.dataset.cache import TrainingCache, WindowLoader
 from sim_data.util import make_output_dir, run_cli, write_json_atomic
+from wm import perceptual
 from wm.checkpoint import restore_params
 from wm.config import PRESETS, TrainConfig, check_dataset, make_config, to_dict
 from wm.evaluate import evaluate
@@ -85,10 +85,19 @@ def _keep_loss(keep, target, prev):
     return _bce(keep, jnp.all(jnp.round(target * 255.0) == jnp.round(prev * 255.0), axis=-1))
 
 
-def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None):
+def _lpips_loss(weights, pred, target):
+    """Mean LPIPS of predicted frames (..., S, S, 3) in [0, 1] against the true ones."""
+    flat = lambda x: x.reshape((-1,) + x.shape[-3:])
+    return jnp.mean(perceptual.distance(weights, flat(pred), flat(jax.lax.stop_gradient(target))))
+
+
+def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_weights=None):
     """Scalar loss and its parts for one batch (frames (B, T, S, S, 3) uint8, ...; with an anchor frame
     "anchor" (B, S, S, 3) uint8 and "start" (B,) int too: model_batch); rng draws the context noise and
-    the windows that train without their anchor (None: neither, as in validation)."""
+    the windows that train without their anchor (None: neither, as in validation); lpips_weights: the
+    perceptual network's (wm.perceptual.params()), needed where cfg.w_lpips > 0."""
+    if cfg.w_lpips > 0 and lpips_weights is None:
+        raise ValueError("w_lpips > 0 needs the LPIPS network's weights (wm.perceptual.params())")
     model = WorldModel(cfg.model)
     frames = batch["frames"]
     pix = frames.astype(jnp.float32) / 255.0
@@ -134,6 +143,9 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None):
         tag = "" if k == 0 else f"_pass{k}"
         parts.update({f"latent{tag}": latent, f"pixel{tag}": pixel, f"proprio{tag}": prop, f"success{tag}": succ,
                       f"outcome{tag}": outc, f"progress{tag}": prog})
+        if cfg.w_lpips > 0:
+            parts[f"lpips{tag}"] = _lpips_loss(lpips_weights, pixels[:, ::4], target[:, ::4])
+            total = total + cfg.w_lpips * parts[f"lpips{tag}"]
         if keep is not None:
             parts[f"keep{tag}"] = _keep_loss(keep, target, prev)
             total = total + cfg.w_keep * parts[f"keep{tag}"]
@@ -171,18 +183,24 @@ def make_optimizer(cfg: TrainConfig):
                        optax.adamw(learning_rate(cfg), weight_decay=cfg.weight_decay))
 
 
-def train_step(cfg: TrainConfig, state: dict, batch: dict, norm: Norm):
-    """One optimiser step: state {"params", "opt", "step"} -> (state, metrics)."""
+def train_step(cfg: TrainConfig, state: dict, batch: dict, norm: Norm, lpips_weights=None):
+    """One optimiser step: state {"params", "opt", "step"} -> (state, metrics); lpips_weights as loss_fn's."""
     rng = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), state["step"])
-    (_, parts), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"], batch, norm, cfg, rng)
+    (_, parts), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"], batch, norm, cfg, rng,
+                                                                 lpips_weights)
     updates, opt = make_optimizer(cfg).update(grads, state["opt"], state["params"])
     params = optax.apply_updates(state["params"], updates)
     parts["grad_norm"] = optax.tree.norm(grads)
     return {"params": params, "opt": opt, "step": state["step"] + 1}, parts
 
 
+def perceptual_weights(cfg: TrainConfig):
+    """The LPIPS network's weights where cfg.w_lpips > 0 (train_step's lpips_weights), else None."""
+    return perceptual.params() if cfg.w_lpips > 0 else None
+
+
 jitted_train_step = jax.jit(train_step, static_argnums=(0,), donate_argnums=(1,))
-_jitted_loss = jax.jit(lambda cfg, p, b, n: loss_fn(p, b, n, cfg)[1], static_argnums=(0,))
+_jitted_loss = jax.jit(lambda cfg, p, b, n, w: loss_fn(p, b, n, cfg, lpips_weights=w)[1], static_argnums=(0,))
 
 
 # ---- devices ---------------------------------------------------------------------------------------
@@ -275,8 +293,9 @@ class Run:
         self.best = ocp.CheckpointManager(self.out.absolute() / "best", options=opts)
         self.best_val = math.inf
         self._val_batches = None
-        self._step = functools.partial(jitted_train_step, cfg)
-        self._loss = functools.partial(_jitted_loss, cfg)
+        lpips_weights = perceptual_weights(cfg)
+        self._step = lambda state, batch, norm: jitted_train_step(cfg, state, batch, norm, lpips_weights)
+        self._loss = lambda params, batch, norm: _jitted_loss(cfg, params, batch, norm, lpips_weights)
 
     # ---- checkpoints ----
     def restore(self) -> int:
