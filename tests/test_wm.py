@@ -357,6 +357,7 @@ def test_cached_steps_equal_the_training_forward_pass_over_a_long_window(model_a
 ANCHORED = dataclasses.replace(DEEP, anchor=True)
 
 
+@pytest.mark.slow  # the anchor is an option no preset uses: its compile-heavy tests run with make test-slow
 def test_an_anchored_model_sees_the_first_frame_at_every_step_and_caches_alike(model_and_inputs):
     """With an anchor the predictions long after the context has slid past the first frame still
     change with it (without one they cannot), and the cached steps are the forward pass's."""
@@ -418,6 +419,7 @@ def test_the_anchor_is_weighed_by_its_age_and_dropped_per_sample(model_and_input
     assert np.abs(np.asarray(c["z"][1]) - np.asarray(d["z"][1])).max() > 1e-3
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["cache", "window"])
 def test_anchored_imagination_gives_each_frame_its_index_in_the_episode(model_and_inputs, mode):
     """Both imagination modes give every frame the index the training pass gives it (indices 0-4 each
