@@ -8,7 +8,10 @@ The preset's data, zoo and rollouts must exist (`python -m experiments.pipeline 
 data|policies|rollouts`). Every run trains with `wm.train` on the preset's world-model data and
 training settings (seed k, the given steps; the design's runs add its key=value settings, and may
 train a different number of steps for the same training time) and is evaluated by
-`experiments.evaluate` on the preset's zoo from the same held-out states. The runs go into
+`experiments.evaluate` on the preset's zoo from the same held-out states, without videos, against
+the same simulated outcomes: the first evaluation simulates each batch into a truth cache
+(runs/designs/PRESET/truth) that the others read (on several GPUs they wait for it), so the
+simulator runs once per decision and no run is compared against outcomes another GPU drew. The runs go into
 runs/designs/PRESET/{NAME,recipe}/<steps>steps_s<k>/ (`wm/`, `eval_e<episodes>/`, `timing.json`): the
 recipe's are shared by every design compared against it with the same steps. `experiments.compare`
 then writes compare.json, compare.md and compare.png into runs/designs/PRESET/NAME/: each run's
@@ -93,7 +96,8 @@ def plan(preset: str, name: str, overrides=(), seeds: int = 2, steps: int = 4000
             jobs.append(Job(design, k, run / "wm", run / f"eval_e{episodes}", p.train, d["wm_data"],
                             (*p.train_overrides, f"seed={k}", f"steps={n}", "max_minutes=0", *extra),
                             ("--config", p.eval, "--out", str(run / f"eval_e{episodes}"), f"policies={d['policies']}",
-                             f"wm={run / 'wm'}", f"episodes={episodes}", "max_minutes=0", *p.eval_overrides)))
+                             f"wm={run / 'wm'}", f"episodes={episodes}", "max_minutes=0", *p.eval_overrides,
+                             "video_policies=0", f"truth_cache={root / 'truth'}")))
     return jobs
 
 
