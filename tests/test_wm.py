@@ -510,13 +510,20 @@ def test_reencoding_imagination_feeds_back_the_latents_of_the_decoded_8_bit_fram
     assert float(jnp.abs(again.z[:, -1] - plain.z[:, -1]).max()) > 1e-3
 
 
+def _identity_norm_and_batch(frames, proprio, action):
+    """A Norm that leaves proprio and actions as they are, and a loss batch of the inputs with no
+    success or progress."""
+    norm = I.Norm(jnp.zeros(37), jnp.ones(37), jnp.zeros(20), jnp.ones(20))
+    batch = {"frames": frames, "proprio": proprio, "action": action, "success": np.zeros((2, 6), bool),
+             "progress": np.zeros((2, 6), np.float32), "outcome": np.zeros((2,), bool)}
+    return norm, batch
+
+
 def test_reencoded_rollout_passes_change_only_the_passes(model_and_inputs):
     from wm.train import loss_fn
 
     params, frames, proprio, action = model_and_inputs
-    norm = I.Norm(jnp.zeros(37), jnp.ones(37), jnp.zeros(20), jnp.ones(20))
-    batch = {"frames": frames, "proprio": proprio, "action": action, "success": np.zeros((2, 6), bool),
-             "progress": np.zeros((2, 6), np.float32), "outcome": np.zeros((2,), bool)}
+    norm, batch = _identity_norm_and_batch(frames, proprio, action)
     cfg = make_config("smoke")
     loss = jax.jit(loss_fn, static_argnums=3)  # one program a configuration: op by op, each operation compiles apart
     parts = {}
@@ -536,9 +543,7 @@ def test_the_perceptual_loss_adds_the_weighted_lpips_of_every_fourth_predicted_f
     from wm.train import loss_fn
 
     params, frames, proprio, action = model_and_inputs
-    norm = I.Norm(jnp.zeros(37), jnp.ones(37), jnp.zeros(20), jnp.ones(20))
-    batch = {"frames": frames, "proprio": proprio, "action": action, "success": np.zeros((2, 6), bool),
-             "progress": np.zeros((2, 6), np.float32), "outcome": np.zeros((2,), bool)}
+    norm, batch = _identity_norm_and_batch(frames, proprio, action)
     cfg = make_config("smoke")
     loss = jax.jit(loss_fn, static_argnums=3)  # the plain configuration's program is the reencode test's
     plain_total, plain = loss(params, batch, norm, cfg)
