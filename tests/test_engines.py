@@ -150,6 +150,7 @@ def _set_qvel(engine, physics, qvel):
     return physics.replace(rows=rows)
 
 
+@pytest.mark.slow
 def test_mjx_tumbling_free_body_stays_finite_and_tracks_the_c_engine(model):
     """A flat, light body tumbling about its intermediate axis (the cloth flung off the counter by
     noisy actions) keeps its angular momentum bounded on MJX as on the C engine, whose implicitfast

@@ -141,6 +141,7 @@ def test_family_table_lists_each_family_under_each_readout():
     assert family_table({"families": {"families": []}}) is None
 
 
+@pytest.mark.slow
 def test_parts_share_out_a_tasks_batches_and_merge_into_the_unsplit_results(evaluation, tmp_path):
     cfg, out, res = evaluation
     assert E.balance_chunks({"a": 5, "b": 3, "c": 3, "d": 1}, 2) == {"a": 0, "b": 1, "c": 1, "d": 0}
@@ -180,6 +181,7 @@ def test_parts_share_out_a_tasks_batches_and_merge_into_the_unsplit_results(eval
         E.merge_task_parts(cfg, [E.load_task(split / "tasks" / "mug.part0of2.npz")], whole["names"])
 
 
+@pytest.mark.slow
 def test_state_slices_share_one_program_and_parts_join_them_into_the_unsliced_results(evaluation, tmp_path,
                                                                                     monkeypatch):
     """state_batch=1 runs the fixture's 2 states as two slices of one batch shape: the second compiles
@@ -306,6 +308,7 @@ def test_a_report_of_results_copied_without_their_videos_says_so(evaluation, tmp
     assert page.count("data:image/png;base64,") >= 5
 
 
+@pytest.mark.slow
 def test_an_ensemble_averages_its_members_probabilities(evaluation, smoke_world_model, tmp_path):
     cfg, out, res = evaluation
     # a second member: the same network reading the actions on another scale, so that it predicts otherwise
@@ -385,6 +388,7 @@ def test_imagine_replaces_the_models_own_imagination_setting(smoke_world_model):
     assert E.load_models(runs, "")[0][0].model.imagine == own
 
 
+@pytest.mark.slow
 def test_air_fryer_body_mask_covers_the_body_pixels_of_the_frame():
     """The body's pixels found from a recorded state are the fryer's colour in the rendered frame
     (chromaticity, which the scene's white lights keep), and the pixels bordering them are not."""

@@ -193,6 +193,7 @@ def _make_vec(n, **kw):
     return gym.make_vec(ENV_ID, num_envs=n, vectorization_mode="vector_entry_point", **kw)
 
 
+@pytest.mark.slow
 def test_vector_env_spaces_and_seeding():
     single = gym.make(ENV_ID, task="mug")
     envs = _make_vec(2, task="mug")  # the batch of the other vector envs here: their compiled programs

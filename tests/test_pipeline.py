@@ -230,6 +230,7 @@ def test_a_stage_spread_over_gpus_counts_its_child_processes_compiling_and_frame
     assert timing_table([row])[1][5:7] == ["10.0", f"{800 / row['wall_s']:.1f}"]
 
 
+@pytest.mark.slow
 def test_a_child_process_writes_its_wall_and_compile_seconds_whether_it_succeeds_or_fails(tmp_path):
     import subprocess
     import sys

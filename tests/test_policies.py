@@ -66,7 +66,7 @@ def test_ik_reaches_a_hand_down_target(model, kin, right_grip):
 
 
 def test_skill_changes_the_plan_deterministically(model):
-    env = HomeEnv("mug", 2, engine="cpu")  # the batch of the arcade test below: the same compiled plan
+    env = HomeEnv("mug", 2, engine="cpu")  # the batch of the other scripted tests here: one compiled plan
     pol = ScriptedPolicy.create("mug", model)
     st = env.reset(jax.random.PRNGKey(0))
     params = {"skill": jnp.array([1.0, 0.2])}
@@ -80,6 +80,7 @@ def test_skill_changes_the_plan_deterministically(model):
     assert np.abs(grasp[1] - mug[1]).max() > 1e-4  # skill 0.2: perception noise
 
 
+@pytest.mark.slow
 def test_scripted_arcade_succeeds_at_full_skill_and_actions_are_valid(model):
     env = HomeEnv("arcade", 2, engine="cpu")
     pol = ScriptedPolicy.create("arcade", model)
@@ -137,7 +138,7 @@ def test_play_is_seeded_smooth_bounded_and_varied(idx):
 def test_scripts_and_programs_as_one_policy_act_each_row_as_its_own_kind(model):
     from sim_data.sim.rollout import run_episodes
 
-    # the batch of the arcade test above (its ScriptedPolicy compile serves), and the data generator's
+    # the batch of the scripted tests above (their ScriptedPolicy compile serves), and the data generator's
     # ScriptOrProgramPolicy and table length (tables padded to MAX_EPISODE_STEPS rows): the dataset
     # fixture's compiled rollout
     env = HomeEnv("mug", 2, engine="cpu")

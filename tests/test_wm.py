@@ -397,6 +397,7 @@ def test_anchor_spans_group_frame_distances_as_documented():
     np.testing.assert_array_equal(got, [0, 1, 2, 3, 4, 4, 5, 5, 6, 6, 7, 14, 15, 15, 0])
 
 
+@pytest.mark.slow
 def test_the_anchor_is_weighed_by_its_age_and_dropped_per_sample(model_and_inputs):
     """An anchored model's predictions change with the frames' indices in the episode (the anchor's
     bias by span); a sample whose anchor is dropped predicts the same whatever its anchor, while the
@@ -519,6 +520,7 @@ def _identity_norm_and_batch(frames, proprio, action):
     return norm, batch
 
 
+@pytest.mark.slow
 def test_reencoded_rollout_passes_change_only_the_passes(model_and_inputs):
     from wm.train import loss_fn
 
@@ -538,6 +540,7 @@ def test_reencoded_rollout_passes_change_only_the_passes(model_and_inputs):
     assert abs(float(both["latent_pass1"]) - float(plain["latent_pass1"])) > 1e-6
 
 
+@pytest.mark.slow
 def test_the_perceptual_loss_adds_the_weighted_lpips_of_every_fourth_predicted_frame(model_and_inputs):
     from wm import perceptual
     from wm.train import loss_fn
@@ -702,6 +705,7 @@ def test_a_judge_with_observed_episodes_learns_from_both_readings_and_is_kept_on
     assert len(val["label"]) == J.VAL_EPISODES and (val["features"] == 0).all()  # kept on imaginations alone
 
 
+@pytest.mark.slow
 def test_observed_episodes_are_the_true_episodes_features_and_join_the_imagined(smoke_dataset, smoke_world_model):
     _, data, _ = smoke_dataset
     cfg, params, norm = load_trained(smoke_world_model)

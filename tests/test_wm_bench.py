@@ -9,6 +9,7 @@ from wm import bench
 from wm.bench import matmul_flops_by_shape, step_flops
 
 
+@pytest.mark.slow
 def test_step_flops_count_the_whole_batch():
     one, two = step_flops("smoke", ["batch=2"]), step_flops("smoke", ["batch=4"])
     assert one > 1e8
@@ -51,6 +52,7 @@ def test_kernel_profile_sums_device_kernels_by_kind_per_step():
         kernel_profile({"traceEvents": meta[1:] + events[-1:]}, steps=1)
 
 
+@pytest.mark.slow
 def test_train_rate_traces_the_step_and_refuses_a_profile_without_a_gpu():
     import jax
     import pytest

@@ -290,6 +290,7 @@ def test_mixed_dataset_records_policy_rollouts(smoke_dataset, smoke_zoo, smoke_w
     assert policy_action_divergence(cfg, wm_params, norm, cache, [i], {})["episodes"] == 0
 
 
+@pytest.mark.slow
 def test_perturbed_copies_send_their_checkpoints_actions_degraded_by_each_episodes_knob(smoke_dataset, smoke_zoo,
                                                                                        tmp_path):
     """A checkpoint's own rollouts beside its perturbed copy's, from the same initial states (4 each, in
