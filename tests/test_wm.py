@@ -576,6 +576,50 @@ def test_the_perceptual_loss_adds_the_weighted_lpips_of_every_fourth_predicted_f
         make_config("smoke", ["w_lpips=-1"])
 
 
+def test_action_contrast_is_the_log_share_of_the_true_actions_prediction():
+    from wm.train import action_contrast
+
+    target = np.zeros((2, 3, 4), np.float32)
+    pred = np.full_like(target, 0.1)
+    pred[1] = 0.0  # window 1 predicted exactly
+    other = np.full_like(target, 0.3)
+    # window 0: d_true 0.01, d_other 0.09 -> log(1 + 1/9); window 1: d_true 0 -> 0
+    np.testing.assert_allclose(action_contrast(pred, other, target), np.log1p(1 / 9) / 2, rtol=1e-5)
+    # the same prediction whatever the actions: window 0 log 2, window 1 (exact) 0
+    np.testing.assert_allclose(action_contrast(pred, pred, target), np.log(2) / 2, rtol=1e-5)
+
+
+def test_the_action_contrast_term_predicts_the_window_again_under_another_windows_actions(model_and_inputs):
+    from wm.train import action_contrast, loss_fn
+
+    params, frames, proprio, action = model_and_inputs
+    norm, batch = _identity_norm_and_batch(frames, proprio, action)
+    cfg = make_config("smoke")
+    loss = jax.jit(loss_fn, static_argnums=3)
+    plain_total, plain = loss(params, batch, norm, cfg)
+    total, parts = loss(params, batch, norm, dataclasses.replace(cfg, w_contrast=0.5))
+    for k in set(plain) - {"loss"}:  # every other term as before
+        np.testing.assert_allclose(parts[k], plain[k], rtol=1e-5, err_msg=k)
+    np.testing.assert_allclose(total, plain_total + 0.5 * parts["contrast"], rtol=1e-5)
+
+    @jax.jit
+    def predictions(params):  # the teacher-forced latents under the windows' own actions and under the other's
+        m = WorldModel(CFG)
+        z = m.apply({"params": params}, frames, method=WorldModel.encode)
+        own = m.apply({"params": params}, z, proprio, action, method=WorldModel.predict)["z"][:, :-1]
+        swapped = m.apply({"params": params}, z, proprio, action[::-1], method=WorldModel.predict)["z"][:, :-1]
+        return own, swapped, z[:, 1:]
+
+    own, swapped, target = predictions(params)  # a batch of 2: rolling by one swaps the windows' actions
+    assert not np.allclose(own, swapped)
+    np.testing.assert_allclose(parts["contrast"], action_contrast(own, swapped, target), rtol=1e-4)
+    assert 0.0 < float(parts["contrast"]) < 1.0
+    with pytest.raises(ValueError, match="w_contrast"):
+        make_config("smoke", ["w_contrast=-1"])
+    with pytest.raises(ValueError, match="batch >= 2"):
+        make_config("smoke", ["w_contrast=0.1", "batch=1"])
+
+
 def test_learning_rate_is_a_function_of_the_step():
     from wm.train import learning_rate
 

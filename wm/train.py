@@ -146,6 +146,11 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_w
         if cfg.w_lpips > 0:
             parts[f"lpips{tag}"] = _lpips_loss(lpips_weights, pixels[:, ::4], target[:, ::4])
             total = total + cfg.w_lpips * parts[f"lpips{tag}"]
+        if k == 0 and cfg.w_contrast > 0:  # the same context under another window's actions
+            other = model.apply({"params": params}, z_in, p_in, jnp.roll(action, 1, axis=0), anchor=anchor, time=time,
+                                anchor_keep=keep_anchor, method=WorldModel.predict)
+            parts["contrast"] = action_contrast(zp, other["z"][:, :-1], z_target)
+            total = total + cfg.w_contrast * parts["contrast"]
         if keep is not None:
             parts[f"keep{tag}"] = _keep_loss(keep, target, prev)
             total = total + cfg.w_keep * parts[f"keep{tag}"]
@@ -161,6 +166,18 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_w
         prev = jnp.concatenate([pix[:, :1], jax.lax.stop_gradient(pixels[:, :-1])], axis=1)
     parts["loss"] = total
     return total, parts
+
+
+def action_contrast(pred, other, target) -> jax.Array:
+    """How little the actions explain the future: per window, log(1 + d_true / d_other), the negative
+    log of the true actions' share when the future is attributed by inverse squared error between the
+    prediction under the window's own actions, pred (B, T, ...), and under another window's, other
+    (same shape), against the true latents target; the mean over windows. log 2 where the actions
+    change nothing; towards 0 as the own actions' prediction becomes the far better one."""
+    axes = tuple(range(1, pred.ndim))
+    d_true = jnp.mean((pred - target) ** 2, axis=axes)
+    d_other = jnp.mean((other - target) ** 2, axis=axes)
+    return jnp.mean(jnp.log1p(d_true / (d_other + 1e-8)))
 
 
 def learning_rate(cfg: TrainConfig):
