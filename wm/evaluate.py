@@ -73,7 +73,8 @@ from wm.judge import (
     load_judge,
     spread,
 )
-from wm.metrics import accuracy, auroc, psnr, ssim, view_shift
+from wm.metrics import accuracy, action_contrast, auroc, psnr, ssim, view_shift
+from wm.model import WorldModel
 from wm.perceptual import MISSING as LPIPS_MISSING
 from wm.perceptual import available, lpips
 
@@ -232,6 +233,46 @@ def action_sensitivity(cfg: TrainConfig, params, norm: Norm, cache: TrainingCach
 
 
 @functools.partial(jax.jit, static_argnums=(0,))
+def _teacher_forced_pair(mcfg, params, frames, proprio, action):
+    """Windows from their episodes' first frame, frames (B, T, S, S, 3) uint8 with proprio and action
+    normalised: the teacher-forced next latents under each window's own actions and under the next
+    window's (the batch rolled by one, as training's contrast term), and the true latents, each
+    (B, T-1, ...)."""
+    model = WorldModel(mcfg)
+    z = model.apply({"params": params}, frames, method=WorldModel.encode)
+    anchor = z[:, 0] if mcfg.anchor else None
+    time = jnp.broadcast_to(jnp.arange(z.shape[1]), z.shape[:2]) if mcfg.anchor else None
+
+    def predict(a):
+        return model.apply({"params": params}, z, proprio, a, anchor=anchor, time=time,
+                           method=WorldModel.predict)["z"][:, :-1]
+
+    return predict(action), predict(jnp.roll(action, 1, axis=0)), z[:, 1:]
+
+
+def action_dependence(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, episodes: list[int]) -> dict:
+    """How much the actions explain the model's one-step predictions: a window of cfg.window steps
+    from the start of each of `episodes` long enough, predicted teacher-forced under its own actions
+    and under another window's (wm.metrics.action_contrast, the quantity training's w_contrast lowers).
+    Returns {"windows", "action_contrast" (log 2 = 0.693 where the actions change nothing, towards 0
+    as the own actions explain the true latents far better), "own_actions_better" (the share of
+    windows whose own actions' prediction has the lower latent error)}, or {"windows", "note"} with
+    fewer than two windows."""
+    eps = [cache.episode(i, cameras=[cfg.camera]) for i in episodes if cache.episodes[i]["length"] >= cfg.window]
+    if len(eps) < 2:
+        return {"windows": len(eps), "note": f"fewer than two episodes of at least {cfg.window} steps"}
+    w = cfg.window
+    frames = np.stack([e["frames"][cfg.camera][:w] for e in eps])
+    proprio = norm.proprio(np.stack([e["proprio"][:w] for e in eps]))
+    action = norm.action(np.stack([e["action"][:w] for e in eps]))
+    own, other, target = _teacher_forced_pair(cfg.model, params, frames, proprio, action)
+    axes = tuple(range(1, own.ndim))
+    better = np.mean((own - target) ** 2, axis=axes) < np.mean((other - target) ** 2, axis=axes)
+    return {"windows": len(eps), "action_contrast": float(action_contrast(own, other, target)),
+            "own_actions_better": float(np.mean(better))}
+
+
+@functools.partial(jax.jit, static_argnums=(0,))
 def _policy_actions(policy, params, images, proprio, rng):
     """The actions a policy takes, step by step with its own carry, on given observations:
     images (B, T, S, S, 3) uint8, proprio (B, T, 37) -> (B, T, 20). Every sequence starts a fresh
@@ -379,6 +420,7 @@ def evaluate(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, out: Pa
     sp["split"] = success_split
     sens = action_sensitivity(cfg, params, norm, cache, tasked, judge, own)
     ctrl = controllability(cfg, params, norm, cache, tasks)
+    dep = action_dependence(cfg, params, norm, cache, test)
     policy_split, acted = _held_out(cache, tasks, lambda e: e.get("policy_kind") in ("learned", "plugin"),
                                     "policy episodes", required=False)
     pil = policy_action_divergence(cfg, params, norm, cache, spread(acted, cfg.eval_episodes),
@@ -396,11 +438,12 @@ def evaluate(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, out: Pa
         "success_accuracy": sp["accuracy"], "success_auroc": sp["auroc"], "progress_auroc": sp["progress_auroc"],
         "match_accuracy": ctrl.get("match_accuracy"), "delta_psnr_db": ctrl.get("delta_psnr_db"),
         "success_follows_actions": sens.get("follows_actions"),
+        "action_contrast": dep.get("action_contrast"),
         "action_divergence_h8": _at_horizon(pil, "imagined", 8),
         "action_divergence_copy_first_h8": _at_horizon(pil, "copy_first", 8),
     }
     report = {"summary": summary, "frame_quality": fq, "success_prediction": sp, "action_sensitivity": sens,
-              "controllability": ctrl, "policy_in_the_loop": pil, "episodes": len(test), "split": split}
+              "controllability": ctrl, "action_dependence": dep, "policy_in_the_loop": pil, "episodes": len(test), "split": split}
     write_json_atomic(Path(out) / "eval.json", no_nan(report))
     _save_strip(Path(out) / "eval_frames.png", pictures, fq["horizons"])
     return report

@@ -1,8 +1,10 @@
-"""Frame and outcome metrics: PSNR, SSIM, accuracy, AUROC (numpy)."""
+"""Frame and outcome metrics: PSNR, SSIM, accuracy, AUROC (numpy); how much the actions explain the
+predicted future (action_contrast, in jax.numpy: the training loss uses it too)."""
 
 from __future__ import annotations
 
 import cv2
+import jax.numpy as jnp
 import numpy as np
 from scipy.ndimage import gaussian_filter
 from scipy.stats import mannwhitneyu
@@ -73,3 +75,15 @@ def view_shift(a, b) -> np.ndarray:
         measurable = peak > 4.0 / np.sqrt(h * w) and abs(dx) <= w / 2 and abs(dy) <= h / 2
         out.append(np.hypot(dx, dy) if measurable else np.nan)
     return np.array(out)
+
+
+def action_contrast(pred, other, target):
+    """How little the actions explain the future: per window, log(1 + d_true / d_other), the negative
+    log of the true actions' share when the future is attributed by inverse squared error between the
+    prediction under the window's own actions, pred (B, T, ...), and under another window's, other
+    (same shape), against the true latents target; the mean over windows. log 2 where the actions
+    change nothing; towards 0 as the own actions' prediction becomes the far better one."""
+    axes = tuple(range(1, pred.ndim))
+    d_true = jnp.mean((pred - target) ** 2, axis=axes)
+    d_other = jnp.mean((other - target) ** 2, axis=axes)
+    return jnp.mean(jnp.log1p(d_true / (d_other + 1e-8)))

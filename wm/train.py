@@ -43,6 +43,7 @@ from wm.config import PRESETS, TrainConfig, check_dataset, make_config, to_dict
 from wm.evaluate import evaluate
 from wm.imagine import Norm, to_uint8
 from wm.judge import fit_judge, load_judge
+from wm.metrics import action_contrast
 from wm.model import WorldModel, init_params
 
 
@@ -166,18 +167,6 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_w
         prev = jnp.concatenate([pix[:, :1], jax.lax.stop_gradient(pixels[:, :-1])], axis=1)
     parts["loss"] = total
     return total, parts
-
-
-def action_contrast(pred, other, target) -> jax.Array:
-    """How little the actions explain the future: per window, log(1 + d_true / d_other), the negative
-    log of the true actions' share when the future is attributed by inverse squared error between the
-    prediction under the window's own actions, pred (B, T, ...), and under another window's, other
-    (same shape), against the true latents target; the mean over windows. log 2 where the actions
-    change nothing; towards 0 as the own actions' prediction becomes the far better one."""
-    axes = tuple(range(1, pred.ndim))
-    d_true = jnp.mean((pred - target) ** 2, axis=axes)
-    d_other = jnp.mean((other - target) ** 2, axis=axes)
-    return jnp.mean(jnp.log1p(d_true / (d_other + 1e-8)))
 
 
 def learning_rate(cfg: TrainConfig):
