@@ -21,6 +21,10 @@
 - Action sensitivity (`action_sensitivity`): the same episodes imagined again under the actions of an
   episode of the opposite outcome; whether the predicted success moves towards the donor's outcome
   (`follows_actions`), which a model that reads success off the task and the start does not do.
+- Action dependence (`action_dependence`): a window of `window` steps from the start of each test
+  episode, predicted one step at a time (teacher-forced) under its own actions and under the next
+  window's: wm.metrics.action_contrast of the two predictions' latent errors (log 2 = 0.693 where
+  the actions change nothing) and the share of windows their own actions explain better.
 - Controllability: the action programs recorded from shared initial states (split "programs"):
   from the initial frame, imagine `control_horizon` steps under each program; match accuracy (each
   prediction is closest, in mean squared error, to its own program's true future) and delta-PSNR
