@@ -630,7 +630,8 @@ def test_action_dependence_is_the_contrast_term_on_windows_from_the_episodes_sta
     eps = [cache.episode(i, cameras=[cfg.camera]) for i in ids]
     w = cfg.window
     batch = {"frames": np.stack([e["frames"][cfg.camera][:w] for e in eps]),
-             "proprio": np.stack([e["proprio"][:w] for e in eps]), "action": np.stack([e["action"][:w] for e in eps]),
+             "proprio": np.stack([e["proprio"][:w] for e in eps]),
+             "action": np.stack([e["action"][:w] for e in eps]),
              "success": np.zeros((2, w), bool), "progress": np.zeros((2, w), np.float32), "outcome": np.zeros((2,), bool)}
     _, parts = jax.jit(loss_fn, static_argnums=3)(params, batch, norm, dataclasses.replace(cfg, w_contrast=0.5))
     np.testing.assert_allclose(got["action_contrast"], parts["contrast"], rtol=1e-4)

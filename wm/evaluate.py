@@ -447,7 +447,8 @@ def evaluate(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, out: Pa
         "action_divergence_copy_first_h8": _at_horizon(pil, "copy_first", 8),
     }
     report = {"summary": summary, "frame_quality": fq, "success_prediction": sp, "action_sensitivity": sens,
-              "controllability": ctrl, "action_dependence": dep, "policy_in_the_loop": pil, "episodes": len(test), "split": split}
+              "controllability": ctrl, "action_dependence": dep, "policy_in_the_loop": pil, "episodes": len(test),
+              "split": split}
     write_json_atomic(Path(out) / "eval.json", no_nan(report))
     _save_strip(Path(out) / "eval_frames.png", pictures, fq["horizons"])
     return report
