@@ -48,6 +48,7 @@ def _check_quietly(env):
     assert not serious, serious
 
 
+@pytest.mark.slow
 def test_check_env_passes_without_serious_warnings(env):
     _check_quietly(env)
     proprio_only = gym.make(ENV_ID, task="mug", obs="proprio")

@@ -851,6 +851,7 @@ class DyingLoader:
         return getattr(self.loader, name)
 
 
+@pytest.mark.slow
 def test_resume_after_a_kill_matches_an_uninterrupted_run(smoke_dataset, smoke_world_model, tmp_path):
     _, data, _ = smoke_dataset
     cfg = make_config("smoke")

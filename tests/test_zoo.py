@@ -55,6 +55,7 @@ def test_zoo_registry_checkpoints_and_resume(smoke_zoo, smoke_dataset):
         zoo.train_zoo(zoo.make_config("smoke", ["steps=6"]), smoke_dataset[1], out, progress=False)
 
 
+@pytest.mark.slow
 def test_lineages_trained_together_match_lineages_trained_one_at_a_time(smoke_zoo, smoke_dataset, tmp_path):
     from sim_data.policies.bc import load_params
 
