@@ -346,6 +346,7 @@ def _assert_cached_steps_match_the_forward_pass(cfg, params, frames, proprio, ac
     return full
 
 
+@pytest.mark.slow
 def test_cached_steps_equal_the_training_forward_pass_over_a_long_window(model_and_inputs, deep_params):
     """One frame at a time through the key-value cache gives what the training forward pass gives
     over the whole sequence (sliding attention over K frames at every layer): each output at each
@@ -456,6 +457,7 @@ def test_anchored_imagination_gives_each_frame_its_index_in_the_episode(model_an
     np.testing.assert_allclose(x[:, :cfg.context, -3:], heads[:, :cfg.context], atol=1e-5)
 
 
+@pytest.mark.slow
 def test_cached_imagination_is_the_window_until_frames_leave_it_and_reads_true_episodes_as_training(
         model_and_inputs, deep_params):
     """Open loop from C context frames: the cache and the window agree while the buffer still holds

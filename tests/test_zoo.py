@@ -335,6 +335,7 @@ def test_perturbed_copies_send_their_checkpoints_actions_degraded_by_each_episod
         G.generate(G.make_config("smoke", ["perturbed=examples.plugin_policy:make"]), tmp_path / "bad", progress=False)
 
 
+@pytest.mark.slow
 def test_checkpoints_of_one_architecture_run_stacked_in_one_chunk_as_each_runs_alone(smoke_dataset, smoke_zoo,
                                                                                       tmp_path):
     _, data, _ = smoke_dataset
