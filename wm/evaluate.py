@@ -77,7 +77,7 @@ from wm.judge import (
     load_judge,
     spread,
 )
-from wm.metrics import accuracy, action_contrast, auroc, psnr, ssim, view_shift
+from wm.metrics import accuracy, auroc, psnr, ssim, view_shift, window_contrast
 from wm.model import WorldModel
 from wm.perceptual import MISSING as LPIPS_MISSING
 from wm.perceptual import available, lpips
@@ -269,11 +269,9 @@ def action_dependence(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache
     frames = np.stack([e["frames"][cfg.camera][:w] for e in eps])
     proprio = norm.proprio(np.stack([e["proprio"][:w] for e in eps]))
     action = norm.action(np.stack([e["action"][:w] for e in eps]))
-    own, other, target = _teacher_forced_pair(cfg.model, params, frames, proprio, action)
-    axes = tuple(range(1, own.ndim))
-    better = np.mean((own - target) ** 2, axis=axes) < np.mean((other - target) ** 2, axis=axes)
-    return {"windows": len(eps), "action_contrast": float(action_contrast(own, other, target)),
-            "own_actions_better": float(np.mean(better))}
+    per_window = np.asarray(window_contrast(*_teacher_forced_pair(cfg.model, params, frames, proprio, action)))
+    return {"windows": len(eps), "action_contrast": float(per_window.mean()),
+            "own_actions_better": float(np.mean(per_window < np.log(2)))}
 
 
 @functools.partial(jax.jit, static_argnums=(0,))

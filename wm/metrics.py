@@ -77,13 +77,19 @@ def view_shift(a, b) -> np.ndarray:
     return np.array(out)
 
 
-def action_contrast(pred, other, target):
-    """How little the actions explain the future: per window, log(1 + d_true / d_other), the negative
-    log of the true actions' share when the future is attributed by inverse squared error between the
-    prediction under the window's own actions, pred (B, T, ...), and under another window's, other
-    (same shape), against the true latents target; the mean over windows. log 2 where the actions
-    change nothing; towards 0 as the own actions' prediction becomes the far better one."""
+def window_contrast(pred, other, target):
+    """Per window (B,), log(1 + d_true / d_other): the negative log of the true actions' share when the
+    future is attributed by inverse squared error between the prediction under the window's own
+    actions, pred (B, T, ...), and under another window's, other (same shape), against the true
+    latents target. log 2 where the actions change nothing; below it where the own actions' prediction
+    is the better one, towards 0 as it becomes the far better one."""
     axes = tuple(range(1, pred.ndim))
     d_true = jnp.mean((pred - target) ** 2, axis=axes)
     d_other = jnp.mean((other - target) ** 2, axis=axes)
-    return jnp.mean(jnp.log1p(d_true / (d_other + 1e-8)))
+    return jnp.log1p(d_true / (d_other + 1e-8))
+
+
+def action_contrast(pred, other, target):
+    """How little the actions explain the future: window_contrast's mean over the windows (log 2 where
+    the actions change nothing; towards 0 as the own actions' prediction becomes the far better one)."""
+    return jnp.mean(window_contrast(pred, other, target))
