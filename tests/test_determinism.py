@@ -32,6 +32,7 @@ def _train_command(data: Path, out: Path) -> list[str]:
     return [sys.executable, "-m", "wm.train", "--config", "smoke", "--data", str(data), "--out", str(out)]
 
 
+@pytest.mark.slow
 def test_a_killed_and_rerun_training_equals_an_uninterrupted_one(smoke_dataset, smoke_world_model, tmp_path):
     _, data, _ = smoke_dataset
     out = tmp_path / "killed"
