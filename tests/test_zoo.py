@@ -209,6 +209,7 @@ def test_every_nth_checkpoint_thins_each_lineage_by_training_step():
             every_nth_checkpoint(records, bad)
 
 
+@pytest.mark.slow  # what `make demo`'s rollouts stage builds, end to end
 def test_mixed_dataset_records_policy_rollouts(smoke_dataset, smoke_zoo, smoke_world_model, tmp_path):
     cfg, data, _ = smoke_dataset
     zoo_dir, registry = smoke_zoo
