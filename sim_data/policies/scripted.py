@@ -338,9 +338,9 @@ class ScriptedPolicy:
         """The scripted tasks: the right hand follows the keyframes through IK. Returns (action, q_cmd (14,))."""
         target, yaw, closure = keyframe_target(t, c.times, c.pos, c.yaw, c.closure)
         closure = jnp.where(t >= c.release_at, 0.0, closure)
-        q_right = c.q_cmd[7:]
-        for _ in range(IK_ITERS):
-            q_right = ik_step(self.kin, qpos, q_right, target, yaw, side=1)
+        # a loop, not unrolled: each iteration is the whole scene's kinematics, which would compile once per copy
+        q_right = jax.lax.fori_loop(0, IK_ITERS, lambda _, q: ik_step(self.kin, qpos, q, target, yaw, side=1),
+                                    c.q_cmd[7:])
         q_cmd = c.q_cmd.at[7:].set(q_right)
         return action.at[R.ARMS].set(q_cmd).at[R.RIGHT_HAND].set(closure), q_cmd
 
