@@ -140,8 +140,12 @@ def main(argv=None) -> int:
     p.add_argument("--batch", type=int, default=8)
     p.add_argument("--pieces", default=",".join(PIECES), help=f"comma-separated, among {', '.join(PIECES)}")
     a = p.parse_args(argv)
-    jax.config.update("jax_enable_compilation_cache", False)
-    rows = profile(a.batch, tuple(x for x in a.pieces.split(",") if x))
+    cached = jax.config.jax_enable_compilation_cache
+    jax.config.update("jax_enable_compilation_cache", False)  # every compile timed from scratch
+    try:
+        rows = profile(a.batch, tuple(x for x in a.pieces.split(",") if x))
+    finally:
+        jax.config.update("jax_enable_compilation_cache", cached)
     write_json_atomic(a.out, {"device": device_name(), "batch": a.batch, "jax": jax.__version__, "pieces": rows})
     print(f"wrote {a.out}", file=sys.stderr)
     return 0
