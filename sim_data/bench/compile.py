@@ -24,6 +24,7 @@ import numpy as np
 from mujoco import mjx
 from mujoco.mjx._src import collision_driver, constraint, smooth
 
+from sim_data.bench.policy import identity_norm
 from sim_data.dataset.generate import cached_renderers
 from sim_data.policies import bc
 from sim_data.policies.scripted import (
@@ -66,10 +67,8 @@ def _rollout_inputs(batch: int):
 
 
 def _bc_params(encoder: str):
-    norm = {"proprio_mean": np.zeros(R.PROPRIO_DIM), "proprio_std": np.ones(R.PROPRIO_DIM),
-            "action_mean": np.zeros(R.ACTION_DIM), "action_std": np.ones(R.ACTION_DIM)}
     cfg = bc.PolicyNetConfig(encoder=encoder)
-    return bc.BCPolicy(cfg), bc.init_params(cfg, jax.random.PRNGKey(0), norm, True)
+    return bc.BCPolicy(cfg), bc.init_params(cfg, jax.random.PRNGKey(0), identity_norm(), True)
 
 
 def piece_programs(batch: int) -> dict:
