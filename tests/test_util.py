@@ -1,14 +1,22 @@
-"""sim_data.util: atomic JSON, the Wilson interval, output directories, users' mistakes and XLA's flags."""
+"""sim_data.util: atomic JSON, the Wilson interval, output directories, users' mistakes, XLA's flags and
+the parameter initialisers' compilation."""
 
 import json
 import os
 import subprocess
 import sys
 
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
 import pytest
 
+from sim_data import util
 from sim_data.util import (
+    CPU_INIT_OPTIONS,
     XLA_DEFAULT_FLAGS,
+    jit_initialiser,
     make_output_dir,
     run_cli,
     wilson_interval,
@@ -63,3 +71,30 @@ def test_importing_the_project_sets_the_xla_flags_before_jax_starts():
     code = "import os, sim_data, jax; jax.numpy.zeros(1).block_until_ready(); print(os.environ['XLA_FLAGS'])"
     got = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
     assert got.stdout.strip() == DEFAULTS
+
+
+class _Net(nn.Module):
+    width: int
+
+    @nn.compact
+    def __call__(self, x):
+        x = nn.Conv(self.width, (3, 3))(x)
+        x = nn.LayerNorm()(nn.gelu(x))
+        return nn.Dense(2)(x.reshape(x.shape[0], -1))
+
+
+def test_an_initialiser_gives_the_parameters_of_its_plain_jit_and_compiles_with_the_cpu_options(monkeypatch):
+    def init(width, rng):
+        return _Net(width).init(rng, jnp.zeros((1, 8, 8, 3)))["params"]
+
+    fast = jit_initialiser(init, static_argnums=(0,))
+    rng = jax.random.PRNGKey(5)
+    got, ref = fast(4, rng), jax.jit(init, static_argnums=(0,))(4, rng)
+    assert jax.tree_util.tree_structure(got) == jax.tree_util.tree_structure(ref)
+    assert all(np.array_equal(a, b) for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(ref)))
+    assert not np.array_equal(got["Dense_0"]["kernel"], fast(4, jax.random.PRNGKey(6))["Dense_0"]["kernel"])
+    assert fast.__name__ == "init" and jax.default_backend() == "cpu"
+    # the options reach XLA on this CPU: one it does not know is refused
+    monkeypatch.setattr(util, "CPU_INIT_OPTIONS", {**CPU_INIT_OPTIONS, "no_such_option": 1})
+    with pytest.raises(Exception, match="no_such_option"):
+        util.jit_initialiser(init, static_argnums=(0,))(4, rng)

@@ -24,6 +24,8 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from sim_data.util import jit_initialiser
+
 LATENT_SIDE = 8
 INPUT_CLIP = 10.0  # standardised proprio and actions are clipped to +-INPUT_CLIP, predicted proprio too
 IMAGINE_MODES = ("window", "cache")
@@ -490,7 +492,7 @@ def init_params(cfg: ModelConfig, rng, window: int = 4):
     return _init_params(cfg, rng, window)
 
 
-@functools.partial(jax.jit, static_argnums=(0, 2))
+@functools.partial(jit_initialiser, static_argnums=(0, 2))
 def _init_params(cfg: ModelConfig, rng, window: int):
     # one compilation: run op by op, the initialising forward pass compiles each operation apart (2x slower on a CPU)
     frames = jnp.zeros((1, window, cfg.size, cfg.size, 3), jnp.uint8)

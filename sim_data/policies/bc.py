@@ -34,6 +34,7 @@ import numpy as np
 
 from sim_data.sim import robot as R
 from sim_data.sim.tasks import CONTROL_DT
+from sim_data.util import jit_initialiser
 
 ENCODERS = ("conv", "vit")
 PROPRIO_CLIP = 5.0
@@ -149,7 +150,7 @@ def _net_init(cfg: PolicyNetConfig):
         image = jnp.zeros((1, cfg.size, cfg.size, 3), jnp.uint8)
         return PolicyNet(cfg).init(rng, image, jnp.zeros((1, R.PROPRIO_DIM)), jnp.zeros((1,), jnp.int32))["params"]
 
-    return jax.jit(init)
+    return jit_initialiser(init)
 
 
 def init_params(cfg: PolicyNetConfig, rng, norm: dict, use_proprio: bool) -> dict:
