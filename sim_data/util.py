@@ -76,13 +76,15 @@ CPU_INIT_OPTIONS = {"xla_backend_optimization_level": 1}
 
 def jit_initialiser(fun, static_argnums=()):
     """fun (returning fresh parameters) jitted as one program, compiled with CPU_INIT_OPTIONS when
-    JAX's default backend is the CPU."""
+    JAX's default backend is the CPU and it is called outside a trace (inside jit or eval_shape it is
+    part of the enclosing program, whose options are its own)."""
     on_cpu = jax.jit(fun, static_argnums=static_argnums, compiler_options=CPU_INIT_OPTIONS)
     elsewhere = jax.jit(fun, static_argnums=static_argnums)
 
     @functools.wraps(fun)
     def init(*args):
-        return (on_cpu if jax.default_backend() == "cpu" else elsewhere)(*args)
+        traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(args))
+        return (on_cpu if jax.default_backend() == "cpu" and not traced else elsewhere)(*args)
 
     return init
 

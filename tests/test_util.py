@@ -83,7 +83,7 @@ class _Net(nn.Module):
         return nn.Dense(2)(x.reshape(x.shape[0], -1))
 
 
-def test_an_initialiser_gives_the_parameters_of_its_plain_jit_and_compiles_with_the_cpu_options(monkeypatch):
+def test_an_initialiser_gives_the_parameters_of_its_plain_jit_nests_in_a_trace_and_takes_the_cpu_options(monkeypatch):
     def init(width, rng):
         return _Net(width).init(rng, jnp.zeros((1, 8, 8, 3)))["params"]
 
@@ -94,6 +94,11 @@ def test_an_initialiser_gives_the_parameters_of_its_plain_jit_and_compiles_with_
     assert all(np.array_equal(a, b) for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(ref)))
     assert not np.array_equal(got["Dense_0"]["kernel"], fast(4, jax.random.PRNGKey(6))["Dense_0"]["kernel"])
     assert fast.__name__ == "init" and jax.default_backend() == "cpu"
+    # inside a trace it is part of the enclosing program
+    shapes = jax.eval_shape(lambda: fast(4, jax.random.PRNGKey(5)))
+    assert jax.tree_util.tree_map(lambda a: a.shape, shapes) == jax.tree_util.tree_map(lambda a: a.shape, ref)
+    inner = jax.jit(lambda r: fast(4, r))(rng)
+    assert all(np.array_equal(a, b) for a, b in zip(jax.tree_util.tree_leaves(inner), jax.tree_util.tree_leaves(ref)))
     # the options reach XLA on this CPU: one it does not know is refused
     monkeypatch.setattr(util, "CPU_INIT_OPTIONS", {**CPU_INIT_OPTIONS, "no_such_option": 1})
     with pytest.raises(Exception, match="no_such_option"):
