@@ -68,8 +68,9 @@ def set_xla_flags() -> None:
 
 
 # A parameter initialiser runs once a model, so its compile is all it costs: XLA:CPU at backend
-# optimisation level 1 compiles the world model's and the policy networks' initialisers in a third to
-# a half of the time, with the same parameters bit for bit (every preset's networks, docs/benchmarks.md).
+# optimisation level 1 compiles the world model's and the policy networks' initialisers in a quarter
+# to two thirds of the time, with the same parameters bit for bit (every preset's networks,
+# docs/benchmarks.md).
 # Other backends keep their defaults.
 CPU_INIT_OPTIONS = {"xla_backend_optimization_level": 1}
 
@@ -83,8 +84,11 @@ def jit_initialiser(fun, static_argnums=()):
 
     @functools.wraps(fun)
     def init(*args):
-        traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(args))
-        return (on_cpu if jax.default_backend() == "cpu" and not traced else elsewhere)(*args)
+        if jax.default_backend() != "cpu":
+            return elsewhere(*args)
+        if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(args)):
+            return elsewhere(*args)
+        return on_cpu(*args)
 
     return init
 

@@ -83,7 +83,7 @@ class _Net(nn.Module):
         return nn.Dense(2)(x.reshape(x.shape[0], -1))
 
 
-def test_an_initialiser_gives_the_parameters_of_its_plain_jit_nests_in_a_trace_and_takes_the_cpu_options(monkeypatch):
+def test_an_initialiser_gives_its_plain_jits_parameters_nests_in_a_trace_and_takes_the_cpu_options(monkeypatch):
     def init(width, rng):
         return _Net(width).init(rng, jnp.zeros((1, 8, 8, 3)))["params"]
 
