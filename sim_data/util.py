@@ -70,8 +70,7 @@ def set_xla_flags() -> None:
 # A parameter initialiser runs once a model, so its compile is all it costs: XLA:CPU at backend
 # optimisation level 1 compiles the world model's and the policy networks' initialisers in a quarter
 # to two thirds of the time, with the same parameters bit for bit (every preset's networks,
-# docs/benchmarks.md).
-# Other backends keep their defaults.
+# docs/benchmarks.md). Other backends keep their defaults.
 CPU_INIT_OPTIONS = {"xla_backend_optimization_level": 1}
 
 
@@ -82,13 +81,12 @@ def jit_initialiser(fun, static_argnums=()):
     on_cpu = jax.jit(fun, static_argnums=static_argnums, compiler_options=CPU_INIT_OPTIONS)
     elsewhere = jax.jit(fun, static_argnums=static_argnums)
 
+    def traced(args) -> bool:
+        return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(args))
+
     @functools.wraps(fun)
     def init(*args):
-        if jax.default_backend() != "cpu":
-            return elsewhere(*args)
-        if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(args)):
-            return elsewhere(*args)
-        return on_cpu(*args)
+        return (on_cpu if jax.default_backend() == "cpu" and not traced(args) else elsewhere)(*args)
 
     return init
 
