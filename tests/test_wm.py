@@ -620,6 +620,117 @@ def test_the_action_contrast_term_predicts_the_window_again_under_another_window
         make_config("smoke", ["w_contrast=0.1", "batch=1"])
 
 
+def test_gaussian_kl_is_the_closed_form_summed_over_the_code():
+    # KL(N(1, 0.5^2) || N(0, 1)) = log 2 + (0.25 + 1) / 2 - 1/2; a Gaussian against itself 0
+    q_mean, q_logstd = np.array([[1.0, 0.3]]), np.log(np.array([[0.5, 2.0]]))
+    p_mean, p_logstd = np.array([[0.0, 0.3]]), np.array([[0.0, np.log(2.0)]])
+    np.testing.assert_allclose(M.gaussian_kl(q_mean, q_logstd, p_mean, p_logstd), [np.log(2) + 0.625 - 0.5],
+                               rtol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def stochastic_model(model_and_inputs):
+    """A model with a stochastic code of 3, its parameters perturbed so that the code reaches the outputs."""
+    cfg = dataclasses.replace(CFG, stochastic=3)
+    params = init_params(cfg, jax.random.PRNGKey(0), window=6)
+    noise = np.random.default_rng(2)
+    return cfg, jax.tree_util.tree_map(lambda x: x + 0.05 * noise.standard_normal(x.shape).astype(np.float32), params)
+
+
+def test_a_stochastic_model_reads_its_code_from_the_posterior_in_training_and_the_prior_in_imagination(
+        model_and_inputs, stochastic_model):
+    _, frames, proprio, action = model_and_inputs
+    cfg, params = stochastic_model
+    assert "stochastic" not in init_params(CFG, jax.random.PRNGKey(0), window=6)["dynamics"]  # off: as before
+    m = WorldModel(cfg)
+    z = compiled(m, WorldModel.encode)({"params": params}, frames)
+    predict = compiled(m, WorldModel.predict)
+    draws = np.random.default_rng(3).standard_normal((2, 6, 3)).astype(np.float32)
+    prior_mean = predict({"params": params}, z, proprio, action)
+    prior_draw = predict({"params": params}, z, proprio, action, noise=draws)
+    post_mean = predict({"params": params}, z, proprio, action, target=z)
+    assert set(prior_mean) >= {"prior_mean", "prior_logstd"} and "post_mean" not in prior_mean
+    assert post_mean["post_mean"].shape == (2, 6, 3)
+    for other in (prior_draw, post_mean):  # the code reaches the prediction
+        assert float(jnp.abs(other["z"] - prior_mean["z"]).max()) > 1e-4
+    np.testing.assert_allclose(prior_draw["prior_mean"], prior_mean["prior_mean"], atol=1e-6)
+    # a draw of zero noise is the mean
+    zero = predict({"params": params}, z, proprio, action, noise=np.zeros_like(draws))
+    np.testing.assert_allclose(zero["z"], prior_mean["z"], atol=1e-6)
+    # imagination's step under the same draw for its last slot equals the window's prediction there
+    norm = I.Norm(jnp.zeros(37), jnp.ones(37), jnp.zeros(20), jnp.ones(20))
+    c = 3
+    tf = predict({"params": params}, z[:, :c], proprio[:, :c], action[:, :c], noise=draws[:, :c])
+    st = init_state(cfg, params, norm, frames[:, :c], proprio[:, :c], action[:, :c - 1])
+    stepped = imagine_step(cfg, params, norm, st, action[:, c - 1], draws[:, c - 1])
+    np.testing.assert_allclose(stepped.z[:, -1], tf["z"][:, -1], atol=1e-5)
+    central = imagine_step(cfg, params, norm, st, action[:, c - 1])
+    assert float(jnp.abs(central.z[:, -1] - stepped.z[:, -1]).max()) > 1e-4
+    # closed loop: a key gives one imagination, another key another
+    policy = {"action": jnp.full((20,), 0.3)}
+    runs = [I.closed_loop(cfg, HoldStill(), 4, params, norm, policy, frames[:, :2], proprio[:, :2], action[:, :1],
+                          jax.random.PRNGKey(k)) for k in (0, 0, 1)]
+    np.testing.assert_array_equal(runs[0]["frames"], runs[1]["frames"])
+    assert float(jnp.abs(runs[0]["features"] - runs[2]["features"]).max()) > 1e-4
+    with pytest.raises(ValueError, match="stochastic"):
+        dataclasses.replace(CFG, stochastic=-1).validate()
+
+
+def test_the_code_divergence_is_balanced_and_counted_above_its_free_nats():
+    from wm.train import _code_kl
+
+    # two frames with a target and a last one without: KL 0.8181 (N(1, 0.25) against N(0, 1)) and 0
+    pred = {"post_mean": np.array([[[1.0], [0.0], [9.0]]]), "post_logstd": np.log(np.array([[[0.5], [1.0], [1.0]]])),
+            "prior_mean": np.zeros((1, 3, 1)), "prior_logstd": np.zeros((1, 3, 1))}
+    kl = np.log(2) + 0.625 - 0.5
+    mean, balanced = _code_kl(pred, 0.0)
+    np.testing.assert_allclose([mean, balanced], [kl / 2, kl / 2], rtol=1e-6)  # the last frame left out
+    # below the free nats a frame counts the free nats: frame 0 its KL, frame 1 0.5
+    np.testing.assert_allclose(_code_kl(pred, 0.5)[1], (kl + 0.5) / 2, rtol=1e-6)
+    # the prior learns 0.8 of the gradient, the posterior 0.2
+    grads = jax.grad(lambda p: _code_kl(p, 0.0)[1])({k: jnp.asarray(v, jnp.float32) for k, v in pred.items()})
+    np.testing.assert_allclose(grads["prior_mean"][0, 0], -0.8 * 1.0 / 2, rtol=1e-5)  # d/dmu_p (mu_q - mu_p)^2 / 2
+    np.testing.assert_allclose(grads["post_mean"][0, 0], 0.2 * 1.0 / 2, rtol=1e-5)
+
+
+@pytest.mark.slow
+def test_the_code_divergence_enters_the_loss_above_its_free_nats(model_and_inputs, stochastic_model):
+    from wm.train import loss_fn
+
+    _, frames, proprio, action = model_and_inputs
+    cfg_model, params = stochastic_model
+    norm, batch = _identity_norm_and_batch(frames, proprio, action)
+    cfg = dataclasses.replace(make_config("smoke"), model=cfg_model, rollout_passes=1, w_kl=0.01)
+    loss = jax.jit(loss_fn, static_argnums=3)
+    # far above any divergence, each frame's term is the free nats: 0.8 + 0.2 of them, a pass each
+    low_total, low = loss(params, batch, norm, dataclasses.replace(cfg, free_nats=1000.0))
+    high_total, high = loss(params, batch, norm, dataclasses.replace(cfg, free_nats=2000.0))
+    np.testing.assert_allclose(high_total - low_total, 0.01 * 1000.0 * 2, rtol=1e-4)
+    assert {"kl", "kl_pass1"} <= set(low) and float(low["kl"]) > 0.0
+    # at no free nats the term is the divergence itself (0.8 + 0.2 of the same value)
+    total, parts = loss(params, batch, norm, dataclasses.replace(cfg, free_nats=0.0))
+    np.testing.assert_allclose(total - low_total, 0.01 * (parts["kl"] + parts["kl_pass1"] - 2000.0), rtol=1e-4)
+    # training draws codes from the posterior (rng given); validation takes its mean
+    drawn = loss(params, batch, norm, cfg, jax.random.PRNGKey(0))[1]
+    assert abs(float(drawn["latent"]) - float(low["latent"])) > 0
+    with pytest.raises(ValueError, match="w_kl"):
+        make_config("smoke", ["w_kl=0"])
+
+
+@pytest.mark.slow
+def test_a_stochastic_model_trains_fits_its_judge_on_sampled_imaginations_and_writes_eval_json(smoke_dataset,
+                                                                                             tmp_path):
+    _, data, _ = smoke_dataset
+    out = tmp_path / "stochastic"
+    assert train_main(["--config", "smoke", "--data", str(data), "--out", str(out), "model.stochastic=4"]) == 0
+    report = json.loads((out / "eval.json").read_text())
+    assert all(np.isfinite(report["frame_quality"]["psnr"]))
+    cfg, params, _ = load_trained(out)
+    assert cfg.model.stochastic == 4 and "prior_out" in params["dynamics"]["stochastic"]
+    log = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert all(np.isfinite(r["kl"]) for r in log if "kl" in r)
+
+
 def test_action_dependence_is_the_contrast_term_on_windows_from_the_episodes_starts(smoke_dataset, smoke_world_model):
     from wm.train import loss_fn
 

