@@ -685,8 +685,9 @@ def test_the_code_divergence_is_balanced_and_counted_above_its_free_nats():
     kl = np.log(2) + 0.625 - 0.5
     mean, balanced = _code_kl(pred, 0.0)
     np.testing.assert_allclose([mean, balanced], [kl / 2, kl / 2], rtol=1e-6)  # the last frame left out
-    # below the free nats a frame counts the free nats: frame 0 its KL, frame 1 0.5
-    np.testing.assert_allclose(_code_kl(pred, 0.5)[1], (kl + 0.5) / 2, rtol=1e-6)
+    # below the free nats the posterior's share counts the free nats (frame 0 its KL, frame 1 0.5); the
+    # prior's share is always the divergence
+    np.testing.assert_allclose(_code_kl(pred, 0.5)[1], 0.8 * kl / 2 + 0.2 * (kl + 0.5) / 2, rtol=1e-6)
     # the prior learns 0.8 of the gradient, the posterior 0.2
     grads = jax.grad(lambda p: _code_kl(p, 0.0)[1])({k: jnp.asarray(v, jnp.float32) for k, v in pred.items()})
     np.testing.assert_allclose(grads["prior_mean"][0, 0], -0.8 * 1.0 / 2, rtol=1e-5)  # d/dmu_p (mu_q - mu_p)^2 / 2
@@ -702,14 +703,14 @@ def test_the_code_divergence_enters_the_loss_above_its_free_nats(model_and_input
     norm, batch = _identity_norm_and_batch(frames, proprio, action)
     cfg = dataclasses.replace(make_config("smoke"), model=cfg_model, rollout_passes=1, w_kl=0.01)
     loss = jax.jit(loss_fn, static_argnums=3)
-    # far above any divergence, each frame's term is the free nats: 0.8 + 0.2 of them, a pass each
+    # far above any divergence, the posterior's share of a frame's term is the free nats: 0.2 of them, a pass each
     low_total, low = loss(params, batch, norm, dataclasses.replace(cfg, free_nats=1000.0))
     high_total, high = loss(params, batch, norm, dataclasses.replace(cfg, free_nats=2000.0))
-    np.testing.assert_allclose(high_total - low_total, 0.01 * 1000.0 * 2, rtol=1e-4)
+    np.testing.assert_allclose(high_total - low_total, 0.01 * 0.2 * 1000.0 * 2, rtol=1e-4)
     assert {"kl", "kl_pass1"} <= set(low) and float(low["kl"]) > 0.0
     # at no free nats the term is the divergence itself (0.8 + 0.2 of the same value)
     total, parts = loss(params, batch, norm, dataclasses.replace(cfg, free_nats=0.0))
-    np.testing.assert_allclose(total - low_total, 0.01 * (parts["kl"] + parts["kl_pass1"] - 2000.0), rtol=1e-4)
+    np.testing.assert_allclose(total - low_total, 0.01 * 0.2 * (parts["kl"] + parts["kl_pass1"] - 2000.0), rtol=1e-4)
     # training draws codes from the posterior (rng given); validation takes its mean
     drawn = loss(params, batch, norm, cfg, jax.random.PRNGKey(0))[1]
     assert abs(float(drawn["latent"]) - float(low["latent"])) > 0

@@ -44,7 +44,7 @@ class TrainConfig:
         better than the other's (0: none; needs batch >= 2). w_kl: with model.stochastic, of the
         divergence of the code's posterior from its prior (wm.metrics.gaussian_kl), balanced as
         DreamerV3's: 0.8 of it trains the prior towards the posterior, 0.2 the posterior towards the
-        prior, each counted only above free_nats nats a frame (a code that carries less is free).
+        prior, the latter counted only above free_nats nats a frame (a code that carries less is free).
       log_every, eval_every, ckpt_every: in steps (eval and checkpoints at multiples of log_every).
       val_batches: validation batches per evaluation. param_sharding: "replicated" (data parallel)
         or "fsdp" (parameters and optimiser state sharded over the data axis).

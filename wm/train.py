@@ -179,14 +179,15 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_w
 
 def _code_kl(pred: dict, free_nats: float):
     """The stochastic code's divergence over predictions 0..T-2 (those with a target): (its mean in nats
-    a frame, the balanced loss: 0.8 x KL(sg(posterior) || prior) + 0.2 x KL(posterior || sg(prior)),
-    each counted per frame only above free_nats)."""
+    a frame, the balanced loss: 0.8 x KL(sg(posterior) || prior) + 0.2 x KL(posterior || sg(prior)), the
+    second counted per frame only above free_nats). The prior always learns: a prior left untrained
+    below the free nats imagines codes the posterior never gave, futures the actions did not cause."""
     q = tuple(pred[k][:, :-1] for k in ("post_mean", "post_logstd"))
     p = tuple(pred[k][:, :-1] for k in ("prior_mean", "prior_logstd"))
     sg = jax.lax.stop_gradient
     to_prior = gaussian_kl(*(sg(x) for x in q), *p)
     to_post = gaussian_kl(*q, *(sg(x) for x in p))
-    balanced = 0.8 * jnp.maximum(to_prior, free_nats) + 0.2 * jnp.maximum(to_post, free_nats)
+    balanced = 0.8 * to_prior + 0.2 * jnp.maximum(to_post, free_nats)
     return jnp.mean(to_prior), jnp.mean(balanced)
 
 
