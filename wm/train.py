@@ -180,8 +180,8 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_w
 def _code_kl(pred: dict, free_nats: float):
     """The stochastic code's divergence over predictions 0..T-2 (those with a target): (its mean in nats
     a frame, the balanced loss: 0.8 x KL(sg(posterior) || prior) + 0.2 x KL(posterior || sg(prior)), the
-    second counted per frame only above free_nats). The prior always learns: a prior left untrained
-    below the free nats imagines codes the posterior never gave, futures the actions did not cause."""
+    second counted per frame only above free_nats). The prior always learns: left untrained below the
+    free nats, it gave imagination codes the posterior never gave (docs/world-model.md)."""
     q = tuple(pred[k][:, :-1] for k in ("post_mean", "post_logstd"))
     p = tuple(pred[k][:, :-1] for k in ("prior_mean", "prior_logstd"))
     sg = jax.lax.stop_gradient
