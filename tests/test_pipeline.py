@@ -129,8 +129,8 @@ def test_the_pipeline_shares_one_compilation_cache_with_its_child_processes(tmp_
 
 def test_each_stage_command_appends_its_wall_and_compile_seconds_to_the_timing_table(tiny, monkeypatch):
     import jax.numpy as jnp
-    import wm.train
 
+    import wm.train
     from experiments.report import compile_table, timing_table
 
     calls, d = tiny

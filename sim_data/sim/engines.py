@@ -19,7 +19,6 @@ import mujoco.batch  # noqa: F401  (a submodule, not imported by `import mujoco`
 import numpy as np
 from flax import struct
 
-
 # mujoco.mjx prints two lines when its optional Warp backend is absent; the project runs MJX's JAX
 # implementation, for which Warp plays no part
 with contextlib.redirect_stdout(io.StringIO()):
