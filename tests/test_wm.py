@@ -705,7 +705,7 @@ def test_the_code_divergence_enters_the_loss_above_its_free_nats(model_and_input
     loss = jax.jit(loss_fn, static_argnums=3)
     # far above any divergence, the posterior's share of a frame's term is the free nats: 0.2 of them, a pass each
     low_total, low = loss(params, batch, norm, dataclasses.replace(cfg, free_nats=1000.0))
-    high_total, high = loss(params, batch, norm, dataclasses.replace(cfg, free_nats=2000.0))
+    high_total, _ = loss(params, batch, norm, dataclasses.replace(cfg, free_nats=2000.0))
     np.testing.assert_allclose(high_total - low_total, 0.01 * 0.2 * 1000.0 * 2, rtol=1e-4)
     assert {"kl", "kl_pass1"} <= set(low) and float(low["kl"]) > 0.0
     # at no free nats the term is the divergence itself (0.8 + 0.2 of the same value)
@@ -718,15 +718,21 @@ def test_the_code_divergence_enters_the_loss_above_its_free_nats(model_and_input
         make_config("smoke", ["w_kl=0"])
 
 
+def _whole_smoke_run(smoke_dataset, out: Path, setting: str):
+    """`wm.train --config smoke` with one setting, judge and eval.json included: its eval.json's PSNR
+    checked finite; returns load_trained(out)."""
+    _, data, _ = smoke_dataset
+    assert train_main(["--config", "smoke", "--data", str(data), "--out", str(out), setting]) == 0
+    report = json.loads((out / "eval.json").read_text())
+    assert all(np.isfinite(report["frame_quality"]["psnr"]))
+    return load_trained(out)
+
+
 @pytest.mark.slow
 def test_a_stochastic_model_trains_fits_its_judge_on_sampled_imaginations_and_writes_eval_json(smoke_dataset,
                                                                                              tmp_path):
-    _, data, _ = smoke_dataset
     out = tmp_path / "stochastic"
-    assert train_main(["--config", "smoke", "--data", str(data), "--out", str(out), "model.stochastic=4"]) == 0
-    report = json.loads((out / "eval.json").read_text())
-    assert all(np.isfinite(report["frame_quality"]["psnr"]))
-    cfg, params, _ = load_trained(out)
+    cfg, params, _ = _whole_smoke_run(smoke_dataset, out, "model.stochastic=4")
     assert cfg.model.stochastic == 4 and "prior_out" in params["dynamics"]["stochastic"]
     log = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     assert all(np.isfinite(r["kl"]) for r in log if "kl" in r)
@@ -1052,12 +1058,7 @@ def test_the_loader_batch_carries_the_first_frames_only_to_an_anchored_model():
 def test_an_anchored_model_trains_fits_its_judge_and_writes_eval_json(smoke_dataset, tmp_path):
     """The whole run of a model with an anchor frame: its windows' first frames from the loader, the
     anchor through every training pass, and eval.json's open- and closed-loop imaginations."""
-    _, data, _ = smoke_dataset
-    out = tmp_path / "anchored"
-    assert train_main(["--config", "smoke", "--data", str(data), "--out", str(out), "model.anchor=true"]) == 0
-    report = json.loads((out / "eval.json").read_text())
-    assert all(np.isfinite(report["frame_quality"]["psnr"]))
-    cfg, params, _ = load_trained(out)
+    cfg, params, _ = _whole_smoke_run(smoke_dataset, tmp_path / "anchored", "model.anchor=true")
     assert cfg.model.anchor and "anchor_kv" in params["dynamics"]["Block_0"]
 
 
