@@ -9,6 +9,7 @@ import pytest
 from sim_data.dataset import cache as C
 from sim_data.dataset.episodes import CorruptEpisode, read_episode
 from sim_data.dataset.replay import replay_files, summarize
+from sim_data.sim.scene import load_model, scene_index, scene_state
 
 
 @pytest.fixture(scope="module")
@@ -34,6 +35,7 @@ def test_cache_rows_equal_the_mcap_files(two_shards):
         assert not row["action"][-1].any()
         np.testing.assert_array_equal(row["success"], ep["success"])
         np.testing.assert_array_equal(row["progress"], ep["progress"])
+        np.testing.assert_array_equal(row["scene"], scene_state(ep["qpos"], ep["mocap_pos"], scene_index(load_model())))
         assert rec["success"] == ep["meta"]["success"] and rec["length"] == ep["proprio"].shape[0]
 
 

@@ -4,6 +4,7 @@ import contextlib
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 import pytest
 from conftest import scripted
@@ -269,3 +270,29 @@ def test_one_compiled_episode_serves_every_task_and_keeps_each_tasks_rules():
     d = np.asarray(T.backward_distance(back.task, traj_back.qpos[:, -1], core.idx))
     assert np.asarray(back.success).all() and np.all((d >= T.STEP_BACK_BAND[0]) & (d <= T.STEP_BACK_BAND[1]))
     assert np.asarray(mug.success).all()
+
+
+def test_scene_state_is_mujocos_frames_in_the_robots_frame(model, idx, np_rng):
+    """Every object's position in the base's frame, the mug's uprightness and the slides, against
+    MuJoCo's own kinematics (mj_forward's body positions and orientations) at random poses."""
+    data = mujoco.MjData(model)
+    for _ in range(3):
+        mujoco.mj_resetData(model, data)
+        data.qpos[idx.robot.base_qpos] = np_rng.uniform(-1, 1, 3) * [0.5, 0.5, np.pi]
+        quat = np_rng.normal(size=4)
+        data.qpos[idx.mug_qpos + 3:idx.mug_qpos + 7] = quat / np.linalg.norm(quat)
+        data.qpos[idx.tray_qpos], data.qpos[idx.button_qpos] = 0.07, [-0.002, -0.008, 0.0]
+        data.mocap_pos[idx.stool_mocap] = [-0.6, 0.1, 0.0]
+        mujoco.mj_forward(model, data)
+        got = dict(zip(S.SCENE_STATE_NAMES, S.scene_state(data.qpos, data.mocap_pos, idx)))
+        base = model.body("base").id
+        rot, origin = data.xmat[base].reshape(3, 3), data.xpos[base]
+        for name in ("mug", "cloth", "fryer", "block", "stool"):
+            want = rot.T @ (data.xpos[model.body(name).id] - origin)
+            np.testing.assert_allclose([got[f"{name}_{a}"] for a in "xy"], want[:2], atol=1e-5)
+            np.testing.assert_allclose(got[f"{name}_z"], data.xpos[model.body(name).id][2], atol=1e-5)
+        np.testing.assert_allclose(got["mug_up"], data.xmat[model.body("mug").id][8], atol=1e-5)
+        np.testing.assert_allclose([got["base_cos_yaw"], got["base_sin_yaw"]], rot[:2, 0], atol=1e-6)
+        assert (got["tray_travel"], got["button_1"]) == (np.float32(0.07), np.float32(-0.008))
+    with pytest.raises(ValueError, match="another scene"):
+        S.scene_state(data.qpos[:-1], data.mocap_pos, idx)

@@ -16,6 +16,7 @@ import pytest
 
 from sim_data.config import override
 from sim_data.dataset.cache import TrainingCache
+from sim_data.sim.scene import SCENE_STATE_NAMES
 from wm import evaluate as E
 from wm import imagine as I
 from wm import judge as J
@@ -42,7 +43,7 @@ from wm.model import (
     relative_time_bias,
     space_to_depth,
 )
-from wm.train import Run, TrainingDiverged, check_run_config, model_batch
+from wm.train import Run, TrainingDiverged, check_run_config, compute_norm, model_batch
 from wm.train import main as train_main
 
 CFG = SMOKE_MODEL
@@ -718,6 +719,51 @@ def test_the_code_divergence_enters_the_loss_above_its_free_nats(model_and_input
         make_config("smoke", ["w_kl=0"])
 
 
+def test_the_scene_head_predicts_the_standardised_scene_state_and_its_error_enters_the_loss(model_and_inputs):
+    from wm.train import loss_fn
+
+    params0, frames, proprio, action = model_and_inputs
+    cfg_model = dataclasses.replace(CFG, scene=True)
+    assert cfg_model.scene_dim == len(SCENE_STATE_NAMES)
+    noise = np.random.default_rng(3)
+    params = jax.tree_util.tree_map(lambda x: x + 0.05 * noise.standard_normal(x.shape).astype(np.float32),
+                                    init_params(cfg_model, jax.random.PRNGKey(0), window=6))
+    norm, batch = _identity_norm_and_batch(frames, proprio, action)
+    scene = np.random.default_rng(4).normal(2.0, 3.0, (2, 6, cfg_model.scene_dim)).astype(np.float32)
+    mean, std = scene.mean((0, 1)), scene.std((0, 1))
+    norm = norm.replace(scene_mean=jnp.asarray(mean), scene_std=jnp.asarray(std))
+    batch["scene"] = scene
+    cfg = dataclasses.replace(make_config("smoke"), model=cfg_model, rollout_passes=0, w_scene=0.5)
+    m = WorldModel(cfg_model)
+    z = compiled(m, WorldModel.encode)({"params": params}, frames)
+    pred = compiled(m, WorldModel.predict)({"params": params}, z, proprio, action)
+    assert pred["scene"].shape == (2, 6, cfg_model.scene_dim)
+    want = np.mean((np.asarray(pred["scene"])[:, :-1] - (scene[:, 1:] - mean) / std) ** 2)
+    loss = jax.jit(loss_fn, static_argnums=3)
+    total, parts = loss(params, batch, norm, cfg)
+    np.testing.assert_allclose(parts["scene"], want, rtol=1e-4)
+    plain_total, plain = loss(params, batch, norm, dataclasses.replace(cfg, w_scene=1.5))
+    np.testing.assert_allclose(plain_total - total, 1.0 * want, rtol=1e-4)  # the weight scales the term alone
+    assert "scene" not in loss(params0, batch, norm, make_config("smoke"))[1]  # without the head: no term
+    with pytest.raises(ValueError, match="w_scene"):
+        make_config("smoke", ["model.scene=true", "w_scene=0"])
+    with pytest.raises(ValueError, match="no scene state"):
+        I.Norm(jnp.zeros(37), jnp.ones(37), jnp.zeros(20), jnp.ones(20)).scene(scene)
+
+
+def test_the_norm_carries_the_scene_statistics_of_the_training_split_through_norm_json(smoke_dataset):
+    _, data, _ = smoke_dataset
+    cache = TrainingCache(data)
+    norm = compute_norm(cache)
+    rows = np.concatenate([cache.episode(i)["scene"] for i in cache.select("train")])
+    np.testing.assert_allclose(norm.scene_mean, rows.mean(0), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(norm.scene_std, np.maximum(rows.std(0), 1e-3), rtol=1e-4)
+    back = I.Norm.from_dict(json.loads(json.dumps(norm.to_dict())))
+    np.testing.assert_array_equal(back.scene_std, norm.scene_std)
+    old = {k: v for k, v in norm.to_dict().items() if not k.startswith("scene")}  # a norm.json written before
+    assert I.Norm.from_dict(old).scene_mean is None and "scene_mean" not in I.Norm.from_dict(old).to_dict()
+
+
 def _whole_smoke_run(smoke_dataset, out: Path, setting: str):
     """`wm.train --config smoke` with one setting, judge and eval.json included: its eval.json's PSNR
     checked finite; returns load_trained(out)."""
@@ -736,6 +782,15 @@ def test_a_stochastic_model_trains_fits_its_judge_on_sampled_imaginations_and_wr
     assert cfg.model.stochastic == 4 and "prior_out" in params["dynamics"]["stochastic"]
     log = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     assert all(np.isfinite(r["kl"]) for r in log if "kl" in r)
+
+
+@pytest.mark.slow
+def test_a_model_with_the_scene_head_trains_on_the_cached_scene_state_and_writes_eval_json(smoke_dataset, tmp_path):
+    out = tmp_path / "scene"
+    cfg, params, norm = _whole_smoke_run(smoke_dataset, out, "model.scene=true")
+    assert cfg.model.scene and norm.scene_std is not None
+    log = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert all(np.isfinite(r["scene"]) for r in log if "scene" in r) and any("scene" in r for r in log)
 
 
 def test_action_dependence_is_the_contrast_term_on_windows_from_the_episodes_starts(smoke_dataset, smoke_world_model):
@@ -1047,7 +1102,7 @@ def test_a_run_cut_short_is_left_unevaluated_and_the_rerun_finishes_it(smoke_dat
 def test_the_loader_batch_carries_the_first_frames_only_to_an_anchored_model():
     frames = np.arange(2 * 3 * 4 * 4 * 3, dtype=np.uint8).reshape(2, 3, 4, 4, 3)
     batch = {"frames": {"head_cam": frames}, "first_frames": {"head_cam": frames[:, 0] + 1}, "start": np.array([0, 7]),
-             **{k: np.zeros((2, 3)) for k in ("proprio", "action", "success", "progress")}, "outcome": np.zeros(2)}
+             **{k: np.zeros((2, 3)) for k in ("proprio", "action", "success", "progress", "scene")}, "outcome": np.zeros(2)}
     assert "anchor" not in model_batch(batch, "head_cam")
     anchored = model_batch(batch, "head_cam", anchor=True)
     np.testing.assert_array_equal(anchored["anchor"], frames[:, 0] + 1)

@@ -45,6 +45,8 @@ class TrainConfig:
         divergence of the code's posterior from its prior (wm.metrics.gaussian_kl), balanced as
         DreamerV3's: 0.8 of it trains the prior towards the posterior, 0.2 the posterior towards the
         prior, the latter counted only above free_nats nats a frame (a code that carries less is free).
+        w_scene: with model.scene, of the squared error of the predicted next scene state, standardised
+        by the training split's statistics (wm.imagine.Norm.scene).
       log_every, eval_every, ckpt_every: in steps (eval and checkpoints at multiples of log_every).
       val_batches: validation batches per evaluation. param_sharding: "replicated" (data parallel)
         or "fsdp" (parameters and optimiser state sharded over the data axis).
@@ -89,6 +91,7 @@ class TrainConfig:
     w_contrast: float = 0.0
     w_kl: float = 0.01
     free_nats: float = 1.0
+    w_scene: float = 1.0
     log_every: int = 50
     eval_every: int = 500
     ckpt_every: int = 500
@@ -137,6 +140,8 @@ class TrainConfig:
         if self.w_kl <= 0 or self.free_nats < 0:
             raise ValueError(f"w_kl > 0 and free_nats >= 0 are required; got w_kl={self.w_kl}, "
                              f"free_nats={self.free_nats}")
+        if self.model.scene and self.w_scene <= 0:
+            raise ValueError(f"model.scene needs w_scene > 0 (its head learns from that loss alone); got {self.w_scene}")
         if self.max_minutes < 0:
             raise ValueError(f"max_minutes is a safety stop in minutes (0: none), got {self.max_minutes}")
         if self.rollout_passes < 0 or self.lr <= 0:

@@ -20,12 +20,16 @@ from wm.model import INPUT_CLIP, ModelConfig, WorldModel
 
 @struct.dataclass
 class Norm:
-    """Input standardisation: proprio and action mean and std (37,), (20,)."""
+    """Input standardisation: proprio and action mean and std (37,), (20,); the scene state's (24,)
+    (sim_data.sim.scene.scene_state), standardising the target of a model with `model.scene`, where
+    the statistics have it (None in those written before it was recorded)."""
 
     proprio_mean: jax.Array
     proprio_std: jax.Array
     action_mean: jax.Array
     action_std: jax.Array
+    scene_mean: jax.Array | None = None
+    scene_std: jax.Array | None = None
 
     def proprio(self, p):
         return jnp.clip((p - self.proprio_mean) / self.proprio_std, -INPUT_CLIP, INPUT_CLIP)
@@ -37,9 +41,16 @@ class Norm:
         """Standardised actions, clipped: a policy may command what no training episode did."""
         return jnp.clip((a - self.action_mean) / self.action_std, -INPUT_CLIP, INPUT_CLIP)
 
+    def scene(self, s):
+        """The standardised scene state (..., 24)."""
+        if self.scene_mean is None:
+            raise ValueError("these statistics have no scene state (norm.json predates it): a model with "
+                             "model.scene trains on a dataset cache that records it (rebuild the cache)")
+        return (s - self.scene_mean) / self.scene_std
+
     def to_dict(self) -> dict:
-        return {k: np.asarray(getattr(self, k)).tolist() for k in ("proprio_mean", "proprio_std", "action_mean",
-                                                                  "action_std")}
+        keys = ("proprio_mean", "proprio_std", "action_mean", "action_std", "scene_mean", "scene_std")
+        return {k: np.asarray(getattr(self, k)).tolist() for k in keys if getattr(self, k) is not None}
 
     @classmethod
     def from_dict(cls, d: dict) -> Norm:

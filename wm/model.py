@@ -80,6 +80,10 @@ class ModelConfig:
         residual layer conditioned on w acts on every token before the output heads: where the context
         leaves the next frame open (the mug held or slipping), imagined episodes sample the outcomes
         instead of regressing to one average future.
+      scene: a head also predicts the next frame's scene state (scene_dim values: the objects' positions
+        in the robot's frame, the mug's uprightness, the tray's and buttons' travel;
+        sim_data.sim.scene.scene_state), a target the simulator records and no camera frame states
+        outright: the tokens must carry where the objects are, which decides a grasp.
     """
 
     size: int = 64
@@ -104,6 +108,8 @@ class ModelConfig:
     imagine: str = "cache"
     anchor: bool = False
     stochastic: int = 0
+    scene: bool = False
+    scene_dim: int = 24
 
     def validate(self) -> None:
         stages = int(round(math.log2(self.size / LATENT_SIDE)))
@@ -430,8 +436,8 @@ class Dynamics(nn.Module):
         heads, D/heads) their attention keys and values (with_kv's output), "valid": (B, K-1) bool}.
         Returns {"z": (B, T, 8, 8, C), "proprio": (B, T, 37), "success": (B, T) logits,
         "outcome": (B, T) logits, "progress": (B, T) logits of the task progress, "flow": (B, T, 8, 8, 2)
-        in latent cells}, entry t being the
-        prediction for frame t+1 (the flow warps frame t towards it); with cfg.stochastic, also
+        in latent cells; with cfg.scene, "scene": (B, T, scene_dim) the standardised scene state},
+        entry t being the prediction for frame t+1 (the flow warps frame t towards it); with cfg.stochastic, also
         "prior_mean", "prior_logstd" (B, T, S) and, given target, "post_mean", "post_logstd"; with with_kv or past, also
         "k", "v": (B, depth, T, N, heads, D/heads), the T frames' keys and values at every layer."""
         cfg, dt = self.cfg, self.cfg.compute_dtype
@@ -492,12 +498,15 @@ class Dynamics(nn.Module):
             nn.silu(cond).astype(jnp.float32)).reshape(b, t, LATENT_SIDE, LATENT_SIDE, 2)
         flow = unpatchify(flow.astype(jnp.float32), cfg.patch, 2) + ego
         pooled = h.mean(axis=2).astype(jnp.float32)
-        heads = nn.Dense(cfg.proprio_dim + 3, dtype=jnp.float32)(nn.silu(nn.Dense(cfg.dim, dtype=jnp.float32)(pooled)))
+        width = cfg.proprio_dim + 3 + (cfg.scene_dim if cfg.scene else 0)
+        heads = nn.Dense(width, dtype=jnp.float32)(nn.silu(nn.Dense(cfg.dim, dtype=jnp.float32)(pooled)))
         # clipped like the standardised inputs, so that a long imagined rollout cannot diverge
         p_out = jnp.clip(p_next + heads[..., :cfg.proprio_dim], -INPUT_CLIP, INPUT_CLIP)
         out = {"z": z_next, "proprio": p_out,
                "success": heads[..., cfg.proprio_dim], "outcome": heads[..., cfg.proprio_dim + 1],
                "progress": heads[..., cfg.proprio_dim + 2], "flow": flow, **codes}
+        if cfg.scene:
+            out["scene"] = heads[..., cfg.proprio_dim + 3:]
         if with_kv or past is not None:
             for i, key in enumerate(("k", "v")):
                 out[key] = jnp.stack([kv[i].reshape((b, t, n) + kv[i].shape[2:]) for kv in kvs], axis=1)

@@ -54,15 +54,21 @@ class TrainingDiverged(FloatingPointError):
 # ---- data ------------------------------------------------------------------------------------------
 
 def compute_norm(cache: TrainingCache, ids=None) -> Norm:
-    """Mean and std of proprio and actions over the episodes ids (default: the training split; std
-    floored at 1e-2: a dimension constant in training must not blow a policy's small deviation up)."""
+    """Mean and std of proprio, actions and the scene state over the episodes ids (default: the training
+    split; std floored at 1e-2, 1e-3 m for the scene: a dimension constant in training must not blow a
+    policy's small deviation up)."""
     eps = [cache.episodes[i] for i in (cache.select("train") if ids is None else ids)]
     if not eps:
         raise ValueError("the dataset has no training episodes")
-    prop = np.concatenate([cache.array(e["shard"], "proprio")[e["start"]:e["start"] + e["length"]] for e in eps])
-    act = np.concatenate([cache.array(e["shard"], "action")[e["start"]:e["start"] + e["length"] - 1] for e in eps])
+
+    def rows(name, drop_last=0):
+        return np.concatenate([cache.array(e["shard"], name)[e["start"]:e["start"] + e["length"] - drop_last]
+                               for e in eps])
+
+    prop, act, scene = rows("proprio"), rows("action", drop_last=1), rows("scene")
     return Norm(proprio_mean=jnp.asarray(prop.mean(0)), proprio_std=jnp.asarray(np.maximum(prop.std(0), 1e-2)),
-                action_mean=jnp.asarray(act.mean(0)), action_std=jnp.asarray(np.maximum(act.std(0), 1e-2)))
+                action_mean=jnp.asarray(act.mean(0)), action_std=jnp.asarray(np.maximum(act.std(0), 1e-2)),
+                scene_mean=jnp.asarray(scene.mean(0)), scene_std=jnp.asarray(np.maximum(scene.std(0), 1e-3)))
 
 
 def model_batch(batch: dict, camera: str, anchor: bool = False) -> dict:
@@ -70,7 +76,8 @@ def model_batch(batch: dict, camera: str, anchor: bool = False) -> dict:
     frames, "anchor" (B, S, S, 3) uint8, and the windows' first steps in their episodes, "start" (B,)
     int32, for a model with ModelConfig.anchor)."""
     out = {"frames": batch["frames"][camera], "proprio": batch["proprio"], "action": batch["action"],
-           "success": batch["success"], "progress": batch["progress"], "outcome": batch["outcome"]}
+           "success": batch["success"], "progress": batch["progress"], "outcome": batch["outcome"],
+           "scene": batch["scene"]}
     return out | ({"anchor": batch["first_frames"][camera], "start": batch["start"]} if anchor else {})
 
 
@@ -113,6 +120,7 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_w
         parts["keep_recon"] = _keep_loss(keep, pix[:, 1::4], pix[:, 0:-1:4])
         total = total + cfg.w_keep * parts["keep_recon"]
     proprio, action = norm.proprio(batch["proprio"]), norm.action(batch["action"])
+    scene = norm.scene(batch["scene"]) if cfg.model.scene else None
     z_in, p_in, prev = z, proprio, pix[:, :-1]
     anchor = time = keep_anchor = None
     if cfg.model.anchor:
@@ -149,6 +157,9 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_w
         tag = "" if k == 0 else f"_pass{k}"
         parts.update({f"latent{tag}": latent, f"pixel{tag}": pixel, f"proprio{tag}": prop, f"success{tag}": succ,
                       f"outcome{tag}": outc, f"progress{tag}": prog})
+        if cfg.model.scene:
+            parts[f"scene{tag}"] = jnp.mean((pred["scene"][:, :-1] - scene[:, 1:]) ** 2)
+            total = total + cfg.w_scene * parts[f"scene{tag}"]
         if cfg.model.stochastic:
             parts[f"kl{tag}"], balanced = _code_kl(pred, cfg.free_nats)
             total = total + cfg.w_kl * balanced

@@ -10,7 +10,8 @@ Layout of `OUT/cache/`: shards `shard-00000/` .. of up to `shard_episodes` episo
 order), each holding `<camera>.npy` (N, H, W, 3) uint8, `proprio.npy` (N, 37) float32,
 `action.npy` (N, 20) float32 (row t is the action taken after frame t; zeros after an episode's
 last frame), `success.npy` (N,) bool, `progress.npy` (N,) float32 (task progress in [0, 1]) and
-`episodes.json`; N counts frames (T+1 per episode).
+`scene.npy` (N, 24) float32 (the scene's state, `sim_data.sim.scene.scene_state`, from the recorded
+qpos and mocap positions) and `episodes.json`; N counts frames (T+1 per episode).
 `index.json`, written last, lists shards, episodes (with shard, start, length) and skipped
 files. Shards are written under a temporary name and renamed when whole, so a killed build
 resumes; the same MCAP files give the same bytes.
@@ -33,11 +34,12 @@ import numpy as np
 from tqdm import tqdm
 
 from sim_data.dataset.episodes import CorruptEpisode, read_episode, read_episode_meta
+from sim_data.sim.scene import load_model, scene_index, scene_state
 from sim_data.util import run_cli
 
-FORMAT = 2
+FORMAT = 3
 EPISODE_KEYS = ("episode_id", "task", "policy", "policy_kind", "skill", "seed", "success", "split", "heldout")
-ARRAYS = ("proprio", "action", "success", "progress")
+ARRAYS = ("proprio", "action", "success", "progress", "scene")
 
 
 def cache_dir(out: Path) -> Path:
@@ -55,9 +57,10 @@ def episode_files(out: Path) -> list[Path]:
 def _decode(path: Path, cameras) -> dict:
     """One episode's cache rows, or {"error": why} for a file that does not read back whole."""
     try:
-        ep = read_episode(path, cameras=cameras, sim_state=False)
-    except CorruptEpisode as e:
-        return {"error": str(e)}
+        ep = read_episode(path, cameras=cameras)
+        scene = scene_state(ep["qpos"], ep["mocap_pos"], scene_index(load_model()))
+    except (CorruptEpisode, ValueError) as e:
+        return {"error": f"{path}: {e}" if isinstance(e, ValueError) else str(e)}
     n = ep["proprio"].shape[0]
     missing = [c for c in cameras if c not in ep["frames"]]
     if missing:
@@ -67,7 +70,7 @@ def _decode(path: Path, cameras) -> dict:
     rec = {k: ep["meta"].get(k) for k in EPISODE_KEYS}
     rec.update(file=f"episodes/{path.name}", length=n)
     return {"record": rec, "frames": ep["frames"], "proprio": ep["proprio"], "action": action, "success": ep["success"],
-            "progress": ep["progress"]}
+            "progress": ep["progress"], "scene": scene}
 
 
 def _write_shard(root: Path, name: str, decoded: list, cameras) -> dict:
@@ -245,7 +248,7 @@ class TrainingCache:
     def episode(self, i: int, cameras=None) -> dict:
         """Episode i whole: {"frames": {camera: (T+1, H, W, 3) uint8}, "proprio": (T+1, 37),
         "action": (T+1, 20) (last row zeros), "success": (T+1,) bool, "progress": (T+1,) float32,
-        "record": its index record}."""
+        "scene": (T+1, 24) float32, "record": its index record}."""
         e = self.episodes[i]
         sl = slice(e["start"], e["start"] + e["length"])
         cams = self.cameras if cameras is None else cameras
@@ -278,6 +281,7 @@ class WindowLoader:
 
     Batches: {"frames": {camera: (B, T, H, W, 3) uint8}, "proprio": (B, T, 37) float32,
     "action": (B, T, 20) float32 (action t follows frame t), "success": (B, T) bool, "progress": (B, T) float32,
+    "scene": (B, T, 24) float32 (sim_data.sim.scene.scene_state),
     "outcome": (B,) bool (the episode's success), "task": (B,) int32 (index into cache.tasks),
     "start": (B,) int32 (the window's first step), "episode": (B,) int32}; with first_frames, also
     "first_frames": {camera: (B, H, W, 3) uint8} (each window's episode's first frame).

@@ -120,3 +120,42 @@ def scene_index(model: mujoco.MjModel) -> SceneIndex:
         nv=model.nv,
         nmocap=model.nmocap,
     )
+
+
+# The scene's state as the robot would describe it: what the world model is taught to track beside the
+# frames (wm's `model.scene`). Positions in metres, of each object's frame in the robot base's frame
+# (x forward, y left, z up from the floor), so that they follow what the head camera sees move.
+SCENE_STATE_NAMES = (
+    "base_x", "base_y", "base_cos_yaw", "base_sin_yaw",
+    "mug_x", "mug_y", "mug_z", "mug_up",
+    "cloth_x", "cloth_y", "cloth_z", "fryer_x", "fryer_y", "fryer_z", "block_x", "block_y", "block_z",
+    "stool_x", "stool_y", "stool_z",
+    "tray_travel", "button_0", "button_1", "button_2",
+)
+
+
+def _in_base_frame(p, base_xy, cos_yaw, sin_yaw):
+    """World points p (..., 3) -> the robot base's frame (..., 3)."""
+    dx, dy = p[..., 0] - base_xy[..., 0], p[..., 1] - base_xy[..., 1]
+    return np.stack([cos_yaw * dx + sin_yaw * dy, -sin_yaw * dx + cos_yaw * dy, p[..., 2]], axis=-1)
+
+
+def scene_state(qpos: np.ndarray, mocap_pos: np.ndarray, idx: SceneIndex) -> np.ndarray:
+    """The scene's state (..., 24) float32 in SCENE_STATE_NAMES order from qpos (..., nq) and mocap_pos
+    (..., nmocap, 3): the base's world position and heading, the mug's, cloth's, fryer's and block's
+    positions and the stool's in the base's frame, the mug's uprightness (the z component of its up
+    axis: 1 standing, 0 on its side), the fryer tray's and the buttons' slides."""
+    qpos, mocap_pos = np.asarray(qpos, np.float64), np.asarray(mocap_pos, np.float64)
+    if qpos.shape[-1] != idx.nq or mocap_pos.shape[-2:] != (idx.nmocap, 3):
+        raise ValueError(f"qpos (..., {idx.nq}) and mocap_pos (..., {idx.nmocap}, 3) of this scene expected, got "
+                         f"{qpos.shape} and {mocap_pos.shape}: recorded with another scene?")
+    base = qpos[..., idx.robot.base_qpos]
+    c, s = np.cos(base[..., 2]), np.sin(base[..., 2])
+    rel = lambda p: _in_base_frame(p, base[..., :2], c, s)  # noqa: E731
+    mug = qpos[..., idx.mug_qpos:idx.mug_qpos + 7]
+    qx, qy = mug[..., 4], mug[..., 5]
+    mug_up = 1.0 - 2.0 * (qx * qx + qy * qy)  # R[2, 2] of the unit quaternion (w, x, y, z)
+    parts = [base[..., :2], c[..., None], s[..., None], rel(mug[..., :3]), mug_up[..., None]]
+    parts += [rel(qpos[..., a:a + 3]) for a in (idx.cloth_qpos, idx.fryer_qpos, idx.block_qpos)]
+    parts += [rel(mocap_pos[..., idx.stool_mocap, :]), qpos[..., [idx.tray_qpos]], qpos[..., idx.button_qpos]]
+    return np.concatenate(parts, axis=-1).astype(np.float32)
