@@ -747,6 +747,8 @@ def test_the_scene_head_predicts_the_standardised_scene_state_and_its_error_ente
     assert "scene" not in loss(params0, batch, norm, make_config("smoke"))[1]  # without the head: no term
     with pytest.raises(ValueError, match="w_scene"):
         make_config("smoke", ["model.scene=true", "w_scene=0"])
+    far = norm.scene(scene + 1e6)  # an object far from anywhere training saw it: clipped as the inputs are
+    np.testing.assert_array_equal(far, np.full_like(scene, I.INPUT_CLIP))
     with pytest.raises(ValueError, match="no scene state"):
         I.Norm(jnp.zeros(37), jnp.ones(37), jnp.zeros(20), jnp.ones(20)).scene(scene)
 
@@ -757,7 +759,7 @@ def test_the_norm_carries_the_scene_statistics_of_the_training_split_through_nor
     norm = compute_norm(cache)
     rows = np.concatenate([cache.episode(i)["scene"] for i in cache.select("train")])
     np.testing.assert_allclose(norm.scene_mean, rows.mean(0), rtol=1e-5, atol=1e-6)
-    np.testing.assert_allclose(norm.scene_std, np.maximum(rows.std(0), 1e-3), rtol=1e-4)
+    np.testing.assert_allclose(norm.scene_std, np.maximum(rows.std(0), 1e-2), rtol=1e-4)
     back = I.Norm.from_dict(json.loads(json.dumps(norm.to_dict())))
     np.testing.assert_array_equal(back.scene_std, norm.scene_std)
     old = {k: v for k, v in norm.to_dict().items() if not k.startswith("scene")}  # a norm.json written before

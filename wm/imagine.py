@@ -42,11 +42,12 @@ class Norm:
         return jnp.clip((a - self.action_mean) / self.action_std, -INPUT_CLIP, INPUT_CLIP)
 
     def scene(self, s):
-        """The standardised scene state (..., 24)."""
+        """The standardised scene state (..., 24), clipped like the inputs: an object that moves where no
+        training episode moved it (a block knocked off the counter) must not outweigh every other loss."""
         if self.scene_mean is None:
             raise ValueError("these statistics have no scene state (norm.json predates it): a model with "
                              "model.scene trains on a dataset cache that records it (rebuild the cache)")
-        return (s - self.scene_mean) / self.scene_std
+        return jnp.clip((s - self.scene_mean) / self.scene_std, -INPUT_CLIP, INPUT_CLIP)
 
     def to_dict(self) -> dict:
         keys = ("proprio_mean", "proprio_std", "action_mean", "action_std", "scene_mean", "scene_std")

@@ -55,8 +55,8 @@ class TrainingDiverged(FloatingPointError):
 
 def compute_norm(cache: TrainingCache, ids=None) -> Norm:
     """Mean and std of proprio, actions and the scene state over the episodes ids (default: the training
-    split; std floored at 1e-2, 1e-3 m for the scene: a dimension constant in training must not blow a
-    policy's small deviation up)."""
+    split; std floored at 1e-2: a dimension constant in training must not blow a policy's small
+    deviation up)."""
     eps = [cache.episodes[i] for i in (cache.select("train") if ids is None else ids)]
     if not eps:
         raise ValueError("the dataset has no training episodes")
@@ -68,7 +68,7 @@ def compute_norm(cache: TrainingCache, ids=None) -> Norm:
     prop, act, scene = rows("proprio"), rows("action", drop_last=1), rows("scene")
     return Norm(proprio_mean=jnp.asarray(prop.mean(0)), proprio_std=jnp.asarray(np.maximum(prop.std(0), 1e-2)),
                 action_mean=jnp.asarray(act.mean(0)), action_std=jnp.asarray(np.maximum(act.std(0), 1e-2)),
-                scene_mean=jnp.asarray(scene.mean(0)), scene_std=jnp.asarray(np.maximum(scene.std(0), 1e-3)))
+                scene_mean=jnp.asarray(scene.mean(0)), scene_std=jnp.asarray(np.maximum(scene.std(0), 1e-2)))
 
 
 def model_batch(batch: dict, camera: str, anchor: bool = False) -> dict:
