@@ -227,6 +227,29 @@ def test_scripted_program_and_play_chunks_run_through_one_compiled_rollout(monke
     assert kinds == {True, False}  # both kinds went through it
 
 
+def test_the_cpu_engine_pads_only_the_chunks_that_play_tables(monkeypatch):
+    """On the cpu engine the program and play chunks run at the scripted chunks' batch (one compiled
+    rollout, as on mjx): their rows play tables and draw nothing from the batch; the scripted chunks,
+    and a chunk with weak grips (the script, its noise drawn per batch), run their own rows alone."""
+    cfg = G.make_config("smoke", ["engine=cpu", "episodes=3", "batch=4", "play=4", "tasks=mug"])
+    grips = G.make_config("smoke", ["engine=cpu", "episodes=3", "batch=4", "weak_grip=3", "tasks=mug"])
+
+    def rollout(env, policy, params, rng, renderers=(), progress=None, reset_keys=None):
+        raise _Rollout(env, policy, params, rng, renderers, reset_keys)
+
+    monkeypatch.setattr(G, "record_episodes", rollout)
+    shapes = {}
+    for c, chunk in [(cfg, ch) for ch in G._plan(cfg)] + [(grips, ch) for ch in G._plan(grips)]:
+        with pytest.raises(_Rollout) as got:
+            G.simulate_chunk(c, chunk, "cpu")
+        env, policy, params, _, _, reset_keys = got.value.args
+        weak = any(src == G.WEAK_GRIP for src, _ in chunk.slots)
+        shapes[chunk.key, weak, len(chunk.rows(padded=False))] = (env.batch_size, _signature(params), policy)
+    assert shapes[("scripted", False, 3)] == shapes[("program", False, 2)]  # padded to the scripted batch
+    assert shapes[("program", False, 3)] == shapes[("program", False, 2)]
+    assert [b for (key, weak, n), (b, *_) in shapes.items() if weak] == [n for key, weak, n in shapes if weak]
+
+
 @pytest.mark.filterwarnings("ignore:the mjx engine is meant for GPUs")
 def test_weak_grip_episodes_start_where_the_scripted_ones_do_and_close_the_hand_part_way(monkeypatch):
     cfg = G.make_config("smoke", ["engine=mjx", "episodes=3", "batch=4", "weak_grip=3"])

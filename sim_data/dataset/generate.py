@@ -537,8 +537,11 @@ def simulate_chunk(cfg: DataConfig, chunk: Chunk, engine: str) -> tuple[list, ob
     """Simulates and renders one chunk: ([(source, episode index)] of its B rows, the Recording
     with (B, ...) numpy leaves). With the `mjx` engine the chunk runs padded (Chunk.rows): one
     compilation then serves every chunk of a rollout key of that size in every task, and compiling,
-    not simulating, is most of a chunk's time there."""
-    rows = chunk.rows(padded=engine == "mjx")
+    not simulating, is most of a chunk's time there. On the `cpu` engine only the chunks of programs
+    and play are padded: their rows play tables and draw nothing from the batch's keys, so a padded
+    chunk gives each row the episode it gives alone, and their chunks, shorter than the scripted
+    ones, would otherwise compile the whole rollout again (about 40 s of the demo's 2 cores)."""
+    rows = chunk.rows(padded=engine == "mjx" or _plays_tables(chunk))
     env = cached_env(chunk.task, len(rows), engine, cfg.heldout)
     policy, params = _policy_and_params(cfg, chunk, rows, env)
     reset_keys = jax.numpy.stack([jax.random.PRNGKey(_initial_seed_of(cfg, chunk.task, src, i)) for src, i in rows])
@@ -547,6 +550,12 @@ def simulate_chunk(cfg: DataConfig, chunk: Chunk, engine: str) -> tuple[list, ob
     _, rec = record_episodes(env, policy, params, chunk_key, cached_renderers(cfg.size, tuple(cfg.cameras)),
                              reset_keys=reset_keys)
     return rows, jax.tree_util.tree_map(np.asarray, rec)
+
+
+def _plays_tables(chunk: Chunk) -> bool:
+    """Whether every row of chunk plays an action table (programs and random play; a weak grip runs
+    the script, whose noise the batch's keys draw)."""
+    return chunk.key == "program" and all(src != WEAK_GRIP for src, _ in chunk.slots)
 
 
 def _policy_and_params(cfg: DataConfig, chunk: Chunk, rows: list, env: HomeEnv) -> tuple:
