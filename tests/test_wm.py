@@ -30,7 +30,7 @@ from wm.checkpoint import (
     write_bundle,
 )
 from wm.checkpoint import main as checkpoint_main
-from wm.config import SMOKE_MODEL, make_config
+from wm.config import SMOKE_MODEL, check_dataset, make_config
 from wm.judge import load_judge
 from wm.model import (
     Decoder,
@@ -765,6 +765,9 @@ def test_the_norm_carries_the_scene_statistics_of_the_training_split_through_nor
     np.testing.assert_array_equal(far, np.full_like(rows[:3], I.INPUT_CLIP))
     with pytest.raises(ValueError, match="w_scene"):
         make_config("smoke", ["model.scene=true", "w_scene=0"])
+    check_dataset(make_config("smoke", ["model.scene=true"]), cache)
+    with pytest.raises(ValueError, match="24 scene-state values a frame, model.scene_dim is 23"):
+        check_dataset(make_config("smoke", ["model.scene=true", "model.scene_dim=23"]), cache)
 
 
 def _whole_smoke_run(smoke_dataset, out: Path, setting: str):

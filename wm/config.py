@@ -192,7 +192,8 @@ def from_dict(d: dict) -> TrainConfig:
 
 
 def check_dataset(cfg: TrainConfig, cache) -> None:
-    """Raises ValueError unless the dataset's training cache (sim_data.dataset.cache.TrainingCache) holds the model's camera at its size and every task named."""
+    """Raises ValueError unless the dataset's training cache (sim_data.dataset.cache.TrainingCache) holds
+    the model's camera at its size, every task named and, for model.scene, the scene state at its width."""
     if cfg.camera not in cache.cameras:
         raise ValueError(f"camera {cfg.camera} is not in the dataset's cache ({cache.cameras})")
     if cache.index["size"] != cfg.model.size:
@@ -200,3 +201,8 @@ def check_dataset(cfg: TrainConfig, cache) -> None:
     bad = [t for t in cfg.train_tasks + cfg.eval_tasks if t not in cache.tasks]
     if bad:
         raise ValueError(f"tasks {bad} are not in the dataset (it has {cache.tasks})")
+    if cfg.model.scene and cache.index["shards"]:
+        width = cache.array(cache.index["shards"][0]["name"], "scene").shape[1]
+        if width != cfg.model.scene_dim:
+            raise ValueError(f"the cache records {width} scene-state values a frame, model.scene_dim is "
+                             f"{cfg.model.scene_dim}")
