@@ -81,8 +81,9 @@ def step_inputs(cfg):
     batch = {"frames": jnp.asarray(rng.integers(0, 255, (b, t, m.size, m.size, 3), dtype=np.uint8)),
              "proprio": jnp.asarray(rng.normal(size=(b, t, m.proprio_dim)), jnp.float32),
              "action": jnp.asarray(rng.normal(size=(b, t, m.action_dim)), jnp.float32),
-             "success": jnp.zeros((b, t), bool), "progress": jnp.zeros((b, t)), "outcome": jnp.zeros((b,), bool),
-             "scene": jnp.asarray(rng.normal(size=(b, t, m.scene_dim)), jnp.float32)}
+             "success": jnp.zeros((b, t), bool), "progress": jnp.zeros((b, t)), "outcome": jnp.zeros((b,), bool)}
+    if m.scene:
+        batch["scene"] = jnp.asarray(rng.normal(size=(b, t, m.scene_dim)), jnp.float32)
     if m.anchor:
         batch["anchor"], batch["start"] = batch["frames"][:, 0], jnp.zeros((b,), jnp.int32)
     norm = Norm(jnp.zeros(m.proprio_dim), jnp.ones(m.proprio_dim), jnp.zeros(m.action_dim), jnp.ones(m.action_dim),

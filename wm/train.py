@@ -71,13 +71,14 @@ def compute_norm(cache: TrainingCache, ids=None) -> Norm:
                 scene_mean=jnp.asarray(scene.mean(0)), scene_std=jnp.asarray(np.maximum(scene.std(0), 1e-2)))
 
 
-def model_batch(batch: dict, camera: str, anchor: bool = False) -> dict:
+def model_batch(batch: dict, camera: str, anchor: bool = False, scene: bool = False) -> dict:
     """The loader's batch reduced to what the model trains on (with anchor: and the episodes' first
     frames, "anchor" (B, S, S, 3) uint8, and the windows' first steps in their episodes, "start" (B,)
-    int32, for a model with ModelConfig.anchor)."""
+    int32, for a model with ModelConfig.anchor; with scene: and "scene" (B, T, 24), for a model with
+    ModelConfig.scene)."""
     out = {"frames": batch["frames"][camera], "proprio": batch["proprio"], "action": batch["action"],
-           "success": batch["success"], "progress": batch["progress"], "outcome": batch["outcome"],
-           "scene": batch["scene"]}
+           "success": batch["success"], "progress": batch["progress"], "outcome": batch["outcome"]}
+    out |= {"scene": batch["scene"]} if scene else {}
     return out | ({"anchor": batch["first_frames"][camera], "start": batch["start"]} if anchor else {})
 
 
@@ -366,7 +367,8 @@ class Run:
         if self.val is None:
             return {}
         if self._val_batches is None:  # the same batches at every evaluation: gathered once
-            self._val_batches = [put_batch(model_batch(self.val.batch_at(0, k), self.cfg.camera, self.cfg.model.anchor),
+            self._val_batches = [put_batch(model_batch(self.val.batch_at(0, k), self.cfg.camera,
+                                                           self.cfg.model.anchor, self.cfg.model.scene),
                                            self.mesh)
                                  for k in range(min(self.cfg.val_batches, self.val.batches_per_epoch))]
         parts = [jax.device_get(self._loss(self.state["params"], b, self.norm)) for b in self._val_batches]
@@ -385,7 +387,7 @@ class Run:
         last = {}
         while step < cfg.steps:
             t_wait = time.perf_counter()
-            batch = put_batch(model_batch(next(self.loader), cfg.camera, cfg.model.anchor), self.mesh)
+            batch = put_batch(model_batch(next(self.loader), cfg.camera, cfg.model.anchor, cfg.model.scene), self.mesh)
             waited += time.perf_counter() - t_wait
             self.state, parts = self._step(self.state, batch, self.norm)
             acc = parts if acc is None else jax.tree_util.tree_map(jnp.add, acc, parts)

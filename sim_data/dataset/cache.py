@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import collections
 import concurrent.futures as cf
+import functools
 import hashlib
 import json
 import multiprocessing
@@ -54,13 +55,22 @@ def episode_files(out: Path) -> list[Path]:
     return files
 
 
+@functools.cache
+def _home_scene_index():
+    """The home scene's addresses, looked up once per decoding process."""
+    return scene_index(load_model())
+
+
 def _decode(path: Path, cameras) -> dict:
     """One episode's cache rows, or {"error": why} for a file that does not read back whole."""
     try:
         ep = read_episode(path, cameras=cameras)
-        scene = scene_state(ep["qpos"], ep["mocap_pos"], scene_index(load_model()))
-    except (CorruptEpisode, ValueError) as e:
-        return {"error": f"{path}: {e}" if isinstance(e, ValueError) else str(e)}
+    except CorruptEpisode as e:
+        return {"error": str(e)}
+    try:
+        scene = scene_state(ep["qpos"], ep["mocap_pos"], _home_scene_index())
+    except ValueError as e:
+        return {"error": f"{path}: {e}"}
     n = ep["proprio"].shape[0]
     missing = [c for c in cameras if c not in ep["frames"]]
     if missing:
