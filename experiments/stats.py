@@ -71,20 +71,21 @@ def mmrv(predicted, true) -> float:
     tied in prediction but not in truth is a violation (from the side of the truly worse policy); a
     pair tied in truth weighs 0.
     """
-    return float(_violation_gaps(predicted, true).max(axis=1).mean())
-
-
-def _violation_gaps(predicted, true) -> np.ndarray:
-    """(N, N) |true_i - true_j| where the pair (i, j) is mis-ordered (mmrv's comparisons), else 0."""
     p, t = _pair(predicted, true)
-    return np.abs(t[:, None] - t[None, :]) * ((p[:, None] < p[None, :]) != (t[:, None] < t[None, :]))
+    return float(_masked_mmrv(p, t, np.ones(len(p), bool)))
+
+
+def _violation_gaps(p, t) -> np.ndarray:
+    """(..., N, N) |t_i - t_j| where the pair (i, j) is mis-ordered (mmrv's comparisons), else 0."""
+    return np.abs(t[..., :, None] - t[..., None, :]) * (
+        (p[..., :, None] < p[..., None, :]) != (t[..., :, None] < t[..., None, :]))
 
 
 def mmrv_charges(predicted, true) -> tuple[np.ndarray, np.ndarray]:
     """Each policy's term of MMRV and the policy it is charged to: policy i's term is its largest
     violation (mmrv's max over j), charged to the j that attains it (the first where several tie; i
     itself where i has none). Returns (terms (N,), partner (N,) int); terms.mean() is mmrv."""
-    gap = _violation_gaps(predicted, true)
+    gap = _violation_gaps(*_pair(predicted, true))
     terms = gap.max(axis=1)
     return terms, np.where(terms > 0, gap.argmax(axis=1), np.arange(len(terms)))
 
@@ -117,13 +118,7 @@ def pairwise_accuracy(predicted, true, min_gap: float = 0.0) -> float:
     more than 0 and at least `min_gap`; a pair tied in prediction counts one half. NaN if no pair
     qualifies."""
     p, t = _pair(predicted, true)
-    i, j = np.triu_indices(len(p), 1)
-    gap = np.abs(t[i] - t[j])
-    keep = (gap > 0) & (gap >= min_gap - 1e-12)
-    if not keep.any():
-        return math.nan
-    agree = np.sign(p[i] - p[j])[keep] * np.sign(t[i] - t[j])[keep]
-    return float(((agree > 0) + 0.5 * (agree == 0)).mean())
+    return float(_masked_pairwise(p, t, np.ones(len(p), bool), min_gap))
 
 
 def alignment(pred_outcomes, true_outcomes) -> float:
@@ -215,6 +210,7 @@ def resampled_pick_better(pred_better, pred_worse, episodes, draws: int = 2000, 
 
 WITHIN_TASK = ("pearson", "spearman", "mmrv", "pairwise_acc_gap10", "alignment")
 LOWER_IS_BETTER = ("mmrv",)
+DRAW_CHUNK = 1 << 22  # resampled outcomes held at once by within_task_draws
 WITHIN_TASK_RESAMPLES = "policies and initial states, within each task (the same states for each policy)"
 
 
@@ -226,18 +222,70 @@ def task_statistics(pred, true, threshold: float = 0.5) -> dict:
     NaN). true: (P, N) per-episode outcomes (bool or 0/1) from the same N initial states.
     """
     pred, true = np.asarray(pred, np.float64), np.asarray(true, np.float64)
-    if pred.ndim == 1:
-        keep = ~np.isnan(pred)
-        p, t, aligned = pred[keep], true[keep].mean(1), math.nan
+    if pred.ndim == 2 and pred.shape != true.shape:
+        raise ValueError(f"per-episode predictions {pred.shape} and outcomes {true.shape} differ in shape")
+    return {k: float(v[0]) for k, v in draw_statistics(pred[None], true[None], threshold).items()}
+
+
+def draw_statistics(pred, true, threshold: float = 0.5) -> dict:
+    """task_statistics of D resamplings of one task at once: pred (D, P, N) probabilities or (D, P)
+    scores (NaN: no score, left out), true (D, P, N) outcomes. Returns {stat: (D,) float64}; every
+    statistic of a draw with fewer than 2 scored policies is NaN. Pearson and Spearman are NaN where
+    either side is constant (pearson, spearman); MMRV and pairwise accuracy as mmrv and
+    pairwise_accuracy over the scored policies."""
+    pred, true = np.asarray(pred, np.float64), np.asarray(true, np.float64)
+    t = true.mean(-1)
+    if pred.ndim == 3:
+        # rounded: a policy drawn twice must tie with itself, whatever order its sum was taken in
+        p, keep = np.round(pred.mean(-1), 12), np.ones(t.shape, bool)
+        aligned = ((pred >= threshold) == (true > 0.5)).mean((-2, -1))
     else:
-        if pred.shape != true.shape:
-            raise ValueError(f"per-episode predictions {pred.shape} and outcomes {true.shape} differ in shape")
-        p, t = pred.mean(1), true.mean(1)
-        aligned = alignment(pred >= threshold, true > 0.5)
-    if len(p) < 2:
-        return dict.fromkeys(WITHIN_TASK, math.nan)
-    return {"pearson": pearson(p, t)[0], "spearman": spearman(p, t), "mmrv": mmrv(p, t),
-            "pairwise_acc_gap10": pairwise_accuracy(p, t, 0.10), "alignment": aligned}
+        p, keep = pred, ~np.isnan(pred)
+        aligned = np.full(len(p), math.nan)
+    n = keep.sum(-1)
+    out = {"pearson": _masked_pearson(p, t, keep),
+           "spearman": _masked_pearson(_masked_rank(p, keep), _masked_rank(t, keep), keep),
+           "mmrv": _masked_mmrv(p, t, keep), "pairwise_acc_gap10": _masked_pairwise(p, t, keep, 0.10),
+           "alignment": aligned}
+    return {k: np.where(n >= 2, v, math.nan) for k, v in out.items()}
+
+
+def _masked_pearson(x, y, keep) -> np.ndarray:
+    """Pearson's r along the last axis over the kept entries: (D, P) -> (D,); NaN where a side is constant."""
+    n = np.maximum(keep.sum(-1, keepdims=True), 1)
+    dx = np.where(keep, x - np.where(keep, x, 0).sum(-1, keepdims=True) / n, 0.0)
+    dy = np.where(keep, y - np.where(keep, y, 0).sum(-1, keepdims=True) / n, 0.0)
+    constant = (_masked_ptp(x, keep) == 0) | (_masked_ptp(y, keep) == 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = (dx * dy).sum(-1) / np.sqrt((dx * dx).sum(-1) * (dy * dy).sum(-1))
+    return np.where(constant, math.nan, np.clip(r, -1.0, 1.0))
+
+
+def _masked_ptp(x, keep) -> np.ndarray:
+    return np.where(keep, x, -np.inf).max(-1) - np.where(keep, x, np.inf).min(-1)
+
+
+def _masked_rank(x, keep) -> np.ndarray:
+    """Ranks 1..k of the kept entries along the last axis (ties at mean rank; the others rank above)."""
+    return sps.rankdata(np.where(keep, x, np.inf), axis=-1)
+
+
+def _masked_mmrv(p, t, keep) -> np.ndarray:
+    """mmrv along the last axis over the kept entries: (D, P) -> (D,)."""
+    gap = _violation_gaps(p, t) * keep[..., None, :]
+    worst = np.where(keep, gap.max(-1), 0.0)
+    return worst.sum(-1) / np.maximum(keep.sum(-1), 1)
+
+
+def _masked_pairwise(p, t, keep, min_gap: float) -> np.ndarray:
+    """pairwise_accuracy along the last axis over the kept entries: (D, P) -> (D,); NaN where no pair qualifies."""
+    i, j = np.triu_indices(p.shape[-1], 1)
+    gap = np.abs(t[..., i] - t[..., j])
+    counted = keep[..., i] & keep[..., j] & (gap > 0) & (gap >= min_gap - 1e-12)
+    agree = np.sign(p[..., i] - p[..., j]) * np.sign(t[..., i] - t[..., j])
+    score = np.where(counted, (agree > 0) + 0.5 * (agree == 0), 0.0).sum(-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(counted.any(-1), score / counted.sum(-1), math.nan)
 
 
 def percentile_interval(x) -> list:
@@ -263,18 +311,24 @@ def within_task_draws(true: dict, predictors: dict, threshold: float = 0.5, draw
             raise ValueError(f"predictor {name!r} covers tasks {sorted(predictors[name])}, not {sorted(tasks)}")
     point = {n: {t: task_statistics(predictors[n][t], true[t], threshold) for t in tasks} for n in names}
     rng = np.random.default_rng(seed)
-    boot = {n: {t: {k: np.empty(draws) for k in WITHIN_TASK} for t in tasks} for n in names}
-    for d in range(draws):
+    picks = {t: ([], []) for t in tasks}  # drawn in the order a draw at a time, task by task, gives
+    for _ in range(draws):
         for t in tasks:
-            tt = np.asarray(true[t])
-            rows = rng.integers(0, tt.shape[0], tt.shape[0])
-            cols = rng.integers(0, tt.shape[1], tt.shape[1])
-            tr = tt[rows][:, cols]
+            policies, states = np.shape(true[t])
+            picks[t][0].append(rng.integers(0, policies, policies))
+            picks[t][1].append(rng.integers(0, states, states))
+    boot = {n: {t: {k: np.empty(draws) for k in WITHIN_TASK} for t in tasks} for n in names}
+    for t in tasks:
+        tt = np.asarray(true[t], np.float64)
+        rows, cols = np.stack(picks[t][0]), np.stack(picks[t][1])
+        step = max(1, DRAW_CHUNK // tt.size)  # draws at once: bounds the (draws, P, N) gathers
+        for d in range(0, draws, step):
+            r, c = rows[d:d + step, :, None], cols[d:d + step, None, :]
             for n in names:
-                pr = np.asarray(predictors[n][t])
-                pr = pr[rows] if pr.ndim == 1 else pr[rows][:, cols]
-                for k, v in task_statistics(pr, tr, threshold).items():
-                    boot[n][t][k][d] = v
+                pr = np.asarray(predictors[n][t], np.float64)
+                got = draw_statistics(pr[r[..., 0]] if pr.ndim == 1 else pr[r, c], tt[r, c], threshold)
+                for k, v in got.items():
+                    boot[n][t][k][d:d + step] = v
     return point, boot
 
 

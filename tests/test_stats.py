@@ -208,6 +208,34 @@ def test_within_task_mean_intervals_and_difference():
         S.within_task(true, {"world_model": {"a": wm["a"]}})
 
 
+def test_bootstrap_draws_match_the_statistics_one_draw_at_a_time():
+    # each draw's figures against the scalar statistics of the same resampling, drawn in the documented
+    # order (a draw at a time, task by task: rows then states); ties (predictions on a 0.1 grid, a
+    # policy drawn twice) and a proxy with unscored policies included
+    rng = np.random.default_rng(5)
+    true = {t: rng.uniform(size=(9, 7)) < rng.uniform(size=(9, 1)) for t in "ab"}
+    wm = {t: np.round(np.clip(true[t] * 0.6 + rng.uniform(0, 0.4, (9, 7)), 0, 1), 1) for t in "ab"}
+    proxy = {t: np.where(rng.uniform(size=9) < 0.3, np.nan, rng.normal(size=9)) for t in "ab"}
+    draws = 40
+    _, boot = S.within_task_draws(true, {"wm": wm, "proxy": proxy}, draws=draws, seed=11)
+    pick = np.random.default_rng(11)
+    for d in range(draws):
+        for t in "ab":
+            rows, cols = pick.integers(0, 9, 9), pick.integers(0, 7, 7)
+            tr = true[t][rows][:, cols]
+            pw = wm[t][rows][:, cols]
+            ps = proxy[t][rows]
+            keep = ~np.isnan(ps)
+            for name, p, rates, aligned in (
+                    ("wm", np.round(pw.mean(1), 12), tr.mean(1), S.alignment(pw >= 0.5, tr)),
+                    ("proxy", ps[keep], tr[keep].mean(1), math.nan)):
+                want = {"pearson": S.pearson(p, rates)[0], "spearman": S.spearman(p, rates), "mmrv": S.mmrv(p, rates),
+                        "pairwise_acc_gap10": S.pairwise_accuracy(p, rates, 0.10), "alignment": aligned}
+                for k, v in want.items():
+                    got = boot[name][t][k][d]
+                    assert (math.isnan(v) and math.isnan(got)) or got == pytest.approx(v, abs=1e-9), (d, t, name, k)
+
+
 def test_checkpoint_selection_by_hand():
     def row(task, lineage, step, true, pred):
         return {"task": task, "lineage": lineage, "step": step, "true_rate": true, "pred_rate": pred,
