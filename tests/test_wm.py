@@ -720,6 +720,36 @@ def test_the_code_divergence_enters_the_loss_above_its_free_nats(model_and_input
 
 
 @pytest.mark.slow
+def test_the_judge_reads_the_scene_state_imagination_and_observation_predict(model_and_inputs):
+    # a model with the scene head: each imagined step carries the head's prediction for the new frame,
+    # its step features hold it in the "scene" columns, and the features of a true episode hold the
+    # prediction from the true context, so the judge reads the same quantity from both
+    _, frames, proprio, action = model_and_inputs
+    cfg = dataclasses.replace(CFG, scene=True)
+    noise = np.random.default_rng(3)
+    params = jax.tree_util.tree_map(lambda x: x + 0.05 * noise.standard_normal(x.shape).astype(np.float32),
+                                    init_params(cfg, jax.random.PRNGKey(0), window=6))
+    norm = _identity_norm_and_batch(frames, proprio, action)[0]
+    cols = I.feature_columns(cfg, ("scene",))
+    assert len(cols) == cfg.scene_dim and I.feature_dim(cfg) == I.feature_dim(CFG) + cfg.scene_dim
+    st = init_state(cfg, params, norm, frames[:, :1], proprio[:, :1], action[:, :0])
+    assert st.scene.shape == (2, cfg.scene_dim) and not np.asarray(st.scene).any()
+    acts = st.action.at[:, -1].set(norm.action(action[:, 0]))
+    want = I.predict_next(cfg, params, st.z, st.proprio, acts, st.valid, (st.k, st.v), st.anchor, st.clock)[0]["scene"]
+    nxt = imagine_step(cfg, params, norm, st, action[:, 0])
+    np.testing.assert_allclose(nxt.scene, want, atol=1e-5)
+    assert np.asarray(want).std() > 1e-3  # the head's output, not a constant
+    np.testing.assert_allclose(np.asarray(jax.jit(I.step_features)(norm, nxt, action[:, 0]))[:, cols], want, atol=1e-5)
+    other = imagine_step(cfg, params, norm, st, -action[:, 0])
+    assert np.abs(np.asarray(other.scene) - np.asarray(nxt.scene)).max() > 1e-4  # it follows the action
+    seen = np.asarray(I.observed_features(cfg, params, norm, frames[:, :2], proprio[:, :2], action[:, :1]))
+    np.testing.assert_allclose(seen[:, 0, cols], want, atol=1e-4)
+    assert len(I.feature_columns(CFG, ("latent", "scene"))) == 4 * CFG.latent  # no scene head: no columns
+    with pytest.raises(ValueError, match="no columns"):
+        I.feature_columns(CFG, ("scene",))
+
+
+@pytest.mark.slow
 def test_the_scene_head_predicts_the_standardised_scene_state_and_its_error_enters_the_loss(model_and_inputs):
     from wm.train import loss_fn
 

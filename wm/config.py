@@ -58,7 +58,8 @@ class TrainConfig:
       judge_episodes: training episodes the episode judge (wm.judge) learns from, imagined whole after
         training (0: no judge; the per-step rule decides); judge_steps: its optimiser steps;
         judge_inputs: the blocks of the imagined step features it reads (wm.imagine.FEATURE_GROUPS:
-        proprio, action, latent, success, outcome, progress); leaving out "action" makes it judge what the
+        proprio, action, latent, scene, success, outcome, progress; "scene", the scene head's prediction,
+        only with model.scene); leaving out "action" makes it judge what the
         actions did in imagination rather than what they look like. judge_observed: the judge also
         learns from the same training episodes read from their true frames (wm.judge.observe_episodes:
         what imagination would show were it exact), beside their imaginations.

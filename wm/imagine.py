@@ -68,6 +68,8 @@ class ImagineState:
       [0, 1], the current frame (decoded, or the last context frame); success: (B,) probability that
       the current frame is a success; outcome: (B,) predicted probability of the episode's success;
       progress: (B,) predicted task progress in [0, 1] (sim_data.sim.tasks.task_progress);
+      scene: with cfg.scene, (B, scene_dim) the scene state predicted for the current frame, standardised
+      (Norm.scene; zeros for a context frame); (B, 0) otherwise.
       k, v: with cfg.imagine "cache", the attention keys and values of slots 0..K-2 at every layer
       (B, depth, K-1, N, heads, D/heads), in the compute dtype; (B, 0) otherwise.
       anchor: with cfg.anchor, the latents (B, 8, 8, C) of the episode's first frame, which every
@@ -83,6 +85,7 @@ class ImagineState:
     success: jax.Array
     outcome: jax.Array
     progress: jax.Array
+    scene: jax.Array
     k: jax.Array
     v: jax.Array
     anchor: jax.Array
@@ -137,7 +140,8 @@ def init_state(cfg: ModelConfig, params, norm: Norm, frames, proprio, actions, a
         k, v = out["k"][:, :, :-1], out["v"][:, :, :-1]
     return ImagineState(z=z, proprio=p, action=a, valid=valid,
                         frame=frames[:, -1].astype(jnp.float32) / 255.0, success=jnp.zeros((b,)),
-                        outcome=jnp.zeros((b,)), progress=jnp.zeros((b,)), k=k, v=v, anchor=first, clock=clock)
+                        outcome=jnp.zeros((b,)), progress=jnp.zeros((b,)), scene=jnp.zeros((b, scene_width(cfg))),
+                        k=k, v=v, anchor=first, clock=clock)
 
 
 def empty_cache(cfg: ModelConfig, b: int) -> tuple:
@@ -194,7 +198,8 @@ def step(cfg: ModelConfig, params, norm: Norm, state: ImagineState, action, nois
         z=push(state.z, z_next), proprio=push(state.proprio, out["proprio"]),
         action=push(acts, jnp.zeros_like(acts[:, -1])), valid=push(state.valid, jnp.ones_like(state.valid[:, -1])),
         frame=frame, success=jax.nn.sigmoid(out["success"]), outcome=jax.nn.sigmoid(out["outcome"]),
-        progress=jax.nn.sigmoid(out["progress"]), k=k, v=v, anchor=state.anchor, clock=state.clock + 1)
+        progress=jax.nn.sigmoid(out["progress"]), scene=out["scene"] if cfg.scene else state.scene, k=k, v=v,
+        anchor=state.anchor, clock=state.clock + 1)
 
 
 def episode_success(success):
@@ -207,15 +212,17 @@ def episode_success(success):
 def step_features(norm: Norm, state: ImagineState, action) -> jax.Array:
     """What the episode judge (wm.judge) reads of one imagined step, (B, F) with F = feature_dim(cfg):
     the predicted proprioception (standardised), the action taken (standardised), the new latent grid
-    pooled to 2x2 cells, the per-step success and outcome probabilities and the predicted progress."""
-    return _join_features(state.proprio[:, -1], norm.action(action), state.z[:, -1],
+    pooled to 2x2 cells, with cfg.scene the predicted scene state (standardised), the per-step success
+    and outcome probabilities and the predicted progress."""
+    return _join_features(state.proprio[:, -1], norm.action(action), state.z[:, -1], state.scene,
                           (state.success, state.outcome, state.progress))
 
 
-def _join_features(proprio, action, z, heads) -> jax.Array:
+def _join_features(proprio, action, z, scene, heads) -> jax.Array:
     """(B, F) step features, blocks in FEATURE_GROUPS order: proprio (B, 37) and action (B, 20)
-    standardised, the latent grid z (B, s, s, C) pooled, heads (success, outcome, progress) each (B,)."""
-    return jnp.concatenate([proprio, action, pool_latents(z)] + [h[:, None] for h in heads], axis=-1)
+    standardised, the latent grid z (B, s, s, C) pooled, the scene state (B, scene_width), heads
+    (success, outcome, progress) each (B,)."""
+    return jnp.concatenate([proprio, action, pool_latents(z), scene] + [h[:, None] for h in heads], axis=-1)
 
 
 def pool_latents(z) -> jax.Array:
@@ -227,16 +234,22 @@ def pool_latents(z) -> jax.Array:
 SUCCESS_FEATURE, OUTCOME_FEATURE, PROGRESS_FEATURE = -3, -2, -1  # where step_features keeps the heads' outputs
 
 
+def scene_width(cfg: ModelConfig) -> int:
+    """Columns of the predicted scene state in ImagineState and step_features: cfg.scene_dim with cfg.scene, else 0."""
+    return cfg.scene_dim if cfg.scene else 0
+
+
 def _feature_sizes(cfg: ModelConfig) -> tuple:
     """The widths of step_features' blocks, in FEATURE_GROUPS order."""
-    return (cfg.proprio_dim, cfg.action_dim, 4 * cfg.latent, 1, 1, 1)
+    return (cfg.proprio_dim, cfg.action_dim, 4 * cfg.latent, scene_width(cfg), 1, 1, 1)
 
 
 def feature_dim(cfg: ModelConfig) -> int:
     return sum(_feature_sizes(cfg))
 
 
-FEATURE_GROUPS = ("proprio", "action", "latent", "success", "outcome", "progress")  # step_features' blocks, in order
+# step_features' blocks, in order ("scene" is empty for a model without the scene head)
+FEATURE_GROUPS = ("proprio", "action", "latent", "scene", "success", "outcome", "progress")
 
 
 def feature_columns(cfg: ModelConfig, groups) -> np.ndarray:
@@ -245,7 +258,10 @@ def feature_columns(cfg: ModelConfig, groups) -> np.ndarray:
     if unknown or not groups:
         raise ValueError(f"feature groups are among {', '.join(FEATURE_GROUPS)}; got {list(groups)}")
     starts = np.cumsum((0,) + _feature_sizes(cfg))
-    return np.concatenate([np.arange(starts[k], starts[k + 1]) for k, g in enumerate(FEATURE_GROUPS) if g in groups])
+    cols = np.concatenate([np.arange(starts[k], starts[k + 1]) for k, g in enumerate(FEATURE_GROUPS) if g in groups])
+    if not len(cols):
+        raise ValueError(f"feature groups {list(groups)} hold no columns for this model (\"scene\" needs model.scene)")
+    return cols
 
 
 def current_observation(norm: Norm, state: ImagineState) -> dict:
@@ -408,7 +424,8 @@ def _observed_segment(cfg: ModelConfig, params, norm: Norm, buf, frames, proprio
         zb, pb, ab, vb = (push(x, y) for x, y in zip(buf[:4], (z[t], p[t], a[t], jnp.ones((b,), bool))))
         clock = buf[6] + 1
         out, cache = predict_next(cfg, params, zb, pb, ab, vb, buf[4], buf[5], clock)
-        x = _join_features(p[t + 1], a[t], z[t + 1],
+        scene = out["scene"] if cfg.scene else jnp.zeros((b, 0))
+        x = _join_features(p[t + 1], a[t], z[t + 1], scene,
                            [jax.nn.sigmoid(out[k]) for k in ("success", "outcome", "progress")])
         return (zb, pb, ab, vb, cache, buf[5], clock), x
 

@@ -83,7 +83,8 @@ class ModelConfig:
       scene: a head also predicts the next frame's scene state (scene_dim values: the objects' positions
         in the robot's frame, the mug's uprightness, the tray's and buttons' travel;
         sim_data.sim.scene.scene_state), a target the simulator records and no camera frame states
-        outright: the tokens must carry where the objects are, which decides a grasp.
+        outright: the tokens must carry where the objects are, which decides a grasp. The episode judge
+        reads the prediction of every imagined step (the "scene" step features).
     """
 
     size: int = 64
