@@ -1017,6 +1017,10 @@ def test_a_judge_reads_only_its_chosen_feature_columns(tmp_path):
     assert len(without_actions) == f - cfg.action_dim and not set(without_actions) & set(feature_columns(cfg, ("action",)))
     with pytest.raises(ValueError, match="feature groups"):
         feature_columns(cfg, ("pixels",))
+    assert "scene" not in make_config("smoke").judge_inputs  # read where named: earlier runs' configs stand
+    with pytest.raises(ValueError, match="only a model with model.scene"):
+        make_config("smoke", ["judge_inputs=latent,scene"])
+    make_config("smoke", ["model.scene=true", "judge_inputs=latent,scene"])
 
     rng = np.random.default_rng(0)
     train, val = _synthetic_episodes(rng, 256), _synthetic_episodes(rng, 64)

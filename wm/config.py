@@ -58,9 +58,9 @@ class TrainConfig:
       judge_episodes: training episodes the episode judge (wm.judge) learns from, imagined whole after
         training (0: no judge; the per-step rule decides); judge_steps: its optimiser steps;
         judge_inputs: the blocks of the imagined step features it reads (wm.imagine.FEATURE_GROUPS:
-        proprio, action, latent, scene, success, outcome, progress; "scene", the scene head's prediction,
-        only with model.scene); leaving out "action" makes it judge what the
-        actions did in imagination rather than what they look like. judge_observed: the judge also
+        proprio, action, latent, scene, success, outcome, progress; by default all but "scene", the scene
+        head's prediction, which a model with model.scene offers when named); leaving out "action" makes
+        it judge what the actions did in imagination rather than what they look like. judge_observed: the judge also
         learns from the same training episodes read from their true frames (wm.judge.observe_episodes:
         what imagination would show were it exact), beside their imaginations.
     """
@@ -108,7 +108,7 @@ class TrainConfig:
     eval_tasks: tuple = ()
     judge_episodes: int = 1024
     judge_steps: int = 1500
-    judge_inputs: tuple = FEATURE_GROUPS
+    judge_inputs: tuple = tuple(g for g in FEATURE_GROUPS if g != "scene")
     judge_observed: bool = False
 
     def validate(self) -> None:
@@ -141,6 +141,8 @@ class TrainConfig:
         if self.w_kl <= 0 or self.free_nats < 0:
             raise ValueError(f"w_kl > 0 and free_nats >= 0 are required; got w_kl={self.w_kl}, "
                              f"free_nats={self.free_nats}")
+        if "scene" in self.judge_inputs and not self.model.scene:
+            raise ValueError("judge_inputs names \"scene\", which only a model with model.scene predicts")
         if self.model.scene and self.w_scene <= 0:
             raise ValueError(f"model.scene needs w_scene > 0 (its head learns from that loss alone); got {self.w_scene}")
         if self.max_minutes < 0:

@@ -84,7 +84,7 @@ class ModelConfig:
         in the robot's frame, the mug's uprightness, the tray's and buttons' travel;
         sim_data.sim.scene.scene_state), a target the simulator records and no camera frame states
         outright: the tokens must carry where the objects are, which decides a grasp. The episode judge
-        reads the prediction of every imagined step (the "scene" step features).
+        reads the prediction of every imagined step where its inputs name it (judge_inputs "scene").
     """
 
     size: int = 64
