@@ -6,8 +6,9 @@ frames it is good (teacher-forced), but over a long imagined episode the frames 
 a task's success may depend on more than K frames show (stepping back half a metre is a sum of
 velocities). The judge is a small network over the sequence of `wm.imagine.step_features` (predicted
 proprioception, actions, pooled latents, a model with the scene head's predicted scene state, the
-per-step success and outcome probabilities) and the task's name, pooled over time (mean, max, first, last): the mean integrates what the proprioception
-says about the body's motion, the max keeps a success reached and lost. It is trained on the world
+per-step success and outcome probabilities) and the task's name, pooled over time (mean, max, first,
+last): the mean integrates what the proprioception says about the body's motion, the max keeps a
+success reached and lost. It is trained on the world
 model's own imaginations of the training episodes from their first frame (as the evaluator starts),
 labelled with the simulator's outcome: open loop under their logged actions, and, for the rollouts
 of learned policies in the data, closed loop with that policy acting on the imagined frames
