@@ -61,7 +61,7 @@ from experiments.ensemble import member_metrics
 from sim_data.config import preset_config, preset_help
 from sim_data.dataset.cache import TrainingCache
 from sim_data.dataset.generate import cached_env, cached_renderers, package_versions
-from sim_data.parts import add_part_argument, config_and_part, exclusive
+from sim_data.parts import add_part_argument, config_and_part, exclusive, in_turn
 from sim_data.policies.bc import MixedPolicy, stacked
 from sim_data.policies.registry import (
     group_by_policy,
@@ -142,6 +142,7 @@ class EvalConfig:
       truth_cache: a directory where the simulator's side of each batch (outcomes, first frames and
         proprioception) is kept and reused by later evaluations of the same policies from the same
         states, whatever the world model (a sweep ranks one zoo with many models); "" keeps none.
+        Rankings running at once share its batches out (each simulates those no other is simulating).
         Used only with video_policies=0, as it keeps no real videos.
       keep_features: also keep every imagined episode's step features (wm.imagine.step_features, the
         first model's) in OUT/features/<task>.npy, (P, N, T, F) float16 in the order of the task's
@@ -296,13 +297,16 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
     slices = state_slices(cfg, len(seeds))
     reset_keys = np.stack([np.asarray(jax.random.PRNGKey(s)) for s in seeds])
     renderer = cached_renderers(models[0][0].model.size, (CAMERA,))
-    rows, kept = [], {}  # rows: (name, slice, {key: the policy's array over the slice's states})
-    sim_s = wm_s = 0.0
-    steps = None
+    kept = {}
+    clock = {"sim_s": 0.0, "wm_s": 0.0, "steps": None}
     todo = [b for b in task_batches(cfg, sources, len(seeds)) if chunks is None or b[:2] in chunks]
     bar = tqdm(total=sum(len(part) * (slices[j][1] - slices[j][0]) for _, j, part, _ in todo), desc=f"{task}",
                unit="ep", disable=not progress)
-    for k, j, part, padded in todo:
+
+    def run_batch(batch, wait: bool) -> list | None:
+        """One batch's rows [(name, slice, {key: the policy's array over the slice's states})]; None
+        where another process is simulating its truth (wait=False)."""
+        k, j, part, padded = batch
         s0, s1 = slices[j]
         n = s1 - s0
         policy, params = chunk_policy(padded, n)
@@ -310,21 +314,28 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
         if j:  # the first slice keeps the batch's key: a task of one slice is evaluated as without slices
             rng = jax.random.fold_in(rng, j)
         t0 = time.perf_counter()
-        truth = simulate_truth(cfg, task, policy, params, seeds[s0:s1], reset_keys[s0:s1], rng, engine, renderer)
-        steps = truth["steps"]
-        sim_s += time.perf_counter() - t0
+        truth = simulate_truth(cfg, task, policy, params, seeds[s0:s1], reset_keys[s0:s1], rng, engine, renderer,
+                               wait)
+        if truth is None:
+            return None
+        clock["steps"] = truth["steps"]
+        clock["sim_s"] += time.perf_counter() - t0
         t0 = time.perf_counter()
         got, each = _predict_batch(cfg, task, models, policy, params, truth, rng)
         got = {key: v.reshape((len(padded), n) + v.shape[1:])[: len(part)] for key, v in got.items()}
         got["true"] = truth["outcome"][: len(part)]
-        wm_s += time.perf_counter() - t0
-        for i, src in enumerate(part):
-            rows.append((src.name, j, {key: v[i] for key, v in got.items()}))
-            if j == 0:  # the report's videos come from the first slice's states
+        clock["wm_s"] += time.perf_counter() - t0
+        if j == 0:  # the report's videos come from the first slice's states
+            for i, src in enumerate(part):
                 kept[src.name] = _keep_examples(cfg, src.name, i, n, got["true"][i], got["prob"][i],
                                                 truth.get("frames"), each[0]["frames"])
         bar.update(len(part) * n)
+        return [(src.name, j, {key: v[i] for key, v in got.items()}) for i, src in enumerate(part)]
+
+    # rankings sharing cfg.truth_cache (other GPUs' models) each take the batches no other is simulating
+    rows = [row for batch_rows in in_turn(todo, run_batch) for row in batch_rows]
     bar.close()
+    sim_s, wm_s, steps = clock["sim_s"], clock["wm_s"], clock["steps"]
     if chunks is None:
         res = join_slices(rows, len(models), len(seeds))
         first = list(range(len(res["names"])))
@@ -554,10 +565,11 @@ def simulated_finite(truth: dict) -> np.ndarray:
 
 
 def simulate_truth(cfg: EvalConfig, task: str, policy, params, seeds, reset_keys, rng, engine: str,
-                   renderer) -> dict:
+                   renderer, wait: bool = True) -> dict | None:
     """Closed-loop simulator episodes of P stacked policies from n initial states, or the same read
     back from cfg.truth_cache (a process that finds another simulating the same batch waits for it,
-    under a lock file beside the cache entry, and reads its outcomes). Returns {"outcome": (P, n)
+    under a lock file beside the cache entry, and reads its outcomes; with wait=False it returns None
+    at once instead). Returns {"outcome": (P, n)
     bool, "frames0": (P*n, 1, S, S, 3) uint8, "proprio0": (P*n, 1, 37), "steps": int, and "frames":
     (P*n, T+1, S, S, 3), "proprio": (P*n, T+1, 37) and "action": (P*n, T, 20) where simulated}."""
     if not cfg.truth_cache:
@@ -566,7 +578,9 @@ def simulate_truth(cfg: EvalConfig, task: str, policy, params, seeds, reset_keys
     path.parent.mkdir(parents=True, exist_ok=True)
     # Rankings on other GPUs wait for the one simulating this batch: the simulator on a GPU is not
     # bit-reproducible, and models compared must be compared against the same outcomes.
-    with exclusive(path.with_suffix(".lock")):
+    with exclusive(path.with_suffix(".lock"), wait) as held:
+        if not held:
+            return None
         if path.exists():
             with np.load(path) as z:
                 return {k: z[k] for k in ("outcome", "frames0", "proprio0", "progress") if k in z.files} | {

@@ -21,14 +21,42 @@ from pathlib import Path
 
 
 @contextlib.contextmanager
-def exclusive(lock: Path):
-    """Holds an exclusive lock on the file `lock` (created if missing) across processes."""
+def exclusive(lock: Path, wait: bool = True):
+    """Holds an exclusive lock on the file `lock` (created if missing) across processes, yielding
+    True; with wait=False, where another holds it, yields False at once instead of waiting."""
     with open(lock, "a") as f:
-        fcntl.flock(f, fcntl.LOCK_EX)
         try:
-            yield
+            fcntl.flock(f, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
+        except BlockingIOError:
+            yield False
+            return
+        try:
+            yield True
         finally:
             fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def in_turn(items, attempt) -> list:
+    """attempt(item, wait) for every item, results in items' order, taking first whatever no other
+    process holds: each pass tries every pending item with wait=False (attempt returns None where
+    another process holds it), and a pass that finished none waits for the first pending item
+    (wait=True: attempt must then return its result). Processes working through the same items
+    with locks per item so share them out instead of queueing behind one another."""
+    out = [None] * len(items)
+    pending = list(range(len(items)))
+    while pending:
+        left = []
+        for i in pending:
+            got = attempt(items[i], False)
+            if got is None:
+                left.append(i)
+            else:
+                out[i] = got
+        if left and len(left) == len(pending):
+            i = left.pop(0)
+            out[i] = attempt(items[i], True)
+        pending = left
+    return out
 
 
 def parse_part(text: str | None) -> tuple[int, int] | None:

@@ -449,6 +449,7 @@ def test_truth_cache_returns_the_simulated_batch_waits_for_a_writer_and_misses_o
     entry.unlink()
     got = {}
     with exclusive(entry.with_suffix(".lock")):
+        assert E.simulate_truth(cfg, "mug", policy, params, seeds, keys, rng, "cpu", renderer, wait=False) is None
         waiting = threading.Thread(target=lambda: got.update(E.simulate_truth(
             cfg, "mug", policy, params, seeds, keys, rng, "cpu", renderer)))
         waiting.start()

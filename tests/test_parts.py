@@ -1,10 +1,12 @@
 """sim_data.parts: a job spread over processes, one per GPU."""
 
 import sys
+import threading
+import time
 
 import pytest
 
-from sim_data.parts import local_gpus, parse_part, run_parallel, take
+from sim_data.parts import exclusive, in_turn, local_gpus, parse_part, run_parallel, take
 
 
 def test_parts_cover_the_work_once():
@@ -28,3 +30,27 @@ def test_processes_get_one_gpu_each_and_a_failure_names_its_log(tmp_path, monkey
     fail = "import sys; print('the reason'); sys.exit(3)"
     with pytest.raises(RuntimeError, match=r"(?s)1 of 2 processes failed; part 1 exited with 3.*the reason"):
         run_parallel([[sys.executable, "-c", "pass"], [sys.executable, "-c", fail]], ["0", "1"], tmp_path / "logs")
+
+
+def test_in_turn_takes_what_no_other_holds_first_and_keeps_the_order(tmp_path):
+    done = []
+
+    def attempt(i, wait):
+        with exclusive(tmp_path / f"{i}.lock", wait) as held:
+            if not held:
+                return None
+            done.append(i)
+            return 10 * i
+
+    got = []
+    with exclusive(tmp_path / "0.lock"):  # another process works on item 0
+        worker = threading.Thread(target=lambda: got.extend(in_turn(list(range(6)), attempt)))
+        worker.start()
+        for _ in range(600):
+            if len(done) == 5:
+                break
+            time.sleep(0.05)
+        assert done == [1, 2, 3, 4, 5] and not got and worker.is_alive()  # then it waits for item 0
+    worker.join(30)
+    assert done == [1, 2, 3, 4, 5, 0] and got == [0, 10, 20, 30, 40, 50]
+    assert in_turn([], attempt) == []
