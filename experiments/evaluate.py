@@ -569,9 +569,9 @@ def simulate_truth(cfg: EvalConfig, task: str, policy, params, seeds, reset_keys
     """Closed-loop simulator episodes of P stacked policies from n initial states, or the same read
     back from cfg.truth_cache (a process that finds another simulating the same batch waits for it,
     under a lock file beside the cache entry, and reads its outcomes; with wait=False it returns None
-    at once instead). Returns {"outcome": (P, n)
-    bool, "frames0": (P*n, 1, S, S, 3) uint8, "proprio0": (P*n, 1, 37), "steps": int, and "frames":
-    (P*n, T+1, S, S, 3), "proprio": (P*n, T+1, 37) and "action": (P*n, T, 20) where simulated}."""
+    at once instead). Returns {"outcome": (P, n) bool, "frames0": (P*n, 1, S, S, 3) uint8,
+    "proprio0": (P*n, 1, 37), "steps": int, and "frames": (P*n, T+1, S, S, 3), "proprio": (P*n,
+    T+1, 37) and "action": (P*n, T, 20) where simulated}."""
     if not cfg.truth_cache:
         return _simulate(task, policy, params, seeds, reset_keys, rng, engine, renderer)
     path = Path(cfg.truth_cache) / f"{task}-{_truth_key(task, policy, params, seeds, rng, engine, renderer)}.npz"
