@@ -112,6 +112,36 @@ def test_loader_windows_epochs_and_resume(two_shards):
         C.WindowLoader(cache, window, batch, split=None, cameras=["top_cam"])
 
 
+def test_a_repeated_episode_counts_its_windows_that_many_times_an_epoch(two_shards):
+    from wm.config import make_config
+    from wm.train import failed_attempts_repeated
+
+    cache = C.TrainingCache(two_shards)
+    window, batch = 16, 4
+    recs = cache.episodes
+    times = {i: 1 + i % 3 for i in range(len(recs))}  # 1, 2, 3, 1, ...: one episode left at once
+    loader = C.WindowLoader(cache, window, batch, split=None, seed=3,
+                            repeat=lambda rec: times[recs.index(rec)])
+    per_episode = {i: r["length"] - window + 1 for i, r in enumerate(recs)}
+    assert loader.windows == sum(times[i] * n for i, n in per_episode.items())
+    assert sorted(loader.distinct.tolist()) == list(range(len(recs)))
+    drawn = {}
+    every = loader.gather(np.arange(loader.windows))  # an epoch's windows, all of them
+    for e, s in zip(every["episode"], every["start"]):
+        drawn[(int(e), int(s))] = drawn.get((int(e), int(s)), 0) + 1
+    assert drawn == {(i, s): times[i] for i, n in per_episode.items() for s in range(n)}
+    with pytest.raises(ValueError, match="a count >= 0"):
+        C.WindowLoader(cache, window, batch, split=None, repeat=lambda rec: 1.5)
+    # the training run's rule: failed task attempts `times`, the rest (successes, play, programs) once
+    rule = failed_attempts_repeated(4)
+    assert rule({"policy_kind": "scripted", "success": False}) == 4
+    assert rule({"policy_kind": "weak_grip", "success": False}) == 4
+    assert rule({"policy_kind": "learned", "success": True}) == 1
+    assert rule({"policy_kind": "play", "success": False}) == rule({"policy_kind": "program", "success": False}) == 1
+    with pytest.raises(ValueError, match="fail_repeat"):
+        make_config("smoke", ["fail_repeat=0"])
+
+
 def test_replay_reproduces_recorded_episodes(smoke_dataset):
     _, out, _ = smoke_dataset
     files = sorted((out / "episodes").glob("*.mcap"))

@@ -45,6 +45,9 @@ class TrainConfig:
         divergence of the code's posterior from its prior (wm.metrics.gaussian_kl), balanced as
         DreamerV3's: 0.8 of it trains the prior towards the posterior, 0.2 the posterior towards the
         prior, the latter counted only above free_nats nats a frame (a code that carries less is free).
+        fail_repeat: how many times each failed task attempt (a scripted, learned or weak-grip episode
+        that did not succeed) counts in a training epoch (1: as every other episode): more grasps that
+        slip for a model whose imagined grasps hold too often.
         w_scene: with model.scene, of the squared error of the predicted next scene state, standardised
         by the training split's statistics (wm.imagine.Norm.scene).
       log_every, eval_every, ckpt_every: in steps (eval and checkpoints at multiples of log_every).
@@ -93,6 +96,7 @@ class TrainConfig:
     w_kl: float = 0.01
     free_nats: float = 1.0
     w_scene: float = 1.0
+    fail_repeat: int = 1
     log_every: int = 50
     eval_every: int = 500
     ckpt_every: int = 500
@@ -145,6 +149,8 @@ class TrainConfig:
             raise ValueError("judge_inputs names \"scene\", which only a model with model.scene predicts")
         if self.model.scene and self.w_scene <= 0:
             raise ValueError(f"model.scene needs w_scene > 0 (its head learns from that loss alone); got {self.w_scene}")
+        if self.fail_repeat < 1:
+            raise ValueError(f"fail_repeat counts each failed task attempt that many times, >= 1; got {self.fail_repeat}")
         if self.max_minutes < 0:
             raise ValueError(f"max_minutes is a safety stop in minutes (0: none), got {self.max_minutes}")
         if self.rollout_passes < 0 or self.lr <= 0:

@@ -71,6 +71,14 @@ def compute_norm(cache: TrainingCache, ids=None) -> Norm:
                 scene_mean=jnp.asarray(scene.mean(0)), scene_std=jnp.asarray(np.maximum(scene.std(0), 1e-2)))
 
 
+ATTEMPT_KINDS = ("scripted", "learned", "weak_grip")  # episodes that try the task (not play, not programs)
+
+
+def failed_attempts_repeated(times: int):
+    """A WindowLoader `repeat`: a failed task attempt (ATTEMPT_KINDS, not successful) `times`, every other episode once."""
+    return lambda rec: times if rec.get("policy_kind") in ATTEMPT_KINDS and not rec["success"] else 1
+
+
 def model_batch(batch: dict, camera: str, anchor: bool = False, scene: bool = False) -> dict:
     """The loader's batch reduced to what the model trains on (with anchor: and the episodes' first
     frames, "anchor" (B, S, S, 3) uint8, and the windows' first steps in their episodes, "start" (B,)
@@ -313,12 +321,13 @@ class Run:
         part = (jax.process_index(), jax.process_count())
         self.loader = WindowLoader(self.cache, cfg.window, cfg.batch, split="train", seed=cfg.seed, part=part,
                                    first_frames=cfg.model.anchor,
-                                   cameras=[cfg.camera], tasks=cfg.train_tasks or None, fraction=cfg.train_fraction)
+                                   cameras=[cfg.camera], tasks=cfg.train_tasks or None, fraction=cfg.train_fraction,
+                                   repeat=failed_attempts_repeated(cfg.fail_repeat) if cfg.fail_repeat > 1 else None)
         norm_path = self.out / "norm.json"
         if norm_path.exists():
             self.norm = Norm.from_dict(json.loads(norm_path.read_text()))
         else:
-            self.norm = compute_norm(self.cache, [int(i) for i in self.loader.episodes])
+            self.norm = compute_norm(self.cache, [int(i) for i in self.loader.distinct])
             write_json_atomic(norm_path, self.norm.to_dict())
         self.val = WindowLoader(self.cache, cfg.window, cfg.batch, split="val", seed=1234, cameras=[cfg.camera],
                                 part=part, first_frames=cfg.model.anchor) if self.cache.select("val") else None

@@ -280,11 +280,21 @@ def window_episodes(cache: TrainingCache, window: int, split: str | None = "trai
                      if cache.episodes[i]["length"] >= window], np.int64)
 
 
+def _repeat_count(repeat, record: dict) -> int:
+    n = repeat(record)
+    if int(n) != n or n < 0:
+        raise ValueError(f"repeat gave {n!r} for episode {record.get('episode_id')}: a count >= 0 is needed")
+    return int(n)
+
+
 class WindowLoader:
     """Shuffled fixed-length windows of a cache's episodes, gathered ahead by background threads.
 
     Every start position of every selected episode is one window; an epoch visits them all in
     an order drawn from (seed, epoch), in batches of `batch` (the last partial batch is dropped).
+    `repeat(record)`, given, says how many times an episode's windows count in an epoch (its index
+    record, TrainingCache.episodes; default once each): `episodes` lists an episode that often,
+    `distinct` once.
     `state()` after a batch and `restore(state)` in a new loader continue the same sequence.
     `part=(i, n)` yields the i-th of n equal row blocks of each batch (B = batch / n rows): n
     processes that each take their part train on the same global batches as one process would.
@@ -299,7 +309,7 @@ class WindowLoader:
 
     def __init__(self, cache: TrainingCache, window: int, batch: int, split: str | None = "train", seed: int = 0,
                  cameras=None, tasks=None, fraction: float = 1.0, prefetch: int = 8, threads: int = 4,
-                 part: tuple[int, int] = (0, 1), first_frames: bool = False):
+                 part: tuple[int, int] = (0, 1), first_frames: bool = False, repeat=None):
         if window < 1 or batch < 1:
             raise ValueError(f"window and batch must be >= 1, got {window}, {batch}")
         index, count = part
@@ -312,7 +322,9 @@ class WindowLoader:
         bad = [c for c in self.cameras if c not in cache.cameras]
         if bad:
             raise ValueError(f"cameras {bad} are not in the cache (it has {cache.cameras})")
-        self.episodes = window_episodes(cache, window, split, tasks, fraction)
+        self.distinct = window_episodes(cache, window, split, tasks, fraction)
+        self.episodes = self.distinct if repeat is None else np.repeat(
+            self.distinct, [_repeat_count(repeat, cache.episodes[i]) for i in self.distinct])
         counts = np.array([cache.episodes[i]["length"] - window + 1 for i in self.episodes], np.int64)
         if counts.sum() < batch:
             raise ValueError(f"split {split!r} has {int(counts.sum())} windows of length {window}, fewer than a batch "
