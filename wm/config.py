@@ -150,7 +150,8 @@ class TrainConfig:
         if self.model.scene and self.w_scene <= 0:
             raise ValueError(f"model.scene needs w_scene > 0 (its head learns from that loss alone); got {self.w_scene}")
         if self.fail_repeat < 1:
-            raise ValueError(f"fail_repeat counts each failed task attempt that many times, >= 1; got {self.fail_repeat}")
+            raise ValueError(f"fail_repeat counts each failed task attempt that many times (>= 1); "
+                             f"got {self.fail_repeat}")
         if self.max_minutes < 0:
             raise ValueError(f"max_minutes is a safety stop in minutes (0: none), got {self.max_minutes}")
         if self.rollout_passes < 0 or self.lr <= 0:

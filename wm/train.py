@@ -75,7 +75,7 @@ ATTEMPT_KINDS = ("scripted", "learned", "weak_grip")  # episodes that try the ta
 
 
 def failed_attempts_repeated(times: int):
-    """A WindowLoader `repeat`: a failed task attempt (ATTEMPT_KINDS, not successful) `times`, every other episode once."""
+    """A WindowLoader `repeat`: a failed task attempt (ATTEMPT_KINDS, unsuccessful) `times`, any other episode once."""
     return lambda rec: times if rec.get("policy_kind") in ATTEMPT_KINDS and not rec["success"] else 1
 
 
