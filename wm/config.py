@@ -47,7 +47,8 @@ class TrainConfig:
         prior, the latter counted only above free_nats nats a frame (a code that carries less is free).
         fail_repeat: how many times each failed task attempt (a scripted, learned or weak-grip episode
         that did not succeed) counts in a training epoch (1: as every other episode): more grasps that
-        slip for a model whose imagined grasps hold too often.
+        slip for a model whose imagined grasps hold too often. The episode judge draws its training
+        episodes from the same list, so it weighs them alike.
         w_scene: with model.scene, of the squared error of the predicted next scene state, standardised
         by the training split's statistics (wm.imagine.Norm.scene).
       log_every, eval_every, ckpt_every: in steps (eval and checkpoints at multiples of log_every).
