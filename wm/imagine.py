@@ -140,7 +140,7 @@ def init_state(cfg: ModelConfig, params, norm: Norm, frames, proprio, actions, a
         k, v = out["k"][:, :, :-1], out["v"][:, :, :-1]
     return ImagineState(z=z, proprio=p, action=a, valid=valid,
                         frame=frames[:, -1].astype(jnp.float32) / 255.0, success=jnp.zeros((b,)),
-                        outcome=jnp.zeros((b,)), progress=jnp.zeros((b,)), scene=jnp.zeros((b, scene_width(cfg))),
+                        outcome=jnp.zeros((b,)), progress=jnp.zeros((b,)), scene=jnp.zeros((b, cfg.scene_width)),
                         k=k, v=v, anchor=first, clock=clock)
 
 
@@ -220,7 +220,7 @@ def step_features(norm: Norm, state: ImagineState, action) -> jax.Array:
 
 def _join_features(proprio, action, z, scene, heads) -> jax.Array:
     """(B, F) step features, blocks in FEATURE_GROUPS order: proprio (B, 37) and action (B, 20)
-    standardised, the latent grid z (B, s, s, C) pooled, the scene state (B, scene_width), heads
+    standardised, the latent grid z (B, s, s, C) pooled, the scene state (B, cfg.scene_width), heads
     (success, outcome, progress) each (B,)."""
     return jnp.concatenate([proprio, action, pool_latents(z), scene] + [h[:, None] for h in heads], axis=-1)
 
@@ -234,14 +234,9 @@ def pool_latents(z) -> jax.Array:
 SUCCESS_FEATURE, OUTCOME_FEATURE, PROGRESS_FEATURE = -3, -2, -1  # where step_features keeps the heads' outputs
 
 
-def scene_width(cfg: ModelConfig) -> int:
-    """Columns of the predicted scene state in ImagineState and step_features: cfg.scene_dim with cfg.scene, else 0."""
-    return cfg.scene_dim if cfg.scene else 0
-
-
 def _feature_sizes(cfg: ModelConfig) -> tuple:
     """The widths of step_features' blocks, in FEATURE_GROUPS order."""
-    return (cfg.proprio_dim, cfg.action_dim, 4 * cfg.latent, scene_width(cfg), 1, 1, 1)
+    return (cfg.proprio_dim, cfg.action_dim, 4 * cfg.latent, cfg.scene_width, 1, 1, 1)
 
 
 def feature_dim(cfg: ModelConfig) -> int:

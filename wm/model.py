@@ -132,6 +132,11 @@ class ModelConfig:
             raise ValueError(f"stochastic is a latent's size (0: none), got {self.stochastic}")
 
     @property
+    def scene_width(self) -> int:
+        """Columns of the predicted scene state (the head's output, imagination's, the judge's): scene_dim or 0."""
+        return self.scene_dim if self.scene else 0
+
+    @property
     def tokens_per_frame(self) -> int:
         return (LATENT_SIDE // self.patch) ** 2
 
@@ -499,7 +504,7 @@ class Dynamics(nn.Module):
             nn.silu(cond).astype(jnp.float32)).reshape(b, t, LATENT_SIDE, LATENT_SIDE, 2)
         flow = unpatchify(flow.astype(jnp.float32), cfg.patch, 2) + ego
         pooled = h.mean(axis=2).astype(jnp.float32)
-        width = cfg.proprio_dim + 3 + (cfg.scene_dim if cfg.scene else 0)
+        width = cfg.proprio_dim + 3 + cfg.scene_width
         heads = nn.Dense(width, dtype=jnp.float32)(nn.silu(nn.Dense(cfg.dim, dtype=jnp.float32)(pooled)))
         # clipped like the standardised inputs, so that a long imagined rollout cannot diverge
         p_out = jnp.clip(p_next + heads[..., :cfg.proprio_dim], -INPUT_CLIP, INPUT_CLIP)
