@@ -102,6 +102,19 @@ def test_a_family_level_runs_its_base_checkpoint_with_the_knob_applied(smoke_zoo
     np.testing.assert_allclose(got[:, :16], want[:, :16], atol=1e-6)
 
 
+def test_a_family_joins_only_the_tasks_it_names():
+    cfg = dataclasses.replace(zoo.make_config("smoke"), tasks=("mug", "step_back"), families=(
+        zoo.Family("all", "conv_proprio", "noise", (0.1, 0.2)),
+        zoo.Family("driving", "conv_proprio", "drive", (0.5,), tasks=("step_back",))))
+    registry = [{"name": f"{t}/conv_proprio/{s}", "task": t, "lineage": "conv_proprio", "step": s,
+                 "variant": {}, "checkpoint": f"ck/{t}/{s}", "net": "conv"} for t in cfg.tasks for s in (2, 4)]
+    names = [r["name"] for r in zoo.family_records(cfg, registry)]
+    assert names == ["mug/all/0.1", "mug/all/0.2", "step_back/all/0.1", "step_back/all/0.2", "step_back/driving/0.5"]
+    bad = dataclasses.replace(cfg, families=(zoo.Family("driving", "conv_proprio", "drive", (0.5,), tasks=("wipe",)),))
+    with pytest.raises(ValueError, match="wipe"):
+        bad.validate()
+
+
 def test_learned_policies_follow_the_protocol_and_stack(smoke_zoo):
     out, _ = smoke_zoo
     sources = resolve([f"{out}#conv_proprio+conv_noproprio"])

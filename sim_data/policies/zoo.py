@@ -83,12 +83,15 @@ class Lineage:
 @dataclasses.dataclass(frozen=True)
 class Family:
     """A counterfactual family (sim_data.policies.degrade): the last checkpoint of lineage `base`, its actions
-    degraded by `knob` (noise, delay, grip or drive) at each of `levels`; no training of its own."""
+    degraded by `knob` (noise, delay, grip or drive) at each of `levels`; no training of its own. tasks: the
+    zoo's tasks it joins (empty: all of them); a knob a task never exercises (drive where the robot stands)
+    would only repeat the base policy in that task's ranking."""
 
     name: str
     base: str
     knob: str
     levels: tuple = ()
+    tasks: tuple = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -152,6 +155,9 @@ class ZooConfig:
                 raise ValueError(f"family {fam.name}: knob must be one of {KNOBS} with at least one level")
             for level in fam.levels:
                 degrade_params(None, **{fam.knob: level})  # raises on a level out of range
+            if not set(fam.tasks) <= set(self.tasks):
+                raise ValueError(f"family {fam.name}: tasks {list(fam.tasks)} are not all among the zoo's "
+                                 f"{list(self.tasks)}")
         self.conv.validate()
         self.vit.validate()
 
@@ -176,13 +182,15 @@ PRESETS = {
                        val_batches=1, group=2, conv=PolicyNetConfig(width=8, hidden=32),
                        vit=PolicyNetConfig(encoder="vit", width=16, depth=1, hidden=32),
                        families=(Family("conv_proprio~grip", "conv_proprio", "grip", (0.0, 1.0)),)),
-    # 4 checkpoints a lineage and two families leave the evaluation 16 episodes a policy in the demo's time;
-    # the families degrade conv_noproprio, the lineage that learns the mug (conv_proprio fails it)
-    "demo": ZooConfig(tasks=("mug", "step_back"), lineages=LINEAGES_MAIN, steps=1000, checkpoints=4, first_step=5,
+    # 3 checkpoints a lineage and two families (12 policies on mug, 15 on step_back) leave the evaluation
+    # 16 episodes a policy in the demo's time; the families degrade conv_noproprio, the lineage that learns
+    # the mug (conv_proprio fails it); the drive family only where the robot drives
+    "demo": ZooConfig(tasks=("mug", "step_back"), lineages=LINEAGES_MAIN, steps=1000, checkpoints=3, first_step=5,
                       batch=32, val_batches=4, conv=PolicyNetConfig(width=16, hidden=128),
                       vit=PolicyNetConfig(encoder="vit", width=32, depth=2, hidden=128),
                       families=(Family("conv_noproprio~noise", "conv_noproprio", "noise", (0.1, 0.2, 0.4)),
-                                Family("conv_noproprio~drive", "conv_noproprio", "drive", (0.5, 1.5, 2.0)))),
+                                Family("conv_noproprio~drive", "conv_noproprio", "drive", (0.5, 1.5, 2.0),
+                                       tasks=("step_back",)))),
     "full": ZooConfig(tasks=("mug", "wipe", "airfryer"), steps=5000, checkpoints=8, first_step=20, batch=256,
                       val_batches=8, shift=4, group=0, sequential=("conv",),
                       lineages=LINEAGES_MAIN + (Lineage("conv_noproprio_few", proprio=False, demos=24),
@@ -497,7 +505,7 @@ def family_records(cfg: ZooConfig, registry: list[dict]) -> list[dict]:
     and no imitation loss: the network is the base's, which the loss alone cannot tell apart)."""
     out = []
     for task in cfg.tasks:
-        for fam in cfg.families:
+        for fam in (f for f in cfg.families if not f.tasks or task in f.tasks):
             base = max((r for r in registry if r["task"] == task and r["lineage"] == fam.base),
                        key=lambda r: r["step"])
             for level in fam.levels:
