@@ -13,11 +13,12 @@ CONFIG ?= demo
 
 .PHONY: setup demo full test test-slow bench success-table data render-check train bundle policies eval report videos export-lerobot sweep clean
 
-# uv installs the same pinned packages as pip in about a third of the time (17 s against 43 s on 2 cores)
+# uv installs the same pinned packages as pip in less time (27 s against 43 s on 2 cores); compiled to
+# bytecode at install as pip does, since a PYTHONDONTWRITEBYTECODE environment never caches it on import
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q uv==0.13.9
-	$(PY) -m uv pip install -q --python $(PY) -e '.[dev]'
+	$(PY) -m uv pip install -q --compile-bytecode --python $(PY) -e '.[dev]'
 	touch $(STAMP)
 
 setup: $(STAMP)
