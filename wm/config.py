@@ -169,9 +169,9 @@ PRESETS = {
     "smoke": TrainConfig(model=SMOKE_MODEL, batch=2, window=6, steps=30, lr=3e-3, warmup=5, log_every=5,
                          eval_every=10, ckpt_every=10, val_batches=1, eval_context=2, eval_episodes=2,
                          eval_horizons=(1, 4), control_horizon=4, judge_episodes=8, judge_steps=20),
-    # 1200 steps take about 8 minutes of a 2-core AMD EPYC (0.36 s a step, 0.41 s with the loader, the
+    # 1100 steps take about 7.5 minutes of a 2-core AMD EPYC (0.35 s a step, 0.41 s with the loader, the
     # validations and the checkpoints), inside the demo's 20 minutes with its set-up; max_minutes is the safety stop
-    "demo": TrainConfig(model=DEMO_MODEL, batch=8, window=10, steps=1200, max_minutes=15.0, lr=1e-3, warmup=50,
+    "demo": TrainConfig(model=DEMO_MODEL, batch=8, window=10, steps=1100, max_minutes=15.0, lr=1e-3, warmup=50,
                         cooldown=0.3, log_every=25, eval_every=250, ckpt_every=250, val_batches=2, eval_context=4,
                         eval_episodes=24, eval_horizons=(1, 4, 8, 16), control_horizon=16, judge_steps=600),
     # the sub-pixel decoder (a faster step at equal quality), the keep gate and re-encoding imagination:
