@@ -115,6 +115,22 @@ def test_a_family_joins_only_the_tasks_it_names():
         bad.validate()
 
 
+def test_a_lineage_trains_only_on_the_tasks_it_names():
+    main = zoo.make_config("smoke").lineages
+    only_mug = tuple(dataclasses.replace(lin, tasks=("mug",)) if lin.name != "conv_proprio" else lin for lin in main)
+    cfg = dataclasses.replace(zoo.make_config("smoke"), tasks=("mug", "step_back"), lineages=only_mug,
+                              families=(zoo.Family("driving", "conv_proprio", "drive", (0.5,), tasks=("step_back",)),))
+    cfg.validate()
+    assert [(t, lin.name) for t, lin in cfg.lineage_jobs()] == [
+        ("mug", "conv_proprio"), ("mug", "conv_noproprio"), ("mug", "vit_noproprio"), ("step_back", "conv_proprio")]
+    with pytest.raises(ValueError, match="wipe"):
+        dataclasses.replace(cfg, lineages=(dataclasses.replace(main[0], tasks=("wipe",)),) + main[1:]).validate()
+    # a family cannot degrade a lineage on a task the lineage is not trained on
+    orphan = zoo.Family("driving", "conv_noproprio", "drive", (0.5,), tasks=("step_back",))
+    with pytest.raises(ValueError, match="base lineage conv_noproprio"):
+        dataclasses.replace(cfg, families=(orphan,)).validate()
+
+
 def test_learned_policies_follow_the_protocol_and_stack(smoke_zoo):
     out, _ = smoke_zoo
     sources = resolve([f"{out}#conv_proprio+conv_noproprio"])
