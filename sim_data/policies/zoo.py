@@ -66,6 +66,11 @@ from sim_data.util import make_output_dir, run_cli, wilson_interval, write_json_
 CAMERA = "head_cam"
 
 
+def joins(tasks: tuple, task: str) -> bool:
+    """Whether a lineage or family whose `tasks` field is `tasks` takes part in `task` (empty: every task)."""
+    return not tasks or task in tasks
+
+
 @dataclasses.dataclass(frozen=True)
 class Lineage:
     """One checkpoint series. encoder: "conv" or "vit"; proprio: the policy sees proprioception;
@@ -176,7 +181,7 @@ class ZooConfig:
 
     def lineage_jobs(self) -> list[tuple[str, Lineage]]:
         """(task, lineage) of every lineage to train, task by task in the order of tasks and lineages."""
-        return [(t, lin) for t in self.tasks for lin in self.lineages if not lin.tasks or t in lin.tasks]
+        return [(t, lin) for t in self.tasks for lin in self.lineages if joins(lin.tasks, t)]
 
     def checkpoint_steps(self) -> list[int]:
         steps = np.geomspace(min(self.first_step, self.steps), self.steps, self.checkpoints)
@@ -525,7 +530,7 @@ def family_records(cfg: ZooConfig, registry: list[dict]) -> list[dict]:
     and no imitation loss: the network is the base's, which the loss alone cannot tell apart)."""
     out = []
     for task in cfg.tasks:
-        for fam in (f for f in cfg.families if not f.tasks or task in f.tasks):
+        for fam in (f for f in cfg.families if joins(f.tasks, task)):
             base = max((r for r in registry if r["task"] == task and r["lineage"] == fam.base),
                        key=lambda r: r["step"])
             for level in fam.levels:
