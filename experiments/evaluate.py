@@ -253,9 +253,10 @@ def task_batches(cfg: EvalConfig, sources, n: int) -> list[tuple[int, int, list,
 def chunk_policy(padded, n: int) -> tuple:
     """(policy, params) running a batch's sources side by side, n episodes each: a StackedPolicy of each
     architecture's checkpoints, in a MixedPolicy where the batch holds several architectures (one
-    compiled rollout, in the simulator and in the world model, for all of them)."""
+    compiled rollout, in the simulator and in the world model, for all of them); each source salted by
+    its name, so that a stochastic policy draws the same numbers whatever shares its batch."""
     groups = group_by_policy(padded)
-    stacks = [stacked(g[0].policy, [s.params for s in g]) for g in groups]
+    stacks = [stacked(g[0].policy, [s.params for s in g], [s.salt for s in g]) for g in groups]
     if len(stacks) == 1:
         return stacks[0]
     return (MixedPolicy(tuple(p for p, _ in stacks), tuple(len(g) * n for g in groups)),
@@ -306,13 +307,12 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
     def run_batch(batch, wait: bool) -> list | None:
         """One batch's rows [(name, slice, {key: the policy's array over the slice's states})]; None
         where another process is simulating its truth (wait=False)."""
-        k, j, part, padded = batch
+        _, j, part, padded = batch
         s0, s1 = slices[j]
         n = s1 - s0
         policy, params = chunk_policy(padded, n)
-        rng = jax.random.PRNGKey(cfg.seed * 7919 + k)
-        if j:  # the first slice keeps the batch's key: a task of one slice is evaluated as without slices
-            rng = jax.random.fold_in(rng, j)
+        # a key per slice of states, whatever the batch: each policy draws by its own salt (chunk_policy)
+        rng = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), j)
         t0 = time.perf_counter()
         truth = simulate_truth(cfg, task, policy, params, seeds[s0:s1], reset_keys[s0:s1], rng, engine, renderer,
                                wait)

@@ -7,7 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sim_data.policies.bc import MixedPolicy, StackedPolicy, stack_params
+from experiments.evaluate import chunk_policy
+from sim_data.policies.bc import MixedPolicy, StackedPolicy, stack_params, stacked
 from sim_data.policies.degrade import (
     KNOBS,
     MAX_DELAY,
@@ -18,6 +19,7 @@ from sim_data.policies.degrade import (
     perturbation,
     perturbed_params,
 )
+from sim_data.policies.registry import PolicySource
 from sim_data.sim import robot as R
 
 
@@ -84,7 +86,7 @@ def test_levels_stack_into_one_program_and_bad_levels_are_refused():
 
 def test_a_mixed_batch_acts_as_its_policies_run_apart():
     """Noisy degraded ramps (2 levels x 2 episodes) beside plain ramps (3 levels x 2 episodes): every
-    row's actions are those of its own policy run alone on its rows with its share of the key."""
+    row's actions are those of its own policy run alone on its rows with the batch's key."""
     noisy = StackedPolicy(DegradedPolicy(Ramp()))
     noisy_params = stack_params([degrade_params({"slope": jnp.float32(s)}, noise=0.2, delay=2) for s in (1.0, 2.0)])
     plain = StackedPolicy(Ramp())
@@ -94,16 +96,14 @@ def test_a_mixed_batch_acts_as_its_policies_run_apart():
     obs = {"image": jnp.zeros((10, 8, 8, 3), jnp.uint8),
            "proprio": jnp.arange(10.0)[:, None] * jnp.ones((10, R.PROPRIO_DIM))}
     carry = mixed.init_carry(params, obs, None, jax.random.PRNGKey(0))
-    apart = [pol.init_carry(q, {k: v[s] for k, v in obs.items()}, None, key)
-             for pol, q, s, key in zip((noisy, plain), params, (slice(0, 4), slice(4, 10)),
-                                       jax.random.split(jax.random.PRNGKey(0), 2))]
+    apart = [pol.init_carry(q, {k: v[s] for k, v in obs.items()}, None, jax.random.PRNGKey(0))
+             for pol, q, s in zip((noisy, plain), params, (slice(0, 4), slice(4, 10)))]
     for t in range(5):
         rng = jax.random.PRNGKey(100 + t)
         action, carry = mixed.act(params, obs, carry, rng)
-        keys = jax.random.split(rng, 2)
         want = []
         for k, (pol, q, s) in enumerate(zip((noisy, plain), params, (slice(0, 4), slice(4, 10)))):
-            a, apart[k] = pol.act(q, {n: v[s] for n, v in obs.items()}, apart[k], keys[k])
+            a, apart[k] = pol.act(q, {n: v[s] for n, v in obs.items()}, apart[k], rng)
             want.append(np.asarray(a))
         np.testing.assert_array_equal(np.asarray(action), np.concatenate(want))
     np.testing.assert_allclose(np.asarray(action)[4:6, 0], 0.5 * 5)  # plain ramp at slope 0.5, step 5
@@ -111,6 +111,28 @@ def test_a_mixed_batch_acts_as_its_policies_run_apart():
         mixed.act(params, {k: v[:8] for k, v in obs.items()}, carry, rng)
     with pytest.raises(ValueError, match="one positive row count"):
         MixedPolicy((noisy, plain), (4,))
+
+
+def test_a_salted_policy_draws_the_same_noise_wherever_it_stands_in_the_batch():
+    """The evaluator's batches (experiments.evaluate.chunk_policy): a noisy policy alone, and the same
+    policy behind a plain one and another noisy one, in a MixedPolicy: its rows get the same actions;
+    unsalted, its place in the stack decides its draws."""
+    n = 3
+    level = lambda noise, slope: degrade_params({"slope": jnp.float32(slope)}, noise=noise)
+    mine = PolicySource("mine~noise/0.2", "learned", "mug", DegradedPolicy(Ramp()), level(0.2, 1.0), {})
+    other = PolicySource("other~noise/0.4", "learned", "mug", DegradedPolicy(Ramp()), level(0.4, 2.0), {})
+    plain = PolicySource("plain", "plugin", None, Ramp(), {"slope": jnp.float32(0.5)}, {})
+    alone = _run(*chunk_policy([mine], n), steps=6, b=n)
+    beside = _run(*chunk_policy([plain, other, mine], n), steps=6, b=3 * n)
+    np.testing.assert_array_equal(beside[2 * n:], alone)  # plain's rows, then the noisy stack's: other, mine
+    assert np.abs(beside[n:2 * n, :, 0] - 2.0 * np.arange(1, 7)).max() > 0.05  # other's own noise
+    assert not np.array_equal(beside[n:2 * n] - 2.0 * np.arange(1, 7)[:, None], alone - np.arange(1, 7)[:, None])
+    unsalted = StackedPolicy(DegradedPolicy(Ramp()))
+    first = _run(unsalted, stack_params([mine.params, other.params]), steps=6, b=2 * n)[:n]
+    second = _run(unsalted, stack_params([other.params, mine.params]), steps=6, b=2 * n)[n:]
+    assert not np.array_equal(first, second)
+    with pytest.raises(ValueError, match="2 salts for 1"):
+        stacked(Ramp(), [plain.params], [1, 2])
 
 
 def test_every_policy_of_the_project_follows_the_protocol():

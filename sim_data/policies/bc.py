@@ -212,11 +212,15 @@ class StackedPolicy:
     policies one after another inside the program (`lax.map`) instead of side by side (`vmap`):
     vmapped convolutions become grouped convolutions, which run several times slower than the same
     convolutions one parameter set at a time (`stacked` sets it for policies whose `stacks_in_turn`
-    is true); the actions agree to float rounding."""
+    is true); the actions agree to float rounding. salted: params is {"params": the stacked tree,
+    "salt": (P,) uint32} and set i draws its random numbers from the call's key folded with salt[i]
+    instead of from the i-th split of it, so that a policy given a salt of its own (its name's, for
+    instance) draws the same numbers wherever it stands in the batch."""
 
     policy: object
     size: int = 0
     in_turn: bool = False
+    salted: bool = False
 
     @staticmethod
     def _split(x, p):
@@ -224,6 +228,8 @@ class StackedPolicy:
 
     def count(self, params) -> int:
         """P, the parameter sets stacked in params."""
+        if self.salted:
+            return params["salt"].shape[0]
         leaves = jax.tree_util.tree_leaves(params)
         if leaves:
             return leaves[0].shape[0]
@@ -238,17 +244,23 @@ class StackedPolicy:
             return jax.lax.map(lambda args: fn(*args), stacks)
         return jax.vmap(fn)(*stacks)
 
+    def _keys(self, params, rng) -> tuple:
+        """(the stacked parameter tree, (P,) keys: one per parameter set)."""
+        if self.salted:
+            return params["params"], jax.vmap(jax.random.fold_in, (None, 0))(rng, params["salt"])
+        return params, jax.random.split(rng, self.count(params))
+
     def init_carry(self, params, obs, task_state, rng):
         p = self.count(params)
         split = lambda tree: jax.tree_util.tree_map(lambda x: self._split(x, p), tree)
-        keys = jax.random.split(rng, p)
+        params, keys = self._keys(params, rng)
         carry = self._each(self.policy.init_carry, params, split(obs), split(task_state), keys)
         return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), carry)
 
     def act(self, params, obs, carry, rng):
         p = self.count(params)
         split = lambda tree: jax.tree_util.tree_map(lambda x: self._split(x, p), tree)
-        keys = jax.random.split(rng, p)
+        params, keys = self._keys(params, rng)
         action, carry = self._each(self.policy.act, params, split(obs), split(carry), keys)
         merge = lambda tree: jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), tree)
         return merge(action), merge(carry)
@@ -259,7 +271,8 @@ class MixedPolicy:
     """Policy objects of different architectures side by side in one batch: the first rows[0] rows
     run policies[0] with params[0], the next rows[1] policies[1] with params[1], and so on (params: a
     tuple, one tree per policy; the carry a tuple likewise). One compiled rollout then serves a whole
-    zoo, whatever its architectures, instead of one per architecture."""
+    zoo, whatever its architectures, instead of one per architecture. Every policy is given the call's
+    key: salted StackedPolicies draw by their sets' salts, the same whatever else shares the batch."""
 
     policies: tuple
     rows: tuple
@@ -283,15 +296,13 @@ class MixedPolicy:
 
     def init_carry(self, params, obs, task_state, rng):
         self._check(obs)
-        keys = jax.random.split(rng, len(self.policies))
-        return tuple(pol.init_carry(p, _rows(obs, s), None if task_state is None else _rows(task_state, s), k)
-                     for pol, p, s, k in zip(self.policies, params, self._slices(), keys, strict=True))
+        return tuple(pol.init_carry(p, _rows(obs, s), None if task_state is None else _rows(task_state, s), rng)
+                     for pol, p, s in zip(self.policies, params, self._slices(), strict=True))
 
     def act(self, params, obs, carry, rng):
         self._check(obs)
-        keys = jax.random.split(rng, len(self.policies))
-        out = [pol.act(p, _rows(obs, s), c, k)
-               for pol, p, s, c, k in zip(self.policies, params, self._slices(), carry, keys, strict=True)]
+        out = [pol.act(p, _rows(obs, s), c, rng)
+               for pol, p, s, c in zip(self.policies, params, self._slices(), carry, strict=True)]
         return jnp.concatenate([a.astype(jnp.float32) for a, _ in out]), tuple(c for _, c in out)
 
 
@@ -299,11 +310,18 @@ def _rows(tree, s: slice):
     return jax.tree_util.tree_map(lambda x: x[s], tree)
 
 
-def stacked(policy, params_list: list) -> tuple:
+def stacked(policy, params_list: list, salts=None) -> tuple:
     """(StackedPolicy of policy, its stacked parameters): P = len(params_list) parameter sets of one
-    policy object run as one batch (see StackedPolicy), in turn where the policy's `stacks_in_turn` says so."""
+    policy object run as one batch (see StackedPolicy), in turn where the policy's `stacks_in_turn` says so;
+    with salts (P ints), each set's random numbers follow its salt instead of its place (a salted StackedPolicy)."""
     in_turn = bool(getattr(policy, "stacks_in_turn", False))
-    return StackedPolicy(policy, size=len(params_list), in_turn=in_turn), stack_params(params_list)
+    params = stack_params(params_list)
+    if salts is None:
+        return StackedPolicy(policy, size=len(params_list), in_turn=in_turn), params
+    if len(salts) != len(params_list):
+        raise ValueError(f"{len(salts)} salts for {len(params_list)} parameter sets")
+    salt = jax.device_put(np.asarray(salts, np.uint32))
+    return StackedPolicy(policy, size=len(params_list), in_turn=in_turn, salted=True), {"params": params, "salt": salt}
 
 
 def stack_params(params_list: list) -> dict:

@@ -75,6 +75,12 @@ class PolicySource:
     def runs_on(self, task: str) -> bool:
         return self.task is None or self.task == task
 
+    @property
+    def salt(self) -> int:
+        """A number from the name alone (uint32): the evaluator's salt for this policy's random numbers
+        (sim_data.policies.bc.stacked), so that they do not depend on which policies share its batch."""
+        return int.from_bytes(hashlib.sha256(self.name.encode()).digest()[:4], "little")
+
     def episodes_params(self, episodes) -> object:
         """The parameters that run this source's episodes `episodes` (indices, one per row of a batch)."""
         return perturbed_params(self.params, episodes) if self.kind == PERTURBED else self.params

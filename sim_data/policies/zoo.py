@@ -577,12 +577,12 @@ def measure_success(out: Path, episodes: int, seed: int = 0, engine: str = "", b
         keys = np.stack([np.asarray(jax.random.PRNGKey(x)) for x in seeds])
         got = []
         bar = tqdm(total=len(task_sources) * episodes, desc=f"measure {task}", unit="ep", disable=not progress)
-        for k, (part, padded) in enumerate(p for g in group_by_policy(task_sources)
-                                           for p in padded_chunks(g, episodes, batch)):
+        for part, padded in (p for g in group_by_policy(task_sources) for p in padded_chunks(g, episodes, batch)):
             env = cached_env(task, len(padded) * episodes, engine, False)
             renderers = cached_renderers(part[0].policy.cfg.size, ("head_cam",))
-            outcome, _ = record_policies(env, *stacked(part[0].policy, [s.params for s in padded]), keys,
-                                         jax.random.PRNGKey(seed * 7919 + k), renderers)
+            # salted by name, as in the evaluator: a family member draws its noise whatever its batch
+            policy = stacked(part[0].policy, [s.params for s in padded], [s.salt for s in padded])
+            outcome, _ = record_policies(env, *policy, keys, jax.random.PRNGKey(seed), renderers)
             for j, src in enumerate(part):
                 n_ok = int(outcome[j].sum())
                 got.append({"name": src.name, "task": task, "lineage": src.record["lineage"],
