@@ -70,6 +70,7 @@ from sim_data.policies.registry import (
     resolve,
     used_seeds,
 )
+from sim_data.policies.scripted import ProgramPolicy
 from sim_data.sim import robot as R
 from sim_data.sim.engines import ENGINES, PHYSICS_REVISION, default_engine
 from sim_data.sim.rollout import record_policies
@@ -108,7 +109,8 @@ FIDELITY_HORIZONS = (1, 8, 16, 32, 64)
 # PSNR at each horizon (P, N, H), the RMS gap of the policy's actions at each step (P, N, T)
 FIDELITY = ("frame_psnr", "copy_first_psnr", "action_gap")
 # a task's per-policy arrays, (P, N, ...) (the ensemble members' prob_members, (K, P, N), apart)
-POLICY_ARRAYS = ("true", "prob", "prob_observed", "prob_replayed", "sim_finite") + READOUT_KEYS + TRACES + FIDELITY
+POLICY_ARRAYS = (("true", "prob", "prob_observed", "prob_replayed", "sim_imagined", "sim_finite") + READOUT_KEYS
+                 + TRACES + FIDELITY)
 READOUT_LABELS = {"progress": "progress head at the last step", "judge": "episode judge",
                   "success": "highest per-step success probability"}
 
@@ -154,7 +156,12 @@ class EvalConfig:
         frame, and read it as the imagined ones (prob_replayed, "replayed" in the within-task
         statistics): the gap between it and the read-out of the true episodes is the dynamics'
         error under the policy's real actions; between the imagined and the replayed, what the
-        policy acting on imagined frames changes. Costs one more imagination of every episode.
+        policy acting on imagined frames changes. And the converse: the actions the policy took in
+        the first model's imagination played open loop in the simulator from the same initial state
+        (sim_imagined, "sim_imagined" in the within-task statistics, "loop_actions" for the model
+        against it): whether the loop's actions truly succeed where the model says they do (its
+        dynamics and judge on its own loop) and how far acting on imagined frames alone moves the
+        outcomes. Costs one more imagination and one more simulation of every episode.
       imagine: how the world models imagine (wm.model.ModelConfig.imagine: "window" or "cache") in
         place of the setting each was trained with; "" keeps theirs.
     """
@@ -324,6 +331,8 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
         got, each = _predict_batch(cfg, task, models, policy, params, truth, rng)
         got = {key: v.reshape((len(padded), n) + v.shape[1:])[: len(part)] for key, v in got.items()}
         got["true"] = truth["outcome"][: len(part)]
+        got["sim_imagined"] = (simulate_actions(task, each[0]["action"], reset_keys[s0:s1], engine)[: len(part)]
+                               .astype(np.float64) if cfg.replay else np.full((len(part), n), np.nan))
         clock["wm_s"] += time.perf_counter() - t0
         if j == 0:  # the report's videos come from the first slice's states
             for i, src in enumerate(part):
@@ -376,7 +385,7 @@ def _empty_rows(k: int, n: int) -> dict:
     """evaluate_task's arrays for no policy (a part given none of a task's batches)."""
     empty = np.zeros((0, n))
     return {"names": [], "slices": [], "true": empty.astype(bool), "prob": empty, "prob_observed": empty,
-            "prob_replayed": empty, "sim_finite": np.ones((0, n), bool),
+            "prob_replayed": empty, "sim_imagined": empty, "sim_finite": np.ones((0, n), bool),
             **{key: np.zeros((0, n, 0), np.float16) for key in TRACES + FIDELITY},
             **{key: empty for key in READOUT_KEYS}, "prob_members": np.zeros((k, 0, n))}
 
@@ -600,6 +609,18 @@ def _simulate(task, policy, params, seeds, reset_keys, rng, engine, renderer) ->
             "proprio": rec.proprio, "action": rec.action, "progress": np.asarray(rec.progress[:, 1:], np.float32)}
 
 
+def simulate_actions(task: str, actions, reset_keys, engine: str) -> np.ndarray:
+    """The simulator's outcomes of given action sequences played open loop: actions (P*n, T, 20), row
+    i*n + e from initial state e of reset_keys (n, 2) (a batch's layout). Returns (P, n) bool."""
+    actions = np.asarray(actions, np.float32)
+    env = cached_env(task, len(actions), engine, False)
+    if actions.shape[1] != env.episode_steps:
+        raise ValueError(f"{actions.shape[1]} actions an episode for {task}'s {env.episode_steps} steps")
+    played = ProgramPolicy(env.episode_steps)
+    outcome, _ = record_policies(env, played, {"table": jax.device_put(actions)}, reset_keys, jax.random.PRNGKey(0))
+    return outcome
+
+
 def _truth_key(task, policy, params, seeds, rng, engine, renderer) -> str:
     """A digest of everything a batch of simulated episodes depends on: the task, the policies (their
     class, configuration and parameters), the initial states, the random key, the engine and its
@@ -685,9 +706,10 @@ def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) ->
     rows = []
     members = res["prob_members"].transpose(1, 0, 2)  # (P, K, N)
     readouts = np.stack([res[k] for k in READOUT_KEYS], axis=1)  # (P, R, N)
-    for name, t, p, r, pk, ok, tp, ip, gap, obs, rep in zip(
+    for name, t, p, r, pk, ok, tp, ip, gap, obs, rep, played in zip(
             res["names"], res["true"], res["prob"], readouts, members, res["sim_finite"], res["true_progress"],
-            res["trace_progress"], res["action_gap"], res["prob_observed"], res["prob_replayed"], strict=True):
+            res["trace_progress"], res["action_gap"], res["prob_observed"], res["prob_replayed"], res["sim_imagined"],
+            strict=True):
         rec = sources_by_name[name].record
         k, n = int(t.sum()), len(t)
         kp = int((p >= cfg.threshold).sum())
@@ -700,6 +722,8 @@ def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) ->
                      "pred_rate_readouts": dict(zip(READOUTS, r.mean(1).tolist(), strict=True)),
                      # the read-out of the simulated episodes, and of their actions replayed (replay=1)
                      "pred_rate_on_truth": _mean_or_none(obs), "pred_rate_replayed": _mean_or_none(rep),
+                     # the simulator's success on the actions the policy took in imagination (replay=1)
+                     "true_rate_imagined_actions": _mean_or_none(played),
                      "nonfinite_episodes": int((~ok).sum()),
                      # mean progress over the episodes at each step, the simulator's and the imagined
                      "progress_true": _mean_curve(tp), "progress_imagined": _mean_curve(ip),
@@ -739,9 +763,10 @@ def within_task_block(results: dict, tasks, rows: list[dict], cfg: EvalConfig, k
     such as plug-ins, are left out of the proxy's statistics), the world model's other read-outs
     ("readout_<name>"), and, where every episode has it, the read-out applied to the simulated
     episodes themselves ("on_truth", _read_truth: what it reads where imagination is exact) and to
-    their own actions replayed open loop ("replayed", cfg.replay), over the policies whose name
-    `keep` accepts."""
-    true, wm, proxy, observed, replayed = {}, {}, {}, {}, {}
+    their own actions replayed open loop ("replayed", cfg.replay), and the simulator's outcomes of
+    the actions taken in imagination ("sim_imagined", cfg.replay), over the policies whose name `keep`
+    accepts."""
+    true, wm, proxy, observed, replayed, played = {}, {}, {}, {}, {}, {}
     others = {f"readout_{r}": {} for r in READOUTS if r != cfg.readout}
     for t in tasks:
         names = results[t]["names"]
@@ -751,13 +776,26 @@ def within_task_block(results: dict, tasks, rows: list[dict], cfg: EvalConfig, k
         proxy[t] = np.array([math.nan if loss[names[j]] is None else -loss[names[j]] for j in picked])
         observed[t] = results[t]["prob_observed"][picked]
         replayed[t] = results[t]["prob_replayed"][picked]
+        played[t] = results[t]["sim_imagined"][picked]
         for key, got in others.items():
             got[t] = results[t][key][picked]
     predictors = {"world_model": wm, "proxy": proxy, **others}
-    for name, got in (("on_truth", observed), ("replayed", replayed)):
+    for name, got in (("on_truth", observed), ("replayed", replayed), ("sim_imagined", played)):
         if all(np.isfinite(o).all() for o in got.values()):
             predictors[name] = got
     return S.within_task(true, predictors, cfg.threshold)
+
+
+def loop_actions_block(results: dict, tasks, cfg: EvalConfig) -> dict | None:
+    """The world model's within-task statistics (experiments.stats.within_task) against the simulator's
+    outcomes of the very actions the policies took in its imagination (cfg.replay's sim_imagined)
+    instead of the true outcomes: how well it reads its own loop, apart from what acting on imagined
+    frames changes; None without them."""
+    played = {t: results[t]["sim_imagined"] for t in tasks}
+    if not all(np.isfinite(v).all() for v in played.values()):
+        return None
+    wm = {t: results[t]["prob"] for t in tasks}
+    return S.within_task({t: v > 0.5 for t, v in played.items()}, {"world_model": wm}, cfg.threshold)["world_model"]
 
 
 def decision_analysis(cfg: EvalConfig, tasks: dict, alignment: float, most: int = 30) -> dict:
@@ -921,13 +959,15 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, models, wm
 
 
 def all_metrics(cfg: EvalConfig, results: dict, tasks, rows: list[dict], seen: set) -> dict:
-    """results.json's "metrics": the within-task headline, pooled and per task; the same for the
-    policies not in `seen` (those whose rollouts the world model never saw) where there are three or
-    more of them and the world model saw any."""
+    """results.json's "metrics": the within-task headline, pooled and per task (and with cfg.replay
+    loop_actions_block's "loop_actions"); the same for the policies not in `seen` (those whose rollouts
+    the world model never saw) where there are three or more of them and the world model saw any."""
     true_eps, prob_eps, member_eps = _episodes_of(results, tasks, lambda name: True)
     metrics = {"within_task": within_task_block(results, tasks, rows, cfg, lambda name: True),
                "mmrv_floor": S.mmrv_floor({t: results[t]["true"] for t in tasks}),
                "pooled": ranking_block(rows, true_eps, prob_eps, cfg.threshold, member_eps), "per_task": {}}
+    if (loop := loop_actions_block(results, tasks, cfg)) is not None:
+        metrics["loop_actions"] = loop
     for t in tasks:
         metrics["per_task"][t] = ranking_block([r for r in rows if r["task"] == t], results[t]["true"],
                                                results[t]["prob"], cfg.threshold, results[t]["prob_members"])
@@ -1040,13 +1080,13 @@ def load_task(path: Path) -> dict:
         meta = json.loads(z["meta"].tobytes().decode())
         videos = {k[len("video:"):]: z[k] for k in z.files if k.startswith("video:")}
         members = z["prob_members"] if "prob_members" in z.files else z["prob"][None]  # before ensembles
-        observed, replayed = (z[k] if k in z.files else np.full(z["prob"].shape, np.nan)
-                              for k in ("prob_observed", "prob_replayed"))
+        observed, replayed, played = (z[k] if k in z.files else np.full(z["prob"].shape, np.nan)
+                                      for k in ("prob_observed", "prob_replayed", "sim_imagined"))
         finite = z["sim_finite"] if "sim_finite" in z.files else np.ones(z["prob"].shape, bool)
         traces = {k: z[k] if k in z.files else np.zeros(z["prob"].shape + (0,), np.float16) for k in TRACES}
         return {**meta, "true": z["true"].astype(bool), "prob": z["prob"], **{k: z[k] for k in READOUT_KEYS + FIDELITY},
-                "prob_observed": observed, "prob_replayed": replayed, "sim_finite": finite, "prob_members": members, **traces,
-                "videos": videos}
+                "prob_observed": observed, "prob_replayed": replayed, "sim_imagined": played, "sim_finite": finite,
+                "prob_members": members, **traces, "videos": videos}
 
 
 def _check_config(cfg: EvalConfig, out: Path) -> None:

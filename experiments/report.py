@@ -328,13 +328,16 @@ def verdict(res: dict) -> str:
 
 UPPER = "the read-out of the true episodes"
 REPLAYED = "the read-out of the true actions replayed"
+SIM_IMAGINED = "the simulator on the actions taken in imagination"
 
 
 def _other_readouts(w: dict) -> list[tuple[str, str]]:
     """(key, label) of the world model's read-outs other than the one it ranks by, in results' order,
-    then, where measured, its read-out of the true episodes and of their actions replayed."""
+    then, where measured, its read-out of the true episodes and of their actions replayed, and the
+    simulator's outcomes of the actions the policies took in imagination."""
     return ([(k, f"world model, {k[len('readout_'):]} read-out") for k in w if k.startswith("readout_")]
-            + [(k, label) for k, label in (("on_truth", UPPER), ("replayed", REPLAYED)) if k in w])
+            + [(k, label) for k, label in (("on_truth", UPPER), ("replayed", REPLAYED), ("sim_imagined", SIM_IMAGINED))
+               if k in w])
 
 
 def within_task_table(res: dict) -> list[list[str]]:
@@ -495,7 +498,8 @@ def violation_table(res: dict) -> list[list[str]] | None:
     if not viol or not any(v["policies"] for v in viol.values()):
         return None
     extra = [(k, label) for k, label in (("replayed", "read on its true actions replayed"),
-                                         ("on_truth", "read on its true episodes"))
+                                         ("on_truth", "read on its true episodes"),
+                                         ("imagined_in_sim", "simulated on its imagined actions"))
              if any(p.get(k) is not None for v in viol.values() for p in v["policies"])]
     rows = [["task", "MMRV", "policy", "true", "predicted", *[label for _, label in extra], "share of the task's MMRV",
              "policies mis-ordered with it", "action gap (RMS; the task's median)"]]
@@ -508,6 +512,25 @@ def violation_table(res: dict) -> list[list[str]] | None:
                          f"{100 * p['share']:.0f}%",
                          str(p["against"]), _fmt(p.get("action_gap"), 3) + median])
     return rows
+
+
+def loop_note(res: dict) -> str | None:
+    """One sentence (results with replay=1 only): the world model's within-task figures against the
+    simulator's outcomes of the actions taken in its own imagination, beside those against the truth
+    and the simulator's own figures on those actions: which part of the ranking error is the model's
+    reading of its loop, which the policies acting on imagined frames."""
+    loop, w = res["metrics"].get("loop_actions"), res["metrics"]["within_task"]
+    if loop is None or "sim_imagined" not in w:
+        return None
+    wm, sim = w["world_model"], w["sim_imagined"]
+    r = _ci(loop["mean"]["pearson"], loop["mean_ci"]["pearson"])
+    return (f"The actions the policies took in imagination, played in the simulator from the same states: the world "
+            f"model reads their simulated outcomes at mean within-task Pearson {r}, "
+            f"MMRV {_fmt(loop['mean']['mmrv'], 3)} (against the truth {_fmt(wm['mean']['pearson'], 2)}, MMRV "
+            f"{_fmt(wm['mean']['mmrv'], 3)}); those outcomes themselves rank the policies at "
+            f"{_ci(sim['mean']['pearson'], sim['mean_ci']['pearson'])}, MMRV {_fmt(sim['mean']['mmrv'], 3)}: the "
+            "first is the model's own dynamics and judge on its loop, the second what acting on imagined frames "
+            "instead of true ones changes.")
 
 
 VIOLATION_NOTE = ("Where MMRV comes from: each policy's term (its largest rank violation, weighted by the true gap) "
@@ -600,6 +623,7 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
            if (fam := family_table(res)) else []),
          *([f"<h2>Rank violations</h2><p>{html.escape(VIOLATION_NOTE)}</p>", _html_table(viol)]
            if (viol := violation_table(res)) else []),
+         *([f"<p>{html.escape(loop)}</p>"] if (loop := loop_note(res)) else []),
          _html_table(per_task_table(res)),
          *(["<h2>Within-task ranking of the policies whose rollouts the world model never saw</h2>",
             _html_table(per_task_table(res, "unseen_within_task"))] if "unseen_within_task" in metrics else []),
@@ -682,6 +706,8 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
         md += ["## Counterfactual families", "", FAMILY_NOTE, "", _md_table(fam), ""]
     if viol := violation_table(res):
         md += ["## Rank violations", "", VIOLATION_NOTE, "", _md_table(viol), ""]
+    if loop := loop_note(res):
+        md += [loop, ""]
     if "unseen" in metrics:
         md += ["## Pooled, policies whose rollouts the world model never saw", "",
                _md_table(_metrics_table(metrics["unseen"])), ""]

@@ -16,7 +16,7 @@ from experiments import evaluate as E
 from experiments import stats as S
 from experiments.report import family_table, verdict, violation_table, write_report
 from sim_data.parts import exclusive
-from sim_data.policies.bc import MixedPolicy, StackedPolicy
+from sim_data.policies.bc import MixedPolicy, StackedPolicy, stacked
 from sim_data.policies.registry import resolve
 from wm.judge import load_judge
 from wm.metrics import psnr
@@ -53,6 +53,14 @@ def test_results_hold_every_policy_with_statistics_from_the_episodes(evaluation,
                                              [p["true_rate"] for p in res["policies"]]))
     assert "baseline" in m and res["metrics"]["per_task"]["mug"]["n_policies"] == 5
     assert all(row["nonfinite_episodes"] == 0 for row in res["policies"])
+    # replay=1: the loop's actions simulated; the plug-in ignores its frames, so its imagined actions are
+    # its true ones and their simulated outcomes its true outcomes
+    played = E.load_task(out / "tasks" / "mug.npz")["sim_imagined"]
+    assert played.shape == (5, 2) and set(np.unique(played)) <= {0.0, 1.0}
+    plug = names.index("examples.plugin_policy:make")
+    np.testing.assert_array_equal(played[plug], true[plug])
+    assert [row["true_rate_imagined_actions"] for row in res["policies"]] == pytest.approx(played.mean(1).tolist())
+    assert "sim_imagined" in res["metrics"]["within_task"] and "loop_actions" in res["metrics"]
     assert res["timing"]["mug"]["nonfinite_sim_episodes"] == 0
     # the initial states are held out from the training data
     used = {json.loads(line)["seed"] for line in (smoke_dataset[1] / "manifest.jsonl").read_text().splitlines()}
@@ -274,6 +282,7 @@ def test_report_renders_figures_and_videos(evaluation):
     assert "Decision analysis" in page and "imitation-loss baseline" in page and "Checkpoint selection" in page
     md = (out / "report.md").read_text()
     assert "| pearson |" in md and "examples.plugin_policy:make" in md
+    assert "played in the simulator from the same states" in md and "the simulator on the actions taken" in md
     # the verdict first, then the within-task table with the proxy beside the world model, the pooled row last
     first, within, pooled = (md.index(x) for x in (f"**{verdict(res)}**", "## Within-task ranking",
                                                    "## Pooled over tasks (secondary)"))
@@ -489,7 +498,7 @@ def test_within_task_headline_and_checkpoint_selection_from_the_episodes(evaluat
     cfg, out, res = evaluation
     with np.load(out / "tasks" / "mug.npz") as z:
         true, prob, observed, replayed = z["true"].astype(bool), z["prob"], z["prob_observed"], z["prob_replayed"]
-        progress, success = z["readout_progress"], z["readout_success"]
+        progress, success, played = z["readout_progress"], z["readout_success"], z["sim_imagined"]
     # the read-out (the judge, here the per-step rule: the smoke model has none) on the simulated episodes,
     # and on their actions replayed open loop
     assert cfg.readout == "judge" and observed.shape == prob.shape and np.all((observed >= 0) & (observed <= 1))
@@ -499,8 +508,12 @@ def test_within_task_headline_and_checkpoint_selection_from_the_episodes(evaluat
     proxy = np.array([np.nan if p["val_loss"] is None else -p["val_loss"] for p in res["policies"]])
     want = S.within_task({"mug": true}, {"world_model": {"mug": prob}, "proxy": {"mug": proxy},
                                          "readout_progress": {"mug": progress}, "readout_success": {"mug": success},
-                                         "on_truth": {"mug": observed}, "replayed": {"mug": replayed}}, cfg.threshold)
+                                         "on_truth": {"mug": observed}, "replayed": {"mug": replayed},
+                                         "sim_imagined": {"mug": played}}, cfg.threshold)
     assert res["metrics"]["within_task"] == json.loads(json.dumps(no_nan(want)))
+    # the model against the simulator's outcomes of the actions taken in its imagination
+    loop = S.within_task({"mug": played > 0.5}, {"world_model": {"mug": prob}}, cfg.threshold)["world_model"]
+    assert res["metrics"]["loop_actions"] == json.loads(json.dumps(no_nan(loop)))
     assert res["metrics"]["mmrv_floor"] == S.mmrv_floor({"mug": true})
     assert res["checkpoint_selection"] == json.loads(json.dumps(no_nan(S.checkpoint_selection(res["policies"]))))
     assert res["world_model"]["cut_short"] is False and res["world_model"]["training"][0]["steps"] == 30
@@ -568,3 +581,20 @@ def test_a_bad_policy_spec_fails_before_out_records_a_configuration(tmp_path):
     with pytest.raises(ValueError, match="cannot import"):
         E.run(cfg, tmp_path / "out", progress=False)
     assert not (tmp_path / "out" / "config.json").exists()
+
+
+def test_played_actions_give_the_simulated_outcomes_back():
+    """simulate_actions, the replay=1 check of the loop's actions: the actions of simulated episodes
+    (a plug-in backing away long enough to succeed on step_back, and standing still, from two initial
+    states each) played open loop from the same states give the same outcomes."""
+    from examples.plugin_policy import make
+
+    policy, params = make()
+    still = dict(params, seconds=params["seconds"] * 0)
+    keys = np.stack([np.asarray(jax.random.PRNGKey(s)) for s in (11, 12)])
+    env = E.cached_env("step_back", 4, "cpu", False)
+    outcome, rec = E.record_policies(env, *stacked(policy, [params, still]), keys, jax.random.PRNGKey(0))
+    assert outcome.tolist() == [[True, True], [False, False]]
+    np.testing.assert_array_equal(E.simulate_actions("step_back", rec.action, keys, "cpu"), outcome)
+    with pytest.raises(ValueError, match="actions an episode"):
+        E.simulate_actions("step_back", np.asarray(rec.action)[:, :5], keys, "cpu")
