@@ -15,6 +15,7 @@ from sim_data.dataset import generate as G
 from sim_data.dataset.episodes import read_episode
 from sim_data.policies.registry import PolicySource
 from sim_data.policies.scripted import PROGRAMS
+from sim_data.sim import robot as R
 from sim_data.util import even_pieces
 
 TOPICS = {"/head_cam/image", "/ext_cam/image", "/robot_state", "/action", "/task_state", "/sim_state", "/tf", "/scene"}
@@ -118,7 +119,7 @@ def test_bad_configuration_is_refused_before_work(tmp_path):
         G.make_config("smoke", ["epsiodes=3"])
     with pytest.raises(ValueError, match="unknown preset"):
         G.make_config("huge")
-    with pytest.raises(ValueError, match="weak_grip and perturb_episodes must be >= 0"):
+    with pytest.raises(ValueError, match="drive and perturb_episodes must be >= 0"):
         G.make_config("smoke", ["weak_grip=-1"])
     with pytest.raises(SystemExit):
         G.main(["--config", "smoke", "--out", str(tmp_path / "x"), "size=96"])
@@ -280,6 +281,43 @@ def test_weak_grip_episodes_start_where_the_scripted_ones_do_and_close_the_hand_
         weak_row = s == G.WEAK_GRIP
         assert params["grip"][r] == pytest.approx(G.weak_grip_factor(i) if weak_row else 1.0)
         assert not weak_row or (params["skill"][r] == 1.0 and not params["program"][r])
+
+
+def test_drive_episodes_back_away_for_times_spread_over_the_range_from_the_scripted_starts(monkeypatch):
+    """drive=N: N episodes of step_back alone (none on mug), each from the scripted episode i's initial
+    state and split, playing the ready pose while the base backs away at 0.3 m/s for drive_seconds(i)."""
+    cfg = G.make_config("smoke", ["engine=cpu", "episodes=3", "batch=4", "drive=3", "tasks=mug,step_back"])
+    plan = G._plan(cfg)
+    drives = [(c, i) for c in plan for s, i in c.rows(padded=False) if s == G.DRIVE]
+    assert [i for _, i in drives] == [0, 1, 2] and {c.task for c, _ in drives} == {"step_back"}
+    assert {c.key for c, _ in drives} == {"program"}
+    for i in range(3):
+        meta, scripted = (G._episode_meta(cfg, "step_back", s, i, False, 10, "cpu") for s in (G.DRIVE, 1.0))
+        assert meta["seed"] == scripted["seed"] and meta["split"] == scripted["split"] != "programs"
+        assert (meta["policy"], meta["policy_kind"], meta["skill"], meta["episode_id"]) == (
+            "drive", "drive", None, f"step_back-drive-{i:06d}")
+    seconds = np.array([G.drive_seconds(i) for i in range(60)])
+    lo, hi = G.DRIVE_SECONDS
+    assert seconds.min() >= lo and seconds.max() < hi and np.histogram(seconds, bins=5, range=(lo, hi))[0].min() >= 10
+    table = G.drive_table(1.0, 40)  # 20 steps of 0.05 s
+    speed = table[:, R.FORWARD_SPEED]
+    np.testing.assert_allclose(speed, [-0.3] * 20 + [0.0] * 20)
+    others = np.delete(table, R.FORWARD_SPEED, axis=1)
+    np.testing.assert_array_equal(others, np.broadcast_to(others[0], others.shape))  # the pose held throughout
+
+    def rollout(env, policy, params, rng, renderers=(), progress=None, reset_keys=None):
+        raise _Rollout(env, params)
+
+    monkeypatch.setattr(G, "record_episodes", rollout)
+    chunk = drives[0][0]
+    with pytest.raises(_Rollout) as got:
+        G.simulate_chunk(cfg, chunk, "cpu")
+    env, params = got.value.args
+    for r, (s, i) in enumerate(chunk.rows(padded=True)):
+        if s == G.DRIVE:
+            assert params["program"][r]
+            np.testing.assert_array_equal(params["table"][r][: env.episode_steps],
+                                          G.drive_table(G.drive_seconds(i), env.episode_steps))
 
 
 def test_a_chunk_mixing_skills_writes_each_episode_once_and_a_rerun_rewrites_only_the_missing_one(smoke, tmp_path):

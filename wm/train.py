@@ -71,7 +71,7 @@ def compute_norm(cache: TrainingCache, ids=None) -> Norm:
                 scene_mean=jnp.asarray(scene.mean(0)), scene_std=jnp.asarray(np.maximum(scene.std(0), 1e-2)))
 
 
-ATTEMPT_KINDS = ("scripted", "learned", "weak_grip")  # episodes that try the task (not play, not programs)
+ATTEMPT_KINDS = ("scripted", "learned", "weak_grip", "drive")  # episodes that try the task (not play, not programs)
 
 
 def failed_attempts_repeated(times: int):

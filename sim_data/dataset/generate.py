@@ -46,6 +46,7 @@ from sim_data.policies.registry import resolve as resolve_sources
 from sim_data.policies.scripted import (
     PROGRAMS,
     ScriptOrProgramPolicy,
+    action_program,
     pad_programs,
     play_params,
     program_params,
@@ -54,10 +55,10 @@ from sim_data.policies.scripted import (
 from sim_data.sim.engines import ENGINES, default_engine
 from sim_data.sim.env import HomeEnv
 from sim_data.sim.render import RenderConfig, Renderer
-from sim_data.sim.robot import ACTION_DIM
+from sim_data.sim.robot import ACTION_DIM, FORWARD_SPEED
 from sim_data.sim.rollout import record_episodes
 from sim_data.sim.scene import load_model
-from sim_data.sim.tasks import MAX_EPISODE_STEPS, TASK_NAMES
+from sim_data.sim.tasks import CONTROL_DT, MAX_EPISODE_STEPS, TASK_NAMES
 from sim_data.util import (
     device_name,
     even_pieces,
@@ -72,6 +73,9 @@ SPLITS = ("train", "val", "test", "programs")
 PLAY = "play"  # the source of random play episodes (sim_data.policies.scripted.play_program)
 WEAK_GRIP = "weak_grip"  # the source of scripted episodes whose hand closes only part-way (DataConfig.weak_grip)
 WEAK_GRIP_RANGE = (0.1, 0.7)  # the factors on a weak grip's closures
+DRIVE = "drive"  # the source of episodes that back away for a set time (DataConfig.drive)
+DRIVE_SECONDS = (0.5, 6.0)  # how long a drive episode backs away at the scripted 0.3 m/s: 0.15 to 1.8 m
+DRIVE_TASKS = ("step_back",)  # the tasks whose outcome the distance driven decides
 
 
 @dataclasses.dataclass(frozen=True)
@@ -108,6 +112,12 @@ class DataConfig:
         are 0 or 1, and these show what a hand closed part-way does to what it holds. They run in
         the chunks of the programs and play (on the GPU, in rows those chunks would pad) and are
         not scripted demonstrations (policy_kind "weak_grip"), so the zoo never learns from them.
+      drive: episodes per task of DRIVE_TASKS that hold the ready pose and back away at the scripted
+        speed for a time spread over DRIVE_SECONDS (drive_seconds), from the initial states of the
+        scripted episodes 0, 1, ... (policy "drive", in train/val/test; action tables, run with the
+        programs): the scripted drives all stop near the band that succeeds, and a policy acting on
+        imagined frames may stop short or drive on, so these show the world model and its judge what
+        every distance does. Not demonstrations (policy_kind "drive").
     """
 
     tasks: tuple = TASK_NAMES
@@ -129,6 +139,7 @@ class DataConfig:
     policies: tuple = ()
     policy_episodes: int = 0
     weak_grip: int = 0
+    drive: int = 0
     perturbed: tuple = ()
     perturb_episodes: int = 0
 
@@ -140,10 +151,10 @@ class DataConfig:
             raise ValueError(f"skills must be in [0, 1], got {self.skills}")
         if self.episodes < 1 or self.batch < 1 or self.workers < 1:
             raise ValueError("episodes, batch and workers must be >= 1")
-        if min(self.programs, self.play, self.policy_episodes, self.weak_grip, self.perturb_episodes) < 0:
-            raise ValueError(f"programs, play, policy_episodes, weak_grip and perturb_episodes must be >= 0, got "
-                             f"{self.programs}, {self.play}, {self.policy_episodes}, {self.weak_grip}, "
-                             f"{self.perturb_episodes}")
+        if min(self.programs, self.play, self.policy_episodes, self.weak_grip, self.drive, self.perturb_episodes) < 0:
+            raise ValueError("programs, play, policy_episodes, weak_grip, drive and perturb_episodes must be >= 0, "
+                             f"got {self.programs}, {self.play}, {self.policy_episodes}, {self.weak_grip}, "
+                             f"{self.drive}, {self.perturb_episodes}")
         if self.engine not in ("",) + ENGINES:
             raise ValueError(f"engine must be one of {ENGINES} or empty, got {self.engine!r}")
         if self.size not in (64, 128):
@@ -163,7 +174,7 @@ PRESETS = {
     # 24 episodes a skill: about 18 demonstrations of skill 1.0 a task for the zoo, from which its
     # image-only lineages learn the mug (docs/results.md, the demo zoo)
     "demo": DataConfig(tasks=("mug", "step_back"), skills=(0.3, 1.0), episodes=24, batch=8, programs=1, play=8,
-                       cameras=("head_cam",), test_frac=0.25),
+                       drive=16, cameras=("head_cam",), test_frac=0.25),
     "full": DataConfig(skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=600, batch=1200, workers=12, programs=32),
     # the world model's and the zoo's GPU set: three tasks, a spread of skills (1.0 for the zoo's
     # demonstrations, 0.5 and 0.75 for its low-skill lineage), random play, the controllability programs,
@@ -205,10 +216,11 @@ def split_of(cfg: DataConfig, seed: int) -> str:
 
 
 def policy_name(source) -> str:
-    """A source is a scripted skill (float), PLAY, WEAK_GRIP, an action program's name (str) or a PolicySource."""
+    """A source is a scripted skill (float), PLAY, WEAK_GRIP, DRIVE, an action program's name (str) or a
+    PolicySource."""
     if isinstance(source, PolicySource):
         return f"{source.kind}:{source.name}"
-    if source in (PLAY, WEAK_GRIP):
+    if source in (PLAY, WEAK_GRIP, DRIVE):
         return source
     return f"program:{source}" if isinstance(source, str) else f"scripted@{float(source):.2f}"
 
@@ -216,7 +228,7 @@ def policy_name(source) -> str:
 def policy_kind(source) -> str:
     if isinstance(source, PolicySource):
         return source.kind
-    return source if source in (PLAY, WEAK_GRIP) else "program" if isinstance(source, str) else "scripted"
+    return source if source in (PLAY, WEAK_GRIP, DRIVE) else "program" if isinstance(source, str) else "scripted"
 
 
 def episode_id(task: str, source, i: int) -> str:
@@ -226,13 +238,15 @@ def episode_id(task: str, source, i: int) -> str:
         return f"{task}-play-{i:06d}"
     if source == WEAK_GRIP:
         return f"{task}-weak-{i:06d}"
+    if source == DRIVE:
+        return f"{task}-drive-{i:06d}"
     if isinstance(source, str):
         return f"{task}-p{PROGRAMS.index(source)}{source}-{i:06d}"
     return f"{task}-s{round(float(source) * 100):03d}-{i:06d}"
 
 
 def _initial_seed_of(cfg, task, source, i) -> int:
-    if source == WEAK_GRIP:  # the scripted episode i's initial state: the same start, another grip
+    if source in (WEAK_GRIP, DRIVE):  # the scripted episode i's initial state: the same start, other actions
         return initial_seed(cfg, task, i)
     if source == PLAY:
         return initial_seed(cfg, f"{task}/play", i)
@@ -259,10 +273,12 @@ def package_versions(packages=("mujoco", "mujoco-mjx", "jax", "numpy", "opencv-p
 
 def _sources(cfg: DataConfig, task: str, learned=()) -> list:
     """[(source, episodes)] of task in the plan's order: the scripted skills, the programs, random
-    play, the weak grips, then the PolicySources of `learned` (learned_sources(cfg)) that run on task."""
+    play, the weak grips, the drives, then the PolicySources of `learned` (learned_sources(cfg)) that run on
+    task."""
     sources = [(float(s), cfg.episodes) for s in cfg.skills] + [(p, cfg.programs) for p in PROGRAMS if cfg.programs]
     sources += [(PLAY, cfg.play)] if cfg.play else []
     sources += [(WEAK_GRIP, cfg.weak_grip)] if cfg.weak_grip else []
+    sources += [(DRIVE, cfg.drive)] if cfg.drive and task in DRIVE_TASKS else []
     own = cfg.policy_episodes or cfg.episodes
     return sources + [(src, cfg.perturb_episodes or own if src.kind == PERTURBED else own)
                       for src in learned if src.runs_on(task)]
@@ -365,10 +381,11 @@ def _plan(cfg: DataConfig, learned=()) -> list[Chunk]:
 
 def rollout_key(source) -> object:
     """The group whose rows a task's chunks cut together: the scripted skills ("scripted"), the
-    programs, random play and the weak grips ("program"), or a learned policy's checkpoints (its policy object: one
-    architecture). The task is data in the rollout, so one compiled rollout serves a key in every
-    task; the "scripted" and "program" groups share one too (ScriptOrProgramPolicy), and stay
-    apart so that each chunk's rows, and with them the policy noise its rng draws, are its own."""
+    programs, random play, the weak grips and the drives ("program"), or a learned policy's
+    checkpoints (its policy object: one architecture). The task is data in the rollout, so one
+    compiled rollout serves a key in every task; the "scripted" and "program" groups share one too
+    (ScriptOrProgramPolicy), and stay apart so that each chunk's rows, and with them the policy noise
+    its rng draws, are its own."""
     if isinstance(source, PolicySource):
         return source.policy
     return "program" if isinstance(source, str) else "scripted"
@@ -584,9 +601,26 @@ def weak_grip_factor(i: int) -> float:
     return lo + (hi - lo) * ((i * GOLDEN) % 1.0)
 
 
+def drive_seconds(i: int) -> float:
+    """How long drive episode i backs away: spread evenly over DRIVE_SECONDS (a golden-ratio sequence),
+    so that any first n episodes cover the range."""
+    lo, hi = DRIVE_SECONDS
+    return lo + (hi - lo) * ((i * GOLDEN) % 1.0)
+
+
+def drive_table(seconds: float, num_steps: int) -> np.ndarray:
+    """(num_steps, 20) float32: the ready pose held while the base backs away at the scripted 0.3 m/s
+    for `seconds`, then stands (the step_backwards program with its own duration)."""
+    table = action_program("step_backwards", num_steps)
+    table[:, FORWARD_SPEED] = np.where(np.arange(num_steps) < round(seconds / CONTROL_DT), -0.3, 0.0)
+    return table
+
+
 def _program_table(cfg: DataConfig, task: str, source: str, i: int, env: HomeEnv) -> np.ndarray:
-    """The action table (env.episode_steps, 20) of a program episode (source: a program's name) or
-    of play episode i (source PLAY)."""
+    """The action table (env.episode_steps, 20) of a program episode (source: a program's name), of
+    play episode i (source PLAY) or of drive episode i (DRIVE)."""
+    if source == DRIVE:
+        return drive_table(drive_seconds(i), env.episode_steps)
     if source == PLAY:
         seed = _initial_seed_of(cfg, task, source, i) + 1  # not the initial state's own seed
         return play_params([seed], env.episode_steps, env.idx.robot.action_low, env.idx.robot.action_high)["table"][0]
