@@ -32,3 +32,25 @@ def make(seconds: float = 2.0, speed: float = -0.3):
     """(policy, params): what `policies=examples.plugin_policy:make` loads."""
     ready = jnp.asarray(action_program("step_backwards", 1)[0]).at[robot.FORWARD_SPEED].set(0.0)
     return BackAway(), {"ready": ready, "seconds": jnp.float32(seconds), "speed": jnp.float32(speed)}
+
+
+# The same policy at other lengths and speeds: on step_back only a stop 0.5-0.8 m back succeeds, so
+# these check a world model on drives it never saw (policies=far=examples.plugin_policy:far, ...).
+def short():
+    """0.24 m back: too short."""
+    return make(seconds=0.8)
+
+
+def far():
+    """1.5 m back: too far."""
+    return make(seconds=5.0)
+
+
+def slow_far():
+    """0.75 m back at half speed: inside the band."""
+    return make(seconds=5.0, speed=-0.15)
+
+
+def fast():
+    """0.9 m back at 0.45 m/s: just past the band."""
+    return make(seconds=2.0, speed=-0.45)
