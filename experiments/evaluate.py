@@ -106,8 +106,9 @@ READOUT_KEYS = tuple(f"readout_{r}" for r in READOUTS)
 # Steps at which imagined frames are compared with the simulator's (and the task's last step)
 FIDELITY_HORIZONS = (1, 8, 16, 32, 64)
 # Per-episode arrays of the imagination's fidelity to the simulated episode: frame PSNR and copy-first
-# PSNR at each horizon (P, N, H), the RMS gap of the policy's actions at each step (P, N, T)
-FIDELITY = ("frame_psnr", "copy_first_psnr", "action_gap")
+# PSNR at each horizon (P, N, H), the RMS gap of the policy's actions at each step (P, N, T) and in each
+# action dimension over the episode (P, N, 20)
+FIDELITY = ("frame_psnr", "copy_first_psnr", "action_gap", "action_gap_dims")
 # a task's per-policy arrays, (P, N, ...) (the ensemble members' prob_members, (K, P, N), apart)
 POLICY_ARRAYS = (("true", "prob", "prob_observed", "prob_replayed", "sim_imagined", "sim_finite") + READOUT_KEYS
                  + TRACES + FIDELITY)
@@ -500,22 +501,26 @@ def imagination_fidelity(truth: dict, imagined, actions, steps: int) -> dict:
     Returns {"frame_psnr", "copy_first_psnr": (B, H) float32 dB at fidelity_horizons(steps) (the
     imagined frame against the true one; the first true frame against it: what a model that never
     moves scores; identical frames count 100 dB), "action_gap": (B, T) float32 the root-mean-square
-    difference of the policy's action on imagined and on true observations}; NaN where the truth
-    came from the cache without frames."""
+    difference of the policy's action on imagined and on true observations, "action_gap_dims": (B, 20)
+    float32 the same per action dimension over the episode's steps (a gap in one dimension, such as
+    the base's speed, that the mean over 20 dilutes)}; NaN where the truth came from the cache
+    without frames."""
     hs = fidelity_horizons(steps)
     b = len(actions)
     if "frames" not in truth:
         return {"frame_psnr": np.full((b, len(hs)), np.nan, np.float32),
                 "copy_first_psnr": np.full((b, len(hs)), np.nan, np.float32),
-                "action_gap": np.full((b, steps), np.nan, np.float32)}
+                "action_gap": np.full((b, steps), np.nan, np.float32),
+                "action_gap_dims": np.full((b, R.ACTION_DIM), np.nan, np.float32)}
     real = truth["frames"]
     at = [h - 1 for h in hs]
     true_h = np.asarray(real[:, hs])
     pred = np.minimum(psnr(np.asarray(imagined[:, at]), true_h), 100.0)
     first = np.minimum(psnr(np.asarray(real[:, :1]), true_h), 100.0)
-    gap = np.sqrt(np.mean((np.asarray(actions) - np.asarray(truth["action"])) ** 2, axis=-1))
+    squared = (np.asarray(actions, np.float64) - np.asarray(truth["action"], np.float64)) ** 2
     return {"frame_psnr": pred.astype(np.float32), "copy_first_psnr": first.astype(np.float32),
-            "action_gap": gap.astype(np.float32)}
+            "action_gap": np.sqrt(squared.mean(-1)).astype(np.float32),
+            "action_gap_dims": np.sqrt(squared.mean(1)).astype(np.float32)}
 
 
 def read_episodes(judge, task: str, features) -> dict:
@@ -702,14 +707,27 @@ def _finite_mean(x) -> float | None:
     return round(float(x[ok].mean()), 4) if ok.any() else None
 
 
+def largest_action_gap(dims) -> dict | None:
+    """The action dimension whose RMS gap between the policy's actions on imagined and on true frames is
+    largest over a policy's episodes: {"dim": its name (sim_data.sim.robot.ACTION_NAMES), "rms"}, from
+    dims (N, 20) (imagination_fidelity's action_gap_dims); None where no episode has them."""
+    dims = np.asarray(dims, np.float64)
+    ok = np.isfinite(dims).all(axis=-1) if dims.size else np.zeros(len(dims), bool)
+    if not ok.any():
+        return None
+    rms = np.sqrt((dims[ok] ** 2).mean(0))
+    k = int(rms.argmax())
+    return {"dim": R.ACTION_NAMES[k], "rms": round(float(rms[k]), 4)}
+
+
 def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) -> list[dict]:
     rows = []
     members = res["prob_members"].transpose(1, 0, 2)  # (P, K, N)
     readouts = np.stack([res[k] for k in READOUT_KEYS], axis=1)  # (P, R, N)
-    for name, t, p, r, pk, ok, tp, ip, gap, obs, rep, played in zip(
+    for name, t, p, r, pk, ok, tp, ip, gap, dims, obs, rep, played in zip(
             res["names"], res["true"], res["prob"], readouts, members, res["sim_finite"], res["true_progress"],
-            res["trace_progress"], res["action_gap"], res["prob_observed"], res["prob_replayed"], res["sim_imagined"],
-            strict=True):
+            res["trace_progress"], res["action_gap"], res["action_gap_dims"], res["prob_observed"],
+            res["prob_replayed"], res["sim_imagined"], strict=True):
         rec = sources_by_name[name].record
         k, n = int(t.sum()), len(t)
         kp = int((p >= cfg.threshold).sum())
@@ -728,7 +746,7 @@ def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) ->
                      # mean progress over the episodes at each step, the simulator's and the imagined
                      "progress_true": _mean_curve(tp), "progress_imagined": _mean_curve(ip),
                      # RMS gap of the policy's actions on imagined and on true frames, over its episodes' steps
-                     "action_gap": _finite_mean(gap),
+                     "action_gap": _finite_mean(gap), "action_gap_largest": largest_action_gap(dims),
                      # per held-out state, in the order of the seeds: for ensembles (experiments.ensemble)
                      "true_episodes": t.astype(int).tolist(), "pred_episodes": np.round(p, 5).tolist()})
         if len(pk) > 1:
@@ -1084,7 +1102,9 @@ def load_task(path: Path) -> dict:
                                       for k in ("prob_observed", "prob_replayed", "sim_imagined"))
         finite = z["sim_finite"] if "sim_finite" in z.files else np.ones(z["prob"].shape, bool)
         traces = {k: z[k] if k in z.files else np.zeros(z["prob"].shape + (0,), np.float16) for k in TRACES}
-        return {**meta, "true": z["true"].astype(bool), "prob": z["prob"], **{k: z[k] for k in READOUT_KEYS + FIDELITY},
+        fidelity = {k: z[k] if k in z.files else np.full(z["prob"].shape + (0,), np.nan, np.float32) for k in FIDELITY}
+        return {**meta, "true": z["true"].astype(bool), "prob": z["prob"], **{k: z[k] for k in READOUT_KEYS},
+                **fidelity,
                 "prob_observed": observed, "prob_replayed": replayed, "sim_imagined": played, "sim_finite": finite,
                 "prob_members": members, **traces, "videos": videos}
 

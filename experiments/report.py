@@ -503,6 +503,8 @@ def violation_table(res: dict) -> list[list[str]] | None:
              if any(p.get(k) is not None for v in viol.values() for p in v["policies"])]
     rows = [["task", "MMRV", "policy", "true", "predicted", *[label for _, label in extra], "share of the task's MMRV",
              "policies mis-ordered with it", "action gap (RMS; the task's median)"]]
+    largest = any(p.get("action_gap_largest") for v in viol.values() for p in v["policies"])
+    rows[0] += ["largest in one dimension"] if largest else []
     for t, v in viol.items():
         gaps = [g for p in res.get("policies", []) if p["task"] == t and (g := p.get("action_gap")) is not None]
         median = f" ({_fmt(float(np.median(gaps)), 3)})" if gaps else ""
@@ -510,8 +512,15 @@ def violation_table(res: dict) -> list[list[str]] | None:
             rows.append([t if k == 0 else "", _fmt(v["mmrv"], 2) if k == 0 else "", p["name"],
                          _fmt(p["true_rate"], 2), _fmt(p["pred_rate"], 2), *[_fmt(p.get(key), 2) for key, _ in extra],
                          f"{100 * p['share']:.0f}%",
-                         str(p["against"]), _fmt(p.get("action_gap"), 3) + median])
+                         str(p["against"]), _fmt(p.get("action_gap"), 3) + median,
+                         *([_largest_gap(p)] if largest else [])])
     return rows
+
+
+def _largest_gap(row: dict) -> str:
+    """A violation row's largest one-dimension action gap as "rms (dimension)", or n/a."""
+    g = row.get("action_gap_largest")
+    return "n/a" if not g else f"{_fmt(g['rms'], 3)} ({g['dim']})"
 
 
 def loop_note(res: dict) -> str | None:
@@ -536,7 +545,8 @@ def loop_note(res: dict) -> str | None:
 VIOLATION_NOTE = ("Where MMRV comes from: each policy's term (its largest rank violation, weighted by the true gap) "
                   "is charged to the policy it is most mis-ordered with, so one policy read far from its truth "
                   "shows up as the partner of many. The action gap says how far its actions on imagined frames "
-                  "stray from those on true frames, beside the task's median policy.")
+                  "stray from those on true frames, beside the task's median policy, and in the one action "
+                  "dimension where they stray most (a base that does not stop shows there, diluted in the mean).")
 
 
 FAMILY_NOTE = ("Counterfactual families: one checkpoint with its actions degraded by known amounts (noise, delay, "

@@ -60,6 +60,11 @@ def test_results_hold_every_policy_with_statistics_from_the_episodes(evaluation,
     plug = names.index("examples.plugin_policy:make")
     np.testing.assert_array_equal(played[plug], true[plug])
     assert [row["true_rate_imagined_actions"] for row in res["policies"]] == pytest.approx(played.mean(1).tolist())
+    dims = E.load_task(out / "tasks" / "mug.npz")["action_gap_dims"]
+    assert dims.shape == (5, 2, 20)
+    for row, d in zip(res["policies"], dims, strict=True):
+        assert row["action_gap_largest"] == E.largest_action_gap(d)
+        assert row["action_gap_largest"]["rms"] == pytest.approx(np.sqrt((d ** 2).mean(0)).max(), abs=1e-4)
     assert "sim_imagined" in res["metrics"]["within_task"] and "loop_actions" in res["metrics"]
     assert res["timing"]["mug"]["nonfinite_sim_episodes"] == 0
     # the initial states are held out from the training data
@@ -125,6 +130,13 @@ def test_imagination_fidelity_against_hand_computed_frames_and_actions():
     expect_gap = np.zeros((2, 10))
     expect_gap[0, 3] = 2.0
     np.testing.assert_allclose(got["action_gap"], expect_gap, atol=1e-6)
+    # per dimension over the 10 steps: every dimension of episode 0 off by 2 at one step of ten
+    np.testing.assert_allclose(got["action_gap_dims"], [[2.0 / np.sqrt(10)] * 20, [0.0] * 20], atol=1e-6)
+    dims = np.zeros((3, 20))
+    dims[:, 18] = [0.3, 0.0, 0.4]  # the base's speed off in two of three episodes
+    dims[1, 0] = 0.1
+    assert E.largest_action_gap(dims) == {"dim": "forward_speed", "rms": round(np.sqrt(0.25 / 3), 4)}
+    assert E.largest_action_gap(np.full((2, 20), np.nan)) is None
     summary = E.fidelity_summary({"steps": 10, **{k: v[None] for k, v in got.items()}})
     assert summary["horizons"] == [1, 8, 10] and summary["action_gap"] == [0.0, 0.0, 0.0]
     assert summary["frame_psnr"][0] == 100.0 and summary["gain_over_copy_first_db"][1] == pytest.approx(
@@ -248,6 +260,11 @@ def test_violation_table_lists_the_policies_that_carry_each_tasks_mmrv():
     assert table[0][5:7] == ["read on its true actions replayed", "read on its true episodes"]
     assert table[1] == ["mug", "0.45", "a", "0.10", "0.90", "0.80", "0.20", "61%", "2", "0.100 (0.250)"]
     assert table[2][5:7] == ["0.70", "n/a"]
+    # where measured, the action dimension whose gap is largest
+    rows[0]["action_gap_largest"] = {"dim": "forward_speed", "rms": 0.213}
+    table = violation_table({"rank_violations": json.loads(json.dumps(S.rank_violations(rows))), "policies": rows})
+    assert table[0][-1] == "largest in one dimension" and table[1][-1] == "0.213 (forward_speed)"
+    assert table[2][-1] == "n/a"
     assert violation_table({}) is None  # results written before the table existed
     assert violation_table({"rank_violations": {"mug": {"mmrv": 0.0, "policies": []}}}) is None
 
