@@ -62,12 +62,13 @@ from sim_data.config import preset_config, preset_help
 from sim_data.dataset.cache import TrainingCache
 from sim_data.dataset.generate import cached_env, cached_renderers, package_versions
 from sim_data.parts import add_part_argument, config_and_part, exclusive, in_turn
-from sim_data.policies.bc import MixedPolicy, stacked
+from sim_data.policies.bc import MixedPolicy
 from sim_data.policies.registry import (
     group_by_policy,
     heldout_seeds,
     padded_chunks,
     resolve,
+    stacked_sources,
     used_seeds,
 )
 from sim_data.policies.scripted import ProgramPolicy
@@ -264,7 +265,7 @@ def chunk_policy(padded, n: int) -> tuple:
     compiled rollout, in the simulator and in the world model, for all of them); each source salted by
     its name, so that a stochastic policy draws the same numbers whatever shares its batch."""
     groups = group_by_policy(padded)
-    stacks = [stacked(g[0].policy, [s.params for s in g], [s.salt for s in g]) for g in groups]
+    stacks = [stacked_sources(g) for g in groups]
     if len(stacks) == 1:
         return stacks[0]
     return (MixedPolicy(tuple(p for p, _ in stacks), tuple(len(g) * n for g in groups)),
@@ -712,8 +713,8 @@ def largest_action_gap(dims) -> dict | None:
     largest over a policy's episodes: {"dim": its name (sim_data.sim.robot.ACTION_NAMES), "rms"}, from
     dims (N, 20) (imagination_fidelity's action_gap_dims); None where no episode has them."""
     dims = np.asarray(dims, np.float64)
-    ok = np.isfinite(dims).all(axis=-1) if dims.size else np.zeros(len(dims), bool)
-    if not ok.any():
+    ok = np.isfinite(dims).all(axis=-1)
+    if dims.size == 0 or not ok.any():
         return None
     rms = np.sqrt((dims[ok] ** 2).mean(0))
     k = int(rms.argmax())

@@ -30,7 +30,7 @@ import re
 import typing
 from pathlib import Path
 
-from sim_data.policies.bc import BCPolicy, PolicyNetConfig, load_params
+from sim_data.policies.bc import BCPolicy, PolicyNetConfig, load_params, stacked
 from sim_data.policies.degrade import DegradedPolicy, degrade_params, perturbed_params
 from sim_data.util import even_pieces
 
@@ -216,6 +216,12 @@ def group_by_policy(sources):
     for s in sources:
         groups.setdefault(s.policy, []).append(s)
     return list(groups.values())
+
+
+def stacked_sources(sources) -> tuple:
+    """(policy, params) running sources of one policy object side by side (sim_data.policies.bc.stacked),
+    each salted by its name: a stochastic policy draws the same numbers whatever shares its batch."""
+    return stacked(sources[0].policy, [s.params for s in sources], [s.salt for s in sources])
 
 
 def padded_chunks(group, n: int, batch: int):

@@ -49,7 +49,6 @@ from sim_data.policies.bc import (
     predict_chunk,
     save_params,
     stack_params,
-    stacked,
 )
 from sim_data.policies.degrade import KNOBS, degrade_params
 from sim_data.policies.registry import (
@@ -57,6 +56,7 @@ from sim_data.policies.registry import (
     heldout_seeds,
     load_registry_sources,
     padded_chunks,
+    stacked_sources,
     used_seeds,
 )
 from sim_data.sim.engines import default_engine
@@ -580,9 +580,7 @@ def measure_success(out: Path, episodes: int, seed: int = 0, engine: str = "", b
         for part, padded in (p for g in group_by_policy(task_sources) for p in padded_chunks(g, episodes, batch)):
             env = cached_env(task, len(padded) * episodes, engine, False)
             renderers = cached_renderers(part[0].policy.cfg.size, ("head_cam",))
-            # salted by name, as in the evaluator: a family member draws its noise whatever its batch
-            policy = stacked(part[0].policy, [s.params for s in padded], [s.salt for s in padded])
-            outcome, _ = record_policies(env, *policy, keys, jax.random.PRNGKey(seed), renderers)
+            outcome, _ = record_policies(env, *stacked_sources(padded), keys, jax.random.PRNGKey(seed), renderers)
             for j, src in enumerate(part):
                 n_ok = int(outcome[j].sum())
                 got.append({"name": src.name, "task": task, "lineage": src.record["lineage"],
