@@ -34,7 +34,7 @@ def make(seconds: float = 2.0, speed: float = -0.3):
     return BackAway(), {"ready": ready, "seconds": jnp.float32(seconds), "speed": jnp.float32(speed)}
 
 
-# The same policy at other lengths and speeds: on step_back only a stop 0.5-0.8 m back succeeds, so
+# The same policy at other lengths, speeds and directions: on step_back only a stop 0.5-0.8 m back succeeds, so
 # these check a world model on drives it never saw (policies=far=examples.plugin_policy:far, ...).
 def short():
     """0.24 m back: too short."""
@@ -54,3 +54,13 @@ def slow_far():
 def fast():
     """0.9 m back at 0.45 m/s: just past the band."""
     return make(seconds=2.0, speed=-0.45)
+
+
+def idle():
+    """Holds the ready pose and never moves: fails every task."""
+    return make(seconds=0.0)
+
+
+def forward():
+    """0.6 m towards the counter: fails every task."""
+    return make(seconds=2.0, speed=0.3)

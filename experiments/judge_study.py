@@ -69,6 +69,7 @@ class Variant:
     inputs: tuple = FEATURE_GROUPS
     rollouts_only: bool = False
     observed: bool = False
+    closed_loop: bool = True  # False: the learned policies' rollouts imagined open loop under their logged actions
 
 
 VARIANTS = {
@@ -81,6 +82,10 @@ VARIANTS = {
     "all_proprio_progress": Variant(inputs=("proprio", "progress")),
     "rollouts_only": Variant(rollouts_only=True),
     "all_observed": Variant(observed=True),
+    # every episode imagined under its logged actions and labelled with their outcome in the simulator: a
+    # closed-loop imagination labelled with its real episode's outcome teaches the judge to undo the
+    # loop's drift for the lineages in the data, a correction that does not hold for other policies
+    "all_open_loop": Variant(closed_loop=False),
 }
 BOUND = "crossfit_bound"
 # A judge fit to the training episodes' true frames alone, reading the evaluation's simulated episodes
@@ -214,7 +219,7 @@ def study(eval_dir: Path, out: Path, wm_run: Path | None = None, data: Path | No
 
     seen = {t: load_features(eval_dir, t, observed=True) for t in tasks} if OBSERVED_BOUND in names else {}
     fitted = [VARIANTS[n] for n in names if n in VARIANTS] + ([Variant(observed=True)] if seen else [])
-    train = val = None
+    train = val = train_open = val_open = None
     observed = observed_val = None
     ids, val_ids = [], []
     if fitted:
@@ -226,14 +231,17 @@ def study(eval_dir: Path, out: Path, wm_run: Path | None = None, data: Path | No
         val_ids = spread(cache.select("val", list(tasks)), VAL_EPISODES)  # as wm.judge.fit_judge
         pols = dataset_policies(data)
 
-        def make(split_ids, seed):
+        def make(split_ids, seed, policies=pols):
             def go():
-                d = imagine_episodes(wm_cfg.model, params, norm, cache, split_ids, wm_cfg.camera, True, pols, seed)
+                d = imagine_episodes(wm_cfg.model, params, norm, cache, split_ids, wm_cfg.camera, True, policies, seed)
                 return {**d, "rollout": np.array([cache.episodes[i]["policy"] in pols for i in split_ids], bool)}
             return go
 
         train = imagined(out / f"imagined_train_{len(ids)}.npz", make(ids, wm_cfg.seed))
         val = imagined(out / "imagined_val.npz", make(val_ids, wm_cfg.seed + 1))
+        if not all(v.closed_loop for v in fitted):
+            train_open = imagined(out / f"imagined_train_open_{len(ids)}.npz", make(ids, wm_cfg.seed, {}))
+            val_open = imagined(out / "imagined_val_open.npz", make(val_ids, wm_cfg.seed + 1, {}))
         if any(v.observed for v in fitted):
             def observe(split_ids):
                 return lambda: {**observe_episodes(wm_cfg.model, params, norm, cache, split_ids, wm_cfg.camera),
@@ -257,7 +265,9 @@ def study(eval_dir: Path, out: Path, wm_run: Path | None = None, data: Path | No
             elif name == OBSERVED_BOUND:
                 probs, fit_metrics = observed_bound(observed, observed_val, seen, tasks, steps, wm_cfg.seed)
             else:
-                judge, fit_metrics = fit_variant(VARIANTS[name], train, val, tasks, wm_cfg, steps, observed)
+                v = VARIANTS[name]
+                judge, fit_metrics = fit_variant(v, train if v.closed_loop else train_open,
+                                                 val if v.closed_loop else val_open, tasks, wm_cfg, steps, observed)
                 probs = read_tasks(judge, features)
         except ValueError as e:  # one outcome only among what a variant would learn from
             print(f"warning: judge variant {name} skipped: {e}", file=sys.stderr)

@@ -2,6 +2,7 @@
 
 import base64
 import dataclasses
+import itertools
 import json
 import shutil
 
@@ -284,21 +285,23 @@ def test_weak_grip_episodes_start_where_the_scripted_ones_do_and_close_the_hand_
 
 
 def test_drive_episodes_back_away_for_times_spread_over_the_range_from_the_scripted_starts(monkeypatch):
-    """drive=N: N episodes of step_back alone (none on mug), each from the scripted episode i's initial
-    state and split, playing the ready pose while the base backs away at 0.3 m/s for drive_seconds(i)."""
+    """drive=N: N episodes of every task, each from the scripted episode i's initial state and split,
+    playing the ready pose while the base backs away at 0.3 m/s for drive_seconds(i)."""
     cfg = G.make_config("smoke", ["engine=cpu", "episodes=3", "batch=4", "drive=3", "tasks=mug,step_back"])
     plan = G._plan(cfg)
     drives = [(c, i) for c in plan for s, i in c.rows(padded=False) if s == G.DRIVE]
-    assert [i for _, i in drives] == [0, 1, 2] and {c.task for c, _ in drives} == {"step_back"}
+    for task in ("mug", "step_back"):
+        assert [i for c, i in drives if c.task == task] == [0, 1, 2]
     assert {c.key for c, _ in drives} == {"program"}
-    for i in range(3):
-        meta, scripted = (G._episode_meta(cfg, "step_back", s, i, False, 10, "cpu") for s in (G.DRIVE, 1.0))
+    for task, i in itertools.product(("mug", "step_back"), range(3)):
+        meta, scripted = (G._episode_meta(cfg, task, s, i, False, 10, "cpu") for s in (G.DRIVE, 1.0))
         assert meta["seed"] == scripted["seed"] and meta["split"] == scripted["split"] != "programs"
         assert (meta["policy"], meta["policy_kind"], meta["skill"], meta["episode_id"]) == (
-            "drive", "drive", None, f"step_back-drive-{i:06d}")
+            "drive", "drive", None, f"{task}-drive-{i:06d}")
     seconds = np.array([G.drive_seconds(i) for i in range(60)])
     lo, hi = G.DRIVE_SECONDS
     assert seconds.min() >= lo and seconds.max() < hi and np.histogram(seconds, bins=5, range=(lo, hi))[0].min() >= 10
+    assert G.drive_seconds(0) == 0.0  # the first drive stands still
     table = G.drive_table(1.0, 40)  # 20 steps of 0.05 s
     speed = table[:, R.FORWARD_SPEED]
     np.testing.assert_allclose(speed, [-0.3] * 20 + [0.0] * 20)
@@ -352,3 +355,16 @@ def test_a_chunk_mixing_skills_writes_each_episode_once_and_a_rerun_rewrites_onl
     assert {p.name: p.read_bytes() for p in (out / "episodes").iterdir()} == files
     assert {p.name: p.stat().st_mtime_ns for p in (out / "episodes").iterdir() if p != victim} == \
         {k: v for k, v in stamps.items() if k != victim.name}
+
+
+def test_drives_join_a_dataset_that_is_reused_whole(smoke, tmp_path):
+    """A dataset generated with drive=1 from one without drives links every episode of the first and
+    simulates the drive alone (drives only add episodes); the drive, standing still, fails."""
+    _, data, _ = smoke
+    out = tmp_path / "drives"
+    stats = G.generate(G.make_config("smoke", ["drive=1"]), out, progress=False, reuse=data)
+    assert stats["throughput"]["episodes_generated"] == 1
+    for f in (data / "episodes").iterdir():
+        assert (out / "episodes" / f.name).read_bytes() == f.read_bytes()
+    (row,) = [r for r in map(json.loads, (out / "manifest.jsonl").read_text().splitlines()) if r["policy"] == "drive"]
+    assert row["episode_id"] == "mug-drive-000000" and not row["success"]

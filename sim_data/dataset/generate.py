@@ -74,8 +74,7 @@ PLAY = "play"  # the source of random play episodes (sim_data.policies.scripted.
 WEAK_GRIP = "weak_grip"  # the source of scripted episodes whose hand closes only part-way (DataConfig.weak_grip)
 WEAK_GRIP_RANGE = (0.1, 0.7)  # the factors on a weak grip's closures
 DRIVE = "drive"  # the source of episodes that back away for a set time (DataConfig.drive)
-DRIVE_SECONDS = (0.5, 6.0)  # how long a drive episode backs away at the scripted 0.3 m/s: 0.15 to 1.8 m
-DRIVE_TASKS = ("step_back",)  # the tasks whose outcome the distance driven decides
+DRIVE_SECONDS = (0.0, 6.0)  # how long a drive episode backs away at the scripted 0.3 m/s: none to 1.8 m
 
 
 @dataclasses.dataclass(frozen=True)
@@ -112,12 +111,13 @@ class DataConfig:
         are 0 or 1, and these show what a hand closed part-way does to what it holds. They run in
         the chunks of the programs and play (on the GPU, in rows those chunks would pad) and are
         not scripted demonstrations (policy_kind "weak_grip"), so the zoo never learns from them.
-      drive: episodes per task of DRIVE_TASKS that hold the ready pose and back away at the scripted
-        speed for a time spread over DRIVE_SECONDS (drive_seconds), from the initial states of the
-        scripted episodes 0, 1, ... (policy "drive", in train/val/test; action tables, run with the
-        programs): the scripted drives all stop near the band that succeeds, and a policy acting on
-        imagined frames may stop short or drive on, so these show the world model and its judge what
-        every distance does. Not demonstrations (policy_kind "drive").
+      drive: episodes per task that hold the ready pose and back away at the scripted speed for a
+        time spread over DRIVE_SECONDS (drive_seconds: from standing still to 1.8 m), from the initial
+        states of the scripted episodes 0, 1, ... (policy "drive", in train/val/test; action tables,
+        run with the programs). On step_back the scripted drives all stop near the band that succeeds,
+        and a policy acting on imagined frames may stop short or drive on; on every other task no
+        drive succeeds. So these show the world model and its judge what every distance does, and that
+        backing away alone achieves nothing else. Not demonstrations (policy_kind "drive").
     """
 
     tasks: tuple = TASK_NAMES
@@ -278,7 +278,7 @@ def _sources(cfg: DataConfig, task: str, learned=()) -> list:
     sources = [(float(s), cfg.episodes) for s in cfg.skills] + [(p, cfg.programs) for p in PROGRAMS if cfg.programs]
     sources += [(PLAY, cfg.play)] if cfg.play else []
     sources += [(WEAK_GRIP, cfg.weak_grip)] if cfg.weak_grip else []
-    sources += [(DRIVE, cfg.drive)] if cfg.drive and task in DRIVE_TASKS else []
+    sources += [(DRIVE, cfg.drive)] if cfg.drive else []
     own = cfg.policy_episodes or cfg.episodes
     return sources + [(src, cfg.perturb_episodes or own if src.kind == PERTURBED else own)
                       for src in learned if src.runs_on(task)]
@@ -421,14 +421,15 @@ def _episode_meta(cfg, task, source, i, success, num_steps, engine):
 
 
 # settings that change which episodes a dataset holds but not the bytes of an episode both hold
-_ADDITIONS = ("policies", "policy_episodes", "perturbed", "perturb_episodes", "workers")
+_ADDITIONS = ("policies", "policy_episodes", "perturbed", "perturb_episodes", "drive", "workers")
 
 
 def link_shared_episodes(cfg: DataConfig, out: Path, reuse: Path, learned=()) -> int:
     """Hard-links (or copies) into out the episode files of the dataset in `reuse` that cfg's plan
     also holds, so they are not simulated again; returns how many. The reused dataset's configuration
-    must equal cfg apart from the learned policies it adds (and the worker count): the same seeds
-    then give the same bytes."""
+    must equal cfg apart from the learned policies and drives it adds (and the worker count): the same
+    seeds then give the same bytes (a drive plays an action table, and a table's row gives the
+    episode it gives alone)."""
     reuse = Path(reuse)
     if not (reuse / "config.json").exists():
         raise FileNotFoundError(f"{reuse} holds no dataset (config.json): generate it first")
