@@ -82,9 +82,8 @@ VARIANTS = {
     "all_proprio_progress": Variant(inputs=("proprio", "progress")),
     "rollouts_only": Variant(rollouts_only=True),
     "all_observed": Variant(observed=True),
-    # every episode imagined under its logged actions and labelled with their outcome in the simulator: a
-    # closed-loop imagination labelled with its real episode's outcome teaches the judge to undo the
-    # loop's drift for the lineages in the data, a correction that does not hold for other policies
+    # every episode imagined under its logged actions and labelled with their outcome in the simulator,
+    # where a closed-loop imagination carries the outcome of the actions its policy took on true frames
     "all_open_loop": Variant(closed_loop=False),
 }
 BOUND = "crossfit_bound"
