@@ -70,3 +70,21 @@ def test_the_same_evaluation_twice_gives_the_same_figures(smoke_zoo, smoke_world
         assert a["true_episodes"] == b["true_episodes"]
         assert a["pred_rate"] == pytest.approx(b["pred_rate"], abs=1e-9)
     assert json.dumps(one["metrics"]) == json.dumps(two["metrics"])
+
+
+def test_a_policy_in_a_batch_of_its_own_reads_the_same_whatever_else_is_evaluated(smoke_zoo, smoke_world_model,
+                                                                                   tmp_path):
+    """With batch = episodes every policy runs alone (the demo's setting): its true and imagined episodes
+    are then those of the policy itself, not of the batch it shares."""
+    zoo_dir, _ = smoke_zoo
+    sources = resolve([f"{zoo_dir}#conv_proprio+conv_noproprio"])[:3]
+    settings = {**SMOKE_EVAL, "batch": SMOKE_EVAL["episodes"], "replay": False, "keep_features": False}
+    runs = {}
+    for name, part in (("alone", sources[1:2]), ("beside", sources)):
+        cfg = E.EvalConfig(policies=(f"{zoo_dir}#" + "+".join(s.name for s in part),), wm=str(smoke_world_model),
+                           **settings)
+        assert len(E.task_chunks(cfg, resolve(cfg.policies), cfg.episodes)) == len(part)
+        runs[name] = {p["name"]: p for p in E.run(cfg, tmp_path / name, progress=False)["policies"]}
+    a, b = runs["alone"][sources[1].name], runs["beside"][sources[1].name]
+    assert a["true_episodes"] == b["true_episodes"]
+    assert a["pred_episodes"] == b["pred_episodes"]
