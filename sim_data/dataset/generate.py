@@ -75,6 +75,7 @@ WEAK_GRIP = "weak_grip"  # the source of scripted episodes whose hand closes onl
 WEAK_GRIP_RANGE = (0.1, 0.7)  # the factors on a weak grip's closures
 DRIVE = "drive"  # the source of episodes that back away for a set time (DataConfig.drive)
 DRIVE_SECONDS = (0.0, 6.0)  # how long a drive episode backs away at the scripted 0.3 m/s: none to 1.8 m
+SOURCES_NAMED = (PLAY, WEAK_GRIP, DRIVE)  # sources that are their own policy name and kind
 
 
 @dataclasses.dataclass(frozen=True)
@@ -221,7 +222,7 @@ def policy_name(source) -> str:
     PolicySource."""
     if isinstance(source, PolicySource):
         return f"{source.kind}:{source.name}"
-    if source in (PLAY, WEAK_GRIP, DRIVE):
+    if source in SOURCES_NAMED:
         return source
     return f"program:{source}" if isinstance(source, str) else f"scripted@{float(source):.2f}"
 
@@ -229,7 +230,7 @@ def policy_name(source) -> str:
 def policy_kind(source) -> str:
     if isinstance(source, PolicySource):
         return source.kind
-    return source if source in (PLAY, WEAK_GRIP, DRIVE) else "program" if isinstance(source, str) else "scripted"
+    return source if source in SOURCES_NAMED else "program" if isinstance(source, str) else "scripted"
 
 
 def episode_id(task: str, source, i: int) -> str:
