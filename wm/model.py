@@ -484,12 +484,14 @@ class Dynamics(nn.Module):
             lead = max(seen.shape[0], mask.shape[0])
             mask = jnp.concatenate([jnp.broadcast_to(seen, (lead,) + mask.shape[1:3] + (n,)),
                                     jnp.broadcast_to(mask, (lead,) + mask.shape[1:])], axis=3)
-        kvs = []
-        for layer in range(cfg.depth):
-            cached = None if past is None else tuple(past[key][:, layer].reshape((b, -1) + past[key].shape[4:])
-                                                     for key in ("k", "v"))
-            x, kv = Block(cfg)(x, cond, time_bias, mask, cached, anchor_tokens)
-            kvs.append(kv)
+        # the layers as one scanned block (parameters stacked on a leading depth axis): the program holds
+        # one layer, not depth copies, which is most of what compiling the train step and imagination costs
+        cached = None if past is None else tuple(
+            jnp.moveaxis(past[key], 1, 0).reshape((cfg.depth, b, -1) + past[key].shape[4:]) for key in ("k", "v"))
+        layers = nn.scan(Block, variable_axes={"params": 0}, split_rngs={"params": True}, length=cfg.depth,
+                         in_axes=(nn.broadcast, nn.broadcast, nn.broadcast, nn.broadcast if past is None else 0,
+                                  nn.broadcast))
+        x, kvs = layers(cfg, name="layers")(x, cond, time_bias, mask, cached, anchor_tokens)
         codes = {}
         if cfg.stochastic:
             x, codes = StochasticLayer(cfg, name="stochastic")(x, cond, target, noise)
@@ -515,7 +517,7 @@ class Dynamics(nn.Module):
             out["scene"] = heads[..., cfg.proprio_dim + 3:]
         if with_kv or past is not None:
             for i, key in enumerate(("k", "v")):
-                out[key] = jnp.stack([kv[i].reshape((b, t, n) + kv[i].shape[2:]) for kv in kvs], axis=1)
+                out[key] = jnp.moveaxis(kvs[i].reshape((cfg.depth, b, t, n) + kvs[i].shape[3:]), 0, 1)
         return out
 
 
