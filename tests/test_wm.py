@@ -13,7 +13,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from flax import traverse_util
 
 from sim_data.config import override
 from sim_data.dataset.cache import TrainingCache
@@ -25,7 +24,6 @@ from wm import metrics as M
 from wm.checkpoint import (
     load_run_config,
     load_trained,
-    stack_layers,
     training_policies,
     training_seeds,
     training_status,
@@ -358,27 +356,37 @@ def test_cached_steps_equal_the_training_forward_pass_over_a_long_window(model_a
     _assert_cached_steps_match_the_forward_pass(DEEP, deep_params, *_long_inputs(frames, proprio, action))
 
 
-def test_each_transformer_layer_has_its_own_parameters_stacked_by_depth_and_per_layer_copies_restack(deep_params):
-    """The scanned layers' parameters carry a leading depth axis, each layer drawn apart; the same
-    parameters stored one block per layer (dynamics/Block_<i>/...) restack to exactly these, and a
-    copy missing a layer is refused."""
-    layers = deep_params["dynamics"]["layers"]
-    kernels = [x for x in jax.tree_util.tree_leaves(layers) if x.ndim == 3]
-    assert kernels and all(x.shape[0] == DEEP.depth for x in jax.tree_util.tree_leaves(layers))
-    assert not np.allclose(kernels[0][0], kernels[0][1])
-    flat = traverse_util.flatten_dict(jax.tree_util.tree_map(np.asarray, deep_params), sep="/")
-    per_layer = {k: v for k, v in flat.items() if not k.startswith("dynamics/layers/")}
-    for k, v in flat.items():
-        if k.startswith("dynamics/layers/"):
-            per_layer |= {k.replace("layers/", f"Block_{i}/"): v[i] for i in range(DEEP.depth)}
-    restacked = stack_layers(per_layer)
-    assert sorted(restacked) == sorted(flat)
-    for k in flat:
-        np.testing.assert_array_equal(restacked[k], flat[k])
-    assert stack_layers(flat) is flat
-    missing = {k: v for k, v in per_layer.items() if not k.startswith("dynamics/Block_0/")}
-    with pytest.raises(ValueError, match="a layer is missing"):
-        stack_layers(missing)
+SCANNED = dataclasses.replace(DEEP, scan_layers=True)
+
+
+def _stacked(params, depth: int):
+    """An unrolled model's parameters (dynamics/Block_<i>/...) in the scanned layout (dynamics/layers/...,
+    each leaf stacked on a leading depth axis)."""
+    dyn = dict(params["dynamics"])
+    blocks = [dyn.pop(f"Block_{i}") for i in range(depth)]
+    dyn["layers"] = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *blocks)
+    return {**params, "dynamics": dyn}
+
+
+@pytest.mark.slow
+def test_scanned_layers_compute_what_the_unrolled_layers_compute_each_with_its_own_parameters(
+        model_and_inputs, deep_params):
+    """The scanned model's parameters carry a leading depth axis, each layer drawn apart at init; given the
+    unrolled model's parameters stacked, it predicts what the unrolled model predicts (every output and
+    every layer's keys and values), and its cached steps equal its forward pass."""
+    _, frames, proprio, action = model_and_inputs
+    own = init_params(SCANNED, jax.random.PRNGKey(1), window=6)["dynamics"]["layers"]
+    assert all(x.shape[0] == DEEP.depth for x in jax.tree_util.tree_leaves(own))
+    kernel = own["Dense_1"]["kernel"]
+    assert kernel.ndim == 3 and not np.allclose(kernel[0], kernel[1])
+    params = _stacked(deep_params, DEEP.depth)
+    z = compiled(WorldModel(DEEP), WorldModel.encode)({"params": deep_params}, frames)
+    want = compiled(WorldModel(DEEP), WorldModel.predict, with_kv=True)({"params": deep_params}, z, proprio, action)
+    got = compiled(WorldModel(SCANNED), WorldModel.predict, with_kv=True)({"params": params}, z, proprio, action)
+    assert sorted(got) == sorted(want)
+    for key in want:
+        np.testing.assert_allclose(got[key], want[key], rtol=1e-5, atol=1e-5, err_msg=key)
+    _assert_cached_steps_match_the_forward_pass(SCANNED, params, *_long_inputs(frames, proprio, action))
 
 
 ANCHORED = dataclasses.replace(DEEP, anchor=True)
@@ -392,7 +400,7 @@ def test_an_anchored_model_sees_the_first_frame_at_every_step_and_caches_alike(m
     params = init_params(ANCHORED, jax.random.PRNGKey(1), window=6)
     noise = np.random.default_rng(2)
     params = jax.tree_util.tree_map(lambda x: x + 0.05 * noise.standard_normal(x.shape).astype(np.float32), params)
-    assert "anchor_kv" in params["dynamics"]["layers"] and "anchor_bias" in params["dynamics"]
+    assert "anchor_kv" in params["dynamics"]["Block_0"] and "anchor_bias" in params["dynamics"]
     frames, proprio, action = _long_inputs(frames, proprio, action)
     full = _assert_cached_steps_match_the_forward_pass(ANCHORED, params, frames, proprio, action)
     m = WorldModel(ANCHORED)
@@ -1179,7 +1187,7 @@ def test_an_anchored_model_trains_fits_its_judge_and_writes_eval_json(smoke_data
     """The whole run of a model with an anchor frame: its windows' first frames from the loader, the
     anchor through every training pass, and eval.json's open- and closed-loop imaginations."""
     cfg, params, _ = _whole_smoke_run(smoke_dataset, tmp_path / "anchored", "model.anchor=true")
-    assert cfg.model.anchor and "anchor_kv" in params["dynamics"]["layers"]
+    assert cfg.model.anchor and "anchor_kv" in params["dynamics"]["Block_0"]
 
 
 def test_non_finite_loss_stops_without_a_checkpoint(smoke_dataset, tmp_path):

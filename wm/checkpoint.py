@@ -197,33 +197,12 @@ def check_bundle(out: Path) -> dict:
     return meta
 
 
-def stack_layers(flat: dict) -> dict:
-    """Flat parameters ("a/b/c" keys) with the dynamics' transformer blocks stored one per layer
-    ("dynamics/Block_<i>/...", as bundles of unscanned layers hold them) stacked on a leading depth axis
-    under "dynamics/layers/...", as wm.model's scanned layers read them; others returned unchanged."""
-    prefix = "dynamics/Block_"
-    per_layer = {}
-    for key, value in flat.items():
-        if key.startswith(prefix):
-            layer, rest = key[len(prefix):].split("/", 1)
-            per_layer.setdefault(rest, {})[int(layer)] = value
-    if not per_layer:
-        return flat
-    out = {k: v for k, v in flat.items() if not k.startswith(prefix)}
-    for rest, layers in per_layer.items():
-        if sorted(layers) != list(range(len(layers))):
-            raise ValueError(f"dynamics blocks {sorted(layers)} hold {rest}: a layer is missing")
-        out[f"dynamics/layers/{rest}"] = np.stack([layers[i] for i in range(len(layers))])
-    return out
-
-
 def _load_bundle(out: Path):
     meta = check_bundle(out)
     cfg, _ = load_run_config(out)
     flat = {}
     for name in sorted(n for n in meta["sha256"] if n.startswith("params-")):
         flat.update({k: _from_bytes(v) for k, v in serialization.msgpack_restore((out / name).read_bytes()).items()})
-    flat = stack_layers(flat)
     shapes = traverse_util.flatten_dict(_shapes(cfg), sep="/")
     if sorted(flat) != sorted(shapes) or any(flat[k].shape != shapes[k].shape for k in shapes):
         differ = sorted(k for k in shapes if k not in flat or flat[k].shape != shapes[k].shape)
