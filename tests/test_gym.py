@@ -116,6 +116,20 @@ class PixelBackAway:
         return action.at[:, R.NECK.start].add(look), carry
 
 
+@dataclasses.dataclass(frozen=True)
+class FirstFrameBackAway:
+    """BackAway whose neck yaw holds the first frame's mean brightness: its carry starts from the frame
+    it sees at reset, as a policy that remembers its first view would (init_carry reads obs["image"])."""
+
+    def init_carry(self, params, obs, task_state, rng):
+        first = obs["image"].astype(jnp.float32).mean(axis=(1, 2, 3)) / 255.0
+        return BackAway().init_carry(params, obs, task_state, rng), first
+
+    def act(self, params, obs, carry, rng):
+        action, steps = BackAway().act(params, obs, carry[0], rng)
+        return action.at[:, R.NECK.start].add(0.4 * (carry[1] - 0.5)), (steps, carry[1])
+
+
 def _bc_policy():
     """A behaviour-cloning network of the zoo's conv lineage with random weights throughout (the zoo
     initialises its head to zero, which would ignore the frame)."""
@@ -128,11 +142,13 @@ def _bc_policy():
     return BCPolicy(cfg), params
 
 
-@pytest.mark.parametrize("which", ["pixel_back_away", "bc"])
+@pytest.mark.parametrize("which", ["pixel_back_away", "first_frame", "bc"])
 def test_policy_through_gym_make_is_the_homeenv_episode(which):
     """The same seed and policy noise through gym.make and through HomeEnv (record_episodes, as the
-    dataset records): byte-equal frames at every step, equal actions and the same success."""
-    policy, params = (PixelBackAway(), make_back_away()[1]) if which == "pixel_back_away" else _bc_policy()
+    dataset records): byte-equal frames at every step, equal actions and the same success; both give
+    init_carry the reset's camera frame."""
+    policy, params = {"pixel_back_away": (PixelBackAway(), make_back_away()[1]),
+                      "first_frame": (FirstFrameBackAway(), make_back_away()[1])}.get(which) or _bc_policy()
     seed, rng = 11, jax.random.PRNGKey(3)
     head = Renderer(S.load_model(), RenderConfig(camera="head_cam"))
     _, rec = record_episodes(HomeEnv("step_back", 1, engine="cpu"), policy, params, rng, (head,),
@@ -142,7 +158,7 @@ def test_policy_through_gym_make_is_the_homeenv_episode(which):
     obs, _ = env.reset(seed=seed)
     _, k_pol, k_act = jax.random.split(rng, 3)
     batched = lambda o: {k: jnp.asarray(v)[None] for k, v in o.items()}
-    carry = policy.init_carry(params, batched(obs), env.unwrapped.state.task, k_pol)
+    carry = jax.jit(policy.init_carry)(params, batched(obs), env.unwrapped.state.task, k_pol)  # as HomeEnv runs it
     act = jax.jit(policy.act)
     frames, actions, truncated, t = [obs["image"]], [], False, 0
     while not truncated:

@@ -192,9 +192,10 @@ def record_episodes(env: HomeEnv, policy, params, rng: jax.Array, renderers: tup
     k_reset, k_pol, k_act = jax.random.split(rng, 3)
     state = env.reset(k_reset if reset_keys is None else reset_keys)
     rgb = episode_rgb(renderers[0].geometry, state.task.colors) if renderers else None
-    carry = _jitted_init(policy)(params, state.obs, state.task, k_pol)
     if env.engine.name == "mjx":
         obs, frames, rec = _observe_mjx(env.core, renderers, state, rgb)
+        # the policy's carry starts from what it sees at reset, the camera's frame included
+        carry = _jitted_init(policy)(params, obs, state.task, k_pol)
         segments = []
         for start in _segment_starts(env):
             state, carry, obs, seg = _scan_recorded(env.core, policy, renderers, params, state, carry, obs, k_act,
@@ -208,6 +209,7 @@ def record_episodes(env: HomeEnv, policy, params, rng: jax.Array, renderers: tup
 
     act = _jitted_act(policy)
     obs, frames, rec = observe(state, rgb)
+    carry = _jitted_init(policy)(params, obs, state.task, k_pol)
     first, steps, actions = (frames, rec), [], []
     for t in range(env.episode_steps):
         action, carry = act(params, obs, carry, jax.random.fold_in(k_act, t))
