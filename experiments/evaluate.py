@@ -223,8 +223,9 @@ PRESETS = {
     # enough episodes that the true rates resolve a ranking: 16 a policy (95% interval about +-0.2) on the
     # demo's CPU, 100 (+-0.1) on a GPU. The demo runs one policy a batch: XLA's CPU numerics move with a
     # batch's composition, enough to flip a marginal grasp or an imagined loop, so a policy's figures
-    # would change with the policies evaluated beside it (and on 2 cores it is faster than batches of 256)
-    "demo": EvalConfig(policies=("runs/policies/demo",), wm="runs/wm/demo", episodes=16, batch=16),
+    # would change with the policies evaluated beside it (and on 2 cores it is faster than batches of 256).
+    # The world model: `make demo`'s ensemble of two (experiments.pipeline's demo members)
+    "demo": EvalConfig(policies=("runs/policies/demo",), wm="runs/wm/demo,runs/wm/demo_seed1", episodes=16, batch=16),
     # 52 policies x 50 states a batch: the 100 states run as two slices of one compiled program (50 as one)
     "full": EvalConfig(policies=("runs/policies/full",), wm="runs/wm/full", episodes=100, batch=2600, state_batch=50,
                        max_minutes=8.0),
