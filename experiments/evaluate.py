@@ -80,6 +80,7 @@ from sim_data.util import device_name, make_output_dir, run_cli, write_json_atom
 from wm.checkpoint import (
     load_run_config,
     load_trained,
+    trained_tasks,
     training_policies,
     training_seeds,
     training_status,
@@ -123,7 +124,8 @@ class EvalConfig:
       policies: policy specs (`sim_data.policies.registry`: zoo registries, plug-ins).
       wm: the world model's training run directory (make train OUT), or several, comma-separated:
         an ensemble whose mean probability is the prediction (their frames must be of one size).
-      tasks: tasks to evaluate (empty: every task of the learned policies).
+      tasks: tasks to evaluate (empty: every task of the learned policies; with plug-ins alone, every task
+        the world models learned to judge).
       episodes: held-out initial states per task (each policy runs from all of them).
       seed: names the held-out initial states. engine: "cpu", "mjx" or "" (mjx on a GPU).
       batch: episodes simulated or imagined together (policies x initial states).
@@ -857,9 +859,7 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
     cfg.validate()
     out = Path(out)
     sources = resolve(cfg.policies)  # the policies and models are checked before OUT records the configuration
-    tasks = list(cfg.tasks) or sorted({s.task for s in sources if s.task})
-    if not tasks:
-        raise ValueError("no task to evaluate: the policies are all plug-ins; name tasks=...")
+    tasks = evaluation_tasks(cfg, sources)
     models = load_models(cfg.wm_runs, cfg.imagine)
     make_output_dir(out / "tasks")
     _check_config(cfg, out)
@@ -881,6 +881,22 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
     report = gather(cfg, out, tasks, results, sources, models, wm_data, wm_cache, engine, preset)
     write_json_atomic(out / "results.json", no_nan(report))
     return report
+
+
+def evaluation_tasks(cfg: EvalConfig, sources) -> list[str]:
+    """The tasks to evaluate: cfg.tasks where named, else those of the zoo's policies, else (plug-ins
+    alone, which run on any task) every task that each of cfg's world models learned to judge."""
+    tasks = list(cfg.tasks) or sorted({s.task for s in sources if s.task})
+    if tasks:
+        return tasks
+    known = [set(trained_tasks(Path(r))) for r in cfg.wm_runs]
+    tasks = sorted(set.intersection(*known)) if known else []
+    if not tasks:
+        raise ValueError("no task to evaluate: the policies are all plug-ins and the world model names none "
+                         "it learned; name tasks=...")
+    print(f"plug-ins alone: evaluated on the world model's tasks {', '.join(tasks)} (tasks=... to choose)",
+          file=sys.stderr)
+    return tasks
 
 
 def evaluate_tasks(cfg: EvalConfig, out: Path, tasks, sources, models, used: set, engine: str, progress: bool,

@@ -18,6 +18,7 @@ from experiments.report import family_table, verdict, violation_table, write_rep
 from sim_data.parts import exclusive
 from sim_data.policies.bc import MixedPolicy, StackedPolicy, stacked
 from sim_data.policies.registry import resolve
+from wm.checkpoint import trained_tasks
 from wm.judge import load_judge
 from wm.metrics import psnr
 
@@ -615,3 +616,27 @@ def test_played_actions_give_the_simulated_outcomes_back():
     np.testing.assert_array_equal(E.simulate_actions("step_back", rec.action, keys, "cpu"), outcome)
     with pytest.raises(ValueError, match="actions an episode"):
         E.simulate_actions("step_back", np.asarray(rec.action)[:, :5], keys, "cpu")
+
+
+def test_plug_ins_alone_are_evaluated_on_every_task_the_world_model_learned(smoke_world_model, tmp_path):
+    sources = resolve(["examples.plugin_policy:make"])
+    cfg = E.EvalConfig(policies=("examples.plugin_policy:make",), wm=str(smoke_world_model), tasks=())
+    # the smoke model has no episode judge: the tasks of its training data's cache
+    assert load_judge(smoke_world_model) is None
+    assert E.evaluation_tasks(cfg, sources) == ["mug"]
+    assert E.evaluation_tasks(dataclasses.replace(cfg, tasks=("step_back",)), sources) == ["step_back"]
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    config = json.loads((Path(smoke_world_model) / "config.json").read_text())
+    (bare / "config.json").write_text(json.dumps(config))
+    assert trained_tasks(bare) == ("mug",)
+    # a judge names the tasks it learned, and an ensemble evaluates those every member learned
+    (bare / "judge.json").write_text(json.dumps({"tasks": ["mug", "step_back"]}))
+    assert trained_tasks(bare) == ("mug", "step_back")
+    assert E.evaluation_tasks(dataclasses.replace(cfg, wm=f"{bare},{smoke_world_model}"), sources) == ["mug"]
+    (bare / "judge.json").unlink()
+    # nor data at hand: nothing to guess, the error says what to name
+    (bare / "config.json").write_text(json.dumps(dict(config, data=str(tmp_path / "gone"))))
+    assert trained_tasks(bare) == ()
+    with pytest.raises(ValueError, match="name tasks="):
+        E.evaluation_tasks(dataclasses.replace(cfg, wm=f"{smoke_world_model},{bare}"), sources)

@@ -86,6 +86,21 @@ def training_policies(out: Path) -> set:
     return used_policies(load_run_config(out)[1])
 
 
+def trained_tasks(out: Path) -> tuple:
+    """The tasks a run's world model learned to judge: its episode judge's, else those its training
+    named (train_tasks), else those of its training data's cache; () where none of these is at hand."""
+    judge = run_file(out, "judge.json")
+    if judge is not None:
+        return tuple(judge["tasks"])
+    cfg, data = load_run_config(out)
+    if cfg.train_tasks:
+        return tuple(cfg.train_tasks)
+    index = Path(data) / "cache" / "index.json"
+    if not index.exists():
+        return ()
+    return tuple(sorted({e["task"] for e in json.loads(index.read_text())["episodes"]}))
+
+
 def load_trained(out: Path):
     """(TrainConfig, best parameters (float32), Norm) of a finished training run in out, or of its bundle."""
     out = Path(out)
