@@ -87,6 +87,12 @@ def ensemble_metrics(rows: list[dict], threshold: float = 0.5) -> dict:
     return out | member_metrics(member_rates, true)
 
 
+def member_runs(wm_root: Path, name: str, members: int) -> list[Path]:
+    """The training runs of an ensemble of `members` world models named `name` under wm_root: seed 0's
+    run is wm_root/name, seed k's wm_root/name_seed<k>."""
+    return [Path(wm_root) / name] + [Path(wm_root) / f"{name}_seed{k}" for k in range(1, members)]
+
+
 def member_metrics(member_rates, true_rates, member_eps=None, true_eps=None, threshold: float = 0.5) -> dict:
     """Each ensemble member's ranking alone against the same true rates, and the members' mean.
 

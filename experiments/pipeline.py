@@ -53,6 +53,7 @@ from pathlib import Path
 import jax
 
 from experiments import evaluate, report
+from experiments.ensemble import member_runs
 from experiments.timing import (
     compile_snapshot,
     compiled_since,
@@ -93,7 +94,7 @@ class Pipeline:
     def dirs(self, name: str) -> dict:
         r = Path(self.root)
         data = r / "data" / self.data
-        wm = [r / "wm" / name] + [r / "wm" / f"{name}_seed{k}" for k in range(1, self.members)]
+        wm = member_runs(r / "wm", name, self.members)
         return {"data": data, "policies": r / "policies" / name, "wm": wm[0], "members": wm, "eval": r / "eval" / name,
                 "wm_data": data.with_name(f"{self.data}_{name}_rollouts") if self.rollouts else data}
 

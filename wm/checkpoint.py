@@ -26,6 +26,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 from flax import serialization, traverse_util
 
+from sim_data.dataset.cache import TrainingCache
 from sim_data.policies.registry import used_policies, used_seeds
 from sim_data.util import run_cli, write_json_atomic
 from wm.config import TrainConfig, from_dict
@@ -95,10 +96,9 @@ def trained_tasks(out: Path) -> tuple:
     cfg, data = load_run_config(out)
     if cfg.train_tasks:
         return tuple(cfg.train_tasks)
-    index = Path(data) / "cache" / "index.json"
-    if not index.exists():
+    if not (Path(data) / "cache" / "index.json").exists():
         return ()
-    return tuple(sorted({e["task"] for e in json.loads(index.read_text())["episodes"]}))
+    return tuple(TrainingCache(data).tasks)
 
 
 def load_trained(out: Path):
