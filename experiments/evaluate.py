@@ -64,6 +64,8 @@ from sim_data.dataset.generate import cached_env, cached_renderers, package_vers
 from sim_data.parts import add_part_argument, config_and_part, exclusive, in_turn
 from sim_data.policies.bc import MixedPolicy
 from sim_data.policies.registry import (
+    code_digest,
+    fingerprint,
     group_by_policy,
     heldout_seeds,
     padded_chunks,
@@ -330,7 +332,7 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
         rng = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), j)
         t0 = time.perf_counter()
         truth = simulate_truth(cfg, task, policy, params, seeds[s0:s1], reset_keys[s0:s1], rng, engine, renderer,
-                               wait)
+                               wait, code="".join(code_digest(s) for s in padded))
         if truth is None:
             return None
         clock["steps"] = truth["steps"]
@@ -586,16 +588,17 @@ def simulated_finite(truth: dict) -> np.ndarray:
 
 
 def simulate_truth(cfg: EvalConfig, task: str, policy, params, seeds, reset_keys, rng, engine: str,
-                   renderer, wait: bool = True) -> dict | None:
+                   renderer, wait: bool = True, code: str = "") -> dict | None:
     """Closed-loop simulator episodes of P stacked policies from n initial states, or the same read
     back from cfg.truth_cache (a process that finds another simulating the same batch waits for it,
     under a lock file beside the cache entry, and reads its outcomes; with wait=False it returns None
     at once instead). Returns {"outcome": (P, n) bool, "frames0": (P*n, 1, S, S, 3) uint8,
     "proprio0": (P*n, 1, 37), "steps": int, and "frames": (P*n, T+1, S, S, 3), "proprio": (P*n,
-    T+1, 37) and "action": (P*n, T, 20) where simulated}."""
+    T+1, 37) and "action": (P*n, T, 20) where simulated}. code: the plug-ins' code_digest, part of the
+    cache's key."""
     if not cfg.truth_cache:
         return _simulate(task, policy, params, seeds, reset_keys, rng, engine, renderer)
-    path = Path(cfg.truth_cache) / f"{task}-{_truth_key(task, policy, params, seeds, rng, engine, renderer)}.npz"
+    path = Path(cfg.truth_cache) / f"{task}-{_truth_key(task, policy, params, seeds, rng, engine, renderer, code)}.npz"
     path.parent.mkdir(parents=True, exist_ok=True)
     # Rankings on other GPUs wait for the one simulating this batch: the simulator on a GPU is not
     # bit-reproducible, and models compared must be compared against the same outcomes.
@@ -633,12 +636,12 @@ def simulate_actions(task: str, actions, reset_keys, engine: str) -> np.ndarray:
     return outcome
 
 
-def _truth_key(task, policy, params, seeds, rng, engine, renderer) -> str:
+def _truth_key(task, policy, params, seeds, rng, engine, renderer, code: str = "") -> str:
     """A digest of everything a batch of simulated episodes depends on: the task, the policies (their
-    class, configuration and parameters), the initial states, the random key, the engine and its
-    physics revision, the camera."""
+    class, configuration, parameters and plug-ins' code), the initial states, the random key, the
+    engine and its physics revision, the camera."""
     h = hashlib.sha256(json.dumps([task, repr(policy), [int(s) for s in seeds], np.asarray(rng).tolist(), engine,
-                                   PHYSICS_REVISION, [repr(r.cfg) for r in renderer]], default=str).encode())
+                                   PHYSICS_REVISION, [repr(r.cfg) for r in renderer], code], default=str).encode())
     for leaf in jax.tree_util.tree_leaves(params):
         a = np.ascontiguousarray(np.asarray(leaf))
         h.update(str((a.shape, a.dtype)).encode())
@@ -688,6 +691,8 @@ def _select_videos(cfg, task, names, true, kept):
 
 def _interval_of_mean(x) -> list:
     x = np.asarray(x, np.float64)
+    if not np.isfinite(x).all():
+        return [math.nan, math.nan]
     half = S.Z95 * x.std(ddof=1) / math.sqrt(len(x)) if len(x) > 1 else math.nan
     return [max(0.0, x.mean() - half), min(1.0, x.mean() + half)]
 
@@ -737,19 +742,20 @@ def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) ->
             res["prob_replayed"], res["sim_imagined"], strict=True):
         rec = sources_by_name[name].record
         k, n = int(t.sum()), len(t)
-        kp = int((p >= cfg.threshold).sum())
+        kp = int((p >= cfg.threshold).sum()) if np.isfinite(p).all() else math.nan  # NaN: no outcome read
         rows.append({"name": name, "task": task, "lineage": rec.get("lineage", "plugin"), "step": rec.get("step"),
                      "kind": sources_by_name[name].kind, "n": n, "true_rate": k / n,
                      "true_ci": list(S.wilson_interval(k, n)), "pred_rate": float(p.mean()),
                      "pred_ci": _interval_of_mean(p), "pred_rate_thresholded": kp / n,
-                     "pred_thresholded_ci": list(S.wilson_interval(kp, n)), "val_loss": rec.get("val_loss"),
-                     "alignment": S.alignment(p >= cfg.threshold, t),
+                     "pred_thresholded_ci": list(S.wilson_interval(kp, n)) if kp == kp else [math.nan] * 2,
+                     "val_loss": rec.get("val_loss"),
+                     "alignment": S.alignment(p >= cfg.threshold, t) if kp == kp else math.nan,
                      "pred_rate_readouts": dict(zip(READOUTS, r.mean(1).tolist(), strict=True)),
                      # the read-out of the simulated episodes, and of their actions replayed (replay=1)
                      "pred_rate_on_truth": _mean_or_none(obs), "pred_rate_replayed": _mean_or_none(rep),
                      # the simulator's success on the actions the policy took in imagination (replay=1)
                      "true_rate_imagined_actions": _mean_or_none(played),
-                     "nonfinite_episodes": int((~ok).sum()),
+                     "nonfinite_episodes": int((~ok).sum()), "nonfinite_predictions": int((~np.isfinite(p)).sum()),
                      # mean progress over the episodes at each step, the simulator's and the imagined
                      "progress_true": _mean_curve(tp), "progress_imagined": _mean_curve(ip),
                      # RMS gap of the policy's actions on imagined and on true frames, over its episodes' steps
@@ -863,7 +869,7 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
     tasks = evaluation_tasks(cfg, sources)
     models = load_models(cfg.wm_runs, cfg.imagine)
     make_output_dir(out / "tasks")
-    _check_config(cfg, out)
+    _check_config(cfg, out, sources)
     cfg = dataclasses.replace(cfg, readout=auto_readout(cfg.readout, cfg.wm_runs, models))
     wm_data = str(load_run_config(Path(cfg.wm_runs[0]))[1])  # the first model's data: the tasks it saw
     wm_cache = TrainingCache(wm_data) if (Path(wm_data) / "cache" / "index.json").exists() else None
@@ -959,6 +965,8 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, models, wm
     if bad:
         print(f"warning: simulated episodes whose state went non-finite (their true outcome is doubtful; the judge "
               f"on truth is left out): {bad}", file=sys.stderr)
+    if unread := S.nonfinite_policies(rows):
+        print(f"warning: {unread}", file=sys.stderr)
     # the policies whose own rollouts some member of the ensemble saw in training
     seen = set().union(*(training_policies(Path(r)) for r in cfg.wm_runs))
     for r in rows:
@@ -1130,18 +1138,31 @@ def load_task(path: Path) -> dict:
                 "prob_members": members, **traces, "videos": videos}
 
 
-def _check_config(cfg: EvalConfig, out: Path) -> None:
+FINGERPRINTS = "policy_fingerprints"  # config.json's record of what each policy computed with
+
+
+def _check_config(cfg: EvalConfig, out: Path, sources) -> None:
+    """Records cfg and every policy's fingerprint (its parameters and, for a plug-in, its code) in
+    out/config.json, or checks a rerun against them: results an OUT holds are read back, so they must
+    come from this configuration and these policies as they are now."""
     mine = json.loads(json.dumps(dataclasses.asdict(cfg)))
     mine.pop("max_minutes")  # a time budget does not change what is computed
+    prints = {s.name: fingerprint(s) for s in sources}
     path = out / "config.json"
     if path.exists():
+        on_file = json.loads(path.read_text())
+        theirs = on_file.pop(FINGERPRINTS, {})
         # a field missing from the saved configuration has its default value
-        saved = json.loads(json.dumps(dataclasses.asdict(EvalConfig()))) | json.loads(path.read_text())
+        saved = json.loads(json.dumps(dataclasses.asdict(EvalConfig()))) | on_file
         saved.pop("max_minutes")
         if saved != mine:
             raise ValueError(f"{out} holds an evaluation of another configuration; use another OUT")
+        changed = sorted(name for name, digest in theirs.items() if prints.get(name, digest) != digest)
+        if changed:
+            raise ValueError(f"{out} holds results of {changed} as their code or parameters were then, not as "
+                             "they are now; use another OUT")
     else:
-        write_json_atomic(path, mine)
+        write_json_atomic(path, mine | {FINGERPRINTS: prints})
 
 
 def main(argv=None) -> int:
@@ -1153,7 +1174,7 @@ def main(argv=None) -> int:
     p.add_argument("--partial", action="store_true",
                    help="evaluate nothing more: results.json over the tasks finished so far (a run cut short)")
     p.add_argument("overrides", nargs="*", help="key=value overrides (e.g. episodes=50 policies=DIR,mod:attr)")
-    a = p.parse_args(argv)
+    a = p.parse_intermixed_args(argv)  # key=value overrides before or after the options
     cfg, part = config_and_part(p, a, make_config)
     t0 = time.perf_counter()
     if a.partial and part is not None:
@@ -1162,8 +1183,9 @@ def main(argv=None) -> int:
     if res is None:
         return 0  # a part, or stopped by max_minutes (the message says what is left)
     w = res["metrics"]["within_task"]
-    print(json.dumps({"within_task_mean": {who: {k: [w[who]["mean"][k], w[who]["mean_ci"][k]] for k in S.WITHIN_TASK}
-                                           for who in ("world_model", "proxy")}}, indent=1))
+    print(json.dumps(no_nan({"within_task_mean": {who: {k: [w[who]["mean"][k], w[who]["mean_ci"][k]]
+                                                        for k in S.WITHIN_TASK}
+                                                  for who in ("world_model", "proxy")}}), indent=1))
     print(f"{len(res['policies'])} policies in {time.perf_counter() - t0:.0f} s; results {a.out / 'results.json'}")
     return 0
 

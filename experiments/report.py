@@ -22,7 +22,7 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from PIL import Image
 
-from experiments.stats import rank
+from experiments.stats import nonfinite_policies, rank
 from sim_data.util import run_cli
 
 # each evaluation preset's own targets for the within-task means (docs/results.md)
@@ -283,9 +283,21 @@ def _html_table(rows) -> str:
     return f"<table><tr>{head}</tr>{body}</table>"
 
 
+def unlearned_warning(res: dict) -> str:
+    """A warning naming the evaluated tasks missing from the world model's training data ("" if none):
+    its predictions there are not those of a model that learned the task."""
+    learned = res["world_model"].get("train_tasks")
+    unseen = [t for t in res["tasks"] if learned is not None and t not in learned]
+    if not unseen:
+        return ""
+    return (f"The world model never saw {', '.join(unseen)} in training (it learned {', '.join(learned) or 'none'}): "
+            "its predictions there are guesses about a task it does not know.")
+
+
 def _md_table(rows) -> str:
-    lines = ["| " + " | ".join(rows[0]) + " |", "|" + "---|" * len(rows[0])]
-    lines += ["| " + " | ".join(r) + " |" for r in rows[1:]]
+    cell = lambda c: c.replace("|", "\\|")  # a policy's name may hold one
+    lines = ["| " + " | ".join(map(cell, rows[0])) + " |", "|" + "---|" * len(rows[0])]
+    lines += ["| " + " | ".join(map(cell, r)) + " |" for r in rows[1:]]
     return "\n".join(lines)
 
 
@@ -621,6 +633,9 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
          f"device {html.escape(str(res['device']))}.</p>",
          *([f"<p class='warn'>Partial: tasks {html.escape(', '.join(res['missing_tasks']))} were not evaluated; "
             "every statistic below leaves them out.</p>"] if res.get("missing_tasks") else []),
+         *([f"<p class='warn'>{html.escape(unlearned_warning(res))}</p>"] if unlearned_warning(res) else []),
+         *([f"<p class='warn'>{html.escape(nonfinite_policies(policies).capitalize())}.</p>"]
+           if nonfinite_policies(policies) else []),
          *([f"<p class='warn'>{html.escape(CUT_SHORT)}</p>"] if res["world_model"].get("cut_short") else []),
          f"<p><b>{html.escape(verdict(res))}</b></p>",
          "<h2>Predicted against true success, per task</h2>", f"<img src='{scatter_figure(policies, metrics, tasks)}'>",
@@ -706,6 +721,8 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
           f"engine {res['engine']}, device {res['device']}. Full report: `report.html`.", "",
           *([f"**Partial**: tasks {', '.join(res['missing_tasks'])} were not evaluated; every statistic below "
              "leaves them out.", ""] if res.get("missing_tasks") else []),
+          *([f"**{unlearned_warning(res)}**", ""] if unlearned_warning(res) else []),
+          *([f"**{nonfinite_policies(policies).capitalize()}.**", ""] if nonfinite_policies(policies) else []),
           *([f"**{CUT_SHORT}**", ""] if res["world_model"].get("cut_short") else []),
           f"**{verdict(res)}**", "", "## Within-task ranking (the headline)", "", _md_table(within_task_table(res)), "",
           _md_table(per_task_table(res)), "", "## Checkpoint selection", "", _selection_md(res), "",

@@ -451,3 +451,14 @@ def family_statistics(rows: list[dict], rate: str = "pred_rate") -> dict:
     defined = [x["pearson"] for x in out if not math.isnan(x["pearson"])]
     return {"families": out, "mean_pearson": float(np.mean(defined)) if defined else math.nan,
             "mean_abs_error": float(np.mean([x["mean_abs_error"] for x in out])) if out else math.nan}
+
+
+def nonfinite_policies(rows: list[dict]) -> str:
+    """A sentence naming the policies whose simulated episodes or imagined predictions went non-finite
+    (a policy's NaN or infinite actions, most often), "" if none."""
+    names = sorted({r["name"] for r in rows if r.get("nonfinite_episodes") or r.get("nonfinite_predictions")})
+    if not names:
+        return ""
+    return (f"policies {', '.join(names)} ran into non-finite values (NaN or infinite actions?): where the "
+            "simulator's state went non-finite their true outcomes are doubtful, and where the world model's "
+            "predictions did, neither their predicted rates nor their tasks' statistics can be read")

@@ -165,7 +165,9 @@ def test_a_tasks_rows_of_one_rollout_share_chunks_cut_evenly_and_padded_only_to_
     learned += [PolicySource("wipe/b/0", "learned", "wipe", b, None, {})]
     plan = G._plan(cfg, learned)
     mug = [c for c in plan if c.task == "mug"]
-    assert [c.key for c in mug] == ["scripted", "scripted", "program", "program", a, a]
+    key_a, key_b = G.rollout_key(learned[0]), G.rollout_key(learned[-1])  # the policy and its parameters' layout
+    assert key_a[0] is a and key_b[0] is b
+    assert [c.key for c in mug] == ["scripted", "scripted", "program", "program", key_a, key_a]
     # 6 scripted rows in the fewest chunks of at most 4: two of 3, not 4 and 2 padded to 4
     assert [_rows(c) for c in mug[:2]] == [[(0.5, 0), (0.5, 1), (0.5, 2)], [(1.0, 0), (1.0, 1), (1.0, 2)]]
     # the programs and random play share ProgramPolicy: one set of 4 programs and 2 play episodes
@@ -176,7 +178,7 @@ def test_a_tasks_rows_of_one_rollout_share_chunks_cut_evenly_and_padded_only_to_
     assert [_rows(c) for c in mug[4:]] == [[("mug/a/0", 0), ("mug/a/0", 1), ("mug/a/1", 0), ("mug/a/1", 1)],
                                            [("mug/a/2", 0), ("mug/a/2", 1)]]
     assert _rows(mug[5], padded=True) == [("mug/a/2", 0), ("mug/a/2", 1)] * 2 and mug[5].width == 2
-    assert [c.key for c in plan if c.task == "wipe"][-1] == b
+    assert [c.key for c in plan if c.task == "wipe"][-1] == key_b
     # every episode once, in the manifest's order within a rollout
     ids = [e for c in plan for e in c.episode_ids()]
     assert sorted(ids) == sorted(G.episode_id(t, s, i) for t, s, i in G._episodes(cfg, learned))
@@ -185,7 +187,7 @@ def test_a_tasks_rows_of_one_rollout_share_chunks_cut_evenly_and_padded_only_to_
                for k, c in enumerate(plan) if k and c.task == plan[k - 1].task and c.key == plan[k - 1].key)
     # more episodes of a checkpoint than a batch: each checkpoint over chunks of its own
     long = G._plan(G.make_config("smoke", ["batch=4", "policy_episodes=5"]), learned[:1])
-    assert [_rows(c) for c in long if c.key == a] == [[("mug/a/0", 0), ("mug/a/0", 1), ("mug/a/0", 2)],
+    assert [_rows(c) for c in long if c.key == key_a] == [[("mug/a/0", 0), ("mug/a/0", 1), ("mug/a/0", 2)],
                                                       [("mug/a/0", 3), ("mug/a/0", 4)]]
     assert _rows(long[-1], padded=True) == [("mug/a/0", 3), ("mug/a/0", 4), ("mug/a/0", 4)]
     assert even_pieces(list(range(7)), 3) == ([[0, 1, 2], [3, 4, 5], [6]], 3)

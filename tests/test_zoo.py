@@ -373,7 +373,7 @@ def test_checkpoints_of_one_architecture_run_stacked_in_one_chunk_as_each_runs_a
     cfg = G.make_config("smoke", [f"policies={zoo_dir}#conv_proprio", "policy_episodes=1"])
     sources = resolve(cfg.policies)
     assert len(sources) == 2 and sources[0].policy == sources[1].policy
-    (chunk,) = [c for c in G._plan(cfg, sources) if c.key == sources[0].policy]
+    (chunk,) = [c for c in G._plan(cfg, sources) if c.key == G.rollout_key(sources[0])]
     assert [s for s, _ in chunk.slots] == sources  # batch 2: both checkpoints, one episode each
     out = tmp_path / "stacked"
     assert G.generate(cfg, out, progress=False, reuse=data)["throughput"]["episodes_generated"] == 2
@@ -381,7 +381,7 @@ def test_checkpoints_of_one_architecture_run_stacked_in_one_chunk_as_each_runs_a
     for src, ep in zip(sources, eps):
         assert ep["meta"]["policy"] == f"learned:{src.name}" and ep["meta"]["policy_source"]["name"] == src.name
         # alone, the checkpoint acts as it did beside the other
-        _, alone = G.simulate_chunk(cfg, G.Chunk("mug", src.policy, ((src, (0,)),), 1, 1), "cpu")
+        _, alone = G.simulate_chunk(cfg, G.Chunk("mug", G.rollout_key(src), ((src, (0,)),), 1, 1), "cpu")
         np.testing.assert_allclose(alone.action[0], ep["action"], atol=1e-5)
     np.testing.assert_array_equal(eps[0]["qpos"][0], eps[1]["qpos"][0])  # one initial state
     assert not np.allclose(eps[0]["action"], eps[1]["action"])

@@ -330,7 +330,7 @@ def main(argv=None) -> int:
                         "replicated and fsdp: per-device frames/s and efficiency against one device's")
     p.add_argument("--per-device-batch", type=int, default=None, help="with --scaling (default: the preset's batch)")
     p.add_argument("--steps", type=int, default=20, help="timed train steps per measurement")
-    a = p.parse_args(argv)
+    a = p.parse_intermixed_args(argv)  # key=value overrides before or after the options
     gpu = jax.devices()[0].platform != "cpu"
     preset = a.config or ("full" if gpu else "demo")
     if a.scaling:

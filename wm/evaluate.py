@@ -566,7 +566,7 @@ def main(argv=None) -> int:
     p.add_argument("--success-only", action="store_true",
                    help="only success prediction, episode by episode: OUT/success_episodes.json")
     p.add_argument("overrides", nargs="*", help=f"key=value, keys among {', '.join(EVAL_KEYS)}")
-    a = p.parse_args(argv)
+    a = p.parse_intermixed_args(argv)  # key=value overrides before or after the options
     bad = [o for o in a.overrides if o.split("=")[0] not in EVAL_KEYS]
     if bad:
         p.error(f"only evaluation settings can be overridden ({', '.join(EVAL_KEYS)}), got {bad}")

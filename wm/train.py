@@ -509,7 +509,7 @@ def main(argv=None) -> int:
     p.add_argument("--process-id", type=int, help="this process's index, 0 .. num-processes - 1 (with --distributed)")
     p.add_argument("--no-eval", action="store_true", help="skip eval.json at the end")
     p.add_argument("overrides", nargs="*", help="dotted key=value overrides, e.g. model.dim=256 batch=32")
-    a = p.parse_args(argv)
+    a = p.parse_intermixed_args(argv)  # key=value overrides before or after the options
     try:
         cfg = make_config(a.config, a.overrides)
     except ValueError as e:

@@ -41,7 +41,7 @@ from sim_data.dataset.episodes import (  # noqa: F401 (re-exported)
 from sim_data.parts import add_part_argument, config_and_part, exclusive, take
 from sim_data.policies.bc import stacked
 from sim_data.policies.degrade import GOLDEN, perturbation
-from sim_data.policies.registry import PERTURBED, PolicySource, perturbed_copy
+from sim_data.policies.registry import PERTURBED, PolicySource, perturbed_copy, stack_key
 from sim_data.policies.registry import resolve as resolve_sources
 from sim_data.policies.scripted import (
     PROGRAMS,
@@ -384,12 +384,12 @@ def _plan(cfg: DataConfig, learned=()) -> list[Chunk]:
 def rollout_key(source) -> object:
     """The group whose rows a task's chunks cut together: the scripted skills ("scripted"), the
     programs, random play, the weak grips and the drives ("program"), or a learned policy's
-    checkpoints (its policy object: one architecture). The task is data in the rollout, so one
-    compiled rollout serves a key in every task; the "scripted" and "program" groups share one too
+    checkpoints (stack_key: one policy object, one layout of parameters). The task is data in the
+    rollout, so one compiled rollout serves a key in every task; the "scripted" and "program" groups share one too
     (ScriptOrProgramPolicy), and stay apart so that each chunk's rows, and with them the policy noise
     its rng draws, are its own."""
     if isinstance(source, PolicySource):
-        return source.policy
+        return stack_key(source)
     return "program" if isinstance(source, str) else "scripted"
 
 
@@ -594,7 +594,7 @@ def _policy_and_params(cfg: DataConfig, chunk: Chunk, rows: list, env: HomeEnv) 
         params = pad_programs(script_or_program_params(skill, table, program, grip), MAX_EPISODE_STEPS)
         return _policy(), params
     slots = [rows[k:k + chunk.width] for k in range(0, len(rows), chunk.width)]
-    return stacked(chunk.key, [slot[0][0].episodes_params([i for _, i in slot]) for slot in slots])
+    return stacked(slots[0][0][0].policy, [slot[0][0].episodes_params([i for _, i in slot]) for slot in slots])
 
 
 def weak_grip_factor(i: int) -> float:
@@ -707,12 +707,9 @@ def main(argv=None) -> int:
                                               "again (to add policies' rollouts to a generated dataset)")
     add_part_argument(p, "simulate every N-th chunk", "gather the dataset")
     p.add_argument("overrides", nargs="*", help="key=value overrides of the preset (e.g. episodes=16 tasks=mug,wipe)")
-    a = p.parse_args(argv)
+    a = p.parse_intermixed_args(argv)  # key=value overrides before or after the options
     cfg, part = config_and_part(p, a, make_config)
-    try:
-        stats = generate(cfg, a.out, reuse=a.reuse, part=part)
-    except (FileNotFoundError, ValueError) as e:
-        p.error(str(e))
+    stats = generate(cfg, a.out, reuse=a.reuse, part=part)
     if stats is None:
         print(f"part {a.part} done; run without --part to gather the dataset", file=sys.stderr)
         return 0

@@ -25,13 +25,21 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import importlib
+import importlib.util
+import inspect
 import json
 import re
 import typing
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
+import numpy as np
+
 from sim_data.policies.bc import BCPolicy, PolicyNetConfig, load_params, stacked
 from sim_data.policies.degrade import DegradedPolicy, degrade_params, perturbed_params
+from sim_data.sim.robot import ACTION_DIM, PROPRIO_DIM, robot_index
+from sim_data.sim.scene import load_model
 from sim_data.util import even_pieces
 
 
@@ -105,17 +113,24 @@ def is_plugin(spec: str) -> bool:
 
 
 def load_plugin(spec: str) -> PolicySource:
-    """`[name=]package.module:attribute` -> its PolicySource."""
+    """`[name=]package.module:attribute` -> its PolicySource, the policy checked against the protocol
+    (check_protocol) before anything runs it."""
     name, _, target = spec.rpartition("=")
     module_name, _, attr = target.partition(":")
     try:
         module = importlib.import_module(module_name)
-    except ImportError as e:
+    except (ImportError, ValueError) as e:  # importlib raises ValueError for an empty name
         raise ValueError(f"plug-in {spec!r}: cannot import {module_name!r} ({e}); is it on PYTHONPATH?") from e
     if not hasattr(module, attr):
         raise ValueError(f"plug-in {spec!r}: module {module_name!r} has no attribute {attr!r}")
     obj = getattr(module, attr)
-    got = obj() if callable(obj) and not isinstance(obj, tuple) else obj
+    if callable(obj) and not isinstance(obj, tuple):
+        try:
+            got = obj()
+        except Exception as e:  # the user's own code: keep its traceback, name the plug-in
+            raise RuntimeError(f"plug-in {spec!r}: {module_name}.{attr}() raised {type(e).__name__}: {e}") from e
+    else:
+        got = obj
     if not (isinstance(got, tuple) and len(got) == 2):
         raise ValueError(f"plug-in {spec!r} must give (policy, params), got {type(got).__name__}")
     policy, params = got
@@ -127,8 +142,95 @@ def load_plugin(spec: str) -> PolicySource:
         hash(policy)
     except TypeError:
         raise ValueError(f"plug-in {spec!r}: the policy must be hashable (a frozen dataclass, for instance)") from None
-    return PolicySource(name=name or target, kind="plugin", task=None, policy=policy, params=params,
-                        record={"plugin": target})
+    check_protocol(spec, policy, params)
+    files = sorted({f for f in (inspect.getsourcefile(module), _class_file(policy)) if f})
+    idx = robot_index(load_model())
+    return PolicySource(name=name or target, kind="plugin", task=None,
+                        policy=ClippedPolicy(policy, tuple(idx.action_low.tolist()), tuple(idx.action_high.tolist())),
+                        params=params, record={"plugin": target, "files": files})
+
+
+@dataclasses.dataclass(frozen=True)
+class ClippedPolicy:
+    """A plug-in whose actions are clipped to their ranges (the actuators' control ranges; speeds
+    +-0.5 m/s and +-1 rad/s): the simulator applies them so, and the world model and the dataset see
+    the actions as applied, not as asked for."""
+
+    policy: object
+    low: tuple  # (20,)
+    high: tuple
+
+    def init_carry(self, params, obs, task_state, rng):
+        return self.policy.init_carry(params, obs, task_state, rng)
+
+    def act(self, params, obs, carry, rng):
+        action, carry = self.policy.act(params, obs, carry, rng)
+        return jnp.clip(action, jnp.asarray(self.low, jnp.float32), jnp.asarray(self.high, jnp.float32)), carry
+
+
+def _class_file(obj) -> str | None:
+    try:
+        return inspect.getsourcefile(type(obj))
+    except TypeError:  # a built-in class
+        return None
+
+
+def check_protocol(spec: str, policy, params, batch: int = 2, size: int = 64) -> None:
+    """Traces (jax.eval_shape: nothing is compiled or run) init_carry and act on a batch of `batch`
+    blank observations, as the world model gives them (task_state None), and raises an error naming
+    the plug-in where the policy fails, where its action is not (batch, 20), or where act returns a
+    carry of another structure, shape or dtype than it was given (the rollouts run it in lax.scan)."""
+    obs = {"image": jax.ShapeDtypeStruct((batch, size, size, 3), jnp.uint8),
+           "proprio": jax.ShapeDtypeStruct((batch, PROPRIO_DIM), jnp.float32)}
+    rng = jax.random.PRNGKey(0)
+    try:
+        carry = jax.eval_shape(lambda p, o, k: policy.init_carry(p, o, None, k), params, obs, rng)
+        action, after = jax.eval_shape(policy.act, params, obs, carry, rng)
+    except Exception as e:
+        raise RuntimeError(f"plug-in {spec!r}: the policy fails on a batch of {batch} observations "
+                           f"(image ({batch}, {size}, {size}, 3) uint8, proprio ({batch}, {PROPRIO_DIM}) float32, "
+                           f"task_state None): {type(e).__name__}: {e}") from e
+    if getattr(action, "shape", None) != (batch, ACTION_DIM):
+        raise ValueError(f"plug-in {spec!r}: act must return actions of shape ({batch}, {ACTION_DIM}) for a "
+                         f"batch of {batch}, got {getattr(action, 'shape', type(action).__name__)}")
+    before_s, after_s = (jax.tree.map(lambda x: (x.shape, str(x.dtype)), c) for c in (carry, after))
+    if jax.tree.structure(carry) != jax.tree.structure(after) or before_s != after_s:
+        raise ValueError(f"plug-in {spec!r}: act must return its carry with the structure, shapes and dtypes it "
+                         f"was given (the rollouts run it inside lax.scan): given {before_s}, returned {after_s}")
+
+
+def code_digest(source: PolicySource) -> str:
+    """A digest of a plug-in's source files (its module's and its policy class's; "" for a registry
+    checkpoint): what a result of the plug-in was computed with, beside its parameters."""
+    h = hashlib.sha256()
+    for f in source.record.get("files", ()) if source.kind == "plugin" else ():
+        h.update(Path(f).read_bytes() if Path(f).exists() else f.encode())
+    return h.hexdigest()[:16] if source.kind == "plugin" else ""
+
+
+def _describe(x) -> str:
+    """A description of a policy object that is the same in every process: a dataclass's fields, the
+    values of plain types, else the class's name alone (a default repr holds a memory address)."""
+    if dataclasses.is_dataclass(x) and not isinstance(x, type):
+        fields = ", ".join(f"{f.name}={_describe(getattr(x, f.name))}" for f in dataclasses.fields(x))
+        return f"{type(x).__module__}.{type(x).__qualname__}({fields})"
+    if isinstance(x, (tuple, list)):
+        return "(" + ", ".join(map(_describe, x)) + ")"
+    if x is None or isinstance(x, (bool, int, float, str)):
+        return repr(x)
+    return f"{type(x).__module__}.{type(x).__qualname__}"
+
+
+def fingerprint(source: PolicySource) -> str:
+    """A digest of what the policy computes: its class (and configuration, for a dataclass), its
+    parameters and, for a plug-in, its code (code_digest); a rerun into the same output compares it."""
+    h = hashlib.sha256(_describe(source.policy).encode())
+    for leaf in jax.tree_util.tree_leaves(source.params):
+        a = np.ascontiguousarray(np.asarray(leaf))
+        h.update(str((a.shape, a.dtype)).encode())
+        h.update(a.tobytes())
+    h.update(code_digest(source).encode())
+    return h.hexdigest()[:16]
 
 
 def load_registry_sources(spec: str) -> list[PolicySource]:
@@ -179,6 +281,11 @@ def resolve(specs) -> list[PolicySource]:
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
         raise ValueError(f"policy names repeat: {dup}; give plug-ins distinct names with name=module:attribute")
+    slugs = [s.slug for s in out]  # the names' file-name forms (episode files, videos)
+    clash = sorted({n for s, n in zip(slugs, names) if slugs.count(s) > 1})
+    if clash:
+        raise ValueError(f"policy names {clash} differ only in punctuation, which file names drop; "
+                         "rename them with name=module:attribute")
     return out
 
 
@@ -189,6 +296,9 @@ def load_registry(path: Path) -> list[dict]:
     if path.is_dir():
         path = path / "policies.json"
     if not path.exists():
+        if _names_a_module(str(path).removesuffix("/policies.json")):
+            raise ValueError(f"{str(path).removesuffix('/policies.json')}: neither a zoo registry nor a plug-in (a "
+                             "plug-in is package.module:attribute, the attribute a callable returning (policy, params))")
         raise FileNotFoundError(f"{path} is missing: train a zoo first (make policies)")
     registry = json.loads(path.read_text())
     records = registry["policies"]
@@ -196,6 +306,16 @@ def load_registry(path: Path) -> list[dict]:
         r["checkpoint"] = str(path.parent / r["checkpoint"])
         r["data"] = registry["data"]
     return records
+
+
+def _names_a_module(name: str) -> bool:
+    """Whether name is a dotted Python name that imports (a plug-in spec without its `:attribute`)."""
+    if not re.fullmatch(r"[A-Za-z_]\w*(\.[A-Za-z_]\w*)*", name):
+        return False
+    try:
+        return importlib.util.find_spec(name) is not None
+    except (ImportError, ValueError):
+        return False
 
 
 def load_policy(record: dict) -> tuple:
@@ -210,11 +330,19 @@ def load_policy(record: dict) -> tuple:
 
 # ---- where and how policies are run -------------------------------------------------------------
 
+def stack_key(source: PolicySource) -> tuple:
+    """What sources must share to run stacked (sim_data.policies.bc.stacked): one policy object and
+    parameters of one structure, shapes and dtypes (an equal policy may take parameters of any size)."""
+    leaves, tree = jax.tree_util.tree_flatten(source.params)
+    return source.policy, tree, tuple((np.shape(x), str(getattr(x, "dtype", None) or np.asarray(x).dtype))
+                                      for x in leaves)
+
+
 def group_by_policy(sources):
-    """Sources sharing one policy object (and so one compiled rollout), in a fixed order."""
+    """Sources that run stacked (stack_key: and so one compiled rollout), in a fixed order."""
     groups: dict = {}
     for s in sources:
-        groups.setdefault(s.policy, []).append(s)
+        groups.setdefault(stack_key(s), []).append(s)
     return list(groups.values())
 
 

@@ -607,7 +607,7 @@ def main(argv=None) -> int:
                    help="the engine of --measure (default: mjx where a GPU is, else cpu)")
     add_part_argument(p, "train every N-th lineage", "write the registry")
     p.add_argument("overrides", nargs="*", help="key=value overrides (e.g. steps=500 conv.width=32)")
-    a = p.parse_args(argv)
+    a = p.parse_intermixed_args(argv)  # key=value overrides before or after the options
     cfg, part = config_and_part(p, a, make_config)
     t0 = time.perf_counter()
     registry = train_zoo(cfg, a.data, a.out, part=part)

@@ -1,0 +1,207 @@
+"""A user's own policy at the plug-in point: checked against the protocol before it runs, its actions
+clipped as the simulator applies them, grouped only with policies it can be stacked with, and
+fingerprinted so that an evaluation's output is never read back for other code."""
+
+import dataclasses
+import importlib
+import sys
+import textwrap
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from experiments import evaluate as E
+from experiments import report as RP
+from experiments import stats as S
+from sim_data.dataset import generate as G
+from sim_data.policies.registry import (
+    ClippedPolicy,
+    fingerprint,
+    group_by_policy,
+    load_plugin,
+    resolve,
+    stacked_sources,
+)
+from sim_data.sim import robot as R
+from sim_data.sim.robot import robot_index
+from sim_data.sim.scene import load_model
+
+USER_MODULE = '''
+import dataclasses
+import jax.numpy as jnp
+
+@dataclasses.dataclass(frozen=True)
+class Constant:
+    """Every action entry the same value, params["value"]; the carry counts steps."""
+    def init_carry(self, params, obs, task_state, rng):
+        return jnp.zeros((obs["proprio"].shape[0],), jnp.int32)
+    def act(self, params, obs, carry, rng):
+        return jnp.full((carry.shape[0], 20), params["value"], jnp.float32), carry + 1
+
+@dataclasses.dataclass(frozen=True)
+class Mlp:
+    """Proprio -> action through one hidden layer whose width the params choose."""
+    def init_carry(self, params, obs, task_state, rng):
+        return {"t": jnp.zeros((obs["proprio"].shape[0],), jnp.int32)}
+    def act(self, params, obs, carry, rng):
+        h = jnp.tanh(obs["proprio"] @ params["w1"])
+        return h @ params["w2"], {"t": carry["t"] + 1}
+
+@dataclasses.dataclass(frozen=True)
+class Narrow:
+    """Actions of 19 entries: one short."""
+    def init_carry(self, params, obs, task_state, rng):
+        return jnp.zeros((obs["proprio"].shape[0],), jnp.int32)
+    def act(self, params, obs, carry, rng):
+        return jnp.zeros((carry.shape[0], 19)), carry + 1
+
+@dataclasses.dataclass(frozen=True)
+class Drifting:
+    """Its carry comes back as float32 where it went in as int32."""
+    def init_carry(self, params, obs, task_state, rng):
+        return jnp.zeros((obs["proprio"].shape[0],), jnp.int32)
+    def act(self, params, obs, carry, rng):
+        return jnp.zeros((carry.shape[0], 20)), carry + 0.5
+
+@dataclasses.dataclass(frozen=True)
+class NeedsTaskState:
+    """Reads the simulator's task state, which the world model does not have."""
+    def init_carry(self, params, obs, task_state, rng):
+        return task_state["phase"]
+    def act(self, params, obs, carry, rng):
+        return jnp.zeros((obs["proprio"].shape[0], 20)), carry
+
+def fast():
+    return Constant(), {"value": jnp.float32(5.0)}
+
+def calm():
+    return Constant(), {"value": jnp.float32(0.1)}
+
+def mlp(width):
+    return Mlp(), {"w1": jnp.full((37, width), 0.01), "w2": jnp.full((width, 20), 0.01)}
+
+def narrow_mlp():
+    return mlp(8)
+
+def wide_mlp():
+    return mlp(32)
+
+def short():
+    return Narrow(), {}
+
+def drifting():
+    return Drifting(), {}
+
+def needs_task_state():
+    return NeedsTaskState(), {}
+
+def broken():
+    return float("abc"), {}
+'''
+
+
+@pytest.fixture
+def user_module(tmp_path, monkeypatch):
+    """A user's module of plug-ins, importable as `user_pols` (written in tmp_path); its file path."""
+    path = tmp_path / "user_pols.py"
+    path.write_text(textwrap.dedent(USER_MODULE))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    sys.modules.pop("user_pols", None)
+    importlib.invalidate_caches()
+    yield path
+    sys.modules.pop("user_pols", None)
+
+
+def test_a_plugin_is_checked_against_the_protocol_before_it_runs(user_module):
+    with pytest.raises(ValueError, match=r"'user_pols:short'.*shape \(2, 20\).*\(2, 19\)"):
+        load_plugin("user_pols:short")
+    with pytest.raises(ValueError, match=r"'user_pols:drifting'.*carry.*int32.*float32"):
+        load_plugin("user_pols:drifting")
+    with pytest.raises(RuntimeError, match=r"'user_pols:needs_task_state'.*task_state None"):
+        load_plugin("user_pols:needs_task_state")
+    with pytest.raises(RuntimeError, match=r"'user_pols:broken': user_pols.broken\(\) raised ValueError") as e:
+        load_plugin("user_pols:broken")
+    assert isinstance(e.value.__cause__, ValueError)  # the user's traceback is kept
+    source = load_plugin("mine=user_pols:narrow_mlp")  # a pytree of parameters and a dict carry pass
+    assert source.name == "mine" and source.kind == "plugin" and str(user_module) in source.record["files"]
+
+
+def test_specs_that_are_not_plugins_say_what_a_plugin_is(user_module):
+    with pytest.raises(ValueError, match="cannot import"):
+        resolve([":make"])
+    with pytest.raises(ValueError, match="neither a zoo registry nor a plug-in"):
+        resolve(["user_pols"])
+    with pytest.raises(ValueError, match="differ only in punctuation"):
+        resolve(["x.y=user_pols:calm", "x_y=user_pols:fast"])
+
+
+def test_a_plugins_actions_are_clipped_to_the_ranges_the_simulator_applies(user_module):
+    idx = robot_index(load_model())
+    fast, calm = resolve(["user_pols:fast", "user_pols:calm"])
+    assert isinstance(fast.policy, ClippedPolicy)
+    obs = {"image": jnp.zeros((3, 64, 64, 3), jnp.uint8), "proprio": jnp.zeros((3, R.PROPRIO_DIM))}
+    got = {}
+    for s in (fast, calm):
+        carry = s.policy.init_carry(s.params, obs, None, jax.random.PRNGKey(0))
+        got[s.name] = np.asarray(s.policy.act(s.params, obs, carry, jax.random.PRNGKey(1))[0])
+    np.testing.assert_array_equal(got["user_pols:fast"], np.broadcast_to(np.minimum(5.0, idx.action_high), (3, 20)))
+    assert got["user_pols:fast"][0, R.FORWARD_SPEED] == R.MAX_FORWARD_SPEED
+    np.testing.assert_array_equal(got["user_pols:calm"], np.clip(np.full((3, 20), np.float32(0.1)),
+                                                                 idx.action_low, idx.action_high))
+
+
+def test_equal_policies_with_parameters_of_other_shapes_run_apart(user_module):
+    narrow, wide, narrow2 = resolve(["user_pols:narrow_mlp", "user_pols:wide_mlp", "again=user_pols:narrow_mlp"])
+    assert narrow.policy == wide.policy  # one policy object, the width in its parameters
+    groups = group_by_policy([narrow, wide, narrow2])
+    assert [[s.name for s in g] for g in groups] == [["user_pols:narrow_mlp", "again"], ["user_pols:wide_mlp"]]
+    assert G.rollout_key(narrow) == G.rollout_key(narrow2) != G.rollout_key(wide)
+    for g in groups:  # each group stacks
+        policy, params = stacked_sources(g)
+        assert policy.count(params) == len(g)
+
+
+def test_a_fingerprint_follows_the_parameters_and_the_plugins_code(user_module):
+    (calm,) = resolve(["user_pols:calm"])
+    (calm2,) = resolve(["user_pols:calm"])
+    assert fingerprint(calm) == fingerprint(calm2)  # the same in every process: no memory addresses in it
+    assert fingerprint(calm) != fingerprint(dataclasses.replace(calm, params={"value": jnp.float32(0.2)}))
+    before = fingerprint(calm)
+    user_module.write_text(user_module.read_text().replace("carry + 1", "carry + 2"))
+    assert fingerprint(calm) != before
+
+
+def test_an_evaluation_is_not_read_back_for_edited_plugins(user_module, tmp_path):
+    cfg = E.EvalConfig(policies=("user_pols:calm",), wm="runs/wm/x", video_policies=0)
+    out = tmp_path / "eval"
+    out.mkdir()
+    E._check_config(cfg, out, resolve(cfg.policies))
+    E._check_config(cfg, out, resolve(cfg.policies))  # unchanged: the rerun continues
+    user_module.write_text(user_module.read_text().replace("carry + 1", "carry + 2"))
+    with pytest.raises(ValueError, match=r"\['user_pols:calm'\] as their code or parameters were then"):
+        E._check_config(cfg, out, resolve(cfg.policies))
+
+
+def test_non_finite_predictions_are_not_read_as_failures():
+    assert all(np.isnan(E._interval_of_mean([np.nan, 0.2, 0.4])))
+    rows = [{"name": "ok", "nonfinite_episodes": 0, "nonfinite_predictions": 0},
+            {"name": "nans", "nonfinite_episodes": 3, "nonfinite_predictions": 8}]
+    assert "policies nans ran into non-finite values" in S.nonfinite_policies(rows)
+    assert S.nonfinite_policies(rows[:1]) == ""
+
+
+def test_the_report_escapes_names_and_names_tasks_the_world_model_never_learned():
+    table = RP._md_table([["policy", "rate"], ["a|b", "0.5"]])
+    assert table.splitlines()[2] == "| a\\|b | 0.5 |"
+    res = {"tasks": ["mug", "step_back"], "world_model": {"train_tasks": ["mug"]}}
+    assert "never saw step_back in training (it learned mug)" in RP.unlearned_warning(res)
+    assert RP.unlearned_warning({"tasks": ["mug"], "world_model": {"train_tasks": ["mug"]}}) == ""
+
+
+def test_overrides_may_stand_on_both_sides_of_an_option(capsys):
+    with pytest.raises(SystemExit):
+        G.main(["--config", "smoke", "size=96", "--out", "/nonexistent/x", "episodes=2"])
+    err = capsys.readouterr().err
+    assert "unrecognized arguments" not in err and "size" in err
