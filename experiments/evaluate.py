@@ -690,11 +690,12 @@ def _select_videos(cfg, task, names, true, kept):
 # ---- results ---------------------------------------------------------------------------------------
 
 def _interval_of_mean(x) -> list:
+    """A 95% t-interval of a policy's mean predicted probability over its episodes, within [0, 1]
+    ([0, 1] for one episode; NaN where a prediction is not finite)."""
     x = np.asarray(x, np.float64)
     if not np.isfinite(x).all():
         return [math.nan, math.nan]
-    half = S.Z95 * x.std(ddof=1) / math.sqrt(len(x)) if len(x) > 1 else math.nan
-    return [max(0.0, x.mean() - half), min(1.0, x.mean() + half)]
+    return S.mean_interval(x, (0.0, 1.0))[1] or [0.0, 1.0]
 
 
 def _mean_curve(x) -> list:

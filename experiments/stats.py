@@ -291,6 +291,19 @@ def _masked_pairwise(p, t, keep, min_gap: float) -> np.ndarray:
         return np.where(counted.any(-1), score / counted.sum(-1), math.nan)
 
 
+def mean_interval(values, bounds=None) -> tuple[float | None, list | None]:
+    """Mean of the finite values, and a 95% t-interval of it when there are two or more, clipped to
+    bounds (lo, hi) where given."""
+    v = np.array([x for x in values if x is not None and np.isfinite(x)], np.float64)
+    if len(v) == 0:
+        return None, None
+    if len(v) == 1:
+        return float(v[0]), None
+    half = sps.t.ppf(0.975, len(v) - 1) * v.std(ddof=1) / math.sqrt(len(v))
+    lo, hi = bounds or (-math.inf, math.inf)
+    return float(v.mean()), [float(max(lo, v.mean() - half)), float(min(hi, v.mean() + half))]
+
+
 def percentile_interval(x) -> list:
     """[2.5th, 97.5th] percentiles of bootstrap draws x, NaN draws left out ([nan, nan] if none is left)."""
     x = np.asarray(x, np.float64)

@@ -61,9 +61,9 @@ from pathlib import Path
 
 import numpy as np
 from matplotlib.figure import Figure
-from scipy import stats
 
 from experiments import ensemble
+from experiments import stats as S
 from sim_data.util import run_cli, write_json_atomic
 
 # eval.json figures compared across runs: (name in results.json, path in eval.json)
@@ -585,19 +585,6 @@ def _get(d: dict, path):
     return d
 
 
-def mean_interval(values, bounds=None) -> tuple[float | None, list | None]:
-    """Mean of the finite values, and a 95% t-interval of it when there are two or more, clipped to
-    bounds (lo, hi) where given."""
-    v = np.array([x for x in values if x is not None and np.isfinite(x)], np.float64)
-    if len(v) == 0:
-        return None, None
-    if len(v) == 1:
-        return float(v[0]), None
-    half = stats.t.ppf(0.975, len(v) - 1) * v.std(ddof=1) / math.sqrt(len(v))
-    lo, hi = bounds or (-math.inf, math.inf)
-    return float(v.mean()), [float(max(lo, v.mean() - half)), float(min(hi, v.mean() + half))]
-
-
 def collect(name: str, size: str, runs: list[SweepRun], out: Path, x_label: str) -> dict:
     """results.json: every run's figures, and per swept value their mean and interval over seeds."""
     rows = []
@@ -618,7 +605,7 @@ def collect(name: str, size: str, runs: list[SweepRun], out: Path, x_label: str)
         mine = [row for row in rows if row["x"] == x]
         entry = {"x": x, "seeds": sum(row["finished"] for row in mine)}
         for m, _ in METRICS:
-            entry[m], entry[f"{m}_ci"] = mean_interval([row[m] for row in mine], BOUNDS.get(m))
+            entry[m], entry[f"{m}_ci"] = S.mean_interval([row[m] for row in mine], BOUNDS.get(m))
         entry |= ensemble_figures([rankings[r.name] for r in runs if r.x == x and r.name in rankings])
         per_x.append(entry)
     return {"sweep": name, "size": size, "x_label": x_label, "runs": rows, "per_x": per_x,

@@ -186,6 +186,9 @@ def test_an_evaluation_is_not_read_back_for_edited_plugins(user_module, tmp_path
 
 def test_non_finite_predictions_are_not_read_as_failures():
     assert all(np.isnan(E._interval_of_mean([np.nan, 0.2, 0.4])))
+    # a t-interval over the episodes (mean 0.4, sd 0.2, n 3: t(0.975, 2) = 4.302653), within [0, 1]
+    assert E._interval_of_mean([0.2, 0.4, 0.6]) == pytest.approx([0.0, 0.4 + 4.302653 * 0.2 / np.sqrt(3)], abs=1e-5)
+    assert E._interval_of_mean([0.7]) == [0.0, 1.0]
     rows = [{"name": "ok", "nonfinite_episodes": 0, "nonfinite_predictions": 0},
             {"name": "nans", "nonfinite_episodes": 3, "nonfinite_predictions": 8}]
     assert "policies nans ran into non-finite values" in S.nonfinite_policies(rows)

@@ -290,3 +290,12 @@ def test_mmrv_floor_is_a_perfect_predictors_mmrv_against_resampled_truth():
     # more episodes, a lower floor
     many = {"t": np.array([[1, 0] * 50, [0, 1] * 50])}
     assert S.mmrv_floor(many, draws=400)["mean"] < got["mean"] / 3
+
+
+def test_mean_interval_is_a_t_interval():
+    mean, ci = S.mean_interval([0.5, 0.7, 0.9, None])
+    # mean 0.7, sd 0.2, n 3: t(0.975, 2) = 4.302653
+    half = 4.302653 * 0.2 / np.sqrt(3)
+    assert mean == pytest.approx(0.7) and ci == pytest.approx([0.7 - half, 0.7 + half], abs=1e-5)
+    assert S.mean_interval([0.3]) == (0.3, None) and S.mean_interval([None]) == (None, None)
+    assert S.mean_interval([0.5, 0.7, 0.9], (0.0, 0.8))[1] == pytest.approx([0.7 - half, 0.8])  # a rate's range

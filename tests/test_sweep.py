@@ -9,15 +9,6 @@ import pytest
 from experiments import sweep as W
 
 
-def test_mean_interval_is_a_t_interval():
-    mean, ci = W.mean_interval([0.5, 0.7, 0.9, None])
-    # mean 0.7, sd 0.2, n 3: t(0.975, 2) = 4.302653
-    half = 4.302653 * 0.2 / np.sqrt(3)
-    assert mean == pytest.approx(0.7) and ci == pytest.approx([0.7 - half, 0.7 + half], abs=1e-5)
-    assert W.mean_interval([0.3]) == (0.3, None) and W.mean_interval([None]) == (None, None)
-    assert W.mean_interval([0.5, 0.7, 0.9], (0.0, 0.8))[1] == pytest.approx([0.7 - half, 0.8])  # a rate's range
-
-
 def test_collect_reads_every_finished_run(tmp_path):
     runs = W.data_scaling(W.Size(train="demo", steps=100, seeds=2, data={}))
     assert [r.x for r in runs] == [0.125, 0.125, 0.25, 0.25, 0.5, 0.5, 1.0, 1.0]
