@@ -65,6 +65,7 @@ from sim_data.parts import add_part_argument, config_and_part, exclusive, in_tur
 from sim_data.policies.bc import MixedPolicy
 from sim_data.policies.registry import (
     code_digest,
+    describe,
     fingerprint,
     group_by_policy,
     heldout_seeds,
@@ -640,7 +641,7 @@ def _truth_key(task, policy, params, seeds, rng, engine, renderer, code: str = "
     """A digest of everything a batch of simulated episodes depends on: the task, the policies (their
     class, configuration, parameters and plug-ins' code), the initial states, the random key, the
     engine and its physics revision, the camera."""
-    h = hashlib.sha256(json.dumps([task, repr(policy), [int(s) for s in seeds], np.asarray(rng).tolist(), engine,
+    h = hashlib.sha256(json.dumps([task, describe(policy), [int(s) for s in seeds], np.asarray(rng).tolist(), engine,
                                    PHYSICS_REVISION, [repr(r.cfg) for r in renderer], code], default=str).encode())
     for leaf in jax.tree_util.tree_leaves(params):
         a = np.ascontiguousarray(np.asarray(leaf))

@@ -277,6 +277,34 @@ def _policy_table(rows: list[dict]) -> list[list[str]]:
     return out
 
 
+PLUGIN_NOTE = ("Each plug-in beside the task's other policies: its true and predicted success with their 95% "
+               "intervals (episodes), the error, and its place when the task's policies are ordered by true and by "
+               "predicted success (1: the best; ties share the better place).")
+
+
+def plugin_table(policies: list[dict]) -> list[list[str]] | None:
+    """Per plug-in and task: true and predicted rate with intervals, the error, and the plug-in's place
+    among the task's policies by true and by predicted rate; None where no policy is a plug-in."""
+    mine = [p for p in policies if p.get("kind") == "plugin"]
+    if not mine:
+        return None
+
+    def place(p, key):
+        others = [q[key] for q in policies if q["task"] == p["task"] and not _missing(q[key])]
+        return "n/a" if _missing(p[key]) else str(1 + sum(v > p[key] for v in others))
+
+    rows = [["plug-in", "task", "true (95% CI)", "predicted (95% CI)", "|predicted - true|", "inside the true interval",
+             "place by true / predicted"]]
+    for p in sorted(mine, key=lambda r: (r["name"], r["task"])):
+        n = sum(q["task"] == p["task"] for q in policies)
+        err = None if _missing(p["pred_rate"]) else abs(p["pred_rate"] - p["true_rate"])
+        inside = "n/a" if err is None else "yes" if p["true_ci"][0] <= p["pred_rate"] <= p["true_ci"][1] else "no"
+        rows.append([p["name"], p["task"], f"{p['true_rate']:.2f} ({p['true_ci'][0]:.2f}-{p['true_ci'][1]:.2f})",
+                     f"{_fmt(p['pred_rate'], 2)} ({_fmt(p['pred_ci'][0], 2)}-{_fmt(p['pred_ci'][1], 2)})",
+                     _fmt(err, 2), inside, f"{place(p, 'true_rate')} / {place(p, 'pred_rate')} of {n}"])
+    return rows
+
+
 def _html_table(rows) -> str:
     head = "".join(f"<th>{html.escape(c)}</th>" for c in rows[0])
     body = "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>" for r in rows[1:])
@@ -640,6 +668,8 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
          f"<p><b>{html.escape(verdict(res))}</b></p>",
          "<h2>Predicted against true success, per task</h2>", f"<img src='{scatter_figure(policies, metrics, tasks)}'>",
          "<h2>Within-task ranking (the headline)</h2>", _html_table(within_task_table(res)),
+         *([f"<h2>Your policies (plug-ins)</h2><p>{html.escape(PLUGIN_NOTE)}</p>", _html_table(plug)]
+           if (plug := plugin_table(policies)) else []),
          *([f"<h2>Task progress, true and imagined</h2><img src='{fig}'>"]
            if (fig := progress_figure(policies, tasks)) else []),
          *([f"<h2>Imagination against the simulated episode</h2><p>{html.escape(FIDELITY_NOTE)}</p>",
@@ -725,7 +755,10 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
           *([f"**{nonfinite_policies(policies).capitalize()}.**", ""] if nonfinite_policies(policies) else []),
           *([f"**{CUT_SHORT}**", ""] if res["world_model"].get("cut_short") else []),
           f"**{verdict(res)}**", "", "## Within-task ranking (the headline)", "", _md_table(within_task_table(res)), "",
-          _md_table(per_task_table(res)), "", "## Checkpoint selection", "", _selection_md(res), "",
+          _md_table(per_task_table(res)), "",
+          *(["## Your policies (plug-ins)", "", PLUGIN_NOTE, "", _md_table(plug), ""]
+            if (plug := plugin_table(policies)) else []),
+          "## Checkpoint selection", "", _selection_md(res), "",
           "## Pooled over tasks (secondary)", "", _md_table(_metrics_table(metrics["pooled"])), ""]
     if fid := fidelity_table(res):
         md += ["## Imagination against the simulated episode", "", FIDELITY_NOTE, "", _md_table(fid), ""]

@@ -99,6 +99,24 @@ def needs_task_state():
 
 def broken():
     return float("abc"), {}
+
+class Plain:
+    """A hashable policy that is no dataclass: its default repr holds a memory address."""
+    def init_carry(self, params, obs, task_state, rng):
+        return jnp.zeros((obs["proprio"].shape[0],), jnp.int32)
+    def act(self, params, obs, carry, rng):
+        from user_helper import shaped
+        return shaped(carry.shape[0]), carry + 1
+
+def plain():
+    return Plain(), {}
+'''
+
+USER_HELPER = '''
+import jax.numpy as jnp
+
+def shaped(b):
+    return jnp.full((b, 20), 0.25)
 '''
 
 
@@ -107,11 +125,14 @@ def user_module(tmp_path, monkeypatch):
     """A user's module of plug-ins, importable as `user_pols` (written in tmp_path); its file path."""
     path = tmp_path / "user_pols.py"
     path.write_text(textwrap.dedent(USER_MODULE))
+    (tmp_path / "user_helper.py").write_text(textwrap.dedent(USER_HELPER))
     monkeypatch.syspath_prepend(str(tmp_path))
-    sys.modules.pop("user_pols", None)
+    for name in ("user_pols", "user_helper"):
+        sys.modules.pop(name, None)
     importlib.invalidate_caches()
     yield path
-    sys.modules.pop("user_pols", None)
+    for name in ("user_pols", "user_helper"):
+        sys.modules.pop(name, None)
 
 
 def test_a_plugin_is_checked_against_the_protocol_before_it_runs(user_module):
@@ -121,6 +142,9 @@ def test_a_plugin_is_checked_against_the_protocol_before_it_runs(user_module):
         load_plugin("user_pols:drifting")
     with pytest.raises(RuntimeError, match=r"'user_pols:needs_task_state'.*task_state None"):
         load_plugin("user_pols:needs_task_state")
+    # the simulator alone (the data generator) gives it a task state: accepted there
+    assert load_plugin("user_pols:needs_task_state", world_model=False).kind == "plugin"
+    assert G.resolve_sources(["user_pols:needs_task_state"], world_model=False)
     with pytest.raises(RuntimeError, match=r"'user_pols:broken': user_pols.broken\(\) raised ValueError") as e:
         load_plugin("user_pols:broken")
     assert isinstance(e.value.__cause__, ValueError)  # the user's traceback is kept
@@ -129,7 +153,7 @@ def test_a_plugin_is_checked_against_the_protocol_before_it_runs(user_module):
 
 
 def test_specs_that_are_not_plugins_say_what_a_plugin_is(user_module):
-    with pytest.raises(ValueError, match="cannot import"):
+    with pytest.raises(ValueError, match="a plug-in is package.module:attribute"):
         resolve([":make"])
     with pytest.raises(ValueError, match="neither a zoo registry nor a plug-in"):
         resolve(["user_pols"])
@@ -171,6 +195,13 @@ def test_a_fingerprint_follows_the_parameters_and_the_plugins_code(user_module):
     before = fingerprint(calm)
     user_module.write_text(user_module.read_text().replace("carry + 1", "carry + 2"))
     assert fingerprint(calm) != before
+    # a plain class, stable across loads; an edit of a helper module it calls, seen in its traced program
+    (plain,) = resolve(["user_pols:plain"])
+    assert fingerprint(plain) == fingerprint(resolve(["user_pols:plain"])[0])
+    helper = user_module.parent / "user_helper.py"
+    helper.write_text(helper.read_text().replace("0.25", "0.5"))
+    sys.modules.pop("user_helper", None)
+    assert fingerprint(resolve(["user_pols:plain"])[0]) != fingerprint(plain)
 
 
 def test_an_evaluation_is_not_read_back_for_edited_plugins(user_module, tmp_path):
@@ -208,3 +239,20 @@ def test_overrides_may_stand_on_both_sides_of_an_option(capsys):
         G.main(["--config", "smoke", "size=96", "--out", "/nonexistent/x", "episodes=2"])
     err = capsys.readouterr().err
     assert "unrecognized arguments" not in err and "size" in err
+
+
+def test_the_report_places_each_plugin_among_its_tasks_policies():
+    def row(name, kind, task, true, pred, ci):
+        return {"name": name, "kind": kind, "task": task, "true_rate": true, "true_ci": ci, "pred_rate": pred,
+                "pred_ci": [pred - 0.05, pred + 0.05] if pred is not None else [None, None]}
+    policies = [row("zoo/a", "learned", "mug", 0.9, 0.8, [0.7, 1.0]),
+                row("zoo/b", "learned", "mug", 0.2, 0.3, [0.05, 0.45]),
+                row("mine", "plugin", "mug", 0.5, 0.85, [0.3, 0.7]),
+                row("mine", "plugin", "wipe", 0.0, None, [0.0, 0.2]),
+                row("zoo/c", "learned", "wipe", 0.6, 0.6, [0.4, 0.8])]
+    table = RP.plugin_table(policies)
+    assert table[0][-1] == "place by true / predicted"
+    # on mug: truly 2nd of 3 (0.9 > 0.5 > 0.2), read 1st (0.85 above 0.8); 0.35 off, outside [0.3, 0.7]
+    assert table[1] == ["mine", "mug", "0.50 (0.30-0.70)", "0.85 (0.80-0.90)", "0.35", "no", "2 / 1 of 3"]
+    assert table[2][-3:] == ["n/a", "n/a", "2 / n/a of 2"]  # a prediction not read
+    assert RP.plugin_table([p for p in policies if p["kind"] == "learned"]) is None

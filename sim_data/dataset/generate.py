@@ -289,7 +289,9 @@ def _sources(cfg: DataConfig, task: str, learned=()) -> list:
 def learned_sources(cfg: DataConfig) -> list:
     """The PolicySources whose rollouts the dataset holds: cfg.policies, then the perturbed copies of
     cfg.perturbed."""
-    return resolve_sources(cfg.policies) + [perturbed_copy(s) for s in resolve_sources(cfg.perturbed)]
+    # the simulator alone runs them here: a plug-in may read its task state
+    return (resolve_sources(cfg.policies, world_model=False)
+            + [perturbed_copy(s) for s in resolve_sources(cfg.perturbed, world_model=False)])
 
 
 def _episodes(cfg: DataConfig, learned=()):

@@ -112,11 +112,15 @@ def is_plugin(spec: str) -> bool:
     return ":" in target and not Path(target.split("#")[0]).exists() and "/" not in target.split(":")[0]
 
 
-def load_plugin(spec: str) -> PolicySource:
+def load_plugin(spec: str, world_model: bool = True) -> PolicySource:
     """`[name=]package.module:attribute` -> its PolicySource, the policy checked against the protocol
-    (check_protocol) before anything runs it."""
+    (check_protocol) before anything runs it. world_model: whether it will also run in a world model,
+    which gives it no task state (False: the simulator alone, whose task state it may read)."""
     name, _, target = spec.rpartition("=")
     module_name, _, attr = target.partition(":")
+    if not module_name or not attr:
+        raise ValueError(f"plug-in {spec!r}: a plug-in is package.module:attribute, the attribute a callable "
+                         "returning (policy, params)")
     try:
         module = importlib.import_module(module_name)
     except (ImportError, ValueError) as e:  # importlib raises ValueError for an empty name
@@ -142,12 +146,13 @@ def load_plugin(spec: str) -> PolicySource:
         hash(policy)
     except TypeError:
         raise ValueError(f"plug-in {spec!r}: the policy must be hashable (a frozen dataclass, for instance)") from None
-    check_protocol(spec, policy, params)
+    traced = check_protocol(spec, policy, params, task_state_optional=not world_model)
     files = sorted({f for f in (inspect.getsourcefile(module), _class_file(policy)) if f})
     idx = robot_index(load_model())
     return PolicySource(name=name or target, kind="plugin", task=None,
                         policy=ClippedPolicy(policy, tuple(idx.action_low.tolist()), tuple(idx.action_high.tolist())),
-                        params=params, record={"plugin": target, "files": files})
+                        params=params, record={"plugin": target, "files": files,
+                                               "traced": hashlib.sha256(traced.encode()).hexdigest()[:16]})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -175,21 +180,28 @@ def _class_file(obj) -> str | None:
         return None
 
 
-def check_protocol(spec: str, policy, params, batch: int = 2, size: int = 64) -> None:
-    """Traces (jax.eval_shape: nothing is compiled or run) init_carry and act on a batch of `batch`
+def check_protocol(spec: str, policy, params, batch: int = 2, size: int = 64,
+                   task_state_optional: bool = False) -> str:
+    """Traces (jax.make_jaxpr: nothing is compiled or run) init_carry and act on a batch of `batch`
     blank observations, as the world model gives them (task_state None), and raises an error naming
     the plug-in where the policy fails, where its action is not (batch, 20), or where act returns a
-    carry of another structure, shape or dtype than it was given (the rollouts run it in lax.scan)."""
+    carry of another structure, shape or dtype than it was given (the rollouts run it in lax.scan).
+    Returns the traced programs' text, which follows every function and constant the policy calls
+    (code_digest); "" where the policy needs the simulator's task state and task_state_optional
+    allows it (then it is not checked: only the simulator, which has one, runs it)."""
     obs = {"image": jax.ShapeDtypeStruct((batch, size, size, 3), jnp.uint8),
            "proprio": jax.ShapeDtypeStruct((batch, PROPRIO_DIM), jnp.float32)}
     rng = jax.random.PRNGKey(0)
+    init = lambda p, o, k: policy.init_carry(p, o, None, k)  # noqa: E731
     try:
-        carry = jax.eval_shape(lambda p, o, k: policy.init_carry(p, o, None, k), params, obs, rng)
-        action, after = jax.eval_shape(policy.act, params, obs, carry, rng)
+        init_jaxpr, carry = jax.make_jaxpr(init, return_shape=True)(params, obs, rng)
+        act_jaxpr, (action, after) = jax.make_jaxpr(policy.act, return_shape=True)(params, obs, carry, rng)
     except Exception as e:
+        if task_state_optional:
+            return ""
         raise RuntimeError(f"plug-in {spec!r}: the policy fails on a batch of {batch} observations "
                            f"(image ({batch}, {size}, {size}, 3) uint8, proprio ({batch}, {PROPRIO_DIM}) float32, "
-                           f"task_state None): {type(e).__name__}: {e}") from e
+                           f"task_state None, as in the world model): {type(e).__name__}: {e}") from e
     if getattr(action, "shape", None) != (batch, ACTION_DIM):
         raise ValueError(f"plug-in {spec!r}: act must return actions of shape ({batch}, {ACTION_DIM}) for a "
                          f"batch of {batch}, got {getattr(action, 'shape', type(action).__name__)}")
@@ -197,34 +209,37 @@ def check_protocol(spec: str, policy, params, batch: int = 2, size: int = 64) ->
     if jax.tree.structure(carry) != jax.tree.structure(after) or before_s != after_s:
         raise ValueError(f"plug-in {spec!r}: act must return its carry with the structure, shapes and dtypes it "
                          f"was given (the rollouts run it inside lax.scan): given {before_s}, returned {after_s}")
+    return f"{init_jaxpr}\n{act_jaxpr}"
 
 
 def code_digest(source: PolicySource) -> str:
-    """A digest of a plug-in's source files (its module's and its policy class's; "" for a registry
-    checkpoint): what a result of the plug-in was computed with, beside its parameters."""
-    h = hashlib.sha256()
-    for f in source.record.get("files", ()) if source.kind == "plugin" else ():
+    """A digest of a plug-in's code ("" for a registry checkpoint): its source files (its module's and
+    its policy class's, read now) and the programs its methods traced to when it was loaded (which
+    follow the helpers and constants they call wherever they live): what a result of the plug-in was
+    computed with, beside its parameters."""
+    if source.kind != "plugin":
+        return ""
+    h = hashlib.sha256(source.record.get("traced", "").encode())
+    for f in source.record.get("files", ()):
         h.update(Path(f).read_bytes() if Path(f).exists() else f.encode())
-    return h.hexdigest()[:16] if source.kind == "plugin" else ""
+    return h.hexdigest()[:16]
 
 
-def _describe(x) -> str:
-    """A description of a policy object that is the same in every process: a dataclass's fields, the
-    values of plain types, else the class's name alone (a default repr holds a memory address)."""
+def describe(x) -> str:
+    """A description of a policy object that is the same in every process: its repr, with a dataclass's
+    fields described in turn and memory addresses (a default repr's) left out."""
     if dataclasses.is_dataclass(x) and not isinstance(x, type):
-        fields = ", ".join(f"{f.name}={_describe(getattr(x, f.name))}" for f in dataclasses.fields(x))
+        fields = ", ".join(f"{f.name}={describe(getattr(x, f.name))}" for f in dataclasses.fields(x))
         return f"{type(x).__module__}.{type(x).__qualname__}({fields})"
     if isinstance(x, (tuple, list)):
-        return "(" + ", ".join(map(_describe, x)) + ")"
-    if x is None or isinstance(x, (bool, int, float, str)):
-        return repr(x)
-    return f"{type(x).__module__}.{type(x).__qualname__}"
+        return "(" + ", ".join(map(describe, x)) + ")"
+    return re.sub(r" at 0x[0-9a-fA-F]+", "", repr(x))
 
 
 def fingerprint(source: PolicySource) -> str:
     """A digest of what the policy computes: its class (and configuration, for a dataclass), its
     parameters and, for a plug-in, its code (code_digest); a rerun into the same output compares it."""
-    h = hashlib.sha256(_describe(source.policy).encode())
+    h = hashlib.sha256(describe(source.policy).encode())
     for leaf in jax.tree_util.tree_leaves(source.params):
         a = np.ascontiguousarray(np.asarray(leaf))
         h.update(str((a.shape, a.dtype)).encode())
@@ -272,11 +287,12 @@ def every_nth_checkpoint(records: list[dict], term: str, spec: str = "") -> list
     return [r for r in records if r["name"] in keep]
 
 
-def resolve(specs) -> list[PolicySource]:
-    """Every policy the specs name (see the module doc), names unique."""
+def resolve(specs, world_model: bool = True) -> list[PolicySource]:
+    """Every policy the specs name (see the module doc), names unique; world_model: whether they will
+    also run in a world model (load_plugin)."""
     out = []
     for spec in specs:
-        out += [load_plugin(spec)] if is_plugin(spec) else load_registry_sources(spec)
+        out += [load_plugin(spec, world_model)] if is_plugin(spec) else load_registry_sources(spec)
     names = [s.name for s in out]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
