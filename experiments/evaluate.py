@@ -64,7 +64,6 @@ from sim_data.dataset.generate import cached_env, cached_renderers, package_vers
 from sim_data.parts import add_part_argument, config_and_part, exclusive, in_turn
 from sim_data.policies.bc import MixedPolicy
 from sim_data.policies.registry import (
-    code_digest,
     describe,
     fingerprint,
     group_by_policy,
@@ -333,7 +332,7 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
         rng = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), j)
         t0 = time.perf_counter()
         truth = simulate_truth(cfg, task, policy, params, seeds[s0:s1], reset_keys[s0:s1], rng, engine, renderer,
-                               wait, code="".join(code_digest(s) for s in padded))
+                               wait, code="".join(s.code for s in padded))
         if truth is None:
             return None
         clock["steps"] = truth["steps"]

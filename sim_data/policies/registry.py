@@ -65,7 +65,7 @@ class PolicySource:
       kind: "learned" (a registry checkpoint), "plugin", or PERTURBED (perturbed_copy). task: the task it
       was trained for (None: any). policy, params: the protocol object and its parameters (a perturbed
       copy's: the base's; episodes_params gives a batch's). record: the registry record (lineage, step,
-      val_loss, ...) or {} for a plug-in.
+      val_loss, ...) or {"plugin": its spec} for a plug-in. code: a plug-in's code_digest ("" else).
     """
 
     name: str
@@ -74,6 +74,7 @@ class PolicySource:
     policy: object
     params: object
     record: dict
+    code: str = ""
 
     @property
     def slug(self) -> str:
@@ -151,8 +152,7 @@ def load_plugin(spec: str, world_model: bool = True) -> PolicySource:
     idx = robot_index(load_model())
     return PolicySource(name=name or target, kind="plugin", task=None,
                         policy=ClippedPolicy(policy, tuple(idx.action_low.tolist()), tuple(idx.action_high.tolist())),
-                        params=params, record={"plugin": target, "files": files,
-                                               "traced": hashlib.sha256(traced.encode()).hexdigest()[:16]})
+                        params=params, record={"plugin": target}, code=code_digest(files, traced))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -212,16 +212,13 @@ def check_protocol(spec: str, policy, params, batch: int = 2, size: int = 64,
     return f"{init_jaxpr}\n{act_jaxpr}"
 
 
-def code_digest(source: PolicySource) -> str:
-    """A digest of a plug-in's code ("" for a registry checkpoint): its source files (its module's and
-    its policy class's, read now) and the programs its methods traced to when it was loaded (which
-    follow the helpers and constants they call wherever they live): what a result of the plug-in was
-    computed with, beside its parameters."""
-    if source.kind != "plugin":
-        return ""
-    h = hashlib.sha256(source.record.get("traced", "").encode())
-    for f in source.record.get("files", ()):
-        h.update(Path(f).read_bytes() if Path(f).exists() else f.encode())
+def code_digest(files, traced: str) -> str:
+    """A digest of a plug-in's code: its source files (its module's and its policy class's) and the
+    programs its methods trace to (check_protocol's text, which follows the helpers and constants they
+    call wherever they live): what a result of the plug-in is computed with, beside its parameters."""
+    h = hashlib.sha256(traced.encode())
+    for f in files:
+        h.update(Path(f).read_bytes())
     return h.hexdigest()[:16]
 
 
@@ -237,14 +234,14 @@ def describe(x) -> str:
 
 
 def fingerprint(source: PolicySource) -> str:
-    """A digest of what the policy computes: its class (and configuration, for a dataclass), its
-    parameters and, for a plug-in, its code (code_digest); a rerun into the same output compares it."""
+    """A digest of what the policy computes: its description, its parameters and, for a plug-in, its
+    code when it was loaded (code_digest); a rerun into the same output compares it."""
     h = hashlib.sha256(describe(source.policy).encode())
     for leaf in jax.tree_util.tree_leaves(source.params):
         a = np.ascontiguousarray(np.asarray(leaf))
         h.update(str((a.shape, a.dtype)).encode())
         h.update(a.tobytes())
-    h.update(code_digest(source).encode())
+    h.update(source.code.encode())
     return h.hexdigest()[:16]
 
 
