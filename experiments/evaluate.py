@@ -743,14 +743,16 @@ def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) ->
             res["prob_replayed"], res["sim_imagined"], strict=True):
         rec = sources_by_name[name].record
         k, n = int(t.sum()), len(t)
-        kp = int((p >= cfg.threshold).sum()) if np.isfinite(p).all() else math.nan  # NaN: no outcome read
+        read = bool(np.isfinite(p).all())  # a non-finite prediction reads no outcome
         rows.append({"name": name, "task": task, "lineage": rec.get("lineage", "plugin"), "step": rec.get("step"),
                      "kind": sources_by_name[name].kind, "n": n, "true_rate": k / n,
                      "true_ci": list(S.wilson_interval(k, n)), "pred_rate": float(p.mean()),
-                     "pred_ci": _interval_of_mean(p), "pred_rate_thresholded": kp / n,
-                     "pred_thresholded_ci": list(S.wilson_interval(kp, n)) if kp == kp else [math.nan] * 2,
+                     "pred_ci": _interval_of_mean(p),
+                     "pred_rate_thresholded": float((p >= cfg.threshold).mean()) if read else math.nan,
+                     "pred_thresholded_ci": (list(S.wilson_interval(int((p >= cfg.threshold).sum()), n)) if read
+                                             else [math.nan, math.nan]),
                      "val_loss": rec.get("val_loss"),
-                     "alignment": S.alignment(p >= cfg.threshold, t) if kp == kp else math.nan,
+                     "alignment": S.alignment(p >= cfg.threshold, t) if read else math.nan,
                      "pred_rate_readouts": dict(zip(READOUTS, r.mean(1).tolist(), strict=True)),
                      # the read-out of the simulated episodes, and of their actions replayed (replay=1)
                      "pred_rate_on_truth": _mean_or_none(obs), "pred_rate_replayed": _mean_or_none(rep),
@@ -957,7 +959,10 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, models, wm
            preset: str) -> dict:
     """results.json's contents from the finished tasks' results (the others listed as missing), and
     out/videos.npz."""
-    train_tasks = wm_cache.tasks if wm_cache is not None else list(tasks)
+    # the tasks every model learned (its judge's, else its training's: wm.checkpoint.trained_tasks)
+    learned = [set(trained_tasks(Path(r))) for r in cfg.wm_runs]
+    train_tasks = (sorted(set.intersection(*learned)) if learned and all(learned)
+                   else wm_cache.tasks if wm_cache is not None else list(tasks))
     missing = [t for t in tasks if t not in results]
     tasks = [t for t in tasks if t in results]
     by_name = {s.name: s for s in sources}

@@ -15,8 +15,6 @@ from scipy import stats as sps
 
 from sim_data.util import wilson_interval  # noqa: F401 (re-exported beside the statistics)
 
-Z95 = 1.959963984540054
-
 
 def _pair(predicted, true):
     p, t = np.asarray(predicted, np.float64), np.asarray(true, np.float64)

@@ -114,9 +114,12 @@ def plain():
 
 USER_HELPER = '''
 import jax.numpy as jnp
+import numpy as np
+
+TABLE = np.full(20, 0.25, np.float32)  # a constant array: the traced program names it, not its values
 
 def shaped(b):
-    return jnp.full((b, 20), 0.25)
+    return jnp.broadcast_to(jnp.asarray(TABLE), (b, 20))
 '''
 
 
@@ -216,6 +219,20 @@ def test_an_evaluation_is_not_read_back_for_edited_plugins(user_module, tmp_path
 
 
 def test_non_finite_predictions_are_not_read_as_failures():
+    p, n = 2, 4
+    res = {"names": ["ok", "nans"], "true": np.array([[1, 1, 0, 0], [0, 0, 0, 0]], bool),
+           "prob": np.array([[0.9, 0.8, 0.2, 0.1], [np.nan] * 4]), "prob_members": np.zeros((1, p, n)),
+           **{k: np.zeros((p, n)) for k in E.READOUT_KEYS}, "sim_finite": np.ones((p, n), bool),
+           "true_progress": np.zeros((p, n, 3)), "trace_progress": np.zeros((p, n, 3)),
+           "action_gap": np.zeros((p, n)), "action_gap_dims": np.zeros((p, n, 20)),
+           "prob_observed": np.full((p, n), np.nan), "prob_replayed": np.full((p, n), np.nan),
+           "sim_imagined": np.full((p, n), np.nan)}
+    sources = {name: dataclasses.replace(load_plugin("examples.plugin_policy:make"), name=name) for name in res["names"]}
+    ok, nans = E.policy_rows(E.EvalConfig(policies=("x",), wm="y"), "mug", res, sources)
+    assert ok["pred_rate_thresholded"] == 0.5 and ok["alignment"] == 1.0 and ok["nonfinite_predictions"] == 0
+    assert np.isnan(nans["pred_rate"]) and np.isnan(nans["pred_rate_thresholded"]) and np.isnan(nans["alignment"])
+    assert all(np.isnan(nans["pred_ci"])) and all(np.isnan(nans["pred_thresholded_ci"]))
+    assert nans["nonfinite_predictions"] == 4
     assert all(np.isnan(E._interval_of_mean([np.nan, 0.2, 0.4])))
     # a t-interval over the episodes (mean 0.4, sd 0.2, n 3: t(0.975, 2) = 4.302653), within [0, 1]
     assert E._interval_of_mean([0.2, 0.4, 0.6]) == pytest.approx([0.0, 0.4 + 4.302653 * 0.2 / np.sqrt(3)], abs=1e-5)
@@ -224,6 +241,14 @@ def test_non_finite_predictions_are_not_read_as_failures():
             {"name": "nans", "nonfinite_episodes": 3, "nonfinite_predictions": 8}]
     assert "policies nans ran into non-finite values" in S.nonfinite_policies(rows)
     assert S.nonfinite_policies(rows[:1]) == ""
+
+
+def test_a_clipped_plugin_keeps_its_policys_way_of_stacking():
+    @dataclasses.dataclass(frozen=True)
+    class InTurn:
+        stacks_in_turn: bool = True
+    assert ClippedPolicy(InTurn(), (0.0,), (1.0,)).stacks_in_turn
+    assert not ClippedPolicy(object(), (0.0,), (1.0,)).stacks_in_turn
 
 
 def test_the_report_escapes_names_and_names_tasks_the_world_model_never_learned():

@@ -38,7 +38,7 @@ from flax import serialization
 from tqdm import tqdm
 
 from sim_data.policies.bc import stacked
-from sim_data.policies.registry import resolve
+from sim_data.policies.registry import resolve, stack_key
 from sim_data.util import write_json_atomic
 from wm.checkpoint import run_file
 from wm.imagine import (
@@ -130,10 +130,11 @@ def imagine_episodes(cfg: ModelConfig, params, norm: Norm, cache, ids: list[int]
     for i in ids:
         e = cache.episodes[i]
         src = (policies or {}).get(e["policy"])
-        groups.setdefault((e["length"], None if src is None else src.policy), []).append((i, src))
+        groups.setdefault((e["length"], None if src is None else stack_key(src)), []).append((i, src))
     pieces = []  # (cache ids, (len(ids), T, F) features) of each group
     bar = tqdm(total=len(ids), desc="judge: imagine", unit="ep", disable=not progress)
-    for (n, policy), group in groups.items():
+    for (n, key), group in groups.items():
+        policy = None if key is None else key[0]
         if policy is None:
             samples = [context_sample(cache.episode(i, cameras=[camera]), camera, 0, 1, n - 1) for i, _ in group]
             x = open_loop_chunked(cfg, params, norm, samples, n - 1)["features"]
@@ -217,7 +218,8 @@ def dataset_policies(data: Path) -> dict:
         return {}
     try:
         return {f"{s.kind}:{s.name}": s for s in resolve(specs)}
-    except (FileNotFoundError, ValueError, ImportError) as e:
+    except (FileNotFoundError, ValueError, ImportError, RuntimeError) as e:  # RuntimeError: a plug-in that
+        # fails without the simulator's task state (the world model gives none), or whose factory raises
         print(f"warning: the policies of {data} cannot be loaded ({e}); the judge imagines their episodes open loop",
               file=sys.stderr)
         return {}

@@ -29,6 +29,7 @@ import importlib.util
 import inspect
 import json
 import re
+import sys
 import typing
 from pathlib import Path
 
@@ -148,7 +149,7 @@ def load_plugin(spec: str, world_model: bool = True) -> PolicySource:
     except TypeError:
         raise ValueError(f"plug-in {spec!r}: the policy must be hashable (a frozen dataclass, for instance)") from None
     traced = check_protocol(spec, policy, params, task_state_optional=not world_model)
-    files = sorted({f for f in (inspect.getsourcefile(module), _class_file(policy)) if f})
+    files = sorted({f for f in (_source_file(module), _source_file(type(policy))) if f})
     idx = robot_index(load_model())
     return PolicySource(name=name or target, kind="plugin", task=None,
                         policy=ClippedPolicy(policy, tuple(idx.action_low.tolist()), tuple(idx.action_high.tolist())),
@@ -165,18 +166,26 @@ class ClippedPolicy:
     low: tuple  # (20,)
     high: tuple
 
+    @property
+    def stacks_in_turn(self) -> bool:
+        """The wrapped policy's (sim_data.policies.bc.stacked): a convolutional network stays in turn."""
+        return bool(getattr(self.policy, "stacks_in_turn", False))
+
     def init_carry(self, params, obs, task_state, rng):
+        """The wrapped policy's carry."""
         return self.policy.init_carry(params, obs, task_state, rng)
 
     def act(self, params, obs, carry, rng):
+        """The wrapped policy's action (B, 20), clipped to [low, high], and its carry."""
         action, carry = self.policy.act(params, obs, carry, rng)
         return jnp.clip(action, jnp.asarray(self.low, jnp.float32), jnp.asarray(self.high, jnp.float32)), carry
 
 
-def _class_file(obj) -> str | None:
+def _source_file(obj) -> str | None:
+    """The source file of a module or class; None for a built-in one."""
     try:
-        return inspect.getsourcefile(type(obj))
-    except TypeError:  # a built-in class
+        return inspect.getsourcefile(obj)
+    except TypeError:
         return None
 
 
@@ -184,11 +193,13 @@ def check_protocol(spec: str, policy, params, batch: int = 2, size: int = 64,
                    task_state_optional: bool = False) -> str:
     """Traces (jax.make_jaxpr: nothing is compiled or run) init_carry and act on a batch of `batch`
     blank observations, as the world model gives them (task_state None), and raises an error naming
-    the plug-in where the policy fails, where its action is not (batch, 20), or where act returns a
-    carry of another structure, shape or dtype than it was given (the rollouts run it in lax.scan).
-    Returns the traced programs' text, which follows every function and constant the policy calls
-    (code_digest); "" where the policy needs the simulator's task state and task_state_optional
-    allows it (then it is not checked: only the simulator, which has one, runs it)."""
+    the plug-in where the policy fails (RuntimeError, the user's traceback kept), where its action is
+    not (batch, 20) or where act returns a carry of another structure, shape or dtype than it was given
+    (ValueError; the rollouts run it in lax.scan). Returns a digest of the traced programs and their
+    constants, which follow the functions and arrays the policy calls wherever they live (code_digest);
+    where task_state_optional (the simulator alone, which gives the policy its task state, will run
+    it), a policy that fails here is not checked: a warning says so and the digest is "".
+    size: the frames' side, 64 as in every preset."""
     obs = {"image": jax.ShapeDtypeStruct((batch, size, size, 3), jnp.uint8),
            "proprio": jax.ShapeDtypeStruct((batch, PROPRIO_DIM), jnp.float32)}
     rng = jax.random.PRNGKey(0)
@@ -198,6 +209,8 @@ def check_protocol(spec: str, policy, params, batch: int = 2, size: int = 64,
         act_jaxpr, (action, after) = jax.make_jaxpr(policy.act, return_shape=True)(params, obs, carry, rng)
     except Exception as e:
         if task_state_optional:
+            print(f"warning: plug-in {spec!r} is not checked: it fails without the simulator's task state "
+                  f"({type(e).__name__}: {e}); the simulator runs it with one", file=sys.stderr)
             return ""
         raise RuntimeError(f"plug-in {spec!r}: the policy fails on a batch of {batch} observations "
                            f"(image ({batch}, {size}, {size}, 3) uint8, proprio ({batch}, {PROPRIO_DIM}) float32, "
@@ -209,13 +222,18 @@ def check_protocol(spec: str, policy, params, batch: int = 2, size: int = 64,
     if jax.tree.structure(carry) != jax.tree.structure(after) or before_s != after_s:
         raise ValueError(f"plug-in {spec!r}: act must return its carry with the structure, shapes and dtypes it "
                          f"was given (the rollouts run it inside lax.scan): given {before_s}, returned {after_s}")
-    return f"{init_jaxpr}\n{act_jaxpr}"
+    h = hashlib.sha256(f"{init_jaxpr}\n{act_jaxpr}".encode())
+    for const in (*init_jaxpr.consts, *act_jaxpr.consts):  # the printed program names them, not their values
+        a = np.ascontiguousarray(np.asarray(const))
+        h.update(str((a.shape, a.dtype)).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
 
 
 def code_digest(files, traced: str) -> str:
     """A digest of a plug-in's code: its source files (its module's and its policy class's) and the
-    programs its methods trace to (check_protocol's text, which follows the helpers and constants they
-    call wherever they live): what a result of the plug-in is computed with, beside its parameters."""
+    programs its methods trace to (check_protocol's digest, which follows the helpers and constants
+    they call wherever they live): what a result of the plug-in is computed with, beside its parameters."""
     h = hashlib.sha256(traced.encode())
     for f in files:
         h.update(Path(f).read_bytes())
