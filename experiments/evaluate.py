@@ -78,7 +78,7 @@ from sim_data.sim import robot as R
 from sim_data.sim.engines import ENGINES, PHYSICS_REVISION, default_engine
 from sim_data.sim.rollout import record_policies
 from sim_data.sim.tasks import TASK_NAMES
-from sim_data.util import device_name, make_output_dir, run_cli, write_json_atomic
+from sim_data.util import device_name, hash_arrays, make_output_dir, run_cli, write_json_atomic
 from wm.checkpoint import (
     load_run_config,
     load_trained,
@@ -642,10 +642,7 @@ def _truth_key(task, policy, params, seeds, rng, engine, renderer, code: str = "
     engine and its physics revision, the camera."""
     h = hashlib.sha256(json.dumps([task, describe(policy), [int(s) for s in seeds], np.asarray(rng).tolist(), engine,
                                    PHYSICS_REVISION, [repr(r.cfg) for r in renderer], code], default=str).encode())
-    for leaf in jax.tree_util.tree_leaves(params):
-        a = np.ascontiguousarray(np.asarray(leaf))
-        h.update(str((a.shape, a.dtype)).encode())
-        h.update(a.tobytes())
+    hash_arrays(h, params)
     return h.hexdigest()[:20]
 
 

@@ -654,6 +654,7 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
     tasks, policies, metrics = res["tasks"], res["policies"], res["metrics"]
     videos = read_videos(run)
     verd = verdicts(policies, tasks)
+    unlearned, unread, plug = unlearned_warning(res), nonfinite_policies(policies), plugin_table(policies)
     h = [f"<html><head><meta charset='utf-8'><title>World-model policy evaluation</title><style>{CSS}</style>"
          "</head><body>", "<h1>Policy evaluation in the world model against the simulator</h1>",
          f"<p>{len(policies)} policies on {', '.join(tasks)}; {res['config']['episodes']} held-out initial states "
@@ -661,15 +662,14 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
          f"device {html.escape(str(res['device']))}.</p>",
          *([f"<p class='warn'>Partial: tasks {html.escape(', '.join(res['missing_tasks']))} were not evaluated; "
             "every statistic below leaves them out.</p>"] if res.get("missing_tasks") else []),
-         *([f"<p class='warn'>{html.escape(unlearned_warning(res))}</p>"] if unlearned_warning(res) else []),
-         *([f"<p class='warn'>{html.escape(nonfinite_policies(policies).capitalize())}.</p>"]
-           if nonfinite_policies(policies) else []),
+         *([f"<p class='warn'>{html.escape(unlearned)}</p>"] if unlearned else []),
+         *([f"<p class='warn'>{html.escape(unread.capitalize())}.</p>"] if unread else []),
          *([f"<p class='warn'>{html.escape(CUT_SHORT)}</p>"] if res["world_model"].get("cut_short") else []),
          f"<p><b>{html.escape(verdict(res))}</b></p>",
          "<h2>Predicted against true success, per task</h2>", f"<img src='{scatter_figure(policies, metrics, tasks)}'>",
          "<h2>Within-task ranking (the headline)</h2>", _html_table(within_task_table(res)),
          *([f"<h2>Your policies (plug-ins)</h2><p>{html.escape(PLUGIN_NOTE)}</p>", _html_table(plug)]
-           if (plug := plugin_table(policies)) else []),
+           if plug else []),
          *([f"<h2>Task progress, true and imagined</h2><img src='{fig}'>"]
            if (fig := progress_figure(policies, tasks)) else []),
          *([f"<h2>Imagination against the simulated episode</h2><p>{html.escape(FIDELITY_NOTE)}</p>",
@@ -751,13 +751,12 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
           f"engine {res['engine']}, device {res['device']}. Full report: `report.html`.", "",
           *([f"**Partial**: tasks {', '.join(res['missing_tasks'])} were not evaluated; every statistic below "
              "leaves them out.", ""] if res.get("missing_tasks") else []),
-          *([f"**{unlearned_warning(res)}**", ""] if unlearned_warning(res) else []),
-          *([f"**{nonfinite_policies(policies).capitalize()}.**", ""] if nonfinite_policies(policies) else []),
+          *([f"**{unlearned}**", ""] if unlearned else []),
+          *([f"**{unread.capitalize()}.**", ""] if unread else []),
           *([f"**{CUT_SHORT}**", ""] if res["world_model"].get("cut_short") else []),
           f"**{verdict(res)}**", "", "## Within-task ranking (the headline)", "", _md_table(within_task_table(res)), "",
           _md_table(per_task_table(res)), "",
-          *(["## Your policies (plug-ins)", "", PLUGIN_NOTE, "", _md_table(plug), ""]
-            if (plug := plugin_table(policies)) else []),
+          *(["## Your policies (plug-ins)", "", PLUGIN_NOTE, "", _md_table(plug), ""] if plug else []),
           "## Checkpoint selection", "", _selection_md(res), "",
           "## Pooled over tasks (secondary)", "", _md_table(_metrics_table(metrics["pooled"])), ""]
     if fid := fidelity_table(res):

@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import jax
+import numpy as np
 from scipy import stats as sps
 
 
@@ -20,6 +21,15 @@ def write_json_atomic(path: Path, obj) -> None:
     tmp = path.with_name(path.name + f".tmp{os.getpid()}")
     tmp.write_text(json.dumps(obj, indent=2, sort_keys=False) + "\n")
     os.replace(tmp, path)
+
+
+def hash_arrays(h, tree) -> None:
+    """Feeds every array leaf of tree (its shape, dtype and bytes, on the host) into the hashlib
+    object h: a digest of parameters or constants that any process reproduces."""
+    for leaf in jax.tree_util.tree_leaves(tree):
+        a = np.ascontiguousarray(np.asarray(leaf))
+        h.update(str((a.shape, a.dtype)).encode())
+        h.update(a.tobytes())
 
 
 def device_name() -> str:

@@ -32,11 +32,14 @@ USER_MODULE = '''
 import dataclasses
 import jax.numpy as jnp
 
-@dataclasses.dataclass(frozen=True)
-class Constant:
-    """Every action entry the same value, params["value"]; the carry counts steps."""
+class Counting:
+    """The carry counts steps (B,) int32."""
     def init_carry(self, params, obs, task_state, rng):
         return jnp.zeros((obs["proprio"].shape[0],), jnp.int32)
+
+@dataclasses.dataclass(frozen=True)
+class Constant(Counting):
+    """Every action entry the same value, params["value"]."""
     def act(self, params, obs, carry, rng):
         return jnp.full((carry.shape[0], 20), params["value"], jnp.float32), carry + 1
 
@@ -50,18 +53,14 @@ class Mlp:
         return h @ params["w2"], {"t": carry["t"] + 1}
 
 @dataclasses.dataclass(frozen=True)
-class Narrow:
+class Narrow(Counting):
     """Actions of 19 entries: one short."""
-    def init_carry(self, params, obs, task_state, rng):
-        return jnp.zeros((obs["proprio"].shape[0],), jnp.int32)
     def act(self, params, obs, carry, rng):
         return jnp.zeros((carry.shape[0], 19)), carry + 1
 
 @dataclasses.dataclass(frozen=True)
-class Drifting:
+class Drifting(Counting):
     """Its carry comes back as float32 where it went in as int32."""
-    def init_carry(self, params, obs, task_state, rng):
-        return jnp.zeros((obs["proprio"].shape[0],), jnp.int32)
     def act(self, params, obs, carry, rng):
         return jnp.zeros((carry.shape[0], 20)), carry + 0.5
 
@@ -100,10 +99,8 @@ def needs_task_state():
 def broken():
     return float("abc"), {}
 
-class Plain:
+class Plain(Counting):
     """A hashable policy that is no dataclass: its default repr holds a memory address."""
-    def init_carry(self, params, obs, task_state, rng):
-        return jnp.zeros((obs["proprio"].shape[0],), jnp.int32)
     def act(self, params, obs, carry, rng):
         from user_helper import shaped
         return shaped(carry.shape[0]), carry + 1

@@ -41,7 +41,7 @@ from sim_data.policies.bc import BCPolicy, PolicyNetConfig, load_params, stacked
 from sim_data.policies.degrade import DegradedPolicy, degrade_params, perturbed_params
 from sim_data.sim.robot import ACTION_DIM, PROPRIO_DIM, robot_index
 from sim_data.sim.scene import load_model
-from sim_data.util import even_pieces
+from sim_data.util import even_pieces, hash_arrays
 
 
 @typing.runtime_checkable
@@ -223,10 +223,7 @@ def check_protocol(spec: str, policy, params, batch: int = 2, size: int = 64,
         raise ValueError(f"plug-in {spec!r}: act must return its carry with the structure, shapes and dtypes it "
                          f"was given (the rollouts run it inside lax.scan): given {before_s}, returned {after_s}")
     h = hashlib.sha256(f"{init_jaxpr}\n{act_jaxpr}".encode())
-    for const in (*init_jaxpr.consts, *act_jaxpr.consts):  # the printed program names them, not their values
-        a = np.ascontiguousarray(np.asarray(const))
-        h.update(str((a.shape, a.dtype)).encode())
-        h.update(a.tobytes())
+    hash_arrays(h, [*init_jaxpr.consts, *act_jaxpr.consts])  # the printed program names them, not their values
     return h.hexdigest()
 
 
@@ -255,10 +252,7 @@ def fingerprint(source: PolicySource) -> str:
     """A digest of what the policy computes: its description, its parameters and, for a plug-in, its
     code when it was loaded (code_digest); a rerun into the same output compares it."""
     h = hashlib.sha256(describe(source.policy).encode())
-    for leaf in jax.tree_util.tree_leaves(source.params):
-        a = np.ascontiguousarray(np.asarray(leaf))
-        h.update(str((a.shape, a.dtype)).encode())
-        h.update(a.tobytes())
+    hash_arrays(h, source.params)
     h.update(source.code.encode())
     return h.hexdigest()[:16]
 
