@@ -12,6 +12,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 
 from sim_data.config import override
@@ -1307,3 +1308,98 @@ def test_success_only_writes_each_held_out_episodes_read_outs_beside_their_summa
     want = judge.probability(x, rows[0]["task"])[0] if judge is not None and judge.knows(rows[0]["task"]) \
         else np.asarray(I.episode_success(x[..., I.SUCCESS_FEATURE]))[0]
     assert rows[0]["on_truth"] == pytest.approx(float(want), abs=1e-6)
+
+
+@pytest.fixture(scope="module")
+def refining_model(model_and_inputs):
+    """A model with a two-step frame generator: its untrained parameters and ones perturbed so that
+    the generator's output convolution is no longer zero."""
+    cfg = dataclasses.replace(CFG, refine=2, refine_channels=(8, 16))
+    params = init_params(cfg, jax.random.PRNGKey(0), window=6)
+    noise = np.random.default_rng(4)
+    moved = jax.tree_util.tree_map(lambda x: x + 0.05 * noise.standard_normal(x.shape).astype(np.float32), params)
+    return cfg, params, moved
+
+
+def test_an_untrained_frame_generator_returns_the_decoded_frame_and_imagination_is_unchanged(
+        model_and_inputs, refining_model):
+    _, frames, proprio, action = model_and_inputs
+    cfg, params, _ = refining_model
+    assert "refiner" in params and "refiner" not in init_params(CFG, jax.random.PRNGKey(0), window=6)
+    base = jnp.asarray(np.random.default_rng(0).random((2, 64, 64, 3)), jnp.float32)
+    z = jnp.zeros((2, 8, 8, cfg.latent))
+    noise = jnp.asarray(np.random.default_rng(1).standard_normal(base.shape), jnp.float32)
+    np.testing.assert_array_equal(compiled(WorldModel(cfg), WorldModel.sample_frame)({"params": params}, base, z, noise),
+                                  base)
+    # the whole imagined step: the same frame and latents as the model without the generator
+    plain = {k: v for k, v in params.items() if k != "refiner"}
+    norm = I.Norm(jnp.zeros(37), jnp.ones(37), jnp.zeros(20), jnp.ones(20))
+    got = [imagine_step(c, p, norm, init_state(c, p, norm, frames[:, :3], proprio[:, :3], action[:, :2]), action[:, 2])
+           for c, p in ((cfg, params), (CFG, plain))]
+    np.testing.assert_array_equal(got[0].frame, got[1].frame)
+    np.testing.assert_array_equal(got[0].z, got[1].z)
+
+
+def test_the_frame_generator_steps_along_the_straight_path_to_its_estimate(refining_model):
+    cfg, _, params = refining_model
+    m = WorldModel(cfg)
+    rng = np.random.default_rng(2)
+    base = jnp.asarray(rng.random((2, 64, 64, 3)) * 0.8 + 0.1, jnp.float32)
+    z = jnp.asarray(rng.uniform(-1, 1, (2, 8, 8, cfg.latent)), jnp.float32)
+    noise = jnp.asarray(rng.standard_normal(base.shape), jnp.float32)
+    denoise = compiled(m, WorldModel.denoise)
+    # two Euler steps by hand: from 0.2 noise at t=0 half way to the estimate, then onto the estimate at t=1/2
+    x = 0.2 * noise
+    x = x + (denoise({"params": params}, x, jnp.zeros(2), base, z) - x) / 2
+    x = denoise({"params": params}, x, jnp.full(2, 0.5), base, z)
+    got = compiled(m, WorldModel.sample_frame)({"params": params}, base, z, noise)
+    np.testing.assert_allclose(got, np.clip(base + x, 0, 1), atol=1e-5)
+    assert float(jnp.abs(got - base).max()) > 1e-3  # trained, it moves the frame
+    # another draw of noise gives another frame
+    other = compiled(m, WorldModel.sample_frame)({"params": params}, base, z, -noise)
+    assert float(jnp.abs(other - got).max()) > 1e-4
+
+
+def test_the_frame_generator_noise_follows_the_episode_step_not_the_batch():
+    a = I.refine_noise(jnp.array([3, 5]), (4, 4, 3))
+    b = I.refine_noise(jnp.array([7, 3, 5]), (4, 4, 3))
+    np.testing.assert_array_equal(a, b[1:])
+    assert float(jnp.abs(a[0] - a[1]).max()) > 0.1
+    np.testing.assert_allclose(float(jnp.std(I.refine_noise(jnp.arange(64), (8, 8, 3)))), 1.0, atol=0.05)
+
+
+def test_the_frame_generator_learns_apart_from_the_rest_of_the_model(model_and_inputs, refining_model):
+    from wm.train import _refine_loss, loss_fn
+
+    _, frames, proprio, action = model_and_inputs
+    cfg_model, params, moved = refining_model
+    model = WorldModel(cfg_model)
+    rng = np.random.default_rng(3)
+    decoded = jnp.asarray(rng.random((2, 5, 64, 64, 3)), jnp.float32)
+    target = jnp.asarray(rng.random((2, 5, 64, 64, 3)), jnp.float32)
+    z = jnp.asarray(rng.uniform(-1, 1, (2, 5, 8, 8, cfg_model.latent)), jnp.float32)
+    # untrained (an estimate of no residual), the loss is the decoded frames' squared error on the picked
+    # frames: with 2 passes, pass 1 takes frames 1 (and 7, 13, ... beyond these 5)
+    loss = jax.jit(_refine_loss, static_argnums=(0, 5, 6))
+    got = loss(model, params, decoded, z, target, 1, 2, jax.random.PRNGKey(0))
+    np.testing.assert_allclose(got, np.mean((np.asarray(decoded)[:, 1:2] - np.asarray(target)[:, 1:2]) ** 2), rtol=1e-5)
+    # its gradient reaches the generator's parameters only, never the frames or latents it reads
+    grads = jax.grad(lambda p, d: loss(model, p, d, z, target, 0, 2, jax.random.PRNGKey(0)), argnums=(0, 1))(
+        moved, decoded)
+    norms = {k: float(optax.tree.norm(v)) for k, v in grads[0].items()}
+    assert norms["refiner"] > 0 and all(v == 0 for k, v in norms.items() if k != "refiner")
+    assert float(jnp.abs(grads[1]).max()) == 0
+    # in the whole loss: one part per pass, and the parts of the rest as without the generator
+    norm, batch = _identity_norm_and_batch(frames, proprio, action)
+    cfg = dataclasses.replace(make_config("smoke"), model=cfg_model, rollout_passes=1)
+    _, parts = jax.jit(loss_fn, static_argnums=3)(moved, batch, norm, cfg)
+    plain = {k: v for k, v in moved.items() if k != "refiner"}
+    _, base_parts = jax.jit(loss_fn, static_argnums=3)(plain, batch, norm, dataclasses.replace(cfg, model=CFG))
+    assert {"refine", "refine_pass1"} <= set(parts) and float(parts["refine"]) > 0
+    for k in ("pixel", "pixel_pass1", "latent_pass1", "recon"):
+        np.testing.assert_allclose(parts[k], base_parts[k], rtol=1e-6)
+    np.testing.assert_allclose(parts["loss"] - base_parts["loss"], parts["refine"] + parts["refine_pass1"], rtol=1e-5)
+    with pytest.raises(ValueError, match="w_refine"):
+        make_config("smoke", ["model.refine=2", "w_refine=0"])
+    with pytest.raises(ValueError, match="refine_channels"):
+        dataclasses.replace(CFG, refine=2, refine_channels=(12, 16)).validate()

@@ -50,7 +50,8 @@ class TrainConfig:
         slip for a model whose imagined grasps hold too often. The episode judge draws its training
         episodes from the same list, so it weighs them alike.
         w_scene: with model.scene, of the squared error of the predicted next scene state, standardised
-        by the training split's statistics (wm.imagine.Norm.scene).
+        by the training split's statistics (wm.imagine.Norm.scene). w_refine: with model.refine, of the
+        frame generator's flow-matching loss (wm.train._refine_loss: a squared error in pixels, as the frame's).
       log_every, eval_every, ckpt_every: in steps (eval and checkpoints at multiples of log_every).
       val_batches: validation batches per evaluation. param_sharding: "replicated" (data parallel)
         or "fsdp" (parameters and optimiser state sharded over the data axis).
@@ -97,6 +98,7 @@ class TrainConfig:
     w_kl: float = 0.01
     free_nats: float = 1.0
     w_scene: float = 1.0
+    w_refine: float = 1.0
     fail_repeat: int = 1
     log_every: int = 50
     eval_every: int = 500
@@ -150,6 +152,9 @@ class TrainConfig:
             raise ValueError("judge_inputs names \"scene\", which only a model with model.scene predicts")
         if self.model.scene and self.w_scene <= 0:
             raise ValueError(f"model.scene needs w_scene > 0 (its head learns from that loss alone); got {self.w_scene}")
+        if self.model.refine and self.w_refine <= 0:
+            raise ValueError(f"model.refine needs w_refine > 0 (the generator learns from that loss alone); "
+                             f"got {self.w_refine}")
         if self.fail_repeat < 1:
             raise ValueError(f"fail_repeat counts each failed task attempt that many times (>= 1); "
                              f"got {self.fail_repeat}")

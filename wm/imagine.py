@@ -175,6 +175,17 @@ def predict_next(cfg: ModelConfig, params, z, proprio, action, valid, cache: tup
     return {key: x[:, -1] for key, x in out.items()}, cache
 
 
+REFINE_SEED = 7  # the frame generator's noise: one draw per episode step, whatever the batch
+
+
+def refine_noise(clock, shape: tuple) -> jax.Array:
+    """Standard normal noise (B, *shape) for the frame generator (ModelConfig.refine), drawn from the
+    episode step each frame is imagined for (clock (B,) int): an episode's draws do not depend on which
+    batch or chunk it is imagined in, and every policy from the same state sees the same noise."""
+    base = jax.random.PRNGKey(REFINE_SEED)
+    return jax.vmap(lambda c: jax.random.normal(jax.random.fold_in(base, c), shape))(clock)
+
+
 def step(cfg: ModelConfig, params, norm: Norm, state: ImagineState, action, noise=None) -> ImagineState:
     """Advances every imagined episode by one control step under action (B, 20); noise: a stochastic
     model's draws (B, S) for its code (predict_next; None: the prior's mean)."""
@@ -187,7 +198,13 @@ def step(cfg: ModelConfig, params, norm: Norm, state: ImagineState, action, nois
         return jnp.concatenate([buf[:, 1:], new[:, None]], axis=1)
 
     z_next = out["z"]
-    frame = model.apply({"params": params}, z_next, state.frame, out["flow"], method=WorldModel.decode)
+    frame, keep = model.apply({"params": params}, z_next, state.frame, out["flow"], with_keep=True,
+                              method=WorldModel.decode)
+    if cfg.refine:
+        frame = model.apply({"params": params}, frame, z_next, refine_noise(state.clock, frame.shape[1:]),
+                            method=WorldModel.sample_frame)
+        if keep is not None:  # the generator's draw does not move what the gate keeps
+            frame = jnp.where(keep[..., None] > cfg.keep_threshold, state.frame, frame)
     # kept on the uint8 grid: a change under half a level vanishes instead of accumulating over a long
     # rollout, so what the model leaves still stays exactly still (and the policy sees this frame)
     frame = to_uint8(frame)

@@ -30,6 +30,9 @@ LATENT_SIDE = 8
 INPUT_CLIP = 10.0  # standardised proprio and actions are clipped to +-INPUT_CLIP, predicted proprio too
 IMAGINE_MODES = ("window", "cache")
 COPY_BIAS = 4.0  # the compose mask's initial logit: an untrained decoder passes the previous frame through (98%)
+# the frame generator's noise, in pixel units ([0, 1]): above the spread of what it adds to the decoded frame
+# (a few hundredths at one step, about a tenth at eight), so that its first step starts from noise alone
+REFINE_SIGMA = 0.2
 
 
 @dataclasses.dataclass(frozen=True)
@@ -90,6 +93,16 @@ class ModelConfig:
         sim_data.sim.scene.scene_state), a target the simulator records and no camera frame states
         outright: the tokens must carry where the objects are, which decides a grasp. The episode judge
         reads the prediction of every imagined step where its inputs name it (judge_inputs "scene").
+      refine: the steps of a generative frame model (0: none): a small convolutional network (FrameRefiner,
+        refine_channels its widths at S/2 and S/4) that draws what the decoded frame lacks, the residual
+        between the true frame and the decoder's, by flow matching (a straight path from Gaussian noise of
+        std REFINE_SIGMA to the residual, the network predicting the clean residual at each point, as
+        Li and He 2025's x-prediction), given the decoded frame and the predicted latents. The decoder's
+        regression gives the mean of the futures the latents leave open, a blur; the generator samples one
+        of them, sharp. Imagination runs `refine` Euler steps per frame from noise drawn by episode step
+        (wm.imagine.refine_noise); the keep gate still copies the pixels it keeps. Training teaches it on
+        the decoded frames of every pass with their gradient stopped: the rest of the model learns as
+        without it.
     """
 
     size: int = 64
@@ -117,6 +130,8 @@ class ModelConfig:
     stochastic: int = 0
     scene: bool = False
     scene_dim: int = 24
+    refine: int = 0
+    refine_channels: tuple = (64, 128)
 
     def validate(self) -> None:
         stages = int(round(math.log2(self.size / LATENT_SIDE)))
@@ -136,6 +151,10 @@ class ModelConfig:
             raise ValueError(f"imagine must be one of {', '.join(IMAGINE_MODES)}, got {self.imagine!r}")
         if self.stochastic < 0:
             raise ValueError(f"stochastic is a latent's size (0: none), got {self.stochastic}")
+        if self.refine < 0:
+            raise ValueError(f"refine is the frame generator's steps (0: none), got {self.refine}")
+        if len(self.refine_channels) != 2 or any(c < 8 or c % 8 for c in self.refine_channels):
+            raise ValueError(f"refine_channels are two widths, multiples of 8 (group norm); got {self.refine_channels}")
 
     @property
     def scene_width(self) -> int:
@@ -277,6 +296,58 @@ class Decoder(nn.Module):
             keep = out[..., 4]
             frame = jnp.where(keep[..., None] > cfg.keep_threshold, still, frame)
         return (frame, keep) if with_keep else frame
+
+
+class FilmBlock(nn.Module):
+    """A residual block whose normalised activations are scaled and shifted by an embedding (the noise
+    level's), zero-initialised so that it starts unconditioned."""
+
+    ch: int
+    dtype: jnp.dtype
+
+    @nn.compact
+    def __call__(self, x, emb):
+        scale, shift = jnp.split(nn.Dense(2 * self.ch, dtype=jnp.float32, kernel_init=nn.initializers.zeros)(emb), 2, -1)
+        h = nn.GroupNorm(8, dtype=self.dtype)(x) * (1 + scale[:, None, None]) + shift[:, None, None]
+        h = nn.Conv(self.ch, (3, 3), dtype=self.dtype)(nn.silu(h.astype(self.dtype)))
+        h = nn.Conv(self.ch, (3, 3), dtype=self.dtype)(nn.silu(nn.GroupNorm(8, dtype=self.dtype)(h)))
+        return x + h
+
+
+def noise_level_embedding(t, width: int = 32):
+    """(N,) flow times in [0, 1] -> (N, width) sinusoidal features."""
+    freqs = jnp.exp(jnp.linspace(0.0, math.log(1000.0), width // 2))
+    angle = t.astype(jnp.float32)[:, None] * freqs
+    return jnp.concatenate([jnp.sin(angle), jnp.cos(angle)], axis=-1)
+
+
+class FrameRefiner(nn.Module):
+    """The frame generator's denoiser (ModelConfig.refine): the noisy residual (N, S, S, 3) in units of
+    REFINE_SIGMA, the flow times (N,) in [0, 1], the decoded frame (N, S, S, 3) in [0, 1] and the
+    predicted latents (N, 8, 8, C) -> its estimate of the clean residual (N, S, S, 3), in pixel units.
+
+    A two-level U-Net at S/2 and S/4 (the pixels folded 2x2 into channels, as the sub-pixel decoder),
+    the latents added at S/4 and the noise level by FiLM; the output convolution starts at zero, so that
+    an untrained generator returns the decoded frame unchanged."""
+
+    cfg: ModelConfig
+
+    @nn.compact
+    def __call__(self, x, t, base, z):
+        cfg, dt = self.cfg, self.cfg.compute_dtype
+        c1, c2 = cfg.refine_channels
+        emb = noise_level_embedding(t)
+        emb = nn.silu(nn.Dense(c2, dtype=jnp.float32)(nn.silu(nn.Dense(c2, dtype=jnp.float32)(emb))))
+        h = space_to_depth(jnp.concatenate([x, base * 2.0 - 1.0], axis=-1).astype(dt), 2)
+        skip = FilmBlock(c1, dt)(nn.Conv(c1, (3, 3), dtype=dt)(h), emb)
+        h = nn.Conv(c2, (4, 4), strides=(2, 2), dtype=dt)(skip)
+        n, side = h.shape[0], h.shape[1]
+        h = h + nn.Conv(c2, (1, 1), dtype=dt)(jax.image.resize(z.astype(dt), (n, side, side, z.shape[-1]), "nearest"))
+        h = FilmBlock(c2, dt)(FilmBlock(c2, dt)(h, emb), emb)
+        h = depth_to_space(nn.Conv(4 * c1, (3, 3), dtype=dt)(h), 2) + skip
+        h = nn.silu(nn.GroupNorm(8, dtype=dt)(FilmBlock(c1, dt)(h, emb)))
+        out = nn.Conv(12, (3, 3), dtype=dt, kernel_init=nn.initializers.zeros)(h)
+        return depth_to_space(out.astype(jnp.float32), 2)
 
 
 def patchify(z, p):
@@ -543,6 +614,8 @@ class WorldModel(nn.Module):
         self.encoder = Encoder(self.cfg)
         self.decoder = Decoder(self.cfg)
         self.dynamics = Dynamics(self.cfg)
+        if self.cfg.refine:
+            self.refiner = FrameRefiner(self.cfg)
 
     def encode(self, frames):
         """(..., S, S, 3) uint8 -> (..., 8, 8, C)."""
@@ -562,6 +635,26 @@ class WorldModel(nn.Module):
             return x
         return x, None if keep is None else keep.reshape(lead + keep.shape[1:])
 
+    def denoise(self, noisy, t, base, z):
+        """The frame generator's estimate of the clean residual (..., S, S, 3) in pixel units, from the
+        noisy residual (..., S, S, 3) in pixel units at flow times t (...) in [0, 1] (noise at 0, the
+        residual at 1), the decoded frames (..., S, S, 3) in [0, 1] and the predicted latents (..., 8, 8, C)."""
+        lead = base.shape[:-3]
+        flat = lambda x: x.reshape((-1,) + x.shape[len(lead):])
+        out = self.refiner(flat(noisy) / REFINE_SIGMA, jnp.broadcast_to(t, lead).reshape(-1), flat(base), flat(z))
+        return out.reshape(base.shape)
+
+    def sample_frame(self, base, z, noise):
+        """Frames (..., S, S, 3) in [0, 1] drawn by cfg.refine Euler steps of the frame generator from
+        standard normal noise (..., S, S, 3), given the decoded frames (..., S, S, 3) in [0, 1] and the
+        predicted latents (..., 8, 8, C). Along the straight path x_t = (1 - t) noise + t residual, a step
+        from t to t + 1/n moves x towards the estimate by 1/(n - i) of the way, so the last step lands on it."""
+        n = self.cfg.refine
+        x = REFINE_SIGMA * noise
+        for i in range(n):
+            x = x + (self.denoise(x, jnp.full(base.shape[:-3], i / n), base, z) - x) / (n - i)
+        return jnp.clip(base + x, 0.0, 1.0)
+
     def predict(self, z, proprio, action, valid=None, past=None, with_kv=False, anchor=None, time=None,
                 anchor_keep=None, target=None, noise=None):
         return self.dynamics(z, proprio, action, valid, past, with_kv, anchor, time, anchor_keep, target, noise)
@@ -569,6 +662,9 @@ class WorldModel(nn.Module):
     def __call__(self, frames, proprio, action):
         z = self.encode(frames)
         time = jnp.broadcast_to(jnp.arange(z.shape[1]), z.shape[:2])
+        if self.cfg.refine:  # creates the generator's parameters
+            pix = frames.astype(jnp.float32) / 255.0
+            self.denoise(jnp.zeros_like(pix), jnp.zeros(pix.shape[:2]), pix, z)
         # target: the stochastic code's posterior reads latents shaped as these (it exists only where given)
         return self.decode(z, frames.astype(jnp.float32) / 255.0), self.predict(
             z, proprio, action, anchor=z[:, 0], time=time, target=z if self.cfg.stochastic else None)

@@ -44,7 +44,7 @@ from wm.evaluate import evaluate
 from wm.imagine import Norm, to_uint8
 from wm.judge import fit_judge, load_judge
 from wm.metrics import action_contrast, gaussian_kl
-from wm.model import WorldModel, init_params
+from wm.model import REFINE_SIGMA, WorldModel, init_params
 
 
 class TrainingDiverged(FloatingPointError):
@@ -106,6 +106,25 @@ def _lpips_loss(weights, pred, target):
     """Mean LPIPS of predicted frames (..., S, S, 3) in [0, 1] against the true ones."""
     flat = lambda x: x.reshape((-1,) + x.shape[-3:])
     return jnp.mean(perceptual.distance(weights, flat(pred), flat(jax.lax.stop_gradient(target))))
+
+
+REFINE_STREAM = 1 << 10  # the frame generator's draws: fold_in(rng, this + pass), apart from the counters above
+
+
+def _refine_loss(model, params, decoded, z, target, k: int, passes: int, key):
+    """The frame generator's flow-matching loss on pass k's decoded frames (B, T, S, S, 3) in [0, 1]
+    (predicted latents z (B, T, 8, 8, C), true frames target): every 2(passes + 1)-th frame from the
+    k-th, a noise level drawn uniformly for each, the squared error of its estimate of the clean
+    frame, in pixel units. Decoded frames and latents enter with their gradient stopped."""
+    pick = slice(k, None, 2 * (passes + 1))
+    base, zc, goal = (jax.lax.stop_gradient(x[:, pick]) for x in (decoded, z, target))
+    k_noise, k_time = jax.random.split(key)
+    noise = REFINE_SIGMA * jax.random.normal(k_noise, base.shape)
+    t = jax.random.uniform(k_time, base.shape[:2])
+    s = t[..., None, None, None]
+    noisy = (1.0 - s) * noise + s * (goal - base)
+    clean = model.apply({"params": params}, noisy, t, base, zc, method=WorldModel.denoise)
+    return jnp.mean((base + clean - goal) ** 2)
 
 
 def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_weights=None):
@@ -183,6 +202,11 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_w
         if keep is not None:
             parts[f"keep{tag}"] = _keep_loss(keep, target, prev)
             total = total + cfg.w_keep * parts[f"keep{tag}"]
+        if cfg.model.refine:
+            parts[f"refine{tag}"] = _refine_loss(model, params, pixels, zp, target, k, cfg.rollout_passes,
+                                                 jax.random.fold_in(jax.random.PRNGKey(cfg.seed) if rng is None
+                                                                    else rng, REFINE_STREAM + k))
+            total = total + cfg.w_refine * parts[f"refine{tag}"]
         # the next pass reads this pass's predictions of frames 1..T-1: latents and proprio (with their
         # gradient if rollout_grad, so earlier steps learn what later ones need), and the decoded
         # frames as the previous frames of the decoder (always stop-gradient)
