@@ -103,3 +103,35 @@ def test_an_initialiser_gives_its_plain_jits_parameters_nests_in_a_trace_and_tak
     monkeypatch.setattr(util, "CPU_INIT_OPTIONS", {**CPU_INIT_OPTIONS, "no_such_option": 1})
     with pytest.raises(Exception, match="no_such_option"):
         util.jit_initialiser(init, static_argnums=(0,))(4, rng)
+
+
+def test_on_another_backend_an_initialiser_runs_on_the_host_cpu_and_places_its_parameters(monkeypatch):
+    def init(width, rng):
+        return _Net(width).init(rng, jnp.zeros((1, 8, 8, 3)))["params"]
+
+    rng = jax.random.PRNGKey(5)
+    ref = jax.jit(init, static_argnums=(0,))(4, rng)
+    calls = []
+    real_jit = jax.jit
+
+    def recording_jit(fun, **kw):  # which of the two programs runs, and with which options
+        compiled = real_jit(fun, **kw)
+
+        def run(*args):
+            calls.append(kw.get("compiler_options"))
+            return compiled(*args)
+        return run
+
+    monkeypatch.setattr(util.jax, "jit", recording_jit)
+    fast = util.jit_initialiser(init, static_argnums=(0,))
+    monkeypatch.setattr(util.jax, "default_backend", lambda: "gpu")
+    got = fast(4, rng)
+    assert calls == [CPU_INIT_OPTIONS]  # the host's program, with the CPU options
+    leaves = jax.tree_util.tree_leaves(got)
+    assert all(np.array_equal(a, b) for a, b in zip(leaves, jax.tree_util.tree_leaves(ref)))
+    assert all(x.devices() == {jax.devices()[0]} for x in leaves)  # placed on the default device
+    # a JAX started without its CPU platform compiles for the default backend
+    monkeypatch.setattr(util, "host_cpu", lambda: None)
+    calls.clear()
+    fast(4, rng)
+    assert calls == [None]
