@@ -86,11 +86,20 @@ CPU_INIT_OPTIONS = {"xla_backend_optimization_level": 1}
 
 
 def host_cpu():
-    """The host's CPU device, or None where JAX was started without the CPU platform (JAX_PLATFORMS)."""
+    """This process's CPU device, or None where JAX was started without the CPU platform (JAX_PLATFORMS)."""
     try:
-        return jax.devices("cpu")[0]
+        return jax.local_devices(backend="cpu")[0]
     except RuntimeError:
         return None
+
+
+def default_device():
+    """The device a computation of this process lands on: jax_default_device where it is set (a device,
+    or a platform's name: that platform's first device here), else the first of this process's devices."""
+    chosen = jax.config.jax_default_device
+    if isinstance(chosen, jax.Device):
+        return chosen
+    return jax.local_devices(backend=chosen)[0] if isinstance(chosen, str) else jax.local_devices()[0]
 
 
 def jit_initialiser(fun, static_argnums=()):
@@ -116,7 +125,7 @@ def jit_initialiser(fun, static_argnums=()):
         on_host = jax.tree_util.tree_map(lambda x: jax.device_put(x, cpu) if isinstance(x, jax.Array) else x, args)
         with jax.default_device(cpu):
             params = on_cpu(*on_host)
-        return jax.device_put(params, jax.devices()[0])
+        return jax.device_put(params, default_device())
 
     return init
 

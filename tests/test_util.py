@@ -129,9 +129,25 @@ def test_on_another_backend_an_initialiser_runs_on_the_host_cpu_and_places_its_p
     assert calls == [CPU_INIT_OPTIONS]  # the host's program, with the CPU options
     leaves = jax.tree_util.tree_leaves(got)
     assert all(np.array_equal(a, b) for a, b in zip(leaves, jax.tree_util.tree_leaves(ref)))
-    assert all(x.devices() == {jax.devices()[0]} for x in leaves)  # placed on the default device
+    assert all(x.devices() == {jax.devices()[0]} for x in leaves)
     # a JAX started without its CPU platform compiles for the default backend
     monkeypatch.setattr(util, "host_cpu", lambda: None)
     calls.clear()
     fast(4, rng)
     assert calls == [None]
+
+
+def test_an_initialiser_on_another_backend_places_its_parameters_on_the_chosen_default_device():
+    """On two host devices with the second chosen as the default, parameters initialised on the host's
+    CPU as for a GPU land on the chosen device, not on the first."""
+    code = """
+import jax, jax.numpy as jnp, flax.linen as nn
+from sim_data import util
+jax.config.update("jax_default_device", jax.devices()[1])
+util.jax.default_backend = lambda: "gpu"
+init = util.jit_initialiser(lambda rng: nn.Dense(3).init(rng, jnp.zeros((1, 2)))["params"])
+print(sorted({d.id for x in jax.tree_util.tree_leaves(init(jax.random.PRNGKey(0))) for d in x.devices()}))
+"""
+    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    got = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert got.stdout.strip() == "[1]"

@@ -1360,12 +1360,71 @@ def test_the_frame_generator_steps_along_the_straight_path_to_its_estimate(refin
     assert float(jnp.abs(other - got).max()) > 1e-4
 
 
-def test_the_frame_generator_noise_follows_the_episode_step_not_the_batch():
-    a = I.refine_noise(jnp.array([3, 5]), (4, 4, 3))
-    b = I.refine_noise(jnp.array([7, 3, 5]), (4, 4, 3))
+def test_the_frame_generator_noise_follows_the_episode_and_its_step_not_the_batch():
+    a = I.refine_noise(jnp.array([11, 11], jnp.uint32), jnp.array([3, 5]), (4, 4, 3))
+    b = I.refine_noise(jnp.array([12, 11, 11], jnp.uint32), jnp.array([7, 3, 5]), (4, 4, 3))
     np.testing.assert_array_equal(a, b[1:])
-    assert float(jnp.abs(a[0] - a[1]).max()) > 0.1
-    np.testing.assert_allclose(float(jnp.std(I.refine_noise(jnp.arange(64), (8, 8, 3)))), 1.0, atol=0.05)
+    assert float(jnp.abs(a[0] - a[1]).max()) > 0.1  # another step, another draw
+    other = I.refine_noise(jnp.array([12], jnp.uint32), jnp.array([3]), (4, 4, 3))
+    assert float(jnp.abs(other[0] - a[0]).max()) > 0.1  # another episode, another draw
+    many = I.refine_noise(jnp.arange(64, dtype=jnp.uint32), jnp.zeros(64, jnp.int32), (8, 8, 3))
+    np.testing.assert_allclose(float(jnp.std(many)), 1.0, atol=0.05)
+    # an episode's draw is its context's first frame's hash: equal frames, equal draws
+    frames = np.random.default_rng(0).integers(0, 256, (3, 8, 8, 3)).astype(np.uint8)
+    frames[2] = frames[0]
+    h = np.asarray(I.frame_hash(frames))
+    assert h[0] == h[2] != h[1]
+    frames[2, 4, 4, 1] ^= 1  # one level of one pixel
+    assert np.asarray(I.frame_hash(frames))[2] != h[0]
+
+
+def test_the_frame_generator_steps_towards_a_known_posterior_in_time_order(refining_model):
+    """A denoiser that knows the residual is +a or -a (equally likely) everywhere returns its exact
+    posterior mean a tanh(x t a / ((1 - t) sigma)^2); sampling from it, each pixel ends near +a or -a,
+    which it only does if the sampler walks the path from noise (t = 0) to the residual (t = 1) as the
+    loss trains it."""
+    from wm.model import REFINE_SIGMA
+
+    a = 0.1
+
+    class Oracle(WorldModel):
+        def denoise(self, noisy, t, base, z):
+            t = jnp.broadcast_to(t, base.shape[:-3])[..., None, None, None]
+            return a * jnp.tanh(noisy * t * a / ((1 - t) * REFINE_SIGMA) ** 2)
+
+    cfg, params, _ = refining_model
+    cfg = dataclasses.replace(cfg, refine=16)
+    base = jnp.full((2, 64, 64, 3), 0.5)
+    noise = jnp.asarray(np.random.default_rng(5).standard_normal(base.shape), jnp.float32)
+    got = np.asarray(jax.jit(functools.partial(Oracle(cfg).apply, method=Oracle.sample_frame))(
+        {"params": params}, base, jnp.zeros((2, 8, 8, cfg.latent)), noise)) - 0.5
+    assert np.mean(np.abs(np.abs(got) - a)) < 0.1 * a  # each pixel at +a or -a
+    assert 0.4 < np.mean(got > 0) < 0.6
+
+
+def test_the_frame_generator_leaves_what_the_keep_gate_keeps(model_and_inputs):
+    _, frames, proprio, action = model_and_inputs
+    cfg = dataclasses.replace(CFG, refine=2, refine_channels=(8, 16), keep=True)
+    rng = np.random.default_rng(6)
+    params = jax.tree_util.tree_map(lambda x: x + 0.05 * rng.standard_normal(x.shape).astype(np.float32),
+                                    init_params(cfg, jax.random.PRNGKey(0), window=6))
+    norm = I.Norm(jnp.zeros(37), jnp.ones(37), jnp.zeros(20), jnp.ones(20))
+    st = init_state(cfg, params, norm, frames[:, :3], proprio[:, :3], action[:, :2])
+    stepped = imagine_step(cfg, params, norm, st, action[:, 2])
+    # the gate's decision, from the same prediction as the step's
+    plain = {k: v for k, v in params.items() if k != "refiner"}
+    no_gen = dataclasses.replace(cfg, refine=0)
+    unrefined = imagine_step(no_gen, plain, norm, init_state(no_gen, plain, norm, frames[:, :3], proprio[:, :3],
+                                                            action[:, :2]), action[:, 2])
+    m = WorldModel(cfg)
+    out = compiled(m, WorldModel.predict)({"params": params}, st.z, st.proprio,
+                                          st.action.at[:, -1].set(action[:, 2]), st.valid)
+    _, keep = compiled(m, WorldModel.decode, with_keep=True)({"params": params}, out["z"][:, -1], st.frame,
+                                                              out["flow"][:, -1])
+    kept = np.asarray(keep) > cfg.keep_threshold
+    assert 0 < kept.mean() < 1
+    np.testing.assert_array_equal(np.asarray(stepped.frame)[kept], np.asarray(st.frame)[kept])
+    assert float(jnp.abs(stepped.frame - unrefined.frame).max()) > 1e-3  # the generator moves the rest
 
 
 def test_the_frame_generator_learns_apart_from_the_rest_of_the_model(model_and_inputs, refining_model):
@@ -1401,5 +1460,42 @@ def test_the_frame_generator_learns_apart_from_the_rest_of_the_model(model_and_i
     np.testing.assert_allclose(parts["loss"] - base_parts["loss"], parts["refine"] + parts["refine_pass1"], rtol=1e-5)
     with pytest.raises(ValueError, match="w_refine"):
         make_config("smoke", ["model.refine=2", "w_refine=0"])
+    with pytest.raises(ValueError, match="rollout_passes"):
+        make_config("smoke", ["model.refine=2", "window=2", "rollout_passes=1"])
+
+
+def test_an_optimiser_step_moves_the_rest_of_the_model_as_without_the_generator(model_and_inputs, refining_model):
+    from wm.train import jitted_train_step, make_optimizer
+
+    _, frames, proprio, action = model_and_inputs
+    cfg_model, _, moved = refining_model
+    norm, batch = _identity_norm_and_batch(frames, proprio, action)
+    # a clip low enough to act on every step: the generator's gradient must not shrink the others'
+    cfg = dataclasses.replace(make_config("smoke"), model=cfg_model, rollout_passes=1, grad_clip=0.05)
+    plain_cfg = dataclasses.replace(cfg, model=CFG)
+    plain = {k: v for k, v in moved.items() if k != "refiner"}
+    fresh = functools.partial(jax.tree_util.tree_map, jnp.copy)  # the step donates its state's buffers
+    # past the warmup, whose first step has a learning rate of 0 (the optimiser counts its own steps)
+    def past_warmup(c, p):
+        opt = make_optimizer(c)
+        state = opt.init(fresh(p))
+        return jax.tree_util.tree_map(lambda x: jnp.full_like(x, 10) if x.dtype == jnp.int32 and x.ndim == 0 else x,
+                                      state)
+
+    states = [{"params": fresh(p), "opt": past_warmup(c, p), "step": jnp.full((), 10, jnp.int32)}
+              for c, p in ((cfg, moved), (plain_cfg, plain))]
+    (with_gen, parts), (without, base_parts) = (jitted_train_step(c, st, batch, norm)
+                                                for c, st in zip((cfg, plain_cfg), states))
+    for got, ref in zip(jax.tree_util.tree_leaves({k: v for k, v in with_gen["params"].items() if k != "refiner"}),
+                        jax.tree_util.tree_leaves(without["params"])):
+        np.testing.assert_allclose(got, ref, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(parts["grad_norm"], base_parts["grad_norm"], rtol=1e-5)
+    assert float(parts["grad_norm"]) > cfg.grad_clip  # the clip acted
+    step_size = optax.tree.norm(jax.tree_util.tree_map(lambda a, b: a - b, without["params"], plain))
+    assert float(step_size) > 0
+    assert float(parts["grad_norm_refiner"]) > 0
+    moved_by = optax.tree.norm(jax.tree_util.tree_map(lambda a, b: a - b, with_gen["params"]["refiner"],
+                                                      moved["refiner"]))
+    assert float(moved_by) > 0
     with pytest.raises(ValueError, match="refine_channels"):
         dataclasses.replace(CFG, refine=2, refine_channels=(12, 16)).validate()

@@ -155,6 +155,9 @@ class TrainConfig:
         if self.model.refine and self.w_refine <= 0:
             raise ValueError(f"model.refine needs w_refine > 0 (the generator learns from that loss alone); "
                              f"got {self.w_refine}")
+        if self.model.refine and self.window - 1 <= self.rollout_passes:
+            raise ValueError(f"model.refine learns from a frame of every pass: window - 1 must exceed rollout_passes "
+                             f"(got window={self.window}, rollout_passes={self.rollout_passes})")
         if self.fail_repeat < 1:
             raise ValueError(f"fail_repeat counts each failed task attempt that many times (>= 1); "
                              f"got {self.fail_repeat}")

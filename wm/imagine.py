@@ -75,6 +75,8 @@ class ImagineState:
       anchor: with cfg.anchor, the latents (B, 8, 8, C) of the episode's first frame, which every
       prediction also sees; (B, 0) otherwise.
       clock: (B,) int32, the index in its episode of the current frame (slot K-1; the first frame's is 0).
+      draw: (B,) uint32, a hash of the context's first frame (frame_hash): with clock, what the frame
+      generator's noise is drawn from (refine_noise).
     """
 
     z: jax.Array
@@ -90,6 +92,7 @@ class ImagineState:
     v: jax.Array
     anchor: jax.Array
     clock: jax.Array
+    draw: jax.Array
 
 
 def anchor_latents(cfg: ModelConfig, params, frames, anchor=None) -> jax.Array:
@@ -141,7 +144,7 @@ def init_state(cfg: ModelConfig, params, norm: Norm, frames, proprio, actions, a
     return ImagineState(z=z, proprio=p, action=a, valid=valid,
                         frame=frames[:, -1].astype(jnp.float32) / 255.0, success=jnp.zeros((b,)),
                         outcome=jnp.zeros((b,)), progress=jnp.zeros((b,)), scene=jnp.zeros((b, cfg.scene_width)),
-                        k=k, v=v, anchor=first, clock=clock)
+                        k=k, v=v, anchor=first, clock=clock, draw=frame_hash(frames[:, 0]))
 
 
 def empty_cache(cfg: ModelConfig, b: int) -> tuple:
@@ -175,15 +178,25 @@ def predict_next(cfg: ModelConfig, params, z, proprio, action, valid, cache: tup
     return {key: x[:, -1] for key, x in out.items()}, cache
 
 
-REFINE_SEED = 7  # the frame generator's noise: one draw per episode step, whatever the batch
+REFINE_SEED = 7  # the frame generator's noise: one draw per episode and step, whatever the batch
 
 
-def refine_noise(clock, shape: tuple) -> jax.Array:
-    """Standard normal noise (B, *shape) for the frame generator (ModelConfig.refine), drawn from the
-    episode step each frame is imagined for (clock (B,) int): an episode's draws do not depend on which
-    batch or chunk it is imagined in, and every policy from the same state sees the same noise."""
+def frame_hash(frames) -> jax.Array:
+    """(B, S, S, 3) uint8 -> (B,) uint32, a multiplicative hash of each frame's pixels (integer
+    arithmetic: the same on every backend)."""
+    flat = frames.reshape(frames.shape[0], -1).astype(jnp.uint32)
+    weights = jnp.arange(flat.shape[1], dtype=jnp.uint32) * jnp.uint32(2654435761) + jnp.uint32(1)
+    return jnp.sum(flat * weights, axis=1, dtype=jnp.uint32)
+
+
+def refine_noise(draw, clock, shape: tuple) -> jax.Array:
+    """Standard normal noise (B, *shape) for the frame generator (ModelConfig.refine), drawn from each
+    episode's draw (ImagineState.draw: its context's first frame) and the step its frame is imagined
+    for (clock (B,) int): an episode's draws do not depend on which batch or chunk it is imagined in,
+    every policy from the same state sees the same noise, and each state its own."""
     base = jax.random.PRNGKey(REFINE_SEED)
-    return jax.vmap(lambda c: jax.random.normal(jax.random.fold_in(base, c), shape))(clock)
+    return jax.vmap(lambda d, c: jax.random.normal(jax.random.fold_in(jax.random.fold_in(base, d), c), shape))(
+        draw, clock)
 
 
 def step(cfg: ModelConfig, params, norm: Norm, state: ImagineState, action, noise=None) -> ImagineState:
@@ -201,7 +214,7 @@ def step(cfg: ModelConfig, params, norm: Norm, state: ImagineState, action, nois
     frame, keep = model.apply({"params": params}, z_next, state.frame, out["flow"], with_keep=True,
                               method=WorldModel.decode)
     if cfg.refine:
-        frame = model.apply({"params": params}, frame, z_next, refine_noise(state.clock, frame.shape[1:]),
+        frame = model.apply({"params": params}, frame, z_next, refine_noise(state.draw, state.clock, frame.shape[1:]),
                             method=WorldModel.sample_frame)
         if keep is not None:  # the generator's draw does not move what the gate keeps
             frame = jnp.where(keep[..., None] > cfg.keep_threshold, state.frame, frame)
@@ -216,7 +229,7 @@ def step(cfg: ModelConfig, params, norm: Norm, state: ImagineState, action, nois
         action=push(acts, jnp.zeros_like(acts[:, -1])), valid=push(state.valid, jnp.ones_like(state.valid[:, -1])),
         frame=frame, success=jax.nn.sigmoid(out["success"]), outcome=jax.nn.sigmoid(out["outcome"]),
         progress=jax.nn.sigmoid(out["progress"]), scene=out["scene"] if cfg.scene else state.scene, k=k, v=v,
-        anchor=state.anchor, clock=state.clock + 1)
+        anchor=state.anchor, clock=state.clock + 1, draw=state.draw)
 
 
 def episode_success(success):

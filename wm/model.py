@@ -99,10 +99,10 @@ class ModelConfig:
         std REFINE_SIGMA to the residual, the network predicting the clean residual at each point, as
         Li and He 2025's x-prediction), given the decoded frame and the predicted latents. The decoder's
         regression gives the mean of the futures the latents leave open, a blur; the generator samples one
-        of them, sharp. Imagination runs `refine` Euler steps per frame from noise drawn by episode step
-        (wm.imagine.refine_noise); the keep gate still copies the pixels it keeps. Training teaches it on
-        the decoded frames of every pass with their gradient stopped: the rest of the model learns as
-        without it.
+        of them, sharp. Imagination runs `refine` Euler steps per frame from noise drawn by episode and
+        step (wm.imagine.refine_noise); the keep gate still copies the pixels it keeps. Training teaches it
+        on the decoded frames of every pass with their gradient stopped, and its parameters are clipped
+        and updated apart (wm.train.make_optimizer): the rest of the model learns as without it.
     """
 
     size: int = 64

@@ -251,8 +251,20 @@ def learning_rate(cfg: TrainConfig):
 
 
 def make_optimizer(cfg: TrainConfig):
-    return optax.chain(optax.clip_by_global_norm(cfg.grad_clip),
-                       optax.adamw(learning_rate(cfg), weight_decay=cfg.weight_decay))
+    """AdamW after clipping the gradient's global norm; with model.refine the frame generator's
+    parameters are clipped and updated apart, so that its gradients leave the rest of the model's
+    updates as they would be without it."""
+    def adamw():
+        return optax.chain(optax.clip_by_global_norm(cfg.grad_clip),
+                           optax.adamw(learning_rate(cfg), weight_decay=cfg.weight_decay))
+    if not cfg.model.refine:
+        return adamw()
+    return optax.multi_transform({"model": adamw(), "refiner": adamw()}, parameter_groups)
+
+
+def parameter_groups(params) -> dict:
+    """The optimiser's group of each top-level module: "refiner" for the frame generator, else "model"."""
+    return {name: "refiner" if name == "refiner" else "model" for name in params}
 
 
 def train_step(cfg: TrainConfig, state: dict, batch: dict, norm: Norm, lpips_weights=None):
@@ -262,7 +274,10 @@ def train_step(cfg: TrainConfig, state: dict, batch: dict, norm: Norm, lpips_wei
                                                                  lpips_weights)
     updates, opt = make_optimizer(cfg).update(grads, state["opt"], state["params"])
     params = optax.apply_updates(state["params"], updates)
-    parts["grad_norm"] = optax.tree.norm(grads)
+    rest = {k: v for k, v in grads.items() if k != "refiner"}
+    parts["grad_norm"] = optax.tree.norm(rest)
+    if "refiner" in grads:
+        parts["grad_norm_refiner"] = optax.tree.norm(grads["refiner"])
     return {"params": params, "opt": opt, "step": state["step"] + 1}, parts
 
 
