@@ -863,6 +863,20 @@ def test_a_model_with_the_scene_head_trains_on_the_cached_scene_state_and_writes
     assert all(np.isfinite(r["scene"]) for r in log if "scene" in r) and any("scene" in r for r in log)
 
 
+@pytest.mark.slow
+def test_a_model_with_the_frame_generator_trains_writes_eval_json_and_travels_in_a_bundle(smoke_dataset, tmp_path):
+    out = tmp_path / "refine"
+    cfg, params, _ = _whole_smoke_run(smoke_dataset, out, "model.refine=2")
+    assert cfg.model.refine == 2 and "refiner" in params
+    log = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    trained = [r for r in log if "refine" in r]
+    assert trained and all(np.isfinite(r["refine"]) and r["grad_norm_refiner"] > 0 for r in trained)
+    write_bundle(out, tmp_path / "bundle")
+    back_cfg, back, _ = load_trained(tmp_path / "bundle")
+    assert back_cfg.model.refine == 2
+    np.testing.assert_allclose(back["refiner"]["Conv_2"]["kernel"], params["refiner"]["Conv_2"]["kernel"], atol=1e-2)
+
+
 def test_action_dependence_is_the_contrast_term_on_windows_from_the_episodes_starts(smoke_dataset, smoke_world_model):
     from wm.train import loss_fn
 
