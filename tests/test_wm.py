@@ -1324,6 +1324,11 @@ def test_success_only_writes_each_held_out_episodes_read_outs_beside_their_summa
     assert rows[0]["on_truth"] == pytest.approx(float(want), abs=1e-6)
 
 
+def _without_generator(params) -> dict:
+    """A refining model's parameters less the frame generator's: those of the same model without it."""
+    return {k: v for k, v in params.items() if k != "refiner"}
+
+
 @pytest.fixture(scope="module")
 def refining_model(model_and_inputs):
     """A model with a two-step frame generator: its untrained parameters and ones perturbed so that
@@ -1346,7 +1351,7 @@ def test_an_untrained_frame_generator_returns_the_decoded_frame_and_imagination_
     np.testing.assert_array_equal(compiled(WorldModel(cfg), WorldModel.sample_frame)({"params": params}, base, z, noise),
                                   base)
     # the whole imagined step: the same frame and latents as the model without the generator
-    plain = {k: v for k, v in params.items() if k != "refiner"}
+    plain = _without_generator(params)
     norm = I.Norm(jnp.zeros(37), jnp.ones(37), jnp.zeros(20), jnp.ones(20))
     got = [imagine_step(c, p, norm, init_state(c, p, norm, frames[:, :3], proprio[:, :3], action[:, :2]), action[:, 2])
            for c, p in ((cfg, params), (CFG, plain))]
@@ -1426,7 +1431,7 @@ def test_the_frame_generator_leaves_what_the_keep_gate_keeps(model_and_inputs):
     st = init_state(cfg, params, norm, frames[:, :3], proprio[:, :3], action[:, :2])
     stepped = imagine_step(cfg, params, norm, st, action[:, 2])
     # the gate's decision, from the same prediction as the step's
-    plain = {k: v for k, v in params.items() if k != "refiner"}
+    plain = _without_generator(params)
     no_gen = dataclasses.replace(cfg, refine=0)
     unrefined = imagine_step(no_gen, plain, norm, init_state(no_gen, plain, norm, frames[:, :3], proprio[:, :3],
                                                             action[:, :2]), action[:, 2])
@@ -1466,7 +1471,7 @@ def test_the_frame_generator_learns_apart_from_the_rest_of_the_model(model_and_i
     norm, batch = _identity_norm_and_batch(frames, proprio, action)
     cfg = dataclasses.replace(make_config("smoke"), model=cfg_model, rollout_passes=1)
     _, parts = jax.jit(loss_fn, static_argnums=3)(moved, batch, norm, cfg)
-    plain = {k: v for k, v in moved.items() if k != "refiner"}
+    plain = _without_generator(moved)
     _, base_parts = jax.jit(loss_fn, static_argnums=3)(plain, batch, norm, dataclasses.replace(cfg, model=CFG))
     assert {"refine", "refine_pass1"} <= set(parts) and float(parts["refine"]) > 0
     for k in ("pixel", "pixel_pass1", "latent_pass1", "recon"):
@@ -1487,7 +1492,7 @@ def test_an_optimiser_step_moves_the_rest_of_the_model_as_without_the_generator(
     # a clip low enough to act on every step: the generator's gradient must not shrink the others'
     cfg = dataclasses.replace(make_config("smoke"), model=cfg_model, rollout_passes=1, grad_clip=0.05)
     plain_cfg = dataclasses.replace(cfg, model=CFG)
-    plain = {k: v for k, v in moved.items() if k != "refiner"}
+    plain = _without_generator(moved)
     fresh = functools.partial(jax.tree_util.tree_map, jnp.copy)  # the step donates its state's buffers
     # past the warmup, whose first step has a learning rate of 0 (the optimiser counts its own steps)
     def past_warmup(c, p):
@@ -1500,7 +1505,7 @@ def test_an_optimiser_step_moves_the_rest_of_the_model_as_without_the_generator(
               for c, p in ((cfg, moved), (plain_cfg, plain))]
     (with_gen, parts), (without, base_parts) = (jitted_train_step(c, st, batch, norm)
                                                 for c, st in zip((cfg, plain_cfg), states))
-    for got, ref in zip(jax.tree_util.tree_leaves({k: v for k, v in with_gen["params"].items() if k != "refiner"}),
+    for got, ref in zip(jax.tree_util.tree_leaves(_without_generator(with_gen["params"])),
                         jax.tree_util.tree_leaves(without["params"])):
         np.testing.assert_allclose(got, ref, rtol=1e-6, atol=1e-7)
     np.testing.assert_allclose(parts["grad_norm"], base_parts["grad_norm"], rtol=1e-5)

@@ -661,12 +661,12 @@ class WorldModel(nn.Module):
 
     def __call__(self, frames, proprio, action):
         z = self.encode(frames)
+        pix = frames.astype(jnp.float32) / 255.0
         time = jnp.broadcast_to(jnp.arange(z.shape[1]), z.shape[:2])
         if self.cfg.refine:  # creates the generator's parameters
-            pix = frames.astype(jnp.float32) / 255.0
             self.denoise(jnp.zeros_like(pix), jnp.zeros(pix.shape[:2]), pix, z)
         # target: the stochastic code's posterior reads latents shaped as these (it exists only where given)
-        return self.decode(z, frames.astype(jnp.float32) / 255.0), self.predict(
+        return self.decode(z, pix), self.predict(
             z, proprio, action, anchor=z[:, 0], time=time, target=z if self.cfg.stochastic else None)
 
 
