@@ -33,6 +33,20 @@ it for the next), so that each fits a 10-minute command. Every stage shares JAX'
 or another GPU's part loads; and XLA's GPU autotuning results (`runs/xla_autotune`), which programs
 that share fusions reuse.
 
+A GPU lease of 10-minute commands whose machine goes back when idle runs the chain best as one
+background job, each stage with its own overrides (`--set STAGE:key=value`), followed by commands
+that wait on it:
+
+    python -m experiments.pipeline full_grip --detach --set train:steps=3500 --set eval:episodes=50
+    python -m experiments.pipeline full_grip --follow 540      # again until it prints the report's path
+
+`--detach` starts the same command in a new session, its output in runs/logs/<p>/pipeline.log (a
+background job is bound by no command's limit: its train and eval stages run without their safety
+stop, max_minutes=0, unless `--set` or `--minutes` gives one);
+`--follow S` waits up to S seconds for it, then prints the stages' timing rows so far and the log's
+last lines, and exits 0 once the chain has written its report, 1 if it stopped without one, 3 while
+it still runs.
+
 Each stage command appends a row to the evaluation directory's `timing.json`: its wall seconds, the
 seconds spent compiling (JAX's compile events, experiments.timing; a stage spread over GPUs adds the
 most any one of its child processes spent, and lists each child's in `parts`) and the programs
@@ -46,6 +60,8 @@ import argparse
 import dataclasses
 import json
 import os
+import shlex
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -314,6 +330,100 @@ def _logs(p: Pipeline, name: str) -> Path:
     return Path(p.root) / "logs" / name
 
 
+def stage_overrides(sets: list[str]) -> dict:
+    """`--set STAGE:key=value` options as {stage: [key=value, ...]}, in the order given; a malformed
+    one, or one naming no stage, raises ValueError naming it."""
+    out = {}
+    for item in sets:
+        stage, sep, kv = item.partition(":")
+        if not sep or stage not in STAGES or "=" not in kv or kv.startswith("="):
+            raise ValueError(f"--set {item!r}: give STAGE:key=value with STAGE one of {', '.join(STAGES)} "
+                             "(e.g. --set train:steps=3500)")
+        out.setdefault(stage, []).append(kv)
+    return out
+
+
+DETACHED_LOG, DETACHED_PID, DETACHED_RC = "pipeline.log", "pipeline.pid", "pipeline.rc"
+FOLLOW_POLL_S = 5.0
+STILL_RUNNING = 3  # --follow's exit status while the detached chain runs on
+
+
+def detach(name: str, argv: list[str]) -> Path:
+    """Starts `python -m experiments.pipeline argv` (without --detach; the train and eval stages
+    without their safety stop unless argv sets one) in a new session, its output
+    in runs/logs/<name>/pipeline.log and its exit status, when it ends, in pipeline.rc beside it;
+    refuses while an earlier detached run of the preset still runs. Returns the log's path."""
+    logs = _logs(PIPELINES[name], name)
+    logs.mkdir(parents=True, exist_ok=True)
+    pid = _detached_pid(logs)
+    if pid is not None:
+        raise ValueError(f"a detached {name} chain still runs (pid {pid}): follow it with "
+                         f"`python -m experiments.pipeline {name} --follow 540`, or stop it with kill -- -{pid}")
+    for f in (DETACHED_LOG, DETACHED_RC):
+        (logs / f).unlink(missing_ok=True)
+    unbounded = ["--set", "train:max_minutes=0", "--set", "eval:max_minutes=0"]  # before the user's: theirs win
+    cmd = " ".join(shlex.quote(a) for a in [sys.executable, "-m", "experiments.pipeline", *unbounded, *argv])
+    script = f"{cmd} > {shlex.quote(str(logs / DETACHED_LOG))} 2>&1; echo $? > {shlex.quote(str(logs / DETACHED_RC))}"
+    child = subprocess.Popen(["/bin/sh", "-c", script], start_new_session=True, stdin=subprocess.DEVNULL,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    (logs / DETACHED_PID).write_text(f"{child.pid}\n")
+    return logs / DETACHED_LOG
+
+
+def _detached_pid(logs: Path) -> int | None:
+    """The pid of the preset's detached chain while it runs, else None."""
+    path = logs / DETACHED_PID
+    if not path.exists() or (logs / DETACHED_RC).exists():
+        return None
+    pid = int(path.read_text())
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return None
+    except PermissionError:
+        return pid
+    proc = Path(f"/proc/{pid}")  # where /proc exists: an ended child not yet reaped, or a reused pid
+    if proc.exists():
+        try:
+            state = (proc / "stat").read_text().rpartition(")")[2].split()[0]
+            command = (proc / "cmdline").read_bytes()  # empty while the process starts
+        except FileNotFoundError:  # it ended while read
+            return None
+        if state == "Z" or (command and DETACHED_RC.encode() not in command):
+            return None
+    return pid
+
+
+def follow(name: str, seconds: float, members: int | None = None, out=sys.stdout) -> int:
+    """Waits up to `seconds` for the preset's detached chain to end; prints the timing rows written so
+    far and the log's last lines. Returns 0 once the chain ended with its report, 1 if it ended
+    otherwise (or none was started), STILL_RUNNING while it runs."""
+    p = pipeline(name, members)
+    logs = _logs(p, name)
+    if not (logs / DETACHED_PID).exists():
+        raise ValueError(f"no detached {name} chain in {logs}: start one with --detach")
+    t0 = time.monotonic()
+    while _detached_pid(logs) is not None and time.monotonic() - t0 < seconds:
+        time.sleep(FOLLOW_POLL_S)
+    timing = p.dirs(name)["eval"] / TIMING
+    for row in json.loads(timing.read_text()) if timing.exists() else []:
+        print(f"{row['stage']:>9} {'done' if row.get('done') else 'cut short':>9} {row['wall_s']:8.0f} s "
+              f"({row.get('compile_s', 0):.0f} s compiling)", file=out)
+    log = logs / DETACHED_LOG
+    text = log.read_text(errors="replace") if log.exists() else ""
+    lines = [line.split("\r")[-1] for line in text.splitlines()]  # a progress bar's last state
+    print("\n".join(lines[-15:]), file=out)
+    if _detached_pid(logs) is not None:
+        print(f"== {name}: still running after {time.monotonic() - t0:.0f} s of following", file=out)
+        return STILL_RUNNING
+    rc_path = logs / DETACHED_RC
+    rc = int(rc_path.read_text()) if rc_path.exists() else None
+    ok = rc == 0 and any(line.startswith("report: ") for line in lines)
+    print(f"== {name}: the detached chain ended " + ("with its report" if ok else f"without a report (exit status {rc})"),
+          file=out)
+    return 0 if ok else 1
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("pipeline", choices=sorted(PIPELINES))
@@ -326,10 +436,29 @@ def main(argv=None) -> int:
                     help="a command's time slot (0: none): no stage starts after it, and the train and eval "
                          "stages stop at it by their safety limit (max_minutes), so that the same command, "
                          "rerun, continues the chain (a GPU lease of 10-minute commands)")
+    ap.add_argument("--set", action="append", default=[], metavar="STAGE:KEY=VALUE",
+                    help="an override for one stage (repeatable), e.g. --set train:steps=3500 --set eval:episodes=50")
+    ap.add_argument("--detach", action="store_true",
+                    help="run the command as a background job (runs/logs/<p>/pipeline.log) and return at once")
+    ap.add_argument("--follow", type=float, default=None, metavar="SECONDS",
+                    help="wait up to SECONDS for the detached chain; exit 0 with its report, 1 without, 3 running")
     ap.add_argument("overrides", nargs="*", help="key=value overrides passed to the one stage run")
-    a = ap.parse_intermixed_args(argv)
+    raw = list(sys.argv[1:] if argv is None else argv)
+    a = ap.parse_intermixed_args(raw)
     if a.stage == "all" and a.overrides:
-        ap.error("overrides need one --stage")
+        ap.error("overrides need one --stage (or --set STAGE:key=value)")
+    try:
+        per_stage = stage_overrides(a.set)
+    except ValueError as e:
+        ap.error(str(e))
+    if a.follow is not None:
+        if a.detach:
+            ap.error("--follow waits on a chain started by --detach: give them in two commands")
+        return follow(a.pipeline, a.follow, a.members)
+    if a.detach:
+        print(f"started in the background; log: {detach(a.pipeline, [x for x in raw if x != '--detach'])}\n"
+              f"follow it with: python -m experiments.pipeline {a.pipeline} --follow 540")
+        return 0
     if a.members is not None and a.members < 1:
         ap.error(f"--members {a.members}: an ensemble needs at least one world model")
     gpus = local_gpus()
@@ -349,7 +478,8 @@ def main(argv=None) -> int:
                       f"from the {stage} stage", file=sys.stderr)
                 return 0
             slot = [f"max_minutes={left:.3f}"] if a.minutes and stage in ("train", "eval") else []
-            if run_stage(a.pipeline, stage, [*a.overrides, *slot], gpus, a.members) or a.stage != "all":
+            if (run_stage(a.pipeline, stage, [*per_stage.get(stage, []), *a.overrides, *slot], gpus, a.members)
+                    or a.stage != "all"):
                 break
     if a.stage in ("all", "report"):
         print(f"report: {(pipeline(a.pipeline).dirs(a.pipeline)['eval'] / 'report.html').absolute()} "

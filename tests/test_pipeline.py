@@ -1,8 +1,10 @@
 """experiments.pipeline: the stages' order of work, an ensemble's members, a host's GPUs (no training here:
 the modules' entry points are replaced by recorders)."""
 
+import io
 import json
 import os
+import signal
 import time
 from pathlib import Path
 
@@ -263,3 +265,80 @@ def test_a_child_process_writes_its_wall_and_compile_seconds_whether_it_succeeds
     done = subprocess.run([*run, str(bad), "jitting", "bad"], env=env, check=False, capture_output=True, text=True)
     assert done.returncode == 2 and "bad argument" in done.stderr
     assert json.loads(bad.read_text())["status"] == 2
+
+
+def test_set_gives_each_stage_its_own_overrides_and_refuses_what_names_no_stage(monkeypatch):
+    assert P.stage_overrides(["train:steps=3500", "eval:episodes=50", "train:seed=1"]) == {
+        "train": ["steps=3500", "seed=1"], "eval": ["episodes=50"]}
+    for bad in ("steps=3500", "fit:steps=1", "train:steps", "train:=1"):
+        with pytest.raises(ValueError, match="STAGE:key=value"):
+            P.stage_overrides([bad])
+    ran = []
+    monkeypatch.setattr(P, "run_stage", lambda name, stage, extra=(), gpus=(), members=None: ran.append((stage, extra)) or True)
+    monkeypatch.setattr(P, "use_compilation_cache", lambda root: "")
+    assert P.main(["full", "--set", "train:steps=3500", "--set", "eval:episodes=50", "--set", "train:seed=1"]) == 0
+    assert dict(ran) == {"data": [], "policies": [], "rollouts": [], "train": ["steps=3500", "seed=1"],
+                         "eval": ["episodes=50"], "report": []}
+    with pytest.raises(SystemExit):
+        P.main(["full", "--set", "fit:steps=1"])
+
+
+def _fake_python(tmp_path, body: str) -> str:
+    """An executable standing in for the interpreter a detached chain runs: it records its arguments."""
+    exe = tmp_path / "fake_python"
+    exe.write_text(f'#!/bin/sh\necho "args: $*"\n{body}\n')
+    exe.chmod(0o755)
+    return str(exe)
+
+
+@pytest.mark.parametrize("body, status, says", [
+    ('echo "report: /x/report.html (1 s)"; exit 0', 0, "ended with its report"),
+    ('echo "error: data missing" >&2; exit 2', 1, "without a report (exit status 2)"),
+])
+def test_a_detached_chain_runs_in_the_background_and_follow_reports_how_it_ended(tmp_path, monkeypatch, body,
+                                                                                    status, says):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(P.sys, "executable", _fake_python(tmp_path, body))
+    monkeypatch.setattr(P, "FOLLOW_POLL_S", 0.05)
+    log = P.detach("full", ["full", "--set", "train:steps=3500"])
+    assert log == Path("runs/logs/full/pipeline.log")
+    out = io.StringIO()
+    assert P.follow("full", 60, out=out) == status
+    text = out.getvalue()
+    assert says in text
+    # the background job ran the same command, the train and eval stages unbounded unless set otherwise
+    assert ("args: -m experiments.pipeline --set train:max_minutes=0 --set eval:max_minutes=0 full "
+            "--set train:steps=3500") in text
+    assert P.detach("full", ["full"])  # an ended chain does not block the next
+
+
+def test_follow_says_a_detached_chain_still_runs_and_a_second_detach_is_refused(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(P.sys, "executable", _fake_python(tmp_path, "sleep 60"))
+    monkeypatch.setattr(P, "FOLLOW_POLL_S", 0.05)
+    with pytest.raises(ValueError, match="no detached full chain"):
+        P.follow("full", 1)
+    P.detach("full", ["full"])
+    pid = int(Path("runs/logs/full/pipeline.pid").read_text())
+    try:
+        out = io.StringIO()
+        assert P.follow("full", 0.2, out=out) == P.STILL_RUNNING
+        assert "still running" in out.getvalue()
+        with pytest.raises(ValueError, match=f"still runs \\(pid {pid}\\)"):
+            P.detach("full", ["full"])
+    finally:
+        os.killpg(pid, signal.SIGKILL)
+    deadline = time.monotonic() + 10
+    while P._detached_pid(Path("runs/logs/full")) is not None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert P.follow("full", 5, out=io.StringIO()) == 1  # killed: no exit status, no report
+
+
+def test_a_detached_chain_runs_the_pipeline_itself(tmp_path, monkeypatch):
+    """The real command in the background: an eval stage with no trained model stops with its message."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(P, "FOLLOW_POLL_S", 0.2)
+    P.detach("demo", ["demo", "--stage", "eval"])
+    out = io.StringIO()
+    assert P.follow("demo", 300, out=out) == 1
+    assert "not trained yet: run the train stage" in out.getvalue()
