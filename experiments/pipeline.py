@@ -47,6 +47,10 @@ stop, max_minutes=0, unless `--set` or `--minutes` gives one);
 last lines, and exits 0 once the chain has written its report, 1 if it stopped without one, 3 while
 it still runs.
 
+With `--warm-train` (one GPU), the rollouts stage starts `wm.train --warm` beside its simulation:
+the world model's training programs compile into the persistent compilation cache on the data stage's
+dataset (the same shapes), and the train stage loads them instead of compiling.
+
 Each stage command appends a row to the evaluation directory's `timing.json`: its wall seconds, the
 seconds spent compiling (JAX's compile events, experiments.timing; a stage spread over GPUs adds the
 most any one of its child processes spent, and lists each child's in `parts`) and the programs
@@ -163,10 +167,12 @@ def pipeline(name: str, members: int | None = None) -> Pipeline:
     return dataclasses.replace(p, members=members)
 
 
-def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = None) -> bool:
+def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = None,
+              warm_train: list | None = None) -> bool:
     """Runs one stage of pipeline `name` (with `members` world models, see pipeline), spread over
     `gpus` (ids) where there are several; returns False where the stage must run again to finish
-    (an ensemble's members left to train)."""
+    (an ensemble's members left to train). With warm_train (the train stage's overrides), the
+    rollouts stage compiles the world model's training programs beside it (start_warm_train)."""
     p = pipeline(name, members)
     d = p.dirs(name)
     t0 = time.perf_counter()
@@ -192,7 +198,10 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
                 *([f"perturbed={d['policies']}#{p.perturbed}", f"perturb_episodes={p.perturb_episodes}"]
                   if p.perturbed else []), *extra]
         parts = _spread("sim_data.dataset.generate", args, gpus, _logs(p, name), "rollouts")
+        warming = start_warm_train(p, name, warm_train) if warm_train is not None and len(gpus) <= 1 else None
         generate.main(args)
+        if warming is not None:
+            finish_warm_train(warming)
     elif stage == "train":
         done, parts = train_members(name, extra, gpus, members)
     elif stage == "eval":
@@ -276,6 +285,42 @@ def train_members(name: str, extra=(), gpus=(), members: int | None = None) -> t
         print(f"{len(left)} of {p.members} world models left to train ({', '.join(left)}): run the train stage again",
               file=sys.stderr)
     return not left, parts
+
+
+WARM_MEMORY_FRACTION = "0.35"  # of the GPU's memory, for the warm-up beside the rollouts stage's simulation
+
+
+def start_warm_train(p: Pipeline, name: str, overrides) -> subprocess.Popen | None:
+    """Starts `wm.train --warm` for the preset's world model (the train stage's overrides) on the data
+    stage's dataset, in a child process beside this one, its output in the logs: it compiles the
+    training's programs into the persistent compilation cache while the rollouts stage simulates, so
+    that the train stage loads them (compiling is the host's work; the GPU's share is autotuning). A
+    child of its own memory share on the GPU, growing as it needs. None where every member is trained."""
+    d = p.dirs(name)
+    if all((m / "eval.json").exists() for m in d["members"]):
+        return None
+    log = _logs(p, name) / "warm-train.log"
+    log.parent.mkdir(parents=True, exist_ok=True)
+    env = {**os.environ, "XLA_PYTHON_CLIENT_PREALLOCATE": "false", "XLA_PYTHON_CLIENT_MEM_FRACTION": WARM_MEMORY_FRACTION}
+    argv = [sys.executable, "-m", "wm.train", "--config", p.train, "--data", str(d["data"]), "--warm",
+            *p.train_overrides, *overrides]
+    print(f"compiling the world model's training programs beside the rollouts ({log})", file=sys.stderr, flush=True)
+    with open(log, "w") as f:
+        return subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
+
+
+def finish_warm_train(child: subprocess.Popen) -> None:
+    """Waits for the warm-up started by start_warm_train; a failed one only leaves the train stage to
+    compile its programs itself."""
+    t0 = time.perf_counter()
+    rc = child.wait()
+    waited = time.perf_counter() - t0
+    if rc:
+        print(f"warning: compiling the training programs ahead failed (exit status {rc}; see warm-train.log): "
+              "the train stage compiles them itself", file=sys.stderr, flush=True)
+    else:
+        print(f"the training programs are compiled ({waited:.0f} s waited after the rollouts)", file=sys.stderr,
+              flush=True)
 
 
 def gpu_groups(gpus, n: int) -> list[str]:
@@ -442,6 +487,9 @@ def main(argv=None) -> int:
                     help="run the command as a background job (runs/logs/<p>/pipeline.log) and return at once")
     ap.add_argument("--follow", type=float, default=None, metavar="SECONDS",
                     help="wait up to SECONDS for the detached chain; exit 0 with its report, 1 without, 3 running")
+    ap.add_argument("--warm-train", action="store_true",
+                    help="with the rollouts stage (one GPU or none), compile the world model's training programs "
+                         "beside it (with the train stage's --set overrides), for the train stage to load")
     ap.add_argument("overrides", nargs="*", help="key=value overrides passed to the one stage run")
     raw = list(sys.argv[1:] if argv is None else argv)
     a = ap.parse_intermixed_args(raw)
@@ -478,7 +526,8 @@ def main(argv=None) -> int:
                       f"from the {stage} stage", file=sys.stderr)
                 return 0
             slot = [f"max_minutes={left:.3f}"] if a.minutes and stage in ("train", "eval") else []
-            if (run_stage(a.pipeline, stage, [*per_stage.get(stage, []), *a.overrides, *slot], gpus, a.members)
+            warm = per_stage.get("train", []) if a.warm_train else None
+            if (run_stage(a.pipeline, stage, [*per_stage.get(stage, []), *a.overrides, *slot], gpus, a.members, warm)
                     or a.stage != "all"):
                 break
     if a.stage in ("all", "report"):

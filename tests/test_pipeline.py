@@ -169,7 +169,7 @@ def test_a_time_slot_passes_what_is_left_to_train_and_eval_and_starts_no_stage_a
     clock = [0.0]
     ran = []
 
-    def fake_stage(name, stage, extra=(), gpus=(), members=None):
+    def fake_stage(name, stage, extra=(), gpus=(), members=None, warm=None):
         ran.append((stage, list(extra)))
         clock[0] += {"data": 120.0, "policies": 150.0, "train": 180.0}.get(stage, 10.0)
         return stage != "train" or len([r for r in ran if r[0] == "train"]) > 1  # train ends on its second run
@@ -274,7 +274,8 @@ def test_set_gives_each_stage_its_own_overrides_and_refuses_what_names_no_stage(
         with pytest.raises(ValueError, match="STAGE:key=value"):
             P.stage_overrides([bad])
     ran = []
-    monkeypatch.setattr(P, "run_stage", lambda name, stage, extra=(), gpus=(), members=None: ran.append((stage, extra)) or True)
+    monkeypatch.setattr(P, "run_stage", lambda name, stage, extra=(), gpus=(), members=None, warm=None:
+                        ran.append((stage, extra)) or True)
     monkeypatch.setattr(P, "use_compilation_cache", lambda root: "")
     assert P.main(["full", "--set", "train:steps=3500", "--set", "eval:episodes=50", "--set", "train:seed=1"]) == 0
     assert dict(ran) == {"data": [], "policies": [], "rollouts": [], "train": ["steps=3500", "seed=1"],
@@ -342,3 +343,45 @@ def test_a_detached_chain_runs_the_pipeline_itself(tmp_path, monkeypatch):
     out = io.StringIO()
     assert P.follow("demo", 300, out=out) == 1
     assert "not trained yet: run the train stage" in out.getvalue()
+
+
+def test_the_rollouts_stage_compiles_the_training_programs_beside_it_with_the_train_stage_overrides(tmp_path,
+                                                                                                     monkeypatch):
+    monkeypatch.setitem(P.PIPELINES, "roll", P.Pipeline(data="d", policies="p", train="t", eval="e", root=str(tmp_path),
+                                                        rollouts="conv", rollout_episodes=2,
+                                                        train_overrides=("w_success=0.5",)))
+    order, started = [], []
+
+    class FakeChild:
+        def __init__(self, argv, env, **_):
+            started.append((argv, env))
+            order.append("warm starts")
+
+        def wait(self):
+            order.append("warm waited")
+            return 0
+
+    monkeypatch.setattr(P.subprocess, "Popen", FakeChild)
+    monkeypatch.setattr(P.generate, "main", lambda args: order.append("rollouts"))
+    monkeypatch.setattr(P, "device_name", lambda: "cpu")
+    assert P.run_stage("roll", "rollouts", warm_train=["steps=3500"])
+    assert order == ["warm starts", "rollouts", "warm waited"]
+    argv, env = started[0]
+    assert argv[1:] == ["-m", "wm.train", "--config", "t", "--data", str(tmp_path / "data" / "d"), "--warm",
+                        "w_success=0.5", "steps=3500"]
+    assert env["XLA_PYTHON_CLIENT_PREALLOCATE"] == "false" and env["XLA_PYTHON_CLIENT_MEM_FRACTION"] == "0.35"
+    started.clear()
+    P.run_stage("roll", "rollouts")  # not asked for
+    monkeypatch.setattr(P, "run_parts", lambda *a: [])
+    P.run_stage("roll", "rollouts", warm_train=[], gpus=["0", "1"])  # several GPUs: members train apart
+    assert not started
+    (tmp_path / "wm" / "roll").mkdir(parents=True)
+    (tmp_path / "wm" / "roll" / "eval.json").write_text("{}")
+    P.run_stage("roll", "rollouts", warm_train=[])  # trained already: nothing to warm
+    assert not started
+    ran = []
+    monkeypatch.setattr(P, "run_stage", lambda name, stage, extra=(), gpus=(), members=None, warm=None:
+                        ran.append((stage, warm)) or True)
+    monkeypatch.setattr(P, "use_compilation_cache", lambda root: "")
+    P.main(["roll", "--warm-train", "--set", "train:steps=3500", "--set", "eval:episodes=50"])
+    assert dict(ran)["rollouts"] == ["steps=3500"]

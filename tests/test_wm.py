@@ -6,7 +6,10 @@ import dataclasses
 import functools
 import json
 import math
+import os
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import jax
@@ -1518,3 +1521,29 @@ def test_an_optimiser_step_moves_the_rest_of_the_model_as_without_the_generator(
     assert float(moved_by) > 0
     with pytest.raises(ValueError, match="refine_channels"):
         dataclasses.replace(CFG, refine=2, refine_channels=(12, 16)).validate()
+
+
+def _train_in_process(data: Path, cache: Path, *args: str) -> None:
+    """`wm.train --config smoke` (steps=2, no judge or eval.json) in a fresh process whose persistent
+    compilation cache, in `cache`, keeps every program it compiles."""
+    env = {**os.environ, "JAX_COMPILATION_CACHE_DIR": str(cache), "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0",
+           "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES": "0"}
+    subprocess.run([sys.executable, "-m", "wm.train", "--config", "smoke", "--data", str(data), "steps=2",
+                    "judge_episodes=0", "--no-eval", *args], check=True, env=env, capture_output=True)
+
+
+def _cached(cache: Path, program: str) -> set:
+    return {p.name for p in cache.glob(f"jit_{program}-*")}
+
+
+@pytest.mark.slow
+def test_a_warmed_cache_serves_the_training_programs_to_the_run_that_trains(smoke_dataset, tmp_path):
+    _, data, _ = smoke_dataset
+    cache = tmp_path / "cache"
+    _train_in_process(data, cache, "--warm")
+    warmed = _cached(cache, "train_step")
+    assert len(warmed) == 1 and _cached(cache, "_init_params")
+    _train_in_process(data, cache, "--out", str(tmp_path / "run"))
+    # a step of another program (another configuration, shape or placement) would add its own entry
+    assert _cached(cache, "train_step") == warmed
+    assert json.loads((tmp_path / "run" / "train_status.json").read_text())["step"] == 2

@@ -21,6 +21,7 @@ import argparse
 import json
 import math
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -491,6 +492,17 @@ class Run:
                   "the model is marked cut short; rerun the same command to finish it", file=sys.stderr)
         return {**status, **last}
 
+    def warm(self) -> None:
+        """Runs the training's programs once each (a step on the first training batch, its new state
+        dropped; the validation loss), so that JAX's persistent compilation cache holds them for a run
+        of the same configuration on data of the same shapes, which then loads instead of compiling."""
+        batch = put_batch(model_batch(next(self.loader), self.cfg.camera, self.cfg.model.anchor,
+                                      self.cfg.model.scene), self.mesh)
+        _, parts = self._step(self.state, batch, self.norm)
+        jax.block_until_ready(parts)
+        self.validate()
+        self.loader.close()
+
     def best_params(self):
         """The best checkpoint's parameters, placed as this run's state is (a run trained by several
         processes is judged and evaluated by one)."""
@@ -539,7 +551,10 @@ def main(argv=None) -> int:
                                 epilog=preset_help(PRESETS))
     p.add_argument("--config", default="demo")
     p.add_argument("--data", type=Path, required=True, help="a dataset directory (make data) with its cache")
-    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--out", type=Path, help="the run's directory (required unless --warm)")
+    p.add_argument("--warm", action="store_true",
+                   help="compile the training's programs into JAX's persistent compilation cache (one step and "
+                        "the validation loss on --data's first batches, in a scratch directory) and stop")
     p.add_argument("--distributed", action="store_true",
                    help="one of several processes (several hosts): jax.distributed.initialize(); the cluster "
                         "names the processes unless --coordinator, --num-processes and --process-id do")
@@ -555,6 +570,15 @@ def main(argv=None) -> int:
         p.error(str(e))
     if (a.coordinator or a.num_processes is not None or a.process_id is not None) and not a.distributed:
         p.error("--coordinator, --num-processes and --process-id go with --distributed")
+    if a.warm:
+        if a.distributed:
+            p.error("--warm compiles for this process's devices: leave out --distributed")
+        with tempfile.TemporaryDirectory(prefix="warm-") as scratch:
+            Run(cfg, a.data, Path(scratch)).warm()
+        print(f"compiled the training programs of {a.config} for {jax.devices()[0].device_kind}", file=sys.stderr)
+        return 0
+    if a.out is None:
+        p.error("--out is required (the run's directory)")
     if a.distributed:
         init_distributed(a.coordinator, a.num_processes, a.process_id)
     run = Run(cfg, a.data, a.out)
