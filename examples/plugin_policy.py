@@ -9,6 +9,7 @@ holding the arms, neck and hands in the ready pose, and counts control steps in 
 
 import dataclasses
 
+import jax
 import jax.numpy as jnp
 
 from sim_data.policies.scripted import action_program
@@ -64,3 +65,21 @@ def idle():
 def forward():
     """0.6 m towards the counter: fails every task."""
     return make(seconds=2.0, speed=0.3)
+
+
+@dataclasses.dataclass(frozen=True)
+class Flail:
+    """Jitters every joint and the base around the ready pose at random, each step afresh: a policy
+    that acts without purpose, and fails every task (its draws from the evaluator's key)."""
+
+    def init_carry(self, params, obs, task_state, rng):
+        return jnp.zeros((obs["proprio"].shape[0],), jnp.int32)
+
+    def act(self, params, obs, carry, rng):
+        hold = jnp.broadcast_to(params["ready"], (carry.shape[0], robot.ACTION_DIM))
+        return hold + params["scale"] * jax.random.normal(rng, hold.shape), carry + 1
+
+
+def flail(scale: float = 0.5):
+    """Random actions of standard deviation `scale` around the ready pose (clipped to their ranges)."""
+    return Flail(), {"ready": make()[1]["ready"], "scale": jnp.float32(scale)}

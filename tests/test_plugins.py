@@ -278,3 +278,18 @@ def test_the_report_places_each_plugin_among_its_tasks_policies():
     assert table[1] == ["mine", "mug", "0.50 (0.30-0.70)", "0.85 (0.80-0.90)", "0.35", "no", "2 / 1 of 3"]
     assert table[2][-3:] == ["n/a", "n/a", "2 / n/a of 2"]  # a prediction not read
     assert RP.plugin_table([p for p in policies if p["kind"] == "learned"]) is None
+
+
+def test_the_examples_flailing_plugin_draws_fresh_actions_from_its_key_within_their_ranges():
+    idx = robot_index(load_model())
+    (flail,) = resolve(["examples.plugin_policy:flail"])
+    obs = {"image": jnp.zeros((4, 64, 64, 3), jnp.uint8), "proprio": jnp.zeros((4, R.PROPRIO_DIM))}
+    carry = flail.policy.init_carry(flail.params, obs, None, jax.random.PRNGKey(0))
+    a, carry = flail.policy.act(flail.params, obs, carry, jax.random.PRNGKey(1))
+    again, _ = flail.policy.act(flail.params, obs, carry, jax.random.PRNGKey(1))
+    other, _ = flail.policy.act(flail.params, obs, carry, jax.random.PRNGKey(2))
+    a, again, other = map(np.asarray, (a, again, other))
+    np.testing.assert_array_equal(a, again)  # the same key, the same draw
+    assert (a != other).mean() > 0.5 and (a[0] != a[1]).mean() > 0.5  # another key, another row: others
+    assert (a >= idx.action_low).all() and (a <= idx.action_high).all()
+    assert ((a == idx.action_low) | (a == idx.action_high)).any()  # the hands' closures clipped at 0 or 1
