@@ -40,9 +40,9 @@ that wait on it:
     python -m experiments.pipeline full_grip --detach --set train:steps=3500 --set eval:episodes=50
     python -m experiments.pipeline full_grip --follow 540      # again until it prints the report's path
 
-`--detach` starts the same command in a new session, its output in runs/logs/<p>/pipeline.log (a
-background job is bound by no command's limit: its train and eval stages run without their safety
-stop, max_minutes=0, unless `--set` or `--minutes` gives one);
+`--detach` starts the same command detached from the terminal (setsid), its output in
+runs/logs/<p>/pipeline.log (a background job is bound by no command's limit: its train and eval
+stages run without their safety stop, max_minutes=0, unless `--set` or `--minutes` gives one);
 `--follow S` waits up to S seconds for it, then prints the stages' timing rows so far and the log's
 last lines, and exits 0 once the chain has written its report, 1 if it stopped without one, 3 while
 it still runs.
@@ -395,7 +395,7 @@ STILL_RUNNING = 3  # --follow's exit status while the detached chain runs on
 
 def detach(name: str, argv: list[str]) -> Path:
     """Starts `python -m experiments.pipeline argv` (without --detach; the train and eval stages
-    without their safety stop unless argv sets one) in a new session, its output
+    without their safety stop unless argv sets one) detached from the terminal (setsid), its output
     in runs/logs/<name>/pipeline.log and its exit status, when it ends, in pipeline.rc beside it;
     refuses while an earlier detached run of the preset still runs. Returns the log's path."""
     logs = _logs(PIPELINES[name], name)
