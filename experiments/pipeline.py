@@ -301,7 +301,8 @@ def start_warm_train(p: Pipeline, name: str, overrides) -> subprocess.Popen | No
         return None
     log = _logs(p, name) / "warm-train.log"
     log.parent.mkdir(parents=True, exist_ok=True)
-    env = {**os.environ, "XLA_PYTHON_CLIENT_PREALLOCATE": "false", "XLA_PYTHON_CLIENT_MEM_FRACTION": WARM_MEMORY_FRACTION}
+    env = {**os.environ, "XLA_PYTHON_CLIENT_PREALLOCATE": "false",
+           "XLA_PYTHON_CLIENT_MEM_FRACTION": WARM_MEMORY_FRACTION}
     argv = [sys.executable, "-m", "wm.train", "--config", p.train, "--data", str(d["data"]), "--warm",
             *p.train_overrides, *overrides]
     print(f"compiling the world model's training programs beside the rollouts ({log})", file=sys.stderr, flush=True)
@@ -464,8 +465,8 @@ def follow(name: str, seconds: float, members: int | None = None, out=sys.stdout
     rc_path = logs / DETACHED_RC
     rc = int(rc_path.read_text()) if rc_path.exists() else None
     ok = rc == 0 and any(line.startswith("report: ") for line in lines)
-    print(f"== {name}: the detached chain ended " + ("with its report" if ok else f"without a report (exit status {rc})"),
-          file=out)
+    ended = "with its report" if ok else f"without a report (exit status {rc})"
+    print(f"== {name}: the detached chain ended {ended}", file=out)
     return 0 if ok else 1
 
 
