@@ -44,8 +44,8 @@ that wait on it:
 runs/logs/<p>/pipeline.log (a background job is bound by no command's limit: its train and eval
 stages run without their safety stop, max_minutes=0, unless `--set` or `--minutes` gives one);
 `--follow S` waits up to S seconds for it, then prints the stages' timing rows so far and the log's
-last lines, and exits 0 once the chain has written its report, 1 if it stopped without one, 3 while
-it still runs.
+last lines, and exits 0 once the command has ended well (a whole chain: with its report's path), 1 if
+it failed, 3 while it still runs.
 
 With `--warm-train` (one GPU), the rollouts stage starts `wm.train --warm` beside its simulation:
 the world model's training programs compile into the persistent compilation cache on the data stage's
@@ -191,17 +191,27 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
         zoo.main(args)
     elif stage == "rollouts":
         if not p.rollouts:
-            print(f"{name} trains its world model on the data alone; skipping", file=sys.stderr)
+            print(f"{name} trains its world model on the data alone; skipping" +
+                  (" (and --warm-train with it)" if warm_train is not None else ""), file=sys.stderr)
             return True
         args = ["--config", p.data, "--out", str(d["wm_data"]), "--reuse", str(d["data"]), *p.data_overrides,
                 f"policies={d['policies']}#{p.rollouts}", f"policy_episodes={p.rollout_episodes}",
                 *([f"perturbed={d['policies']}#{p.perturbed}", f"perturb_episodes={p.perturb_episodes}"]
                   if p.perturbed else []), *extra]
         parts = _spread("sim_data.dataset.generate", args, gpus, _logs(p, name), "rollouts")
+        if warm_train is not None and len(gpus) > 1:
+            print("--warm-train: several GPUs train the members apart; the train stage compiles for itself",
+                  file=sys.stderr)
         warming = start_warm_train(p, name, warm_train) if warm_train is not None and len(gpus) <= 1 else None
-        generate.main(args)
-        if warming is not None:
-            finish_warm_train(warming)
+        try:
+            generate.main(args)
+        except BaseException:
+            if warming is not None:  # the rollouts failed: the warm-up is of no use
+                warming.kill()
+            raise
+        finally:
+            if warming is not None:
+                finish_warm_train(warming)
     elif stage == "train":
         done, parts = train_members(name, extra, gpus, members)
     elif stage == "eval":
@@ -294,27 +304,37 @@ def start_warm_train(p: Pipeline, name: str, overrides) -> subprocess.Popen | No
     """Starts `wm.train --warm` for the preset's world model (the train stage's overrides) on the data
     stage's dataset, in a child process beside this one, its output in the logs: it compiles the
     training's programs into the persistent compilation cache while the rollouts stage simulates, so
-    that the train stage loads them (compiling is the host's work; the GPU's share is autotuning). A
-    child of its own memory share on the GPU, growing as it needs. None where every member is trained."""
+    that the train stage loads them (compiling is the host's work; the GPU's share is autotuning): the
+    first untrained member's program (its seed is in it). A child of its own memory share on the GPU,
+    growing as it needs. None where every member is trained."""
     d = p.dirs(name)
-    if all((m / "eval.json").exists() for m in d["members"]):
+    todo = [k for k, m in enumerate(d["members"]) if not (m / "eval.json").exists()]
+    if not todo:
         return None
     log = _logs(p, name) / "warm-train.log"
     log.parent.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "XLA_PYTHON_CLIENT_PREALLOCATE": "false",
            "XLA_PYTHON_CLIENT_MEM_FRACTION": WARM_MEMORY_FRACTION}
+    # the member the train stage trains first (its seed is part of the step's program), as train_members orders
     argv = [sys.executable, "-m", "wm.train", "--config", p.train, "--data", str(d["data"]), "--warm",
-            *p.train_overrides, *overrides]
+            *p.train_overrides, *([f"seed={todo[0]}"] if todo[0] else []), *overrides]
     print(f"compiling the world model's training programs beside the rollouts ({log})", file=sys.stderr, flush=True)
     with open(log, "w") as f:
         return subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
 
 
+WARM_WAIT_S = 900  # a warm-up still compiling this long after the rollouts is stopped
+
+
 def finish_warm_train(child: subprocess.Popen) -> None:
-    """Waits for the warm-up started by start_warm_train; a failed one only leaves the train stage to
-    compile its programs itself."""
+    """Waits for the warm-up started by start_warm_train (at most WARM_WAIT_S); a failed or stopped
+    one only leaves the train stage to compile its programs itself."""
     t0 = time.perf_counter()
-    rc = child.wait()
+    try:
+        rc = child.wait(timeout=WARM_WAIT_S)
+    except subprocess.TimeoutExpired:
+        child.kill()
+        rc = child.wait()
     waited = time.perf_counter() - t0
     if rc:
         print(f"warning: compiling the training programs ahead failed (exit status {rc}; see warm-train.log): "
@@ -409,7 +429,8 @@ def detach(name: str, argv: list[str]) -> Path:
         (logs / f).unlink(missing_ok=True)
     unbounded = ["--set", "train:max_minutes=0", "--set", "eval:max_minutes=0"]  # before the user's: theirs win
     cmd = " ".join(shlex.quote(a) for a in [sys.executable, "-m", "experiments.pipeline", *unbounded, *argv])
-    script = f"{cmd} > {shlex.quote(str(logs / DETACHED_LOG))} 2>&1; echo $? > {shlex.quote(str(logs / DETACHED_RC))}"
+    rc, tmp = shlex.quote(str(logs / DETACHED_RC)), shlex.quote(str(logs / (DETACHED_RC + ".tmp")))
+    script = f"PYTHONUNBUFFERED=1 {cmd} > {shlex.quote(str(logs / DETACHED_LOG))} 2>&1; echo $? > {tmp}; mv {tmp} {rc}"
     child = subprocess.Popen(["/bin/sh", "-c", script], start_new_session=True, stdin=subprocess.DEVNULL,
                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     (logs / DETACHED_PID).write_text(f"{child.pid}\n")
@@ -441,9 +462,9 @@ def _detached_pid(logs: Path) -> int | None:
 
 
 def follow(name: str, seconds: float, members: int | None = None, out=sys.stdout) -> int:
-    """Waits up to `seconds` for the preset's detached chain to end; prints the timing rows written so
-    far and the log's last lines. Returns 0 once the chain ended with its report, 1 if it ended
-    otherwise (or none was started), STILL_RUNNING while it runs."""
+    """Waits up to `seconds` for the preset's detached command to end; prints the timing rows written
+    so far and the log's last lines. Returns 0 once it ended well (exit status 0), 1 if it failed or
+    was killed, STILL_RUNNING while it runs."""
     p = pipeline(name, members)
     logs = _logs(p, name)
     if not (logs / DETACHED_PID).exists():
@@ -457,21 +478,23 @@ def follow(name: str, seconds: float, members: int | None = None, out=sys.stdout
               f"({row.get('compile_s', 0):.0f} s compiling)", file=out)
     log = logs / DETACHED_LOG
     text = log.read_text(errors="replace") if log.exists() else ""
-    lines = [line.split("\r")[-1] for line in text.splitlines()]  # a progress bar's last state
+    lines = [line.split("\r")[-1] for line in text.split("\n")]  # a progress bar's last state
     print("\n".join(lines[-15:]), file=out)
     if _detached_pid(logs) is not None:
         print(f"== {name}: still running after {time.monotonic() - t0:.0f} s of following", file=out)
         return STILL_RUNNING
     rc_path = logs / DETACHED_RC
     rc = int(rc_path.read_text()) if rc_path.exists() else None
-    ok = rc == 0 and any(line.startswith("report: ") for line in lines)
-    ended = "with its report" if ok else f"without a report (exit status {rc})"
-    print(f"== {name}: the detached chain ended {ended}", file=out)
-    return 0 if ok else 1
+    report = next((line for line in lines if line.startswith("report: ")), None)
+    ended = f"well, {report}" if rc == 0 and report else "well" if rc == 0 else f"with exit status {rc}"
+    print(f"== {name}: the detached command ended {ended}", file=out)
+    return 0 if rc == 0 else 1
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    # no abbreviated options: --detach reruns the command without the exact "--detach"
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+                                 allow_abbrev=False)
     ap.add_argument("pipeline", choices=sorted(PIPELINES))
     ap.add_argument("--stage", choices=STAGES + ("all",), default="all")
     ap.add_argument("--gpus", type=int, default=None,
@@ -487,7 +510,8 @@ def main(argv=None) -> int:
     ap.add_argument("--detach", action="store_true",
                     help="run the command as a background job (runs/logs/<p>/pipeline.log) and return at once")
     ap.add_argument("--follow", type=float, default=None, metavar="SECONDS",
-                    help="wait up to SECONDS for the detached chain; exit 0 with its report, 1 without, 3 running")
+                    help="wait up to SECONDS for the detached command; exit 0 once it ended well, 1 if it "
+                         "failed, 3 while it runs")
     ap.add_argument("--warm-train", action="store_true",
                     help="with the rollouts stage (one GPU or none), compile the world model's training programs "
                          "beside it (with the train stage's --set overrides), for the train stage to load")
@@ -500,14 +524,6 @@ def main(argv=None) -> int:
         per_stage = stage_overrides(a.set)
     except ValueError as e:
         ap.error(str(e))
-    if a.follow is not None:
-        if a.detach:
-            ap.error("--follow waits on a chain started by --detach: give them in two commands")
-        return follow(a.pipeline, a.follow, a.members)
-    if a.detach:
-        print(f"started in the background; log: {detach(a.pipeline, [x for x in raw if x != '--detach'])}\n"
-              f"follow it with: python -m experiments.pipeline {a.pipeline} --follow 540")
-        return 0
     if a.members is not None and a.members < 1:
         ap.error(f"--members {a.members}: an ensemble needs at least one world model")
     gpus = local_gpus()
@@ -517,6 +533,14 @@ def main(argv=None) -> int:
         gpus = gpus[: a.gpus]
     if a.minutes < 0:
         ap.error(f"--minutes {a.minutes}: give a positive time slot, or 0 for none")
+    if a.follow is not None:
+        if a.detach:
+            ap.error("--follow waits on a chain started by --detach: give them in two commands")
+        return follow(a.pipeline, a.follow, a.members)
+    if a.detach:
+        print(f"started in the background; log: {detach(a.pipeline, [x for x in raw if x != '--detach'])}\n"
+              f"follow it with: python -m experiments.pipeline {a.pipeline} --follow 540")
+        return 0
     use_compilation_cache(PIPELINES[a.pipeline].root)
     t0 = time.perf_counter()
     for stage in STAGES if a.stage == "all" else (a.stage,):
@@ -528,8 +552,10 @@ def main(argv=None) -> int:
                 return 0
             slot = [f"max_minutes={left:.3f}"] if a.minutes and stage in ("train", "eval") else []
             warm = per_stage.get("train", []) if a.warm_train else None
-            if (run_stage(a.pipeline, stage, [*per_stage.get(stage, []), *a.overrides, *slot], gpus, a.members, warm)
-                    or a.stage != "all"):
+            # the rollouts stage reuses the data stage's episodes, which it checks were made with its settings
+            mine = [*per_stage.get("data", []), *per_stage.get("rollouts", [])] if stage == "rollouts" \
+                else per_stage.get(stage, [])
+            if run_stage(a.pipeline, stage, [*mine, *a.overrides, *slot], gpus, a.members, warm) or a.stage != "all":
                 break
     if a.stage in ("all", "report"):
         print(f"report: {(pipeline(a.pipeline).dirs(a.pipeline)['eval'] / 'report.html').absolute()} "

@@ -293,8 +293,8 @@ def _fake_python(tmp_path, body: str) -> str:
 
 
 @pytest.mark.parametrize("body, status, says", [
-    ('echo "report: /x/report.html (1 s)"; exit 0', 0, "ended with its report"),
-    ('echo "error: data missing" >&2; exit 2', 1, "without a report (exit status 2)"),
+    ('echo "report: /x/report.html (1 s)"; exit 0', 0, "ended well, report: /x/report.html (1 s)"),
+    ('echo "error: data missing" >&2; exit 2', 1, "ended with exit status 2"),
 ])
 def test_a_detached_chain_runs_in_the_background_and_follow_reports_how_it_ended(tmp_path, monkeypatch, body,
                                                                                     status, says):
@@ -332,7 +332,8 @@ def test_follow_says_a_detached_chain_still_runs_and_a_second_detach_is_refused(
     deadline = time.monotonic() + 10
     while P._detached_pid(Path("runs/logs/full")) is not None and time.monotonic() < deadline:
         time.sleep(0.05)
-    assert P.follow("full", 5, out=io.StringIO()) == 1  # killed: no exit status, no report
+    out = io.StringIO()
+    assert P.follow("full", 5, out=out) == 1 and "exit status None" in out.getvalue()  # killed: no exit status
 
 
 def test_a_detached_chain_runs_the_pipeline_itself(tmp_path, monkeypatch):
@@ -357,7 +358,7 @@ def test_the_rollouts_stage_compiles_the_training_programs_beside_it_with_the_tr
             started.append((argv, env))
             order.append("warm starts")
 
-        def wait(self):
+        def wait(self, timeout=None):
             order.append("warm waited")
             return 0
 
@@ -385,3 +386,52 @@ def test_the_rollouts_stage_compiles_the_training_programs_beside_it_with_the_tr
     monkeypatch.setattr(P, "use_compilation_cache", lambda root: "")
     P.main(["roll", "--warm-train", "--set", "train:steps=3500", "--set", "eval:episodes=50"])
     assert dict(ran)["rollouts"] == ["steps=3500"]
+
+
+def test_options_are_checked_before_detaching_and_none_may_be_abbreviated(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(P, "local_gpus", lambda: [])
+    for argv in (["demo", "--detach", "--gpus", "7"], ["demo", "--detach", "--minutes", "-1"], ["demo", "--det"]):
+        with pytest.raises(SystemExit):
+            P.main(argv)
+    assert not Path("runs/logs/demo/pipeline.pid").exists()  # nothing was started
+
+
+def test_data_overrides_reach_the_rollouts_stage_that_reuses_the_data(monkeypatch):
+    ran = []
+    monkeypatch.setattr(P, "run_stage", lambda name, stage, extra=(), gpus=(), members=None, warm=None:
+                        ran.append((stage, extra)) or True)
+    monkeypatch.setattr(P, "use_compilation_cache", lambda root: "")
+    P.main(["full", "--set", "data:batch=960", "--set", "rollouts:policy_episodes=8"])
+    got = dict(ran)
+    assert got["data"] == ["batch=960"] and got["rollouts"] == ["batch=960", "policy_episodes=8"]
+    assert got["train"] == [] and got["eval"] == []
+
+
+def test_a_failed_rollouts_stage_stops_its_warm_up_and_the_warm_up_takes_the_first_untrained_members_seed(
+        tmp_path, monkeypatch):
+    monkeypatch.setitem(P.PIPELINES, "roll2", P.Pipeline(data="d", policies="p", train="t", eval="e",
+                                                         root=str(tmp_path), rollouts="conv", members=2))
+    events = []
+
+    class FakeChild:
+        def __init__(self, argv, **_):
+            events.append(("start", argv))
+
+        def kill(self):
+            events.append(("kill", None))
+
+        def wait(self, timeout=None):
+            return -9 if ("kill", None) in events else 0
+
+    monkeypatch.setattr(P.subprocess, "Popen", FakeChild)
+    (tmp_path / "wm" / "roll2").mkdir(parents=True)
+    (tmp_path / "wm" / "roll2" / "eval.json").write_text("{}")  # member 0 trained: member 1 is next
+
+    def failing(args):
+        raise RuntimeError("simulation failed")
+
+    monkeypatch.setattr(P.generate, "main", failing)
+    with pytest.raises(RuntimeError, match="simulation failed"):
+        P.run_stage("roll2", "rollouts", warm_train=[])
+    assert events[0][1][-1] == "seed=1" and ("kill", None) in events
