@@ -474,7 +474,7 @@ def follow(name: str, seconds: float, members: int | None = None, out=sys.stdout
         time.sleep(FOLLOW_POLL_S)
     timing = p.dirs(name)["eval"] / TIMING
     for row in json.loads(timing.read_text()) if timing.exists() else []:
-        print(f"{row['stage']:>9} {'done' if row.get('done') else 'cut short':>9} {row['wall_s']:8.0f} s "
+        print(f"{row['stage']:>9} {'done' if row.get('done') else 'to rerun':>9} {row['wall_s']:8.0f} s "
               f"({row.get('compile_s', 0):.0f} s compiling)", file=out)
     log = logs / DETACHED_LOG
     text = log.read_text(errors="replace") if log.exists() else ""
