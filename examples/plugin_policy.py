@@ -29,10 +29,14 @@ class BackAway:
         return action, carry + 1
 
 
+def ready_pose():
+    """(20,) the arms, neck and hands in the ready pose, the base still."""
+    return jnp.asarray(action_program("step_backwards", 1)[0]).at[robot.FORWARD_SPEED].set(0.0)
+
+
 def make(seconds: float = 2.0, speed: float = -0.3):
     """(policy, params): what `policies=examples.plugin_policy:make` loads."""
-    ready = jnp.asarray(action_program("step_backwards", 1)[0]).at[robot.FORWARD_SPEED].set(0.0)
-    return BackAway(), {"ready": ready, "seconds": jnp.float32(seconds), "speed": jnp.float32(speed)}
+    return BackAway(), {"ready": ready_pose(), "seconds": jnp.float32(seconds), "speed": jnp.float32(speed)}
 
 
 # The same policy at other lengths, speeds and directions: on step_back only a stop 0.5-0.8 m back succeeds, so
@@ -82,4 +86,4 @@ class Flail:
 
 def flail(scale: float = 0.5):
     """Random actions of standard deviation `scale` around the ready pose (clipped to their ranges)."""
-    return Flail(), {"ready": make()[1]["ready"], "scale": jnp.float32(scale)}
+    return Flail(), {"ready": ready_pose(), "scale": jnp.float32(scale)}

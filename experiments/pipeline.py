@@ -217,9 +217,9 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
     elif stage == "eval":
         # wm=... names the model to evaluate (a bundle carried from another lease): the members need not be here
         given = any(a.startswith("wm=") for a in extra)
-        untrained = [] if given else [str(m) for m in d["members"] if not (m / "eval.json").exists()]
-        if untrained:
-            raise SystemExit(f"{', '.join(untrained)} not trained yet: run the train stage (make full STAGE=train) "
+        waiting = [] if given else [str(m) for _, m in untrained(d)]
+        if waiting:
+            raise SystemExit(f"{', '.join(waiting)} not trained yet: run the train stage (make full STAGE=train) "
                              "until it says every member is trained")
         members = [] if given else ["wm=" + ",".join(str(m) for m in d["members"])]
         args = ["--config", p.eval, "--out", str(d["eval"]), f"policies={d['policies']}", *members,
@@ -270,6 +270,16 @@ def stage_throughput(p: Pipeline, name: str, stage: str, wall: float) -> dict:
     return {}
 
 
+def untrained(d: dict) -> list[tuple[int, Path]]:
+    """(index, run directory) of the members of dirs `d` not yet trained (no eval.json), in order."""
+    return [(k, m) for k, m in enumerate(d["members"]) if not (m / "eval.json").exists()]
+
+
+def member_seed(k: int) -> list[str]:
+    """Member k's override: seed=k (member 0 keeps the preset's seed)."""
+    return [f"seed={k}"] if k else []
+
+
 def train_members(name: str, extra=(), gpus=(), members: int | None = None) -> tuple[bool, list[Path]]:
     """Trains the world models of pipeline `name` not yet trained: member k with seed=k, as many at a
     time as there are GPUs, the GPUs shared out among them (one member left on two GPUs trains on
@@ -277,20 +287,20 @@ def train_members(name: str, extra=(), gpus=(), members: int | None = None) -> t
     trained, and the timing files of the child processes that trained them."""
     p = pipeline(name, members)
     d = p.dirs(name)
-    todo = [(k, m) for k, m in enumerate(d["members"]) if not (m / "eval.json").exists()]
+    todo = untrained(d)
     if not todo:
         print(f"{', '.join(str(m) for m in d['members'])}: trained (eval.json exists); skipping", file=sys.stderr)
         return True, []
     todo = todo[: max(len(gpus), 1)]  # a round that fits one command; the stage's next run trains the rest
     commands = [["--config", p.train, "--data", str(d["wm_data"]), "--out", str(m), *p.train_overrides,
-                 *([f"seed={k}"] if k else []), *extra] for k, m in todo]
+                 *member_seed(k), *extra] for k, m in todo]
     parts = []
     if len(gpus) > 1:
         parts = run_parts("wm.train", commands, gpu_groups(gpus, len(todo)), _logs(p, name), "train-member")
     else:
         print(f"member {todo[0][0]} of {p.members}: {todo[0][1]}", file=sys.stderr)
         train.main(commands[0])
-    left = [str(m) for m in d["members"] if not (m / "eval.json").exists()]
+    left = [str(m) for _, m in untrained(d)]
     if left:
         print(f"{len(left)} of {p.members} world models left to train ({', '.join(left)}): run the train stage again",
               file=sys.stderr)
@@ -308,16 +318,16 @@ def start_warm_train(p: Pipeline, name: str, overrides) -> subprocess.Popen | No
     first untrained member's program (its seed is in it). A child of its own memory share on the GPU,
     growing as it needs. None where every member is trained."""
     d = p.dirs(name)
-    todo = [k for k, m in enumerate(d["members"]) if not (m / "eval.json").exists()]
+    todo = untrained(d)
     if not todo:
         return None
     log = _logs(p, name) / "warm-train.log"
     log.parent.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "XLA_PYTHON_CLIENT_PREALLOCATE": "false",
            "XLA_PYTHON_CLIENT_MEM_FRACTION": WARM_MEMORY_FRACTION}
-    # the member the train stage trains first (its seed is part of the step's program), as train_members orders
+    # the member the train stage trains first (its seed is part of the step's program)
     argv = [sys.executable, "-m", "wm.train", "--config", p.train, "--data", str(d["data"]), "--warm",
-            *p.train_overrides, *([f"seed={todo[0]}"] if todo[0] else []), *overrides]
+            *p.train_overrides, *member_seed(todo[0][0]), *overrides]
     print(f"compiling the world model's training programs beside the rollouts ({log})", file=sys.stderr, flush=True)
     with open(log, "w") as f:
         return subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
@@ -473,9 +483,8 @@ def follow(name: str, seconds: float, members: int | None = None, out=sys.stdout
     while _detached_pid(logs) is not None and time.monotonic() - t0 < seconds:
         time.sleep(FOLLOW_POLL_S)
     timing = p.dirs(name)["eval"] / TIMING
-    for row in json.loads(timing.read_text()) if timing.exists() else []:
-        print(f"{row['stage']:>9} {'done' if row.get('done') else 'to rerun':>9} {row['wall_s']:8.0f} s "
-              f"({row.get('compile_s', 0):.0f} s compiling)", file=out)
+    if timing.exists():
+        print(report.md_table(report.timing_table(json.loads(timing.read_text()))), file=out)
     log = logs / DETACHED_LOG
     text = log.read_text(errors="replace") if log.exists() else ""
     lines = [line.split("\r")[-1] for line in text.split("\n")]  # a progress bar's last state
@@ -485,8 +494,8 @@ def follow(name: str, seconds: float, members: int | None = None, out=sys.stdout
         return STILL_RUNNING
     rc_path = logs / DETACHED_RC
     rc = int(rc_path.read_text()) if rc_path.exists() else None
-    report = next((line for line in lines if line.startswith("report: ")), None)
-    ended = f"well, {report}" if rc == 0 and report else "well" if rc == 0 else f"with exit status {rc}"
+    written = next((line for line in lines if line.startswith("report: ")), None)
+    ended = f"well, {written}" if rc == 0 and written else "well" if rc == 0 else f"with exit status {rc}"
     print(f"== {name}: the detached command ended {ended}", file=out)
     return 0 if rc == 0 else 1
 

@@ -322,7 +322,7 @@ def unlearned_warning(res: dict) -> str:
             "its predictions there are guesses about a task it does not know.")
 
 
-def _md_table(rows) -> str:
+def md_table(rows) -> str:
     cell = lambda c: c.replace("|", "\\|")  # a policy's name may hold one
     lines = ["| " + " | ".join(map(cell, rows[0])) + " |", "|" + "---|" * len(rows[0])]
     lines += ["| " + " | ".join(map(cell, r)) + " |" for r in rows[1:]]
@@ -486,7 +486,7 @@ def _selection_md(res: dict) -> str:
     sel = res.get("checkpoint_selection")
     if sel is None:
         return "n/a"
-    return _selection_summary(sel) + ("\n\n" + _md_table(selection_table(sel)) if sel["n"] else "")
+    return _selection_summary(sel) + ("\n\n" + md_table(selection_table(sel)) if sel["n"] else "")
 
 
 TIMING_COLUMNS = (("stage", "stage"), ("wall_s", "wall s"), ("compile_s", "compiling s"),
@@ -754,25 +754,25 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
           *([f"**{unlearned}**", ""] if unlearned else []),
           *([f"**{unread.capitalize()}.**", ""] if unread else []),
           *([f"**{CUT_SHORT}**", ""] if res["world_model"].get("cut_short") else []),
-          f"**{verdict(res)}**", "", "## Within-task ranking (the headline)", "", _md_table(within_task_table(res)), "",
-          _md_table(per_task_table(res)), "",
-          *(["## Your policies (plug-ins)", "", PLUGIN_NOTE, "", _md_table(plug), ""] if plug else []),
+          f"**{verdict(res)}**", "", "## Within-task ranking (the headline)", "", md_table(within_task_table(res)), "",
+          md_table(per_task_table(res)), "",
+          *(["## Your policies (plug-ins)", "", PLUGIN_NOTE, "", md_table(plug), ""] if plug else []),
           "## Checkpoint selection", "", _selection_md(res), "",
-          "## Pooled over tasks (secondary)", "", _md_table(_metrics_table(metrics["pooled"])), ""]
+          "## Pooled over tasks (secondary)", "", md_table(_metrics_table(metrics["pooled"])), ""]
     if fid := fidelity_table(res):
-        md += ["## Imagination against the simulated episode", "", FIDELITY_NOTE, "", _md_table(fid), ""]
+        md += ["## Imagination against the simulated episode", "", FIDELITY_NOTE, "", md_table(fid), ""]
     if fam := family_table(res):
-        md += ["## Counterfactual families", "", FAMILY_NOTE, "", _md_table(fam), ""]
+        md += ["## Counterfactual families", "", FAMILY_NOTE, "", md_table(fam), ""]
     if viol := violation_table(res):
-        md += ["## Rank violations", "", VIOLATION_NOTE, "", _md_table(viol), ""]
+        md += ["## Rank violations", "", VIOLATION_NOTE, "", md_table(viol), ""]
     if loop := loop_note(res):
         md += [loop, ""]
     if "unseen" in metrics:
         md += ["## Pooled, policies whose rollouts the world model never saw", "",
-               _md_table(_metrics_table(metrics["unseen"])), ""]
+               md_table(_metrics_table(metrics["unseen"])), ""]
     for t in tasks:
-        md += [f"## {t}", "", _md_table(_metrics_table(metrics["per_task"][t])), "",
-               _md_table(_policy_table([p for p in policies if p["task"] == t])), ""]
+        md += [f"## {t}", "", md_table(_metrics_table(metrics["per_task"][t])), "",
+               md_table(_policy_table([p for p in policies if p["task"] == t])), ""]
     if verd:
         md += ["## Verdicts", ""] + [
             f"- {v['task']}, {v['comparison']}: the world model prefers {v['world_model_prefers']}, truly better is "
@@ -781,9 +781,9 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
         md += ["## Videos", "", "Real (left) and imagined (right), MP4:", ""]
         md += [f"- [{label}]({href})" for label, href in mp4] + [""]
     if timing:
-        md += ["## Pipeline timing", "", _md_table(timing_table(timing)), ""]
+        md += ["## Pipeline timing", "", md_table(timing_table(timing)), ""]
         if compiles:
-            md += ["Where the compile time goes:", "", _md_table(compiles), ""]
+            md += ["Where the compile time goes:", "", md_table(compiles), ""]
     return "\n".join(h), "\n".join(md + sweep_md)
 
 
@@ -815,7 +815,7 @@ def sweep_sections(root: Path) -> tuple[list[str], list[str]]:
         rows += [[f"{e['x']:g}", str(e["seeds"])] + [_fmt(e.get(k)) for k, _ in cols] for e in res["per_x"]]
         title = f"Sweep {res['sweep']} ({res['size']})"
         h += [f"<h2>{html.escape(title)}</h2>", f"<p>{html.escape(res['finding'])}</p>", _html_table(rows)]
-        md += [f"## {title}", "", res["finding"], "", _md_table(rows), ""]
+        md += [f"## {title}", "", res["finding"], "", md_table(rows), ""]
         if (d / "sweep.png").exists():
             h.append(f"<img src='{_file_uri(d / 'sweep.png')}'>")
         last = [r["run"] for r in res["runs"] if r["x"] == res["per_x"][-1]["x"] and r["finished"]]

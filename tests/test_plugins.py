@@ -249,7 +249,7 @@ def test_a_clipped_plugin_keeps_its_policys_way_of_stacking():
 
 
 def test_the_report_escapes_names_and_names_tasks_the_world_model_never_learned():
-    table = RP._md_table([["policy", "rate"], ["a|b", "0.5"]])
+    table = RP.md_table([["policy", "rate"], ["a|b", "0.5"]])
     assert table.splitlines()[2] == "| a\\|b | 0.5 |"
     res = {"tasks": ["mug", "step_back"], "world_model": {"train_tasks": ["mug"]}}
     assert "never saw step_back in training (it learned mug)" in RP.unlearned_warning(res)

@@ -442,7 +442,7 @@ class Run:
         last = {}
         while step < cfg.steps:
             t_wait = time.perf_counter()
-            batch = put_batch(model_batch(next(self.loader), cfg.camera, cfg.model.anchor, cfg.model.scene), self.mesh)
+            batch = self.next_batch()
             waited += time.perf_counter() - t_wait
             self.state, parts = self._step(self.state, batch, self.norm)
             acc = parts if acc is None else jax.tree_util.tree_map(jnp.add, acc, parts)
@@ -492,13 +492,16 @@ class Run:
                   "the model is marked cut short; rerun the same command to finish it", file=sys.stderr)
         return {**status, **last}
 
+    def next_batch(self) -> dict:
+        """The loader's next training batch as the step takes it, placed on this run's devices."""
+        cfg = self.cfg
+        return put_batch(model_batch(next(self.loader), cfg.camera, cfg.model.anchor, cfg.model.scene), self.mesh)
+
     def warm(self) -> None:
         """Runs the training's programs once each (a step on the first training batch, its new state
         dropped; the validation loss), so that JAX's persistent compilation cache holds them for a run
         of the same configuration on data of the same shapes, which then loads instead of compiling."""
-        batch = put_batch(model_batch(next(self.loader), self.cfg.camera, self.cfg.model.anchor,
-                                      self.cfg.model.scene), self.mesh)
-        _, parts = self._step(self.state, batch, self.norm)
+        _, parts = self._step(self.state, self.next_batch(), self.norm)
         jax.block_until_ready(parts)
         self.validate()
         self.loader.close()
