@@ -36,6 +36,11 @@ mean over tasks, with bootstrap intervals over policies and initial states), per
 over tasks (secondary: tasks of different difficulty correlate for free), beside the imitation-loss
 proxy; `OUT/videos.npz` real and imagined episodes and the controllability panel
 for the report.
+
+    python -m experiments.evaluate --config full --warm wm=runs/wm/full [key=value ...]
+
+compiles the evaluation's programs ahead, beside the world model's training (`warm`): what the
+evaluation then compiles it loads from JAX's persistent compilation cache instead.
 """
 
 from __future__ import annotations
@@ -76,11 +81,12 @@ from sim_data.policies.registry import (
 from sim_data.policies.scripted import ProgramPolicy
 from sim_data.sim import robot as R
 from sim_data.sim.engines import ENGINES, PHYSICS_REVISION, default_engine
-from sim_data.sim.rollout import record_policies
+from sim_data.sim.rollout import SEGMENT, record_policies
 from sim_data.sim.tasks import TASK_NAMES
 from sim_data.util import device_name, hash_arrays, make_output_dir, run_cli, write_json_atomic
 from wm.checkpoint import (
     load_run_config,
+    load_started,
     load_trained,
     trained_tasks,
     training_policies,
@@ -616,12 +622,12 @@ def simulate_truth(cfg: EvalConfig, task: str, policy, params, seeds, reset_keys
     return truth
 
 
-def _simulate(task, policy, params, seeds, reset_keys, rng, engine, renderer) -> dict:
+def _simulate(task, policy, params, seeds, reset_keys, rng, engine, renderer, steps: int | None = None) -> dict:
     env = cached_env(task, policy.count(params) * len(seeds), engine, False)
-    outcome, rec = record_policies(env, policy, params, reset_keys, rng, renderer)
+    outcome, rec = record_policies(env, policy, params, reset_keys, rng, renderer, steps)
     return {"outcome": outcome, "frames0": np.asarray(rec.frames[CAMERA][:, :1]),
-            "proprio0": np.asarray(rec.proprio[:, :1]), "steps": env.episode_steps, "frames": rec.frames[CAMERA],
-            "proprio": rec.proprio, "action": rec.action, "progress": np.asarray(rec.progress[:, 1:], np.float32)}
+            "proprio0": np.asarray(rec.proprio[:, :1]), "steps": steps or env.episode_steps,
+            "frames": rec.frames[CAMERA], "proprio": rec.proprio, "action": rec.action, "progress": np.asarray(rec.progress[:, 1:], np.float32)}
 
 
 def simulate_actions(task: str, actions, reset_keys, engine: str) -> np.ndarray:
@@ -852,6 +858,56 @@ def decision_analysis(cfg: EvalConfig, tasks: dict, alignment: float, most: int 
     return out
 
 
+# ---- compiling ahead -----------------------------------------------------------------------------
+
+WARM_STEPS = 2 * SEGMENT  # a first segment and a later one: every per-segment program of an episode
+WARM_START_WAIT_S = 900.0  # how long `--warm` waits for its world models' training to start
+
+
+def warm(cfg: EvalConfig, progress: bool = True, wait_s: float = 0.0) -> None:
+    """Runs the evaluation's compiled programs once each, so that JAX's persistent compilation cache
+    holds them for the evaluation of cfg, which then loads them instead of compiling: on every task,
+    each batch of policies of the first slice of states (the evaluation's policies, states and batch
+    shapes) for its first WARM_STEPS steps, in the simulator and in each world model (closed loop,
+    the read-out of the simulated episodes, and the replay with cfg.replay), and the
+    controllability panel. The world models need only have started training (wm.checkpoint.
+    load_started: their shapes and normalisation, parameters of zeros), so the warm-up runs beside
+    their training; wait_s: how long to wait for each run's config.json and norm.json. Not warmed:
+    the episode judge's reading (the judge is fit after training) and, with cfg.replay, the
+    simulation of the imagined actions (whole episodes). Writes nothing but the cache."""
+    cfg.validate()
+    sources = resolve(cfg.policies)
+    tasks = evaluation_tasks(cfg, sources)
+    deadline = time.monotonic() + wait_s
+    for run in cfg.wm_runs:
+        while not all((Path(run) / f).exists() for f in ("config.json", "norm.json")) and time.monotonic() < deadline:
+            time.sleep(2.0)
+    models = []
+    for run in cfg.wm_runs:
+        wm_cfg, params, norm = load_started(Path(run))
+        models.append((with_imagine(wm_cfg, cfg.imagine), params, norm, None))
+    used = seeds_in_use(cfg, sources)
+    engine = cfg.engine or default_engine()
+    renderer = cached_renderers(models[0][0].model.size, (CAMERA,))
+    t0 = time.perf_counter()
+    for task in tasks:
+        seeds = heldout_seeds(task, cfg.episodes, cfg.seed, used)
+        s0, s1 = state_slices(cfg, len(seeds))[0]
+        reset_keys = np.stack([np.asarray(jax.random.PRNGKey(s)) for s in seeds[s0:s1]])
+        rng = jax.random.PRNGKey(cfg.seed)
+        first = [b for b in task_batches(cfg, [s for s in sources if s.runs_on(task)], len(seeds)) if b[1] == 0]
+        for _, _, _, padded in tqdm(first, desc=f"warm {task}", unit="batch", disable=not progress):
+            policy, params = chunk_policy(padded, s1 - s0)
+            truth = _simulate(task, policy, params, seeds[s0:s1], reset_keys, rng, engine, renderer, WARM_STEPS)
+            _predict_batch(cfg, task, models, policy, params, truth, rng)
+    wm_cfg, wm_params, norm, _ = models[0]
+    wm_data = load_run_config(Path(cfg.wm_runs[0]))[1]
+    if (Path(wm_data) / "cache" / "index.json").exists():
+        program_panel(wm_cfg, wm_params, norm, TrainingCache(wm_data), horizon=48)
+    print(f"the evaluation's programs ran once in {time.perf_counter() - t0:.0f} s ({', '.join(tasks)})",
+          file=sys.stderr)
+
+
 # ---- the run -----------------------------------------------------------------------------------------
 
 def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int] | None = None,
@@ -876,9 +932,7 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
     unseen = [t for t in tasks if wm_cache is not None and t not in wm_cache.tasks]
     if unseen:
         print(f"warning: the world model never saw tasks {unseen} in training", file=sys.stderr)
-    zoo_data = {s.record.get("data") for s in sources} - {None}
-    # held out from every model's data (a bundle's copy of its seeds where the data is elsewhere)
-    used = used_seeds(*zoo_data).union(*(training_seeds(Path(r)) for r in cfg.wm_runs))
+    used = seeds_in_use(cfg, sources)
     engine = cfg.engine or default_engine()
     results = evaluate_tasks(cfg, out, tasks, sources, models, used, engine, progress, part, partial)
     if results is None:
@@ -888,6 +942,13 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
     report = gather(cfg, out, tasks, results, sources, models, wm_data, wm_cache, engine, preset)
     write_json_atomic(out / "results.json", no_nan(report))
     return report
+
+
+def seeds_in_use(cfg: EvalConfig, sources) -> set:
+    """The initial-state seeds the evaluation must not draw: those of the zoo's datasets and of every
+    world model's training data (a bundle's copy of its seeds where the data is elsewhere)."""
+    zoo_data = {s.record.get("data") for s in sources} - {None}
+    return used_seeds(*zoo_data).union(*(training_seeds(Path(r)) for r in cfg.wm_runs))
 
 
 def evaluation_tasks(cfg: EvalConfig, sources) -> list[str]:
@@ -1172,7 +1233,11 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
                                 epilog=preset_help(PRESETS))
     p.add_argument("--config", default="demo", help=f"preset: {', '.join(PRESETS)}")
-    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--out", type=Path, help="the evaluation's directory (required unless --warm)")
+    p.add_argument("--warm", action="store_true",
+                   help="compile the evaluation's programs into JAX's persistent compilation cache and write nothing "
+                        "else (warm), waiting up to 15 minutes for the world models' training to start: beside "
+                        "their training, so that the evaluation loads its programs instead of compiling them")
     add_part_argument(p, "evaluate this part's share of every task's batches", "gather results.json")
     p.add_argument("--partial", action="store_true",
                    help="evaluate nothing more: results.json over the tasks finished so far (a run cut short)")
@@ -1182,6 +1247,13 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     if a.partial and part is not None:
         p.error("--partial gathers; it takes no --part")
+    if a.warm:
+        if part is not None or a.partial:
+            p.error("--warm compiles for one process's whole evaluation: leave out --part and --partial")
+        warm(cfg, wait_s=WARM_START_WAIT_S)
+        return 0
+    if a.out is None:
+        p.error("--out is required (unless --warm)")
     res = run(cfg, a.out, part=part, partial=a.partial, preset=a.config)
     if res is None:
         return 0  # a part, or stopped by max_minutes (the message says what is left)

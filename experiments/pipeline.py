@@ -49,7 +49,10 @@ it failed, 3 while it still runs.
 
 With `--warm-train` (one GPU), the rollouts stage starts `wm.train --warm` beside its simulation:
 the world model's training programs compile into the persistent compilation cache on the data stage's
-dataset (the same shapes), and the train stage loads them instead of compiling.
+dataset (the same shapes), and the train stage loads them instead of compiling. With `--warm-eval`
+(one GPU), the train stage starts `experiments.evaluate --warm` beside the training: the evaluation's
+simulator and imagination programs run once on its own batches, a few steps long, with the world
+model's shapes, and the eval stage loads them. Both compile on the host's cores while the GPU works.
 
 Each stage command appends a row to the evaluation directory's `timing.json`: its wall seconds, the
 seconds spent compiling (JAX's compile events, experiments.timing; a stage spread over GPUs adds the
@@ -61,6 +64,7 @@ table.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import os
@@ -168,11 +172,13 @@ def pipeline(name: str, members: int | None = None) -> Pipeline:
 
 
 def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = None,
-              warm_train: list | None = None) -> bool:
+              warm_train: list | None = None, warm_eval: list | None = None) -> bool:
     """Runs one stage of pipeline `name` (with `members` world models, see pipeline), spread over
     `gpus` (ids) where there are several; returns False where the stage must run again to finish
     (an ensemble's members left to train). With warm_train (the train stage's overrides), the
-    rollouts stage compiles the world model's training programs beside it (start_warm_train)."""
+    rollouts stage compiles the world model's training programs beside it (start_warm_train); with
+    warm_eval (the eval stage's overrides), the train stage compiles the evaluation's programs beside
+    it (start_warm_eval)."""
     p = pipeline(name, members)
     d = p.dirs(name)
     t0 = time.perf_counter()
@@ -203,17 +209,15 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
             print("--warm-train: several GPUs train the members apart; the train stage compiles for itself",
                   file=sys.stderr)
         warming = start_warm_train(p, name, warm_train) if warm_train is not None and len(gpus) <= 1 else None
-        try:
+        with warm_beside(warming, "the training programs", "the train stage"):
             generate.main(args)
-        except BaseException:
-            if warming is not None:  # the rollouts failed: the warm-up is of no use
-                warming.kill()
-            raise
-        finally:
-            if warming is not None:
-                finish_warm_train(warming)
     elif stage == "train":
-        done, parts = train_members(name, extra, gpus, members)
+        if warm_eval is not None and len(gpus) > 1:
+            print("--warm-eval: several GPUs share the evaluation's batches out; the eval stage compiles for itself",
+                  file=sys.stderr)
+        warming = start_warm_eval(p, name, warm_eval) if warm_eval is not None and len(gpus) <= 1 else None
+        with warm_beside(warming, "the evaluation's programs", "the eval stage"):
+            done, parts = train_members(name, extra, gpus, members)
     elif stage == "eval":
         # wm=... names the model to evaluate (a bundle carried from another lease): the members need not be here
         given = any(a.startswith("wm=") for a in extra)
@@ -307,7 +311,7 @@ def train_members(name: str, extra=(), gpus=(), members: int | None = None) -> t
     return not left, parts
 
 
-WARM_MEMORY_FRACTION = "0.35"  # of the GPU's memory, for the warm-up beside the rollouts stage's simulation
+WARM_MEMORY_FRACTION = "0.35"  # of the GPU's memory, for a warm-up beside a stage's own work
 
 
 def start_warm_train(p: Pipeline, name: str, overrides) -> subprocess.Popen | None:
@@ -322,35 +326,68 @@ def start_warm_train(p: Pipeline, name: str, overrides) -> subprocess.Popen | No
     if not todo:
         return None
     log = _logs(p, name) / "warm-train.log"
-    log.parent.mkdir(parents=True, exist_ok=True)
-    env = {**os.environ, "XLA_PYTHON_CLIENT_PREALLOCATE": "false",
-           "XLA_PYTHON_CLIENT_MEM_FRACTION": WARM_MEMORY_FRACTION}
     # the member the train stage trains first (its seed is part of the step's program)
     argv = [sys.executable, "-m", "wm.train", "--config", p.train, "--data", str(d["data"]), "--warm",
             *p.train_overrides, *member_seed(todo[0][0]), *overrides]
     print(f"compiling the world model's training programs beside the rollouts ({log})", file=sys.stderr, flush=True)
+    return _start_warm(argv, log)
+
+
+def start_warm_eval(p: Pipeline, name: str, overrides) -> subprocess.Popen | None:
+    """Starts `experiments.evaluate --warm` for the preset's evaluation (the eval stage's overrides) of
+    the first untrained member, in a child process beside this one, its output in the logs: once the
+    member's training has started (its config.json and norm.json written) it runs the evaluation's
+    programs once each on the evaluation's shapes, so that the eval stage loads them from the
+    persistent compilation cache; the members of an ensemble share one configuration, hence these
+    programs. None where every member is trained."""
+    d = p.dirs(name)
+    todo = untrained(d)
+    if not todo:
+        return None
+    log = _logs(p, name) / "warm-eval.log"
+    argv = [sys.executable, "-m", "experiments.evaluate", "--config", p.eval, "--warm", f"policies={d['policies']}",
+            f"wm={todo[0][1]}", *p.eval_overrides, *overrides]
+    print(f"compiling the evaluation's programs beside the training ({log})", file=sys.stderr, flush=True)
+    return _start_warm(argv, log)
+
+
+def _start_warm(argv: list[str], log: Path) -> subprocess.Popen:
+    """argv in a child process of its own share of the GPU's memory, growing as it needs, its output in log."""
+    log.parent.mkdir(parents=True, exist_ok=True)
+    env = {**os.environ, "XLA_PYTHON_CLIENT_PREALLOCATE": "false",
+           "XLA_PYTHON_CLIENT_MEM_FRACTION": WARM_MEMORY_FRACTION}
     with open(log, "w") as f:
         return subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
 
 
-WARM_WAIT_S = 900  # a warm-up still compiling this long after the rollouts is stopped
+WARM_WAIT_S = 900  # a warm-up still compiling this long after the stage beside it is stopped
 
 
-def finish_warm_train(child: subprocess.Popen) -> None:
-    """Waits for the warm-up started by start_warm_train (at most WARM_WAIT_S); a failed or stopped
-    one only leaves the train stage to compile its programs itself."""
-    t0 = time.perf_counter()
+@contextlib.contextmanager
+def warm_beside(child: subprocess.Popen | None, what: str, later: str):
+    """Runs the stage in the with-block beside a warm-up child (None: none): a failed stage stops the
+    warm-up, which is then of no use; a finished one waits for it (at most WARM_WAIT_S). A failed or
+    stopped warm-up only leaves `later` to compile `what` itself."""
+    if child is None:
+        yield
+        return
     try:
-        rc = child.wait(timeout=WARM_WAIT_S)
-    except subprocess.TimeoutExpired:
+        yield
+    except BaseException:
         child.kill()
-        rc = child.wait()
-    waited = time.perf_counter() - t0
+        raise
+    finally:
+        t0 = time.perf_counter()
+        try:
+            rc = child.wait(timeout=WARM_WAIT_S)
+        except subprocess.TimeoutExpired:
+            child.kill()
+            rc = child.wait()
     if rc:
-        print(f"warning: compiling the training programs ahead failed (exit status {rc}; see warm-train.log): "
-              "the train stage compiles them itself", file=sys.stderr, flush=True)
+        print(f"warning: compiling {what} ahead failed (exit status {rc}; see its log): {later} compiles them itself",
+              file=sys.stderr, flush=True)
     else:
-        print(f"the training programs are compiled ({waited:.0f} s waited after the rollouts)", file=sys.stderr,
+        print(f"{what} are compiled ({time.perf_counter() - t0:.0f} s waited after the stage)", file=sys.stderr,
               flush=True)
 
 
@@ -524,6 +561,9 @@ def main(argv=None) -> int:
     ap.add_argument("--warm-train", action="store_true",
                     help="with the rollouts stage (one GPU or none), compile the world model's training programs "
                          "beside it (with the train stage's --set overrides), for the train stage to load")
+    ap.add_argument("--warm-eval", action="store_true",
+                    help="with the train stage (one GPU or none), compile the evaluation's programs beside it (with "
+                         "the eval stage's --set overrides), for the eval stage to load")
     ap.add_argument("overrides", nargs="*", help="key=value overrides passed to the one stage run")
     raw = list(sys.argv[1:] if argv is None else argv)
     a = ap.parse_intermixed_args(raw)
@@ -561,10 +601,12 @@ def main(argv=None) -> int:
                 return 0
             slot = [f"max_minutes={left:.3f}"] if a.minutes and stage in ("train", "eval") else []
             warm = per_stage.get("train", []) if a.warm_train else None
+            warm_eval = per_stage.get("eval", []) if a.warm_eval else None
             # the rollouts stage reuses the data stage's episodes, which it checks were made with its settings
             mine = [*per_stage.get("data", []), *per_stage.get("rollouts", [])] if stage == "rollouts" \
                 else per_stage.get(stage, [])
-            if run_stage(a.pipeline, stage, [*mine, *a.overrides, *slot], gpus, a.members, warm) or a.stage != "all":
+            if run_stage(a.pipeline, stage, [*mine, *a.overrides, *slot], gpus, a.members, warm, warm_eval) \
+                    or a.stage != "all":
                 break
     if a.stage in ("all", "report"):
         print(f"report: {(pipeline(a.pipeline).dirs(a.pipeline)['eval'] / 'report.html').absolute()} "

@@ -15,6 +15,7 @@ from conftest import SMOKE_EVAL, build_once
 from experiments import evaluate as E
 from experiments import stats as S
 from experiments.report import family_table, verdict, violation_table, write_report
+from experiments.timing import compile_snapshot
 from sim_data.parts import exclusive
 from sim_data.policies.bc import MixedPolicy, StackedPolicy, stacked
 from sim_data.policies.registry import resolve
@@ -640,3 +641,51 @@ def test_plug_ins_alone_are_evaluated_on_every_task_the_world_model_learned(smok
     assert trained_tasks(bare) == ()
     with pytest.raises(ValueError, match="name tasks="):
         E.evaluation_tasks(dataclasses.replace(cfg, wm=f"{smoke_world_model},{bare}"), sources)
+
+
+def test_a_step_limit_records_the_first_segments_of_the_same_episodes():
+    """record_policies(steps=...), the warm-up's simulation: the first segment of the same episodes
+    (same states, actions and proprioception as the whole episodes' first steps); a limit that is not
+    whole segments of the episode is refused."""
+    from examples.plugin_policy import make
+
+    policy, params = make()
+    keys = np.stack([np.asarray(jax.random.PRNGKey(s)) for s in (11, 12)])
+    env = E.cached_env("step_back", 2, "cpu", False)
+    _, whole = E.record_policies(env, *stacked(policy, [params]), keys, jax.random.PRNGKey(0))
+    _, first = E.record_policies(env, *stacked(policy, [params]), keys, jax.random.PRNGKey(0), steps=E.SEGMENT)
+    assert first.action.shape[1] == E.SEGMENT and first.proprio.shape[1] == E.SEGMENT + 1
+    np.testing.assert_array_equal(np.asarray(first.action), np.asarray(whole.action)[:, :E.SEGMENT])
+    np.testing.assert_array_equal(np.asarray(first.proprio), np.asarray(whole.proprio)[:, :E.SEGMENT + 1])
+    for bad in (E.SEGMENT + 1, env.episode_steps + E.SEGMENT, 0):
+        with pytest.raises(ValueError, match=f"multiple of {E.SEGMENT}"):
+            E.record_policies(env, *stacked(policy, [params]), keys, jax.random.PRNGKey(0), steps=bad)
+
+
+def test_the_warm_up_runs_the_programs_the_evaluation_then_runs(smoke_world_model, smoke_zoo, tmp_path):
+    """E.warm on a world model that has only started training (its config.json and norm.json) runs
+    the evaluation's simulator and imagination programs once each: the evaluation that follows, of
+    the trained model on the same policies and states, compiles none of them again (shapes no other
+    test evaluates: 3 states a policy). It writes no evaluation."""
+    zoo_dir, _ = smoke_zoo
+    started = tmp_path / "started"
+    started.mkdir()
+    for f in ("config.json", "norm.json"):
+        shutil.copy(smoke_world_model / f, started / f)
+    settings = dict(SMOKE_EVAL, episodes=3, batch=9, keep_features=False, replay=False, video_policies=0)
+    cfg = E.EvalConfig(policies=(f"{zoo_dir}#conv_proprio+conv_noproprio",), wm=str(started), **settings)
+
+    def compiled(step) -> set:  # the programs `step` compiled
+        before = compile_snapshot()
+        step()
+        return {name for name, (count, _) in compile_snapshot()["by_program"].items()
+                if count > before["by_program"].get(name, (0, 0.0))[0]}
+
+    assert "_closed_loop_segment" in compiled(lambda: E.warm(cfg, progress=False))  # new shapes: compiled here
+    assert list(tmp_path.iterdir()) == [started]
+    evaluated = compiled(lambda: E.run(dataclasses.replace(cfg, wm=str(smoke_world_model)), tmp_path / "out",
+                                       progress=False))
+    assert not evaluated & {"act", "observe", "init_carry", "_closed_loop_start", "_closed_loop_segment",
+                            "_observed_segment", "_open_loop_segment"}
+    with pytest.raises(FileNotFoundError, match="no started training run"):
+        E.warm(dataclasses.replace(cfg, wm=str(tmp_path / "none")), progress=False)

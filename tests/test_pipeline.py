@@ -169,7 +169,7 @@ def test_a_time_slot_passes_what_is_left_to_train_and_eval_and_starts_no_stage_a
     clock = [0.0]
     ran = []
 
-    def fake_stage(name, stage, extra=(), gpus=(), members=None, warm=None):
+    def fake_stage(name, stage, extra=(), gpus=(), members=None, warm=None, warm_eval=None):
         ran.append((stage, list(extra)))
         clock[0] += {"data": 120.0, "policies": 150.0, "train": 180.0}.get(stage, 10.0)
         return stage != "train" or len([r for r in ran if r[0] == "train"]) > 1  # train ends on its second run
@@ -274,7 +274,8 @@ def test_set_gives_each_stage_its_own_overrides_and_refuses_what_names_no_stage(
         with pytest.raises(ValueError, match="STAGE:key=value"):
             P.stage_overrides([bad])
     ran = []
-    monkeypatch.setattr(P, "run_stage", lambda name, stage, extra=(), gpus=(), members=None, warm=None:
+    monkeypatch.setattr(P, "run_stage", lambda name, stage, extra=(), gpus=(), members=None, warm=None,
+                        warm_eval=None:
                         ran.append((stage, extra)) or True)
     monkeypatch.setattr(P, "use_compilation_cache", lambda root: "")
     assert P.main(["full", "--set", "train:steps=3500", "--set", "eval:episodes=50", "--set", "train:seed=1"]) == 0
@@ -381,7 +382,8 @@ def test_the_rollouts_stage_compiles_the_training_programs_beside_it_with_the_tr
     P.run_stage("roll", "rollouts", warm_train=[])  # trained already: nothing to warm
     assert not started
     ran = []
-    monkeypatch.setattr(P, "run_stage", lambda name, stage, extra=(), gpus=(), members=None, warm=None:
+    monkeypatch.setattr(P, "run_stage", lambda name, stage, extra=(), gpus=(), members=None, warm=None,
+                        warm_eval=None:
                         ran.append((stage, warm)) or True)
     monkeypatch.setattr(P, "use_compilation_cache", lambda root: "")
     P.main(["roll", "--warm-train", "--set", "train:steps=3500", "--set", "eval:episodes=50"])
@@ -399,7 +401,8 @@ def test_options_are_checked_before_detaching_and_none_may_be_abbreviated(tmp_pa
 
 def test_data_overrides_reach_the_rollouts_stage_that_reuses_the_data(monkeypatch):
     ran = []
-    monkeypatch.setattr(P, "run_stage", lambda name, stage, extra=(), gpus=(), members=None, warm=None:
+    monkeypatch.setattr(P, "run_stage", lambda name, stage, extra=(), gpus=(), members=None, warm=None,
+                        warm_eval=None:
                         ran.append((stage, extra)) or True)
     monkeypatch.setattr(P, "use_compilation_cache", lambda root: "")
     P.main(["full", "--set", "data:batch=960", "--set", "rollouts:policy_episodes=8"])
@@ -435,3 +438,57 @@ def test_a_failed_rollouts_stage_stops_its_warm_up_and_the_warm_up_takes_the_fir
     with pytest.raises(RuntimeError, match="simulation failed"):
         P.run_stage("roll2", "rollouts", warm_train=[])
     assert events[0][1][-1] == "seed=1" and ("kill", None) in events
+
+
+def test_the_train_stage_compiles_the_evaluations_programs_beside_it_with_the_eval_stage_overrides(tmp_path,
+                                                                                                   monkeypatch):
+    monkeypatch.setitem(P.PIPELINES, "ev", P.Pipeline(data="d", policies="p", train="t", eval="e", root=str(tmp_path),
+                                                      rollouts="conv", eval_overrides=("readout=judge",)))
+    events = []
+
+    class FakeChild:
+        def __init__(self, argv, env, **_):
+            events.append(("start", argv, env))
+
+        def kill(self):
+            events.append(("kill",))
+
+        def wait(self, timeout=None):
+            events.append(("wait",))
+            return -9 if ("kill",) in events else 0
+
+    monkeypatch.setattr(P.subprocess, "Popen", FakeChild)
+    monkeypatch.setattr(P, "train_members", lambda *a: events.append(("train",)) or (True, []))
+    monkeypatch.setattr(P, "device_name", lambda: "cpu")
+    assert P.run_stage("ev", "train", warm_eval=["episodes=50"])
+    assert [e[0] for e in events] == ["start", "train", "wait"]
+    _, argv, env = events[0]
+    assert argv[1:] == ["-m", "experiments.evaluate", "--config", "e", "--warm",
+                        f"policies={tmp_path / 'policies' / 'ev'}", f"wm={tmp_path / 'wm' / 'ev'}", "readout=judge",
+                        "episodes=50"]
+    assert env["XLA_PYTHON_CLIENT_MEM_FRACTION"] == P.WARM_MEMORY_FRACTION
+    events.clear()
+    P.run_stage("ev", "train")  # not asked for
+    P.run_stage("ev", "train", warm_eval=[], gpus=["0", "1"])  # several GPUs: the eval's parts compile their own
+    assert [e[0] for e in events] == ["train", "train"]
+    events.clear()
+
+    def failing(*a):
+        raise RuntimeError("training failed")
+
+    monkeypatch.setattr(P, "train_members", failing)
+    with pytest.raises(RuntimeError, match="training failed"):
+        P.run_stage("ev", "train", warm_eval=[])
+    assert [e[0] for e in events] == ["start", "kill", "wait"]
+    events.clear()
+    (tmp_path / "wm" / "ev").mkdir(parents=True)
+    (tmp_path / "wm" / "ev" / "eval.json").write_text("{}")
+    monkeypatch.setattr(P, "train_members", lambda *a: (True, []))
+    P.run_stage("ev", "train", warm_eval=[])  # trained already: nothing to warm
+    assert not events
+    ran = []
+    monkeypatch.setattr(P, "run_stage", lambda name, stage, extra=(), gpus=(), members=None, warm=None,
+                        warm_eval=None: ran.append((stage, warm_eval)) or True)
+    monkeypatch.setattr(P, "use_compilation_cache", lambda root: "")
+    P.main(["ev", "--warm-eval", "--set", "train:steps=3500", "--set", "eval:episodes=50"])
+    assert dict(ran)["train"] == ["episodes=50"]

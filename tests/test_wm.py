@@ -1547,3 +1547,24 @@ def test_a_warmed_cache_serves_the_training_programs_to_the_run_that_trains(smok
     # a step of another program (another configuration, shape or placement) would add its own entry
     assert _cached(cache, "train_step") == warmed
     assert json.loads((tmp_path / "run" / "train_status.json").read_text())["step"] == 2
+
+
+@pytest.mark.slow
+def test_the_warm_up_validates_with_the_state_its_step_returned(smoke_dataset, tmp_path):
+    """On a GPU the train step donates the state it is given (its buffers are deleted): the warm-up's
+    validation loss must use the step's new state. The CPU keeps donated buffers, so the step here
+    deletes them as a GPU would; the smoke data has no validation split, so the training windows stand
+    in for it."""
+    _, data, _ = smoke_dataset
+    run = Run(make_config("smoke", ["steps=2", "judge_episodes=0"]), data, tmp_path / "run")
+    run.val = run.val or run.loader
+    step = run._step
+
+    def donating(state, batch, norm):
+        out = step(state, batch, norm)
+        jax.tree_util.tree_map(lambda x: x.delete(), state)
+        return out
+
+    run._step = donating
+    run.warm()
+    assert run._val_batches  # the validation loss ran

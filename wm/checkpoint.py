@@ -115,11 +115,30 @@ def load_trained(out: Path):
     step = mgr.latest_step()
     if step is None:
         raise FileNotFoundError(f"{out}/best holds no checkpoint")
-    # placed on this process's first device whatever the topology the run was trained on (several
-    # processes, fsdp): without a target sharding orbax would ask for the saved one
-    one = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
     shapes = _shapes(cfg)
-    return cfg, restore_params(mgr, step, shapes, jax.tree_util.tree_map(lambda _: one, shapes)), norm
+    return cfg, restore_params(mgr, step, shapes, _first_device(shapes)), norm
+
+
+def load_started(out: Path):
+    """(TrainConfig, parameters of zeros, Norm) of a training run that has started (its config.json and
+    norm.json written, its training perhaps under way): the parameters are of the trained ones' shapes,
+    types and placement (load_trained), so that programs compiled with them are those an evaluation of
+    the finished run compiles (experiments.evaluate's warm-up)."""
+    out = Path(out)
+    if not (out / "config.json").exists() or not (out / "norm.json").exists():
+        raise FileNotFoundError(f"{out} holds no started training run (config.json and norm.json)")
+    cfg, _ = load_run_config(out)
+    norm = Norm.from_dict(json.loads((out / "norm.json").read_text()))
+    shapes = _shapes(cfg)
+    return cfg, jax.device_put(jax.tree_util.tree_map(lambda x: jnp.zeros(x.shape, x.dtype), shapes),
+                               _first_device(shapes)), norm
+
+
+def _first_device(shapes):
+    """Shardings placing every parameter on this process's first device, whatever the topology the run
+    was trained on (several processes, fsdp): without a target sharding orbax would ask for the saved one."""
+    one = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+    return jax.tree_util.tree_map(lambda _: one, shapes)
 
 
 def restore_params(manager: ocp.CheckpointManager, step: int, shapes, shardings):

@@ -498,10 +498,11 @@ class Run:
         return put_batch(model_batch(next(self.loader), cfg.camera, cfg.model.anchor, cfg.model.scene), self.mesh)
 
     def warm(self) -> None:
-        """Runs the training's programs once each (a step on the first training batch, its new state
-        dropped; the validation loss), so that JAX's persistent compilation cache holds them for a run
-        of the same configuration on data of the same shapes, which then loads instead of compiling."""
-        _, parts = self._step(self.state, self.next_batch(), self.norm)
+        """Runs the training's programs once each (a step on the first training batch; the validation
+        loss), so that JAX's persistent compilation cache holds them for a run of the same
+        configuration on data of the same shapes, which then loads instead of compiling. The step's
+        new state replaces the old, whose buffers the step donated (on a GPU they are gone)."""
+        self.state, parts = self._step(self.state, self.next_batch(), self.norm)
         jax.block_until_ready(parts)
         self.validate()
         self.loader.close()

@@ -63,8 +63,14 @@ def _trajectory_of(segments) -> Trajectory:
     return _to_batch_major(_concat_time(segments))
 
 
-def _segment_starts(env: HomeEnv) -> range:
-    return range(0, env.episode_steps, SEGMENT)
+def _segment_starts(env: HomeEnv, steps: int | None = None) -> range:
+    return range(0, env.episode_steps if steps is None else steps, SEGMENT)
+
+
+def _check_steps(env: HomeEnv, steps: int | None) -> None:
+    """Refuses a step limit that is not whole segments of the env's episode (None: the whole episode)."""
+    if steps is not None and not (0 < steps <= env.episode_steps and steps % SEGMENT == 0):
+        raise ValueError(f"steps={steps}: give a multiple of {SEGMENT} up to the episode's {env.episode_steps}")
 
 
 def run_episodes(env: HomeEnv, policy, params, rng: jax.Array, record: bool = False, progress=None):
@@ -180,14 +186,17 @@ def _recording_of(first, segments) -> Recording:
 
 
 def record_episodes(env: HomeEnv, policy, params, rng: jax.Array, renderers: tuple[Renderer, ...] = (),
-                    progress=None, reset_keys=None) -> tuple[State, Recording]:
+                    progress=None, reset_keys=None, steps: int | None = None) -> tuple[State, Recording]:
     """Runs env.batch_size episodes to the end, rendering every camera of `renderers` at every step.
 
     The policy sees `obs["image"]`, the first renderer's frame, besides the state's observations.
     Same seeding as `run_episodes`: one rng gives the same initial states and policy noise;
-    reset_keys (B, 2), if given, seed each episode's initial state instead.
+    reset_keys (B, 2), if given, seed each episode's initial state instead. steps: only the first
+    `steps` control steps (whole segments; the same compiled programs as a whole episode's, which is
+    how a run's programs are compiled ahead of it).
     Returns (final State, Recording).
     """
+    _check_steps(env, steps)
     renderers = tuple(renderers)
     k_reset, k_pol, k_act = jax.random.split(rng, 3)
     state = env.reset(k_reset if reset_keys is None else reset_keys)
@@ -197,7 +206,7 @@ def record_episodes(env: HomeEnv, policy, params, rng: jax.Array, renderers: tup
         # the policy's carry starts from what it sees at reset, the camera's frame included
         carry = _jitted_init(policy)(params, obs, state.task, k_pol)
         segments = []
-        for start in _segment_starts(env):
+        for start in _segment_starts(env, steps):
             state, carry, obs, seg = _scan_recorded(env.core, policy, renderers, params, state, carry, obs, k_act,
                                                     jnp.int32(start), rgb)
             segments.append(seg)
@@ -210,17 +219,17 @@ def record_episodes(env: HomeEnv, policy, params, rng: jax.Array, renderers: tup
     act = _jitted_act(policy)
     obs, frames, rec = observe(state, rgb)
     carry = _jitted_init(policy)(params, obs, state.task, k_pol)
-    first, steps, actions = (frames, rec), [], []
-    for t in range(env.episode_steps):
+    first, recorded, actions = (frames, rec), [], []
+    for t in range(env.episode_steps if steps is None else steps):
         action, carry = act(params, obs, carry, jax.random.fold_in(k_act, t))
         state = env.step(state, action)
         obs, frames, rec = observe(state, rgb)
-        steps.append((frames, rec))
+        recorded.append((frames, rec))
         actions.append(action)
         if progress is not None:
             progress(1)
-    first, steps, actions = jax.device_get((first, steps, actions))
-    rest = jax.tree_util.tree_map(lambda *xs: np.stack(xs), *steps)
+    first, recorded, actions = jax.device_get((first, recorded, actions))
+    rest = jax.tree_util.tree_map(lambda *xs: np.stack(xs), *recorded)
     return state, jax.device_put(_stack_recording(first, rest, np.stack(actions), xp=np))
 
 
@@ -255,12 +264,15 @@ def _scan_recorded(core: EnvCore, policy, renderers, params, state, carry, obs, 
     return state, carry, obs, seg
 
 
-def record_policies(env: HomeEnv, policy, params, reset_keys, rng: jax.Array, renderers=()) -> tuple:
+def record_policies(env: HomeEnv, policy, params, reset_keys, rng: jax.Array, renderers=(),
+                    steps: int | None = None) -> tuple:
     """P policies (a `sim_data.policies.bc.StackedPolicy` and its stacked parameters, leading axis P,
     or a MixedPolicy of such), each from the same n initial states (reset_keys (n, 2)), as one batch of
-    P*n episodes (env.batch_size). Returns ((P, n) bool final success, the Recording)."""
+    P*n episodes (env.batch_size); steps: the first steps only (record_episodes). Returns ((P, n) bool
+    final success, the Recording)."""
     p, rest = divmod(env.batch_size, len(reset_keys))
     if rest:
         raise ValueError(f"a batch of {env.batch_size} is not whole runs of {len(reset_keys)} initial states")
-    _, rec = record_episodes(env, policy, params, rng, renderers, reset_keys=np.tile(np.asarray(reset_keys), (p, 1)))
+    _, rec = record_episodes(env, policy, params, rng, renderers, reset_keys=np.tile(np.asarray(reset_keys), (p, 1)),
+                             steps=steps)
     return np.asarray(rec.success[:, -1]).reshape(p, len(reset_keys)), rec
