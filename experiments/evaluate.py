@@ -774,8 +774,15 @@ def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) ->
 
 
 def ranking_block(rows: list[dict], true_eps, prob_eps, threshold: float, member_eps=None) -> dict:
-    """The world model's statistics and the imitation-loss baseline's over one set of policies;
-    with an ensemble's member_eps (K, P, N), each member's own statistics ("members")."""
+    """The world model's statistics and the imitation-loss baseline's over one set of policies (rows,
+    and their episodes' (P, N) outcomes and probabilities in the same order); with an ensemble's
+    member_eps (K, P, N), each member's own statistics ("members"). A policy whose predicted rate is
+    not finite (its imagination diverged) is left out of every statistic and named in "left_out"."""
+    read = [i for i, r in enumerate(rows) if np.isfinite(r["pred_rate"])]
+    left_out = [r["name"] for i, r in enumerate(rows) if i not in set(read)]
+    if left_out:
+        rows, true_eps, prob_eps = [rows[i] for i in read], np.asarray(true_eps)[read], np.asarray(prob_eps)[read]
+        member_eps = None if member_eps is None else np.asarray(member_eps)[:, read]
     true = [r["true_rate"] for r in rows]
     out = S.ranking_metrics([r["pred_rate"] for r in rows], true)
     out["pearson_ci_bootstrap"] = list(S.bootstrap_pearson(prob_eps, true_eps, draws=1000))
@@ -791,6 +798,8 @@ def ranking_block(rows: list[dict], true_eps, prob_eps, threshold: float, member
     with_loss = [r for r in rows if r["val_loss"] is not None]
     if len(with_loss) >= 2:  # lower imitation loss predicts higher success
         out["baseline"] = S.ranking_metrics([-r["val_loss"] for r in with_loss], [r["true_rate"] for r in with_loss])
+    if left_out:
+        out["left_out"] = left_out
     return out
 
 
@@ -803,12 +812,12 @@ def within_task_block(results: dict, tasks, rows: list[dict], cfg: EvalConfig, k
     their own actions replayed open loop ("replayed", cfg.replay), and the simulator's outcomes of
     the actions taken in imagination ("sim_imagined", cfg.replay), over the policies whose name `keep`
     accepts."""
-    true, wm, proxy, observed, replayed, played = {}, {}, {}, {}, {}, {}
+    true, wm, proxy, observed, replayed, played, picked_of = {}, {}, {}, {}, {}, {}, {}
     others = {f"readout_{r}": {} for r in READOUTS if r != cfg.readout}
     for t in tasks:
         names = results[t]["names"]
         loss = {r["name"]: r["val_loss"] for r in rows if r["task"] == t}
-        picked = [j for j, name in enumerate(names) if keep(name)]
+        picked = picked_of[t] = [j for j, name in enumerate(names) if keep(name)]
         true[t], wm[t] = results[t]["true"][picked], results[t]["prob"][picked]
         proxy[t] = np.array([math.nan if loss[names[j]] is None else -loss[names[j]] for j in picked])
         observed[t] = results[t]["prob_observed"][picked]
@@ -820,7 +829,13 @@ def within_task_block(results: dict, tasks, rows: list[dict], cfg: EvalConfig, k
     for name, got in (("on_truth", observed), ("replayed", replayed), ("sim_imagined", played)):
         if all(np.isfinite(o).all() for o in got.values()):
             predictors[name] = got
-    return S.within_task(true, predictors, cfg.threshold)
+    out = S.within_task(true, predictors, cfg.threshold)
+    # a policy whose imagination diverged is left out of the world model's statistics (stats.draw_statistics)
+    left_out = {t: [results[t]["names"][j] for j, ok in zip(picked_of[t], S.scored_policies(wm[t])) if not ok]
+                for t in tasks}
+    if any(left_out.values()):
+        out["left_out"] = {t: names for t, names in left_out.items() if names}
+    return out
 
 
 def loop_actions_block(results: dict, tasks, cfg: EvalConfig) -> dict | None:
@@ -1208,12 +1223,13 @@ FINGERPRINTS = "policy_fingerprints"  # config.json's record of what each policy
 def _check_config(cfg: EvalConfig, out: Path, sources) -> None:
     """Records cfg and every policy's fingerprint (its parameters and, for a plug-in, its code) in
     out/config.json, or checks a rerun against them: results an OUT holds are read back, so they must
-    come from this configuration and these policies as they are now."""
+    come from this configuration and these policies as they are now. An OUT that holds no results yet
+    (a run that failed before its first task was saved) is taken over by the new configuration."""
     mine = json.loads(json.dumps(dataclasses.asdict(cfg)))
     mine.pop("max_minutes")  # a time budget does not change what is computed
     prints = {s.name: fingerprint(s) for s in sources}
     path = out / "config.json"
-    if path.exists():
+    if path.exists() and (any((out / "tasks").glob("*.npz")) or (out / "results.json").exists()):
         on_file = json.loads(path.read_text())
         theirs = on_file.pop(FINGERPRINTS, {})
         # a field missing from the saved configuration has its default value

@@ -218,9 +218,10 @@ WITHIN_TASK_RESAMPLES = "policies and initial states, within each task (the same
 def task_statistics(pred, true, threshold: float = 0.5) -> dict:
     """The within-task statistics (WITHIN_TASK) of one task's ranking.
 
-    pred: (P, N) per-episode predicted probabilities (a world model), or (P,) one score per policy (a
-    proxy such as minus the imitation loss; NaN where a policy has none: left out, and alignment is
-    NaN). true: (P, N) per-episode outcomes (bool or 0/1) from the same N initial states.
+    pred: (P, N) per-episode predicted probabilities (a world model; a policy with a non-finite one is
+    left out: the imagination of its episodes diverged), or (P,) one score per policy (a proxy such as
+    minus the imitation loss; NaN where a policy has none: left out, and alignment is NaN). true: (P, N)
+    per-episode outcomes (bool or 0/1) from the same N initial states.
     """
     pred, true = np.asarray(pred, np.float64), np.asarray(true, np.float64)
     if pred.ndim == 2 and pred.shape != true.shape:
@@ -229,17 +230,20 @@ def task_statistics(pred, true, threshold: float = 0.5) -> dict:
 
 
 def draw_statistics(pred, true, threshold: float = 0.5) -> dict:
-    """task_statistics of D resamplings of one task at once: pred (D, P, N) probabilities or (D, P)
-    scores (NaN: no score, left out), true (D, P, N) outcomes. Returns {stat: (D,) float64}; every
-    statistic of a draw with fewer than 2 scored policies is NaN. Pearson and Spearman are NaN where
-    either side is constant (pearson, spearman); MMRV and pairwise accuracy as mmrv and
-    pairwise_accuracy over the scored policies."""
+    """task_statistics of D resamplings of one task at once: pred (D, P, N) probabilities (a policy with
+    a non-finite one left out) or (D, P) scores (NaN: no score, left out), true (D, P, N) outcomes.
+    Returns {stat: (D,) float64}; every statistic of a draw with fewer than 2 scored policies is NaN.
+    Pearson and Spearman are NaN where either side is constant (pearson, spearman); MMRV, pairwise
+    accuracy and alignment as mmrv, pairwise_accuracy and alignment over the scored policies."""
     pred, true = np.asarray(pred, np.float64), np.asarray(true, np.float64)
     t = true.mean(-1)
     if pred.ndim == 3:
+        keep = np.isfinite(pred).all(-1)
         # rounded: a policy drawn twice must tie with itself, whatever order its sum was taken in
-        p, keep = np.round(pred.mean(-1), 12), np.ones(t.shape, bool)
-        aligned = ((pred >= threshold) == (true > 0.5)).mean((-2, -1))
+        p = np.round(pred.mean(-1), 12)
+        hits = ((pred >= threshold) == (true > 0.5)).mean(-1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            aligned = np.where(keep, hits, 0.0).sum(-1) / keep.sum(-1)
     else:
         p, keep = pred, ~np.isnan(pred)
         aligned = np.full(len(p), math.nan)
@@ -355,7 +359,9 @@ def within_task(true: dict, predictors: dict, threshold: float = 0.5, draws: int
     (task_statistics). Returns {"tasks", "draws", "resamples", name: {"mean": {stat: x}, "mean_ci":
     {stat: [lo, hi]}, "per_task": {task: {stat: x}}, "per_task_ci": {task: {stat: [lo, hi]}}}, and for
     every later predictor the paired difference of the first minus it: "difference": {name: {"mean",
-    "mean_ci", "per_task", "per_task_ci"}} (for mmrv a negative difference favours the first)}.
+    "mean_ci", "per_task", "per_task_ci"}} (for mmrv a negative difference favours the first), both
+    over the policies that both score (a proxy scores no plug-in; a world model none whose
+    imagination diverged), in the same bootstrap draws.
     """
     tasks, names = list(true), list(predictors)
     point, boot = within_task_draws(true, predictors, threshold, draws, seed)
@@ -373,11 +379,33 @@ def within_task(true: dict, predictors: dict, threshold: float = 0.5, draws: int
     for n in names:
         out[n] = summary(lambda t, n=n: point[n][t], lambda t, n=n: boot[n][t])
     first = names[0]
-    out["difference"] = {
-        n: summary(lambda t, n=n: {k: point[first][t][k] - point[n][t][k] for k in WITHIN_TASK},
-                   lambda t, n=n: {k: boot[first][t][k] - boot[n][t][k] for k in WITHIN_TASK})
-        for n in names[1:]}
+    out["difference"] = {}
+    for n in names[1:]:
+        pa, ba, pb, bb = point[first], boot[first], point[n], boot[n]
+        common = {t: scored_policies(predictors[first][t]) & scored_policies(predictors[n][t]) for t in tasks}
+        if any((common[t] != scored_policies(predictors[m][t])).any() for t in tasks for m in (first, n)):
+            pair = {"a": {t: without_policies(predictors[first][t], ~common[t]) for t in tasks},
+                    "b": {t: without_policies(predictors[n][t], ~common[t]) for t in tasks}}
+            pp, bp = within_task_draws(true, pair, threshold, draws, seed)  # the same seed: the same draws
+            pa, ba, pb, bb = pp["a"], bp["a"], pp["b"], bp["b"]
+        out["difference"][n] = summary(
+            lambda t, pa=pa, pb=pb: {k: pa[t][k] - pb[t][k] for k in WITHIN_TASK},
+            lambda t, ba=ba, bb=bb: {k: ba[t][k] - bb[t][k] for k in WITHIN_TASK})
     return out
+
+
+def scored_policies(pred) -> np.ndarray:
+    """(P,) bool: the policies a predictor scores (draw_statistics): a (P,) score that is not NaN, or
+    (P, N) probabilities that are all finite."""
+    pred = np.asarray(pred, np.float64)
+    return np.isfinite(pred).all(-1) if pred.ndim == 2 else ~np.isnan(pred)
+
+
+def without_policies(pred, drop) -> np.ndarray:
+    """pred with the policies `drop` ((P,) bool) unscored: their rows NaN."""
+    pred = np.array(pred, np.float64)
+    pred[np.asarray(drop, bool)] = math.nan
+    return pred
 
 
 
@@ -472,4 +500,4 @@ def nonfinite_policies(rows: list[dict]) -> str:
         return ""
     return (f"policies {', '.join(names)} ran into non-finite values (NaN or infinite actions?): where the "
             "simulator's state went non-finite their true outcomes are doubtful, and where the world model's "
-            "predictions did, neither their predicted rates nor their tasks' statistics can be read")
+            "predictions did, their predicted rates cannot be read and the ranking statistics leave them out")

@@ -23,10 +23,20 @@ def write_json_atomic(path: Path, obj) -> None:
     os.replace(tmp, path)
 
 
+def is_key_array(x) -> bool:
+    """Whether x is an array of typed random keys (jax.random.key), whose bits numpy reads only through
+    jax.random.key_data."""
+    return isinstance(x, jax.Array) and jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
+
+
 def hash_arrays(h, tree) -> None:
-    """Feeds every array leaf of tree (its shape, dtype and bytes, on the host) into the hashlib
-    object h: a digest of parameters or constants that any process reproduces."""
+    """Feeds every array leaf of tree (its shape, dtype and bytes, on the host; a typed key's
+    implementation and key data) into the hashlib object h: a digest of parameters or constants
+    that any process reproduces."""
     for leaf in jax.tree_util.tree_leaves(tree):
+        if is_key_array(leaf):
+            h.update(str(jax.random.key_impl(leaf)).encode())
+            leaf = jax.random.key_data(leaf)
         a = np.ascontiguousarray(np.asarray(leaf))
         h.update(str((a.shape, a.dtype)).encode())
         h.update(a.tobytes())

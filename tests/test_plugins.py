@@ -4,6 +4,8 @@ fingerprinted so that an evaluation's output is never read back for other code."
 
 import dataclasses
 import importlib
+import json
+import math
 import sys
 import textwrap
 
@@ -12,10 +14,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from examples.plugin_policy import BackAway, make, ready_pose
 from experiments import evaluate as E
 from experiments import report as RP
 from experiments import stats as S
 from sim_data.dataset import generate as G
+from sim_data.policies.bc import stacked
 from sim_data.policies.registry import (
     ClippedPolicy,
     fingerprint,
@@ -23,10 +27,12 @@ from sim_data.policies.registry import (
     load_plugin,
     resolve,
     stacked_sources,
+    used_policies,
 )
 from sim_data.sim import robot as R
 from sim_data.sim.robot import robot_index
 from sim_data.sim.scene import load_model
+from sim_data.sim.tasks import CONTROL_DT
 
 USER_MODULE = '''
 import dataclasses
@@ -160,6 +166,10 @@ def test_specs_that_are_not_plugins_say_what_a_plugin_is(user_module):
         resolve(["user_pols"])
     with pytest.raises(ValueError, match="differ only in punctuation"):
         resolve(["x.y=user_pols:calm", "x_y=user_pols:fast"])
+    with pytest.raises(ValueError, match="names a file: .* as examples.plugin_policy:make"):
+        resolve(["mine=examples/plugin_policy.py:make"])
+    # "a, b" on a command line: the space is not part of b's name
+    assert [s.name for s in resolve(["user_pols:calm", " mine=user_pols:fast", ""])] == ["user_pols:calm", "mine"]
 
 
 def test_a_plugins_actions_are_clipped_to_the_ranges_the_simulator_applies(user_module):
@@ -211,8 +221,14 @@ def test_an_evaluation_is_not_read_back_for_edited_plugins(user_module, tmp_path
     E._check_config(cfg, out, resolve(cfg.policies))
     E._check_config(cfg, out, resolve(cfg.policies))  # unchanged: the rerun continues
     user_module.write_text(user_module.read_text().replace("carry + 1", "carry + 2"))
+    E._check_config(cfg, out, resolve(cfg.policies))  # no results yet (a run failed before its first task)
+    (out / "tasks").mkdir()
+    (out / "tasks" / "mug.npz").write_bytes(b"")  # a task's results: read back by a rerun
+    user_module.write_text(user_module.read_text().replace("carry + 2", "carry + 3"))
     with pytest.raises(ValueError, match=r"\['user_pols:calm'\] as their code or parameters were then"):
         E._check_config(cfg, out, resolve(cfg.policies))
+    with pytest.raises(ValueError, match="another configuration"):
+        E._check_config(dataclasses.replace(cfg, episodes=3), out, resolve(cfg.policies))
 
 
 def test_non_finite_predictions_are_not_read_as_failures():
@@ -238,6 +254,21 @@ def test_non_finite_predictions_are_not_read_as_failures():
             {"name": "nans", "nonfinite_episodes": 3, "nonfinite_predictions": 8}]
     assert "policies nans ran into non-finite values" in S.nonfinite_policies(rows)
     assert S.nonfinite_policies(rows[:1]) == ""
+
+
+def test_the_ranking_leaves_out_a_policy_whose_predictions_diverged():
+    """Pooled and per task, as within a task (tests/test_stats.py): the other policies' figures, the
+    diverged one named, not read as a predicted failure."""
+    nan = math.nan
+    rows = [{"name": n, "task": "mug", "true_rate": t, "pred_rate": q, "pred_rate_thresholded": q, "val_loss": None,
+             "pred_rate_readouts": {r: q for r in E.READOUTS}}
+            for n, t, q in (("a", 1.0, 0.9), ("b", 0.5, nan), ("c", 0.0, 0.2), ("d", 0.5, 0.6))]
+    true_eps = np.array([[1, 1], [1, 0], [0, 0], [1, 0]], float)
+    prob_eps = np.array([[0.9, 0.9], [nan, nan], [0.2, 0.2], [0.6, 0.6]])
+    got = E.ranking_block(rows, true_eps, prob_eps, 0.5)
+    assert got["left_out"] == ["b"] and got["mmrv"] == 0 and got["pairwise_acc_gap10"] == 1
+    assert got["pearson"] == pytest.approx(np.corrcoef([0.9, 0.2, 0.6], [1.0, 0.0, 0.5])[0, 1])
+    assert got["alignment"] == pytest.approx(5 / 6)  # d's second episode fails, read as a success
 
 
 def test_a_clipped_plugin_keeps_its_policys_way_of_stacking():
@@ -293,3 +324,72 @@ def test_the_examples_flailing_plugin_draws_fresh_actions_from_its_key_within_th
     assert (a != other).mean() > 0.5 and (a[0] != a[1]).mean() > 0.5  # another key, another row: others
     assert (a >= idx.action_low).all() and (a <= idx.action_high).all()
     assert ((a == idx.action_low) | (a == idx.action_high)).any()  # the hands' closures clipped at 0 or 1
+
+
+@dataclasses.dataclass(frozen=True)
+class SharedClock:
+    """The example's back-away policy with one step counter for its whole batch (shape ()), which
+    lax.cond reads: a carry leaf without the batch axis."""
+
+    def init_carry(self, params, obs, task_state, rng):
+        return jnp.zeros((), jnp.int32)
+
+    def act(self, params, obs, carry, rng):
+        hold = jnp.broadcast_to(params["ready"], (obs["proprio"].shape[0], R.ACTION_DIM))
+        back = hold.at[:, R.FORWARD_SPEED].set(params["speed"])
+        return jax.lax.cond(carry * CONTROL_DT < params["seconds"], lambda: back, lambda: hold), carry + 1
+
+
+def test_a_carry_the_batch_shares_runs_stacked_as_the_batched_one():
+    """Stacked with other parameter sets, a policy whose carry has no batch axis is given the carry it
+    made (shape (), not (1,)) and acts as the example's policy with a counter per episode."""
+    _, params = make()
+    still = dict(params, seconds=params["seconds"] * 0)
+    keys = np.stack([np.asarray(jax.random.PRNGKey(s)) for s in (11, 12)])
+    env = E.cached_env("step_back", 4, "cpu", False)
+    outcome, rec = E.record_policies(env, *stacked(SharedClock(), [params, still]), keys, jax.random.PRNGKey(0))
+    _, ref = E.record_policies(env, *stacked(BackAway(), [params, still]), keys, jax.random.PRNGKey(0))
+    assert outcome.tolist() == [[True, True], [False, False]]
+    np.testing.assert_array_equal(np.asarray(rec.action), np.asarray(ref.action))
+
+
+@dataclasses.dataclass(frozen=True)
+class KeyedJitter:
+    """Holds a typed random key (jax.random.key, JAX's own) in its parameters and jitters the ready
+    pose by draws from it."""
+
+    def init_carry(self, params, obs, task_state, rng):
+        return jnp.zeros((obs["proprio"].shape[0],), jnp.int32)
+
+    def act(self, params, obs, carry, rng):
+        b = obs["proprio"].shape[0]
+        jitter = 0.05 * jax.random.normal(jax.random.fold_in(params["key"], carry[0]), (b, R.ACTION_DIM))
+        return jnp.broadcast_to(params["ready"], (b, R.ACTION_DIM)) + jitter, carry + 1
+
+
+def test_parameters_holding_typed_keys_are_fingerprinted_stacked_and_run():
+    sets = [{"ready": ready_pose(), "key": jax.random.key(s)} for s in (0, 1, 0)]
+    digest = lambda q: fingerprint(dataclasses.replace(resolve(["examples.plugin_policy:make"])[0], params=q))
+    assert digest(sets[0]) == digest(sets[2]) != digest(sets[1])
+    policy, params = stacked(KeyedJitter(), sets)
+    assert jax.random.key_impl(params["key"]) == jax.random.key_impl(sets[0]["key"]) and params["key"].shape == (3,)
+    keys = np.stack([np.asarray(jax.random.PRNGKey(11))])
+    _, rec = E.record_policies(E.cached_env("step_back", 3, "cpu", False), policy, params, keys,
+                               jax.random.PRNGKey(0), steps=20)
+    actions = np.asarray(rec.action)
+    assert np.isfinite(actions).all()
+    np.testing.assert_array_equal(actions[0], actions[2])  # the same key, the same draws
+    assert not np.array_equal(actions[0], actions[1])
+
+
+def test_a_plugins_rollouts_in_the_training_data_count_as_seen(tmp_path):
+    """The evaluation's unseen policies leave out those whose rollouts a world model trained on: a
+    plug-in's as a zoo checkpoint's; the scripted, program and perturbed episodes name no evaluated policy."""
+    rows = [{"policy": "scripted@1.00", "policy_kind": "scripted"},
+            {"policy": "program:reach_mug", "policy_kind": "program"},
+            {"policy": "learned:mug/conv_proprio/97", "policy_kind": "learned"},
+            {"policy": "plugin:examples.plugin_policy:make", "policy_kind": "plugin"},
+            {"policy": "plugin:mine", "policy_kind": "plugin"},
+            {"policy": "perturbed:mug/conv_proprio/97~perturbed", "policy_kind": "perturbed"}]
+    (tmp_path / "manifest.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    assert used_policies(tmp_path) == {"mug/conv_proprio/97", "examples.plugin_policy:make", "mine"}

@@ -299,3 +299,42 @@ def test_mean_interval_is_a_t_interval():
     assert mean == pytest.approx(0.7) and ci == pytest.approx([0.7 - half, 0.7 + half], abs=1e-5)
     assert S.mean_interval([0.3]) == (0.3, None) and S.mean_interval([None]) == (None, None)
     assert S.mean_interval([0.5, 0.7, 0.9], (0.0, 0.8))[1] == pytest.approx([0.7 - half, 0.8])  # a rate's range
+
+
+def test_a_policy_whose_predictions_diverged_is_left_out_as_a_proxys_unscored_one():
+    """A world model's NaN probability (an imagination that diverged) leaves its policy out of every
+    statistic, alignment included, as a proxy's missing score does: the figures of the other policies,
+    not a NaN Pearson dropped from the mean or a NaN read as a predicted failure."""
+    rng = np.random.default_rng(3)
+    true = (rng.random((5, 8)) < np.array([0.9, 0.7, 0.5, 0.3, 0.1])[:, None]).astype(float)
+    pred = np.clip(true.mean(1)[:, None] + 0.1 * rng.standard_normal((5, 8)), 0, 1)
+    broken = pred.copy()
+    broken[2, 3] = math.nan
+    keep = [0, 1, 3, 4]
+    got, ref = S.task_statistics(broken, true), S.task_statistics(pred[keep], true[keep])
+    for k in S.WITHIN_TASK:
+        assert got[k] == pytest.approx(ref[k]), k
+    # the reviewer's case: rates 1, 0.5, 0 with the middle one unread ranks the other two perfectly
+    three = S.task_statistics(np.array([[1.0], [math.nan], [0.0]]), np.array([[1.0], [1.0], [0.0]]))
+    assert three["mmrv"] == 0 and three["pairwise_acc_gap10"] == 1
+
+
+def test_the_difference_to_a_proxy_compares_the_policies_both_score():
+    """A plug-in has no imitation loss: the world model minus the proxy is taken over the checkpoints
+    the proxy scores, so adding a plug-in the world model reads well does not move the difference."""
+    rng = np.random.default_rng(4)
+    rates = np.array([0.9, 0.6, 0.4, 0.1, 0.0])
+    true = {"t": (rng.random((5, 10)) < rates[:, None]).astype(float)}
+    wm = {"t": rng.random((5, 10))}  # a poor world model
+    wm["t"][4] = 0.0  # the plug-in (last), truly 0: read exactly
+    proxy = {"t": np.array([3.0, 1.0, 2.0, 0.0, math.nan])}
+    both = S.within_task(true, {"world_model": wm, "proxy": proxy}, draws=50)
+    alone = S.within_task({"t": true["t"][:4]}, {"world_model": {"t": wm["t"][:4]}, "proxy": {"t": proxy["t"][:4]}},
+                          draws=50)
+    for k in S.WITHIN_TASK:
+        want = alone["difference"]["proxy"]["per_task"]["t"][k]
+        got = both["difference"]["proxy"]["per_task"]["t"][k]
+        assert got == pytest.approx(want, nan_ok=True), k
+    # the world model's own row keeps every policy it scores, the plug-in included
+    own = both["world_model"]["per_task"]["t"]["pearson"]
+    assert own != pytest.approx(alone["world_model"]["per_task"]["t"]["pearson"])

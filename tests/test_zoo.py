@@ -259,8 +259,9 @@ def test_mixed_dataset_records_policy_rollouts(smoke_dataset, smoke_zoo, smoke_w
     assert kinds == {"scripted", "program", "learned", "plugin"}
     learned = [r for r in rows if r["policy_kind"] == "learned"]
     assert learned[0]["policy"] == f"learned:mug/conv_proprio/{last}"
-    # a world model trained on it has seen that checkpoint act (the plug-in is not in the zoo)
-    assert used_policies(out) == {f"mug/conv_proprio/{last}"} and used_policies(data) == set()
+    # a world model trained on it has seen that checkpoint and the plug-in act
+    assert used_policies(out) == {f"mug/conv_proprio/{last}", "examples.plugin_policy:make"}
+    assert used_policies(data) == set()
     scripted_seed = next(r["seed"] for r in rows if r["policy_kind"] == "scripted" and r["episode_id"].endswith("0"))
     assert learned[0]["seed"] == scripted_seed  # the same initial state as scripted episode 0
     meta = G.read_episode_meta(out / learned[0]["file"])

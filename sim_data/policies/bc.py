@@ -34,7 +34,7 @@ import numpy as np
 
 from sim_data.sim import robot as R
 from sim_data.sim.tasks import CONTROL_DT
-from sim_data.util import jit_initialiser
+from sim_data.util import is_key_array, jit_initialiser
 
 ENCODERS = ("conv", "vit")
 PROPRIO_CLIP = 5.0
@@ -251,19 +251,19 @@ class StackedPolicy:
         return params, jax.random.split(rng, self.count(params))
 
     def init_carry(self, params, obs, task_state, rng):
+        """The P policies' carries, stacked: each leaf (P, ...) whatever the policy's own carry holds
+        (a leaf shared by its batch, of shape (), stays one; the rollout never reads the carry)."""
         p = self.count(params)
         split = lambda tree: jax.tree_util.tree_map(lambda x: self._split(x, p), tree)
         params, keys = self._keys(params, rng)
-        carry = self._each(self.policy.init_carry, params, split(obs), split(task_state), keys)
-        return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), carry)
+        return self._each(self.policy.init_carry, params, split(obs), split(task_state), keys)
 
     def act(self, params, obs, carry, rng):
         p = self.count(params)
         split = lambda tree: jax.tree_util.tree_map(lambda x: self._split(x, p), tree)
         params, keys = self._keys(params, rng)
-        action, carry = self._each(self.policy.act, params, split(obs), split(carry), keys)
-        merge = lambda tree: jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), tree)
-        return merge(action), merge(carry)
+        action, carry = self._each(self.policy.act, params, split(obs), carry, keys)
+        return action.reshape((-1,) + action.shape[2:]), carry
 
 
 @dataclasses.dataclass(frozen=True)
@@ -328,7 +328,14 @@ def stack_params(params_list: list) -> dict:
     """Stacks P parameter trees of one structure along a new leading axis. Stacked on the host, then
     moved to the device: an eager jnp.stack compiles a program for every leaf shape and count (dozens
     a zoo, each time a new set of policies is stacked; so would jnp.asarray of the result)."""
-    return jax.tree_util.tree_map(lambda *xs: jax.device_put(np.stack([np.asarray(x) for x in xs])), *params_list)
+    return jax.tree_util.tree_map(_stack_leaf, *params_list)
+
+
+def _stack_leaf(*xs):
+    if is_key_array(xs[0]):  # typed keys: their key data stacked, wrapped as keys of the same implementation
+        data = np.stack([np.asarray(jax.random.key_data(x)) for x in xs])
+        return jax.random.wrap_key_data(jax.device_put(data), impl=jax.random.key_impl(xs[0]))
+    return jax.device_put(np.stack([np.asarray(x) for x in xs]))
 
 
 def to_numpy(params) -> dict:

@@ -300,7 +300,14 @@ def resolve(specs, world_model: bool = True) -> list[PolicySource]:
     """Every policy the specs name (see the module doc), names unique; world_model: whether they will
     also run in a world model (load_plugin)."""
     out = []
-    for spec in specs:
+    for spec in (s.strip() for s in specs):  # "a, b" on a command line leaves a space before b
+        if not spec:
+            continue
+        module_file = re.fullmatch(r"(?:[^=]*=)?(.+)\.py:(\w+)", spec)
+        if module_file and not Path(spec.split("=", 1)[-1]).exists():
+            module = module_file.group(1).replace("/", ".").replace("\\", ".")
+            raise ValueError(f"{spec!r} names a file: name a plug-in by its module, importable from the working "
+                             f"directory, as {module}:{module_file.group(2)}")
         out += [load_plugin(spec, world_model)] if is_plugin(spec) else load_registry_sources(spec)
     names = [s.name for s in out]
     dup = sorted({n for n in names if names.count(n) > 1})
@@ -397,14 +404,14 @@ def used_seeds(*datasets) -> set:
 
 
 def used_policies(*datasets) -> set:
-    """The names of the learned policies whose rollouts are in the manifests of the given dataset
-    directories (a world model trained on them has seen those policies act)."""
+    """The names of the learned policies and plug-ins whose rollouts are in the manifests of the given
+    dataset directories (a world model trained on them has seen those policies act)."""
     names = set()
     for d in datasets:
         manifest = Path(d) / "manifest.jsonl"
         if manifest.exists():
             rows = (json.loads(line) for line in manifest.read_text().splitlines() if line)
-            names |= {r["policy"].split(":", 1)[1] for r in rows if r.get("policy_kind") == "learned"}
+            names |= {r["policy"].split(":", 1)[1] for r in rows if r.get("policy_kind") in ("learned", "plugin")}
     return names
 
 
