@@ -15,9 +15,11 @@ A policy spec is one of
 
   batched over a leading axis B (obs {"image": (B, 64, 64, 3) uint8 head-camera frame,
   "proprio": (B, 37)}; action (B, 20), layout in `sim_data.sim.robot`), jittable, with `params` shared by
-  the batch; it must be hashable (a frozen dataclass, for instance), since compiled rollouts are
-  cached per policy. In the world model `task_state` is None. A plug-in policy runs on every task
-  it is asked for; `name=` in front of the spec names it (`mine=my_pkg.policies:make`).
+  the batch (any pytree: typed random keys included) and a carry that only the policy reads (any
+  pytree of arrays, with or without the batch axis); it must be hashable (a frozen dataclass, for
+  instance), since compiled rollouts are cached per policy. In the world model `task_state` is None.
+  A plug-in policy runs on every task it is asked for; `name=` in front of the spec names it
+  (`mine=my_pkg.policies:make`).
 """
 
 from __future__ import annotations
