@@ -582,6 +582,10 @@ def main(argv=None) -> int:
         gpus = gpus[: a.gpus]
     if a.minutes < 0:
         ap.error(f"--minutes {a.minutes}: give a positive time slot, or 0 for none")
+    if a.minutes and (a.warm_train or a.warm_eval):
+        # a stage waits for its warm-up (up to WARM_WAIT_S), which a command's slot does not bound
+        ap.error("--warm-train and --warm-eval run beside a whole stage: use them in a background job (--detach), "
+                 "not in a time slot (--minutes)")
     if a.follow is not None:
         if a.detach:
             ap.error("--follow waits on a chain started by --detach: give them in two commands")

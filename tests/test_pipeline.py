@@ -393,7 +393,8 @@ def test_the_rollouts_stage_compiles_the_training_programs_beside_it_with_the_tr
 def test_options_are_checked_before_detaching_and_none_may_be_abbreviated(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(P, "local_gpus", lambda: [])
-    for argv in (["demo", "--detach", "--gpus", "7"], ["demo", "--detach", "--minutes", "-1"], ["demo", "--det"]):
+    for argv in (["demo", "--detach", "--gpus", "7"], ["demo", "--detach", "--minutes", "-1"], ["demo", "--det"],
+                 ["demo", "--detach", "--minutes", "9", "--warm-eval"]):
         with pytest.raises(SystemExit):
             P.main(argv)
     assert not Path("runs/logs/demo/pipeline.pid").exists()  # nothing was started
