@@ -627,7 +627,8 @@ def _simulate(task, policy, params, seeds, reset_keys, rng, engine, renderer, st
     outcome, rec = record_policies(env, policy, params, reset_keys, rng, renderer, steps)
     return {"outcome": outcome, "frames0": np.asarray(rec.frames[CAMERA][:, :1]),
             "proprio0": np.asarray(rec.proprio[:, :1]), "steps": steps or env.episode_steps,
-            "frames": rec.frames[CAMERA], "proprio": rec.proprio, "action": rec.action, "progress": np.asarray(rec.progress[:, 1:], np.float32)}
+            "frames": rec.frames[CAMERA], "proprio": rec.proprio, "action": rec.action,
+            "progress": np.asarray(rec.progress[:, 1:], np.float32)}
 
 
 def simulate_actions(task: str, actions, reset_keys, engine: str) -> np.ndarray:
@@ -779,7 +780,7 @@ def ranking_block(rows: list[dict], true_eps, prob_eps, threshold: float, member
     member_eps (K, P, N), each member's own statistics ("members"). A policy whose predicted rate is
     not finite (its imagination diverged) is left out of every statistic and named in "left_out"."""
     read = [i for i, r in enumerate(rows) if np.isfinite(r["pred_rate"])]
-    left_out = [r["name"] for i, r in enumerate(rows) if i not in set(read)]
+    left_out = [r["name"] for r in rows if not np.isfinite(r["pred_rate"])]
     if left_out:
         rows, true_eps, prob_eps = [rows[i] for i in read], np.asarray(true_eps)[read], np.asarray(prob_eps)[read]
         member_eps = None if member_eps is None else np.asarray(member_eps)[:, read]
@@ -895,7 +896,10 @@ def warm(cfg: EvalConfig, progress: bool = True, wait_s: float = 0.0) -> None:
     tasks = evaluation_tasks(cfg, sources)
     deadline = time.monotonic() + wait_s
     for run in cfg.wm_runs:
-        while not all((Path(run) / f).exists() for f in ("config.json", "norm.json")) and time.monotonic() < deadline:
+        started = lambda: all((Path(run) / f).exists() for f in ("config.json", "norm.json"))  # noqa: E731
+        if not started() and wait_s:
+            print(f"waiting up to {wait_s:.0f} s for {run} to start training", file=sys.stderr, flush=True)
+        while not started() and time.monotonic() < deadline:
             time.sleep(2.0)
     models = []
     for run in cfg.wm_runs:

@@ -130,7 +130,8 @@ def load_started(out: Path):
     cfg, _ = load_run_config(out)
     norm = Norm.from_dict(json.loads((out / "norm.json").read_text()))
     shapes = _shapes(cfg)
-    return cfg, jax.device_put(jax.tree_util.tree_map(lambda x: jnp.zeros(x.shape, x.dtype), shapes),
+    # zeros made on the host: an eager jnp.zeros would compile a program for every parameter's shape
+    return cfg, jax.device_put(jax.tree_util.tree_map(lambda x: np.zeros(x.shape, x.dtype), shapes),
                                _first_device(shapes)), norm
 
 
