@@ -662,6 +662,7 @@ def test_a_step_limit_records_the_first_segments_of_the_same_episodes():
             E.record_policies(env, *stacked(policy, [params]), keys, jax.random.PRNGKey(0), steps=bad)
 
 
+@pytest.mark.slow  # what only the GPU chain uses (pipeline --warm-eval)
 def test_the_warm_up_runs_the_programs_the_evaluation_then_runs(smoke_world_model, smoke_zoo, tmp_path):
     """E.warm on a world model that has only started training (its config.json and norm.json) runs
     the evaluation's simulator and imagination programs once each: the evaluation that follows, of
