@@ -778,10 +778,11 @@ def ranking_block(rows: list[dict], true_eps, prob_eps, threshold: float, member
     """The world model's statistics and the imitation-loss baseline's over one set of policies (rows,
     and their episodes' (P, N) outcomes and probabilities in the same order); with an ensemble's
     member_eps (K, P, N), each member's own statistics ("members"). A policy whose predicted rate is
-    not finite (its imagination diverged) is left out of every statistic and named in "left_out"."""
+    not finite (its imagination diverged) is left out of every statistic and named in "left_out"
+    (where fewer than two are left, none is: the statistics are then NaN)."""
     read = [i for i, r in enumerate(rows) if np.isfinite(r["pred_rate"])]
     left_out = [r["name"] for r in rows if not np.isfinite(r["pred_rate"])]
-    if left_out:
+    if left_out and len(read) >= 2:
         rows, true_eps, prob_eps = [rows[i] for i in read], np.asarray(true_eps)[read], np.asarray(prob_eps)[read]
         member_eps = None if member_eps is None else np.asarray(member_eps)[:, read]
     true = [r["true_rate"] for r in rows]
@@ -862,8 +863,9 @@ def decision_analysis(cfg: EvalConfig, tasks: dict, alignment: float, most: int 
         pairs = []
         for task, res in tasks.items():
             rates = res["true"].mean(1)
+            read = np.isfinite(res["prob"]).all(1)  # a policy whose imagination diverged reads no outcome
             pairs += [(task, a, b) for a in range(len(rates)) for b in range(len(rates))
-                      if abs(rates[a] - rates[b] - g) <= 0.05]
+                      if read[a] and read[b] and abs(rates[a] - rates[b] - g) <= 0.05]
         spread = np.unique(np.linspace(0, len(pairs) - 1, min(most, len(pairs))).round().astype(int))
         chosen = [pairs[i] for i in spread]
         curves = [S.resampled_pick_better(tasks[t]["prob"][a] >= cfg.threshold, tasks[t]["prob"][b] >= cfg.threshold,
@@ -889,11 +891,11 @@ def warm(cfg: EvalConfig, progress: bool = True, wait_s: float = 0.0) -> None:
     controllability panel. The world models need only have started training (wm.checkpoint.
     load_started: their shapes and normalisation, parameters of zeros), so the warm-up runs beside
     their training; wait_s: how long to wait for each run's config.json and norm.json. Not warmed:
-    the episode judge's reading (the judge is fit after training) and, with cfg.replay, the
-    simulation of the imagined actions (whole episodes). Writes nothing but the cache."""
+    the episode judge's reading (the judge is fit after training), with cfg.replay the simulation of
+    the imagined actions (whole episodes), and on the `mjx` engine the joining of an episode's
+    segments (`_recording_of`, a program per episode length; about a second to compile). Writes
+    nothing but the cache."""
     cfg.validate()
-    sources = resolve(cfg.policies)
-    tasks = evaluation_tasks(cfg, sources)
     deadline = time.monotonic() + wait_s
     for run in cfg.wm_runs:
         started = lambda: all((Path(run) / f).exists() for f in ("config.json", "norm.json"))  # noqa: E731
@@ -901,6 +903,10 @@ def warm(cfg: EvalConfig, progress: bool = True, wait_s: float = 0.0) -> None:
             print(f"waiting up to {wait_s:.0f} s for {run} to start training", file=sys.stderr, flush=True)
         while not started() and time.monotonic() < deadline:
             time.sleep(2.0)
+    # which read-out ranks changes no compiled program ("auto" needs the judges, fit after training)
+    cfg = dataclasses.replace(cfg, readout=READOUTS[0]) if cfg.readout == AUTO else cfg
+    sources = resolve(cfg.policies)
+    tasks = evaluation_tasks(cfg, sources)
     models = []
     for run in cfg.wm_runs:
         wm_cfg, params, norm = load_started(Path(run))
@@ -1077,7 +1083,7 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, models, wm
             r: S.family_statistics([dict(x, rate=x["pred_rate_readouts"][r]) for x in rows], "rate")
             for r in READOUTS}},
         # which policies carry each task's MMRV (the ranked read-out's rates)
-        "rank_violations": S.rank_violations(rows),
+        "rank_violations": S.rank_violations([r for r in rows if np.isfinite(r["pred_rate"])]),
         "decision": decision_analysis(cfg, results, metrics["pooled"]["alignment"]),
         "videos": [v for t in tasks for v in results[t]["video_index"]],
         "controllability": sorted(panel),

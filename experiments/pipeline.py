@@ -339,10 +339,10 @@ def start_warm_eval(p: Pipeline, name: str, overrides) -> subprocess.Popen | Non
     member's training has started (its config.json and norm.json written) it runs the evaluation's
     programs once each on the evaluation's shapes, so that the eval stage loads them from the
     persistent compilation cache; the members of an ensemble share one configuration, hence these
-    programs. None where every member is trained."""
+    programs, so it runs beside the first member's training only. None where a member is trained."""
     d = p.dirs(name)
     todo = untrained(d)
-    if not todo:
+    if len(todo) < len(d["members"]):
         return None
     log = _logs(p, name) / "warm-eval.log"
     argv = [sys.executable, "-m", "experiments.evaluate", "--config", p.eval, "--warm", f"policies={d['policies']}",

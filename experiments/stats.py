@@ -339,11 +339,13 @@ def within_task_draws(true: dict, predictors: dict, threshold: float = 0.5, draw
     for t in tasks:
         tt = np.asarray(true[t], np.float64)
         rows, cols = np.stack(picks[t][0]), np.stack(picks[t][1])
+        # a policy with any non-finite probability is left out whichever of its episodes a draw picks
+        scored = {n: without_policies(predictors[n][t], ~scored_policies(predictors[n][t])) for n in names}
         step = max(1, DRAW_CHUNK // tt.size)  # draws at once: bounds the (draws, P, N) gathers
         for d in range(0, draws, step):
             r, c = rows[d:d + step, :, None], cols[d:d + step, None, :]
             for n in names:
-                pr = np.asarray(predictors[n][t], np.float64)
+                pr = scored[n]
                 got = draw_statistics(pr[r[..., 0]] if pr.ndim == 1 else pr[r, c], tt[r, c], threshold)
                 for k, v in got.items():
                     boot[n][t][k][d:d + step] = v

@@ -673,7 +673,9 @@ def test_the_warm_up_runs_the_programs_the_evaluation_then_runs(smoke_world_mode
     started.mkdir()
     for f in ("config.json", "norm.json"):
         shutil.copy(smoke_world_model / f, started / f)
-    settings = dict(SMOKE_EVAL, episodes=3, batch=9, keep_features=False, replay=False, video_policies=0)
+    # the default read-out ("auto", chosen once the judges are fit)
+    settings = dict(SMOKE_EVAL, episodes=3, batch=9, keep_features=False, replay=False, video_policies=0,
+                    readout=E.AUTO)
     cfg = E.EvalConfig(policies=(f"{zoo_dir}#conv_proprio+conv_noproprio",), wm=str(started), **settings)
 
     def compiled(step) -> set:  # the programs `step` compiled

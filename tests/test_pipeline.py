@@ -1,6 +1,7 @@
 """experiments.pipeline: the stages' order of work, an ensemble's members, a host's GPUs (no training here:
 the modules' entry points are replaced by recorders)."""
 
+import dataclasses
 import io
 import json
 import os
@@ -486,6 +487,10 @@ def test_the_train_stage_compiles_the_evaluations_programs_beside_it_with_the_ev
     (tmp_path / "wm" / "ev" / "eval.json").write_text("{}")
     monkeypatch.setattr(P, "train_members", lambda *a: (True, []))
     P.run_stage("ev", "train", warm_eval=[])  # trained already: nothing to warm
+    assert not events
+    # one GPU, two members: the second's training finds the programs the first's warm-up compiled
+    monkeypatch.setitem(P.PIPELINES, "ev", dataclasses.replace(P.PIPELINES["ev"], members=2))
+    P.run_stage("ev", "train", warm_eval=[])
     assert not events
     ran = []
     monkeypatch.setattr(P, "run_stage", lambda name, stage, extra=(), gpus=(), members=None, warm=None,

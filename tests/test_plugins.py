@@ -269,6 +269,9 @@ def test_the_ranking_leaves_out_a_policy_whose_predictions_diverged():
     assert got["left_out"] == ["b"] and got["mmrv"] == 0 and got["pairwise_acc_gap10"] == 1
     assert got["pearson"] == pytest.approx(np.corrcoef([0.9, 0.2, 0.6], [1.0, 0.0, 0.5])[0, 1])
     assert got["alignment"] == pytest.approx(5 / 6)  # d's second episode fails, read as a success
+    # fewer than two policies left: none is left out, and the statistics are undefined rather than an error
+    alone = E.ranking_block(rows[:2], true_eps[:2], prob_eps[:2], 0.5)
+    assert alone["left_out"] == ["b"] and np.isnan(alone["pearson"])
 
 
 def test_a_clipped_plugin_keeps_its_policys_way_of_stacking():

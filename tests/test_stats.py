@@ -314,6 +314,13 @@ def test_a_policy_whose_predictions_diverged_is_left_out_as_a_proxys_unscored_on
     got, ref = S.task_statistics(broken, true), S.task_statistics(pred[keep], true[keep])
     for k in S.WITHIN_TASK:
         assert got[k] == pytest.approx(ref[k]), k
+    # and in every bootstrap draw, whichever of its episodes the draw picks: the draws of a row all NaN
+    whole = broken.copy()
+    whole[2] = math.nan
+    _, some = S.within_task_draws({"t": true}, {"p": {"t": broken}}, draws=200)
+    _, every = S.within_task_draws({"t": true}, {"p": {"t": whole}}, draws=200)
+    for k in S.WITHIN_TASK:
+        np.testing.assert_array_equal(some["p"]["t"][k], every["p"]["t"][k])
     # the reviewer's case: rates 1, 0.5, 0 with the middle one unread ranks the other two perfectly
     three = S.task_statistics(np.array([[1.0], [math.nan], [0.0]]), np.array([[1.0], [1.0], [0.0]]))
     assert three["mmrv"] == 0 and three["pairwise_acc_gap10"] == 1

@@ -306,7 +306,7 @@ def resolve(specs, world_model: bool = True) -> list[PolicySource]:
         if not spec:
             continue
         module_file = re.fullmatch(r"(?:[^=]*=)?(.+)\.py:(\w+)", spec)
-        if module_file and not Path(spec.split("=", 1)[-1]).exists():
+        if module_file:
             module = module_file.group(1).replace("/", ".").replace("\\", ".")
             raise ValueError(f"{spec!r} names a file: name a plug-in by its module, importable from the working "
                              f"directory, as {module}:{module_file.group(2)}")
