@@ -1486,6 +1486,7 @@ def test_the_frame_generator_learns_apart_from_the_rest_of_the_model(model_and_i
         make_config("smoke", ["model.refine=2", "window=2", "rollout_passes=1"])
 
 
+@pytest.mark.slow  # the frame generator: only the GPU presets train it
 def test_an_optimiser_step_moves_the_rest_of_the_model_as_without_the_generator(model_and_inputs, refining_model):
     from wm.train import jitted_train_step, make_optimizer
 
