@@ -286,6 +286,17 @@ def chunk_policy(padded, n: int) -> tuple:
             tuple(q for _, q in stacks))
 
 
+def reset_keys_of(seeds) -> np.ndarray:
+    """(n, 2) uint32: the reset keys of n initial-state seeds."""
+    return np.stack([np.asarray(jax.random.PRNGKey(s)) for s in seeds])
+
+
+def slice_key(cfg: EvalConfig, j: int) -> jax.Array:
+    """The random key of slice j of a task's states, whatever the batch: each policy draws by its own
+    salt (chunk_policy)."""
+    return jax.random.fold_in(jax.random.PRNGKey(cfg.seed), j)
+
+
 def balance_chunks(sizes: dict, n_parts: int) -> dict:
     """{key: part} spreading the chunks `sizes` ({key: episodes}) over n_parts processes, largest
     first onto the least loaded (ties to the lower part): a task's chunks may go to several parts."""
@@ -319,7 +330,7 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
     repeat, "slices" [P'] gives each row's slice, and N is a slice's states (merge_task_parts joins them).
     """
     slices = state_slices(cfg, len(seeds))
-    reset_keys = np.stack([np.asarray(jax.random.PRNGKey(s)) for s in seeds])
+    reset_keys = reset_keys_of(seeds)
     renderer = cached_renderers(models[0][0].model.size, (CAMERA,))
     kept = {}
     clock = {"sim_s": 0.0, "wm_s": 0.0, "steps": None}
@@ -334,8 +345,7 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
         s0, s1 = slices[j]
         n = s1 - s0
         policy, params = chunk_policy(padded, n)
-        # a key per slice of states, whatever the batch: each policy draws by its own salt (chunk_policy)
-        rng = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), j)
+        rng = slice_key(cfg, j)
         t0 = time.perf_counter()
         truth = simulate_truth(cfg, task, policy, params, seeds[s0:s1], reset_keys[s0:s1], rng, engine, renderer,
                                wait, code="".join(s.code for s in padded))
@@ -918,8 +928,7 @@ def warm(cfg: EvalConfig, progress: bool = True, wait_s: float = 0.0) -> None:
     for task in tasks:
         seeds = heldout_seeds(task, cfg.episodes, cfg.seed, used)
         s0, s1 = state_slices(cfg, len(seeds))[0]
-        reset_keys = np.stack([np.asarray(jax.random.PRNGKey(s)) for s in seeds[s0:s1]])
-        rng = jax.random.PRNGKey(cfg.seed)
+        reset_keys, rng = reset_keys_of(seeds[s0:s1]), slice_key(cfg, 0)
         first = [b for b in task_batches(cfg, [s for s in sources if s.runs_on(task)], len(seeds)) if b[1] == 0]
         for _, _, _, padded in tqdm(first, desc=f"warm {task}", unit="batch", disable=not progress):
             policy, params = chunk_policy(padded, s1 - s0)

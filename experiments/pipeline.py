@@ -205,17 +205,11 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
                 *([f"perturbed={d['policies']}#{p.perturbed}", f"perturb_episodes={p.perturb_episodes}"]
                   if p.perturbed else []), *extra]
         parts = _spread("sim_data.dataset.generate", args, gpus, _logs(p, name), "rollouts")
-        if warm_train is not None and len(gpus) > 1:
-            print("--warm-train: several GPUs train the members apart; the train stage compiles for itself",
-                  file=sys.stderr)
-        warming = start_warm_train(p, name, warm_train) if warm_train is not None and len(gpus) <= 1 else None
+        warming = start_warm_train(p, name, warm_train) if warm_alone(warm_train, gpus, "--warm-train") else None
         with warm_beside(warming, "the training programs", "the train stage"):
             generate.main(args)
     elif stage == "train":
-        if warm_eval is not None and len(gpus) > 1:
-            print("--warm-eval: several GPUs share the evaluation's batches out; the eval stage compiles for itself",
-                  file=sys.stderr)
-        warming = start_warm_eval(p, name, warm_eval) if warm_eval is not None and len(gpus) <= 1 else None
+        warming = start_warm_eval(p, name, warm_eval) if warm_alone(warm_eval, gpus, "--warm-eval") else None
         with warm_beside(warming, "the evaluation's programs", "the eval stage"):
             done, parts = train_members(name, extra, gpus, members)
     elif stage == "eval":
@@ -309,6 +303,14 @@ def train_members(name: str, extra=(), gpus=(), members: int | None = None) -> t
         print(f"{len(left)} of {p.members} world models left to train ({', '.join(left)}): run the train stage again",
               file=sys.stderr)
     return not left, parts
+
+
+def warm_alone(overrides: list | None, gpus, flag: str) -> bool:
+    """Whether a warm-up asked for (overrides not None) runs: with one GPU or none. On several, each
+    GPU's part compiles its own programs, whose shapes a warm-up of the whole would not give."""
+    if overrides is not None and len(gpus) > 1:
+        print(f"{flag}: several GPUs run their parts apart; the stage compiles for itself", file=sys.stderr)
+    return overrides is not None and len(gpus) <= 1
 
 
 WARM_MEMORY_FRACTION = "0.35"  # of the GPU's memory, for a warm-up beside a stage's own work
