@@ -190,6 +190,12 @@ def test_a_tasks_rows_of_one_rollout_share_chunks_cut_evenly_and_padded_only_to_
     assert [_rows(c) for c in long if c.key == key_a] == [[("mug/a/0", 0), ("mug/a/0", 1), ("mug/a/0", 2)],
                                                       [("mug/a/0", 3), ("mug/a/0", 4)]]
     assert _rows(long[-1], padded=True) == [("mug/a/0", 3), ("mug/a/0", 4), ("mug/a/0", 4)]
+    # where whole checkpoints fill the scripted chunks' rows, a learned chunk is padded to them: one
+    # batch size for every chunk of the plan
+    one = G._plan(G.make_config("smoke", ["batch=4", "episodes=4", "policy_episodes=2"]), learned[:1])
+    (ck,) = [c for c in one if c.key == key_a]
+    assert ck.size == 2 and _rows(ck, padded=True) == [("mug/a/0", 0), ("mug/a/0", 1)] * 2
+    assert {len(c.rows(padded=True)) for c in one} == {4}
     assert even_pieces(list(range(7)), 3) == ([[0, 1, 2], [3, 4, 5], [6]], 3)
 
 

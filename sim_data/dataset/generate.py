@@ -181,14 +181,16 @@ PRESETS = {
     # the world model's and the zoo's GPU set: three tasks, a spread of skills (1.0 for the zoo's
     # demonstrations, 0.5 and 0.75 for its low-skill lineage), random play, the controllability programs,
     # head camera; about 611k frames, so that the data stage fits a 10-minute command on one GPU.
-    # batch 480: per task 2x480 scripted, 1x368 program+play padded to 480 (one compiled rollout for both),
-    # rollouts 2x(4x64) rows; 9 chunks for parts
-    "wm_full": DataConfig(tasks=("mug", "wipe", "airfryer"), skills=(0.0, 0.5, 0.75, 1.0), episodes=240, batch=480,
+    # batch 960: per task 1x960 scripted, 1x368 program+play padded to 960 (one compiled rollout for both),
+    # and the pipeline's rollouts (24 checkpoints x 32 episodes) padded to 960 (learned_slots): one batch
+    # size, so that the programs that do not depend on the policy compile once; an H200 simulates 960
+    # rows a step in about 1.2 times the time of 480 (docs/benchmarks.md)
+    "wm_full": DataConfig(tasks=("mug", "wipe", "airfryer"), skills=(0.0, 0.5, 0.75, 1.0), episodes=240, batch=960,
                           cameras=("head_cam",), workers=14, programs=32, play=240),
-    # wm_full with 112 weak-grip episodes a task, in the rows that pad its program and play chunk
-    # (368 of 480): the `full_grip` pipeline's world-model data
+    # wm_full with 112 weak-grip episodes a task, in the rows of its program and play chunk (480 of
+    # 960): the `full_grip` pipeline's world-model data
     "wm_full_grip": DataConfig(tasks=("mug", "wipe", "airfryer"), skills=(0.0, 0.5, 0.75, 1.0), episodes=240,
-                               batch=480, cameras=("head_cam",), workers=14, programs=32, play=240, weak_grip=112),
+                               batch=960, cameras=("head_cam",), workers=14, programs=32, play=240, weak_grip=112),
     "heldout_plant": DataConfig(heldout=True, episodes=100, batch=600, workers=12),
     "shelf": DataConfig(tasks=("shelf",), skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=600, batch=1200, workers=12),
     "shelf_arcade": DataConfig(tasks=("shelf", "arcade"), skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=300,
@@ -368,7 +370,10 @@ def _plan(cfg: DataConfig, learned=()) -> list[Chunk]:
     into chunks of at most the scripted chunks' size and padded to it, so that every chunk of them
     is one batch shape of one compiled rollout (on the `mjx` engine a compile costs far more than
     simulating the padding rows), and the scripted chunks, whose policy noise depends on their
-    batch, are those they would be alone."""
+    batch, are those they would be alone. A learned policy's chunks are padded with checkpoints to
+    the scripted chunks' rows where whole checkpoints fill them (learned_slots): every chunk of the
+    plan then has one batch size, whose programs that do not depend on the policy (the initial
+    states, the physics' first positions, the observation) compile once for every rollout."""
     out = []
     for task in cfg.tasks:
         groups: dict = {}
@@ -379,8 +384,21 @@ def _plan(cfg: DataConfig, learned=()) -> list[Chunk]:
             chunks = _task_chunks(task, key, group, size if key == "program" else cfg.batch)
             if key == "scripted":
                 size = chunks[0].size
-            out += [dataclasses.replace(c, size=size) for c in chunks] if key == "program" else chunks
+            if key == "program":
+                chunks = [dataclasses.replace(c, size=size) for c in chunks]
+            elif key != "scripted":
+                chunks = [dataclasses.replace(c, size=learned_slots(c, size)) for c in chunks]
+            out += chunks
     return out
+
+
+def learned_slots(chunk: Chunk, rows: int) -> int:
+    """The slots a learned policy's chunk is padded to: enough whole checkpoints (chunk.width rows
+    each) to fill `rows` (the scripted chunks' batch) where they fill it exactly and the chunk's
+    own slots fit, else the chunk's own."""
+    if rows % chunk.width or rows // chunk.width < chunk.size:
+        return chunk.size
+    return rows // chunk.width
 
 
 def rollout_key(source) -> object:
