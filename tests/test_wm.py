@@ -11,6 +11,7 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import jax
 import jax.numpy as jnp
@@ -20,6 +21,7 @@ import pytest
 
 from sim_data.config import override
 from sim_data.dataset.cache import TrainingCache
+from sim_data.policies.registry import PolicySource
 from sim_data.sim.scene import SCENE_STATE_NAMES
 from wm import evaluate as E
 from wm import imagine as I
@@ -1569,3 +1571,38 @@ def test_the_warm_up_validates_with_the_state_its_step_returned(smoke_dataset, t
     run._step = donating
     run.warm()
     assert run._val_batches  # the validation loss ran
+
+
+def test_imagination_chunks_are_the_devices_batch_or_the_next_power_of_two(monkeypatch):
+    assert [I.chunk_size(n) for n in (1, 3, 64, 65, 5000)] == [1, 4, 64, 64, 64]  # the CPU's
+    monkeypatch.setattr(I.jax, "default_backend", lambda: "gpu")
+    assert [I.chunk_size(n) for n in (3, 64, 300, 512, 5000)] == [4, 64, 512, 512, 512]
+    parts = list(I.padded_chunks(list(range(600))))
+    assert [(s, len(p), n) for s, p, n in parts] == [(0, 512, 512), (512, 512, 88)]
+    assert parts[1][1][-1] == 599 and parts[1][1][88:] == [599] * 424
+
+
+def test_the_judges_closed_loop_runs_each_checkpoints_episodes_as_one_slot_and_puts_rows_back(monkeypatch):
+    """Episodes of three checkpoints (3, 1 and 2 of them, interleaved): each chunk stacks whole
+    checkpoints (padded to the most episodes of one), and every episode gets the row imagined from its
+    own first frame with its own checkpoint's parameters."""
+    class Cache:
+        def episode(self, i, cameras):
+            return {"frames": {"head_cam": np.full((5, 2, 2, 3), i, np.uint8)}, "proprio": np.zeros((5, 37))}
+
+    calls = []
+
+    def fake_closed_loop(cfg, policy, horizon, params, norm, policy_params, frames, proprio, ctx, rng):
+        p = policy.count(policy_params)
+        w = np.repeat(np.asarray(policy_params["w"]), len(frames) // p)  # each row's parameter set
+        calls.append((p, len(frames)))
+        return {"features": np.broadcast_to((frames[:, 0, 0, 0, 0] * 1000.0 + w)[:, None, None], (len(frames), horizon, 1))}
+
+    monkeypatch.setattr(J, "closed_loop", fake_closed_loop)
+    src = {n: PolicySource(f"mug/conv/{n}", "learned", "mug", object(), {"w": np.float32(n)}, {}) for n in (1, 2, 3)}
+    group = [(10, src[1]), (11, src[2]), (12, src[1]), (13, src[3]), (14, src[1]), (15, src[3])]
+    assert J.checkpoint_rows(group) == ([(src[1], [10, 12, 14]), (src[2], [11, 11, 11]), (src[3], [13, 15, 15])], 3)
+    x = J._closed_loop_features(SimpleNamespace(action_dim=20), None, None, Cache(), group, "head_cam", 4, object(), 0)
+    assert x.shape == (6, 4, 1)
+    np.testing.assert_array_equal(x[:, 0, 0], [10001, 11002, 12001, 13003, 14001, 15003])
+    assert calls == [(2, 6), (2, 6)]  # chunk_size(6) = 8 rows: two checkpoints of 3, the last chunk padded
