@@ -43,6 +43,7 @@ from sim_data.util import write_json_atomic
 from wm.checkpoint import run_file
 from wm.imagine import (
     Norm,
+    chunk_size,
     closed_loop,
     context_sample,
     feature_columns,
@@ -163,16 +164,43 @@ def _episodes_in_order(cache, ids: list[int], pieces: list) -> dict:
 def _closed_loop_features(cfg: ModelConfig, params, norm: Norm, cache, group, camera: str, horizon: int, policy,
                           seed: int):
     """(len(group), horizon, F) step features of closed-loop imaginations, each episode of group
-    [(cache id, PolicySource)] with its own policy's parameters (one architecture), in padded_chunks."""
-    outs = []
-    for k, part, n in padded_chunks(group):
-        eps = [cache.episode(i, cameras=[camera]) for i, _ in part]
-        stacked_policy, policy_params = stacked(policy, [s.params for _, s in part])
+    [(cache id, PolicySource)] with its own policy's parameters (one architecture). A checkpoint's
+    episodes run side by side as one slot of a StackedPolicy (checkpoint_rows), so that a batch holds
+    a few parameter sets, not one per episode (a policy that stacks in turn runs its sets one after
+    another each step)."""
+    slots, width = checkpoint_rows(group)
+    per_chunk = max(1, chunk_size(len(group)) // width)
+    feats = {}
+    for k, (part, _) in enumerate(padded_slots(slots, per_chunk)):
+        rows = [i for _, ids in part for i in ids]
+        eps = [cache.episode(i, cameras=[camera]) for i in rows]
+        stacked_policy, policy_params = stacked(policy, [src.params for src, _ in part])
         got = closed_loop(cfg, stacked_policy, horizon, params, norm, policy_params,
                           np.stack([ep["frames"][camera][:1] for ep in eps]), np.stack([ep["proprio"][:1] for ep in eps]),
-                          np.zeros((len(part), 0, cfg.action_dim), np.float32), jax.random.PRNGKey(seed + k))
-        outs.append(np.asarray(got["features"])[:n])
-    return np.concatenate(outs)
+                          np.zeros((len(rows), 0, cfg.action_dim), np.float32), jax.random.PRNGKey(seed + k))
+        x = np.asarray(got["features"])
+        for row, i in enumerate(rows):
+            feats.setdefault(i, x[row])  # a padding copy comes after its episode's own row
+    return np.stack([feats[i] for i, _ in group])
+
+
+def checkpoint_rows(group) -> tuple[list, int]:
+    """group [(cache id, PolicySource)] as ([(source, cache ids)] one slot per checkpoint in order of
+    first appearance, each padded to `width` ids by repeating its last, width): the most episodes
+    of one checkpoint."""
+    by_source: dict = {}
+    for i, src in group:
+        by_source.setdefault(src.name, (src, []))[1].append(i)
+    width = max(len(ids) for _, ids in by_source.values())
+    return [(src, ids + [ids[-1]] * (width - len(ids))) for src, ids in by_source.values()], width
+
+
+def padded_slots(slots: list, per_chunk: int):
+    """(part, n) over slots in chunks of per_chunk, the last padded by repeating its last slot (one
+    batch shape, one compilation), its first n slots real."""
+    for start in range(0, len(slots), per_chunk):
+        part = slots[start:start + per_chunk]
+        yield part + [part[-1]] * (per_chunk - len(part)), len(part)
 
 
 def observe_episodes(cfg: ModelConfig, params, norm: Norm, cache, ids: list[int], camera: str,
