@@ -47,12 +47,16 @@ stages run without their safety stop, max_minutes=0, unless `--set` or `--minute
 last lines, and exits 0 once the command has ended well (a whole chain: with its report's path), 1 if
 it failed, 3 while it still runs.
 
-With `--warm-train` (one GPU), the rollouts stage starts `wm.train --warm` beside its simulation:
-the world model's training programs compile into the persistent compilation cache on the data stage's
-dataset (the same shapes), and the train stage loads them instead of compiling. With `--warm-eval`
-(one GPU), the train stage starts `experiments.evaluate --warm` beside the training: the evaluation's
-simulator and imagination programs run once on its own batches, a few steps long, with the world
-model's shapes, and the eval stage loads them. Both compile on the host's cores while the GPU works.
+With `--warm-rollouts` (one GPU), the policies stage starts `sim_data.dataset.generate --warm` beside
+the zoo's training: once the zoo has written its plan (the registry it will write), each compiled
+rollout of the lineages runs a few steps with stand-in parameters of their checkpoints' shapes, and
+the rollouts stage loads those programs. With `--warm-train` (one GPU), the rollouts stage starts
+`wm.train --warm` beside its simulation: the world model's training programs compile into the
+persistent compilation cache on the data stage's dataset (the same shapes), and the train stage
+loads them instead of compiling. With `--warm-eval` (one GPU), the train stage starts
+`experiments.evaluate --warm` beside the training: the evaluation's simulator and imagination
+programs run once on its own batches, a few steps long, with the world model's shapes, and the eval
+stage loads them. Each compiles on the host's cores while the GPU works.
 
 Each stage command appends a row to the evaluation directory's `timing.json`: its wall seconds, the
 seconds spent compiling (JAX's compile events, experiments.timing; a stage spread over GPUs adds the
@@ -172,13 +176,15 @@ def pipeline(name: str, members: int | None = None) -> Pipeline:
 
 
 def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = None,
-              warm_train: list | None = None, warm_eval: list | None = None) -> bool:
+              warm_train: list | None = None, warm_eval: list | None = None,
+              warm_rollouts: list | None = None) -> bool:
     """Runs one stage of pipeline `name` (with `members` world models, see pipeline), spread over
     `gpus` (ids) where there are several; returns False where the stage must run again to finish
-    (an ensemble's members left to train). With warm_train (the train stage's overrides), the
-    rollouts stage compiles the world model's training programs beside it (start_warm_train); with
-    warm_eval (the eval stage's overrides), the train stage compiles the evaluation's programs beside
-    it (start_warm_eval)."""
+    (an ensemble's members left to train). With warm_rollouts (the rollouts stage's overrides), the
+    policies stage compiles the rollouts' programs beside it (start_warm_rollouts); with warm_train
+    (the train stage's overrides), the rollouts stage compiles the world model's training programs
+    beside it (start_warm_train); with warm_eval (the eval stage's overrides), the train stage
+    compiles the evaluation's programs beside it (start_warm_eval)."""
     p = pipeline(name, members)
     d = p.dirs(name)
     t0 = time.perf_counter()
@@ -194,16 +200,16 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
         args = ["--config", p.policies, "--data", str(d["data"]), "--out", str(d["policies"]), *p.policies_overrides,
                 *extra]
         parts = _spread("sim_data.policies.zoo", args, gpus, _logs(p, name), "policies")
-        zoo.main(args)
+        warming = start_warm_rollouts(p, name, warm_rollouts) \
+            if warm_alone(warm_rollouts, gpus, "--warm-rollouts") else None
+        with warm_beside(warming, "the rollouts' programs", "the rollouts stage"):
+            zoo.main(args)
     elif stage == "rollouts":
         if not p.rollouts:
             print(f"{name} trains its world model on the data alone; skipping" +
                   (" (and --warm-train with it)" if warm_train is not None else ""), file=sys.stderr)
             return True
-        args = ["--config", p.data, "--out", str(d["wm_data"]), "--reuse", str(d["data"]), *p.data_overrides,
-                f"policies={d['policies']}#{p.rollouts}", f"policy_episodes={p.rollout_episodes}",
-                *([f"perturbed={d['policies']}#{p.perturbed}", f"perturb_episodes={p.perturb_episodes}"]
-                  if p.perturbed else []), *extra]
+        args = rollouts_args(p, name, extra)
         parts = _spread("sim_data.dataset.generate", args, gpus, _logs(p, name), "rollouts")
         warming = start_warm_train(p, name, warm_train) if warm_alone(warm_train, gpus, "--warm-train") else None
         with warm_beside(warming, "the training programs", "the train stage"):
@@ -314,6 +320,31 @@ def warm_alone(overrides: list | None, gpus, flag: str) -> bool:
 
 
 WARM_MEMORY_FRACTION = "0.35"  # of the GPU's memory, for a warm-up beside a stage's own work
+
+
+def rollouts_args(p: Pipeline, name: str, extra) -> list[str]:
+    """sim_data.dataset.generate's arguments for the rollouts stage of pipeline p (named name): the
+    data stage's settings, its episodes reused, the lineages' rollouts added; extra: overrides."""
+    d = p.dirs(name)
+    return ["--config", p.data, "--out", str(d["wm_data"]), "--reuse", str(d["data"]), *p.data_overrides,
+            f"policies={d['policies']}#{p.rollouts}", f"policy_episodes={p.rollout_episodes}",
+            *([f"perturbed={d['policies']}#{p.perturbed}", f"perturb_episodes={p.perturb_episodes}"]
+              if p.perturbed else []), *extra]
+
+
+def start_warm_rollouts(p: Pipeline, name: str, overrides) -> subprocess.Popen | None:
+    """Starts `sim_data.dataset.generate --warm` for the preset's rollouts (the rollouts stage's
+    overrides) in a child process beside the zoo's training, its output in the logs: once the zoo has
+    written its plan it runs each compiled rollout of the lineages once, a few steps long, with stand-in
+    parameters of their checkpoints' shapes, so that the rollouts stage loads the programs. None
+    where the preset has no rollouts or they are generated."""
+    d = p.dirs(name)
+    if not p.rollouts or (d["wm_data"] / "stats.json").exists():
+        return None
+    log = _logs(p, name) / "warm-rollouts.log"
+    argv = [sys.executable, "-m", "sim_data.dataset.generate", "--warm", *rollouts_args(p, name, overrides)]
+    print(f"compiling the rollouts' programs beside the zoo's training ({log})", file=sys.stderr, flush=True)
+    return _start_warm(argv, log)
 
 
 def start_warm_train(p: Pipeline, name: str, overrides) -> subprocess.Popen | None:
@@ -560,6 +591,9 @@ def main(argv=None) -> int:
     ap.add_argument("--follow", type=float, default=None, metavar="SECONDS",
                     help="wait up to SECONDS for the detached command; exit 0 once it ended well, 1 if it "
                          "failed, 3 while it runs")
+    ap.add_argument("--warm-rollouts", action="store_true",
+                    help="with the policies stage (one GPU or none), compile the rollouts' programs beside it (with "
+                         "the data and rollouts stages' --set overrides), for the rollouts stage to load")
     ap.add_argument("--warm-train", action="store_true",
                     help="with the rollouts stage (one GPU or none), compile the world model's training programs "
                          "beside it (with the train stage's --set overrides), for the train stage to load")
@@ -584,10 +618,10 @@ def main(argv=None) -> int:
         gpus = gpus[: a.gpus]
     if a.minutes < 0:
         ap.error(f"--minutes {a.minutes}: give a positive time slot, or 0 for none")
-    if a.minutes and (a.warm_train or a.warm_eval):
+    if a.minutes and (a.warm_train or a.warm_eval or a.warm_rollouts):
         # a stage waits for its warm-up (up to WARM_WAIT_S), which a command's slot does not bound
-        ap.error("--warm-train and --warm-eval run beside a whole stage: use them in a background job (--detach), "
-                 "not in a time slot (--minutes)")
+        ap.error("--warm-rollouts, --warm-train and --warm-eval run beside a whole stage: use them in a background "
+                 "job (--detach), not in a time slot (--minutes)")
     if a.follow is not None:
         if a.detach:
             ap.error("--follow waits on a chain started by --detach: give them in two commands")
@@ -609,10 +643,11 @@ def main(argv=None) -> int:
             warm = per_stage.get("train", []) if a.warm_train else None
             warm_eval = per_stage.get("eval", []) if a.warm_eval else None
             # the rollouts stage reuses the data stage's episodes, which it checks were made with its settings
-            mine = [*per_stage.get("data", []), *per_stage.get("rollouts", [])] if stage == "rollouts" \
-                else per_stage.get(stage, [])
-            if run_stage(a.pipeline, stage, [*mine, *a.overrides, *slot], gpus, a.members, warm, warm_eval) \
-                    or a.stage != "all":
+            rollouts = [*per_stage.get("data", []), *per_stage.get("rollouts", [])]
+            warm_rollouts = rollouts if a.warm_rollouts else None
+            mine = rollouts if stage == "rollouts" else per_stage.get(stage, [])
+            if run_stage(a.pipeline, stage, [*mine, *a.overrides, *slot], gpus, a.members, warm, warm_eval,
+                         warm_rollouts) or a.stage != "all":
                 break
     if a.stage in ("all", "report"):
         print(f"report: {(pipeline(a.pipeline).dirs(a.pipeline)['eval'] / 'report.html').absolute()} "

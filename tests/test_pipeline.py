@@ -170,7 +170,7 @@ def test_a_time_slot_passes_what_is_left_to_train_and_eval_and_starts_no_stage_a
     clock = [0.0]
     ran = []
 
-    def fake_stage(name, stage, extra=(), gpus=(), members=None, warm=None, warm_eval=None):
+    def fake_stage(name, stage, extra=(), gpus=(), members=None, warm=None, warm_eval=None, warm_rollouts=None):
         ran.append((stage, list(extra)))
         clock[0] += {"data": 120.0, "policies": 150.0, "train": 180.0}.get(stage, 10.0)
         return stage != "train" or len([r for r in ran if r[0] == "train"]) > 1  # train ends on its second run
@@ -276,7 +276,7 @@ def test_set_gives_each_stage_its_own_overrides_and_refuses_what_names_no_stage(
             P.stage_overrides([bad])
     ran = []
     monkeypatch.setattr(P, "run_stage", lambda name, stage, extra=(), gpus=(), members=None, warm=None,
-                        warm_eval=None:
+                        warm_eval=None, warm_rollouts=None:
                         ran.append((stage, extra)) or True)
     monkeypatch.setattr(P, "use_compilation_cache", lambda root: "")
     assert P.main(["full", "--set", "train:steps=3500", "--set", "eval:episodes=50", "--set", "train:seed=1"]) == 0
@@ -384,7 +384,7 @@ def test_the_rollouts_stage_compiles_the_training_programs_beside_it_with_the_tr
     assert not started
     ran = []
     monkeypatch.setattr(P, "run_stage", lambda name, stage, extra=(), gpus=(), members=None, warm=None,
-                        warm_eval=None:
+                        warm_eval=None, warm_rollouts=None:
                         ran.append((stage, warm)) or True)
     monkeypatch.setattr(P, "use_compilation_cache", lambda root: "")
     P.main(["roll", "--warm-train", "--set", "train:steps=3500", "--set", "eval:episodes=50"])
@@ -404,7 +404,7 @@ def test_options_are_checked_before_detaching_and_none_may_be_abbreviated(tmp_pa
 def test_data_overrides_reach_the_rollouts_stage_that_reuses_the_data(monkeypatch):
     ran = []
     monkeypatch.setattr(P, "run_stage", lambda name, stage, extra=(), gpus=(), members=None, warm=None,
-                        warm_eval=None:
+                        warm_eval=None, warm_rollouts=None:
                         ran.append((stage, extra)) or True)
     monkeypatch.setattr(P, "use_compilation_cache", lambda root: "")
     P.main(["full", "--set", "data:batch=960", "--set", "rollouts:policy_episodes=8"])
@@ -494,7 +494,52 @@ def test_the_train_stage_compiles_the_evaluations_programs_beside_it_with_the_ev
     assert not events
     ran = []
     monkeypatch.setattr(P, "run_stage", lambda name, stage, extra=(), gpus=(), members=None, warm=None,
-                        warm_eval=None: ran.append((stage, warm_eval)) or True)
+                        warm_eval=None, warm_rollouts=None: ran.append((stage, warm_eval)) or True)
     monkeypatch.setattr(P, "use_compilation_cache", lambda root: "")
     P.main(["ev", "--warm-eval", "--set", "train:steps=3500", "--set", "eval:episodes=50"])
     assert dict(ran)["train"] == ["episodes=50"]
+
+
+def test_the_policies_stage_compiles_the_rollouts_programs_beside_it_with_the_rollouts_stage_arguments(
+        tmp_path, monkeypatch):
+    monkeypatch.setitem(P.PIPELINES, "wr", P.Pipeline(data="d", policies="p", train="t", eval="e", root=str(tmp_path),
+                                                      rollouts="conv+vit", rollout_episodes=8,
+                                                      data_overrides=("engine=mjx",)))
+    events = []
+
+    class FakeChild:
+        def __init__(self, argv, env, **_):
+            events.append(("start", argv))
+
+        def kill(self):
+            events.append(("kill",))
+
+        def wait(self, timeout=None):
+            events.append(("wait",))
+            return 0
+
+    monkeypatch.setattr(P.subprocess, "Popen", FakeChild)
+    monkeypatch.setattr(P.zoo, "main", lambda args: events.append(("zoo",)))
+    monkeypatch.setattr(P, "device_name", lambda: "cpu")
+    assert P.run_stage("wr", "policies", warm_rollouts=["batch=960"])
+    assert [e[0] for e in events] == ["start", "zoo", "wait"]
+    d = P.pipeline("wr").dirs("wr")
+    assert events[0][1][1:] == ["-m", "sim_data.dataset.generate", "--warm", *P.rollouts_args(P.pipeline("wr"), "wr",
+                                                                                                ["batch=960"])]
+    assert P.rollouts_args(P.pipeline("wr"), "wr", ["batch=960"]) == [
+        "--config", "d", "--out", str(d["wm_data"]), "--reuse", str(d["data"]), "engine=mjx",
+        f"policies={d['policies']}#conv+vit", "policy_episodes=8", "batch=960"]
+    events.clear()
+    assert not P.warm_alone([], ["0", "1"], "--warm-rollouts")  # several GPUs: each part compiles its own
+    d["wm_data"].mkdir(parents=True)
+    (d["wm_data"] / "stats.json").write_text("{}")
+    P.run_stage("wr", "policies", warm_rollouts=[])  # the rollouts are generated: nothing to warm
+    assert [e[0] for e in events] == ["zoo"]
+    ran = []
+    monkeypatch.setattr(P, "run_stage", lambda name, stage, extra=(), gpus=(), members=None, warm=None,
+                        warm_eval=None, warm_rollouts=None: ran.append((stage, warm_rollouts)) or True)
+    monkeypatch.setattr(P, "use_compilation_cache", lambda root: "")
+    P.main(["wr", "--warm-rollouts", "--set", "data:batch=960", "--set", "rollouts:policy_episodes=4"])
+    assert dict(ran)["policies"] == ["batch=960", "policy_episodes=4"]
+    with pytest.raises(SystemExit):
+        P.main(["wr", "--warm-rollouts", "--minutes", "9"])

@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from experiments.timing import compile_snapshot
 from sim_data.dataset import generate as G
 from sim_data.dataset.episodes import read_episode
 from sim_data.policies import zoo
@@ -419,3 +420,40 @@ def test_random_shift_crops_the_edge_padded_image():
         padded = np.pad(images[i], ((2, 2), (2, 2), (0, 0)), mode="edge")
         assert (got[i] == padded[off[i, 0]:off[i, 0] + 8, off[i, 1]:off[i, 1] + 8]).all()
     assert (got != images).any()  # some offset differs from the centre
+
+
+@pytest.mark.slow  # what only the GPU chain uses (pipeline --warm-rollouts)
+def test_the_rollouts_warm_up_runs_the_zoos_planned_policies_as_the_rollouts_then_run_them(smoke_dataset, smoke_zoo,
+                                                                                           tmp_path):
+    """The zoo writes its plan before training: the registry it then writes, less the losses. The
+    rollouts' warm-up runs the plan's checkpoints with stand-in parameters (the shapes, dtypes and
+    placement of the saved ones), so the rollouts that follow compile none of the policy's programs
+    again (a shape no other test runs: 3 episodes a checkpoint). It writes no episode."""
+    _, data, _ = smoke_dataset
+    zoo_dir, registry = smoke_zoo
+    plan = json.loads((zoo_dir / "plan.json").read_text())["policies"]
+    assert [(r["name"], r["net"], r["checkpoint"]) for r in plan] == \
+        [(r["name"], r["net"], r["checkpoint"]) for r in registry]
+    assert {r["val_loss"] for r in plan} == {None}
+    real = resolve([f"{zoo_dir}#conv_proprio"])
+    planned = resolve([f"{zoo_dir / 'policies.json'}#conv_proprio"], planned=True)  # the file's sibling plan.json
+    assert [s.name for s in planned] == [s.name for s in real]
+    signature = lambda t: [(p, np.shape(x), np.asarray(x).dtype) for p, x in jax.tree_util.tree_leaves_with_path(t)]
+    assert signature(planned[0].params) == signature(real[0].params)
+    np.testing.assert_array_equal(planned[0].params["norm"]["action_std"], 1.0)  # stand-ins, not the checkpoint
+
+    cfg = G.make_config("smoke", [f"policies={zoo_dir}#conv_proprio", "policy_episodes=3"])
+
+    def compiled(step) -> set:  # the programs `step` compiled
+        before = compile_snapshot()
+        step()
+        return {name for name, (count, _) in compile_snapshot()["by_program"].items()
+                if count > before["by_program"].get(name, (0, 0.0))[0]}
+
+    assert "act" in compiled(lambda: G.warm(cfg, progress=False))  # a new stack of 2 x 3 rows: compiled here
+    assert not (tmp_path / "rolled").exists()
+    rolled = compiled(lambda: G.generate(cfg, tmp_path / "rolled", progress=False, reuse=data))
+    assert not rolled & {"act", "init_carry", "observe"}
+    assert len(list((tmp_path / "rolled" / "episodes").glob("mug-lmug_conv_proprio_*.mcap"))) == 6
+    with pytest.raises(FileNotFoundError, match="plan.json is missing"):
+        G.warm(G.make_config("smoke", [f"policies={tmp_path / 'none'}#conv_proprio"]), progress=False)

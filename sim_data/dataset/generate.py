@@ -41,7 +41,7 @@ from sim_data.dataset.episodes import (  # noqa: F401 (re-exported)
 from sim_data.parts import add_part_argument, config_and_part, exclusive, take
 from sim_data.policies.bc import stacked
 from sim_data.policies.degrade import GOLDEN, perturbation
-from sim_data.policies.registry import PERTURBED, PolicySource, perturbed_copy, stack_key
+from sim_data.policies.registry import PERTURBED, PLAN, PolicySource, is_plugin, perturbed_copy, stack_key
 from sim_data.policies.registry import resolve as resolve_sources
 from sim_data.policies.scripted import (
     PROGRAMS,
@@ -56,7 +56,7 @@ from sim_data.sim.engines import ENGINES, default_engine
 from sim_data.sim.env import HomeEnv
 from sim_data.sim.render import RenderConfig, Renderer
 from sim_data.sim.robot import ACTION_DIM, FORWARD_SPEED
-from sim_data.sim.rollout import record_episodes
+from sim_data.sim.rollout import SEGMENT, record_episodes
 from sim_data.sim.scene import load_model
 from sim_data.sim.tasks import CONTROL_DT, MAX_EPISODE_STEPS, TASK_NAMES
 from sim_data.util import (
@@ -288,12 +288,12 @@ def _sources(cfg: DataConfig, task: str, learned=()) -> list:
                       for src in learned if src.runs_on(task)]
 
 
-def learned_sources(cfg: DataConfig) -> list:
+def learned_sources(cfg: DataConfig, planned: bool = False) -> list:
     """The PolicySources whose rollouts the dataset holds: cfg.policies, then the perturbed copies of
-    cfg.perturbed."""
+    cfg.perturbed; planned: a zoo's as its plan names them, with stand-in parameters (warm)."""
     # the simulator alone runs them here: a plug-in may read its task state
-    return (resolve_sources(cfg.policies, world_model=False)
-            + [perturbed_copy(s) for s in resolve_sources(cfg.perturbed, world_model=False)])
+    return (resolve_sources(cfg.policies, world_model=False, planned=planned)
+            + [perturbed_copy(s) for s in resolve_sources(cfg.perturbed, world_model=False, planned=planned)])
 
 
 def _episodes(cfg: DataConfig, learned=()):
@@ -573,7 +573,41 @@ def _submit_episodes(pool, cfg: DataConfig, out: Path, task: str, rows: list, re
     return futures
 
 
-def simulate_chunk(cfg: DataConfig, chunk: Chunk, engine: str) -> tuple[list, object]:
+WARM_WAIT_S = 900  # for a zoo's plan, which it writes before training
+WARM_STEPS = 2 * SEGMENT  # a first segment and a later one: every per-segment program of an episode
+
+
+def warm(cfg: DataConfig, wait_s: float = 0.0, progress: bool = True) -> None:
+    """Runs one chunk of each compiled rollout of cfg's learned policies (cfg.policies and
+    cfg.perturbed; per policy object and batch shape) for its first WARM_STEPS steps, so that JAX's
+    persistent compilation cache holds the programs that generate then loads. A zoo's policies need
+    only be planned (its plan.json, written before it trains: sim_data.policies.zoo): they run with
+    stand-in parameters of their checkpoints' shapes, so the warm-up runs beside the zoo's training.
+    wait_s: how long to wait for each zoo's plan. Writes nothing but the cache."""
+    cfg.validate()
+    zoos = [Path(spec.partition("#")[0]) for spec in (*cfg.policies, *cfg.perturbed) if not is_plugin(spec)]
+    deadline = time.monotonic() + wait_s
+    for zoo in zoos:
+        plan = zoo / PLAN if zoo.suffix != ".json" else zoo.with_name(PLAN)
+        if not plan.exists() and wait_s:
+            print(f"waiting up to {wait_s:.0f} s for {plan}", file=sys.stderr, flush=True)
+        while not plan.exists() and time.monotonic() < deadline:
+            time.sleep(2.0)
+    engine = cfg.engine or default_engine()
+    learned = learned_sources(cfg, planned=True)
+    t0, seen = time.perf_counter(), set()
+    for chunk in _plan(cfg, learned):
+        shape = (chunk.key, len(chunk.rows(padded=engine == "mjx")))
+        if isinstance(chunk.key, str) or shape in seen:  # the scripted skills' and programs': the data's own
+            continue
+        seen.add(shape)
+        simulate_chunk(cfg, chunk, engine, steps=WARM_STEPS)
+    if progress:
+        print(f"the rollouts' programs ran once in {time.perf_counter() - t0:.0f} s ({len(seen)} chunks)",
+              file=sys.stderr)
+
+
+def simulate_chunk(cfg: DataConfig, chunk: Chunk, engine: str, steps: int | None = None) -> tuple[list, object]:
     """Simulates and renders one chunk: ([(source, episode index)] of its B rows, the Recording
     with (B, ...) numpy leaves). With the `mjx` engine the chunk runs padded (Chunk.rows): one
     compilation then serves every chunk of a rollout key of that size in every task, and compiling,
@@ -588,7 +622,7 @@ def simulate_chunk(cfg: DataConfig, chunk: Chunk, engine: str) -> tuple[list, ob
     source, i = chunk.first
     chunk_key = jax.random.PRNGKey(initial_seed(cfg, f"{chunk.task}/{_source_key(source)}", i))
     _, rec = record_episodes(env, policy, params, chunk_key, cached_renderers(cfg.size, tuple(cfg.cameras)),
-                             reset_keys=reset_keys)
+                             reset_keys=reset_keys, steps=steps)
     return rows, jax.tree_util.tree_map(np.asarray, rec)
 
 
@@ -726,9 +760,17 @@ def main(argv=None) -> int:
     p.add_argument("--reuse", type=Path, help="a dataset of the same settings whose episodes are linked, not simulated "
                                               "again (to add policies' rollouts to a generated dataset)")
     add_part_argument(p, "simulate every N-th chunk", "gather the dataset")
+    p.add_argument("--warm", action="store_true",
+                   help="only run each compiled rollout of the learned policies once, the zoos' planned "
+                        "checkpoints with stand-in parameters, so that the compilation cache holds them (warm)")
     p.add_argument("overrides", nargs="*", help="key=value overrides of the preset (e.g. episodes=16 tasks=mug,wipe)")
     a = p.parse_intermixed_args(argv)  # key=value overrides before or after the options
     cfg, part = config_and_part(p, a, make_config)
+    if a.warm:
+        if part is not None:
+            p.error("--warm compiles for this process's device: leave out --part")
+        warm(cfg, wait_s=WARM_WAIT_S)
+        return 0
     stats = generate(cfg, a.out, reuse=a.reuse, part=part)
     if stats is None:
         print(f"part {a.part} done; run without --part to gather the dataset", file=sys.stderr)

@@ -39,7 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sim_data.policies.bc import BCPolicy, PolicyNetConfig, load_params, stacked
+from sim_data.policies.bc import BCPolicy, PolicyNetConfig, load_params, stacked, stand_in_params
 from sim_data.policies.degrade import DegradedPolicy, degrade_params, perturbed_params
 from sim_data.sim.robot import ACTION_DIM, PROPRIO_DIM, robot_index
 from sim_data.sim.scene import load_model
@@ -259,12 +259,17 @@ def fingerprint(source: PolicySource) -> str:
     return h.hexdigest()[:16]
 
 
-def load_registry_sources(spec: str) -> list[PolicySource]:
-    """`PATH[#selector+...]` -> the registry's checkpoints whose name, lineage or task is selected."""
+REGISTRY, PLAN = "policies.json", "plan.json"  # a zoo's registry, and the one it plans before training
+
+
+def load_registry_sources(spec: str, planned: bool = False) -> list[PolicySource]:
+    """`PATH[#selector+...]` -> the registry's checkpoints whose name, lineage or task is selected.
+    planned: those of the zoo's plan (PLAN, written before it trains), with stand-in parameters of
+    their checkpoints' shapes (bc.stand_in_params): what compiles their programs while they train."""
     path, _, sel = spec.partition("#")
     terms = [s for s in sel.split("+") if s]
     wanted = {s for s in terms if not s.startswith("@")}
-    records = load_registry(Path(path))
+    records = load_registry(Path(path), PLAN if planned else REGISTRY)
     chosen = [r for r in records if not wanted or wanted & {r["name"], r["lineage"], r["task"]}]
     for term in terms:
         if term.startswith("@"):
@@ -274,7 +279,8 @@ def load_registry_sources(spec: str) -> list[PolicySource]:
                          f"{sorted({r['lineage'] for r in records})} and tasks {sorted({r['task'] for r in records})}")
     out = []
     for r in chosen:
-        policy, params = load_policy(r)
+        policy, params = load_policy(r, stand_in_params(PolicyNetConfig(**r["net"]), r["variant"]["proprio"])
+                                     if planned else None)
         out.append(PolicySource(name=r["name"], kind="learned", task=r["task"], policy=policy, params=params, record=r))
     return out
 
@@ -298,9 +304,10 @@ def every_nth_checkpoint(records: list[dict], term: str, spec: str = "") -> list
     return [r for r in records if r["name"] in keep]
 
 
-def resolve(specs, world_model: bool = True) -> list[PolicySource]:
+def resolve(specs, world_model: bool = True, planned: bool = False) -> list[PolicySource]:
     """Every policy the specs name (see the module doc), names unique; world_model: whether they will
-    also run in a world model (load_plugin)."""
+    also run in a world model (load_plugin); planned: a zoo's checkpoints as its plan names them, with
+    stand-in parameters (load_registry_sources)."""
     out = []
     for spec in (s.strip() for s in specs):  # "a, b" on a command line leaves a space before b
         if not spec:
@@ -310,7 +317,7 @@ def resolve(specs, world_model: bool = True) -> list[PolicySource]:
             module = module_file.group(1).replace("/", ".").replace("\\", ".")
             raise ValueError(f"{spec!r} names a file: name a plug-in by its module, importable from the working "
                              f"directory, as {module}:{module_file.group(2)}")
-        out += [load_plugin(spec, world_model)] if is_plugin(spec) else load_registry_sources(spec)
+        out += [load_plugin(spec, world_model)] if is_plugin(spec) else load_registry_sources(spec, planned)
     names = [s.name for s in out]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
@@ -323,17 +330,20 @@ def resolve(specs, world_model: bool = True) -> list[PolicySource]:
     return out
 
 
-def load_registry(path: Path) -> list[dict]:
+def load_registry(path: Path, name: str = REGISTRY) -> list[dict]:
     """The registry's records, each with `checkpoint` made absolute and the zoo's `data` directory.
-    path: policies.json or its directory."""
+    path: the registry file or its directory (the file `name` there: REGISTRY, or PLAN)."""
     path = Path(path)
-    if path.is_dir():
-        path = path / "policies.json"
+    if path.is_dir() or path.suffix != ".json":
+        path = path / name
+    elif path.name in (REGISTRY, PLAN):
+        path = path.with_name(name)  # the zoo's other file of the two
     if not path.exists():
-        if _names_a_module(str(path).removesuffix("/policies.json")):
-            raise ValueError(f"{str(path).removesuffix('/policies.json')}: neither a zoo registry nor a plug-in (a "
+        if _names_a_module(str(path).removesuffix(f"/{name}")):
+            raise ValueError(f"{str(path).removesuffix(f'/{name}')}: neither a zoo registry nor a plug-in (a "
                              "plug-in is package.module:attribute, the attribute a callable returning (policy, params))")
-        raise FileNotFoundError(f"{path} is missing: train a zoo first (make policies)")
+        raise FileNotFoundError(f"{path} is missing: " + ("train a zoo first (make policies)" if name == REGISTRY else
+                                                          "the zoo has not started (it writes its plan first)"))
     registry = json.loads(path.read_text())
     records = registry["policies"]
     for r in records:
@@ -352,11 +362,11 @@ def _names_a_module(name: str) -> bool:
         return False
 
 
-def load_policy(record: dict) -> tuple:
+def load_policy(record: dict, params=None) -> tuple:
     """(policy, params) of one registry record: a BCPolicy, or for a family's record the
-    DegradedPolicy around it."""
+    DegradedPolicy around it; params: the network's parameters in place of its checkpoint's."""
     net = PolicyNetConfig(**record["net"])
-    params = load_params(Path(record["checkpoint"]))
+    params = load_params(Path(record["checkpoint"])) if params is None else params
     if record.get("degrade"):
         return DegradedPolicy(BCPolicy(net)), degrade_params(params, **record["degrade"])
     return BCPolicy(net), params

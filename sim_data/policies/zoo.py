@@ -12,7 +12,10 @@ runs from poor to good.
 Layout of OUT: `<task>/<lineage>/step-000123.msgpack` (parameters), `<task>/<lineage>/lineage.json`
 (written when the lineage is complete; a rerun skips complete lineages), `config.json`, and
 `policies.json`, the registry: one record per checkpoint {name, task, lineage, step, variant,
-val_loss, train_loss, checkpoint, net} (checkpoint relative to OUT).
+val_loss, train_loss, checkpoint, net} (checkpoint relative to OUT). `plan.json`, written before
+training, holds the registry the zoo will write, its losses not yet known and its checkpoints not yet
+saved: what a rollout needs to compile for the zoo's policies while they train (their names,
+networks and parameters' shapes; `sim_data.dataset.generate --warm`).
 
 The validation imitation loss of every checkpoint is measured on one fixed set per task: the
 val-split scripted demonstrations of skill 1.0 that succeeded, whatever the lineage was trained on.
@@ -52,6 +55,8 @@ from sim_data.policies.bc import (
 )
 from sim_data.policies.degrade import KNOBS, degrade_params
 from sim_data.policies.registry import (
+    PLAN,
+    REGISTRY,
     group_by_policy,
     heldout_seeds,
     load_registry_sources,
@@ -504,6 +509,7 @@ def train_zoo(cfg: ZooConfig, data: Path, out: Path, progress: bool = True,
             if not (out / t / lin.name / "lineage.json").exists()]
     val_eps = {t: _episodes(cache, t, "val", (1.0,), True, 0) or _episodes(cache, t, "train", (1.0,), True, 0)
                for t in cfg.tasks}
+    write_json_atomic(out / PLAN, {"data": str(Path(data)), "policies": planned_registry(cfg, cache)})
     for net in dict.fromkeys(cfg.net(lin) for _, lin in todo):
         same = [_job(cfg, cache, t, lin) for t, lin in todo if cfg.net(lin) == net]
         size = cfg.group or len(same)
@@ -520,8 +526,16 @@ def train_zoo(cfg: ZooConfig, data: Path, out: Path, progress: bool = True,
         return None
     registry = [r for t, lin in jobs for r in json.loads((out / t / lin.name / "lineage.json").read_text())]
     registry += family_records(cfg, registry)
-    write_json_atomic(out / "policies.json", {"data": str(Path(data)), "policies": registry})
+    write_json_atomic(out / REGISTRY, {"data": str(Path(data)), "policies": registry})
     return registry
+
+
+def planned_registry(cfg: ZooConfig, cache: TrainingCache) -> list[dict]:
+    """The registry train_zoo writes for cfg, before any training: the same records in the same
+    order, with no losses (None)."""
+    records = [_record(_job(cfg, cache, t, lin), step, cfg.net(lin), None, None)
+               for t, lin in cfg.lineage_jobs() for step in cfg.checkpoint_steps()]
+    return records + family_records(cfg, records)
 
 
 def family_records(cfg: ZooConfig, registry: list[dict]) -> list[dict]:
@@ -614,7 +628,7 @@ def main(argv=None) -> int:
     if registry is None:
         print(f"part {a.part} done; run without --part to write the registry", file=sys.stderr)
         return 0
-    print(f"{len(registry)} checkpoints in {time.perf_counter() - t0:.0f} s; registry {a.out / 'policies.json'}")
+    print(f"{len(registry)} checkpoints in {time.perf_counter() - t0:.0f} s; registry {a.out / REGISTRY}")
     if a.measure:
         t0 = time.perf_counter()
         report = measure_success(a.out, a.measure, engine=a.engine)
