@@ -38,6 +38,7 @@ from flax import serialization
 from tqdm import tqdm
 
 from sim_data.policies.bc import stacked
+from sim_data.policies.registry import padded_chunks as policy_chunks
 from sim_data.policies.registry import resolve, stack_key
 from sim_data.util import write_json_atomic
 from wm.checkpoint import run_file
@@ -169,9 +170,8 @@ def _closed_loop_features(cfg: ModelConfig, params, norm: Norm, cache, group, ca
     a few parameter sets, not one per episode (a policy that stacks in turn runs its sets one after
     another each step)."""
     slots, width = checkpoint_rows(group)
-    per_chunk = max(1, chunk_size(len(group)) // width)
     feats = {}
-    for k, (part, _) in enumerate(padded_slots(slots, per_chunk)):
+    for k, (_, part) in enumerate(policy_chunks(slots, width, chunk_size(len(group)))):
         rows = [i for _, ids in part for i in ids]
         eps = [cache.episode(i, cameras=[camera]) for i in rows]
         stacked_policy, policy_params = stacked(policy, [src.params for src, _ in part])
@@ -193,14 +193,6 @@ def checkpoint_rows(group) -> tuple[list, int]:
         by_source.setdefault(src.name, (src, []))[1].append(i)
     width = max(len(ids) for _, ids in by_source.values())
     return [(src, ids + [ids[-1]] * (width - len(ids))) for src, ids in by_source.values()], width
-
-
-def padded_slots(slots: list, per_chunk: int):
-    """(part, n) over slots in chunks of per_chunk, the last padded by repeating its last slot (one
-    batch shape, one compilation), its first n slots real."""
-    for start in range(0, len(slots), per_chunk):
-        part = slots[start:start + per_chunk]
-        yield part + [part[-1]] * (per_chunk - len(part)), len(part)
 
 
 def observe_episodes(cfg: ModelConfig, params, norm: Norm, cache, ids: list[int], camera: str,
