@@ -1601,8 +1601,16 @@ def test_the_judges_closed_loop_runs_each_checkpoints_episodes_as_one_slot_and_p
     monkeypatch.setattr(J, "closed_loop", fake_closed_loop)
     src = {n: PolicySource(f"mug/conv/{n}", "learned", "mug", object(), {"w": np.float32(n)}, {}) for n in (1, 2, 3)}
     group = [(10, src[1]), (11, src[2]), (12, src[1]), (13, src[3]), (14, src[1]), (15, src[3])]
-    assert J.checkpoint_rows(group) == ([(src[1], [10, 12, 14]), (src[2], [11, 11, 11]), (src[3], [13, 15, 15])], 3)
+    assert J.checkpoint_rows(group, 8) == ([(src[1], [10, 12, 14]), (src[2], [11, 11, 11]), (src[3], [13, 15, 15])], 3)
+    # a checkpoint of more episodes than a chunk: even slots of at most the chunk
+    assert J.checkpoint_rows(group, 2) == ([(src[1], [10, 12]), (src[1], [14, 14]), (src[2], [11, 11]),
+                                            (src[3], [13, 15])], 2)
     x = J._closed_loop_features(SimpleNamespace(action_dim=20), None, None, Cache(), group, "head_cam", 4, object(), 0)
     assert x.shape == (6, 4, 1)
     np.testing.assert_array_equal(x[:, 0, 0], [10001, 11002, 12001, 13003, 14001, 15003])
     assert calls == [(2, 6), (2, 6)]  # chunk_size(6) = 8 rows: two checkpoints of 3, the last chunk padded
+    many = [(20 + k, src[1]) for k in range(70)]  # on the CPU a chunk is 64 episodes: slots of 35, one a call
+    calls.clear()
+    x = J._closed_loop_features(SimpleNamespace(action_dim=20), None, None, Cache(), many, "head_cam", 4, object(), 0)
+    np.testing.assert_array_equal(x[:, 0, 0], [(20 + k) * 1000 + 1 for k in range(70)])
+    assert calls == [(1, 35), (1, 35)]

@@ -20,7 +20,7 @@ from sim_data.policies.bc import (
     stack_params,
     stacked,
 )
-from sim_data.policies.registry import every_nth_checkpoint, resolve, used_policies
+from sim_data.policies.registry import PLAN, every_nth_checkpoint, registry_file, resolve, used_policies
 from sim_data.sim import robot as R
 from sim_data.sim.env import HomeEnv
 from sim_data.sim.rollout import run_episodes
@@ -222,6 +222,15 @@ def test_bad_policy_specs_are_refused():
         resolve(["runs/no/such/zoo"])
     with pytest.raises(ValueError, match="repeat"):
         resolve(["examples.plugin_policy:make", "examples.plugin_policy:make"])
+
+
+def test_a_zoo_spec_names_its_registry_or_its_plan(tmp_path):
+    (tmp_path / "zoo").mkdir()
+    assert registry_file(tmp_path / "zoo") == tmp_path / "zoo" / "policies.json"
+    assert registry_file(tmp_path / "zoo", PLAN) == tmp_path / "zoo" / "plan.json"
+    assert registry_file(tmp_path / "zoo" / "policies.json", PLAN) == tmp_path / "zoo" / "plan.json"
+    assert registry_file(tmp_path / "not_yet", PLAN) == tmp_path / "not_yet" / "plan.json"  # a zoo not yet started
+    assert registry_file(tmp_path / "mine.json", PLAN) == tmp_path / "mine.json"
 
 
 def test_every_nth_checkpoint_thins_each_lineage_by_training_step():

@@ -40,7 +40,7 @@ from tqdm import tqdm
 from sim_data.policies.bc import stacked
 from sim_data.policies.registry import padded_chunks as policy_chunks
 from sim_data.policies.registry import resolve, stack_key
-from sim_data.util import write_json_atomic
+from sim_data.util import even_pieces, write_json_atomic
 from wm.checkpoint import run_file
 from wm.imagine import (
     Norm,
@@ -169,9 +169,10 @@ def _closed_loop_features(cfg: ModelConfig, params, norm: Norm, cache, group, ca
     episodes run side by side as one slot of a StackedPolicy (checkpoint_rows), so that a batch holds
     a few parameter sets, not one per episode (a policy that stacks in turn runs its sets one after
     another each step)."""
-    slots, width = checkpoint_rows(group)
+    chunk = chunk_size(len(group))
+    slots, width = checkpoint_rows(group, chunk)
     feats = {}
-    for k, (_, part) in enumerate(policy_chunks(slots, width, chunk_size(len(group)))):
+    for k, (_, part) in enumerate(policy_chunks(slots, width, chunk)):
         rows = [i for _, ids in part for i in ids]
         eps = [cache.episode(i, cameras=[camera]) for i in rows]
         stacked_policy, policy_params = stacked(policy, [src.params for src, _ in part])
@@ -184,15 +185,17 @@ def _closed_loop_features(cfg: ModelConfig, params, norm: Norm, cache, group, ca
     return np.stack([feats[i] for i, _ in group])
 
 
-def checkpoint_rows(group) -> tuple[list, int]:
-    """group [(cache id, PolicySource)] as ([(source, cache ids)] one slot per checkpoint in order of
-    first appearance, each padded to `width` ids by repeating its last, width): the most episodes
-    of one checkpoint."""
+def checkpoint_rows(group, most: int) -> tuple[list, int]:
+    """group [(cache id, PolicySource)] as ([(source, cache ids)], width): a slot per checkpoint in
+    order of first appearance, one of more than `most` episodes cut into even slots of at most `most`,
+    each slot padded to `width` ids (the most of any slot) by repeating its last. Checkpoints of very
+    unequal counts pad the smaller ones far (the datasets' rollouts give each the same count)."""
     by_source: dict = {}
     for i, src in group:
         by_source.setdefault(src.name, (src, []))[1].append(i)
-    width = max(len(ids) for _, ids in by_source.values())
-    return [(src, ids + [ids[-1]] * (width - len(ids))) for src, ids in by_source.values()], width
+    slots = [(src, piece) for src, ids in by_source.values() for piece in even_pieces(ids, most)[0]]
+    width = max(len(ids) for _, ids in slots)
+    return [(src, ids + [ids[-1]] * (width - len(ids))) for src, ids in slots], width
 
 
 def observe_episodes(cfg: ModelConfig, params, norm: Norm, cache, ids: list[int], camera: str,

@@ -41,7 +41,15 @@ from sim_data.dataset.episodes import (  # noqa: F401 (re-exported)
 from sim_data.parts import add_part_argument, config_and_part, exclusive, take
 from sim_data.policies.bc import stacked
 from sim_data.policies.degrade import GOLDEN, perturbation
-from sim_data.policies.registry import PERTURBED, PLAN, PolicySource, is_plugin, perturbed_copy, stack_key
+from sim_data.policies.registry import (
+    PERTURBED,
+    PLAN,
+    PolicySource,
+    is_plugin,
+    perturbed_copy,
+    registry_file,
+    stack_key,
+)
 from sim_data.policies.registry import resolve as resolve_sources
 from sim_data.policies.scripted import (
     PROGRAMS,
@@ -184,7 +192,7 @@ PRESETS = {
     # batch 960: per task 1x960 scripted, 1x368 program+play padded to 960 (one compiled rollout for both),
     # and the pipeline's rollouts (24 checkpoints x 32 episodes) padded to 960 (learned_slots): one batch
     # size, so that the programs that do not depend on the policy compile once; an H200 simulates 960
-    # rows a step in about 1.2 times the time of 480 (docs/benchmarks.md)
+    # scripted rows a step in about 1.2 times the time of 480 (docs/benchmarks.md)
     "wm_full": DataConfig(tasks=("mug", "wipe", "airfryer"), skills=(0.0, 0.5, 0.75, 1.0), episodes=240, batch=960,
                           cameras=("head_cam",), workers=14, programs=32, play=240),
     # wm_full with 112 weak-grip episodes a task, in the rows of its program and play chunk (480 of
@@ -583,12 +591,14 @@ def warm(cfg: DataConfig, wait_s: float = 0.0, progress: bool = True) -> None:
     persistent compilation cache holds the programs that generate then loads. A zoo's policies need
     only be planned (its plan.json, written before it trains: sim_data.policies.zoo): they run with
     stand-in parameters of their checkpoints' shapes, so the warm-up runs beside the zoo's training.
-    wait_s: how long to wait for each zoo's plan. Writes nothing but the cache."""
+    Not warmed: on the `mjx` engine the joining of an episode's segments (`_recording_of`, a program
+    per episode length, about a second each). wait_s: how long to wait for each zoo's plan. Writes
+    nothing but the cache."""
     cfg.validate()
-    zoos = [Path(spec.partition("#")[0]) for spec in (*cfg.policies, *cfg.perturbed) if not is_plugin(spec)]
+    specs = [s.strip() for s in (*cfg.policies, *cfg.perturbed)]
+    plans = [registry_file(s.partition("#")[0], PLAN) for s in specs if s and not is_plugin(s)]
     deadline = time.monotonic() + wait_s
-    for zoo in zoos:
-        plan = zoo / PLAN if zoo.suffix != ".json" else zoo.with_name(PLAN)
+    for plan in plans:
         if not plan.exists() and wait_s:
             print(f"waiting up to {wait_s:.0f} s for {plan}", file=sys.stderr, flush=True)
         while not plan.exists() and time.monotonic() < deadline:

@@ -330,14 +330,20 @@ def resolve(specs, world_model: bool = True, planned: bool = False) -> list[Poli
     return out
 
 
-def load_registry(path: Path, name: str = REGISTRY) -> list[dict]:
-    """The registry's records, each with `checkpoint` made absolute and the zoo's `data` directory.
-    path: the registry file or its directory (the file `name` there: REGISTRY, or PLAN)."""
+def registry_file(path, name: str = REGISTRY) -> Path:
+    """The file a zoo spec's path names: a directory's (or a path without `.json`'s) file `name`
+    (REGISTRY, or PLAN); the zoo's other file of the two where the path names one of them; else the
+    path itself."""
     path = Path(path)
     if path.is_dir() or path.suffix != ".json":
-        path = path / name
-    elif path.name in (REGISTRY, PLAN):
-        path = path.with_name(name)  # the zoo's other file of the two
+        return path / name
+    return path.with_name(name) if path.name in (REGISTRY, PLAN) else path
+
+
+def load_registry(path: Path, name: str = REGISTRY) -> list[dict]:
+    """The registry's records, each with `checkpoint` made absolute and the zoo's `data` directory.
+    path: the registry file or its directory (registry_file: the file `name` there, REGISTRY or PLAN)."""
+    path = registry_file(path, name)
     if not path.exists():
         if _names_a_module(str(path).removesuffix(f"/{name}")):
             raise ValueError(f"{str(path).removesuffix(f'/{name}')}: neither a zoo registry nor a plug-in (a "
