@@ -3,6 +3,10 @@
 import dataclasses
 import functools
 import json
+import os
+import subprocess
+import sys
+import textwrap
 
 import jax
 import jax.numpy as jnp
@@ -466,3 +470,45 @@ def test_the_rollouts_warm_up_runs_the_zoos_planned_policies_as_the_rollouts_the
     assert len(list((tmp_path / "rolled" / "episodes").glob("mug-lmug_conv_proprio_*.mcap"))) == 6
     with pytest.raises(FileNotFoundError, match="plan.json is missing"):
         G.warm(G.make_config("smoke", [f"policies={tmp_path / 'none'}#conv_proprio"]), progress=False)
+
+
+_ROLLOUTS_IN_A_PROCESS = textwrap.dedent("""
+    import json, sys
+    import jax
+    jax.config.update("jax_compilation_cache_dir", sys.argv[1])
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    from experiments.timing import compile_snapshot
+    from sim_data.dataset import generate as G
+    cfg = G.make_config("smoke", sys.argv[3:])
+    before = compile_snapshot()
+    if sys.argv[2] == "warm":
+        G.warm(cfg, progress=False)
+    else:  # the rollouts' learned chunks as generate simulates them
+        for chunk in G._plan(cfg, G.learned_sources(cfg)):
+            if not isinstance(chunk.key, str):
+                G.simulate_chunk(cfg, chunk, cfg.engine)
+    after = compile_snapshot()
+    print(json.dumps({k: after[k] - before[k] for k in ("cache_lookups", "cache_hits")}))
+""")
+
+
+@pytest.mark.slow  # MJX on the CPU: minutes of compiling
+def test_the_rollouts_warm_up_fills_the_persistent_cache_that_a_later_process_loads_on_mjx(smoke_zoo, tmp_path):
+    """As the pipeline runs them: the warm-up in one process, the rollouts in another, one persistent
+    compilation cache, the `mjx` engine. The rollouts compile nothing but the joining of an
+    episode's segments (`_recording_of`, a program per episode length: the warm-up runs two segments)."""
+    zoo_dir, _ = smoke_zoo
+    script = tmp_path / "rollouts.py"
+    script.write_text(_ROLLOUTS_IN_A_PROCESS)
+    overrides = [f"policies={zoo_dir}#conv_proprio", "policy_episodes=2", "engine=mjx"]
+
+    def run(mode) -> dict:
+        out = subprocess.run([sys.executable, str(script), str(tmp_path / "cache"), mode, *overrides], check=True,
+                             capture_output=True, text=True, cwd=os.getcwd())
+        return json.loads(out.stdout.strip().splitlines()[-1])
+
+    warmed = run("warm")
+    assert warmed["cache_lookups"] > warmed["cache_hits"]  # compiled there
+    rolled = run("rollouts")
+    assert rolled["cache_lookups"] - rolled["cache_hits"] <= 1, rolled
