@@ -1,6 +1,7 @@
 """The training cache (built from MCAP alone, resumable, corrupt files named or skipped and listed),
 the window loader (contents, epochs, resumable state) and replay."""
 
+import os
 import shutil
 
 import numpy as np
@@ -149,3 +150,35 @@ def test_replay_reproduces_recorded_episodes(smoke_dataset):
     s = summarize(results)
     assert s["episodes"] == len(files) and s["outcome_agreement"] == 1.0 and s["mean_flags_agree"] == 1.0
     assert s["max_initial_state_error"] == 0.0  # the cpu engine replays bit for bit
+
+
+def test_a_cache_built_beside_a_reused_dataset_copies_its_rows_byte_for_byte(two_shards, tmp_path):
+    """A dataset that links episodes of another (generate --reuse) copies their rows from the other's
+    built cache: the same shards, byte for byte, as decoding its files; a file that is not the same
+    file (a copy, not a link) is decoded."""
+    files = sorted((two_shards / "episodes").glob("*.mcap"))
+    mixed = tmp_path / "mixed"
+    (mixed / "episodes").mkdir(parents=True)
+    for f in files[:-1]:
+        os.link(f, mixed / "episodes" / f.name)
+    shutil.copyfile(files[-1], mixed / "episodes" / files[-1].name)  # the same bytes, another file
+    assert set(C.reused_rows(two_shards, sorted((mixed / "episodes").glob("*.mcap")), ["head_cam"])) == \
+        {f.name for f in files[:-1]}
+    C.build_cache(mixed, shard_episodes=3, workers=1, progress=False, reuse=two_shards)
+    got = sorted(p.relative_to(mixed / "cache") for p in (mixed / "cache").rglob("*") if p.is_file())
+    assert got == sorted(p.relative_to(two_shards / "cache") for p in (two_shards / "cache").rglob("*") if p.is_file())
+    for rel in got:  # the decoded file's rows too: the shards the reused dataset decoded
+        assert (mixed / "cache" / rel).read_bytes() == (two_shards / "cache" / rel).read_bytes(), rel
+    # the rows come from the reused cache: altered there, they are altered here (every file linked)
+    altered = tmp_path / "altered"
+    shutil.copytree(two_shards / "cache", altered / "cache")
+    (altered / "episodes").mkdir()
+    for f in files:
+        os.link(f, altered / "episodes" / f.name)
+    proprio = np.load(altered / "cache" / "shard-00000" / "proprio.npy")
+    np.save(altered / "cache" / "shard-00000" / "proprio.npy", proprio + 1)
+    (mixed / "episodes" / files[-1].name).unlink()
+    os.link(files[-1], mixed / "episodes" / files[-1].name)
+    C.rebuild_cache(mixed, shard_episodes=3, workers=1, progress=False, reuse=altered)
+    np.testing.assert_array_equal(np.load(mixed / "cache" / "shard-00000" / "proprio.npy"), proprio + 1)
+    assert C.reused_rows(tmp_path / "none", files, ["head_cam"]) == {}  # no built cache there

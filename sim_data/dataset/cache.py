@@ -14,7 +14,9 @@ last frame), `success.npy` (N,) bool, `progress.npy` (N,) float32 (task progress
 qpos and mocap positions) and `episodes.json`; N counts frames (T+1 per episode).
 `index.json`, written last, lists shards, episodes (with shard, start, length) and skipped
 files. Shards are written under a temporary name and renamed when whole, so a killed build
-resumes; the same MCAP files give the same bytes.
+resumes; the same MCAP files give the same bytes. A dataset that links another's episodes
+(`generate --reuse`) copies their rows from the other's built cache (`build_cache(reuse=...)`), the
+same bytes without decoding them again.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from __future__ import annotations
 import argparse
 import collections
 import concurrent.futures as cf
+import contextlib
 import functools
 import hashlib
 import json
@@ -106,7 +109,7 @@ def _write_shard(root: Path, name: str, decoded: list, cameras) -> dict:
 
 
 def build_cache(out: Path, skip_corrupt: bool = False, workers: int | None = None, shard_episodes: int = 64,
-                cameras=None, progress: bool = True) -> dict:
+                cameras=None, progress: bool = True, reuse: Path | None = None) -> dict:
     """Builds (or finishes) OUT/cache from OUT/episodes/*.mcap; returns the index written to index.json.
 
     Args:
@@ -116,6 +119,9 @@ def build_cache(out: Path, skip_corrupt: bool = False, workers: int | None = Non
       workers: decoding processes (default: the CPU count, at most 16).
       shard_episodes: episodes per shard.
       cameras: cameras to cache (default: those of the first episode).
+      reuse: a dataset whose built cache holds some of these episodes, from the same files (hard
+        links: `generate --reuse`): their rows are copied from it instead of decoded again, the
+        shards byte for byte those a decoding gives (reused_rows).
     """
     files = episode_files(out)
     root = cache_dir(out)
@@ -135,14 +141,21 @@ def build_cache(out: Path, skip_corrupt: bool = False, workers: int | None = Non
     todo = [(n, g) for n, g in zip(names, groups) if not (root / n / "episodes.json").exists()]
     bar = tqdm(total=sum(len(g) for _, g in todo), unit="ep", desc="cache", disable=not progress or not todo)
     workers = workers or min(16, os.cpu_count() or 1)
-    with cf.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-        submitted = [[pool.submit(_decode, f, cameras) for f in g] for _, g in todo[:2]]
+    copied = reused_rows(reuse, files, cameras) if reuse is not None else {}
+    decoding = any(f.name not in copied for _, g in todo for f in g)
+    pool = cf.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) if decoding else None
+
+    def start(group):  # a decoding for each file, or the reused cache's rows
+        return [copied[f.name] if f.name in copied else pool.submit(_decode, f, cameras) for f in group]
+
+    with pool or contextlib.nullcontext():
+        submitted = [start(g) for _, g in todo[:2]]
         for k, (name, group) in enumerate(todo):
             if k + 2 < len(todo):  # keep the next shards decoding while this one is written
-                submitted.append([pool.submit(_decode, f, cameras) for f in todo[k + 2][1]])
+                submitted.append(start(todo[k + 2][1]))
             decoded = []
             for f, fut in zip(group, submitted[k]):
-                d = fut.result()
+                d = fut.result() if isinstance(fut, cf.Future) else _copy_rows(*fut, cameras)
                 if "error" in d:
                     if not skip_corrupt:
                         pool.shutdown(cancel_futures=True)
@@ -158,6 +171,34 @@ def build_cache(out: Path, skip_corrupt: bool = False, workers: int | None = Non
     for s in index["skipped"]:
         print(f"skipped {s['file']}: {s['error']}", file=sys.stderr)
     return index
+
+
+def reused_rows(reuse: Path, files: list[Path], cameras) -> dict:
+    """{file name: (TrainingCache of reuse, episode index)} for each of `files` that is the same file
+    (a hard link) as an episode of reuse's built cache, where that cache holds `cameras`; {} where reuse
+    has no built cache of this format."""
+    try:
+        cache = TrainingCache(reuse)
+    except (FileNotFoundError, ValueError):
+        return {}
+    if not set(cameras) <= set(cache.cameras):
+        return {}
+    held = {Path(e["file"]).name: i for i, e in enumerate(cache.episodes)}
+    out = {}
+    for f in files:
+        i = held.get(f.name)
+        other = Path(reuse) / "episodes" / f.name
+        if i is not None and other.exists() and os.path.samefile(f, other):
+            out[f.name] = (cache, i)
+    return out
+
+
+def _copy_rows(cache: TrainingCache, i: int, cameras) -> dict:
+    """Episode i of a built cache as _decode gives it from its file."""
+    e, ep = cache.episodes[i], cache.episode(i, cameras)
+    rec = {k: e.get(k) for k in EPISODE_KEYS}
+    rec.update(file=e["file"], length=e["length"])
+    return {"record": rec, "frames": ep["frames"], **{k: ep[k] for k in ARRAYS}}
 
 
 def _cameras_of(files, skip_corrupt) -> list:

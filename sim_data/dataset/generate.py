@@ -555,7 +555,7 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True, reuse: Path | No
     stats = _stats(manifest, throughput)
     if cfg.cache:
         t1 = time.perf_counter()
-        index = build_cache(out, workers=cfg.workers, progress=progress)
+        index = build_cache(out, workers=cfg.workers, progress=progress, reuse=reuse)
         stats["throughput"].update(cache_s=time.perf_counter() - t1, cache_frames=index["frames"])
     write_json_atomic(out / "stats.json", stats)
     return stats
