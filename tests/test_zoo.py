@@ -436,13 +436,11 @@ def test_random_shift_crops_the_edge_padded_image():
 
 
 @pytest.mark.slow  # what only the GPU chain uses (pipeline --warm-rollouts)
-def test_the_rollouts_warm_up_runs_the_zoos_planned_policies_as_the_rollouts_then_run_them(smoke_dataset, smoke_zoo,
-                                                                                           tmp_path):
+def test_the_rollouts_warm_up_runs_the_zoos_planned_policies_as_the_rollouts_then_run_them(smoke_zoo, tmp_path):
     """The zoo writes its plan before training: the registry it then writes, less the losses. The
     rollouts' warm-up runs the plan's checkpoints with stand-in parameters (the shapes, dtypes and
     placement of the saved ones), so the rollouts that follow compile none of the policy's programs
-    again (a shape no other test runs: 3 episodes a checkpoint). It writes no episode."""
-    _, data, _ = smoke_dataset
+    again (in one process here; across processes on the mjx engine below). It writes no episode."""
     zoo_dir, registry = smoke_zoo
     plan = json.loads((zoo_dir / "plan.json").read_text())["policies"]
     assert [(r["name"], r["net"], r["checkpoint"]) for r in plan] == \
@@ -455,7 +453,10 @@ def test_the_rollouts_warm_up_runs_the_zoos_planned_policies_as_the_rollouts_the
     assert signature(planned[0].params) == signature(real[0].params)
     np.testing.assert_array_equal(planned[0].params["norm"]["action_std"], 1.0)  # stand-ins, not the checkpoint
 
-    cfg = G.make_config("smoke", [f"policies={zoo_dir}#conv_proprio", "policy_episodes=3"])
+    # a chunk of 2 checkpoints x 3 episodes, a stack no other test runs
+    cfg = G.make_config("smoke", [f"policies={zoo_dir}#conv_proprio", "policy_episodes=3", "batch=6"])
+    learned = [c for c in G._plan(cfg, G.learned_sources(cfg)) if not isinstance(c.key, str)]
+    assert [len(c.rows(padded=False)) for c in learned] == [6]
 
     def compiled(step) -> set:  # the programs `step` compiled
         before = compile_snapshot()
@@ -463,11 +464,10 @@ def test_the_rollouts_warm_up_runs_the_zoos_planned_policies_as_the_rollouts_the
         return {name for name, (count, _) in compile_snapshot()["by_program"].items()
                 if count > before["by_program"].get(name, (0, 0.0))[0]}
 
-    assert "act" in compiled(lambda: G.warm(cfg, progress=False))  # a new stack of 2 x 3 rows: compiled here
-    assert not (tmp_path / "rolled").exists()
-    rolled = compiled(lambda: G.generate(cfg, tmp_path / "rolled", progress=False, reuse=data))
+    assert "act" in compiled(lambda: G.warm(cfg, progress=False))  # compiled here
+    assert list(tmp_path.iterdir()) == []
+    rolled = compiled(lambda: G.simulate_chunk(cfg, learned[0], "cpu"))  # the rollouts as generate runs them
     assert not rolled & {"act", "init_carry", "observe"}
-    assert len(list((tmp_path / "rolled" / "episodes").glob("mug-lmug_conv_proprio_*.mcap"))) == 6
     with pytest.raises(FileNotFoundError, match="plan.json is missing"):
         G.warm(G.make_config("smoke", [f"policies={tmp_path / 'none'}#conv_proprio"]), progress=False)
 
