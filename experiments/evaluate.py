@@ -81,9 +81,9 @@ from sim_data.policies.registry import (
 from sim_data.policies.scripted import ProgramPolicy
 from sim_data.sim import robot as R
 from sim_data.sim.engines import ENGINES, PHYSICS_REVISION, default_engine
-from sim_data.sim.rollout import SEGMENT, record_policies
+from sim_data.sim.rollout import SEGMENT, WARM_STEPS, record_policies  # noqa: F401 (SEGMENT re-exported)
 from sim_data.sim.tasks import TASK_NAMES
-from sim_data.util import device_name, hash_arrays, make_output_dir, run_cli, write_json_atomic
+from sim_data.util import device_name, hash_arrays, make_output_dir, run_cli, wait_for_files, write_json_atomic
 from wm.checkpoint import (
     load_run_config,
     load_started,
@@ -888,7 +888,6 @@ def decision_analysis(cfg: EvalConfig, tasks: dict, alignment: float, most: int 
 
 # ---- compiling ahead -----------------------------------------------------------------------------
 
-WARM_STEPS = 2 * SEGMENT  # a first segment and a later one: every per-segment program of an episode
 WARM_START_WAIT_S = 900.0  # how long `--warm` waits for its world models' training to start
 
 
@@ -906,13 +905,8 @@ def warm(cfg: EvalConfig, progress: bool = True, wait_s: float = 0.0) -> None:
     segments (`_recording_of`, a program per episode length; about a second to compile). Writes
     nothing but the cache."""
     cfg.validate()
-    deadline = time.monotonic() + wait_s
-    for run in cfg.wm_runs:
-        started = lambda: all((Path(run) / f).exists() for f in ("config.json", "norm.json"))  # noqa: E731
-        if not started() and wait_s:
-            print(f"waiting up to {wait_s:.0f} s for {run} to start training", file=sys.stderr, flush=True)
-        while not started() and time.monotonic() < deadline:
-            time.sleep(2.0)
+    wait_for_files([Path(run) / f for run in cfg.wm_runs for f in ("config.json", "norm.json")], wait_s,
+                   f"{', '.join(map(str, cfg.wm_runs))} to start training")
     # which read-out ranks changes no compiled program ("auto" needs the judges, fit after training)
     cfg = dataclasses.replace(cfg, readout=READOUTS[0]) if cfg.readout == AUTO else cfg
     sources = resolve(cfg.policies)

@@ -7,6 +7,7 @@ import functools
 import json
 import os
 import sys
+import time
 from pathlib import Path
 
 import jax
@@ -171,3 +172,16 @@ def even_pieces(items: list, most: int) -> tuple[list, int]:
     count = -(-len(items) // most)
     size = -(-len(items) // count)
     return [items[k:k + size] for k in range(0, len(items), size)], size
+
+
+def wait_for_files(paths, wait_s: float, what: str) -> None:
+    """Waits up to wait_s seconds (0: not at all) for every one of paths to exist, polling every 2 s,
+    saying once on stderr that it waits for `what`; returns at the deadline whatever is missing (the
+    caller's reading of them then says what is)."""
+    paths = [Path(p) for p in paths]
+    if not wait_s or all(p.exists() for p in paths):
+        return
+    print(f"waiting up to {wait_s:.0f} s for {what}", file=sys.stderr, flush=True)
+    deadline = time.monotonic() + wait_s
+    while not all(p.exists() for p in paths) and time.monotonic() < deadline:
+        time.sleep(2.0)

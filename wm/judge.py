@@ -174,10 +174,11 @@ def _closed_loop_features(cfg: ModelConfig, params, norm: Norm, cache, group, ca
     feats = {}
     for k, (_, part) in enumerate(policy_chunks(slots, width, chunk)):
         rows = [i for _, ids in part for i in ids]
-        eps = [cache.episode(i, cameras=[camera]) for i in rows]
+        eps = {i: cache.episode(i, cameras=[camera]) for i in dict.fromkeys(rows)}  # a padding row reads none
         stacked_policy, policy_params = stacked(policy, [src.params for src, _ in part])
         got = closed_loop(cfg, stacked_policy, horizon, params, norm, policy_params,
-                          np.stack([ep["frames"][camera][:1] for ep in eps]), np.stack([ep["proprio"][:1] for ep in eps]),
+                          np.stack([eps[i]["frames"][camera][:1] for i in rows]),
+                          np.stack([eps[i]["proprio"][:1] for i in rows]),
                           np.zeros((len(rows), 0, cfg.action_dim), np.float32), jax.random.PRNGKey(seed + k))
         x = np.asarray(got["features"])
         for row, i in enumerate(rows):

@@ -80,9 +80,7 @@ def _decode(path: Path, cameras) -> dict:
         return {"error": f"{path}: no camera {missing} (the dataset's other files have it)"}
     action = np.zeros((n, ep["action"].shape[1]), np.float32)
     action[: n - 1] = ep["action"]
-    rec = {k: ep["meta"].get(k) for k in EPISODE_KEYS}
-    rec.update(file=f"episodes/{path.name}", length=n)
-    return {"record": rec, "frames": ep["frames"], "proprio": ep["proprio"], "action": action, "success": ep["success"],
+    return {"record": _record(ep["meta"], f"episodes/{path.name}", n), "frames": ep["frames"], "proprio": ep["proprio"], "action": action, "success": ep["success"],
             "progress": ep["progress"], "scene": scene}
 
 
@@ -193,12 +191,16 @@ def reused_rows(reuse: Path, files: list[Path], cameras) -> dict:
     return out
 
 
+def _record(fields: dict, file: str, length: int) -> dict:
+    """An episode's index record: its EPISODE_KEYS from fields (the file's metadata, or a cache's
+    record), its file (relative to the dataset) and its length in frames."""
+    return {**{k: fields.get(k) for k in EPISODE_KEYS}, "file": file, "length": length}
+
+
 def _copy_rows(cache: TrainingCache, i: int, cameras) -> dict:
     """Episode i of a built cache as _decode gives it from its file."""
     e, ep = cache.episodes[i], cache.episode(i, cameras)
-    rec = {k: e.get(k) for k in EPISODE_KEYS}
-    rec.update(file=e["file"], length=e["length"])
-    return {"record": rec, "frames": ep["frames"], **{k: ep[k] for k in ARRAYS}}
+    return {"record": _record(e, e["file"], e["length"]), "frames": ep["frames"], **{k: ep[k] for k in ARRAYS}}
 
 
 def _cameras_of(files, skip_corrupt) -> list:

@@ -64,7 +64,7 @@ from sim_data.sim.engines import ENGINES, default_engine
 from sim_data.sim.env import HomeEnv
 from sim_data.sim.render import RenderConfig, Renderer
 from sim_data.sim.robot import ACTION_DIM, FORWARD_SPEED
-from sim_data.sim.rollout import SEGMENT, record_episodes
+from sim_data.sim.rollout import WARM_STEPS, record_episodes
 from sim_data.sim.scene import load_model
 from sim_data.sim.tasks import CONTROL_DT, MAX_EPISODE_STEPS, TASK_NAMES
 from sim_data.util import (
@@ -72,6 +72,7 @@ from sim_data.util import (
     even_pieces,
     make_output_dir,
     run_cli,
+    wait_for_files,
     wilson_interval,
     write_json_atomic,
 )
@@ -582,7 +583,6 @@ def _submit_episodes(pool, cfg: DataConfig, out: Path, task: str, rows: list, re
 
 
 WARM_WAIT_S = 900  # for a zoo's plan, which it writes before training
-WARM_STEPS = 2 * SEGMENT  # a first segment and a later one: every per-segment program of an episode
 
 
 def warm(cfg: DataConfig, wait_s: float = 0.0, progress: bool = True) -> None:
@@ -597,12 +597,7 @@ def warm(cfg: DataConfig, wait_s: float = 0.0, progress: bool = True) -> None:
     cfg.validate()
     specs = [s.strip() for s in (*cfg.policies, *cfg.perturbed)]
     plans = [registry_file(s.partition("#")[0], PLAN) for s in specs if s and not is_plugin(s)]
-    deadline = time.monotonic() + wait_s
-    for plan in plans:
-        if not plan.exists() and wait_s:
-            print(f"waiting up to {wait_s:.0f} s for {plan}", file=sys.stderr, flush=True)
-        while not plan.exists() and time.monotonic() < deadline:
-            time.sleep(2.0)
+    wait_for_files(plans, wait_s, ", ".join(map(str, plans)))
     engine = cfg.engine or default_engine()
     learned = learned_sources(cfg, planned=True)
     t0, seen = time.perf_counter(), set()

@@ -161,10 +161,12 @@ def init_params(cfg: PolicyNetConfig, rng, norm: dict, use_proprio: bool) -> dic
             "proprio_gate": jnp.asarray(1.0 if use_proprio else 0.0, jnp.float32)}
 
 
+@functools.lru_cache(maxsize=16)
 def stand_in_params(cfg: PolicyNetConfig, use_proprio: bool) -> dict:
     """Parameters of the shapes, dtypes and placement of a saved checkpoint's (load_params), before any
     is saved: freshly initialised, with a unit normalisation. A program compiled for them is the
-    checkpoint's program."""
+    checkpoint's program. One set per network and proprioception (every planned checkpoint of a
+    lineage shares it: the arrays are never changed in place)."""
     norm = {"proprio_mean": np.zeros(R.PROPRIO_DIM), "proprio_std": np.ones(R.PROPRIO_DIM),
             "action_mean": np.zeros(R.ACTION_DIM), "action_std": np.ones(R.ACTION_DIM)}
     fresh = init_params(cfg, jax.random.PRNGKey(0), norm, use_proprio)

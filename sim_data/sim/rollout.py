@@ -22,6 +22,7 @@ from sim_data.sim.render import Poses, Renderer, episode_rgb, poses_from_arrays
 from sim_data.sim.tasks import EPISODE_STEPS
 
 SEGMENT = 20  # control steps per compiled scan: every task's episode_steps is a multiple
+WARM_STEPS = 2 * SEGMENT  # what a warm-up runs: a first segment and a later one, every per-segment program
 assert not (EPISODE_STEPS % SEGMENT).any(), "an episode must be whole segments"
 
 
