@@ -1573,13 +1573,40 @@ def test_the_warm_up_validates_with_the_state_its_step_returned(smoke_dataset, t
     assert run._val_batches  # the validation loss ran
 
 
-def test_imagination_chunks_are_the_devices_batch_or_the_next_power_of_two(monkeypatch):
-    assert [I.chunk_size(n) for n in (1, 3, 64, 65, 5000)] == [1, 4, 64, 64, 64]  # the CPU's
-    monkeypatch.setattr(I.jax, "default_backend", lambda: "gpu")
-    assert [I.chunk_size(n) for n in (3, 64, 300, 512, 5000)] == [4, 64, 512, 512, 512]
-    parts = list(I.padded_chunks(list(range(600))))
-    assert [(s, len(p), n) for s, p, n in parts] == [(0, 512, 512), (512, 512, 88)]
-    assert parts[1][1][-1] == 599 and parts[1][1][88:] == [599] * 424
+@pytest.mark.slow  # what only the GPU chain uses (pipeline --warm-eval)
+def test_the_after_training_warm_up_runs_the_programs_the_finished_run_then_runs(smoke_dataset, tmp_path):
+    """warm_after_training, given a started run's configuration and normalisation, runs the programs
+    that the run runs once trained (its judge's imaginations and fit, eval.json) with parameters of
+    zeros: the run that then trains compiles none of them again (a model width no other test trains,
+    so that every program is new here)."""
+    from experiments.timing import compile_snapshot
+    from wm.train import warm_after_training
+
+    _, data, _ = smoke_dataset
+    args = ["steps=2", "model.dim=24", "judge_episodes=2", "judge_steps=3"]
+    run = Run(make_config("smoke", args), data, tmp_path / "run")  # config.json and norm.json, as training starts
+    run.loader.close()
+
+    def compiled(step) -> set:  # the programs `step` compiled
+        before = compile_snapshot()
+        step()
+        return {name for name, (count, _) in compile_snapshot()["by_program"].items()
+                if count > before["by_program"].get(name, (0, 0.0))[0]}
+
+    after = {"init_state", "_open_loop_segment", "_teacher_forced_pair"}
+    assert after <= compiled(lambda: warm_after_training(run.cfg, data, run.norm))
+    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == ["best", "checkpoints", "config.json", "norm.json"]
+    trained = compiled(lambda: train_main(["--config", "smoke", "--data", str(data), "--out", str(tmp_path / "run"),
+                                           *args]))
+    assert (tmp_path / "run" / "eval.json").exists() and "train_step" in trained
+    assert not trained & (after | {"_closed_loop_start", "_closed_loop_segment", "_update", "_judge_loss", "_probability"})
+
+
+def test_imagination_chunks_are_64_or_the_next_power_of_two():
+    assert [I.chunk_size(n) for n in (1, 3, 64, 65, 5000)] == [1, 4, 64, 64, 64]
+    parts = list(I.padded_chunks(list(range(150))))
+    assert [(s, len(p), n) for s, p, n in parts] == [(0, 64, 64), (64, 64, 64), (128, 64, 22)]
+    assert parts[2][1][-1] == 149 and parts[2][1][22:] == [149] * 42
 
 
 def test_the_judges_closed_loop_runs_each_checkpoints_episodes_as_one_slot_and_puts_rows_back(monkeypatch):
