@@ -106,6 +106,7 @@ from wm.imagine import (
 from wm.judge import check_features, load_judge
 from wm.metrics import psnr
 from wm.model import IMAGINE_MODES
+from wm.train import warm_after_training
 
 CAMERA = "head_cam"
 # Per-step arrays (P, N, T) saved with each task: imagined success and progress, the simulator's progress
@@ -891,7 +892,7 @@ def decision_analysis(cfg: EvalConfig, tasks: dict, alignment: float, most: int 
 WARM_START_WAIT_S = 900.0  # how long `--warm` waits for its world models' training to start
 
 
-def warm(cfg: EvalConfig, progress: bool = True, wait_s: float = 0.0) -> None:
+def warm(cfg: EvalConfig, progress: bool = True, wait_s: float = 0.0, after_training: bool = False) -> None:
     """Runs the evaluation's compiled programs once each, so that JAX's persistent compilation cache
     holds them for the evaluation of cfg, which then loads them instead of compiling: on every task,
     each batch of policies of the first slice of states (the evaluation's policies, states and batch
@@ -902,7 +903,9 @@ def warm(cfg: EvalConfig, progress: bool = True, wait_s: float = 0.0) -> None:
     their training; wait_s: how long to wait for each run's config.json and norm.json. Not warmed:
     the episode judge's reading (the judge is fit after training), with cfg.replay the simulation of
     the imagined actions (whole episodes), and on the `mjx` engine the joining of an episode's
-    segments (`_recording_of`, a program per episode length; about a second to compile). Writes
+    segments (`_recording_of`, a program per episode length; about a second to compile).
+    after_training: first the programs that the first world model's training runs once it has
+    trained (wm.train.warm_after_training: its judge's fit, eval.json), which it needs sooner. Writes
     nothing but the cache."""
     cfg.validate()
     wait_for_files([Path(run) / f for run in cfg.wm_runs for f in ("config.json", "norm.json")], wait_s,
@@ -915,6 +918,12 @@ def warm(cfg: EvalConfig, progress: bool = True, wait_s: float = 0.0) -> None:
     for run in cfg.wm_runs:
         wm_cfg, params, norm = load_started(Path(run))
         models.append((with_imagine(wm_cfg, cfg.imagine), params, norm, None))
+    t0 = time.perf_counter()
+    if after_training:
+        train_cfg, train_data = load_run_config(Path(cfg.wm_runs[0]))
+        warm_after_training(train_cfg, train_data, models[0][2])
+        print(f"the programs after the world model's training ran once in {time.perf_counter() - t0:.0f} s",
+              file=sys.stderr)
     used = seeds_in_use(cfg, sources)
     engine = cfg.engine or default_engine()
     renderer = cached_renderers(models[0][0].model.size, (CAMERA,))
@@ -1267,6 +1276,9 @@ def main(argv=None) -> int:
                    help="compile the evaluation's programs into JAX's persistent compilation cache and write nothing "
                         "else (warm), waiting up to 15 minutes for the world models' training to start: beside "
                         "their training, so that the evaluation loads its programs instead of compiling them")
+    p.add_argument("--warm-after-training", action="store_true",
+                   help="with --warm: first the programs the first world model's training runs once it has "
+                        "trained (its episode judge's fit, eval.json)")
     add_part_argument(p, "evaluate this part's share of every task's batches", "gather results.json")
     p.add_argument("--partial", action="store_true",
                    help="evaluate nothing more: results.json over the tasks finished so far (a run cut short)")
@@ -1276,10 +1288,12 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     if a.partial and part is not None:
         p.error("--partial gathers; it takes no --part")
+    if a.warm_after_training and not a.warm:
+        p.error("--warm-after-training goes with --warm")
     if a.warm:
         if part is not None or a.partial:
             p.error("--warm compiles for one process's whole evaluation: leave out --part and --partial")
-        warm(cfg, wait_s=WARM_START_WAIT_S)
+        warm(cfg, wait_s=WARM_START_WAIT_S, after_training=a.warm_after_training)
         return 0
     if a.out is None:
         p.error("--out is required (unless --warm)")

@@ -54,9 +54,10 @@ the rollouts stage loads those programs. With `--warm-train` (one GPU), the roll
 `wm.train --warm` beside its simulation: the world model's training programs compile into the
 persistent compilation cache on the data stage's dataset (the same shapes), and the train stage
 loads them instead of compiling. With `--warm-eval` (one GPU), the train stage starts
-`experiments.evaluate --warm` beside the training: the evaluation's simulator and imagination
-programs run once on its own batches, a few steps long, with the world model's shapes, and the eval
-stage loads them. Each compiles on the host's cores while the GPU works.
+`experiments.evaluate --warm --warm-after-training` beside the training: first the programs the
+training runs once trained (its episode judge's imaginations and fit, eval.json), then the
+evaluation's simulator and imagination programs on its own batches, a few steps long, each with the
+world model's shapes and parameters of zeros, and the train stage's end and the eval stage load them. Each compiles on the host's cores while the GPU works.
 
 Each stage command appends a row to the evaluation directory's `timing.json`: its wall seconds, the
 seconds spent compiling (JAX's compile events, experiments.timing; a stage spread over GPUs adds the
@@ -369,16 +370,18 @@ def start_warm_train(p: Pipeline, name: str, overrides) -> subprocess.Popen | No
 def start_warm_eval(p: Pipeline, name: str, overrides) -> subprocess.Popen | None:
     """Starts `experiments.evaluate --warm` for the preset's evaluation (the eval stage's overrides) of
     the first untrained member, in a child process beside this one, its output in the logs: once the
-    member's training has started (its config.json and norm.json written) it runs the evaluation's
-    programs once each on the evaluation's shapes, so that the eval stage loads them from the
-    persistent compilation cache; the members of an ensemble share one configuration, hence these
+    member's training has started (its config.json and norm.json written) it runs the programs that
+    the training runs once trained (the judge's fit, eval.json), then the evaluation's, once each on
+    their shapes, so that the train stage's end and the eval stage load them from the persistent
+    compilation cache; the members of an ensemble share one configuration, hence these
     programs, so it runs beside the first member's training only. None where a member is trained."""
     d = p.dirs(name)
     todo = untrained(d)
     if len(todo) < len(d["members"]):
         return None
     log = _logs(p, name) / "warm-eval.log"
-    argv = [sys.executable, "-m", "experiments.evaluate", "--config", p.eval, "--warm", f"policies={d['policies']}",
+    argv = [sys.executable, "-m", "experiments.evaluate", "--config", p.eval, "--warm", "--warm-after-training",
+            f"policies={d['policies']}",
             f"wm={todo[0][1]}", *p.eval_overrides, *overrides]
     print(f"compiling the evaluation's programs beside the training ({log})", file=sys.stderr, flush=True)
     return _start_warm(argv, log)

@@ -465,7 +465,7 @@ def test_the_train_stage_compiles_the_evaluations_programs_beside_it_with_the_ev
     assert P.run_stage("ev", "train", warm_eval=["episodes=50"])
     assert [e[0] for e in events] == ["start", "train", "wait"]
     _, argv, env = events[0]
-    assert argv[1:] == ["-m", "experiments.evaluate", "--config", "e", "--warm",
+    assert argv[1:] == ["-m", "experiments.evaluate", "--config", "e", "--warm", "--warm-after-training",
                         f"policies={tmp_path / 'policies' / 'ev'}", f"wm={tmp_path / 'wm' / 'ev'}", "readout=judge",
                         "episodes=50"]
     assert env["XLA_PYTHON_CLIENT_MEM_FRACTION"] == P.WARM_MEMORY_FRACTION

@@ -334,6 +334,31 @@ def test_mixed_dataset_records_policy_rollouts(smoke_dataset, smoke_zoo, smoke_w
     np.testing.assert_allclose(pil["logged_vs_true"], np.abs(on_true - np.asarray(norm.action(ep["action"][:n]))).mean(),
                                rtol=1e-3, atol=1e-6)
     assert policy_action_divergence(cfg, wm_params, norm, cache, [i], {})["episodes"] == 0
+    # the judge's warm-up runs the programs of its fit, closed loops included: a fit after it compiles
+    # none of them (a model width no other test imagines with, so that they are new here)
+    from wm.judge import fit_judge, warm_judge
+    from wm.model import init_params
+
+    cfg = dataclasses.replace(wm_cfg, model=dataclasses.replace(wm_cfg.model, dim=20), judge_episodes=10, judge_steps=3)
+    shapes = jax.eval_shape(functools.partial(init_params, cfg.model, window=cfg.window), jax.random.PRNGKey(0))
+    ids = list(range(len(cache.episodes)))
+    assert {e["success"] for e in cache.episodes} == {True, False}
+
+    def compiled(step) -> set:
+        before = compile_snapshot()
+        step()
+        return {name for name, (count, _) in compile_snapshot()["by_program"].items()
+                if count > before["by_program"].get(name, (0, 0.0))[0]}
+
+    imagining = {"init_state", "_open_loop_segment", "_closed_loop_start", "_closed_loop_segment"}
+    warmed = compiled(lambda: warm_judge(cfg, jax.tree_util.tree_map(lambda x: jnp.zeros(x.shape, x.dtype), shapes),
+                                         norm, cache, ids))
+    assert imagining | {"_probability"} <= warmed
+    params = init_params(cfg.model, jax.random.PRNGKey(1), window=cfg.window)
+    (tmp_path / "judge").mkdir()
+    fitted = compiled(lambda: fit_judge(cfg, params, norm, cache, ids, tmp_path / "judge", progress=False))
+    assert (tmp_path / "judge" / "judge.json").exists()
+    assert not fitted & (imagining | {"_probability", "_update", "_judge_loss"})
 
 
 @pytest.mark.slow

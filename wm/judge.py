@@ -43,6 +43,7 @@ from sim_data.policies.registry import resolve, stack_key
 from sim_data.util import even_pieces, write_json_atomic
 from wm.checkpoint import run_file
 from wm.imagine import (
+    SEGMENT,
     Norm,
     chunk_size,
     closed_loop,
@@ -128,14 +129,9 @@ def imagine_episodes(cfg: ModelConfig, params, norm: Norm, cache, ids: list[int]
     Returns {"features": (N, T, F) float32 (padded to the longest), "mask": (N, T) bool, "task": [N] str,
     "label": (N,) bool the simulator's outcome}, in the order of ids.
     """
-    groups: dict = {}
-    for i in ids:
-        e = cache.episodes[i]
-        src = (policies or {}).get(e["policy"])
-        groups.setdefault((e["length"], None if src is None else stack_key(src)), []).append((i, src))
     pieces = []  # (cache ids, (len(ids), T, F) features) of each group
     bar = tqdm(total=len(ids), desc="judge: imagine", unit="ep", disable=not progress)
-    for (n, key), group in groups.items():
+    for (n, key), group in _imagination_groups(cache, ids, policies).items():
         policy = None if key is None else key[0]
         if policy is None:
             samples = [context_sample(cache.episode(i, cameras=[camera]), camera, 0, 1, n - 1) for i, _ in group]
@@ -146,6 +142,36 @@ def imagine_episodes(cfg: ModelConfig, params, norm: Norm, cache, ids: list[int]
         bar.update(len(group))
     bar.close()
     return _episodes_in_order(cache, ids, pieces)
+
+
+def _imagination_groups(cache, ids: list[int], policies: dict | None) -> dict:
+    """{(episode length, the policy's stack_key or None for open loop): [(cache id, PolicySource or
+    None)]}: the episodes of ids that imagine_episodes imagines together, in order of first appearance."""
+    groups: dict = {}
+    for i in ids:
+        e = cache.episodes[i]
+        src = (policies or {}).get(e["policy"])
+        groups.setdefault((e["length"], None if src is None else stack_key(src)), []).append((i, src))
+    return groups
+
+
+def warm_imagination(cfg: ModelConfig, params, norm: Norm, cache, ids: list[int], camera: str,
+                     policies: dict | None = None, seed: int = 0) -> None:
+    """Runs the compiled programs of imagine_episodes(cfg, params, norm, cache, ids, camera, policies=
+    policies) once each, so that JAX's persistent compilation cache holds them for it: each group's
+    first chunk (the same batch, hence the same programs) for one segment of steps (every horizon
+    shares the segments' programs). Returns nothing."""
+    for (n, key), group in _imagination_groups(cache, ids, policies).items():
+        horizon = min(n - 1, SEGMENT)
+        if key is None:
+            first = group[:chunk_size(len(group))]
+            open_loop_chunked(cfg, params, norm, [context_sample(cache.episode(i, cameras=[camera]), camera, 0, 1,
+                                                                 horizon) for i, _ in first], horizon)
+        else:
+            chunk = chunk_size(len(group))
+            slots, width = checkpoint_rows(group, chunk)
+            _, part = next(iter(policy_chunks(slots, width, chunk)))
+            _closed_loop_part(cfg, params, norm, cache, part, camera, horizon, key[0], jax.random.PRNGKey(seed))
 
 
 def _episodes_in_order(cache, ids: list[int], pieces: list) -> dict:
@@ -173,17 +199,24 @@ def _closed_loop_features(cfg: ModelConfig, params, norm: Norm, cache, group, ca
     slots, width = checkpoint_rows(group, chunk)
     feats = {}
     for k, (_, part) in enumerate(policy_chunks(slots, width, chunk)):
-        rows = [i for _, ids in part for i in ids]
-        eps = {i: cache.episode(i, cameras=[camera]) for i in dict.fromkeys(rows)}  # a padding row reads none
-        stacked_policy, policy_params = stacked(policy, [src.params for src, _ in part])
-        got = closed_loop(cfg, stacked_policy, horizon, params, norm, policy_params,
-                          np.stack([eps[i]["frames"][camera][:1] for i in rows]),
-                          np.stack([eps[i]["proprio"][:1] for i in rows]),
-                          np.zeros((len(rows), 0, cfg.action_dim), np.float32), jax.random.PRNGKey(seed + k))
-        x = np.asarray(got["features"])
+        rows, x = _closed_loop_part(cfg, params, norm, cache, part, camera, horizon, policy,
+                                    jax.random.PRNGKey(seed + k))
         for row, i in enumerate(rows):
             feats.setdefault(i, x[row])  # a padding copy comes after its episode's own row
     return np.stack([feats[i] for i, _ in group])
+
+
+def _closed_loop_part(cfg: ModelConfig, params, norm: Norm, cache, part, camera: str, horizon: int, policy, rng):
+    """One batch of _closed_loop_features: part [(PolicySource, cache ids)] (a slot each) as (rows, the
+    rows' (len(rows), horizon, F) step features), rows the cache ids slot after slot."""
+    rows = [i for _, ids in part for i in ids]
+    eps = {i: cache.episode(i, cameras=[camera]) for i in dict.fromkeys(rows)}  # a padding row reads none
+    stacked_policy, policy_params = stacked(policy, [src.params for src, _ in part])
+    got = closed_loop(cfg, stacked_policy, horizon, params, norm, policy_params,
+                      np.stack([eps[i]["frames"][camera][:1] for i in rows]),
+                      np.stack([eps[i]["proprio"][:1] for i in rows]),
+                      np.zeros((len(rows), 0, cfg.action_dim), np.float32), rng)
+    return rows, np.asarray(got["features"])
 
 
 def checkpoint_rows(group, most: int) -> tuple[list, int]:
@@ -275,26 +308,14 @@ def fit(train: dict, val: dict | None, tasks: tuple, steps: int, seed: int = 0,
     tr = arrays(train)
     va = arrays(val) if val is not None and len(val["label"]) else None
     params = net.init(jax.random.PRNGKey(seed), *tr[:3])["params"]
-    opt = optax.adamw(LR, weight_decay=WEIGHT_DECAY)
-
-    def loss_fn(p, x, m, t, y):
-        return optax.sigmoid_binary_cross_entropy(net.apply({"params": p}, x, m, t), y).mean()
-
-    @jax.jit
-    def update(p, o, x, m, t, y):
-        loss, g = jax.value_and_grad(loss_fn)(p, x, m, t, y)
-        u, o = opt.update(g, o, p)
-        return optax.apply_updates(p, u), o, loss
-
-    eval_loss = jax.jit(loss_fn)
-    state, rng = opt.init(params), np.random.default_rng(seed)
+    state, rng = _optimizer().init(params), np.random.default_rng(seed)
     best, best_loss, best_step = params, np.inf, steps
     n = len(tr[3])
     for k in tqdm(range(1, steps + 1), desc="judge: fit", unit="step", disable=not progress):
         idx = rng.choice(n, BATCH, replace=True) if n > BATCH else np.arange(n)
-        params, state, _ = update(params, state, *(a[idx] for a in tr))
+        params, state, _ = _update(len(tasks), params, state, *(a[idx] for a in tr))
         if va is not None and (k % 25 == 0 or k == steps):
-            v = float(eval_loss(params, *va))
+            v = float(_loss(len(tasks), params, *va))
             if v < best_loss:
                 best, best_loss, best_step = params, v, k
     if va is None:
@@ -309,6 +330,26 @@ def fit(train: dict, val: dict | None, tasks: tuple, steps: int, seed: int = 0,
         metrics.update({f"{tag}_episodes": len(p), f"{tag}_accuracy": accuracy(p, d["label"]),
                         f"{tag}_auroc": auroc(p, d["label"])})
     return judge, metrics
+
+
+def _optimizer():
+    return optax.adamw(LR, weight_decay=WEIGHT_DECAY)
+
+
+# module-level programs (the task count static): every fit of the same shapes, in this process or
+# another through the persistent compilation cache, runs the same two
+def _judge_loss(n_tasks: int, p, x, m, t, y):
+    return optax.sigmoid_binary_cross_entropy(JudgeNet(n_tasks).apply({"params": p}, x, m, t), y).mean()
+
+
+_loss = jax.jit(_judge_loss, static_argnums=(0,))
+
+
+@functools.partial(jax.jit, static_argnums=(0,))
+def _update(n_tasks: int, p, o, x, m, t, y):
+    loss, g = jax.value_and_grad(_judge_loss, argnums=1)(n_tasks, p, x, m, t, y)
+    u, o = _optimizer().update(g, o, p)
+    return optax.apply_updates(p, u), o, loss
 
 
 def judge_episodes(judge: EpisodeJudge, d: dict) -> np.ndarray:
@@ -330,10 +371,7 @@ def fit_judge(cfg, params, norm: Norm, cache, train_ids: list[int], out: Path, p
     VAL_EPISODES), fits the judge and saves it in out; returns its metrics. cfg is the world model's
     TrainConfig; with cfg.judge_observed the judge learns from the training episodes' true frames
     too (observe_episodes), and is still kept at its best on the validation episodes' imaginations."""
-    tasks = tuple(sorted({cache.episodes[i]["task"] for i in train_ids}))
-    train_ids = spread(train_ids, cfg.judge_episodes)
-    val_ids = spread([i for i in cache.select("val") if cache.episodes[i]["task"] in tasks],
-                      max(1, min(cfg.judge_episodes // 4, VAL_EPISODES)))
+    tasks, train_ids, val_ids = judge_split(cfg, cache, train_ids)
     labels = {bool(cache.episodes[i]["success"]) for i in train_ids}
     if len(labels) < 2:
         what = "successes" if labels == {True} else "failures"
@@ -351,6 +389,44 @@ def fit_judge(cfg, params, norm: Norm, cache, train_ids: list[int], out: Path, p
                          feature_columns(cfg.model, cfg.judge_inputs))
     save_judge(judge, metrics, Path(out))
     return metrics
+
+
+def judge_split(cfg, cache, train_ids: list[int]) -> tuple[tuple, list[int], list[int]]:
+    """(tasks, training episodes, validation episodes) of fit_judge from the world model's training
+    episodes: cfg.judge_episodes of them spread evenly, and a quarter as many of the validation
+    split's of the same tasks (at most VAL_EPISODES)."""
+    tasks = tuple(sorted({cache.episodes[i]["task"] for i in train_ids}))
+    val_ids = spread([i for i in cache.select("val") if cache.episodes[i]["task"] in tasks],
+                     max(1, min(cfg.judge_episodes // 4, VAL_EPISODES)))
+    return tasks, spread(train_ids, cfg.judge_episodes), val_ids
+
+
+def warm_judge(cfg, params, norm: Norm, cache, train_ids: list[int]) -> EpisodeJudge | None:
+    """Runs the compiled programs of fit_judge(cfg, params, norm, cache, train_ids, ...) once each (its
+    imaginations' by warm_imagination, its fit for two steps on episodes of placeholder features of
+    the imaginations' shapes), so that JAX's persistent compilation cache holds them for the run's
+    own fit_judge. Not warmed: with cfg.judge_observed, the reading of the true episodes. Returns the
+    placeholder judge (for warming what reads a judge), None where fit_judge would fit none."""
+    tasks, train_ids, val_ids = judge_split(cfg, cache, train_ids)
+    if len({bool(cache.episodes[i]["success"]) for i in train_ids}) < 2:
+        return None
+    pols = dataset_policies(cache.root.parent)
+    warm_imagination(cfg.model, params, norm, cache, train_ids, cfg.camera, pols, cfg.seed)
+    if val_ids:
+        warm_imagination(cfg.model, params, norm, cache, val_ids, cfg.camera, pols, cfg.seed + 1)
+    dim = feature_dim(cfg.model)
+    train = _placeholder_episodes(cache, train_ids, dim)
+    val = _placeholder_episodes(cache, val_ids, dim) if val_ids else None
+    return fit(train, val, tasks, 2, cfg.seed, False, feature_columns(cfg.model, cfg.judge_inputs))[0]
+
+
+def _placeholder_episodes(cache, ids: list[int], dim: int) -> dict:
+    """imagine_episodes' dict of ids with its shapes, masks, tasks and labels, its features zeros."""
+    t = max(cache.episodes[i]["length"] for i in ids) - 1
+    lengths = np.array([cache.episodes[i]["length"] - 1 for i in ids])
+    return {"features": np.zeros((len(ids), t, dim), np.float32), "mask": np.arange(t)[None] < lengths[:, None],
+            "task": [cache.episodes[i]["task"] for i in ids],
+            "label": np.array([cache.episodes[i]["success"] for i in ids], bool)}
 
 
 def spread(ids: list[int], n: int) -> list[int]:

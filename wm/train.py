@@ -18,6 +18,7 @@ the episode judge is fitted (`wm.judge`) and `eval.json` written from the best c
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import sys
@@ -36,14 +37,14 @@ from jax.sharding import PartitionSpec as P
 from tqdm import tqdm
 
 from sim_data.config import preset_help
-from sim_data.dataset.cache import TrainingCache, WindowLoader
+from sim_data.dataset.cache import TrainingCache, WindowLoader, epoch_episodes
 from sim_data.util import make_output_dir, run_cli, write_json_atomic
 from wm import perceptual
 from wm.checkpoint import restore_params
 from wm.config import PRESETS, TrainConfig, check_dataset, make_config, to_dict
 from wm.evaluate import evaluate
 from wm.imagine import Norm, to_uint8
-from wm.judge import fit_judge, load_judge
+from wm.judge import fit_judge, load_judge, warm_judge
 from wm.metrics import action_contrast, gaussian_kl
 from wm.model import REFINE_SIGMA, WorldModel, init_params
 
@@ -78,6 +79,18 @@ ATTEMPT_KINDS = ("scripted", "learned", "weak_grip", "drive")  # episodes that t
 def failed_attempts_repeated(times: int):
     """A WindowLoader `repeat`: a failed task attempt (ATTEMPT_KINDS, unsuccessful) `times`, any other episode once."""
     return lambda rec: times if rec.get("policy_kind") in ATTEMPT_KINDS and not rec["success"] else 1
+
+
+def _repeat(cfg: TrainConfig):
+    """The WindowLoader `repeat` of cfg's training episodes (None: each once)."""
+    return failed_attempts_repeated(cfg.fail_repeat) if cfg.fail_repeat > 1 else None
+
+
+def training_episodes(cfg: TrainConfig, cache: TrainingCache) -> list[int]:
+    """The episodes of a training epoch of cfg (Run's loader's `episodes`), from which the episode judge
+    draws its own."""
+    return [int(i) for i in epoch_episodes(cache, cfg.window, "train", cfg.train_tasks or None, cfg.train_fraction,
+                                           _repeat(cfg))]
 
 
 def model_batch(batch: dict, camera: str, anchor: bool = False, scene: bool = False) -> dict:
@@ -368,7 +381,7 @@ class Run:
         self.loader = WindowLoader(self.cache, cfg.window, cfg.batch, split="train", seed=cfg.seed, part=part,
                                    first_frames=cfg.model.anchor,
                                    cameras=[cfg.camera], tasks=cfg.train_tasks or None, fraction=cfg.train_fraction,
-                                   repeat=failed_attempts_repeated(cfg.fail_repeat) if cfg.fail_repeat > 1 else None)
+                                   repeat=_repeat(cfg))
         norm_path = self.out / "norm.json"
         if norm_path.exists():
             self.norm = Norm.from_dict(json.loads(norm_path.read_text()))
@@ -528,6 +541,22 @@ class MetricLog:
             f.write(json.dumps(metrics) + "\n")
 
 
+def warm_after_training(cfg: TrainConfig, data: Path, norm: Norm) -> None:
+    """Runs the programs that a finished run of cfg on `data` runs after its training (the episode
+    judge's imaginations and fit, eval.json's figures: main) once each, with parameters of zeros placed
+    as the run places its own (Run.best_params), so that JAX's persistent compilation cache holds them
+    and the run, finishing beside or after this, loads them. norm: the run's (its norm.json). Writes
+    nothing but the cache (the placeholder judge and eval.json go to a scratch directory)."""
+    cache = TrainingCache(data)
+    check_dataset(cfg, cache)
+    shapes = jax.eval_shape(functools.partial(init_params, cfg.model, window=cfg.window), jax.random.PRNGKey(0))
+    zeros = jax.tree_util.tree_map(lambda x: np.zeros(x.shape, x.dtype), shapes)  # made on the host, no programs
+    params = jax.device_put(zeros, state_shardings(zeros, make_mesh(), cfg.param_sharding == "fsdp"))
+    judge = warm_judge(cfg, params, norm, cache, training_episodes(cfg, cache)) if cfg.judge_episodes else None
+    with tempfile.TemporaryDirectory(prefix="warm-") as scratch:
+        evaluate(cfg, params, norm, cache, Path(scratch), judge)
+
+
 def check_run_config(cfg: TrainConfig, data: Path, out: Path) -> None:
     """Saves the resolved configuration; refuses to resume a run of another one."""
     path = out / "config.json"
@@ -600,7 +629,7 @@ def main(argv=None) -> int:
         return 0  # a run cut short is fitted and evaluated by the rerun that finishes it
     best = run.best_params() if (cfg.judge_episodes or not a.no_eval) else None
     if cfg.judge_episodes and not (a.out / "judge.json").exists():
-        print(json.dumps({"judge": fit_judge(cfg, best, run.norm, run.cache, [int(i) for i in run.loader.episodes],
+        print(json.dumps({"judge": fit_judge(cfg, best, run.norm, run.cache, training_episodes(cfg, run.cache),
                                              a.out)}, indent=1))
     if not a.no_eval:
         report = evaluate(cfg, best, run.norm, run.cache, a.out, load_judge(a.out))

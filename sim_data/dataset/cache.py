@@ -323,6 +323,15 @@ def window_episodes(cache: TrainingCache, window: int, split: str | None = "trai
                      if cache.episodes[i]["length"] >= window], np.int64)
 
 
+def epoch_episodes(cache: TrainingCache, window: int, split: str | None = "train", tasks=None,
+                   fraction: float = 1.0, repeat=None) -> np.ndarray:
+    """(E',) int64 the episodes of an epoch of a WindowLoader of these arguments: window_episodes',
+    each listed `repeat(record)` times (default once)."""
+    distinct = window_episodes(cache, window, split, tasks, fraction)
+    return distinct if repeat is None else np.repeat(
+        distinct, [_repeat_count(repeat, cache.episodes[i]) for i in distinct])
+
+
 def _repeat_count(repeat, record: dict) -> int:
     n = repeat(record)
     if int(n) != n or n < 0:
@@ -366,8 +375,7 @@ class WindowLoader:
         if bad:
             raise ValueError(f"cameras {bad} are not in the cache (it has {cache.cameras})")
         self.distinct = window_episodes(cache, window, split, tasks, fraction)
-        self.episodes = self.distinct if repeat is None else np.repeat(
-            self.distinct, [_repeat_count(repeat, cache.episodes[i]) for i in self.distinct])
+        self.episodes = epoch_episodes(cache, window, split, tasks, fraction, repeat)
         counts = np.array([cache.episodes[i]["length"] - window + 1 for i in self.episodes], np.int64)
         if counts.sum() < batch:
             raise ValueError(f"split {split!r} has {int(counts.sum())} windows of length {window}, fewer than a batch "
