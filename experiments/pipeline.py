@@ -57,7 +57,8 @@ loads them instead of compiling. With `--warm-eval` (one GPU), the train stage s
 `experiments.evaluate --warm --warm-after-training` beside the training: first the programs the
 training runs once trained (its episode judge's imaginations and fit, eval.json), then the
 evaluation's simulator and imagination programs on its own batches, a few steps long, each with the
-world model's shapes and parameters of zeros, and the train stage's end and the eval stage load them. Each compiles on the host's cores while the GPU works.
+world model's shapes and parameters of zeros, and the train stage's end and the eval stage load
+them. Each compiles on the host's cores while the GPU works.
 
 Each stage command appends a row to the evaluation directory's `timing.json`: its wall seconds, the
 seconds spent compiling (JAX's compile events, experiments.timing; a stage spread over GPUs adds the
