@@ -500,6 +500,23 @@ def test_the_train_stage_compiles_the_evaluations_programs_beside_it_with_the_ev
     assert dict(ran)["train"] == ["episodes=50"]
 
 
+def test_after_their_warm_up_the_rollouts_lower_their_programs_from_cleared_caches(tmp_path, monkeypatch):
+    """The rollouts stage runs in the process that ran the data stage; with --warm-rollouts it clears
+    JAX's caches before simulating, so that its programs lower as in the warm-up's bare process (the
+    same text, the same persistent-cache key); without it nothing is cleared."""
+    monkeypatch.setitem(P.PIPELINES, "rc", P.Pipeline(data="d", policies="p", train="t", eval="e", root=str(tmp_path),
+                                                      rollouts="conv"))
+    events = []
+    monkeypatch.setattr(P.jax, "clear_caches", lambda: events.append("clear"))
+    monkeypatch.setattr(P.generate, "main", lambda args: events.append("generate"))
+    monkeypatch.setattr(P, "device_name", lambda: "cpu")
+    assert P.run_stage("rc", "rollouts", warm_rollouts=[])
+    assert events == ["clear", "generate"]
+    events.clear()
+    assert P.run_stage("rc", "rollouts")
+    assert events == ["generate"]
+
+
 def test_the_policies_stage_compiles_the_rollouts_programs_beside_it_with_the_rollouts_stage_arguments(
         tmp_path, monkeypatch):
     monkeypatch.setitem(P.PIPELINES, "wr", P.Pipeline(data="d", policies="p", train="t", eval="e", root=str(tmp_path),

@@ -509,8 +509,12 @@ _ROLLOUTS_IN_A_PROCESS = textwrap.dedent("""
     before = compile_snapshot()
     if sys.argv[2] == "warm":
         G.warm(cfg, progress=False)
-    else:  # the rollouts' learned chunks as generate simulates them
-        for chunk in G._plan(cfg, G.learned_sources(cfg)):
+    else:  # as the pipeline runs them: after the data stage's scripted chunk, the caches cleared, the rollouts
+        chunks = list(G._plan(cfg, G.learned_sources(cfg)))
+        G.simulate_chunk(cfg, next(c for c in chunks if isinstance(c.key, str)), cfg.engine, steps=G.WARM_STEPS)
+        jax.clear_caches()
+        before = compile_snapshot()
+        for chunk in chunks:
             if not isinstance(chunk.key, str):
                 G.simulate_chunk(cfg, chunk, cfg.engine)
     after = compile_snapshot()
@@ -520,9 +524,11 @@ _ROLLOUTS_IN_A_PROCESS = textwrap.dedent("""
 
 @pytest.mark.slow  # MJX on the CPU: minutes of compiling
 def test_the_rollouts_warm_up_fills_the_persistent_cache_that_a_later_process_loads_on_mjx(smoke_zoo, tmp_path):
-    """As the pipeline runs them: the warm-up in one process, the rollouts in another, one persistent
-    compilation cache, the `mjx` engine. The rollouts compile nothing but the joining of an
-    episode's segments (`_recording_of`, a program per episode length: the warm-up runs two segments)."""
+    """As the pipeline runs them: the warm-up in one process, the rollouts in another that first
+    simulated the data stage's scripted chunk and then cleared JAX's caches (a module's text, and so its
+    persistent-cache key, follows what its process traced before it), one persistent compilation cache,
+    the `mjx` engine. The rollouts compile nothing but the joining of an episode's segments
+    (`_recording_of`, a program per episode length: the warm-up runs two segments)."""
     zoo_dir, _ = smoke_zoo
     script = tmp_path / "rollouts.py"
     script.write_text(_ROLLOUTS_IN_A_PROCESS)

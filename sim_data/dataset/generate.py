@@ -600,6 +600,10 @@ def warm(cfg: DataConfig, wait_s: float = 0.0, progress: bool = True) -> None:
     wait_for_files(plans, wait_s, ", ".join(map(str, plans)))
     engine = cfg.engine or default_engine()
     learned = learned_sources(cfg, planned=True)
+    # a module's private functions are shared as the jaxprs already traced in the process allow, so its
+    # text (and its persistent-cache key) follows what the process traced before: the stand-ins'
+    # initialisation is traced here and not in the rollouts' own process, which starts bare
+    jax.clear_caches()
     t0, seen = time.perf_counter(), set()
     for chunk in _plan(cfg, learned):
         shape = (chunk.key, len(chunk.rows(padded=engine == "mjx")))
