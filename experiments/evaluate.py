@@ -924,6 +924,7 @@ def warm(cfg: EvalConfig, progress: bool = True, wait_s: float = 0.0, after_trai
         warm_after_training(train_cfg, train_data, models[0][2])
         print(f"the programs after the world model's training ran once in {time.perf_counter() - t0:.0f} s",
               file=sys.stderr)
+        jax.clear_caches()  # the evaluation's stage lowers its programs from cleared caches (experiments.pipeline)
     used = seeds_in_use(cfg, sources)
     engine = cfg.engine or default_engine()
     renderer = cached_renderers(models[0][0].model.size, (CAMERA,))

@@ -189,6 +189,10 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
     compiles the evaluation's programs beside it (start_warm_eval)."""
     p = pipeline(name, members)
     d = p.dirs(name)
+    # every stage lowers its programs as a bare process would, as its warm-up's process did: a program's
+    # text, and so its persistent-cache key, follows what the process traced before it (JAX shares a
+    # module's private functions by the jaxprs its caches hold); what an earlier stage compiled is loaded
+    jax.clear_caches()
     t0 = time.perf_counter()
     compiled = compile_snapshot()
     spread = len(gpus) > 1 and stage != "report"
@@ -213,11 +217,6 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
             return True
         args = rollouts_args(p, name, extra)
         parts = _spread("sim_data.dataset.generate", args, gpus, _logs(p, name), "rollouts")
-        if warm_rollouts is not None:
-            # a program's text, and so its persistent-cache key, follows what its process traced before it
-            # (JAX shares a module's private functions by the jaxprs its caches hold): after the data stage
-            # the rollouts would lower other modules than their warm-up's bare process did
-            jax.clear_caches()
         warming = start_warm_train(p, name, warm_train) if warm_alone(warm_train, gpus, "--warm-train") else None
         with warm_beside(warming, "the training programs", "the train stage"):
             generate.main(args)

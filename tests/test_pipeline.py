@@ -15,6 +15,13 @@ import pytest
 from experiments import pipeline as P
 
 
+@pytest.fixture(autouse=True)
+def keep_caches(monkeypatch):
+    """The stages clear JAX's caches; here that would cost the other tests of this process the programs
+    they compiled."""
+    monkeypatch.setattr(P.jax, "clear_caches", lambda: None)
+
+
 @pytest.fixture
 def tiny(tmp_path, monkeypatch):
     """A pipeline of 3 members under tmp_path whose training entry point records its arguments and
@@ -500,10 +507,10 @@ def test_the_train_stage_compiles_the_evaluations_programs_beside_it_with_the_ev
     assert dict(ran)["train"] == ["episodes=50"]
 
 
-def test_after_their_warm_up_the_rollouts_lower_their_programs_from_cleared_caches(tmp_path, monkeypatch):
-    """The rollouts stage runs in the process that ran the data stage; with --warm-rollouts it clears
-    JAX's caches before simulating, so that its programs lower as in the warm-up's bare process (the
-    same text, the same persistent-cache key); without it nothing is cleared."""
+def test_every_stage_lowers_its_programs_from_cleared_caches(tmp_path, monkeypatch):
+    """The stages run in one process; each clears JAX's caches before its work, so that its programs
+    lower as in its warm-up's bare process (the same text, the same persistent-cache key): the rollouts
+    stage after the data stage, with or without a warm-up."""
     monkeypatch.setitem(P.PIPELINES, "rc", P.Pipeline(data="d", policies="p", train="t", eval="e", root=str(tmp_path),
                                                       rollouts="conv"))
     events = []
@@ -514,7 +521,7 @@ def test_after_their_warm_up_the_rollouts_lower_their_programs_from_cleared_cach
     assert events == ["clear", "generate"]
     events.clear()
     assert P.run_stage("rc", "rollouts")
-    assert events == ["generate"]
+    assert events == ["clear", "generate"]
 
 
 def test_the_policies_stage_compiles_the_rollouts_programs_beside_it_with_the_rollouts_stage_arguments(
