@@ -189,10 +189,12 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
     compiles the evaluation's programs beside it (start_warm_eval)."""
     p = pipeline(name, members)
     d = p.dirs(name)
-    # every stage lowers its programs as a bare process would, as its warm-up's process did: a program's
-    # text, and so its persistent-cache key, follows what the process traced before it (JAX shares a
-    # module's private functions by the jaxprs its caches hold); what an earlier stage compiled is loaded
-    jax.clear_caches()
+    if {"rollouts": warm_rollouts, "train": warm_train, "eval": warm_eval}.get(stage) is not None:
+        # a warmed stage lowers its programs as a bare process would, as its warm-up's process did: a
+        # program's text, and so its persistent-cache key, follows what the process traced before it (JAX
+        # shares a module's private functions by the jaxprs its caches hold); what an earlier stage
+        # compiled is then loaded from the persistent cache
+        jax.clear_caches()
     t0 = time.perf_counter()
     compiled = compile_snapshot()
     spread = len(gpus) > 1 and stage != "report"
