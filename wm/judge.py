@@ -422,9 +422,9 @@ def warm_judge(cfg, params, norm: Norm, cache, train_ids: list[int]) -> EpisodeJ
 
 def _placeholder_episodes(cache, ids: list[int], dim: int) -> dict:
     """imagine_episodes' dict of ids with its shapes, masks, tasks and labels, its features zeros."""
-    t = max(cache.episodes[i]["length"] for i in ids) - 1
-    lengths = np.array([cache.episodes[i]["length"] - 1 for i in ids])
-    return {"features": np.zeros((len(ids), t, dim), np.float32), "mask": np.arange(t)[None] < lengths[:, None],
+    steps = np.array([cache.episodes[i]["length"] - 1 for i in ids])
+    t = int(steps.max())
+    return {"features": np.zeros((len(ids), t, dim), np.float32), "mask": np.arange(t)[None] < steps[:, None],
             "task": [cache.episodes[i]["task"] for i in ids],
             "label": np.array([cache.episodes[i]["success"] for i in ids], bool)}
 

@@ -629,7 +629,7 @@ def main(argv=None) -> int:
         return 0  # a run cut short is fitted and evaluated by the rerun that finishes it
     best = run.best_params() if (cfg.judge_episodes or not a.no_eval) else None
     if cfg.judge_episodes and not (a.out / "judge.json").exists():
-        print(json.dumps({"judge": fit_judge(cfg, best, run.norm, run.cache, training_episodes(cfg, run.cache),
+        print(json.dumps({"judge": fit_judge(cfg, best, run.norm, run.cache, [int(i) for i in run.loader.episodes],
                                              a.out)}, indent=1))
     if not a.no_eval:
         report = evaluate(cfg, best, run.norm, run.cache, a.out, load_judge(a.out))

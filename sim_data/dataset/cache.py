@@ -327,9 +327,13 @@ def epoch_episodes(cache: TrainingCache, window: int, split: str | None = "train
                    fraction: float = 1.0, repeat=None) -> np.ndarray:
     """(E',) int64 the episodes of an epoch of a WindowLoader of these arguments: window_episodes',
     each listed `repeat(record)` times (default once)."""
-    distinct = window_episodes(cache, window, split, tasks, fraction)
-    return distinct if repeat is None else np.repeat(
-        distinct, [_repeat_count(repeat, cache.episodes[i]) for i in distinct])
+    return repeated(cache, window_episodes(cache, window, split, tasks, fraction), repeat)
+
+
+def repeated(cache: TrainingCache, episodes: np.ndarray, repeat=None) -> np.ndarray:
+    """episodes (E,) with each listed `repeat(record)` times (default once)."""
+    return episodes if repeat is None else np.repeat(
+        episodes, [_repeat_count(repeat, cache.episodes[i]) for i in episodes])
 
 
 def _repeat_count(repeat, record: dict) -> int:
@@ -375,7 +379,7 @@ class WindowLoader:
         if bad:
             raise ValueError(f"cameras {bad} are not in the cache (it has {cache.cameras})")
         self.distinct = window_episodes(cache, window, split, tasks, fraction)
-        self.episodes = epoch_episodes(cache, window, split, tasks, fraction, repeat)
+        self.episodes = repeated(cache, self.distinct, repeat)
         counts = np.array([cache.episodes[i]["length"] - window + 1 for i in self.episodes], np.int64)
         if counts.sum() < batch:
             raise ValueError(f"split {split!r} has {int(counts.sum())} windows of length {window}, fewer than a batch "
