@@ -629,6 +629,7 @@ def test_action_contrast_is_the_log_share_of_the_true_actions_prediction():
     np.testing.assert_allclose(M.action_contrast(pred, pred, target), np.log(2) / 2, rtol=1e-5)
 
 
+@pytest.mark.slow
 def test_the_action_contrast_term_predicts_the_window_again_under_another_windows_actions(model_and_inputs):
     from wm.train import loss_fn
 
@@ -677,6 +678,7 @@ def stochastic_model(model_and_inputs):
     return cfg, jax.tree_util.tree_map(lambda x: x + 0.05 * noise.standard_normal(x.shape).astype(np.float32), params)
 
 
+@pytest.mark.slow
 def test_a_stochastic_model_reads_its_code_from_the_posterior_in_training_and_the_prior_in_imagination(
         model_and_inputs, stochastic_model):
     _, frames, proprio, action = model_and_inputs
