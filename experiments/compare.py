@@ -14,7 +14,9 @@ alignment), their mean over the group's runs and their range; and the design's g
 difference of the two group means (design minus base; for MMRV a negative gain is better), with a
 95% interval from one bootstrap that resamples, within each task, policies and initial states, the
 same draw for every run (stats.within_task_draws). The same over the policies that no run's world
-model learned from (`in_wm_data` false), where there are at least three a task.
+model learned from (`in_wm_data` false), and over those of them that are lineages of their own rather
+than counterfactual families (degraded copies of a zoo checkpoint, whose knobs a design's data may
+share: the policies a new user brings are of the first kind), each where there are at least three a task.
 """
 
 from __future__ import annotations
@@ -34,13 +36,15 @@ from sim_data.util import run_cli, write_json_atomic
 
 GROUPS = ("base", "design")
 MIN_UNSEEN = 3  # policies a task, as the evaluation's own unseen block
+SUBSETS = ("all", "unseen", "unseen_networks")
 
 
-def episode_tables(results: list[dict]) -> tuple[dict, dict, dict]:
+def episode_tables(results: list[dict]) -> tuple[dict, dict, dict, dict]:
     """The runs' per-episode tables over their common policies, each task's policies sorted by name:
     (true {task: (P, N) outcomes}, pred [{task: (P, N) probabilities}] one per run, unseen {task: (P,)
-    bool}: no run's world model learned from the policy's rollouts). Raises ValueError where the runs
-    rank other policies, over other initial states or against other true outcomes."""
+    bool}: no run's world model learned from the policy's rollouts, family {task: (P,) bool}: a
+    counterfactual family's member, stats.is_family). Raises ValueError where the runs rank other
+    policies, over other initial states or against other true outcomes."""
     if not results:
         raise ValueError("no evaluations to compare")
     keyed = [{(p["task"], p["name"]): p for p in r["policies"]} for r in results]
@@ -50,7 +54,7 @@ def episode_tables(results: list[dict]) -> tuple[dict, dict, dict]:
             diff = sorted(set(keys) ^ set(k))[:3]
             raise ValueError(f"evaluation {i} ranks other policies than evaluation 0 (for instance {diff}): "
                              "evaluate the same zoo with every world model")
-    true, preds, unseen = {}, [{} for _ in results], {}
+    true, preds, unseen, family = {}, [{} for _ in results], {}, {}
     for task in sorted({t for t, _ in keys}):
         names = [n for t, n in keys if t == task]
         rows = [[k[(task, n)] for n in names] for k in keyed]
@@ -71,7 +75,8 @@ def episode_tables(results: list[dict]) -> tuple[dict, dict, dict]:
             preds[i][task] = np.asarray([p["pred_episodes"] for p in run], np.float64)
         unseen[task] = np.asarray([not any(run[j].get("in_wm_data", True) for run in rows)
                                    for j in range(len(names))])
-    return true, preds, unseen
+        family[task] = np.asarray([S.is_family(p) for p in rows[0]])
+    return true, preds, unseen, family
 
 
 def _task_mean(per_task: dict) -> dict:
@@ -125,27 +130,31 @@ def compare_groups(true: dict, groups: dict, draws: int = 1000, seed: int = 0) -
 def compare(base: list[dict], design: list[dict], draws: int = 1000, seed: int = 0) -> dict:
     """Two groups of experiments.evaluate results.json over one zoo and one truth -> {"draws",
     "resamples", "tasks", "policies": {task: P}, "all": compare_groups over every policy, "unseen": the
-    same over the policies no world model learned from (absent with fewer than MIN_UNSEEN a task)}."""
-    true, preds, unseen = episode_tables(base + design)
+    same over the policies no world model learned from, "unseen_networks": over those of them that are
+    lineages of their own, not counterfactual families (whose knobs a design's data may share; each
+    subset absent with fewer than MIN_UNSEEN a task), with "<subset>_policies": {task: P} beside each}."""
+    true, preds, unseen, family = episode_tables(base + design)
     k = len(base)
     out = {"draws": draws, "resamples": S.WITHIN_TASK_RESAMPLES, "tasks": list(true),
            "policies": {t: int(v.shape[0]) for t, v in true.items()},
            "all": compare_groups(true, {"base": preds[:k], "design": preds[k:]}, draws, seed)}
-    if all(u.sum() >= MIN_UNSEEN for u in unseen.values()):
-        sub = lambda table: {t: v[unseen[t]] for t, v in table.items()}
-        out["unseen_policies"] = {t: int(u.sum()) for t, u in unseen.items()}
-        out["unseen"] = compare_groups(sub(true), {"base": [sub(p) for p in preds[:k]],
+    subsets = {"unseen": unseen, "unseen_networks": {t: u & ~family[t] for t, u in unseen.items()}}
+    for name, keep in subsets.items():
+        if all(u.sum() >= MIN_UNSEEN for u in keep.values()):
+            sub = lambda table, keep=keep: {t: v[keep[t]] for t, v in table.items()}
+            out[f"{name}_policies"] = {t: int(u.sum()) for t, u in keep.items()}
+            out[name] = compare_groups(sub(true), {"base": [sub(p) for p in preds[:k]],
                                                    "design": [sub(p) for p in preds[k:]]}, draws, seed)
     return out
 
 
 def markdown(res: dict, names: tuple[str, str] = GROUPS) -> str:
     """The comparison as a markdown table: a row per group (mean over its runs [bootstrap interval],
-    range over the runs) and the gain, over every policy and over the unseen ones."""
+    range over the runs) and the gain, over every policy, the unseen ones and the unseen networks."""
     stats = ("pearson", "mmrv", "pairwise_acc_gap10", "spearman")
     fmt = lambda x: "nan" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.3f}"
     lines = ["| policies | " + " | ".join(["model"] + list(stats)) + " |", "|" + "---|" * (len(stats) + 2)]
-    for subset in ("all", "unseen"):
+    for subset in SUBSETS:
         if subset not in res:
             continue
         r = res[subset]

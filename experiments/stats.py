@@ -460,6 +460,12 @@ def checkpoint_selection(rows: list[dict]) -> dict:
             "mean_regret": share("regret"), "n": len(out)}
 
 
+def is_family(row: dict) -> bool:
+    """Whether a results row is a counterfactual family's member: a checkpoint degraded by a known knob,
+    its lineage "<base lineage>~<knob>" (sim_data.policies.zoo's Family)."""
+    return "~" in row.get("lineage", "")
+
+
 def family_statistics(rows: list[dict], rate: str = "pred_rate") -> dict:
     """Do predictions follow known degradations? Per task and counterfactual family (rows whose
     lineage is "<base lineage>~<knob>": one checkpoint degraded at several levels), the family's
@@ -478,7 +484,7 @@ def family_statistics(rows: list[dict], rate: str = "pred_rate") -> dict:
                 last[key] = r
     groups: dict = {}
     for r in rows:
-        if "~" in r["lineage"]:
+        if is_family(r):
             groups.setdefault((r["task"], r["lineage"]), []).append(r)
     out = []
     for (task, family), rs in sorted(groups.items()):

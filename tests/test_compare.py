@@ -18,11 +18,12 @@ def _truth(seed=0):
     return {t: (rng.random((P, N)) < levels[:, None]).astype(int) for t in TASKS}
 
 
-def _results(true, pred, seen=()):
+def _results(true, pred, seen=(), families=()):
     """An evaluate results.json of per-episode predictions pred {task: (P, N)}; seen: policy indices in the
-    world model's data."""
-    return {"policies": [{"task": t, "name": f"{t}/p{i}", "true_episodes": true[t][i].tolist(),
-                          "pred_episodes": pred[t][i].tolist(), "in_wm_data": i in seen}
+    world model's data; families: those that are a counterfactual family's members."""
+    return {"policies": [{"task": t, "name": f"{t}/p{i}", "lineage": "p~grip" if i in families else f"p{i}",
+                          "true_episodes": true[t][i].tolist(), "pred_episodes": pred[t][i].tolist(),
+                          "in_wm_data": i in seen}
                          for t in TASKS for i in range(P)]}
 
 
@@ -67,8 +68,9 @@ def test_a_design_that_reads_the_true_rates_wins_with_an_interval_that_excludes_
 def test_evaluations_of_other_truth_or_other_policies_are_refused_and_unseen_means_unseen_by_every_run():
     true = _truth()
     a, b = _results(true, _noisy(true, 0.2, 1), seen=(0, 1)), _results(true, _noisy(true, 0.2, 2), seen=(1, 2))
-    _, preds, unseen = C.episode_tables([a, b])
+    _, preds, unseen, family = C.episode_tables([a, b])
     assert len(preds) == 2 and unseen["mug"].tolist() == [False, False, False] + [True] * (P - 3)
+    assert not family["mug"].any()
     other = _results({t: 1 - v for t, v in true.items()}, _noisy(true, 0.2, 2))
     with pytest.raises(ValueError, match="other true outcomes"):
         C.episode_tables([a, other])
@@ -85,7 +87,8 @@ def test_the_command_writes_both_subsets_and_prints_the_table(tmp_path, capsys):
     for i, scale in enumerate((0.3, 0.3, 0.05, 0.05)):
         d = tmp_path / f"run{i}"
         d.mkdir()
-        (d / "results.json").write_text(json.dumps(_results(true, _noisy(true, scale, i), seen=(0, 1))))
+        (d / "results.json").write_text(json.dumps(_results(true, _noisy(true, scale, i), seen=(0, 1),
+                                                            families=(6, 7))))
         runs.append(str(d))
     out = tmp_path / "cmp" / "c.json"
     assert C.main(["--base", *runs[:2], "--design", *runs[2:], "--names", "recipe,sharp", "--draws", "20",
@@ -93,8 +96,18 @@ def test_the_command_writes_both_subsets_and_prints_the_table(tmp_path, capsys):
     res = json.loads(out.read_text())
     assert out.with_suffix(".png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert res["names"] == ["recipe", "sharp"] and res["unseen_policies"] == {"mug": P - 2, "wipe": P - 2}
+    # the networks among the unseen: the two family members left out
+    assert res["unseen_networks_policies"] == {"mug": P - 4, "wipe": P - 4}
     assert len(res["all"]["base"]["runs"]) == 2 and "gain" in res["unseen"]
+    plain = [_results(true, _noisy(true, 0.05, i), seen=(0, 1)) for i in (2, 3)]
+    direct = C.compare(plain[:1], plain[1:], draws=20)
+    assert direct["unseen_networks_policies"] == direct["unseen_policies"]  # no families: the same policies
+    sub = {t: v[2:6] for t, v in true.items()}
+    want = S.within_task(sub, {"sharp": {t: _noisy(true, 0.05, 2)[t][2:6] for t in TASKS}}, draws=20)
+    got = res["unseen_networks"]["design"]["runs"][0]
+    assert got["pearson"] == pytest.approx(want["sharp"]["mean"]["pearson"])
     table = capsys.readouterr().out
     assert "| all | sharp - recipe |" in table and "| unseen | recipe (2 runs) |" in table
+    assert "| unseen_networks | sharp - recipe |" in table
     with pytest.raises(SystemExit):
         C.main(["--base", runs[0], "--design", runs[1], "--names", "one"])
