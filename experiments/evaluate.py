@@ -1110,7 +1110,9 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, models, wm
 def all_metrics(cfg: EvalConfig, results: dict, tasks, rows: list[dict], seen: set) -> dict:
     """results.json's "metrics": the within-task headline, pooled and per task (and with cfg.replay
     loop_actions_block's "loop_actions"); the same for the policies not in `seen` (those whose rollouts
-    the world model never saw) where there are three or more of them and the world model saw any."""
+    the world model never saw) where there are three or more of them and the world model saw any, and
+    within task for those of them that are not counterfactual families ("unseen_networks_within_task",
+    unseen_networks) where every task has three or more."""
     true_eps, prob_eps, member_eps = _episodes_of(results, tasks, lambda name: True)
     metrics = {"within_task": within_task_block(results, tasks, rows, cfg, lambda name: True),
                "mmrv_floor": S.mmrv_floor({t: results[t]["true"] for t in tasks}),
@@ -1126,7 +1128,22 @@ def all_metrics(cfg: EvalConfig, results: dict, tasks, rows: list[dict], seen: s
         metrics["unseen"] = ranking_block(unseen, true_eps, prob_eps, cfg.threshold, member_eps)
         metrics["unseen_within_task"] = within_task_block(results, tasks, rows, cfg,
                                                           lambda name: name not in seen)
+        networks = unseen_networks(rows, seen)
+        if networks and all(sum(r["task"] == t and r["name"] in networks for r in rows) >= 3 for t in tasks):
+            metrics["unseen_networks_within_task"] = within_task_block(results, tasks, rows, cfg,
+                                                                       lambda name: name in networks)
     return metrics
+
+
+def unseen_networks(rows: list[dict], seen: set) -> set:
+    """The names of the unseen policies (not in `seen`) that are lineages of their own rather than
+    counterfactual families (stats.is_family: degraded copies of a zoo checkpoint, whose knobs a world
+    model's data may share): the kind a new user's policies are. Empty where there are no families
+    among the unseen (the unseen block is then this one)."""
+    unseen = [r for r in rows if r["name"] not in seen]
+    if not any(S.is_family(r) for r in unseen):
+        return set()
+    return {r["name"] for r in unseen if not S.is_family(r)}
 
 
 def _write_videos(out: Path, results: dict, tasks, panel: dict) -> None:

@@ -589,6 +589,9 @@ VIOLATION_NOTE = ("Where MMRV comes from: each policy's term (its largest rank v
                   "dimension where they stray most (a base that does not stop shows there, diluted in the mean).")
 
 
+UNSEEN_NETWORKS_TITLE = ("Within-task ranking of the unseen policies that are lineages of their own "
+                         "(the counterfactual families left out: the kind of policy a new user brings)")
+
 FAMILY_NOTE = ("Counterfactual families: one checkpoint with its actions degraded by known amounts (noise, delay, "
                "a weak grip, driving scaled), beside the undegraded checkpoint. True success moves with the "
                "degradation; a world model that reads the actions must move its prediction the same way.")
@@ -682,6 +685,8 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
          _html_table(per_task_table(res)),
          *(["<h2>Within-task ranking of the policies whose rollouts the world model never saw</h2>",
             _html_table(per_task_table(res, "unseen_within_task"))] if "unseen_within_task" in metrics else []),
+         *([f"<h2>{UNSEEN_NETWORKS_TITLE}</h2>", _html_table(per_task_table(res, "unseen_networks_within_task"))]
+           if "unseen_networks_within_task" in metrics else []),
          "<h2>Pooled over tasks (secondary)</h2>",
          "<p>Tasks of different difficulty correlate for free when pooled: a per-task prior scores well here.</p>",
          _html_table(_metrics_table(metrics["pooled"])),
@@ -767,6 +772,11 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
         md += ["## Rank violations", "", VIOLATION_NOTE, "", md_table(viol), ""]
     if loop := loop_note(res):
         md += [loop, ""]
+    if "unseen_within_task" in metrics:
+        md += ["## Within task, policies whose rollouts the world model never saw", "",
+               md_table(per_task_table(res, "unseen_within_task")), ""]
+    if "unseen_networks_within_task" in metrics:
+        md += [f"## {UNSEEN_NETWORKS_TITLE}", "", md_table(per_task_table(res, "unseen_networks_within_task")), ""]
     if "unseen" in metrics:
         md += ["## Pooled, policies whose rollouts the world model never saw", "",
                md_table(_metrics_table(metrics["unseen"])), ""]

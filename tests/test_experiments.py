@@ -14,7 +14,7 @@ from conftest import SMOKE_EVAL, build_once
 
 from experiments import evaluate as E
 from experiments import stats as S
-from experiments.report import family_table, verdict, violation_table, write_report
+from experiments.report import UNSEEN_NETWORKS_TITLE, family_table, verdict, violation_table, write_report
 from experiments.timing import compile_snapshot
 from sim_data.parts import exclusive
 from sim_data.policies.bc import MixedPolicy, StackedPolicy, stacked
@@ -322,6 +322,15 @@ def test_report_renders_figures_and_videos(evaluation):
     (out / "results.json").write_text(json.dumps(cut))
     try:
         assert "Cut short" in write_report(out).with_suffix(".md").read_text()
+        # the unseen policies' within-task tables, all of them and the networks alone, where results hold them
+        w = res["metrics"]["within_task"]
+        unseen = dict(res, metrics=dict(res["metrics"], unseen_within_task=w, unseen_networks_within_task=w))
+        (out / "results.json").write_text(json.dumps(unseen))
+        page = write_report(out)
+        md = page.with_suffix(".md").read_text()
+        assert "## Within task, policies whose rollouts the world model never saw" in md
+        assert f"## {UNSEEN_NETWORKS_TITLE}" in md and UNSEEN_NETWORKS_TITLE in page.read_text()
+        assert md.count("| mug | imitation-loss proxy |") == 3
     finally:
         (out / "results.json").write_text(json.dumps(res))
 
