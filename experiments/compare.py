@@ -131,14 +131,17 @@ def compare(base: list[dict], design: list[dict], draws: int = 1000, seed: int =
     """Two groups of experiments.evaluate results.json over one zoo and one truth -> {"draws",
     "resamples", "tasks", "policies": {task: P}, "all": compare_groups over every policy, "unseen": the
     same over the policies no world model learned from, "unseen_networks": over those of them that are
-    lineages of their own, not counterfactual families (whose knobs a design's data may share; each
-    subset absent with fewer than MIN_UNSEEN a task), with "<subset>_policies": {task: P} beside each}."""
+    lineages of their own, not counterfactual families (whose knobs a design's data may share; absent
+    where no family is unseen), each subset absent with fewer than MIN_UNSEEN a task, with
+    "<subset>_policies": {task: P} beside each}."""
     true, preds, unseen, family = episode_tables(base + design)
     k = len(base)
     out = {"draws": draws, "resamples": S.WITHIN_TASK_RESAMPLES, "tasks": list(true),
            "policies": {t: int(v.shape[0]) for t, v in true.items()},
            "all": compare_groups(true, {"base": preds[:k], "design": preds[k:]}, draws, seed)}
-    subsets = {"unseen": unseen, "unseen_networks": {t: u & ~family[t] for t, u in unseen.items()}}
+    subsets = {"unseen": unseen}
+    if any((u & family[t]).any() for t, u in unseen.items()):  # else the networks are the unseen block
+        subsets["unseen_networks"] = {t: u & ~family[t] for t, u in unseen.items()}
     for name, keep in subsets.items():
         if all(u.sum() >= MIN_UNSEEN for u in keep.values()):
             sub = lambda table, keep=keep: {t: v[keep[t]] for t, v in table.items()}
