@@ -466,15 +466,30 @@ def is_family(row: dict) -> bool:
     return "~" in row.get("lineage", "")
 
 
+def pearson_ceiling(true, episodes, draws: int = 200, seed: int = 0) -> float:
+    """The Pearson r that a perfect predictor reaches against true rates measured from a finite number
+    of episodes, as mmrv_floor's MMRV: the policies' success probabilities taken to be their measured
+    rates p (P,), each draw measures them again from the same episodes (Binomial(episodes, p) /
+    episodes, episodes (P,)) and scores p against that measurement; the mean over the draws where r is
+    defined. NaN where p is constant (r is undefined for every predictor)."""
+    p, n = np.asarray(true, float), np.asarray(episodes)
+    rng = np.random.default_rng(seed)
+    rs = np.array([pearson(p, rng.binomial(n, p) / n)[0] for _ in range(draws)])
+    return float(np.nanmean(rs)) if np.isfinite(rs).any() else math.nan
+
+
 def family_statistics(rows: list[dict], rate: str = "pred_rate") -> dict:
     """Do predictions follow known degradations? Per task and counterfactual family (rows whose
     lineage is "<base lineage>~<knob>": one checkpoint degraded at several levels), the family's
     levels together with their undegraded base (the base lineage's last checkpoint): Pearson r of
-    the predicted rate (the row's `rate` key) against the true rate, and the mean |predicted - true|.
+    the predicted rate (the row's `rate` key) against the true rate, the mean |predicted - true|, and,
+    where the rows give their episodes ("n"), the r a perfect predictor reaches against that truth
+    (pearson_ceiling: a family whose true rates span a few points cannot show a high r).
 
     Returns {"families": [{"task", "family", "n" (policies, base included), "pearson", "mean_abs_error",
-    "true_range": [lowest, highest]}], "mean_pearson" (over families where r is defined),
-    "mean_abs_error" (over families)}; NaN means where there is no family.
+    "true_range": [lowest, highest], "pearson_ceiling"}], "mean_pearson" (over families where r is
+    defined), "mean_pearson_ceiling" (over the same families), "mean_abs_error" (over families)}; NaN
+    means where there is no family.
     """
     last = {}
     for r in rows:
@@ -492,11 +507,14 @@ def family_statistics(rows: list[dict], rate: str = "pred_rate") -> dict:
         members = rs + ([base] if base is not None else [])
         pred = [r[rate] for r in members]
         true = [r["true_rate"] for r in members]
+        episodes = [r.get("n") for r in members]
+        ceiling = pearson_ceiling(true, episodes) if all(episodes) else math.nan
         out.append({"task": task, "family": family, "n": len(members), "pearson": pearson(pred, true)[0],
                     "mean_abs_error": float(np.mean(np.abs(np.subtract(pred, true)))),
-                    "true_range": [min(true), max(true)]})
-    defined = [x["pearson"] for x in out if not math.isnan(x["pearson"])]
-    return {"families": out, "mean_pearson": float(np.mean(defined)) if defined else math.nan,
+                    "true_range": [min(true), max(true)], "pearson_ceiling": ceiling})
+    defined = [x for x in out if not math.isnan(x["pearson"])]
+    mean = lambda key: float(np.mean([x[key] for x in defined])) if defined else math.nan
+    return {"families": out, "mean_pearson": mean("pearson"), "mean_pearson_ceiling": mean("pearson_ceiling"),
             "mean_abs_error": float(np.mean([x["mean_abs_error"] for x in out])) if out else math.nan}
 
 

@@ -159,7 +159,10 @@ def test_family_table_lists_each_family_under_each_readout():
     family, mean = table[1], table[2]
     assert family[:4] == ["mug", "conv~noise", "3", "0.10-0.90"]
     assert float(family[4]) == pytest.approx(np.corrcoef([0.8, 0.4, 0.3], [0.9, 0.5, 0.1])[0, 1], abs=0.005)
-    assert family[5] == "0.13" and family[-1] == "1.00" and mean[0] == "mean"
+    assert family[5] == "n/a" and family[6] == "0.13" and family[-1] == "1.00" and mean[0] == "mean"
+    counted = S.family_statistics([dict(x, n=8) for x in rows])  # rows with their episodes: the ceiling
+    ceiling = family_table({"families": json.loads(json.dumps(counted))})[1][5]
+    assert float(ceiling) == pytest.approx(S.pearson_ceiling([0.5, 0.1, 0.9], [8] * 3), abs=0.005)
     assert family_table({"families": {"families": []}}) is None
 
 

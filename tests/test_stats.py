@@ -273,6 +273,21 @@ def test_family_statistics_by_hand():
     assert got["mean_pearson"] == pytest.approx((noise["pearson"] + 1.0) / 2)
     assert got["mean_abs_error"] == pytest.approx((noise["mean_abs_error"] + 0.05) / 2)
     assert math.isnan(S.family_statistics([row("conv", 1, 0.1, 0.2)])["mean_pearson"])
+    # without the rows' episodes no ceiling; with them, the perfect predictor's r against that truth
+    assert math.isnan(noise["pearson_ceiling"]) and math.isnan(got["mean_pearson_ceiling"])
+    counted = S.family_statistics([dict(r, n=4) for r in rows])
+    noise, grip = (next(f for f in counted["families"] if f["family"] == k) for k in ("conv~noise", "conv~grip"))
+    assert noise["pearson_ceiling"] == S.pearson_ceiling([0.6, 0.1, 0.9], [4, 4, 4])
+    assert counted["mean_pearson_ceiling"] == pytest.approx((noise["pearson_ceiling"] + grip["pearson_ceiling"]) / 2)
+
+
+def test_pearson_ceiling_is_a_perfect_predictors_r_against_the_truth_measured_again():
+    assert S.pearson_ceiling([0.0, 1.0, 1.0], [5, 5, 5]) == 1.0  # rates of 0 and 1 are measured exactly again
+    # the middle policy measured again from one episode reads 0 or 1; either way r = sqrt(3) / 2
+    assert S.pearson_ceiling([0.0, 0.5, 1.0], [9, 1, 9], draws=50) == pytest.approx(np.sqrt(3) / 2)
+    assert math.isnan(S.pearson_ceiling([0.9, 0.9], [50, 50]))  # no spread: r undefined for any predictor
+    close = [0.8, 0.85, 0.9, 0.95]
+    assert S.pearson_ceiling(close, [20] * 4) < S.pearson_ceiling(close, [2000] * 4) <= 1.0
 
 
 def test_mmrv_floor_is_a_perfect_predictors_mmrv_against_resampled_truth():
