@@ -484,7 +484,7 @@ def family_statistics(rows: list[dict], rate: str = "pred_rate") -> dict:
     levels together with their undegraded base (the base lineage's last checkpoint): Pearson r of
     the predicted rate (the row's `rate` key) against the true rate, the mean |predicted - true|, and,
     where the rows give their episodes ("n"), the r a perfect predictor reaches against that truth
-    (pearson_ceiling: a family whose true rates span a few points cannot show a high r).
+    (pearson_ceiling: how high r can be against this truth, however narrow its span).
 
     Returns {"families": [{"task", "family", "n" (policies, base included), "pearson", "mean_abs_error",
     "true_range": [lowest, highest], "pearson_ceiling"}], "mean_pearson" (over families where r is
