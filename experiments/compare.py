@@ -144,11 +144,16 @@ def compare(base: list[dict], design: list[dict], draws: int = 1000, seed: int =
         subsets["unseen_networks"] = {t: u & ~family[t] for t, u in unseen.items()}
     for name, keep in subsets.items():
         if all(u.sum() >= MIN_UNSEEN for u in keep.values()):
-            sub = lambda table, keep=keep: {t: v[keep[t]] for t, v in table.items()}
             out[f"{name}_policies"] = {t: int(u.sum()) for t, u in keep.items()}
-            out[name] = compare_groups(sub(true), {"base": [sub(p) for p in preds[:k]],
-                                                   "design": [sub(p) for p in preds[k:]]}, draws, seed)
+            out[name] = compare_groups(_kept(true, keep), {"base": [_kept(p, keep) for p in preds[:k]],
+                                                           "design": [_kept(p, keep) for p in preds[k:]]},
+                                       draws, seed)
     return out
+
+
+def _kept(table: dict, keep: dict) -> dict:
+    """{task: (P, ...)} -> the rows of each task that keep {task: (P,) bool} marks."""
+    return {t: v[keep[t]] for t, v in table.items()}
 
 
 def markdown(res: dict, names: tuple[str, str] = GROUPS) -> str:

@@ -1093,7 +1093,7 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, models, wm
         "checkpoint_selection": S.checkpoint_selection(rows),
         # the chosen read-out's, then each read-out's ("by_readout")
         "families": S.family_statistics(rows) | {"by_readout": {
-            r: S.family_statistics([dict(x, rate=x["pred_rate_readouts"][r]) for x in rows], "rate")
+            r: S.family_statistics([dict(x, rate=x["pred_rate_readouts"][r]) for x in rows], "rate", ceiling=False)
             for r in READOUTS}},
         # which policies carry each task's MMRV (the ranked read-out's rates)
         "rank_violations": S.rank_violations([r for r in rows if np.isfinite(r["pred_rate"])]),

@@ -478,13 +478,14 @@ def pearson_ceiling(true, episodes, draws: int = 200, seed: int = 0) -> float:
     return float(np.nanmean(rs)) if np.isfinite(rs).any() else math.nan
 
 
-def family_statistics(rows: list[dict], rate: str = "pred_rate") -> dict:
+def family_statistics(rows: list[dict], rate: str = "pred_rate", ceiling: bool = True) -> dict:
     """Do predictions follow known degradations? Per task and counterfactual family (rows whose
     lineage is "<base lineage>~<knob>": one checkpoint degraded at several levels), the family's
     levels together with their undegraded base (the base lineage's last checkpoint): Pearson r of
     the predicted rate (the row's `rate` key) against the true rate, the mean |predicted - true|, and,
-    where the rows give their episodes ("n"), the r a perfect predictor reaches against that truth
-    (pearson_ceiling: how high r can be against this truth, however narrow its span).
+    where the rows give their episodes ("n") and `ceiling`, the r a perfect predictor reaches against
+    that truth (pearson_ceiling: how high r can be against this truth, however narrow its span; it
+    depends on the truth alone, so one read-out's statistics carry it for all).
 
     Returns {"families": [{"task", "family", "n" (policies, base included), "pearson", "mean_abs_error",
     "true_range": [lowest, highest], "pearson_ceiling"}], "mean_pearson" (over families where r is
@@ -508,10 +509,10 @@ def family_statistics(rows: list[dict], rate: str = "pred_rate") -> dict:
         pred = [r[rate] for r in members]
         true = [r["true_rate"] for r in members]
         episodes = [r.get("n") for r in members]
-        ceiling = pearson_ceiling(true, episodes) if all(episodes) else math.nan
+        top = pearson_ceiling(true, episodes) if ceiling and all(episodes) else math.nan
         out.append({"task": task, "family": family, "n": len(members), "pearson": pearson(pred, true)[0],
                     "mean_abs_error": float(np.mean(np.abs(np.subtract(pred, true)))),
-                    "true_range": [min(true), max(true)], "pearson_ceiling": ceiling})
+                    "true_range": [min(true), max(true)], "pearson_ceiling": top})
     defined = [x for x in out if not math.isnan(x["pearson"])]
     mean = lambda key: float(np.mean([x[key] for x in defined])) if defined else math.nan
     return {"families": out, "mean_pearson": mean("pearson"), "mean_pearson_ceiling": mean("pearson_ceiling"),
