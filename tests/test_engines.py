@@ -23,7 +23,8 @@ from sim_data.sim.engines import (
     standalone_free_bodies,
 )
 from sim_data.sim.env import HomeEnv
-from sim_data.sim.rollout import SEGMENT, _scan_segment, run_episodes
+from sim_data.sim.render import RenderConfig, Renderer
+from sim_data.sim.rollout import SEGMENT, _scan_recorded, _scan_segment, record_episodes, run_episodes
 from sim_data.sim.tasks import PHYSICS_SUBSTEPS, TASK_NAMES
 
 PARITY_TOL = 2e-3
@@ -121,6 +122,22 @@ def test_mjx_rollout_compiles_once_for_every_task():
         assert traj.success.shape == (1, env.episode_steps) and env.episode_steps % SEGMENT == 0
         assert np.asarray(state.done).all() and np.asarray(state.success).all(), task
     assert compiled[1] == compiled[0]
+
+
+@pytest.mark.slow
+def test_a_recorded_rollout_compiled_ahead_compiles_once_and_records_the_same_episodes():
+    """compile_ahead: the background thread's run from zeros puts the program in jit's cache, so the
+    episode's own call compiles nothing more, and the episode is the one recorded without it."""
+    env = HomeEnv("mug", 2, engine="mjx")
+    pol, params = ScriptedPolicy.create(), {"skill": jnp.ones(2)}
+    head = (Renderer(env.model, RenderConfig(camera="head_cam", width=32, height=32)),)
+    before = _scan_recorded._cache_size()
+    _, ahead = record_episodes(env, pol, params, jax.random.PRNGKey(4), head, steps=SEGMENT, compile_ahead=True)
+    assert _scan_recorded._cache_size() == before + 1
+    _, plain = record_episodes(env, pol, params, jax.random.PRNGKey(4), head, steps=SEGMENT)
+    assert _scan_recorded._cache_size() == before + 1
+    for a, b in zip(jax.tree.leaves(ahead), jax.tree.leaves(plain)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
 def test_unknown_engine_is_a_clear_error():

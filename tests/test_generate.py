@@ -218,9 +218,12 @@ def test_scripted_program_and_play_chunks_run_through_one_compiled_rollout(monke
     alone = G._plan(G.make_config("smoke", ["engine=mjx", "episodes=3", "batch=4", "programs=0", "tasks=mug,step_back"]))
     assert [c for c in plan if c.key == "scripted"] == alone  # their rows, batch and so their noise unchanged
 
-    def rollout(env, policy, params, rng, renderers=(), progress=None, reset_keys=None, steps=None):
+    def rollout(env, policy, params, rng, renderers=(), progress=None, reset_keys=None, steps=None,
+                compile_ahead=False):
+        ahead.append(compile_ahead)
         raise _Rollout(env, policy, params, rng, renderers, reset_keys)
 
+    ahead = []
     monkeypatch.setattr(G, "record_episodes", rollout)
     calls = []
     for chunk in plan:
@@ -233,6 +236,7 @@ def test_scripted_program_and_play_chunks_run_through_one_compiled_rollout(monke
     keys = {(env.core, policy, renderers, _signature(params), _signature(rng), _signature(reset_keys))
             for env, policy, params, rng, renderers, reset_keys in calls}
     assert len(keys) == 1, "scripted and program chunks would compile apart"
+    assert all(ahead), "the data's own rollout, which no warm-up compiles, compiles beside the reset's programs"
     kinds = {bool(p) for _, _, params, *_ in calls for p in params["program"]}
     assert kinds == {True, False}  # both kinds went through it
 
@@ -244,7 +248,8 @@ def test_the_cpu_engine_pads_only_the_chunks_that_play_tables(monkeypatch):
     cfg = G.make_config("smoke", ["engine=cpu", "episodes=3", "batch=4", "play=4", "tasks=mug"])
     grips = G.make_config("smoke", ["engine=cpu", "episodes=3", "batch=4", "weak_grip=3", "tasks=mug"])
 
-    def rollout(env, policy, params, rng, renderers=(), progress=None, reset_keys=None, steps=None):
+    def rollout(env, policy, params, rng, renderers=(), progress=None, reset_keys=None, steps=None,
+                compile_ahead=False):
         raise _Rollout(env, policy, params, rng, renderers, reset_keys)
 
     monkeypatch.setattr(G, "record_episodes", rollout)
@@ -278,7 +283,8 @@ def test_weak_grip_episodes_start_where_the_scripted_ones_do_and_close_the_hand_
     assert factors.min() >= lo and factors.max() < hi and len(np.unique(factors)) == 100
     assert np.histogram(factors, bins=6, range=(lo, hi))[0].min() >= 15  # spread evenly: 100 / 6 each, about
 
-    def rollout(env, policy, params, rng, renderers=(), progress=None, reset_keys=None, steps=None):
+    def rollout(env, policy, params, rng, renderers=(), progress=None, reset_keys=None, steps=None,
+                compile_ahead=False):
         raise _Rollout(params)
 
     monkeypatch.setattr(G, "record_episodes", rollout)
@@ -316,7 +322,8 @@ def test_drive_episodes_back_away_for_times_spread_over_the_range_from_the_scrip
     others = np.delete(table, R.FORWARD_SPEED, axis=1)
     np.testing.assert_array_equal(others, np.broadcast_to(others[0], others.shape))  # the pose held throughout
 
-    def rollout(env, policy, params, rng, renderers=(), progress=None, reset_keys=None, steps=None):
+    def rollout(env, policy, params, rng, renderers=(), progress=None, reset_keys=None, steps=None,
+                compile_ahead=False):
         raise _Rollout(env, params)
 
     monkeypatch.setattr(G, "record_episodes", rollout)

@@ -630,8 +630,9 @@ def simulate_chunk(cfg: DataConfig, chunk: Chunk, engine: str, steps: int | None
     reset_keys = jax.numpy.stack([jax.random.PRNGKey(_initial_seed_of(cfg, chunk.task, src, i)) for src, i in rows])
     source, i = chunk.first
     chunk_key = jax.random.PRNGKey(initial_seed(cfg, f"{chunk.task}/{_source_key(source)}", i))
+    # the scripted skills' and programs' rollout is the data's own, which no warm-up compiles
     _, rec = record_episodes(env, policy, params, chunk_key, cached_renderers(cfg.size, tuple(cfg.cameras)),
-                             reset_keys=reset_keys, steps=steps)
+                             reset_keys=reset_keys, steps=steps, compile_ahead=isinstance(chunk.key, str))
     return rows, jax.tree_util.tree_map(np.asarray, rec)
 
 

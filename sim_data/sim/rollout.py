@@ -9,6 +9,7 @@ batch size, policy and renderers serves every task and episode length.
 
 from __future__ import annotations
 
+import concurrent.futures as cf
 import functools
 
 import jax
@@ -187,25 +188,34 @@ def _recording_of(first, segments) -> Recording:
 
 
 def record_episodes(env: HomeEnv, policy, params, rng: jax.Array, renderers: tuple[Renderer, ...] = (),
-                    progress=None, reset_keys=None, steps: int | None = None) -> tuple[State, Recording]:
+                    progress=None, reset_keys=None, steps: int | None = None,
+                    compile_ahead: bool = False) -> tuple[State, Recording]:
     """Runs env.batch_size episodes to the end, rendering every camera of `renderers` at every step.
 
     The policy sees `obs["image"]`, the first renderer's frame, besides the state's observations.
     Same seeding as `run_episodes`: one rng gives the same initial states and policy noise;
     reset_keys (B, 2), if given, seed each episode's initial state instead. steps: only the first
     `steps` control steps (whole segments; the same compiled programs as a whole episode's, which is
-    how a run's programs are compiled ahead of it).
+    how a run's programs are compiled ahead of it). compile_ahead (the `mjx` engine): the recorded
+    rollout compiles in a background thread (compile_recorded_ahead) while this thread compiles
+    and runs the reset, the first observation and the policy's carry; for programs that no warm-up
+    process has put in the persistent cache (a warmed program's text must follow one tracing order).
     Returns (final State, Recording).
     """
     _check_steps(env, steps)
     renderers = tuple(renderers)
     k_reset, k_pol, k_act = jax.random.split(rng, 3)
-    state = env.reset(k_reset if reset_keys is None else reset_keys)
+    keys = k_reset if reset_keys is None else reset_keys
+    ahead = (compile_recorded_ahead(env, policy, params, renderers, keys, k_pol, k_act)
+             if compile_ahead and env.engine.name == "mjx" else None)
+    state = env.reset(keys)
     rgb = episode_rgb(renderers[0].geometry, state.task.colors) if renderers else None
     if env.engine.name == "mjx":
         obs, frames, rec = _observe_mjx(env.core, renderers, state, rgb)
         # the policy's carry starts from what it sees at reset, the camera's frame included
         carry = _jitted_init(policy)(params, obs, state.task, k_pol)
+        if ahead is not None:
+            ahead.result()  # a call before it ends would compile the same program a second time
         segments = []
         for start in _segment_starts(env, steps):
             state, carry, obs, seg = _scan_recorded(env.core, policy, renderers, params, state, carry, obs, k_act,
@@ -263,6 +273,45 @@ def _scan_recorded(core: EnvCore, policy, renderers, params, state, carry, obs, 
 
     (state, carry, obs), seg = jax.lax.scan(body, (state, carry, obs), start + jnp.arange(SEGMENT, dtype=jnp.int32))
     return state, carry, obs, seg
+
+
+_AHEAD_POOL = cf.ThreadPoolExecutor(1, thread_name_prefix="compile-ahead")
+_AHEAD: dict = {}  # (core, policy, renderers, params' shapes) -> the Future of its first compile
+
+
+def compile_recorded_ahead(env: HomeEnv, policy, params, renderers: tuple, reset_keys, k_pol, k_act) -> cf.Future:
+    """The Future of `_scan_recorded`'s compilation for env's batch, policy, renderers and params'
+    shapes, started in a background thread the first time they are seen (later calls return the same
+    Future). The thread finds the shapes of the reset state, its observation and the policy's carry
+    by `jax.eval_shape` and runs one segment from zeros of those shapes, which compiles the program
+    into jit's own cache as a real call would; the segment's output is discarded. XLA compiles with
+    the interpreter lock released, so this compile runs beside those the caller goes on with."""
+    leaves = jax.tree_util.tree_leaves(params)
+    key = (env.core, policy, renderers, jax.tree_util.tree_structure(params),
+           tuple((np.shape(x), np.result_type(x).str) for x in leaves))
+    if key not in _AHEAD:
+        _AHEAD[key] = _AHEAD_POOL.submit(_run_recorded_on_zeros, env, policy, params, renderers, reset_keys,
+                                         k_pol, k_act)
+    return _AHEAD[key]
+
+
+def _zeros_like_shape(s):
+    """Zeros of a ShapeDtypeStruct, made on the host and put on the device (an eager jnp.zeros would
+    compile a program per shape)."""
+    if jax.dtypes.issubdtype(s.dtype, jax.dtypes.prng_key):
+        data = jax.random.key_data(jax.random.key(0))
+        return jax.random.wrap_key_data(jax.device_put(np.zeros(s.shape + data.shape, data.dtype)))
+    return jax.device_put(np.zeros(s.shape, s.dtype))
+
+
+def _run_recorded_on_zeros(env: HomeEnv, policy, params, renderers: tuple, reset_keys, k_pol, k_act) -> None:
+    state = jax.eval_shape(env.reset, reset_keys)
+    rgb = jax.eval_shape(lambda c: episode_rgb(renderers[0].geometry, c), state.task.colors) if renderers else None
+    obs = jax.eval_shape(lambda st, c: _observe_mjx(env.core, renderers, st, c)[0], state, rgb)
+    carry = jax.eval_shape(policy.init_carry, params, obs, state.task, k_pol)
+    state, carry, obs, rgb = jax.tree_util.tree_map(_zeros_like_shape, (state, carry, obs, rgb))
+    jax.block_until_ready(_scan_recorded(env.core, policy, renderers, params, state, carry, obs, k_act,
+                                         jnp.int32(0), rgb))
 
 
 def record_policies(env: HomeEnv, policy, params, reset_keys, rng: jax.Array, renderers=(),
