@@ -13,10 +13,12 @@ over tasks of Pearson, Spearman, MMRV, pairwise accuracy at gaps >= 10 points an
 alignment), their mean over the group's runs and their range; and the design's gain, the
 difference of the two group means (design minus base; for MMRV a negative gain is better), with a
 95% interval from one bootstrap that resamples, within each task, policies and initial states, the
-same draw for every run (stats.within_task_draws). The same over the policies that no run's world
-model learned from (`in_wm_data` false), and over those of them that are lineages of their own rather
-than counterfactual families (degraded copies of a zoo checkpoint, whose knobs a design's data may
-share: the policies a new user brings are of the first kind), each where there are at least three a task.
+same draw for every run (stats.within_task_draws); beside them each run's mean absolute error of
+the predicted success rates (the mean over tasks of the mean over policies). The same over the
+policies that no run's world model learned from (`in_wm_data` false), over those of them that are
+lineages of their own rather than counterfactual families (degraded copies of a zoo checkpoint, whose
+knobs a design's data may share: the policies a new user brings are of the first kind), and over the
+counterfactual families' members, each where there are at least three a task.
 """
 
 from __future__ import annotations
@@ -35,8 +37,8 @@ from experiments.ensemble import read_results
 from sim_data.util import run_cli, write_json_atomic
 
 GROUPS = ("base", "design")
-MIN_UNSEEN = 3  # policies a task, as the evaluation's own unseen block
-SUBSETS = ("all", "unseen", "unseen_networks")
+MIN_PER_TASK = 3  # policies a task in a subset, as the evaluation's own unseen block
+SUBSETS = ("all", "unseen", "unseen_networks", "families")
 
 
 def episode_tables(results: list[dict]) -> tuple[dict, dict, dict, dict]:
@@ -93,7 +95,7 @@ def compare_groups(true: dict, groups: dict, draws: int = 1000, seed: int = 0) -
     true: {task: (P, N) outcomes}; groups: {"base": [{task: (P, N) probabilities}] one per run,
     "design": [...]}. Returns {"base", "design": {"runs": [{stat: x}], "mean": {stat}, "range":
     {stat: [min, max]}, "mean_ci": {stat: [lo, hi]}, "per_task": {task: {stat: mean over runs}},
-    "runs_per_task": [{task: {stat: x}}] one per run},
+    "runs_per_task": [{task: {stat: x}}] one per run, "abs_error": [x] one per run (mean_abs_error)},
     "gain": {"mean": {stat: design - base}, "mean_ci", "per_task", "per_task_ci"}}."""
     if sorted(groups) != sorted(GROUPS) or any(not runs for runs in groups.values()):
         raise ValueError(f"give both groups {GROUPS}, each with at least one run")
@@ -116,7 +118,8 @@ def compare_groups(true: dict, groups: dict, draws: int = 1000, seed: int = 0) -
                   "per_task": {t: {k: float(np.mean([point[n][t][k] for n in names])) for k in S.WITHIN_TASK}
                                for t in tasks},
                   "runs_per_task": [{t: {k: float(point[n][t][k]) for k in S.WITHIN_TASK} for t in tasks}
-                                    for n in names]}
+                                    for n in names],
+                  "abs_error": [mean_abs_error(true, run) for run in groups[g]]}
     d, b = "design", "base"
     out["gain"] = {"mean": {k: out[d]["mean"][k] - out[b]["mean"][k] for k in S.WITHIN_TASK},
                    "mean_ci": {k: S.percentile_interval(mean_draws[d][k] - mean_draws[b][k]) for k in S.WITHIN_TASK},
@@ -132,8 +135,8 @@ def compare(base: list[dict], design: list[dict], draws: int = 1000, seed: int =
     "resamples", "tasks", "policies": {task: P}, "all": compare_groups over every policy, "unseen": the
     same over the policies no world model learned from, "unseen_networks": over those of them that are
     lineages of their own, not counterfactual families (whose knobs a design's data may share; absent
-    where no family is unseen), each subset absent with fewer than MIN_UNSEEN a task, with
-    "<subset>_policies": {task: P} beside each}."""
+    where no family is unseen), "families": over the counterfactual families' members, each subset
+    absent with fewer than MIN_PER_TASK a task, with "<subset>_policies": {task: P} beside each}."""
     true, preds, unseen, family = episode_tables(base + design)
     k = len(base)
     out = {"draws": draws, "resamples": S.WITHIN_TASK_RESAMPLES, "tasks": list(true),
@@ -142,13 +145,20 @@ def compare(base: list[dict], design: list[dict], draws: int = 1000, seed: int =
     subsets = {"unseen": unseen}
     if any((u & family[t]).any() for t, u in unseen.items()):  # else the networks are the unseen block
         subsets["unseen_networks"] = {t: u & ~family[t] for t, u in unseen.items()}
+    subsets["families"] = family
     for name, keep in subsets.items():
-        if all(u.sum() >= MIN_UNSEEN for u in keep.values()):
+        if all(u.sum() >= MIN_PER_TASK for u in keep.values()):
             out[f"{name}_policies"] = {t: int(u.sum()) for t, u in keep.items()}
             out[name] = compare_groups(_kept(true, keep), {"base": [_kept(p, keep) for p in preds[:k]],
                                                            "design": [_kept(p, keep) for p in preds[k:]]},
                                        draws, seed)
     return out
+
+
+def mean_abs_error(true: dict, pred: dict) -> float:
+    """The mean over tasks of the mean over policies of |predicted - true success rate|; true, pred:
+    {task: (P, N)} per-episode outcomes and probabilities."""
+    return float(np.mean([np.abs(pred[t].mean(1) - true[t].mean(1)).mean() for t in true]))
 
 
 def _kept(table: dict, keep: dict) -> dict:
@@ -158,10 +168,11 @@ def _kept(table: dict, keep: dict) -> dict:
 
 def markdown(res: dict, names: tuple[str, str] = GROUPS) -> str:
     """The comparison as a markdown table: a row per group (mean over its runs [bootstrap interval],
-    range over the runs) and the gain, over every policy, the unseen ones and the unseen networks."""
+    range over the runs; the mean absolute error, the mean over its runs) and the gain, over every
+    policy, the unseen ones, the unseen networks and the counterfactual families."""
     stats = ("pearson", "mmrv", "pairwise_acc_gap10", "spearman")
     fmt = lambda x: "nan" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.3f}"
-    lines = ["| policies | " + " | ".join(["model"] + list(stats)) + " |", "|" + "---|" * (len(stats) + 2)]
+    lines = ["| policies | " + " | ".join(["model", *stats, "abs error"]) + " |", "|" + "---|" * (len(stats) + 3)]
     for subset in SUBSETS:
         if subset not in res:
             continue
@@ -170,9 +181,11 @@ def markdown(res: dict, names: tuple[str, str] = GROUPS) -> str:
             n = len(r[g]["runs"])
             cells = [f"{fmt(r[g]['mean'][s])} [{fmt(r[g]['mean_ci'][s][0])}, {fmt(r[g]['mean_ci'][s][1])}] "
                      f"({fmt(r[g]['range'][s][0])}-{fmt(r[g]['range'][s][1])})" for s in stats]
+            cells.append(fmt(float(np.mean(r[g]["abs_error"]))))
             lines.append(f"| {subset} | {label} ({n} runs) | " + " | ".join(cells) + " |")
         cells = [f"{r['gain']['mean'][s]:+.3f} [{r['gain']['mean_ci'][s][0]:+.3f}, {r['gain']['mean_ci'][s][1]:+.3f}]"
                  for s in stats]
+        cells.append(f"{np.mean(r['design']['abs_error']) - np.mean(r['base']['abs_error']):+.3f}")
         lines.append(f"| {subset} | {names[1]} - {names[0]} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

@@ -109,5 +109,22 @@ def test_the_command_writes_both_subsets_and_prints_the_table(tmp_path, capsys):
     table = capsys.readouterr().out
     assert "| all | sharp - recipe |" in table and "| unseen | recipe (2 runs) |" in table
     assert "| unseen_networks | sharp - recipe |" in table
+    assert "families" not in res and "| families |" not in table  # two members a task: too few to rank
     with pytest.raises(SystemExit):
         C.main(["--base", runs[0], "--design", runs[1], "--names", "one"])
+
+
+def test_the_families_subset_ranks_their_members_alone_and_each_run_carries_its_mean_abs_error():
+    true = _truth(3)
+    fam = (4, 5, 6, 7)
+    base = [_results(true, _noisy(true, 0.3, i), seen=fam, families=fam) for i in (0, 1)]
+    design = [_results(true, _noisy(true, 0.05, i), seen=fam, families=fam) for i in (2, 3)]
+    res = C.compare(base, design, draws=20)
+    assert res["families_policies"] == {"mug": 4, "wipe": 4} and "unseen_networks" not in res  # no family unseen
+    pred = _noisy(true, 0.05, 3)
+    want = S.within_task({t: v[4:] for t, v in true.items()}, {"d": {t: pred[t][4:] for t in TASKS}}, draws=20)
+    assert res["families"]["design"]["runs"][1]["pearson"] == pytest.approx(want["d"]["mean"]["pearson"])
+    # |predicted - true rate| by hand: per task the mean over its family members, then over tasks
+    by_hand = np.mean([np.abs(pred[t][4:].mean(1) - true[t][4:].mean(1)).mean() for t in TASKS])
+    assert res["families"]["design"]["abs_error"][1] == pytest.approx(by_hand)
+    assert res["all"]["base"]["abs_error"][0] > res["all"]["design"]["abs_error"][0]  # the noisier run errs more
