@@ -155,16 +155,17 @@ PIPELINES = {
     # each one knob of sim_data.policies.degrade at its own level: what actions a little off a good
     # policy's do); the zoo learns from the same demonstrations as full's. Over two seeds the copies
     # raised every within-task figure and most the unseen networks' (docs/world-model.md); the
-    # counterfactual families are degraded copies of the same lineage, so they are no longer unseen in kind
+    # counterfactual families are degraded copies of the same lineage, so they are not unseen in kind: the
+    # data holds that lineage's copies at other levels
     "full_grip": Pipeline(data="wm_full_grip", policies="full", train="full", eval="full",
                           train_overrides=("w_success=0.5", "w_progress=0.5", f"judge_episodes={JUDGE_ALL}"),
                           rollouts="conv_noproprio+conv_noproprio_lowskill+conv_proprio", rollout_episodes=32,
                           perturbed="conv_noproprio", perturb_episodes=32),
-    # `full_grip` whose world model also learns from perturbed copies of two seen lineages (each episode
-    # one knob of sim_data.policies.degrade at its own level, 32 a checkpoint): what actions a little off a
-    # policy's own do. conv_noproprio, the counterfactual families' base, is kept out of them. Measured
-    # over four seeds against full_grip: MMRV lower in every seed, the unseen networks not helped; not
-    # adopted (docs/world-model.md)
+    # `full_grip` with its perturbed copies taken from two other seen lineages, conv_noproprio_lowskill and
+    # conv_proprio, instead of conv_noproprio, the counterfactual families' base (each episode one knob of
+    # sim_data.policies.degrade at its own level, 32 a checkpoint). Measured over four seeds against
+    # full_grip without any copies: MMRV lower in every seed, the unseen networks not helped; not adopted
+    # (docs/world-model.md)
     "full_perturb": Pipeline(data="wm_full_grip", policies="full", train="full", eval="full",
                              train_overrides=("w_success=0.5", "w_progress=0.5", f"judge_episodes={JUDGE_ALL}"),
                              rollouts="conv_noproprio+conv_noproprio_lowskill+conv_proprio", rollout_episodes=32,

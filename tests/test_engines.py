@@ -24,7 +24,14 @@ from sim_data.sim.engines import (
 )
 from sim_data.sim.env import HomeEnv
 from sim_data.sim.render import RenderConfig, Renderer
-from sim_data.sim.rollout import SEGMENT, _scan_recorded, _scan_segment, record_episodes, run_episodes
+from sim_data.sim.rollout import (
+    SEGMENT,
+    _scan_recorded,
+    _scan_segment,
+    compile_recorded_ahead,
+    record_episodes,
+    run_episodes,
+)
 from sim_data.sim.tasks import PHYSICS_SUBSTEPS, TASK_NAMES
 
 PARITY_TOL = 2e-3
@@ -126,15 +133,18 @@ def test_mjx_rollout_compiles_once_for_every_task():
 
 @pytest.mark.slow
 def test_a_recorded_rollout_compiled_ahead_compiles_once_and_records_the_same_episodes():
-    """compile_ahead: the background thread's run from zeros puts the program in jit's cache, so the
-    episode's own call compiles nothing more, and the episode is the one recorded without it."""
+    """compile_recorded_ahead alone puts the program in jit's cache (its run from zeros), so the
+    episodes' own calls compile nothing more, and they are the episodes recorded without it."""
     env = HomeEnv("mug", 2, engine="mjx")
     pol, params = ScriptedPolicy.create(), {"skill": jnp.ones(2)}
     head = (Renderer(env.model, RenderConfig(camera="head_cam", width=32, height=32)),)
+    rng = jax.random.PRNGKey(4)
+    k_reset, k_pol, k_act = jax.random.split(rng, 3)  # as record_episodes splits it
     before = _scan_recorded._cache_size()
-    _, ahead = record_episodes(env, pol, params, jax.random.PRNGKey(4), head, steps=SEGMENT, compile_ahead=True)
+    compile_recorded_ahead(env, pol, params, head, k_reset, k_pol, k_act).result()
     assert _scan_recorded._cache_size() == before + 1
-    _, plain = record_episodes(env, pol, params, jax.random.PRNGKey(4), head, steps=SEGMENT)
+    _, ahead = record_episodes(env, pol, params, rng, head, steps=SEGMENT, compile_ahead=True)
+    _, plain = record_episodes(env, pol, params, rng, head, steps=SEGMENT)
     assert _scan_recorded._cache_size() == before + 1
     for a, b in zip(jax.tree.leaves(ahead), jax.tree.leaves(plain)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

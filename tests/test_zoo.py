@@ -492,6 +492,11 @@ def test_the_rollouts_warm_up_runs_the_zoos_planned_policies_as_the_rollouts_the
     assert "act" in compiled(lambda: G.warm(cfg, progress=False))  # compiled here
     assert list(tmp_path.iterdir()) == []
     rolled = compiled(lambda: G.simulate_chunk(cfg, learned[0], "cpu"))  # the rollouts as generate runs them
+    asked = []  # a learned chunk's rollout is the warm-up's to compile: none compiles ahead beside the stage
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(G, "record_episodes", lambda *a, compile_ahead=False, **k: asked.append(compile_ahead) or (None, None))
+        G.simulate_chunk(cfg, learned[0], "cpu")
+    assert asked == [False]
     assert not rolled & {"act", "init_carry", "observe"}
     with pytest.raises(FileNotFoundError, match="plan.json is missing"):
         G.warm(G.make_config("smoke", [f"policies={tmp_path / 'none'}#conv_proprio"]), progress=False)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import functools
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -215,7 +216,7 @@ def record_episodes(env: HomeEnv, policy, params, rng: jax.Array, renderers: tup
         # the policy's carry starts from what it sees at reset, the camera's frame included
         carry = _jitted_init(policy)(params, obs, state.task, k_pol)
         if ahead is not None:
-            ahead.result()  # a call before it ends would compile the same program a second time
+            _wait_ahead(ahead)  # a call before it ends would compile the same program a second time
         segments = []
         for start in _segment_starts(env, steps):
             state, carry, obs, seg = _scan_recorded(env.core, policy, renderers, params, state, carry, obs, k_act,
@@ -276,40 +277,57 @@ def _scan_recorded(core: EnvCore, policy, renderers, params, state, carry, obs, 
 
 
 _AHEAD_POOL = cf.ThreadPoolExecutor(1, thread_name_prefix="compile-ahead")
-_AHEAD: dict = {}  # (core, policy, renderers, params' shapes) -> the Future of its first compile
+# (core, policy, renderers, the types of params and the action key) -> the Future of its first compile;
+# read and written by the calling thread only
+_AHEAD: dict = {}
 
 
 def compile_recorded_ahead(env: HomeEnv, policy, params, renderers: tuple, reset_keys, k_pol, k_act) -> cf.Future:
-    """The Future of `_scan_recorded`'s compilation for env's batch, policy, renderers and params'
-    shapes, started in a background thread the first time they are seen (later calls return the same
-    Future). The thread finds the shapes of the reset state, its observation and the policy's carry
-    by `jax.eval_shape` and runs one segment from zeros of those shapes, which compiles the program
-    into jit's own cache as a real call would; the segment's output is discarded. XLA compiles with
-    the interpreter lock released, so this compile runs beside those the caller goes on with."""
-    leaves = jax.tree_util.tree_leaves(params)
-    key = (env.core, policy, renderers, jax.tree_util.tree_structure(params),
-           tuple((np.shape(x), np.result_type(x).str) for x in leaves))
+    """The Future of `_scan_recorded`'s compilation for env's batch, policy, renderers and the types
+    of params and k_act, started in a background thread the first time they are seen (later calls
+    return the same Future).
+
+    reset_keys: (B, 2) uint32, or one key (what env.reset takes); k_pol, k_act: the keys that
+    record_episodes gives the policy's carry and its actions. The thread finds the shapes of the reset
+    state, its observation and the policy's carry by `jax.eval_shape` and runs one segment from zeros
+    of those shapes, which compiles the program into jit's own cache as a real call would; the
+    segment's output is discarded. XLA compiles with the interpreter lock released, so this compile
+    runs beside those the caller goes on with. The thread sees JAX's global configuration only:
+    callers inside a thread-local context (`jax.default_device`, `jax.enable_x64` as a context) would
+    compile another program than theirs, so they leave compile_ahead off."""
+    leaves, tree = jax.tree_util.tree_flatten(params)
+    key = (env.core, policy, renderers, tree, tuple(jax.typeof(x) for x in leaves), jax.typeof(k_act))
     if key not in _AHEAD:
         _AHEAD[key] = _AHEAD_POOL.submit(_run_recorded_on_zeros, env, policy, params, renderers, reset_keys,
                                          k_pol, k_act)
     return _AHEAD[key]
 
 
-def _zeros_like_shape(s):
-    """Zeros of a ShapeDtypeStruct, made on the host and put on the device (an eager jnp.zeros would
-    compile a program per shape)."""
-    if jax.dtypes.issubdtype(s.dtype, jax.dtypes.prng_key):
-        data = jax.random.key_data(jax.random.key(0))
-        return jax.random.wrap_key_data(jax.device_put(np.zeros(s.shape + data.shape, data.dtype)))
-    return jax.device_put(np.zeros(s.shape, s.dtype))
+def _wait_ahead(ahead: cf.Future) -> None:
+    """Waits for a compile started by compile_recorded_ahead. Where it failed, warns and forgets it, so
+    that the caller's own call compiles the program and a later call tries again."""
+    error = ahead.exception()
+    if error is None:
+        return
+    for key in [k for k, f in _AHEAD.items() if f is ahead]:
+        del _AHEAD[key]
+    warnings.warn(f"compiling the recorded rollout ahead failed ({error!r}); it compiles in turn instead",
+                  RuntimeWarning, stacklevel=3)
 
 
 def _run_recorded_on_zeros(env: HomeEnv, policy, params, renderers: tuple, reset_keys, k_pol, k_act) -> None:
+    """One segment of `_scan_recorded` from zeros of the shapes a real call gives it (compile_recorded_ahead);
+    nothing where the state, observation or carry hold typed PRNG keys or weakly typed values, whose
+    zeros it does not make (a plain zero array in their place would compile another program)."""
     state = jax.eval_shape(env.reset, reset_keys)
     rgb = jax.eval_shape(lambda c: episode_rgb(renderers[0].geometry, c), state.task.colors) if renderers else None
     obs = jax.eval_shape(lambda st, c: _observe_mjx(env.core, renderers, st, c)[0], state, rgb)
     carry = jax.eval_shape(policy.init_carry, params, obs, state.task, k_pol)
-    state, carry, obs, rgb = jax.tree_util.tree_map(_zeros_like_shape, (state, carry, obs, rgb))
+    shapes = (state, carry, obs, rgb)
+    if any(s.weak_type or jax.dtypes.issubdtype(s.dtype, jax.dtypes.prng_key) for s in jax.tree_util.tree_leaves(shapes)):
+        return
+    # host zeros put on the device: an eager jnp.zeros would compile a program per shape
+    state, carry, obs, rgb = jax.tree_util.tree_map(lambda s: jax.device_put(np.zeros(s.shape, s.dtype)), shapes)
     jax.block_until_ready(_scan_recorded(env.core, policy, renderers, params, state, carry, obs, k_act,
                                          jnp.int32(0), rgb))
 
