@@ -14,13 +14,13 @@ alignment), their mean over the group's runs and their range; and the design's g
 difference of the two group means (design minus base; for MMRV a negative gain is better), with a
 95% interval from one bootstrap that resamples, within each task, policies and initial states, the
 same draw for every run (stats.within_task_draws); beside them each run's mean absolute error of
-the predicted success rates (the mean over tasks of the mean over policies: over the families' members
-alone, where the report's family table also counts each family's undegraded base and averages over
-families). The same over the
-policies that no run's world model learned from (`in_wm_data` false), over those of them that are
-lineages of their own rather than counterfactual families (degraded copies of a zoo checkpoint, whose
-knobs a design's data may share: the policies a new user brings are of the first kind), and over the
-counterfactual families' members, each where there are at least three a task.
+the predicted success rates (the mean over tasks of the mean over policies; for the families, over
+their members alone, where the report's family table also counts each family's undegraded base and
+averages over families). The same over the policies that no run's world model learned from
+(`in_wm_data` false), over those of them that are lineages of their own rather than counterfactual
+families (degraded copies of a zoo checkpoint, whose knobs a design's data may share: the policies a
+new user brings are of the first kind), and over the counterfactual families' members, each where
+there are at least three a task.
 """
 
 from __future__ import annotations

@@ -494,7 +494,8 @@ def test_the_rollouts_warm_up_runs_the_zoos_planned_policies_as_the_rollouts_the
     rolled = compiled(lambda: G.simulate_chunk(cfg, learned[0], "cpu"))  # the rollouts as generate runs them
     asked = []  # a learned chunk's rollout is the warm-up's to compile: none compiles ahead beside the stage
     with pytest.MonkeyPatch.context() as m:
-        m.setattr(G, "record_episodes", lambda *a, compile_ahead=False, **k: asked.append(compile_ahead) or (None, None))
+        m.setattr(G, "record_episodes",
+                  lambda *a, compile_ahead=False, **k: asked.append(compile_ahead) or (None, None))
         G.simulate_chunk(cfg, learned[0], "cpu")
     assert asked == [False]
     assert not rolled & {"act", "init_carry", "observe"}

@@ -324,7 +324,8 @@ def _run_recorded_on_zeros(env: HomeEnv, policy, params, renderers: tuple, reset
     obs = jax.eval_shape(lambda st, c: _observe_mjx(env.core, renderers, st, c)[0], state, rgb)
     carry = jax.eval_shape(policy.init_carry, params, obs, state.task, k_pol)
     shapes = (state, carry, obs, rgb)
-    if any(s.weak_type or jax.dtypes.issubdtype(s.dtype, jax.dtypes.prng_key) for s in jax.tree_util.tree_leaves(shapes)):
+    leaves = jax.tree_util.tree_leaves(shapes)
+    if any(s.weak_type or jax.dtypes.issubdtype(s.dtype, jax.dtypes.prng_key) for s in leaves):
         return
     # host zeros put on the device: an eager jnp.zeros would compile a program per shape
     state, carry, obs, rgb = jax.tree_util.tree_map(lambda s: jax.device_put(np.zeros(s.shape, s.dtype)), shapes)
