@@ -73,6 +73,7 @@ def test_mcap_reads_back_with_every_image_decoded(smoke):
     assert successes[-1] == row["success"] == meta["success"] and meta["config"]["episodes"] == cfg.episodes
 
 
+@pytest.mark.slow  # the parts are what only a host of several GPUs runs (sim_data.parts)
 def test_same_config_gives_same_bytes_in_parts_and_resume_completes(smoke, tmp_path):
     cfg, out, _ = smoke
     files = sorted(p.name for p in (out / "episodes").iterdir())
