@@ -145,8 +145,12 @@ def compare(base: list[dict], design: list[dict], draws: int = 1000, seed: int =
            "policies": {t: int(v.shape[0]) for t, v in true.items()},
            "all": compare_groups(true, {"base": preds[:k], "design": preds[k:]}, draws, seed)}
     subsets = {"unseen": unseen}
-    if any((u & family[t]).any() for t, u in unseen.items()):  # else the networks are the unseen block
-        subsets["unseen_networks"] = {t: u & ~family[t] for t, u in unseen.items()}
+    rows = (base + design)[0]["policies"]  # every run ranks the same policies (episode_tables)
+    seen = {p["name"] for r in base + design for p in r["policies"] if p.get("in_wm_data", True)}
+    networks = S.unseen_networks(rows, seen)
+    names = {t: sorted(p["name"] for p in rows if p["task"] == t) for t in true}  # episode_tables' order
+    if networks:  # else the networks are the unseen block
+        subsets["unseen_networks"] = {t: np.asarray([n in networks for n in names[t]]) for t in true}
     subsets["families"] = family
     for name, keep in subsets.items():
         if all(u.sum() >= MIN_PER_TASK for u in keep.values()):

@@ -1128,23 +1128,12 @@ def all_metrics(cfg: EvalConfig, results: dict, tasks, rows: list[dict], seen: s
         metrics["unseen"] = ranking_block(unseen, true_eps, prob_eps, cfg.threshold, member_eps)
         metrics["unseen_within_task"] = within_task_block(results, tasks, rows, cfg,
                                                           lambda name: name not in seen)
-        networks = unseen_networks(rows, seen)
+        networks = S.unseen_networks(rows, seen)
         held = [t for t in tasks if sum(r["task"] == t and r["name"] in networks for r in rows) >= 3]
         if held:
             metrics["unseen_networks_within_task"] = within_task_block(results, held, rows, cfg,
                                                                        lambda name: name in networks)
     return metrics
-
-
-def unseen_networks(rows: list[dict], seen: set) -> set:
-    """The names of the unseen policies (not in `seen`) that are lineages of their own rather than
-    counterfactual families (stats.is_family: degraded copies of a zoo checkpoint, whose knobs a world
-    model's data may share): the kind a new user's policies are. Empty where there are no families
-    among the unseen (the unseen block is then this one)."""
-    unseen = [r for r in rows if r["name"] not in seen]
-    if not any(S.is_family(r) for r in unseen):
-        return set()
-    return {r["name"] for r in unseen if not S.is_family(r)}
 
 
 def _write_videos(out: Path, results: dict, tasks, panel: dict) -> None:

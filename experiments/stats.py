@@ -466,6 +466,17 @@ def is_family(row: dict) -> bool:
     return "~" in row.get("lineage", "")
 
 
+def unseen_networks(rows: list[dict], seen: set) -> set:
+    """The names of the unseen policies (not in `seen`) that are lineages of their own rather than
+    counterfactual families (is_family: degraded copies of a zoo checkpoint, whose knobs a world
+    model's data may share): the kind a new user's policies are. Empty where there are no families
+    among the unseen (the unseen block is then this one)."""
+    unseen = [r for r in rows if r["name"] not in seen]
+    if not any(is_family(r) for r in unseen):
+        return set()
+    return {r["name"] for r in unseen if not is_family(r)}
+
+
 def pearson_ceiling(true, episodes, draws: int = 200, seed: int = 0) -> float:
     """The Pearson r that a perfect predictor reaches against true rates measured from a finite number
     of episodes, as mmrv_floor's MMRV: the policies' success probabilities taken to be their measured
