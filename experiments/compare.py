@@ -6,7 +6,11 @@
 Each RUN is an `experiments.evaluate` OUT (its results.json) over the same policies from the same
 held-out initial states, with the same true outcomes (the same zoo, evaluation preset and seed);
 the runs differ only in their world model. A design is decided on the mean over its seeds: one
-seed moves the ranking about as much as most design choices (docs/world-model.md).
+seed moves the ranking about as much as most design choices (docs/world-model.md). A RUN written
+OUT#K is member K of the ensemble that evaluated OUT, alone (experiments.ensemble.member_results):
+
+    python -m experiments.compare --base runs/eval/demo#0 runs/eval/demo#1 --design runs/eval/demo \
+        --names one_model,ensemble
 
 For each group the output gives every run's within-task statistics (experiments.stats: the mean
 over tasks of Pearson, Spearman, MMRV, pairwise accuracy at gaps >= 10 points and per-episode
@@ -35,7 +39,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from experiments import stats as S
-from experiments.ensemble import read_results
+from experiments.ensemble import read_run
 from sim_data.util import run_cli, write_json_atomic
 
 GROUPS = ("base", "design")
@@ -235,8 +239,10 @@ def plot(res: dict, path: Path, names: tuple[str, str] = GROUPS, subset: str = "
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--base", nargs="+", type=Path, required=True, help="evaluations by the base design's world models")
-    p.add_argument("--design", nargs="+", type=Path, required=True, help="evaluations by the new design's world models")
+    p.add_argument("--base", nargs="+", required=True, metavar="RUN",
+                   help="evaluations by the base design's world models (OUT, or OUT#K: member K of OUT's ensemble)")
+    p.add_argument("--design", nargs="+", required=True, metavar="RUN",
+                   help="evaluations by the new design's world models (OUT or OUT#K)")
     p.add_argument("--names", default="base,design", help="the two designs' names in the table: BASE,DESIGN")
     p.add_argument("--draws", type=int, default=1000, help="bootstrap draws")
     p.add_argument("--out", type=Path, help="where the comparison's JSON goes (optional; with it, a PNG beside it)")
@@ -246,7 +252,7 @@ def main(argv=None) -> int:
         p.error(f"--names takes two names separated by a comma, got {a.names!r}")
     if a.draws < 1:
         p.error(f"--draws {a.draws}: give at least one")
-    res = compare([read_results(r) for r in a.base], [read_results(r) for r in a.design], a.draws)
+    res = compare([read_run(r) for r in a.base], [read_run(r) for r in a.design], a.draws)
     res |= {"names": list(names), "base_runs": [str(r) for r in a.base], "design_runs": [str(r) for r in a.design]}
     if a.out:
         a.out.parent.mkdir(parents=True, exist_ok=True)

@@ -121,6 +121,48 @@ def read_results(run: Path) -> dict:
     return res
 
 
+# the fields of an evaluation's policy row that hold no world model's reading
+TRUTH_FIELDS = ("name", "task", "lineage", "step", "kind", "n", "true_rate", "true_ci", "true_episodes", "in_wm_data")
+
+
+def member_results(run: Path, k: int) -> dict:
+    """Ensemble member k's reading alone, from an `experiments.evaluate` OUT that an ensemble of world
+    models evaluated: its results.json whose policy rows keep their truth (TRUTH_FIELDS) and carry
+    member k's per-episode probabilities (`pred_episodes`, from OUT/tasks/<task>.npz's prob_members,
+    (K, P, N)) and their mean (`pred_rate`); the ensemble's other figures are left out. Lets
+    experiments.compare set an ensemble against its members, or members of two ensembles against
+    each other."""
+    res = read_results(run)
+    out = Path(run) if Path(run).is_dir() else Path(run).parent
+    rows = []
+    for task in sorted({p["task"] for p in res["policies"]}):
+        path = out / "tasks" / f"{task}.npz"
+        if not path.exists():
+            raise FileNotFoundError(f"{path} not found: member {k} is read from the evaluation's per-task results")
+        with np.load(path) as z:
+            names = json.loads(z["meta"].tobytes().decode())["names"]
+            members = z["prob_members"] if "prob_members" in z.files else z["prob"][None]
+        if not 0 <= k < len(members):
+            raise ValueError(f"{run} was evaluated by {len(members)} world model(s): member {k} is not among them")
+        by_name = dict(zip(names, members[k], strict=True))
+        for p in (p for p in res["policies"] if p["task"] == task):
+            probs = np.asarray(by_name[p["name"]], np.float64)
+            rows.append({**{f: p[f] for f in TRUTH_FIELDS if f in p},
+                         "pred_episodes": np.round(probs, 5).tolist(), "pred_rate": float(probs.mean())})
+    return {"policies": rows, "member": k, "ensemble_run": str(run)}
+
+
+def read_run(spec: str) -> dict:
+    """An evaluation named on a command line: OUT (its results.json, read_results) or OUT#K (ensemble
+    member K of OUT alone, member_results)."""
+    path, sep, k = spec.rpartition("#")
+    if not sep:
+        return read_results(Path(spec))
+    if not k.isdigit():
+        raise ValueError(f"{spec!r}: after '#' comes a member's index (OUT#0, OUT#1, ...)")
+    return member_results(Path(path), int(k))
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("runs", nargs="+", type=Path, help="experiments.evaluate OUT directories, one per world model")

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from experiments import compare as C
+from experiments import ensemble as E
 from experiments import stats as S
 
 TASKS = ("mug", "wipe")
@@ -128,3 +129,45 @@ def test_the_families_subset_ranks_their_members_alone_and_each_run_carries_its_
     by_hand = np.mean([np.abs(pred[t][4:].mean(1) - true[t][4:].mean(1)).mean() for t in TASKS])
     assert res["families"]["design"]["abs_error"][1] == pytest.approx(by_hand)
     assert res["all"]["base"]["abs_error"][0] > res["all"]["design"]["abs_error"][0]  # the noisier run errs more
+
+
+def _ensemble_run(path, true, members):
+    """An evaluate OUT by an ensemble: results.json holding the members' mean, and OUT/tasks/<task>.npz
+    with each member's per-episode probabilities (prob_members, (K, P, N)) in another policy order."""
+    mean = {t: np.mean([m[t] for m in members], 0) for t in TASKS}
+    path.mkdir()
+    (path / "results.json").write_text(json.dumps(_results(true, mean, seen=(0,))))
+    (path / "tasks").mkdir()
+    for t in TASKS:
+        order = list(range(P))[::-1]
+        meta = json.dumps({"names": [f"{t}/p{i}" for i in order]}).encode()
+        np.savez(path / "tasks" / f"{t}.npz", prob_members=np.stack([m[t][order] for m in members]),
+                 prob=mean[t][order], meta=np.frombuffer(meta, np.uint8))
+
+
+def test_a_member_of_an_ensemble_is_read_alone_and_compared_against_the_ensemble(tmp_path, capsys):
+    true = _truth(4)
+    members = [_noisy(true, 0.3, 10), _noisy(true, 0.05, 11)]
+    _ensemble_run(tmp_path / "ens", true, members)
+    for k, m in enumerate(members):
+        got = E.read_run(f"{tmp_path / 'ens'}#{k}")
+        rows = {(p["task"], p["name"]): p for p in got["policies"]}
+        for t in TASKS:
+            for i in range(P):
+                row = rows[(t, f"{t}/p{i}")]
+                assert row["pred_episodes"] == pytest.approx(m[t][i], abs=1e-5)
+                assert row["pred_rate"] == pytest.approx(m[t][i].mean(), abs=1e-5)
+                assert row["true_episodes"] == true[t][i].tolist() and row["in_wm_data"] == (i == 0)
+    # member 1 alone is the sharper reading: compare finds it so, and the ensemble between the two
+    assert C.main(["--base", f"{tmp_path / 'ens'}#0", "--design", f"{tmp_path / 'ens'}#1", "--draws", "20"]) == 0
+    assert C.main(["--base", str(tmp_path / "ens"), "--design", f"{tmp_path / 'ens'}#1", "--draws", "20"]) == 0
+    res = C.compare([E.read_run(f"{tmp_path / 'ens'}#0")], [E.read_run(str(tmp_path / "ens"))], draws=20)
+    assert res["all"]["gain"]["mean"]["mmrv"] <= 0 and res["all"]["gain"]["mean"]["pearson"] > 0
+    with pytest.raises(ValueError, match="member 2 is not among them"):
+        E.read_run(f"{tmp_path / 'ens'}#2")
+    with pytest.raises(ValueError, match="a member's index"):
+        E.read_run(f"{tmp_path / 'ens'}#last")
+    with pytest.raises(FileNotFoundError, match="tasks"):
+        (tmp_path / "solo").mkdir()
+        (tmp_path / "solo" / "results.json").write_text(json.dumps(_results(true, members[0])))
+        E.read_run(f"{tmp_path / 'solo'}#0")
