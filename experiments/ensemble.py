@@ -156,7 +156,7 @@ def read_run(spec: str) -> dict:
     """An evaluation named on a command line: OUT (its results.json, read_results) or OUT#K (ensemble
     member K of OUT alone, member_results)."""
     path, sep, k = spec.rpartition("#")
-    if not sep:
+    if not sep or Path(spec).exists():
         return read_results(Path(spec))
     if not k.isdigit():
         raise ValueError(f"{spec!r}: after '#' comes a member's index (OUT#0, OUT#1, ...)")

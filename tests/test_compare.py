@@ -158,15 +158,25 @@ def test_a_member_of_an_ensemble_is_read_alone_and_compared_against_the_ensemble
                 assert row["pred_episodes"] == pytest.approx(m[t][i], abs=1e-5)
                 assert row["pred_rate"] == pytest.approx(m[t][i].mean(), abs=1e-5)
                 assert row["true_episodes"] == true[t][i].tolist() and row["in_wm_data"] == (i == 0)
-    # member 1 alone is the sharper reading: compare finds it so, and the ensemble between the two
-    assert C.main(["--base", f"{tmp_path / 'ens'}#0", "--design", f"{tmp_path / 'ens'}#1", "--draws", "20"]) == 0
-    assert C.main(["--base", str(tmp_path / "ens"), "--design", f"{tmp_path / 'ens'}#1", "--draws", "20"]) == 0
-    res = C.compare([E.read_run(f"{tmp_path / 'ens'}#0")], [E.read_run(str(tmp_path / "ens"))], draws=20)
-    assert res["all"]["gain"]["mean"]["mmrv"] <= 0 and res["all"]["gain"]["mean"]["pearson"] > 0
+    # member 1 alone is the sharper reading, the ensemble between the two: compare finds both so
+    out = tmp_path / "cmp.json"
+    assert C.main(["--base", f"{tmp_path / 'ens'}#0", "--design", f"{tmp_path / 'ens'}#1", "--names", "m0,m1",
+                   "--draws", "20", "--out", str(out)]) == 0
+    assert "| all | m1 - m0 |" in capsys.readouterr().out
+    res = json.loads(out.read_text())
+    assert res["base_runs"] == [f"{tmp_path / 'ens'}#0"] and res["all"]["gain"]["mean"]["pearson"] > 0
+    ens = str(tmp_path / "ens")
+    for worse, better in ((f"{ens}#0", ens), (ens, f"{ens}#1")):
+        gain = C.compare([E.read_run(worse)], [E.read_run(better)], draws=20)["all"]["gain"]["mean"]
+        assert gain["pearson"] > 0 and gain["mmrv"] <= 0
     with pytest.raises(ValueError, match="member 2 is not among them"):
         E.read_run(f"{tmp_path / 'ens'}#2")
     with pytest.raises(ValueError, match="a member's index"):
         E.read_run(f"{tmp_path / 'ens'}#last")
+    odd = tmp_path / "run#1"  # a directory whose own name holds '#' is read as itself
+    odd.mkdir()
+    (odd / "results.json").write_text(json.dumps(_results(true, members[0])))
+    assert E.read_run(str(odd))["policies"][0]["pred_episodes"] == pytest.approx(members[0]["mug"][0])
     with pytest.raises(FileNotFoundError, match="tasks"):
         (tmp_path / "solo").mkdir()
         (tmp_path / "solo" / "results.json").write_text(json.dumps(_results(true, members[0])))
