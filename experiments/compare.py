@@ -8,8 +8,9 @@ held-out initial states, with the same true outcomes (the same zoo, evaluation p
 the runs differ only in their world model. A design is decided on the mean over its seeds: one
 seed moves the ranking about as much as most design choices (docs/world-model.md). A RUN written
 OUT#K is member K of the ensemble that evaluated OUT, alone (experiments.ensemble.member_results):
+for an evaluation by `wm=runs/wm/a,runs/wm/b`,
 
-    python -m experiments.compare --base runs/eval/demo#0 runs/eval/demo#1 --design runs/eval/demo \
+    python -m experiments.compare --base runs/eval/ab#0 runs/eval/ab#1 --design runs/eval/ab \\
         --names one_model,ensemble
 
 For each group the output gives every run's within-task statistics (experiments.stats: the mean

@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import sys
 from pathlib import Path
 
@@ -131,7 +132,8 @@ def member_results(run: Path, k: int) -> dict:
     member k's per-episode probabilities (`pred_episodes`, from OUT/tasks/<task>.npz's prob_members,
     (K, P, N)) and their mean (`pred_rate`); the ensemble's other figures are left out. Lets
     experiments.compare set an ensemble against its members, or members of two ensembles against
-    each other."""
+    each other. `in_wm_data` stays the ensemble's (any member learned from the policy's rollouts):
+    the members of one pipeline's ensemble share their data, so it is each member's too."""
     res = read_results(run)
     out = Path(run) if Path(run).is_dir() else Path(run).parent
     rows = []
@@ -146,6 +148,9 @@ def member_results(run: Path, k: int) -> dict:
             raise ValueError(f"{run} was evaluated by {len(members)} world model(s): member {k} is not among them")
         by_name = dict(zip(names, members[k], strict=True))
         for p in (p for p in res["policies"] if p["task"] == task):
+            if p["name"] not in by_name:
+                raise ValueError(f"{path} holds no {p['name']}, which {run}'s results.json ranks: the two are of "
+                                 "different evaluations (rerun experiments.evaluate to gather them again)")
             probs = np.asarray(by_name[p["name"]], np.float64)
             rows.append({**{f: p[f] for f in TRUTH_FIELDS if f in p},
                          "pred_episodes": np.round(probs, 5).tolist(), "pred_rate": float(probs.mean())})
@@ -155,12 +160,10 @@ def member_results(run: Path, k: int) -> dict:
 def read_run(spec: str) -> dict:
     """An evaluation named on a command line: OUT (its results.json, read_results) or OUT#K (ensemble
     member K of OUT alone, member_results)."""
-    path, sep, k = spec.rpartition("#")
-    if not sep or Path(spec).exists():
+    member = re.fullmatch(r"(.+)#([0-9]+)", str(spec))
+    if member is None or Path(spec).exists():
         return read_results(Path(spec))
-    if not k.isdigit():
-        raise ValueError(f"{spec!r}: after '#' comes a member's index (OUT#0, OUT#1, ...)")
-    return member_results(Path(path), int(k))
+    return member_results(Path(member.group(1)), int(member.group(2)))
 
 
 def main(argv=None) -> int:

@@ -62,7 +62,7 @@ import numpy as np
 from tqdm import tqdm
 
 from experiments import stats as S
-from experiments.ensemble import member_metrics, member_runs
+from experiments.ensemble import member_metrics
 from sim_data.config import preset_config, preset_help
 from sim_data.dataset.cache import TrainingCache
 from sim_data.dataset.generate import cached_env, cached_renderers, package_versions
@@ -235,9 +235,8 @@ PRESETS = {
     # demo's CPU, 100 (+-0.1) on a GPU. The demo runs one policy a batch: XLA's CPU numerics move with a
     # batch's composition, enough to flip a marginal grasp or an imagined loop, so a policy's figures
     # would change with the policies evaluated beside it (and on 2 cores it is faster than batches of 256).
-    # The world model: `make demo`'s ensemble of two (experiments.pipeline's demo members)
-    "demo": EvalConfig(policies=("runs/policies/demo",), wm=",".join(map(str, member_runs(Path("runs/wm"), "demo", 2))),
-                       episodes=16, batch=16),
+    # The world model: `make demo`'s (experiments.pipeline's demo preset trains one)
+    "demo": EvalConfig(policies=("runs/policies/demo",), wm="runs/wm/demo", episodes=16, batch=16),
     # 52 policies x 50 states a batch: the 100 states run as two slices of one compiled program (50 as one)
     "full": EvalConfig(policies=("runs/policies/full",), wm="runs/wm/full", episodes=100, batch=2600, state_batch=50,
                        max_minutes=8.0),

@@ -145,9 +145,15 @@ def _ensemble_run(path, true, members):
                  prob=mean[t][order], meta=np.frombuffer(meta, np.uint8))
 
 
+def _episode_noise(pred, seed):
+    """pred with noise of its own on every episode, so that an episode read against another's outcome shows."""
+    rng = np.random.default_rng(seed)
+    return {t: np.clip(v + 0.02 * rng.standard_normal(v.shape), 0, 1) for t, v in pred.items()}
+
+
 def test_a_member_of_an_ensemble_is_read_alone_and_compared_against_the_ensemble(tmp_path, capsys):
     true = _truth(4)
-    members = [_noisy(true, 0.3, 10), _noisy(true, 0.05, 11)]
+    members = [_episode_noise(_noisy(true, 0.3, 10), 12), _episode_noise(_noisy(true, 0.05, 11), 13)]
     _ensemble_run(tmp_path / "ens", true, members)
     for k, m in enumerate(members):
         got = E.read_run(f"{tmp_path / 'ens'}#{k}")
@@ -171,13 +177,18 @@ def test_a_member_of_an_ensemble_is_read_alone_and_compared_against_the_ensemble
         assert gain["pearson"] > 0 and gain["mmrv"] <= 0
     with pytest.raises(ValueError, match="member 2 is not among them"):
         E.read_run(f"{tmp_path / 'ens'}#2")
-    with pytest.raises(ValueError, match="a member's index"):
+    with pytest.raises(FileNotFoundError, match="not found"):  # no member's index: read as a path, absent
         E.read_run(f"{tmp_path / 'ens'}#last")
     odd = tmp_path / "run#1"  # a directory whose own name holds '#' is read as itself
     odd.mkdir()
     (odd / "results.json").write_text(json.dumps(_results(true, members[0])))
-    assert E.read_run(str(odd))["policies"][0]["pred_episodes"] == pytest.approx(members[0]["mug"][0])
+    assert E.read_run(odd)["policies"][0]["pred_episodes"] == pytest.approx(members[0]["mug"][0])
+    (tmp_path / "solo").mkdir()
+    (tmp_path / "solo" / "results.json").write_text(json.dumps(_results(true, members[0])))
     with pytest.raises(FileNotFoundError, match="tasks"):
-        (tmp_path / "solo").mkdir()
-        (tmp_path / "solo" / "results.json").write_text(json.dumps(_results(true, members[0])))
         E.read_run(f"{tmp_path / 'solo'}#0")
+    stale = json.loads((tmp_path / "ens" / "results.json").read_text())
+    stale["policies"][0]["name"] = "mug/renamed"
+    (tmp_path / "ens" / "results.json").write_text(json.dumps(stale))
+    with pytest.raises(ValueError, match="holds no mug/renamed"):
+        E.read_run(f"{tmp_path / 'ens'}#0")
