@@ -28,7 +28,9 @@ each stage spreads over them, one process per GPU (sim_data.parts): the data gen
 zoo's lineages, the ensemble's members (the GPUs shared out among the members of a round, so that
 one world model trains data-parallel on every GPU) and the evaluator's batches of policies; with one
 GPU or none the stages run in this process, and the train stage trains one member a command (rerun
-it for the next), so that each fits a 10-minute command. Every stage shares JAX's persistent compilation cache
+it for the next), so that each fits a 10-minute command. Without a GPU the evaluation spreads over
+the CPU cores (`--cores`), one process pinned to each: one JAX process on two cores leaves much of
+the second idle while it simulates, imagines and judges. Every stage shares JAX's persistent compilation cache
 (`runs/jax_cache`, or JAX_COMPILATION_CACHE_DIR): what one process compiled, a rerun, a later stage
 or another GPU's part loads; and XLA's GPU autotuning results (`runs/xla_autotune`), which programs
 that share fusions reuse.
@@ -94,7 +96,7 @@ from experiments.timing import (
     stage_row,
 )
 from sim_data.dataset import generate
-from sim_data.parts import local_gpus, run_parallel
+from sim_data.parts import local_cores, local_gpus, run_parallel
 from sim_data.policies import zoo
 from sim_data.util import device_name, run_cli, with_xla_flags
 from wm import train
@@ -187,10 +189,11 @@ def pipeline(name: str, members: int | None = None) -> Pipeline:
 
 def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = None,
               warm_train: list | None = None, warm_eval: list | None = None,
-              warm_rollouts: list | None = None) -> bool:
+              warm_rollouts: list | None = None, cores=()) -> bool:
     """Runs one stage of pipeline `name` (with `members` world models, see pipeline), spread over
-    `gpus` (ids) where there are several; returns False where the stage must run again to finish
-    (an ensemble's members left to train). With warm_rollouts (the rollouts stage's overrides), the
+    `gpus` (ids) where there are several, and without GPUs its evaluation over `cores` (CPU core ids)
+    where there are several; returns False where the stage must run again to finish (an ensemble's
+    members left to train). With warm_rollouts (the rollouts stage's overrides), the
     policies stage compiles the rollouts' programs beside it (start_warm_rollouts); with warm_train
     (the train stage's overrides), the rollouts stage compiles the world model's training programs
     beside it (start_warm_train); with warm_eval (the eval stage's overrides), the train stage
@@ -206,7 +209,9 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
     t0 = time.perf_counter()
     compiled = compile_snapshot()
     spread = len(gpus) > 1 and stage != "report"
-    print(f"== {name}: {stage}" + (f" on {len(gpus)} GPUs" if spread else ""), file=sys.stderr, flush=True)
+    on_cores = not gpus and len(cores) > 1 and stage == "eval"
+    print(f"== {name}: {stage}" + (f" on {len(gpus)} GPUs" if spread else "") +
+          (f" on {len(cores)} cores" if on_cores else ""), file=sys.stderr, flush=True)
     done, parts = True, []  # parts: the timing files of the stage's child processes
     if stage == "data":
         args = ["--config", p.data, "--out", str(d["data"]), *p.data_overrides, *extra]
@@ -244,7 +249,8 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
         members = [] if given else ["wm=" + ",".join(str(m) for m in d["members"])]
         args = ["--config", p.eval, "--out", str(d["eval"]), f"policies={d['policies']}", *members,
                 *p.eval_overrides, *extra]
-        parts = _spread("experiments.evaluate", args, gpus, _logs(p, name), "eval")
+        parts = _spread("experiments.evaluate", args, cores, _logs(p, name), "eval", on="cpu") if on_cores \
+            else _spread("experiments.evaluate", args, gpus, _logs(p, name), "eval")
         results = d["eval"] / "results.json"
         before = results.stat().st_mtime_ns if results.exists() else None
         evaluate.main(args)
@@ -255,7 +261,8 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
     compiling = stage_row(compiled_since(compiled), read_parts(parts))
     record_timing(d["eval"] / TIMING, {
         "stage": stage, "done": done, "wall_s": wall, **compiling,
-        "gpus": max(len(gpus), 1) if spread else 1, "device": device_name(), **stage_throughput(p, name, stage, wall)})
+        "gpus": max(len(gpus), 1) if spread else 1, **({"cores": len(cores)} if on_cores else {}),
+        "device": device_name(), **stage_throughput(p, name, stage, wall)})
     print(f"== {name}: {stage} {'done' if done else 'to be continued'} in {wall:.0f} s "
           f"({compiling['compile_s']:.0f} s compiling)", file=sys.stderr, flush=True)
     return done
@@ -469,24 +476,25 @@ def use_compilation_cache(root: str) -> str:
     return path
 
 
-def _spread(module: str, args, gpus, logs: Path, stage: str) -> list[Path]:
-    """With several GPUs, module's main(args --part K/N) on each of them (sim_data.parts), in child
-    processes; the caller then runs the module once more without a part to gather. Returns the
-    children's timing files (none without several GPUs)."""
+def _spread(module: str, args, gpus, logs: Path, stage: str, on: str = "gpu") -> list[Path]:
+    """With several GPUs (or CPU cores, on="cpu"), module's main(args --part K/N) on each of them
+    (sim_data.parts), in child processes; the caller then runs the module once more without a part to
+    gather. Returns the children's timing files (none without several)."""
     if len(gpus) <= 1:
         return []
     n = len(gpus)
-    return run_parts(module, [[*args, "--part", f"{k}/{n}"] for k in range(n)], gpus, logs, f"{stage}-part")
+    return run_parts(module, [[*args, "--part", f"{k}/{n}"] for k in range(n)], gpus, logs, f"{stage}-part", on)
 
 
-def run_parts(module: str, argvs: list[list[str]], gpus, logs: Path, label: str) -> list[Path]:
-    """Runs module's main(argv) for each argv in a child process on its GPUs (run_parallel), each writing
-    its wall and compile seconds to logs/<label>-<i>.timing.json (experiments.timing); returns those
-    paths. A file left by an earlier run is removed first, so that only this run's children count."""
+def run_parts(module: str, argvs: list[list[str]], gpus, logs: Path, label: str, on: str = "gpu") -> list[Path]:
+    """Runs module's main(argv) for each argv in a child process on its GPUs (or CPU cores, on="cpu":
+    run_parallel), each writing its wall and compile seconds to logs/<label>-<i>.timing.json
+    (experiments.timing); returns those paths. A file left by an earlier run is removed first, so that
+    only this run's children count."""
     paths = [logs / f"{label}-{i}.timing.json" for i in range(len(argvs))]
     for path in paths:
         path.unlink(missing_ok=True)
-    run_parallel([part_command(path, module, argv) for path, argv in zip(paths, argvs)], gpus, logs, label)
+    run_parallel([part_command(path, module, argv) for path, argv in zip(paths, argvs)], gpus, logs, label, on)
     return paths
 
 
@@ -596,6 +604,9 @@ def main(argv=None) -> int:
     ap.add_argument("--stage", choices=STAGES + ("all",), default="all")
     ap.add_argument("--gpus", type=int, default=None,
                     help="how many of the visible GPUs the stages spread over (default: all of them)")
+    ap.add_argument("--cores", type=int, default=None,
+                    help="without GPUs, how many CPU processes the eval stage spreads over, one pinned to each "
+                         "core (default: one per core this process may use; 1: a single process)")
     ap.add_argument("--members", type=int, default=None,
                     help="world models in the ensemble (default: the preset's); give the same to every stage")
     ap.add_argument("--minutes", type=float, default=0.0,
@@ -634,6 +645,11 @@ def main(argv=None) -> int:
         if not 0 <= a.gpus <= len(gpus):
             ap.error(f"--gpus {a.gpus}: this host shows {len(gpus)} GPUs")
         gpus = gpus[: a.gpus]
+    cores = local_cores()
+    if a.cores is not None:
+        if not 1 <= a.cores <= len(cores):
+            ap.error(f"--cores {a.cores}: this process may use {len(cores)} cores")
+        cores = cores[: a.cores]
     if a.minutes < 0:
         ap.error(f"--minutes {a.minutes}: give a positive time slot, or 0 for none")
     if a.minutes and (a.warm_train or a.warm_eval or a.warm_rollouts):
@@ -665,7 +681,7 @@ def main(argv=None) -> int:
             warm_rollouts = rollouts if a.warm_rollouts else None
             mine = rollouts if stage == "rollouts" else per_stage.get(stage, [])
             if run_stage(a.pipeline, stage, [*mine, *a.overrides, *slot], gpus, a.members, warm, warm_eval,
-                         warm_rollouts) or a.stage != "all":
+                         warm_rollouts, cores) or a.stage != "all":
                 break
     if a.stage in ("all", "report"):
         print(f"report: {(pipeline(a.pipeline).dirs(a.pipeline)['eval'] / 'report.html').absolute()} "

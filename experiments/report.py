@@ -492,7 +492,8 @@ def _selection_md(res: dict) -> str:
 TIMING_COLUMNS = (("stage", "stage"), ("wall_s", "wall s"), ("compile_s", "compiling s"),
                   ("programs_compiled", "programs compiled"), ("frames_generated", "frames"),
                   ("frames_per_s", "frames/s"), ("end_to_end_frames_per_s", "frames/s end to end"),
-                  ("train_steps", "training steps"), ("episodes", "episodes"), ("gpus", "GPUs"), ("device", "device"))
+                  ("train_steps", "training steps"), ("episodes", "episodes"), ("gpus", "GPUs"),
+                  ("cores", "CPU processes"), ("device", "device"))
 
 
 def fidelity_table(res: dict) -> list[list[str]] | None:

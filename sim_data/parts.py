@@ -4,8 +4,9 @@ The data generator, the zoo and the evaluator take `--part K/N`: that process do
 of the work (chunks of episodes, lineages, tasks) from the K-th, saves each piece as the whole job
 would, and stops without gathering. A last run of the same command without `--part` then finds
 every piece done and gathers them (manifest and cache, registry, results). `run_parallel` starts
-the processes, one per GPU (`CUDA_VISIBLE_DEVICES`), and fails naming the first that failed and
-the tail of its log.
+the processes, one per GPU (`CUDA_VISIBLE_DEVICES`) or, on a host without one, one per CPU core
+(pinned there with `taskset`, so that XLA sizes its thread pool to that core), and fails naming the
+first that failed and the tail of its log.
 """
 
 from __future__ import annotations
@@ -109,12 +110,31 @@ def local_gpus() -> list[str]:
     return [str(i) for i, line in enumerate(out.splitlines()) if line.startswith("GPU ")]
 
 
-def run_parallel(commands: list[list[str]], gpus: list[str], logs: Path, label: str = "part") -> None:
-    """Runs each command (an argv) in a child process given one GPU, at most one per GPU at a time,
-    in order. The first child writes to this terminal; the others to logs/<label>-<i>.log. Raises
-    RuntimeError with a log's tail if any fails (after the others end)."""
+def local_cores() -> list[str]:
+    """The ids of the CPU cores this process may run on (its affinity), as strings."""
+    if hasattr(os, "sched_getaffinity"):
+        return [str(c) for c in sorted(os.sched_getaffinity(0))]
+    return [str(c) for c in range(os.cpu_count() or 1)]
+
+
+def on_slot(cmd: list[str], slot: str, on: str) -> tuple[list[str], dict]:
+    """(argv, environment) of cmd run on one slot: a GPU's id (`on="gpu"`: CUDA_VISIBLE_DEVICES) or a
+    CPU core's (`on="cpu"`: pinned by taskset where the host has it; the child sees no GPU)."""
+    if on == "gpu":
+        return cmd, {**os.environ, "CUDA_VISIBLE_DEVICES": slot}
+    if on != "cpu":
+        raise ValueError(f"run_parallel runs on 'gpu' or 'cpu' slots, not {on!r}")
+    pin = ["taskset", "-c", slot] if shutil.which("taskset") else []
+    return [*pin, *cmd], {**os.environ, "CUDA_VISIBLE_DEVICES": ""}
+
+
+def run_parallel(commands: list[list[str]], gpus: list[str], logs: Path, label: str = "part", on: str = "gpu") -> None:
+    """Runs each command (an argv) in a child process given one slot of `gpus` (GPU ids, or CPU core
+    ids with on="cpu": on_slot), at most one per slot at a time, in order. The first child writes to
+    this terminal; the others to logs/<label>-<i>.log. Raises RuntimeError with a log's tail if any
+    fails (after the others end)."""
     if not gpus:
-        raise ValueError("run_parallel needs at least one GPU")
+        raise ValueError(f"run_parallel needs at least one {'GPU' if on == 'gpu' else 'core'}")
     logs.mkdir(parents=True, exist_ok=True)
     waiting = list(enumerate(commands))
     running: dict[str, tuple] = {}
@@ -126,10 +146,11 @@ def run_parallel(commands: list[list[str]], gpus: list[str], logs: Path, label: 
             i, cmd = waiting.pop(0)
             log = logs / f"{label}-{i}.log"
             out = None if i == 0 else open(log, "w")
-            env = {**os.environ, "CUDA_VISIBLE_DEVICES": gpu}
-            running[gpu] = (i, subprocess.Popen(cmd, env=env, stdout=out, stderr=subprocess.STDOUT if out else None),
+            argv, env = on_slot(cmd, gpu, on)
+            running[gpu] = (i, subprocess.Popen(argv, env=env, stdout=out, stderr=subprocess.STDOUT if out else None),
                             out, log)
-            print(f"{label} {i} on GPU {gpu}" + (f" (log {log})" if out else ""), file=sys.stderr, flush=True)
+            print(f"{label} {i} on {'GPU' if on == 'gpu' else 'core'} {gpu}" + (f" (log {log})" if out else ""),
+                  file=sys.stderr, flush=True)
         time.sleep(1.0)
         for gpu, (i, proc, out, log) in list(running.items()):
             if proc.poll() is None:

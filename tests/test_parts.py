@@ -1,12 +1,14 @@
 """sim_data.parts: a job spread over processes, one per GPU."""
 
+import os
+import shutil
 import sys
 import threading
 import time
 
 import pytest
 
-from sim_data.parts import exclusive, in_turn, local_gpus, parse_part, run_parallel, take
+from sim_data.parts import exclusive, in_turn, local_cores, local_gpus, parse_part, run_parallel, take
 
 
 def test_parts_cover_the_work_once():
@@ -30,6 +32,20 @@ def test_processes_get_one_gpu_each_and_a_failure_names_its_log(tmp_path, monkey
     fail = "import sys; print('the reason'); sys.exit(3)"
     with pytest.raises(RuntimeError, match=r"(?s)1 of 2 processes failed; part 1 exited with 3.*the reason"):
         run_parallel([[sys.executable, "-c", "pass"], [sys.executable, "-c", fail]], ["0", "1"], tmp_path / "logs")
+
+
+@pytest.mark.skipif(not shutil.which("taskset") or not hasattr(os, "sched_getaffinity"), reason="needs taskset")
+def test_processes_on_cpu_cores_are_pinned_one_to_each_and_see_no_gpu(tmp_path, monkeypatch):
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "0")
+    cores = local_cores()
+    assert cores == [str(c) for c in sorted(os.sched_getaffinity(0))]
+    write = ("import os, sys; open(sys.argv[1], 'w').write(repr((sorted(os.sched_getaffinity(0)), "
+             "os.environ['CUDA_VISIBLE_DEVICES'])))")
+    outs = [tmp_path / f"core{i}" for i in range(len(cores))]
+    run_parallel([[sys.executable, "-c", write, str(o)] for o in outs], cores, tmp_path / "logs", on="cpu")
+    assert sorted(o.read_text() for o in outs) == sorted(repr(([int(c)], "")) for c in cores)
+    with pytest.raises(ValueError, match="'gpu' or 'cpu'"):
+        run_parallel([[sys.executable, "-c", "pass"]], cores, tmp_path / "logs", on="tpu")
 
 
 def test_in_turn_takes_what_no_other_holds_first_and_keeps_the_order(tmp_path):

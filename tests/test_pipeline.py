@@ -64,7 +64,7 @@ def test_without_gpus_the_train_stage_trains_one_member_a_run_and_eval_waits_for
 def test_with_several_gpus_stages_run_in_parts_and_members_side_by_side(tiny, monkeypatch):
     calls, d = tiny
     spawned = []
-    monkeypatch.setattr(P, "run_parallel", lambda cmds, gpus, logs, label: spawned.append((cmds, gpus, label)))
+    monkeypatch.setattr(P, "run_parallel", lambda cmds, gpus, logs, label, on: spawned.append((cmds, gpus, label)))
     import sim_data.dataset.generate
 
     gathered = []
@@ -84,6 +84,36 @@ def test_with_several_gpus_stages_run_in_parts_and_members_side_by_side(tiny, mo
     P.run_stage("tiny", "train", gpus=["0", "1"])  # the one member left trains on both GPUs
     cmds, gpus, _ = spawned[2]
     assert len(cmds) == 1 and "seed=2" in cmds[0] and gpus == ["0,1"]
+
+
+def test_without_gpus_only_the_evaluation_spreads_over_the_cores(tiny, monkeypatch):
+    from experiments.report import timing_table
+
+    calls, d = tiny
+    spawned = []
+    monkeypatch.setattr(P, "run_parallel", lambda cmds, slots, logs, label, on: spawned.append((cmds, slots, label, on)))
+    import experiments.evaluate
+    import sim_data.dataset.generate
+
+    gathered = []
+    monkeypatch.setattr(sim_data.dataset.generate, "main", gathered.append)
+    monkeypatch.setattr(experiments.evaluate, "main", gathered.append)
+    P.run_stage("tiny", "data", cores=["0", "1"])
+    assert spawned == [] and "--part" not in gathered[0]  # the generator runs its own workers
+    for m in d["members"]:
+        m.mkdir(parents=True, exist_ok=True)
+        (m / "eval.json").write_text("{}")
+    P.run_stage("tiny", "eval", cores=["0", "1"])
+    cmds, slots, label, on = spawned[0]
+    assert (slots, label, on) == (["0", "1"], "eval-part", "cpu")
+    assert [c[c.index("--part") + 1] for c in cmds] == ["0/2", "1/2"]
+    assert all(c[4] == "experiments.evaluate" for c in cmds) and "--part" not in gathered[1]
+    rows = json.loads((d["eval"] / P.TIMING).read_text())
+    assert rows[-1]["cores"] == 2
+    table = timing_table(rows)
+    assert [r[table[0].index("CPU processes")] for r in table[1:-1]] == ["-", "2"]
+    P.run_stage("tiny", "eval", gpus=["0"], cores=["0", "1"])  # a GPU's process evaluates alone
+    assert len(spawned) == 1 and "cores" not in json.loads((d["eval"] / P.TIMING).read_text())[-1]
 
 
 def test_gpus_are_shared_out_in_equal_groups():
@@ -177,7 +207,8 @@ def test_a_time_slot_passes_what_is_left_to_train_and_eval_and_starts_no_stage_a
     clock = [0.0]
     ran = []
 
-    def fake_stage(name, stage, extra=(), gpus=(), members=None, warm=None, warm_eval=None, warm_rollouts=None):
+    def fake_stage(name, stage, extra=(), gpus=(), members=None, warm=None, warm_eval=None, warm_rollouts=None,
+                   cores=()):
         ran.append((stage, list(extra)))
         clock[0] += {"data": 120.0, "policies": 150.0, "train": 180.0}.get(stage, 10.0)
         return stage != "train" or len([r for r in ran if r[0] == "train"]) > 1  # train ends on its second run
@@ -205,7 +236,7 @@ def test_a_stage_spread_over_gpus_counts_its_child_processes_compiling_and_frame
     (logs / "data-part-1.timing.json").write_text(json.dumps({"compile_s": 99.0}))  # an earlier run's: not counted
     children = {"0": (12.5, 3, "_scan_recorded"), "1": (20.0, 4, "render")}  # (compile seconds, programs, slowest)
 
-    def fake_children(cmds, gpus, logs_, label):  # each child writes its timing as experiments.timing does
+    def fake_children(cmds, gpus, logs_, label, on):  # each child writes its timing as experiments.timing does
         assert label == "data-part" and not (logs / "data-part-1.timing.json").exists()
         for cmd, gpu in zip(cmds, gpus):
             assert cmd[1:3] == ["-m", "experiments.timing"] and cmd[4] == "sim_data.dataset.generate"
@@ -283,7 +314,7 @@ def test_set_gives_each_stage_its_own_overrides_and_refuses_what_names_no_stage(
             P.stage_overrides([bad])
     ran = []
     monkeypatch.setattr(P, "run_stage", lambda name, stage, extra=(), gpus=(), members=None, warm=None,
-                        warm_eval=None, warm_rollouts=None:
+                        warm_eval=None, warm_rollouts=None, cores=():
                         ran.append((stage, extra)) or True)
     monkeypatch.setattr(P, "use_compilation_cache", lambda root: "")
     assert P.main(["full", "--set", "train:steps=3500", "--set", "eval:episodes=50", "--set", "train:seed=1"]) == 0
@@ -391,7 +422,7 @@ def test_the_rollouts_stage_compiles_the_training_programs_beside_it_with_the_tr
     assert not started
     ran = []
     monkeypatch.setattr(P, "run_stage", lambda name, stage, extra=(), gpus=(), members=None, warm=None,
-                        warm_eval=None, warm_rollouts=None:
+                        warm_eval=None, warm_rollouts=None, cores=():
                         ran.append((stage, warm)) or True)
     monkeypatch.setattr(P, "use_compilation_cache", lambda root: "")
     P.main(["roll", "--warm-train", "--set", "train:steps=3500", "--set", "eval:episodes=50"])
@@ -402,6 +433,7 @@ def test_options_are_checked_before_detaching_and_none_may_be_abbreviated(tmp_pa
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(P, "local_gpus", lambda: [])
     for argv in (["demo", "--detach", "--gpus", "7"], ["demo", "--detach", "--minutes", "-1"], ["demo", "--det"],
+                 ["demo", "--detach", "--cores", "0"], ["demo", "--detach", "--cores", "4096"],
                  ["demo", "--detach", "--minutes", "9", "--warm-eval"]):
         with pytest.raises(SystemExit):
             P.main(argv)
@@ -411,7 +443,7 @@ def test_options_are_checked_before_detaching_and_none_may_be_abbreviated(tmp_pa
 def test_data_overrides_reach_the_rollouts_stage_that_reuses_the_data(monkeypatch):
     ran = []
     monkeypatch.setattr(P, "run_stage", lambda name, stage, extra=(), gpus=(), members=None, warm=None,
-                        warm_eval=None, warm_rollouts=None:
+                        warm_eval=None, warm_rollouts=None, cores=():
                         ran.append((stage, extra)) or True)
     monkeypatch.setattr(P, "use_compilation_cache", lambda root: "")
     P.main(["full", "--set", "data:batch=960", "--set", "rollouts:policy_episodes=8"])
@@ -501,7 +533,7 @@ def test_the_train_stage_compiles_the_evaluations_programs_beside_it_with_the_ev
     assert not events
     ran = []
     monkeypatch.setattr(P, "run_stage", lambda name, stage, extra=(), gpus=(), members=None, warm=None,
-                        warm_eval=None, warm_rollouts=None: ran.append((stage, warm_eval)) or True)
+                        warm_eval=None, warm_rollouts=None, cores=(): ran.append((stage, warm_eval)) or True)
     monkeypatch.setattr(P, "use_compilation_cache", lambda root: "")
     P.main(["ev", "--warm-eval", "--set", "train:steps=3500", "--set", "eval:episodes=50"])
     assert dict(ran)["train"] == ["episodes=50"]
@@ -562,7 +594,7 @@ def test_the_policies_stage_compiles_the_rollouts_programs_beside_it_with_the_ro
     assert [e[0] for e in events] == ["zoo"]
     ran = []
     monkeypatch.setattr(P, "run_stage", lambda name, stage, extra=(), gpus=(), members=None, warm=None,
-                        warm_eval=None, warm_rollouts=None: ran.append((stage, warm_rollouts)) or True)
+                        warm_eval=None, warm_rollouts=None, cores=(): ran.append((stage, warm_rollouts)) or True)
     monkeypatch.setattr(P, "use_compilation_cache", lambda root: "")
     P.main(["wr", "--warm-rollouts", "--set", "data:batch=960", "--set", "rollouts:policy_episodes=4"])
     assert dict(ran)["policies"] == ["batch=960", "policy_episodes=4"]
