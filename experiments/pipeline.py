@@ -29,8 +29,9 @@ zoo's lineages, the ensemble's members (the GPUs shared out among the members of
 one world model trains data-parallel on every GPU) and the evaluator's batches of policies; with one
 GPU or none the stages run in this process, and the train stage trains one member a command (rerun
 it for the next), so that each fits a 10-minute command. Without a GPU the evaluation spreads over
-the CPU cores (`--cores`), one process pinned to each: one JAX process on two cores leaves much of
-the second idle while it simulates, imagines and judges. Every stage shares JAX's persistent compilation cache
+the CPU cores (`--cores`), one process pinned to each: one JAX process leaves a second core idle
+through much of its simulating, imagining and judging (the demo's evaluation on 2 cores: 234 s
+against 337 s; docs/benchmarks.md). Every stage shares JAX's persistent compilation cache
 (`runs/jax_cache`, or JAX_COMPILATION_CACHE_DIR): what one process compiled, a rerun, a later stage
 or another GPU's part loads; and XLA's GPU autotuning results (`runs/xla_autotune`), which programs
 that share fusions reuse.
