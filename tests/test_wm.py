@@ -49,7 +49,7 @@ from wm.model import (
     relative_time_bias,
     space_to_depth,
 )
-from wm.train import Run, TrainingDiverged, check_run_config, compute_norm, model_batch
+from wm.train import Run, TrainingDiverged, check_run_config, compute_norm, kept_at, model_batch
 from wm.train import main as train_main
 
 CFG = SMOKE_MODEL
@@ -1249,6 +1249,19 @@ def test_make_train_smoke_writes_eval_json(smoke_world_model):
     assert report["policy_in_the_loop"]["episodes"] == 0 and report["policy_in_the_loop"]["split"] is None
     assert report["summary"]["action_divergence_h8"] is None
     assert (out / "best").is_dir() and (out / "metrics.jsonl").exists()
+
+
+def test_a_run_keeps_its_best_validated_or_its_last_parameters_as_its_preset_says(smoke_world_model):
+    log = [json.loads(line) for line in (smoke_world_model / "metrics.jsonl").read_text().splitlines()]
+    cfg = make_config("smoke")  # its data has no validation split: the training loss stands in for it
+    validated = [(r.get("val_loss", r["loss"]), r["step"]) for r in log if r["step"] % cfg.eval_every == 0]
+    assert len(validated) == 3  # the smoke run (select "best") kept the step of its lowest validation loss
+    assert [int(d.name) for d in (smoke_world_model / "best").iterdir() if d.name.isdigit()] == [min(validated)[1]]
+    assert kept_at("best", 10, 30, 0.5, math.inf) and not kept_at("best", 20, 30, 0.6, 0.5)
+    assert not kept_at("last", 10, 30, 0.1, math.inf) and kept_at("last", 30, 30, 0.9, 0.1)
+    assert make_config("demo").select == "last" and make_config("full").select == "best"
+    with pytest.raises(ValueError, match="select is best or last"):
+        make_config("smoke", ["select=first"])
 
 
 def test_a_bundle_carries_the_model_in_bfloat16_and_refuses_a_damaged_copy(smoke_world_model, tmp_path):

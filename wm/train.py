@@ -357,6 +357,12 @@ def put_batch(batch: dict, mesh) -> dict:
 
 # ---- the run ---------------------------------------------------------------------------------------
 
+def kept_at(select: str, step: int, steps: int, val_loss: float, best_val: float) -> bool:
+    """Whether the parameters at `step`, validated at val_loss, replace the run's kept ones (best/):
+    select "best" keeps the lowest validation loss so far (best_val), "last" the last step's."""
+    return val_loss < best_val if select == "best" else step == steps
+
+
 class Run:
     """Everything one training run holds: config, data, model state, checkpoints, logs."""
 
@@ -484,7 +490,7 @@ class Run:
             if step % cfg.eval_every == 0 or step == cfg.steps or out_of_time:
                 means.update(self.validate())
                 v = means.get("val_loss", means["loss"])
-                is_best = v < self.best_val
+                is_best = kept_at(cfg.select, step, cfg.steps, v, self.best_val)
                 self.best_val = min(self.best_val, v)
             log.write(means)
             bar.set_postfix(loss=f"{means['loss']:.4f}", fps=f"{means['frames_per_s']:.0f}")
