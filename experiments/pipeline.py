@@ -29,7 +29,8 @@ zoo's lineages, the ensemble's members (the GPUs shared out among the members of
 one world model trains data-parallel on every GPU) and the evaluator's batches of policies; with one
 GPU or none the stages run in this process, and the train stage trains one member a command (rerun
 it for the next), so that each fits a 10-minute command. Without a GPU the evaluation spreads over
-the CPU cores (`--cores`), one process pinned to each: one JAX process leaves a second core idle
+the CPU cores (`--cores`), one process pinned to each by `taskset` (not with `keep_features`, whose
+imaginations one process keeps): one JAX process leaves a second core idle
 through much of its simulating, imagining and judging (the demo's evaluation on 2 cores: 234 s
 against 337 s; docs/benchmarks.md). Every stage shares JAX's persistent compilation cache
 (`runs/jax_cache`, or JAX_COMPILATION_CACHE_DIR): what one process compiled, a rerun, a later stage
@@ -97,7 +98,7 @@ from experiments.timing import (
     stage_row,
 )
 from sim_data.dataset import generate
-from sim_data.parts import local_cores, local_gpus, run_parallel
+from sim_data.parts import can_pin_cores, local_cores, local_gpus, run_parallel
 from sim_data.policies import zoo
 from sim_data.util import device_name, run_cli, with_xla_flags
 from wm import train
@@ -211,6 +212,9 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
     compiled = compile_snapshot()
     spread = len(gpus) > 1 and stage != "report"
     on_cores = not gpus and len(cores) > 1 and stage == "eval"
+    if on_cores:
+        p_eval = [a for a in (*p.eval_overrides, *extra) if "=" in a and not a.startswith("-")]
+        on_cores = not evaluate.make_config(p.eval, p_eval).keep_features  # one process keeps the features
     print(f"== {name}: {stage}" + (f" on {len(gpus)} GPUs" if spread else "") +
           (f" on {len(cores)} cores" if on_cores else ""), file=sys.stderr, flush=True)
     done, parts = True, []  # parts: the timing files of the stage's child processes
@@ -477,14 +481,14 @@ def use_compilation_cache(root: str) -> str:
     return path
 
 
-def _spread(module: str, args, gpus, logs: Path, stage: str, on: str = "gpu") -> list[Path]:
-    """With several GPUs (or CPU cores, on="cpu"), module's main(args --part K/N) on each of them
-    (sim_data.parts), in child processes; the caller then runs the module once more without a part to
-    gather. Returns the children's timing files (none without several)."""
-    if len(gpus) <= 1:
+def _spread(module: str, args, slots, logs: Path, stage: str, on: str = "gpu") -> list[Path]:
+    """With several slots (GPU ids, or CPU core ids with on="cpu"), module's main(args --part K/N) on
+    each of them (sim_data.parts), in child processes; the caller then runs the module once more
+    without a part to gather. Returns the children's timing files (none without several)."""
+    if len(slots) <= 1:
         return []
-    n = len(gpus)
-    return run_parts(module, [[*args, "--part", f"{k}/{n}"] for k in range(n)], gpus, logs, f"{stage}-part", on)
+    n = len(slots)
+    return run_parts(module, [[*args, "--part", f"{k}/{n}"] for k in range(n)], slots, logs, f"{stage}-part", on)
 
 
 def run_parts(module: str, argvs: list[list[str]], gpus, logs: Path, label: str, on: str = "gpu") -> list[Path]:
@@ -646,8 +650,11 @@ def main(argv=None) -> int:
         if not 0 <= a.gpus <= len(gpus):
             ap.error(f"--gpus {a.gpus}: this host shows {len(gpus)} GPUs")
         gpus = gpus[: a.gpus]
-    cores = local_cores()
+    # the evaluation spreads over the cores only on a host without GPUs (not with --gpus 0 on one), pinned
+    cores = local_cores() if not local_gpus() and can_pin_cores() else []
     if a.cores is not None:
+        if not cores:
+            ap.error("--cores spreads the evaluation on a host without GPUs, with taskset to pin each process")
         if not 1 <= a.cores <= len(cores):
             ap.error(f"--cores {a.cores}: this process may use {len(cores)} cores")
         cores = cores[: a.cores]

@@ -117,15 +117,22 @@ def local_cores() -> list[str]:
     return [str(c) for c in range(os.cpu_count() or 1)]
 
 
+def can_pin_cores() -> bool:
+    """Whether child processes can be pinned to a core each (the `taskset` command): unpinned, each JAX
+    process would size its thread pool to every core and they would crowd one another."""
+    return shutil.which("taskset") is not None
+
+
 def on_slot(cmd: list[str], slot: str, on: str) -> tuple[list[str], dict]:
     """(argv, environment) of cmd run on one slot: a GPU's id (`on="gpu"`: CUDA_VISIBLE_DEVICES) or a
-    CPU core's (`on="cpu"`: pinned by taskset where the host has it; the child sees no GPU)."""
+    CPU core's (`on="cpu"`: pinned by taskset; the child sees no GPU)."""
     if on == "gpu":
         return cmd, {**os.environ, "CUDA_VISIBLE_DEVICES": slot}
     if on != "cpu":
         raise ValueError(f"run_parallel runs on 'gpu' or 'cpu' slots, not {on!r}")
-    pin = ["taskset", "-c", slot] if shutil.which("taskset") else []
-    return [*pin, *cmd], {**os.environ, "CUDA_VISIBLE_DEVICES": ""}
+    if not can_pin_cores():
+        raise RuntimeError("pinning a process to a CPU core needs the taskset command (util-linux)")
+    return ["taskset", "-c", slot, *cmd], {**os.environ, "CUDA_VISIBLE_DEVICES": ""}
 
 
 def run_parallel(commands: list[list[str]], gpus: list[str], logs: Path, label: str = "part", on: str = "gpu") -> None:

@@ -1,4 +1,4 @@
-"""sim_data.parts: a job spread over processes, one per GPU."""
+"""sim_data.parts: a job spread over processes, one per GPU or CPU core."""
 
 import os
 import shutil

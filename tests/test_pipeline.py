@@ -26,7 +26,7 @@ def keep_caches(monkeypatch):
 def tiny(tmp_path, monkeypatch):
     """A pipeline of 3 members under tmp_path whose training entry point records its arguments and
     writes the eval.json a finished training leaves."""
-    monkeypatch.setitem(P.PIPELINES, "tiny", P.Pipeline(data="d", policies="p", train="t", eval="e",
+    monkeypatch.setitem(P.PIPELINES, "tiny", P.Pipeline(data="d", policies="p", train="t", eval="demo",
                                                         root=str(tmp_path), members=3,
                                                         train_overrides=("max_minutes=1",)))
     calls = []
@@ -87,11 +87,10 @@ def test_with_several_gpus_stages_run_in_parts_and_members_side_by_side(tiny, mo
 
 
 def test_without_gpus_only_the_evaluation_spreads_over_the_cores(tiny, monkeypatch):
-    from experiments.report import timing_table
-
     calls, d = tiny
     spawned = []
-    monkeypatch.setattr(P, "run_parallel", lambda cmds, slots, logs, label, on: spawned.append((cmds, slots, label, on)))
+    monkeypatch.setattr(P, "run_parallel",
+                        lambda cmds, slots, logs, label, on: spawned.append((cmds, slots, label, on)))
     import experiments.evaluate
     import sim_data.dataset.generate
 
@@ -110,10 +109,12 @@ def test_without_gpus_only_the_evaluation_spreads_over_the_cores(tiny, monkeypat
     assert all(c[4] == "experiments.evaluate" for c in cmds) and "--part" not in gathered[1]
     rows = json.loads((d["eval"] / P.TIMING).read_text())
     assert rows[-1]["cores"] == 2
-    table = timing_table(rows)
+    table = P.report.timing_table(rows)
     assert [r[table[0].index("CPU processes")] for r in table[1:-1]] == ["-", "2"]
     P.run_stage("tiny", "eval", gpus=["0"], cores=["0", "1"])  # a GPU's process evaluates alone
     assert len(spawned) == 1 and "cores" not in json.loads((d["eval"] / P.TIMING).read_text())[-1]
+    P.run_stage("tiny", "eval", ["keep_features=1"], cores=["0", "1"])  # one process keeps the features
+    assert len(spawned) == 1 and "keep_features=1" in gathered[-1]
 
 
 def test_gpus_are_shared_out_in_equal_groups():
@@ -437,6 +438,9 @@ def test_options_are_checked_before_detaching_and_none_may_be_abbreviated(tmp_pa
                  ["demo", "--detach", "--minutes", "9", "--warm-eval"]):
         with pytest.raises(SystemExit):
             P.main(argv)
+    monkeypatch.setattr(P, "local_gpus", lambda: ["0"])  # a GPU host evaluates on its GPU, whatever --gpus says
+    with pytest.raises(SystemExit):
+        P.main(["demo", "--detach", "--gpus", "0", "--cores", "1"])
     assert not Path("runs/logs/demo/pipeline.pid").exists()  # nothing was started
 
 

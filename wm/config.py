@@ -186,7 +186,7 @@ PRESETS = {
     # 1100 steps take about 7.5 minutes of a 2-core AMD EPYC (0.35 s a step, 0.41 s with the loader, the
     # validations and the checkpoints), inside the demo's 20 minutes with its set-up; max_minutes is the safety stop.
     # The last step's parameters: a validation of 2 batches chose a step before the cooldown's end that ranked
-    # the zoo at 0.02 where the last step ranks it at 0.58 (docs/world-model.md)
+    # the zoo at 0.025 where the last step ranks it at 0.58 (docs/world-model.md)
     "demo": TrainConfig(model=DEMO_MODEL, batch=8, window=10, steps=1100, max_minutes=15.0, lr=1e-3, warmup=50,
                         cooldown=0.3, log_every=25, eval_every=250, ckpt_every=250, val_batches=2, select="last",
                         eval_context=4,

@@ -7,11 +7,12 @@ parameters) on shuffled windows from the dataset's training cache, data parallel
 `jax.sharding` mesh of every local device (`param_sharding=fsdp` also shards parameters and
 optimiser state); `--distributed` calls `jax.distributed.initialize()` for several hosts.
 Orbax keeps the latest checkpoint (model, optimiser and data-iterator state; rerunning the same
-command resumes) and the best one on validation loss. Metrics go to `metrics.jsonl`; a non-finite
+command resumes) and the kept parameters in `best/` (`select`: those of the lowest validation loss, or
+the last step's). Metrics go to `metrics.jsonl`; a non-finite
 loss stops the run before any checkpoint of it is written. The budget is `steps`; `max_minutes` is a
 safety stop that marks the run cut short (`train_status.json`) and leaves the rest to a rerun of the
 same command, so that a budget longer than one command trains over several. When `steps` are done
-the episode judge is fitted (`wm.judge`) and `eval.json` written from the best checkpoint
+the episode judge is fitted (`wm.judge`) and `eval.json` written from the kept parameters
 (`wm.evaluate`).
 """
 
@@ -357,10 +358,11 @@ def put_batch(batch: dict, mesh) -> dict:
 
 # ---- the run ---------------------------------------------------------------------------------------
 
-def kept_at(select: str, step: int, steps: int, val_loss: float, best_val: float) -> bool:
-    """Whether the parameters at `step`, validated at val_loss, replace the run's kept ones (best/):
-    select "best" keeps the lowest validation loss so far (best_val), "last" the last step's."""
-    return val_loss < best_val if select == "best" else step == steps
+def kept_at(select: str, last: bool, val_loss: float, best_val: float) -> bool:
+    """Whether the parameters of a step, validated at val_loss, replace the run's kept ones (best/):
+    select "best" keeps the lowest validation loss so far (best_val), "last" the parameters of the
+    last step this command trains (`last`: the run's last, or the one a safety stop cuts it at)."""
+    return val_loss < best_val if select == "best" else last
 
 
 class Run:
@@ -490,7 +492,7 @@ class Run:
             if step % cfg.eval_every == 0 or step == cfg.steps or out_of_time:
                 means.update(self.validate())
                 v = means.get("val_loss", means["loss"])
-                is_best = kept_at(cfg.select, step, cfg.steps, v, self.best_val)
+                is_best = kept_at(cfg.select, step == cfg.steps or out_of_time, v, self.best_val)
                 self.best_val = min(self.best_val, v)
             log.write(means)
             bar.set_postfix(loss=f"{means['loss']:.4f}", fps=f"{means['frames_per_s']:.0f}")
@@ -527,7 +529,7 @@ class Run:
         self.loader.close()
 
     def best_params(self):
-        """The best checkpoint's parameters, placed as this run's state is (a run trained by several
+        """The kept parameters (best/, TrainConfig.select), placed as this run's state is (a run trained by several
         processes is judged and evaluated by one)."""
         params = self.state["params"]
         return restore_params(self.best, self.best.latest_step(), params,
