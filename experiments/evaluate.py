@@ -27,8 +27,8 @@ datasets):
 Policies run in batches of up to `batch` episodes whatever their architectures: each architecture's
 checkpoints with their parameters stacked, the architectures side by side (a MixedPolicy), so one
 compiled rollout serves a whole zoo. Each task is saved when done (`OUT/tasks/<task>.npz`) and a
-rerun resumes. On several GPUs or CPU cores (`--part K/N`, one process each, sim_data.parts) every task's batches
-are spread over the parts, the largest first onto the least loaded, whatever the number of tasks;
+rerun resumes. On several GPUs or CPU cores (`--part K/N`, one process each, sim_data.parts) every
+task's batches are spread over the parts, the largest first onto the least loaded, whatever the number of tasks;
 each part saves its share (`OUT/tasks/<task>.partKofN.npz`) and the run without a part merges them,
 with the outcomes and probabilities of one unsplit run. `OUT/results.json` holds the per-policy
 rates and intervals and the statistics (experiments.stats): the headline within each task (their

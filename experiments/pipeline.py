@@ -30,9 +30,9 @@ one world model trains data-parallel on every GPU) and the evaluator's batches o
 GPU or none the stages run in this process, and the train stage trains one member a command (rerun
 it for the next), so that each fits a 10-minute command. Without a GPU the evaluation spreads over
 the CPU cores (`--cores`), one process pinned to each by `taskset` (not with `keep_features`, whose
-imaginations one process keeps): one JAX process leaves a second core idle
-through much of its simulating, imagining and judging (the demo's evaluation on 2 cores: 234 s
-against 337 s; docs/benchmarks.md). Every stage shares JAX's persistent compilation cache
+imaginations one process keeps): one JAX process leaves a second core idle through much of its
+simulating, imagining and judging (the demo's evaluation on 2 cores: 234 s against 337 s;
+docs/benchmarks.md). Every stage shares JAX's persistent compilation cache
 (`runs/jax_cache`, or JAX_COMPILATION_CACHE_DIR): what one process compiled, a rerun, a later stage
 or another GPU's part loads; and XLA's GPU autotuning results (`runs/xla_autotune`), which programs
 that share fusions reuse.
@@ -211,10 +211,7 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
     t0 = time.perf_counter()
     compiled = compile_snapshot()
     spread = len(gpus) > 1 and stage != "report"
-    on_cores = not gpus and len(cores) > 1 and stage == "eval"
-    if on_cores:
-        p_eval = [a for a in (*p.eval_overrides, *extra) if "=" in a and not a.startswith("-")]
-        on_cores = not evaluate.make_config(p.eval, p_eval).keep_features  # one process keeps the features
+    on_cores = stage == "eval" and eval_on_cores(p, extra, gpus, cores)
     print(f"== {name}: {stage}" + (f" on {len(gpus)} GPUs" if spread else "") +
           (f" on {len(cores)} cores" if on_cores else ""), file=sys.stderr, flush=True)
     done, parts = True, []  # parts: the timing files of the stage's child processes
@@ -254,8 +251,8 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
         members = [] if given else ["wm=" + ",".join(str(m) for m in d["members"])]
         args = ["--config", p.eval, "--out", str(d["eval"]), f"policies={d['policies']}", *members,
                 *p.eval_overrides, *extra]
-        parts = _spread("experiments.evaluate", args, cores, _logs(p, name), "eval", on="cpu") if on_cores \
-            else _spread("experiments.evaluate", args, gpus, _logs(p, name), "eval")
+        slots, on = (cores, "cpu") if on_cores else (gpus, "gpu")
+        parts = _spread("experiments.evaluate", args, slots, _logs(p, name), "eval", on)
         results = d["eval"] / "results.json"
         before = results.stat().st_mtime_ns if results.exists() else None
         evaluate.main(args)
@@ -300,6 +297,15 @@ def stage_throughput(p: Pipeline, name: str, stage: str, wall: float) -> dict:
         timing = json.loads((d["eval"] / "results.json").read_text())["timing"]
         return {"episodes": sum(t["episodes"] for t in timing.values())}
     return {}
+
+
+def eval_on_cores(p: Pipeline, extra, gpus, cores) -> bool:
+    """Whether the eval stage spreads over the CPU `cores` (several, no GPU): not where the evaluation
+    keeps its features (`keep_features`), whose imaginations one process keeps."""
+    if gpus or len(cores) <= 1:
+        return False
+    overrides = [a for a in (*p.eval_overrides, *extra) if "=" in a and not a.startswith("-")]
+    return not evaluate.make_config(p.eval, overrides).keep_features
 
 
 def untrained(d: dict) -> list[tuple[int, Path]]:
@@ -491,15 +497,15 @@ def _spread(module: str, args, slots, logs: Path, stage: str, on: str = "gpu") -
     return run_parts(module, [[*args, "--part", f"{k}/{n}"] for k in range(n)], slots, logs, f"{stage}-part", on)
 
 
-def run_parts(module: str, argvs: list[list[str]], gpus, logs: Path, label: str, on: str = "gpu") -> list[Path]:
-    """Runs module's main(argv) for each argv in a child process on its GPUs (or CPU cores, on="cpu":
-    run_parallel), each writing its wall and compile seconds to logs/<label>-<i>.timing.json
-    (experiments.timing); returns those paths. A file left by an earlier run is removed first, so that
-    only this run's children count."""
+def run_parts(module: str, argvs: list[list[str]], slots, logs: Path, label: str, on: str = "gpu") -> list[Path]:
+    """Runs module's main(argv) for each argv in a child process on one of `slots` (GPU ids, or CPU
+    core ids with on="cpu": run_parallel), each writing its wall and compile seconds to
+    logs/<label>-<i>.timing.json (experiments.timing); returns those paths. A file left by an earlier
+    run is removed first, so that only this run's children count."""
     paths = [logs / f"{label}-{i}.timing.json" for i in range(len(argvs))]
     for path in paths:
         path.unlink(missing_ok=True)
-    run_parallel([part_command(path, module, argv) for path, argv in zip(paths, argvs)], gpus, logs, label, on)
+    run_parallel([part_command(path, module, argv) for path, argv in zip(paths, argvs)], slots, logs, label, on)
     return paths
 
 
@@ -645,13 +651,13 @@ def main(argv=None) -> int:
         ap.error(str(e))
     if a.members is not None and a.members < 1:
         ap.error(f"--members {a.members}: an ensemble needs at least one world model")
-    gpus = local_gpus()
+    gpus = host_gpus = local_gpus()
     if a.gpus is not None:
         if not 0 <= a.gpus <= len(gpus):
             ap.error(f"--gpus {a.gpus}: this host shows {len(gpus)} GPUs")
         gpus = gpus[: a.gpus]
     # the evaluation spreads over the cores only on a host without GPUs (not with --gpus 0 on one), pinned
-    cores = local_cores() if not local_gpus() and can_pin_cores() else []
+    cores = local_cores() if not host_gpus and can_pin_cores() else []
     if a.cores is not None:
         if not cores:
             ap.error("--cores spreads the evaluation on a host without GPUs, with taskset to pin each process")

@@ -135,34 +135,34 @@ def on_slot(cmd: list[str], slot: str, on: str) -> tuple[list[str], dict]:
     return ["taskset", "-c", slot, *cmd], {**os.environ, "CUDA_VISIBLE_DEVICES": ""}
 
 
-def run_parallel(commands: list[list[str]], gpus: list[str], logs: Path, label: str = "part", on: str = "gpu") -> None:
-    """Runs each command (an argv) in a child process given one slot of `gpus` (GPU ids, or CPU core
+def run_parallel(commands: list[list[str]], slots: list[str], logs: Path, label: str = "part", on: str = "gpu") -> None:
+    """Runs each command (an argv) in a child process given one of `slots` (GPU ids, or CPU core
     ids with on="cpu": on_slot), at most one per slot at a time, in order. The first child writes to
     this terminal; the others to logs/<label>-<i>.log. Raises RuntimeError with a log's tail if any
     fails (after the others end)."""
-    if not gpus:
+    if not slots:
         raise ValueError(f"run_parallel needs at least one {'GPU' if on == 'gpu' else 'core'}")
     logs.mkdir(parents=True, exist_ok=True)
     waiting = list(enumerate(commands))
     running: dict[str, tuple] = {}
     failed = []
     while waiting or running:
-        for gpu in [g for g in gpus if g not in running]:
+        for slot in [g for g in slots if g not in running]:
             if not waiting:
                 break
             i, cmd = waiting.pop(0)
             log = logs / f"{label}-{i}.log"
             out = None if i == 0 else open(log, "w")
-            argv, env = on_slot(cmd, gpu, on)
-            running[gpu] = (i, subprocess.Popen(argv, env=env, stdout=out, stderr=subprocess.STDOUT if out else None),
-                            out, log)
-            print(f"{label} {i} on {'GPU' if on == 'gpu' else 'core'} {gpu}" + (f" (log {log})" if out else ""),
+            argv, env = on_slot(cmd, slot, on)
+            running[slot] = (i, subprocess.Popen(argv, env=env, stdout=out, stderr=subprocess.STDOUT if out else None),
+                             out, log)
+            print(f"{label} {i} on {'GPU' if on == 'gpu' else 'core'} {slot}" + (f" (log {log})" if out else ""),
                   file=sys.stderr, flush=True)
         time.sleep(1.0)
-        for gpu, (i, proc, out, log) in list(running.items()):
+        for slot, (i, proc, out, log) in list(running.items()):
             if proc.poll() is None:
                 continue
-            del running[gpu]
+            del running[slot]
             if out is not None:
                 out.close()
             if proc.returncode:
