@@ -1567,6 +1567,41 @@ def test_a_warmed_cache_serves_the_training_programs_to_the_run_that_trains(smok
     assert json.loads((tmp_path / "run" / "train_status.json").read_text())["step"] == 2
 
 
+def test_the_moving_average_follows_the_hand_computed_warmed_decay():
+    from wm.train import ema_update, initial_state, kept_params
+
+    params = {"w": jnp.array([1.0, -2.0]), "b": jnp.array(0.5)}
+    cfg = make_config("smoke", ["ema=0.5"])
+    state = initial_state(cfg, params)
+    np.testing.assert_array_equal(state["ema"]["w"], params["w"])
+    assert kept_params(state) is state["ema"]
+    assert "ema" not in initial_state(make_config("smoke"), params)
+    # step 0: decay min(0.5, 1/10) = 0.1; step 5: min(0.5, 6/15) = 0.4; step 100: 0.5
+    new = {"w": jnp.array([3.0, 2.0]), "b": jnp.array(1.5)}
+    for step, decay in ((0, 0.1), (5, 0.4), (100, 0.5)):
+        got = ema_update(params, new, 0.5, jnp.int32(step))
+        np.testing.assert_allclose(got["w"], decay * np.array([1.0, -2.0]) + (1 - decay) * np.array([3.0, 2.0]),
+                                   rtol=1e-6)
+        np.testing.assert_allclose(got["b"], decay * 0.5 + (1 - decay) * 1.5, rtol=1e-6)
+    with pytest.raises(ValueError, match="ema is a decay"):
+        make_config("smoke", ["ema=1.0"])
+
+
+@pytest.mark.slow
+def test_a_run_with_a_moving_average_validates_and_keeps_the_average(smoke_dataset, tmp_path):
+    _, data, _ = smoke_dataset
+    run = Run(make_config("smoke", ["steps=10", "log_every=5", "eval_every=5", "judge_episodes=0", "select=last",
+                                    "ema=0.9"]), data, tmp_path / "run")
+    run.train(progress=False)
+    kept = run.best_params()
+    moved = 0.0
+    for k, e, p in zip(jax.tree_util.tree_leaves(kept), jax.tree_util.tree_leaves(run.state["ema"]),
+                       jax.tree_util.tree_leaves(run.state["params"]), strict=True):
+        np.testing.assert_array_equal(np.asarray(k), np.asarray(e))
+        moved = max(moved, float(np.max(np.abs(np.asarray(e) - np.asarray(p)))))
+    assert moved > 0  # the average lags the parameters
+
+
 @pytest.mark.slow
 def test_the_warm_up_validates_with_the_state_its_step_returned(smoke_dataset, tmp_path):
     """On a GPU the train step donates the state it is given (its buffers are deleted): the warm-up's

@@ -44,9 +44,9 @@ from wm.config import make_config
 from wm.imagine import Norm, closed_loop
 from wm.model import init_params
 from wm.train import (
+    initial_state,
     jitted_train_step,
     make_mesh,
-    make_optimizer,
     perceptual_weights,
     put_batch,
     state_shardings,
@@ -75,7 +75,7 @@ def step_inputs(cfg):
     """(state, batch, norm) of one train step: fresh parameters, random frames and actions."""
     m = cfg.model
     params = init_params(m, jax.random.PRNGKey(0), window=cfg.window)
-    state = {"params": params, "opt": make_optimizer(cfg).init(params), "step": jnp.zeros((), jnp.int32)}
+    state = initial_state(cfg, params)
     rng = np.random.default_rng(0)
     b, t = cfg.batch, cfg.window
     batch = {"frames": jnp.asarray(rng.integers(0, 255, (b, t, m.size, m.size, 3), dtype=np.uint8)),

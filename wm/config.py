@@ -58,6 +58,10 @@ class TrainConfig:
       select: the parameters the run keeps for its judge, eval.json and every evaluation (best/):
         "best", those of the lowest validation loss; "last", those of the last step (with a
         cooldown, the end of the schedule), where a validation of few batches is too noisy to choose by.
+      ema: the decay of an exponential moving average of the parameters, updated every step (0: none).
+        Where set, the average is what the run validates and keeps (select chooses among its steps),
+        its decay warmed up as min(ema, (1 + t) / (10 + t)) so that early steps do not pin it to the
+        initial parameters.
       eval_context: observations given before imagining; eval_episodes: held-out episodes in eval.json;
       eval_horizons: open-loop horizons reported; control_horizon: steps of the controllability study.
       train_fraction: the share of training episodes used (a fixed nested subset: the episodes of
@@ -108,6 +112,7 @@ class TrainConfig:
     ckpt_every: int = 500
     val_batches: int = 4
     select: str = "best"
+    ema: float = 0.0
     param_sharding: str = "replicated"
     seed: int = 0
     eval_context: int = 4
@@ -130,6 +135,8 @@ class TrainConfig:
             raise ValueError("eval_every and ckpt_every must be multiples of log_every")
         if self.select not in ("best", "last"):
             raise ValueError(f"select is best or last, got {self.select!r}")
+        if not 0.0 <= self.ema < 1.0:
+            raise ValueError(f"ema is a decay in [0, 1) (0: no average), got {self.ema}")
         if self.param_sharding not in ("replicated", "fsdp"):
             raise ValueError(f"param_sharding must be replicated or fsdp, got {self.param_sharding!r}")
         if not 1 <= self.eval_context <= self.model.context:

@@ -282,8 +282,27 @@ def parameter_groups(params) -> dict:
     return {name: "refiner" if name == "refiner" else "model" for name in params}
 
 
+def initial_state(cfg: TrainConfig, params) -> dict:
+    """A run's state at step 0: {"params", "opt", "step"}, and "ema" (a copy of params) where cfg.ema > 0."""
+    state = {"params": params, "opt": make_optimizer(cfg).init(params), "step": jnp.zeros((), jnp.int32)}
+    if cfg.ema:
+        state["ema"] = jax.tree_util.tree_map(jnp.copy, params)
+    return state
+
+
+def ema_update(ema, params, decay: float, step):
+    """The moving average after optimiser step `step` (0-based): decay warmed up as min(decay, (1+t)/(10+t))."""
+    d = jnp.minimum(decay, (1.0 + step) / (10.0 + step))
+    return jax.tree_util.tree_map(lambda e, p: e + (1.0 - d) * (p - e), ema, params)
+
+
+def kept_params(state: dict):
+    """The parameters a run validates and keeps: the moving average where the state has one, else params."""
+    return state.get("ema", state["params"])
+
+
 def train_step(cfg: TrainConfig, state: dict, batch: dict, norm: Norm, lpips_weights=None):
-    """One optimiser step: state {"params", "opt", "step"} -> (state, metrics); lpips_weights as loss_fn's."""
+    """One optimiser step: state (initial_state's) -> (state, metrics); lpips_weights as loss_fn's."""
     rng = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), state["step"])
     (_, parts), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"], batch, norm, cfg, rng,
                                                                  lpips_weights)
@@ -293,7 +312,10 @@ def train_step(cfg: TrainConfig, state: dict, batch: dict, norm: Norm, lpips_wei
     parts["grad_norm"] = optax.tree.norm(rest)
     if "refiner" in grads:
         parts["grad_norm_refiner"] = optax.tree.norm(grads["refiner"])
-    return {"params": params, "opt": opt, "step": state["step"] + 1}, parts
+    new = {"params": params, "opt": opt, "step": state["step"] + 1}
+    if "ema" in state:
+        new["ema"] = ema_update(state["ema"], params, cfg.ema, state["step"])
+    return new, parts
 
 
 def perceptual_weights(cfg: TrainConfig):
@@ -401,7 +423,7 @@ class Run:
         self.mesh = make_mesh()
         params = init_params(cfg.model, jax.random.PRNGKey(cfg.seed), window=cfg.window)
         # the optimiser's state made by one program, not an eager zeros per parameter shape
-        state = {"params": params, "opt": jax.jit(make_optimizer(cfg).init)(params), "step": jnp.zeros((), jnp.int32)}
+        state = jax.jit(functools.partial(initial_state, cfg))(params)
         self.shardings = state_shardings(state, self.mesh, cfg.param_sharding == "fsdp")
         self.state = jax.device_put(state, self.shardings)
         opts = ocp.CheckpointManagerOptions(max_to_keep=1, create=True)
@@ -432,7 +454,7 @@ class Run:
         # best before latest: a run killed between the two resumes before this step and, retracing the
         # same steps, finds the same best again, whose checkpoint is then already there (and the same)
         if best and step not in self.best.all_steps():
-            self.best.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave({"params": self.state["params"]}),
+            self.best.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave({"params": kept_params(self.state)}),
                                                          loader=ocp.args.JsonSave(meta)), force=True)
             self.best.wait_until_finished()
         self.latest.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(self.state),
@@ -447,7 +469,7 @@ class Run:
                                                            self.cfg.model.anchor, self.cfg.model.scene),
                                            self.mesh)
                                  for k in range(min(self.cfg.val_batches, self.val.batches_per_epoch))]
-        parts = [jax.device_get(self._loss(self.state["params"], b, self.norm)) for b in self._val_batches]
+        parts = [jax.device_get(self._loss(kept_params(self.state), b, self.norm)) for b in self._val_batches]
         return {f"val_{k}": float(np.mean([p[k] for p in parts])) for k in parts[0]}
 
     # ---- the loop ----
