@@ -1399,6 +1399,7 @@ def test_the_frame_generator_steps_along_the_straight_path_to_its_estimate(refin
     assert float(jnp.abs(other - got).max()) > 1e-4
 
 
+@pytest.mark.slow  # the frame generator: only the GPU presets train it
 def test_the_frame_generator_noise_follows_the_episode_and_its_step_not_the_batch():
     a = I.refine_noise(jnp.array([11, 11], jnp.uint32), jnp.array([3, 5]), (4, 4, 3))
     b = I.refine_noise(jnp.array([12, 11, 11], jnp.uint32), jnp.array([7, 3, 5]), (4, 4, 3))
@@ -1441,6 +1442,7 @@ def test_the_frame_generator_steps_towards_a_known_posterior_in_time_order(refin
     assert 0.4 < np.mean(got > 0) < 0.6
 
 
+@pytest.mark.slow  # the frame generator: only the GPU presets train it
 def test_the_frame_generator_leaves_what_the_keep_gate_keeps(model_and_inputs):
     _, frames, proprio, action = model_and_inputs
     cfg = dataclasses.replace(CFG, refine=2, refine_channels=(8, 16), keep=True)
@@ -1466,6 +1468,7 @@ def test_the_frame_generator_leaves_what_the_keep_gate_keeps(model_and_inputs):
     assert float(jnp.abs(stepped.frame - unrefined.frame).max()) > 1e-3  # the generator moves the rest
 
 
+@pytest.mark.slow  # the frame generator: only the GPU presets train it
 def test_the_frame_generator_learns_apart_from_the_rest_of_the_model(model_and_inputs, refining_model):
     from wm.train import _refine_loss, loss_fn
 
