@@ -1595,8 +1595,13 @@ def test_a_run_with_a_moving_average_validates_and_keeps_the_average(smoke_datas
     _, data, _ = smoke_dataset
     run = Run(make_config("smoke", ["steps=10", "log_every=5", "eval_every=5", "judge_episodes=0", "select=last",
                                     "ema=0.9"]), data, tmp_path / "run")
+    run.val = run.val or run.loader  # the smoke data has no validation split: the training windows stand in
     run.train(progress=False)
     kept = run.best_params()
+    batch = run._val_batches[0]
+    on = {name: float(jax.device_get(run._loss(p, batch, run.norm))["loss"])
+          for name, p in (("ema", run.state["ema"]), ("params", run.state["params"]))}
+    assert run.validate()["val_loss"] == pytest.approx(on["ema"]) and on["ema"] != on["params"]
     moved = 0.0
     for k, e, p in zip(jax.tree_util.tree_leaves(kept), jax.tree_util.tree_leaves(run.state["ema"]),
                        jax.tree_util.tree_leaves(run.state["params"]), strict=True):
