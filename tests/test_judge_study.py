@@ -31,6 +31,7 @@ def test_evaluation_episodes_pad_and_label_each_task(np_rng):
     np.testing.assert_array_equal(d["features"][16:32, :5], features["a"][3].astype(np.float32))
 
 
+@pytest.mark.slow  # a diagnostic's bound (experiments.judge_study); make test keeps its observed bound
 def test_the_crossfit_bound_reads_an_outcome_the_imaginations_carry(np_rng):
     features, true = kept(np_rng)
     probs = J.crossfit_bound(features, true, ("a", "b"), steps=150, seed=0)

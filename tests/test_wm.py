@@ -1141,6 +1141,7 @@ def test_resume_after_a_kill_matches_an_uninterrupted_run(smoke_dataset, smoke_w
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.slow  # an edge of the kill-and-resume path; make test keeps a cut-short run's resume
 def test_a_run_killed_between_its_best_and_latest_checkpoints_resumes(smoke_dataset, smoke_world_model, tmp_path):
     _, data, _ = smoke_dataset
     cfg = make_config("smoke")
