@@ -25,7 +25,10 @@ averages over families). The same over the policies that no run's world model le
 (`in_wm_data` false), over those of them that are lineages of their own rather than counterfactual
 families (degraded copies of a zoo checkpoint, whose knobs a design's data may share: the policies a
 new user brings are of the first kind), and over the counterfactual families' members, each where
-there are at least three a task.
+there are at least three a task. Last, the policies whose predicted success rate moved most between
+the two designs (each design's mean over its runs), and the largest such move: with one run a side
+of the same command, on the same commit and machine kind, it checks that the evaluation reproduces
+(every predicted rate within 0.01).
 """
 
 from __future__ import annotations
@@ -44,6 +47,8 @@ from experiments.ensemble import read_run
 from sim_data.util import run_cli, write_json_atomic
 
 GROUPS = ("base", "design")
+REPRODUCED = 0.01  # predicted rates of two runs of one command that agree within this are the same figures
+SHIFTS_SHOWN = 8  # the table lists the policies whose predicted rates moved most
 MIN_PER_TASK = 3  # policies a task in a subset, as the evaluation's own unseen block
 SUBSETS = ("all", "unseen", "unseen_networks", "families")
 
@@ -157,6 +162,7 @@ def compare(base: list[dict], design: list[dict], draws: int = 1000, seed: int =
     if networks:  # else the networks are the unseen block
         subsets["unseen_networks"] = {t: np.asarray([n in networks for n in names[t]]) for t in true}
     subsets["families"] = family
+    out["shifts"] = rate_shifts(true, preds[:k], preds[k:], names)
     for name, keep in subsets.items():
         if all(u.sum() >= MIN_PER_TASK for u in keep.values()):
             out[f"{name}_policies"] = {t: int(u.sum()) for t, u in keep.items()}
@@ -164,6 +170,34 @@ def compare(base: list[dict], design: list[dict], draws: int = 1000, seed: int =
                                                            "design": [_kept(p, keep) for p in preds[k:]]},
                                        draws, seed)
     return out
+
+
+def rate_shifts(true: dict, base: list[dict], design: list[dict], names: dict) -> list[dict]:
+    """Every policy's predicted success rate under each design (the mean over its runs of the mean over
+    episodes) and the shift from base to design, largest |shift| first: [{"task", "name", "true",
+    "base", "design", "shift"}]. true: {task: (P, N)}; base, design: [{task: (P, N)}] one per run;
+    names: {task: [P names]} in the tables' order."""
+    rows = []
+    for t in true:
+        b = np.mean([run[t].mean(1) for run in base], 0)
+        d = np.mean([run[t].mean(1) for run in design], 0)
+        rows += [{"task": t, "name": n, "true": float(true[t][i].mean()), "base": float(b[i]),
+                  "design": float(d[i]), "shift": float(d[i] - b[i])} for i, n in enumerate(names[t])]
+    return sorted(rows, key=lambda r: -abs(r["shift"]))
+
+
+def shifts_markdown(shifts: list[dict], names: tuple[str, str] = GROUPS, shown: int = SHIFTS_SHOWN) -> str:
+    """A sentence on the largest shift of a predicted rate and how many exceed REPRODUCED, then a table of
+    the `shown` largest."""
+    top = shifts[0]
+    moved = sum(abs(r["shift"]) > REPRODUCED for r in shifts)
+    lines = [f"Predicted success rates, {names[1]} against {names[0]}: the largest shift {top['shift']:+.3f} "
+             f"({top['name']}); {moved} of {len(shifts)} policies moved by more than {REPRODUCED}"
+             + (" (the same figures)." if moved == 0 else "."), "",
+             f"| policy | true | {names[0]} | {names[1]} | shift |", "|---|---|---|---|---|"]
+    lines += [f"| {r['name']} | {r['true']:.2f} | {r['base']:.3f} | {r['design']:.3f} | {r['shift']:+.3f} |"
+              for r in shifts[:shown]]
+    return "\n".join(lines)
 
 
 def mean_abs_error(true: dict, pred: dict) -> float:
@@ -259,7 +293,7 @@ def main(argv=None) -> int:
         a.out.parent.mkdir(parents=True, exist_ok=True)
         write_json_atomic(a.out, res)
         plot(res, a.out.with_suffix(".png"), names)
-    print(markdown(res, names))
+    print(markdown(res, names) + "\n\n" + shifts_markdown(res["shifts"], names))
     return 0
 
 

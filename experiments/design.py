@@ -184,7 +184,8 @@ def write_comparison(jobs: list[Job], out: Path, draws: int = 1000) -> dict:
     res |= {"names": [BASE, name], "held_out": held_out, "timing": timing,
             "runs": {j.design + f"_s{j.seed}": {"train": list(j.train_argv)} for j in jobs}}
     write_json_atomic(out / "compare.json", res)
-    table = (compare.markdown(res, (BASE, name)) + "\n\nHeld-out episodes (`eval.json`):\n\n" + held_table
+    table = (compare.markdown(res, (BASE, name)) + "\n\n" + compare.shifts_markdown(res["shifts"], (BASE, name))
+             + "\n\nHeld-out episodes (`eval.json`):\n\n" + held_table
              + "\n\nCommands (wall and compile seconds; a run finished by an earlier command lists it there):\n\n"
              + timing_table(timing))
     (out / "compare.md").write_text(table + "\n")

@@ -131,6 +131,30 @@ def test_the_families_subset_ranks_their_members_alone_and_each_run_carries_its_
     assert res["all"]["base"]["abs_error"][0] > res["all"]["design"]["abs_error"][0]  # the noisier run errs more
 
 
+def test_shifts_are_the_moves_of_each_policys_mean_predicted_rate_and_a_rerun_moves_none(tmp_path, capsys):
+    true = _truth(4)
+    base = [_noisy(true, 0.2, s) for s in (1, 2)]
+    design = [{t: v.copy() for t, v in run.items()} for run in base]
+    design[0]["wipe"][3] = np.clip(design[0]["wipe"][3] + 0.3, 0, 1)  # one run of one policy moved
+    res = C.compare([_results(true, b) for b in base], [_results(true, d) for d in design], draws=5)
+    top = res["shifts"][0]
+    by_hand = (design[0]["wipe"][3].mean() - base[0]["wipe"][3].mean()) / 2  # the mean over the two runs
+    assert (top["task"], top["name"]) == ("wipe", "wipe/p3") and top["shift"] == pytest.approx(by_hand)
+    assert top["true"] == pytest.approx(true["wipe"][3].mean())
+    assert top["base"] == pytest.approx(np.mean([b["wipe"][3].mean() for b in base]))
+    assert len(res["shifts"]) == 2 * P and all(r["shift"] == 0 for r in res["shifts"][1:])
+    assert f"1 of {2 * P} policies moved by more than 0.01." in C.shifts_markdown(res["shifts"])
+    # the same evaluation twice: every rate where it was
+    d = tmp_path / "run"
+    d.mkdir()
+    (d / "results.json").write_text(json.dumps(_results(true, base[0])))
+    assert C.main(["--base", str(d), "--design", str(d), "--names", "first,again", "--draws", "5"]) == 0
+    printed = capsys.readouterr().out
+    assert f"the largest shift +0.000 (mug/p0); 0 of {2 * P} policies moved by more than 0.01 (the same figures)." \
+        in printed
+    assert "| policy | true | first | again | shift |" in printed
+
+
 def _ensemble_run(path, true, members):
     """An evaluate OUT by an ensemble: results.json holding the members' mean, and OUT/tasks/<task>.npz
     with each member's per-episode probabilities (prob_members, (K, P, N)) in another policy order."""
