@@ -22,7 +22,7 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from PIL import Image
 
-from experiments.stats import nonfinite_policies, rank
+from experiments.stats import MIN_CORRELATED, nonfinite_policies, rank
 from sim_data.util import run_cli
 
 # each evaluation preset's own targets for the within-task means (docs/results.md)
@@ -341,11 +341,11 @@ def verdict(res: dict) -> str:
     tasks = w["tasks"]
     if _missing(wm["mean"]["pearson"]):
         counts = ", ".join(f"{t} {sum(p['task'] == t for p in res['policies'])}" for t in tasks)
-        return ("No within-task ranking to judge: a task's Pearson r needs at least two of its policies whose "
-                f"true and predicted rates both vary (policies per task: {counts}).")
+        return (f"No within-task ranking to judge: a task's Pearson r needs at least {MIN_CORRELATED} of its "
+                f"policies, whose true and predicted rates both vary (policies per task: {counts}).")
     if _missing(px["mean"]["pearson"]):
-        return ("The imitation-loss proxy has no within-task figure here (it needs at least two policies of a task "
-                "with a validation loss; plug-ins have none): the world model alone ranks at a mean within-task "
+        return (f"The imitation-loss proxy has no within-task figure here (it needs at least {MIN_CORRELATED} "
+                "policies of a task with a validation loss; plug-ins have none): the world model alone ranks at a mean within-task "
                 f"Pearson r {_ci(wm['mean']['pearson'], wm['mean_ci']['pearson'])} (95% interval resampling "
                 f"{w['resamples']}).")
     ahead = [t for t in tasks if (diff["per_task_ci"][t]["pearson"][0] or -1) > 0]

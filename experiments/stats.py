@@ -23,13 +23,16 @@ def _pair(predicted, true):
     return p, t
 
 
+MIN_CORRELATED = 3  # two points always lie on a line: a correlation of two policies says nothing
+
+
 def pearson(predicted, true) -> tuple[float, tuple[float, float]]:
     """Pearson's r and its 95% interval by Fisher's z: tanh(atanh(r) -/+ 1.96 / sqrt(n - 3)).
 
-    NaN when either side is constant; the interval is (-1, 1) for n <= 3.
+    NaN when either side is constant or n < MIN_CORRELATED; the interval is (-1, 1) for n = 3.
     """
     p, t = _pair(predicted, true)
-    if len(p) < 2 or np.ptp(p) == 0 or np.ptp(t) == 0:
+    if len(p) < MIN_CORRELATED or np.ptp(p) == 0 or np.ptp(t) == 0:
         return math.nan, (math.nan, math.nan)
     res = sps.pearsonr(p, t)
     r = float(np.clip(res.statistic, -1.0, 1.0))
@@ -232,8 +235,9 @@ def task_statistics(pred, true, threshold: float = 0.5) -> dict:
 def draw_statistics(pred, true, threshold: float = 0.5) -> dict:
     """task_statistics of D resamplings of one task at once: pred (D, P, N) probabilities (a policy with
     a non-finite one left out) or (D, P) scores (NaN: no score, left out), true (D, P, N) outcomes.
-    Returns {stat: (D,) float64}; every statistic of a draw with fewer than 2 scored policies is NaN.
-    Pearson and Spearman are NaN where either side is constant (pearson, spearman); MMRV, pairwise
+    Returns {stat: (D,) float64}; every statistic of a draw with fewer than 2 scored policies is NaN,
+    and Pearson and Spearman with fewer than MIN_CORRELATED, or where either side is constant (pearson,
+    spearman); MMRV, pairwise
     accuracy and alignment as mmrv, pairwise_accuracy and alignment over the scored policies."""
     pred, true = np.asarray(pred, np.float64), np.asarray(true, np.float64)
     t = true.mean(-1)
@@ -252,7 +256,8 @@ def draw_statistics(pred, true, threshold: float = 0.5) -> dict:
            "spearman": _masked_pearson(_masked_rank(p, keep), _masked_rank(t, keep), keep),
            "mmrv": _masked_mmrv(p, t, keep), "pairwise_acc_gap10": _masked_pairwise(p, t, keep, 0.10),
            "alignment": aligned}
-    return {k: np.where(n >= 2, v, math.nan) for k, v in out.items()}
+    least = {k: MIN_CORRELATED if k in ("pearson", "spearman") else 2 for k in out}
+    return {k: np.where(n >= least[k], v, math.nan) for k, v in out.items()}
 
 
 def _masked_pearson(x, y, keep) -> np.ndarray:

@@ -17,6 +17,8 @@ def test_pearson_and_fisher_interval_by_hand():
     # tanh(atanh(r) -/+ 1.96 / sqrt(5 - 3))
     assert (lo, hi) == pytest.approx((-0.34008203518751035, 0.9842357551507267))
     assert math.isnan(S.pearson([1, 1, 1], [0, 1, 2])[0])
+    assert math.isnan(S.pearson([0.2, 0.9], [0.0, 1.0])[0])  # two points lie on a line: no evidence
+    assert S.pearson([0.2, 0.9, 0.55], [0.0, 1.0, 0.5]) == (pytest.approx(1.0), (-1.0, 1.0))
     with pytest.raises(ValueError, match="1-D"):
         S.pearson([1, 2], [1, 2, 3])
 
@@ -179,9 +181,13 @@ def test_task_statistics_by_hand():
     # every pair misordered: the max violations 1, 1 and 0.5; thresholded at 0.5, one episode of six agrees
     assert b == pytest.approx({"pearson": -1.0, "spearman": -1.0, "mmrv": 2.5 / 3, "pairwise_acc_gap10": 0.0,
                                "alignment": 1 / 6})
-    # a per-policy score leaves out the policy without one and has no per-episode alignment
+    # a per-policy score leaves out the policy without one and has no per-episode alignment; of the two
+    # policies left, the order counts and a correlation does not (MIN_CORRELATED)
     p = S.task_statistics(proxy["b"], true["b"])
-    assert p["pearson"] == pytest.approx(1.0) and p["mmrv"] == 0.0 and math.isnan(p["alignment"])
+    assert math.isnan(p["pearson"]) and math.isnan(p["spearman"]) and math.isnan(p["alignment"])
+    assert p["mmrv"] == 0.0 and p["pairwise_acc_gap10"] == 1.0
+    two = S.task_statistics(wm["b"][:2], true["b"][:2])
+    assert math.isnan(two["pearson"]) and two["pairwise_acc_gap10"] == 0.0 and two["mmrv"] > 0
     with pytest.raises(ValueError, match="shape"):
         S.task_statistics(wm["a"][:, :1], true["a"])
 
@@ -193,8 +199,10 @@ def test_within_task_mean_intervals_and_difference():
     assert m == pytest.approx({"pearson": 0.0, "spearman": 0.0, "mmrv": 2.5 / 6, "pairwise_acc_gap10": 0.5,
                                "alignment": 7 / 12})
     assert got["proxy"]["mean"]["pearson"] == pytest.approx(1.0)
-    assert got["difference"]["proxy"]["mean"]["pearson"] == pytest.approx(-1.0)
-    assert got["difference"]["proxy"]["per_task"]["b"]["pearson"] == pytest.approx(-2.0)
+    # on task b the proxy scores two policies, too few for a correlation: the difference is task a's alone
+    assert math.isnan(got["proxy"]["per_task"]["b"]["pearson"])
+    assert got["difference"]["proxy"]["mean"]["pearson"] == pytest.approx(0.0)
+    assert math.isnan(got["difference"]["proxy"]["per_task"]["b"]["pearson"])
     # resampled, every pair of task a whose true rates differ stays ordered, and task b stays reversed
     assert got["world_model"]["per_task_ci"]["a"]["pairwise_acc_gap10"] == pytest.approx([1.0, 1.0])
     assert got["world_model"]["per_task_ci"]["b"]["pearson"][1] < 0
@@ -268,9 +276,9 @@ def test_family_statistics_by_hand():
     assert noise["n"] == 3 and noise["true_range"] == [0.1, 0.9]
     assert noise["pearson"] == pytest.approx(np.corrcoef([0.8, 0.7, 0.4], [0.9, 0.6, 0.1])[0, 1])
     assert noise["mean_abs_error"] == pytest.approx((0.1 + 0.1 + 0.3) / 3)
-    # grip: base and one level, two points: r = 1 (0.9 > 0.5 and 0.8 > 0.5)
-    assert grip["n"] == 2 and grip["pearson"] == pytest.approx(1.0) and grip["mean_abs_error"] == pytest.approx(0.05)
-    assert got["mean_pearson"] == pytest.approx((noise["pearson"] + 1.0) / 2)
+    # grip: base and one level, two points, which always lie on a line: no r, but an error
+    assert grip["n"] == 2 and math.isnan(grip["pearson"]) and grip["mean_abs_error"] == pytest.approx(0.05)
+    assert got["mean_pearson"] == pytest.approx(noise["pearson"])
     assert got["mean_abs_error"] == pytest.approx((noise["mean_abs_error"] + 0.05) / 2)
     assert math.isnan(S.family_statistics([row("conv", 1, 0.1, 0.2)])["mean_pearson"])
     # without the rows' episodes no ceiling; with them, the perfect predictor's r against that truth
@@ -278,7 +286,7 @@ def test_family_statistics_by_hand():
     counted = S.family_statistics([dict(r, n=4) for r in rows])
     noise, grip = (next(f for f in counted["families"] if f["family"] == k) for k in ("conv~noise", "conv~grip"))
     assert noise["pearson_ceiling"] == S.pearson_ceiling([0.6, 0.1, 0.9], [4, 4, 4])
-    assert counted["mean_pearson_ceiling"] == pytest.approx((noise["pearson_ceiling"] + grip["pearson_ceiling"]) / 2)
+    assert math.isnan(grip["pearson_ceiling"]) and counted["mean_pearson_ceiling"] == noise["pearson_ceiling"]
 
 
 def test_pearson_ceiling_is_a_perfect_predictors_r_against_the_truth_measured_again():
