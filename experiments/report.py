@@ -345,9 +345,9 @@ def verdict(res: dict) -> str:
                 f"policies, whose true and predicted rates both vary (policies per task: {counts}).")
     if _missing(px["mean"]["pearson"]):
         return (f"The imitation-loss proxy has no within-task figure here (it needs at least {MIN_CORRELATED} "
-                "policies of a task with a validation loss; plug-ins have none): the world model alone ranks at a mean within-task "
-                f"Pearson r {_ci(wm['mean']['pearson'], wm['mean_ci']['pearson'])} (95% interval resampling "
-                f"{w['resamples']}).")
+                "policies of a task with a validation loss; plug-ins have none): the world model alone ranks at a "
+                f"mean within-task Pearson r {_ci(wm['mean']['pearson'], wm['mean_ci']['pearson'])} (95% interval "
+                f"resampling {w['resamples']}).")
     ahead = [t for t in tasks if (diff["per_task_ci"][t]["pearson"][0] or -1) > 0]
     behind = [t for t in tasks if (diff["per_task_ci"][t]["pearson"][1] or 1) < 0]
     lo = diff["mean_ci"]["pearson"][0]

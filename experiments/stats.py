@@ -236,9 +236,9 @@ def draw_statistics(pred, true, threshold: float = 0.5) -> dict:
     """task_statistics of D resamplings of one task at once: pred (D, P, N) probabilities (a policy with
     a non-finite one left out) or (D, P) scores (NaN: no score, left out), true (D, P, N) outcomes.
     Returns {stat: (D,) float64}; every statistic of a draw with fewer than 2 scored policies is NaN,
-    and Pearson and Spearman with fewer than MIN_CORRELATED, or where either side is constant (pearson,
-    spearman); MMRV, pairwise
-    accuracy and alignment as mmrv, pairwise_accuracy and alignment over the scored policies."""
+    and Pearson and Spearman with fewer than MIN_CORRELATED or where either side is constant (pearson,
+    spearman); MMRV, pairwise accuracy and alignment as mmrv, pairwise_accuracy and alignment over the
+    scored policies."""
     pred, true = np.asarray(pred, np.float64), np.asarray(true, np.float64)
     t = true.mean(-1)
     if pred.ndim == 3:

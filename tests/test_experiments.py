@@ -602,6 +602,7 @@ def _within(wm_r, proxy_r):
 def test_the_verdict_says_when_there_is_no_ranking_or_no_proxy_to_compare():
     one = {"policies": [{"task": "mug"}], "metrics": {"within_task": _within(None, None)}}
     assert verdict(one).startswith("No within-task ranking to judge") and "mug 1" in verdict(one)
+    assert "at least 3 of its policies" in verdict(one)
     plugins = {"policies": [{"task": "mug"}] * 3, "metrics": {"within_task": _within(0.5, float("nan"))}}
     assert verdict(plugins).startswith("The imitation-loss proxy has no within-task figure")
     assert "0.50 [0.40, 0.60]" in verdict(plugins)
