@@ -63,12 +63,14 @@ class Variant:
     """A judge fit to `episodes` of the world model's imagined training episodes (0: all; "rollouts":
     only the learned policies' closed-loop ones), reading the step-feature groups `inputs`; with
     `observed`, to the same episodes read from their true frames too (wm.judge.observe_episodes, as
-    wm.train's judge_observed)."""
+    wm.train's judge_observed), and with `imagined` False to those true readings alone: a judge of
+    real episodes, as a success classifier trained on robot data would be, reading imaginations."""
 
     episodes: int = 0
     inputs: tuple = FEATURE_GROUPS
     rollouts_only: bool = False
     observed: bool = False
+    imagined: bool = True
     closed_loop: bool = True  # False: the learned policies' rollouts imagined open loop under their logged actions
 
 
@@ -82,6 +84,7 @@ VARIANTS = {
     "all_proprio_progress": Variant(inputs=("proprio", "progress")),
     "rollouts_only": Variant(rollouts_only=True),
     "all_observed": Variant(observed=True),
+    "observed_only": Variant(observed=True, imagined=False),
     # every episode imagined under its logged actions and labelled with their outcome in the simulator,
     # where a closed-loop imagination carries the outcome of the actions its policy took on true frames
     "all_open_loop": Variant(closed_loop=False),
@@ -94,8 +97,8 @@ OBSERVED_BOUND = "observed_bound"
 SAVED = "saved_judge"  # the judge fit with the world model, if any, on the kept (float16) features
 FOLDS = 4
 # The order variants are fit in by default: what matters most first, so a run cut short keeps it.
-DEFAULT_ORDER = (SAVED, "refit_1024", BOUND, OBSERVED_BOUND, "all", "all_observed", "all_no_action",
-                 "all_no_outcome", "all_proprio_progress", "rollouts_only")
+DEFAULT_ORDER = (SAVED, "refit_1024", BOUND, OBSERVED_BOUND, "all", "all_observed", "observed_only",
+                 "all_no_action", "all_no_outcome", "all_proprio_progress", "rollouts_only")
 SPECIAL = (BOUND, SAVED, OBSERVED_BOUND)
 
 
@@ -174,7 +177,7 @@ def fit_variant(v: Variant, train: dict, val: dict, tasks: tuple, wm_cfg, steps:
         rows = np.asarray(spread(list(rows), v.episodes))
     learn = take(train, rows)
     if v.observed:
-        learn = join_episodes(learn, take(observed, rows))
+        learn = join_episodes(learn, take(observed, rows)) if v.imagined else take(observed, rows)
     return fit(learn, val, tasks, steps, wm_cfg.seed, progress=True, columns=feature_columns(wm_cfg.model, v.inputs))
 
 

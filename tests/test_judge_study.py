@@ -72,3 +72,7 @@ def test_an_observed_variant_learns_from_both_readings_of_the_same_episodes(np_r
     n = len(train["label"])
     assert len(got["learn"]["label"]) == 2 * n and got["learn"]["task"] == train["task"] * 2
     np.testing.assert_array_equal(got["learn"]["features"][n:], seen["features"])
+    # the judge of true frames alone: the same episodes' true readings, and no imagination
+    J.fit_variant(J.VARIANTS["observed_only"], train, None, ("a", "b"), wm_cfg, 10, seen)
+    assert got["learn"]["task"] == train["task"] and got["learn"]["label"].tolist() == train["label"].tolist()
+    np.testing.assert_array_equal(got["learn"]["features"], seen["features"])
