@@ -256,19 +256,19 @@ def draw_statistics(pred, true, threshold: float = 0.5) -> dict:
            "spearman": _masked_pearson(_masked_rank(p, keep), _masked_rank(t, keep), keep),
            "mmrv": _masked_mmrv(p, t, keep), "pairwise_acc_gap10": _masked_pairwise(p, t, keep, 0.10),
            "alignment": aligned}
-    least = {k: MIN_CORRELATED if k in ("pearson", "spearman") else 2 for k in out}
-    return {k: np.where(n >= least[k], v, math.nan) for k, v in out.items()}
+    return {k: np.where(n >= 2, v, math.nan) for k, v in out.items()}
 
 
 def _masked_pearson(x, y, keep) -> np.ndarray:
-    """Pearson's r along the last axis over the kept entries: (D, P) -> (D,); NaN where a side is constant."""
+    """Pearson's r along the last axis over the kept entries: (D, P) -> (D,); NaN where a side is constant
+    or fewer than MIN_CORRELATED entries are kept (as pearson)."""
     n = np.maximum(keep.sum(-1, keepdims=True), 1)
     dx = np.where(keep, x - np.where(keep, x, 0).sum(-1, keepdims=True) / n, 0.0)
     dy = np.where(keep, y - np.where(keep, y, 0).sum(-1, keepdims=True) / n, 0.0)
-    constant = (_masked_ptp(x, keep) == 0) | (_masked_ptp(y, keep) == 0)
+    undefined = (_masked_ptp(x, keep) == 0) | (_masked_ptp(y, keep) == 0) | (keep.sum(-1) < MIN_CORRELATED)
     with np.errstate(invalid="ignore", divide="ignore"):
         r = (dx * dy).sum(-1) / np.sqrt((dx * dx).sum(-1) * (dy * dy).sum(-1))
-    return np.where(constant, math.nan, np.clip(r, -1.0, 1.0))
+    return np.where(undefined, math.nan, np.clip(r, -1.0, 1.0))
 
 
 def _masked_ptp(x, keep) -> np.ndarray:
