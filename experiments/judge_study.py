@@ -44,7 +44,7 @@ from experiments.evaluate import READOUTS, load_features, load_task
 from sim_data.dataset.cache import TrainingCache, window_episodes
 from sim_data.util import run_cli, write_json_atomic
 from wm.checkpoint import load_run_config, load_trained
-from wm.config import with_imagine
+from wm.config import JUDGE_LR, with_imagine
 from wm.imagine import FEATURE_GROUPS, feature_columns
 from wm.judge import (
     VAL_EPISODES,
@@ -57,6 +57,8 @@ from wm.judge import (
     spread,
 )
 
+ENSEMBLE = 6  # the judges of the seed-spread and ensemble variants
+
 
 @dataclasses.dataclass(frozen=True)
 class Variant:
@@ -64,7 +66,10 @@ class Variant:
     only the learned policies' closed-loop ones), reading the step-feature groups `inputs`; with
     `observed`, to the same episodes read from their true frames too (wm.judge.observe_episodes, as
     wm.train's judge_observed), and with `imagined` False to those true readings alone: a judge of
-    real episodes, as a success classifier trained on robot data would be, reading imaginations."""
+    real episodes, as a success classifier trained on robot data would be, reading imaginations.
+    seed: added to the world model's seed for the judge's initialisation and batches; members: that
+    many judges, of seeds seed, seed + 1, ..., each kept at its own best validation step, read as the
+    mean of their probabilities; lr: the judge's learning rate (wm.judge.fit)."""
 
     episodes: int = 0
     inputs: tuple = FEATURE_GROUPS
@@ -72,6 +77,9 @@ class Variant:
     observed: bool = False
     imagined: bool = True
     closed_loop: bool = True  # False: the learned policies' rollouts imagined open loop under their logged actions
+    seed: int = 0
+    members: int = 1
+    lr: float = JUDGE_LR
 
 
 VARIANTS = {
@@ -88,6 +96,13 @@ VARIANTS = {
     # every episode imagined under its logged actions and labelled with their outcome in the simulator,
     # where a closed-loop imagination carries the outcome of the actions its policy took on true frames
     "all_open_loop": Variant(closed_loop=False),
+    # the judge's own seed: `all` fit again from other initialisations on the same imaginations
+    **{f"all_seed{k}": Variant(seed=k) for k in range(1, ENSEMBLE)},
+    # the mean of ENSEMBLE such judges; the same at a quarter of the learning rate, where a judge
+    # that overfits its few hundred episodes within the first validations stops less abruptly
+    f"all_x{ENSEMBLE}": Variant(members=ENSEMBLE),
+    "all_lr5e-4": Variant(lr=5e-4),
+    f"all_lr5e-4_x{ENSEMBLE}": Variant(lr=5e-4, members=ENSEMBLE),
 }
 BOUND = "crossfit_bound"
 # A judge fit to the training episodes' true frames alone, reading the evaluation's simulated episodes
@@ -178,7 +193,16 @@ def fit_variant(v: Variant, train: dict, val: dict, tasks: tuple, wm_cfg, steps:
     learn = take(train, rows)
     if v.observed:
         learn = join_episodes(learn, take(observed, rows)) if v.imagined else take(observed, rows)
-    return fit(learn, val, tasks, steps, wm_cfg.seed, progress=True, columns=feature_columns(wm_cfg.model, v.inputs))
+    return fit(learn, val, tasks, steps, wm_cfg.seed + v.seed, progress=True,
+               columns=feature_columns(wm_cfg.model, v.inputs), lr=v.lr, members=v.members)
+
+
+def read_variant(v: Variant, train: dict, val: dict, tasks: tuple, wm_cfg, steps: int, features: dict,
+                 observed: dict | None = None) -> tuple[dict, dict]:
+    """({task: (P, N)} probabilities, fit metrics) of variant v's judge (fit_variant; with several
+    members, the mean of theirs) reading the kept imaginations features ({task: (P, N, T, F)})."""
+    judge, metrics = fit_variant(v, train, val, tasks, wm_cfg, steps, observed)
+    return read_tasks(judge, features), metrics
 
 
 def observed_bound(train: dict, val: dict, features: dict, tasks: tuple, steps: int, seed: int) -> tuple:
@@ -187,6 +211,18 @@ def observed_bound(train: dict, val: dict, features: dict, tasks: tuple, steps: 
     ({task: (P, N, T, F)}, load_features(..., observed=True))."""
     judge, metrics = fit(train, val, tasks, steps, seed, progress=True)
     return read_tasks(judge, features), metrics
+
+
+def loaded_policies(data: Path) -> dict:
+    """wm.judge.dataset_policies(data), refusing a dataset whose policies cannot be loaded from here:
+    their rollouts would be imagined open loop, where wm.train's judge learnt from their closed-loop
+    imaginations, so the study's judges would learn from other imaginations than the saved one."""
+    pols = dataset_policies(data)
+    specs = json.loads((Path(data) / "config.json").read_text()).get("policies") or []
+    if specs and not pols:
+        raise FileNotFoundError(f"the policies whose rollouts {data} holds ({', '.join(specs)}) cannot be loaded "
+                                "from here: run the study from the directory their paths are relative to")
+    return pols
 
 
 def finished_tasks(eval_dir: Path) -> tuple:
@@ -231,7 +267,7 @@ def study(eval_dir: Path, out: Path, wm_run: Path | None = None, data: Path | No
         if all(v.episodes and not v.rollouts_only for v in fitted):  # only what the largest subset needs
             ids = spread(ids, max(v.episodes for v in fitted))
         val_ids = spread(cache.select("val", list(tasks)), VAL_EPISODES)  # as wm.judge.fit_judge
-        pols = dataset_policies(data)
+        pols = loaded_policies(data)
 
         def make(split_ids, seed, policies=pols):
             def go():
@@ -268,9 +304,9 @@ def study(eval_dir: Path, out: Path, wm_run: Path | None = None, data: Path | No
                 probs, fit_metrics = observed_bound(observed, observed_val, seen, tasks, steps, wm_cfg.seed)
             else:
                 v = VARIANTS[name]
-                judge, fit_metrics = fit_variant(v, train if v.closed_loop else train_open,
-                                                 val if v.closed_loop else val_open, tasks, wm_cfg, steps, observed)
-                probs = read_tasks(judge, features)
+                probs, fit_metrics = read_variant(v, train if v.closed_loop else train_open,
+                                                  val if v.closed_loop else val_open, tasks, wm_cfg, steps, features,
+                                                  observed)
         except ValueError as e:  # one outcome only among what a variant would learn from
             print(f"warning: judge variant {name} skipped: {e}", file=sys.stderr)
             continue

@@ -1,5 +1,7 @@
 """The judge study's pieces on imaginations whose outcome a feature decides."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -47,6 +49,14 @@ def test_an_unknown_variant_is_refused(tmp_path):
         J.study(tmp_path, tmp_path / "out", wm_run=tmp_path, variants=["bigger"])
 
 
+def test_a_dataset_whose_policies_do_not_load_from_here_is_refused(tmp_path):
+    (tmp_path / "config.json").write_text(json.dumps({"policies": ["runs/policies/elsewhere#conv_noproprio"]}))
+    with pytest.raises(FileNotFoundError, match="cannot be loaded from here"):
+        J.loaded_policies(tmp_path)
+    (tmp_path / "config.json").write_text(json.dumps({"policies": []}))
+    assert J.loaded_policies(tmp_path) == {}  # scripted data: nothing to imagine closed loop
+
+
 def test_the_observed_bound_reads_the_simulated_episodes_with_a_judge_of_true_frames(np_rng):
     features, true = kept(np_rng)
     every = {t: np.arange(len(true[t])) for t in true}
@@ -76,3 +86,22 @@ def test_an_observed_variant_learns_from_both_readings_of_the_same_episodes(np_r
     J.fit_variant(J.VARIANTS["observed_only"], train, None, ("a", "b"), wm_cfg, 10, seen)
     assert got["learn"]["task"] == train["task"] and got["learn"]["label"].tolist() == train["label"].tolist()
     np.testing.assert_array_equal(got["learn"]["features"], seen["features"])
+
+
+def test_a_variant_fits_its_judge_at_its_seed_learning_rate_and_members(np_rng, monkeypatch):
+    features, true = kept(np_rng)
+    train = J.evaluation_episodes(*kept(np_rng), {t: np.arange(len(true[t])) for t in true})
+    calls, real = [], J.fit
+
+    def fit(learn, val, tasks, steps, seed, progress=True, columns=None, lr=None, members=1):
+        calls.append((seed, lr, members))  # every column: the kept features are not a world model's
+        return real(learn, val, tasks, steps, seed, progress=False, lr=lr, members=members)
+
+    monkeypatch.setattr(J, "fit", fit)
+    wm_cfg = make_config("smoke", ["seed=1"])
+    probs, metrics = J.read_variant(J.Variant(seed=2, members=3, lr=1e-3), train, None, ("a", "b"), wm_cfg, 30,
+                                    features)
+    assert calls == [(3, 1e-3, 3)] and metrics["members"] == 3
+    assert J.VARIANTS["all_x6"].members == 6 and J.VARIANTS["all_lr5e-4"].lr == 5e-4
+    for t in ("a", "b"):
+        assert probs[t].shape == true[t].shape and ((probs[t] > 0.5) == true[t]).mean() > 0.9

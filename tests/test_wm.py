@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
+from flax import serialization
 
 from sim_data.config import override
 from sim_data.dataset.cache import TrainingCache
@@ -982,6 +983,36 @@ def test_episode_judge_learns_an_integral_and_round_trips(tmp_path):
     with pytest.raises(ValueError, match="successes and failures"):
         J.fit({**train, "label": np.zeros(256, bool)}, None, ("a", "b"), steps=5, progress=False)
     assert J.load_judge(tmp_path / "nothing") is None
+
+
+def test_an_ensemble_judge_reads_the_mean_of_its_members_and_round_trips(tmp_path):
+    rng = np.random.default_rng(1)
+    train, val = _synthetic_episodes(rng, 64), _synthetic_episodes(rng, 32)
+    judge, metrics = J.fit(train, val, ("a", "b"), steps=50, seed=4, progress=False, lr=1e-3, members=3)
+    assert judge.members == 3 and metrics["members"] == 3 and len(metrics["kept_step"]) == 3
+    alone = [J.fit(train, val, ("a", "b"), steps=50, seed=s, progress=False, lr=1e-3)[0] for s in (4, 5, 6)]
+    each = [J.judge_episodes(j, val) for j in alone]
+    assert not np.allclose(each[0], each[1], atol=1e-3)  # the members differ by their seeds
+    np.testing.assert_allclose(J.judge_episodes(judge, val), np.mean(each, axis=0), rtol=1e-5, atol=1e-6)
+    assert metrics["val_auroc"] == pytest.approx(M.auroc(np.mean(each, axis=0), val["label"]), abs=1e-6)
+    (tmp_path / "three").mkdir()
+    J.save_judge(judge, metrics, tmp_path / "three")
+    back = J.load_judge(tmp_path / "three")
+    assert back.members == 3
+    np.testing.assert_allclose(J.judge_episodes(back, val), J.judge_episodes(judge, val), rtol=1e-5, atol=1e-6)
+    # a judge saved as one member's parameters, without "members" (the format before ensembles), loads as one
+    one = alone[0]
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "judge.msgpack").write_bytes(
+        serialization.to_bytes(jax.tree_util.tree_map(lambda p: p[0], one.params)))
+    meta = {"tasks": ["a", "b"], "mean": one.mean.tolist(), "std": one.std.tolist(), "width": J.WIDTH,
+            "columns": one.columns.tolist(), "feature_dim": one.feature_dim, "metrics": {}}
+    (tmp_path / "old" / "judge.json").write_text(json.dumps(meta))
+    old = J.load_judge(tmp_path / "old")
+    assert old.members == 1
+    np.testing.assert_allclose(J.judge_episodes(old, val), each[0], rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match="at least one member"):
+        J.fit(train, val, ("a", "b"), steps=5, progress=False, members=0)
 
 
 class _Episodes:

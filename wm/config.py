@@ -8,6 +8,8 @@ from sim_data.config import preset_config
 from wm.imagine import FEATURE_GROUPS
 from wm.model import ModelConfig
 
+JUDGE_LR = 2e-3  # the episode judge's learning rate (wm.judge.fit) where a run names none
+
 
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
@@ -74,7 +76,9 @@ class TrainConfig:
         head's prediction, which a model with model.scene offers when named); leaving out "action" makes
         it judge what the actions did in imagination rather than what they look like. judge_observed: the judge also
         learns from the same training episodes read from their true frames (wm.judge.observe_episodes:
-        what imagination would show were it exact), beside their imaginations.
+        what imagination would show were it exact), beside their imaginations. judge_members: judges
+        fit from as many seeds, read as the mean of their probabilities (wm.judge.fit); judge_lr: their
+        learning rate.
     """
 
     model: ModelConfig = ModelConfig()
@@ -126,6 +130,8 @@ class TrainConfig:
     judge_steps: int = 1500
     judge_inputs: tuple = tuple(g for g in FEATURE_GROUPS if g != "scene")
     judge_observed: bool = False
+    judge_members: int = 1
+    judge_lr: float = JUDGE_LR
 
     def validate(self) -> None:
         self.model.validate()
@@ -143,8 +149,8 @@ class TrainConfig:
             raise ValueError(f"eval_context must be in 1..model.context ({self.model.context})")
         if not 0 < self.train_fraction <= 1:
             raise ValueError(f"train_fraction must be in (0, 1], got {self.train_fraction}")
-        if self.judge_episodes < 0 or self.judge_steps < 1:
-            raise ValueError("judge_episodes >= 0 and judge_steps >= 1 are required")
+        if self.judge_episodes < 0 or self.judge_steps < 1 or self.judge_members < 1 or self.judge_lr <= 0:
+            raise ValueError("judge_episodes >= 0, judge_steps >= 1, judge_members >= 1 and judge_lr > 0 are required")
         if not self.judge_inputs or set(self.judge_inputs) - set(FEATURE_GROUPS):
             raise ValueError(f"judge_inputs are among {', '.join(FEATURE_GROUPS)}; got {list(self.judge_inputs)}")
         if self.model.keep and self.w_keep <= 0:

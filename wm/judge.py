@@ -14,10 +14,13 @@ labelled with the simulator's outcome: open loop under their logged actions, and
 of learned policies in the data, closed loop with that policy acting on the imagined frames
 (exactly what the evaluator imagines). So it learns what success looks like in imagination rather
 than in the simulator's frames. The parameters best on the validation episodes' imaginations are
-kept.
+kept. With several members (TrainConfig.judge_members) as many judges are fit from as many seeds and
+read as the mean of their probabilities: fit to a few hundred episodes a judge is kept within its
+first validations, and one judge's ranking then follows its seed.
 
 Written to `OUT/judge.json` (configuration, feature standardisation, tasks, fit metrics) and
-`OUT/judge.msgpack` (parameters) by `wm.train` after training; `load_judge(OUT)` reads them back.
+`OUT/judge.msgpack` (parameters, stacked over the members) by `wm.train` after training;
+`load_judge(OUT)` reads them back.
 """
 
 from __future__ import annotations
@@ -42,6 +45,7 @@ from sim_data.policies.registry import padded_chunks as policy_chunks
 from sim_data.policies.registry import resolve, stack_key
 from sim_data.util import even_pieces, write_json_atomic
 from wm.checkpoint import run_file
+from wm.config import JUDGE_LR
 from wm.imagine import (
     SEGMENT,
     Norm,
@@ -58,7 +62,6 @@ from wm.metrics import accuracy, auroc
 from wm.model import ModelConfig
 
 WIDTH = 64
-LR = 2e-3
 WEIGHT_DECAY = 0.05
 BATCH = 256
 
@@ -84,9 +87,10 @@ class JudgeNet(nn.Module):
 
 @dataclasses.dataclass(frozen=True)
 class EpisodeJudge:
-    """A fitted judge: parameters, the step features it reads (`columns` (K,) int of the F that
-    wm.imagine.step_features makes, `feature_dim` F), their standardisation (K,), the tasks it knows
-    (in embedding order)."""
+    """A fitted judge: the parameters of its members stacked on a leading axis (M judges fit from M
+    seeds, read as the mean of their probabilities; M = 1 for one), the step features it reads
+    (`columns` (K,) int of the F that wm.imagine.step_features makes, `feature_dim` F), their
+    standardisation (K,), the tasks it knows (in embedding order)."""
 
     params: dict
     mean: np.ndarray
@@ -95,12 +99,16 @@ class EpisodeJudge:
     columns: np.ndarray
     feature_dim: int
 
+    @property
+    def members(self) -> int:
+        return int(jax.tree_util.tree_leaves(self.params)[0].shape[0])
+
     def knows(self, task: str) -> bool:
         return task in self.tasks
 
     def probability(self, features, task: str, mask=None) -> np.ndarray:
         """features (B, T, F) of imagined episodes of `task` (mask (B, T) bool, default all steps)
-        -> (B,) predicted probability of success."""
+        -> (B,) predicted probability of success (the mean of the members')."""
         if task not in self.tasks:
             raise ValueError(f"the judge was trained on tasks {list(self.tasks)}, not {task!r}")
         x = np.asarray(features, np.float32)
@@ -114,7 +122,11 @@ class EpisodeJudge:
 
 @functools.partial(jax.jit, static_argnums=(0,))
 def _probability(n_tasks, params, x, mask, task):
-    return jax.nn.sigmoid(JudgeNet(n_tasks).apply({"params": params}, x, mask, task))
+    def member(p):
+        return jax.nn.sigmoid(JudgeNet(n_tasks).apply({"params": p}, x, mask, task))
+    if jax.tree_util.tree_leaves(params)[0].shape[0] == 1:  # one judge: its own program, not a batch of one
+        return member(jax.tree_util.tree_map(lambda p: p[0], params))
+    return jax.vmap(member)(params).mean(axis=0)
 
 
 # ---- imagined episodes -----------------------------------------------------------------------------
@@ -290,12 +302,36 @@ def _standardisation(x, mask):
 
 
 def fit(train: dict, val: dict | None, tasks: tuple, steps: int, seed: int = 0,
-        progress: bool = True, columns=None) -> tuple[EpisodeJudge, dict]:
+        progress: bool = True, columns=None, lr: float = JUDGE_LR, members: int = 1) -> tuple[EpisodeJudge, dict]:
     """Fits a judge to imagined episodes (imagine_episodes' dicts), reading the step features'
-    `columns` (default all; wm.imagine.feature_columns); returns it and its fit metrics (accuracy
-    and AUROC on train and val; the kept step, the best on val's loss, or the last)."""
+    `columns` (default all; wm.imagine.feature_columns), with AdamW at learning rate lr: `members`
+    judges from seeds seed, seed + 1, ... (the initialisation and the batches), each kept at its best
+    step on val's loss (or the last), read as the mean of their probabilities. A judge of a few hundred
+    episodes overfits them within its first validations, so one judge's ranking follows its seed; the
+    mean of several does less. Returns the judge and its fit metrics (the ensemble's accuracy and
+    AUROC on train and val; each member's kept step)."""
     if len(set(train["label"].tolist())) < 2:
         raise ValueError("the judge needs successes and failures among its training episodes")
+    if members < 1:
+        raise ValueError(f"a judge has at least one member, got members={members}")
+    fits = [_fit_one(train, val, tasks, steps, seed + k, progress, columns, lr) for k in range(members)]
+    first = fits[0][0]
+    judge = dataclasses.replace(first, params=jax.tree_util.tree_map(lambda *p: np.concatenate(p),
+                                                                     *[j.params for j, _ in fits]))
+    metrics = {"episodes_train": len(train["label"]), "steps": steps, "members": members, "lr": lr,
+               "kept_step": [k for _, k in fits] if members > 1 else fits[0][1]}
+    for tag, d in (("train", train), ("val", val)):
+        if d is None or not len(d["label"]):
+            continue
+        p = judge_episodes(judge, d)
+        metrics.update({f"{tag}_episodes": len(p), f"{tag}_accuracy": accuracy(p, d["label"]),
+                        f"{tag}_auroc": auroc(p, d["label"])})
+    return judge, metrics
+
+
+def _fit_one(train: dict, val: dict | None, tasks: tuple, steps: int, seed: int, progress: bool, columns,
+             lr: float) -> tuple[EpisodeJudge, int]:
+    """One member of fit's judge: (the judge of that member alone, its kept step)."""
     dim = train["features"].shape[-1]
     columns = np.arange(dim) if columns is None else np.asarray(columns)
     mean, std = _standardisation(train["features"][..., columns], train["mask"])
@@ -308,36 +344,28 @@ def fit(train: dict, val: dict | None, tasks: tuple, steps: int, seed: int = 0,
     tr = arrays(train)
     va = arrays(val) if val is not None and len(val["label"]) else None
     params = net.init(jax.random.PRNGKey(seed), *tr[:3])["params"]
-    state, rng = _optimizer().init(params), np.random.default_rng(seed)
+    state, rng = _optimizer(lr).init(params), np.random.default_rng(seed)
     best, best_loss, best_step = params, np.inf, steps
     n = len(tr[3])
     for k in tqdm(range(1, steps + 1), desc="judge: fit", unit="step", disable=not progress):
         idx = rng.choice(n, BATCH, replace=True) if n > BATCH else np.arange(n)
-        params, state, _ = _update(len(tasks), params, state, *(a[idx] for a in tr))
+        params, state, _ = _update(len(tasks), lr, params, state, *(a[idx] for a in tr))
         if va is not None and (k % 25 == 0 or k == steps):
             v = float(_loss(len(tasks), params, *va))
             if v < best_loss:
                 best, best_loss, best_step = params, v, k
     if va is None:
         best = params
-    judge = EpisodeJudge(params=jax.device_get(best), mean=mean, std=std, tasks=tuple(tasks), columns=columns,
-                         feature_dim=dim)
-    metrics = {"episodes_train": n, "steps": steps, "kept_step": best_step}
-    for tag, d in (("train", train), ("val", val)):
-        if d is None or not len(d["label"]):
-            continue
-        p = judge_episodes(judge, d)
-        metrics.update({f"{tag}_episodes": len(p), f"{tag}_accuracy": accuracy(p, d["label"]),
-                        f"{tag}_auroc": auroc(p, d["label"])})
-    return judge, metrics
+    return EpisodeJudge(params=jax.tree_util.tree_map(lambda p: np.asarray(p)[None], jax.device_get(best)),
+                        mean=mean, std=std, tasks=tuple(tasks), columns=columns, feature_dim=dim), best_step
 
 
-def _optimizer():
-    return optax.adamw(LR, weight_decay=WEIGHT_DECAY)
+def _optimizer(lr: float = JUDGE_LR):
+    return optax.adamw(lr, weight_decay=WEIGHT_DECAY)
 
 
-# module-level programs (the task count static): every fit of the same shapes, in this process or
-# another through the persistent compilation cache, runs the same two
+# module-level programs (the task count and learning rate static): every fit of the same shapes, in this
+# process or another through the persistent compilation cache, runs the same two
 def _judge_loss(n_tasks: int, p, x, m, t, y):
     return optax.sigmoid_binary_cross_entropy(JudgeNet(n_tasks).apply({"params": p}, x, m, t), y).mean()
 
@@ -345,10 +373,10 @@ def _judge_loss(n_tasks: int, p, x, m, t, y):
 _loss = jax.jit(_judge_loss, static_argnums=(0,))
 
 
-@functools.partial(jax.jit, static_argnums=(0,))
-def _update(n_tasks: int, p, o, x, m, t, y):
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _update(n_tasks: int, lr: float, p, o, x, m, t, y):
     loss, g = jax.value_and_grad(_judge_loss, argnums=1)(n_tasks, p, x, m, t, y)
-    u, o = _optimizer().update(g, o, p)
+    u, o = _optimizer(lr).update(g, o, p)
     return optax.apply_updates(p, u), o, loss
 
 
@@ -386,7 +414,7 @@ def fit_judge(cfg, params, norm: Norm, cache, train_ids: list[int], out: Path, p
     val = imagine_episodes(cfg.model, params, norm, cache, val_ids, cfg.camera, progress, pols, cfg.seed + 1) \
         if val_ids else None
     judge, metrics = fit(train, val, tasks, cfg.judge_steps, cfg.seed, progress,
-                         feature_columns(cfg.model, cfg.judge_inputs))
+                         feature_columns(cfg.model, cfg.judge_inputs), cfg.judge_lr, cfg.judge_members)
     save_judge(judge, metrics, Path(out))
     return metrics
 
@@ -417,7 +445,8 @@ def warm_judge(cfg, params, norm: Norm, cache, train_ids: list[int]) -> EpisodeJ
     dim = feature_dim(cfg.model)
     train = _placeholder_episodes(cache, train_ids, dim)
     val = _placeholder_episodes(cache, val_ids, dim) if val_ids else None
-    return fit(train, val, tasks, 2, cfg.seed, False, feature_columns(cfg.model, cfg.judge_inputs))[0]
+    return fit(train, val, tasks, 2, cfg.seed, False, feature_columns(cfg.model, cfg.judge_inputs), cfg.judge_lr,
+               cfg.judge_members)[0]
 
 
 def _placeholder_episodes(cache, ids: list[int], dim: int) -> dict:
@@ -442,7 +471,7 @@ def save_judge(judge: EpisodeJudge, metrics: dict, out: Path) -> None:
     tmp.write_bytes(serialization.to_bytes(judge.params))
     os.replace(tmp, blob)
     write_json_atomic(out / "judge.json", {"tasks": list(judge.tasks), "mean": judge.mean.tolist(),
-                                           "std": judge.std.tolist(), "width": WIDTH,
+                                           "std": judge.std.tolist(), "width": WIDTH, "members": judge.members,
                                            "columns": judge.columns.tolist(), "feature_dim": judge.feature_dim,
                                            "metrics": metrics})
 
@@ -457,8 +486,12 @@ def load_judge(out: Path) -> EpisodeJudge | None:
     net = JudgeNet(len(meta["tasks"]), meta["width"])
     shapes = jax.eval_shape(lambda: net.init(jax.random.PRNGKey(0), jnp.zeros((1, 2, len(mean))),
                                              jnp.ones((1, 2), bool), jnp.zeros((1,), jnp.int32))["params"])
-    params = serialization.from_bytes(jax.tree_util.tree_map(lambda s: np.zeros(s.shape, s.dtype), shapes),
+    members = meta.get("members")  # a judge saved without the key holds one member's parameters, unstacked
+    lead = () if members is None else (int(members),)
+    params = serialization.from_bytes(jax.tree_util.tree_map(lambda s: np.zeros(lead + s.shape, s.dtype), shapes),
                                       (out / "judge.msgpack").read_bytes())
+    if members is None:
+        params = jax.tree_util.tree_map(lambda p: p[None], params)
     columns = np.asarray(meta.get("columns", range(len(mean))), np.int64)  # a judge saved before input selection reads all
     return EpisodeJudge(params=params, mean=mean, std=np.asarray(meta["std"], np.float32), tasks=tuple(meta["tasks"]),
                         columns=columns, feature_dim=int(meta.get("feature_dim", len(mean))))
