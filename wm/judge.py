@@ -314,10 +314,19 @@ def fit(train: dict, val: dict | None, tasks: tuple, steps: int, seed: int = 0,
         raise ValueError("the judge needs successes and failures among its training episodes")
     if members < 1:
         raise ValueError(f"a judge has at least one member, got members={members}")
-    fits = [_fit_one(train, val, tasks, steps, seed + k, progress, columns, lr) for k in range(members)]
-    first = fits[0][0]
-    judge = dataclasses.replace(first, params=jax.tree_util.tree_map(lambda *p: np.concatenate(p),
-                                                                     *[j.params for j, _ in fits]))
+    dim = train["features"].shape[-1]
+    columns = np.arange(dim) if columns is None else np.asarray(columns)
+    mean, std = _standardisation(train["features"][..., columns], train["mask"])
+
+    def arrays(d):
+        return ((d["features"][..., columns] - mean) / std, d["mask"],
+                np.array([tasks.index(t) for t in d["task"]], np.int32), d["label"].astype(np.float32))
+
+    tr = arrays(train)
+    va = arrays(val) if val is not None and len(val["label"]) else None
+    fits = [_fit_one(tr, va, len(tasks), steps, seed + k, progress, lr) for k in range(members)]
+    judge = EpisodeJudge(params=jax.tree_util.tree_map(lambda *p: np.stack(p), *[p for p, _ in fits]), mean=mean,
+                         std=std, tasks=tuple(tasks), columns=columns, feature_dim=dim)
     metrics = {"episodes_train": len(train["label"]), "steps": steps, "members": members, "lr": lr,
                "kept_step": [k for _, k in fits] if members > 1 else fits[0][1]}
     for tag, d in (("train", train), ("val", val)):
@@ -329,35 +338,22 @@ def fit(train: dict, val: dict | None, tasks: tuple, steps: int, seed: int = 0,
     return judge, metrics
 
 
-def _fit_one(train: dict, val: dict | None, tasks: tuple, steps: int, seed: int, progress: bool, columns,
-             lr: float) -> tuple[EpisodeJudge, int]:
-    """One member of fit's judge: (the judge of that member alone, its kept step)."""
-    dim = train["features"].shape[-1]
-    columns = np.arange(dim) if columns is None else np.asarray(columns)
-    mean, std = _standardisation(train["features"][..., columns], train["mask"])
-    net = JudgeNet(len(tasks))
-
-    def arrays(d):
-        return ((d["features"][..., columns] - mean) / std, d["mask"],
-                np.array([tasks.index(t) for t in d["task"]], np.int32), d["label"].astype(np.float32))
-
-    tr = arrays(train)
-    va = arrays(val) if val is not None and len(val["label"]) else None
-    params = net.init(jax.random.PRNGKey(seed), *tr[:3])["params"]
+def _fit_one(tr: tuple, va: tuple | None, n_tasks: int, steps: int, seed: int, progress: bool,
+             lr: float) -> tuple[dict, int]:
+    """One member of fit's judge on its standardised (features, mask, task ids, labels) of the training
+    and validation episodes: (its kept parameters, its kept step)."""
+    params = JudgeNet(n_tasks).init(jax.random.PRNGKey(seed), *tr[:3])["params"]
     state, rng = _optimizer(lr).init(params), np.random.default_rng(seed)
     best, best_loss, best_step = params, np.inf, steps
     n = len(tr[3])
     for k in tqdm(range(1, steps + 1), desc="judge: fit", unit="step", disable=not progress):
         idx = rng.choice(n, BATCH, replace=True) if n > BATCH else np.arange(n)
-        params, state, _ = _update(len(tasks), lr, params, state, *(a[idx] for a in tr))
+        params, state, _ = _update(n_tasks, lr, params, state, *(a[idx] for a in tr))
         if va is not None and (k % 25 == 0 or k == steps):
-            v = float(_loss(len(tasks), params, *va))
+            v = float(_loss(n_tasks, params, *va))
             if v < best_loss:
                 best, best_loss, best_step = params, v, k
-    if va is None:
-        best = params
-    return EpisodeJudge(params=jax.tree_util.tree_map(lambda p: np.asarray(p)[None], jax.device_get(best)),
-                        mean=mean, std=std, tasks=tuple(tasks), columns=columns, feature_dim=dim), best_step
+    return jax.tree_util.tree_map(np.asarray, jax.device_get(best if va is not None else params)), best_step
 
 
 def _optimizer(lr: float = JUDGE_LR):
