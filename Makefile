@@ -92,4 +92,4 @@ bench: setup
 	$(PY) -m wm.bench --out runs/bench/wm_$$(hostname).json
 
 clean:
-	rm -rf runs/data/demo runs/policies/demo runs/wm/demo runs/wm/demo_seed* runs/eval/demo .pytest_cache
+	rm -rf runs/data/demo runs/policies/demo runs/wm/demo runs/wm/demo_seed* runs/bundles/demo runs/bundles/demo_seed* runs/eval/demo .pytest_cache

@@ -12,7 +12,7 @@ modules' own entry points with the preset's configurations:
 | data     | sim_data.dataset.generate      | runs/data/<data>  |
 | policies | sim_data.policies.zoo           | runs/policies/<p> |
 | rollouts | sim_data.dataset.generate      | runs/data/<data>_<p>_rollouts (the data and the lineage's rollouts) |
-| train    | wm.train               | runs/wm/<p> (and runs/wm/<p>_seed<k>: an ensemble's members) |
+| train    | wm.train               | runs/wm/<p> (and runs/wm/<p>_seed<k>: an ensemble's members); runs/bundles/<p> (and _seed<k>): their bundles |
 | eval     | experiments.evaluate   | runs/eval/<p>     |
 | report   | experiments.report     | runs/eval/<p>/report.html |
 
@@ -50,7 +50,16 @@ runs/logs/<p>/pipeline.log (a background job is bound by no command's limit: its
 stages run without their safety stop, max_minutes=0, unless `--set` or `--minutes` gives one);
 `--follow S` waits up to S seconds for it, then prints the stages' timing rows so far and the log's
 last lines, and exits 0 once the command has ended well (a whole chain: with its report's path), 1 if
-it failed, 3 while it still runs.
+it failed, 3 while it still runs. With `--until-bundle` it also returns, with exit status 4, once the
+train stage has written the world models' bundles (below) and no earlier `--until-bundle` returned for
+them: copy runs/bundles/<p> off the machine then, and a lease that ends before the chain does still
+leaves a trained model (about 65 MB for `full`, five shards of <= 15 MiB with the judge and bundle.json)
+that a later lease evaluates with `--stage eval --set eval:wm=runs/bundles/<p>` after its own data and
+policies stages.
+
+The train stage ends by writing each trained member's portable bundle (wm.checkpoint.write_bundle:
+bfloat16 parameters in hashed shards, configuration, normalisation, judge) into runs/bundles/, unless
+one of the same training is there.
 
 With `--warm-rollouts` (one GPU), the policies stage starts `sim_data.dataset.generate --warm` beside
 the zoo's training: once the zoo has written its plan (the registry it will write), each compiled
@@ -77,6 +86,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import hashlib
 import json
 import os
 import shlex
@@ -102,6 +112,7 @@ from sim_data.parts import can_pin_cores, local_cores, local_gpus, run_parallel
 from sim_data.policies import zoo
 from sim_data.util import device_name, run_cli, with_xla_flags
 from wm import train
+from wm.checkpoint import BUNDLE, bundle_meta, is_bundle, run_file, write_bundle
 
 STAGES = ("data", "policies", "rollouts", "train", "eval", "report")
 TIMING = "timing.json"  # in the evaluation's directory: one row per stage command
@@ -130,7 +141,8 @@ class Pipeline:
         r = Path(self.root)
         data = r / "data" / self.data
         wm = member_runs(r / "wm", name, self.members)
-        return {"data": data, "policies": r / "policies" / name, "wm": wm[0], "members": wm, "eval": r / "eval" / name,
+        return {"data": data, "policies": r / "policies" / name, "wm": wm[0], "members": wm,
+                "bundles": [r / "bundles" / m.name for m in wm], "eval": r / "eval" / name,
                 "wm_data": data.with_name(f"{self.data}_{name}_rollouts") if self.rollouts else data}
 
 
@@ -241,6 +253,8 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
         warming = start_warm_eval(p, name, warm_eval) if warm_alone(warm_eval, gpus, "--warm-eval") else None
         with warm_beside(warming, "the evaluation's programs", "the eval stage"):
             done, parts = train_members(name, extra, gpus, members)
+        if done:
+            bundle_members(d)
     elif stage == "eval":
         # wm=... names the model to evaluate (a bundle carried from another lease): the members need not be here
         given = any(a.startswith("wm=") for a in extra)
@@ -343,6 +357,21 @@ def train_members(name: str, extra=(), gpus=(), members: int | None = None) -> t
         print(f"{len(left)} of {p.members} world models left to train ({', '.join(left)}): run the train stage again",
               file=sys.stderr)
     return not left, parts
+
+
+def bundle_members(d: dict) -> list[Path]:
+    """Writes the bundle of each trained member of dirs `d` (Pipeline.dirs) where its bundle is
+    missing or holds another training (its eval.json differs: the run was trained again); returns
+    the bundles written."""
+    written = []
+    for run, out in zip(d["members"], d["bundles"], strict=True):
+        if is_bundle(out) and bundle_meta(out)["files"].get("eval.json") == run_file(run, "eval.json"):
+            continue
+        meta = write_bundle(run, out)
+        size = sum(f.stat().st_size for f in out.iterdir()) / 2**20
+        print(f"{run}: bundled into {out} ({len(meta['sha256']) + 1} files, {size:.0f} MB)", file=sys.stderr)
+        written.append(out)
+    return written
 
 
 def warm_alone(overrides: list | None, gpus, flag: str) -> bool:
@@ -529,6 +558,8 @@ def stage_overrides(sets: list[str]) -> dict:
 DETACHED_LOG, DETACHED_PID, DETACHED_RC = "pipeline.log", "pipeline.pid", "pipeline.rc"
 FOLLOW_POLL_S = 5.0
 STILL_RUNNING = 3  # --follow's exit status while the detached chain runs on
+BUNDLED = 4  # --follow --until-bundle's exit status once the world models' bundles are new
+BUNDLE_SEEN = "bundle.followed"  # in the logs: the bundles' hashes that --until-bundle last returned for
 
 
 def detach(name: str, argv: list[str]) -> Path:
@@ -578,17 +609,35 @@ def _detached_pid(logs: Path) -> int | None:
     return pid
 
 
-def follow(name: str, seconds: float, members: int | None = None, out=sys.stdout) -> int:
+def new_bundles(p: Pipeline, name: str) -> str | None:
+    """The hash of the preset's world models' bundles where every member's is written and no
+    `--follow --until-bundle` has returned for them yet, else None."""
+    bundles = p.dirs(name)["bundles"]
+    if not all(is_bundle(b) for b in bundles):
+        return None
+    digest = hashlib.sha256(b"".join((b / BUNDLE).read_bytes() for b in bundles)).hexdigest()
+    seen = _logs(p, name) / BUNDLE_SEEN
+    return None if seen.exists() and seen.read_text().strip() == digest else digest
+
+
+def follow(name: str, seconds: float, members: int | None = None, out=sys.stdout, until_bundle: bool = False) -> int:
     """Waits up to `seconds` for the preset's detached command to end; prints the timing rows written
     so far and the log's last lines. Returns 0 once it ended well (exit status 0), 1 if it failed or
-    was killed, STILL_RUNNING while it runs."""
+    was killed, STILL_RUNNING while it runs; with until_bundle, BUNDLED as soon as the world models'
+    bundles are written and no earlier call returned for them (new_bundles), whether the chain runs on
+    or has ended, so that they are copied off the machine before a lease ends."""
     p = pipeline(name, members)
     logs = _logs(p, name)
     if not (logs / DETACHED_PID).exists():
         raise ValueError(f"no detached {name} chain in {logs}: start one with --detach")
     t0 = time.monotonic()
+    ready = None
     while _detached_pid(logs) is not None and time.monotonic() - t0 < seconds:
+        if until_bundle and (ready := new_bundles(p, name)) is not None:
+            break
         time.sleep(FOLLOW_POLL_S)
+    if until_bundle and ready is None:
+        ready = new_bundles(p, name)
     timing = p.dirs(name)["eval"] / TIMING
     if timing.exists():
         print(report.md_table(report.timing_table(json.loads(timing.read_text()))), file=out)
@@ -596,6 +645,11 @@ def follow(name: str, seconds: float, members: int | None = None, out=sys.stdout
     text = log.read_text(errors="replace") if log.exists() else ""
     lines = [line.split("\r")[-1] for line in text.split("\n")]  # a progress bar's last state
     print("\n".join(lines[-15:]), file=out)
+    if ready is not None:
+        (logs / BUNDLE_SEEN).write_text(ready + "\n")
+        print(f"== {name}: the world models' bundles are written: copy {', '.join(map(str, p.dirs(name)['bundles']))} "
+              "off the machine (a later lease evaluates them with --stage eval --set eval:wm=...)", file=out)
+        return BUNDLED
     if _detached_pid(logs) is not None:
         print(f"== {name}: still running after {time.monotonic() - t0:.0f} s of following", file=out)
         return STILL_RUNNING
@@ -631,6 +685,9 @@ def main(argv=None) -> int:
     ap.add_argument("--follow", type=float, default=None, metavar="SECONDS",
                     help="wait up to SECONDS for the detached command; exit 0 once it ended well, 1 if it "
                          "failed, 3 while it runs")
+    ap.add_argument("--until-bundle", action="store_true",
+                    help="with --follow, also return (exit 4) once the world models' bundles are written, the "
+                         "first time a follow sees them")
     ap.add_argument("--warm-rollouts", action="store_true",
                     help="with the policies stage (one GPU or none), compile the rollouts' programs beside it (with "
                          "the data and rollouts stages' --set overrides), for the rollouts stage to load")
@@ -670,10 +727,12 @@ def main(argv=None) -> int:
         # a stage waits for its warm-up (up to WARM_WAIT_S), which a command's slot does not bound
         ap.error("--warm-rollouts, --warm-train and --warm-eval run beside a whole stage: use them in a background "
                  "job (--detach), not in a time slot (--minutes)")
+    if a.until_bundle and a.follow is None:
+        ap.error("--until-bundle is an option of --follow")
     if a.follow is not None:
         if a.detach:
             ap.error("--follow waits on a chain started by --detach: give them in two commands")
-        return follow(a.pipeline, a.follow, a.members)
+        return follow(a.pipeline, a.follow, a.members, until_bundle=a.until_bundle)
     if a.detach:
         print(f"started in the background; log: {detach(a.pipeline, [x for x in raw if x != '--detach'])}\n"
               f"follow it with: python -m experiments.pipeline {a.pipeline} --follow 540")

@@ -40,7 +40,16 @@ def tiny(tmp_path, monkeypatch):
     import wm.train
 
     monkeypatch.setattr(wm.train, "main", fake_train)
+    monkeypatch.setattr(P, "write_bundle", fake_bundle)
     return calls, P.PIPELINES["tiny"].dirs("tiny")
+
+
+def fake_bundle(run, out):
+    """Stands in for wm.checkpoint.write_bundle on the fake trainings: a bundle.json naming its run's eval.json."""
+    out.mkdir(parents=True, exist_ok=True)
+    meta = {"files": {"eval.json": json.loads((run / "eval.json").read_text())}, "sha256": {}}
+    (out / "bundle.json").write_text(json.dumps(meta))
+    return meta
 
 
 def test_without_gpus_the_train_stage_trains_one_member_a_run_and_eval_waits_for_all(tiny, monkeypatch):
@@ -53,6 +62,12 @@ def test_without_gpus_the_train_stage_trains_one_member_a_run_and_eval_waits_for
     assert "seed=1" in calls[1] and "seed=2" in calls[2] and not any(a.startswith("seed=") for a in calls[0])
     assert all("max_minutes=1" in c for c in calls)
     assert P.run_stage("tiny", "train") is True and len(calls) == 3  # all trained: nothing more
+    assert [b.name for b in d["bundles"]] == ["tiny", "tiny_seed1", "tiny_seed2"]
+    assert all((b / "bundle.json").exists() for b in d["bundles"])  # written once every member was trained
+    stamps = [(b / "bundle.json").stat().st_mtime_ns for b in d["bundles"]]
+    (d["members"][1] / "eval.json").write_text(json.dumps({"trained": "again"}))
+    assert P.bundle_members(d) == [d["bundles"][1]]  # the others' bundles hold their trainings already
+    assert [(b / "bundle.json").stat().st_mtime_ns == t for b, t in zip(d["bundles"], stamps)] == [True, False, True]
     got = []
     import experiments.evaluate
 
@@ -377,6 +392,31 @@ def test_follow_says_a_detached_chain_still_runs_and_a_second_detach_is_refused(
     assert P.follow("full", 5, out=out) == 1 and "exit status None" in out.getvalue()  # killed: no exit status
 
 
+def test_follow_until_bundle_returns_once_for_each_new_bundle_while_the_chain_runs_on(tmp_path, monkeypatch):
+    """A chain that trains, bundles, then evaluates: the follow that sees the bundle returns BUNDLED at
+    once, the next one waits on, a new bundle (a model trained again) returns again."""
+    monkeypatch.chdir(tmp_path)
+    bundle = Path("runs/bundles/full")
+    body = f'sleep 0.5; mkdir -p {bundle}; echo one > {bundle}/bundle.json; sleep 60'
+    monkeypatch.setattr(P.sys, "executable", _fake_python(tmp_path, body))
+    monkeypatch.setattr(P, "FOLLOW_POLL_S", 0.05)
+    P.detach("full", ["full"])
+    pid = int(Path("runs/logs/full/pipeline.pid").read_text())
+    try:
+        out = io.StringIO()
+        t0 = time.monotonic()
+        assert P.follow("full", 30, out=out, until_bundle=True) == P.BUNDLED and time.monotonic() - t0 < 20
+        assert "bundles are written: copy runs/bundles/full off the machine" in out.getvalue()
+        assert P.follow("full", 0.3, out=io.StringIO(), until_bundle=True) == P.STILL_RUNNING  # seen already
+        (bundle / "bundle.json").write_text("two")
+        assert P.follow("full", 30, out=io.StringIO(), until_bundle=True) == P.BUNDLED
+        assert P.follow("full", 0.3, out=io.StringIO()) == P.STILL_RUNNING
+    finally:
+        os.killpg(pid, signal.SIGKILL)
+    with pytest.raises(SystemExit):
+        P.main(["full", "--until-bundle"])  # an option of --follow only
+
+
 def test_a_detached_chain_runs_the_pipeline_itself(tmp_path, monkeypatch):
     """The real command in the background: an eval stage with no trained model stops with its message."""
     monkeypatch.chdir(tmp_path)
@@ -504,9 +544,12 @@ def test_the_train_stage_compiles_the_evaluations_programs_beside_it_with_the_ev
 
     monkeypatch.setattr(P.subprocess, "Popen", FakeChild)
     monkeypatch.setattr(P, "train_members", lambda *a: events.append(("train",)) or (True, []))
+    bundled = []
+    monkeypatch.setattr(P, "bundle_members", bundled.append)
     monkeypatch.setattr(P, "device_name", lambda: "cpu")
     assert P.run_stage("ev", "train", warm_eval=["episodes=50"])
     assert [e[0] for e in events] == ["start", "train", "wait"]
+    assert [d["bundles"] for d in bundled] == [[tmp_path / "bundles" / "ev"]]  # after the warm-up's end
     _, argv, env = events[0]
     assert argv[1:] == ["-m", "experiments.evaluate", "--config", "e", "--warm", "--warm-after-training",
                         f"policies={tmp_path / 'policies' / 'ev'}", f"wm={tmp_path / 'wm' / 'ev'}", "readout=judge",
@@ -524,7 +567,7 @@ def test_the_train_stage_compiles_the_evaluations_programs_beside_it_with_the_ev
     monkeypatch.setattr(P, "train_members", failing)
     with pytest.raises(RuntimeError, match="training failed"):
         P.run_stage("ev", "train", warm_eval=[])
-    assert [e[0] for e in events] == ["start", "kill", "wait"]
+    assert [e[0] for e in events] == ["start", "kill", "wait"] and len(bundled) == 3  # none of a failed training
     events.clear()
     (tmp_path / "wm" / "ev").mkdir(parents=True)
     (tmp_path / "wm" / "ev" / "eval.json").write_text("{}")
