@@ -1015,6 +1015,34 @@ def test_an_ensemble_judge_reads_the_mean_of_its_members_and_round_trips(tmp_pat
         J.fit(train, val, ("a", "b"), steps=5, progress=False, members=0)
 
 
+def test_the_judges_batches_are_the_rows_its_draws_name_gathered_where_the_episodes_are():
+    """More training episodes than a batch: each step's batch is gathered on the device; the judge is the
+    one a loop of host-gathered batches (the rows rng.choice names, seeded by the member) gives."""
+    rng = np.random.default_rng(2)
+    train, val = _synthetic_episodes(rng, J.BATCH + 44), _synthetic_episodes(rng, 16)
+    judge, metrics = J.fit(train, val, ("a", "b"), steps=30, seed=3, progress=False, lr=1e-3)
+    mean, std = J._standardisation(train["features"], train["mask"])
+
+    def arrays(d):
+        return ((d["features"] - mean) / std, d["mask"], np.array(["ab".index(t) for t in d["task"]], np.int32),
+                d["label"].astype(np.float32))
+
+    tr, va = arrays(train), arrays(val)
+    params = J.JudgeNet(2).init(jax.random.PRNGKey(3), *tr[:3])["params"]
+    state, draws = J._optimizer(1e-3).init(params), np.random.default_rng(3)
+    best, best_loss = params, np.inf
+    for k in range(1, 31):
+        idx = draws.choice(len(tr[3]), J.BATCH, replace=True)
+        params, state, _ = J._update(2, 1e-3, params, state, *(a[idx] for a in tr))
+        if k % 25 == 0 or k == 30:
+            loss = float(J._loss(2, params, *va))
+            if loss < best_loss:
+                best, best_loss, kept = params, loss, k
+    assert metrics["kept_step"] == kept
+    for got, want in zip(jax.tree_util.tree_leaves(judge.params), jax.tree_util.tree_leaves(best), strict=True):
+        np.testing.assert_allclose(got[0], want, rtol=1e-6, atol=1e-7)
+
+
 class _Episodes:
     """A training cache's episode table alone: ids 0-5999 train, 6000-6999 validation, two tasks."""
 

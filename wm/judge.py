@@ -322,8 +322,9 @@ def fit(train: dict, val: dict | None, tasks: tuple, steps: int, seed: int = 0,
         return ((d["features"][..., columns] - mean) / std, d["mask"],
                 np.array([tasks.index(t) for t in d["task"]], np.int32), d["label"].astype(np.float32))
 
-    tr = arrays(train)
-    va = arrays(val) if val is not None and len(val["label"]) else None
+    # on the device once: a step gathers its batch there (_rows), not on the host and across to the device
+    tr = jax.device_put(arrays(train))
+    va = jax.device_put(arrays(val)) if val is not None and len(val["label"]) else None
     fits = [_fit_one(tr, va, len(tasks), steps, seed + k, progress, lr) for k in range(members)]
     judge = EpisodeJudge(params=jax.tree_util.tree_map(lambda *p: np.stack(p), *[p for p, _ in fits]), mean=mean,
                          std=std, tasks=tuple(tasks), columns=columns, feature_dim=dim)
@@ -341,14 +342,14 @@ def fit(train: dict, val: dict | None, tasks: tuple, steps: int, seed: int = 0,
 def _fit_one(tr: tuple, va: tuple | None, n_tasks: int, steps: int, seed: int, progress: bool,
              lr: float) -> tuple[dict, int]:
     """One member of fit's judge on its standardised (features, mask, task ids, labels) of the training
-    and validation episodes: (its kept parameters, its kept step)."""
+    and validation episodes, device arrays: (its kept parameters, its kept step)."""
     params = JudgeNet(n_tasks).init(jax.random.PRNGKey(seed), *tr[:3])["params"]
     state, rng = _optimizer(lr).init(params), np.random.default_rng(seed)
     best, best_loss, best_step = params, np.inf, steps
     n = len(tr[3])
     for k in tqdm(range(1, steps + 1), desc="judge: fit", unit="step", disable=not progress):
-        idx = rng.choice(n, BATCH, replace=True) if n > BATCH else np.arange(n)
-        params, state, _ = _update(n_tasks, lr, params, state, *(a[idx] for a in tr))
+        batch = _rows(tr, rng.choice(n, BATCH, replace=True)) if n > BATCH else tr
+        params, state, _ = _update(n_tasks, lr, params, state, *batch)
         if va is not None and (k % 25 == 0 or k == steps):
             v = float(_loss(n_tasks, params, *va))
             if v < best_loss:
@@ -367,6 +368,12 @@ def _judge_loss(n_tasks: int, p, x, m, t, y):
 
 
 _loss = jax.jit(_judge_loss, static_argnums=(0,))
+
+
+@jax.jit
+def _rows(arrays: tuple, idx):
+    """The rows idx (B,) of each of arrays (leading axis N): a batch gathered where the arrays are."""
+    return tuple(jnp.take(a, idx, axis=0) for a in arrays)
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1))
