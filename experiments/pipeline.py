@@ -50,16 +50,18 @@ runs/logs/<p>/pipeline.log (a background job is bound by no command's limit: its
 stages run without their safety stop, max_minutes=0, unless `--set` or `--minutes` gives one);
 `--follow S` waits up to S seconds for it, then prints the stages' timing rows so far and the log's
 last lines, and exits 0 once the command has ended well (a whole chain: with its report's path), 1 if
-it failed, 3 while it still runs. With `--until-bundle` it also returns, with exit status 4, once the
-train stage has written the world models' bundles (below) and no earlier `--until-bundle` returned for
-them: copy runs/bundles/<p> off the machine then, and a lease that ends before the chain does still
-leaves a trained model (about 65 MB for `full`, five shards of <= 15 MiB with the judge and bundle.json)
-that a later lease evaluates with `--stage eval --set eval:wm=runs/bundles/<p>` after its own data and
-policies stages.
+it failed, 3 while it still runs. With `--until-bundle` it also returns, with exit status 4, once this
+chain's train stage has written the world models' bundles (below) and no earlier `--until-bundle`
+returned for them: copy runs/bundles/<p> off the machine in the same command (a follow that returned
+4 does not return it again; deleting runs/logs/<p>/bundle.followed re-arms it), and a lease that ends
+before the chain does still leaves a trained model (about 65 MB for `full`, five shards of <= 15 MiB
+with the judge and bundle.json) that a later lease evaluates with `--stage eval --set eval:wm=...`
+(the bundles, comma-separated) after its own data and policies stages.
 
-The train stage ends by writing each trained member's portable bundle (wm.checkpoint.write_bundle:
-bfloat16 parameters in hashed shards, configuration, normalisation, judge) into runs/bundles/, unless
-one of the same training is there.
+The train stage, once every member is trained, writes each one's portable bundle
+(wm.checkpoint.write_bundle: bfloat16 parameters in hashed shards, configuration, normalisation,
+judge) into runs/bundles/, unless one of the same training is there, and then lists them in
+runs/logs/<p>/bundles.json, which `--detach` clears when it starts a chain.
 
 With `--warm-rollouts` (one GPU), the policies stage starts `sim_data.dataset.generate --warm` beside
 the zoo's training: once the zoo has written its plan (the registry it will write), each compiled
@@ -110,9 +112,9 @@ from experiments.timing import (
 from sim_data.dataset import generate
 from sim_data.parts import can_pin_cores, local_cores, local_gpus, run_parallel
 from sim_data.policies import zoo
-from sim_data.util import device_name, run_cli, with_xla_flags
+from sim_data.util import device_name, run_cli, with_xla_flags, write_json_atomic
 from wm import train
-from wm.checkpoint import BUNDLE, bundle_meta, is_bundle, run_file, write_bundle
+from wm.checkpoint import BUNDLE, bundle_holds, write_bundle
 
 STAGES = ("data", "policies", "rollouts", "train", "eval", "report")
 TIMING = "timing.json"  # in the evaluation's directory: one row per stage command
@@ -253,8 +255,8 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
         warming = start_warm_eval(p, name, warm_eval) if warm_alone(warm_eval, gpus, "--warm-eval") else None
         with warm_beside(warming, "the evaluation's programs", "the eval stage"):
             done, parts = train_members(name, extra, gpus, members)
-        if done:
-            bundle_members(d)
+            if done:  # before waiting for the warm-up: the model is what a lease that ends early keeps
+                bundle_members(d, _logs(p, name))
     elif stage == "eval":
         # wm=... names the model to evaluate (a bundle carried from another lease): the members need not be here
         given = any(a.startswith("wm=") for a in extra)
@@ -359,18 +361,26 @@ def train_members(name: str, extra=(), gpus=(), members: int | None = None) -> t
     return not left, parts
 
 
-def bundle_members(d: dict) -> list[Path]:
+def bundle_members(d: dict, logs: Path) -> list[Path]:
     """Writes the bundle of each trained member of dirs `d` (Pipeline.dirs) where its bundle is
-    missing or holds another training (its eval.json differs: the run was trained again); returns
-    the bundles written."""
-    written = []
+    missing or holds another training (wm.checkpoint.bundle_holds), then, every bundle current, lists
+    them in logs/BUNDLES ({bundle path: its bundle.json's SHA-256}) for `--follow --until-bundle`.
+    A bundle that cannot be written is warned of and left out: the evaluation does not need it.
+    Returns the bundles written."""
+    written, listed = [], {}
     for run, out in zip(d["members"], d["bundles"], strict=True):
-        if is_bundle(out) and bundle_meta(out)["files"].get("eval.json") == run_file(run, "eval.json"):
-            continue
-        meta = write_bundle(run, out)
-        size = sum(f.stat().st_size for f in out.iterdir()) / 2**20
-        print(f"{run}: bundled into {out} ({len(meta['sha256']) + 1} files, {size:.0f} MB)", file=sys.stderr)
-        written.append(out)
+        try:
+            if not bundle_holds(run, out):
+                meta = write_bundle(run, out)
+                size = sum(f.stat().st_size for f in out.iterdir()) / 2**20
+                print(f"{run}: bundled into {out} ({len(meta['sha256']) + 1} files, {size:.0f} MiB)", file=sys.stderr)
+                written.append(out)
+            listed[str(out)] = hashlib.sha256((out / BUNDLE).read_bytes()).hexdigest()
+        except (OSError, ValueError) as e:
+            print(f"warning: {run} not bundled ({e}); the chain goes on without its bundle", file=sys.stderr)
+    if len(listed) == len(d["members"]):
+        logs.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(logs / BUNDLES, listed)
     return written
 
 
@@ -559,7 +569,8 @@ DETACHED_LOG, DETACHED_PID, DETACHED_RC = "pipeline.log", "pipeline.pid", "pipel
 FOLLOW_POLL_S = 5.0
 STILL_RUNNING = 3  # --follow's exit status while the detached chain runs on
 BUNDLED = 4  # --follow --until-bundle's exit status once the world models' bundles are new
-BUNDLE_SEEN = "bundle.followed"  # in the logs: the bundles' hashes that --until-bundle last returned for
+BUNDLES = "bundles.json"  # in the logs: the chain's bundles once all are written (bundle_members)
+BUNDLE_SEEN = "bundle.followed"  # in the logs: the hash of the BUNDLES that --until-bundle last returned for
 
 
 def detach(name: str, argv: list[str]) -> Path:
@@ -573,7 +584,7 @@ def detach(name: str, argv: list[str]) -> Path:
     if pid is not None:
         raise ValueError(f"a detached {name} chain still runs (pid {pid}): follow it with "
                          f"`python -m experiments.pipeline {name} --follow 540`, or stop it with kill -- -{pid}")
-    for f in (DETACHED_LOG, DETACHED_RC):
+    for f in (DETACHED_LOG, DETACHED_RC, BUNDLES, BUNDLE_SEEN):
         (logs / f).unlink(missing_ok=True)
     unbounded = ["--set", "train:max_minutes=0", "--set", "eval:max_minutes=0"]  # before the user's: theirs win
     cmd = " ".join(shlex.quote(a) for a in [sys.executable, "-m", "experiments.pipeline", *unbounded, *argv])
@@ -609,23 +620,25 @@ def _detached_pid(logs: Path) -> int | None:
     return pid
 
 
-def new_bundles(p: Pipeline, name: str) -> str | None:
-    """The hash of the preset's world models' bundles where every member's is written and no
-    `--follow --until-bundle` has returned for them yet, else None."""
-    bundles = p.dirs(name)["bundles"]
-    if not all(is_bundle(b) for b in bundles):
+def new_bundles(logs: Path) -> tuple[str, list[str]] | None:
+    """(the hash of logs/BUNDLES, the bundles it lists) where the chain's train stage has listed its
+    bundles (bundle_members) and no `--follow --until-bundle` has returned for that list yet, else None."""
+    path = logs / BUNDLES
+    if not path.exists():
         return None
-    digest = hashlib.sha256(b"".join((b / BUNDLE).read_bytes() for b in bundles)).hexdigest()
-    seen = _logs(p, name) / BUNDLE_SEEN
-    return None if seen.exists() and seen.read_text().strip() == digest else digest
+    text = path.read_bytes()
+    digest = hashlib.sha256(text).hexdigest()
+    seen = logs / BUNDLE_SEEN
+    return None if seen.exists() and seen.read_text().strip() == digest else (digest, list(json.loads(text)))
 
 
 def follow(name: str, seconds: float, members: int | None = None, out=sys.stdout, until_bundle: bool = False) -> int:
     """Waits up to `seconds` for the preset's detached command to end; prints the timing rows written
     so far and the log's last lines. Returns 0 once it ended well (exit status 0), 1 if it failed or
     was killed, STILL_RUNNING while it runs; with until_bundle, BUNDLED as soon as the world models'
-    bundles are written and no earlier call returned for them (new_bundles), whether the chain runs on
-    or has ended, so that they are copied off the machine before a lease ends."""
+    bundles are listed and no earlier call returned for them (new_bundles), whether the chain runs on
+    or has ended, so that they are copied off the machine before a lease ends (by the same command:
+    the next call does not return for them again)."""
     p = pipeline(name, members)
     logs = _logs(p, name)
     if not (logs / DETACHED_PID).exists():
@@ -633,11 +646,11 @@ def follow(name: str, seconds: float, members: int | None = None, out=sys.stdout
     t0 = time.monotonic()
     ready = None
     while _detached_pid(logs) is not None and time.monotonic() - t0 < seconds:
-        if until_bundle and (ready := new_bundles(p, name)) is not None:
+        if until_bundle and (ready := new_bundles(logs)) is not None:
             break
         time.sleep(FOLLOW_POLL_S)
     if until_bundle and ready is None:
-        ready = new_bundles(p, name)
+        ready = new_bundles(logs)
     timing = p.dirs(name)["eval"] / TIMING
     if timing.exists():
         print(report.md_table(report.timing_table(json.loads(timing.read_text()))), file=out)
@@ -646,9 +659,10 @@ def follow(name: str, seconds: float, members: int | None = None, out=sys.stdout
     lines = [line.split("\r")[-1] for line in text.split("\n")]  # a progress bar's last state
     print("\n".join(lines[-15:]), file=out)
     if ready is not None:
-        (logs / BUNDLE_SEEN).write_text(ready + "\n")
-        print(f"== {name}: the world models' bundles are written: copy {', '.join(map(str, p.dirs(name)['bundles']))} "
-              "off the machine (a later lease evaluates them with --stage eval --set eval:wm=...)", file=out)
+        digest, bundles = ready
+        (logs / BUNDLE_SEEN).write_text(digest + "\n")
+        print(f"== {name}: the world models' bundles are written: copy {' '.join(bundles)} off the machine now "
+              f"(a later lease evaluates them with --stage eval --set eval:wm={','.join(bundles)})", file=out)
         return BUNDLED
     if _detached_pid(logs) is not None:
         print(f"== {name}: still running after {time.monotonic() - t0:.0f} s of following", file=out)
@@ -735,7 +749,7 @@ def main(argv=None) -> int:
         return follow(a.pipeline, a.follow, a.members, until_bundle=a.until_bundle)
     if a.detach:
         print(f"started in the background; log: {detach(a.pipeline, [x for x in raw if x != '--detach'])}\n"
-              f"follow it with: python -m experiments.pipeline {a.pipeline} --follow 540")
+              f"follow it with: python -m experiments.pipeline {a.pipeline} --follow 520 --until-bundle")
         return 0
     use_compilation_cache(PIPELINES[a.pipeline].root)
     t0 = time.perf_counter()

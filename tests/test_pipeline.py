@@ -13,6 +13,7 @@ import jax
 import pytest
 
 from experiments import pipeline as P
+from wm.checkpoint import bundle_meta
 
 
 @pytest.fixture(autouse=True)
@@ -58,16 +59,19 @@ def test_without_gpus_the_train_stage_trains_one_member_a_run_and_eval_waits_for
     with pytest.raises(SystemExit, match="not trained yet"):
         P.run_stage("tiny", "eval")
     assert P.run_stage("tiny", "train") is False and P.run_stage("tiny", "train") is False
+    assert not any(b.exists() for b in d["bundles"])  # not before every member is trained
     assert P.run_stage("tiny", "train") is True and len(calls) == 3
     assert "seed=1" in calls[1] and "seed=2" in calls[2] and not any(a.startswith("seed=") for a in calls[0])
     assert all("max_minutes=1" in c for c in calls)
     assert P.run_stage("tiny", "train") is True and len(calls) == 3  # all trained: nothing more
     assert [b.name for b in d["bundles"]] == ["tiny", "tiny_seed1", "tiny_seed2"]
-    assert all((b / "bundle.json").exists() for b in d["bundles"])  # written once every member was trained
-    stamps = [(b / "bundle.json").stat().st_mtime_ns for b in d["bundles"]]
+    logs = Path(P.PIPELINES["tiny"].root) / "logs" / "tiny"
+    listed = json.loads((logs / P.BUNDLES).read_text())
+    assert list(listed) == [str(b) for b in d["bundles"]]  # every member's, once all were trained
     (d["members"][1] / "eval.json").write_text(json.dumps({"trained": "again"}))
-    assert P.bundle_members(d) == [d["bundles"][1]]  # the others' bundles hold their trainings already
-    assert [(b / "bundle.json").stat().st_mtime_ns == t for b, t in zip(d["bundles"], stamps)] == [True, False, True]
+    assert P.bundle_members(d, logs) == [d["bundles"][1]]  # the others' bundles hold their trainings already
+    assert [bundle_meta(b)["files"]["eval.json"] for b in d["bundles"]] == [{}, {"trained": "again"}, {}]
+    assert json.loads((logs / P.BUNDLES).read_text()) != listed  # a new list for --follow --until-bundle
     got = []
     import experiments.evaluate
 
@@ -392,29 +396,35 @@ def test_follow_says_a_detached_chain_still_runs_and_a_second_detach_is_refused(
     assert P.follow("full", 5, out=out) == 1 and "exit status None" in out.getvalue()  # killed: no exit status
 
 
-def test_follow_until_bundle_returns_once_for_each_new_bundle_while_the_chain_runs_on(tmp_path, monkeypatch):
-    """A chain that trains, bundles, then evaluates: the follow that sees the bundle returns BUNDLED at
-    once, the next one waits on, a new bundle (a model trained again) returns again."""
+def test_follow_until_bundle_returns_once_for_each_new_bundle_while_the_chain_runs_on(tmp_path, monkeypatch, capsys):
+    """A chain that trains, lists its bundles, then evaluates: the follow that sees the list returns
+    BUNDLED at once, the next one waits on, a new list (a model trained again) returns again; a list
+    left by an earlier chain is cleared when the next one starts."""
     monkeypatch.chdir(tmp_path)
-    bundle = Path("runs/bundles/full")
-    body = f'sleep 0.5; mkdir -p {bundle}; echo one > {bundle}/bundle.json; sleep 60'
+    logs = Path("runs/logs/full")
+    logs.mkdir(parents=True)
+    (logs / P.BUNDLES).write_text(json.dumps({"runs/bundles/old": "0"}))  # an earlier chain's
+    listing = json.dumps({"runs/bundles/full": "1", "runs/bundles/full_seed1": "2"})
+    body = f"sleep 0.5; echo '{listing}' > {logs / P.BUNDLES}; sleep 60"
     monkeypatch.setattr(P.sys, "executable", _fake_python(tmp_path, body))
     monkeypatch.setattr(P, "FOLLOW_POLL_S", 0.05)
     P.detach("full", ["full"])
-    pid = int(Path("runs/logs/full/pipeline.pid").read_text())
+    pid = int((logs / "pipeline.pid").read_text())
     try:
         out = io.StringIO()
         t0 = time.monotonic()
         assert P.follow("full", 30, out=out, until_bundle=True) == P.BUNDLED and time.monotonic() - t0 < 20
-        assert "bundles are written: copy runs/bundles/full off the machine" in out.getvalue()
+        assert ("copy runs/bundles/full runs/bundles/full_seed1 off the machine now (a later lease evaluates them "
+                "with --stage eval --set eval:wm=runs/bundles/full,runs/bundles/full_seed1)") in out.getvalue()
         assert P.follow("full", 0.3, out=io.StringIO(), until_bundle=True) == P.STILL_RUNNING  # seen already
-        (bundle / "bundle.json").write_text("two")
+        (logs / P.BUNDLES).write_text(json.dumps({"runs/bundles/full": "3", "runs/bundles/full_seed1": "2"}))
         assert P.follow("full", 30, out=io.StringIO(), until_bundle=True) == P.BUNDLED
         assert P.follow("full", 0.3, out=io.StringIO()) == P.STILL_RUNNING
     finally:
         os.killpg(pid, signal.SIGKILL)
     with pytest.raises(SystemExit):
-        P.main(["full", "--until-bundle"])  # an option of --follow only
+        P.main(["full", "--until-bundle"])
+    assert "--until-bundle is an option of --follow" in capsys.readouterr().err
 
 
 def test_a_detached_chain_runs_the_pipeline_itself(tmp_path, monkeypatch):
@@ -545,11 +555,11 @@ def test_the_train_stage_compiles_the_evaluations_programs_beside_it_with_the_ev
     monkeypatch.setattr(P.subprocess, "Popen", FakeChild)
     monkeypatch.setattr(P, "train_members", lambda *a: events.append(("train",)) or (True, []))
     bundled = []
-    monkeypatch.setattr(P, "bundle_members", bundled.append)
+    monkeypatch.setattr(P, "bundle_members", lambda d, logs: bundled.append((d["bundles"], len(events))))
     monkeypatch.setattr(P, "device_name", lambda: "cpu")
     assert P.run_stage("ev", "train", warm_eval=["episodes=50"])
     assert [e[0] for e in events] == ["start", "train", "wait"]
-    assert [d["bundles"] for d in bundled] == [[tmp_path / "bundles" / "ev"]]  # after the warm-up's end
+    assert bundled == [([tmp_path / "bundles" / "ev"], 2)]  # after the training, before waiting for the warm-up
     _, argv, env = events[0]
     assert argv[1:] == ["-m", "experiments.evaluate", "--config", "e", "--warm", "--warm-after-training",
                         f"policies={tmp_path / 'policies' / 'ev'}", f"wm={tmp_path / 'wm' / 'ev'}", "readout=judge",

@@ -29,6 +29,7 @@ from wm import imagine as I
 from wm import judge as J
 from wm import metrics as M
 from wm.checkpoint import (
+    bundle_holds,
     load_run_config,
     load_trained,
     training_policies,
@@ -1015,12 +1016,14 @@ def test_an_ensemble_judge_reads_the_mean_of_its_members_and_round_trips(tmp_pat
         J.fit(train, val, ("a", "b"), steps=5, progress=False, members=0)
 
 
-def test_the_judges_batches_are_the_rows_its_draws_name_gathered_where_the_episodes_are():
-    """More training episodes than a batch: each step's batch is gathered on the device; the judge is the
-    one a loop of host-gathered batches (the rows rng.choice names, seeded by the member) gives."""
+@pytest.mark.parametrize("n", [J.BATCH + 44, J.BATCH - 56])
+def test_the_judges_batches_are_the_rows_its_draws_name_gathered_where_the_episodes_are(n):
+    """Each step's batch is gathered on the device (more training episodes than a batch) or is every
+    episode (at most a batch); either way each member is bit for bit the judge that a loop over
+    host-gathered batches (the rows rng.choice names, seeded by the member) gives."""
     rng = np.random.default_rng(2)
-    train, val = _synthetic_episodes(rng, J.BATCH + 44), _synthetic_episodes(rng, 16)
-    judge, metrics = J.fit(train, val, ("a", "b"), steps=30, seed=3, progress=False, lr=1e-3)
+    train, val = _synthetic_episodes(rng, n), _synthetic_episodes(rng, 16)
+    judge, metrics = J.fit(train, val, ("a", "b"), steps=30, seed=3, progress=False, lr=1e-3, members=2)
     mean, std = J._standardisation(train["features"], train["mask"])
 
     def arrays(d):
@@ -1028,19 +1031,20 @@ def test_the_judges_batches_are_the_rows_its_draws_name_gathered_where_the_episo
                 d["label"].astype(np.float32))
 
     tr, va = arrays(train), arrays(val)
-    params = J.JudgeNet(2).init(jax.random.PRNGKey(3), *tr[:3])["params"]
-    state, draws = J._optimizer(1e-3).init(params), np.random.default_rng(3)
-    best, best_loss = params, np.inf
-    for k in range(1, 31):
-        idx = draws.choice(len(tr[3]), J.BATCH, replace=True)
-        params, state, _ = J._update(2, 1e-3, params, state, *(a[idx] for a in tr))
-        if k % 25 == 0 or k == 30:
-            loss = float(J._loss(2, params, *va))
-            if loss < best_loss:
-                best, best_loss, kept = params, loss, k
-    assert metrics["kept_step"] == kept
-    for got, want in zip(jax.tree_util.tree_leaves(judge.params), jax.tree_util.tree_leaves(best), strict=True):
-        np.testing.assert_allclose(got[0], want, rtol=1e-6, atol=1e-7)
+    for member, seed in enumerate((3, 4)):
+        params = J.JudgeNet(2).init(jax.random.PRNGKey(seed), *tr[:3])["params"]
+        state, draws = J._optimizer(1e-3).init(params), np.random.default_rng(seed)
+        best, best_loss = params, np.inf
+        for k in range(1, 31):
+            idx = draws.choice(n, J.BATCH, replace=True) if n > J.BATCH else np.arange(n)
+            params, state, _ = J._update(2, 1e-3, params, state, *(a[idx] for a in tr))
+            if k % 25 == 0 or k == 30:
+                loss = float(J._loss(2, params, *va))
+                if loss < best_loss:
+                    best, best_loss, kept = params, loss, k
+        assert metrics["kept_step"][member] == kept
+        for got, want in zip(jax.tree_util.tree_leaves(judge.params), jax.tree_util.tree_leaves(best), strict=True):
+            np.testing.assert_array_equal(got[member], np.asarray(want))
 
 
 class _Episodes:
@@ -1331,7 +1335,18 @@ def test_a_bundle_carries_the_model_in_bfloat16_and_refuses_a_damaged_copy(smoke
     judge, metrics = J.fit(episodes, None, ("a", "b"), steps=5, progress=False)
     J.save_judge(judge, metrics, run)
     bundle = tmp_path / "bundle"
+    assert not bundle_holds(run, bundle)
     assert checkpoint_main([str(run), str(bundle)]) == 0
+    assert bundle_holds(run, bundle)
+    refit = tmp_path / "refit"  # the same run with its judge fit again from another seed
+    shutil.copytree(run, refit)
+    J.save_judge(J.fit(episodes, None, ("a", "b"), steps=5, seed=1, progress=False)[0], metrics, refit)
+    assert not bundle_holds(refit, bundle)
+    (refit / "judge.msgpack").write_bytes((run / "judge.msgpack").read_bytes())
+    assert bundle_holds(refit, bundle)
+    status = json.loads((refit / "train_status.json").read_text())
+    (refit / "train_status.json").write_text(json.dumps({**status, "step": status["step"] + 1}))
+    assert not bundle_holds(refit, bundle)  # trained on: a new bundle
     cfg, params, norm = load_trained(run)
     b_cfg, b_params, b_norm = load_trained(bundle)
     assert b_cfg == cfg and b_norm.to_dict() == norm.to_dict()

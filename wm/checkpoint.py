@@ -36,6 +36,7 @@ from wm.model import init_params
 BUNDLE = "bundle.json"
 SHARD_BYTES = 15 * 2**20
 BUNDLE_FORMAT = 1
+RUN_FILES = ("config.json", "norm.json", "train_status.json", "eval.json", "judge.json")  # copied into a bundle
 
 
 def is_bundle(out: Path) -> bool:
@@ -189,16 +190,30 @@ def write_bundle(run: Path, out: Path, dtype: str = "bfloat16") -> dict:
     if (run / "judge.msgpack").exists():
         shutil.copyfile(run / "judge.msgpack", tmp / "judge.msgpack")
         hashes["judge.msgpack"] = _sha256(tmp / "judge.msgpack")
-    names = ("config.json", "norm.json", "train_status.json", "eval.json", "judge.json")
     meta = {"format": BUNDLE_FORMAT, "source": str(run.absolute()), "dtype": dtype,
-            "parameters": int(sum(a.size for a in flat.values())), "sha256": hashes,
-            "files": {n: run_file(run, n) for n in names if (run / n).exists()},
+            "parameters": int(sum(a.size for a in flat.values())), "sha256": hashes, "files": _run_files(run),
             "data_seeds": sorted(training_seeds(run)), "data_policies": sorted(training_policies(run))}
     write_json_atomic(tmp / BUNDLE, meta)
     if out.exists():
         shutil.rmtree(out)
     os.replace(tmp, out)
     return meta
+
+
+def _run_files(run: Path) -> dict:
+    """The small JSON files of a run directory that its bundle copies: {name: content}."""
+    return {n: run_file(run, n) for n in RUN_FILES if (Path(run) / n).exists()}
+
+
+def bundle_holds(run: Path, out: Path) -> bool:
+    """Whether out is a bundle of the run directory `run` as it now stands: the same configuration, normalisation, training
+    status, eval.json and judge (a run trained again, or its judge fit again, needs a new bundle)."""
+    if not is_bundle(out):
+        return False
+    meta = bundle_meta(out)
+    judge = Path(run) / "judge.msgpack"
+    return meta["files"] == _run_files(run) and meta["sha256"].get("judge.msgpack") == (
+        _sha256(judge) if judge.exists() else None)
 
 
 def _to_bytes(a: np.ndarray) -> dict:

@@ -200,9 +200,9 @@ PRESETS = {
     # validations and the checkpoints), inside the demo's 20 minutes with its set-up; max_minutes is the safety stop.
     # The last step's parameters: a validation of 2 batches chose a step before the cooldown's end that ranked
     # the zoo at 0.025 where the last step ranks it at 0.58 (docs/world-model.md). The judge: six from six
-    # seeds at a quarter of the learning rate, whose best validations fall within 75 steps (the demo's runs
-    # keep steps 25-50), so 100 steps keep what 200 did; one judge's ranking of the zoo moved 0.55-0.79
-    # with its seed alone (docs/world-model.md)
+    # seeds at a quarter of the learning rate, 100 steps each: every member's best validation falls within
+    # 75 steps (25 or 50 in the demo's runs); one judge's ranking of the zoo moved 0.55-0.79 with its seed
+    # alone (docs/world-model.md)
     "demo": TrainConfig(model=DEMO_MODEL, batch=8, window=10, steps=1100, max_minutes=15.0, lr=1e-3, warmup=50,
                         cooldown=0.3, log_every=25, eval_every=250, ckpt_every=250, val_batches=2, select="last",
                         eval_context=4, eval_episodes=24, eval_horizons=(1, 4, 8, 16), control_horizon=16,
