@@ -293,6 +293,12 @@ def test_open_loop_across_segments_equals_stepping_one_action_at_a_time(model_an
     np.testing.assert_allclose(got["success"], jnp.stack(success_ref, 1), atol=1e-5)
     with pytest.raises(ValueError, match="at least one step"):
         I.open_loop(CFG, params, norm, frames[:, :2], proprio[:, :2], action[:, :1], actions[:, :0])
+    # asked for its features alone, it returns those of the whole call and leaves the frames on the device
+    alone = I.open_loop(CFG, params, norm, frames[:, :2], proprio[:, :2], action[:, :1], actions, keys=("features",))
+    assert list(alone) == ["features"]
+    np.testing.assert_array_equal(alone["features"], got["features"])
+    with pytest.raises(ValueError, match="returns some of frames, proprio"):
+        I.open_loop(CFG, params, norm, frames[:, :2], proprio[:, :2], action[:, :1], actions, keys=("image",))
 
 
 def test_observed_features_read_the_true_episode_as_exact_imagination_would(model_and_inputs):

@@ -103,7 +103,7 @@ def frame_quality(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, ep
             lasts.append(ep["frames"][cfg.camera][start + c - 1])
     if not samples:
         raise ValueError(f"no test episode is long enough for context {c} + horizon {hmax}")
-    pred = open_loop_chunked(cfg.model, params, norm, samples, hmax)["frames"]
+    pred = open_loop_chunked(cfg.model, params, norm, samples, hmax, ("frames",))["frames"]
     truth = np.stack(truths)
     copy = np.repeat(np.stack(lasts)[:, None], hmax, axis=1)
     keys = ("psnr", "ssim", "pooled_psnr", "copy_last_psnr", "copy_last_ssim", "copy_last_pooled_psnr", "static_share",
@@ -221,11 +221,12 @@ def action_sensitivity(cfg: TrainConfig, params, norm: Norm, cache: TrainingCach
                 swapped.append({**sample, "actions": donor["action"][: n - 1]})
                 label.append(outcome)
         if imagined is None:
-            own_feats = open_loop_chunked(cfg.model, params, norm, own, n - 1)["features"]
+            own_feats = open_loop_chunked(cfg.model, params, norm, own, n - 1, ("features",))["features"]
         else:
             own_feats = imagined["features"][[row_of[i] for i in ids], : n - 1]
         own_p.append(read(own_feats, task))
-        swap_p.append(read(open_loop_chunked(cfg.model, params, norm, swapped, n - 1)["features"], task))
+        swapped_feats = open_loop_chunked(cfg.model, params, norm, swapped, n - 1, ("features",))["features"]
+        swap_p.append(read(swapped_feats, task))
     if not label:
         return {"swaps": 0, "note": "no task has both successes and failures among the evaluated episodes"}
     own_p, swap_p, label = np.concatenate(own_p), np.concatenate(swap_p), np.array(label)

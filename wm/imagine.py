@@ -302,8 +302,11 @@ SEGMENT = 20  # imagined steps per compiled call: one program serves every horiz
 DYNAMICS_STREAM = 1 << 20  # closed_loop's stochastic codes draw from fold_in(rng, this), apart from the policy's keys
 
 
+OPEN_LOOP_OUTPUTS = ("frames", "proprio", "success", "outcome", "progress", "features")
+
+
 def open_loop(cfg: ModelConfig, params, norm: Norm, frames, proprio, context_actions, actions, anchor=None,
-              start=None) -> dict:
+              start=None, keys=OPEN_LOOP_OUTPUTS) -> dict:
     """Imagines H steps from C context observations under logged actions.
 
     frames (B, C, S, S, 3) uint8, proprio (B, C, 37), context_actions (B, C-1, 20), actions (B, H, 20)
@@ -313,12 +316,16 @@ def open_loop(cfg: ModelConfig, params, norm: Norm, frames, proprio, context_act
     at every step: the open-loop figures score its central future, closed_loop samples.
     Returns {"frames": (B, H, S, S, 3) uint8, "proprio": (B, H, 37), "success": (B, H),
     "outcome": (B, H), "progress": (B, H), "features": (B, H, F) (step_features)} for frames C .. C+H-1
-    after the context, numpy arrays. The steps run in compiled segments of SEGMENT steps (the last one
-    padded with zero actions whose steps are dropped), so that every horizon shares one program.
+    after the context, numpy arrays: those named in `keys` (the others, the frames above all, are not
+    copied off the device). The steps run in compiled segments of SEGMENT steps (the last one padded
+    with zero actions whose steps are dropped), so that every horizon shares one program.
     """
     h = actions.shape[1]
     if h < 1:
         raise ValueError("open_loop imagines at least one step: actions must be (B, H >= 1, 20)")
+    unknown = [k for k in keys if k not in OPEN_LOOP_OUTPUTS]
+    if unknown or not keys:
+        raise ValueError(f"open_loop returns some of {', '.join(OPEN_LOOP_OUTPUTS)}; got keys {tuple(keys)}")
     state = _open_loop_start(cfg, params, norm, frames, proprio, context_actions, anchor, start)
     # padded and cut on the host: eager slices of a device array would compile a program per shape
     acts = np.asarray(actions, np.float32)
@@ -327,7 +334,7 @@ def open_loop(cfg: ModelConfig, params, norm: Norm, frames, proprio, context_act
     for t0 in range(0, h, SEGMENT):
         state, got = _open_loop_segment(cfg, params, norm, state, acts[:, t0:t0 + SEGMENT])
         parts.append(got)
-    return {k: np.concatenate([np.asarray(p[k]) for p in parts], axis=1)[:, :h] for k in parts[0]}
+    return {k: np.concatenate([np.asarray(p[k]) for p in parts], axis=1)[:, :h] for k in keys}
 
 
 _open_loop_start = jax.jit(init_state, static_argnums=(0,))
@@ -488,15 +495,16 @@ def context_sample(ep: dict, camera: str, start: int, context: int, horizon: int
             "anchor": ep["frames"][camera][0], "start": np.int32(start)}
 
 
-def open_loop_chunked(cfg: ModelConfig, params, norm: Norm, samples: list[dict], horizon: int) -> dict:
+def open_loop_chunked(cfg: ModelConfig, params, norm: Norm, samples: list[dict], horizon: int,
+                      keys=OPEN_LOOP_OUTPUTS) -> dict:
     """open_loop over samples {"frames" (C, S, S, 3), "proprio" (C, 37), "context_actions" (C-1, 20),
     "actions" (horizon, 20), optionally "anchor" (S, S, 3) the episode's first frame and "start" () the
     context's index in it} in chunks of chunk_size (the last one padded, so one compilation serves
-    all); numpy arrays with a leading axis of len(samples)."""
+    all); its outputs named in `keys`, numpy arrays with a leading axis of len(samples)."""
     outs = []
     for _, part, n in padded_chunks(samples):
         stack = {k: np.stack([s[k] for s in part]) for k in part[0]}
         got = open_loop(cfg, params, norm, stack["frames"], stack["proprio"], stack["context_actions"],
-                        stack["actions"][:, :horizon], stack.get("anchor"), stack.get("start"))
+                        stack["actions"][:, :horizon], stack.get("anchor"), stack.get("start"), keys)
         outs.append({k: np.asarray(v)[:n] for k, v in got.items()})
     return {k: np.concatenate([o[k] for o in outs]) for k in outs[0]}

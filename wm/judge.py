@@ -147,7 +147,7 @@ def imagine_episodes(cfg: ModelConfig, params, norm: Norm, cache, ids: list[int]
         policy = None if key is None else key[0]
         if policy is None:
             samples = [context_sample(cache.episode(i, cameras=[camera]), camera, 0, 1, n - 1) for i, _ in group]
-            x = open_loop_chunked(cfg, params, norm, samples, n - 1)["features"]
+            x = open_loop_chunked(cfg, params, norm, samples, n - 1, ("features",))["features"]
         else:
             x = _closed_loop_features(cfg, params, norm, cache, group, camera, n - 1, policy, seed)
         pieces.append(([i for i, _ in group], x))
@@ -178,7 +178,7 @@ def warm_imagination(cfg: ModelConfig, params, norm: Norm, cache, ids: list[int]
         if key is None:
             first = group[:chunk_size(len(group))]
             open_loop_chunked(cfg, params, norm, [context_sample(cache.episode(i, cameras=[camera]), camera, 0, 1,
-                                                                 horizon) for i, _ in first], horizon)
+                                                                 horizon) for i, _ in first], horizon, ("features",))
         else:
             chunk = chunk_size(len(group))
             slots, width = checkpoint_rows(group, chunk)
