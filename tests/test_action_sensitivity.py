@@ -25,8 +25,10 @@ class FakeCache:
 
 
 def fake_imagination(read):
-    """open_loop_chunked whose success feature at every step is read(first frame's value, actions)."""
-    def imagine(model, params, norm, samples, horizon):
+    """open_loop_chunked whose success feature at every step is read(first frame's value, actions); it is
+    asked for the features alone (the frames stay on the device)."""
+    def imagine(model, params, norm, samples, horizon, keys):
+        assert keys == ("features",)
         feats = np.zeros((len(samples), horizon, 8), np.float32)
         for k, s in enumerate(samples):
             feats[k, :, SUCCESS_FEATURE] = read(float(s["frames"][0, 0, 0, 0]), float(s["actions"].mean()))
@@ -67,9 +69,9 @@ def test_tasks_with_one_outcome_give_no_swaps(monkeypatch):
 def test_imaginations_under_the_own_actions_are_read_from_those_given(monkeypatch):
     seen = []
 
-    def swapped_only(model, params, norm, samples, horizon):
+    def swapped_only(model, params, norm, samples, horizon, keys):
         seen.extend(float(s["actions"].mean()) for s in samples)
-        return fake_imagination(lambda start, a: a)(model, params, norm, samples, horizon)
+        return fake_imagination(lambda start, a: a)(model, params, norm, samples, horizon, keys)
 
     monkeypatch.setattr(E, "open_loop_chunked", swapped_only)
     # the given imaginations (one row an episode, padded a step longer) read 0.6 for every episode
