@@ -12,7 +12,7 @@ modules' own entry points with the preset's configurations:
 | data     | sim_data.dataset.generate      | runs/data/<data>  |
 | policies | sim_data.policies.zoo           | runs/policies/<p> |
 | rollouts | sim_data.dataset.generate      | runs/data/<data>_<p>_rollouts (the data and the lineage's rollouts) |
-| train    | wm.train               | runs/wm/<p> (and runs/wm/<p>_seed<k>: an ensemble's members); runs/bundles/<p> (and _seed<k>): their bundles |
+| train    | wm.train               | runs/wm/<p> (runs/wm/<p>_seed<k>: an ensemble's members), their bundles in runs/bundles |
 | eval     | experiments.evaluate   | runs/eval/<p>     |
 | report   | experiments.report     | runs/eval/<p>/report.html |
 

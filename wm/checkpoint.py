@@ -206,8 +206,9 @@ def _run_files(run: Path) -> dict:
 
 
 def bundle_holds(run: Path, out: Path) -> bool:
-    """Whether out is a bundle of the run directory `run` as it now stands: the same configuration, normalisation, training
-    status, eval.json and judge (a run trained again, or its judge fit again, needs a new bundle)."""
+    """Whether out is a bundle of the run directory `run` as it now stands: the same configuration,
+    normalisation, training status, eval.json and judge (a run trained again, or its judge fit again,
+    needs a new bundle)."""
     if not is_bundle(out):
         return False
     meta = bundle_meta(out)
