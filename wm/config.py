@@ -196,7 +196,7 @@ PRESETS = {
     "smoke": TrainConfig(model=SMOKE_MODEL, batch=2, window=6, steps=30, lr=3e-3, warmup=5, log_every=5,
                          eval_every=10, ckpt_every=10, val_batches=1, eval_context=2, eval_episodes=2,
                          eval_horizons=(1, 4), control_horizon=4, judge_episodes=8, judge_steps=20),
-    # 600 steps take about 4.5 minutes of a 2-core Intel Xeon (0.42 s a step with the loader, the validations
+    # 600 steps take about 4.2 minutes of a 2-core Intel Xeon (0.42 s a step with the loader, the validations
     # and the checkpoints); over two seeds they rank the zoo as 1100 did (within-task Pearson 0.771 / 0.715
     # against 0.717 / 0.742) and leave the demo inside its 20 minutes with its set-up, where 1100 did not
     # (docs/world-model.md); max_minutes is the safety stop.
