@@ -69,7 +69,8 @@ class Variant:
     real episodes, as a success classifier trained on robot data would be, reading imaginations.
     seed: added to the world model's seed for the judge's initialisation and batches; members: that
     many judges, of seeds seed, seed + 1, ..., each kept at its own best validation step, read as the
-    mean of their probabilities; lr: the judge's learning rate (wm.judge.fit)."""
+    mean of their probabilities; lr: the judge's learning rate; select: each member kept at its best
+    validation step or at its last (wm.judge.fit)."""
 
     episodes: int = 0
     inputs: tuple = FEATURE_GROUPS
@@ -80,6 +81,7 @@ class Variant:
     seed: int = 0
     members: int = 1
     lr: float = JUDGE_LR
+    select: str = "best"
 
 
 VARIANTS = {
@@ -103,6 +105,9 @@ VARIANTS = {
     f"all_x{ENSEMBLE}": Variant(members=ENSEMBLE),
     "all_lr5e-4": Variant(lr=5e-4),
     f"all_lr5e-4_x{ENSEMBLE}": Variant(lr=5e-4, members=ENSEMBLE),
+    # the same judges kept at their last step: a validation of a few dozen episodes (the demo's) keeps
+    # members that have barely left their initialisation
+    f"all_lr5e-4_x{ENSEMBLE}_last": Variant(lr=5e-4, members=ENSEMBLE, select="last"),
 }
 BOUND = "crossfit_bound"
 # A judge fit to the training episodes' true frames alone, reading the evaluation's simulated episodes
@@ -194,7 +199,7 @@ def fit_variant(v: Variant, train: dict, val: dict, tasks: tuple, wm_cfg, steps:
     if v.observed:
         learn = join_episodes(learn, take(observed, rows)) if v.imagined else take(observed, rows)
     return fit(learn, val, tasks, steps, wm_cfg.seed + v.seed, progress=True,
-               columns=feature_columns(wm_cfg.model, v.inputs), lr=v.lr, members=v.members)
+               columns=feature_columns(wm_cfg.model, v.inputs), lr=v.lr, members=v.members, select=v.select)
 
 
 def read_variant(v: Variant, train: dict, val: dict, tasks: tuple, wm_cfg, steps: int, features: dict,

@@ -93,15 +93,16 @@ def test_a_variant_fits_its_judge_at_its_seed_learning_rate_and_members(np_rng, 
     train = J.evaluation_episodes(*kept(np_rng), {t: np.arange(len(true[t])) for t in true})
     calls, real = [], J.fit
 
-    def fit(learn, val, tasks, steps, seed, progress=True, columns=None, lr=None, members=1):
-        calls.append((seed, lr, members))  # every column: the kept features are not a world model's
-        return real(learn, val, tasks, steps, seed, progress=False, lr=lr, members=members)
+    def fit(learn, val, tasks, steps, seed, progress=True, columns=None, lr=None, members=1, select="best"):
+        calls.append((seed, lr, members, select))  # every column: the kept features are not a world model's
+        return real(learn, val, tasks, steps, seed, progress=False, lr=lr, members=members, select=select)
 
     monkeypatch.setattr(J, "fit", fit)
     wm_cfg = make_config("smoke", ["seed=1"])
     probs, metrics = J.read_variant(J.Variant(seed=2, members=3, lr=1e-3), train, None, ("a", "b"), wm_cfg, 30,
                                     features)
-    assert calls == [(3, 1e-3, 3)] and metrics["members"] == 3
+    assert calls == [(3, 1e-3, 3, "best")] and metrics["members"] == 3
     assert J.VARIANTS["all_x6"].members == 6 and J.VARIANTS["all_lr5e-4"].lr == 5e-4
+    assert J.VARIANTS["all_lr5e-4_x6_last"].select == "last"
     for t in ("a", "b"):
         assert probs[t].shape == true[t].shape and ((probs[t] > 0.5) == true[t]).mean() > 0.9

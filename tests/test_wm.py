@@ -1022,6 +1022,25 @@ def test_an_ensemble_judge_reads_the_mean_of_its_members_and_round_trips(tmp_pat
         J.fit(train, val, ("a", "b"), steps=5, progress=False, members=0)
 
 
+def test_a_judge_kept_at_its_last_step_is_the_judge_fit_without_validation():
+    rng = np.random.default_rng(3)
+    train, val = _synthetic_episodes(rng, 64), _synthetic_episodes(rng, 32)
+    fit = functools.partial(J.fit, train, tasks=("a", "b"), steps=60, seed=2, progress=False, lr=1e-3, members=2)
+    last, m_last = fit(val, select="last")
+    unvalidated, _ = fit(None)
+    best, m_best = fit(val)
+    assert m_last["kept_step"] == [60, 60] and m_last["select"] == "last" and m_best["select"] == "best"
+    np.testing.assert_array_equal(J.judge_episodes(last, val), J.judge_episodes(unvalidated, val))
+    assert "val_auroc" in m_last  # still scored on the validation episodes, only not kept by them
+    assert all(k % 25 == 0 or k == 60 for k in m_best["kept_step"])
+    if m_best["kept_step"] != [60, 60]:
+        assert not np.allclose(J.judge_episodes(best, val), J.judge_episodes(last, val))
+    with pytest.raises(ValueError, match="best or its last"):
+        fit(val, select="first")
+    with pytest.raises(ValueError, match="judge_select"):
+        make_config("smoke", ["judge_select=first"])
+
+
 @pytest.mark.parametrize("n", [J.BATCH + 44, J.BATCH - 56])
 def test_the_judges_batches_are_the_rows_its_draws_name_gathered_where_the_episodes_are(n):
     """Each step's batch is gathered on the device (more training episodes than a batch) or is every

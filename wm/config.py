@@ -78,7 +78,9 @@ class TrainConfig:
         learns from the same training episodes read from their true frames (wm.judge.observe_episodes:
         what imagination would show were it exact), beside their imaginations. judge_members: judges
         fit from as many seeds, read as the mean of their probabilities (wm.judge.fit); judge_lr: their
-        learning rate.
+        learning rate; judge_select: the parameters each keeps, "best" those of its lowest loss on the
+        validation episodes' imaginations, "last" those of its last step (a validation of a few dozen
+        episodes keeps judges that have barely left their initialisation).
     """
 
     model: ModelConfig = ModelConfig()
@@ -132,6 +134,7 @@ class TrainConfig:
     judge_observed: bool = False
     judge_members: int = 1
     judge_lr: float = JUDGE_LR
+    judge_select: str = "best"
 
     def validate(self) -> None:
         self.model.validate()
@@ -151,6 +154,8 @@ class TrainConfig:
             raise ValueError(f"train_fraction must be in (0, 1], got {self.train_fraction}")
         if self.judge_episodes < 0 or self.judge_steps < 1 or self.judge_members < 1 or self.judge_lr <= 0:
             raise ValueError("judge_episodes >= 0, judge_steps >= 1, judge_members >= 1 and judge_lr > 0 are required")
+        if self.judge_select not in ("best", "last"):
+            raise ValueError(f"judge_select is best or last, got {self.judge_select!r}")
         if not self.judge_inputs or set(self.judge_inputs) - set(FEATURE_GROUPS):
             raise ValueError(f"judge_inputs are among {', '.join(FEATURE_GROUPS)}; got {list(self.judge_inputs)}")
         if self.model.keep and self.w_keep <= 0:

@@ -14,9 +14,10 @@ labelled with the simulator's outcome: open loop under their logged actions, and
 of learned policies in the data, closed loop with that policy acting on the imagined frames
 (exactly what the evaluator imagines). So it learns what success looks like in imagination rather
 than in the simulator's frames. The parameters best on the validation episodes' imaginations are
-kept. With several members (TrainConfig.judge_members) as many judges are fit from as many seeds and
-read as the mean of their probabilities: fit to a few hundred episodes a judge is kept within its
-first validations, and one judge's ranking then follows its seed.
+kept, or with TrainConfig.judge_select "last" those of the last step. With several members
+(TrainConfig.judge_members) as many judges are fit from as many seeds and read as the mean of their
+probabilities: fit to a few hundred episodes a judge is kept within its first validations, and one
+judge's ranking then follows its seed.
 
 Written to `OUT/judge.json` (configuration, feature standardisation, tasks, fit metrics) and
 `OUT/judge.msgpack` (parameters, stacked over the members) by `wm.train` after training;
@@ -302,11 +303,13 @@ def _standardisation(x, mask):
 
 
 def fit(train: dict, val: dict | None, tasks: tuple, steps: int, seed: int = 0,
-        progress: bool = True, columns=None, lr: float = JUDGE_LR, members: int = 1) -> tuple[EpisodeJudge, dict]:
+        progress: bool = True, columns=None, lr: float = JUDGE_LR, members: int = 1,
+        select: str = "best") -> tuple[EpisodeJudge, dict]:
     """Fits a judge to imagined episodes (imagine_episodes' dicts), reading the step features'
     `columns` (default all; wm.imagine.feature_columns), with AdamW at learning rate lr: `members`
     judges from seeds seed, seed + 1, ... (the initialisation and the batches), each kept at its best
-    step on val's loss (or the last), read as the mean of their probabilities. A judge of a few hundred
+    step on val's loss (select "best" with val given) or at its last step (select "last", or no
+    val), read as the mean of their probabilities. A judge of a few hundred
     episodes overfits them within its first validations, so one judge's ranking follows its seed; the
     mean of several does less. Returns the judge and its fit metrics (the ensemble's accuracy and
     AUROC on train and val; each member's kept step)."""
@@ -314,6 +317,8 @@ def fit(train: dict, val: dict | None, tasks: tuple, steps: int, seed: int = 0,
         raise ValueError("the judge needs successes and failures among its training episodes")
     if members < 1:
         raise ValueError(f"a judge has at least one member, got members={members}")
+    if select not in ("best", "last"):
+        raise ValueError(f"a judge keeps its best or its last step, got select={select!r}")
     dim = train["features"].shape[-1]
     columns = np.arange(dim) if columns is None else np.asarray(columns)
     mean, std = _standardisation(train["features"][..., columns], train["mask"])
@@ -325,10 +330,11 @@ def fit(train: dict, val: dict | None, tasks: tuple, steps: int, seed: int = 0,
     # on the device once: a step gathers its batch there (_rows), not on the host and across to the device
     tr = jax.device_put(arrays(train))
     va = jax.device_put(arrays(val)) if val is not None and len(val["label"]) else None
-    fits = [_fit_one(tr, va, len(tasks), steps, seed + k, progress, lr) for k in range(members)]
+    fits = [_fit_one(tr, va if select == "best" else None, len(tasks), steps, seed + k, progress, lr)
+            for k in range(members)]
     judge = EpisodeJudge(params=jax.tree_util.tree_map(lambda *p: np.stack(p), *[p for p, _ in fits]), mean=mean,
                          std=std, tasks=tuple(tasks), columns=columns, feature_dim=dim)
-    metrics = {"episodes_train": len(train["label"]), "steps": steps, "members": members, "lr": lr,
+    metrics = {"episodes_train": len(train["label"]), "steps": steps, "members": members, "lr": lr, "select": select,
                "kept_step": [k for _, k in fits] if members > 1 else fits[0][1]}
     for tag, d in (("train", train), ("val", val)):
         if d is None or not len(d["label"]):
@@ -417,7 +423,8 @@ def fit_judge(cfg, params, norm: Norm, cache, train_ids: list[int], out: Path, p
     val = imagine_episodes(cfg.model, params, norm, cache, val_ids, cfg.camera, progress, pols, cfg.seed + 1) \
         if val_ids else None
     judge, metrics = fit(train, val, tasks, cfg.judge_steps, cfg.seed, progress,
-                         feature_columns(cfg.model, cfg.judge_inputs), cfg.judge_lr, cfg.judge_members)
+                         feature_columns(cfg.model, cfg.judge_inputs), cfg.judge_lr, cfg.judge_members,
+                         cfg.judge_select)
     save_judge(judge, metrics, Path(out))
     return metrics
 
@@ -449,7 +456,7 @@ def warm_judge(cfg, params, norm: Norm, cache, train_ids: list[int]) -> EpisodeJ
     train = _placeholder_episodes(cache, train_ids, dim)
     val = _placeholder_episodes(cache, val_ids, dim) if val_ids else None
     return fit(train, val, tasks, 2, cfg.seed, False, feature_columns(cfg.model, cfg.judge_inputs), cfg.judge_lr,
-               cfg.judge_members)[0]
+               cfg.judge_members, cfg.judge_select)[0]
 
 
 def _placeholder_episodes(cache, ids: list[int], dim: int) -> dict:
