@@ -210,7 +210,7 @@ PRESETS = {
     # seeds at a quarter of the learning rate (one judge's ranking of the zoo moved 0.55-0.79 with its seed
     # alone), each kept at its last of 100 steps and reading the imagined proprioception and actions alone:
     # its 44 validation episodes kept members at steps 25-50, near their initialisation, and the small
-    # model's imagined frames mislead more than they tell; over two models the zoo and seven plug-ins it
+    # model's imagined frames mislead more than they tell; over three models the zoo and seven plug-ins it
     # never saw were read better (docs/world-model.md)
     "demo": TrainConfig(model=DEMO_MODEL, batch=8, window=10, steps=600, max_minutes=15.0, lr=1e-3, warmup=50,
                         cooldown=0.3, log_every=25, eval_every=250, ckpt_every=250, val_batches=2, select="last",
