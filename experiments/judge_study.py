@@ -68,9 +68,9 @@ class Variant:
     wm.train's judge_observed), and with `imagined` False to those true readings alone: a judge of
     real episodes, as a success classifier trained on robot data would be, reading imaginations.
     seed: added to the world model's seed for the judge's initialisation and batches; members: that
-    many judges, of seeds seed, seed + 1, ..., each kept at its own best validation step, read as the
-    mean of their probabilities; lr: the judge's learning rate; select: each member kept at its best
-    validation step or at its last (wm.judge.fit)."""
+    many judges, of seeds seed, seed + 1, ..., read as the mean of their probabilities; lr: the
+    judge's learning rate; select: each member kept at its own best validation step ("best") or at its
+    last ("last") (wm.judge.fit)."""
 
     episodes: int = 0
     inputs: tuple = FEATURE_GROUPS

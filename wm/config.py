@@ -9,6 +9,7 @@ from wm.imagine import FEATURE_GROUPS
 from wm.model import ModelConfig
 
 JUDGE_LR = 2e-3  # the episode judge's learning rate (wm.judge.fit) where a run names none
+KEPT_STEPS = ("best", "last")  # which parameters a run (select) or a judge (judge_select) keeps
 
 
 @dataclasses.dataclass(frozen=True)
@@ -142,7 +143,7 @@ class TrainConfig:
             raise ValueError("batch >= 1, window >= 2 and steps >= 1 are required")
         if self.eval_every % self.log_every or self.ckpt_every % self.log_every:
             raise ValueError("eval_every and ckpt_every must be multiples of log_every")
-        if self.select not in ("best", "last"):
+        if self.select not in KEPT_STEPS:
             raise ValueError(f"select is best or last, got {self.select!r}")
         if not 0.0 <= self.ema < 1.0:
             raise ValueError(f"ema is a decay in [0, 1) (0: no average), got {self.ema}")
@@ -154,7 +155,7 @@ class TrainConfig:
             raise ValueError(f"train_fraction must be in (0, 1], got {self.train_fraction}")
         if self.judge_episodes < 0 or self.judge_steps < 1 or self.judge_members < 1 or self.judge_lr <= 0:
             raise ValueError("judge_episodes >= 0, judge_steps >= 1, judge_members >= 1 and judge_lr > 0 are required")
-        if self.judge_select not in ("best", "last"):
+        if self.judge_select not in KEPT_STEPS:
             raise ValueError(f"judge_select is best or last, got {self.judge_select!r}")
         if not self.judge_inputs or set(self.judge_inputs) - set(FEATURE_GROUPS):
             raise ValueError(f"judge_inputs are among {', '.join(FEATURE_GROUPS)}; got {list(self.judge_inputs)}")

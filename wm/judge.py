@@ -46,7 +46,7 @@ from sim_data.policies.registry import padded_chunks as policy_chunks
 from sim_data.policies.registry import resolve, stack_key
 from sim_data.util import even_pieces, write_json_atomic
 from wm.checkpoint import run_file
-from wm.config import JUDGE_LR
+from wm.config import JUDGE_LR, KEPT_STEPS
 from wm.imagine import (
     SEGMENT,
     Norm,
@@ -308,16 +308,15 @@ def fit(train: dict, val: dict | None, tasks: tuple, steps: int, seed: int = 0,
     """Fits a judge to imagined episodes (imagine_episodes' dicts), reading the step features'
     `columns` (default all; wm.imagine.feature_columns), with AdamW at learning rate lr: `members`
     judges from seeds seed, seed + 1, ... (the initialisation and the batches), each kept at its best
-    step on val's loss (select "best" with val given) or at its last step (select "last", or no
-    val), read as the mean of their probabilities. A judge of a few hundred
-    episodes overfits them within its first validations, so one judge's ranking follows its seed; the
-    mean of several does less. Returns the judge and its fit metrics (the ensemble's accuracy and
+    step on val's loss (select "best" with val given) or at its last step (select "last", or no val),
+    read as the mean of their probabilities. A judge of a few hundred episodes overfits them within
+    its first validations, so one judge's ranking follows its seed; the mean of several does less. Returns the judge and its fit metrics (the ensemble's accuracy and
     AUROC on train and val; each member's kept step)."""
     if len(set(train["label"].tolist())) < 2:
         raise ValueError("the judge needs successes and failures among its training episodes")
     if members < 1:
         raise ValueError(f"a judge has at least one member, got members={members}")
-    if select not in ("best", "last"):
+    if select not in KEPT_STEPS:
         raise ValueError(f"a judge keeps its best or its last step, got select={select!r}")
     dim = train["features"].shape[-1]
     columns = np.arange(dim) if columns is None else np.asarray(columns)
