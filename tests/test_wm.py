@@ -892,30 +892,6 @@ def test_a_model_with_the_frame_generator_trains_writes_eval_json_and_travels_in
     np.testing.assert_allclose(back["refiner"]["Conv_2"]["kernel"], params["refiner"]["Conv_2"]["kernel"], atol=1e-2)
 
 
-def test_action_dependence_is_the_contrast_term_on_windows_from_the_episodes_starts(smoke_dataset, smoke_world_model):
-    from wm.train import loss_fn
-
-    _, data, _ = smoke_dataset
-    cfg, params, norm = load_trained(smoke_world_model)
-    cache = TrainingCache(data)
-    ids = [i for i in cache.select("train") if cache.episodes[i]["length"] >= cfg.window][:2]
-    assert len(ids) == 2
-    got = E.action_dependence(cfg, params, norm, cache, ids)
-    eps = [cache.episode(i, cameras=[cfg.camera]) for i in ids]
-    w = cfg.window
-    batch = {"frames": np.stack([e["frames"][cfg.camera][:w] for e in eps]),
-             "proprio": np.stack([e["proprio"][:w] for e in eps]),
-             "action": np.stack([e["action"][:w] for e in eps]),
-             "success": np.zeros((2, w), bool), "progress": np.zeros((2, w), np.float32), "outcome": np.zeros((2,), bool)}
-    _, parts = jax.jit(loss_fn, static_argnums=3)(params, batch, norm, dataclasses.replace(cfg, w_contrast=0.5))
-    np.testing.assert_allclose(got["action_contrast"], parts["contrast"], rtol=1e-4)
-    assert got["windows"] == 2 and got["own_actions_better"] in (0.0, 0.5, 1.0)
-    assert "note" in E.action_dependence(cfg, params, norm, cache, ids[:1])
-    report = json.loads((smoke_world_model / "eval.json").read_text())  # every model's eval.json carries it
-    dep = report["action_dependence"]
-    assert report["summary"]["action_contrast"] == dep.get("action_contrast") and ("note" in dep or dep["windows"] >= 2)
-
-
 def test_learning_rate_is_a_function_of_the_step():
     from wm.train import learning_rate
 
@@ -1181,6 +1157,34 @@ def test_a_judge_reads_only_its_chosen_feature_columns(tmp_path):
     del meta["columns"], meta["feature_dim"]  # a judge saved before input selection read every column
     (tmp_path / "judge.json").write_text(json.dumps(meta))
     assert J.load_judge(tmp_path).columns.tolist() == [0, 1]
+
+
+# The tests of the trained smoke model (smoke_world_model) come after those that need none: under xdist
+# the other worker trains it meanwhile.
+
+
+def test_action_dependence_is_the_contrast_term_on_windows_from_the_episodes_starts(smoke_dataset, smoke_world_model):
+    from wm.train import loss_fn
+
+    _, data, _ = smoke_dataset
+    cfg, params, norm = load_trained(smoke_world_model)
+    cache = TrainingCache(data)
+    ids = [i for i in cache.select("train") if cache.episodes[i]["length"] >= cfg.window][:2]
+    assert len(ids) == 2
+    got = E.action_dependence(cfg, params, norm, cache, ids)
+    eps = [cache.episode(i, cameras=[cfg.camera]) for i in ids]
+    w = cfg.window
+    batch = {"frames": np.stack([e["frames"][cfg.camera][:w] for e in eps]),
+             "proprio": np.stack([e["proprio"][:w] for e in eps]),
+             "action": np.stack([e["action"][:w] for e in eps]),
+             "success": np.zeros((2, w), bool), "progress": np.zeros((2, w), np.float32), "outcome": np.zeros((2,), bool)}
+    _, parts = jax.jit(loss_fn, static_argnums=3)(params, batch, norm, dataclasses.replace(cfg, w_contrast=0.5))
+    np.testing.assert_allclose(got["action_contrast"], parts["contrast"], rtol=1e-4)
+    assert got["windows"] == 2 and got["own_actions_better"] in (0.0, 0.5, 1.0)
+    assert "note" in E.action_dependence(cfg, params, norm, cache, ids[:1])
+    report = json.loads((smoke_world_model / "eval.json").read_text())  # every model's eval.json carries it
+    dep = report["action_dependence"]
+    assert report["summary"]["action_contrast"] == dep.get("action_contrast") and ("note" in dep or dep["windows"] >= 2)
 
 
 def test_loss_falls_on_a_tiny_dataset(smoke_world_model):
