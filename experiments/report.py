@@ -22,7 +22,7 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from PIL import Image
 
-from experiments.stats import MIN_CORRELATED, nonfinite_policies, rank
+from experiments.stats import MIN_CORRELATED, nonfinite_policies, policy_count, rank
 from sim_data.util import run_cli
 
 # each evaluation preset's own targets for the within-task means (docs/results.md)
@@ -395,7 +395,7 @@ def within_task_table(res: dict) -> list[list[str]]:
     for k in w["world_model"]["mean"]:
         tgt = targets.get(k)
         goal = f"{tgt[0]} {tgt[1]}" if tgt else "-"
-        if k == "mmrv" and floor:  # what the truth's own sampling noise leaves to any predictor
+        if k == "mmrv" and floor and not _missing(floor["mean"]):  # what the truth's own sampling noise leaves to any predictor
             goal = (f"{goal} " if tgt else "") + f"(a perfect predictor: {floor['mean']:.3f})"
         px = "-" if k == "alignment" else _ci(w["proxy"]["mean"][k], w["proxy"]["mean_ci"][k])
         df = "-" if k == "alignment" else _ci(w["difference"]["proxy"]["mean"][k], w["difference"]["proxy"]["mean_ci"][k])
@@ -663,7 +663,7 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
     unlearned, unread, plug = unlearned_warning(res), nonfinite_policies(policies), plugin_table(policies)
     h = [f"<html><head><meta charset='utf-8'><title>World-model policy evaluation</title><style>{CSS}</style>"
          "</head><body>", "<h1>Policy evaluation in the world model against the simulator</h1>",
-         f"<p>{len(policies)} policies on {', '.join(tasks)}; {res['config']['episodes']} held-out initial states "
+         f"<p>{policy_count(policies)} on {', '.join(tasks)}; {res['config']['episodes']} held-out initial states "
          f"per task; {_models_phrase(res, lambda r: f'<code>{html.escape(r)}</code>')}; engine {res['engine']}; "
          f"device {html.escape(str(res['device']))}.</p>",
          *([f"<p class='warn'>Partial: tasks {html.escape(', '.join(res['missing_tasks']))} were not evaluated; "
@@ -716,17 +716,16 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
         h += [f"<h2>Task {html.escape(t)}</h2>", _html_table(_metrics_table(metrics["per_task"][t])),
               _html_table(_policy_table([p for p in policies if p["task"] == t]))]
     h.append("<h2>Real (left) and imagined (right) episodes</h2>")
-    if not videos:
-        h.append(f"<p>No episodes kept: {html.escape(str(run / VIDEOS))} is absent (an evaluation with "
-                 "video_policies=0, or results copied without it).</p>")
+    kept = [v for v in res["videos"] if v["key"] + "/real" in videos]
+    if not kept:
+        h.append(f"<p>No episodes kept in {html.escape(str(run / VIDEOS))} (an evaluation with "
+                 "video_policies=0, or results copied without that file).</p>")
     mp4 = video_links(read_index(run))
     if mp4:
         h.append("<p>MP4 files (<code>make videos</code>): " + ", ".join(
             f"<a href='{html.escape(href)}'>{html.escape(label)}</a>" for label, href in mp4) + "</p>")
-    for v in res["videos"]:
+    for v in kept:
         key = v["key"]
-        if key + "/real" not in videos:
-            continue
         label = (f"{v['policy']} ep {v['episode']}: truly {'success' if v['true_success'] else 'failure'}, "
                  f"predicted {_fmt(v['pred_prob'], 2)}")
         h.append(f"<div class='vid'><img class='anim' src='{animation(videos[key + '/real'], videos[key + '/imagined'])}'><br>"
@@ -754,7 +753,7 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
     h += ["<h2>Configuration and versions</h2>", f"<pre>{html.escape(json.dumps(res['config'], indent=1))}</pre>",
           f"<pre>{html.escape(json.dumps(res['versions'], indent=1))}</pre>",
           f"<pre>{html.escape(json.dumps(res['timing'], indent=1))}</pre>", "</body></html>"]
-    md = [f"# Policy evaluation: {len(policies)} policies on {', '.join(tasks)}", "",
+    md = [f"# Policy evaluation: {policy_count(policies)} on {', '.join(tasks)}", "",
           f"{_models_phrase(res, lambda r: f'`{r}`', capital=True)}, {res['config']['episodes']} held-out initial states per task, "
           f"engine {res['engine']}, device {res['device']}. Full report: `report.html`.", "",
           *([f"**Partial**: tasks {', '.join(res['missing_tasks'])} were not evaluated; every statistic below "

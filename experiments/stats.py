@@ -70,7 +70,9 @@ def mmrv(predicted, true) -> float:
 
     each violation weighted by the true gap. Ties follow the definition's strict comparisons: a pair
     tied in prediction but not in truth is a violation (from the side of the truly worse policy); a
-    pair tied in truth weighs 0.
+    pair tied in truth weighs 0. NaN where every policy's true rate is the same: there is no order to
+    violate, and a 0 would read as a perfect ranking (as pairwise accuracy, undefined without a pair
+    apart in truth).
     """
     p, t = _pair(predicted, true)
     return float(_masked_mmrv(p, t, np.ones(len(p), bool)))
@@ -99,15 +101,17 @@ def rank_violations(rows: list[dict], top: int = 5, rate: str = "pred_rate") -> 
     all the task's policies' shares sum to 1), "against" (how many policies' largest violation is with
     it), "action_gap", "action_gap_largest", "on_truth", "replayed", "imagined_in_sim" (the row's
     action_gap, action_gap_largest, pred_rate_on_truth, pred_rate_replayed and
-    true_rate_imagined_actions, where it has them)}}}; a task whose MMRV is 0 lists none."""
+    true_rate_imagined_actions, where it has them)}}}; a task whose MMRV is 0 or undefined (mmrv) lists
+    none."""
     out = {}
     for task in sorted({r["task"] for r in rows}):
         rs = [r for r in rows if r["task"] == task]
-        terms, partner = mmrv_charges([r[rate] for r in rs], [r["true_rate"] for r in rs])
+        pred, true = [r[rate] for r in rs], [r["true_rate"] for r in rs]
+        terms, partner = mmrv_charges(pred, true)
         charged = np.bincount(partner, weights=terms, minlength=len(rs))
         against = np.bincount(partner[terms > 0], minlength=len(rs))
         order = [int(k) for k in np.argsort(-charged, kind="stable") if charged[k] > 0][:top]
-        out[task] = {"mmrv": float(terms.mean()), "policies": [
+        out[task] = {"mmrv": mmrv(pred, true), "policies": [
             {"name": rs[k]["name"], "true_rate": rs[k]["true_rate"], "pred_rate": rs[k][rate],
              "share": float(charged[k] / terms.sum()), "against": int(against[k]),
              "action_gap": rs[k].get("action_gap"), "action_gap_largest": rs[k].get("action_gap_largest"),
@@ -281,10 +285,11 @@ def _masked_rank(x, keep) -> np.ndarray:
 
 
 def _masked_mmrv(p, t, keep) -> np.ndarray:
-    """mmrv along the last axis over the kept entries: (D, P) -> (D,)."""
+    """mmrv along the last axis over the kept entries: (D, P) -> (D,); NaN where the kept true rates are
+    all equal."""
     gap = _violation_gaps(p, t) * keep[..., None, :]
     worst = np.where(keep, gap.max(-1), 0.0)
-    return worst.sum(-1) / np.maximum(keep.sum(-1), 1)
+    return np.where(_masked_ptp(t, keep) > 0, worst.sum(-1) / np.maximum(keep.sum(-1), 1), math.nan)
 
 
 def _masked_pairwise(p, t, keep, min_gap: float) -> np.ndarray:
@@ -422,23 +427,31 @@ def mmrv_floor(true: dict, draws: int = 200, seed: int = 0) -> dict:
     """The MMRV that a perfect predictor scores against ground truth measured from a finite number of
     episodes: each task's policies' success probabilities taken to be their measured rates p (P,),
     each draw measures them again from the same number of episodes (Binomial(N, p) / N) and scores p
-    against that measurement (mmrv); the mean over draws. A target below it cannot be met at that many
-    episodes, whatever the world model. true: {task: (P, N) outcomes}. Returns {"per_task": {task:
-    float}, "mean": the mean over tasks, "draws"}."""
+    against that measurement (mmrv); the mean over the draws where it is defined (a draw whose rates all
+    tie has none). A target below it cannot be met at that many episodes, whatever the world model.
+    true: {task: (P, N) outcomes}. Returns {"per_task": {task: float, NaN where every draw ties},
+    "mean": the mean over the tasks where it is defined, "draws"}."""
     rng = np.random.default_rng(seed)
     per = {}
     for t, outcomes in true.items():
         o = np.asarray(outcomes, float)
         p, n = o.mean(1), o.shape[1]
-        per[t] = float(np.mean([mmrv(p, rng.binomial(n, p) / n) for _ in range(draws)]))
-    return {"per_task": per, "mean": float(np.mean(list(per.values()))), "draws": draws}
+        per[t] = _defined_mean([mmrv(p, rng.binomial(n, p) / n) for _ in range(draws)])
+    return {"per_task": per, "mean": _defined_mean(list(per.values())), "draws": draws}
+
+
+def _defined_mean(x) -> float:
+    """The mean of the non-NaN values of x; NaN where there are none."""
+    x = np.asarray(x, np.float64)
+    return float(x[~np.isnan(x)].mean()) if (~np.isnan(x)).any() else math.nan
 
 
 def checkpoint_selection(rows: list[dict]) -> dict:
     """Does the world model pick each training run's best checkpoint? Per (task, lineage) with two or
     more checkpoints (rows: {"task", "lineage", "step", "true_rate", "pred_rate", "true_ci"} per
     policy; rows without a step, such as plug-ins, are left out): the checkpoint with the highest
-    predicted rate (ties: the later step) against the truly best one.
+    predicted rate (ties: the later step) against the truly best one (the picked one where it ties for
+    the highest true rate, else the later step among those that tie).
 
     Returns {"lineages": [{"task", "lineage", "picked_step", "best_step", "picked_true", "best_true",
     "regret" (best_true - picked_true), "exact" (the picked one's true rate is the highest),
@@ -454,7 +467,7 @@ def checkpoint_selection(rows: list[dict]) -> dict:
         if len(rs) < 2:
             continue
         picked = max(rs, key=lambda r: (r["pred_rate"], r["step"]))
-        best = max(rs, key=lambda r: (r["true_rate"], r["step"]))
+        best = max(rs, key=lambda r: (r["true_rate"], r is picked, r["step"]))
         out.append({"task": task, "lineage": lineage, "picked_step": picked["step"], "best_step": best["step"],
                     "picked_true": picked["true_rate"], "best_true": best["true_rate"],
                     "regret": best["true_rate"] - picked["true_rate"],
@@ -490,8 +503,7 @@ def pearson_ceiling(true, episodes, draws: int = 200, seed: int = 0) -> float:
     defined. NaN where p is constant (r is undefined for every predictor)."""
     p, n = np.asarray(true, float), np.asarray(episodes)
     rng = np.random.default_rng(seed)
-    rs = np.array([pearson(p, rng.binomial(n, p) / n)[0] for _ in range(draws)])
-    return float(np.nanmean(rs)) if np.isfinite(rs).any() else math.nan
+    return _defined_mean([pearson(p, rng.binomial(n, p) / n)[0] for _ in range(draws)])
 
 
 def family_statistics(rows: list[dict], rate: str = "pred_rate", ceiling: bool = True) -> dict:
@@ -533,6 +545,13 @@ def family_statistics(rows: list[dict], rate: str = "pred_rate", ceiling: bool =
     mean = lambda key: float(np.mean([x[key] for x in defined])) if defined else math.nan
     return {"families": out, "mean_pearson": mean("pearson"), "mean_pearson_ceiling": mean("pearson_ceiling"),
             "mean_abs_error": float(np.mean([x["mean_abs_error"] for x in out])) if out else math.nan}
+
+
+def policy_count(rows: list[dict]) -> str:
+    """How many policies the rows (one a policy and task) hold: "31 policies, 37 policy-task pairs" where
+    a policy runs on several tasks (a plug-in: the same name on each), "25 policies" where each runs on one."""
+    names = len({r["name"] for r in rows})
+    return f"{names} policies" + (f", {len(rows)} policy-task pairs" if names != len(rows) else "")
 
 
 def nonfinite_policies(rows: list[dict]) -> str:

@@ -40,7 +40,11 @@ def test_mmrv_weights_violations_by_true_gap_and_counts_predicted_ties():
     # a predicted tie is a violation from the truly worse policy's side
     assert S.mmrv([0.5, 0.5], [0.2, 0.6]) == pytest.approx(0.4 / 2)
     # a true tie weighs nothing whatever the prediction
-    assert S.mmrv([0.9, 0.1], [0.5, 0.5]) == 0.0
+    assert S.mmrv([0.9, 0.1, 0.0], [0.5, 0.5, 0.9]) == pytest.approx((0.4 + 0.4 + 0.4) / 3)
+    assert S.mmrv([0.9, 0.1, 0.95], [0.5, 0.5, 0.9]) == 0.0
+    # where every true rate ties there is no order to violate: undefined, not a perfect 0
+    assert math.isnan(S.mmrv([0.9, 0.1], [0.5, 0.5]))
+    assert math.isnan(S.task_statistics([0.2, 0.7, 0.4], np.ones((3, 4)))["mmrv"])
 
 
 def test_rank_violations_charge_each_policys_mmrv_term_to_its_worst_partner():
@@ -252,14 +256,16 @@ def test_checkpoint_selection_by_hand():
     rows = [row("mug", "a", 10, 0.2, 0.1), row("mug", "a", 100, 0.9, 0.3), row("mug", "a", 1000, 0.85, 0.8),
             row("mug", "b", 10, 0.5, 0.5), row("mug", "b", 100, 0.7, 0.6),
             row("mug", "c", 10, 0.4, 0.4),  # one checkpoint: nothing to pick
+            row("mug", "d", 5, 1.0, 0.9), row("mug", "d", 1000, 1.0, 0.2),  # a pick that ties the truly best is it
             {"task": "mug", "lineage": "plugin", "step": None, "true_rate": 1.0, "pred_rate": 1.0, "true_ci": [0, 1]}]
     got = S.checkpoint_selection(rows)
-    a, b = got["lineages"]
+    a, b, d = got["lineages"]
     assert (a["picked_step"], a["best_step"], a["exact"], a["within_ci"]) == (1000, 100, False, True)
     assert a["regret"] == pytest.approx(0.05)
     assert (b["picked_step"], b["best_step"], b["exact"], b["regret"]) == (100, 100, True, 0.0)
-    assert got["n"] == 2 and got["exact_share"] == 0.5 and got["within_ci_share"] == 1.0
-    assert got["mean_regret"] == pytest.approx(0.025)
+    assert (d["picked_step"], d["best_step"], d["exact"], d["regret"]) == (5, 5, True, 0.0)
+    assert got["n"] == 3 and got["exact_share"] == pytest.approx(2 / 3) and got["within_ci_share"] == 1.0
+    assert got["mean_regret"] == pytest.approx(0.05 / 3)
     assert math.isnan(S.checkpoint_selection(rows[-2:])["exact_share"])
 
 
@@ -300,16 +306,20 @@ def test_pearson_ceiling_is_a_perfect_predictors_r_against_the_truth_measured_ag
 
 def test_mmrv_floor_is_a_perfect_predictors_mmrv_against_resampled_truth():
     # two policies at 0.5 measured on 2 episodes each: every rate is 0, 0.5 or 1 (1/4, 1/2, 1/4);
-    # the tied prediction charges each pair its true gap once, so MMRV = |a - b| / 2 and its
-    # expectation is E|a - b| / 2 = (0.5 * 0.5 + 0.125 * 1) / 2 = 0.1875
+    # the tied prediction charges each pair its true gap once, so MMRV = |a - b| / 2; the draws where
+    # the two measure alike (3/8) leave it undefined, and over the others (a gap of 0.5 with
+    # probability 1/2, of 1 with 1/8) its expectation is (0.5 * 0.5 + 0.125 * 1) / (5 / 8) / 2 = 0.3
     half = {"t": np.array([[1, 0], [0, 1]])}
     got = S.mmrv_floor(half, draws=4000, seed=1)
-    assert got["per_task"]["t"] == pytest.approx(0.1875, abs=0.01) and got["draws"] == 4000
+    assert got["per_task"]["t"] == pytest.approx(0.3, abs=0.01) and got["draws"] == 4000
     # rates of 0 and 1 are measured exactly again: no violation is possible
     sure = {"a": np.array([[0, 0, 0], [1, 1, 1]]), "b": np.array([[1, 1], [1, 1], [0, 0]])}
     assert S.mmrv_floor(sure, draws=50) == {"per_task": {"a": 0.0, "b": 0.0}, "mean": 0.0, "draws": 50}
     both = S.mmrv_floor({**half, **sure}, draws=4000, seed=1)
     assert both["mean"] == pytest.approx(np.mean(list(both["per_task"].values())))
+    # a task whose policies all succeed alike has no floor, and the mean leaves it out
+    alike = S.mmrv_floor({**sure, "c": np.ones((3, 4))}, draws=50)
+    assert math.isnan(alike["per_task"]["c"]) and alike["mean"] == 0.0
     # more episodes, a lower floor
     many = {"t": np.array([[1, 0] * 50, [0, 1] * 50])}
     assert S.mmrv_floor(many, draws=400)["mean"] < got["mean"] / 3
