@@ -283,7 +283,8 @@ PLUGIN_NOTE = ("Each plug-in beside the task's other policies: its true and pred
 
 
 def plugin_table(policies: list[dict]) -> list[list[str]] | None:
-    """Per plug-in and task: true and predicted rate with intervals, the error, and the plug-in's place
+    """Per plug-in and task: true and predicted rate with intervals (the true one marked where some of its
+    simulated episodes went non-finite: their outcomes are doubtful), the error, and the plug-in's place
     among the task's policies by true and by predicted rate; None where no policy is a plug-in."""
     mine = [p for p in policies if p.get("kind") == "plugin"]
     if not mine:
@@ -299,7 +300,9 @@ def plugin_table(policies: list[dict]) -> list[list[str]] | None:
         n = sum(q["task"] == p["task"] for q in policies)
         err = None if _missing(p["pred_rate"]) else abs(p["pred_rate"] - p["true_rate"])
         inside = "n/a" if err is None else "yes" if p["true_ci"][0] <= p["pred_rate"] <= p["true_ci"][1] else "no"
-        rows.append([p["name"], p["task"], f"{p['true_rate']:.2f} ({p['true_ci'][0]:.2f}-{p['true_ci'][1]:.2f})",
+        bad = p.get("nonfinite_episodes") or 0
+        doubt = f", {bad} of {p['n']} episodes non-finite" if bad else ""
+        rows.append([p["name"], p["task"], f"{p['true_rate']:.2f} ({p['true_ci'][0]:.2f}-{p['true_ci'][1]:.2f}{doubt})",
                      f"{_fmt(p['pred_rate'], 2)} ({_fmt(p['pred_ci'][0], 2)}-{_fmt(p['pred_ci'][1], 2)})",
                      _fmt(err, 2), inside, f"{place(p, 'true_rate')} / {place(p, 'pred_rate')} of {n}"])
     return rows
