@@ -72,7 +72,7 @@ render-check: setup
 	$(PY) -m sim_data.bench.render_check --states 50 --out runs/render_check.json
 
 test: setup
-	$(PY) -m pytest -q -n 2 --dist loadfile
+	$(PY) -m pytest -q -n 2 --dist worksteal
 
 test-slow: setup
 	$(PY) -m pytest -q -m slow

@@ -91,7 +91,8 @@ def np_rng():
 def build_once(tmp_path_factory, worker_id: str, name: str, build) -> Path:
     """A directory that `build(directory)` fills once per pytest run: under xdist the first worker
     to need it builds it under a file lock in the run's shared base temporary directory and the other
-    workers wait for it and reuse it."""
+    workers wait for it and reuse it. Both workers run tests of one file side by side (make test's
+    worksteal), so a test that changes what it holds works on a copy."""
     if worker_id == "master":
         out = tmp_path_factory.mktemp(name)
         build(out)

@@ -92,8 +92,10 @@ def test_a_batch_runs_policies_of_different_architectures_side_by_side(evaluatio
             assert len(params) == len(policy.policies) == k
 
 
-def test_rerun_resumes_and_other_config_is_refused(evaluation):
-    cfg, out, res = evaluation
+def test_rerun_resumes_and_other_config_is_refused(evaluation, tmp_path):
+    cfg, shared, res = evaluation
+    out = tmp_path / "run"  # a copy: the fixture's run is shared by the workers
+    shutil.copytree(shared, out)
     stamp = (out / "tasks" / "mug.npz").stat().st_mtime_ns
     again = E.run(cfg, out, progress=False)
     assert (out / "tasks" / "mug.npz").stat().st_mtime_ns == stamp
@@ -291,8 +293,10 @@ def test_a_partial_gather_reports_the_finished_tasks_and_names_the_rest(evaluati
     assert "**Partial**: tasks step_back were not evaluated" in write_report(cut).with_suffix(".md").read_text()
 
 
-def test_report_renders_figures_and_videos(evaluation):
-    _, out, res = evaluation
+def test_report_renders_figures_and_videos(evaluation, tmp_path):
+    _, shared, res = evaluation
+    out = tmp_path / "run"  # a copy: this test rewrites its results.json, and the fixture's run is shared
+    shutil.copytree(shared, out)
     page = write_report(out).read_text()
     assert page.count("data:image/png;base64,") >= 5  # scatter, progress, ranks, baseline, decision (+ controllability)
     assert "Task progress, true and imagined" in page and "Imagination against the simulated episode" in page
@@ -327,23 +331,20 @@ def test_report_renders_figures_and_videos(evaluation):
                                    np.nanmean(z["action_gap"].astype(np.float64), axis=(1, 2)), atol=2e-3)
     cut = dict(res, world_model=dict(res["world_model"], cut_short=True))
     (out / "results.json").write_text(json.dumps(cut))
-    try:
-        assert "Cut short" in write_report(out).with_suffix(".md").read_text()
-        # the unseen policies' within-task tables, all of them and the networks alone, where results hold them
-        w = res["metrics"]["within_task"]
-        unseen = dict(res, metrics=dict(res["metrics"], unseen_within_task=w, unseen_networks_within_task=w))
-        (out / "results.json").write_text(json.dumps(unseen))
-        page = write_report(out)
-        md = page.with_suffix(".md").read_text()
-        assert "## Within task, policies whose rollouts the world model never saw" in md
-        assert f"## {UNSEEN_NETWORKS_TITLE}" in md and UNSEEN_NETWORKS_TITLE in page.read_text()
-        assert md.count("| mug | imitation-loss proxy |") == 3
-        floored = dict(res, metrics=dict(res["metrics"], mmrv_floor={"per_task": {"mug": 0.123}, "mean": 0.123}))
-        (out / "results.json").write_text(json.dumps(floored))
-        table = write_report(out).with_suffix(".md").read_text().split("## Within-task ranking")[1].split("\n\n")[1]
-        assert "(a perfect predictor: 0.123) |" in table
-    finally:
-        (out / "results.json").write_text(json.dumps(res))
+    assert "Cut short" in write_report(out).with_suffix(".md").read_text()
+    # the unseen policies' within-task tables, all of them and the networks alone, where results hold them
+    w = res["metrics"]["within_task"]
+    unseen = dict(res, metrics=dict(res["metrics"], unseen_within_task=w, unseen_networks_within_task=w))
+    (out / "results.json").write_text(json.dumps(unseen))
+    page = write_report(out)
+    md = page.with_suffix(".md").read_text()
+    assert "## Within task, policies whose rollouts the world model never saw" in md
+    assert f"## {UNSEEN_NETWORKS_TITLE}" in md and UNSEEN_NETWORKS_TITLE in page.read_text()
+    assert md.count("| mug | imitation-loss proxy |") == 3
+    floored = dict(res, metrics=dict(res["metrics"], mmrv_floor={"per_task": {"mug": 0.123}, "mean": 0.123}))
+    (out / "results.json").write_text(json.dumps(floored))
+    table = write_report(out).with_suffix(".md").read_text().split("## Within-task ranking")[1].split("\n\n")[1]
+    assert "(a perfect predictor: 0.123) |" in table
 
 
 def test_a_report_of_results_copied_without_their_videos_says_so(evaluation, tmp_path):
