@@ -398,7 +398,8 @@ def within_task_table(res: dict) -> list[list[str]]:
     for k in w["world_model"]["mean"]:
         tgt = targets.get(k)
         goal = f"{tgt[0]} {tgt[1]}" if tgt else "-"
-        if k == "mmrv" and floor and not _missing(floor["mean"]):  # what the truth's own sampling noise leaves to any predictor
+        # MMRV's floor: what the truth's own sampling noise leaves to any predictor
+        if k == "mmrv" and floor and not _missing(floor["mean"]):
             goal = (f"{goal} " if tgt else "") + f"(a perfect predictor: {floor['mean']:.3f})"
         px = "-" if k == "alignment" else _ci(w["proxy"]["mean"][k], w["proxy"]["mean_ci"][k])
         df = "-" if k == "alignment" else _ci(w["difference"]["proxy"]["mean"][k], w["difference"]["proxy"]["mean_ci"][k])
