@@ -36,6 +36,15 @@ def evaluation(smoke_world_model, smoke_zoo, tmp_path_factory, worker_id):
     return cfg, out, json.loads((out / "results.json").read_text())
 
 
+@pytest.fixture
+def own_evaluation(evaluation, tmp_path):
+    """The evaluation fixture's (cfg, run, results) with the run copied: for a test that changes its files,
+    since the fixture's run is shared by both workers."""
+    cfg, shared, res = evaluation
+    shutil.copytree(shared, tmp_path / "run")
+    return cfg, tmp_path / "run", res
+
+
 def test_results_hold_every_policy_with_statistics_from_the_episodes(evaluation, smoke_dataset):
     cfg, out, res = evaluation
     assert json.loads((out / "results.json").read_text())["tasks"] == ["mug"]
@@ -92,10 +101,8 @@ def test_a_batch_runs_policies_of_different_architectures_side_by_side(evaluatio
             assert len(params) == len(policy.policies) == k
 
 
-def test_rerun_resumes_and_other_config_is_refused(evaluation, tmp_path):
-    cfg, shared, res = evaluation
-    out = tmp_path / "run"  # a copy: the fixture's run is shared by the workers
-    shutil.copytree(shared, out)
+def test_rerun_resumes_and_other_config_is_refused(own_evaluation):
+    cfg, out, res = own_evaluation
     stamp = (out / "tasks" / "mug.npz").stat().st_mtime_ns
     again = E.run(cfg, out, progress=False)
     assert (out / "tasks" / "mug.npz").stat().st_mtime_ns == stamp
@@ -293,10 +300,8 @@ def test_a_partial_gather_reports_the_finished_tasks_and_names_the_rest(evaluati
     assert "**Partial**: tasks step_back were not evaluated" in write_report(cut).with_suffix(".md").read_text()
 
 
-def test_report_renders_figures_and_videos(evaluation, tmp_path):
-    _, shared, res = evaluation
-    out = tmp_path / "run"  # a copy: this test rewrites its results.json, and the fixture's run is shared
-    shutil.copytree(shared, out)
+def test_report_renders_figures_and_videos(own_evaluation):
+    _, out, res = own_evaluation
     page = write_report(out).read_text()
     assert page.count("data:image/png;base64,") >= 5  # scatter, progress, ranks, baseline, decision (+ controllability)
     assert "Task progress, true and imagined" in page and "Imagination against the simulated episode" in page

@@ -310,8 +310,9 @@ def fit(train: dict, val: dict | None, tasks: tuple, steps: int, seed: int = 0,
     judges from seeds seed, seed + 1, ... (the initialisation and the batches), each kept at its best
     step on val's loss (select "best" with val given) or at its last step (select "last", or no val),
     read as the mean of their probabilities. A judge of a few hundred episodes overfits them within
-    its first validations, so one judge's ranking follows its seed; the mean of several does less. Returns the judge and its fit metrics (the ensemble's accuracy and
-    AUROC on train and val; each member's kept step)."""
+    its first validations, so one judge's ranking follows its seed; the mean of several does less.
+    Returns the judge and its fit metrics (the ensemble's accuracy and AUROC on train and val; each
+    member's kept step)."""
     if len(set(train["label"].tolist())) < 2:
         raise ValueError("the judge needs successes and failures among its training episodes")
     if members < 1:
