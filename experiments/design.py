@@ -164,7 +164,7 @@ def held_out_table(jobs: list[Job]) -> tuple[dict, str]:
     return rows, "\n".join(lines)
 
 
-def timing_table(timing: dict) -> str:
+def runs_timing_markdown(timing: dict) -> str:
     """The runs' timing rows (run_job) as a markdown table."""
     lines = ["| run | stage | wall s | compile s | device |", "|---|---|---|---|---|"]
     for run, rows in timing.items():
@@ -187,7 +187,7 @@ def write_comparison(jobs: list[Job], out: Path, draws: int = 1000) -> dict:
     table = (compare.markdown(res, (BASE, name)) + "\n\n" + compare.shifts_markdown(res["shifts"], (BASE, name))
              + "\n\nHeld-out episodes (`eval.json`):\n\n" + held_table
              + "\n\nCommands (wall and compile seconds; a run finished by an earlier command lists it there):\n\n"
-             + timing_table(timing))
+             + runs_timing_markdown(timing))
     (out / "compare.md").write_text(table + "\n")
     compare.plot(res, out / "compare.png", (BASE, name))
     return res | {"table": table}

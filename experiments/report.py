@@ -658,6 +658,59 @@ def read_videos(run: Path) -> dict:
         return {k: z[k] for k in z.files}
 
 
+def _ab_verdicts_html(verd: list[dict]) -> list[str]:
+    """The report's section of A/B verdicts between lineages (verdicts), as HTML."""
+    h = ["<h2>Ablation and A/B verdicts</h2>"]
+    if not verd:
+        return h + ["<p>The evaluated policies hold no conv_proprio / conv_noproprio / vit_noproprio lineages.</p>"]
+    vrows = [["task", "comparison", "A", "B", "true A/B", "predicted A/B", "world model prefers", "truly better",
+              "agree"]]
+    vrows += [[v["task"], v["comparison"], v["a"], v["b"], f"{v['true'][0]:.2f} / {v['true'][1]:.2f}",
+               f"{_fmt(v['pred'][0], 2)} / {_fmt(v['pred'][1], 2)}", v["world_model_prefers"], v["truly_better"],
+               ("yes" if v["agree"] else "no") + (" (true intervals overlap)" if v["true_intervals_overlap"] else "")]
+              for v in verd]
+    return h + [_html_table(vrows)]
+
+
+def _videos_html(run: Path, res: dict, videos: dict, mp4: list[tuple[str, str]]) -> list[str]:
+    """The report's real-against-imagined episodes and controllability panel, as HTML (animated images)."""
+    h = ["<h2>Real (left) and imagined (right) episodes</h2>"]
+    kept = [v for v in res["videos"] if v["key"] + "/real" in videos]
+    if not kept:
+        h.append(f"<p>No episodes kept in {html.escape(str(run / VIDEOS))} (an evaluation with "
+                 "video_policies=0, or results copied without that file).</p>")
+    if mp4:
+        h.append("<p>MP4 files (<code>make videos</code>): " + ", ".join(
+            f"<a href='{html.escape(href)}'>{html.escape(label)}</a>" for label, href in mp4) + "</p>")
+    for v in kept:
+        key = v["key"]
+        label = (f"{v['policy']} ep {v['episode']}: truly {'success' if v['true_success'] else 'failure'}, "
+                 f"predicted {_fmt(v['pred_prob'], 2)}")
+        h.append(f"<div class='vid'><img class='anim' src='{animation(videos[key + '/real'], videos[key + '/imagined'])}'><br>"
+                 f"{html.escape(label)}</div>")
+    panel = {k.split("/")[1]: None for k in videos if k.startswith("controllability/")}
+    if panel:
+        panel = {p: {kind: videos[f"controllability/{p}/{kind}"] for kind in ("real", "imagined")} for p in panel}
+        h += ["<h2>Controllability: one start, four action programs</h2>", f"<img src='{strip_figure(panel)}'>"]
+        for p, v in sorted(panel.items()):
+            h.append(f"<div class='vid'><img class='anim' src='{animation(v['real'], v['imagined'])}'><br>{html.escape(p)}</div>")
+    return h
+
+
+def _timing_html(timing: list[dict]) -> list[str]:
+    """The report's pipeline timing section (timing.json's rows), as HTML; empty without rows."""
+    if not timing:
+        return []
+    h = ["<h2>Pipeline timing</h2>", "<p>Per stage command: wall seconds and the seconds spent compiling "
+         "(the pipeline's own process, plus for a stage spread over GPUs the most any one of its child "
+         "processes spent); frames/s end to end: the frames a data stage generated over its whole wall "
+         "time.</p>", _html_table(timing_table(timing))]
+    if compiles := compile_table(timing):
+        h += [("<p>Where the compile time goes: per stage command, the jitted functions that took the most "
+               "seconds to trace, lower and compile.</p>"), _html_table(compiles)]
+    return h
+
+
 def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
     """(HTML, Markdown) of the evaluation in run, with a section per sweep under `sweeps` if given."""
     res = json.loads((run / "results.json").read_text())
@@ -704,56 +757,20 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
     base = baseline_figure(policies, tasks)
     if base:
         h += ["<h2>The imitation-loss baseline</h2>", f"<img src='{base}'>"]
-    h += ["<h2>Ablation and A/B verdicts</h2>"]
-    if verd:
-        vrows = [["task", "comparison", "A", "B", "true A/B", "predicted A/B", "world model prefers", "truly better",
-                  "agree"]]
-        vrows += [[v["task"], v["comparison"], v["a"], v["b"], f"{v['true'][0]:.2f} / {v['true'][1]:.2f}",
-                   f"{_fmt(v['pred'][0], 2)} / {_fmt(v['pred'][1], 2)}", v["world_model_prefers"], v["truly_better"],
-                   ("yes" if v["agree"] else "no") + (" (true intervals overlap)" if v["true_intervals_overlap"] else "")]
-                  for v in verd]
-        h.append(_html_table(vrows))
-    else:
-        h.append("<p>The evaluated policies hold no conv_proprio / conv_noproprio / vit_noproprio lineages.</p>")
+    h += _ab_verdicts_html(verd)
     h += ["<h2>Decision analysis</h2>", f"<img src='{decision_figure(res['decision'])}'>"]
     for t in tasks:
         h += [f"<h2>Task {html.escape(t)}</h2>", _html_table(_metrics_table(metrics["per_task"][t])),
               _html_table(_policy_table([p for p in policies if p["task"] == t]))]
-    h.append("<h2>Real (left) and imagined (right) episodes</h2>")
-    kept = [v for v in res["videos"] if v["key"] + "/real" in videos]
-    if not kept:
-        h.append(f"<p>No episodes kept in {html.escape(str(run / VIDEOS))} (an evaluation with "
-                 "video_policies=0, or results copied without that file).</p>")
     mp4 = video_links(read_index(run))
-    if mp4:
-        h.append("<p>MP4 files (<code>make videos</code>): " + ", ".join(
-            f"<a href='{html.escape(href)}'>{html.escape(label)}</a>" for label, href in mp4) + "</p>")
-    for v in kept:
-        key = v["key"]
-        label = (f"{v['policy']} ep {v['episode']}: truly {'success' if v['true_success'] else 'failure'}, "
-                 f"predicted {_fmt(v['pred_prob'], 2)}")
-        h.append(f"<div class='vid'><img class='anim' src='{animation(videos[key + '/real'], videos[key + '/imagined'])}'><br>"
-                 f"{html.escape(label)}</div>")
-    panel = {k.split("/")[1]: None for k in videos if k.startswith("controllability/")}
-    if panel:
-        panel = {p: {kind: videos[f"controllability/{p}/{kind}"] for kind in ("real", "imagined")} for p in panel}
-        h += ["<h2>Controllability: one start, four action programs</h2>", f"<img src='{strip_figure(panel)}'>"]
-        for p, v in sorted(panel.items()):
-            h.append(f"<div class='vid'><img class='anim' src='{animation(v['real'], v['imagined'])}'><br>{html.escape(p)}</div>")
+    h += _videos_html(run, res, videos, mp4)
     sweep_html, sweep_md = sweep_sections(Path(sweeps)) if sweeps is not None else ([], [])
     if sweeps is not None and not sweep_html:
         raise FileNotFoundError(f"{sweeps} holds no sweep results (make sweep OUT=...)")
     h += sweep_html
     timing = json.loads((run / "timing.json").read_text()) if (run / "timing.json").exists() else []
     compiles = compile_table(timing)
-    if timing:
-        h += ["<h2>Pipeline timing</h2>", "<p>Per stage command: wall seconds and the seconds spent compiling "
-              "(the pipeline's own process, plus for a stage spread over GPUs the most any one of its child "
-              "processes spent); frames/s end to end: the frames a data stage generated over its whole wall "
-              "time.</p>", _html_table(timing_table(timing))]
-        if compiles:
-            h += [("<p>Where the compile time goes: per stage command, the jitted functions that took the most "
-                   "seconds to trace, lower and compile.</p>"), _html_table(compiles)]
+    h += _timing_html(timing)
     h += ["<h2>Configuration and versions</h2>", f"<pre>{html.escape(json.dumps(res['config'], indent=1))}</pre>",
           f"<pre>{html.escape(json.dumps(res['versions'], indent=1))}</pre>",
           f"<pre>{html.escape(json.dumps(res['timing'], indent=1))}</pre>", "</body></html>"]

@@ -39,7 +39,7 @@ from tqdm import tqdm
 
 from sim_data.dataset.episodes import CorruptEpisode, read_episode, read_episode_meta
 from sim_data.sim.scene import load_model, scene_index, scene_state
-from sim_data.util import run_cli
+from sim_data.util import run_cli, write_json_atomic
 
 FORMAT = 3
 EPISODE_KEYS = ("episode_id", "task", "policy", "policy_kind", "skill", "seed", "success", "split", "heldout")
@@ -132,7 +132,7 @@ def build_cache(out: Path, skip_corrupt: bool = False, workers: int | None = Non
     if plan_path.exists() and json.loads(plan_path.read_text()) != plan:
         for p in root.iterdir():  # the episode set changed: the old shards describe another dataset
             shutil.rmtree(p) if p.is_dir() else p.unlink()
-    plan_path.write_text(json.dumps(plan))
+    write_json_atomic(plan_path, plan)  # a rerun compares against it to resume
     (root / "index.json").unlink(missing_ok=True)
     groups = [files[i:i + shard_episodes] for i in range(0, len(files), shard_episodes)]
     names = [f"shard-{i:05d}" for i in range(len(groups))]
