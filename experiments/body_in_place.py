@@ -29,7 +29,7 @@ import numpy as np
 
 from sim_data.dataset.cache import TrainingCache
 from sim_data.dataset.episodes import read_episode
-from sim_data.sim.render import RenderConfig, Renderer, poses_from_arrays
+from sim_data.sim.render import HEAD_CAMERA, RenderConfig, Renderer, poses_from_arrays
 from sim_data.sim.scene import load_model
 from sim_data.util import run_cli, write_json_atomic
 from wm.checkpoint import load_trained
@@ -48,7 +48,7 @@ def _scene():
     return model, np.flatnonzero(model.geom_bodyid == body)
 
 
-def body_masks(qpos, mocap_pos, camera: str = "head_cam", size: int = 64) -> np.ndarray:
+def body_masks(qpos, mocap_pos, camera: str = HEAD_CAMERA, size: int = 64) -> np.ndarray:
     """Pixels of the air fryer's body in the frames of a recorded state sequence: qpos (T, nq),
     mocap_pos (T, nmocap, 3) -> (T, size, size) bool."""
     model, geoms = _scene()

@@ -63,7 +63,7 @@ from tqdm import tqdm
 
 from experiments import stats as S
 from experiments.ensemble import member_metrics
-from sim_data.config import preset_config, preset_help
+from sim_data.config import as_json, differing_fields, preset_config, preset_help
 from sim_data.dataset.cache import TrainingCache
 from sim_data.dataset.generate import cached_env, cached_renderers, package_versions
 from sim_data.parts import add_part_argument, config_and_part, exclusive, in_turn
@@ -81,6 +81,7 @@ from sim_data.policies.registry import (
 from sim_data.policies.scripted import ProgramPolicy
 from sim_data.sim import robot as R
 from sim_data.sim.engines import ENGINES, PHYSICS_REVISION, default_engine
+from sim_data.sim.render import HEAD_CAMERA
 from sim_data.sim.rollout import SEGMENT, WARM_STEPS, record_policies  # noqa: F401 (SEGMENT re-exported)
 from sim_data.sim.tasks import TASK_NAMES
 from sim_data.util import device_name, hash_arrays, make_output_dir, run_cli, wait_for_files, write_json_atomic
@@ -108,7 +109,6 @@ from wm.metrics import psnr
 from wm.model import IMAGINE_MODES
 from wm.train import warm_after_training
 
-CAMERA = "head_cam"
 # Per-step arrays (P, N, T) saved with each task: imagined success and progress, the simulator's progress
 TRACES = ("trace_success", "trace_progress", "true_progress")
 READOUTS = ("progress", "judge", "success")
@@ -331,7 +331,7 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
     """
     slices = state_slices(cfg, len(seeds))
     reset_keys = reset_keys_of(seeds)
-    renderer = cached_renderers(models[0][0].model.size, (CAMERA,))
+    renderer = cached_renderers(models[0][0].model.size, (HEAD_CAMERA,))
     kept = {}
     clock = {"sim_s": 0.0, "wm_s": 0.0, "steps": None}
     todo = [b for b in task_batches(cfg, sources, len(seeds)) if chunks is None or b[:2] in chunks]
@@ -635,9 +635,9 @@ def simulate_truth(cfg: EvalConfig, task: str, policy, params, seeds, reset_keys
 def _simulate(task, policy, params, seeds, reset_keys, rng, engine, renderer, steps: int | None = None) -> dict:
     env = cached_env(task, policy.count(params) * len(seeds), engine, False)
     outcome, rec = record_policies(env, policy, params, reset_keys, rng, renderer, steps)
-    return {"outcome": outcome, "frames0": np.asarray(rec.frames[CAMERA][:, :1]),
+    return {"outcome": outcome, "frames0": np.asarray(rec.frames[HEAD_CAMERA][:, :1]),
             "proprio0": np.asarray(rec.proprio[:, :1]), "steps": steps or env.episode_steps,
-            "frames": rec.frames[CAMERA], "proprio": rec.proprio, "action": rec.action,
+            "frames": rec.frames[HEAD_CAMERA], "proprio": rec.proprio, "action": rec.action,
             "progress": np.asarray(rec.progress[:, 1:], np.float32)}
 
 
@@ -926,7 +926,7 @@ def warm(cfg: EvalConfig, progress: bool = True, wait_s: float = 0.0, after_trai
         jax.clear_caches()  # the evaluation's stage lowers its programs from cleared caches (experiments.pipeline)
     used = seeds_in_use(cfg, sources)
     engine = cfg.engine or default_engine()
-    renderer = cached_renderers(models[0][0].model.size, (CAMERA,))
+    renderer = cached_renderers(models[0][0].model.size, (HEAD_CAMERA,))
     t0 = time.perf_counter()
     for task in tasks:
         seeds = heldout_seeds(task, cfg.episodes, cfg.seed, used)
@@ -1254,18 +1254,17 @@ def _check_config(cfg: EvalConfig, out: Path, sources) -> None:
     out/config.json, or checks a rerun against them: results an OUT holds are read back, so they must
     come from this configuration and these policies as they are now. An OUT that holds no results yet
     (a run that failed before its first task was saved) is taken over by the new configuration."""
-    mine = json.loads(json.dumps(dataclasses.asdict(cfg)))
+    mine = as_json(cfg)
     mine.pop("max_minutes")  # a time budget does not change what is computed
     prints = {s.name: fingerprint(s) for s in sources}
     path = out / "config.json"
     if path.exists() and (any((out / "tasks").glob("*.npz")) or (out / "results.json").exists()):
-        on_file = json.loads(path.read_text())
-        theirs = on_file.pop(FINGERPRINTS, {})
-        # a field missing from the saved configuration has its default value
-        saved = json.loads(json.dumps(dataclasses.asdict(EvalConfig()))) | on_file
-        saved.pop("max_minutes")
-        if saved != mine:
-            raise ValueError(f"{out} holds an evaluation of another configuration; use another OUT")
+        saved = json.loads(path.read_text())
+        theirs = saved.pop(FINGERPRINTS, {})
+        differs = [f for f in differing_fields(saved, mine, as_json(EvalConfig())) if f != "max_minutes"]
+        if differs:
+            raise ValueError(f"{out} holds an evaluation of another configuration (differs: {', '.join(differs)}); "
+                             "use another OUT")
         changed = sorted(name for name, digest in theirs.items() if prints.get(name, digest) != digest)
         if changed:
             raise ValueError(f"{out} holds results of {changed} as their code or parameters were then, not as "

@@ -4,6 +4,10 @@ frozen dataclasses (nested ones included), parsed to the type of the field they 
 from __future__ import annotations
 
 import dataclasses
+import json
+from pathlib import Path
+
+from sim_data.util import write_json_atomic
 
 
 def parse_value(current, text: str, name: str):
@@ -79,3 +83,44 @@ def preset_help(presets: dict) -> str:
             "; ".join(f"{n}: {_show(v)}" for n, v in zip(names, each))
         lines.append(f"  {key} = {shown}")
     return "\n".join(lines)
+
+
+def as_json(obj):
+    """A config dataclass, or a dict or list holding them, as the plain JSON values config.json stores
+    (tuples as lists)."""
+    def plain(o):
+        if dataclasses.is_dataclass(o) and not isinstance(o, type):
+            return dataclasses.asdict(o)
+        raise TypeError(f"{type(o).__name__} is not JSON")
+    return json.loads(json.dumps(obj, default=plain))
+
+
+def differing_fields(saved: dict, mine: dict, defaults: dict | None = None, prefix: str = "") -> list[str]:
+    """The dotted names of the fields where a saved configuration differs from mine (both as_json).
+    A field mine has and saved lacks takes its value from defaults (mine's layout, every field at its
+    default): a configuration written before the field existed ran with its default."""
+    out = []
+    for k in sorted(saved.keys() | mine.keys()):
+        default = (defaults or {}).get(k)
+        theirs = saved.get(k, default) if k not in saved and k in mine else saved.get(k)
+        ours = mine.get(k)
+        if isinstance(theirs, dict) and isinstance(ours, dict):
+            out += differing_fields(theirs, ours, default if isinstance(default, dict) else None, f"{prefix}{k}.")
+        elif theirs != ours:
+            out.append(prefix + k)
+    return out
+
+
+def save_or_check(path: Path, mine: dict, what: str, defaults: dict | None = None, ignore: tuple = ()) -> None:
+    """Saves the configuration `mine` (as_json) to path (config.json) on first use; on a rerun refuses one
+    that differs from the saved one in any field but those named in `ignore` (dotted names of settings
+    such as a safety time limit, which change nothing computed), naming the fields. `what`: the output's
+    kind, for the message ("a dataset", "a run"); defaults: as differing_fields."""
+    path = Path(path)
+    if not path.exists():
+        write_json_atomic(path, mine)
+        return
+    differs = [f for f in differing_fields(json.loads(path.read_text()), mine, defaults) if f not in ignore]
+    if differs:
+        raise ValueError(f"{path.parent} holds {what} of another configuration (differs: {', '.join(differs)}); "
+                         "use another OUT")

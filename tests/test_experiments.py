@@ -20,6 +20,7 @@ from experiments.timing import compile_snapshot
 from sim_data.parts import exclusive
 from sim_data.policies.bc import MixedPolicy, StackedPolicy, stacked
 from sim_data.policies.registry import resolve
+from sim_data.sim.render import HEAD_CAMERA, RenderConfig, Renderer, episode_rgb
 from wm.checkpoint import trained_tasks
 from wm.judge import load_judge
 from wm.metrics import psnr
@@ -454,11 +455,10 @@ def test_air_fryer_body_mask_covers_the_body_pixels_of_the_frame():
 
     from experiments.body_in_place import _scene, body_masks
     from sim_data.sim.env import HomeEnv
-    from sim_data.sim.render import RenderConfig, Renderer, episode_rgb
 
     env = HomeEnv("airfryer", 1, engine="cpu")
     state = env.reset(jax.random.PRNGKey(3))
-    renderer = Renderer(_scene()[0], RenderConfig(camera="head_cam"))
+    renderer = Renderer(_scene()[0], RenderConfig(camera=HEAD_CAMERA))
     colors = episode_rgb(renderer.geometry, state.task.colors)
     frame = np.asarray(renderer.render(env.poses(state), colors)["rgb"])[0].astype(np.float64)
     mask = body_masks(np.asarray(state.qpos), np.asarray(state.mocap_pos))[0]
@@ -486,7 +486,7 @@ def test_truth_cache_returns_the_simulated_batch_waits_for_a_writer_and_misses_o
     policy, params = StackedPolicy(sources[0].policy), stack_params([s.params for s in sources])
     seeds = [11, 12]
     keys = np.stack([np.asarray(E.jax.random.PRNGKey(s)) for s in seeds])
-    renderer = cached_renderers(64, (E.CAMERA,))
+    renderer = cached_renderers(64, (HEAD_CAMERA,))
     rng = E.jax.random.PRNGKey(3)
     first = E.simulate_truth(cfg, "mug", policy, params, seeds, keys, rng, "cpu", renderer)
     assert first["outcome"].shape == (3, 2) and first["frames0"].shape == (6, 1, 64, 64, 3)
@@ -576,12 +576,12 @@ def test_a_replayed_episode_is_imagined_as_the_judge_imagines_its_training_episo
 
     wm_cfg, params, norm = load_trained(smoke_world_model)
     cache = TrainingCache(smoke_dataset[1])
-    ep = cache.episode(0, cameras=[E.CAMERA])
+    ep = cache.episode(0, cameras=[HEAD_CAMERA])
     n = ep["record"]["length"]
-    frames, proprio = ep["frames"][E.CAMERA][None], ep["proprio"][None]
+    frames, proprio = ep["frames"][HEAD_CAMERA][None], ep["proprio"][None]
     truth = {"frames0": frames[:, :1], "proprio0": proprio[:, :1], "frames": frames, "proprio": proprio,
              "action": ep["action"][None, : n - 1]}
-    logged = imagine_episodes(wm_cfg.model, params, norm, cache, [0], E.CAMERA, False)["features"]
+    logged = imagine_episodes(wm_cfg.model, params, norm, cache, [0], HEAD_CAMERA, False)["features"]
     for readout in ("success", "progress"):
         want = E.read_episodes(None, "mug", logged)[readout]
         assert E._read_replay((wm_cfg, params, norm, None), "mug", truth, readout) == pytest.approx(want, abs=1e-5)

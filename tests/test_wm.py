@@ -1409,14 +1409,14 @@ def test_a_run_directory_refuses_another_configuration_naming_what_differs(tmp_p
     check_run_config(cfg, tmp_path / "data", tmp_path)  # the same run resumes
     with pytest.raises(ValueError, match=r"differs: data\)"):
         check_run_config(cfg, tmp_path / "other", tmp_path)
-    with pytest.raises(ValueError, match=r"differs: lr\)"):
+    with pytest.raises(ValueError, match=r"differs: train.lr\)"):
         check_run_config(dataclasses.replace(cfg, lr=cfg.lr * 2), tmp_path / "data", tmp_path)
     # a run written before a model setting existed resumes with that setting's default, and only with it
     saved = json.loads((tmp_path / "config.json").read_text())
     del saved["train"]["model"]["anchor"]
     (tmp_path / "config.json").write_text(json.dumps(saved))
     check_run_config(cfg, tmp_path / "data", tmp_path)
-    with pytest.raises(ValueError, match=r"differs: model\)"):
+    with pytest.raises(ValueError, match=r"differs: train.model.anchor\)"):
         check_run_config(dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, anchor=True)), tmp_path / "data",
                       tmp_path)
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 
 from sim_data.config import preset_config
+from sim_data.sim.render import HEAD_CAMERA
 from wm.imagine import FEATURE_GROUPS
 from wm.model import ModelConfig
 
@@ -85,7 +86,7 @@ class TrainConfig:
     """
 
     model: ModelConfig = ModelConfig()
-    camera: str = "head_cam"
+    camera: str = HEAD_CAMERA
     batch: int = 64
     window: int = 16
     steps: int = 20000

@@ -37,7 +37,7 @@ from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 from tqdm import tqdm
 
-from sim_data.config import preset_help
+from sim_data.config import as_json, preset_help, save_or_check
 from sim_data.dataset.cache import TrainingCache, WindowLoader, epoch_episodes
 from sim_data.util import make_output_dir, run_cli, write_json_atomic
 from wm import perceptual
@@ -588,25 +588,10 @@ def warm_after_training(cfg: TrainConfig, data: Path, norm: Norm) -> None:
 
 
 def check_run_config(cfg: TrainConfig, data: Path, out: Path) -> None:
-    """Saves the resolved configuration; refuses to resume a run of another one."""
-    path = out / "config.json"
-    mine = json.loads(json.dumps({"train": to_dict(cfg), "data": str(Path(data).absolute())}))
-    if path.exists():
-        theirs = json.loads(path.read_text())
-        theirs["train"]["max_minutes"] = cfg.max_minutes  # a safety stop does not change what is computed
-        defaults = json.loads(json.dumps(to_dict(TrainConfig())))
-        for k in mine["train"].keys() - theirs["train"].keys():  # a setting added since: the run had its default
-            theirs["train"][k] = defaults[k]
-        for k in mine["train"]["model"].keys() - theirs["train"].get("model", {}).keys():  # the same for the model
-            theirs["train"].setdefault("model", {})[k] = defaults["model"][k]
-        if theirs != mine:
-            keys = mine["train"].keys() | theirs["train"].keys()
-            differs = sorted(k for k in keys if mine["train"].get(k) != theirs["train"].get(k))
-            differs += ["data"] if mine["data"] != theirs.get("data") else []
-            raise ValueError(f"{out} holds a run of another configuration or dataset; use another OUT "
-                             f"(differs: {', '.join(differs)})")
-    else:
-        write_json_atomic(path, mine)
+    """Saves the resolved configuration; refuses to resume a run of another one or of another dataset
+    (a safety time limit aside, which changes nothing computed)."""
+    save_or_check(out / "config.json", as_json({"train": to_dict(cfg), "data": str(Path(data).absolute())}),
+                  "a run", defaults=as_json({"train": to_dict(TrainConfig())}), ignore=("train.max_minutes",))
 
 
 def main(argv=None) -> int:

@@ -35,7 +35,7 @@ from sim_data.policies.scripted import (
 from sim_data.sim import robot as R
 from sim_data.sim import rollout as RO
 from sim_data.sim.env import HomeEnv
-from sim_data.sim.render import episode_rgb
+from sim_data.sim.render import HEAD_CAMERA, episode_rgb
 from sim_data.sim.tasks import MAX_EPISODE_STEPS, PHYSICS_SUBSTEPS
 from sim_data.util import device_name, run_cli, write_json_atomic
 
@@ -57,7 +57,7 @@ def _rollout_inputs(batch: int):
     policy = ScriptOrProgramPolicy.create(MAX_EPISODE_STEPS, model=env.model)
     params = jax.tree_util.tree_map(jnp.asarray, pad_programs(script_or_program_params(
         [1.0] * batch, np.zeros((batch, 1, R.ACTION_DIM), np.float32), [False] * batch), MAX_EPISODE_STEPS))
-    renderers = cached_renderers(64, ("head_cam",))
+    renderers = cached_renderers(64, (HEAD_CAMERA,))
     rng = jax.random.PRNGKey(0)
     state = env.reset(rng)
     rgb = episode_rgb(renderers[0].geometry, state.task.colors)

@@ -39,10 +39,10 @@ from sim_data.policies.bc import BCPolicy, init_params, stacked
 from sim_data.policies.registry import group_by_policy, resolve
 from sim_data.policies.zoo import PRESETS as ZOO_PRESETS
 from sim_data.sim.engines import default_engine
+from sim_data.sim.render import HEAD_CAMERA
 from sim_data.sim.rollout import record_policies
 from sim_data.util import device_name, run_cli, with_xla_flags, write_json_atomic
 
-CAMERA = "head_cam"
 DEFAULT_FLAGS = ("--xla_gpu_deterministic_ops=false", "--xla_gpu_deterministic_ops=true")  # XLA's default, the project's
 
 
@@ -69,7 +69,7 @@ def record(task: str, states: int, engine: str, spec: str, seed: int = 0) -> dic
     (the first compiles), "names": [P]}."""
     policy, params, names = batch_policies(spec, task)
     env = cached_env(task, len(names) * states, engine, False)
-    renderers = cached_renderers(ZOO_PRESETS["full"].conv.size, (CAMERA,))
+    renderers = cached_renderers(ZOO_PRESETS["full"].conv.size, (HEAD_CAMERA,))
     reset_keys = np.stack([np.asarray(jax.random.PRNGKey(seed * 100003 + k)) for k in range(states)])
     out, seconds = [], []
     for _ in range(2):

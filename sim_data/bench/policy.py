@@ -28,10 +28,9 @@ from sim_data.policies.scripted import ProgramPolicy, program_params
 from sim_data.policies.zoo import PRESETS as ZOO_PRESETS
 from sim_data.sim import robot as R
 from sim_data.sim.engines import default_engine
+from sim_data.sim.render import HEAD_CAMERA
 from sim_data.sim.rollout import record_episodes
 from sim_data.util import device_name, run_cli, write_json_atomic
-
-CAMERA = "head_cam"
 
 
 def identity_norm() -> dict:
@@ -69,7 +68,7 @@ def _timed_act(policy: BCPolicy, params, batch: int, size: int, repeats: int = 2
 def bench(task: str, batch: int, engine: str, repeats: int = 2) -> dict:
     env = cached_env(task, batch, engine, False)
     zoo = ZOO_PRESETS["full"]
-    renderers = cached_renderers(zoo.conv.size, (CAMERA,))
+    renderers = cached_renderers(zoo.conv.size, (HEAD_CAMERA,))
     steps = env.episode_steps
     program_s = _timed_rollout(env, ProgramPolicy(steps), program_params(["reach_mug"] * batch, steps), renderers,
                                repeats)
@@ -87,7 +86,7 @@ def bench(task: str, batch: int, engine: str, repeats: int = 2) -> dict:
         print(f"{net_cfg.encoder}: rollout {policy_s:.2f} s (program {program_s:.2f} s), policy share "
               f"{rows[-1]['policy_share']:.1%}, act {1e3 * act_s:.2f} ms x {steps} steps = "
               f"{rows[-1]['act_share']:.1%}", flush=True)
-    return {"task": task, "batch": batch, "steps": steps, "engine": engine, "camera": CAMERA, "results": rows}
+    return {"task": task, "batch": batch, "steps": steps, "engine": engine, "camera": HEAD_CAMERA, "results": rows}
 
 
 def main(argv=None) -> int:

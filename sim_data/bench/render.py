@@ -28,7 +28,7 @@ import numpy as np
 from sim_data.bench.render_check import poses_of, random_states
 from sim_data.sim import scene as S
 from sim_data.sim.env import HomeEnv
-from sim_data.sim.render import Poses, RenderConfig, Renderer, episode_rgb
+from sim_data.sim.render import HEAD_CAMERA, Poses, RenderConfig, Renderer, episode_rgb
 from sim_data.sim.tasks import TASK_NAMES
 from sim_data.util import device_name, run_cli, write_json_atomic
 
@@ -104,7 +104,7 @@ VARIANTS = (
 )
 
 
-def bench_variants(model, pool_poses, colors, b: int, size: int = 64, camera: str = "head_cam") -> list:
+def bench_variants(model, pool_poses, colors, b: int, size: int = 64, camera: str = HEAD_CAMERA) -> list:
     """Each culling design at one batch size: frames/s and agreement with the un-culled frames."""
     out, ref = [], None
     for name, kw in VARIANTS:
@@ -133,7 +133,7 @@ def bench_e2e(batch: int, size: int = 64, steps: int = 100, task: str = "mug") -
             return jnp.tanh(nn.Dense(20)(nn.relu(nn.Dense(128)(x))))
 
     env = HomeEnv(task, batch, engine="mjx")
-    r = Renderer(env.model, RenderConfig(height=size, width=size, camera="head_cam"))
+    r = Renderer(env.model, RenderConfig(height=size, width=size, camera=HEAD_CAMERA))
     net = SmallCNN()
     st = env.reset(jax.random.PRNGKey(0))
     params = net.init(jax.random.PRNGKey(1), jnp.zeros((1, size, size, 3), jnp.uint8), jnp.zeros((1, 37)))

@@ -20,6 +20,7 @@ from sim_data.policies.scripted import ScriptedPolicy
 from sim_data.sim import scene as S
 from sim_data.sim.env import HomeEnv
 from sim_data.sim.render import (
+    CAMERAS,
     Poses,
     RenderConfig,
     Renderer,
@@ -31,7 +32,6 @@ from sim_data.sim.tasks import TASK_NAMES
 from sim_data.util import run_cli, write_json_atomic
 
 ID_TARGET, DEPTH_TARGET = 0.98, 0.01
-CAMERAS = ("head_cam", "ext_cam")
 
 
 def sample_states(task: str, n: int, seed: int = 0, heldout: bool = False):

@@ -31,7 +31,7 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
-from sim_data.config import preset_config, preset_help
+from sim_data.config import as_json, preset_config, preset_help, save_or_check
 from sim_data.dataset.cache import build_cache
 from sim_data.dataset.episodes import (  # noqa: F401 (re-exported)
     CorruptEpisode,
@@ -62,7 +62,7 @@ from sim_data.policies.scripted import (
 )
 from sim_data.sim.engines import ENGINES, default_engine
 from sim_data.sim.env import HomeEnv
-from sim_data.sim.render import RenderConfig, Renderer
+from sim_data.sim.render import CAMERAS, HEAD_CAMERA, RenderConfig, Renderer
 from sim_data.sim.robot import ACTION_DIM, FORWARD_SPEED
 from sim_data.sim.rollout import WARM_STEPS, record_episodes
 from sim_data.sim.scene import load_model
@@ -77,7 +77,6 @@ from sim_data.util import (
     write_json_atomic,
 )
 
-CAMERAS = ("head_cam", "ext_cam")
 SPLITS = ("train", "val", "test", "programs")
 PLAY = "play"  # the source of random play episodes (sim_data.policies.scripted.play_program)
 WEAK_GRIP = "weak_grip"  # the source of scripted episodes whose hand closes only part-way (DataConfig.weak_grip)
@@ -185,7 +184,7 @@ PRESETS = {
     # image-only lineages learn the mug (docs/results.md, the demo zoo); 16 drives a task, without which
     # the judge reads backing away, on either task, as a success (docs/world-model.md)
     "demo": DataConfig(tasks=("mug", "step_back"), skills=(0.3, 1.0), episodes=24, batch=8, programs=1, play=8,
-                       drive=16, cameras=("head_cam",), test_frac=0.25),
+                       drive=16, cameras=(HEAD_CAMERA,), test_frac=0.25),
     "full": DataConfig(skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=600, batch=1200, workers=12, programs=32),
     # the world model's and the zoo's GPU set: three tasks, a spread of skills (1.0 for the zoo's
     # demonstrations, 0.5 and 0.75 for its low-skill lineage), random play, the controllability programs,
@@ -195,11 +194,11 @@ PRESETS = {
     # size, so that the programs that do not depend on the policy compile once; an H200 simulates 960
     # scripted rows a step in about 1.2 times the time of 480 (docs/benchmarks.md)
     "wm_full": DataConfig(tasks=("mug", "wipe", "airfryer"), skills=(0.0, 0.5, 0.75, 1.0), episodes=240, batch=960,
-                          cameras=("head_cam",), workers=14, programs=32, play=240),
+                          cameras=(HEAD_CAMERA,), workers=14, programs=32, play=240),
     # wm_full with 112 weak-grip episodes a task, in the rows of its program and play chunk (480 of
     # 960): the `full_grip` pipeline's world-model data
     "wm_full_grip": DataConfig(tasks=("mug", "wipe", "airfryer"), skills=(0.0, 0.5, 0.75, 1.0), episodes=240,
-                               batch=960, cameras=("head_cam",), workers=14, programs=32, play=240, weak_grip=112),
+                               batch=960, cameras=(HEAD_CAMERA,), workers=14, programs=32, play=240, weak_grip=112),
     "heldout_plant": DataConfig(heldout=True, episodes=100, batch=600, workers=12),
     "shelf": DataConfig(tasks=("shelf",), skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=600, batch=1200, workers=12),
     "shelf_arcade": DataConfig(tasks=("shelf", "arcade"), skills=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0), episodes=300,
@@ -723,16 +722,7 @@ def _drain(pending, bar, wait_all: bool):
 
 def _check_config_matches(cfg: DataConfig, out: Path) -> None:
     """Saves the resolved config on first use; refuses to mix a different one into the same directory."""
-    path = out / "config.json"
-    mine = dataclasses.asdict(cfg)
-    mine = json.loads(json.dumps(mine))
-    if path.exists():
-        theirs = json.loads(path.read_text())
-        if theirs != mine:
-            diff = {k: (theirs.get(k), v) for k, v in mine.items() if theirs.get(k) != v}
-            raise ValueError(f"{out} holds a dataset of another configuration (differs in {diff}); use another OUT")
-    else:
-        write_json_atomic(path, mine)
+    save_or_check(out / "config.json", as_json(cfg), "a dataset", defaults=as_json(DataConfig()))
 
 
 def build_manifest(cfg: DataConfig, out: Path, learned=()) -> list:

@@ -38,6 +38,7 @@ import pyarrow.parquet as pq
 from tqdm import tqdm
 
 from sim_data.dataset.episodes import CONTROL_DT, read_episode, read_episode_meta
+from sim_data.sim.render import HEAD_CAMERA
 from sim_data.sim.robot import ACTION_NAMES, PROPRIO_NAMES
 from sim_data.sim.tasks import TASK_TEXT
 from sim_data.util import run_cli
@@ -45,8 +46,7 @@ from sim_data.video import CODEC, PIX_FMT, Mp4Writer
 
 CODEBASE_VERSION = "v3.0"
 FPS = round(1 / CONTROL_DT)
-CAMERA = "head_cam"
-VIDEO_KEY = f"observation.images.{CAMERA}"
+VIDEO_KEY = f"observation.images.{HEAD_CAMERA}"
 SPLIT_ORDER = ("train", "val", "test", "programs")
 # LeRobot's defaults (lerobot.datasets.utils): files per chunk directory, and the size at which a
 # data or video file is closed and the next one begun
@@ -113,8 +113,8 @@ def read_manifest(data: Path) -> list[dict]:
 def check_cameras(data: Path, rows: list[dict]) -> None:
     """Raises ValueError naming the first episode recorded without the head camera."""
     for r in rows:
-        if CAMERA not in read_episode_meta(Path(data) / r["file"]).get("cameras", []):
-            raise ValueError(f"{Path(data) / r['file']}: recorded without the {CAMERA} camera, which the export needs")
+        if HEAD_CAMERA not in read_episode_meta(Path(data) / r["file"]).get("cameras", []):
+            raise ValueError(f"{Path(data) / r['file']}: recorded without the {HEAD_CAMERA} camera, which the export needs")
 
 
 def _check_out(out: Path, overwrite: bool) -> None:
@@ -330,11 +330,11 @@ def _write(data: Path, tmp: Path, rows: list[dict], progress: bool) -> dict:
     records, per_episode, total, size = [], [], 0, None
     try:
         for i, row in enumerate(tqdm(rows, desc="export", unit="ep", disable=not progress)):
-            ep = read_episode(data / row["file"], cameras=(CAMERA,), sim_state=False)
+            ep = read_episode(data / row["file"], cameras=(HEAD_CAMERA,), sim_state=False)
             task = TASK_TEXT[row["task"]]
             table = frame_table(ep, i, total, tasks.index(task))
             n = table.num_rows
-            frames = ep["frames"][CAMERA][:n]
+            frames = ep["frames"][HEAD_CAMERA][:n]
             size = size or frames.shape[1:3]
             chunk, file = data_files.write(table)
             stats = episode_stats(table, frames)

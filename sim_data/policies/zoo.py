@@ -42,7 +42,7 @@ import numpy as np
 import optax
 from tqdm import tqdm
 
-from sim_data.config import preset_config, preset_help
+from sim_data.config import as_json, preset_config, preset_help, save_or_check
 from sim_data.dataset.cache import TrainingCache
 from sim_data.dataset.generate import cached_env, cached_renderers
 from sim_data.parts import add_part_argument, config_and_part, take
@@ -65,10 +65,9 @@ from sim_data.policies.registry import (
     used_seeds,
 )
 from sim_data.sim.engines import default_engine
+from sim_data.sim.render import HEAD_CAMERA
 from sim_data.sim.rollout import record_policies
 from sim_data.util import make_output_dir, run_cli, wilson_interval, write_json_atomic
-
-CAMERA = "head_cam"
 
 
 def joins(tasks: tuple, task: str) -> bool:
@@ -255,10 +254,10 @@ def load_samples(cache: TrainingCache, episodes: list[int], chunk: int) -> dict:
     """
     parts = {k: [] for k in ("image", "proprio", "t", "target", "mask")}
     for i in episodes:
-        ep = cache.episode(i, cameras=[CAMERA])
+        ep = cache.episode(i, cameras=[HEAD_CAMERA])
         n = ep["record"]["length"] - 1  # frames that are followed by an action
         idx = np.arange(n)[:, None] + np.arange(chunk)[None]
-        parts["image"].append(ep["frames"][CAMERA][:n])
+        parts["image"].append(ep["frames"][HEAD_CAMERA][:n])
         parts["proprio"].append(ep["proprio"][:n])
         parts["t"].append(np.arange(n, dtype=np.int32))
         parts["target"].append(ep["action"][np.minimum(idx, n - 1)])
@@ -499,8 +498,8 @@ def train_zoo(cfg: ZooConfig, data: Path, out: Path, progress: bool = True,
     make_output_dir(out)
     _check_config(cfg, data, out)
     cache = TrainingCache(data)
-    if CAMERA not in cache.cameras:
-        raise ValueError(f"the policies see {CAMERA}, which the dataset's cache lacks ({cache.cameras})")
+    if HEAD_CAMERA not in cache.cameras:
+        raise ValueError(f"the policies see {HEAD_CAMERA}, which the dataset's cache lacks ({cache.cameras})")
     missing = [t for t in cfg.tasks if t not in cache.tasks]
     if missing:
         raise ValueError(f"tasks {missing} are not in the dataset {data} (it has {cache.tasks})")
@@ -556,18 +555,9 @@ def family_records(cfg: ZooConfig, registry: list[dict]) -> list[dict]:
 
 
 def _check_config(cfg: ZooConfig, data: Path, out: Path) -> None:
-    mine = json.loads(json.dumps({"data": str(Path(data)), "config": dataclasses.asdict(cfg)}))
-    path = out / "config.json"
-    if path.exists():
-        theirs = json.loads(path.read_text())
-        # a setting added since that zoo was trained counts as its default there
-        defaults = json.loads(json.dumps(dataclasses.asdict(ZooConfig())))
-        theirs["config"] = {**{k: v for k, v in defaults.items() if k not in theirs.get("config", {})},
-                            **theirs.get("config", {})}
-        if theirs != mine:
-            raise ValueError(f"{out} holds a zoo of another configuration or dataset; use another OUT")
-    else:
-        write_json_atomic(path, mine)
+    """Saves the zoo's configuration and dataset on first use; refuses to resume a zoo of others."""
+    save_or_check(out / "config.json", as_json({"data": str(Path(data)), "config": cfg}), "a zoo",
+                  defaults=as_json({"config": ZooConfig()}))
 
 
 # ---- the registry ---------------------------------------------------------------------------------
@@ -593,7 +583,7 @@ def measure_success(out: Path, episodes: int, seed: int = 0, engine: str = "", b
         bar = tqdm(total=len(task_sources) * episodes, desc=f"measure {task}", unit="ep", disable=not progress)
         for part, padded in (p for g in group_by_policy(task_sources) for p in padded_chunks(g, episodes, batch)):
             env = cached_env(task, len(padded) * episodes, engine, False)
-            renderers = cached_renderers(part[0].policy.cfg.size, ("head_cam",))
+            renderers = cached_renderers(part[0].policy.cfg.size, (HEAD_CAMERA,))
             outcome, _ = record_policies(env, *stacked_sources(padded), keys, jax.random.PRNGKey(seed), renderers)
             for j, src in enumerate(part):
                 n_ok = int(outcome[j].sum())

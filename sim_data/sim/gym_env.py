@@ -47,12 +47,11 @@ from gymnasium.vector.utils import batch_space
 
 from sim_data.sim import robot as R
 from sim_data.sim.env import HomeEnv, State
-from sim_data.sim.render import RenderConfig, Renderer, episode_rgb
+from sim_data.sim.render import HEAD_CAMERA, RenderConfig, Renderer, episode_rgb
 from sim_data.sim.tasks import MAX_EPISODE_STEPS, TASK_NAMES, get_task
 
 ENV_ID = "WMLab/HomeHumanoid-v0"
 OBS_MODES = ("dict", "proprio")
-IMAGE_CAMERA = "head_cam"
 IMAGE_SIZE = 64  # the dataset's and the policies' head-camera frames
 RENDER_TILE = 16
 SEED_LIMIT = 2**32  # jax.random.PRNGKey keeps a seed's low 32 bits only: larger seeds would collide
@@ -123,7 +122,7 @@ class _Batch:
             self.observation_space = gym.spaces.Dict({"image": image, "proprio": proprio})
         else:
             self.observation_space = proprio
-        head = RenderConfig(camera=IMAGE_CAMERA, height=IMAGE_SIZE, width=IMAGE_SIZE)
+        head = RenderConfig(camera=HEAD_CAMERA, height=IMAGE_SIZE, width=IMAGE_SIZE)
         self._frames = {"head": _frames_of(env.model, head), "view": _frames_of(env.model, _render_config(camera, height, width))}
 
     def env(self) -> HomeEnv:

@@ -38,6 +38,9 @@ _INF = jnp.inf
 _FAR = 1e30  # "no hit" where a finite value is needed
 _EPS = 1e-9
 
+HEAD_CAMERA = "head_cam"  # on the robot's neck: what the policies and the world model see
+CAMERAS = (HEAD_CAMERA, "ext_cam")  # every camera of the scene (assets/home.xml)
+
 
 @dataclasses.dataclass(frozen=True)
 class RenderConfig:
@@ -53,7 +56,7 @@ class RenderConfig:
 
     height: int = 64
     width: int = 64
-    camera: str = "head_cam"
+    camera: str = HEAD_CAMERA
     shadows: bool = True
     tile: int = 16
     max_per_tile: int = 24
