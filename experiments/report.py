@@ -672,6 +672,11 @@ def _ab_verdicts_html(verd: list[dict]) -> list[str]:
     return h + [_html_table(vrows)]
 
 
+def _video_div(src: str, label: str) -> str:
+    """One animated real-against-imagined pair (a data URI) with its label."""
+    return f"<div class='vid'><img class='anim' src='{src}'><br>{html.escape(label)}</div>"
+
+
 def _videos_html(run: Path, res: dict, videos: dict, mp4: list[tuple[str, str]]) -> list[str]:
     """The report's real-against-imagined episodes and controllability panel, as HTML (animated images)."""
     h = ["<h2>Real (left) and imagined (right) episodes</h2>"]
@@ -686,14 +691,13 @@ def _videos_html(run: Path, res: dict, videos: dict, mp4: list[tuple[str, str]])
         key = v["key"]
         label = (f"{v['policy']} ep {v['episode']}: truly {'success' if v['true_success'] else 'failure'}, "
                  f"predicted {_fmt(v['pred_prob'], 2)}")
-        h.append(f"<div class='vid'><img class='anim' src='{animation(videos[key + '/real'], videos[key + '/imagined'])}'><br>"
-                 f"{html.escape(label)}</div>")
+        h.append(_video_div(animation(videos[key + "/real"], videos[key + "/imagined"]), label))
     panel = {k.split("/")[1]: None for k in videos if k.startswith("controllability/")}
     if panel:
         panel = {p: {kind: videos[f"controllability/{p}/{kind}"] for kind in ("real", "imagined")} for p in panel}
         h += ["<h2>Controllability: one start, four action programs</h2>", f"<img src='{strip_figure(panel)}'>"]
         for p, v in sorted(panel.items()):
-            h.append(f"<div class='vid'><img class='anim' src='{animation(v['real'], v['imagined'])}'><br>{html.escape(p)}</div>")
+            h.append(_video_div(animation(v["real"], v["imagined"]), p))
     return h
 
 

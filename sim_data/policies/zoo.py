@@ -265,9 +265,12 @@ def load_samples(cache: TrainingCache, episodes: list[int], chunk: int) -> dict:
     return {k: np.concatenate(v) for k, v in parts.items()}
 
 
-def compute_norm(samples: dict) -> dict:
+def demonstration_norm(samples: dict) -> dict:
+    """A policy's input and output normalisation from its demonstrations: samples {"proprio": (N, 37),
+    "target": (N, chunk, 20)} -> {"proprio_mean", "proprio_std": (37,), "action_mean", "action_std": (20,)},
+    over each sample's first target action; the stds floored, so that dimensions (nearly) constant in the
+    demonstrations do not amplify small deviations (the world model's normalisation: wm.train.compute_norm)."""
     a = samples["target"][:, 0]
-    # floors: dimensions (nearly) constant in the demonstrations must not amplify small deviations
     return {"proprio_mean": samples["proprio"].mean(0), "proprio_std": np.maximum(samples["proprio"].std(0), 0.05),
             "action_mean": a.mean(0), "action_std": np.maximum(a.std(0), 0.02)}
 
@@ -399,7 +402,7 @@ def train_lineage(cfg: ZooConfig, cache: TrainingCache, job: _Job, out: Path, va
     their registry records. val: the samples of its task's validation set."""
     net = cfg.net(job.lineage)
     samples = load_samples(cache, list(job.episodes), net.chunk)
-    params = init_params(net, jax.random.PRNGKey(job.seed), compute_norm(samples), job.lineage.proprio)
+    params = init_params(net, jax.random.PRNGKey(job.seed), demonstration_norm(samples), job.lineage.proprio)
     opt = optax.adamw(optax.cosine_decay_schedule(cfg.lr, cfg.steps, alpha=0.05), weight_decay=cfg.weight_decay)
     opt_state = jax.jit(opt.init)(params["net"])  # one program, not an eager zeros per parameter shape
     step_fn = jax.jit(_step_fn(net, opt, cfg.shift))
@@ -453,9 +456,9 @@ def train_group(cfg: ZooConfig, cache: TrainingCache, jobs: list[_Job], out: Pat
         vrng = np.random.default_rng(7)
         val_idx[t] = np.stack([r[_batch_rows(len(r), cfg.batch, vrng)] for _ in range(cfg.val_batches)])
     val_idx = jnp.asarray(np.stack([val_idx[j.task] for j in jobs]))
-    params = stack_params([init_params(net, jax.random.PRNGKey(j.seed),
-                                       compute_norm({k: v[r] for k, v in pool.items() if k in ("proprio", "target")}),
-                                       j.lineage.proprio) for j, r in zip(jobs, rows, strict=True)])
+    norms = [demonstration_norm({k: pool[k][r] for k in ("proprio", "target")}) for r in rows]
+    params = stack_params([init_params(net, jax.random.PRNGKey(j.seed), norm, j.lineage.proprio)
+                           for j, norm in zip(jobs, norms, strict=True)])
     opt = optax.adamw(optax.cosine_decay_schedule(cfg.lr, cfg.steps, alpha=0.05), weight_decay=cfg.weight_decay)
     opt_state = jax.jit(jax.vmap(opt.init))(params["net"])
     step_fn = _make_group_step(net, opt, cfg.shift, sequential=net.encoder in cfg.sequential)
