@@ -52,7 +52,7 @@ BASE = "recipe"
 
 
 @dataclasses.dataclass(frozen=True)
-class Job:
+class DesignRun:
     """One run: a world model trained (`wm.train` preset `config` on `data` with `settings`) into wm,
     evaluated with eval_argv into eval."""
 
@@ -71,7 +71,7 @@ class Job:
 
 
 def plan(preset: str, name: str, overrides=(), seeds: int = 2, steps: int = 4000, design_steps: int | None = None,
-         episodes: int = 50, root: Path | None = None) -> list[Job]:
+         episodes: int = 50, root: Path | None = None) -> list[DesignRun]:
     """The runs of a design decision, the design's first: for each seed k < seeds, the preset's
     recipe (`steps` steps) and the recipe with `overrides` (`design_steps`, default `steps`); root
     (default runs/designs/PRESET) holds them as the module's docstring says."""
@@ -93,7 +93,7 @@ def plan(preset: str, name: str, overrides=(), seeds: int = 2, steps: int = 4000
     for design, n, extra in ((name, design_steps or steps, tuple(overrides)), (BASE, steps, ())):
         for k in range(seeds):
             run = root / design / f"{n}steps_s{k}"
-            jobs.append(Job(design, k, run / "wm", run / f"eval_e{episodes}", p.train, d["wm_data"],
+            jobs.append(DesignRun(design, k, run / "wm", run / f"eval_e{episodes}", p.train, d["wm_data"],
                             (*p.train_overrides, f"seed={k}", f"steps={n}", "max_minutes=0", *extra),
                             ("--config", p.eval, "--out", str(run / f"eval_e{episodes}"), f"policies={d['policies']}",
                              f"wm={run / 'wm'}", f"episodes={episodes}", "max_minutes=0", *p.eval_overrides,
@@ -112,7 +112,7 @@ def check_inputs(preset: str) -> None:
                              "(and the stages before it) first")
 
 
-def check_trained_as_planned(job: Job) -> None:
+def check_trained_as_planned(job: DesignRun) -> None:
     """Raises SystemExit where the run's directory holds a model trained with other settings or data
     than the job's (the same name given other settings, or other steps)."""
     try:
@@ -121,7 +121,7 @@ def check_trained_as_planned(job: Job) -> None:
         raise SystemExit(f"{e}: name the design anew, or remove {job.wm.parent}") from None
 
 
-def run_job(job: Job) -> None:
+def run_job(job: DesignRun) -> None:
     """Trains (unless its eval.json says it is trained, with the job's settings) and evaluates (unless
     results.json exists from this model) one run, under a lock on its directory (two commands may share
     the recipe's runs), each command's wall and compile seconds appended to the run's timing.json."""
@@ -147,7 +147,7 @@ HELD_OUT = ("psnr_h8", "gain_over_copy_last_h8_db", "lpips_h8", "success_auroc",
             "success_follows_actions")
 
 
-def held_out_table(jobs: list[Job]) -> tuple[dict, str]:
+def held_out_table(jobs: list[DesignRun]) -> tuple[dict, str]:
     """Each run's held-out figures (its eval.json summary, HELD_OUT) and a markdown table of them, a row
     per run and per design's mean."""
     rows = {f"{j.design}_s{j.seed}": json.loads((j.wm / "eval.json").read_text()).get("summary", {}) for j in jobs}
@@ -172,7 +172,7 @@ def runs_timing_markdown(timing: dict) -> str:
     return "\n".join(lines)
 
 
-def write_comparison(jobs: list[Job], out: Path, draws: int = 1000) -> dict:
+def write_comparison(jobs: list[DesignRun], out: Path, draws: int = 1000) -> dict:
     """compare.json, compare.md and compare.png in out from the finished runs' evaluations: the ranking
     within each task (experiments.compare) and each run's held-out figures."""
     name = jobs[0].design

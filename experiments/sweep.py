@@ -52,7 +52,6 @@ import functools
 import json
 import math
 import os
-import shutil
 import subprocess
 import sys
 import threading
@@ -64,6 +63,7 @@ from matplotlib.figure import Figure
 
 from experiments import ensemble
 from experiments import stats as S
+from sim_data.parts import local_gpus
 from sim_data.util import run_cli, write_json_atomic
 
 # eval.json figures compared across runs: (name in results.json, path in eval.json)
@@ -217,22 +217,6 @@ SWEEPS = {
 
 
 # ---- running ---------------------------------------------------------------------------------------
-
-def gpu_count() -> int:
-    """GPUs on this host (0 without nvidia-smi), without initialising JAX in this process."""
-    if shutil.which("nvidia-smi") is None:
-        return 0
-    out = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True, check=False).stdout
-    return sum(line.startswith("GPU ") for line in out.splitlines())
-
-
-def gpu_ids() -> list:
-    """The GPUs the jobs are spread over, one job per GPU: CUDA_VISIBLE_DEVICES's where it is set,
-    else every GPU of the host; [None] (one job at a time, devices left as they are) without GPUs."""
-    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
-    ids = [v.strip() for v in visible.split(",") if v.strip()] if visible is not None else range(gpu_count())
-    return list(ids) or [None]
-
 
 @dataclasses.dataclass(frozen=True)
 class Job:
@@ -543,7 +527,7 @@ def collect_sweeps(names: list, size_name: str, out: Path) -> dict:
 
 
 def run_sweeps(names: list, size_name: str, out: Path, root: Path = Path("runs")) -> dict:
-    """Runs the named sweeps as one pool of jobs over the GPUs (gpu_ids): the datasets, the zoo and
+    """Runs the named sweeps as one pool of jobs over the GPUs (sim_data.parts.local_gpus): the datasets, the zoo and
     every run's steps, each starting once what it needs is there, earlier sweeps first: one sweep
     into `out`, several into out/<name>. Returns name -> results."""
     plans, size = plans_of(names, size_name, out), SIZES[size_name]
@@ -554,7 +538,7 @@ def run_sweeps(names: list, size_name: str, out: Path, root: Path = Path("runs")
                            zoo_needed=any(p.name in RANKED for p in plans))
     t0 = time.perf_counter()
     jobs = in_sweep_order(jobs, [run_jobs(plan, data, root, t0) for plan in plans])
-    gpus = gpu_ids()
+    gpus = local_gpus() or [None]  # without GPUs: one job at a time, devices left as they are
     print(f"{len(jobs)} jobs, {len(gpus)} at a time", flush=True)
     done = on_gpus(jobs, gpus)
     failed = [name for name, ok in done.items() if not ok]
