@@ -82,7 +82,7 @@ from sim_data.policies.scripted import ProgramPolicy
 from sim_data.sim import robot as R
 from sim_data.sim.engines import ENGINES, PHYSICS_REVISION, default_engine
 from sim_data.sim.render import HEAD_CAMERA
-from sim_data.sim.rollout import SEGMENT, WARM_STEPS, record_policies  # noqa: F401 (SEGMENT re-exported)
+from sim_data.sim.rollout import WARM_STEPS, record_policies
 from sim_data.sim.tasks import TASK_NAMES
 from sim_data.util import device_name, hash_arrays, make_output_dir, run_cli, wait_for_files, write_json_atomic
 from wm.checkpoint import (

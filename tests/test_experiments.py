@@ -21,6 +21,7 @@ from sim_data.parts import exclusive
 from sim_data.policies.bc import MixedPolicy, StackedPolicy, stacked
 from sim_data.policies.registry import resolve
 from sim_data.sim.render import HEAD_CAMERA, RenderConfig, Renderer, episode_rgb
+from sim_data.sim.rollout import SEGMENT
 from wm.checkpoint import trained_tasks
 from wm.judge import load_judge
 from wm.metrics import psnr
@@ -683,12 +684,12 @@ def test_a_step_limit_records_the_first_segments_of_the_same_episodes():
     keys = np.stack([np.asarray(jax.random.PRNGKey(s)) for s in (11, 12)])
     env = E.cached_env("step_back", 2, "cpu", False)
     _, whole = E.record_policies(env, *stacked(policy, [params]), keys, jax.random.PRNGKey(0))
-    _, first = E.record_policies(env, *stacked(policy, [params]), keys, jax.random.PRNGKey(0), steps=E.SEGMENT)
-    assert first.action.shape[1] == E.SEGMENT and first.proprio.shape[1] == E.SEGMENT + 1
-    np.testing.assert_array_equal(np.asarray(first.action), np.asarray(whole.action)[:, :E.SEGMENT])
-    np.testing.assert_array_equal(np.asarray(first.proprio), np.asarray(whole.proprio)[:, :E.SEGMENT + 1])
-    for bad in (E.SEGMENT + 1, env.episode_steps + E.SEGMENT, 0):
-        with pytest.raises(ValueError, match=f"multiple of {E.SEGMENT}"):
+    _, first = E.record_policies(env, *stacked(policy, [params]), keys, jax.random.PRNGKey(0), steps=SEGMENT)
+    assert first.action.shape[1] == SEGMENT and first.proprio.shape[1] == SEGMENT + 1
+    np.testing.assert_array_equal(np.asarray(first.action), np.asarray(whole.action)[:, :SEGMENT])
+    np.testing.assert_array_equal(np.asarray(first.proprio), np.asarray(whole.proprio)[:, :SEGMENT + 1])
+    for bad in (SEGMENT + 1, env.episode_steps + SEGMENT, 0):
+        with pytest.raises(ValueError, match=f"multiple of {SEGMENT}"):
             E.record_policies(env, *stacked(policy, [params]), keys, jax.random.PRNGKey(0), steps=bad)
 
 

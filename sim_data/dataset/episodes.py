@@ -40,8 +40,8 @@ from mcap.writer import CompressionType, Writer
 from sim_data.dataset import foxglove
 from sim_data.sim.robot import ACTION_NAMES, PROPRIO_NAMES
 from sim_data.sim.scene import load_model
+from sim_data.sim.tasks import CONTROL_DT
 
-CONTROL_DT = 0.05  # s; equals sim_data.sim.tasks.CONTROL_DT (kept here so readers need no JAX)
 EPOCH_NS = 1_767_225_600 * 10**9  # 2026-01-01T00:00:00Z: the log time of every episode's first step
 IMAGE_SCHEMA = {
     "title": "foxglove.CompressedImage", "type": "object",

@@ -37,10 +37,10 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from tqdm import tqdm
 
-from sim_data.dataset.episodes import CONTROL_DT, read_episode, read_episode_meta
+from sim_data.dataset.episodes import read_episode, read_episode_meta
 from sim_data.sim.render import HEAD_CAMERA
 from sim_data.sim.robot import ACTION_NAMES, PROPRIO_NAMES
-from sim_data.sim.tasks import TASK_TEXT
+from sim_data.sim.tasks import CONTROL_DT, TASK_TEXT
 from sim_data.util import run_cli
 from sim_data.video import CODEC, PIX_FMT, Mp4Writer
 
