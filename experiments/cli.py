@@ -40,6 +40,7 @@ COMMANDS = {
 
 
 def usage() -> str:
+    """The help text of `wmlab`: the module doc and one line per subcommand, with what it does and its module."""
     width = max(map(len, COMMANDS))
     lines = [__doc__.strip(), "", "commands:"]
     lines += [f"  {name:<{width}}  {what}  ({module})" for name, (module, what) in COMMANDS.items()]

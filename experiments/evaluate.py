@@ -200,6 +200,9 @@ class EvalConfig:
     imagine: str = ""
 
     def validate(self) -> None:
+        """Raises ValueError where a setting is missing or out of range: no policies or world model, too few
+        episodes, a state_batch that does not divide them, an unknown engine, read-out, task or imagine mode,
+        a threshold outside (0, 1), truth_cache with videos, or a world model named twice."""
         if not self.policies:
             raise ValueError("name at least one policy spec (policies=runs/policies/demo,...)")
         if not self.wm:
@@ -244,6 +247,7 @@ PRESETS = {
 
 
 def make_config(preset: str, overrides=()) -> EvalConfig:
+    """The named preset of PRESETS with dotted `key=value` overrides applied, validated."""
     return preset_config(PRESETS, preset, overrides)
 
 
@@ -748,6 +752,11 @@ def largest_action_gap(dims) -> dict | None:
 
 
 def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) -> list[dict]:
+    """One report row per policy of task from its results (evaluate_task's dict; sources_by_name: the sources by
+    name, for their records and kinds): the true rate and predicted rate with their intervals, the thresholded
+    prediction, alignment, each read-out's rate, the rates read on the simulated and replayed episodes, mean
+    progress curves, the action gap, and the per-episode outcomes and probabilities; with an ensemble, each
+    member's predicted rate ("pred_rates")."""
     rows = []
     members = res["prob_members"].transpose(1, 0, 2)  # (P, K, N)
     readouts = np.stack([res[k] for k in READOUT_KEYS], axis=1)  # (P, R, N)

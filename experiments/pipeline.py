@@ -140,6 +140,9 @@ class Pipeline:
     eval_overrides: tuple = ()
 
     def dirs(self, name: str) -> dict:
+        """Where the stages of a pipeline run called name read and write, under root: {"data", "policies", "wm" (the
+        first member's run), "members" (every member's run), "bundles", "eval", "wm_data" (the world model's data:
+        the dataset with the rollouts added where there are rollouts, else the dataset)}."""
         r = Path(self.root)
         data = r / "data" / self.data
         wm = member_runs(r / "wm", name, self.members)

@@ -147,6 +147,9 @@ def rank_figure(policies: list[dict], tasks: list[str]) -> str:
 
 
 def decision_figure(decision: dict) -> str:
+    """The decision analysis (experiments.evaluate.decision_analysis's dict) as a PNG data URI: per true gap, the
+    chance of picking the truly better policy against episodes per policy, the binomial model's curve and the
+    resampled pairs' points."""
     fig, ax = _subplots(figsize=(5.5, 3.8))
     eps = decision["episodes"]
     for i, (g, curve) in enumerate(decision["model"].items()):
@@ -326,6 +329,7 @@ def unlearned_warning(res: dict) -> str:
 
 
 def md_table(rows) -> str:
+    """A Markdown table of rows of strings, the first row the header; "|" in a cell is escaped."""
     cell = lambda c: c.replace("|", "\\|")  # a policy's name may hold one
     lines = ["| " + " | ".join(map(cell, rows[0])) + " |", "|" + "---|" * len(rows[0])]
     lines += ["| " + " | ".join(map(cell, r)) + " |" for r in rows[1:]]
@@ -425,6 +429,8 @@ def per_task_table(res: dict, key: str = "within_task") -> list[list[str]]:
 
 
 def selection_table(sel: dict) -> list[list[str]]:
+    """The checkpoint selection (experiments.stats.checkpoint_selection's dict) as rows of strings, a header first:
+    per task and lineage, the step the world model picks, the truly best step, their true rates and the regret."""
     rows = [["task", "lineage", "world model picks step", "truly best step", "true rate of the pick",
              "best true rate", "regret", "picks the best"]]
     for x in sel["lineages"]:

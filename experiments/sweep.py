@@ -171,6 +171,7 @@ SIZES = {
 
 
 def data_scaling(size: Size) -> list[SweepRun]:
+    """Runs on the base dataset trained on 1/8, 1/4, 1/2 and all of its training episodes (x: the share), per seed."""
     return [SweepRun(f, s, "base", (f"train_fraction={f}", f"seed={s}"))
             for f in (0.125, 0.25, 0.5, 1.0) for s in range(size.seeds)]
 
@@ -185,23 +186,32 @@ def _task_sets(size: Size, data: str, sets: dict, evaluated: str) -> list[SweepR
 
 
 def task_scaling(size: Size) -> list[SweepRun]:
+    """Runs trained on 1, 2 and 4 tasks of the tasks4 dataset, mug always among them (x: the number of tasks),
+    each evaluated on mug, per seed."""
     return _task_sets(size, "tasks4", TASK_SETS_FULL if size.train == "full" else TASK_SETS, "mug")
 
 
 def transfer(size: Size) -> list[SweepRun]:
+    """Runs trained on shelf alone (x=1) and on shelf and arcade (x=2), each evaluated on shelf, per seed."""
     return _task_sets(size, "shelf_arcade", {1: "shelf", 2: "shelf,arcade"}, "shelf")
 
 
 def airfryer_transfer(size: Size) -> list[SweepRun]:
+    """Runs trained on mug alone (x=0) and on the air fryer and mug (x=1), each evaluated on the air fryer, per
+    seed."""
     return _task_sets(size, "airfryer_mug", {0: "mug", 1: "airfryer,mug"}, "airfryer")
 
 
 def held_out_object(size: Size) -> list[SweepRun]:
+    """Per seed, a run trained on the base dataset and evaluated on its own test scenes (x=0), and one evaluating
+    that run's model on the heldout dataset's scenes with the unseen plant (x=1)."""
     seen = [SweepRun(0.0, s, "base", (f"seed={s}",)) for s in range(size.seeds)]
     return seen + [SweepRun(1.0, r.seed, "base", r.overrides, eval_data="heldout", model_of=r.name) for r in seen]
 
 
 def autonomous_rollouts(size: Size) -> list[SweepRun]:
+    """Runs trained on the base dataset's scripted demonstrations (x=0) and on the mixed dataset, about half of
+    it the zoo's rollouts (x=0.5), both evaluated on the mixed dataset, per seed."""
     return [SweepRun(x, s, data, (f"seed={s}",), eval_data="mixed")
             for x, data in ((0.0, "base"), (0.5, "mixed")) for s in range(size.seeds)]
 
@@ -434,6 +444,9 @@ def train_only(plan: Plan, run: SweepRun, data: dict, gpu) -> bool:
 
 
 def train_and_evaluate(plan: Plan, run: SweepRun, data: dict, t0: float, gpu) -> bool:
+    """A run's job on gpu: unless its eval.json is there, trains it (evaluated as it trains) or, for a run judged
+    apart, evaluates its model (trained by the run's ":train" job or model_of's) on its evaluation dataset;
+    then rewrites the sweep's results. True on success; t0 times the progress message."""
     d, log = plan.out / run.name, plan.out / run.name / "train.log"
     d.mkdir(parents=True, exist_ok=True)
     if not (d / "eval.json").exists():
@@ -450,6 +463,8 @@ def train_and_evaluate(plan: Plan, run: SweepRun, data: dict, t0: float, gpu) ->
 
 
 def measure_body(plan: Plan, run: SweepRun, data: dict, gpu) -> bool:
+    """Measures the run's model with experiments.body_in_place on its evaluation dataset into <run>/BODY_FILE on
+    gpu unless it is there, then rewrites the sweep's results; True on success."""
     d = plan.out / run.name
     if not (d / BODY_FILE).exists():
         rc = _subprocess(["-m", "experiments.body_in_place", "--wm", str(plan.out / run.model_run),
@@ -462,6 +477,9 @@ def measure_body(plan: Plan, run: SweepRun, data: dict, gpu) -> bool:
 
 
 def rank(plan: Plan, run: SweepRun, root: Path, t0: float, gpu) -> bool:
+    """Ranks the zoo's policies (root/policies/<zoo preset>) on the sweep's ranked task with the run's model
+    (experiments.evaluate into <run>/RANK_DIR, the simulator's side cached under root/cache/truth) on gpu unless
+    done, then rewrites the sweep's results; True on success; t0 times the progress message."""
     d = plan.out / run.name
     if not (d / RANK_DIR / "results.json").exists():
         rc = rank_run(plan.out / run.model_run, root / "policies" / plan.size.zoo, RANKED[plan.name],
@@ -624,6 +642,8 @@ def finding(name: str, x_label: str, per_x: list[dict]) -> str:
 
 
 def plot(results: dict, path: Path, log_x: bool) -> None:
+    """Writes the sweep's figure to path: one panel per metric with any value, each run's figure as a grey dot,
+    the per-value mean with its interval, and the seeds' ensemble where there is one; log_x: x on a log2 scale."""
     per_x = results["per_x"]
     shown = [m for m, _ in METRICS if any(e[m] is not None for e in per_x)] or [METRICS[0][0]]
     cols = min(5, len(shown))

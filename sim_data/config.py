@@ -11,6 +11,9 @@ from sim_data.util import write_json_atomic
 
 
 def parse_value(current, text: str, name: str):
+    """text parsed to the type of the setting's current value: a comma list for a tuple (each item of the type of
+    its first element, str if empty), true/false/1/0 for a bool, else the type's constructor; raises ValueError
+    naming the setting `name` where it does not parse."""
     kind = type(current)
     if kind is tuple:
         items = [x for x in text.split(",") if x]

@@ -40,6 +40,7 @@ RUN_FILES = ("config.json", "norm.json", "train_status.json", "eval.json", "judg
 
 
 def is_bundle(out: Path) -> bool:
+    """Whether out is a bundle directory (it holds bundle.json) rather than a training run's."""
     return (Path(out) / BUNDLE).exists()
 
 

@@ -139,6 +139,8 @@ class TrainConfig:
     judge_select: str = "best"
 
     def validate(self) -> None:
+        """Raises ValueError, naming the setting, where the model's or the training's settings are out of range or
+        inconsistent with each other (e.g. eval_every not a multiple of log_every, model.keep without w_keep)."""
         self.model.validate()
         if self.batch < 1 or self.window < 2 or self.steps < 1:
             raise ValueError("batch >= 1, window >= 2 and steps >= 1 are required")
@@ -232,6 +234,7 @@ PRESETS = {
 
 
 def make_config(preset: str, overrides=()) -> TrainConfig:
+    """The named preset of PRESETS with dotted `key=value` overrides applied, validated."""
     return preset_config(PRESETS, preset, overrides)
 
 
@@ -243,10 +246,12 @@ def with_imagine(cfg: TrainConfig, imagine: str) -> TrainConfig:
 
 
 def to_dict(cfg) -> dict:
+    """cfg as nested plain dicts (dataclasses.asdict), for JSON; from_dict reverses it."""
     return dataclasses.asdict(cfg)
 
 
 def from_dict(d: dict) -> TrainConfig:
+    """The TrainConfig that to_dict wrote as d, JSON's lists turned back into tuples; not validated."""
     d = dict(d)
     model = ModelConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.pop("model").items()})
     return TrainConfig(model=model, **{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})

@@ -93,6 +93,17 @@ def sample_starts(length: int, context: int, horizon: int) -> list[int]:
 
 
 def frame_quality(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, episodes: list[int]) -> tuple[dict, dict]:
+    """Open-loop frames imagined from up to four starts of each episode (sample_starts: cfg.eval_context observed
+    frames, then max(cfg.eval_horizons) steps under the logged actions), scored against the true frames and against
+    the last context frame held (copy-last) at each horizon of cfg.eval_horizons.
+
+    Returns (report, pictures). report: {"horizons", "samples", and per horizon lists of "psnr", "ssim",
+    "pooled_psnr" (of the error pooled over samples), "lpips" where LPIPS is available (else "lpips_missing"), the
+    same for copy-last ("copy_last_" prefix), "static_share" (true frame identical to the last context frame),
+    "still_share" (true view moved under STILL_PX), "view_shift_px" (mean shift of the imagined view from the true
+    one over the still samples), "view_shift_unregistered", "gain_over_copy_last_db",
+    "pooled_gain_over_copy_last_db"}. pictures: {"pred", "truth"} of the first four samples, (4, H, S, S, 3) uint8.
+    Raises ValueError when no episode is long enough for a sample."""
     c, hmax = cfg.eval_context, max(cfg.eval_horizons)
     samples, truths, lasts = [], [], []
     for i in episodes:
@@ -357,6 +368,14 @@ def policy_action_divergence(cfg: TrainConfig, params, norm: Norm, cache: Traini
 
 
 def controllability(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, tasks=None) -> dict:
+    """Whether the imagined future follows the actions: program episodes sharing a start (task and seed; of
+    `tasks`, if given) are each imagined open loop from their first frame for cfg.control_horizon steps under
+    their own program's actions and under the next program's of the group.
+
+    Returns {"groups", "programs", "horizon", "match_accuracy" (the share of imaginations nearest, by mean squared
+    error, to their own program's true frames among the group's), "match_accuracy_per_program", "delta_psnr_db"
+    (mean PSNR under the own actions minus under the other program's)}, or {"groups": 0, "note"} where the dataset
+    has no complete program groups."""
     groups: dict = {}
     for i in cache.select("programs", tasks):
         e = cache.episodes[i]

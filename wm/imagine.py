@@ -270,6 +270,7 @@ def _feature_sizes(cfg: ModelConfig) -> tuple:
 
 
 def feature_dim(cfg: ModelConfig) -> int:
+    """F, the width of step_features' rows for a model of cfg."""
     return sum(_feature_sizes(cfg))
 
 
@@ -295,6 +296,7 @@ def current_observation(norm: Norm, state: ImagineState) -> dict:
 
 
 def to_uint8(x):
+    """Frames in [0, 1], any shape, as uint8 images: scaled by 255, rounded and clipped."""
     return jnp.clip(jnp.round(x * 255.0), 0, 255).astype(jnp.uint8)
 
 

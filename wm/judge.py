@@ -476,6 +476,8 @@ def spread(ids: list[int], n: int) -> list[int]:
 # ---- files -----------------------------------------------------------------------------------------
 
 def save_judge(judge: EpisodeJudge, metrics: dict, out: Path) -> None:
+    """Writes the judge into out for load_judge: its parameters as out/judge.msgpack (atomically), and its tasks,
+    normalisation, width, members, input columns, feature width and the fit's metrics as out/judge.json."""
     blob = out / "judge.msgpack"
     tmp = blob.with_name(blob.name + ".tmp")
     tmp.write_bytes(serialization.to_bytes(judge.params))
@@ -508,6 +510,7 @@ def load_judge(out: Path) -> EpisodeJudge | None:
 
 
 def check_features(cfg: ModelConfig, judge: EpisodeJudge) -> None:
+    """Raises ValueError unless the judge reads step features as wide as the world model of cfg makes them."""
     if judge.feature_dim != feature_dim(cfg):
         raise ValueError(f"the judge reads step features of {judge.feature_dim} columns, the world model makes "
                          f"{feature_dim(cfg)}")

@@ -52,6 +52,8 @@ def auroc(scores, labels) -> float:
 
 
 def accuracy(prob, labels, threshold: float = 0.5) -> float:
+    """The share of predictions, probabilities prob (N,) at or above threshold read as positive, that match
+    labels (N,) bool."""
     return float(np.mean((np.asarray(prob) >= threshold) == np.asarray(labels, bool)))
 
 

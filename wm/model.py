@@ -134,6 +134,9 @@ class ModelConfig:
     refine_channels: tuple = (64, 128)
 
     def validate(self) -> None:
+        """Raises ValueError where the architecture is inconsistent: an unknown tokenizer, upsampler or imagine
+        mode, a size other than 64 or 128 or conv channels not one per encoder stage, a patch or head count that
+        does not divide, warp or keep without compose, negative stochastic or refine, bad refine_channels."""
         stages = int(round(math.log2(self.size / LATENT_SIDE)))
         if self.tokenizer not in ("conv", "patch"):
             raise ValueError(f"tokenizer must be conv or patch, got {self.tokenizer!r}")

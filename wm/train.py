@@ -437,6 +437,8 @@ class Run:
 
     # ---- checkpoints ----
     def restore(self) -> int:
+        """Loads the latest checkpoint, if any, into this run (state, the training loader's position, the best
+        validation loss so far) and returns its step; 0 when there is none."""
         step = self.latest.latest_step()
         if step is None:
             return 0
@@ -450,6 +452,8 @@ class Run:
         return int(step)
 
     def save(self, step: int, best: bool) -> None:
+        """Checkpoints the state at step in checkpoints/ with the loader's position and best_val, waiting until
+        written; when best, first also keeps the parameters (kept_params) in best/ unless that step is there."""
         meta = {"train": self.loader.state(), "best_val": self.best_val}
         # best before latest: a run killed between the two resumes before this step and, retracing the
         # same steps, finds the same best again, whose checkpoint is then already there (and the same)
@@ -462,6 +466,8 @@ class Run:
         self.latest.wait_until_finished()
 
     def validate(self) -> dict:
+        """The validation loss's parts, each averaged over the first val_batches validation batches (the same ones
+        every call) and keyed "val_<part>"; {} when the data has no validation split."""
         if self.val is None:
             return {}
         if self._val_batches is None:  # the same batches at every evaluation: gathered once
@@ -474,6 +480,10 @@ class Run:
 
     # ---- the loop ----
     def train(self, progress: bool = True) -> dict:
+        """Trains from the latest checkpoint (or step 0) to cfg.steps, or until max_minutes is spent, logging mean
+        losses every log_every steps, validating every eval_every, and checkpointing every ckpt_every and at each
+        newly kept step. Writes train_status.json and returns its fields (step, steps, cut_short) merged with the
+        last logged metrics; raises TrainingDiverged on a non-finite loss. progress shows a progress bar."""
         cfg = self.cfg
         start = self.restore()
         log = MetricLog(self.out)

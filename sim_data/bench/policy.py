@@ -66,6 +66,10 @@ def _timed_act(policy: BCPolicy, params, batch: int, size: int, repeats: int = 2
 
 
 def bench(task: str, batch: int, engine: str, repeats: int = 2) -> dict:
+    """Times a rendered rollout of `batch` episodes of task under each zoo network (the full preset's conv and vit,
+    fresh parameters) against the same rollout under an action program, best of `repeats`. Returns {"task",
+    "batch", "steps", "engine", "camera", "results": per encoder {"encoder", "rollout_s", "program_rollout_s",
+    "policy_share", "act_ms", "act_share", "env_steps_per_s"}}."""
     env = cached_env(task, batch, engine, False)
     zoo = ZOO_PRESETS["full"]
     renderers = cached_renderers(zoo.conv.size, (HEAD_CAMERA,))

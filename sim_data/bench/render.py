@@ -46,6 +46,8 @@ def _tile_to(x, b):
 
 
 def batch_inputs(geo, pool_poses: Poses, colors, b: int):
+    """A render batch of b frames from the state pool, tiled to b rows: (poses, per-geom colours (b, ngeom, 3)
+    float32), the pool's drawn colours (P, 4, 3) painted into geo's."""
     poses = jax.tree_util.tree_map(lambda x: _tile_to(x, b), pool_poses)
     return poses, _tile_to(episode_rgb(geo, colors), b)
 
@@ -88,6 +90,7 @@ def time_mujoco_renderer(model, qpos, mocap, camera: str, size: int, min_seconds
 
 
 def id_agreement(a, b) -> float:
+    """The share of pixels whose geom id is the same in two renders (Renderer.render's dicts)."""
     return float(np.mean(np.asarray(a["geom_id"]) == np.asarray(b["geom_id"])))
 
 

@@ -28,6 +28,8 @@ from sim_data.util import run_cli, wilson_interval, write_json_atomic
 
 
 def parse_skills(text: str) -> list[str]:
+    """The skills of a comma list as given (strings, the table's keys); exits with a message (SystemExit) where
+    one is not a number in [0, 1] or none is given."""
     skills = [s.strip() for s in text.split(",") if s.strip()]
     for s in skills:
         try:

@@ -47,6 +47,7 @@ ARRAYS = ("proprio", "action", "success", "progress", "scene")
 
 
 def cache_dir(out: Path) -> Path:
+    """The directory of the training cache of the dataset in out: out/cache."""
     return Path(out) / "cache"
 
 
@@ -401,6 +402,8 @@ class WindowLoader:
                 "window": self.window, "batch_size": self.batch, "windows": self.windows}
 
     def restore(self, state: dict) -> None:
+        """Continues from a `state()` of a loader of the same seed, window, batch size and windows (ValueError
+        otherwise): the next batch is the one after those taken there; batches gathered ahead are dropped."""
         mine = {"seed": self.seed, "window": self.window, "batch_size": self.batch, "windows": self.windows}
         theirs = {k: state.get(k) for k in mine}
         if theirs != mine:

@@ -153,6 +153,9 @@ class DataConfig:
     perturb_episodes: int = 0
 
     def validate(self) -> None:
+        """Raises ValueError where a setting is out of range: no or unknown tasks, skills outside [0, 1], counts
+        below their minimum, an unknown engine or camera, a size other than 64 or 128, val_frac and test_frac
+        not summing below 1, or jpeg_quality outside 1..100."""
         bad = [t for t in self.tasks if t not in TASK_NAMES]
         if bad or not self.tasks:
             raise ValueError(f"tasks {bad or '(none)'} unknown; choose from {', '.join(TASK_NAMES)}")
@@ -238,12 +241,16 @@ def policy_name(source) -> str:
 
 
 def policy_kind(source) -> str:
+    """The kind of a source (see policy_name) recorded with its episodes: a PolicySource's kind, PLAY, WEAK_GRIP
+    or DRIVE itself, "program" for an action program, else "scripted"."""
     if isinstance(source, PolicySource):
         return source.kind
     return source if source in SOURCES_NAMED else "program" if isinstance(source, str) else "scripted"
 
 
 def episode_id(task: str, source, i: int) -> str:
+    """The id of episode i of task from source (see policy_name), unique within a dataset, e.g.
+    "mug-s030-000004" for skill 0.3, "mug-play-000004", or "mug-l<slug>-000004" for a PolicySource."""
     if isinstance(source, PolicySource):
         return f"{task}-l{source.slug}-{i:06d}"
     if source == PLAY:
@@ -706,6 +713,8 @@ def _policy() -> ScriptOrProgramPolicy:
 
 @functools.lru_cache(maxsize=8)
 def cached_renderers(size, cameras) -> tuple:
+    """One Renderer of size x size pixels per camera named, in order; kept for the next call with the same
+    arguments (cameras a tuple), so that their compiled programs are reused."""
     return tuple(Renderer(load_model(), RenderConfig(height=size, width=size, camera=c)) for c in cameras)
 
 

@@ -67,6 +67,8 @@ def replay_files(paths, engine: str | None = None, progress: bool = False) -> li
 
 
 def summarize(results: list[dict]) -> dict:
+    """replay_files' results summed up: {"episodes", "outcome_agreement" (share of episodes whose replayed outcome
+    is the recorded one), "mean_flags_agree", "max_initial_state_error", "max_qpos_error"}; results not empty."""
     n = len(results)
     return {
         "episodes": n,

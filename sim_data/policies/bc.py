@@ -204,6 +204,9 @@ class BCPolicy:
         return {"t": t, "past": jnp.zeros((t.shape[0], self.cfg.chunk, self.cfg.chunk, R.ACTION_DIM), jnp.float32)}
 
     def act(self, params, obs, carry, rng):
+        """The action (B, 20) from obs {"image": (B, S, S, 3) uint8, "proprio": (B, 37)}: the first of the chunk
+        predicted now, or with cfg.ensemble the weighted mean of what every chunk covering this step predicted for
+        it; and the carry, one step on. rng is unused (the policy is deterministic)."""
         del rng
         t = carry if self.cfg.ensemble is None else carry["t"]
         chunk = predict_chunk(self.cfg, params, obs["image"], obs["proprio"], t)
@@ -351,6 +354,7 @@ def _stack_leaf(*xs):
 
 
 def to_numpy(params) -> dict:
+    """params with every leaf copied to the host as a numpy array."""
     return jax.tree_util.tree_map(lambda x: np.asarray(x), params)
 
 

@@ -89,6 +89,8 @@ class DegradedPolicy:
                 "past": jnp.zeros((b, MAX_DELAY + 1, R.ACTION_DIM), jnp.float32), "t": jnp.zeros((b,), jnp.int32)}
 
     def act(self, params, obs, carry, rng):
+        """The base's action (B, 20) float32 degraded: noise added to the arm and neck targets, hand closures
+        scaled by grip, driving by drive, then the action computed `delay` steps before sent; and the carry."""
         base_key, noise_key = jax.random.split(rng)
         action, base_carry = self.base.act(params["base"], obs, carry["base"], base_key)
         action = action.astype(jnp.float32)

@@ -112,6 +112,8 @@ def perturbed_copy(source: PolicySource) -> PolicySource:
 
 
 def is_plugin(spec: str) -> bool:
+    """Whether a policy spec names a plug-in (`[name=]package.module:attribute`) rather than a registry: its target
+    holds a colon, is not an existing path, and has no slash before the colon."""
     target = spec.split("=", 1)[-1]
     return ":" in target and not Path(target.split("#")[0]).exists() and "/" not in target.split(":")[0]
 

@@ -143,6 +143,11 @@ class ZooConfig:
     sequential: tuple = ()
 
     def validate(self) -> None:
+        """Raises ValueError where a setting is out of range (group, sequential, checkpoints, steps, first_step, a
+        lineage's encoder) or the zoo is inconsistent: no task or lineage, repeated lineage names, a lineage's or
+        family's tasks outside the zoo's, a family whose base is not a lineage, whose name is a lineage's, whose
+        knob or levels are out of range, or which joins tasks its base is not trained on; then validates both
+        networks."""
         if self.group < 0:
             raise ValueError(f"group must be >= 0 (0: every lineage of a network together), got {self.group}")
         if not set(self.sequential) <= {"conv", "vit"}:
@@ -233,6 +238,7 @@ PRESETS = {
 
 
 def make_config(preset: str, overrides=()) -> ZooConfig:
+    """The named preset of PRESETS with dotted `key=value` overrides applied, validated."""
     return preset_config(PRESETS, preset, overrides)
 
 

@@ -191,6 +191,8 @@ class MjxEngine:
         return jax.vmap(one)(jnp.asarray(qpos, jnp.float32), jnp.asarray(mocap_pos, jnp.float32))
 
     def advance(self, physics, ctrl, mocap_pos, nsub: int):
+        """Steps every simulation nsub substeps with constant ctrl (B, nu) and mocap bodies at mocap_pos
+        (B, nmocap, 3) (traceable). Returns (Data, qpos (B, nq), qvel (B, nv)) after the last substep."""
         d = physics.replace(ctrl=jnp.asarray(ctrl, physics.ctrl.dtype), mocap_pos=mocap_pos)
 
         def substep(dd, _):

@@ -212,6 +212,8 @@ class HomeGymEnv(gym.Env):
         return self._obs(), {"task": self.task, "success": False}
 
     def step(self, action):
+        """One control step under action (20,) float32: (observation, reward 1.0 where the task's success flag
+        holds else 0.0, terminated False, truncated when the episode's time is up, {"task", "success"})."""
         if self._state is None:
             raise RuntimeError("call reset() before step()")
         action = np.asarray(action, np.float32)
@@ -312,6 +314,9 @@ class HomeVectorEnv(VectorEnv):
         return self._sim.observe(self._state), self._info()
 
     def step(self, actions):
+        """One control step of every simulation under actions (N, 20): (observations, rewards (N,) float64,
+        terminated (N,) bool, never set, truncated (N,) bool, infos); a simulation whose episode ended on the
+        previous step restarts instead (next-step autoreset: its action ignored, reward 0, not truncated)."""
         if self._state is None:
             raise RuntimeError("call reset() before step()")
         state = self._sim.step(self._state, actions)

@@ -245,6 +245,7 @@ def cloth_cover(qpos, patch, idx):
 
 
 def wiped_fraction(ts):
+    """(B,) the share of the dirt patch's 20 cells wiped so far."""
     return jnp.mean(ts.wiped.astype(jnp.float32), axis=-1)
 
 
@@ -258,6 +259,7 @@ def _wipe_success(ts, qpos, qvel, mocap, idx):
 
 # ---- airfryer: tray out at least 10 cm while the body moves less than 2 cm ----------------------
 def fryer_displacement(ts, qpos, idx):
+    """(B,) distance (m) the air fryer's body has moved from where it stood at reset."""
     return jnp.linalg.norm(qpos[..., idx.fryer_qpos : idx.fryer_qpos + 3] - ts.ref[..., :3], axis=-1)
 
 
@@ -323,6 +325,8 @@ def base_clearance(qpos, mocap_stool, idx):
 
 
 def backward_distance(ts, qpos, idx):
+    """(B,) distance (m) the base has moved backwards from its reset position, along its heading at reset
+    (negative: forwards)."""
     p = qpos[..., idx.robot.base_qpos[:2]]
     x0, y0, yaw0 = ts.ref[..., 3], ts.ref[..., 4], ts.ref[..., 5]
     return -((p[..., 0] - x0) * jnp.cos(yaw0) + (p[..., 1] - y0) * jnp.sin(yaw0))
