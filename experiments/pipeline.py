@@ -43,14 +43,16 @@ that wait on it:
 
     python -m experiments.pipeline full_grip --detach --warm-rollouts --warm-train --warm-eval \
         --set train:steps=4500 --set eval:episodes=50
-    python -m experiments.pipeline full_grip --follow 540      # again until it prints the report's path
+    python -m experiments.pipeline full_grip --follow 540 --collect $OUT   # again until it prints the report's path
 
 `--detach` starts the same command detached from the terminal (setsid), its output in
 runs/logs/<p>/pipeline.log (a background job is bound by no command's limit: its train and eval
 stages run without their safety stop, max_minutes=0, unless `--set` or `--minutes` gives one);
 `--follow S` waits up to S seconds for it, then prints the stages' timing rows so far and the log's
 last lines, and exits 0 once the command has ended well (a whole chain: with its report's path), 1 if
-it failed, 3 while it still runs. With `--until-bundle` it also returns, with exit status 4, once this
+it failed, 3 while it still runs; with `--collect DIR` (on a lent GPU: `--collect $OUT`) the follow
+that sees it end also copies its results, report, timing table and the world models' figures and logs
+into DIR (collect), so that the command that learns the chain is done also brings its outcome back. With `--until-bundle` it also returns, with exit status 4, once this
 chain's train stage has written the world models' bundles (below) and no earlier `--until-bundle`
 returned for them: copy runs/bundles/<p> off the machine in the same command (a follow that returned
 4 does not return it again; deleting runs/logs/<p>/bundle.followed re-arms it), and a lease that ends
@@ -92,8 +94,10 @@ import hashlib
 import json
 import os
 import shlex
+import shutil
 import subprocess
 import sys
+import tarfile
 import time
 from pathlib import Path
 
@@ -635,13 +639,42 @@ def new_bundles(logs: Path) -> tuple[str, list[str]] | None:
     return None if seen.exists() and seen.read_text().strip() == digest else (digest, list(json.loads(text)))
 
 
-def follow(name: str, seconds: float, members: int | None = None, out=sys.stdout, until_bundle: bool = False) -> int:
+COLLECTED = ("results.json", "report.md", "report.html", "timing.json")  # the evaluation's files --collect copies
+RUN_FILES = ("*.json", "metrics.jsonl")  # of each world model's run: its figures, not its parameters
+
+
+def collect(p: Pipeline, name: str, dest: Path) -> list[Path]:
+    """Copies a chain's outcome into dest: the evaluation's COLLECTED files that exist, and runs.tgz holding
+    the logs and each world model's RUN_FILES (eval.json, judge.json, config.json, train_status.json, the
+    training curves; no checkpoints or bundles). A few MB in all, in at most five files, so that the command
+    which sees the chain end brings its results back from a machine that may go before the next command.
+    Returns the files written."""
+    d = p.dirs(name)
+    dest.mkdir(parents=True, exist_ok=True)
+    written = []
+    for f in COLLECTED:
+        if (d["eval"] / f).exists():
+            shutil.copyfile(d["eval"] / f, dest / f)
+            written.append(dest / f)
+    root = Path(p.root)
+    members = [f for run in d["members"] for pattern in RUN_FILES for f in sorted(run.glob(pattern))]
+    with tarfile.open(dest / "runs.tgz.tmp", "w:gz") as tar:
+        for f in [_logs(p, name), *members]:
+            if f.exists():
+                tar.add(f, arcname=str(f.relative_to(root)) if f.is_relative_to(root) else f.name)
+    os.replace(dest / "runs.tgz.tmp", dest / "runs.tgz")
+    return written + [dest / "runs.tgz"]
+
+
+def follow(name: str, seconds: float, members: int | None = None, out=sys.stdout, until_bundle: bool = False,
+           collect_to: Path | None = None) -> int:
     """Waits up to `seconds` for the preset's detached command to end; prints the timing rows written
     so far and the log's last lines. Returns 0 once it ended well (exit status 0), 1 if it failed or
     was killed, STILL_RUNNING while it runs; with until_bundle, BUNDLED as soon as the world models'
     bundles are listed and no earlier call returned for them (new_bundles), whether the chain runs on
     or has ended, so that they are copied off the machine before a lease ends (by the same command:
-    the next call does not return for them again)."""
+    the next call does not return for them again). With collect_to, a chain that has ended (well or not)
+    has its outcome copied there (collect) before the call returns."""
     p = pipeline(name, members)
     logs = _logs(p, name)
     if not (logs / DETACHED_PID).exists():
@@ -675,6 +708,9 @@ def follow(name: str, seconds: float, members: int | None = None, out=sys.stdout
     written = next((line for line in lines if line.startswith("report: ")), None)
     ended = f"well, {written}" if rc == 0 and written else "well" if rc == 0 else f"with exit status {rc}"
     print(f"== {name}: the detached command ended {ended}", file=out)
+    if collect_to is not None:
+        files = collect(p, name, Path(collect_to))
+        print(f"== {name}: collected {', '.join(f.name for f in files)} into {collect_to}", file=out)
     return 0 if rc == 0 else 1
 
 
@@ -705,6 +741,9 @@ def main(argv=None) -> int:
     ap.add_argument("--until-bundle", action="store_true",
                     help="with --follow, also return (exit 4) once the world models' bundles are written, the "
                          "first time a follow sees them")
+    ap.add_argument("--collect", type=Path, default=None, metavar="DIR",
+                    help="with --follow, once the chain has ended copy its results, report, timing and the "
+                         "world models' figures and logs into DIR (e.g. $OUT), in the same command")
     ap.add_argument("--warm-rollouts", action="store_true",
                     help="with the policies stage (one GPU or none), compile the rollouts' programs beside it (with "
                          "the data and rollouts stages' --set overrides), for the rollouts stage to load")
@@ -744,15 +783,16 @@ def main(argv=None) -> int:
         # a stage waits for its warm-up (up to WARM_WAIT_S), which a command's slot does not bound
         ap.error("--warm-rollouts, --warm-train and --warm-eval run beside a whole stage: use them in a background "
                  "job (--detach), not in a time slot (--minutes)")
-    if a.until_bundle and a.follow is None:
-        ap.error("--until-bundle is an option of --follow")
+    for option, given in (("--until-bundle", a.until_bundle), ("--collect", a.collect)):
+        if given and a.follow is None:
+            ap.error(f"{option} is an option of --follow")
     if a.follow is not None:
         if a.detach:
             ap.error("--follow waits on a chain started by --detach: give them in two commands")
-        return follow(a.pipeline, a.follow, a.members, until_bundle=a.until_bundle)
+        return follow(a.pipeline, a.follow, a.members, until_bundle=a.until_bundle, collect_to=a.collect)
     if a.detach:
         print(f"started in the background; log: {detach(a.pipeline, [x for x in raw if x != '--detach'])}\n"
-              f"follow it with: python -m experiments.pipeline {a.pipeline} --follow 520 --until-bundle")
+              f"follow it with: python -m experiments.pipeline {a.pipeline} --follow 520 --until-bundle --collect DIR")
         return 0
     use_compilation_cache(PIPELINES[a.pipeline].root)
     t0 = time.perf_counter()

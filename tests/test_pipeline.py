@@ -6,6 +6,7 @@ import io
 import json
 import os
 import signal
+import tarfile
 import time
 from pathlib import Path
 
@@ -425,6 +426,37 @@ def test_follow_until_bundle_returns_once_for_each_new_bundle_while_the_chain_ru
     with pytest.raises(SystemExit):
         P.main(["full", "--until-bundle"])
     assert "--until-bundle is an option of --follow" in capsys.readouterr().err
+
+
+def test_follow_collects_a_finished_chains_outcome_in_the_command_that_sees_it_end(tmp_path, monkeypatch, capsys):
+    """The follow that sees the chain end copies its evaluation's files and a tarball of its logs and the
+    world model's figures (no checkpoints) into the folder given; a follow of a running chain collects
+    nothing."""
+    monkeypatch.chdir(tmp_path)
+    body = ("sleep 0.5; mkdir -p runs/eval/full runs/wm/full/checkpoints/7; "
+            "echo '{\"policies\": []}' > runs/eval/full/results.json; echo '# report' > runs/eval/full/report.md; "
+            "echo '[]' > runs/eval/full/timing.json; echo '{\"psnr\": 1}' > runs/wm/full/eval.json; "
+            "echo '{}' > runs/wm/full/metrics.jsonl; echo x > runs/wm/full/checkpoints/7/params; "
+            "echo 'report: runs/eval/full/report.html (1 s)'; exit 0")
+    monkeypatch.setattr(P.sys, "executable", _fake_python(tmp_path, body))
+    monkeypatch.setattr(P, "FOLLOW_POLL_S", 0.05)
+    P.detach("full", ["full"])
+    out = tmp_path / "out"
+    assert P.follow("full", 0.1, out=io.StringIO(), collect_to=out) == P.STILL_RUNNING
+    assert not out.exists()
+    text = io.StringIO()
+    assert P.follow("full", 30, out=text, collect_to=out) == 0
+    assert sorted(f.name for f in out.iterdir()) == ["report.md", "results.json", "runs.tgz", "timing.json"]
+    assert json.loads((out / "results.json").read_text()) == {"policies": []}
+    with tarfile.open(out / "runs.tgz") as tar:
+        names = set(tar.getnames())
+        assert {"logs/full/pipeline.log", "wm/full/eval.json", "wm/full/metrics.jsonl"} <= names
+        assert not any("checkpoints" in n for n in names)
+        assert b"report: runs/eval/full/report.html" in tar.extractfile("logs/full/pipeline.log").read()
+    assert f"collected results.json, report.md, timing.json, runs.tgz into {out}" in text.getvalue()
+    with pytest.raises(SystemExit):
+        P.main(["full", "--collect", str(out)])
+    assert "--collect is an option of --follow" in capsys.readouterr().err
 
 
 def test_a_detached_chain_runs_the_pipeline_itself(tmp_path, monkeypatch):
