@@ -11,7 +11,7 @@ export XLA_FLAGS ?= --xla_cpu_multi_thread_eigen=false --xla_gpu_deterministic_o
 
 CONFIG ?= demo
 
-.PHONY: setup demo full test test-slow bench success-table data render-check train bundle policies eval report videos export-lerobot sweep clean
+.PHONY: setup demo full test test-slow lint bench success-table data render-check train bundle policies eval report videos export-lerobot sweep clean
 
 # uv installs the same pinned packages as pip in less time (27 s against 43 s on 2 cores); compiled to
 # bytecode at install as pip does, since a PYTHONDONTWRITEBYTECODE environment never caches it on import
@@ -76,6 +76,10 @@ test: setup
 
 test-slow: setup
 	$(PY) -m pytest -q -m slow
+
+# ruff with pyproject.toml's [tool.ruff]: unused or undefined names, the order of imports
+lint: setup
+	$(VENV)/bin/ruff check .
 
 # make sweep SWEEP=data_scaling|task_scaling|... SIZE=demo|full OUT=runs/sweeps/<name>
 # (SWEEP="a b c": several sharing the GPUs, into OUT/<name>)
