@@ -65,7 +65,6 @@ from experiments import stats as S
 from experiments.ensemble import member_metrics
 from sim_data.config import as_json, differing_fields, preset_config, preset_help
 from sim_data.dataset.cache import TrainingCache
-from sim_data.dataset.generate import cached_env, cached_renderers, package_versions
 from sim_data.parts import add_part_argument, config_and_part, exclusive, in_turn
 from sim_data.policies.bc import MixedPolicy
 from sim_data.policies.registry import (
@@ -81,10 +80,19 @@ from sim_data.policies.registry import (
 from sim_data.policies.scripted import ProgramPolicy
 from sim_data.sim import robot as R
 from sim_data.sim.engines import ENGINES, PHYSICS_REVISION, default_engine
-from sim_data.sim.render import HEAD_CAMERA
+from sim_data.sim.env import cached_env
+from sim_data.sim.render import HEAD_CAMERA, cached_renderers
 from sim_data.sim.rollout import WARM_STEPS, record_policies
 from sim_data.sim.tasks import TASK_NAMES
-from sim_data.util import device_name, hash_arrays, make_output_dir, run_cli, wait_for_files, write_json_atomic
+from sim_data.util import (
+    device_name,
+    hash_arrays,
+    make_output_dir,
+    package_versions,
+    run_cli,
+    wait_for_files,
+    write_json_atomic,
+)
 from wm.checkpoint import (
     load_run_config,
     load_started,

@@ -8,6 +8,7 @@ import json
 import os
 import sys
 import time
+from importlib import metadata as importlib_metadata
 from pathlib import Path
 
 import jax
@@ -185,3 +186,14 @@ def wait_for_files(paths, wait_s: float, what: str) -> None:
     deadline = time.monotonic() + wait_s
     while not all(p.exists() for p in paths) and time.monotonic() < deadline:
         time.sleep(2.0)
+
+
+def package_versions(packages=("mujoco", "mujoco-mjx", "jax", "numpy", "opencv-python-headless", "mcap")) -> dict:
+    """{package: installed version or "absent"}."""
+    out = {}
+    for pkg in packages:
+        try:
+            out[pkg] = importlib_metadata.version(pkg)
+        except importlib_metadata.PackageNotFoundError:
+            out[pkg] = "absent"
+    return out

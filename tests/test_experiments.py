@@ -475,9 +475,9 @@ def test_air_fryer_body_mask_covers_the_body_pixels_of_the_frame():
 
 
 def test_truth_cache_returns_the_simulated_batch_waits_for_a_writer_and_misses_on_other_parameters(smoke_zoo, tmp_path, monkeypatch):
-    from sim_data.dataset.generate import cached_renderers
     from sim_data.policies.bc import StackedPolicy, stack_params
     from sim_data.policies.registry import resolve
+    from sim_data.sim.render import cached_renderers
 
     zoo_dir, _ = smoke_zoo
     # the evaluation fixture's first batch (3 checkpoints of one architecture, 2 states): its compiled programs

@@ -25,7 +25,6 @@ from mujoco import mjx
 from mujoco.mjx._src import collision_driver, constraint, smooth
 
 from sim_data.bench.policy import identity_norm
-from sim_data.dataset.generate import cached_renderers
 from sim_data.policies import bc
 from sim_data.policies.scripted import (
     ScriptOrProgramPolicy,
@@ -35,7 +34,7 @@ from sim_data.policies.scripted import (
 from sim_data.sim import robot as R
 from sim_data.sim import rollout as RO
 from sim_data.sim.env import HomeEnv
-from sim_data.sim.render import HEAD_CAMERA, episode_rgb
+from sim_data.sim.render import HEAD_CAMERA, cached_renderers, episode_rgb
 from sim_data.sim.tasks import MAX_EPISODE_STEPS, PHYSICS_SUBSTEPS
 from sim_data.util import device_name, run_cli, write_json_atomic
 

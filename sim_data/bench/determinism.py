@@ -34,12 +34,12 @@ import jax
 import numpy as np
 
 from sim_data.bench.policy import identity_norm
-from sim_data.dataset.generate import cached_env, cached_renderers
 from sim_data.policies.bc import BCPolicy, init_params, stacked
 from sim_data.policies.registry import group_by_policy, resolve
 from sim_data.policies.zoo import PRESETS as ZOO_PRESETS
 from sim_data.sim.engines import default_engine
-from sim_data.sim.render import HEAD_CAMERA
+from sim_data.sim.env import cached_env
+from sim_data.sim.render import HEAD_CAMERA, cached_renderers
 from sim_data.sim.rollout import record_policies
 from sim_data.util import device_name, run_cli, with_xla_flags, write_json_atomic
 

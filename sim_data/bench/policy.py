@@ -22,13 +22,13 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from sim_data.dataset.generate import cached_env, cached_renderers
 from sim_data.policies.bc import BCPolicy, init_params
 from sim_data.policies.scripted import ProgramPolicy, program_params
 from sim_data.policies.zoo import PRESETS as ZOO_PRESETS
 from sim_data.sim import robot as R
 from sim_data.sim.engines import default_engine
-from sim_data.sim.render import HEAD_CAMERA
+from sim_data.sim.env import cached_env
+from sim_data.sim.render import HEAD_CAMERA, cached_renderers
 from sim_data.sim.rollout import record_episodes
 from sim_data.util import device_name, run_cli, write_json_atomic
 

@@ -24,7 +24,6 @@ import os
 import shutil
 import sys
 import time
-from importlib import metadata as importlib_metadata
 from pathlib import Path
 
 import jax
@@ -61,8 +60,8 @@ from sim_data.policies.scripted import (
     script_or_program_params,
 )
 from sim_data.sim.engines import ENGINES, default_engine
-from sim_data.sim.env import HomeEnv
-from sim_data.sim.render import CAMERAS, HEAD_CAMERA, RenderConfig, Renderer
+from sim_data.sim.env import HomeEnv, cached_env
+from sim_data.sim.render import CAMERAS, HEAD_CAMERA, cached_renderers
 from sim_data.sim.robot import ACTION_DIM, FORWARD_SPEED
 from sim_data.sim.rollout import WARM_STEPS, record_episodes
 from sim_data.sim.scene import load_model
@@ -71,6 +70,7 @@ from sim_data.util import (
     device_name,
     even_pieces,
     make_output_dir,
+    package_versions,
     run_cli,
     wait_for_files,
     wilson_interval,
@@ -278,17 +278,6 @@ def _source_key(source) -> str:
 
 
 # ---- the run ------------------------------------------------------------------------------------
-
-def package_versions(packages=("mujoco", "mujoco-mjx", "jax", "numpy", "opencv-python-headless", "mcap")) -> dict:
-    """{package: installed version or "absent"}."""
-    out = {}
-    for pkg in packages:
-        try:
-            out[pkg] = importlib_metadata.version(pkg)
-        except importlib_metadata.PackageNotFoundError:
-            out[pkg] = "absent"
-    return out
-
 
 def _sources(cfg: DataConfig, task: str, learned=()) -> list:
     """[(source, episodes)] of task in the plan's order: the scripted skills, the programs, random
@@ -700,22 +689,9 @@ def _program_table(cfg: DataConfig, task: str, source: str, i: int, env: HomeEnv
     return program_params([source], env.episode_steps)["table"][0]
 
 
-@functools.lru_cache(maxsize=32)
-def cached_env(task, batch, engine, heldout) -> HomeEnv:
-    """The env of a task; the envs of one (batch, engine, heldout) share one EnvCore and its compiles."""
-    return HomeEnv(task, batch, engine=engine, heldout=heldout)
-
-
 @functools.cache
 def _policy() -> ScriptOrProgramPolicy:
     return ScriptOrProgramPolicy.create(MAX_EPISODE_STEPS, model=load_model())
-
-
-@functools.lru_cache(maxsize=8)
-def cached_renderers(size, cameras) -> tuple:
-    """One Renderer of size x size pixels per camera named, in order; kept for the next call with the same
-    arguments (cameras a tuple), so that their compiled programs are reused."""
-    return tuple(Renderer(load_model(), RenderConfig(height=size, width=size, camera=c)) for c in cameras)
 
 
 def _drain(pending, bar, wait_all: bool):

@@ -44,7 +44,6 @@ from tqdm import tqdm
 
 from sim_data.config import as_json, preset_config, preset_help, save_or_check
 from sim_data.dataset.cache import TrainingCache
-from sim_data.dataset.generate import cached_env, cached_renderers
 from sim_data.parts import add_part_argument, config_and_part, take
 from sim_data.policies.bc import (
     PolicyNetConfig,
@@ -65,7 +64,8 @@ from sim_data.policies.registry import (
     used_seeds,
 )
 from sim_data.sim.engines import default_engine
-from sim_data.sim.render import HEAD_CAMERA
+from sim_data.sim.env import cached_env
+from sim_data.sim.render import HEAD_CAMERA, cached_renderers
 from sim_data.sim.rollout import record_policies
 from sim_data.util import make_output_dir, run_cli, wilson_interval, write_json_atomic
 

@@ -212,3 +212,9 @@ class HomeEnv:
         if action.shape != (self.batch_size, R.ACTION_DIM):
             raise ValueError(f"action must have shape ({self.batch_size}, {R.ACTION_DIM}), got {action.shape}")
         return self.core.step(state, action)
+
+
+@functools.lru_cache(maxsize=32)
+def cached_env(task, batch, engine, heldout) -> HomeEnv:
+    """The env of a task; the envs of one (batch, engine, heldout) share one EnvCore and its compiles."""
+    return HomeEnv(task, batch, engine=engine, heldout=heldout)

@@ -622,3 +622,10 @@ class Renderer:
         if geom_rgb is None:
             geom_rgb = jnp.broadcast_to(jnp.asarray(self.geometry.rgb), (poses.geom_xpos.shape[0], self.geometry.ngeom, 3))
         return self._render(poses, geom_rgb)
+
+
+@functools.lru_cache(maxsize=8)
+def cached_renderers(size, cameras) -> tuple:
+    """One Renderer of size x size pixels per camera named, in order; kept for the next call with the same
+    arguments (cameras a tuple), so that their compiled programs are reused."""
+    return tuple(Renderer(S.load_model(), RenderConfig(height=size, width=size, camera=c)) for c in cameras)
