@@ -72,7 +72,7 @@ from sim_data.policies.registry import (
     fingerprint,
     group_by_policy,
     heldout_seeds,
-    padded_chunks,
+    policy_chunks,
     resolve,
     stacked_sources,
     used_seeds,
@@ -265,7 +265,7 @@ def task_chunks(cfg: EvalConfig, sources, n: int) -> list:
     """The batches a task's sources run in: [(policies, padded)], at most cfg.batch // n policies (n
     initial states each) a batch whatever their architectures (chunk_policy), those of one
     architecture next to each other, the last batch padded by repeating its last policy."""
-    return list(padded_chunks([s for g in group_by_policy(sources) for s in g], n, cfg.batch))
+    return list(policy_chunks([s for g in group_by_policy(sources) for s in g], n, cfg.batch))
 
 
 def state_slices(cfg: EvalConfig, n: int) -> list[tuple[int, int]]:

@@ -175,6 +175,12 @@ def even_pieces(items: list, most: int) -> tuple[list, int]:
     return [items[k:k + size] for k in range(0, len(items), size)], size
 
 
+def pad_with_last(items: list, size: int) -> list:
+    """items filled to `size` by repeating the last one: a batch of one shape (one compiled program) whose
+    copies are computed and dropped."""
+    return list(items) + [items[-1]] * (size - len(items))
+
+
 def wait_for_files(paths, wait_s: float, what: str) -> None:
     """Waits up to wait_s seconds (0: not at all) for every one of paths to exist, polling every 2 s,
     saying once on stderr that it waits for `what`; returns at the deadline whatever is missing (the

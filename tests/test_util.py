@@ -18,6 +18,7 @@ from sim_data.util import (
     XLA_DEFAULT_FLAGS,
     jit_initialiser,
     make_output_dir,
+    pad_with_last,
     run_cli,
     wilson_interval,
     write_json_atomic,
@@ -151,3 +152,10 @@ print(sorted({d.id for x in jax.tree_util.tree_leaves(init(jax.random.PRNGKey(0)
     env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
     got = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
     assert got.stdout.strip() == "[1]"
+
+
+def test_a_batch_is_padded_by_repeating_its_last_item_and_a_full_one_is_left_alone():
+    assert pad_with_last([3, 1, 4], 5) == [3, 1, 4, 4, 4]
+    assert pad_with_last([(0, [1, 2])], 2) == [(0, [1, 2]), (0, [1, 2])]
+    part = [7, 8]
+    assert pad_with_last(part, 2) == [7, 8] and part == [7, 8]  # a copy: the caller's list is untouched

@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from sim_data.util import pad_with_last
 from wm.model import INPUT_CLIP, ModelConfig, WorldModel
 
 
@@ -484,7 +485,7 @@ def padded_chunks(items: list):
     size = chunk_size(len(items))
     for start in range(0, len(items), size):
         part = items[start:start + size]
-        yield start, part + [part[-1]] * (size - len(part)), len(part)
+        yield start, pad_with_last(part, size), len(part)
 
 
 def context_sample(ep: dict, camera: str, start: int, context: int, horizon: int) -> dict:

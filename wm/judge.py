@@ -42,9 +42,8 @@ from flax import serialization
 from tqdm import tqdm
 
 from sim_data.policies.bc import stacked
-from sim_data.policies.registry import padded_chunks as policy_chunks
-from sim_data.policies.registry import resolve, stack_key
-from sim_data.util import even_pieces, write_json_atomic
+from sim_data.policies.registry import policy_chunks, resolve, stack_key
+from sim_data.util import even_pieces, pad_with_last, write_json_atomic
 from wm.checkpoint import run_file
 from wm.config import JUDGE_LR, KEPT_STEPS
 from wm.imagine import (
@@ -242,7 +241,7 @@ def checkpoint_rows(group, most: int) -> tuple[list, int]:
         by_source.setdefault(src.name, (src, []))[1].append(i)
     slots = [(src, piece) for src, ids in by_source.values() for piece in even_pieces(ids, most)[0]]
     width = max(len(ids) for _, ids in slots)
-    return [(src, ids + [ids[-1]] * (width - len(ids))) for src, ids in slots], width
+    return [(src, pad_with_last(ids, width)) for src, ids in slots], width
 
 
 def observe_episodes(cfg: ModelConfig, params, norm: Norm, cache, ids: list[int], camera: str,

@@ -71,6 +71,7 @@ from sim_data.util import (
     even_pieces,
     make_output_dir,
     package_versions,
+    pad_with_last,
     run_cli,
     wait_for_files,
     wilson_interval,
@@ -343,8 +344,7 @@ class Chunk:
         and the slots to size by repeating the last slot, whose copies are simulated and discarded."""
         slots = [(src, list(idx)) for src, idx in self.slots]
         if padded:
-            slots = [(src, idx + [idx[-1]] * (self.width - len(idx))) for src, idx in slots]
-            slots += [slots[-1]] * (self.size - len(slots))
+            slots = pad_with_last([(src, pad_with_last(idx, self.width)) for src, idx in slots], self.size)
         return [(src, i) for src, idx in slots for i in idx]
 
 

@@ -43,7 +43,7 @@ from sim_data.policies.bc import BCPolicy, PolicyNetConfig, load_params, stacked
 from sim_data.policies.degrade import DegradedPolicy, degrade_params, perturbed_params
 from sim_data.sim.robot import ACTION_DIM, PROPRIO_DIM, robot_index
 from sim_data.sim.scene import load_model
-from sim_data.util import even_pieces, hash_arrays
+from sim_data.util import even_pieces, hash_arrays, pad_with_last
 
 
 @typing.runtime_checkable
@@ -404,13 +404,13 @@ def stacked_sources(sources) -> tuple:
     return stacked(sources[0].policy, [s.params for s in sources], [s.salt for s in sources])
 
 
-def padded_chunks(group, n: int, batch: int):
+def policy_chunks(group, n: int, batch: int):
     """(policies, padded) chunks of at most batch // n policies, as even as possible (even_pieces), the
     last padded to the others' size by repeating its last policy: one batch shape, and fewer padded
     policies than chunks."""
     pieces, size = even_pieces(list(group), max(1, batch // n))
     for part in pieces:
-        yield part, part + [part[-1]] * (size - len(part))
+        yield part, pad_with_last(part, size)
 
 
 def used_seeds(*datasets) -> set:

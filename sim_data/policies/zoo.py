@@ -59,7 +59,7 @@ from sim_data.policies.registry import (
     group_by_policy,
     heldout_seeds,
     load_registry_sources,
-    padded_chunks,
+    policy_chunks,
     stacked_sources,
     used_seeds,
 )
@@ -590,7 +590,7 @@ def measure_success(out: Path, episodes: int, seed: int = 0, engine: str = "", b
         keys = np.stack([np.asarray(jax.random.PRNGKey(x)) for x in seeds])
         got = []
         bar = tqdm(total=len(task_sources) * episodes, desc=f"measure {task}", unit="ep", disable=not progress)
-        for part, padded in (p for g in group_by_policy(task_sources) for p in padded_chunks(g, episodes, batch)):
+        for part, padded in (p for g in group_by_policy(task_sources) for p in policy_chunks(g, episodes, batch)):
             env = cached_env(task, len(padded) * episodes, engine, False)
             renderers = cached_renderers(part[0].policy.cfg.size, (HEAD_CAMERA,))
             outcome, _ = record_policies(env, *stacked_sources(padded), keys, jax.random.PRNGKey(seed), renderers)
