@@ -52,10 +52,11 @@ stages run without their safety stop, max_minutes=0, unless `--set` or `--minute
 last lines, and exits 0 once the command has ended well (a whole chain: with its report's path), 1 if
 it failed, 3 while it still runs; with `--collect DIR` (on a lent GPU: `--collect $OUT`) the follow
 that sees it end also copies its results, report, timing table and the world models' figures and logs
-into DIR (collect), so that the command that learns the chain is done also brings its outcome back. With `--until-bundle` it also returns, with exit status 4, once this
-chain's train stage has written the world models' bundles (below) and no earlier `--until-bundle`
-returned for them: copy runs/bundles/<p> off the machine in the same command (a follow that returned
-4 does not return it again; deleting runs/logs/<p>/bundle.followed re-arms it), and a lease that ends
+into DIR (collect), so that the command that learns the chain is done also brings its outcome back.
+With `--until-bundle` it also returns, with exit status 4, once this chain's train stage has written
+the world models' bundles (below) and no earlier `--until-bundle` returned for them: copy
+runs/bundles/<p> off the machine in the same command (a follow that returned 4 does not return it
+again; deleting runs/logs/<p>/bundle.followed re-arms it), and a lease that ends
 before the chain does still leaves a trained model (about 65 MB for `full`, five shards of <= 15 MiB
 with the judge and bundle.json) that a later lease evaluates with `--stage eval --set eval:wm=...`
 (the bundles, comma-separated) after its own data and policies stages.

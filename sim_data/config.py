@@ -105,8 +105,7 @@ def differing_fields(saved: dict, mine: dict, defaults: dict | None = None, pref
     out = []
     for k in sorted(saved.keys() | mine.keys()):
         default = (defaults or {}).get(k)
-        theirs = saved.get(k, default) if k not in saved and k in mine else saved.get(k)
-        ours = mine.get(k)
+        theirs, ours = saved[k] if k in saved else default, mine.get(k)
         if isinstance(theirs, dict) and isinstance(ours, dict):
             out += differing_fields(theirs, ours, default if isinstance(default, dict) else None, f"{prefix}{k}.")
         elif theirs != ours:
