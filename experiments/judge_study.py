@@ -70,7 +70,7 @@ class Variant:
     seed: added to the world model's seed for the judge's initialisation and batches; members: that
     many judges, of seeds seed, seed + 1, ..., read as the mean of their probabilities; lr: the
     judge's learning rate; select: each member kept at its own best validation step ("best") or at its
-    last ("last") (wm.judge.fit)."""
+    last ("last"); raw_mean: the features' own mean pooled too (wm.judge.fit)."""
 
     episodes: int = 0
     inputs: tuple = FEATURE_GROUPS
@@ -82,6 +82,7 @@ class Variant:
     members: int = 1
     lr: float = JUDGE_LR
     select: str = "best"
+    raw_mean: bool = False
 
 
 VARIANTS = {
@@ -108,6 +109,12 @@ VARIANTS = {
     # the same judges kept at their last step: a validation of a few dozen episodes (the demo's) keeps
     # members that have barely left their initialisation
     f"all_lr5e-4_x{ENSEMBLE}_last": Variant(lr=5e-4, members=ENSEMBLE, select="last"),
+    # the presets' judges (`full`: every group but the scene's; `demo`: the proprioception and actions,
+    # kept at the last step), and the same pooling the features' own mean too (a distance at any speed)
+    **{f"{name}{tag}": Variant(inputs=inputs, lr=5e-4, members=ENSEMBLE, select=select, raw_mean=raw)
+       for name, inputs, select in (("full_recipe", tuple(g for g in FEATURE_GROUPS if g != "scene"), "best"),
+                                    ("demo_recipe", ("proprio", "action"), "last"))
+       for tag, raw in (("", False), ("_raw_mean", True))},
 }
 BOUND = "crossfit_bound"
 # A judge fit to the training episodes' true frames alone, reading the evaluation's simulated episodes
@@ -199,7 +206,8 @@ def fit_variant(v: Variant, train: dict, val: dict, tasks: tuple, wm_cfg, steps:
     if v.observed:
         learn = join_episodes(learn, take(observed, rows)) if v.imagined else take(observed, rows)
     return fit(learn, val, tasks, steps, wm_cfg.seed + v.seed, progress=True,
-               columns=feature_columns(wm_cfg.model, v.inputs), lr=v.lr, members=v.members, select=v.select)
+               columns=feature_columns(wm_cfg.model, v.inputs), lr=v.lr, members=v.members, select=v.select,
+               raw_mean=v.raw_mean)
 
 
 def read_variant(v: Variant, train: dict, val: dict, tasks: tuple, wm_cfg, steps: int, features: dict,

@@ -968,6 +968,27 @@ def test_episode_judge_learns_an_integral_and_round_trips(tmp_path):
     assert J.load_judge(tmp_path / "nothing") is None
 
 
+def test_a_judge_pooling_its_features_own_mean_reads_them_beside_the_per_step_network_and_round_trips(tmp_path):
+    rng = np.random.default_rng(3)
+    train, val = _synthetic_episodes(rng, 96), _synthetic_episodes(rng, 32)
+    judge, metrics = J.fit(train, val, ("a", "b"), steps=40, seed=1, progress=False, raw_mean=True)
+    plain, _ = J.fit(train, val, ("a", "b"), steps=40, seed=1, progress=False)
+    assert judge.raw_mean and metrics["raw_mean"] and not plain.raw_mean
+    f, w = train["features"].shape[-1], J.WIDTH
+    # the layer after the pooling reads the F features' masked mean beside mean, max, first, last and the task
+    assert judge.params["Dense_3"]["kernel"].shape[1:] == (5 * w + f, w)
+    assert plain.params["Dense_3"]["kernel"].shape[1:] == (5 * w, w)
+    p = J.judge_episodes(judge, val)
+    assert not np.allclose(p, J.judge_episodes(plain, val), atol=1e-3)
+    padded = {**val, "features": np.where(val["mask"][..., None], val["features"], 1e3).astype(np.float32)}
+    np.testing.assert_allclose(J.judge_episodes(judge, padded), p, rtol=1e-5, atol=1e-6)  # masked steps unread
+    J.save_judge(judge, metrics, tmp_path)
+    assert json.loads((tmp_path / "judge.json").read_text())["raw_mean"] is True
+    back = J.load_judge(tmp_path)
+    assert back.raw_mean
+    np.testing.assert_allclose(J.judge_episodes(back, val), p, rtol=1e-5, atol=1e-6)
+
+
 def test_an_ensemble_judge_reads_the_mean_of_its_members_and_round_trips(tmp_path):
     rng = np.random.default_rng(1)
     train, val = _synthetic_episodes(rng, 64), _synthetic_episodes(rng, 32)
@@ -1038,9 +1059,9 @@ def test_the_judges_batches_are_the_rows_its_draws_name_gathered_where_the_episo
         best, best_loss = params, np.inf
         for k in range(1, 31):
             idx = draws.choice(n, J.BATCH, replace=True) if n > J.BATCH else np.arange(n)
-            params, state, _ = J._update(2, 1e-3, params, state, *(a[idx] for a in tr))
+            params, state, _ = J._update((2, False), 1e-3, params, state, *(a[idx] for a in tr))
             if k % 25 == 0 or k == 30:
-                loss = float(J._loss(2, params, *va))
+                loss = float(J._loss((2, False), params, *va))
                 if loss < best_loss:
                     best, best_loss, kept = params, loss, k
         assert metrics["kept_step"][member] == kept

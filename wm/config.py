@@ -82,7 +82,9 @@ class TrainConfig:
         fit from as many seeds, read as the mean of their probabilities (wm.judge.fit); judge_lr: their
         learning rate; judge_select: the parameters each keeps, "best" those of its lowest loss on the
         validation episodes' imaginations, "last" those of its last step (a validation of a few dozen
-        episodes keeps judges that have barely left their initialisation).
+        episodes keeps judges that have barely left their initialisation). judge_raw_mean: the judge
+        also pools the mean of the step features themselves (wm.judge.JudgeNet), a distance driven at
+        any speed.
     """
 
     model: ModelConfig = ModelConfig()
@@ -137,6 +139,7 @@ class TrainConfig:
     judge_members: int = 1
     judge_lr: float = JUDGE_LR
     judge_select: str = "best"
+    judge_raw_mean: bool = False
 
     def validate(self) -> None:
         """Raises ValueError, naming the setting, where the model's or the training's settings are out of range or

@@ -67,10 +67,15 @@ BATCH = 256
 
 
 class JudgeNet(nn.Module):
-    """(B, T, F) standardised step features, (B, T) bool mask, (B,) int task -> (B,) success logits."""
+    """(B, T, F) standardised step features, (B, T) bool mask, (B,) int task -> (B,) success logits.
+    Each step's features pass a per-step network, pooled over time (mean, max, first, last); with
+    raw_mean the mean of the features themselves joins them: a sum over time of what a step says (the
+    base's commanded speed, its measured velocity) is how far the body went, at any speed, where the
+    mean of a nonlinear per-step network holds that only at the speeds it was fit to."""
 
     n_tasks: int
     width: int = WIDTH
+    raw_mean: bool = False
 
     @nn.compact
     def __call__(self, x, mask, task):
@@ -81,7 +86,8 @@ class JudgeNet(nn.Module):
         mean = (h * m).sum(axis=1) / n
         top = jnp.where(m > 0, h, -1e9).max(axis=1)
         last = jnp.take_along_axis(h, (n[:, 0].astype(jnp.int32) - 1)[:, None, None], axis=1)[:, 0]
-        y = jnp.concatenate([mean, top, h[:, 0], last, nn.Embed(self.n_tasks, self.width)(task)], axis=-1)
+        pooled = [mean, top, h[:, 0], last] + ([(x * m).sum(axis=1) / n] if self.raw_mean else [])
+        y = jnp.concatenate(pooled + [nn.Embed(self.n_tasks, self.width)(task)], axis=-1)
         return nn.Dense(1)(nn.gelu(nn.Dense(self.width)(y)))[..., 0]
 
 
@@ -90,7 +96,8 @@ class EpisodeJudge:
     """A fitted judge: the parameters of its members stacked on a leading axis (M judges fit from M
     seeds, read as the mean of their probabilities; M = 1 for one), the step features it reads
     (`columns` (K,) int of the F that wm.imagine.step_features makes, `feature_dim` F), their
-    standardisation (K,), the tasks it knows (in embedding order)."""
+    standardisation (K,), the tasks it knows (in embedding order), whether it pools the features'
+    own mean (JudgeNet.raw_mean)."""
 
     params: dict
     mean: np.ndarray
@@ -98,6 +105,7 @@ class EpisodeJudge:
     tasks: tuple
     columns: np.ndarray
     feature_dim: int
+    raw_mean: bool = False
 
     @property
     def members(self) -> int:
@@ -117,13 +125,14 @@ class EpisodeJudge:
         x = x[..., self.columns]
         mask = np.ones(x.shape[:2], bool) if mask is None else mask
         ids = np.full(x.shape[0], self.tasks.index(task), np.int32)
-        return np.asarray(_probability(len(self.tasks), self.params, (x - self.mean) / self.std, mask, ids))
+        return np.asarray(_probability(len(self.tasks), self.raw_mean, self.params, (x - self.mean) / self.std, mask,
+                                       ids))
 
 
-@functools.partial(jax.jit, static_argnums=(0,))
-def _probability(n_tasks, params, x, mask, task):
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _probability(n_tasks, raw_mean, params, x, mask, task):
     def member(p):
-        return jax.nn.sigmoid(JudgeNet(n_tasks).apply({"params": p}, x, mask, task))
+        return jax.nn.sigmoid(JudgeNet(n_tasks, raw_mean=raw_mean).apply({"params": p}, x, mask, task))
     if jax.tree_util.tree_leaves(params)[0].shape[0] == 1:  # one judge: its own program, not a batch of one
         return member(jax.tree_util.tree_map(lambda p: p[0], params))
     return jax.vmap(member)(params).mean(axis=0)
@@ -303,13 +312,14 @@ def _standardisation(x, mask):
 
 def fit(train: dict, val: dict | None, tasks: tuple, steps: int, seed: int = 0,
         progress: bool = True, columns=None, lr: float = JUDGE_LR, members: int = 1,
-        select: str = "best") -> tuple[EpisodeJudge, dict]:
+        select: str = "best", raw_mean: bool = False) -> tuple[EpisodeJudge, dict]:
     """Fits a judge to imagined episodes (imagine_episodes' dicts), reading the step features'
     `columns` (default all; wm.imagine.feature_columns), with AdamW at learning rate lr: `members`
     judges from seeds seed, seed + 1, ... (the initialisation and the batches), each kept at its best
     step on val's loss (select "best" with val given) or at its last step (select "last", or no val),
-    read as the mean of their probabilities. A judge of a few hundred episodes overfits them within
-    its first validations, so one judge's ranking follows its seed; the mean of several does less.
+    read as the mean of their probabilities; raw_mean: JudgeNet's. A judge of a few hundred episodes
+    overfits them within its first validations, so one judge's ranking follows its seed; the mean of
+    several does less.
     Returns the judge and its fit metrics (the ensemble's accuracy and AUROC on train and val; each
     member's kept step)."""
     if len(set(train["label"].tolist())) < 2:
@@ -329,11 +339,12 @@ def fit(train: dict, val: dict | None, tasks: tuple, steps: int, seed: int = 0,
     # on the device once: a step gathers its batch there (_rows), not on the host and across to the device
     tr = jax.device_put(arrays(train))
     va = jax.device_put(arrays(val)) if val is not None and len(val["label"]) else None
-    fits = [_fit_one(tr, va if select == "best" else None, len(tasks), steps, seed + k, progress, lr)
+    fits = [_fit_one(tr, va if select == "best" else None, (len(tasks), raw_mean), steps, seed + k, progress, lr)
             for k in range(members)]
     judge = EpisodeJudge(params=jax.tree_util.tree_map(lambda *p: np.stack(p), *[p for p, _ in fits]), mean=mean,
-                         std=std, tasks=tuple(tasks), columns=columns, feature_dim=dim)
+                         std=std, tasks=tuple(tasks), columns=columns, feature_dim=dim, raw_mean=raw_mean)
     metrics = {"episodes_train": len(train["label"]), "steps": steps, "members": members, "lr": lr, "select": select,
+               "raw_mean": raw_mean,
                "kept_step": [k for _, k in fits] if members > 1 else fits[0][1]}
     for tag, d in (("train", train), ("val", val)):
         if d is None or not len(d["label"]):
@@ -344,19 +355,20 @@ def fit(train: dict, val: dict | None, tasks: tuple, steps: int, seed: int = 0,
     return judge, metrics
 
 
-def _fit_one(tr: tuple, va: tuple | None, n_tasks: int, steps: int, seed: int, progress: bool,
+def _fit_one(tr: tuple, va: tuple | None, net: tuple, steps: int, seed: int, progress: bool,
              lr: float) -> tuple[dict, int]:
     """One member of fit's judge on its standardised (features, mask, task ids, labels) of the training
-    and validation episodes, device arrays: (its kept parameters, its kept step)."""
-    params = JudgeNet(n_tasks).init(jax.random.PRNGKey(seed), *tr[:3])["params"]
+    and validation episodes, device arrays: (its kept parameters, its kept step). net: JudgeNet's
+    (n_tasks, raw_mean)."""
+    params = _judge_net(net).init(jax.random.PRNGKey(seed), *tr[:3])["params"]
     state, rng = _optimizer(lr).init(params), np.random.default_rng(seed)
     best, best_loss, best_step = params, np.inf, steps
     n = len(tr[3])
     for k in tqdm(range(1, steps + 1), desc="judge: fit", unit="step", disable=not progress):
         batch = _rows(tr, rng.choice(n, BATCH, replace=True)) if n > BATCH else tr
-        params, state, _ = _update(n_tasks, lr, params, state, *batch)
+        params, state, _ = _update(net, lr, params, state, *batch)
         if va is not None and (k % 25 == 0 or k == steps):
-            v = float(_loss(n_tasks, params, *va))
+            v = float(_loss(net, params, *va))
             if v < best_loss:
                 best, best_loss, best_step = params, v, k
     return jax.tree_util.tree_map(np.asarray, jax.device_get(best if va is not None else params)), best_step
@@ -366,10 +378,15 @@ def _optimizer(lr: float = JUDGE_LR):
     return optax.adamw(lr, weight_decay=WEIGHT_DECAY)
 
 
-# module-level programs (the task count and learning rate static): every fit of the same shapes, in this
-# process or another through the persistent compilation cache, runs the same two
-def _judge_loss(n_tasks: int, p, x, m, t, y):
-    return optax.sigmoid_binary_cross_entropy(JudgeNet(n_tasks).apply({"params": p}, x, m, t), y).mean()
+# module-level programs (the network's task count and pooling, and the learning rate static): every fit
+# of the same shapes, in this process or another through the persistent compilation cache, runs the same two
+def _judge_net(net: tuple) -> JudgeNet:
+    """The JudgeNet of (n_tasks, raw_mean), the static key of the fit's programs."""
+    return JudgeNet(net[0], raw_mean=net[1])
+
+
+def _judge_loss(net: tuple, p, x, m, t, y):
+    return optax.sigmoid_binary_cross_entropy(_judge_net(net).apply({"params": p}, x, m, t), y).mean()
 
 
 _loss = jax.jit(_judge_loss, static_argnums=(0,))
@@ -382,8 +399,8 @@ def _rows(arrays: tuple, idx):
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1))
-def _update(n_tasks: int, lr: float, p, o, x, m, t, y):
-    loss, g = jax.value_and_grad(_judge_loss, argnums=1)(n_tasks, p, x, m, t, y)
+def _update(net: tuple, lr: float, p, o, x, m, t, y):
+    loss, g = jax.value_and_grad(_judge_loss, argnums=1)(net, p, x, m, t, y)
     u, o = _optimizer(lr).update(g, o, p)
     return optax.apply_updates(p, u), o, loss
 
@@ -423,7 +440,7 @@ def fit_judge(cfg, params, norm: Norm, cache, train_ids: list[int], out: Path, p
         if val_ids else None
     judge, metrics = fit(train, val, tasks, cfg.judge_steps, cfg.seed, progress,
                          feature_columns(cfg.model, cfg.judge_inputs), cfg.judge_lr, cfg.judge_members,
-                         cfg.judge_select)
+                         cfg.judge_select, cfg.judge_raw_mean)
     save_judge(judge, metrics, Path(out))
     return metrics
 
@@ -455,7 +472,7 @@ def warm_judge(cfg, params, norm: Norm, cache, train_ids: list[int]) -> EpisodeJ
     train = _placeholder_episodes(cache, train_ids, dim)
     val = _placeholder_episodes(cache, val_ids, dim) if val_ids else None
     return fit(train, val, tasks, 2, cfg.seed, False, feature_columns(cfg.model, cfg.judge_inputs), cfg.judge_lr,
-               cfg.judge_members, cfg.judge_select)[0]
+               cfg.judge_members, cfg.judge_select, cfg.judge_raw_mean)[0]
 
 
 def _placeholder_episodes(cache, ids: list[int], dim: int) -> dict:
@@ -484,7 +501,7 @@ def save_judge(judge: EpisodeJudge, metrics: dict, out: Path) -> None:
     write_json_atomic(out / "judge.json", {"tasks": list(judge.tasks), "mean": judge.mean.tolist(),
                                            "std": judge.std.tolist(), "width": WIDTH, "members": judge.members,
                                            "columns": judge.columns.tolist(), "feature_dim": judge.feature_dim,
-                                           "metrics": metrics})
+                                           "raw_mean": judge.raw_mean, "metrics": metrics})
 
 
 def load_judge(out: Path) -> EpisodeJudge | None:
@@ -494,7 +511,8 @@ def load_judge(out: Path) -> EpisodeJudge | None:
     if meta is None or not (out / "judge.msgpack").exists():
         return None
     mean = np.asarray(meta["mean"], np.float32)
-    net = JudgeNet(len(meta["tasks"]), meta["width"])
+    raw_mean = bool(meta.get("raw_mean", False))  # judge.json without the key: the features' mean not pooled
+    net = JudgeNet(len(meta["tasks"]), meta["width"], raw_mean)
     shapes = jax.eval_shape(lambda: net.init(jax.random.PRNGKey(0), jnp.zeros((1, 2, len(mean))),
                                              jnp.ones((1, 2), bool), jnp.zeros((1,), jnp.int32))["params"])
     members = meta.get("members")  # a judge saved without the key holds one member's parameters, unstacked
@@ -505,7 +523,7 @@ def load_judge(out: Path) -> EpisodeJudge | None:
         params = jax.tree_util.tree_map(lambda p: p[None], params)
     columns = np.asarray(meta.get("columns", range(len(mean))), np.int64)  # a judge saved before input selection reads all
     return EpisodeJudge(params=params, mean=mean, std=np.asarray(meta["std"], np.float32), tasks=tuple(meta["tasks"]),
-                        columns=columns, feature_dim=int(meta.get("feature_dim", len(mean))))
+                        columns=columns, feature_dim=int(meta.get("feature_dim", len(mean))), raw_mean=raw_mean)
 
 
 def check_features(cfg: ModelConfig, judge: EpisodeJudge) -> None:
