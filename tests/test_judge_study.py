@@ -93,16 +93,24 @@ def test_a_variant_fits_its_judge_at_its_seed_learning_rate_and_members(np_rng, 
     train = J.evaluation_episodes(*kept(np_rng), {t: np.arange(len(true[t])) for t in true})
     calls, real = [], J.fit
 
-    def fit(learn, val, tasks, steps, seed, progress=True, columns=None, lr=None, members=1, select="best"):
-        calls.append((seed, lr, members, select))  # every column: the kept features are not a world model's
-        return real(learn, val, tasks, steps, seed, progress=False, lr=lr, members=members, select=select)
+    def fit(learn, val, tasks, steps, seed, progress=True, columns=None, lr=None, members=1, select="best",
+            raw_mean=False):
+        calls.append((seed, lr, members, select, raw_mean))  # every column: the kept features are not a world model's
+        return real(learn, val, tasks, steps, seed, progress=False, lr=lr, members=members, select=select,
+                    raw_mean=raw_mean)
 
     monkeypatch.setattr(J, "fit", fit)
     wm_cfg = make_config("smoke", ["seed=1"])
     probs, metrics = J.read_variant(J.Variant(seed=2, members=3, lr=1e-3), train, None, ("a", "b"), wm_cfg, 30,
                                     features)
-    assert calls == [(3, 1e-3, 3, "best")] and metrics["members"] == 3
+    assert calls == [(3, 1e-3, 3, "best", False)] and metrics["members"] == 3
     assert J.VARIANTS["all_x6"].members == 6 and J.VARIANTS["all_lr5e-4"].lr == 5e-4
     assert J.VARIANTS["all_lr5e-4_x6_last"].select == "last"
+    # the presets' own judges, and the same pooling the features' own mean
+    demo, raw = J.VARIANTS["demo_recipe"], J.VARIANTS["demo_recipe_raw_mean"]
+    assert (demo.inputs, demo.lr, demo.members, demo.select, demo.raw_mean) == (("proprio", "action"), 5e-4, 6, "last",
+                                                                                False)
+    assert raw == J.dataclasses.replace(demo, raw_mean=True)
+    assert "scene" not in J.VARIANTS["full_recipe"].inputs and J.VARIANTS["full_recipe_raw_mean"].raw_mean
     for t in ("a", "b"):
         assert probs[t].shape == true[t].shape and ((probs[t] > 0.5) == true[t]).mean() > 0.9
