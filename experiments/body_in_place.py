@@ -9,7 +9,7 @@ the simulator its pixels move only when the head camera does. For each test epis
 fryer, the true frames' pixels of the fryer's body (geoms of body `fryer`, not of `fryer_tray`) are
 found by rendering the recorded simulator state with the project's renderer (its per-pixel geom
 ids), and the world model imagines the episode open loop under its logged actions from `context`
-observations at four starts, as `wm.evaluate` does. Per horizon, over the samples whose body
+observations at four starts, as `wm.quality` does. Per horizon, over the samples whose body
 pixels did not change since the last context frame (the camera still), it reports the PSNR of
 the imagined frame inside the body's pixels ("body") and outside them ("rest"), both pooled over
 samples: a model that keeps the body in place draws it at least as well as the rest of the scene,
@@ -33,9 +33,9 @@ from sim_data.sim.render import HEAD_CAMERA, RenderConfig, Renderer, poses_from_
 from sim_data.sim.scene import load_model
 from sim_data.util import run_cli, write_json_atomic
 from wm.checkpoint import load_trained
-from wm.evaluate import sample_starts
 from wm.imagine import context_sample, open_loop_chunked
 from wm.metrics import psnr
+from wm.quality import sample_starts
 
 BODY, TRAY = "fryer", "fryer_tray"
 TASK = "airfryer"

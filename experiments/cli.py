@@ -20,7 +20,7 @@ COMMANDS = {
     "data": ("sim_data.dataset.generate", "generate a dataset (MCAP episodes, manifest, training cache)"),
     "policies": ("sim_data.policies.zoo", "train the policy zoo and register its checkpoints and families"),
     "train": ("wm.train", "train a world model"),
-    "wm-eval": ("wm.evaluate", "a world model's frame, success and controllability figures (eval.json)"),
+    "wm-eval": ("wm.quality", "a world model's frame, success and controllability figures (eval.json)"),
     "eval": ("experiments.evaluate", "rank policies in the world model against the simulator"),
     "report": ("experiments.report", "the HTML and Markdown report of an evaluation"),
     "videos": ("experiments.videos", "MP4 files of an evaluation's real and imagined episodes"),

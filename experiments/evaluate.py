@@ -103,7 +103,6 @@ from wm.checkpoint import (
     training_status,
 )
 from wm.config import with_imagine
-from wm.evaluate import no_nan, program_panel
 from wm.imagine import (
     PROGRESS_FEATURE,
     SUCCESS_FEATURE,
@@ -115,6 +114,7 @@ from wm.imagine import (
 from wm.judge import check_features, load_judge
 from wm.metrics import psnr
 from wm.model import IMAGINE_MODES
+from wm.quality import no_nan, program_panel
 from wm.train import warm_after_training
 
 # Per-step arrays (P, N, T) saved with each task: imagined success and progress, the simulator's progress

@@ -40,7 +40,7 @@ simulates it while those on other GPUs wait, as the simulator on a GPU is not bi
 models must be compared against the same outcomes.
 
 A run whose `eval_data` is another dataset than its training data trains with `--no-eval` and is
-evaluated by `python -m wm.evaluate` on that dataset; a run with `model_of` trains nothing and
+evaluated by `python -m wm.quality` on that dataset; a run with `model_of` trains nothing and
 evaluates the model of the named run.
 """
 
@@ -364,7 +364,7 @@ def train_run(run: SweepRun, size: Size, data: Path, out: Path, gpu, log: Path) 
 
 def evaluate_run(model: Path, data: Path, out: Path, gpu, log: Path) -> int:
     """Writes out/eval.json: the trained model in `model` evaluated on the dataset `data`."""
-    return _subprocess(["-m", "wm.evaluate", "--wm", str(model), "--data", str(data), "--out", str(out)], gpu, log)
+    return _subprocess(["-m", "wm.quality", "--wm", str(model), "--data", str(data), "--out", str(out)], gpu, log)
 
 
 def _subprocess(args: list, gpu, log: Path) -> int:

@@ -1,9 +1,9 @@
-"""wm.evaluate.action_sensitivity: does the predicted success move with the actions (hand-made model)."""
+"""wm.quality.action_sensitivity: does the predicted success move with the actions (hand-made model)."""
 
 import numpy as np
 import pytest
 
-from wm import evaluate as E
+from wm import quality as E
 from wm.config import make_config
 from wm.imagine import SUCCESS_FEATURE
 

@@ -542,7 +542,7 @@ def test_auto_readout_picks_the_judge_only_where_every_model_saw_learned_policie
 
 
 def test_within_task_headline_and_checkpoint_selection_from_the_episodes(evaluation):
-    from wm.evaluate import no_nan
+    from wm.quality import no_nan
 
     cfg, out, res = evaluation
     with np.load(out / "tasks" / "mug.npz") as z:

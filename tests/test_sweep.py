@@ -72,10 +72,10 @@ def test_transfer_held_out_and_rollout_sweeps_are_built_as_described():
 
 
 def test_evaluating_elsewhere_refuses_training_settings(capsys):
-    from wm import evaluate
+    from wm import quality
 
     with pytest.raises(SystemExit):
-        evaluate.main(["--wm", "x", "--data", "y", "--out", "z", "lr=0.1"])
+        quality.main(["--wm", "x", "--data", "y", "--out", "z", "lr=0.1"])
     assert "only evaluation settings" in capsys.readouterr().err
 
 

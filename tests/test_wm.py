@@ -24,10 +24,10 @@ from sim_data.config import override
 from sim_data.dataset.cache import TrainingCache
 from sim_data.policies.registry import PolicySource
 from sim_data.sim.scene import SCENE_STATE_NAMES
-from wm import evaluate as E
 from wm import imagine as I
 from wm import judge as J
 from wm import metrics as M
+from wm import quality as E
 from wm.checkpoint import (
     bundle_holds,
     load_run_config,

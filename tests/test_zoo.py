@@ -301,8 +301,8 @@ def test_mixed_dataset_records_policy_rollouts(smoke_dataset, smoke_zoo, smoke_w
     assert not np.allclose(logged["features"][0], got["features"][0])  # not the logged actions replayed
     # the policy in the loop: the actions it takes on the observations imagined under its logged actions
     # and on the first one held, against those on the true observations, by hand
-    from wm.evaluate import policy_action_divergence
     from wm.imagine import open_loop
+    from wm.quality import policy_action_divergence
 
     cfg = dataclasses.replace(wm_cfg, eval_horizons=(1, 3))
     pil = policy_action_divergence(cfg, wm_params, norm, cache, [i], pols)

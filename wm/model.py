@@ -58,7 +58,7 @@ class ModelConfig:
         fraction of a pixel, or a composition mask short of 1, would blur (needs compose).
       keep_threshold: the gate keeps a pixel where its logit exceeds this (0: probability 0.5); the
         gate learns from its cross-entropy whatever the threshold, so a trained model may be evaluated
-        at another (`python -m wm.evaluate ... model.keep_threshold=2`).
+        at another (`python -m wm.quality ... model.keep_threshold=2`).
       reencode: imagination feeds each decoded frame back through the encoder (its 8-bit image, as
         a real frame would be) instead of the predicted latents, so that the dynamics always reads
         latents of images (what teacher-forced training shows it) however far it imagines;

@@ -13,7 +13,7 @@ loss stops the run before any checkpoint of it is written. The budget is `steps`
 safety stop that marks the run cut short (`train_status.json`) and leaves the rest to a rerun of the
 same command, so that a budget longer than one command trains over several. When `steps` are done
 the episode judge is fitted (`wm.judge`) and `eval.json` written from the kept parameters
-(`wm.evaluate`).
+(`wm.quality`).
 """
 
 from __future__ import annotations
@@ -43,11 +43,11 @@ from sim_data.util import make_output_dir, run_cli, write_json_atomic
 from wm import perceptual
 from wm.checkpoint import restore_params
 from wm.config import PRESETS, TrainConfig, check_dataset, make_config, to_dict
-from wm.evaluate import evaluate
 from wm.imagine import Norm, to_uint8
 from wm.judge import fit_judge, load_judge, warm_judge
 from wm.metrics import action_contrast, gaussian_kl
 from wm.model import REFINE_SIGMA, WorldModel, init_params
+from wm.quality import evaluate
 
 
 class TrainingDiverged(FloatingPointError):

@@ -33,7 +33,7 @@
 `wm.train` writes eval.json at the end of training; a trained model is evaluated on another
 dataset (held-out scenes, another task) with
 
-    python -m wm.evaluate --wm runs/wm/demo --data runs/data/heldout --out runs/wm/demo_on_heldout [eval_tasks=mug]
+    python -m wm.quality --wm runs/wm/demo --data runs/data/heldout --out runs/wm/demo_on_heldout [eval_tasks=mug]
 
 and `--success-only` writes the success prediction alone, episode by episode (success_episodes), to
 read where the judge goes wrong (which policies, skills or grips).
