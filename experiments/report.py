@@ -707,15 +707,16 @@ def _videos_html(run: Path, res: dict, videos: dict, mp4: list[tuple[str, str]])
     return h
 
 
-def _timing_html(timing: list[dict]) -> list[str]:
-    """The report's pipeline timing section (timing.json's rows), as HTML; empty without rows."""
+def _timing_html(timing: list[dict], compiles: list[list[str]] | None) -> list[str]:
+    """The report's pipeline timing section (timing.json's rows, and compile_table's of them), as HTML;
+    empty without rows."""
     if not timing:
         return []
     h = ["<h2>Pipeline timing</h2>", "<p>Per stage command: wall seconds and the seconds spent compiling "
          "(the pipeline's own process, plus for a stage spread over GPUs the most any one of its child "
          "processes spent); frames/s end to end: the frames a data stage generated over its whole wall "
          "time.</p>", _html_table(timing_table(timing))]
-    if compiles := compile_table(timing):
+    if compiles:
         h += [("<p>Where the compile time goes: per stage command, the jitted functions that took the most "
                "seconds to trace, lower and compile.</p>"), _html_table(compiles)]
     return h
@@ -780,7 +781,7 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
     h += sweep_html
     timing = json.loads((run / "timing.json").read_text()) if (run / "timing.json").exists() else []
     compiles = compile_table(timing)
-    h += _timing_html(timing)
+    h += _timing_html(timing, compiles)
     h += ["<h2>Configuration and versions</h2>", f"<pre>{html.escape(json.dumps(res['config'], indent=1))}</pre>",
           f"<pre>{html.escape(json.dumps(res['versions'], indent=1))}</pre>",
           f"<pre>{html.escape(json.dumps(res['timing'], indent=1))}</pre>", "</body></html>"]
