@@ -62,7 +62,7 @@ from sim_data.policies.scripted import (
 from sim_data.sim.engines import ENGINES, default_engine
 from sim_data.sim.env import HomeEnv, cached_env
 from sim_data.sim.render import CAMERAS, HEAD_CAMERA, cached_renderers
-from sim_data.sim.robot import ACTION_DIM, FORWARD_SPEED, MAX_FORWARD_SPEED
+from sim_data.sim.robot import ACTION_DIM, FORWARD_SPEED
 from sim_data.sim.rollout import WARM_STEPS, record_episodes
 from sim_data.sim.scene import load_model
 from sim_data.sim.tasks import CONTROL_DT, MAX_EPISODE_STEPS, TASK_NAMES
@@ -82,12 +82,8 @@ SPLITS = ("train", "val", "test", "programs")
 PLAY = "play"  # the source of random play episodes (sim_data.policies.scripted.play_program)
 WEAK_GRIP = "weak_grip"  # the source of scripted episodes whose hand closes only part-way (DataConfig.weak_grip)
 WEAK_GRIP_RANGE = (0.1, 0.7)  # the factors on a weak grip's closures
-DRIVE = "drive"  # the source of episodes that back away a set distance (DataConfig.drive)
-DRIVE_DISTANCE = (0.0, 1.8)  # m a drive episode backs away (standing still to past step_back's stool)
-DRIVE_SPEEDS = (0.15, 0.5)  # m/s, a drive's mean speed (the scripted back-away drives at 0.3; the base's limit 0.5)
-DRIVE_SWAY = (0.0, 0.6)  # a drive's speed swings by this share of its mean, over DRIVE_SWAY_PERIOD
-DRIVE_SWAY_PERIOD = 2.0  # s
-SILVER, PLASTIC = 0.41421356237309515, 0.7548776662466927  # further low-discrepancy steps beside GOLDEN
+DRIVE = "drive"  # the source of episodes that back away for a set time (DataConfig.drive)
+DRIVE_SECONDS = (0.0, 6.0)  # how long a drive episode backs away at the scripted 0.3 m/s: none to 1.8 m
 SOURCES_NAMED = (PLAY, WEAK_GRIP, DRIVE)  # sources that are their own policy name and kind
 
 
@@ -125,16 +121,13 @@ class DataConfig:
         are 0 or 1, and these show what a hand closed part-way does to what it holds. They run in
         the chunks of the programs and play (on the GPU, in rows those chunks would pad) and are
         not scripted demonstrations (policy_kind "weak_grip"), so the zoo never learns from them.
-      drive: episodes per task that hold the ready pose and back away a distance spread over
-        DRIVE_DISTANCE (from standing still to 1.8 m) at a speed that differs from episode to episode
-        and swings within one (drive_profile, drive_table), from the initial states of the scripted
-        episodes 0, 1, ... (policy "drive", in train/val/test; action tables, run with the programs).
-        On step_back the scripted drives all stop near the band that succeeds at one speed, and a
-        policy acting on imagined frames may stop short or drive on, at its own pace; on every other
-        task no drive succeeds. So these show the world model and its judge what every distance does
-        however it is driven (a distance is a sum of speeds over time, which a judge fit at one speed
-        reads only at that speed), and that backing away alone achieves nothing else. Not
-        demonstrations (policy_kind "drive").
+      drive: episodes per task that hold the ready pose and back away at the scripted speed for a
+        time spread over DRIVE_SECONDS (drive_seconds: from standing still to 1.8 m), from the initial
+        states of the scripted episodes 0, 1, ... (policy "drive", in train/val/test; action tables,
+        run with the programs). On step_back the scripted drives all stop near the band that succeeds,
+        and a policy acting on imagined frames may stop short or drive on; on every other task no
+        drive succeeds. So these show the world model and its judge what every distance does, and that
+        backing away alone achieves nothing else. Not demonstrations (policy_kind "drive").
     """
 
     tasks: tuple = TASK_NAMES
@@ -670,27 +663,18 @@ def weak_grip_factor(i: int) -> float:
     return lo + (hi - lo) * ((i * GOLDEN) % 1.0)
 
 
-def drive_profile(i: int) -> tuple:
-    """Drive episode i's (distance m, mean speed m/s, sway): each spread evenly over its range
-    (DRIVE_DISTANCE, DRIVE_SPEEDS, DRIVE_SWAY) by its own low-discrepancy sequence, so that any first n
-    episodes cover distances, speeds and swings, and their combinations, without a grid."""
-    def spread(span, step):
-        lo, hi = span
-        return lo + (hi - lo) * ((i * step) % 1.0)
-
-    return spread(DRIVE_DISTANCE, GOLDEN), spread(DRIVE_SPEEDS, SILVER), spread(DRIVE_SWAY, PLASTIC)
+def drive_seconds(i: int) -> float:
+    """How long drive episode i backs away: spread evenly over DRIVE_SECONDS (a golden-ratio sequence),
+    so that any first n episodes cover the range."""
+    lo, hi = DRIVE_SECONDS
+    return lo + (hi - lo) * ((i * GOLDEN) % 1.0)
 
 
-def drive_table(distance: float, speed: float, sway: float, num_steps: int) -> np.ndarray:
-    """(num_steps, 20) float32: the ready pose held while the base backs away `distance` m, at `speed`
-    m/s swung by +-sway of it (a sine of DRIVE_SWAY_PERIOD), then stands (the step_backwards program with
-    its own speeds); a drive the episode is too short for is cut off at its end."""
+def drive_table(seconds: float, num_steps: int) -> np.ndarray:
+    """(num_steps, 20) float32: the ready pose held while the base backs away at the scripted 0.3 m/s
+    for `seconds`, then stands (the step_backwards program with its own duration)."""
     table = action_program("step_backwards", num_steps)
-    t = np.arange(num_steps) * CONTROL_DT
-    pace = np.clip(speed * (1.0 + sway * np.sin(2.0 * np.pi * t / DRIVE_SWAY_PERIOD)), 0.0, MAX_FORWARD_SPEED)
-    before = np.concatenate([[0.0], np.cumsum(pace)[:-1]]) * CONTROL_DT  # m covered before each step
-    step = np.minimum(pace, np.maximum(distance - before, 0.0) / CONTROL_DT)  # the last step lands on distance
-    table[:, FORWARD_SPEED] = -step
+    table[:, FORWARD_SPEED] = np.where(np.arange(num_steps) < round(seconds / CONTROL_DT), -0.3, 0.0)
     return table
 
 
@@ -698,7 +682,7 @@ def _program_table(cfg: DataConfig, task: str, source: str, i: int, env: HomeEnv
     """The action table (env.episode_steps, 20) of a program episode (source: a program's name), of
     play episode i (source PLAY) or of drive episode i (DRIVE)."""
     if source == DRIVE:
-        return drive_table(*drive_profile(i), env.episode_steps)
+        return drive_table(drive_seconds(i), env.episode_steps)
     if source == PLAY:
         seed = _initial_seed_of(cfg, task, source, i) + 1  # not the initial state's own seed
         return play_params([seed], env.episode_steps, env.idx.robot.action_low, env.idx.robot.action_high)["table"][0]
