@@ -12,6 +12,12 @@ over policies and initial states shared by every variant), beside the evaluation
 (the judge saved with the model, the progress head, the per-step rule), for every policy and for the
 policies whose rollouts the world model never saw.
 
+A variant with `replay_labels` labels each closed-loop imagination of a learned policy's rollout by
+the simulator's outcome of the actions the policy took in that imagination, played open loop from
+the episode's initial state (experiments.evaluate.simulate_actions), instead of the outcome of the
+rollout in the simulator: the judge then learns what the imagined actions achieve, and a loop that
+drifts from its true actions (a drive that overshoots in imagination) is read by its own actions.
+
 Beside them two bounds, neither a valid evaluation. The observed bound: a judge fit to the training
 episodes' true frames (what imagination would show were it exact) reading the evaluation's simulated
 episodes (kept by keep_features=1): how far the head camera and the proprioception decide each task's
@@ -37,11 +43,13 @@ import os
 import sys
 from pathlib import Path
 
+import jax
 import numpy as np
 
 from experiments import stats as S
-from experiments.evaluate import READOUTS, load_features, load_task
+from experiments.evaluate import READOUTS, load_features, load_task, simulate_actions
 from sim_data.dataset.cache import TrainingCache, window_episodes
+from sim_data.sim.engines import default_engine
 from sim_data.util import run_cli, write_json_atomic
 from wm.checkpoint import load_run_config, load_trained
 from wm.config import JUDGE_LR, with_imagine
@@ -70,7 +78,8 @@ class Variant:
     seed: added to the world model's seed for the judge's initialisation and batches; members: that
     many judges, of seeds seed, seed + 1, ..., read as the mean of their probabilities; lr: the
     judge's learning rate; select: each member kept at its own best validation step ("best") or at its
-    last ("last"); raw_mean: the features' own mean pooled too (wm.judge.fit)."""
+    last ("last"); raw_mean: the features' own mean pooled too (wm.judge.fit); replay_labels: the
+    closed-loop imaginations labelled by their own actions' outcome in the simulator (replayed)."""
 
     episodes: int = 0
     inputs: tuple = FEATURE_GROUPS
@@ -83,6 +92,7 @@ class Variant:
     lr: float = JUDGE_LR
     select: str = "best"
     raw_mean: bool = False
+    replay_labels: bool = False
 
 
 VARIANTS = {
@@ -115,6 +125,10 @@ VARIANTS = {
        for name, inputs, select in (("full_recipe", tuple(g for g in FEATURE_GROUPS if g != "scene"), "best"),
                                     ("demo_recipe", ("proprio", "action"), "last"))
        for tag, raw in (("", False), ("_raw_mean", True))},
+    # the presets' judges learning what the closed loop's imagined actions truly achieve
+    **{f"{name}_replay": Variant(inputs=inputs, lr=5e-4, members=ENSEMBLE, select=select, replay_labels=True)
+       for name, inputs, select in (("full_recipe", tuple(g for g in FEATURE_GROUPS if g != "scene"), "best"),
+                                    ("demo_recipe", ("proprio", "action"), "last"))},
 }
 BOUND = "crossfit_bound"
 # A judge fit to the training episodes' true frames alone, reading the evaluation's simulated episodes
@@ -194,6 +208,25 @@ def crossfit_bound(features: dict, true: dict, tasks: tuple, steps: int, seed: i
     return out
 
 
+def replayed_labels(d: dict, ids: list[int], cache, wm_cfg, norm, engine: str) -> np.ndarray:
+    """(N,) bool: d's labels (an imagine_episodes dict of the cache episodes ids, with its "rollout"
+    flags), each closed-loop row's replaced by the simulator's outcome of its imagined actions (the
+    step features' action columns, unstandardised by norm) played open loop from the episode's
+    initial state (PRNGKey of the episode's seed) on `engine`."""
+    label = np.array(d["label"], bool)
+    cols = feature_columns(wm_cfg.model, ("action",))
+    mean, std = np.asarray(norm.action_mean), np.asarray(norm.action_std)
+    for task in sorted({cache.episodes[i]["task"] for i in ids}):
+        rows = [k for k, i in enumerate(ids) if d["rollout"][k] and cache.episodes[i]["task"] == task]
+        if not rows:
+            continue
+        steps = int(d["mask"][rows[0]].sum())
+        actions = d["features"][rows, :steps][..., cols] * std + mean
+        keys = np.stack([np.asarray(jax.random.PRNGKey(int(cache.episodes[ids[k]]["seed"]))) for k in rows])
+        label[rows] = simulate_actions(task, actions, keys, engine)[0]
+    return label
+
+
 def fit_variant(v: Variant, train: dict, val: dict, tasks: tuple, wm_cfg, steps: int, observed: dict | None = None) -> tuple:
     """(EpisodeJudge, fit metrics) of variant v on the imagined training episodes (and, for an
     `observed` variant, the same episodes' `observed` dict, observe_episodes' in train's order)."""
@@ -270,7 +303,7 @@ def study(eval_dir: Path, out: Path, wm_run: Path | None = None, data: Path | No
 
     seen = {t: load_features(eval_dir, t, observed=True) for t in tasks} if OBSERVED_BOUND in names else {}
     fitted = [VARIANTS[n] for n in names if n in VARIANTS] + ([Variant(observed=True)] if seen else [])
-    train = val = train_open = val_open = None
+    train = val = train_open = val_open = train_replay = val_replay = None
     observed = observed_val = None
     ids, val_ids = [], []
     if fitted:
@@ -290,6 +323,12 @@ def study(eval_dir: Path, out: Path, wm_run: Path | None = None, data: Path | No
 
         train = imagined(out / f"imagined_train_{len(ids)}.npz", make(ids, wm_cfg.seed))
         val = imagined(out / "imagined_val.npz", make(val_ids, wm_cfg.seed + 1))
+        if any(v.replay_labels for v in fitted):
+            engine = default_engine()
+            train_replay = {**train, "label": replayed_labels(train, ids, cache, wm_cfg, norm, engine)}
+            val_replay = {**val, "label": replayed_labels(val, val_ids, cache, wm_cfg, norm, engine)}
+            print(f"replayed labels: {int((train_replay['label'] != train['label']).sum())} of "
+                  f"{int(train['rollout'].sum())} closed-loop training imaginations relabelled", file=sys.stderr)
         if not all(v.closed_loop for v in fitted):
             train_open = imagined(out / f"imagined_train_open_{len(ids)}.npz", make(ids, wm_cfg.seed, {}))
             val_open = imagined(out / "imagined_val_open.npz", make(val_ids, wm_cfg.seed + 1, {}))
@@ -317,9 +356,9 @@ def study(eval_dir: Path, out: Path, wm_run: Path | None = None, data: Path | No
                 probs, fit_metrics = observed_bound(observed, observed_val, seen, tasks, steps, wm_cfg.seed)
             else:
                 v = VARIANTS[name]
-                probs, fit_metrics = read_variant(v, train if v.closed_loop else train_open,
-                                                  val if v.closed_loop else val_open, tasks, wm_cfg, steps, features,
-                                                  observed)
+                learn, check = ((train_replay, val_replay) if v.replay_labels else (train, val)) if v.closed_loop \
+                    else (train_open, val_open)
+                probs, fit_metrics = read_variant(v, learn, check, tasks, wm_cfg, steps, features, observed)
         except ValueError as e:  # one outcome only among what a variant would learn from
             print(f"warning: judge variant {name} skipped: {e}", file=sys.stderr)
             continue

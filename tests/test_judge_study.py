@@ -2,12 +2,14 @@
 
 import json
 
+import jax
 import numpy as np
 import pytest
 
 from experiments import judge_study as J
 from experiments import stats as S
 from wm.config import make_config
+from wm.imagine import Norm, feature_columns, feature_dim
 
 
 def kept(rng, policies=12, states=16, steps=(5, 7)):
@@ -114,3 +116,48 @@ def test_a_variant_fits_its_judge_at_its_seed_learning_rate_and_members(np_rng, 
     assert "scene" not in J.VARIANTS["full_recipe"].inputs and J.VARIANTS["full_recipe_raw_mean"].raw_mean
     for t in ("a", "b"):
         assert probs[t].shape == true[t].shape and ((probs[t] > 0.5) == true[t]).mean() > 0.9
+
+
+def test_kept_imaginations_read_back_with_their_labels_and_rollout_flags(tmp_path, np_rng):
+    d = {"features": np_rng.normal(size=(3, 4, 5)).astype(np.float32), "mask": np.ones((3, 4), bool),
+         "task": ["a", "b", "a"], "label": np.array([True, False, True]), "rollout": np.array([False, True, True])}
+    path = tmp_path / "imagined_train_3.npz"
+    J.imagined(path, lambda: d)
+    back = J.imagined(path, lambda: pytest.fail("a kept file is read, not made again"))
+    assert back["task"] == d["task"] and back["label"].tolist() == d["label"].tolist()
+    assert back["rollout"].tolist() == d["rollout"].tolist()  # what a resumed study's summary counts
+    np.testing.assert_allclose(back["features"], d["features"], atol=2e-3)  # kept as float16
+
+
+def test_replayed_labels_are_the_simulated_outcomes_of_the_imagined_actions(monkeypatch):
+    """Closed-loop rows take the simulator's outcome of their own imagined actions (unstandardised,
+    played from the episode's seed), task by task; open-loop rows keep their label."""
+    cfg = make_config("smoke")
+    F, cols = feature_dim(cfg.model), feature_columns(cfg.model, ("action",))
+    episodes = [{"task": "mug", "seed": 7}, {"task": "step_back", "seed": 8}, {"task": "mug", "seed": 9},
+                {"task": "step_back", "seed": 10}]
+    cache = type("Cache", (), {"episodes": {10 + k: e for k, e in enumerate(episodes)}})()
+    ids = [10, 11, 12, 13]
+    actions = np.arange(4 * 3 * 20, dtype=np.float32).reshape(4, 3, 20) / 100.0
+    norm = Norm(proprio_mean=np.zeros(37), proprio_std=np.ones(37), action_mean=np.full(20, 0.5),
+                  action_std=np.full(20, 2.0))
+    x = np.zeros((4, 5, F), np.float32)
+    x[:, :3, cols] = (actions - 0.5) / 2.0
+    mask = np.arange(5)[None].repeat(4, 0) < np.array([[3], [3], [3], [3]])
+    d = {"features": x, "mask": mask, "label": np.array([True, True, False, False]),
+         "rollout": np.array([True, True, False, True])}
+    calls = []
+
+    def simulate(task, acts, keys, engine):
+        calls.append((task, acts, keys, engine))
+        return np.array([[task == "step_back"] * len(acts)])  # step_back's replays succeed, mug's fail
+
+    monkeypatch.setattr(J, "simulate_actions", simulate)
+    got = J.replayed_labels(d, ids, cache, cfg, norm, "cpu")
+    assert got.tolist() == [False, True, False, True]  # row 2 is open loop: its label stays
+    assert [c[0] for c in calls] == ["mug", "step_back"] and {c[3] for c in calls} == {"cpu"}
+    np.testing.assert_allclose(calls[0][1], actions[[0]], atol=1e-6)
+    np.testing.assert_allclose(calls[1][1], actions[[1, 3]], atol=1e-6)
+    np.testing.assert_array_equal(calls[1][2], np.stack([np.asarray(jax.random.PRNGKey(s)) for s in (8, 10)]))
+    assert J.VARIANTS["demo_recipe_replay"] == J.dataclasses.replace(J.VARIANTS["demo_recipe"], replay_labels=True)
+    assert J.VARIANTS["full_recipe_replay"].replay_labels and not J.VARIANTS["full_recipe"].replay_labels
