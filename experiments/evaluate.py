@@ -77,7 +77,7 @@ from sim_data.policies.registry import (
     stacked_sources,
     used_seeds,
 )
-from sim_data.policies.scripted import ProgramPolicy
+from sim_data.policies.scripted import simulate_actions
 from sim_data.sim import robot as R
 from sim_data.sim.engines import ENGINES, PHYSICS_REVISION, default_engine
 from sim_data.sim.env import cached_env
@@ -651,18 +651,6 @@ def _simulate(task, policy, params, seeds, reset_keys, rng, engine, renderer, st
             "proprio0": np.asarray(rec.proprio[:, :1]), "steps": steps or env.episode_steps,
             "frames": rec.frames[HEAD_CAMERA], "proprio": rec.proprio, "action": rec.action,
             "progress": np.asarray(rec.progress[:, 1:], np.float32)}
-
-
-def simulate_actions(task: str, actions, reset_keys, engine: str) -> np.ndarray:
-    """The simulator's outcomes of given action sequences played open loop: actions (P*n, T, 20), row
-    i*n + e from initial state e of reset_keys (n, 2) (a batch's layout). Returns (P, n) bool."""
-    actions = np.asarray(actions, np.float32)
-    env = cached_env(task, len(actions), engine, False)
-    if actions.shape[1] != env.episode_steps:
-        raise ValueError(f"{actions.shape[1]} actions an episode for {task}'s {env.episode_steps} steps")
-    played = ProgramPolicy(env.episode_steps)
-    outcome, _ = record_policies(env, played, {"table": jax.device_put(actions)}, reset_keys, jax.random.PRNGKey(0))
-    return outcome
 
 
 def _truth_key(task, policy, params, seeds, rng, engine, renderer, code: str = "") -> str:

@@ -14,9 +14,10 @@ policies whose rollouts the world model never saw.
 
 A variant with `replay_labels` labels each closed-loop imagination of a learned policy's rollout by
 the simulator's outcome of the actions the policy took in that imagination, played open loop from
-the episode's initial state (experiments.evaluate.simulate_actions), instead of the outcome of the
-rollout in the simulator: the judge then learns what the imagined actions achieve, and a loop that
-drifts from its true actions (a drive that overshoots in imagination) is read by its own actions.
+the episode's initial state (wm.judge.replayed_labels, as wm.train's judge_labels=replayed),
+instead of the outcome of the rollout in the simulator: the judge then learns what the imagined
+actions achieve, and a loop that drifts from its true actions (a drive that overshoots in
+imagination) is read by its own actions.
 
 Beside them two bounds, neither a valid evaluation. The observed bound: a judge fit to the training
 episodes' true frames (what imagination would show were it exact) reading the evaluation's simulated
@@ -43,11 +44,10 @@ import os
 import sys
 from pathlib import Path
 
-import jax
 import numpy as np
 
 from experiments import stats as S
-from experiments.evaluate import READOUTS, load_features, load_task, simulate_actions
+from experiments.evaluate import READOUTS, load_features, load_task
 from sim_data.dataset.cache import TrainingCache, window_episodes
 from sim_data.sim.engines import default_engine
 from sim_data.util import run_cli, write_json_atomic
@@ -62,6 +62,7 @@ from wm.judge import (
     join_episodes,
     load_judge,
     observe_episodes,
+    replayed_labels,
     spread,
 )
 
@@ -208,25 +209,6 @@ def crossfit_bound(features: dict, true: dict, tasks: tuple, steps: int, seed: i
     return out
 
 
-def replayed_labels(d: dict, ids: list[int], cache, wm_cfg, norm, engine: str) -> np.ndarray:
-    """(N,) bool: d's labels (an imagine_episodes dict of the cache episodes ids, with its "rollout"
-    flags), each closed-loop row's replaced by the simulator's outcome of its imagined actions (the
-    step features' action columns, unstandardised by norm) played open loop from the episode's
-    initial state (PRNGKey of the episode's seed) on `engine`."""
-    label = np.array(d["label"], bool)
-    cols = feature_columns(wm_cfg.model, ("action",))
-    mean, std = np.asarray(norm.action_mean), np.asarray(norm.action_std)
-    for task in sorted({cache.episodes[i]["task"] for i in ids}):
-        rows = [k for k, i in enumerate(ids) if d["rollout"][k] and cache.episodes[i]["task"] == task]
-        if not rows:
-            continue
-        steps = int(d["mask"][rows[0]].sum())
-        actions = d["features"][rows, :steps][..., cols] * std + mean
-        keys = np.stack([np.asarray(jax.random.PRNGKey(int(cache.episodes[ids[k]]["seed"]))) for k in rows])
-        label[rows] = simulate_actions(task, actions, keys, engine)[0]
-    return label
-
-
 def fit_variant(v: Variant, train: dict, val: dict, tasks: tuple, wm_cfg, steps: int, observed: dict | None = None) -> tuple:
     """(EpisodeJudge, fit metrics) of variant v on the imagined training episodes (and, for an
     `observed` variant, the same episodes' `observed` dict, observe_episodes' in train's order)."""
@@ -325,8 +307,10 @@ def study(eval_dir: Path, out: Path, wm_run: Path | None = None, data: Path | No
         val = imagined(out / "imagined_val.npz", make(val_ids, wm_cfg.seed + 1))
         if any(v.replay_labels for v in fitted):
             engine = default_engine()
-            train_replay = {**train, "label": replayed_labels(train, ids, cache, wm_cfg, norm, engine)}
-            val_replay = {**val, "label": replayed_labels(val, val_ids, cache, wm_cfg, norm, engine)}
+            train_replay = {**train, "label": replayed_labels(wm_cfg.model, norm, cache, ids, train, train["rollout"],
+                                                              engine)}
+            val_replay = {**val, "label": replayed_labels(wm_cfg.model, norm, cache, val_ids, val, val["rollout"],
+                                                          engine)}
             print(f"replayed labels: {int((train_replay['label'] != train['label']).sum())} of "
                   f"{int(train['rollout'].sum())} closed-loop training imaginations relabelled", file=sys.stderr)
         if not all(v.closed_loop for v in fitted):

@@ -8,6 +8,7 @@ import pytest
 
 from experiments import judge_study as J
 from experiments import stats as S
+from wm import judge as WJ
 from wm.config import make_config
 from wm.imagine import Norm, feature_columns, feature_dim
 
@@ -152,8 +153,8 @@ def test_replayed_labels_are_the_simulated_outcomes_of_the_imagined_actions(monk
         calls.append((task, acts, keys, engine))
         return np.array([[task == "step_back"] * len(acts)])  # step_back's replays succeed, mug's fail
 
-    monkeypatch.setattr(J, "simulate_actions", simulate)
-    got = J.replayed_labels(d, ids, cache, cfg, norm, "cpu")
+    monkeypatch.setattr(WJ, "simulate_actions", simulate)
+    got = WJ.replayed_labels(cfg.model, norm, cache, ids, d, d["rollout"], "cpu")
     assert got.tolist() == [False, True, False, True]  # row 2 is open loop: its label stays
     assert [c[0] for c in calls] == ["mug", "step_back"] and {c[3] for c in calls} == {"cpu"}
     np.testing.assert_allclose(calls[0][1], actions[[0]], atol=1e-6)

@@ -1090,7 +1090,8 @@ def test_the_judge_learns_from_every_training_episode_with_a_bounded_validation_
     monkeypatch.setattr(J, "fit", lambda train, val, tasks, *a, **k: (tasks, {"n": len(train["ids"])}))
     monkeypatch.setattr(J, "save_judge", lambda *a: None)
     cfg = make_config("smoke", ["judge_episodes=8192"])
-    assert J.fit_judge(cfg, None, None, _Episodes(), list(range(6000)), tmp_path, progress=False) == {"n": 6000}
+    assert J.fit_judge(cfg, None, None, _Episodes(), list(range(6000)), tmp_path, progress=False) == {
+        "n": 6000, "labels": "simulated"}
     train, val = imagined
     assert train == list(range(6000)) and len(val) == J.VAL_EPISODES == 256
     assert set(val) <= set(range(6000, 7000)) and len(set(val)) == 256
@@ -1121,6 +1122,51 @@ def test_a_judge_with_observed_episodes_learns_from_both_readings_and_is_kept_on
     np.testing.assert_array_equal(train["label"], np.tile([i % 4 == 0 for i in range(6000)], 2))
     assert len(val["label"]) == J.VAL_EPISODES and (val["features"] == 0).all()  # kept on imaginations alone
 
+
+
+def test_a_judge_of_replayed_labels_learns_what_the_imagined_actions_achieved(tmp_path, monkeypatch):
+    """judge_labels=replayed: the rollouts' closed-loop imaginations (their policy in the dataset's)
+    take the simulator's outcome of their imagined actions, in training and validation; the
+    scripted episodes and the true readings keep their labels; judge.json says so."""
+    got, replays = {}, []
+
+    class Rollouts(_Episodes):
+        def __init__(self):
+            super().__init__()
+            for i in range(0, 7000, 3):  # every third episode a rollout of a learned policy
+                self.episodes[i].update(policy="bc", seed=i)
+
+    def simulate(task, actions, keys, engine):
+        replays.append((task, len(actions), engine))
+        return np.zeros((1, len(actions)), bool)  # what the imagined actions do: fail
+
+    monkeypatch.setattr(J, "dataset_policies", lambda root: {"bc": object()})
+    wide = I.feature_dim(make_config("smoke").model)  # the step features' width: the action columns are read
+    monkeypatch.setattr(J, "imagine_episodes", lambda *a: {**_readings(a[4], 0.0),
+                                                           "features": np.zeros((len(a[4]), 3, wide), np.float32)})
+    monkeypatch.setattr(J, "observe_episodes", lambda *a: {**_readings(a[4], 1.0),
+                                                           "features": np.ones((len(a[4]), 3, wide), np.float32)})
+    monkeypatch.setattr(J, "simulate_actions", simulate)
+    monkeypatch.setattr(J, "fit", lambda train, val, *a, **k: got.update(train=train, val=val) or (None, {}))
+    monkeypatch.setattr(J, "save_judge", lambda judge, metrics, out: got.update(metrics=metrics))
+    cache = Rollouts()
+    J.fit_judge(make_config("smoke", ["judge_episodes=600", "judge_observed=1", "judge_labels=replayed"]), None,
+                I.Norm(np.zeros(37), np.ones(37), np.zeros(20), np.ones(20)), cache, list(range(6000)), tmp_path,
+                progress=False)
+    train_ids = J.spread(list(range(6000)), 600)
+    closed = np.array([i % 3 == 0 for i in train_ids])
+    truth = np.array([i % 4 == 0 for i in train_ids])  # the labels the imaginations came with (_readings)
+    np.testing.assert_array_equal(got["train"]["label"][:600], truth & ~closed)  # the rollouts now fail
+    np.testing.assert_array_equal(got["train"]["label"][600:], truth)  # the true readings keep theirs
+    val_ids = J.spread(list(range(6000, 7000)), 150)
+    np.testing.assert_array_equal(got["val"]["label"], np.array([i % 4 == 0 and i % 3 != 0 for i in val_ids]))
+    # the spread picks task a's episodes alone (even ids): one replay of its closed rows a split
+    assert [r[:2] for r in replays] == [("a", closed.sum()), ("a", sum(i % 3 == 0 for i in val_ids))]
+    m = got["metrics"]
+    assert m["labels"] == "replayed" and m["relabelled"]["train"]["closed_loop"] == closed.sum()
+    assert m["relabelled"]["train"]["changed"] == (closed & truth).sum()
+    with pytest.raises(ValueError, match="judge_labels"):
+        make_config("smoke", ["judge_labels=imagined"])
 
 @pytest.mark.slow
 def test_observed_episodes_are_the_true_episodes_features_and_join_the_imagined(smoke_dataset, smoke_world_model):

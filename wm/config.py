@@ -10,6 +10,9 @@ from wm.imagine import FEATURE_GROUPS
 from wm.model import ModelConfig
 
 JUDGE_LR = 2e-3  # the episode judge's learning rate (wm.judge.fit) where a run names none
+# what labels the judge's closed-loop imaginations: the rollout's outcome in the simulator, or that of
+# the actions imagined in the loop, played open loop in the simulator (wm.judge.replayed_labels)
+JUDGE_LABELS = ("simulated", "replayed")
 KEPT_STEPS = ("best", "last")  # which parameters a run (select) or a judge (judge_select) keeps
 
 
@@ -84,7 +87,9 @@ class TrainConfig:
         validation episodes' imaginations, "last" those of its last step (a validation of a few dozen
         episodes keeps judges that have barely left their initialisation). judge_raw_mean: the judge
         also pools the mean of the step features themselves (wm.judge.JudgeNet), a distance driven at
-        any speed.
+        any speed. judge_labels: what labels the closed-loop imaginations of the rollouts it learns
+        from (JUDGE_LABELS): "simulated", the rollout's own outcome; "replayed", the outcome of the
+        actions its policy took in imagination, played open loop in the simulator.
     """
 
     model: ModelConfig = ModelConfig()
@@ -140,6 +145,7 @@ class TrainConfig:
     judge_lr: float = JUDGE_LR
     judge_select: str = "best"
     judge_raw_mean: bool = False
+    judge_labels: str = "simulated"
 
     def validate(self) -> None:
         """Raises ValueError, naming the setting, where the model's or the training's settings are out of range or
@@ -161,6 +167,8 @@ class TrainConfig:
             raise ValueError(f"train_fraction must be in (0, 1], got {self.train_fraction}")
         if self.judge_episodes < 0 or self.judge_steps < 1 or self.judge_members < 1 or self.judge_lr <= 0:
             raise ValueError("judge_episodes >= 0, judge_steps >= 1, judge_members >= 1 and judge_lr > 0 are required")
+        if self.judge_labels not in JUDGE_LABELS:
+            raise ValueError(f"judge_labels is {' or '.join(JUDGE_LABELS)}, got {self.judge_labels!r}")
         if self.judge_select not in KEPT_STEPS:
             raise ValueError(f"judge_select is best or last, got {self.judge_select!r}")
         if not self.judge_inputs or set(self.judge_inputs) - set(FEATURE_GROUPS):

@@ -43,6 +43,8 @@ from tqdm import tqdm
 
 from sim_data.policies.bc import stacked
 from sim_data.policies.registry import policy_chunks, resolve, stack_key
+from sim_data.policies.scripted import simulate_actions
+from sim_data.sim.engines import default_engine
 from sim_data.util import even_pieces, pad_with_last, write_json_atomic
 from wm.checkpoint import run_file
 from wm.config import JUDGE_LR, KEPT_STEPS
@@ -415,6 +417,27 @@ def judge_episodes(judge: EpisodeJudge, d: dict) -> np.ndarray:
     return p
 
 
+
+def replayed_labels(model_cfg, norm: Norm, cache, ids: list[int], d: dict, closed, engine: str) -> np.ndarray:
+    """(N,) bool: the labels of d (imagine_episodes' dict of the cache episodes ids) with each row
+    where `closed` ((N,) bool: imagined closed loop) replaced by the simulator's outcome of the actions
+    its policy took in imagination (the step features' action columns, unstandardised by norm),
+    played open loop from the episode's initial state (PRNGKey of its seed) on `engine`: what the
+    imagined actions truly achieve, where the rollout's own label is what the policy achieved acting on
+    true frames."""
+    label = np.array(d["label"], bool)
+    cols = feature_columns(model_cfg, ("action",))
+    mean, std = np.asarray(norm.action_mean), np.asarray(norm.action_std)
+    for task in sorted({cache.episodes[i]["task"] for i in ids}):
+        rows = [k for k, i in enumerate(ids) if closed[k] and cache.episodes[i]["task"] == task]
+        if not rows:
+            continue
+        steps = int(np.asarray(d["mask"][rows[0]]).sum())
+        actions = np.asarray(d["features"][rows, :steps])[..., cols] * std + mean
+        keys = np.stack([np.asarray(jax.random.PRNGKey(int(cache.episodes[ids[k]]["seed"]))) for k in rows])
+        label[rows] = simulate_actions(task, actions, keys, engine)[0]
+    return label
+
 # enough to pick the judge's step; more only costs imagination when the judge learns from every episode
 VAL_EPISODES = 256
 
@@ -423,7 +446,9 @@ def fit_judge(cfg, params, norm: Norm, cache, train_ids: list[int], out: Path, p
     """Imagines cfg.judge_episodes training episodes (and a quarter as many validation episodes, at most
     VAL_EPISODES), fits the judge and saves it in out; returns its metrics. cfg is the world model's
     TrainConfig; with cfg.judge_observed the judge learns from the training episodes' true frames
-    too (observe_episodes), and is still kept at its best on the validation episodes' imaginations."""
+    too (observe_episodes), and is still kept at its best on the validation episodes' imaginations;
+    with cfg.judge_labels "replayed" the closed-loop imaginations of the rollouts are labelled by what
+    their imagined actions achieve in the simulator (replayed_labels)."""
     tasks, train_ids, val_ids = judge_split(cfg, cache, train_ids)
     labels = {bool(cache.episodes[i]["success"]) for i in train_ids}
     if len(labels) < 2:
@@ -438,9 +463,22 @@ def fit_judge(cfg, params, norm: Norm, cache, train_ids: list[int], out: Path, p
         train = join_episodes(train, observe_episodes(cfg.model, params, norm, cache, train_ids, cfg.camera, progress))
     val = imagine_episodes(cfg.model, params, norm, cache, val_ids, cfg.camera, progress, pols, cfg.seed + 1) \
         if val_ids else None
+    relabelled = {}
+    if cfg.judge_labels == "replayed":
+        engine = default_engine()
+        for name, d, ids in (("train", train, train_ids), ("val", val, val_ids)):
+            if d is None:
+                continue
+            closed = np.array([cache.episodes[i]["policy"] in pols for i in ids] +
+                              [False] * (len(d["label"]) - len(ids)), bool)  # observed rows keep theirs
+            label = replayed_labels(cfg.model, norm, cache, ids, d, closed, engine)
+            relabelled[name] = {"closed_loop": int(closed.sum()), "changed": int((label != d["label"]).sum())}
+            d["label"] = label
+        print(f"judge: labels replayed; {relabelled}", file=sys.stderr)
     judge, metrics = fit(train, val, tasks, cfg.judge_steps, cfg.seed, progress,
                          feature_columns(cfg.model, cfg.judge_inputs), cfg.judge_lr, cfg.judge_members,
                          cfg.judge_select, cfg.judge_raw_mean)
+    metrics = {**metrics, "labels": cfg.judge_labels, **({"relabelled": relabelled} if relabelled else {})}
     save_judge(judge, metrics, Path(out))
     return metrics
 

@@ -39,6 +39,8 @@ from sim_data.sim import robot as R
 from sim_data.sim import scene as S
 from sim_data.sim import tasks as T
 from sim_data.sim.engines import mjx
+from sim_data.sim.env import cached_env
+from sim_data.sim.rollout import record_policies
 
 IK_DAMPING = 0.05
 IK_ITERS = 2
@@ -495,6 +497,19 @@ class ProgramPolicy:
         rows = jnp.arange(table.shape[0])
         return table[rows, jnp.minimum(carry, self.num_steps - 1)], carry + 1
 
+
+
+def simulate_actions(task: str, actions, reset_keys, engine: str) -> np.ndarray:
+    """The simulator's outcomes of given action sequences played open loop (ProgramPolicy): actions
+    (P*n, T, 20), row i*n + e from initial state e of reset_keys (n, 2) (a batch's layout), T the
+    task's episode steps. Returns (P, n) bool."""
+    actions = np.asarray(actions, np.float32)
+    env = cached_env(task, len(actions), engine, False)
+    if actions.shape[1] != env.episode_steps:
+        raise ValueError(f"{actions.shape[1]} actions an episode for {task}'s {env.episode_steps} steps")
+    played = ProgramPolicy(env.episode_steps)
+    outcome, _ = record_policies(env, played, {"table": jax.device_put(actions)}, reset_keys, jax.random.PRNGKey(0))
+    return outcome
 
 # ---- scripts and programs as one policy, chosen per episode by data ------------------------------
 
