@@ -417,7 +417,6 @@ def judge_episodes(judge: EpisodeJudge, d: dict) -> np.ndarray:
     return p
 
 
-
 def replayed_labels(model_cfg, norm: Norm, cache, ids: list[int], d: dict, closed, engine: str) -> np.ndarray:
     """(N,) bool: the labels of d (imagine_episodes' dict of the cache episodes ids) with each row
     where `closed` ((N,) bool: imagined closed loop) replaced by the simulator's outcome of the actions
@@ -437,6 +436,7 @@ def replayed_labels(model_cfg, norm: Norm, cache, ids: list[int], d: dict, close
         keys = np.stack([np.asarray(jax.random.PRNGKey(int(cache.episodes[ids[k]]["seed"]))) for k in rows])
         label[rows] = simulate_actions(task, actions, keys, engine)[0]
     return label
+
 
 # enough to pick the judge's step; more only costs imagination when the judge learns from every episode
 VAL_EPISODES = 256

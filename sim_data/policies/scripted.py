@@ -498,7 +498,6 @@ class ProgramPolicy:
         return table[rows, jnp.minimum(carry, self.num_steps - 1)], carry + 1
 
 
-
 def simulate_actions(task: str, actions, reset_keys, engine: str) -> np.ndarray:
     """The simulator's outcomes of given action sequences played open loop (ProgramPolicy): actions
     (P*n, T, 20), row i*n + e from initial state e of reset_keys (n, 2) (a batch's layout), T the
@@ -510,6 +509,7 @@ def simulate_actions(task: str, actions, reset_keys, engine: str) -> np.ndarray:
     played = ProgramPolicy(env.episode_steps)
     outcome, _ = record_policies(env, played, {"table": jax.device_put(actions)}, reset_keys, jax.random.PRNGKey(0))
     return outcome
+
 
 # ---- scripts and programs as one policy, chosen per episode by data ------------------------------
 
