@@ -62,6 +62,7 @@ from wm.judge import (
     join_episodes,
     load_judge,
     observe_episodes,
+    replay_batch,
     replayed_labels,
     spread,
 )
@@ -307,10 +308,11 @@ def study(eval_dir: Path, out: Path, wm_run: Path | None = None, data: Path | No
         val = imagined(out / "imagined_val.npz", make(val_ids, wm_cfg.seed + 1))
         if any(v.replay_labels for v in fitted):
             engine = default_engine()
+            batch = replay_batch(cache, [(ids, train["rollout"]), (val_ids, val["rollout"])])
             train_replay = {**train, "label": replayed_labels(wm_cfg.model, norm, cache, ids, train, train["rollout"],
-                                                              engine)}
+                                                              engine, batch)}
             val_replay = {**val, "label": replayed_labels(wm_cfg.model, norm, cache, val_ids, val, val["rollout"],
-                                                          engine)}
+                                                          engine, batch)}
             print(f"replayed labels: {int((train_replay['label'] != train['label']).sum())} of "
                   f"{int(train['rollout'].sum())} closed-loop training imaginations relabelled", file=sys.stderr)
         if not all(v.closed_loop for v in fitted):

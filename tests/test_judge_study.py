@@ -154,11 +154,16 @@ def test_replayed_labels_are_the_simulated_outcomes_of_the_imagined_actions(monk
         return np.array([[task == "step_back"] * len(acts)])  # step_back's replays succeed, mug's fail
 
     monkeypatch.setattr(WJ, "simulate_actions", simulate)
-    got = WJ.replayed_labels(cfg.model, norm, cache, ids, d, d["rollout"], "cpu")
+    batch = WJ.replay_batch(cache, [(ids, d["rollout"])])
+    assert batch == 2  # step_back's two closed-loop rows: one batch size for every task
+    got = WJ.replayed_labels(cfg.model, norm, cache, ids, d, d["rollout"], "cpu", batch)
     assert got.tolist() == [False, True, False, True]  # row 2 is open loop: its label stays
     assert [c[0] for c in calls] == ["mug", "step_back"] and {c[3] for c in calls} == {"cpu"}
-    np.testing.assert_allclose(calls[0][1], actions[[0]], atol=1e-6)
+    np.testing.assert_allclose(calls[0][1], actions[[0, 0]], atol=1e-6)  # mug's one row, padded with itself
     np.testing.assert_allclose(calls[1][1], actions[[1, 3]], atol=1e-6)
     np.testing.assert_array_equal(calls[1][2], np.stack([np.asarray(jax.random.PRNGKey(s)) for s in (8, 10)]))
+    calls.clear()  # in batches of one: a call per row
+    assert WJ.replayed_labels(cfg.model, norm, cache, ids, d, d["rollout"], "cpu", 1).tolist() == got.tolist()
+    assert [c[0] for c in calls] == ["mug", "step_back", "step_back"] and all(len(c[1]) == 1 for c in calls)
     assert J.VARIANTS["demo_recipe_replay"] == J.dataclasses.replace(J.VARIANTS["demo_recipe"], replay_labels=True)
     assert J.VARIANTS["full_recipe_replay"].replay_labels and not J.VARIANTS["full_recipe"].replay_labels

@@ -1160,8 +1160,10 @@ def test_a_judge_of_replayed_labels_learns_what_the_imagined_actions_achieved(tm
     np.testing.assert_array_equal(got["train"]["label"][600:], truth)  # the true readings keep theirs
     val_ids = J.spread(list(range(6000, 7000)), 150)
     np.testing.assert_array_equal(got["val"]["label"], np.array([i % 4 == 0 and i % 3 != 0 for i in val_ids]))
-    # the spread picks task a's episodes alone (even ids): one replay of its closed rows a split
-    assert [r[:2] for r in replays] == [("a", closed.sum()), ("a", sum(i % 3 == 0 for i in val_ids))]
+    # the spread picks task a's episodes alone (even ids): one replay a split, both in the batch of the
+    # larger (one compiled rollout)
+    assert closed.sum() == 200 and sum(i % 3 == 0 for i in val_ids) == 150
+    assert [r[:2] for r in replays] == [("a", 200), ("a", 200)]
     m = got["metrics"]
     assert m["labels"] == "replayed" and m["relabelled"]["train"]["closed_loop"] == closed.sum()
     assert m["relabelled"]["train"]["changed"] == (closed & truth).sum()

@@ -417,13 +417,26 @@ def judge_episodes(judge: EpisodeJudge, d: dict) -> np.ndarray:
     return p
 
 
-def replayed_labels(model_cfg, norm: Norm, cache, ids: list[int], d: dict, closed, engine: str) -> np.ndarray:
+REPLAY_BATCH = 512  # the most imagined action sequences the simulator replays at once (replayed_labels)
+
+
+def replay_batch(cache, splits) -> int:
+    """The batch replayed_labels replays every split in: the most closed-loop rows any task has in any
+    of splits [(cache ids, closed (N,) bool)], at most REPLAY_BATCH. One batch size, so that the
+    simulator's rollout compiles once for every task and split."""
+    counts = [sum(1 for k, i in enumerate(ids) if closed[k] and cache.episodes[i]["task"] == t)
+              for ids, closed in splits for t in {cache.episodes[i]["task"] for i in ids}]
+    return max(1, min(REPLAY_BATCH, max(counts, default=1)))
+
+
+def replayed_labels(model_cfg, norm: Norm, cache, ids: list[int], d: dict, closed, engine: str,
+                    batch: int = REPLAY_BATCH) -> np.ndarray:
     """(N,) bool: the labels of d (imagine_episodes' dict of the cache episodes ids) with each row
     where `closed` ((N,) bool: imagined closed loop) replaced by the simulator's outcome of the actions
     its policy took in imagination (the step features' action columns, unstandardised by norm),
-    played open loop from the episode's initial state (PRNGKey of its seed) on `engine`: what the
-    imagined actions truly achieve, where the rollout's own label is what the policy achieved acting on
-    true frames."""
+    played open loop from the episode's initial state (PRNGKey of its seed) on `engine`, `batch` rows
+    at a time (the last batch of a task padded with its last row): what the imagined actions truly
+    achieve, where the rollout's own label is what the policy achieved acting on true frames."""
     label = np.array(d["label"], bool)
     cols = feature_columns(model_cfg, ("action",))
     mean, std = np.asarray(norm.action_mean), np.asarray(norm.action_std)
@@ -432,9 +445,11 @@ def replayed_labels(model_cfg, norm: Norm, cache, ids: list[int], d: dict, close
         if not rows:
             continue
         steps = int(np.asarray(d["mask"][rows[0]]).sum())
-        actions = np.asarray(d["features"][rows, :steps])[..., cols] * std + mean
-        keys = np.stack([np.asarray(jax.random.PRNGKey(int(cache.episodes[ids[k]]["seed"]))) for k in rows])
-        label[rows] = simulate_actions(task, actions, keys, engine)[0]
+        for piece in (rows[k:k + batch] for k in range(0, len(rows), batch)):
+            padded = pad_with_last(piece, batch)
+            actions = np.asarray(d["features"][padded, :steps])[..., cols] * std + mean
+            keys = np.stack([np.asarray(jax.random.PRNGKey(int(cache.episodes[ids[k]]["seed"]))) for k in padded])
+            label[piece] = simulate_actions(task, actions, keys, engine)[0][: len(piece)]
     return label
 
 
@@ -465,13 +480,12 @@ def fit_judge(cfg, params, norm: Norm, cache, train_ids: list[int], out: Path, p
         if val_ids else None
     relabelled = {}
     if cfg.judge_labels == "replayed":
-        engine = default_engine()
-        for name, d, ids in (("train", train, train_ids), ("val", val, val_ids)):
-            if d is None:
-                continue
-            closed = np.array([cache.episodes[i]["policy"] in pols for i in ids] +
-                              [False] * (len(d["label"]) - len(ids)), bool)  # observed rows keep theirs
-            label = replayed_labels(cfg.model, norm, cache, ids, d, closed, engine)
+        splits = [(name, d, ids, np.array([cache.episodes[i]["policy"] in pols for i in ids] +
+                                          [False] * (len(d["label"]) - len(ids)), bool))  # observed rows keep theirs
+                  for name, d, ids in (("train", train, train_ids), ("val", val, val_ids)) if d is not None]
+        batch = replay_batch(cache, [(ids, closed) for _, _, ids, closed in splits])
+        for name, d, ids, closed in splits:
+            label = replayed_labels(cfg.model, norm, cache, ids, d, closed, default_engine(), batch)
             relabelled[name] = {"closed_loop": int(closed.sum()), "changed": int((label != d["label"]).sum())}
             d["label"] = label
         print(f"judge: labels replayed; {relabelled}", file=sys.stderr)
