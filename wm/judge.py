@@ -417,7 +417,7 @@ def judge_episodes(judge: EpisodeJudge, d: dict) -> np.ndarray:
     return p
 
 
-REPLAY_BATCH = 512  # the most imagined action sequences the simulator replays at once (replayed_labels)
+REPLAY_BATCH = 1024  # the most imagined action sequences the simulator replays at once (replayed_labels)
 
 
 def replay_batch(cache, splits) -> int:
