@@ -1123,7 +1123,6 @@ def test_a_judge_with_observed_episodes_learns_from_both_readings_and_is_kept_on
     assert len(val["label"]) == J.VAL_EPISODES and (val["features"] == 0).all()  # kept on imaginations alone
 
 
-
 def test_a_judge_of_replayed_labels_learns_what_the_imagined_actions_achieved(tmp_path, monkeypatch):
     """judge_labels=replayed: the rollouts' closed-loop imaginations (their policy in the dataset's)
     take the simulator's outcome of their imagined actions, in training and validation; the
@@ -1169,6 +1168,7 @@ def test_a_judge_of_replayed_labels_learns_what_the_imagined_actions_achieved(tm
     assert m["relabelled"]["train"]["changed"] == (closed & truth).sum()
     with pytest.raises(ValueError, match="judge_labels"):
         make_config("smoke", ["judge_labels=imagined"])
+
 
 @pytest.mark.slow
 def test_observed_episodes_are_the_true_episodes_features_and_join_the_imagined(smoke_dataset, smoke_world_model):
