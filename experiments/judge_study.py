@@ -56,6 +56,7 @@ from wm.config import JUDGE_LR, with_imagine
 from wm.imagine import FEATURE_GROUPS, feature_columns
 from wm.judge import (
     VAL_EPISODES,
+    closed_loop_rows,
     dataset_policies,
     fit,
     imagine_episodes,
@@ -301,7 +302,7 @@ def study(eval_dir: Path, out: Path, wm_run: Path | None = None, data: Path | No
         def make(split_ids, seed, policies=pols):
             def go():
                 d = imagine_episodes(wm_cfg.model, params, norm, cache, split_ids, wm_cfg.camera, True, policies, seed)
-                return {**d, "rollout": np.array([cache.episodes[i]["policy"] in pols for i in split_ids], bool)}
+                return {**d, "rollout": closed_loop_rows(cache, split_ids, pols)}
             return go
 
         train = imagined(out / f"imagined_train_{len(ids)}.npz", make(ids, wm_cfg.seed))
@@ -321,7 +322,7 @@ def study(eval_dir: Path, out: Path, wm_run: Path | None = None, data: Path | No
         if any(v.observed for v in fitted):
             def observe(split_ids):
                 return lambda: {**observe_episodes(wm_cfg.model, params, norm, cache, split_ids, wm_cfg.camera),
-                                "rollout": np.array([cache.episodes[i]["policy"] in pols for i in split_ids], bool)}
+                                "rollout": closed_loop_rows(cache, split_ids, pols)}
             observed = imagined(out / f"observed_train_{len(ids)}.npz", observe(ids))
             observed_val = imagined(out / "observed_val.npz", observe(val_ids))
     saved = load_judge(wm_run) if SAVED in names else None

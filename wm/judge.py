@@ -26,6 +26,7 @@ Written to `OUT/judge.json` (configuration, feature standardisation, tasks, fit 
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import functools
 import json
@@ -420,13 +421,19 @@ def judge_episodes(judge: EpisodeJudge, d: dict) -> np.ndarray:
 REPLAY_BATCH = 1024  # the most imagined action sequences the simulator replays at once (replayed_labels)
 
 
+def closed_loop_rows(cache, ids: list[int], policies: dict) -> np.ndarray:
+    """(len(ids),) bool: which cache episodes imagine_episodes imagines closed loop, those of a policy
+    in `policies` (dataset_policies)."""
+    return np.array([cache.episodes[i]["policy"] in policies for i in ids], bool)
+
+
 def replay_batch(cache, splits) -> int:
     """The batch replayed_labels replays every split in: the most closed-loop rows any task has in any
     of splits [(cache ids, closed (N,) bool)], at most REPLAY_BATCH. One batch size, so that the
     simulator's rollout compiles once for every task and split."""
-    counts = [sum(1 for k, i in enumerate(ids) if closed[k] and cache.episodes[i]["task"] == t)
-              for ids, closed in splits for t in {cache.episodes[i]["task"] for i in ids}]
-    return max(1, min(REPLAY_BATCH, max(counts, default=1)))
+    counts = [collections.Counter(cache.episodes[i]["task"] for k, i in enumerate(ids) if closed[k])
+              for ids, closed in splits]
+    return max(1, min(REPLAY_BATCH, max((n for c in counts for n in c.values()), default=1)))
 
 
 def replayed_labels(model_cfg, norm: Norm, cache, ids: list[int], d: dict, closed, engine: str,
@@ -480,12 +487,12 @@ def fit_judge(cfg, params, norm: Norm, cache, train_ids: list[int], out: Path, p
         if val_ids else None
     relabelled = {}
     if cfg.judge_labels == "replayed":
-        splits = [(name, d, ids, np.array([cache.episodes[i]["policy"] in pols for i in ids] +
-                                          [False] * (len(d["label"]) - len(ids)), bool))  # observed rows keep theirs
-                  for name, d, ids in (("train", train, train_ids), ("val", val, val_ids)) if d is not None]
-        batch = replay_batch(cache, [(ids, closed) for _, _, ids, closed in splits])
-        for name, d, ids, closed in splits:
-            label = replayed_labels(cfg.model, norm, cache, ids, d, closed, default_engine(), batch)
+        splits = {name: (d, ids, closed_loop_rows(cache, ids, pols))
+                  for name, d, ids in (("train", train, train_ids), ("val", val, val_ids)) if d is not None}
+        batch, engine = replay_batch(cache, [(ids, closed) for _, ids, closed in splits.values()]), default_engine()
+        for name, (d, ids, closed) in splits.items():
+            # replayed_labels reads the rows of ids alone: the true readings joined after them keep their labels
+            label = replayed_labels(cfg.model, norm, cache, ids, d, closed, engine, batch)
             relabelled[name] = {"closed_loop": int(closed.sum()), "changed": int((label != d["label"]).sum())}
             d["label"] = label
         print(f"judge: labels replayed; {relabelled}", file=sys.stderr)
