@@ -1123,17 +1123,20 @@ def test_a_judge_with_observed_episodes_learns_from_both_readings_and_is_kept_on
     assert len(val["label"]) == J.VAL_EPISODES and (val["features"] == 0).all()  # kept on imaginations alone
 
 
+class _Rollouts(_Episodes):
+    """_Episodes of 3 steps each, every third a rollout of a learned policy."""
+
+    def __init__(self):
+        super().__init__()
+        for i, ep in enumerate(self.episodes):
+            ep.update(length=4, seed=i, **({"policy": "bc"} if i % 3 == 0 else {}))
+
+
 def test_a_judge_of_replayed_labels_learns_what_the_imagined_actions_achieved(tmp_path, monkeypatch):
     """judge_labels=replayed: the rollouts' closed-loop imaginations (their policy in the dataset's)
     take the simulator's outcome of their imagined actions, in training and validation; the
     scripted episodes and the true readings keep their labels; judge.json says so."""
     got, replays = {}, []
-
-    class Rollouts(_Episodes):
-        def __init__(self):
-            super().__init__()
-            for i in range(0, 7000, 3):  # every third episode a rollout of a learned policy
-                self.episodes[i].update(policy="bc", seed=i)
 
     def simulate(task, actions, keys, engine):
         replays.append((task, len(actions), engine))
@@ -1148,7 +1151,7 @@ def test_a_judge_of_replayed_labels_learns_what_the_imagined_actions_achieved(tm
     monkeypatch.setattr(J, "simulate_actions", simulate)
     monkeypatch.setattr(J, "fit", lambda train, val, *a, **k: got.update(train=train, val=val) or (None, {}))
     monkeypatch.setattr(J, "save_judge", lambda judge, metrics, out: got.update(metrics=metrics))
-    cache = Rollouts()
+    cache = _Rollouts()
     J.fit_judge(make_config("smoke", ["judge_episodes=600", "judge_observed=1", "judge_labels=replayed"]), None,
                 I.Norm(np.zeros(37), np.ones(37), np.zeros(20), np.ones(20)), cache, list(range(6000)), tmp_path,
                 progress=False)
@@ -1168,6 +1171,36 @@ def test_a_judge_of_replayed_labels_learns_what_the_imagined_actions_achieved(tm
     assert m["relabelled"]["train"]["changed"] == (closed & truth).sum()
     with pytest.raises(ValueError, match="judge_labels"):
         make_config("smoke", ["judge_labels=imagined"])
+
+
+def test_the_judge_warm_up_replays_what_the_fit_replays(tmp_path, monkeypatch):
+    """warm_judge with judge_labels=replayed runs the simulator once per task with closed-loop rows, on
+    the batch, episode length and keys of fit_judge's own replay: the fit then loads its programs."""
+    calls = {"fit": [], "warm": []}
+    into = calls["fit"]
+
+    def simulate(task, actions, keys, engine):
+        into.append((task, actions.shape, keys.shape, str(keys.dtype), engine))  # simulate_actions casts the actions
+        return np.zeros((1, len(actions)), bool)
+
+    wide = I.feature_dim(make_config("smoke").model)
+    monkeypatch.setattr(J, "dataset_policies", lambda root: {"bc": object()})
+    monkeypatch.setattr(J, "imagine_episodes", lambda *a: {**_readings(a[4], 0.0),
+                                                           "features": np.zeros((len(a[4]), 3, wide), np.float32)})
+    monkeypatch.setattr(J, "warm_imagination", lambda *a: None)
+    monkeypatch.setattr(J, "simulate_actions", simulate)
+    monkeypatch.setattr(J, "fit", lambda *a, **k: (None, {}))
+    monkeypatch.setattr(J, "save_judge", lambda *a: None)
+    cfg = make_config("smoke", ["judge_episodes=600", "judge_labels=replayed"])
+    norm = I.Norm(np.zeros(37), np.ones(37), np.zeros(20), np.ones(20))
+    J.fit_judge(cfg, None, norm, _Rollouts(), list(range(6000)), tmp_path, progress=False)
+    into = calls["warm"]
+    J.warm_judge(cfg, None, norm, _Rollouts(), list(range(6000)))
+    assert calls["warm"] == [("a", (200, 3, 20), (200, 2), "uint32", calls["fit"][0][-1])]
+    assert set(calls["fit"]) == set(calls["warm"])
+    into = calls["none"] = []
+    J.warm_judge(make_config("smoke", ["judge_episodes=600"]), None, norm, _Rollouts(), list(range(6000)))
+    assert calls["none"] == []  # simulated labels replay nothing
 
 
 @pytest.mark.slow

@@ -46,6 +46,7 @@ from sim_data.policies.bc import stacked
 from sim_data.policies.registry import policy_chunks, resolve, stack_key
 from sim_data.policies.scripted import simulate_actions
 from sim_data.sim.engines import default_engine
+from sim_data.sim.robot import ACTION_DIM
 from sim_data.util import even_pieces, pad_with_last, write_json_atomic
 from wm.checkpoint import run_file
 from wm.config import JUDGE_LR, KEPT_STEPS
@@ -460,6 +461,19 @@ def replayed_labels(model_cfg, norm: Norm, cache, ids: list[int], d: dict, close
     return label
 
 
+def warm_replay(cache, splits, engine: str) -> None:
+    """Runs the simulator's programs of replayed_labels over splits [(cache ids, closed (N,) bool)] once
+    each (per task with closed-loop rows: whole episodes of zero actions, replay_batch's batch), so that
+    JAX's persistent compilation cache holds them for the fit's own replay."""
+    batch, first = replay_batch(cache, splits), {}
+    for ids, closed in splits:
+        for k in np.flatnonzero(closed):
+            first.setdefault(cache.episodes[ids[k]]["task"], cache.episodes[ids[k]])
+    for task, ep in sorted(first.items()):
+        keys = np.stack([np.asarray(jax.random.PRNGKey(int(ep["seed"])))] * batch)
+        simulate_actions(task, np.zeros((batch, int(ep["length"]) - 1, ACTION_DIM), np.float32), keys, engine)
+
+
 # enough to pick the judge's step; more only costs imagination when the judge learns from every episode
 VAL_EPISODES = 256
 
@@ -516,10 +530,11 @@ def judge_split(cfg, cache, train_ids: list[int]) -> tuple[tuple, list[int], lis
 
 def warm_judge(cfg, params, norm: Norm, cache, train_ids: list[int]) -> EpisodeJudge | None:
     """Runs the compiled programs of fit_judge(cfg, params, norm, cache, train_ids, ...) once each (its
-    imaginations' by warm_imagination, its fit for two steps on episodes of placeholder features of
-    the imaginations' shapes), so that JAX's persistent compilation cache holds them for the run's
-    own fit_judge. Not warmed: with cfg.judge_observed, the reading of the true episodes. Returns the
-    placeholder judge (for warming what reads a judge), None where fit_judge would fit none."""
+    imaginations' by warm_imagination, with judge_labels "replayed" its simulator's by warm_replay,
+    its fit for two steps on episodes of placeholder features of the imaginations' shapes), so that
+    JAX's persistent compilation cache holds them for the run's own fit_judge. Not warmed: with
+    cfg.judge_observed, the reading of the true episodes. Returns the placeholder judge (for warming
+    what reads a judge), None where fit_judge would fit none."""
     tasks, train_ids, val_ids = judge_split(cfg, cache, train_ids)
     if len({bool(cache.episodes[i]["success"]) for i in train_ids}) < 2:
         return None
@@ -527,6 +542,9 @@ def warm_judge(cfg, params, norm: Norm, cache, train_ids: list[int]) -> EpisodeJ
     warm_imagination(cfg.model, params, norm, cache, train_ids, cfg.camera, pols, cfg.seed)
     if val_ids:
         warm_imagination(cfg.model, params, norm, cache, val_ids, cfg.camera, pols, cfg.seed + 1)
+    if cfg.judge_labels == "replayed":
+        warm_replay(cache, [(ids, closed_loop_rows(cache, ids, pols)) for ids in (train_ids, val_ids) if ids],
+                    default_engine())
     dim = feature_dim(cfg.model)
     train = _placeholder_episodes(cache, train_ids, dim)
     val = _placeholder_episodes(cache, val_ids, dim) if val_ids else None
