@@ -87,3 +87,50 @@ class Flail:
 def flail(scale: float = 0.5):
     """Random actions of standard deviation `scale` around the ready pose (clipped to their ranges)."""
     return Flail(), {"ready": ready_pose(), "scale": jnp.float32(scale)}
+
+
+@dataclasses.dataclass(frozen=True)
+class JitterBack:
+    """BackAway whose speed is drawn afresh each step around its mean (a standard deviation of half the
+    mean, from the evaluator's key): the same distance on average, another each episode."""
+
+    def init_carry(self, params, obs, task_state, rng):
+        return jnp.zeros((obs["proprio"].shape[0],), jnp.int32)
+
+    def act(self, params, obs, carry, rng):
+        hold = jnp.broadcast_to(params["ready"], (carry.shape[0], robot.ACTION_DIM))
+        speed = params["speed"] * (1.0 + 0.5 * jax.random.normal(rng, carry.shape))
+        moving = carry * CONTROL_DT < params["seconds"]
+        return hold.at[:, robot.FORWARD_SPEED].set(jnp.where(moving, speed, 0.0)), carry + 1
+
+
+def jitter_back():
+    """About 0.66 m back at a jittering speed: inside step_back's band on average."""
+    return JitterBack(), {"ready": ready_pose(), "seconds": jnp.float32(2.2), "speed": jnp.float32(-0.3)}
+
+
+def jitter_far():
+    """About 1.35 m back at a jittering speed: past the band."""
+    return JitterBack(), {"ready": ready_pose(), "seconds": jnp.float32(4.5), "speed": jnp.float32(-0.3)}
+
+
+@dataclasses.dataclass(frozen=True)
+class LookBack:
+    """Reads its camera: backs away at 0.3 m/s while the bottom quarter of its frame is brighter than
+    `threshold` (mean of the pixels in [0, 1]: the counter's white top fills it at the start), then stops
+    for good (a latch in the carry). In a world model it acts on the imagined frames."""
+
+    def init_carry(self, params, obs, task_state, rng):
+        return jnp.zeros((obs["proprio"].shape[0],), bool)
+
+    def act(self, params, obs, carry, rng):
+        size = obs["image"].shape[1]
+        bright = obs["image"][:, size - size // 4:].astype(jnp.float32).mean(axis=(1, 2, 3)) / 255.0
+        stopped = carry | (bright < params["threshold"])
+        hold = jnp.broadcast_to(params["ready"], (carry.shape[0], robot.ACTION_DIM))
+        return hold.at[:, robot.FORWARD_SPEED].set(jnp.where(stopped, 0.0, -0.3)), stopped
+
+
+def look_back(threshold: float = 0.55):
+    """Backs away until the counter leaves the bottom of its view."""
+    return LookBack(), {"ready": ready_pose(), "threshold": jnp.float32(threshold)}

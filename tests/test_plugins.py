@@ -330,6 +330,34 @@ def test_the_examples_flailing_plugin_draws_fresh_actions_from_its_key_within_th
     assert ((a == idx.action_low) | (a == idx.action_high)).any()  # the hands' closures clipped at 0 or 1
 
 
+def test_the_examples_camera_reading_plugin_backs_away_until_the_bottom_of_its_view_darkens():
+    (look,) = resolve(["examples.plugin_policy:look_back"])
+    bright, dark = np.full((64, 64, 3), 230, np.uint8), np.full((64, 64, 3), 230, np.uint8)
+    dark[48:] = 60  # the bottom quarter at 60/255 = 0.24, under the threshold of 0.55
+    half = np.full((64, 64, 3), 230, np.uint8)
+    half[:48] = 0  # dark above the bottom quarter: only that quarter counts
+    obs = lambda *frames: {"image": jnp.asarray(np.stack(frames)), "proprio": jnp.zeros((len(frames), R.PROPRIO_DIM))}
+    carry = look.policy.init_carry(look.params, obs(bright, bright), None, jax.random.PRNGKey(0))
+    a, carry = look.policy.act(look.params, obs(bright, dark), carry, jax.random.PRNGKey(0))
+    assert np.asarray(a)[:, R.FORWARD_SPEED].tolist() == pytest.approx([-0.3, 0.0])
+    a, carry = look.policy.act(look.params, obs(half, bright), carry, jax.random.PRNGKey(0))
+    assert np.asarray(a)[:, R.FORWARD_SPEED].tolist() == pytest.approx([-0.3, 0.0])  # a stop is for good
+    np.testing.assert_array_equal(np.delete(np.asarray(a), R.FORWARD_SPEED, axis=1),
+                                  np.broadcast_to(np.delete(np.asarray(ready_pose()), R.FORWARD_SPEED), (2, 19)))
+
+
+def test_the_examples_jittering_plugin_backs_away_for_its_time_at_speeds_drawn_around_its_mean():
+    (jitter,) = resolve(["examples.plugin_policy:jitter_back"])
+    obs = {"image": jnp.zeros((512, 64, 64, 3), jnp.uint8), "proprio": jnp.zeros((512, R.PROPRIO_DIM))}
+    carry = jitter.policy.init_carry(jitter.params, obs, None, jax.random.PRNGKey(0))
+    a, carry = jitter.policy.act(jitter.params, obs, carry, jax.random.PRNGKey(1))
+    speed = np.asarray(a)[:, R.FORWARD_SPEED]
+    assert speed.mean() == pytest.approx(-0.3, abs=0.03) and speed.std() == pytest.approx(0.15, abs=0.02)
+    late = jnp.full((512,), 44, jnp.int32)  # 2.2 s at 20 Hz: its time is up
+    assert (np.asarray(jitter.policy.act(jitter.params, obs, late, jax.random.PRNGKey(1))[0])[:, R.FORWARD_SPEED]
+            == 0).all()
+
+
 @dataclasses.dataclass(frozen=True)
 class SharedClock:
     """The example's back-away policy with one step counter for its whole batch (shape ()), which
