@@ -117,8 +117,9 @@ def jitter_far():
 @dataclasses.dataclass(frozen=True)
 class LookBack:
     """Reads its camera: backs away at 0.3 m/s while the bottom quarter of its frame is brighter than
-    `threshold` (mean of the pixels in [0, 1]: the counter's white top fills it at the start), then stops
-    for good (a latch in the carry). In a world model it acts on the imagined frames."""
+    `threshold` (the mean of its pixels in [0, 1]; the counter's white top fills it at the start), then
+    stops for good (a latch in the carry). In a world model it acts on the imagined frames, so what it
+    does there depends on how the model draws the receding counter."""
 
     def init_carry(self, params, obs, task_state, rng):
         return jnp.zeros((obs["proprio"].shape[0],), bool)
@@ -132,5 +133,5 @@ class LookBack:
 
 
 def look_back(threshold: float = 0.55):
-    """Backs away until the counter leaves the bottom of its view."""
+    """Backs away until the bottom quarter of its view darkens below `threshold`."""
     return LookBack(), {"ready": ready_pose(), "threshold": jnp.float32(threshold)}
