@@ -25,8 +25,12 @@ class BackAway:
     def act(self, params, obs, carry, rng):
         hold = jnp.broadcast_to(params["ready"], (carry.shape[0], robot.ACTION_DIM))
         moving = carry * CONTROL_DT < params["seconds"]
-        action = hold.at[:, robot.FORWARD_SPEED].set(jnp.where(moving, params["speed"], 0.0))
+        action = hold.at[:, robot.FORWARD_SPEED].set(jnp.where(moving, self.speed(params, rng, carry.shape), 0.0))
         return action, carry + 1
+
+    def speed(self, params, rng, shape):
+        """The commanded base speed of each episode this step: the parameters' own."""
+        return params["speed"]
 
 
 def ready_pose():
@@ -90,18 +94,12 @@ def flail(scale: float = 0.5):
 
 
 @dataclasses.dataclass(frozen=True)
-class JitterBack:
+class JitterBack(BackAway):
     """BackAway whose speed is drawn afresh each step around its mean (a standard deviation of half the
     mean, from the evaluator's key): the same distance on average, another each episode."""
 
-    def init_carry(self, params, obs, task_state, rng):
-        return jnp.zeros((obs["proprio"].shape[0],), jnp.int32)
-
-    def act(self, params, obs, carry, rng):
-        hold = jnp.broadcast_to(params["ready"], (carry.shape[0], robot.ACTION_DIM))
-        speed = params["speed"] * (1.0 + 0.5 * jax.random.normal(rng, carry.shape))
-        moving = carry * CONTROL_DT < params["seconds"]
-        return hold.at[:, robot.FORWARD_SPEED].set(jnp.where(moving, speed, 0.0)), carry + 1
+    def speed(self, params, rng, shape):
+        return params["speed"] * (1.0 + 0.5 * jax.random.normal(rng, shape))
 
 
 def jitter_back():

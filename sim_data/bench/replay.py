@@ -59,8 +59,8 @@ def main(argv=None) -> int:
     engine = a.engine or default_engine()
     rows = []
     for task in tasks:
-        rows.append(replay_cost(task, a.batch, engine))
-        r = rows[-1]
+        r = replay_cost(task, a.batch, engine)
+        rows.append(r)
         print(f"{task}: {r['steps']} steps x {a.batch}: first call {r['first_call_s']:.1f} s, second "
               f"{r['second_call_s']:.1f} s ({r['env_steps_per_s']:.0f} env steps/s)", file=sys.stderr)
     write_json_atomic(a.out, {"batch": a.batch, "engine": engine, "device": device_name(), "tasks": rows})
