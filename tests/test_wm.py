@@ -626,6 +626,49 @@ def test_the_perceptual_loss_adds_the_weighted_lpips_of_every_fourth_predicted_f
         make_config("smoke", ["w_lpips=-1"])
 
 
+@pytest.mark.slow
+def test_the_read_loss_adds_the_probes_action_difference_on_every_fourth_predicted_frame(model_and_inputs):
+    from sim_data.policies.bc import BCPolicy, PolicyNetConfig
+    from sim_data.policies.bc import init_params as policy_params
+    from sim_data.policies.registry import PolicySource
+    from wm.probes import make_probes, read_loss
+    from wm.train import loss_fn
+
+    params, frames, proprio, action = model_and_inputs
+    norm, batch = _identity_norm_and_batch(frames, proprio, action)
+    net = PolicyNetConfig(width=4, hidden=8, chunk=2, size=64)
+    unit = {"proprio_mean": np.zeros(37), "proprio_std": np.ones(37), "action_mean": np.zeros(20),
+            "action_std": np.ones(20)}
+    pol = policy_params(net, jax.random.PRNGKey(3), unit, use_proprio=True)
+    pol["net"]["head"]["kernel"] = pol["net"]["head"]["kernel"] + 0.1  # zero-initialised: the frames must matter
+    probes = make_probes([PolicySource("mug/conv/1", "learned", "mug", BCPolicy(net), pol, {})], ["mug", "wipe"])
+    batch |= {"task": np.array([0, 1], np.int32), "start": np.array([0, 7], np.int32)}  # window 1 is wipe's
+    cfg = make_config("smoke")
+    loss = jax.jit(loss_fn, static_argnums=3)
+    plain_total, plain = loss(params, batch, norm, cfg)
+    total, parts = loss(params, batch, norm, dataclasses.replace(cfg, w_read=0.5), None, None, probes)
+    tags = ["read"] + [f"read_pass{k}" for k in range(1, 1 + cfg.rollout_passes)]
+    assert "read" not in plain and all(float(parts[t]) > 0.0 for t in tags)
+    for k in set(plain) - {"loss"}:  # every other term as before
+        np.testing.assert_allclose(parts[k], plain[k], rtol=1e-5, err_msg=k)
+    np.testing.assert_allclose(total, plain_total + 0.5 * sum(parts[t] for t in tags), rtol=1e-5)
+
+    @jax.jit
+    def first_pass(params):  # the teacher-forced pass's decoded frames, as loss_fn decodes them
+        m = WorldModel(CFG)
+        z = m.apply({"params": params}, frames, method=WorldModel.encode)
+        pred = m.apply({"params": params}, z, proprio, action, method=WorldModel.predict)
+        return m.apply({"params": params}, pred["z"][:, :-1], frames[:, :-1] / 255.0, pred["flow"][:, :-1],
+                       method=WorldModel.decode)
+
+    # window 0 (mug) alone, its frames 1 and 5 at steps 1 and 5 with their own proprioception
+    pred, true = first_pass(params)[0, ::4], frames[0, 1::4] / 255.0
+    want = read_loss(probes, pred, true, proprio[0, 1::4], np.array([1, 5], np.int32), np.zeros(2, np.int32))
+    np.testing.assert_allclose(parts["read"], want, rtol=1e-4)
+    with pytest.raises(ValueError, match="w_read"):
+        loss_fn(params, batch, norm, dataclasses.replace(cfg, w_read=0.5))
+
+
 def test_action_contrast_is_the_log_share_of_the_true_actions_prediction():
     target = np.zeros((2, 3, 4), np.float32)
     pred = np.full_like(target, 0.1)

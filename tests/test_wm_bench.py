@@ -17,6 +17,12 @@ def test_step_flops_count_the_whole_batch():
     assert 1.8 < two / one < 2.0
 
 
+@pytest.mark.slow
+def test_the_read_loss_step_is_benchmarked_with_stand_in_probes():
+    plain, read = step_flops("smoke", ["batch=2"]), step_flops("smoke", ["batch=2", "w_read=0.2", "read_probes=2"])
+    assert read > plain  # the probes read every 4th predicted and true frame of each pass
+
+
 def test_matmul_flops_by_shape_counts_convolutions_and_dots_by_hand():
     def f(x, k, a, b):
         y = jax.lax.conv_general_dilated(x, k, (2, 2), "SAME", dimension_numbers=("NHWC", "HWIO", "NHWC"))

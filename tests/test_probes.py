@@ -1,0 +1,101 @@
+"""wm.probes: the read loss is the probe checkpoints' action difference on their own tasks' frames,
+and only registry checkpoints of behaviour-cloning networks probe."""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from sim_data.policies.bc import BCPolicy, PolicyNet, PolicyNetConfig, init_params, normalise_proprio
+from sim_data.policies.degrade import DegradedPolicy
+from sim_data.policies.registry import PolicySource, perturbed_copy
+from sim_data.sim import robot as R
+from wm import probes as PR
+from wm.config import make_config
+from wm.train import read_probes
+
+NET = PolicyNetConfig(width=4, hidden=8, chunk=2, size=16)
+VIT = PolicyNetConfig(encoder="vit", width=8, depth=1, hidden=8, chunk=2, size=16)
+
+
+def _params(net, seed):
+    rs = np.random.default_rng(seed)
+    norm = {"proprio_mean": rs.normal(size=R.PROPRIO_DIM), "proprio_std": rs.uniform(0.5, 2, R.PROPRIO_DIM),
+            "action_mean": rs.normal(size=R.ACTION_DIM), "action_std": rs.uniform(0.5, 2, R.ACTION_DIM)}
+    p = init_params(net, jax.random.PRNGKey(seed), norm, use_proprio=True)
+    # the head starts at zero (every chunk 0): random weights, so that the frames change the actions
+    p["net"]["head"]["kernel"] = jnp.asarray(rs.normal(size=p["net"]["head"]["kernel"].shape), jnp.float32)
+    return jax.tree_util.tree_map(np.asarray, p)
+
+
+def _source(name, task, net=NET, seed=0, kind="learned"):
+    return PolicySource(name=name, kind=kind, task=task, policy=BCPolicy(net), params=_params(net, seed), record={})
+
+
+def _inputs(n=6, seed=0):
+    rs = np.random.default_rng(seed)
+    pred, target = (rs.uniform(0, 1, (n, 16, 16, 3)).astype(np.float32) for _ in range(2))
+    return (pred, target, rs.normal(size=(n, R.PROPRIO_DIM)).astype(np.float32),
+            rs.integers(0, 100, n).astype(np.int32), np.array([0, 0, 1, 1, 2, 2], np.int32)[:n])
+
+
+def test_the_read_loss_is_each_probes_squared_action_difference_over_its_own_tasks_rows():
+    sources = [_source("a/conv/1", "a", seed=1), _source("b/conv/2", "b", seed=2), _source("a/vit/3", "a", VIT, 3)]
+    probes = PR.make_probes(sources, ["a", "b", "c"])
+    assert probes.count == 3 and len(probes.nets) == 2
+    pred, target, proprio, t, task = _inputs()
+    errs, rows = [], 0
+    for s in sources:
+        k = ["a", "b", "c"].index(s.task)
+        read = lambda img, s=s: np.asarray(PolicyNet(s.policy.cfg).apply(  # noqa: E731
+            {"params": s.params["net"]}, img * 255.0, normalise_proprio(s.params, proprio), t))
+        err = ((read(pred) - read(target)) ** 2).mean(axis=(1, 2))
+        errs.append(err[task == k].sum())
+        rows += int((task == k).sum())
+    want = sum(errs) / rows  # 2 + 2 + 2 rows: a's two probes read rows 0-1, b's rows 2-3; task c has no probe
+    got = float(jax.jit(PR.read_loss)(probes, pred, target, proprio, t, task))
+    np.testing.assert_allclose(got, want, rtol=1e-4)
+    assert got > 0
+    assert float(PR.read_loss(probes, target, target, proprio, t, task)) == 0.0
+
+
+def test_the_read_loss_trains_the_predicted_frames_alone_and_ignores_other_tasks():
+    probes = PR.make_probes([_source("a/conv/1", "a", seed=1)], ["a", "b", "c"])
+    pred, target, proprio, t, task = _inputs()
+    g_pred, g_target = jax.grad(PR.read_loss, argnums=(1, 2))(probes, pred, target, proprio, t, task)
+    assert np.abs(np.asarray(g_pred[:2])).sum() > 0  # task a's rows
+    np.testing.assert_array_equal(np.asarray(g_pred[2:]), 0.0)  # tasks b and c: no probe of theirs
+    np.testing.assert_array_equal(np.asarray(g_target), 0.0)
+    only_c = np.full_like(task, 2)
+    assert float(PR.read_loss(probes, pred, target, proprio, t, only_c)) == 0.0
+
+
+def test_probes_are_registry_checkpoints_of_networks_spread_over_their_names():
+    learned = [_source(f"a/conv/{k}", "a") for k in range(6)]
+    others = [
+        _source("my.plugin:make", None, kind="plugin"),
+        perturbed_copy(_source("a/conv/9", "a")),
+        PolicySource("a/conv~noise/0.2", "learned", "a", DegradedPolicy(BCPolicy(NET)), {}, {}),
+        _source("z/conv/1", "z"),  # a task the world model does not learn
+    ]
+    pols = {s.name: s for s in learned + others}
+    assert [s.name for s in PR.probe_sources(pols, ["a", "b"], 16, 8)] == [s.name for s in learned]
+    # six in name order (a/conv/0 .. a/conv/5), three spread evenly: the first, one between, the last
+    assert [s.name for s in PR.probe_sources(pols, ["a", "b"], 16, 3)] == ["a/conv/0", "a/conv/2", "a/conv/5"]
+    assert PR.probe_sources({}, ["a"], 16, 3) == [] and PR.make_probes([], ["a"]) is None
+    with pytest.raises(ValueError, match="16x16 frames"):
+        PR.probe_sources(pols, ["a"], 64, 3)
+
+
+def test_the_read_loss_refuses_a_dataset_without_checkpoint_rollouts(tmp_path):
+    (tmp_path / "config.json").write_text(json.dumps({"policies": []}))
+    cache = type("Cache", (), {"tasks": ["mug"]})()
+    assert read_probes(make_config("smoke"), cache, tmp_path) is None  # w_read 0: nothing to read with
+    with pytest.raises(ValueError, match="behaviour-cloning checkpoints"):
+        read_probes(make_config("smoke", ["w_read=0.1"]), cache, tmp_path)
+    with pytest.raises(ValueError, match="w_read"):
+        make_config("smoke", ["w_read=-1"])
+    with pytest.raises(ValueError, match="read_probes"):
+        make_config("smoke", ["read_probes=0"])
