@@ -51,10 +51,11 @@ class TrainConfig:
         better than the other's (0: none; needs batch >= 2). w_read: of the read loss (wm.probes):
         the behaviour-cloning checkpoints whose rollouts the data holds, at most read_probes of them,
         read every 4th predicted frame of each pass and its true frame, and the difference of the
-        actions they take is the loss (0: none; needs such rollouts in the data). w_kl: with model.stochastic, of the
-        divergence of the code's posterior from its prior (wm.metrics.gaussian_kl), balanced as
-        DreamerV3's: 0.8 of it trains the prior towards the posterior, 0.2 the posterior towards the
-        prior, the latter counted only above free_nats nats a frame (a code that carries less is free).
+        actions they take is the loss (0: none; needs such rollouts in the data). w_kl: with
+        model.stochastic, of the divergence of the code's posterior from its prior
+        (wm.metrics.gaussian_kl), balanced as DreamerV3's: 0.8 of it trains the prior towards the
+        posterior, 0.2 the posterior towards the prior, the latter counted only above free_nats nats a
+        frame (a code that carries less is free).
         fail_repeat: how many times each failed task attempt (a scripted, learned or weak-grip episode
         that did not succeed) counts in a training epoch (1: as every other episode): more grasps that
         slip for a model whose imagined grasps hold too often. The episode judge draws its training

@@ -468,6 +468,8 @@ class Run:
         self.best_val = math.inf
         self._val_batches = None
         lpips_weights, probes = perceptual_weights(cfg), read_probes(cfg, self.cache, self.data)
+        # on the devices once, not copied from the host at every step
+        probes = None if probes is None else jax.device_put(probes, NamedSharding(self.mesh, P()))
         self._step = lambda state, batch, norm: jitted_train_step(cfg, state, batch, norm, lpips_weights, probes)
         self._loss = lambda params, batch, norm: jitted_validation_loss(cfg, params, batch, norm, lpips_weights,
                                                                         probes)
