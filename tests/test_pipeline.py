@@ -492,7 +492,7 @@ def test_the_rollouts_stage_compiles_the_training_programs_beside_it_with_the_tr
     assert order == ["warm starts", "rollouts", "warm waited"]
     argv, env = started[0]
     assert argv[1:] == ["-m", "wm.train", "--config", "t", "--data", str(tmp_path / "data" / "d"), "--warm",
-                        "w_success=0.5", "steps=3500"]
+                        "--probe-policies", f"{tmp_path / 'policies' / 'roll'}#conv", "w_success=0.5", "steps=3500"]
     assert env["XLA_PYTHON_CLIENT_PREALLOCATE"] == "false" and env["XLA_PYTHON_CLIENT_MEM_FRACTION"] == "0.35"
     started.clear()
     P.run_stage("roll", "rollouts")  # not asked for

@@ -14,6 +14,7 @@ from sim_data.policies.registry import PolicySource, perturbed_copy
 from sim_data.sim import robot as R
 from wm import probes as PR
 from wm.config import make_config
+from wm.train import main as train_main
 from wm.train import read_probes
 
 NET = PolicyNetConfig(width=4, hidden=8, chunk=2, size=16)
@@ -99,3 +100,16 @@ def test_the_read_loss_refuses_a_dataset_without_checkpoint_rollouts(tmp_path):
         make_config("smoke", ["w_read=-1"])
     with pytest.raises(ValueError, match="read_probes"):
         make_config("smoke", ["read_probes=0"])
+
+
+def test_probe_policies_go_with_the_warm_up_alone(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        train_main(["--data", str(tmp_path), "--out", str(tmp_path / "run"), "--probe-policies", "runs/policies/x#conv"])
+    assert "--probe-policies goes with --warm" in capsys.readouterr().err
+    cache = type("Cache", (), {"tasks": ["a"]})()
+    cfg = make_config("smoke", ["w_read=0.1"])
+    net = PolicyNetConfig(width=4, hidden=8, chunk=2, size=cfg.model.size)
+    given = {"a/conv/1": _source("a/conv/1", "a", net)}
+    (tmp_path / "config.json").write_text(json.dumps({"policies": []}))  # the data's own rollouts: none
+    got = read_probes(cfg, cache, tmp_path, given)
+    assert got.count == 1 and got.nets == (net,)

@@ -40,6 +40,7 @@ from tqdm import tqdm
 
 from sim_data.config import as_json, preset_help, save_or_check
 from sim_data.dataset.cache import TrainingCache, WindowLoader, epoch_episodes
+from sim_data.policies.registry import resolve as resolve_policies
 from sim_data.util import make_output_dir, run_cli, write_json_atomic
 from wm import perceptual
 from wm.checkpoint import restore_params
@@ -351,12 +352,14 @@ def validation_loss(cfg: TrainConfig, params, batch, norm, lpips_weights=None, p
     return loss_fn(params, batch, norm, cfg, lpips_weights=lpips_weights, probes=probes)[1]
 
 
-def read_probes(cfg: TrainConfig, cache: TrainingCache, data: Path):
+def read_probes(cfg: TrainConfig, cache: TrainingCache, data: Path, policies: dict | None = None):
     """The read loss's probes (wm.probes) for cfg on the dataset `data` (its cache `cache`) where
-    cfg.w_read > 0, else None. Raises ValueError where the data holds no behaviour-cloning rollouts."""
+    cfg.w_read > 0, else None: checkpoints of `policies` ({name: PolicySource}; None: those whose
+    rollouts the dataset holds, wm.judge.dataset_policies). Raises ValueError where there are none."""
     if cfg.w_read <= 0:
         return None
-    sources = probe_sources(dataset_policies(data), cache.tasks, cfg.model.size, cfg.read_probes)
+    policies = dataset_policies(data) if policies is None else policies
+    sources = probe_sources(policies, cache.tasks, cfg.model.size, cfg.read_probes)
     if not sources:
         raise ValueError(f"w_read={cfg.w_read:g} needs rollouts of behaviour-cloning checkpoints in {data} "
                          "(the chain's rollouts stage), to read the frames with; set w_read=0 to train without")
@@ -424,9 +427,10 @@ def kept_at(select: str, last: bool, val_loss: float, best_val: float) -> bool:
 
 
 class Run:
-    """Everything one training run holds: config, data, model state, checkpoints, logs."""
+    """Everything one training run holds: config, data, model state, checkpoints, logs. probe_policies:
+    the read loss's checkpoints to choose from (read_probes; None: those the data's rollouts ran)."""
 
-    def __init__(self, cfg: TrainConfig, data: Path, out: Path):
+    def __init__(self, cfg: TrainConfig, data: Path, out: Path, probe_policies: dict | None = None):
         # the safety stop counts from here: loading the data, compiling and restoring take a share of
         # the command slot that max_minutes is meant to fit
         self.t_created = time.perf_counter()
@@ -467,7 +471,7 @@ class Run:
         self.best = ocp.CheckpointManager(self.out.absolute() / "best", options=opts)
         self.best_val = math.inf
         self._val_batches = None
-        lpips_weights, probes = perceptual_weights(cfg), read_probes(cfg, self.cache, self.data)
+        lpips_weights, probes = perceptual_weights(cfg), read_probes(cfg, self.cache, self.data, probe_policies)
         # on the devices once, not copied from the host at every step
         probes = None if probes is None else jax.device_put(probes, NamedSharding(self.mesh, P()))
         self._step = lambda state, batch, norm: jitted_train_step(cfg, state, batch, norm, lpips_weights, probes)
@@ -654,6 +658,9 @@ def main(argv=None) -> int:
     p.add_argument("--warm", action="store_true",
                    help="compile the training's programs into JAX's persistent compilation cache (one step and "
                         "the validation loss on --data's first batches, in a scratch directory) and stop")
+    p.add_argument("--probe-policies", metavar="SPEC",
+                   help="with --warm: the policies (a registry spec, as the dataset's policies=) whose checkpoints "
+                        "the read loss probes with, where the data to warm on holds none of their rollouts yet")
     p.add_argument("--distributed", action="store_true",
                    help="one of several processes (several hosts): jax.distributed.initialize(); the cluster "
                         "names the processes unless --coordinator, --num-processes and --process-id do")
@@ -669,17 +676,22 @@ def main(argv=None) -> int:
         p.error(str(e))
     if (a.coordinator or a.num_processes is not None or a.process_id is not None) and not a.distributed:
         p.error("--coordinator, --num-processes and --process-id go with --distributed")
+    if a.probe_policies and not a.warm:
+        p.error("--probe-policies goes with --warm (a run probes with its data's rollouts' checkpoints)")
     if a.warm:
         if a.distributed:
             p.error("--warm compiles for this process's devices: leave out --distributed")
-        if cfg.w_read > 0 and not probe_sources(dataset_policies(a.data), TrainingCache(a.data).tasks,
-                                                cfg.model.size, cfg.read_probes):
-            # the chain warms on the data stage's dataset, before the rollouts the probes come from
-            print(f"warning: {a.data} holds no checkpoint rollouts to probe with: warming without the read loss, "
-                  "whose step the run then compiles itself", file=sys.stderr)
+        pols = None
+        if a.probe_policies:
+            pols = {s.name: s for s in resolve_policies(a.probe_policies.split(","), world_model=False)}
+        if cfg.w_read > 0 and not probe_sources(dataset_policies(a.data) if pols is None else pols,
+                                                TrainingCache(a.data).tasks, cfg.model.size, cfg.read_probes):
+            print(f"warning: no checkpoints to probe with ({a.data} holds none of their rollouts; --probe-policies "
+                  "names them): warming without the read loss, whose step the run then compiles itself",
+                  file=sys.stderr)
             cfg = dataclasses.replace(cfg, w_read=0.0)
         with tempfile.TemporaryDirectory(prefix="warm-") as scratch:
-            Run(cfg, a.data, Path(scratch)).warm()
+            Run(cfg, a.data, Path(scratch), pols).warm()
         print(f"compiled the training programs of {a.config} for {jax.devices()[0].device_kind}", file=sys.stderr)
         return 0
     if a.out is None:
