@@ -71,8 +71,9 @@ the zoo's training: once the zoo has written its plan (the registry it will writ
 rollout of the lineages runs a few steps with stand-in parameters of their checkpoints' shapes, and
 the rollouts stage loads those programs. With `--warm-train` (one GPU), the rollouts stage starts
 `wm.train --warm` beside its simulation: the world model's training programs compile into the
-persistent compilation cache on the data stage's dataset (the same shapes), and the train stage
-loads them instead of compiling. With `--warm-eval` (one GPU), the train stage starts
+persistent compilation cache on the data stage's dataset (the same shapes; the read loss's probes,
+`w_read`, from the lineages' checkpoints the rollouts run), and the train stage loads them instead of
+compiling. With `--warm-eval` (one GPU), the train stage starts
 `experiments.evaluate --warm --warm-after-training` beside the training: first the programs the
 training runs once trained (its episode judge's imaginations and fit, eval.json), then the
 evaluation's simulator and imagination programs on its own batches, a few steps long, each with the
