@@ -590,6 +590,29 @@ def test_reencoded_rollout_passes_change_only_the_passes(model_and_inputs):
     assert abs(float(both["latent_pass1"]) - float(plain["latent_pass1"])) > 1e-6
 
 
+@jax.jit
+def _first_pass(params, frames, proprio, action):
+    """The teacher-forced pass's decoded frames (B, T-1, S, S, 3) in [0, 1], as loss_fn decodes them."""
+    m = WorldModel(CFG)
+    z = m.apply({"params": params}, frames, method=WorldModel.encode)
+    pred = m.apply({"params": params}, z, proprio, action, method=WorldModel.predict)
+    return m.apply({"params": params}, pred["z"][:, :-1], frames[:, :-1] / 255.0, pred["flow"][:, :-1],
+                   method=WorldModel.decode)
+
+
+def _assert_adds_only(term: str, weight: float, passes: int, plain: tuple, with_term: tuple) -> list[str]:
+    """That a loss_fn output (total, parts) with a weighted term holds the term once per pass beside
+    every part of the plain output unchanged, and its total is the plain one's plus weight times the
+    term's parts; returns their names."""
+    (plain_total, plain_parts), (total, parts) = plain, with_term
+    tags = [term] + [f"{term}_pass{k}" for k in range(1, 1 + passes)]
+    assert term not in plain_parts and all(t in parts for t in tags)
+    for k in set(plain_parts) - {"loss"}:  # every other term as before
+        np.testing.assert_allclose(parts[k], plain_parts[k], rtol=1e-5, err_msg=k)
+    np.testing.assert_allclose(total, plain_total + weight * sum(parts[t] for t in tags), rtol=1e-5)
+    return tags
+
+
 @pytest.mark.slow
 def test_the_perceptual_loss_adds_the_weighted_lpips_of_every_fourth_predicted_frame(model_and_inputs):
     from wm import perceptual
@@ -602,22 +625,11 @@ def test_the_perceptual_loss_adds_the_weighted_lpips_of_every_fourth_predicted_f
     plain_total, plain = loss(params, batch, norm, cfg)
     with_lpips = dataclasses.replace(cfg, w_lpips=0.5)
     total, parts = loss(params, batch, norm, with_lpips, None, perceptual.params())
-    tags = ["lpips"] + [f"lpips_pass{k}" for k in range(1, 1 + cfg.rollout_passes)]
-    assert "lpips" not in plain and all(0.0 < float(parts[t]) < 1.0 for t in tags)
-    for k in set(plain) - {"loss"}:  # every other term as before
-        np.testing.assert_allclose(parts[k], plain[k], rtol=1e-5, err_msg=k)
-    np.testing.assert_allclose(total, plain_total + 0.5 * sum(parts[t] for t in tags), rtol=1e-5)
-
-    @jax.jit
-    def first_pass(params):  # the teacher-forced pass's decoded frames, as loss_fn decodes them
-        m = WorldModel(CFG)
-        z = m.apply({"params": params}, frames, method=WorldModel.encode)
-        pred = m.apply({"params": params}, z, proprio, action, method=WorldModel.predict)
-        return m.apply({"params": params}, pred["z"][:, :-1], frames[:, :-1] / 255.0, pred["flow"][:, :-1],
-                       method=WorldModel.decode)
+    tags = _assert_adds_only("lpips", 0.5, cfg.rollout_passes, (plain_total, plain), (total, parts))
+    assert all(0.0 < float(parts[t]) < 1.0 for t in tags)
 
     # frames 1 and 5 of the window, read by LPIPS' own 8-bit path
-    shown, true = np.asarray(I.to_uint8(first_pass(params)[:, ::4])), frames[:, 1::4]
+    shown, true = np.asarray(I.to_uint8(_first_pass(params, frames, proprio, action)[:, ::4])), frames[:, 1::4]
     ref = perceptual.lpips(shown.reshape(-1, 64, 64, 3), true.reshape(-1, 64, 64, 3)).mean()
     np.testing.assert_allclose(parts["lpips"], ref, atol=2e-3)
     with pytest.raises(ValueError, match="w_lpips"):
@@ -647,22 +659,11 @@ def test_the_read_loss_adds_the_probes_action_difference_on_every_fourth_predict
     loss = jax.jit(loss_fn, static_argnums=3)
     plain_total, plain = loss(params, batch, norm, cfg)
     total, parts = loss(params, batch, norm, dataclasses.replace(cfg, w_read=0.5), None, None, probes)
-    tags = ["read"] + [f"read_pass{k}" for k in range(1, 1 + cfg.rollout_passes)]
-    assert "read" not in plain and all(float(parts[t]) > 0.0 for t in tags)
-    for k in set(plain) - {"loss"}:  # every other term as before
-        np.testing.assert_allclose(parts[k], plain[k], rtol=1e-5, err_msg=k)
-    np.testing.assert_allclose(total, plain_total + 0.5 * sum(parts[t] for t in tags), rtol=1e-5)
-
-    @jax.jit
-    def first_pass(params):  # the teacher-forced pass's decoded frames, as loss_fn decodes them
-        m = WorldModel(CFG)
-        z = m.apply({"params": params}, frames, method=WorldModel.encode)
-        pred = m.apply({"params": params}, z, proprio, action, method=WorldModel.predict)
-        return m.apply({"params": params}, pred["z"][:, :-1], frames[:, :-1] / 255.0, pred["flow"][:, :-1],
-                       method=WorldModel.decode)
+    tags = _assert_adds_only("read", 0.5, cfg.rollout_passes, (plain_total, plain), (total, parts))
+    assert all(float(parts[t]) > 0.0 for t in tags)
 
     # window 0 (mug) alone, its frames 1 and 5 at steps 1 and 5 with their own proprioception
-    pred, true = first_pass(params)[0, ::4], frames[0, 1::4] / 255.0
+    pred, true = _first_pass(params, frames, proprio, action)[0, ::4], frames[0, 1::4] / 255.0
     want = read_loss(probes, pred, true, proprio[0, 1::4], np.array([1, 5], np.int32), np.zeros(2, np.int32))
     np.testing.assert_allclose(parts["read"], want, rtol=1e-4)
     with pytest.raises(ValueError, match="w_read"):
