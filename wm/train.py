@@ -682,7 +682,7 @@ def main(argv=None) -> int:
         if a.distributed:
             p.error("--warm compiles for this process's devices: leave out --distributed")
         pols = None
-        if a.probe_policies:
+        if a.probe_policies and cfg.w_read > 0:  # loaded only where the read loss needs them
             pols = {s.name: s for s in resolve_policies(a.probe_policies.split(","), world_model=False)}
         if cfg.w_read > 0 and not probe_sources(dataset_policies(a.data) if pols is None else pols,
                                                 TrainingCache(a.data).tasks, cfg.model.size, cfg.read_probes):
