@@ -69,24 +69,36 @@ def _chunk(net, params, frames, proprio, t):
     return PolicyNet(net).apply({"params": params["net"]}, frames * 255.0, normalise_proprio(params, proprio), t)
 
 
+def readings(probes: Probes, frames, proprio, t) -> tuple:
+    """Every probe's standardised action chunks for frames (N, S, S, 3) in [0, 1] (proprio (N, 37),
+    t (N,) int32): per group, (P_g, N, chunk, 20), their gradient stopped."""
+    # one checkpoint after another: vmapped, their convolutions become grouped ones, several times slower
+    return tuple(jax.lax.stop_gradient(jax.lax.map(lambda p, net=net: _chunk(net, p, frames, proprio, t), params))
+                 for net, params in zip(probes.nets, probes.params, strict=True))
+
+
+def read_loss_from(probes: Probes, pred, true_readings: tuple, proprio, t, task):
+    """read_loss with the probes' readings of the true frames given (readings'), so that several
+    passes of predictions of the same frames share them."""
+    total, rows = jnp.zeros(()), jnp.zeros(())
+    for net, params, tasks, want in zip(probes.nets, probes.params, probes.tasks, true_readings, strict=True):
+        def one(args, net=net):
+            p, k, w = args
+            err = jnp.mean((_chunk(net, p, pred, proprio, t) - w) ** 2, axis=(1, 2))
+            mine = (task == k).astype(jnp.float32)
+            return jnp.sum(mine * err), jnp.sum(mine)
+        s, n = jax.lax.map(one, (params, jnp.asarray(tasks), want))
+        total, rows = total + jnp.sum(s), rows + jnp.sum(n)
+    return total / jnp.maximum(rows, 1.0)
+
+
 def read_loss(probes: Probes, pred, target, proprio, t, task):
     """The mean over probes and their own task's rows of the squared difference between the action
     chunk each probe reads from the predicted frames and the one it reads from the true frames
     (pred, target (N, S, S, 3) in [0, 1], the true frames' gradient stopped), given the true frames'
     proprio (N, 37) in its own units, steps t (N,) int32 since the episode began and task (N,) int32.
     0 where no row is of a probe's task."""
-    target = jax.lax.stop_gradient(target)
-    total, rows = jnp.zeros(()), jnp.zeros(())
-    for net, params, tasks in zip(probes.nets, probes.params, probes.tasks, strict=True):
-        def one(args, net=net):
-            p, k = args
-            err = jnp.mean((_chunk(net, p, pred, proprio, t) - _chunk(net, p, target, proprio, t)) ** 2, axis=(1, 2))
-            mine = (task == k).astype(jnp.float32)
-            return jnp.sum(mine * err), jnp.sum(mine)
-        # one checkpoint after another: vmapped, their convolutions become grouped ones, several times slower
-        s, n = jax.lax.map(one, (params, jnp.asarray(tasks)))
-        total, rows = total + jnp.sum(s), rows + jnp.sum(n)
-    return total / jnp.maximum(rows, 1.0)
+    return read_loss_from(probes, pred, readings(probes, target, proprio, t), proprio, t, task)
 
 
 def stand_in_probes(n: int, size: int) -> Probes:

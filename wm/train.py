@@ -49,8 +49,7 @@ from wm.imagine import Norm, to_uint8
 from wm.judge import dataset_policies, fit_judge, load_judge, warm_judge
 from wm.metrics import action_contrast, gaussian_kl
 from wm.model import REFINE_SIGMA, WorldModel, init_params
-from wm.probes import make_probes, probe_sources
-from wm.probes import read_loss as probes_read_loss
+from wm.probes import make_probes, probe_sources, read_loss_from, readings
 from wm.quality import evaluate
 
 
@@ -129,15 +128,21 @@ def _lpips_loss(weights, pred, target):
     return jnp.mean(perceptual.distance(weights, flat(pred), flat(jax.lax.stop_gradient(target))))
 
 
-def _read_loss(probes, pixels, target, batch: dict):
-    """wm.probes.read_loss on every 4th predicted frame (B, T-1, S, S, 3) in [0, 1] of a pass and its
-    true frame, with the true frame's proprioception, step in its episode and task."""
-    b, n = pixels[:, ::4].shape[:2]
-    flat = lambda x: x.reshape((b * n,) + x.shape[2:])
-    step = batch["start"][:, None] + 1 + jnp.arange(pixels.shape[1])[None, ::4]
-    task = jnp.broadcast_to(batch["task"][:, None], (b, n))
-    return probes_read_loss(probes, flat(pixels[:, ::4]), flat(target[:, ::4]), flat(batch["proprio"][:, 1::4]),
-                            flat(step).astype(jnp.int32), flat(task))
+def _read_inputs(batch: dict, frames: int) -> tuple:
+    """(proprio (N, 37), steps (N,) int32, task (N,) int32) of every 4th predicted frame of a window of
+    `frames` frames (frames 1, 5, ...), the rows of the batch's windows one after another: what the
+    read loss's probes are given beside each frame."""
+    b = batch["proprio"].shape[0]
+    step = batch["start"][:, None] + 1 + jnp.arange(frames - 1)[None, ::4]
+    n = step.shape[1]
+    return (_every_fourth(batch["proprio"][:, 1:]), step.reshape(b * n).astype(jnp.int32),
+            jnp.broadcast_to(batch["task"][:, None], (b, n)).reshape(b * n))
+
+
+def _every_fourth(x):
+    """Frames 0, 4, ... of x (B, T, ...) as (B * ceil(T / 4), ...)."""
+    y = x[:, ::4]
+    return y.reshape((-1,) + y.shape[2:])
 
 
 REFINE_STREAM = 1 << 10  # the frame generator's draws: fold_in(rng, this + pass), apart from the counters above
@@ -174,6 +179,9 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_w
     frames = batch["frames"]
     pix = frames.astype(jnp.float32) / 255.0
     target = pix[:, 1:]
+    if cfg.w_read > 0:  # the probes read the true frames once; each pass's predictions are read against them
+        read_with = _read_inputs(batch, frames.shape[1])
+        true_read = readings(probes, _every_fourth(target), *read_with[:2])
     z = model.apply({"params": params}, frames, method=WorldModel.encode)
     # reconstruction of every 4th frame from its true latents and the true previous frame; the
     # decoder also learns from every predicted frame below
@@ -231,7 +239,7 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_w
             parts[f"lpips{tag}"] = _lpips_loss(lpips_weights, pixels[:, ::4], target[:, ::4])
             total = total + cfg.w_lpips * parts[f"lpips{tag}"]
         if cfg.w_read > 0:
-            parts[f"read{tag}"] = _read_loss(probes, pixels, target, batch)
+            parts[f"read{tag}"] = read_loss_from(probes, _every_fourth(pixels), true_read, *read_with)
             total = total + cfg.w_read * parts[f"read{tag}"]
         if k == 0 and cfg.w_contrast > 0:  # the same context under another window's actions
             other = model.apply({"params": params}, z_in, p_in, jnp.roll(action, 1, axis=0), anchor=anchor, time=time,
@@ -682,10 +690,10 @@ def main(argv=None) -> int:
         if a.distributed:
             p.error("--warm compiles for this process's devices: leave out --distributed")
         pols = None
-        if a.probe_policies and cfg.w_read > 0:  # loaded only where the read loss needs them
-            pols = {s.name: s for s in resolve_policies(a.probe_policies.split(","), world_model=False)}
-        if cfg.w_read > 0 and not probe_sources(dataset_policies(a.data) if pols is None else pols,
-                                                TrainingCache(a.data).tasks, cfg.model.size, cfg.read_probes):
+        if cfg.w_read > 0:  # loaded once, only where the read loss needs them
+            pols = ({s.name: s for s in resolve_policies(a.probe_policies.split(","), world_model=False)}
+                    if a.probe_policies else dataset_policies(a.data))
+        if cfg.w_read > 0 and not probe_sources(pols, TrainingCache(a.data).tasks, cfg.model.size, cfg.read_probes):
             print(f"warning: no checkpoints to probe with ({a.data} holds none of their rollouts; --probe-policies "
                   "names them): warming without the read loss, whose step the run then compiles itself",
                   file=sys.stderr)
