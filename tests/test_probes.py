@@ -73,6 +73,20 @@ def test_the_read_loss_trains_the_predicted_frames_alone_and_ignores_other_tasks
     assert float(PR.read_loss(probes, pred, target, proprio, t, only_c)) == 0.0
 
 
+def test_bfloat16_probes_read_as_the_float32_checkpoints_do_within_bfloat16_rounding():
+    sources = [_source("a/conv/1", "a", seed=1), _source("a/vit/3", "a", VIT, 3)]
+    f32, bf16 = (PR.make_probes(sources, ["a", "b", "c"], d) for d in ("float32", "bfloat16"))
+    assert {x.dtype for x in jax.tree_util.tree_leaves(bf16.params[0]["net"])} == {np.dtype(jnp.bfloat16)}
+    assert bf16.params[0]["norm"]["proprio_std"].dtype == np.float32  # the normalisation keeps its precision
+    _, target, proprio, t, _ = _inputs()
+    for a, b in zip(PR.readings(f32, target, proprio, t), PR.readings(bf16, target, proprio, t), strict=True):
+        a, b = np.asarray(a), np.asarray(b)
+        assert b.dtype == np.float32 and b.shape == a.shape
+        # bfloat16 keeps 8 significant bits: about 1% of the readings' spread
+        assert np.abs(a - b).max() < 0.05 * np.abs(a).max()
+        assert np.corrcoef(a.ravel(), b.ravel())[0, 1] > 0.99
+
+
 def test_probes_are_registry_checkpoints_of_networks_spread_over_their_names():
     learned = [_source(f"a/conv/{k}", "a") for k in range(6)]
     others = [

@@ -100,7 +100,7 @@ def step_inputs(cfg):
 def frozen_inputs(cfg):
     """(lpips_weights, probes) of a train step of cfg: the LPIPS network's weights where cfg.w_lpips > 0,
     stand-in probes (wm.probes.stand_in_probes) where cfg.w_read > 0, each else None."""
-    return perceptual_weights(cfg), stand_in_probes(cfg.read_probes, cfg.model.size) if cfg.w_read > 0 else None
+    return perceptual_weights(cfg), stand_in_probes(cfg.read_probes, cfg.model.size, cfg.model.dtype) if cfg.w_read > 0 else None
 
 
 def step_flops(preset: str, overrides=()) -> float:

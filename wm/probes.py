@@ -22,12 +22,14 @@ from sim_data.policies.bc import BCPolicy, PolicyNet, PolicyNetConfig, normalise
 @struct.dataclass
 class Probes:
     """Probe checkpoints grouped by network: nets[g] (a PolicyNetConfig, static), params[g] stacked
-    parameter trees (every leaf with a leading P_g axis), tasks[g] (P_g,) int32 (the index of each
-    checkpoint's task in the training cache's tasks)."""
+    parameter trees (every leaf with a leading P_g axis; the networks' weights in `dtype`), tasks[g]
+    (P_g,) int32 (the index of each checkpoint's task in the training cache's tasks); dtype (static):
+    what their convolutions compute in, the world model's (ModelConfig.dtype)."""
 
     params: tuple
     tasks: tuple
     nets: tuple = struct.field(pytree_node=False)
+    dtype: str = struct.field(pytree_node=False, default="float32")
 
     @property
     def count(self) -> int:
@@ -50,30 +52,40 @@ def probe_sources(policies: dict, tasks: list[str], frame_size: int, n: int) -> 
     return [fit[int(k)] for k in np.unique(np.round(np.linspace(0, len(fit) - 1, n)).astype(int))]
 
 
-def make_probes(sources: list, tasks: list[str]) -> Probes | None:
-    """Probes of sources (probe_sources'), one group per network configuration; None for none."""
+def make_probes(sources: list, tasks: list[str], dtype: str = "float32") -> Probes | None:
+    """Probes of sources (probe_sources'), one group per network configuration, their networks'
+    weights cast to dtype (the world model's compute dtype: in float32 a GPU runs the probes'
+    convolutions several times slower than in bfloat16); None for none."""
     groups: dict = {}
     for s in sources:
         groups.setdefault(s.policy.cfg, []).append(s)
     if not groups:
         return None
     nets = tuple(groups)
-    return Probes(params=tuple(stack_params([jax.tree_util.tree_map(np.asarray, s.params) for s in groups[c]])
-                               for c in nets),
+    return Probes(params=tuple(_weights_in(stack_params([jax.tree_util.tree_map(np.asarray, s.params)
+                                                         for s in groups[c]]), dtype) for c in nets),
                   tasks=tuple(np.array([tasks.index(s.task) for s in groups[c]], np.int32) for c in nets),
-                  nets=nets)
+                  nets=nets, dtype=dtype)
 
 
-def _chunk(net, params, frames, proprio, t):
-    """A probe's standardised action chunk (N, chunk, 20) from frames (N, S, S, 3) in [0, 1]."""
-    return PolicyNet(net).apply({"params": params["net"]}, frames * 255.0, normalise_proprio(params, proprio), t)
+def _weights_in(params: dict, dtype: str) -> dict:
+    """params with the network's weights (params["net"]) cast to dtype; the normalisation as it is."""
+    return {**params, "net": jax.tree_util.tree_map(lambda x: np.asarray(jnp.asarray(x, dtype)), params["net"])}
+
+
+def _chunk(net, params, frames, proprio, t, dtype):
+    """A probe's standardised action chunk (N, chunk, 20) float32 from frames (N, S, S, 3) in [0, 1],
+    its convolutions in dtype."""
+    out = PolicyNet(net, dtype).apply({"params": params["net"]}, frames * 255.0,
+                                      normalise_proprio(params, proprio).astype(dtype), t)
+    return out.astype(jnp.float32)
 
 
 def readings(probes: Probes, frames, proprio, t) -> tuple:
     """Every probe's standardised action chunks for frames (N, S, S, 3) in [0, 1] (proprio (N, 37),
     t (N,) int32): per group, (P_g, N, chunk, 20), their gradient stopped."""
     # one checkpoint after another: vmapped, their convolutions become grouped ones, several times slower
-    return tuple(jax.lax.stop_gradient(jax.lax.map(lambda p, net=net: _chunk(net, p, frames, proprio, t), params))
+    return tuple(jax.lax.stop_gradient(jax.lax.map(lambda p, net=net: _chunk(net, p, frames, proprio, t, probes.dtype), params))
                  for net, params in zip(probes.nets, probes.params, strict=True))
 
 
@@ -84,7 +96,7 @@ def read_loss_from(probes: Probes, pred, true_readings: tuple, proprio, t, task)
     for net, params, tasks, want in zip(probes.nets, probes.params, probes.tasks, true_readings, strict=True):
         def one(args, net=net):
             p, k, w = args
-            err = jnp.mean((_chunk(net, p, pred, proprio, t) - w) ** 2, axis=(1, 2))
+            err = jnp.mean((_chunk(net, p, pred, proprio, t, probes.dtype) - w) ** 2, axis=(1, 2))
             mine = (task == k).astype(jnp.float32)
             return jnp.sum(mine * err), jnp.sum(mine)
         s, n = jax.lax.map(one, (params, jnp.asarray(tasks), want))
@@ -101,9 +113,11 @@ def read_loss(probes: Probes, pred, target, proprio, t, task):
     return read_loss_from(probes, pred, readings(probes, target, proprio, t), proprio, t, task)
 
 
-def stand_in_probes(n: int, size: int) -> Probes:
+def stand_in_probes(n: int, size: int, dtype: str = "float32") -> Probes:
     """n probes of the zoo's default convolutional network (PolicyNetConfig's) for frames of `size`,
-    freshly initialised, all of task 0: a step's shapes and cost without a dataset (wm.bench)."""
+    freshly initialised, all of task 0, computing in dtype: a step's shapes and cost without a
+    dataset (wm.bench)."""
     net = PolicyNetConfig(size=size)
     one = jax.tree_util.tree_map(np.asarray, stand_in_params(net, False))
-    return Probes(params=(stack_params([one] * n),), tasks=(np.zeros(n, np.int32),), nets=(net,))
+    return Probes(params=(_weights_in(stack_params([one] * n), dtype),), tasks=(np.zeros(n, np.int32),),
+                  nets=(net,), dtype=dtype)

@@ -372,7 +372,7 @@ def read_probes(cfg: TrainConfig, cache: TrainingCache, data: Path, policies: di
         raise ValueError(f"w_read={cfg.w_read:g} needs rollouts of behaviour-cloning checkpoints in {data} "
                          "(the chain's rollouts stage), to read the frames with; set w_read=0 to train without")
     print(f"read loss: {len(sources)} probes ({', '.join(s.name for s in sources)})")
-    return make_probes(sources, cache.tasks)
+    return make_probes(sources, cache.tasks, cfg.model.dtype)
 
 
 jitted_train_step = jax.jit(train_step, static_argnums=(0,), donate_argnums=(1,))

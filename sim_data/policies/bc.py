@@ -107,13 +107,15 @@ def time_features(t):
 
 
 class PolicyNet(nn.Module):
-    """(image (B, S, S, 3) uint8, proprio (B, 37) normalised, t (B,) int) -> (B, chunk, 20) normalised actions."""
+    """(image (B, S, S, 3) uint8, proprio (B, 37) normalised, t (B,) int) -> (B, chunk, 20) normalised actions.
+    dtype: what the encoder computes in, given parameters of that dtype (the zoo's are float32)."""
 
     cfg: PolicyNetConfig
+    dtype: str = "float32"
 
     @nn.compact
     def __call__(self, image, proprio, t):
-        x = image.astype(jnp.float32) / 255.0 - 0.5
+        x = (image.astype(jnp.float32) / 255.0 - 0.5).astype(self.dtype)
         if self.cfg.encoder == "conv":
             feat = ConvEncoder(self.cfg.width, name="encoder")(x)
         else:
