@@ -42,20 +42,19 @@ def _inputs(n=6, seed=0):
             rs.integers(0, 100, n).astype(np.int32), np.array([0, 0, 1, 1, 2, 2], np.int32)[:n])
 
 
-def test_the_read_loss_is_each_probes_squared_action_difference_over_its_own_tasks_rows():
+def test_the_read_loss_is_each_frames_probes_squared_action_difference():
     sources = [_source("a/conv/1", "a", seed=1), _source("b/conv/2", "b", seed=2), _source("a/vit/3", "a", VIT, 3)]
     probes = PR.make_probes(sources, ["a", "b", "c"])
     assert probes.count == 3 and len(probes.nets) == 2
     pred, target, proprio, t, task = _inputs()
-    errs, rows = [], 0
-    for s in sources:
-        k = ["a", "b", "c"].index(s.task)
+    errs = []
+    # task a's two frames go to its two probes in turn (row 0 to a/conv/1, row 1 to a/vit/3), task b's
+    # two to its one probe; task c has none, so its frames count for nothing
+    for s, row in ((sources[0], 0), (sources[2], 1), (sources[1], 2), (sources[1], 3)):
         read = lambda img, s=s: np.asarray(PolicyNet(s.policy.cfg).apply(  # noqa: E731
             {"params": s.params["net"]}, img * 255.0, normalise_proprio(s.params, proprio), t))
-        err = ((read(pred) - read(target)) ** 2).mean(axis=(1, 2))
-        errs.append(err[task == k].sum())
-        rows += int((task == k).sum())
-    want = sum(errs) / rows  # 2 + 2 + 2 rows: a's two probes read rows 0-1, b's rows 2-3; task c has no probe
+        errs.append(((read(pred) - read(target)) ** 2).mean(axis=(1, 2))[row])
+    want = sum(errs) / 4
     got = float(jax.jit(PR.read_loss)(probes, pred, target, proprio, t, task))
     np.testing.assert_allclose(got, want, rtol=1e-4)
     assert got > 0
@@ -73,13 +72,33 @@ def test_the_read_loss_trains_the_predicted_frames_alone_and_ignores_other_tasks
     assert float(PR.read_loss(probes, pred, target, proprio, t, only_c)) == 0.0
 
 
+def test_a_tasks_frames_go_to_its_probes_in_turn_up_to_each_probes_capacity():
+    # three probes of task 0 (names sorted: turns 0, 1, 2) and one of task 1
+    sources = [_source(f"a/conv/{k}", "a", seed=k) for k in range(3)] + [_source("b/conv/9", "b", seed=9)]
+    probes = PR.make_probes(sources, ["a", "b"])
+    np.testing.assert_array_equal(probes.turns[0], [0, 1, 2, 0])
+    np.testing.assert_array_equal(probes.shares[0], [3, 3, 3, 1])
+    task = np.array([0, 0, 0, 0, 0, 0, 1, 0], np.int32)  # task 0's frames by place: rows 0-5 then 7
+    (rows, valid), = PR.probe_rows(probes, jnp.asarray(task))
+    assert rows.shape == (4, PR.row_capacity(8, 4)) == (4, 4)
+    got = [sorted(np.asarray(rows)[p][np.asarray(valid)[p]].tolist()) for p in range(4)]
+    assert got == [[0, 3, 7], [1, 4], [2, 5], [6]]
+    # every frame of one task with a single probe of it: that probe reads its capacity, the first 4
+    one = PR.make_probes([sources[0]] + [_source(f"b/conv/{k}", "b", seed=k) for k in range(3)], ["a", "b"])
+    (rows, valid), = PR.probe_rows(one, jnp.zeros(8, jnp.int32))
+    assert np.asarray(rows)[0][np.asarray(valid)[0]].tolist() == [0, 1, 2, 3]
+    assert not np.asarray(valid)[1:].any()
+
+
 def test_bfloat16_probes_read_as_the_float32_checkpoints_do_within_bfloat16_rounding():
     sources = [_source("a/conv/1", "a", seed=1), _source("a/vit/3", "a", VIT, 3)]
     f32, bf16 = (PR.make_probes(sources, ["a", "b", "c"], d) for d in ("float32", "bfloat16"))
     assert {x.dtype for x in jax.tree_util.tree_leaves(bf16.params[0]["net"])} == {np.dtype(jnp.bfloat16)}
     assert bf16.params[0]["norm"]["proprio_std"].dtype == np.float32  # the normalisation keeps its precision
     _, target, proprio, t, _ = _inputs()
-    for a, b in zip(PR.readings(f32, target, proprio, t), PR.readings(bf16, target, proprio, t), strict=True):
+    rows = PR.probe_rows(f32, jnp.zeros(len(t), jnp.int32))
+    for a, b in zip(PR.readings(f32, target, proprio, t, rows), PR.readings(bf16, target, proprio, t, rows),
+                    strict=True):
         a, b = np.asarray(a), np.asarray(b)
         assert b.dtype == np.float32 and b.shape == a.shape
         # bfloat16 keeps 8 significant bits: about 1% of the readings' spread

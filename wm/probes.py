@@ -3,13 +3,17 @@
 A policy ranked in the world model acts on imagined frames; where it reads them otherwise than the
 true frames, it takes other actions and the imagined episode leaves the one the simulator would run.
 The read loss trains the frames a policy's way: the behaviour-cloning checkpoints whose rollouts the
-dataset holds (each only on windows of its own task) read every 4th predicted frame of each training
-pass and its true frame, beside the true proprioception and time, and the squared difference of the
-two action chunks, in the checkpoint's standardised action units, is the loss. The checkpoints are
-fixed: only the world model learns.
+dataset read every 4th predicted frame of each training pass and its true frame, beside the true
+proprioception and time, and the squared difference of the two action chunks, in the checkpoint's
+standardised action units, is the loss. Each frame is read by one checkpoint of its own task, the
+task's checkpoints taking its frames in turn: the loss is, in expectation over the batch's order, the
+mean over a task's checkpoints, at one network pass a frame instead of one per checkpoint. The
+checkpoints are fixed: only the world model learns.
 """
 
 from __future__ import annotations
+
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -23,11 +27,15 @@ from sim_data.policies.bc import BCPolicy, PolicyNet, PolicyNetConfig, normalise
 class Probes:
     """Probe checkpoints grouped by network: nets[g] (a PolicyNetConfig, static), params[g] stacked
     parameter trees (every leaf with a leading P_g axis; the networks' weights in `dtype`), tasks[g]
-    (P_g,) int32 (the index of each checkpoint's task in the training cache's tasks); dtype (static):
-    what their convolutions compute in, the world model's (ModelConfig.dtype)."""
+    (P_g,) int32 (the index of each checkpoint's task in the training cache's tasks), turns[g] (P_g,)
+    int32 (each checkpoint's place among its task's checkpoints, over every group), shares[g] (P_g,)
+    int32 (how many checkpoints its task has); dtype (static): what their convolutions compute in, the
+    world model's (ModelConfig.dtype)."""
 
     params: tuple
     tasks: tuple
+    turns: tuple
+    shares: tuple
     nets: tuple = struct.field(pytree_node=False)
     dtype: str = struct.field(pytree_node=False, default="float32")
 
@@ -57,14 +65,19 @@ def make_probes(sources: list, tasks: list[str], dtype: str = "float32") -> Prob
     weights cast to dtype (the world model's compute dtype: in float32 a GPU runs the probes'
     convolutions several times slower than in bfloat16); None for none."""
     groups: dict = {}
+    turn, share = {}, {}
     for s in sources:
         groups.setdefault(s.policy.cfg, []).append(s)
+        turn[s.name] = share.get(s.task, 0)
+        share[s.task] = turn[s.name] + 1
     if not groups:
         return None
     nets = tuple(groups)
     return Probes(params=tuple(_weights_in(stack_params([jax.tree_util.tree_map(np.asarray, s.params)
                                                          for s in groups[c]]), dtype) for c in nets),
                   tasks=tuple(np.array([tasks.index(s.task) for s in groups[c]], np.int32) for c in nets),
+                  turns=tuple(np.array([turn[s.name] for s in groups[c]], np.int32) for c in nets),
+                  shares=tuple(np.array([share[s.task] for s in groups[c]], np.int32) for c in nets),
                   nets=nets, dtype=dtype)
 
 
@@ -81,36 +94,73 @@ def _chunk(net, params, frames, proprio, t, dtype):
     return out.astype(jnp.float32)
 
 
-def readings(probes: Probes, frames, proprio, t) -> tuple:
-    """Every probe's standardised action chunks for frames (N, S, S, 3) in [0, 1] (proprio (N, 37),
-    t (N,) int32): per group, (P_g, N, chunk, 20), their gradient stopped."""
+def row_capacity(rows: int, probes: int) -> int:
+    """How many of `rows` frames one of `probes` checkpoints reads at most: twice its even share, so
+    that a batch weighted towards one task loses few of that task's frames."""
+    return min(rows, -(-2 * rows // probes))
+
+
+def probe_rows(probes: Probes, task) -> tuple:
+    """The frames each probe reads, given each frame's task (N,) int32: a task's frames go to its
+    checkpoints in turn (the frame's place among its task's frames, modulo the task's checkpoint
+    count), at most row_capacity of them a checkpoint, in order. Per group, (rows (P_g, C) int32
+    indices into the N frames, valid (P_g, C) bool: False past a checkpoint's frames)."""
+    n = task.shape[0]
+    place = jnp.sum(jnp.tril(task[:, None] == task[None, :], -1), axis=1)  # earlier frames of the same task
+    cap = row_capacity(n, probes.count)
+    out = []
+    for tasks, turns, shares in zip(probes.tasks, probes.turns, probes.shares, strict=True):
+        mine = (task[None, :] == jnp.asarray(tasks)[:, None]) & (
+            place[None, :] % jnp.asarray(shares)[:, None] == jnp.asarray(turns)[:, None])
+        # each of a probe's frames to the slot of its place among them, by comparison: a GPU sorts
+        # rows this short far slower
+        slot = mine[:, :, None] & ((jnp.cumsum(mine, axis=1) - 1)[:, :, None] == jnp.arange(cap))  # (P_g, N, C)
+        rows = jnp.sum(slot * jnp.arange(n, dtype=jnp.int32)[:, None], axis=1, dtype=jnp.int32)
+        out.append((rows, jnp.any(slot, axis=1)))
+    return tuple(out)
+
+
+def readings(probes: Probes, frames, proprio, t, rows: tuple) -> tuple:
+    """Each probe's standardised action chunks for its frames (probe_rows') of frames (N, S, S, 3) in
+    [0, 1] (proprio (N, 37), t (N,) int32): per group, (P_g, C, chunk, 20), their gradient stopped."""
+    frames, proprio, t = jnp.asarray(frames), jnp.asarray(proprio), jnp.asarray(t)
+
+    def one(args, net):
+        p, r = args
+        return _chunk(net, p, frames[r], proprio[r], t[r], probes.dtype)
     # one checkpoint after another: vmapped, their convolutions become grouped ones, several times slower
-    return tuple(jax.lax.stop_gradient(jax.lax.map(lambda p, net=net: _chunk(net, p, frames, proprio, t, probes.dtype), params))
-                 for net, params in zip(probes.nets, probes.params, strict=True))
+    return tuple(jax.lax.stop_gradient(jax.lax.map(functools.partial(one, net=net), (params, r)))
+                 for net, params, (r, _) in zip(probes.nets, probes.params, rows, strict=True))
 
 
-def read_loss_from(probes: Probes, pred, true_readings: tuple, proprio, t, task):
-    """read_loss with the probes' readings of the true frames given (readings'), so that several
-    passes of predictions of the same frames share them."""
-    total, rows = jnp.zeros(()), jnp.zeros(())
-    for net, params, tasks, want in zip(probes.nets, probes.params, probes.tasks, true_readings, strict=True):
+def read_loss_from(probes: Probes, pred, true_readings: tuple, proprio, t, rows: tuple):
+    """read_loss with the frames' assignment (probe_rows') and the probes' readings of the true frames
+    (readings') given, so that several passes of predictions of the same frames share them."""
+    pred, proprio, t = jnp.asarray(pred), jnp.asarray(proprio), jnp.asarray(t)
+    total, count = jnp.zeros(()), jnp.zeros(())
+    for net, params, (r, valid), want in zip(probes.nets, probes.params, rows, true_readings, strict=True):
         def one(args, net=net):
-            p, k, w = args
-            err = jnp.mean((_chunk(net, p, pred, proprio, t, probes.dtype) - w) ** 2, axis=(1, 2))
-            mine = (task == k).astype(jnp.float32)
-            return jnp.sum(mine * err), jnp.sum(mine)
-        s, n = jax.lax.map(one, (params, jnp.asarray(tasks), want))
-        total, rows = total + jnp.sum(s), rows + jnp.sum(n)
-    return total / jnp.maximum(rows, 1.0)
+            p, r, v, w = args
+            # the frames picked by a one-hot product, not indexing: the gradient of an index is a
+            # scatter, which deterministic GPU ops sort
+            pick = ((r[:, None] == jnp.arange(pred.shape[0])) & v[:, None]).astype(pred.dtype)
+            frames = jnp.einsum("cn,n...->c...", pick, pred, precision=jax.lax.Precision.HIGHEST)
+            err = jnp.mean((_chunk(net, p, frames, proprio[r], t[r], probes.dtype) - w) ** 2, axis=(1, 2))
+            v = v.astype(jnp.float32)
+            return jnp.sum(v * err), jnp.sum(v)
+        s, n = jax.lax.map(one, (params, r, valid, want))
+        total, count = total + jnp.sum(s), count + jnp.sum(n)
+    return total / jnp.maximum(count, 1.0)
 
 
 def read_loss(probes: Probes, pred, target, proprio, t, task):
-    """The mean over probes and their own task's rows of the squared difference between the action
-    chunk each probe reads from the predicted frames and the one it reads from the true frames
-    (pred, target (N, S, S, 3) in [0, 1], the true frames' gradient stopped), given the true frames'
-    proprio (N, 37) in its own units, steps t (N,) int32 since the episode began and task (N,) int32.
-    0 where no row is of a probe's task."""
-    return read_loss_from(probes, pred, readings(probes, target, proprio, t), proprio, t, task)
+    """The mean over frames of the squared difference between the action chunk that the frame's probe
+    (one checkpoint of its task, probe_rows') reads from the predicted frame and the one it reads from
+    the true frame (pred, target (N, S, S, 3) in [0, 1], the true frames' gradient stopped), given the
+    true frames' proprio (N, 37) in its own units, steps t (N,) int32 since the episode began and task
+    (N,) int32. Frames of a task without probes count for nothing; 0 where every frame is of one."""
+    rows = probe_rows(probes, task)
+    return read_loss_from(probes, pred, readings(probes, target, proprio, t, rows), proprio, t, rows)
 
 
 def stand_in_probes(n: int, size: int, dtype: str = "float32") -> Probes:
@@ -120,4 +170,4 @@ def stand_in_probes(n: int, size: int, dtype: str = "float32") -> Probes:
     net = PolicyNetConfig(size=size)
     one = jax.tree_util.tree_map(np.asarray, stand_in_params(net, False))
     return Probes(params=(_weights_in(stack_params([one] * n), dtype),), tasks=(np.zeros(n, np.int32),),
-                  nets=(net,), dtype=dtype)
+                  turns=(np.arange(n, dtype=np.int32),), shares=(np.full(n, n, np.int32),), nets=(net,), dtype=dtype)

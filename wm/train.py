@@ -49,7 +49,7 @@ from wm.imagine import Norm, to_uint8
 from wm.judge import dataset_policies, fit_judge, load_judge, warm_judge
 from wm.metrics import action_contrast, gaussian_kl
 from wm.model import REFINE_SIGMA, WorldModel, init_params
-from wm.probes import make_probes, probe_sources, read_loss_from, readings
+from wm.probes import make_probes, probe_rows, probe_sources, read_loss_from, readings
 from wm.quality import evaluate
 
 
@@ -180,8 +180,9 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_w
     pix = frames.astype(jnp.float32) / 255.0
     target = pix[:, 1:]
     if cfg.w_read > 0:  # the probes read the true frames once; each pass's predictions are read against them
-        read_with = _read_inputs(batch, frames.shape[1])
-        true_read = readings(probes, _every_fourth(target), *read_with[:2])
+        read_proprio, read_t, read_task = _read_inputs(batch, frames.shape[1])
+        read_rows = probe_rows(probes, read_task)
+        true_read = readings(probes, _every_fourth(target), read_proprio, read_t, read_rows)
     z = model.apply({"params": params}, frames, method=WorldModel.encode)
     # reconstruction of every 4th frame from its true latents and the true previous frame; the
     # decoder also learns from every predicted frame below
@@ -239,7 +240,8 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_w
             parts[f"lpips{tag}"] = _lpips_loss(lpips_weights, pixels[:, ::4], target[:, ::4])
             total = total + cfg.w_lpips * parts[f"lpips{tag}"]
         if cfg.w_read > 0:
-            parts[f"read{tag}"] = read_loss_from(probes, _every_fourth(pixels), true_read, *read_with)
+            parts[f"read{tag}"] = read_loss_from(probes, _every_fourth(pixels), true_read, read_proprio, read_t,
+                                                 read_rows)
             total = total + cfg.w_read * parts[f"read{tag}"]
         if k == 0 and cfg.w_contrast > 0:  # the same context under another window's actions
             other = model.apply({"params": params}, z_in, p_in, jnp.roll(action, 1, axis=0), anchor=anchor, time=time,
