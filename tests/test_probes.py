@@ -146,3 +146,27 @@ def test_probe_policies_go_with_the_warm_up_alone(tmp_path, capsys):
     (tmp_path / "config.json").write_text(json.dumps({"policies": []}))  # the data's own rollouts: none
     got = read_probes(cfg, cache, tmp_path, given)
     assert got.count == 1 and got.nets == (net,)
+
+
+def test_the_probe_studys_stand_ins_read_zero_where_they_are_the_true_frames():
+    from experiments.probe_study import main as study_main
+    from experiments.probe_study import stand_in_terms
+
+    probes = PR.make_probes([_source("a/conv/1", "a", seed=1), _source("b/conv/2", "b", seed=2)], ["a", "b"])
+    rs = np.random.default_rng(0)
+    still = rs.integers(0, 256, (2, 1, 16, 16, 3), dtype=np.uint8)  # each window one frame throughout
+    batch = {"frames": np.repeat(still, 9, axis=1), "proprio": rs.normal(size=(2, 9, R.PROPRIO_DIM)).astype(np.float32),
+             "task": np.array([0, 1], np.int32), "start": np.array([3, 40], np.int32)}
+    got = stand_in_terms(probes, batch)
+    assert got["copy_last"] == 0.0 and got["first_held"] == 0.0  # the still windows' own frames
+    assert got["grey"] > 0
+    # another window's frames: window 0 shown window 1's frame and the reverse, read by each window's own probe
+    pix = batch["frames"][:, 1:].astype(np.float32) / 255.0
+    want = PR.read_loss(probes, pix[::-1, ::4].reshape(-1, 16, 16, 3), pix[:, ::4].reshape(-1, 16, 16, 3),
+                        batch["proprio"][:, 1::4].reshape(-1, R.PROPRIO_DIM),
+                        (batch["start"][:, None] + 1 + np.arange(0, 8, 4)).reshape(-1).astype(np.int32),
+                        np.repeat(batch["task"], 2))
+    np.testing.assert_allclose(got["other_window"], float(want), rtol=1e-5)
+    assert got["other_window"] > 0
+    with pytest.raises(SystemExit):
+        study_main(["--runs", "no/such/run"])

@@ -128,18 +128,18 @@ def _lpips_loss(weights, pred, target):
     return jnp.mean(perceptual.distance(weights, flat(pred), flat(jax.lax.stop_gradient(target))))
 
 
-def _read_inputs(batch: dict, frames: int) -> tuple:
+def read_inputs(batch: dict, frames: int) -> tuple:
     """(proprio (N, 37), steps (N,) int32, task (N,) int32) of every 4th predicted frame of a window of
     `frames` frames (frames 1, 5, ...), the rows of the batch's windows one after another: what the
     read loss's probes are given beside each frame."""
     b = batch["proprio"].shape[0]
     step = batch["start"][:, None] + 1 + jnp.arange(frames - 1)[None, ::4]
     n = step.shape[1]
-    return (_every_fourth(batch["proprio"][:, 1:]), step.reshape(b * n).astype(jnp.int32),
+    return (every_fourth(batch["proprio"][:, 1:]), step.reshape(b * n).astype(jnp.int32),
             jnp.broadcast_to(batch["task"][:, None], (b, n)).reshape(b * n))
 
 
-def _every_fourth(x):
+def every_fourth(x):
     """Frames 0, 4, ... of x (B, T, ...) as (B * ceil(T / 4), ...)."""
     y = x[:, ::4]
     return y.reshape((-1,) + y.shape[2:])
@@ -180,9 +180,9 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_w
     pix = frames.astype(jnp.float32) / 255.0
     target = pix[:, 1:]
     if cfg.w_read > 0:  # the probes read the true frames once; each pass's predictions are read against them
-        read_proprio, read_t, read_task = _read_inputs(batch, frames.shape[1])
+        read_proprio, read_t, read_task = read_inputs(batch, frames.shape[1])
         read_rows = probe_rows(probes, read_task)
-        true_read = readings(probes, _every_fourth(target), read_proprio, read_t, read_rows)
+        true_read = readings(probes, every_fourth(target), read_proprio, read_t, read_rows)
     z = model.apply({"params": params}, frames, method=WorldModel.encode)
     # reconstruction of every 4th frame from its true latents and the true previous frame; the
     # decoder also learns from every predicted frame below
@@ -240,7 +240,7 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_w
             parts[f"lpips{tag}"] = _lpips_loss(lpips_weights, pixels[:, ::4], target[:, ::4])
             total = total + cfg.w_lpips * parts[f"lpips{tag}"]
         if cfg.w_read > 0:
-            parts[f"read{tag}"] = read_loss_from(probes, _every_fourth(pixels), true_read, read_proprio, read_t,
+            parts[f"read{tag}"] = read_loss_from(probes, every_fourth(pixels), true_read, read_proprio, read_t,
                                                  read_rows)
             total = total + cfg.w_read * parts[f"read{tag}"]
         if k == 0 and cfg.w_contrast > 0:  # the same context under another window's actions
