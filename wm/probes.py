@@ -112,8 +112,7 @@ def probe_rows(probes: Probes, task) -> tuple:
     for tasks, turns, shares in zip(probes.tasks, probes.turns, probes.shares, strict=True):
         mine = (task[None, :] == jnp.asarray(tasks)[:, None]) & (
             place[None, :] % jnp.asarray(shares)[:, None] == jnp.asarray(turns)[:, None])
-        # each of a probe's frames to the slot of its place among them, by comparison: a GPU sorts
-        # rows this short far slower
+        # each of a probe's frames to the slot of its place among them, by comparison rather than a sort
         slot = mine[:, :, None] & ((jnp.cumsum(mine, axis=1) - 1)[:, :, None] == jnp.arange(cap))  # (P_g, N, C)
         rows = jnp.sum(slot * jnp.arange(n, dtype=jnp.int32)[:, None], axis=1, dtype=jnp.int32)
         out.append((rows, jnp.any(slot, axis=1)))
