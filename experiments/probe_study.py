@@ -32,6 +32,7 @@ from wm.probes import Probes, read_loss
 from wm.train import every_fourth, jitted_validation_loss, model_batch, read_inputs, read_probes
 
 STAND_INS = ("copy_last", "first_held", "grey", "other_window")
+_read = jax.jit(read_loss)
 
 
 def stand_in_terms(probes: Probes, batch: dict) -> dict:
@@ -50,8 +51,6 @@ def stand_in_terms(probes: Probes, batch: dict) -> dict:
     }
     return {k: float(_read(probes, v, true, proprio, t, task)) for k, v in stand_in.items()}
 
-
-_read = jax.jit(read_loss)
 
 
 def study_run(run: Path, batches: int) -> dict:

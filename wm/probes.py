@@ -27,21 +27,37 @@ from sim_data.policies.bc import BCPolicy, PolicyNet, PolicyNetConfig, normalise
 class Probes:
     """Probe checkpoints grouped by network: nets[g] (a PolicyNetConfig, static), params[g] stacked
     parameter trees (every leaf with a leading P_g axis; the networks' weights in `dtype`), tasks[g]
-    (P_g,) int32 (the index of each checkpoint's task in the training cache's tasks), turns[g] (P_g,)
-    int32 (each checkpoint's place among its task's checkpoints, over every group), shares[g] (P_g,)
-    int32 (how many checkpoints its task has); dtype (static): what their convolutions compute in, the
-    world model's (ModelConfig.dtype)."""
+    (P_g,) int32 (the index of each checkpoint's task in the training cache's tasks); dtype (static):
+    what their convolutions compute in, the world model's (ModelConfig.dtype)."""
 
     params: tuple
     tasks: tuple
-    turns: tuple
-    shares: tuple
     nets: tuple = struct.field(pytree_node=False)
     dtype: str = struct.field(pytree_node=False, default="float32")
 
     @property
     def count(self) -> int:
         return sum(int(t.shape[0]) for t in self.tasks)
+
+    @property
+    def turns(self) -> tuple:
+        """Per group (P_g,) int32: each checkpoint's place among its task's checkpoints, over every group."""
+        return self._split(_place_among_equals(jnp.concatenate([jnp.asarray(k) for k in self.tasks])))
+
+    @property
+    def shares(self) -> tuple:
+        """Per group (P_g,) int32: how many checkpoints, over every group, share each one's task."""
+        every = jnp.concatenate([jnp.asarray(k) for k in self.tasks])
+        return self._split(jnp.sum(every[:, None] == every[None, :], axis=1, dtype=jnp.int32))
+
+    def _split(self, x) -> tuple:
+        """x (count,), over the groups one after another, as one array a group."""
+        return tuple(jnp.split(x, np.cumsum([int(t.shape[0]) for t in self.tasks])[:-1]))
+
+
+def _place_among_equals(x):
+    """(N,) int32: how many earlier entries of x (N,) equal each one."""
+    return jnp.sum(jnp.tril(x[:, None] == x[None, :], -1), axis=1, dtype=jnp.int32)
 
 
 def probe_sources(policies: dict, tasks: list[str], frame_size: int, n: int) -> list:
@@ -65,25 +81,20 @@ def make_probes(sources: list, tasks: list[str], dtype: str = "float32") -> Prob
     weights cast to dtype (the world model's compute dtype: in float32 a GPU runs the probes'
     convolutions several times slower than in bfloat16); None for none."""
     groups: dict = {}
-    turn, share = {}, {}
     for s in sources:
         groups.setdefault(s.policy.cfg, []).append(s)
-        turn[s.name] = share.get(s.task, 0)
-        share[s.task] = turn[s.name] + 1
     if not groups:
         return None
     nets = tuple(groups)
     return Probes(params=tuple(_weights_in(stack_params([jax.tree_util.tree_map(np.asarray, s.params)
                                                          for s in groups[c]]), dtype) for c in nets),
                   tasks=tuple(np.array([tasks.index(s.task) for s in groups[c]], np.int32) for c in nets),
-                  turns=tuple(np.array([turn[s.name] for s in groups[c]], np.int32) for c in nets),
-                  shares=tuple(np.array([share[s.task] for s in groups[c]], np.int32) for c in nets),
                   nets=nets, dtype=dtype)
 
 
 def _weights_in(params: dict, dtype: str) -> dict:
     """params with the network's weights (params["net"]) cast to dtype; the normalisation as it is."""
-    return {**params, "net": jax.tree_util.tree_map(lambda x: np.asarray(jnp.asarray(x, dtype)), params["net"])}
+    return {**params, "net": jax.tree_util.tree_map(lambda x: np.asarray(x).astype(jnp.dtype(dtype)), params["net"])}
 
 
 def _chunk(net, params, frames, proprio, t, dtype):
@@ -106,12 +117,11 @@ def probe_rows(probes: Probes, task) -> tuple:
     count), at most row_capacity of them a checkpoint, in order. Per group, (rows (P_g, C) int32
     indices into the N frames, valid (P_g, C) bool: False past a checkpoint's frames)."""
     n = task.shape[0]
-    place = jnp.sum(jnp.tril(task[:, None] == task[None, :], -1), axis=1)  # earlier frames of the same task
+    place = _place_among_equals(jnp.asarray(task))  # earlier frames of the same task
     cap = row_capacity(n, probes.count)
     out = []
     for tasks, turns, shares in zip(probes.tasks, probes.turns, probes.shares, strict=True):
-        mine = (task[None, :] == jnp.asarray(tasks)[:, None]) & (
-            place[None, :] % jnp.asarray(shares)[:, None] == jnp.asarray(turns)[:, None])
+        mine = (task[None, :] == jnp.asarray(tasks)[:, None]) & (place[None, :] % shares[:, None] == turns[:, None])
         # each of a probe's frames to the slot of its place among them, by comparison rather than a sort
         slot = mine[:, :, None] & ((jnp.cumsum(mine, axis=1) - 1)[:, :, None] == jnp.arange(cap))  # (P_g, N, C)
         rows = jnp.sum(slot * jnp.arange(n, dtype=jnp.int32)[:, None], axis=1, dtype=jnp.int32)
@@ -169,4 +179,4 @@ def stand_in_probes(n: int, size: int, dtype: str = "float32") -> Probes:
     net = PolicyNetConfig(size=size)
     one = jax.tree_util.tree_map(np.asarray, stand_in_params(net, False))
     return Probes(params=(_weights_in(stack_params([one] * n), dtype),), tasks=(np.zeros(n, np.int32),),
-                  turns=(np.arange(n, dtype=np.int32),), shares=(np.full(n, n, np.int32),), nets=(net,), dtype=dtype)
+                  nets=(net,), dtype=dtype)
