@@ -159,6 +159,69 @@ def test_a_plugin_is_checked_against_the_protocol_before_it_runs(user_module):
     assert len(source.code) == 16  # its code's digest, kept out of the record that datasets write
 
 
+ODD_MODULE = '''
+import collections
+import jax.numpy as jnp
+
+class Back(collections.namedtuple("Back", ["speed"])):
+    def init_carry(self, params, obs, task_state, rng):
+        return None
+    def act(self, params, obs, carry, rng):
+        return jnp.zeros((obs["proprio"].shape[0], 20)).at[:, 18].set(self.speed), None
+
+class Forward(collections.namedtuple("Forward", ["speed"])):
+    def init_carry(self, params, obs, task_state, rng):
+        return None
+    def act(self, params, obs, carry, rng):
+        return jnp.zeros((obs["proprio"].shape[0], 20)).at[:, 18].set(-self.speed), None
+
+class FixedBatch(Back):
+    def act(self, params, obs, carry, rng):
+        return jnp.zeros((2, 20)), None
+
+class Single(Back):
+    def act(self, params, obs, carry, rng):
+        return jnp.zeros((obs["proprio"].shape[0], 20))
+
+def back():
+    return Back(-0.3), None
+
+def forward():
+    return Forward(-0.3), None
+
+def fixed_batch():
+    return FixedBatch(-0.3), None
+
+def single():
+    return Single(-0.3), None
+'''
+
+
+def test_unusual_plugins_are_kept_apart_and_checked(tmp_path, monkeypatch):
+    (tmp_path / "odd_pols.py").write_text(textwrap.dedent(ODD_MODULE))
+    (tmp_path / "odd_broken.py").write_text("raise KeyError('MODEL_DIR is not set')\n")
+    (tmp_path / "odd_dep.py").write_text("import not_installed_anywhere\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    for name in ("odd_pols", "odd_broken", "odd_dep"):
+        sys.modules.pop(name, None)
+    importlib.invalidate_caches()
+    back, forward = resolve(["odd_pols:back", "odd_pols:forward"])
+    assert back.policy.policy == forward.policy.policy  # namedtuples of equal fields compare equal, as tuples
+    assert back.policy != forward.policy and len(group_by_policy([back, forward])) == 2  # but never run as one
+    with pytest.raises(ValueError, match=r"'odd_pols:fixed_batch'.*shape \(3, 20\).*got \(2, 20\)"):
+        load_plugin("odd_pols:fixed_batch")
+    with pytest.raises(ValueError, match=r"'odd_pols:single'.*a pair \(action, carry\)"):
+        load_plugin("odd_pols:single")
+    with pytest.raises(ValueError, match=r"no attribute 'bak'; did you mean back"):
+        load_plugin("odd_pols:bak")
+    with pytest.raises(RuntimeError, match=r"'odd_broken:make'.*importing 'odd_broken' raised KeyError"):
+        load_plugin("odd_broken:make")
+    with pytest.raises(RuntimeError, match=r"'odd_dep:make'.*not_installed_anywhere.*not installed"):
+        load_plugin("odd_dep:make")
+    with pytest.raises(ValueError, match=r"cannot import 'odd_missing'.*PYTHONPATH"):
+        load_plugin("odd_missing:make")
+
+
 def test_specs_that_are_not_plugins_say_what_a_plugin_is(user_module):
     with pytest.raises(ValueError, match="a plug-in is package.module:attribute"):
         resolve([":make"])

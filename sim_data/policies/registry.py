@@ -25,6 +25,7 @@ A policy spec is one of
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import hashlib
 import importlib
 import importlib.util
@@ -129,10 +130,19 @@ def load_plugin(spec: str, world_model: bool = True) -> PolicySource:
                          "returning (policy, params)")
     try:
         module = importlib.import_module(module_name)
-    except (ImportError, ValueError) as e:  # importlib raises ValueError for an empty name
+    except ModuleNotFoundError as e:
+        if e.name and (module_name == e.name or module_name.startswith(e.name + ".")):  # the module itself
+            raise ValueError(f"plug-in {spec!r}: cannot import {module_name!r} ({e}); is it on PYTHONPATH?") from e
+        raise RuntimeError(f"plug-in {spec!r}: importing {module_name!r} failed: {e} (a module it imports is "
+                           "not installed or not on PYTHONPATH)") from e
+    except ValueError as e:  # importlib raises ValueError for an empty name
         raise ValueError(f"plug-in {spec!r}: cannot import {module_name!r} ({e}); is it on PYTHONPATH?") from e
+    except Exception as e:  # the user's module fails as it imports (a SyntaxError, its own code): keep its traceback
+        raise RuntimeError(f"plug-in {spec!r}: importing {module_name!r} raised {type(e).__name__}: {e}") from e
     if not hasattr(module, attr):
-        raise ValueError(f"plug-in {spec!r}: module {module_name!r} has no attribute {attr!r}")
+        close = difflib.get_close_matches(attr, [n for n in dir(module) if not n.startswith("_")], n=3)
+        raise ValueError(f"plug-in {spec!r}: module {module_name!r} has no attribute {attr!r}"
+                         + (f"; did you mean {' or '.join(close)}?" if close else ""))
     obj = getattr(module, attr)
     if callable(obj) and not isinstance(obj, tuple):
         try:
@@ -160,11 +170,13 @@ def load_plugin(spec: str, world_model: bool = True) -> PolicySource:
                         params=params, record={"plugin": target}, code=code_digest(files, traced))
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, eq=False)
 class ClippedPolicy:
     """A plug-in whose actions are clipped to their ranges (the actuators' control ranges; speeds
     +-0.5 m/s and +-1 rad/s): the simulator applies them so, and the world model and the dataset see
-    the actions as applied, not as asked for."""
+    the actions as applied, not as asked for. Equal (and so stacked, and sharing compiled rollouts)
+    only where the wrapped policies are equal and of one type: policies of different classes may
+    compare equal (namedtuples of equal fields do, as tuples)."""
 
     policy: object
     low: tuple  # (20,)
@@ -174,6 +186,15 @@ class ClippedPolicy:
     def stacks_in_turn(self) -> bool:
         """The wrapped policy's (sim_data.policies.bc.stacked): a convolutional network stays in turn."""
         return bool(getattr(self.policy, "stacks_in_turn", False))
+
+    def _key(self) -> tuple:
+        return type(self.policy), self.policy, self.low, self.high
+
+    def __eq__(self, other):
+        return type(other) is ClippedPolicy and self._key() == other._key()
+
+    def __hash__(self):
+        return hash(self._key())
 
     def init_carry(self, params, obs, task_state, rng):
         """The wrapped policy's carry."""
@@ -203,32 +224,51 @@ def check_protocol(spec: str, policy, params, batch: int = 2, size: int = 64,
     constants, which follow the functions and arrays the policy calls wherever they live (code_digest);
     where task_state_optional (the simulator alone, which gives the policy its task state, will run
     it), a policy that fails here is not checked: a warning says so and the digest is "".
-    size: the frames' side, 64 as in every preset."""
+    size: the frames' side, 64 as in every preset. The policy is traced at a second batch, batch + 1,
+    too: the rollouts run it on batches of every size, so a batch fixed in its code fails here."""
+    traced = [_check_batch(spec, policy, params, b, size, task_state_optional, again=b != batch)
+              for b in (batch, batch + 1)]
+    if None in traced:
+        return ""
+    init_jaxpr, act_jaxpr = traced[0]
+    h = hashlib.sha256(f"{init_jaxpr}\n{act_jaxpr}".encode())
+    hash_arrays(h, [*init_jaxpr.consts, *act_jaxpr.consts])  # the printed program names them, not their values
+    return h.hexdigest()
+
+
+def _check_batch(spec: str, policy, params, batch: int, size: int, task_state_optional: bool, again: bool = False):
+    """check_protocol at one batch size: (init_carry's and act's traced programs), or None where the
+    policy fails without a task state and task_state_optional (a warning says so). again: the second
+    batch size traced, where a wrong shape most likely means a batch fixed in the policy's code."""
     obs = {"image": jax.ShapeDtypeStruct((batch, size, size, 3), jnp.uint8),
            "proprio": jax.ShapeDtypeStruct((batch, PROPRIO_DIM), jnp.float32)}
     rng = jax.random.PRNGKey(0)
     init = lambda p, o, k: policy.init_carry(p, o, None, k)  # noqa: E731
     try:
         init_jaxpr, carry = jax.make_jaxpr(init, return_shape=True)(params, obs, rng)
-        act_jaxpr, (action, after) = jax.make_jaxpr(policy.act, return_shape=True)(params, obs, carry, rng)
+        act_jaxpr, out = jax.make_jaxpr(policy.act, return_shape=True)(params, obs, carry, rng)
     except Exception as e:
         if task_state_optional:
             print(f"warning: plug-in {spec!r} is not checked: it fails without the simulator's task state "
                   f"({type(e).__name__}: {e}); the simulator runs it with one", file=sys.stderr)
-            return ""
+            return None
         raise RuntimeError(f"plug-in {spec!r}: the policy fails on a batch of {batch} observations "
                            f"(image ({batch}, {size}, {size}, 3) uint8, proprio ({batch}, {PROPRIO_DIM}) float32, "
                            f"task_state None, as in the world model): {type(e).__name__}: {e}") from e
+    if not (isinstance(out, (tuple, list)) and len(out) == 2):
+        got = jax.tree.map(lambda x: getattr(x, "shape", x), out)
+        raise ValueError(f"plug-in {spec!r}: act must return a pair (action, carry), got {got}")
+    action, after = out
     if getattr(action, "shape", None) != (batch, ACTION_DIM):
         raise ValueError(f"plug-in {spec!r}: act must return actions of shape ({batch}, {ACTION_DIM}) for a "
-                         f"batch of {batch}, got {getattr(action, 'shape', type(action).__name__)}")
+                         f"batch of {batch}, got {getattr(action, 'shape', type(action).__name__)}"
+                         + (" (is the batch size fixed in its code? the rollouts run batches of every size)"
+                            if again else ""))
     before_s, after_s = (jax.tree.map(lambda x: (x.shape, str(x.dtype)), c) for c in (carry, after))
     if jax.tree.structure(carry) != jax.tree.structure(after) or before_s != after_s:
         raise ValueError(f"plug-in {spec!r}: act must return its carry with the structure, shapes and dtypes it "
                          f"was given (the rollouts run it inside lax.scan): given {before_s}, returned {after_s}")
-    h = hashlib.sha256(f"{init_jaxpr}\n{act_jaxpr}".encode())
-    hash_arrays(h, [*init_jaxpr.consts, *act_jaxpr.consts])  # the printed program names them, not their values
-    return h.hexdigest()
+    return init_jaxpr, act_jaxpr
 
 
 def code_digest(files, traced: str) -> str:
