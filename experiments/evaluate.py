@@ -810,6 +810,10 @@ def ranking_block(rows: list[dict], true_eps, prob_eps, threshold: float, member
     for name in READOUTS:
         m = S.ranking_metrics([r["pred_rate_readouts"][name] for r in rows], true)
         out["readouts"][name] = {k: m[k] for k in ("pearson", "spearman", "mmrv", "pairwise_acc_gap10")}
+    if left_out and len(read) < 2:  # fewer than two predictions read: nothing is ranked (the above compared NaN)
+        undefined = ("pearson", "spearman", "kendall", "mmrv", "pairwise_acc", "pairwise_acc_gap10", "alignment")
+        out |= {k: math.nan for k in undefined} | {"pearson_ci": [math.nan] * 2, "pearson_ci_bootstrap": [math.nan] * 2}
+        out["thresholded"] = dict.fromkeys(out["thresholded"], math.nan)
     if member_eps is not None and len(member_eps) > 1:
         out |= member_metrics(np.array([r["pred_rates"] for r in rows]).T, true, member_eps, true_eps, threshold)
     with_loss = [r for r in rows if r["val_loss"] is not None]
@@ -1130,7 +1134,9 @@ def all_metrics(cfg: EvalConfig, results: dict, tasks, rows: list[dict], seen: s
     if seen and len(unseen) >= 3:
         true_eps, prob_eps, member_eps = _episodes_of(results, tasks, lambda name: name not in seen)
         metrics["unseen"] = ranking_block(unseen, true_eps, prob_eps, cfg.threshold, member_eps)
-        metrics["unseen_within_task"] = within_task_block(results, tasks, rows, cfg,
+        # over the tasks that hold an unseen policy (a task with none has nothing to resample)
+        some = [t for t in tasks if any(r["task"] == t and r["name"] not in seen for r in rows)]
+        metrics["unseen_within_task"] = within_task_block(results, some, rows, cfg,
                                                           lambda name: name not in seen)
         networks = S.unseen_networks(rows, seen)
         held = [t for t in tasks if sum(r["task"] == t and r["name"] in networks for r in rows) >= 3]

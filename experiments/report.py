@@ -29,6 +29,7 @@ from sim_data.util import run_cli
 TARGETS = {"demo": {"pearson": (">=", 0.7)},
            "full": {"pearson": (">=", 0.9), "mmrv": ("<=", 0.05), "pairwise_acc_gap10": (">=", 0.9)}}
 TAB10 = colormaps["tab10"]
+MAX_LEGEND = 12  # lineages named in a figure's legend
 HEADLINE = ("pearson", "spearman", "kendall", "mmrv", "pairwise_acc", "pairwise_acc_gap10", "alignment")
 VIDEOS = "videos.npz"  # in the run: the kept episodes (experiments.evaluate)
 LABELS = {"pearson": "Pearson r", "spearman": "Spearman rho", "mmrv": "MMRV (lower is better)",
@@ -51,6 +52,11 @@ def _missing(x) -> bool:
     return x is None or (isinstance(x, float) and math.isnan(x))
 
 
+def _tx(s) -> str:
+    """A name as matplotlib text: its "$" literal (a pair would be read as TeX, and bad TeX fails the figure)."""
+    return str(s).replace("$", r"\$")
+
+
 def _fmt(x, digits=3) -> str:
     if _missing(x):
         return "n/a"
@@ -67,7 +73,7 @@ def scatter_figure(policies: list[dict], metrics: dict, tasks: list[str]) -> str
     fig, axes = _subplots(1, len(panels), figsize=(4.2 * len(panels), 4.2), squeeze=False)
     lineages = sorted({p["lineage"] for p in policies})
     colors = {lin: TAB10(i % 10) for i, lin in enumerate(lineages)}
-    markers = dict(zip(tasks, "osD^vP*X", strict=False))
+    markers = {t: "osD^vP*X"[i % 8] for i, t in enumerate(tasks)}
     for ax, (title, rows, m) in zip(axes[0], panels, strict=True):
         rows = [p for p in rows if p["pred_rate"] is not None]
         for p in rows:
@@ -85,9 +91,11 @@ def scatter_figure(policies: list[dict], metrics: dict, tasks: list[str]) -> str
         ax.set_ylim(-0.03, 1.03)
         ax.set_xlabel("true success (simulator)")
         ax.set_ylabel("predicted success (world model)")
-        ax.set_title(f"{title}: r={_fmt(m.get('pearson'), 2)}, MMRV={_fmt(m.get('mmrv'), 3)}", fontsize=10)
-    handles = [Line2D([], [], color=colors[lin], marker="o", ls="", label=lin) for lin in lineages]
-    handles += [Line2D([], [], color="grey", marker=markers[t], ls="", label=t) for t in tasks if t in markers]
+        ax.set_title(f"{_tx(title)}: r={_fmt(m.get('pearson'), 2)}, MMRV={_fmt(m.get('mmrv'), 3)}", fontsize=10)
+    handles = [Line2D([], [], color=colors[lin], marker="o", ls="", label=_tx(lin)) for lin in lineages][:MAX_LEGEND]
+    if len(lineages) > MAX_LEGEND:  # colours repeat past ten: a longer list would cover the panels and mislead
+        handles.append(Line2D([], [], ls="", label=f"... {len(lineages) - MAX_LEGEND} more lineages"))
+    handles += [Line2D([], [], color="grey", marker=markers[t], ls="", label=_tx(t)) for t in tasks][:MAX_LEGEND]
     axes[0][-1].legend(handles=handles, fontsize=7, loc="lower right")
     return _png(fig)
 
@@ -104,7 +112,7 @@ def baseline_figure(policies: list[dict], tasks: list[str]) -> str | None:
         ax.set_xscale("log")
         ax.set_xlabel("validation imitation loss")
         ax.set_ylabel("true success")
-        ax.set_title(f"{t}: the imitation-loss baseline", fontsize=10)
+        ax.set_title(f"{_tx(t)}: the imitation-loss baseline", fontsize=10)
     return _png(fig)
 
 
@@ -124,9 +132,9 @@ def progress_figure(policies: list[dict], tasks: list[str], per_task: int = 4) -
     for ax, (t, rows) in zip(axes[0], panels, strict=True):
         for k, p in enumerate(rows):
             c = f"C{k}"
-            ax.plot(np.array(p["progress_true"], float), color=c, label=f"{p['name'].removeprefix(t + '/')} (true {p['true_rate']:.2f})")
+            ax.plot(np.array(p["progress_true"], float), color=c, label=_tx(f"{p['name'].removeprefix(t + '/')} (true {p['true_rate']:.2f})"))
             ax.plot(np.array(p["progress_imagined"], float), color=c, linestyle="--")  # None (no episode) -> NaN
-        ax.set(title=f"{t}: true (solid), imagined (dashed)", xlabel="step", ylabel="mean progress", ylim=(-0.05, 1.05))
+        ax.set(title=f"{_tx(t)}: true (solid), imagined (dashed)", xlabel="step", ylabel="mean progress", ylim=(-0.05, 1.05))
         ax.legend(fontsize=6, loc="upper left")
     return _png(fig)
 
@@ -137,12 +145,15 @@ def rank_figure(policies: list[dict], tasks: list[str]) -> str:
     for ax, t in zip(axes[0], tasks, strict=True):
         rs = [p for p in policies if p["task"] == t]
         rs = [p for p in rs if p["pred_rate"] is not None]
+        if not rs:
+            ax.set_title(f"{_tx(t)}: no finite predicted rate", fontsize=10)
+            continue
         tr, pr = rank([p["true_rate"] for p in rs]), rank([p["pred_rate"] for p in rs])
         ax.scatter(tr, pr, s=14)
         ax.plot([1, len(rs)], [1, len(rs)], ls="--", color="grey", lw=0.8)
         ax.set_xlabel("true rank (1 = worst)")
         ax.set_ylabel("world model's rank")
-        ax.set_title(f"{t}: ranks", fontsize=10)
+        ax.set_title(f"{_tx(t)}: ranks", fontsize=10)
     return _png(fig)
 
 
@@ -227,8 +238,14 @@ def verdicts(policies: list[dict], tasks: list[str]) -> list[dict]:
             overlap = pa["true_ci"][0] <= pb["true_ci"][1] and pb["true_ci"][0] <= pa["true_ci"][1]
             out.append({"task": t, "comparison": what, "a": pa["name"], "b": pb["name"], "true": [pa["true_rate"],
                         pb["true_rate"]], "pred": [pa["pred_rate"], pb["pred_rate"]], "world_model_prefers": pred,
-                        "truly_better": true, "agree": pred == true, "true_intervals_overlap": overlap})
+                        "truly_better": true,
+                        # None: nothing to agree on (a prediction undefined, or the two truly tie)
+                        "agree": None if pred.startswith("n/a") or true == "tie" else pred == true,
+                        "true_intervals_overlap": overlap})
     return out
+
+
+AGREE = {True: ("yes", "agree"), False: ("no", "disagree"), None: ("n/a", "n/a")}
 
 
 # ---- the documents ------------------------------------------------------------------------------------
@@ -330,7 +347,7 @@ def unlearned_warning(res: dict) -> str:
 
 def md_table(rows) -> str:
     """A Markdown table of rows of strings, the first row the header; "|" in a cell is escaped."""
-    cell = lambda c: c.replace("|", "\\|")  # a policy's name may hold one
+    cell = lambda c: c.replace("|", "\\|").replace("<", "&lt;").replace("\n", " ")  # a policy's name may hold them
     lines = ["| " + " | ".join(map(cell, rows[0])) + " |", "|" + "---|" * len(rows[0])]
     lines += ["| " + " | ".join(map(cell, r)) + " |" for r in rows[1:]]
     return "\n".join(lines)
@@ -338,6 +355,26 @@ def md_table(rows) -> str:
 
 def _ci(x, ci, digits=2) -> str:
     return f"{_fmt(x, digits)} [{_fmt(ci[0], digits)}, {_fmt(ci[1], digits)}]"
+
+
+def _defined_tasks(block: dict, tasks) -> list[str]:
+    """The tasks where a within-task block's (a predictor's or a difference's) Pearson r is defined (every
+    task where the block gives no per-task figures)."""
+    per = block.get("per_task")
+    return list(tasks) if per is None else [t for t in tasks if not _missing(per.get(t, {}).get("pearson"))]
+
+
+def _coverage(w: dict, tasks, who=("world_model", "proxy")) -> str:
+    """"" where every predictor's mean covers every task, else which tasks each mean is over: a mean
+    over tasks skips those where the statistic is undefined, so two means may cover different tasks."""
+    cover = {k: _defined_tasks(w[k], tasks) for k in who}
+    if all(len(c) == len(tasks) for c in cover.values()):
+        return ""
+    label = {"world_model": "the world model's", "proxy": "the proxy's"}
+    parts = [f"{label[k]} over {', '.join(c) or 'no task'}" for k, c in cover.items()]
+    if len(who) > 1:
+        parts.append(f"the difference over {', '.join(_defined_tasks(w['difference']['proxy'], tasks)) or 'no task'}")
+    return "; means over the tasks where Pearson r is defined: " + ", ".join(parts)
 
 
 def verdict(res: dict) -> str:
@@ -352,9 +389,16 @@ def verdict(res: dict) -> str:
                 f"policies, whose true and predicted rates both vary (policies per task: {counts}).")
     if _missing(px["mean"]["pearson"]):
         return (f"The imitation-loss proxy has no within-task figure here (it needs at least {MIN_CORRELATED} "
-                "policies of a task with a validation loss; plug-ins have none): the world model alone ranks at a "
+                "policies of a task with a validation loss, plug-ins have none, whose true rates differ): the world "
+                "model alone ranks at a "
                 f"mean within-task Pearson r {_ci(wm['mean']['pearson'], wm['mean_ci']['pearson'])} (95% interval "
-                f"resampling {w['resamples']}).")
+                f"resampling {w['resamples']}){_coverage(w, tasks, ('world_model',))}.")
+    both = _defined_tasks(diff, tasks)
+    if not both:
+        return (f"The world model and the imitation-loss proxy have no task where both rank (world model: "
+                f"{', '.join(_defined_tasks(wm, tasks))}; proxy: {', '.join(_defined_tasks(px, tasks))}): their "
+                f"difference is undefined. Mean within-task Pearson r {_ci(wm['mean']['pearson'], wm['mean_ci']['pearson'])}"
+                f" against {_ci(px['mean']['pearson'], px['mean_ci']['pearson'])}, over different tasks.")
     ahead = [t for t in tasks if (diff["per_task_ci"][t]["pearson"][0] or -1) > 0]
     behind = [t for t in tasks if (diff["per_task_ci"][t]["pearson"][1] or 1) < 0]
     lo = diff["mean_ci"]["pearson"][0]
@@ -368,7 +412,8 @@ def verdict(res: dict) -> str:
     return (f"{head}: mean within-task Pearson r {_ci(wm['mean']['pearson'], wm['mean_ci']['pearson'])} against "
             f"{_ci(px['mean']['pearson'], px['mean_ci']['pearson'])} (difference "
             f"{_ci(diff['mean']['pearson'], diff['mean_ci']['pearson'])}; 95% intervals resampling "
-            f"{w['resamples']}). Per task, the difference's interval lies above 0 in {len(ahead)} of {len(tasks)}"
+            f"{w['resamples']}){_coverage(w, tasks)}. Per task, the difference's interval lies above 0 in {len(ahead)} of "
+            f"{len(both)}"
             f"{' (' + ', '.join(ahead) + ')' if ahead else ''} and below 0 in {len(behind)}"
             f"{' (' + ', '.join(behind) + ')' if behind else ''}.")
 
@@ -460,8 +505,13 @@ def selection_figure(policies: list[dict], tasks: list[str]) -> str | None:
         ax.set_ylim(-0.03, 1.03)
         ax.set_xlabel("training step of the checkpoint")
         ax.set_ylabel("success")
-        ax.set_title(f"{t}: true (solid) and predicted (dashed)", fontsize=10)
-    axes[0][-1].legend(fontsize=6, loc="lower right")
+        ax.set_title(f"{_tx(t)}: true (solid) and predicted (dashed)", fontsize=10)
+    handles = [Line2D([], [], color=colors[lin], label=_tx(lin)) for lin in lineages][:MAX_LEGEND]  # every panel's
+    if len(lineages) > MAX_LEGEND:
+        handles.append(Line2D([], [], ls="", label=f"... {len(lineages) - MAX_LEGEND} more lineages"))
+    handles += [Line2D([], [], color="grey", marker="o", ms=3, label="true"),
+                Line2D([], [], color="grey", ls="--", marker="x", ms=4, label="predicted")]
+    axes[0][-1].legend(handles=handles, fontsize=6, loc="lower right")
     return _png(fig)
 
 
@@ -475,12 +525,32 @@ CUT_SHORT = ("Cut short: a world model stopped at its safety time limit before i
              "figures are not those of the preset (rerun its training to finish it).")
 
 
-def _selection_summary(sel: dict) -> str:
+def _tied_picks(sel: dict, policies: list[dict]) -> int:
+    """How many of the selection's lineages the world model rated two or more checkpoints highest (the
+    later step is then taken: a constant predictor picks the last checkpoint everywhere)."""
+    tied = 0
+    for x in sel["lineages"]:
+        rates = [p["pred_rate"] for p in policies if p["task"] == x["task"] and p["lineage"] == x["lineage"]
+                 and p["step"] is not None and not _missing(p["pred_rate"])]
+        tied += bool(rates) and sum(abs(r - max(rates)) <= 1e-9 for r in rates) > 1
+    return tied
+
+
+def selection_summary(sel: dict, policies: list[dict]) -> str:
+    """One paragraph on checkpoint selection (results.json's checkpoint_selection), flagging the picks
+    made among checkpoints the world model rated equally (policies: results.json's rows)."""
     if not sel["n"]:
         return "No training run has two or more checkpoints here."
+    tied = _tied_picks(sel, policies)
     return (f"Over {sel['n']} training runs (task x lineage), the world model's highest-rated checkpoint is the "
-            f"truly best in {sel['exact_share']:.0%}, within the best one's 95% interval in "
-            f"{sel['within_ci_share']:.0%}; mean regret {sel['mean_regret']:.2f} of true success.")
+            f"truly best in {_fmt_share(sel['exact_share'])}, within the best one's 95% interval in "
+            f"{_fmt_share(sel['within_ci_share'])}; mean regret {_fmt(sel['mean_regret'], 2)} of true success."
+            + (f" In {tied} of them the world model rated several checkpoints equally highest and the later step "
+               "was taken: those picks say nothing of the world model." if tied else ""))
+
+
+def _fmt_share(x) -> str:
+    return "n/a" if _missing(x) else f"{x:.0%}"
 
 
 def _selection_html(res: dict, policies: list[dict], tasks: list[str]) -> list[str]:
@@ -488,7 +558,7 @@ def _selection_html(res: dict, policies: list[dict], tasks: list[str]) -> list[s
     if sel is None:
         return []
     fig = selection_figure(policies, tasks)
-    return ([f"<p>{html.escape(_selection_summary(sel))}</p>"] + ([f"<img src='{fig}'>"] if fig else [])
+    return ([f"<p>{html.escape(selection_summary(sel, policies))}</p>"] + ([f"<img src='{fig}'>"] if fig else [])
             + ([_html_table(selection_table(sel))] if sel["n"] else []))
 
 
@@ -496,7 +566,7 @@ def _selection_md(res: dict) -> str:
     sel = res.get("checkpoint_selection")
     if sel is None:
         return "n/a"
-    return _selection_summary(sel) + ("\n\n" + md_table(selection_table(sel)) if sel["n"] else "")
+    return selection_summary(sel, res["policies"]) + ("\n\n" + md_table(selection_table(sel)) if sel["n"] else "")
 
 
 TIMING_COLUMNS = (("stage", "stage"), ("wall_s", "wall s"), ("compile_s", "compiling s"),
@@ -622,7 +692,7 @@ def timing_table(rows: list[dict]) -> list[list[str]]:
 
     out = [[label for _, label in TIMING_COLUMNS]]
     out += [[cell(r.get(k)) for k, _ in TIMING_COLUMNS] for r in rows]
-    out.append(["total", cell(sum(r["wall_s"] for r in rows)), cell(sum(r["compile_s"] for r in rows)),
+    out.append(["total", cell(sum(r.get("wall_s") or 0.0 for r in rows)), cell(sum(r.get("compile_s") or 0.0 for r in rows)),
                 *["" for _ in TIMING_COLUMNS[3:]]])
     return out
 
@@ -673,7 +743,7 @@ def _ab_verdicts_html(verd: list[dict]) -> list[str]:
               "agree"]]
     vrows += [[v["task"], v["comparison"], v["a"], v["b"], f"{v['true'][0]:.2f} / {v['true'][1]:.2f}",
                f"{_fmt(v['pred'][0], 2)} / {_fmt(v['pred'][1], 2)}", v["world_model_prefers"], v["truly_better"],
-               ("yes" if v["agree"] else "no") + (" (true intervals overlap)" if v["true_intervals_overlap"] else "")]
+               AGREE[v["agree"]][0] + (" (true intervals overlap)" if v["true_intervals_overlap"] else "")]
               for v in verd]
     return h + [_html_table(vrows)]
 
@@ -722,22 +792,67 @@ def _timing_html(timing: list[dict], compiles: list[list[str]] | None) -> list[s
     return h
 
 
+RESULTS_KEYS = ("config", "engine", "device", "versions", "world_model", "tasks", "policies", "metrics", "decision",
+                "videos", "timing")
+ROW_KEYS = ("name", "task", "lineage", "step", "n", "true_rate", "true_ci", "pred_rate", "pred_ci",
+            "pred_rate_thresholded", "alignment", "val_loss")
+
+
+def read_results(run: Path) -> dict:
+    """RUN/results.json, checked for what the report reads; NaN or Infinity tokens (json.dump's default)
+    read as null, as experiments.evaluate writes an undefined figure. Raises ValueError naming the file
+    and the field where it is not an evaluation's results."""
+    path = Path(run) / "results.json"
+    try:
+        res = json.loads(path.read_text(), parse_constant=lambda token: None)
+    except ValueError as e:
+        raise ValueError(f"{path} is not valid JSON ({e}): a file cut short? copy it again or rerun make eval") from e
+    what = f"{path} is not an experiments.evaluate results.json"
+    if not isinstance(res, dict):
+        raise ValueError(f"{what} (a JSON object expected, got {type(res).__name__})")
+    if missing := [k for k in RESULTS_KEYS if k not in res]:
+        raise ValueError(f"{what}: it lacks {', '.join(missing)} (written by an older version? rerun make eval)")
+    if not res["tasks"]:
+        raise ValueError(f"{path} holds no evaluated task (missing: {', '.join(res.get('missing_tasks') or []) or 'none'}):"
+                         " let make eval finish a task first")
+    metrics = res["metrics"]
+    for k in ("within_task", "pooled", "per_task"):
+        if k not in metrics:
+            raise ValueError(f"{what}: metrics lacks {k}")
+    if lack := [t for t in res["tasks"] if t not in metrics["per_task"] or t not in metrics["within_task"]["tasks"]]:
+        raise ValueError(f"{path}: tasks {', '.join(lack)} have no statistics in metrics (edited by hand?)")
+    for p in res["policies"]:
+        if lack := [k for k in ROW_KEYS if k not in p]:
+            raise ValueError(f"{path}: policy {p.get('name')!r} ({p.get('task')}) lacks {', '.join(lack)}")
+        if p["task"] not in res["tasks"]:
+            raise ValueError(f"{path}: policy {p['name']!r} is on task {p['task']!r}, not among tasks {res['tasks']}")
+        if not p["n"] or p["true_rate"] is None or None in p["true_ci"]:
+            raise ValueError(f"{path}: policy {p['name']!r} ({p['task']}) has no simulated episode (n={p['n']}, "
+                             f"true_rate {p['true_rate']}): leave it out or evaluate it")
+    return res
+
+
+def _sentence(s: str) -> str:
+    """s with its first letter a capital (str.capitalize would lower the rest: policy names, NaN)."""
+    return s[:1].upper() + s[1:]
+
+
 def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
     """(HTML, Markdown) of the evaluation in run, with a section per sweep under `sweeps` if given."""
-    res = json.loads((run / "results.json").read_text())
+    res = read_results(run)
     tasks, policies, metrics = res["tasks"], res["policies"], res["metrics"]
     videos = read_videos(run)
     verd = verdicts(policies, tasks)
     unlearned, unread, plug = unlearned_warning(res), nonfinite_policies(policies), plugin_table(policies)
     h = [f"<html><head><meta charset='utf-8'><title>World-model policy evaluation</title><style>{CSS}</style>"
          "</head><body>", "<h1>Policy evaluation in the world model against the simulator</h1>",
-         f"<p>{policy_count(policies)} on {', '.join(tasks)}; {res['config']['episodes']} held-out initial states "
+         f"<p>{policy_count(policies)} on {html.escape(', '.join(tasks))}; {res['config']['episodes']} held-out initial states "
          f"per task; {_models_phrase(res, lambda r: f'<code>{html.escape(r)}</code>')}; engine {res['engine']}; "
          f"device {html.escape(str(res['device']))}.</p>",
          *([f"<p class='warn'>Partial: tasks {html.escape(', '.join(res['missing_tasks']))} were not evaluated; "
             "every statistic below leaves them out.</p>"] if res.get("missing_tasks") else []),
          *([f"<p class='warn'>{html.escape(unlearned)}</p>"] if unlearned else []),
-         *([f"<p class='warn'>{html.escape(unread.capitalize())}.</p>"] if unread else []),
+         *([f"<p class='warn'>{html.escape(_sentence(unread))}.</p>"] if unread else []),
          *([f"<p class='warn'>{html.escape(CUT_SHORT)}</p>"] if res["world_model"].get("cut_short") else []),
          f"<p><b>{html.escape(verdict(res))}</b></p>",
          "<h2>Predicted against true success, per task</h2>", f"<img src='{scatter_figure(policies, metrics, tasks)}'>",
@@ -791,7 +906,7 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
           *([f"**Partial**: tasks {', '.join(res['missing_tasks'])} were not evaluated; every statistic below "
              "leaves them out.", ""] if res.get("missing_tasks") else []),
           *([f"**{unlearned}**", ""] if unlearned else []),
-          *([f"**{unread.capitalize()}.**", ""] if unread else []),
+          *([f"**{_sentence(unread)}.**", ""] if unread else []),
           *([f"**{CUT_SHORT}**", ""] if res["world_model"].get("cut_short") else []),
           f"**{verdict(res)}**", "", "## Within-task ranking (the headline)", "", md_table(within_task_table(res)), "",
           md_table(per_task_table(res)), "",
@@ -820,7 +935,8 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
     if verd:
         md += ["## Verdicts", ""] + [
             f"- {v['task']}, {v['comparison']}: the world model prefers {v['world_model_prefers']}, truly better is "
-            f"{v['truly_better']} ({'agree' if v['agree'] else 'disagree'})" for v in verd] + [""]
+            f"{v['truly_better']} ({AGREE[v['agree']][1]}"
+            f"{'; true intervals overlap' if v['true_intervals_overlap'] else ''})" for v in verd] + [""]
     if mp4:
         md += ["## Videos", "", "Real (left) and imagined (right), MP4:", ""]
         md += [f"- [{label}]({href})" for label, href in mp4] + [""]

@@ -460,7 +460,7 @@ def checkpoint_selection(rows: list[dict]) -> dict:
     """
     groups: dict = {}
     for r in rows:
-        if r.get("step") is not None and r.get("pred_rate") is not None:
+        if r.get("step") is not None and r.get("pred_rate") is not None and not math.isnan(r["pred_rate"]):
             groups.setdefault((r["task"], r["lineage"]), []).append(r)
     out = []
     for (task, lineage), rs in sorted(groups.items()):

@@ -15,7 +15,15 @@ from conftest import SMOKE_EVAL, build_once
 
 from experiments import evaluate as E
 from experiments import stats as S
-from experiments.report import UNSEEN_NETWORKS_TITLE, family_table, verdict, violation_table, write_report
+from experiments.report import (
+    UNSEEN_NETWORKS_TITLE,
+    family_table,
+    read_results,
+    selection_summary,
+    verdict,
+    violation_table,
+    write_report,
+)
 from experiments.timing import compile_snapshot
 from sim_data.parts import exclusive
 from sim_data.policies.bc import MixedPolicy, StackedPolicy, stacked
@@ -624,6 +632,59 @@ def test_the_verdict_says_when_there_is_no_ranking_or_no_proxy_to_compare():
     plugins = {"policies": [{"task": "mug"}] * 3, "metrics": {"within_task": _within(0.5, float("nan"))}}
     assert verdict(plugins).startswith("The imitation-loss proxy has no within-task figure")
     assert "0.50 [0.40, 0.60]" in verdict(plugins)
+
+
+def test_the_verdict_says_which_tasks_each_mean_is_over():
+    within = _within(0.8, -0.2)
+    within["tasks"] = ["mug", "step_back"]
+    within["world_model"]["per_task"] = {"mug": {"pearson": 0.7}, "step_back": {"pearson": 0.9}}
+    within["proxy"]["per_task"] = {"mug": {"pearson": -0.2}, "step_back": {"pearson": None}}  # its true rates tie
+    within["difference"]["proxy"] |= {"mean": {"pearson": 0.9}, "mean_ci": {"pearson": [0.1, 1.5]},
+                                      "per_task": {"mug": {"pearson": 0.9}, "step_back": {"pearson": None}},
+                                      "per_task_ci": {"mug": {"pearson": [0.1, 1.5]}, "step_back": {"pearson": [None, None]}}}
+    got = verdict({"policies": [{"task": "mug"}] * 3 + [{"task": "step_back"}] * 3, "metrics": {"within_task": within}})
+    assert "the world model's over mug, step_back, the proxy's over mug, the difference over mug" in got
+    assert "lies above 0 in 1 of 1 (mug)" in got
+
+
+def test_a_checkpoint_pick_among_equal_ratings_is_flagged():
+    rows = [{"task": "mug", "lineage": "conv", "step": s, "pred_rate": 0.5} for s in (10, 20, 30)]
+    sel = {"n": 1, "exact_share": 1.0, "within_ci_share": 1.0, "mean_regret": 0.0,
+           "lineages": [{"task": "mug", "lineage": "conv"}]}
+    assert "In 1 of them the world model rated several checkpoints equally highest" in selection_summary(sel, rows)
+    rows[0]["pred_rate"] = 0.6
+    assert "equally highest" not in selection_summary(sel, rows)
+
+
+def test_a_results_file_the_report_cannot_read_is_named_with_what_is_wrong(evaluation, tmp_path):
+    _, out, res = evaluation
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "results.json").write_text(json.dumps(res)[:-40])
+    with pytest.raises(ValueError, match=r"results.json is not valid JSON.*cut short"):
+        read_results(run)
+    (run / "results.json").write_text(json.dumps({k: v for k, v in res.items() if k != "metrics"}))
+    with pytest.raises(ValueError, match="lacks metrics"):
+        read_results(run)
+    rows = [dict(p) for p in res["policies"]]
+    del rows[1]["true_ci"]
+    (run / "results.json").write_text(json.dumps(res | {"policies": rows}))
+    with pytest.raises(ValueError, match=rf"policy '{rows[1]['name']}' \(mug\) lacks true_ci"):
+        read_results(run)
+    rows = [dict(p) for p in res["policies"]]
+    rows[0]["pred_rate"] = float("nan")  # json.dumps writes the token NaN: read as an undefined figure
+    (run / "results.json").write_text(json.dumps(res | {"policies": rows}))
+    assert read_results(run)["policies"][0]["pred_rate"] is None
+
+
+def test_names_with_tex_and_markup_render_as_written(own_evaluation):
+    _, out, res = own_evaluation
+    rows = [dict(p) for p in res["policies"]]
+    for p in rows:
+        p["lineage"] = "$\\frac{$<b>"  # a pair of "$" is TeX to matplotlib, and this TeX does not parse
+    (out / "results.json").write_text(json.dumps(res | {"policies": rows}))
+    md = write_report(out).with_suffix(".md").read_text()
+    assert "&lt;b>" in md and "<b>" not in md.split("## Within-task ranking")[1]
 
 
 def test_a_bad_policy_spec_fails_before_out_records_a_configuration(tmp_path):

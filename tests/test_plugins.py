@@ -335,6 +335,7 @@ def test_the_ranking_leaves_out_a_policy_whose_predictions_diverged():
     # fewer than two policies left: none is left out, and the statistics are undefined rather than an error
     alone = E.ranking_block(rows[:2], true_eps[:2], prob_eps[:2], 0.5)
     assert alone["left_out"] == ["b"] and np.isnan(alone["pearson"])
+    assert all(np.isnan(alone[k]) for k in ("mmrv", "pairwise_acc_gap10", "alignment", "spearman"))
 
 
 def test_a_clipped_plugin_keeps_its_policys_way_of_stacking():

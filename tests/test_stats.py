@@ -267,6 +267,8 @@ def test_checkpoint_selection_by_hand():
     assert got["n"] == 3 and got["exact_share"] == pytest.approx(2 / 3) and got["within_ci_share"] == 1.0
     assert got["mean_regret"] == pytest.approx(0.05 / 3)
     assert math.isnan(S.checkpoint_selection(rows[-2:])["exact_share"])
+    diverged = rows[:2] + [row("mug", "a", 1000, 0.85, math.nan)]  # a checkpoint whose imagination diverged
+    assert S.checkpoint_selection(diverged)["lineages"][0]["picked_step"] == 100
 
 
 def test_family_statistics_by_hand():
