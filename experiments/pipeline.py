@@ -444,7 +444,7 @@ def start_warm_train(p: Pipeline, name: str, overrides) -> subprocess.Popen | No
     # the member the train stage trains first (its seed is part of the step's program)
     # the read loss (w_read) probes with the rollouts' checkpoints, whose episodes the data stage's dataset lacks
     argv = [sys.executable, "-m", "wm.train", "--config", p.train, "--data", str(d["data"]), "--warm",
-            "--probe-policies", f"{d['policies']}#{p.rollouts}",
+            *(["--probe-policies", f"{d['policies']}#{p.rollouts}"] if p.rollouts else []),
             *p.train_overrides, *member_seed(todo[0][0]), *overrides]
     print(f"compiling the world model's training programs beside the rollouts ({log})", file=sys.stderr, flush=True)
     return _start_warm(argv, log)

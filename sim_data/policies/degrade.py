@@ -41,6 +41,9 @@ def degrade_params(base_params, **knobs) -> dict:
     if unknown:
         raise ValueError(f"unknown degradation {sorted(unknown)}; the knobs are {', '.join(KNOBS)}")
     k = {name: np.asarray(v) for name, v in {**NEUTRAL, **knobs}.items()}
+    bad = [name for name, v in k.items() if v.dtype.kind not in "biuf" or not np.all(np.isfinite(v))]
+    if bad:
+        raise ValueError(f"{', '.join(bad)} must be finite numbers, got {', '.join(str(knobs[b]) for b in bad)}")
     if np.any(k["delay"] < 0) or np.any(k["delay"] > MAX_DELAY) or np.any(k["delay"] != np.round(k["delay"])):
         raise ValueError(f"delay must be whole control steps in 0..{MAX_DELAY}, got {knobs['delay']}")
     if np.any(k["noise"] < 0) or np.any(k["grip"] < 0):

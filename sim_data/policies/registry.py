@@ -7,6 +7,8 @@ A policy spec is one of
   `runs/policies/demo#conv_proprio+vit_noproprio`, `runs/policies/demo#mug/conv_proprio/300`,
   and thinned with `@K/N`: every N-th checkpoint of each lineage and task, from the K-th, in the
   order of training steps (`runs/policies/demo#@0/2`: the 1st, 3rd, 5th, ... of every lineage);
+  a term that names nothing in the registry, or a `#` with no term after it, is an error, and the
+  registry's records are checked (load_registry) before any policy runs;
 - a plug-in: `package.module:attribute`, where the attribute is a callable returning
   `(policy, params)` (or is that pair itself). `policy` follows the project's protocol,
 
@@ -44,6 +46,7 @@ from sim_data.policies.bc import BCPolicy, PolicyNetConfig, load_params, stacked
 from sim_data.policies.degrade import DegradedPolicy, degrade_params, perturbed_params
 from sim_data.sim.robot import ACTION_DIM, PROPRIO_DIM, robot_index
 from sim_data.sim.scene import load_model
+from sim_data.sim.tasks import TASK_NAMES
 from sim_data.util import even_pieces, hash_arrays, pad_with_last
 
 
@@ -308,10 +311,22 @@ def load_registry_sources(spec: str, planned: bool = False) -> list[PolicySource
     """`PATH[#selector+...]` -> the registry's checkpoints whose name, lineage or task is selected.
     planned: those of the zoo's plan (PLAN, written before it trains), with stand-in parameters of
     their checkpoints' shapes (bc.stand_in_params): what compiles their programs while they train."""
-    path, _, sel = spec.partition("#")
-    terms = [s for s in sel.split("+") if s]
+    path, hashed, sel = spec.partition("#")
+    terms = [s.strip() for s in sel.split("+") if s.strip()]
+    if hashed and not terms:
+        raise ValueError(f"{spec!r}: nothing follows '#'; name lineages, tasks or policies after it "
+                         "(joined by +), or leave out the '#' for the whole zoo")
     wanted = {s for s in terms if not s.startswith("@")}
+    file = registry_file(Path(path), PLAN if planned else REGISTRY)
     records = load_registry(Path(path), PLAN if planned else REGISTRY)
+    known = {k for r in records for k in (r["name"], r["lineage"], r["task"])}
+    unknown = sorted(wanted - known)
+    if unknown:  # a misspelt term beside a right one would otherwise select fewer policies silently
+        close = list(dict.fromkeys(c for t in unknown for c in difflib.get_close_matches(t, sorted(known), n=3)))
+        raise ValueError(f"{spec!r}: {', '.join(map(repr, unknown))} names no policy, lineage or task of {file}"
+                         + (f"; did you mean {' or '.join(close)}?" if close else "")
+                         + f" (its lineages: {', '.join(sorted({r['lineage'] for r in records}))}; "
+                         f"tasks: {', '.join(sorted({r['task'] for r in records}))})")
     chosen = [r for r in records if not wanted or wanted & {r["name"], r["lineage"], r["task"]}]
     for term in terms:
         if term.startswith("@"):
@@ -321,10 +336,33 @@ def load_registry_sources(spec: str, planned: bool = False) -> list[PolicySource
                          f"{sorted({r['lineage'] for r in records})} and tasks {sorted({r['task'] for r in records})}")
     out = []
     for r in chosen:
+        if not planned and not Path(r["checkpoint"]).is_file():
+            raise FileNotFoundError(f"{file}: policy {r['name']!r}: its checkpoint {r['checkpoint']} is missing")
         policy, params = load_policy(r, stand_in_params(PolicyNetConfig(**r["net"]), r["variant"]["proprio"])
                                      if planned else None)
         out.append(PolicySource(name=r["name"], kind="learned", task=r["task"], policy=policy, params=params, record=r))
+    if not planned:
+        for group in group_by_policy(out):  # one trace per network and parameter shapes
+            _check_checkpoint(file, group[0])
     return out
+
+
+def _check_checkpoint(file: Path, source: PolicySource) -> None:
+    """Traces (jax.eval_shape: nothing is compiled or run) a registry policy's init_carry and act on a
+    blank batch of 2, raising a ValueError naming the registry, the policy and its net where the
+    checkpoint's parameters do not fit the network its record describes (another architecture or
+    width): what would otherwise fail deep inside the evaluation's first rollout."""
+    size = source.record["net"].get("size", 64)
+    obs = {"image": jax.ShapeDtypeStruct((2, size, size, 3), jnp.uint8),
+           "proprio": jax.ShapeDtypeStruct((2, PROPRIO_DIM), jnp.float32)}
+    rng = jax.random.PRNGKey(0)
+    try:
+        carry = jax.eval_shape(lambda p, o: source.policy.init_carry(p, o, None, rng), source.params, obs)
+        jax.eval_shape(lambda p, o, c: source.policy.act(p, o, c, rng), source.params, obs, carry)
+    except Exception as e:
+        first = (str(e).splitlines() or [""])[0]
+        raise ValueError(f"{file}: policy {source.name!r}: its checkpoint {source.record['checkpoint']} does not fit "
+                         f"its net {source.record['net']} ({type(e).__name__}: {first})") from e
 
 
 def every_nth_checkpoint(records: list[dict], term: str, spec: str = "") -> list[dict]:
@@ -350,7 +388,7 @@ def resolve(specs, world_model: bool = True, planned: bool = False) -> list[Poli
     """Every policy the specs name (see the module doc), names unique; world_model: whether they will
     also run in a world model (load_plugin); planned: a zoo's checkpoints as its plan names them, with
     stand-in parameters (load_registry_sources)."""
-    out = []
+    out, origin = [], {}
     for spec in (s.strip() for s in specs):  # "a, b" on a command line leaves a space before b
         if not spec:
             continue
@@ -359,11 +397,16 @@ def resolve(specs, world_model: bool = True, planned: bool = False) -> list[Poli
             module = module_file.group(1).replace("/", ".").replace("\\", ".")
             raise ValueError(f"{spec!r} names a file: name a plug-in by its module, importable from the working "
                              f"directory, as {module}:{module_file.group(2)}")
-        out += [load_plugin(spec, world_model)] if is_plugin(spec) else load_registry_sources(spec, planned)
+        got = [load_plugin(spec, world_model)] if is_plugin(spec) else load_registry_sources(spec, planned)
+        for source in got:
+            origin.setdefault(source.name, []).append(spec)
+        out += got
     names = [s.name for s in out]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
-        raise ValueError(f"policy names repeat: {dup}; give plug-ins distinct names with name=module:attribute")
+        raise ValueError("policy names repeat: " + "; ".join(f"{n!r} from {' and '.join(origin[n])}" for n in dup)
+                         + "; give plug-ins distinct names with name=module:attribute, and select a zoo's policies "
+                         "once (one spec per zoo, its selectors joined with +)")
     slugs = [s.slug for s in out]  # the names' file-name forms (episode files, videos)
     clash = sorted({n for s, n in zip(slugs, names) if slugs.count(s) > 1})
     if clash:
@@ -392,12 +435,60 @@ def load_registry(path: Path, name: str = REGISTRY) -> list[dict]:
                              "plug-in is package.module:attribute, the attribute a callable returning (policy, params))")
         raise FileNotFoundError(f"{path} is missing: " + ("train a zoo first (make policies)" if name == REGISTRY else
                                                           "the zoo has not started (it writes its plan first)"))
-    registry = json.loads(path.read_text())
-    records = registry["policies"]
+    try:
+        registry = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path} is not valid JSON: {e}") from None
+    records = registry.get("policies") if isinstance(registry, dict) else None
+    if not isinstance(records, list):
+        raise ValueError(f"{path}: a zoo registry is a JSON object whose \"policies\" lists one record per "
+                         "checkpoint (and whose \"data\" names the dataset it learned from)")
+    first = {}
+    for i, r in enumerate(records):
+        check_record(path, i, r)
+        if r["name"] in first:
+            raise ValueError(f"{path}: records {first[r['name']]} and {i} are both named {r['name']!r}; "
+                             "a registry names each policy once")
+        first[r["name"]] = i
     for r in records:
         r["checkpoint"] = str(path.parent / r["checkpoint"])
-        r["data"] = registry["data"]
+        r["data"] = registry.get("data")  # None: the zoo's dataset is not known (its seeds are not excluded)
     return records
+
+
+# a registry record's required fields and their JSON types (zoo.py writes them, with step, variant, val_loss, ...)
+RECORD_FIELDS = {"name": str, "task": str, "lineage": str, "checkpoint": str, "net": dict}
+
+
+def check_record(path: Path, i: int, r) -> None:
+    """Raises a ValueError naming the registry `path`, the record (its index and name) and the field,
+    where record i lacks a required field (RECORD_FIELDS) or holds one of another type, names an unknown
+    task, describes a network PolicyNetConfig refuses (an unknown field or encoder) or a degradation
+    degrade_params refuses (an unknown knob, a level out of range)."""
+    named = f" ({r['name']!r})" if isinstance(r, dict) and isinstance(r.get("name"), str) else ""
+    where = f"{path}: record {i}{named}"
+    if not isinstance(r, dict):
+        raise ValueError(f"{where} is not a JSON object")
+    for field, kind in RECORD_FIELDS.items():
+        if field not in r:
+            raise ValueError(f"{where} lacks the field {field!r} (every record has {', '.join(RECORD_FIELDS)})")
+        if not isinstance(r[field], kind):
+            raise ValueError(f"{where}: {field!r} must be a {'JSON object' if kind is dict else kind.__name__}, "
+                             f"got {r[field]!r}")
+    if r["task"] not in TASK_NAMES:
+        raise ValueError(f"{where}: unknown task {r['task']!r}; the tasks are {', '.join(TASK_NAMES)}")
+    try:
+        PolicyNetConfig(**r["net"]).validate()
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{where}: 'net' {r['net']} is not a policy network ({e}; its fields: "
+                         f"{', '.join(f.name for f in dataclasses.fields(PolicyNetConfig))})") from None
+    if r.get("degrade") is not None:
+        if not isinstance(r["degrade"], dict):
+            raise ValueError(f"{where}: 'degrade' must be a JSON object of knobs and levels, got {r['degrade']!r}")
+        try:
+            degrade_params(None, **r["degrade"])
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{where}: 'degrade' {r['degrade']}: {e}") from None
 
 
 def _names_a_module(name: str) -> bool:
