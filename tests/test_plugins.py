@@ -208,18 +208,15 @@ def test_unusual_plugins_are_kept_apart_and_checked(tmp_path, monkeypatch):
     back, forward = resolve(["odd_pols:back", "odd_pols:forward"])
     assert back.policy.policy == forward.policy.policy  # namedtuples of equal fields compare equal, as tuples
     assert back.policy != forward.policy and len(group_by_policy([back, forward])) == 2  # but never run as one
-    with pytest.raises(ValueError, match=r"'odd_pols:fixed_batch'.*shape \(3, 20\).*got \(2, 20\)"):
-        load_plugin("odd_pols:fixed_batch")
-    with pytest.raises(ValueError, match=r"'odd_pols:single'.*a pair \(action, carry\)"):
-        load_plugin("odd_pols:single")
-    with pytest.raises(ValueError, match=r"no attribute 'bak'; did you mean back"):
-        load_plugin("odd_pols:bak")
-    with pytest.raises(RuntimeError, match=r"'odd_broken:make'.*importing 'odd_broken' raised KeyError"):
-        load_plugin("odd_broken:make")
-    with pytest.raises(RuntimeError, match=r"'odd_dep:make'.*not_installed_anywhere.*not installed"):
-        load_plugin("odd_dep:make")
-    with pytest.raises(ValueError, match=r"cannot import 'odd_missing'.*PYTHONPATH"):
-        load_plugin("odd_missing:make")
+    refusals = [("odd_pols:fixed_batch", ValueError, r"'odd_pols:fixed_batch'.*shape \(3, 20\).*got \(2, 20\)"),
+                ("odd_pols:single", ValueError, r"'odd_pols:single'.*a pair \(action, carry\)"),
+                ("odd_pols:bak", ValueError, r"no attribute 'bak'; did you mean back"),
+                ("odd_broken:make", RuntimeError, r"'odd_broken:make'.*importing 'odd_broken' raised KeyError"),
+                ("odd_dep:make", RuntimeError, r"'odd_dep:make'.*not_installed_anywhere.*not installed"),
+                ("odd_missing:make", ValueError, r"cannot import 'odd_missing'.*PYTHONPATH")]
+    for spec, error, message in refusals:
+        with pytest.raises(error, match=message):
+            load_plugin(spec)
 
 
 def test_specs_that_are_not_plugins_say_what_a_plugin_is(user_module):
