@@ -802,6 +802,7 @@ def ranking_block(rows: list[dict], true_eps, prob_eps, threshold: float, member
         member_eps = None if member_eps is None else np.asarray(member_eps)[:, read]
     true = [r["true_rate"] for r in rows]
     out = S.ranking_metrics([r["pred_rate"] for r in rows], true)
+    ranked = tuple(out)
     out["pearson_ci_bootstrap"] = list(S.bootstrap_pearson(prob_eps, true_eps, draws=1000))
     out["alignment"] = S.alignment(prob_eps >= threshold, true_eps)
     thr = S.ranking_metrics([r["pred_rate_thresholded"] for r in rows], true)
@@ -811,9 +812,10 @@ def ranking_block(rows: list[dict], true_eps, prob_eps, threshold: float, member
         m = S.ranking_metrics([r["pred_rate_readouts"][name] for r in rows], true)
         out["readouts"][name] = {k: m[k] for k in ("pearson", "spearman", "mmrv", "pairwise_acc_gap10")}
     if left_out and len(read) < 2:  # fewer than two predictions read: nothing is ranked (the above compared NaN)
-        undefined = ("pearson", "spearman", "kendall", "mmrv", "pairwise_acc", "pairwise_acc_gap10", "alignment")
-        out |= {k: math.nan for k in undefined} | {"pearson_ci": [math.nan] * 2, "pearson_ci_bootstrap": [math.nan] * 2}
+        out |= {k: [math.nan] * 2 if isinstance(out[k], list) else math.nan
+                for k in (*ranked, "pearson_ci_bootstrap", "alignment")}
         out["thresholded"] = dict.fromkeys(out["thresholded"], math.nan)
+        out["readouts"] = {name: dict.fromkeys(m, math.nan) for name, m in out["readouts"].items()}
     if member_eps is not None and len(member_eps) > 1:
         out |= member_metrics(np.array([r["pred_rates"] for r in rows]).T, true, member_eps, true_eps, threshold)
     with_loss = [r for r in rows if r["val_loss"] is not None]
@@ -878,7 +880,9 @@ def decision_analysis(cfg: EvalConfig, tasks: dict, alignment: float, most: int 
     eps = list(cfg.decision_episodes)
     out = {"alignment": alignment, "episodes": eps, "model": {}, "resampled": {}, "pairs": {}, "pair_tasks": {}}
     for g in cfg.gaps:
-        out["model"][str(g)] = S.p_pick_better(min(max(alignment, 0.0), 1.0), g, eps).tolist()
+        # no alignment where no prediction was read (every imagination diverged): no binomial curve
+        out["model"][str(g)] = (S.p_pick_better(min(max(alignment, 0.0), 1.0), g, eps).tolist()
+                                if np.isfinite(alignment) else None)
         pairs = []
         for task, res in tasks.items():
             rates = res["true"].mean(1)

@@ -13,6 +13,7 @@ import html
 import io
 import json
 import math
+import re
 import sys
 from pathlib import Path
 
@@ -29,7 +30,7 @@ from sim_data.util import run_cli
 TARGETS = {"demo": {"pearson": (">=", 0.7)},
            "full": {"pearson": (">=", 0.9), "mmrv": ("<=", 0.05), "pairwise_acc_gap10": (">=", 0.9)}}
 TAB10 = colormaps["tab10"]
-MAX_LEGEND = 12  # lineages named in a figure's legend
+MAX_LEGEND = len(TAB10.colors)  # lineages named in a figure's legend: one colour each
 HEADLINE = ("pearson", "spearman", "kendall", "mmrv", "pairwise_acc", "pairwise_acc_gap10", "alignment")
 VIDEOS = "videos.npz"  # in the run: the kept episodes (experiments.evaluate)
 LABELS = {"pearson": "Pearson r", "spearman": "Spearman rho", "mmrv": "MMRV (lower is better)",
@@ -93,7 +94,7 @@ def scatter_figure(policies: list[dict], metrics: dict, tasks: list[str]) -> str
         ax.set_ylabel("predicted success (world model)")
         ax.set_title(f"{_tx(title)}: r={_fmt(m.get('pearson'), 2)}, MMRV={_fmt(m.get('mmrv'), 3)}", fontsize=10)
     handles = [Line2D([], [], color=colors[lin], marker="o", ls="", label=_tx(lin)) for lin in lineages][:MAX_LEGEND]
-    if len(lineages) > MAX_LEGEND:  # colours repeat past ten: a longer list would cover the panels and mislead
+    if len(lineages) > MAX_LEGEND:  # colours repeat past these: a longer list would cover the panels and mislead
         handles.append(Line2D([], [], ls="", label=f"... {len(lineages) - MAX_LEGEND} more lineages"))
     handles += [Line2D([], [], color="grey", marker=markers[t], ls="", label=_tx(t)) for t in tasks][:MAX_LEGEND]
     axes[0][-1].legend(handles=handles, fontsize=7, loc="lower right")
@@ -132,9 +133,11 @@ def progress_figure(policies: list[dict], tasks: list[str], per_task: int = 4) -
     for ax, (t, rows) in zip(axes[0], panels, strict=True):
         for k, p in enumerate(rows):
             c = f"C{k}"
-            ax.plot(np.array(p["progress_true"], float), color=c, label=_tx(f"{p['name'].removeprefix(t + '/')} (true {p['true_rate']:.2f})"))
+            label = _tx(f"{p['name'].removeprefix(t + '/')} (true {p['true_rate']:.2f})")
+            ax.plot(np.array(p["progress_true"], float), color=c, label=label)
             ax.plot(np.array(p["progress_imagined"], float), color=c, linestyle="--")  # None (no episode) -> NaN
-        ax.set(title=f"{_tx(t)}: true (solid), imagined (dashed)", xlabel="step", ylabel="mean progress", ylim=(-0.05, 1.05))
+        ax.set(title=f"{_tx(t)}: true (solid), imagined (dashed)", xlabel="step", ylabel="mean progress",
+               ylim=(-0.05, 1.05))
         ax.legend(fontsize=6, loc="upper left")
     return _png(fig)
 
@@ -165,7 +168,8 @@ def decision_figure(decision: dict) -> str:
     eps = decision["episodes"]
     for i, (g, curve) in enumerate(decision["model"].items()):
         c = TAB10(i)
-        ax.plot(eps, curve, color=c, label=f"binomial model, gap {float(g):.0%}")
+        if curve:
+            ax.plot(eps, curve, color=c, label=f"binomial model, gap {float(g):.0%}")
         res = decision["resampled"].get(g)
         if res:
             ax.plot(eps, res, "o", color=c, ms=5, label=f"resampled ({decision['pairs'][g]} pairs), gap {float(g):.0%}")
@@ -175,7 +179,7 @@ def decision_figure(decision: dict) -> str:
     ax.set_ylim(min(0.45, min(shown, default=0.45) - 0.03), 1.01)  # resampled pairs may pick worse than a coin
     ax.set_xlabel("episodes per policy in the world model")
     ax.set_ylabel("P(pick the truly better policy)")
-    ax.set_title(f"decision analysis at alignment {decision['alignment']:.2f}", fontsize=10)
+    ax.set_title(f"decision analysis at alignment {_fmt(decision['alignment'], 2)}", fontsize=10)
     ax.legend(fontsize=7)
     ax.grid(alpha=0.3)
     return _png(fig)
@@ -347,7 +351,8 @@ def unlearned_warning(res: dict) -> str:
 
 def md_table(rows) -> str:
     """A Markdown table of rows of strings, the first row the header; "|" in a cell is escaped."""
-    cell = lambda c: c.replace("|", "\\|").replace("<", "&lt;").replace("\n", " ")  # a policy's name may hold them
+    # a policy's name may hold "|", a line break or an HTML tag's "<" ("<=" in a target stays as it is)
+    cell = lambda c: re.sub(r"<(?=[A-Za-z/!?])", "&lt;", c.replace("|", "\\|").replace("\n", " "))  # noqa: E731
     lines = ["| " + " | ".join(map(cell, rows[0])) + " |", "|" + "---|" * len(rows[0])]
     lines += ["| " + " | ".join(map(cell, r)) + " |" for r in rows[1:]]
     return "\n".join(lines)
@@ -365,16 +370,18 @@ def _defined_tasks(block: dict, tasks) -> list[str]:
 
 
 def _coverage(w: dict, tasks, who=("world_model", "proxy")) -> str:
-    """"" where every predictor's mean covers every task, else which tasks each mean is over: a mean
-    over tasks skips those where the statistic is undefined, so two means may cover different tasks."""
+    """An empty string where every predictor's mean covers every task, else which tasks each mean is
+    over: a mean over tasks skips those where the statistic is undefined, so two means may cover
+    different tasks."""
     cover = {k: _defined_tasks(w[k], tasks) for k in who}
     if all(len(c) == len(tasks) for c in cover.values()):
         return ""
     label = {"world_model": "the world model's", "proxy": "the proxy's"}
-    parts = [f"{label[k]} over {', '.join(c) or 'no task'}" for k, c in cover.items()]
+    over = lambda ts: " and ".join(ts) or "no task"  # noqa: E731
+    parts = [f"{label[k]} over {over(c)}" for k, c in cover.items()]
     if len(who) > 1:
-        parts.append(f"the difference over {', '.join(_defined_tasks(w['difference']['proxy'], tasks)) or 'no task'}")
-    return "; means over the tasks where Pearson r is defined: " + ", ".join(parts)
+        parts.append(f"the difference over {over(_defined_tasks(w['difference']['proxy'], tasks))}")
+    return " (means over the tasks where Pearson r is defined: " + "; ".join(parts) + ")"
 
 
 def verdict(res: dict) -> str:
@@ -389,15 +396,16 @@ def verdict(res: dict) -> str:
                 f"policies, whose true and predicted rates both vary (policies per task: {counts}).")
     if _missing(px["mean"]["pearson"]):
         return (f"The imitation-loss proxy has no within-task figure here (it needs at least {MIN_CORRELATED} "
-                "policies of a task with a validation loss, plug-ins have none, whose true rates differ): the world "
-                "model alone ranks at a "
+                "policies of a task with a validation loss and differing true rates; plug-ins have none): the "
+                "world model alone ranks at a "
                 f"mean within-task Pearson r {_ci(wm['mean']['pearson'], wm['mean_ci']['pearson'])} (95% interval "
                 f"resampling {w['resamples']}){_coverage(w, tasks, ('world_model',))}.")
     both = _defined_tasks(diff, tasks)
     if not both:
         return (f"The world model and the imitation-loss proxy have no task where both rank (world model: "
                 f"{', '.join(_defined_tasks(wm, tasks))}; proxy: {', '.join(_defined_tasks(px, tasks))}): their "
-                f"difference is undefined. Mean within-task Pearson r {_ci(wm['mean']['pearson'], wm['mean_ci']['pearson'])}"
+                "difference is undefined. Mean within-task Pearson r "
+                f"{_ci(wm['mean']['pearson'], wm['mean_ci']['pearson'])}"
                 f" against {_ci(px['mean']['pearson'], px['mean_ci']['pearson'])}, over different tasks.")
     ahead = [t for t in tasks if (diff["per_task_ci"][t]["pearson"][0] or -1) > 0]
     behind = [t for t in tasks if (diff["per_task_ci"][t]["pearson"][1] or 1) < 0]
@@ -412,7 +420,8 @@ def verdict(res: dict) -> str:
     return (f"{head}: mean within-task Pearson r {_ci(wm['mean']['pearson'], wm['mean_ci']['pearson'])} against "
             f"{_ci(px['mean']['pearson'], px['mean_ci']['pearson'])} (difference "
             f"{_ci(diff['mean']['pearson'], diff['mean_ci']['pearson'])}; 95% intervals resampling "
-            f"{w['resamples']}){_coverage(w, tasks)}. Per task, the difference's interval lies above 0 in {len(ahead)} of "
+            f"{w['resamples']}){_coverage(w, tasks)}. Per task, the difference's interval lies above 0 in "
+            f"{len(ahead)} of "
             f"{len(both)}"
             f"{' (' + ', '.join(ahead) + ')' if ahead else ''} and below 0 in {len(behind)}"
             f"{' (' + ', '.join(behind) + ')' if behind else ''}.")
@@ -499,8 +508,8 @@ def selection_figure(policies: list[dict], tasks: list[str]) -> str | None:
             if not rs:
                 continue
             steps = [p["step"] for p in rs]
-            ax.plot(steps, [p["true_rate"] for p in rs], "-o", color=colors[lin], ms=3, label=f"{lin} true")
-            ax.plot(steps, [p["pred_rate"] for p in rs], "--x", color=colors[lin], ms=4, label=f"{lin} predicted")
+            ax.plot(steps, [p["true_rate"] for p in rs], "-o", color=colors[lin], ms=3)
+            ax.plot(steps, [p["pred_rate"] for p in rs], "--x", color=colors[lin], ms=4)
         ax.set_xscale("log")
         ax.set_ylim(-0.03, 1.03)
         ax.set_xlabel("training step of the checkpoint")
@@ -692,7 +701,8 @@ def timing_table(rows: list[dict]) -> list[list[str]]:
 
     out = [[label for _, label in TIMING_COLUMNS]]
     out += [[cell(r.get(k)) for k, _ in TIMING_COLUMNS] for r in rows]
-    out.append(["total", cell(sum(r.get("wall_s") or 0.0 for r in rows)), cell(sum(r.get("compile_s") or 0.0 for r in rows)),
+    total = lambda k: sum(r[k] for r in rows if r.get(k) is not None)  # noqa: E731  (a stage cut short has no time)
+    out.append(["total", cell(total("wall_s")), cell(total("compile_s")),
                 *["" for _ in TIMING_COLUMNS[3:]]])
     return out
 
@@ -813,7 +823,8 @@ def read_results(run: Path) -> dict:
     if missing := [k for k in RESULTS_KEYS if k not in res]:
         raise ValueError(f"{what}: it lacks {', '.join(missing)} (written by an older version? rerun make eval)")
     if not res["tasks"]:
-        raise ValueError(f"{path} holds no evaluated task (missing: {', '.join(res.get('missing_tasks') or []) or 'none'}):"
+        missing = ", ".join(res.get("missing_tasks") or []) or "none"
+        raise ValueError(f"{path} holds no evaluated task (missing: {missing}):"
                          " let make eval finish a task first")
     metrics = res["metrics"]
     for k in ("within_task", "pooled", "per_task"):
@@ -846,7 +857,8 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
     unlearned, unread, plug = unlearned_warning(res), nonfinite_policies(policies), plugin_table(policies)
     h = [f"<html><head><meta charset='utf-8'><title>World-model policy evaluation</title><style>{CSS}</style>"
          "</head><body>", "<h1>Policy evaluation in the world model against the simulator</h1>",
-         f"<p>{policy_count(policies)} on {html.escape(', '.join(tasks))}; {res['config']['episodes']} held-out initial states "
+         f"<p>{policy_count(policies)} on {html.escape(', '.join(tasks))}; {res['config']['episodes']} held-out "
+         "initial states "
          f"per task; {_models_phrase(res, lambda r: f'<code>{html.escape(r)}</code>')}; engine {res['engine']}; "
          f"device {html.escape(str(res['device']))}.</p>",
          *([f"<p class='warn'>Partial: tasks {html.escape(', '.join(res['missing_tasks']))} were not evaluated; "

@@ -450,8 +450,9 @@ def checkpoint_selection(rows: list[dict]) -> dict:
     """Does the world model pick each training run's best checkpoint? Per (task, lineage) with two or
     more checkpoints (rows: {"task", "lineage", "step", "true_rate", "pred_rate", "true_ci"} per
     policy; rows without a step, such as plug-ins, are left out): the checkpoint with the highest
-    predicted rate (ties: the later step) against the truly best one (the picked one where it ties for
-    the highest true rate, else the later step among those that tie).
+    predicted rate (ties: the later step; a checkpoint whose predicted rate is missing or NaN, its
+    imagination diverged, is not picked) against the truly best one of all (the picked one where it
+    ties for the highest true rate, else the later step among those that tie).
 
     Returns {"lineages": [{"task", "lineage", "picked_step", "best_step", "picked_true", "best_true",
     "regret" (best_true - picked_true), "exact" (the picked one's true rate is the highest),
@@ -460,13 +461,14 @@ def checkpoint_selection(rows: list[dict]) -> dict:
     """
     groups: dict = {}
     for r in rows:
-        if r.get("step") is not None and r.get("pred_rate") is not None and not math.isnan(r["pred_rate"]):
+        if r.get("step") is not None:
             groups.setdefault((r["task"], r["lineage"]), []).append(r)
     out = []
     for (task, lineage), rs in sorted(groups.items()):
-        if len(rs) < 2:
+        read = [r for r in rs if r.get("pred_rate") is not None and not math.isnan(r["pred_rate"])]
+        if len(rs) < 2 or not read:
             continue
-        picked = max(rs, key=lambda r: (r["pred_rate"], r["step"]))
+        picked = max(read, key=lambda r: (r["pred_rate"], r["step"]))
         best = max(rs, key=lambda r: (r["true_rate"], r is picked, r["step"]))
         out.append({"task": task, "lineage": lineage, "picked_step": picked["step"], "best_step": best["step"],
                     "picked_true": picked["true_rate"], "best_true": best["true_rate"],

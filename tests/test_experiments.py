@@ -17,6 +17,7 @@ from experiments import evaluate as E
 from experiments import stats as S
 from experiments.report import (
     UNSEEN_NETWORKS_TITLE,
+    decision_figure,
     family_table,
     read_results,
     selection_summary,
@@ -641,10 +642,19 @@ def test_the_verdict_says_which_tasks_each_mean_is_over():
     within["proxy"]["per_task"] = {"mug": {"pearson": -0.2}, "step_back": {"pearson": None}}  # its true rates tie
     within["difference"]["proxy"] |= {"mean": {"pearson": 0.9}, "mean_ci": {"pearson": [0.1, 1.5]},
                                       "per_task": {"mug": {"pearson": 0.9}, "step_back": {"pearson": None}},
-                                      "per_task_ci": {"mug": {"pearson": [0.1, 1.5]}, "step_back": {"pearson": [None, None]}}}
+                                      "per_task_ci": {"mug": {"pearson": [0.1, 1.5]},
+                                                      "step_back": {"pearson": [None, None]}}}
     got = verdict({"policies": [{"task": "mug"}] * 3 + [{"task": "step_back"}] * 3, "metrics": {"within_task": within}})
-    assert "the world model's over mug, step_back, the proxy's over mug, the difference over mug" in got
+    assert ("(means over the tasks where Pearson r is defined: the world model's over mug and step_back; "
+            "the proxy's over mug; the difference over mug)") in got
     assert "lies above 0 in 1 of 1 (mug)" in got
+
+
+def test_the_decision_figure_draws_without_an_alignment():
+    # every imagination diverged: no alignment, no binomial curve, the resampled pairs alone
+    decision = {"alignment": None, "episodes": [1, 4, 16], "model": {"0.1": None, "0.3": None},
+                "resampled": {"0.3": [0.5, 0.6, 0.7]}, "pairs": {"0.3": 2}}
+    assert decision_figure(decision).startswith("data:image/png;base64,")
 
 
 def test_a_checkpoint_pick_among_equal_ratings_is_flagged():

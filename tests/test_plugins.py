@@ -212,7 +212,7 @@ def test_unusual_plugins_are_kept_apart_and_checked(tmp_path, monkeypatch):
                 ("odd_pols:single", ValueError, r"'odd_pols:single'.*a pair \(action, carry\)"),
                 ("odd_pols:bak", ValueError, r"no attribute 'bak'; did you mean back"),
                 ("odd_broken:make", RuntimeError, r"'odd_broken:make'.*importing 'odd_broken' raised KeyError"),
-                ("odd_dep:make", RuntimeError, r"'odd_dep:make'.*not_installed_anywhere.*not installed"),
+                ("odd_dep:make", ValueError, r"'odd_dep:make'.*not_installed_anywhere.*not installed"),
                 ("odd_missing:make", ValueError, r"cannot import 'odd_missing'.*PYTHONPATH")]
     for spec, error, message in refusals:
         with pytest.raises(error, match=message):
@@ -333,6 +333,11 @@ def test_the_ranking_leaves_out_a_policy_whose_predictions_diverged():
     alone = E.ranking_block(rows[:2], true_eps[:2], prob_eps[:2], 0.5)
     assert alone["left_out"] == ["b"] and np.isnan(alone["pearson"])
     assert all(np.isnan(alone[k]) for k in ("mmrv", "pairwise_acc_gap10", "alignment", "spearman"))
+    assert all(np.isnan(v) for m in alone["readouts"].values() for v in m.values())
+    # and the decision analysis has no binomial curve to draw at an undefined alignment
+    cfg = E.EvalConfig(policies=("a",), wm="none", tasks=("mug",))
+    decision = E.decision_analysis(cfg, {"mug": {"true": true_eps.astype(bool), "prob": prob_eps}}, alone["alignment"])
+    assert all(curve is None for curve in decision["model"].values())
 
 
 def test_a_clipped_plugin_keeps_its_policys_way_of_stacking():

@@ -269,6 +269,10 @@ def test_checkpoint_selection_by_hand():
     assert math.isnan(S.checkpoint_selection(rows[-2:])["exact_share"])
     diverged = rows[:2] + [row("mug", "a", 1000, 0.85, math.nan)]  # a checkpoint whose imagination diverged
     assert S.checkpoint_selection(diverged)["lineages"][0]["picked_step"] == 100
+    best_diverged = [row("mug", "a", 10, 0.2, 0.1), row("mug", "a", 100, 0.9, math.nan),
+                     row("mug", "a", 1000, 0.5, 0.3)]
+    (got,) = S.checkpoint_selection(best_diverged)["lineages"]  # the truly best is still the best, though unread
+    assert (got["picked_step"], got["best_step"], got["regret"]) == (1000, 100, pytest.approx(0.4))
 
 
 def test_family_statistics_by_hand():

@@ -41,7 +41,7 @@ def degrade_params(base_params, **knobs) -> dict:
     if unknown:
         raise ValueError(f"unknown degradation {sorted(unknown)}; the knobs are {', '.join(KNOBS)}")
     k = {name: np.asarray(v) for name, v in {**NEUTRAL, **knobs}.items()}
-    bad = [name for name, v in k.items() if v.dtype.kind not in "biuf" or not np.all(np.isfinite(v))]
+    bad = [name for name, v in k.items() if v.dtype.kind not in "iuf" or not np.all(np.isfinite(v))]
     if bad:
         raise ValueError(f"{', '.join(bad)} must be finite numbers, got {', '.join(str(knobs[b]) for b in bad)}")
     if np.any(k["delay"] < 0) or np.any(k["delay"] > MAX_DELAY) or np.any(k["delay"] != np.round(k["delay"])):

@@ -133,13 +133,11 @@ def load_plugin(spec: str, world_model: bool = True) -> PolicySource:
                          "returning (policy, params)")
     try:
         module = importlib.import_module(module_name)
-    except ModuleNotFoundError as e:
+    except ImportError as e:
         if e.name and (module_name == e.name or module_name.startswith(e.name + ".")):  # the module itself
             raise ValueError(f"plug-in {spec!r}: cannot import {module_name!r} ({e}); is it on PYTHONPATH?") from e
-        raise RuntimeError(f"plug-in {spec!r}: importing {module_name!r} failed: {e} (a module it imports is "
-                           "not installed or not on PYTHONPATH)") from e
-    except ValueError as e:  # importlib raises ValueError for an empty name
-        raise ValueError(f"plug-in {spec!r}: cannot import {module_name!r} ({e}); is it on PYTHONPATH?") from e
+        raise ValueError(f"plug-in {spec!r}: importing {module_name!r} failed: {e} (something it imports is "
+                         "not installed or not on PYTHONPATH)") from e
     except Exception as e:  # the user's module fails as it imports (a SyntaxError, its own code): keep its traceback
         raise RuntimeError(f"plug-in {spec!r}: importing {module_name!r} raised {type(e).__name__}: {e}") from e
     if not hasattr(module, attr):
@@ -194,7 +192,7 @@ class ClippedPolicy:
         return type(self.policy), self.policy, self.low, self.high
 
     def __eq__(self, other):
-        return type(other) is ClippedPolicy and self._key() == other._key()
+        return self._key() == other._key() if type(other) is ClippedPolicy else NotImplemented
 
     def __hash__(self):
         return hash(self._key())
@@ -229,11 +227,11 @@ def check_protocol(spec: str, policy, params, batch: int = 2, size: int = 64,
     it), a policy that fails here is not checked: a warning says so and the digest is "".
     size: the frames' side, 64 as in every preset. The policy is traced at a second batch, batch + 1,
     too: the rollouts run it on batches of every size, so a batch fixed in its code fails here."""
-    traced = [_check_batch(spec, policy, params, b, size, task_state_optional, again=b != batch)
-              for b in (batch, batch + 1)]
-    if None in traced:
+    traced = _check_batch(spec, policy, params, batch, size, task_state_optional)
+    if traced is None:
         return ""
-    init_jaxpr, act_jaxpr = traced[0]
+    _check_batch(spec, policy, params, batch + 1, size, task_state_optional=False, again=True)
+    init_jaxpr, act_jaxpr = traced
     h = hashlib.sha256(f"{init_jaxpr}\n{act_jaxpr}".encode())
     hash_arrays(h, [*init_jaxpr.consts, *act_jaxpr.consts])  # the printed program names them, not their values
     return h.hexdigest()
@@ -257,7 +255,9 @@ def _check_batch(spec: str, policy, params, batch: int, size: int, task_state_op
             return None
         raise RuntimeError(f"plug-in {spec!r}: the policy fails on a batch of {batch} observations "
                            f"(image ({batch}, {size}, {size}, 3) uint8, proprio ({batch}, {PROPRIO_DIM}) float32, "
-                           f"task_state None, as in the world model): {type(e).__name__}: {e}") from e
+                           f"task_state None, as in the world model): {type(e).__name__}: {e}"
+                           + (" (is the batch size fixed in its code? the rollouts run batches of every size)"
+                              if again else "")) from e
     if not (isinstance(out, (tuple, list)) and len(out) == 2):
         got = jax.tree.map(lambda x: getattr(x, "shape", x), out)
         raise ValueError(f"plug-in {spec!r}: act must return a pair (action, carry), got {got}")
