@@ -482,6 +482,15 @@ def per_task_table(res: dict, key: str = "within_task") -> list[list[str]]:
     return rows
 
 
+def _picks_the_best(x: dict) -> str:
+    """A selection row's verdict: yes, within the best's interval, no; for a pick among equally rated
+    checkpoints, the shares of them that are each."""
+    if x.get("tied", 1) > 1:
+        return (f"{x['tied']} rated equally: {x['exact']:.0%} of them the best, {x['within_ci']:.0%} within its "
+                "interval")
+    return "yes" if x["exact"] else "within the best's interval" if x["within_ci"] else "no"
+
+
 def selection_table(sel: dict) -> list[list[str]]:
     """The checkpoint selection (experiments.stats.checkpoint_selection's dict) as rows of strings, a header first:
     per task and lineage, the step the world model picks, the truly best step, their true rates and the regret."""
@@ -490,7 +499,7 @@ def selection_table(sel: dict) -> list[list[str]]:
     for x in sel["lineages"]:
         rows.append([x["task"], x["lineage"], str(x["picked_step"]), str(x["best_step"]), f"{x['picked_true']:.2f}",
                      f"{x['best_true']:.2f}", f"{x['regret']:.2f}",
-                     "yes" if x["exact"] else "within the best's interval" if x["within_ci"] else "no"])
+                     _picks_the_best(x)])
     return rows
 
 
@@ -534,28 +543,17 @@ CUT_SHORT = ("Cut short: a world model stopped at its safety time limit before i
              "figures are not those of the preset (rerun its training to finish it).")
 
 
-def _tied_picks(sel: dict, policies: list[dict]) -> int:
-    """How many of the selection's lineages the world model rated two or more checkpoints highest (the
-    later step is then taken: a constant predictor picks the last checkpoint everywhere)."""
-    tied = 0
-    for x in sel["lineages"]:
-        rates = [p["pred_rate"] for p in policies if p["task"] == x["task"] and p["lineage"] == x["lineage"]
-                 and p["step"] is not None and not _missing(p["pred_rate"])]
-        tied += bool(rates) and sum(abs(r - max(rates)) <= 1e-9 for r in rates) > 1
-    return tied
-
-
-def selection_summary(sel: dict, policies: list[dict]) -> str:
-    """One paragraph on checkpoint selection (results.json's checkpoint_selection), flagging the picks
-    made among checkpoints the world model rated equally (policies: results.json's rows)."""
+def selection_summary(sel: dict) -> str:
+    """One paragraph on checkpoint selection (results.json's checkpoint_selection), saying how many of
+    its picks were made among checkpoints the world model rated equally."""
     if not sel["n"]:
         return "No training run has two or more checkpoints here."
-    tied = _tied_picks(sel, policies)
+    tied = sum(x.get("tied", 1) > 1 for x in sel["lineages"])
     return (f"Over {sel['n']} training runs (task x lineage), the world model's highest-rated checkpoint is the "
             f"truly best in {_fmt_share(sel['exact_share'])}, within the best one's 95% interval in "
             f"{_fmt_share(sel['within_ci_share'])}; mean regret {_fmt(sel['mean_regret'], 2)} of true success."
-            + (f" In {tied} of them the world model rated several checkpoints equally highest and the later step "
-               "was taken: those picks say nothing of the world model." if tied else ""))
+            + (f" In {tied} of them the world model rated several checkpoints equally highest: each such pick is "
+               "scored as one drawn at random among them." if tied else ""))
 
 
 def _fmt_share(x) -> str:
@@ -567,7 +565,7 @@ def _selection_html(res: dict, policies: list[dict], tasks: list[str]) -> list[s
     if sel is None:
         return []
     fig = selection_figure(policies, tasks)
-    return ([f"<p>{html.escape(selection_summary(sel, policies))}</p>"] + ([f"<img src='{fig}'>"] if fig else [])
+    return ([f"<p>{html.escape(selection_summary(sel))}</p>"] + ([f"<img src='{fig}'>"] if fig else [])
             + ([_html_table(selection_table(sel))] if sel["n"] else []))
 
 
@@ -575,7 +573,7 @@ def _selection_md(res: dict) -> str:
     sel = res.get("checkpoint_selection")
     if sel is None:
         return "n/a"
-    return selection_summary(sel, res["policies"]) + ("\n\n" + md_table(selection_table(sel)) if sel["n"] else "")
+    return selection_summary(sel) + ("\n\n" + md_table(selection_table(sel)) if sel["n"] else "")
 
 
 TIMING_COLUMNS = (("stage", "stage"), ("wall_s", "wall s"), ("compile_s", "compiling s"),

@@ -450,14 +450,18 @@ def checkpoint_selection(rows: list[dict]) -> dict:
     """Does the world model pick each training run's best checkpoint? Per (task, lineage) with two or
     more checkpoints (rows: {"task", "lineage", "step", "true_rate", "pred_rate", "true_ci"} per
     policy; rows without a step, such as plug-ins, are left out): the checkpoint with the highest
-    predicted rate (ties: the later step; a checkpoint whose predicted rate is missing or NaN, its
-    imagination diverged, is not picked) against the truly best one of all (the picked one where it
-    ties for the highest true rate, else the later step among those that tie).
+    predicted rate (a checkpoint whose predicted rate is missing or NaN, its imagination diverged, is
+    not picked) against the truly best one of all (the picked one where it ties for the highest true
+    rate, else the later step among those that tie). Where the world model rates several checkpoints
+    equally highest it cannot choose between them: the pick is scored as one drawn at random among
+    them (its true rate, exact and within_ci their means over the tied), so that a constant predictor
+    scores chance, not the later checkpoint's luck.
 
-    Returns {"lineages": [{"task", "lineage", "picked_step", "best_step", "picked_true", "best_true",
-    "regret" (best_true - picked_true), "exact" (the picked one's true rate is the highest),
-    "within_ci" (the picked one's true rate lies inside the best one's 95% interval)}], "exact_share",
-    "within_ci_share", "mean_regret", "n"} (shares and mean NaN when no lineage qualifies).
+    Returns {"lineages": [{"task", "lineage", "picked_step" (the latest of the tied), "tied" (how many
+    share the highest rating), "best_step", "picked_true", "best_true", "regret" (best_true -
+    picked_true), "exact" (the share of the tied whose true rate is the highest: 1 or 0 without a
+    tie), "within_ci" (the share of them whose true rate lies inside the best one's 95% interval)}],
+    "exact_share", "within_ci_share", "mean_regret", "n"} (shares and mean NaN when no lineage qualifies).
     """
     groups: dict = {}
     for r in rows:
@@ -468,13 +472,16 @@ def checkpoint_selection(rows: list[dict]) -> dict:
         read = [r for r in rs if r.get("pred_rate") is not None and not math.isnan(r["pred_rate"])]
         if len(rs) < 2 or not read:
             continue
-        picked = max(read, key=lambda r: (r["pred_rate"], r["step"]))
+        top = max(r["pred_rate"] for r in read)
+        tied = [r for r in read if r["pred_rate"] == top]
+        picked = max(tied, key=lambda r: r["step"])
         best = max(rs, key=lambda r: (r["true_rate"], r is picked, r["step"]))
-        out.append({"task": task, "lineage": lineage, "picked_step": picked["step"], "best_step": best["step"],
-                    "picked_true": picked["true_rate"], "best_true": best["true_rate"],
-                    "regret": best["true_rate"] - picked["true_rate"],
-                    "exact": picked["true_rate"] >= best["true_rate"],
-                    "within_ci": picked["true_rate"] >= best["true_ci"][0]})
+        picked_true = float(np.mean([r["true_rate"] for r in tied]))
+        out.append({"task": task, "lineage": lineage, "picked_step": picked["step"], "tied": len(tied),
+                    "best_step": best["step"], "picked_true": picked_true, "best_true": best["true_rate"],
+                    "regret": best["true_rate"] - picked_true,
+                    "exact": float(np.mean([r["true_rate"] >= best["true_rate"] for r in tied])),
+                    "within_ci": float(np.mean([r["true_rate"] >= best["true_ci"][0] for r in tied]))})
     share = (lambda k: float(np.mean([x[k] for x in out]))) if out else (lambda k: math.nan)
     return {"lineages": out, "exact_share": share("exact"), "within_ci_share": share("within_ci"),
             "mean_regret": share("regret"), "n": len(out)}

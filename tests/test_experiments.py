@@ -19,8 +19,10 @@ from experiments.report import (
     UNSEEN_NETWORKS_TITLE,
     decision_figure,
     family_table,
+    md_table,
     read_results,
     selection_summary,
+    selection_table,
     verdict,
     violation_table,
     write_report,
@@ -658,12 +660,18 @@ def test_the_decision_figure_draws_without_an_alignment():
 
 
 def test_a_checkpoint_pick_among_equal_ratings_is_flagged():
-    rows = [{"task": "mug", "lineage": "conv", "step": s, "pred_rate": 0.5} for s in (10, 20, 30)]
-    sel = {"n": 1, "exact_share": 1.0, "within_ci_share": 1.0, "mean_regret": 0.0,
-           "lineages": [{"task": "mug", "lineage": "conv"}]}
-    assert "In 1 of them the world model rated several checkpoints equally highest" in selection_summary(sel, rows)
-    rows[0]["pred_rate"] = 0.6
-    assert "equally highest" not in selection_summary(sel, rows)
+    # a constant predictor: every checkpoint rated 0.5, the truly best (step 20) one of three
+    rows = [{"task": "mug", "lineage": "conv", "step": s, "pred_rate": 0.5, "true_rate": t,
+             "true_ci": [t - 0.1, t + 0.1]} for s, t in ((10, 0.2), (20, 0.8), (30, 0.5))]
+    sel = S.checkpoint_selection(rows)
+    (x,) = sel["lineages"]
+    assert (x["tied"], x["picked_step"], x["best_step"]) == (3, 30, 20)
+    assert x["exact"] == pytest.approx(1 / 3) and x["regret"] == pytest.approx(0.8 - 0.5)
+    assert "In 1 of them the world model rated several checkpoints equally highest" in selection_summary(sel)
+    assert "3 rated equally: 33% of them the best" in md_table(selection_table(sel))
+    rows[1]["pred_rate"] = 0.6
+    sel = S.checkpoint_selection(rows)
+    assert "equally highest" not in selection_summary(sel) and sel["lineages"][0]["exact"] == 1
 
 
 def test_a_results_file_the_report_cannot_read_is_named_with_what_is_wrong(evaluation, tmp_path):
