@@ -97,6 +97,7 @@ from wm.checkpoint import (
     load_run_config,
     load_started,
     load_trained,
+    read_json,
     trained_tasks,
     training_policies,
     training_seeds,
@@ -232,7 +233,8 @@ class EvalConfig:
             raise ValueError(f"unknown tasks {unknown}; choose among {', '.join(TASK_NAMES)}")
         if self.imagine not in ("",) + IMAGINE_MODES:
             raise ValueError(f"imagine must be one of {', '.join(IMAGINE_MODES)} or empty, got {self.imagine!r}")
-        if len(set(self.wm_runs)) != len(self.wm_runs):
+        same = [os.path.realpath(w) for w in self.wm_runs]  # one directory however spelled (a/, ./a, a link)
+        if len(set(same)) != len(same):
             raise ValueError(f"wm names a run twice: {self.wm}")
 
     @property
@@ -975,12 +977,11 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
     tasks = evaluation_tasks(cfg, sources)
     models = load_models(cfg.wm_runs, cfg.imagine)
     make_output_dir(out / "tasks")
-    _check_config(cfg, out, sources)
+    _check_config(cfg, out, sources, models)
     cfg = dataclasses.replace(cfg, readout=auto_readout(cfg.readout, cfg.wm_runs, models))
     wm_data = str(load_run_config(Path(cfg.wm_runs[0]))[1])  # the first model's data: the tasks it saw
     wm_cache = TrainingCache(wm_data) if (Path(wm_data) / "cache" / "index.json").exists() else None
-    unseen = [t for t in tasks if wm_cache is not None and t not in wm_cache.tasks]
-    if unseen:
+    if unseen := unlearned_tasks(cfg.wm_runs, tasks, wm_cache):
         print(f"warning: the world model never saw tasks {unseen} in training", file=sys.stderr)
     used = seeds_in_use(cfg, sources)
     engine = cfg.engine or default_engine()
@@ -992,6 +993,20 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
     report = gather(cfg, out, tasks, results, sources, models, wm_data, wm_cache, engine, preset)
     write_json_atomic(out / "results.json", no_nan(report))
     return report
+
+
+def unlearned_tasks(runs, tasks, wm_cache=None) -> list[str]:
+    """The tasks some world model of `runs` never learned (wm.checkpoint.trained_tasks: its judge's,
+    its training's, a bundle's included, whether or not its training data is on this machine); where a
+    model names none, those its first model's training cache (wm_cache) lacks."""
+    learned = [set(trained_tasks(Path(r))) for r in runs]
+    if learned and all(learned):
+        known = set.intersection(*learned)
+    elif wm_cache is not None:
+        known = set(wm_cache.tasks)
+    else:
+        return []
+    return [t for t in tasks if t not in known]
 
 
 def seeds_in_use(cfg: EvalConfig, sources) -> set:
@@ -1262,20 +1277,35 @@ def load_task(path: Path) -> dict:
 
 
 FINGERPRINTS = "policy_fingerprints"  # config.json's record of what each policy computed with
+WM_FINGERPRINTS = "wm_fingerprints"  # config.json's digests of the world models its results came from
 
 
-def _check_config(cfg: EvalConfig, out: Path, sources) -> None:
-    """Records cfg and every policy's fingerprint (its parameters and, for a plug-in, its code) in
-    out/config.json, or checks a rerun against them: results an OUT holds are read back, so they must
-    come from this configuration and these policies as they are now. An OUT that holds no results yet
-    (a run that failed before its first task was saved) is taken over by the new configuration."""
+def wm_fingerprint(model) -> str:
+    """A digest of what a world model (load_models' (config, params, Norm, judge)) computes: a run
+    trained again, or another bundle copied to the same path, changes it."""
+    wm_cfg, params, norm, judge = model
+    h = hashlib.sha256(json.dumps(as_json(wm_cfg), sort_keys=True).encode())
+    hash_arrays(h, (params, [getattr(norm, f.name) for f in dataclasses.fields(norm)]))
+    if judge is not None:
+        hash_arrays(h, (judge.params, judge.mean, judge.std, judge.columns))
+    return h.hexdigest()[:16]
+
+
+def _check_config(cfg: EvalConfig, out: Path, sources, models=None) -> None:
+    """Records cfg, every policy's fingerprint (its parameters and, for a plug-in, its code) and every
+    world model's (wm_fingerprint; with `models`) in out/config.json, or checks a rerun against them:
+    results an OUT holds are read back, so they must come from this configuration and these policies
+    and world models as they are now. An OUT that holds no results yet (a run that failed before its
+    first task was saved) is taken over by the new configuration."""
     mine = as_json(cfg)
     mine.pop("max_minutes")  # a time budget does not change what is computed
     prints = {s.name: fingerprint(s) for s in sources}
+    wm_prints = None if models is None else [wm_fingerprint(m) for m in models]
     path = out / "config.json"
     if path.exists() and (any((out / "tasks").glob("*.npz")) or (out / "results.json").exists()):
-        saved = json.loads(path.read_text())
+        saved = read_json(path)
         theirs = saved.pop(FINGERPRINTS, {})
+        their_wm = saved.pop(WM_FINGERPRINTS, None)  # None: an OUT that records none, resumed as it is
         differs = [f for f in differing_fields(saved, mine, as_json(EvalConfig())) if f != "max_minutes"]
         if differs:
             raise ValueError(f"{out} holds an evaluation of another configuration (differs: {', '.join(differs)}); "
@@ -1284,8 +1314,12 @@ def _check_config(cfg: EvalConfig, out: Path, sources) -> None:
         if changed:
             raise ValueError(f"{out} holds results of {changed} as their code or parameters were then, not as "
                              "they are now; use another OUT")
+        if their_wm is not None and wm_prints is not None and their_wm != wm_prints:
+            raise ValueError(f"{out} holds results of the world model {cfg.wm} as it was then: what is there now "
+                             "differs (trained again, or another bundle copied there); use another OUT")
     else:
-        write_json_atomic(path, mine | {FINGERPRINTS: prints})
+        write_json_atomic(path, mine | {FINGERPRINTS: prints}
+                          | ({} if wm_prints is None else {WM_FINGERPRINTS: wm_prints}))
 
 
 def main(argv=None) -> int:

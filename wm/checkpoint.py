@@ -44,9 +44,20 @@ def is_bundle(out: Path) -> bool:
     return (Path(out) / BUNDLE).exists()
 
 
+def read_json(path: Path) -> dict:
+    """A run's or bundle's JSON file, a damaged (truncated, half-copied) one refused naming it."""
+    try:
+        d = json.loads(Path(path).read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"{path} is not valid JSON ({e}): the copy is damaged; copy it again") from None
+    if not isinstance(d, dict):
+        raise ValueError(f"{path} is not a JSON object: the copy is damaged; copy it again")
+    return d
+
+
 def bundle_meta(out: Path) -> dict:
     """The bundle.json of a bundle directory."""
-    return json.loads((Path(out) / BUNDLE).read_text())
+    return read_json(Path(out) / BUNDLE)
 
 
 def run_file(out: Path, name: str) -> dict | None:
@@ -56,7 +67,7 @@ def run_file(out: Path, name: str) -> dict | None:
     if is_bundle(out):
         return bundle_meta(out)["files"].get(name)
     path = out / name
-    return json.loads(path.read_text()) if path.exists() else None
+    return read_json(path) if path.exists() else None
 
 
 def load_run_config(out: Path) -> tuple[TrainConfig, Path]:
@@ -112,7 +123,7 @@ def load_trained(out: Path):
         raise FileNotFoundError(f"{out} holds no trained world model (config.json and best/, or {BUNDLE}): "
                                 "run make train first")
     cfg, _ = load_run_config(out)
-    norm = Norm.from_dict(json.loads((out / "norm.json").read_text()))
+    norm = Norm.from_dict(read_json(out / "norm.json"))
     mgr = ocp.CheckpointManager(out.absolute() / "best", options=ocp.CheckpointManagerOptions(create=False))
     step = mgr.latest_step()
     if step is None:
@@ -130,7 +141,7 @@ def load_started(out: Path):
     if not (out / "config.json").exists() or not (out / "norm.json").exists():
         raise FileNotFoundError(f"{out} holds no started training run (config.json and norm.json)")
     cfg, _ = load_run_config(out)
-    norm = Norm.from_dict(json.loads((out / "norm.json").read_text()))
+    norm = Norm.from_dict(read_json(out / "norm.json"))
     shapes = _shapes(cfg)
     # zeros made on the host: an eager jnp.zeros would compile a program for every parameter's shape
     return cfg, jax.device_put(jax.tree_util.tree_map(lambda x: np.zeros(x.shape, x.dtype), shapes),
