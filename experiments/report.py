@@ -24,7 +24,7 @@ from matplotlib.lines import Line2D
 from PIL import Image
 
 from experiments.stats import MIN_CORRELATED, nonfinite_policies, policy_count, rank
-from sim_data.util import run_cli
+from sim_data.util import read_json, run_cli
 
 # each evaluation preset's own targets for the within-task means (docs/results.md)
 TARGETS = {"demo": {"pearson": (">=", 0.7)},
@@ -811,13 +811,8 @@ def read_results(run: Path) -> dict:
     read as null, as experiments.evaluate writes an undefined figure. Raises ValueError naming the file
     and the field where it is not an evaluation's results."""
     path = Path(run) / "results.json"
-    try:
-        res = json.loads(path.read_text(), parse_constant=lambda token: None)
-    except ValueError as e:
-        raise ValueError(f"{path} is not valid JSON ({e}): a file cut short? copy it again or rerun make eval") from e
+    res = read_json(path, "a file cut short? copy it again or rerun make eval", nan_as_none=True)
     what = f"{path} is not an experiments.evaluate results.json"
-    if not isinstance(res, dict):
-        raise ValueError(f"{what} (a JSON object expected, got {type(res).__name__})")
     if missing := [k for k in RESULTS_KEYS if k not in res]:
         raise ValueError(f"{what}: it lacks {', '.join(missing)} (written by an older version? rerun make eval)")
     if not res["tasks"]:

@@ -25,6 +25,19 @@ def write_json_atomic(path: Path, obj) -> None:
     os.replace(tmp, path)
 
 
+def read_json(path: Path, hint: str = "the copy is damaged; copy it again", nan_as_none: bool = False) -> dict:
+    """The JSON object in path; one that does not parse (truncated, half copied) or is not an object is
+    refused with a ValueError naming the file and ending in hint. nan_as_none: NaN and Infinity tokens
+    (json.dump's default for an undefined float) read as None."""
+    try:
+        d = json.loads(Path(path).read_text(), **({"parse_constant": lambda token: None} if nan_as_none else {}))
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"{path} is not valid JSON ({e}): {hint}") from None
+    if not isinstance(d, dict):
+        raise ValueError(f"{path} is not a JSON object ({type(d).__name__}): {hint}")
+    return d
+
+
 def is_key_array(x) -> bool:
     """Whether x is an array of typed random keys (jax.random.key), whose bits numpy reads only through
     jax.random.key_data."""

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import hashlib
-import json
 import os
 import shutil
 import sys
@@ -28,7 +27,7 @@ from flax import serialization, traverse_util
 
 from sim_data.dataset.cache import TrainingCache
 from sim_data.policies.registry import used_policies, used_seeds
-from sim_data.util import run_cli, write_json_atomic
+from sim_data.util import read_json, run_cli, write_json_atomic
 from wm.config import TrainConfig, from_dict
 from wm.imagine import Norm
 from wm.model import init_params
@@ -42,17 +41,6 @@ RUN_FILES = ("config.json", "norm.json", "train_status.json", "eval.json", "judg
 def is_bundle(out: Path) -> bool:
     """Whether out is a bundle directory (it holds bundle.json) rather than a training run's."""
     return (Path(out) / BUNDLE).exists()
-
-
-def read_json(path: Path) -> dict:
-    """A run's or bundle's JSON file, a damaged (truncated, half-copied) one refused naming it."""
-    try:
-        d = json.loads(Path(path).read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise ValueError(f"{path} is not valid JSON ({e}): the copy is damaged; copy it again") from None
-    if not isinstance(d, dict):
-        raise ValueError(f"{path} is not a JSON object: the copy is damaged; copy it again")
-    return d
 
 
 def bundle_meta(out: Path) -> dict:

@@ -47,7 +47,7 @@ from sim_data.policies.degrade import DegradedPolicy, degrade_params, perturbed_
 from sim_data.sim.robot import ACTION_DIM, PROPRIO_DIM, robot_index
 from sim_data.sim.scene import load_model
 from sim_data.sim.tasks import TASK_NAMES
-from sim_data.util import even_pieces, hash_arrays, pad_with_last
+from sim_data.util import even_pieces, hash_arrays, pad_with_last, read_json
 
 
 @typing.runtime_checkable
@@ -237,17 +237,25 @@ def check_protocol(spec: str, policy, params, batch: int = 2, size: int = 64,
     return h.hexdigest()
 
 
-def _check_batch(spec: str, policy, params, batch: int, size: int, task_state_optional: bool, again: bool = False):
-    """check_protocol at one batch size: (init_carry's and act's traced programs), or None where the
-    policy fails without a task state and task_state_optional (a warning says so). again: the second
-    batch size traced, where a wrong shape most likely means a batch fixed in the policy's code."""
+def trace_on_blank_batch(policy, params, batch: int, size: int):
+    """(init_carry's program, its carry's shapes, act's program, act's output shapes), traced
+    (jax.make_jaxpr: nothing is compiled or run) on a blank batch as the world model gives it: image
+    (batch, size, size, 3) uint8, proprio (batch, 37) float32, task_state None."""
     obs = {"image": jax.ShapeDtypeStruct((batch, size, size, 3), jnp.uint8),
            "proprio": jax.ShapeDtypeStruct((batch, PROPRIO_DIM), jnp.float32)}
     rng = jax.random.PRNGKey(0)
     init = lambda p, o, k: policy.init_carry(p, o, None, k)  # noqa: E731
+    init_jaxpr, carry = jax.make_jaxpr(init, return_shape=True)(params, obs, rng)
+    act_jaxpr, out = jax.make_jaxpr(policy.act, return_shape=True)(params, obs, carry, rng)
+    return init_jaxpr, carry, act_jaxpr, out
+
+
+def _check_batch(spec: str, policy, params, batch: int, size: int, task_state_optional: bool, again: bool = False):
+    """check_protocol at one batch size: (init_carry's and act's traced programs), or None where the
+    policy fails without a task state and task_state_optional (a warning says so). again: the second
+    batch size traced, where a wrong shape most likely means a batch fixed in the policy's code."""
     try:
-        init_jaxpr, carry = jax.make_jaxpr(init, return_shape=True)(params, obs, rng)
-        act_jaxpr, out = jax.make_jaxpr(policy.act, return_shape=True)(params, obs, carry, rng)
+        init_jaxpr, carry, act_jaxpr, out = trace_on_blank_batch(policy, params, batch, size)
     except Exception as e:
         if task_state_optional:
             print(f"warning: plug-in {spec!r} is not checked: it fails without the simulator's task state "
@@ -348,17 +356,12 @@ def load_registry_sources(spec: str, planned: bool = False) -> list[PolicySource
 
 
 def _check_checkpoint(file: Path, source: PolicySource) -> None:
-    """Traces (jax.eval_shape: nothing is compiled or run) a registry policy's init_carry and act on a
-    blank batch of 2, raising a ValueError naming the registry, the policy and its net where the
-    checkpoint's parameters do not fit the network its record describes (another architecture or
-    width): what would otherwise fail deep inside the evaluation's first rollout."""
-    size = source.record["net"].get("size", 64)
-    obs = {"image": jax.ShapeDtypeStruct((2, size, size, 3), jnp.uint8),
-           "proprio": jax.ShapeDtypeStruct((2, PROPRIO_DIM), jnp.float32)}
-    rng = jax.random.PRNGKey(0)
+    """Traces a registry policy on a blank batch of 2 (trace_on_blank_batch), raising a ValueError naming
+    the registry, the policy and its net where the checkpoint's parameters do not fit the network its
+    record describes (another architecture or width): what would otherwise fail deep inside the
+    evaluation's first rollout."""
     try:
-        carry = jax.eval_shape(lambda p, o: source.policy.init_carry(p, o, None, rng), source.params, obs)
-        jax.eval_shape(lambda p, o, c: source.policy.act(p, o, c, rng), source.params, obs, carry)
+        trace_on_blank_batch(source.policy, source.params, 2, source.record["net"].get("size", 64))
     except Exception as e:
         first = (str(e).splitlines() or [""])[0]
         raise ValueError(f"{file}: policy {source.name!r}: its checkpoint {source.record['checkpoint']} does not fit "
@@ -435,11 +438,8 @@ def load_registry(path: Path, name: str = REGISTRY) -> list[dict]:
                              "plug-in is package.module:attribute, the attribute a callable returning (policy, params))")
         raise FileNotFoundError(f"{path} is missing: " + ("train a zoo first (make policies)" if name == REGISTRY else
                                                           "the zoo has not started (it writes its plan first)"))
-    try:
-        registry = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{path} is not valid JSON: {e}") from None
-    records = registry.get("policies") if isinstance(registry, dict) else None
+    registry = read_json(path, "a zoo registry lists its checkpoints; copy it again or retrain the zoo")
+    records = registry.get("policies")
     if not isinstance(records, list):
         raise ValueError(f"{path}: a zoo registry is a JSON object whose \"policies\" lists one record per "
                          "checkpoint (and whose \"data\" names the dataset it learned from)")
