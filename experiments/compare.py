@@ -29,6 +29,15 @@ there are at least three a task. Last, the policies whose predicted success rate
 the two designs (each design's mean over its runs), and the largest such move: with one run a side
 of the same command, on the same commit and machine kind, it checks that the evaluation reproduces
 (every predicted rate within 0.01).
+
+With `--states A:B` every run counts only its held-out initial states A to B-1 of each task: the
+evaluation draws its states as a prefix of one sequence (sim_data.policies.registry.heldout_seeds),
+so an evaluation of 100 states holds that of 50 as its first 50, and
+
+    python -m experiments.compare --base runs/eval/s50 --design runs/eval/s100 --states 0:50
+
+compares two models on the states both ran, or one run with itself over 0:50 and 50:100 to see how
+far the figures move with the episodes counted.
 """
 
 from __future__ import annotations
@@ -91,6 +100,36 @@ def episode_tables(results: list[dict]) -> tuple[dict, dict, dict, dict]:
                                    for j in range(len(names))])
         family[task] = np.asarray([S.is_family(p) for p in rows[0]])
     return true, preds, unseen, family
+
+
+def parse_states(text: str) -> tuple[int, int]:
+    """"A:B" -> (A, B), the held-out initial states A to B-1; ValueError unless 0 <= A < B."""
+    lo, sep, hi = text.partition(":")
+    try:
+        a, b = int(lo), int(hi)
+    except ValueError:
+        a = b = -1
+    if not sep or not 0 <= a < b:
+        raise ValueError(f"--states {text!r}: give A:B with 0 <= A < B, the states A to B-1 (for instance 0:50)")
+    return a, b
+
+
+def state_range(results: list[dict], lo: int, hi: int, labels=None) -> list[dict]:
+    """Each experiments.evaluate results.json with every policy's per-episode outcomes and predictions
+    (true_episodes, pred_episodes) cut to its held-out initial states lo..hi-1, in the evaluation's
+    order of states; the rest of each policy's row as it was. labels: each run's name for errors.
+    Raises ValueError, naming the run and policy, where a policy ran fewer than hi states."""
+    out = []
+    for i, r in enumerate(results):
+        rows = []
+        for p in r["policies"]:
+            n = min(len(p.get("true_episodes", ())), len(p.get("pred_episodes", ())))
+            if n < hi:
+                name = labels[i] if labels else f"evaluation {i}"
+                raise ValueError(f"{name}: {p['name']} ran {n} initial states, fewer than --states' end {hi}")
+            rows.append(p | {"true_episodes": p["true_episodes"][lo:hi], "pred_episodes": p["pred_episodes"][lo:hi]})
+        out.append(r | {"policies": rows})
+    return out
 
 
 def _task_mean(per_task: dict) -> dict:
@@ -281,18 +320,30 @@ def main(argv=None) -> int:
     p.add_argument("--names", default="base,design", help="the two designs' names in the table: BASE,DESIGN")
     p.add_argument("--draws", type=int, default=1000, help="bootstrap draws")
     p.add_argument("--out", type=Path, help="where the comparison's JSON goes (optional; with it, a PNG beside it)")
+    p.add_argument("--states", metavar="A:B",
+                   help="count only each task's held-out initial states A to B-1 of every run (default: all)")
     a = p.parse_args(argv)
     names = tuple(a.names.split(","))
     if len(names) != 2 or not all(names):
         p.error(f"--names takes two names separated by a comma, got {a.names!r}")
     if a.draws < 1:
         p.error(f"--draws {a.draws}: give at least one")
-    res = compare([read_run(r) for r in a.base], [read_run(r) for r in a.design], a.draws)
-    res |= {"names": list(names), "base_runs": [str(r) for r in a.base], "design_runs": [str(r) for r in a.design]}
+    try:
+        states = parse_states(a.states) if a.states else None
+    except ValueError as e:
+        p.error(str(e))
+    runs = [read_run(r) for r in a.base + a.design]
+    if states:
+        runs = state_range(runs, *states, labels=a.base + a.design)
+    res = compare(runs[:len(a.base)], runs[len(a.base):], a.draws)
+    res |= {"names": list(names), "base_runs": [str(r) for r in a.base], "design_runs": [str(r) for r in a.design],
+            "states": list(states) if states else None}
     if a.out:
         a.out.parent.mkdir(parents=True, exist_ok=True)
         write_json_atomic(a.out, res)
         plot(res, a.out.with_suffix(".png"), names)
+    if states:
+        print(f"Each task's held-out initial states {states[0]} to {states[1] - 1} of every run.\n")
     print(markdown(res, names) + "\n\n" + shifts_markdown(res["shifts"], names))
     return 0
 

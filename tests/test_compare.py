@@ -216,3 +216,40 @@ def test_a_member_of_an_ensemble_is_read_alone_and_compared_against_the_ensemble
     (tmp_path / "ens" / "results.json").write_text(json.dumps(stale))
     with pytest.raises(ValueError, match="holds no mug/renamed"):
         E.read_run(f"{tmp_path / 'ens'}#0")
+
+
+def test_states_cut_every_run_to_the_same_initial_states_and_a_run_too_short_is_named(tmp_path, capsys):
+    true = _truth(3)
+    pred = _noisy(true, 0.2, 7)
+    long_run, short_run = tmp_path / "s12", tmp_path / "s6"
+    long_run.mkdir()
+    short_run.mkdir()
+    (long_run / "results.json").write_text(json.dumps(_results(true, pred)))
+    # an evaluation of the first 6 states: the prefix of the 12-state one, as heldout_seeds draws them
+    first = {t: v[:, :6] for t, v in true.items()}
+    (short_run / "results.json").write_text(json.dumps(_results(first, {t: v[:, :6] for t, v in pred.items()})))
+    with pytest.raises(ValueError, match="other true outcomes"):  # uncut, their truth differs in shape
+        C.compare([E.read_run(str(short_run))], [E.read_run(str(long_run))], draws=5)
+    out = tmp_path / "c.json"
+    assert C.main(["--base", str(short_run), "--design", str(long_run), "--states", "0:6", "--draws", "20",
+                   "--out", str(out)]) == 0
+    res = json.loads(out.read_text())
+    assert res["states"] == [0, 6]
+    want = S.within_task(first, {"wm": {t: v[:, :6] for t, v in pred.items()}}, draws=2)["wm"]["mean"]
+    for g in ("base", "design"):
+        assert res["all"][g]["runs"][0]["pearson"] == pytest.approx(want["pearson"])
+        assert res["all"][g]["runs"][0]["mmrv"] == pytest.approx(want["mmrv"])
+    assert res["all"]["gain"]["mean"]["pearson"] == 0.0
+    assert "states 0 to 5" in capsys.readouterr().out
+    # the later states alone: the same model's figures over another draw of states
+    assert C.main(["--base", str(long_run), "--design", str(long_run), "--states", "6:12", "--draws", "5",
+                   "--out", str(out)]) == 0
+    later = S.within_task({t: v[:, 6:] for t, v in true.items()}, {"wm": {t: v[:, 6:] for t, v in pred.items()}},
+                          draws=2)["wm"]["mean"]
+    assert json.loads(out.read_text())["all"]["base"]["runs"][0]["pearson"] == pytest.approx(later["pearson"])
+    with pytest.raises(ValueError, match=r"s6: mug/p0 ran 6 initial states, fewer than --states' end 12"):
+        C.main(["--base", str(short_run), "--design", str(long_run), "--states", "0:12"])
+    for bad in ("50", "5:5", "a:b", "-1:4"):
+        with pytest.raises(SystemExit):
+            C.main(["--base", str(short_run), "--design", str(long_run), "--states", bad])
+
