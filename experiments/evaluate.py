@@ -112,7 +112,7 @@ from wm.imagine import (
     observed_features,
     open_loop,
 )
-from wm.judge import check_features, load_judge
+from wm.judge import JUDGE, SECOND_JUDGE, check_features, load_judge
 from wm.metrics import psnr
 from wm.model import IMAGINE_MODES
 from wm.quality import no_nan, program_panel
@@ -120,7 +120,8 @@ from wm.train import warm_after_training
 
 # Per-step arrays (P, N, T) saved with each task: imagined success and progress, the simulator's progress
 TRACES = ("trace_success", "trace_progress", "true_progress")
-READOUTS = ("progress", "judge", "success")
+# "judge2": the second episode judge (wm.config.TrainConfig.judge2_inputs), NaN for a model without one
+READOUTS = ("progress", "judge", "success", "judge2")
 AUTO = "auto"  # the judge where every model's judge saw its own closed-loop imaginations of learned policies
 READOUT_KEYS = tuple(f"readout_{r}" for r in READOUTS)
 # Steps at which imagined frames are compared with the simulator's (and the task's last step)
@@ -133,7 +134,7 @@ FIDELITY = ("frame_psnr", "copy_first_psnr", "action_gap", "action_gap_dims")
 POLICY_ARRAYS = (("true", "prob", "prob_observed", "prob_replayed", "sim_imagined", "sim_finite") + READOUT_KEYS
                  + TRACES + FIDELITY)
 READOUT_LABELS = {"progress": "progress head at the last step", "judge": "episode judge",
-                  "success": "highest per-step success probability"}
+                  "success": "highest per-step success probability", "judge2": "second episode judge"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -326,7 +327,7 @@ def balance_chunks(sizes: dict, n_parts: int) -> dict:
 def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: str, progress: bool,
                   chunks=None) -> dict:
     """True and predicted outcomes of every source on task from the held-out seeds, predicted by
-    each of K world models (`models`: a list of (config, params, norm, judge)); with `chunks` (keys
+    each of K world models (`models`: load_models' list); with `chunks` (keys
     (k, j) of task_batches), of those batches only (a part of the task, for merge_task_parts).
 
     Returns {"names": [P], "true": (P, N) bool, "prob": (P, N) float (cfg.readout's; the models'
@@ -502,10 +503,10 @@ def _imagine(model, task, policy, params, frames0, proprio0, steps, rng) -> dict
     success probability by that read-out (read_episodes), "trace_success" and "trace_progress": (B, T)
     float32 the per-step heads' outputs, "frames": (B, T, S, S, 3) uint8 imagined, "action": (B, T, 20)
     float32 the policy's actions}."""
-    wm_cfg, wm_params, norm, judge = model
+    wm_cfg, wm_params, norm, judge, judge2 = model
     got = closed_loop(wm_cfg.model, policy, steps, wm_params, norm, params, frames0, proprio0,
                       np.zeros((len(frames0), 0, R.ACTION_DIM), np.float32), rng)
-    return {**read_episodes(judge, task, got["features"]), "trace_success": np.asarray(got["success"], np.float32),
+    return {**read_episodes(judge, task, got["features"], judge2), "trace_success": np.asarray(got["success"], np.float32),
             "trace_progress": np.asarray(got["progress"], np.float32), "frames": got["frames"],
             "action": np.asarray(got["action"], np.float32), "features": got["features"]}
 
@@ -562,16 +563,19 @@ def imagination_fidelity(truth: dict, imagined, actions, steps: int) -> dict:
             "action_gap_dims": np.sqrt(squared.mean(1)).astype(np.float32)}
 
 
-def read_episodes(judge, task: str, features) -> dict:
+def read_episodes(judge, task: str, features, judge2=None) -> dict:
     """Every read-out of episodes' success from their step features ((B, T, F), wm.imagine.step_features
     or observed_features): {"progress": (B,) the progress head's last value clipped to [0, 1],
     "success": (B,) the highest per-step success probability, "judge": (B,) the episode judge's
-    (the "success" read-out where no judge knows the task)}, float64."""
+    (the "success" read-out where no judge knows the task), "judge2": (B,) the second judge's
+    (NaN without one, or where it does not know the task)}, float64."""
     x = np.asarray(features)
     out = {"progress": np.clip(x[:, -1, PROGRESS_FEATURE], 0.0, 1.0).astype(np.float64),
            "success": np.asarray(episode_success(x[..., SUCCESS_FEATURE]), np.float64)}
     out["judge"] = judge.probability(x, task).astype(np.float64) if judge is not None and judge.knows(task) \
         else out["success"]
+    out["judge2"] = judge2.probability(x, task).astype(np.float64) if judge2 is not None and judge2.knows(task) \
+        else np.full(len(x), np.nan)
     return out
 
 
@@ -581,7 +585,7 @@ def truth_features(model, truth: dict):
     (read back from the truth cache)."""
     if "frames" not in truth:
         return None
-    wm_cfg, wm_params, norm, _ = model
+    wm_cfg, wm_params, norm, _, _ = model
     return observed_features(wm_cfg.model, wm_params, norm, truth["frames"], truth["proprio"], truth["action"])
 
 
@@ -591,7 +595,7 @@ def _read_truth(model, task, x, readout: str, b: int) -> np.ndarray:
     low, the heads (or the judge) cannot read the outcome even from true frames; NaN where x is None."""
     if x is None:
         return np.full(b, np.nan)
-    return read_episodes(model[3], task, x)[readout]
+    return read_episodes(model[3], task, x, model[4])[readout]
 
 
 def _read_replay(model, task, truth: dict, readout: str) -> np.ndarray:
@@ -601,10 +605,10 @@ def _read_replay(model, task, truth: dict, readout: str) -> np.ndarray:
     b = len(truth["frames0"])
     if "frames" not in truth:
         return np.full(b, np.nan)
-    wm_cfg, wm_params, norm, judge = model
+    wm_cfg, wm_params, norm, judge, judge2 = model
     got = open_loop(wm_cfg.model, wm_params, norm, truth["frames0"], truth["proprio0"],
                     np.zeros((b, 0, R.ACTION_DIM), np.float32), truth["action"])
-    return read_episodes(judge, task, got["features"])[readout]
+    return read_episodes(judge, task, got["features"], judge2)[readout]
 
 
 def simulated_finite(truth: dict) -> np.ndarray:
@@ -752,12 +756,14 @@ def largest_action_gap(dims) -> dict | None:
 def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) -> list[dict]:
     """One report row per policy of task from its results (evaluate_task's dict; sources_by_name: the sources by
     name, for their records and kinds): the true rate and predicted rate with their intervals, the thresholded
-    prediction, alignment, each read-out's rate, the rates read on the simulated and replayed episodes, mean
+    prediction, alignment, each read-out's rate (those of READOUTS that read the task: no second judge's
+    where the world models have none), the rates read on the simulated and replayed episodes, mean
     progress curves, the action gap, and the per-episode outcomes and probabilities; with an ensemble, each
     member's predicted rate ("pred_rates")."""
     rows = []
     members = res["prob_members"].transpose(1, 0, 2)  # (P, K, N)
-    readouts = np.stack([res[k] for k in READOUT_KEYS], axis=1)  # (P, R, N)
+    named = [r for r in READOUTS if r != SECOND_JUDGE or np.isfinite(res[f"readout_{r}"]).any()]
+    readouts = np.stack([res[f"readout_{r}"] for r in named], axis=1).reshape(len(res["names"]), len(named), -1)
     for name, t, p, r, pk, ok, tp, ip, gap, dims, obs, rep, played in zip(
             res["names"], res["true"], res["prob"], readouts, members, res["sim_finite"], res["true_progress"],
             res["trace_progress"], res["action_gap"], res["action_gap_dims"], res["prob_observed"],
@@ -774,7 +780,7 @@ def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) ->
                                              else [math.nan, math.nan]),
                      "val_loss": rec.get("val_loss"),
                      "alignment": S.alignment(p >= cfg.threshold, t) if read else math.nan,
-                     "pred_rate_readouts": dict(zip(READOUTS, r.mean(1).tolist(), strict=True)),
+                     "pred_rate_readouts": dict(zip(named, r.mean(1).tolist(), strict=True)),
                      # the read-out of the simulated episodes, and of their actions replayed (replay=1)
                      "pred_rate_on_truth": _mean_or_none(obs), "pred_rate_replayed": _mean_or_none(rep),
                      # the simulator's success on the actions the policy took in imagination (replay=1)
@@ -789,6 +795,12 @@ def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) ->
         if len(pk) > 1:
             rows[-1]["pred_rates"] = pk.mean(1).tolist()  # each ensemble member's
     return rows
+
+
+def read_readouts(rows: list[dict]) -> list[str]:
+    """The READOUTS that every policy of rows (policy_rows) has a rate of: all but a second judge the
+    world models do not have."""
+    return [r for r in READOUTS if all(r in row["pred_rate_readouts"] for row in rows)]
 
 
 def ranking_block(rows: list[dict], true_eps, prob_eps, threshold: float, member_eps=None) -> dict:
@@ -810,7 +822,7 @@ def ranking_block(rows: list[dict], true_eps, prob_eps, threshold: float, member
     thr = S.ranking_metrics([r["pred_rate_thresholded"] for r in rows], true)
     out["thresholded"] = {k: thr[k] for k in ("pearson", "spearman", "mmrv", "pairwise_acc_gap10")}
     out["readouts"] = {}
-    for name in READOUTS:
+    for name in read_readouts(rows):
         m = S.ranking_metrics([r["pred_rate_readouts"][name] for r in rows], true)
         out["readouts"][name] = {k: m[k] for k in ("pearson", "spearman", "mmrv", "pairwise_acc_gap10")}
     if left_out and len(read) < 2:  # fewer than two predictions read: nothing is ranked (the above compared NaN)
@@ -838,7 +850,8 @@ def within_task_block(results: dict, tasks, rows: list[dict], cfg: EvalConfig, k
     the actions taken in imagination ("sim_imagined", cfg.replay), over the policies whose name `keep`
     accepts."""
     true, wm, proxy, observed, replayed, played, picked_of = {}, {}, {}, {}, {}, {}, {}
-    others = {f"readout_{r}": {} for r in READOUTS if r != cfg.readout}
+    read = [r for r in READOUTS if r != SECOND_JUDGE or any(np.isfinite(results[t][f"readout_{r}"]).any() for t in tasks)]
+    others = {f"readout_{r}": {} for r in read if r != cfg.readout}
     for t in tasks:
         names = results[t]["names"]
         loss = {r["name"]: r["val_loss"] for r in rows if r["task"] == t}
@@ -931,7 +944,7 @@ def warm(cfg: EvalConfig, progress: bool = True, wait_s: float = 0.0, after_trai
     models = []
     for run in cfg.wm_runs:
         wm_cfg, params, norm = load_started(Path(run))
-        models.append((with_imagine(wm_cfg, cfg.imagine), params, norm, None))
+        models.append((with_imagine(wm_cfg, cfg.imagine), params, norm, None, None))
     t0 = time.perf_counter()
     if after_training:
         train_cfg, train_data = load_run_config(Path(cfg.wm_runs[0]))
@@ -952,7 +965,7 @@ def warm(cfg: EvalConfig, progress: bool = True, wait_s: float = 0.0, after_trai
             policy, params = chunk_policy(padded, s1 - s0)
             truth = _simulate(task, policy, params, seeds[s0:s1], reset_keys, rng, engine, renderer, WARM_STEPS)
             _predict_batch(cfg, task, models, policy, params, truth, rng)
-    wm_cfg, wm_params, norm, _ = models[0]
+    wm_cfg, wm_params, norm, _, _ = models[0]
     wm_data = load_run_config(Path(cfg.wm_runs[0]))[1]
     if (Path(wm_data) / "cache" / "index.json").exists():
         program_panel(wm_cfg, wm_params, norm, TrainingCache(wm_data), horizon=48)
@@ -976,6 +989,9 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
     sources = resolve(cfg.policies)  # the policies and models are checked before OUT records the configuration
     tasks = evaluation_tasks(cfg, sources)
     models = load_models(cfg.wm_runs, cfg.imagine)
+    if cfg.readout == SECOND_JUDGE and (lacking := [r for r, m in zip(cfg.wm_runs, models) if m[4] is None]):
+        raise ValueError(f"readout=judge2 ranks by a second episode judge, which {', '.join(lacking)} lacks: train "
+                         "with judge2_inputs=... (wm.config.TrainConfig) or choose another read-out")
     make_output_dir(out / "tasks")
     _check_config(cfg, out, sources, models)
     cfg = dataclasses.replace(cfg, readout=auto_readout(cfg.readout, cfg.wm_runs, models))
@@ -1102,7 +1118,7 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, models, wm
         r["in_wm_data"] = r["name"] in seen
     metrics = all_metrics(cfg, results, tasks, rows, seen)
     training = [training_status(Path(r)) for r in cfg.wm_runs]
-    wm_cfg, wm_params, norm, judge = models[0]
+    wm_cfg, wm_params, norm, judge, _ = models[0]
     panel = program_panel(wm_cfg, wm_params, norm, wm_cache, horizon=48) if wm_cache is not None else {}
     _write_videos(out, results, tasks, panel)
     return {
@@ -1121,7 +1137,7 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, models, wm
         # the chosen read-out's, then each read-out's ("by_readout")
         "families": S.family_statistics(rows) | {"by_readout": {
             r: S.family_statistics([dict(x, rate=x["pred_rate_readouts"][r]) for x in rows], "rate", ceiling=False)
-            for r in READOUTS}},
+            for r in read_readouts(rows)}},
         # which policies carry each task's MMRV (the ranked read-out's rates)
         "rank_violations": S.rank_violations([r for r in rows if np.isfinite(r["pred_rate"])]),
         "decision": decision_analysis(cfg, results, metrics["pooled"]["alignment"]),
@@ -1195,17 +1211,19 @@ def auto_readout(readout: str, runs, models) -> str:
 
 
 def load_models(runs, imagine: str = "") -> list:
-    """[(TrainConfig, params, Norm, judge or None)] of world-model run directories, checked to draw
-    frames of one size (the simulator renders the first frame once for all of them); imagine: their
-    imagination setting (wm.model.ModelConfig.imagine) in place of their own, unless empty."""
+    """[(TrainConfig, params, Norm, judge or None, second judge or None)] of world-model run
+    directories, checked to draw frames of one size (the simulator renders the first frame once for
+    all of them); imagine: their imagination setting (wm.model.ModelConfig.imagine) in place of their
+    own, unless empty."""
     models = []
     for run in runs:
         wm_cfg, params, norm = load_trained(Path(run))
         wm_cfg = with_imagine(wm_cfg, imagine)
-        judge = load_judge(Path(run))
-        if judge is not None:
-            check_features(wm_cfg.model, judge)
-        models.append((wm_cfg, params, norm, judge))
+        judges = [load_judge(Path(run), name) for name in (JUDGE, SECOND_JUDGE)]
+        for judge in judges:
+            if judge is not None:
+                check_features(wm_cfg.model, judge)
+        models.append((wm_cfg, params, norm, *judges))
     sizes = {m[0].model.size for m in models}
     if len(sizes) > 1:
         raise ValueError(f"the world models {list(runs)} draw frames of sizes {sorted(sizes)}: an ensemble needs one")
@@ -1270,7 +1288,8 @@ def load_task(path: Path) -> dict:
         finite = z["sim_finite"] if "sim_finite" in z.files else np.ones(z["prob"].shape, bool)
         traces = {k: z[k] if k in z.files else np.zeros(z["prob"].shape + (0,), np.float16) for k in TRACES}
         fidelity = {k: z[k] if k in z.files else np.full(z["prob"].shape + (0,), np.nan, np.float32) for k in FIDELITY}
-        return {**meta, "true": z["true"].astype(bool), "prob": z["prob"], **{k: z[k] for k in READOUT_KEYS},
+        readouts = {k: z[k] if k in z.files else np.full(z["prob"].shape, np.nan) for k in READOUT_KEYS}
+        return {**meta, "true": z["true"].astype(bool), "prob": z["prob"], **readouts,
                 **fidelity,
                 "prob_observed": observed, "prob_replayed": replayed, "sim_imagined": played, "sim_finite": finite,
                 "prob_members": members, **traces, "videos": videos}
@@ -1281,13 +1300,15 @@ WM_FINGERPRINTS = "wm_fingerprints"  # config.json's digests of the world models
 
 
 def wm_fingerprint(model) -> str:
-    """A digest of what a world model (load_models' (config, params, Norm, judge)) computes: a run
-    trained again, or another bundle copied to the same path, changes it."""
-    wm_cfg, params, norm, judge = model
+    """A digest of what a world model (load_models' (config, params, Norm, judge, second judge))
+    computes: a run trained again, or another bundle copied to the same path, changes it."""
+    wm_cfg, params, norm, *judges = model
     h = hashlib.sha256(json.dumps(as_json(wm_cfg), sort_keys=True).encode())
     hash_arrays(h, (params, [getattr(norm, f.name) for f in dataclasses.fields(norm)]))
-    if judge is not None:
-        hash_arrays(h, (judge.params, judge.mean, judge.std, judge.columns))
+    for k, judge in enumerate(judges):
+        if judge is not None:
+            h.update(b"judge2" if k else b"")  # the first judge's digest as a model without a second one had
+            hash_arrays(h, (judge.params, judge.mean, judge.std, judge.columns))
     return h.hexdigest()[:16]
 
 

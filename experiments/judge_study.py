@@ -365,7 +365,8 @@ def score(eval_dir: Path, out: Path, draws: int = 1000, setup: dict | None = Non
     tasks = finished_tasks(eval_dir)
     res = {t: load_task(eval_dir / "tasks" / f"{t}.npz") for t in tasks}
     true = {t: res[t]["true"] for t in tasks}
-    predictors = {f"eval_{r}": {t: res[t][f"readout_{r}"] for t in tasks} for r in READOUTS}
+    predictors = {f"eval_{r}": {t: res[t][f"readout_{r}"] for t in tasks} for r in READOUTS
+                  if any(np.isfinite(res[t][f"readout_{r}"]).any() for t in tasks)}  # a second judge where fit
     fits = {}
     for path in sorted((out / "variants").glob("*.npz"), key=lambda p: p.stat().st_mtime_ns):
         if ".tmp" in path.name:

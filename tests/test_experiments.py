@@ -33,7 +33,10 @@ from sim_data.policies.bc import MixedPolicy, StackedPolicy, stacked
 from sim_data.policies.registry import resolve
 from sim_data.sim.render import HEAD_CAMERA, RenderConfig, Renderer, episode_rgb
 from sim_data.sim.rollout import SEGMENT
-from wm.checkpoint import trained_tasks
+from wm import judge as J
+from wm.checkpoint import load_trained, trained_tasks
+from wm.checkpoint import main as checkpoint_main
+from wm.imagine import FEATURE_GROUPS, feature_columns, feature_dim
 from wm.judge import load_judge
 from wm.metrics import psnr
 
@@ -177,7 +180,8 @@ def test_family_table_lists_each_family_under_each_readout():
             *({"task": "mug", "lineage": "conv~noise", "step": None, "true_rate": t, "pred_rate": p,
                "pred_rate_readouts": {"progress": p, "judge": 0.5, "success": t}} for t, p in ((0.5, 0.4), (0.1, 0.3)))]
     fams = S.family_statistics(rows) | {"by_readout": {
-        r: S.family_statistics([dict(x, rate=x["pred_rate_readouts"][r]) for x in rows], "rate") for r in E.READOUTS}}
+        r: S.family_statistics([dict(x, rate=x["pred_rate_readouts"][r]) for x in rows], "rate")
+        for r in E.read_readouts(rows)}}
     table = family_table({"families": json.loads(json.dumps(fams))})
     assert table[0][-3:] == ["r, progress read-out", "r, judge read-out", "r, success read-out"]
     family, mean = table[1], table[2]
@@ -596,8 +600,8 @@ def test_a_replayed_episode_is_imagined_as_the_judge_imagines_its_training_episo
     logged = imagine_episodes(wm_cfg.model, params, norm, cache, [0], HEAD_CAMERA, False)["features"]
     for readout in ("success", "progress"):
         want = E.read_episodes(None, "mug", logged)[readout]
-        assert E._read_replay((wm_cfg, params, norm, None), "mug", truth, readout) == pytest.approx(want, abs=1e-5)
-    assert np.isnan(E._read_replay((wm_cfg, params, norm, None), "mug", {"frames0": frames[:, :1]}, "success")).all()
+        assert E._read_replay((wm_cfg, params, norm, None, None), "mug", truth, readout) == pytest.approx(want, abs=1e-5)
+    assert np.isnan(E._read_replay((wm_cfg, params, norm, None, None), "mug", {"frames0": frames[:, :1]}, "success")).all()
 
 
 def test_kept_features_are_the_imaginations_the_read_outs_read(evaluation):
@@ -802,3 +806,40 @@ def test_the_warm_up_runs_the_programs_the_evaluation_then_runs(smoke_world_mode
                             "_observed_segment", "_open_loop_segment"}
     with pytest.raises(FileNotFoundError, match="no started training run"):
         E.warm(dataclasses.replace(cfg, wm=str(tmp_path / "none")), progress=False)
+
+
+def test_a_second_judge_is_read_beside_the_first_on_the_same_imaginations(evaluation, smoke_world_model, tmp_path):
+    """A run with a second episode judge (judge2.*, wm.config's judge2_inputs): the evaluation reads
+    the same imaginations with both, reports the second's read-out beside the others, and a bundle
+    carries it; a model without one reports no such read-out and cannot rank by it."""
+    cfg, _, res = evaluation
+    assert all("judge2" not in p["pred_rate_readouts"] for p in res["policies"])
+    assert "readout_judge2" not in res["metrics"]["within_task"]
+    assert "judge2" not in res["metrics"]["pooled"]["readouts"]
+    with pytest.raises(ValueError, match="readout=judge2 ranks by a second episode judge"):
+        E.run(dataclasses.replace(cfg, readout="judge2"), tmp_path / "refused", progress=False)
+    run = tmp_path / "wm"
+    shutil.copytree(smoke_world_model, run)
+    model = load_trained(run)[0].model
+    rng = np.random.default_rng(0)
+    episodes = {"features": rng.normal(size=(16, 5, feature_dim(model))).astype(np.float32),
+                "mask": np.ones((16, 5), bool), "task": ["mug"] * 16, "label": np.arange(16) % 2 == 0}
+    for name, inputs in ((J.JUDGE, [g for g in FEATURE_GROUPS if g != "scene"]), (J.SECOND_JUDGE, ["proprio", "action"])):
+        judge, metrics = J.fit(episodes, None, ("mug",), steps=3, progress=False, columns=feature_columns(model, inputs))
+        J.save_judge(judge, metrics, run, name)
+    out = tmp_path / "out"
+    got = E.run(dataclasses.replace(cfg, wm=str(run)), out, progress=False)
+    task = E.load_task(out / "tasks" / "mug.npz")
+    x = E.load_features(out, "mug")
+    p, n = task["true"].shape
+    read = E.read_episodes(load_judge(run), "mug", x.reshape((p * n,) + x.shape[2:]).astype(np.float32),
+                           load_judge(run, J.SECOND_JUDGE))
+    assert read["judge2"].reshape(p, n) == pytest.approx(task["readout_judge2"], abs=2e-3)
+    assert not np.allclose(task["readout_judge2"], task["readout_judge"])  # other inputs, another reading
+    for row, r in zip(got["policies"], task["readout_judge2"], strict=True):
+        assert row["pred_rate_readouts"]["judge2"] == pytest.approx(r.mean())
+    assert "readout_judge2" in got["metrics"]["within_task"] and "judge2" in got["metrics"]["pooled"]["readouts"]
+    assert "world model, judge2 read-out" in write_report(out).with_suffix(".md").read_text()
+    bundle = tmp_path / "bundle"
+    assert checkpoint_main([str(run), str(bundle)]) == 0
+    assert load_judge(bundle, J.SECOND_JUDGE).columns.tolist() == feature_columns(model, ["proprio", "action"]).tolist()

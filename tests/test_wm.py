@@ -1135,7 +1135,7 @@ def test_the_judge_learns_from_every_training_episode_with_a_bounded_validation_
     monkeypatch.setattr(J, "save_judge", lambda *a: None)
     cfg = make_config("smoke", ["judge_episodes=8192"])
     assert J.fit_judge(cfg, None, None, _Episodes(), list(range(6000)), tmp_path, progress=False) == {
-        "n": 6000, "labels": "simulated"}
+        "n": 6000, "inputs": list(cfg.judge_inputs), "labels": "simulated"}
     train, val = imagined
     assert train == list(range(6000)) and len(val) == J.VAL_EPISODES == 256
     assert set(val) <= set(range(6000, 7000)) and len(set(val)) == 256
@@ -1143,6 +1143,31 @@ def test_the_judge_learns_from_every_training_episode_with_a_bounded_validation_
     J.fit_judge(make_config("smoke", ["judge_episodes=400"]), None, None, _Episodes(), list(range(6000)), tmp_path,
                 progress=False)
     assert len(imagined[0]) == 400 and len(imagined[1]) == 100  # a quarter below the bound, as before
+
+
+def test_a_second_judge_learns_from_the_same_imaginations_and_labels_reading_its_own_inputs(tmp_path, monkeypatch):
+    imagined, fits, saved = [], [], []
+    monkeypatch.setattr(J, "dataset_policies", lambda root: {})
+    monkeypatch.setattr(J, "imagine_episodes", lambda *a: imagined.append(a[4]) or _readings(a[4], 0.5))
+    monkeypatch.setattr(J, "fit", lambda train, val, tasks, steps, seed, progress, columns, *a:
+                        fits.append((train, val, columns)) or (len(fits), {"n": len(fits)}))
+    monkeypatch.setattr(J, "save_judge", lambda judge, metrics, out, name: saved.append((judge, name)))
+    cfg = make_config("smoke", ["judge_episodes=64", "judge2_inputs=proprio,action"])
+    got = J.fit_judge(cfg, None, None, _Episodes(), list(range(6000)), tmp_path, progress=False)
+    assert len(imagined) == 2  # the training and validation episodes imagined once, for both judges
+    (train1, val1, cols1), (train2, val2, cols2) = fits
+    assert train1 is train2 and val1 is val2
+    assert cols1.tolist() == I.feature_columns(cfg.model, cfg.judge_inputs).tolist()
+    assert cols2.tolist() == I.feature_columns(cfg.model, ("proprio", "action")).tolist()
+    assert saved == [(1, "judge"), (2, "judge2")]
+    assert got["n"] == 1 and got["judge2"] == {"n": 2, "inputs": ["proprio", "action"], "labels": "simulated"}
+    assert not J.judges_fit(cfg, tmp_path)
+    (tmp_path / "judge.json").write_text("{}")
+    assert J.judges_fit(make_config("smoke", ["judge_episodes=64"]), tmp_path) and not J.judges_fit(cfg, tmp_path)
+    with pytest.raises(ValueError, match="judge2_inputs are among"):
+        make_config("smoke", ["judge2_inputs=proprio,frames"])
+    with pytest.raises(ValueError, match="needs judge_episodes > 0"):
+        make_config("smoke", ["judge_episodes=0", "judge2_inputs=proprio"])
 
 
 def _readings(ids, value):
@@ -1194,7 +1219,7 @@ def test_a_judge_of_replayed_labels_learns_what_the_imagined_actions_achieved(tm
                                                            "features": np.ones((len(a[4]), 3, wide), np.float32)})
     monkeypatch.setattr(J, "simulate_actions", simulate)
     monkeypatch.setattr(J, "fit", lambda train, val, *a, **k: got.update(train=train, val=val) or (None, {}))
-    monkeypatch.setattr(J, "save_judge", lambda judge, metrics, out: got.update(metrics=metrics))
+    monkeypatch.setattr(J, "save_judge", lambda judge, metrics, out, name: got.update(metrics=metrics))
     cache = _Rollouts()
     J.fit_judge(make_config("smoke", ["judge_episodes=600", "judge_observed=1", "judge_labels=replayed"]), None,
                 I.Norm(np.zeros(37), np.ones(37), np.zeros(20), np.ones(20)), cache, list(range(6000)), tmp_path,

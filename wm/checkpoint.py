@@ -5,7 +5,7 @@ A bundle (`python -m wm.checkpoint RUN BUNDLE`) is a directory small enough to c
 `bundle.json` (the run's configuration, normalisation, training status, eval.json, the judge's
 standardisation, the training data's initial-state seeds and learned policies, and a SHA-256 of every
 other file), the best parameters in bfloat16 split into `params-K.msgpack` shards of at most 15 MiB,
-and `judge.msgpack`. It is written under a temporary name and renamed when whole. Every reader here
+and `judge.msgpack` (and `judge2.msgpack`, a second judge's). It is written under a temporary name and renamed when whole. Every reader here
 (and `wm.judge.load_judge`) takes either kind of directory, so `make eval ARGS="wm=BUNDLE"` evaluates
 a model trained on another machine.
 """
@@ -35,7 +35,10 @@ from wm.model import init_params
 BUNDLE = "bundle.json"
 SHARD_BYTES = 15 * 2**20
 BUNDLE_FORMAT = 1
-RUN_FILES = ("config.json", "norm.json", "train_status.json", "eval.json", "judge.json")  # copied into a bundle
+RUN_FILES = ("config.json", "norm.json", "train_status.json", "eval.json", "judge.json",  # copied into a bundle
+             "judge2.json")
+# the episode judges' parameters (wm.judge.save_judge), where fit
+JUDGE_BLOBS = ("judge.msgpack", "judge2.msgpack")
 
 
 def is_bundle(out: Path) -> bool:
@@ -187,9 +190,10 @@ def write_bundle(run: Path, out: Path, dtype: str = "bfloat16") -> dict:
         name = f"params-{k}.msgpack"
         (tmp / name).write_bytes(serialization.msgpack_serialize({key: _to_bytes(a) for key, a in shard.items()}))
         hashes[name] = _sha256(tmp / name)
-    if (run / "judge.msgpack").exists():
-        shutil.copyfile(run / "judge.msgpack", tmp / "judge.msgpack")
-        hashes["judge.msgpack"] = _sha256(tmp / "judge.msgpack")
+    for blob in JUDGE_BLOBS:
+        if (run / blob).exists():
+            shutil.copyfile(run / blob, tmp / blob)
+            hashes[blob] = _sha256(tmp / blob)
     meta = {"format": BUNDLE_FORMAT, "source": str(run.absolute()), "dtype": dtype,
             "parameters": int(sum(a.size for a in flat.values())), "sha256": hashes, "files": _run_files(run),
             "data_seeds": sorted(training_seeds(run)), "data_policies": sorted(training_policies(run))}
@@ -212,9 +216,9 @@ def bundle_holds(run: Path, out: Path) -> bool:
     if not is_bundle(out):
         return False
     meta = bundle_meta(out)
-    judge = Path(run) / "judge.msgpack"
-    return meta["files"] == _run_files(run) and meta["sha256"].get("judge.msgpack") == (
-        _sha256(judge) if judge.exists() else None)
+    return meta["files"] == _run_files(run) and all(
+        meta["sha256"].get(blob) == (_sha256(Path(run) / blob) if (Path(run) / blob).exists() else None)
+        for blob in JUDGE_BLOBS)
 
 
 def _to_bytes(a: np.ndarray) -> dict:

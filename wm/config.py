@@ -94,6 +94,10 @@ class TrainConfig:
         any speed. judge_labels: what labels the closed-loop imaginations of the rollouts it learns
         from (JUDGE_LABELS): "simulated", the rollout's own outcome; "replayed", the outcome of the
         actions its policy took in imagination, played open loop in the simulator.
+        judge2_inputs: where named, a second episode judge fit as the first, on the same imagined
+        episodes and labels, reading these feature groups instead of judge_inputs (saved as judge2.*);
+        the evaluator reports its read-out ("judge2") beside the others, so that one trained model
+        compares two judges on the same imaginations. () fits none.
     """
 
     model: ModelConfig = ModelConfig()
@@ -146,6 +150,7 @@ class TrainConfig:
     judge_episodes: int = 1024
     judge_steps: int = 1500
     judge_inputs: tuple = tuple(g for g in FEATURE_GROUPS if g != "scene")
+    judge2_inputs: tuple = ()
     judge_observed: bool = False
     judge_members: int = 1
     judge_lr: float = JUDGE_LR
@@ -198,6 +203,11 @@ class TrainConfig:
                              f"free_nats={self.free_nats}")
         if "scene" in self.judge_inputs and not self.model.scene:
             raise ValueError("judge_inputs names \"scene\", which only a model with model.scene predicts")
+        if set(self.judge2_inputs) - set(FEATURE_GROUPS) or ("scene" in self.judge2_inputs and not self.model.scene):
+            raise ValueError(f"judge2_inputs are among {', '.join(FEATURE_GROUPS)} (\"scene\" with model.scene); "
+                             f"got {list(self.judge2_inputs)}")
+        if self.judge2_inputs and not self.judge_episodes:
+            raise ValueError("judge2_inputs names a second episode judge, which needs judge_episodes > 0")
         if self.model.scene and self.w_scene <= 0:
             raise ValueError(f"model.scene needs w_scene > 0 (its head learns from that loss alone); got {self.w_scene}")
         if self.model.refine and self.w_refine <= 0:

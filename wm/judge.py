@@ -65,6 +65,8 @@ from wm.imagine import (
 from wm.metrics import accuracy, auroc
 from wm.model import ModelConfig
 
+JUDGE, SECOND_JUDGE = "judge", "judge2"  # the files' stems (judge.json, judge.msgpack) and read-outs' names
+
 WIDTH = 64
 WEIGHT_DECAY = 0.05
 BATCH = 256
@@ -484,7 +486,9 @@ def fit_judge(cfg, params, norm: Norm, cache, train_ids: list[int], out: Path, p
     TrainConfig; with cfg.judge_observed the judge learns from the training episodes' true frames
     too (observe_episodes), and is still kept at its best on the validation episodes' imaginations;
     with cfg.judge_labels "replayed" the closed-loop imaginations of the rollouts are labelled by what
-    their imagined actions achieve in the simulator (replayed_labels)."""
+    their imagined actions achieve in the simulator (replayed_labels). With cfg.judge2_inputs a second
+    judge is fit on the same episodes and labels, reading those features (saved as judge2.*; its
+    metrics under "judge2" in the returned dict)."""
     tasks, train_ids, val_ids = judge_split(cfg, cache, train_ids)
     labels = {bool(cache.episodes[i]["success"]) for i in train_ids}
     if len(labels) < 2:
@@ -510,12 +514,27 @@ def fit_judge(cfg, params, norm: Norm, cache, train_ids: list[int], out: Path, p
             relabelled[name] = {"closed_loop": int(closed.sum()), "changed": int((label != d["label"]).sum())}
             d["label"] = label
         print(f"judge: labels replayed; {relabelled}", file=sys.stderr)
-    judge, metrics = fit(train, val, tasks, cfg.judge_steps, cfg.seed, progress,
-                         feature_columns(cfg.model, cfg.judge_inputs), cfg.judge_lr, cfg.judge_members,
-                         cfg.judge_select, cfg.judge_raw_mean)
-    metrics = {**metrics, "labels": cfg.judge_labels, **({"relabelled": relabelled} if relabelled else {})}
-    save_judge(judge, metrics, Path(out))
-    return metrics
+    labels = {"labels": cfg.judge_labels, **({"relabelled": relabelled} if relabelled else {})}
+    out_metrics = {}
+    for name, inputs in judge_inputs(cfg).items():
+        judge, metrics = fit(train, val, tasks, cfg.judge_steps, cfg.seed, progress,
+                             feature_columns(cfg.model, inputs), cfg.judge_lr, cfg.judge_members,
+                             cfg.judge_select, cfg.judge_raw_mean)
+        out_metrics[name] = {**metrics, "inputs": list(inputs), **labels}
+        save_judge(judge, out_metrics[name], Path(out), name)
+    second = {SECOND_JUDGE: out_metrics[SECOND_JUDGE]} if SECOND_JUDGE in out_metrics else {}
+    return out_metrics[JUDGE] | second
+
+
+def judge_inputs(cfg) -> dict:
+    """{file stem: feature groups} of the judges fit_judge fits for TrainConfig cfg: the judge, and the
+    second judge where cfg.judge2_inputs names one."""
+    return {JUDGE: cfg.judge_inputs, **({SECOND_JUDGE: cfg.judge2_inputs} if cfg.judge2_inputs else {})}
+
+
+def judges_fit(cfg, out: Path) -> bool:
+    """Whether every judge fit_judge fits for cfg is saved in the run directory out."""
+    return all((Path(out) / f"{name}.json").exists() for name in judge_inputs(cfg))
 
 
 def judge_split(cfg, cache, train_ids: list[int]) -> tuple[tuple, list[int], list[int]]:
@@ -548,8 +567,9 @@ def warm_judge(cfg, params, norm: Norm, cache, train_ids: list[int]) -> EpisodeJ
     dim = feature_dim(cfg.model)
     train = _placeholder_episodes(cache, train_ids, dim)
     val = _placeholder_episodes(cache, val_ids, dim) if val_ids else None
-    return fit(train, val, tasks, 2, cfg.seed, False, feature_columns(cfg.model, cfg.judge_inputs), cfg.judge_lr,
-               cfg.judge_members, cfg.judge_select, cfg.judge_raw_mean)[0]
+    judges = [fit(train, val, tasks, 2, cfg.seed, False, feature_columns(cfg.model, inputs), cfg.judge_lr,
+                  cfg.judge_members, cfg.judge_select, cfg.judge_raw_mean)[0] for inputs in judge_inputs(cfg).values()]
+    return judges[0]
 
 
 def _placeholder_episodes(cache, ids: list[int], dim: int) -> dict:
@@ -568,24 +588,26 @@ def spread(ids: list[int], n: int) -> list[int]:
 
 # ---- files -----------------------------------------------------------------------------------------
 
-def save_judge(judge: EpisodeJudge, metrics: dict, out: Path) -> None:
-    """Writes the judge into out for load_judge: its parameters as out/judge.msgpack (atomically), and its tasks,
-    normalisation, width, members, input columns, feature width and the fit's metrics as out/judge.json."""
-    blob = out / "judge.msgpack"
+def save_judge(judge: EpisodeJudge, metrics: dict, out: Path, name: str = JUDGE) -> None:
+    """Writes the judge into out for load_judge: its parameters as out/<name>.msgpack (atomically), and its
+    tasks, normalisation, width, members, input columns, feature width and the fit's metrics as
+    out/<name>.json (name: JUDGE, or SECOND_JUDGE for TrainConfig.judge2_inputs' judge)."""
+    blob = out / f"{name}.msgpack"
     tmp = blob.with_name(blob.name + ".tmp")
     tmp.write_bytes(serialization.to_bytes(judge.params))
     os.replace(tmp, blob)
-    write_json_atomic(out / "judge.json", {"tasks": list(judge.tasks), "mean": judge.mean.tolist(),
+    write_json_atomic(out / f"{name}.json", {"tasks": list(judge.tasks), "mean": judge.mean.tolist(),
                                            "std": judge.std.tolist(), "width": WIDTH, "members": judge.members,
                                            "columns": judge.columns.tolist(), "feature_dim": judge.feature_dim,
                                            "raw_mean": judge.raw_mean, "metrics": metrics})
 
 
-def load_judge(out: Path) -> EpisodeJudge | None:
-    """The judge saved with a training run in out (or its bundle, wm.checkpoint), or None when it has none."""
+def load_judge(out: Path, name: str = JUDGE) -> EpisodeJudge | None:
+    """The judge saved with a training run in out (or its bundle, wm.checkpoint), or None when it has none;
+    name: SECOND_JUDGE for the second judge (TrainConfig.judge2_inputs)."""
     out = Path(out)
-    meta = run_file(out, "judge.json")
-    if meta is None or not (out / "judge.msgpack").exists():
+    meta = run_file(out, f"{name}.json")
+    if meta is None or not (out / f"{name}.msgpack").exists():
         return None
     mean = np.asarray(meta["mean"], np.float32)
     raw_mean = bool(meta.get("raw_mean", False))  # judge.json without the key: the features' mean not pooled
@@ -595,7 +617,7 @@ def load_judge(out: Path) -> EpisodeJudge | None:
     members = meta.get("members")  # a judge saved without the key holds one member's parameters, unstacked
     lead = () if members is None else (int(members),)
     params = serialization.from_bytes(jax.tree_util.tree_map(lambda s: np.zeros(lead + s.shape, s.dtype), shapes),
-                                      (out / "judge.msgpack").read_bytes())
+                                      (out / f"{name}.msgpack").read_bytes())
     if members is None:
         params = jax.tree_util.tree_map(lambda p: p[None], params)
     columns = np.asarray(meta.get("columns", range(len(mean))), np.int64)  # a judge saved before input selection reads all

@@ -46,7 +46,7 @@ from wm import perceptual
 from wm.checkpoint import restore_params
 from wm.config import PRESETS, TrainConfig, check_dataset, make_config, to_dict
 from wm.imagine import Norm, to_uint8
-from wm.judge import dataset_policies, fit_judge, load_judge, warm_judge
+from wm.judge import dataset_policies, fit_judge, judges_fit, load_judge, warm_judge
 from wm.metrics import action_contrast, gaussian_kl
 from wm.model import REFINE_SIGMA, WorldModel, init_params
 from wm.probes import make_probes, probe_rows, probe_sources, read_loss_from, readings
@@ -722,7 +722,7 @@ def main(argv=None) -> int:
     if summary["cut_short"]:
         return 0  # a run cut short is fitted and evaluated by the rerun that finishes it
     best = run.best_params() if (cfg.judge_episodes or not a.no_eval) else None
-    if cfg.judge_episodes and not (a.out / "judge.json").exists():
+    if cfg.judge_episodes and not judges_fit(cfg, a.out):
         print(json.dumps({"judge": fit_judge(cfg, best, run.norm, run.cache, [int(i) for i in run.loader.episodes],
                                              a.out)}, indent=1))
     if not a.no_eval:
