@@ -95,6 +95,8 @@ from sim_data.util import (
     write_json_atomic,
 )
 from wm.checkpoint import (
+    bundle_meta,
+    is_bundle,
     load_run_config,
     load_started,
     load_trained,
@@ -212,7 +214,8 @@ class EvalConfig:
     def validate(self) -> None:
         """Raises ValueError where a setting is missing or out of range: no policies or world model, too few
         episodes, a state_batch that does not divide them, an unknown engine, read-out, task or imagine mode,
-        a threshold outside (0, 1), truth_cache with videos, or a world model named twice."""
+        a threshold outside (0, 1), truth_cache with videos, or a world model named twice (a run beside its
+        own bundle too)."""
         if not self.policies:
             raise ValueError("name at least one policy spec (policies=runs/policies/demo,...)")
         if not self.wm:
@@ -237,6 +240,11 @@ class EvalConfig:
         same = [os.path.realpath(w) for w in self.wm_runs]  # one directory however spelled (a/, ./a, a link)
         if len(set(same)) != len(same):
             raise ValueError(f"wm names a run twice: {self.wm}")
+        # a bundle of a run named beside that run is the same model twice (in bfloat16)
+        own = [w for w in self.wm_runs if is_bundle(w) and os.path.realpath(bundle_meta(w)["source"]) in same]
+        if own:
+            raise ValueError(f"wm names {', '.join(own)}, the bundle of a run it also names: the same world model "
+                             f"twice; name one of them ({self.wm})")
 
     @property
     def wm_runs(self) -> tuple:

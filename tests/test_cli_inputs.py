@@ -39,6 +39,13 @@ def test_an_ensemble_naming_one_directory_twice_however_spelled_is_refused(tmp_p
         with pytest.raises(ValueError, match="wm names a run twice"):
             E.make_config("demo", [f"wm={twice}"])
     E.make_config("demo", [f"wm={run},{tmp_path / 'other'}"])  # two directories: an ensemble
+    bundle = tmp_path / "bundle"  # the run's own bundle: the same model in bfloat16
+    bundle.mkdir()
+    (bundle / "bundle.json").write_text(json.dumps({"format": 1, "source": str(tmp_path / "link"), "sha256": {},
+                                                    "files": {}}))
+    with pytest.raises(ValueError, match="bundle of a run it also names: the same world model twice"):
+        E.make_config("demo", [f"wm={run},{bundle}"])
+    E.make_config("demo", [f"wm={tmp_path / 'other'},{bundle}"])  # a bundle beside another run
 
 
 def test_tasks_a_bundle_never_learned_are_found_without_its_training_data(tmp_path):
