@@ -5,9 +5,9 @@ A bundle (`python -m wm.checkpoint RUN BUNDLE`) is a directory small enough to c
 `bundle.json` (the run's configuration, normalisation, training status, eval.json, the judge's
 standardisation, the training data's initial-state seeds and learned policies, and a SHA-256 of every
 other file), the best parameters in bfloat16 split into `params-K.msgpack` shards of at most 15 MiB,
-and `judge.msgpack` (and `judge2.msgpack`, a second judge's). It is written under a temporary name and renamed when whole. Every reader here
-(and `wm.judge.load_judge`) takes either kind of directory, so `make eval ARGS="wm=BUNDLE"` evaluates
-a model trained on another machine.
+and `judge.msgpack` (with a second judge, `judge2.msgpack` too). It is written under a temporary name
+and renamed when whole. Every reader here (and `wm.judge.load_judge`) takes either kind of directory,
+so `make eval ARGS="wm=BUNDLE"` evaluates a model trained on another machine.
 """
 
 from __future__ import annotations

@@ -514,13 +514,13 @@ def fit_judge(cfg, params, norm: Norm, cache, train_ids: list[int], out: Path, p
             relabelled[name] = {"closed_loop": int(closed.sum()), "changed": int((label != d["label"]).sum())}
             d["label"] = label
         print(f"judge: labels replayed; {relabelled}", file=sys.stderr)
-    labels = {"labels": cfg.judge_labels, **({"relabelled": relabelled} if relabelled else {})}
+    labelled = {"labels": cfg.judge_labels, **({"relabelled": relabelled} if relabelled else {})}
     out_metrics = {}
     for name, inputs in judge_inputs(cfg).items():
         judge, metrics = fit(train, val, tasks, cfg.judge_steps, cfg.seed, progress,
                              feature_columns(cfg.model, inputs), cfg.judge_lr, cfg.judge_members,
                              cfg.judge_select, cfg.judge_raw_mean)
-        out_metrics[name] = {**metrics, "inputs": list(inputs), **labels}
+        out_metrics[name] = {**metrics, "inputs": list(inputs), **labelled}
         save_judge(judge, out_metrics[name], Path(out), name)
     second = {SECOND_JUDGE: out_metrics[SECOND_JUDGE]} if SECOND_JUDGE in out_metrics else {}
     return out_metrics[JUDGE] | second
