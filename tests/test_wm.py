@@ -1170,6 +1170,20 @@ def test_a_second_judge_learns_from_the_same_imaginations_and_labels_reading_its
         make_config("smoke", ["judge_episodes=0", "judge2_inputs=proprio"])
 
 
+def test_the_warm_up_fits_both_judges_on_placeholders_and_hands_back_the_first(monkeypatch):
+    """warm_judge runs each judge's fit once (their programs differ in their input columns), so that
+    the run's own fit loads both from the compilation cache."""
+    columns = []
+    monkeypatch.setattr(J, "dataset_policies", lambda root: {})
+    monkeypatch.setattr(J, "warm_imagination", lambda *a: None)
+    monkeypatch.setattr(J, "fit", lambda train, val, tasks, steps, seed, progress, cols, *a:
+                        columns.append(cols.tolist()) or (len(columns), {}))
+    cfg = make_config("smoke", ["judge_episodes=64", "judge2_inputs=proprio"])
+    assert J.warm_judge(cfg, None, None, _Rollouts(), list(range(6000))) == 1
+    assert columns == [I.feature_columns(cfg.model, cfg.judge_inputs).tolist(),
+                       I.feature_columns(cfg.model, ("proprio",)).tolist()]
+
+
 def _readings(ids, value):
     """An imagine_episodes-shaped dict whose every feature is `value`."""
     return {"features": np.full((len(ids), 3, 2), value, np.float32), "mask": np.ones((len(ids), 3), bool),
