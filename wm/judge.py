@@ -551,8 +551,8 @@ def warm_judge(cfg, params, norm: Norm, cache, train_ids: list[int]) -> EpisodeJ
     """Runs the compiled programs of fit_judge(cfg, params, norm, cache, train_ids, ...) once each (its
     imaginations' by warm_imagination, with judge_labels "replayed" its simulator's by warm_replay,
     each judge's fit (the second's too, with cfg.judge2_inputs) for two steps on episodes of placeholder
-    features of the imaginations' shapes), so that
-    JAX's persistent compilation cache holds them for the run's own fit_judge. Not warmed: with
+    features of the imaginations' shapes), so that JAX's persistent compilation cache holds them for
+    the run's own fit_judge. Not warmed: with
     cfg.judge_observed, the reading of the true episodes. Returns the placeholder judge (for warming
     what reads a judge), None where fit_judge would fit none."""
     tasks, train_ids, val_ids = judge_split(cfg, cache, train_ids)
