@@ -123,7 +123,10 @@ def state_range(results: list[dict], lo: int, hi: int, labels=None) -> list[dict
     for i, r in enumerate(results):
         rows = []
         for p in r["policies"]:
-            n = min(len(p.get("true_episodes", ())), len(p.get("pred_episodes", ())))
+            if "true_episodes" not in p or "pred_episodes" not in p:
+                rows.append(p)  # episode_tables names what is missing
+                continue
+            n = min(len(p["true_episodes"]), len(p["pred_episodes"]))
             if n < hi:
                 name = labels[i] if labels else f"evaluation {i}"
                 raise ValueError(f"{name}: {p['name']} ran {n} initial states, fewer than --states' end {hi}")
