@@ -31,8 +31,11 @@ of the same command, on the same commit and machine kind, it checks that the eva
 (every predicted rate within 0.01).
 
 With `--states A:B` every run counts only its held-out initial states A to B-1 of each task: the
-evaluation draws its states as a prefix of one sequence (sim_data.policies.registry.heldout_seeds),
-so an evaluation of 100 states holds that of 50 as its first 50, and
+evaluation draws its states as a prefix of one sequence (sim_data.policies.registry.heldout_seeds,
+which skips the world model's training seeds), and with a preset's `state_batch` (`full`: 50) each
+slice of states runs with its own key and shape, so an evaluation of 100 states holds that of 50 as
+its first 50 (where the draws differ, as with state_batch=0, the simulated outcomes do and compare
+refuses the pair), and
 
     python -m experiments.compare --base runs/eval/s50 --design runs/eval/s100 --states 0:50
 

@@ -95,6 +95,7 @@ from sim_data.util import (
     write_json_atomic,
 )
 from wm.checkpoint import (
+    bundle_holds,
     bundle_meta,
     is_bundle,
     load_run_config,
@@ -240,8 +241,9 @@ class EvalConfig:
         same = [os.path.realpath(w) for w in self.wm_runs]  # one directory however spelled (a/, ./a, a link)
         if len(set(same)) != len(same):
             raise ValueError(f"wm names a run twice: {self.wm}")
-        # a bundle of a run named beside that run is the same model twice (in bfloat16)
-        own = [w for w in self.wm_runs if is_bundle(w) and os.path.realpath(bundle_meta(w)["source"]) in same]
+        # a bundle of a run, named beside that run as it still stands, is the same model twice (in bfloat16)
+        own = [w for w in self.wm_runs if is_bundle(w) and os.path.realpath(src := bundle_meta(w)["source"]) in same
+               and bundle_holds(Path(src), Path(w))]
         if own:
             raise ValueError(f"wm names {', '.join(own)}, the bundle of a run it also names: the same world model "
                              f"twice; name one of them ({self.wm})")
@@ -858,7 +860,8 @@ def within_task_block(results: dict, tasks, rows: list[dict], cfg: EvalConfig, k
     the actions taken in imagination ("sim_imagined", cfg.replay), over the policies whose name `keep`
     accepts."""
     true, wm, proxy, observed, replayed, played, picked_of = {}, {}, {}, {}, {}, {}, {}
-    read = [r for r in READOUTS if r != SECOND_JUDGE or any(np.isfinite(results[t][f"readout_{r}"]).any() for t in tasks)]
+    # a second judge only where it reads every task: its mean over tasks then means what the others' does
+    read = [r for r in READOUTS if r != SECOND_JUDGE or all(np.isfinite(results[t][f"readout_{r}"]).any() for t in tasks)]
     others = {f"readout_{r}": {} for r in read if r != cfg.readout}
     for t in tasks:
         names = results[t]["names"]
@@ -1000,6 +1003,10 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
     if cfg.readout == SECOND_JUDGE and (lacking := [r for r, m in zip(cfg.wm_runs, models) if m[4] is None]):
         raise ValueError(f"readout=judge2 ranks by a second episode judge, which {', '.join(lacking)} lacks: train "
                          "with judge2_inputs=... (wm.config.TrainConfig) or choose another read-out")
+    if cfg.readout == SECOND_JUDGE and (unknown := sorted({t for m in models for t in tasks if not m[4].knows(t)})):
+        raise ValueError(f"readout=judge2: the second episode judge never learned tasks {unknown}, which it would "
+                         f"read as nothing; evaluate tasks={','.join(t for t in tasks if t not in unknown)} or choose "
+                         "another read-out")
     make_output_dir(out / "tasks")
     _check_config(cfg, out, sources, models)
     cfg = dataclasses.replace(cfg, readout=auto_readout(cfg.readout, cfg.wm_runs, models))

@@ -45,6 +45,8 @@ def test_an_ensemble_naming_one_directory_twice_however_spelled_is_refused(tmp_p
                                                     "files": {}}))
     with pytest.raises(ValueError, match="bundle of a run it also names: the same world model twice"):
         E.make_config("demo", [f"wm={run},{bundle}"])
+    (run / "config.json").write_text("{}")  # another model trained since at the same path: an ensemble
+    E.make_config("demo", [f"wm={run},{bundle}"])
     E.make_config("demo", [f"wm={tmp_path / 'other'},{bundle}"])  # a bundle beside another run
 
 

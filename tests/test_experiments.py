@@ -843,3 +843,28 @@ def test_a_second_judge_is_read_beside_the_first_on_the_same_imaginations(evalua
     bundle = tmp_path / "bundle"
     assert checkpoint_main([str(run), str(bundle)]) == 0
     assert load_judge(bundle, J.SECOND_JUDGE).columns.tolist() == feature_columns(model, ["proprio", "action"]).tolist()
+    # a second judge that never learned the evaluated task would read it as nothing: ranking by it is refused
+    other = dict(episodes, task=["step_back"] * 16)
+    judge, metrics = J.fit(other, None, ("step_back",), steps=3, progress=False,
+                           columns=feature_columns(model, ["proprio", "action"]))
+    J.save_judge(judge, metrics, run, J.SECOND_JUDGE)
+    with pytest.raises(ValueError, match=r"second episode judge never learned tasks \['mug'\]"):
+        E.run(dataclasses.replace(cfg, wm=str(run), readout="judge2"), tmp_path / "unknown", progress=False)
+
+
+def test_a_second_judge_that_reads_some_tasks_only_is_left_out_of_the_means_over_tasks():
+    """Its mean over tasks would cover fewer tasks than the other read-outs' beside it: it is reported
+    only where it reads every task, as in the pooled statistics (read_readouts)."""
+    cfg = E.EvalConfig(policies=("x",), wm="w", episodes=4, readout="judge")
+    rng = np.random.default_rng(0)
+    results = {}
+    for t in ("mug", "step_back"):
+        results[t] = {"names": [f"p{i}" for i in range(4)], "true": rng.random((4, 4)) < np.linspace(0.1, 0.9, 4)[:, None],
+                      "prob": rng.random((4, 4)), **{k: np.full((4, 4), np.nan) for k in
+                                                     ("prob_observed", "prob_replayed", "sim_imagined")},
+                      **{f"readout_{r}": rng.random((4, 4)) for r in E.READOUTS}}
+    rows = [{"name": f"p{i}", "task": t, "val_loss": 1.0 + i} for t in results for i in range(4)]
+    assert "readout_judge2" in E.within_task_block(results, list(results), rows, cfg, lambda n: True)
+    results["step_back"]["readout_judge2"] = np.full((4, 4), np.nan)  # a task the second judge does not know
+    block = E.within_task_block(results, list(results), rows, cfg, lambda n: True)
+    assert "readout_judge2" not in block and "readout_progress" in block
