@@ -772,7 +772,7 @@ def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) ->
     member's predicted rate ("pred_rates")."""
     rows = []
     members = res["prob_members"].transpose(1, 0, 2)  # (P, K, N)
-    named = [r for r in READOUTS if r != SECOND_JUDGE or np.isfinite(res[f"readout_{r}"]).any()]
+    named = readouts_of({task: res}, [task])
     readouts = np.stack([res[f"readout_{r}"] for r in named], axis=1).reshape(len(res["names"]), len(named), -1)
     for name, t, p, r, pk, ok, tp, ip, gap, dims, obs, rep, played in zip(
             res["names"], res["true"], res["prob"], readouts, members, res["sim_finite"], res["true_progress"],
@@ -805,6 +805,13 @@ def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) ->
         if len(pk) > 1:
             rows[-1]["pred_rates"] = pk.mean(1).tolist()  # each ensemble member's
     return rows
+
+
+def readouts_of(results: dict, tasks) -> list[str]:
+    """The READOUTS that read every task of tasks (results: {task: evaluate_task's dict}): all, the
+    second judge only where its read-out is not NaN throughout any task (a model without one, or one
+    that never learned the task, reads nothing there)."""
+    return [r for r in READOUTS if r != SECOND_JUDGE or all(np.isfinite(results[t][f"readout_{r}"]).any() for t in tasks)]
 
 
 def read_readouts(rows: list[dict]) -> list[str]:
@@ -861,8 +868,7 @@ def within_task_block(results: dict, tasks, rows: list[dict], cfg: EvalConfig, k
     accepts."""
     true, wm, proxy, observed, replayed, played, picked_of = {}, {}, {}, {}, {}, {}, {}
     # a second judge only where it reads every task: its mean over tasks then means what the others' does
-    read = [r for r in READOUTS if r != SECOND_JUDGE or all(np.isfinite(results[t][f"readout_{r}"]).any() for t in tasks)]
-    others = {f"readout_{r}": {} for r in read if r != cfg.readout}
+    others = {f"readout_{r}": {} for r in readouts_of(results, tasks) if r != cfg.readout}
     for t in tasks:
         names = results[t]["names"]
         loss = {r["name"]: r["val_loss"] for r in rows if r["task"] == t}
@@ -1026,18 +1032,21 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
     return report
 
 
-def unlearned_tasks(runs, tasks, wm_cache=None) -> list[str]:
-    """The tasks some world model of `runs` never learned (wm.checkpoint.trained_tasks: its judge's,
-    its training's, a bundle's included, whether or not its training data is on this machine); where a
-    model names none, those its first model's training cache (wm_cache) lacks."""
+def learned_tasks(runs, wm_cache=None) -> list[str] | None:
+    """The tasks every world model of `runs` learned (wm.checkpoint.trained_tasks: its judge's, its
+    training's, a bundle's included, whether or not its training data is on this machine); where a
+    model names none, those of its first model's training cache (wm_cache); None where neither says."""
     learned = [set(trained_tasks(Path(r))) for r in runs]
     if learned and all(learned):
-        known = set.intersection(*learned)
-    elif wm_cache is not None:
-        known = set(wm_cache.tasks)
-    else:
-        return []
-    return [t for t in tasks if t not in known]
+        return sorted(set.intersection(*learned))
+    return list(wm_cache.tasks) if wm_cache is not None else None
+
+
+def unlearned_tasks(runs, tasks, wm_cache=None) -> list[str]:
+    """The tasks of `tasks` some world model of `runs` never learned (learned_tasks; none where nothing
+    says what they learned)."""
+    known = learned_tasks(runs, wm_cache)
+    return [] if known is None else [t for t in tasks if t not in known]
 
 
 def seeds_in_use(cfg: EvalConfig, sources) -> set:
@@ -1114,9 +1123,8 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, models, wm
     """results.json's contents from the finished tasks' results (the others listed as missing), and
     out/videos.npz."""
     # the tasks every model learned (its judge's, else its training's: wm.checkpoint.trained_tasks)
-    learned = [set(trained_tasks(Path(r))) for r in cfg.wm_runs]
-    train_tasks = (sorted(set.intersection(*learned)) if learned and all(learned)
-                   else wm_cache.tasks if wm_cache is not None else list(tasks))
+    known = learned_tasks(cfg.wm_runs, wm_cache)
+    train_tasks = list(tasks) if known is None else known
     missing = [t for t in tasks if t not in results]
     tasks = [t for t in tasks if t in results]
     by_name = {s.name: s for s in sources}

@@ -93,12 +93,19 @@ def scatter_figure(policies: list[dict], metrics: dict, tasks: list[str]) -> str
         ax.set_xlabel("true success (simulator)")
         ax.set_ylabel("predicted success (world model)")
         ax.set_title(f"{_tx(title)}: r={_fmt(m.get('pearson'), 2)}, MMRV={_fmt(m.get('mmrv'), 3)}", fontsize=10)
-    handles = [Line2D([], [], color=colors[lin], marker="o", ls="", label=_tx(lin)) for lin in lineages][:MAX_LEGEND]
-    if len(lineages) > MAX_LEGEND:  # colours repeat past these: a longer list would cover the panels and mislead
-        handles.append(Line2D([], [], ls="", label=f"... {len(lineages) - MAX_LEGEND} more lineages"))
+    handles = _lineage_handles(lineages, colors, marker="o", ls="")
     handles += [Line2D([], [], color="grey", marker=markers[t], ls="", label=_tx(t)) for t in tasks][:MAX_LEGEND]
     axes[0][-1].legend(handles=handles, fontsize=7, loc="lower right")
     return _png(fig)
+
+
+def _lineage_handles(lineages: list[str], colors: dict, **style) -> list[Line2D]:
+    """Legend entries of the first MAX_LEGEND lineages, each in its colour, and a line saying how many
+    more: past them colours repeat, and a longer list would cover the panels and mislead."""
+    handles = [Line2D([], [], color=colors[lin], label=_tx(lin), **style) for lin in lineages[:MAX_LEGEND]]
+    if len(lineages) > MAX_LEGEND:
+        handles.append(Line2D([], [], ls="", label=f"... {len(lineages) - MAX_LEGEND} more lineages"))
+    return handles
 
 
 def baseline_figure(policies: list[dict], tasks: list[str]) -> str | None:
@@ -421,8 +428,7 @@ def verdict(res: dict) -> str:
             f"{_ci(px['mean']['pearson'], px['mean_ci']['pearson'])} (difference "
             f"{_ci(diff['mean']['pearson'], diff['mean_ci']['pearson'])}; 95% intervals resampling "
             f"{w['resamples']}){_coverage(w, tasks)}. Per task, the difference's interval lies above 0 in "
-            f"{len(ahead)} of "
-            f"{len(both)}"
+            f"{len(ahead)} of {len(both)}"
             f"{' (' + ', '.join(ahead) + ')' if ahead else ''} and below 0 in {len(behind)}"
             f"{' (' + ', '.join(behind) + ')' if behind else ''}.")
 
@@ -524,9 +530,7 @@ def selection_figure(policies: list[dict], tasks: list[str]) -> str | None:
         ax.set_xlabel("training step of the checkpoint")
         ax.set_ylabel("success")
         ax.set_title(f"{_tx(t)}: true (solid) and predicted (dashed)", fontsize=10)
-    handles = [Line2D([], [], color=colors[lin], label=_tx(lin)) for lin in lineages][:MAX_LEGEND]  # every panel's
-    if len(lineages) > MAX_LEGEND:
-        handles.append(Line2D([], [], ls="", label=f"... {len(lineages) - MAX_LEGEND} more lineages"))
+    handles = _lineage_handles(lineages, colors)  # every panel's
     handles += [Line2D([], [], color="grey", marker="o", ms=3, label="true"),
                 Line2D([], [], color="grey", ls="--", marker="x", ms=4, label="predicted")]
     axes[0][-1].legend(handles=handles, fontsize=6, loc="lower right")
