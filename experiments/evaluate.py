@@ -127,6 +127,9 @@ TRACES = ("trace_success", "trace_progress", "true_progress")
 READOUTS = ("progress", "judge", "success", "judge2")
 AUTO = "auto"  # the judge where every model's judge saw its own closed-loop imaginations of learned policies
 READOUT_KEYS = tuple(f"readout_{r}" for r in READOUTS)
+# the second judge's read-out of the simulated episodes themselves, beside prob_observed (cfg.readout's):
+# whether what it misses is imagination's or its own
+OBSERVED_SECOND = f"prob_observed_{SECOND_JUDGE}"
 # Steps at which imagined frames are compared with the simulator's (and the task's last step)
 FIDELITY_HORIZONS = (1, 8, 16, 32, 64)
 # Per-episode arrays of the imagination's fidelity to the simulated episode: frame PSNR and copy-first
@@ -134,8 +137,8 @@ FIDELITY_HORIZONS = (1, 8, 16, 32, 64)
 # action dimension over the episode (P, N, 20)
 FIDELITY = ("frame_psnr", "copy_first_psnr", "action_gap", "action_gap_dims")
 # a task's per-policy arrays, (P, N, ...) (the ensemble members' prob_members, (K, P, N), apart)
-POLICY_ARRAYS = (("true", "prob", "prob_observed", "prob_replayed", "sim_imagined", "sim_finite") + READOUT_KEYS
-                 + TRACES + FIDELITY)
+POLICY_ARRAYS = (("true", "prob", "prob_observed", OBSERVED_SECOND, "prob_replayed", "sim_imagined", "sim_finite")
+                 + READOUT_KEYS + TRACES + FIDELITY)
 READOUT_LABELS = {"progress": "progress head at the last step", "judge": "episode judge",
                   "success": "highest per-step success probability", "judge2": "second episode judge"}
 
@@ -343,7 +346,8 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
     Returns {"names": [P], "true": (P, N) bool, "prob": (P, N) float (cfg.readout's; the models'
     mean), "readout_<name>": (P, N) float for each of READOUTS (the mean), "prob_observed": (P, N)
     float (cfg.readout applied to the simulated episodes themselves, _read_truth; the mean; NaN
-    where the outcomes came from cfg.truth_cache without frames), "prob_replayed": (P, N) float
+    where the outcomes came from cfg.truth_cache without frames), OBSERVED_SECOND: (P, N) float (the
+    second judge's, the same way; NaN without one), "prob_replayed": (P, N) float
     (cfg.readout of each simulated episode's actions imagined open loop, _read_replay, with
     cfg.replay; the mean; NaN otherwise), "sim_finite": (P, N) bool
     (the simulated episode's proprioception and actions all finite; True where read from the
@@ -409,7 +413,7 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
 def _predict_batch(cfg: EvalConfig, task: str, models, policy, params, truth: dict, rng) -> tuple[dict, list]:
     """Every world model's predictions for one simulated batch of B episodes: ({"prob": (B,) the
     models' mean of cfg.readout, "prob_members": (B, K) per model, "readout_<name>", "prob_observed",
-    "prob_replayed" (B,), "sim_finite" (B,), the traces (B, T), the fidelity arrays, and with
+    OBSERVED_SECOND, "prob_replayed" (B,), "sim_finite" (B,), the traces (B, T), the fidelity arrays, and with
     cfg.keep_features "features" and "features_observed" (B, T, F) float16}, each model's _imagine)."""
     steps, frames0, proprio0 = truth["steps"], truth["frames0"], truth["proprio0"]
     b = len(frames0)
@@ -421,7 +425,9 @@ def _predict_batch(cfg: EvalConfig, task: str, models, policy, params, truth: di
            **imagination_fidelity(truth, each[0]["frames"], each[0]["action"], steps),
            **{f"readout_{r}": np.mean([e[r] for e in each], axis=0) for r in READOUTS}}
     seen = [truth_features(m, truth) for m in models]
-    got["prob_observed"] = np.mean([_read_truth(m, task, x, cfg.readout, b) for m, x in zip(models, seen)], axis=0)
+    on_truth = [_read_truth(m, task, x, b) for m, x in zip(models, seen)]
+    got["prob_observed"] = np.mean([r[cfg.readout] for r in on_truth], axis=0)
+    got[OBSERVED_SECOND] = np.mean([r[SECOND_JUDGE] for r in on_truth], axis=0)
     got["prob_replayed"] = (np.mean([_read_replay(m, task, truth, cfg.readout) for m in models], axis=0)
                             if cfg.replay else np.full(b, np.nan))
     got["sim_finite"] = simulated_finite(truth)
@@ -436,7 +442,7 @@ def _empty_rows(k: int, n: int) -> dict:
     """evaluate_task's arrays for no policy (a part given none of a task's batches)."""
     empty = np.zeros((0, n))
     return {"names": [], "slices": [], "true": empty.astype(bool), "prob": empty, "prob_observed": empty,
-            "prob_replayed": empty, "sim_imagined": empty, "sim_finite": np.ones((0, n), bool),
+            OBSERVED_SECOND: empty, "prob_replayed": empty, "sim_imagined": empty, "sim_finite": np.ones((0, n), bool),
             **{key: np.zeros((0, n, 0), np.float16) for key in TRACES + FIDELITY},
             **{key: empty for key in READOUT_KEYS}, "prob_members": np.zeros((k, 0, n))}
 
@@ -599,13 +605,14 @@ def truth_features(model, truth: dict):
     return observed_features(wm_cfg.model, wm_params, norm, truth["frames"], truth["proprio"], truth["action"])
 
 
-def _read_truth(model, task, x, readout: str, b: int) -> np.ndarray:
-    """One world model's read-out of the b simulated episodes' features x (truth_features): (B,)
-    float64. Above the world model's own figure, imagination loses what decides the outcome; where
-    low, the heads (or the judge) cannot read the outcome even from true frames; NaN where x is None."""
+def _read_truth(model, task, x, b: int) -> dict:
+    """One world model's read-outs (read_episodes) of the b simulated episodes' features x
+    (truth_features): {name: (B,) float64}. Above the world model's own figure, imagination loses what
+    decides the outcome; where low, the heads (or the judge) cannot read the outcome even from true
+    frames; NaN where x is None."""
     if x is None:
-        return np.full(b, np.nan)
-    return read_episodes(model[3], task, x, model[4])[readout]
+        return {r: np.full(b, np.nan) for r in READOUTS}
+    return read_episodes(model[3], task, x, model[4])
 
 
 def _read_replay(model, task, truth: dict, readout: str) -> np.ndarray:
@@ -862,11 +869,12 @@ def within_task_block(results: dict, tasks, rows: list[dict], cfg: EvalConfig, k
     beside the imitation-loss proxy (minus each checkpoint's validation loss; policies without one,
     such as plug-ins, are left out of the proxy's statistics), the world model's other read-outs
     ("readout_<name>"), and, where every episode has it, the read-out applied to the simulated
-    episodes themselves ("on_truth", _read_truth: what it reads where imagination is exact) and to
+    episodes themselves ("on_truth", _read_truth: what it reads where imagination is exact; the second
+    judge's "on_truth_judge2" beside it, unless it is the one ranked by) and to
     their own actions replayed open loop ("replayed", cfg.replay), and the simulator's outcomes of
     the actions taken in imagination ("sim_imagined", cfg.replay), over the policies whose name `keep`
     accepts."""
-    true, wm, proxy, observed, replayed, played, picked_of = {}, {}, {}, {}, {}, {}, {}
+    true, wm, proxy, observed, observed2, replayed, played, picked_of = {}, {}, {}, {}, {}, {}, {}, {}
     # a second judge only where it reads every task: its mean over tasks then means what the others' does
     others = {f"readout_{r}": {} for r in readouts_of(results, tasks) if r != cfg.readout}
     for t in tasks:
@@ -876,12 +884,14 @@ def within_task_block(results: dict, tasks, rows: list[dict], cfg: EvalConfig, k
         true[t], wm[t] = results[t]["true"][picked], results[t]["prob"][picked]
         proxy[t] = np.array([math.nan if loss[names[j]] is None else -loss[names[j]] for j in picked])
         observed[t] = results[t]["prob_observed"][picked]
+        observed2[t] = results[t][OBSERVED_SECOND][picked]
         replayed[t] = results[t]["prob_replayed"][picked]
         played[t] = results[t]["sim_imagined"][picked]
         for key, got in others.items():
             got[t] = results[t][key][picked]
     predictors = {"world_model": wm, "proxy": proxy, **others}
-    for name, got in (("on_truth", observed), ("replayed", replayed), ("sim_imagined", played)):
+    second = [] if cfg.readout == SECOND_JUDGE else [(f"on_truth_{SECOND_JUDGE}", observed2)]
+    for name, got in (("on_truth", observed), *second, ("replayed", replayed), ("sim_imagined", played)):
         if all(np.isfinite(o).all() for o in got.values()):
             predictors[name] = got
     out = S.within_task(true, predictors, cfg.threshold)
@@ -1306,15 +1316,17 @@ def load_task(path: Path) -> dict:
         meta = json.loads(z["meta"].tobytes().decode())
         videos = {k[len("video:"):]: z[k] for k in z.files if k.startswith("video:")}
         members = z["prob_members"] if "prob_members" in z.files else z["prob"][None]  # before ensembles
-        observed, replayed, played = (z[k] if k in z.files else np.full(z["prob"].shape, np.nan)
-                                      for k in ("prob_observed", "prob_replayed", "sim_imagined"))
+        observed, observed2, replayed, played = (
+            z[k] if k in z.files else np.full(z["prob"].shape, np.nan)
+            for k in ("prob_observed", OBSERVED_SECOND, "prob_replayed", "sim_imagined"))
         finite = z["sim_finite"] if "sim_finite" in z.files else np.ones(z["prob"].shape, bool)
         traces = {k: z[k] if k in z.files else np.zeros(z["prob"].shape + (0,), np.float16) for k in TRACES}
         fidelity = {k: z[k] if k in z.files else np.full(z["prob"].shape + (0,), np.nan, np.float32) for k in FIDELITY}
         readouts = {k: z[k] if k in z.files else np.full(z["prob"].shape, np.nan) for k in READOUT_KEYS}
         return {**meta, "true": z["true"].astype(bool), "prob": z["prob"], **readouts,
                 **fidelity,
-                "prob_observed": observed, "prob_replayed": replayed, "sim_imagined": played, "sim_finite": finite,
+                "prob_observed": observed, OBSERVED_SECOND: observed2, "prob_replayed": replayed, "sim_imagined": played,
+                "sim_finite": finite,
                 "prob_members": members, **traces, "videos": videos}
 
 

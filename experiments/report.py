@@ -434,17 +434,18 @@ def verdict(res: dict) -> str:
 
 
 UPPER = "the read-out of the true episodes"
+UPPER_SECOND = "the judge2 read-out of the true episodes"
 REPLAYED = "the read-out of the true actions replayed"
 SIM_IMAGINED = "the simulator on the actions taken in imagination"
 
 
 def _other_readouts(w: dict) -> list[tuple[str, str]]:
     """(key, label) of the world model's read-outs other than the one it ranks by, in results' order,
-    then, where measured, its read-out of the true episodes and of their actions replayed, and the
-    simulator's outcomes of the actions the policies took in imagination."""
+    then, where measured, its read-out of the true episodes (and the second judge's), of their actions
+    replayed, and the simulator's outcomes of the actions the policies took in imagination."""
     return ([(k, f"world model, {k[len('readout_'):]} read-out") for k in w if k.startswith("readout_")]
-            + [(k, label) for k, label in (("on_truth", UPPER), ("replayed", REPLAYED), ("sim_imagined", SIM_IMAGINED))
-               if k in w])
+            + [(k, label) for k, label in (("on_truth", UPPER), ("on_truth_judge2", UPPER_SECOND),
+                                           ("replayed", REPLAYED), ("sim_imagined", SIM_IMAGINED)) if k in w])
 
 
 def within_task_table(res: dict) -> list[list[str]]:

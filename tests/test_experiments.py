@@ -815,6 +815,7 @@ def test_a_second_judge_is_read_beside_the_first_on_the_same_imaginations(evalua
     cfg, _, res = evaluation
     assert all("judge2" not in p["pred_rate_readouts"] for p in res["policies"])
     assert "readout_judge2" not in res["metrics"]["within_task"]
+    assert "on_truth_judge2" not in res["metrics"]["within_task"]
     assert "judge2" not in res["metrics"]["pooled"]["readouts"]
     with pytest.raises(ValueError, match="readout=judge2 ranks by a second episode judge"):
         E.run(dataclasses.replace(cfg, readout="judge2"), tmp_path / "refused", progress=False)
@@ -836,10 +837,18 @@ def test_a_second_judge_is_read_beside_the_first_on_the_same_imaginations(evalua
                            load_judge(run, J.SECOND_JUDGE))
     assert read["judge2"].reshape(p, n) == pytest.approx(task["readout_judge2"], abs=2e-3)
     assert not np.allclose(task["readout_judge2"], task["readout_judge"])  # other inputs, another reading
+    # its reading of the simulated episodes themselves, beside the first judge's
+    seen = E.load_features(out, "mug", observed=True).reshape((p * n,) + x.shape[2:]).astype(np.float32)
+    on_truth = E.read_episodes(load_judge(run), "mug", seen, load_judge(run, J.SECOND_JUDGE))
+    assert on_truth["judge2"].reshape(p, n) == pytest.approx(task[E.OBSERVED_SECOND], abs=0.02)
+    assert on_truth[cfg.readout].reshape(p, n) == pytest.approx(task["prob_observed"], abs=0.02)
+    assert not np.allclose(task[E.OBSERVED_SECOND], task["prob_observed"])
     for row, r in zip(got["policies"], task["readout_judge2"], strict=True):
         assert row["pred_rate_readouts"]["judge2"] == pytest.approx(r.mean())
     assert "readout_judge2" in got["metrics"]["within_task"] and "judge2" in got["metrics"]["pooled"]["readouts"]
-    assert "world model, judge2 read-out" in write_report(out).with_suffix(".md").read_text()
+    assert "on_truth_judge2" in got["metrics"]["within_task"]
+    md = write_report(out).with_suffix(".md").read_text()
+    assert "world model, judge2 read-out" in md and "the judge2 read-out of the true episodes" in md
     bundle = tmp_path / "bundle"
     assert checkpoint_main([str(run), str(bundle)]) == 0
     assert load_judge(bundle, J.SECOND_JUDGE).columns.tolist() == feature_columns(model, ["proprio", "action"]).tolist()
@@ -861,7 +870,8 @@ def test_a_second_judge_that_reads_some_tasks_only_is_left_out_of_the_means_over
     for t in ("mug", "step_back"):
         results[t] = {"names": [f"p{i}" for i in range(4)], "true": rng.random((4, 4)) < np.linspace(0.1, 0.9, 4)[:, None],
                       "prob": rng.random((4, 4)), **{k: np.full((4, 4), np.nan) for k in
-                                                     ("prob_observed", "prob_replayed", "sim_imagined")},
+                                                     ("prob_observed", E.OBSERVED_SECOND, "prob_replayed",
+                                                      "sim_imagined")},
                       **{f"readout_{r}": rng.random((4, 4)) for r in E.READOUTS}}
     rows = [{"name": f"p{i}", "task": t, "val_loss": 1.0 + i} for t in results for i in range(4)]
     assert "readout_judge2" in E.within_task_block(results, list(results), rows, cfg, lambda n: True)
