@@ -775,16 +775,17 @@ def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) ->
     name, for their records and kinds): the true rate and predicted rate with their intervals, the thresholded
     prediction, alignment, each read-out's rate (those of READOUTS that read the task: no second judge's
     where the world models have none), the rates read on the simulated and replayed episodes, mean
-    progress curves, the action gap, and the per-episode outcomes and probabilities; with an ensemble, each
+    progress curves, the action gap, and the per-episode outcomes and probabilities (the rates read on the
+    simulated episodes: cfg.readout's and the second judge's, None where not read); with an ensemble, each
     member's predicted rate ("pred_rates")."""
     rows = []
     members = res["prob_members"].transpose(1, 0, 2)  # (P, K, N)
     named = readouts_of({task: res}, [task])
     readouts = np.stack([res[f"readout_{r}"] for r in named], axis=1).reshape(len(res["names"]), len(named), -1)
-    for name, t, p, r, pk, ok, tp, ip, gap, dims, obs, rep, played in zip(
+    for name, t, p, r, pk, ok, tp, ip, gap, dims, obs, obs2, rep, played in zip(
             res["names"], res["true"], res["prob"], readouts, members, res["sim_finite"], res["true_progress"],
             res["trace_progress"], res["action_gap"], res["action_gap_dims"], res["prob_observed"],
-            res["prob_replayed"], res["sim_imagined"], strict=True):
+            res[OBSERVED_SECOND], res["prob_replayed"], res["sim_imagined"], strict=True):
         rec = sources_by_name[name].record
         k, n = int(t.sum()), len(t)
         read = bool(np.isfinite(p).all())  # a non-finite prediction reads no outcome
@@ -800,6 +801,7 @@ def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) ->
                      "pred_rate_readouts": dict(zip(named, r.mean(1).tolist(), strict=True)),
                      # the read-out of the simulated episodes, and of their actions replayed (replay=1)
                      "pred_rate_on_truth": _mean_or_none(obs), "pred_rate_replayed": _mean_or_none(rep),
+                     f"pred_rate_on_truth_{SECOND_JUDGE}": _mean_or_none(obs2),
                      # the simulator's success on the actions the policy took in imagination (replay=1)
                      "true_rate_imagined_actions": _mean_or_none(played),
                      "nonfinite_episodes": int((~ok).sum()), "nonfinite_predictions": int((~np.isfinite(p)).sum()),

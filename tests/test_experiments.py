@@ -813,7 +813,8 @@ def test_a_second_judge_is_read_beside_the_first_on_the_same_imaginations(evalua
     the same imaginations with both, reports the second's read-out beside the others, and a bundle
     carries it; a model without one reports no such read-out and cannot rank by it."""
     cfg, _, res = evaluation
-    assert all("judge2" not in p["pred_rate_readouts"] for p in res["policies"])
+    assert all("judge2" not in p["pred_rate_readouts"] and p["pred_rate_on_truth_judge2"] is None
+               for p in res["policies"])
     assert "readout_judge2" not in res["metrics"]["within_task"]
     assert "on_truth_judge2" not in res["metrics"]["within_task"]
     assert "judge2" not in res["metrics"]["pooled"]["readouts"]
@@ -843,8 +844,9 @@ def test_a_second_judge_is_read_beside_the_first_on_the_same_imaginations(evalua
     assert on_truth["judge2"].reshape(p, n) == pytest.approx(task[E.OBSERVED_SECOND], abs=0.02)
     assert on_truth[cfg.readout].reshape(p, n) == pytest.approx(task["prob_observed"], abs=0.02)
     assert not np.allclose(task[E.OBSERVED_SECOND], task["prob_observed"])
-    for row, r in zip(got["policies"], task["readout_judge2"], strict=True):
+    for row, r, o in zip(got["policies"], task["readout_judge2"], task[E.OBSERVED_SECOND], strict=True):
         assert row["pred_rate_readouts"]["judge2"] == pytest.approx(r.mean())
+        assert row["pred_rate_on_truth_judge2"] == pytest.approx(o.mean())
     assert "readout_judge2" in got["metrics"]["within_task"] and "judge2" in got["metrics"]["pooled"]["readouts"]
     assert "on_truth_judge2" in got["metrics"]["within_task"]
     md = write_report(out).with_suffix(".md").read_text()

@@ -298,8 +298,8 @@ def test_non_finite_predictions_are_not_read_as_failures():
            **{k: np.zeros((p, n)) for k in E.READOUT_KEYS}, "sim_finite": np.ones((p, n), bool),
            "true_progress": np.zeros((p, n, 3)), "trace_progress": np.zeros((p, n, 3)),
            "action_gap": np.zeros((p, n)), "action_gap_dims": np.zeros((p, n, 20)),
-           "prob_observed": np.full((p, n), np.nan), "prob_replayed": np.full((p, n), np.nan),
-           "sim_imagined": np.full((p, n), np.nan)}
+           "prob_observed": np.full((p, n), np.nan), E.OBSERVED_SECOND: np.full((p, n), np.nan),
+           "prob_replayed": np.full((p, n), np.nan), "sim_imagined": np.full((p, n), np.nan)}
     sources = {name: dataclasses.replace(load_plugin("examples.plugin_policy:make"), name=name) for name in res["names"]}
     ok, nans = E.policy_rows(E.EvalConfig(policies=("x",), wm="y"), "mug", res, sources)
     assert ok["pred_rate_thresholded"] == 0.5 and ok["alignment"] == 1.0 and ok["nonfinite_predictions"] == 0
