@@ -79,7 +79,7 @@ class TrainConfig:
         1/8 are among those of 1/4); train_tasks: the tasks trained on (empty: all);
         eval_tasks: the tasks of eval.json (empty: all). The sweeps vary these.
       judge_episodes: training episodes the episode judge (wm.judge) learns from, imagined whole after
-        training (0: no judge; the per-step rule decides); judge_steps: its optimiser steps;
+        training (0: no judge, nor a second; the per-step rule decides); judge_steps: its optimiser steps;
         judge_inputs: the blocks of the imagined step features it reads (wm.imagine.FEATURE_GROUPS:
         proprio, action, latent, scene, success, outcome, progress; by default all but "scene", the scene
         head's prediction, which a model with model.scene offers when named); leaving out "action" makes
@@ -206,8 +206,6 @@ class TrainConfig:
         if set(self.judge2_inputs) - set(FEATURE_GROUPS) or ("scene" in self.judge2_inputs and not self.model.scene):
             raise ValueError(f"judge2_inputs are among {', '.join(FEATURE_GROUPS)} (\"scene\" with model.scene); "
                              f"got {list(self.judge2_inputs)}")
-        if self.judge2_inputs and not self.judge_episodes:
-            raise ValueError("judge2_inputs names a second episode judge, which needs judge_episodes > 0")
         if self.model.scene and self.w_scene <= 0:
             raise ValueError(f"model.scene needs w_scene > 0 (its head learns from that loss alone); got {self.w_scene}")
         if self.model.refine and self.w_refine <= 0:
