@@ -433,6 +433,25 @@ def verdict(res: dict) -> str:
             f"{' (' + ', '.join(behind) + ')' if behind else ''}.")
 
 
+def better_readout_note(res: dict) -> str | None:
+    """A sentence naming each other read-out of the same imagined episodes that ranks policies within a
+    task better than the one the world model is ranked by (the paired difference's interval of the mean
+    within-task Pearson r lies below 0), with how to rank by it; None where none does."""
+    w = res["metrics"]["within_task"]
+    ranked = res.get("config", {}).get("readout", "the ranked one")
+    better = [k for k in w if k.startswith("readout_") and k in w.get("difference", {})
+              and not _missing(hi := w["difference"][k]["mean_ci"]["pearson"][1]) and hi < 0]
+    if not better:
+        return None
+    parts = [f"the {k[len('readout_'):]} read-out's mean within-task Pearson r "
+             f"{_ci(w[k]['mean']['pearson'], w[k]['mean_ci']['pearson'])}, the ranked read-out ({ranked}) minus it "
+             f"{_ci(w['difference'][k]['mean']['pearson'], w['difference'][k]['mean_ci']['pearson'])}"
+             for k in better]
+    how = " or ".join(f"readout={k[len('readout_'):]}" for k in better)
+    return (f"Another read-out of the same imagined episodes ranks the policies better within a task: {'; '.join(parts)} "
+            f"(paired, resampling {w['resamples']}). The evaluation ranks by it with {how}.")
+
+
 UPPER = "the read-out of the true episodes"
 UPPER_SECOND = "the judge2 read-out of the true episodes"
 REPLAYED = "the read-out of the true actions replayed"
@@ -867,6 +886,7 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
          f"<p><b>{html.escape(verdict(res))}</b></p>",
          "<h2>Predicted against true success, per task</h2>", f"<img src='{scatter_figure(policies, metrics, tasks)}'>",
          "<h2>Within-task ranking (the headline)</h2>", _html_table(within_task_table(res)),
+         *([f"<p>{html.escape(better)}</p>"] if (better := better_readout_note(res)) else []),
          *([f"<h2>Your policies (plug-ins)</h2><p>{html.escape(PLUGIN_NOTE)}</p>", _html_table(plug)]
            if plug else []),
          *([f"<h2>Task progress, true and imagined</h2><img src='{fig}'>"]
@@ -919,6 +939,7 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
           *([f"**{_sentence(unread)}.**", ""] if unread else []),
           *([f"**{CUT_SHORT}**", ""] if res["world_model"].get("cut_short") else []),
           f"**{verdict(res)}**", "", "## Within-task ranking (the headline)", "", md_table(within_task_table(res)), "",
+          *([better, ""] if (better := better_readout_note(res)) else []),
           md_table(per_task_table(res)), "",
           *(["## Your policies (plug-ins)", "", PLUGIN_NOTE, "", md_table(plug), ""] if plug else []),
           "## Checkpoint selection", "", _selection_md(res), "",

@@ -17,6 +17,7 @@ from experiments import evaluate as E
 from experiments import stats as S
 from experiments.report import (
     UNSEEN_NETWORKS_TITLE,
+    better_readout_note,
     decision_figure,
     family_table,
     md_table,
@@ -654,6 +655,24 @@ def test_the_verdict_says_which_tasks_each_mean_is_over():
     assert ("(means over the tasks where Pearson r is defined: the world model's over mug and step_back; "
             "the proxy's over mug; the difference over mug)") in got
     assert "lies above 0 in 1 of 1 (mug)" in got
+
+
+def test_a_read_out_that_ranks_better_than_the_ranked_one_is_named_with_how_to_rank_by_it():
+    within = _within(0.80, 0.2)
+    within["readout_judge2"] = {"mean": {"pearson": 0.90}, "mean_ci": {"pearson": [0.85, 0.95]}}
+    within["readout_progress"] = {"mean": {"pearson": 0.85}, "mean_ci": {"pearson": [0.7, 0.9]}}
+    within["difference"]["readout_judge2"] = {"mean": {"pearson": -0.10}, "mean_ci": {"pearson": [-0.15, -0.05]}}
+    # ahead on the mean but within the interval: not named
+    within["difference"]["readout_progress"] = {"mean": {"pearson": -0.05}, "mean_ci": {"pearson": [-0.2, 0.1]}}
+    res = {"config": {"readout": "judge"}, "metrics": {"within_task": within}}
+    got = better_readout_note(res)
+    assert "the judge2 read-out's mean within-task Pearson r 0.90 [0.85, 0.95]" in got
+    assert "the ranked read-out (judge) minus it -0.10 [-0.15, -0.05]" in got and "readout=judge2." in got
+    assert "progress" not in got
+    within["difference"]["readout_judge2"]["mean_ci"]["pearson"] = [-0.15, 0.01]
+    assert better_readout_note(res) is None
+    within["difference"]["readout_judge2"]["mean_ci"]["pearson"] = [None, None]  # no bootstrap: nothing claimed
+    assert better_readout_note(res) is None
 
 
 def test_the_decision_figure_draws_without_an_alignment():
