@@ -48,11 +48,14 @@ that wait on it:
 `--detach` starts the same command detached from the terminal (setsid), its output in
 runs/logs/<p>/pipeline.log (a background job is bound by no command's limit: its train and eval
 stages run without their safety stop, max_minutes=0, unless `--set` or `--minutes` gives one);
-`--follow S` waits up to S seconds for it, then prints the stages' timing rows so far and the log's
+`--cache-from DIR` first restores the compilation caches a previous lease packed with `--collect-cache`
+(below); `--follow S` waits up to S seconds for it, then prints the stages' timing rows so far and the log's
 last lines, and exits 0 once the command has ended well (a whole chain: with its report's path), 1 if
 it failed, 3 while it still runs; with `--collect DIR` (on a lent GPU: `--collect $OUT`) the follow
 that sees it end also copies its results, report, timing table and the world models' figures and logs
-into DIR (collect), so that the command that learns the chain is done also brings its outcome back.
+into DIR (collect), so that the command that learns the chain is done also brings its outcome back;
+with `--collect-cache` also the compilation caches (runs/jax_cache, runs/xla_autotune), packed into at
+most three files of <= 15 MiB (pack_compile_cache) for the next lease on a machine of the same kind.
 With `--until-bundle` it also returns, with exit status 4, once this chain's train stage has written
 the world models' bundles (below) and no earlier `--until-bundle` returned for them: copy
 runs/bundles/<p> off the machine in the same command (a follow that returned 4 does not return it
@@ -93,6 +96,7 @@ import argparse
 import contextlib
 import dataclasses
 import hashlib
+import io
 import json
 import os
 import shlex
@@ -101,6 +105,7 @@ import subprocess
 import sys
 import tarfile
 import time
+import zlib
 from pathlib import Path
 
 import jax
@@ -537,6 +542,73 @@ def use_compilation_cache(root: str) -> str:
     return path
 
 
+CACHE_DIRS = ("jax_cache", "xla_autotune")  # under a pipeline's root: what use_compilation_cache fills
+CACHE_PART = "compile_cache.tgz.part"  # pack_compile_cache's files: CACHE_PART + 00, 01, ...
+CACHE_PART_BYTES = 15 * 2**20  # a lent GPU brings back files of <= 16 MiB
+CACHE_MAX_PARTS = 3  # beside collect's five files: a lent GPU brings back eight
+
+
+def pack_compile_cache(root: Path, dest: Path, part_bytes: int = CACHE_PART_BYTES,
+                       max_parts: int = CACHE_MAX_PARTS) -> list[Path]:
+    """root's compilation caches (CACHE_DIRS: JAX's compiled programs, XLA's autotuning) as one tar.gz
+    in dest/CACHE_PART00, 01, ... of <= part_bytes each, for a later lease on a machine of the same
+    kind (restore_compile_cache), whose stages then load what this one compiled. Returns the parts
+    written: none where root holds no cache, or where it would take more than max_parts (a
+    message says so; nothing is left in dest)."""
+    dirs = [Path(root) / d for d in CACHE_DIRS if (Path(root) / d).is_dir()]
+    if not dirs:
+        return []
+    dest.mkdir(parents=True, exist_ok=True)
+    whole = dest / (CACHE_PART + ".tmp")
+    with tarfile.open(whole, "w:gz") as tar:
+        for d in dirs:
+            tar.add(d, arcname=d.name)
+    size = whole.stat().st_size
+    n = -(-size // part_bytes)
+    if n > max_parts:
+        whole.unlink()
+        print(f"the compilation cache takes {size / 2**20:.1f} MiB packed, more than {max_parts} files of "
+              f"{part_bytes / 2**20:g} MiB: not packed", file=sys.stderr)
+        return []
+    parts = []
+    with open(whole, "rb") as f:
+        for k in range(n):
+            tmp = dest / f"{CACHE_PART}{k:02d}.tmp"
+            tmp.write_bytes(f.read(part_bytes))
+            tmp.replace(dest / f"{CACHE_PART}{k:02d}")
+            parts.append(dest / f"{CACHE_PART}{k:02d}")
+    whole.unlink()
+    return parts
+
+
+def restore_compile_cache(src: Path, root: Path) -> int:
+    """Extracts pack_compile_cache's parts found in src into root (beside what root's caches hold;
+    entries of the same name are replaced). Raises FileNotFoundError where src holds no part, and
+    ValueError where the parts do not join into one archive (one missing or cut short) or it holds
+    anything outside CACHE_DIRS. Returns the files restored."""
+    parts = sorted(Path(src).glob(f"{CACHE_PART}[0-9][0-9]"))
+    if not parts:
+        raise FileNotFoundError(f"{src} holds no {CACHE_PART}NN: pack one with --follow ... --collect DIR "
+                                "--collect-cache at the end of a lease")
+    numbers = [int(p.name[len(CACHE_PART):]) for p in parts]
+    if numbers != list(range(len(parts))):
+        raise ValueError(f"{src}: the cache's parts are {numbers}, not 0..{len(parts) - 1}: one is missing")
+    joined = b"".join(p.read_bytes() for p in parts)
+    try:
+        with tarfile.open(fileobj=io.BytesIO(joined), mode="r:gz") as tar:
+            members = tar.getmembers()
+            foreign = [m.name for m in members if Path(m.name).parts[:1] not in [(d,) for d in CACHE_DIRS]
+                       or ".." in Path(m.name).parts or not (m.isfile() or m.isdir())]
+            if foreign:
+                raise ValueError(f"{src}: the cache archive holds {foreign[:3]}, outside {', '.join(CACHE_DIRS)}")
+            Path(root).mkdir(parents=True, exist_ok=True)
+            tar.extractall(root, filter="data")
+    except (tarfile.TarError, EOFError, OSError, zlib.error) as e:
+        raise ValueError(f"{src}: the cache's {len(parts)} parts do not make one archive ({e}): "
+                         "is a part cut short or from another lease?") from e
+    return sum(m.isfile() for m in members)
+
+
 def _spread(module: str, args, slots, logs: Path, stage: str, on: str = "gpu") -> list[Path]:
     """With several slots (GPU ids, or CPU core ids with on="cpu"), module's main(args --part K/N) on
     each of them (sim_data.parts), in child processes; the caller then runs the module once more
@@ -607,6 +679,19 @@ def detach(name: str, argv: list[str]) -> Path:
     return logs / DETACHED_LOG
 
 
+def _without_option(argv: list[str], option: str) -> list[str]:
+    """argv without `option VALUE` and `option=VALUE`."""
+    out, skip = [], False
+    for x in argv:
+        if skip:
+            skip = False
+        elif x == option:
+            skip = True
+        elif not x.startswith(option + "="):
+            out.append(x)
+    return out
+
+
 def _detached_pid(logs: Path) -> int | None:
     """The pid of the preset's detached chain while it runs, else None."""
     path = logs / DETACHED_PID
@@ -671,14 +756,15 @@ def collect(p: Pipeline, name: str, dest: Path) -> list[Path]:
 
 
 def follow(name: str, seconds: float, members: int | None = None, out=sys.stdout, until_bundle: bool = False,
-           collect_to: Path | None = None) -> int:
+           collect_to: Path | None = None, collect_cache: bool = False) -> int:
     """Waits up to `seconds` for the preset's detached command to end; prints the timing rows written
     so far and the log's last lines. Returns 0 once it ended well (exit status 0), 1 if it failed or
     was killed, STILL_RUNNING while it runs; with until_bundle, BUNDLED as soon as the world models'
     bundles are listed and no earlier call returned for them (new_bundles), whether the chain runs on
     or has ended, so that they are copied off the machine before a lease ends (by the same command:
     the next call does not return for them again). With collect_to, a chain that has ended (well or not)
-    has its outcome copied there (collect) before the call returns."""
+    has its outcome copied there (collect) before the call returns, and with collect_cache its
+    compilation caches packed beside it (pack_compile_cache), for the next lease's --cache-from."""
     p = pipeline(name, members)
     logs = _logs(p, name)
     if not (logs / DETACHED_PID).exists():
@@ -714,6 +800,8 @@ def follow(name: str, seconds: float, members: int | None = None, out=sys.stdout
     print(f"== {name}: the detached command ended {ended}", file=out)
     if collect_to is not None:
         files = collect(p, name, Path(collect_to))
+        if collect_cache:
+            files += pack_compile_cache(Path(p.root), Path(collect_to))
         print(f"== {name}: collected {', '.join(f.name for f in files)} into {collect_to}", file=out)
     return 0 if rc == 0 else 1
 
@@ -748,6 +836,12 @@ def main(argv=None) -> int:
     ap.add_argument("--collect", type=Path, default=None, metavar="DIR",
                     help="with --follow, once the chain has ended copy its results, report, timing and the "
                          "world models' figures and logs into DIR (e.g. $OUT), in the same command")
+    ap.add_argument("--collect-cache", action="store_true",
+                    help="with --collect, also pack the compilation caches (runs/jax_cache, runs/xla_autotune) into "
+                         f"DIR/{CACHE_PART}NN (<= 15 MiB each), for the next lease's --cache-from")
+    ap.add_argument("--cache-from", type=Path, default=None, metavar="DIR",
+                    help=f"first restore the compilation caches from DIR/{CACHE_PART}NN (--collect-cache's, from a "
+                         "lease on a machine of the same kind), so that the stages load what it compiled")
     ap.add_argument("--warm-rollouts", action="store_true",
                     help="with the policies stage (one GPU or none), compile the rollouts' programs beside it (with "
                          "the data and rollouts stages' --set overrides), for the rollouts stage to load")
@@ -790,10 +884,22 @@ def main(argv=None) -> int:
     for option, given in (("--until-bundle", a.until_bundle), ("--collect", a.collect)):
         if given and a.follow is None:
             ap.error(f"{option} is an option of --follow")
+    if a.collect_cache and a.collect is None:
+        ap.error("--collect-cache is an option of --collect")
     if a.follow is not None:
         if a.detach:
             ap.error("--follow waits on a chain started by --detach: give them in two commands")
-        return follow(a.pipeline, a.follow, a.members, until_bundle=a.until_bundle, collect_to=a.collect)
+        if a.cache_from is not None:
+            ap.error("--cache-from restores the caches for a chain to come: give it to the command that starts it")
+        return follow(a.pipeline, a.follow, a.members, until_bundle=a.until_bundle, collect_to=a.collect,
+                      collect_cache=a.collect_cache)
+    if a.cache_from is not None:
+        try:
+            restored = restore_compile_cache(a.cache_from, Path(PIPELINES[a.pipeline].root))
+        except (FileNotFoundError, ValueError) as e:
+            ap.error(str(e))
+        print(f"restored {restored} files of the compilation caches from {a.cache_from}")
+        raw = _without_option(raw, "--cache-from")
     if a.detach:
         print(f"started in the background; log: {detach(a.pipeline, [x for x in raw if x != '--detach'])}\n"
               f"follow it with: python -m experiments.pipeline {a.pipeline} --follow 520 --until-bundle --collect DIR")

@@ -5,12 +5,14 @@ import dataclasses
 import io
 import json
 import os
+import shutil
 import signal
 import tarfile
 import time
 from pathlib import Path
 
 import jax
+import numpy as np
 import pytest
 
 from experiments import pipeline as P
@@ -457,6 +459,80 @@ def test_follow_collects_a_finished_chains_outcome_in_the_command_that_sees_it_e
     with pytest.raises(SystemExit):
         P.main(["full", "--collect", str(out)])
     assert "--collect is an option of --follow" in capsys.readouterr().err
+
+
+def test_the_compilation_caches_pack_into_parts_that_restore_to_the_same_files(tmp_path, capsys):
+    """A lease's caches packed into parts of bounded size come back byte for byte on the next machine;
+    a missing part, a foreign member, no parts, or a cache too large for the files a lease returns
+    are each refused or skipped with a message."""
+    rng = np.random.default_rng(0)
+    root = tmp_path / "runs"
+    files = {"jax_cache/jit_train_step-abc": rng.bytes(70_000), "jax_cache/jit_init-def": rng.bytes(30_000),
+             "xla_autotune/fusion.textproto": b"autotune results\n" * 100}
+    for name, data in files.items():
+        (root / name).parent.mkdir(parents=True, exist_ok=True)
+        (root / name).write_bytes(data)
+    (root / "data").mkdir()
+    (root / "data" / "big.mcap").write_bytes(b"not a cache")
+    out = tmp_path / "out"
+    parts = P.pack_compile_cache(root, out, part_bytes=40_000)
+    assert [p.name for p in parts] == [f"{P.CACHE_PART}{k:02d}" for k in range(len(parts))] and len(parts) == 3
+    assert all(p.stat().st_size <= 40_000 for p in parts) and sorted(out.iterdir()) == parts
+    fresh = tmp_path / "fresh" / "runs"
+    assert P.restore_compile_cache(out, fresh) == 3
+    assert {str(f.relative_to(fresh)): f.read_bytes() for f in fresh.rglob("*") if f.is_file()} == files
+    # one part lost on the way: refused, naming what is missing
+    (out / f"{P.CACHE_PART}01").rename(tmp_path / "aside")
+    with pytest.raises(ValueError, match="one is missing"):
+        P.restore_compile_cache(out, tmp_path / "other")
+    (tmp_path / "aside").write_bytes((tmp_path / "aside").read_bytes()[:-100])
+    (tmp_path / "aside").rename(out / f"{P.CACHE_PART}01")
+    with pytest.raises(ValueError, match="do not make one archive"):
+        P.restore_compile_cache(out, tmp_path / "other")
+    with pytest.raises(FileNotFoundError, match="--collect-cache"):
+        P.restore_compile_cache(tmp_path / "empty", tmp_path / "other")
+    # an archive holding anything but the caches is not extracted
+    evil = tmp_path / "evil"
+    evil.mkdir()
+    with tarfile.open(evil / f"{P.CACHE_PART}00", "w:gz") as tar:
+        tar.add(root / "data" / "big.mcap", arcname="data/big.mcap")
+    with pytest.raises(ValueError, match="outside jax_cache, xla_autotune"):
+        P.restore_compile_cache(evil, tmp_path / "other")
+    assert not (tmp_path / "other" / "data").exists()
+    # more than the lease's files allow: nothing packed, nothing left behind
+    assert P.pack_compile_cache(root, tmp_path / "small", part_bytes=10_000, max_parts=3) == []
+    assert list((tmp_path / "small").iterdir()) == [] and "not packed" in capsys.readouterr().err
+    assert P.pack_compile_cache(tmp_path / "nothing", tmp_path / "none") == []
+
+
+def test_a_lease_collects_its_caches_and_the_next_starts_from_them(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    body = ("sleep 0.2; mkdir -p runs/eval/full runs/jax_cache; echo '{}' > runs/eval/full/results.json; "
+            "echo compiled > runs/jax_cache/jit_step; exit 0")
+    monkeypatch.setattr(P.sys, "executable", _fake_python(tmp_path, body))
+    monkeypatch.setattr(P, "FOLLOW_POLL_S", 0.05)
+    P.detach("full", ["full"])
+    out = tmp_path / "out"
+    text = io.StringIO()
+    assert P.follow("full", 30, out=text, collect_to=out, collect_cache=True) == 0
+    assert f"{P.CACHE_PART}00" in text.getvalue() and (out / f"{P.CACHE_PART}00").exists()
+    shutil.rmtree("runs")
+    seen = tmp_path / "argv"
+    monkeypatch.setattr(P.sys, "executable", _fake_python(tmp_path, f'echo "$@" > {seen}'))
+    assert P.main(["full", "--detach", "--cache-from", str(out)]) == 0
+    assert Path("runs/jax_cache/jit_step").read_text() == "compiled\n"
+    assert "restored 1 files of the compilation caches" in capsys.readouterr().out
+    for _ in range(100):  # the detached command runs without the option: the caches are in place already
+        if seen.exists() and seen.read_text().strip():
+            break
+        time.sleep(0.05)
+    assert "--cache-from" not in seen.read_text() and str(out) not in seen.read_text()
+    for argv, message in ((["full", "--follow", "1", "--collect-cache"], "--collect-cache is an option of --collect"),
+                          (["full", "--follow", "1", "--cache-from", str(out)], "give it to the command that starts"),
+                          (["full", "--cache-from", str(tmp_path / "none")], "holds no compile_cache.tgz.partNN")):
+        with pytest.raises(SystemExit):
+            P.main(argv)
+        assert message in capsys.readouterr().err
 
 
 def test_a_detached_chain_runs_the_pipeline_itself(tmp_path, monkeypatch):
