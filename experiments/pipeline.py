@@ -800,8 +800,10 @@ def follow(name: str, seconds: float, members: int | None = None, out=sys.stdout
     print(f"== {name}: the detached command ended {ended}", file=out)
     if collect_to is not None:
         files = collect(p, name, Path(collect_to))
-        if collect_cache:
-            files += pack_compile_cache(Path(p.root), Path(collect_to))
+        if collect_cache and (parts := pack_compile_cache(Path(p.root), Path(collect_to))):
+            files += parts
+            print(f"== {name}: the compilation caches packed in {len(parts)} part{'s' * (len(parts) > 1)}, "
+                  f"{sum(f.stat().st_size for f in parts) / 2**20:.1f} MiB", file=out)
         print(f"== {name}: collected {', '.join(f.name for f in files)} into {collect_to}", file=out)
     return 0 if rc == 0 else 1
 

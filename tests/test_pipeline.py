@@ -516,6 +516,7 @@ def test_a_lease_collects_its_caches_and_the_next_starts_from_them(tmp_path, mon
     text = io.StringIO()
     assert P.follow("full", 30, out=text, collect_to=out, collect_cache=True) == 0
     assert f"{P.CACHE_PART}00" in text.getvalue() and (out / f"{P.CACHE_PART}00").exists()
+    assert "the compilation caches packed in 1 part, 0.0 MiB" in text.getvalue()
     shutil.rmtree("runs")
     seen = tmp_path / "argv"
     monkeypatch.setattr(P.sys, "executable", _fake_python(tmp_path, f'echo "$@" > {seen}'))
