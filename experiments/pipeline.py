@@ -104,6 +104,7 @@ import shutil
 import subprocess
 import sys
 import tarfile
+import tempfile
 import time
 import zlib
 from pathlib import Path
@@ -528,6 +529,19 @@ def gpu_groups(gpus, n: int) -> list[str]:
 AUTOTUNE_FLAG = "--xla_gpu_per_fusion_autotune_cache_dir"
 
 
+CACHE_DIRS = ("jax_cache", "xla_autotune")  # what use_compilation_cache fills, by their names in a packed cache
+CACHE_PART = "compile_cache.tgz.part"  # pack_compile_cache's files: CACHE_PART + 00, 01, ...
+CACHE_PART_BYTES = 15 * 2**20  # a lent GPU brings back files of <= 16 MiB
+CACHE_MAX_PARTS = 3  # beside collect's five files: a lent GPU brings back eight
+
+
+def compile_cache_dirs(root) -> dict[str, Path]:
+    """{name in CACHE_DIRS: the directory} of the caches use_compilation_cache(root) turns on: JAX's in
+    JAX_COMPILATION_CACHE_DIR where set, else root/jax_cache; XLA's autotuning in root/xla_autotune."""
+    jax_dir = os.environ.get("JAX_COMPILATION_CACHE_DIR") or Path(root) / "jax_cache"
+    return {"jax_cache": Path(jax_dir), "xla_autotune": Path(root) / "xla_autotune"}
+
+
 def use_compilation_cache(root: str) -> str:
     """Turns on JAX's persistent compilation cache in root/jax_cache (or where JAX_COMPILATION_CACHE_DIR
     says), for this process and the stages' child processes: a stage run again, a later stage and
@@ -535,57 +549,59 @@ def use_compilation_cache(root: str) -> str:
     autotuning results per fusion (XLA_FLAGS), which every program with the same fusions reuses
     where the whole program is not cached: most of a fresh train step's compile time. Call it before
     JAX's backend starts (XLA reads its flags then). Returns the compilation cache's directory."""
-    path = os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(Path(root).absolute() / "jax_cache"))
+    dirs = compile_cache_dirs(Path(root).absolute())
+    path = os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(dirs["jax_cache"]))
     jax.config.update("jax_compilation_cache_dir", path)
-    os.environ["XLA_FLAGS"] = with_xla_flags(os.environ.get("XLA_FLAGS", ""),
-                                             f"{AUTOTUNE_FLAG}={Path(root).absolute() / 'xla_autotune'}")
+    os.environ["XLA_FLAGS"] = with_xla_flags(os.environ.get("XLA_FLAGS", ""), f"{AUTOTUNE_FLAG}={dirs['xla_autotune']}")
     return path
-
-
-CACHE_DIRS = ("jax_cache", "xla_autotune")  # under a pipeline's root: what use_compilation_cache fills
-CACHE_PART = "compile_cache.tgz.part"  # pack_compile_cache's files: CACHE_PART + 00, 01, ...
-CACHE_PART_BYTES = 15 * 2**20  # a lent GPU brings back files of <= 16 MiB
-CACHE_MAX_PARTS = 3  # beside collect's five files: a lent GPU brings back eight
 
 
 def pack_compile_cache(root: Path, dest: Path, part_bytes: int = CACHE_PART_BYTES,
                        max_parts: int = CACHE_MAX_PARTS) -> list[Path]:
-    """root's compilation caches (CACHE_DIRS: JAX's compiled programs, XLA's autotuning) as one tar.gz
-    in dest/CACHE_PART00, 01, ... of <= part_bytes each, for a later lease on a machine of the same
-    kind (restore_compile_cache), whose stages then load what this one compiled. Returns the parts
-    written: none where root holds no cache, or where it would take more than max_parts (a
-    message says so; nothing is left in dest)."""
-    dirs = [Path(root) / d for d in CACHE_DIRS if (Path(root) / d).is_dir()]
+    """The compilation caches of a pipeline rooted at root (compile_cache_dirs: JAX's compiled programs,
+    XLA's autotuning) as one tar.gz in dest/CACHE_PART00, 01, ... of <= part_bytes each (parts of an
+    earlier packing in dest removed first), for a later lease on a machine of the same kind
+    (restore_compile_cache), whose stages then load what this one compiled. Returns the parts written:
+    none where there is no cache, where it would take more than max_parts, or where packing fails (a
+    message says which; no part and no temporary file is left in dest)."""
+    dirs = {name: d for name, d in compile_cache_dirs(root).items() if d.is_dir()}
+    dest.mkdir(parents=True, exist_ok=True)
+    for old in dest.glob(CACHE_PART + "*"):
+        old.unlink()
     if not dirs:
         return []
-    dest.mkdir(parents=True, exist_ok=True)
-    whole = dest / (CACHE_PART + ".tmp")
-    with tarfile.open(whole, "w:gz") as tar:
-        for d in dirs:
-            tar.add(d, arcname=d.name)
-    size = whole.stat().st_size
-    n = -(-size // part_bytes)
-    if n > max_parts:
-        whole.unlink()
-        print(f"the compilation cache takes {size / 2**20:.1f} MiB packed, more than {max_parts} files of "
-              f"{part_bytes / 2**20:g} MiB: not packed", file=sys.stderr)
+    whole, parts = dest / (CACHE_PART + ".tmp"), []
+    try:
+        with tarfile.open(whole, "w:gz") as tar:
+            for name, d in dirs.items():
+                tar.add(d, arcname=name)
+        size = whole.stat().st_size
+        n = -(-size // part_bytes)
+        if n > max_parts:
+            print(f"the compilation cache takes {size / 2**20:.1f} MiB packed, more than {max_parts} files of "
+                  f"{part_bytes / 2**20:g} MiB: not packed", file=sys.stderr)
+            return []
+        with open(whole, "rb") as f:
+            for k in range(n):
+                tmp = dest / f"{CACHE_PART}{k:02d}.tmp"
+                tmp.write_bytes(f.read(part_bytes))
+                parts.append(tmp.replace(dest / f"{CACHE_PART}{k:02d}"))
+        return parts
+    except OSError as e:
+        for f in [*parts, *dest.glob(CACHE_PART + "*.tmp")]:
+            f.unlink(missing_ok=True)
+        print(f"the compilation cache was not packed: {e}", file=sys.stderr)
         return []
-    parts = []
-    with open(whole, "rb") as f:
-        for k in range(n):
-            tmp = dest / f"{CACHE_PART}{k:02d}.tmp"
-            tmp.write_bytes(f.read(part_bytes))
-            tmp.replace(dest / f"{CACHE_PART}{k:02d}")
-            parts.append(dest / f"{CACHE_PART}{k:02d}")
-    whole.unlink()
-    return parts
+    finally:
+        whole.unlink(missing_ok=True)
 
 
 def restore_compile_cache(src: Path, root: Path) -> int:
-    """Extracts pack_compile_cache's parts found in src into root (beside what root's caches hold;
-    entries of the same name are replaced). Raises FileNotFoundError where src holds no part, and
-    ValueError where the parts do not join into one archive (one missing or cut short) or it holds
-    anything outside CACHE_DIRS. Returns the files restored."""
+    """Extracts pack_compile_cache's parts found in src into the caches of a pipeline rooted at root
+    (compile_cache_dirs; beside what they hold, entries of the same name replaced). Raises
+    FileNotFoundError where src holds no part, and ValueError where the parts do not join into one
+    archive (one missing or cut short) or it holds anything outside CACHE_DIRS. Returns the files
+    restored."""
     parts = sorted(Path(src).glob(f"{CACHE_PART}[0-9][0-9]"))
     if not parts:
         raise FileNotFoundError(f"{src} holds no {CACHE_PART}NN: pack one with --follow ... --collect DIR "
@@ -594,15 +610,19 @@ def restore_compile_cache(src: Path, root: Path) -> int:
     if numbers != list(range(len(parts))):
         raise ValueError(f"{src}: the cache's parts are {numbers}, not 0..{len(parts) - 1}: one is missing")
     joined = b"".join(p.read_bytes() for p in parts)
+    Path(root).mkdir(parents=True, exist_ok=True)
     try:
-        with tarfile.open(fileobj=io.BytesIO(joined), mode="r:gz") as tar:
+        with tarfile.open(fileobj=io.BytesIO(joined), mode="r:gz") as tar, \
+                tempfile.TemporaryDirectory(dir=root) as unpacked:
             members = tar.getmembers()
             foreign = [m.name for m in members if Path(m.name).parts[:1] not in [(d,) for d in CACHE_DIRS]
                        or ".." in Path(m.name).parts or not (m.isfile() or m.isdir())]
             if foreign:
                 raise ValueError(f"{src}: the cache archive holds {foreign[:3]}, outside {', '.join(CACHE_DIRS)}")
-            Path(root).mkdir(parents=True, exist_ok=True)
-            tar.extractall(root, filter="data")
+            tar.extractall(unpacked, filter="data")
+            for name, d in compile_cache_dirs(root).items():
+                if (Path(unpacked) / name).is_dir():
+                    shutil.copytree(Path(unpacked) / name, d, dirs_exist_ok=True)
     except (tarfile.TarError, EOFError, OSError, zlib.error) as e:
         raise ValueError(f"{src}: the cache's {len(parts)} parts do not make one archive ({e}): "
                          "is a part cut short or from another lease?") from e

@@ -461,10 +461,11 @@ def test_follow_collects_a_finished_chains_outcome_in_the_command_that_sees_it_e
     assert "--collect is an option of --follow" in capsys.readouterr().err
 
 
-def test_the_compilation_caches_pack_into_parts_that_restore_to_the_same_files(tmp_path, capsys):
+def test_the_compilation_caches_pack_into_parts_that_restore_to_the_same_files(tmp_path, monkeypatch, capsys):
     """A lease's caches packed into parts of bounded size come back byte for byte on the next machine;
     a missing part, a foreign member, no parts, or a cache too large for the files a lease returns
     are each refused or skipped with a message."""
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)  # another test's chain may have set it
     rng = np.random.default_rng(0)
     root = tmp_path / "runs"
     files = {"jax_cache/jit_train_step-abc": rng.bytes(70_000), "jax_cache/jit_init-def": rng.bytes(30_000),
@@ -505,8 +506,37 @@ def test_the_compilation_caches_pack_into_parts_that_restore_to_the_same_files(t
     assert P.pack_compile_cache(tmp_path / "nothing", tmp_path / "none") == []
 
 
+def test_the_caches_pack_from_and_restore_to_where_the_chain_keeps_them(tmp_path, monkeypatch, capsys):
+    """JAX_COMPILATION_CACHE_DIR, where set, is the cache packed and restored; a packing replaces the parts
+    of an earlier one; a packing that fails leaves nothing behind and says why."""
+    root = tmp_path / "runs"
+    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(tmp_path / "elsewhere"))
+    (tmp_path / "elsewhere").mkdir()
+    (tmp_path / "elsewhere" / "jit_step").write_bytes(b"compiled")
+    (root / "jax_cache").mkdir(parents=True)
+    (root / "jax_cache" / "stale").write_bytes(b"not this one")
+    out = tmp_path / "out"
+    out.mkdir()
+    for k in range(3):  # an earlier packing's parts
+        (out / f"{P.CACHE_PART}{k:02d}").write_bytes(b"old")
+    assert [p.name for p in P.pack_compile_cache(root, out)] == [f"{P.CACHE_PART}00"]
+    assert sorted(f.name for f in out.iterdir()) == [f"{P.CACHE_PART}00"]
+    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(tmp_path / "next" / "cache"))
+    assert P.restore_compile_cache(out, tmp_path / "next" / "runs") == 1
+    assert (tmp_path / "next" / "cache" / "jit_step").read_bytes() == b"compiled"
+    assert not (tmp_path / "next" / "runs" / "jax_cache").exists()
+
+    def full_disk(*a, **k):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(P.tarfile, "open", full_disk)
+    assert P.pack_compile_cache(root, out) == [] and list(out.iterdir()) == []
+    assert "not packed: [Errno 28] No space left on device" in capsys.readouterr().err
+
+
 def test_a_lease_collects_its_caches_and_the_next_starts_from_them(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
     body = ("sleep 0.2; mkdir -p runs/eval/full runs/jax_cache; echo '{}' > runs/eval/full/results.json; "
             "echo compiled > runs/jax_cache/jit_step; exit 0")
     monkeypatch.setattr(P.sys, "executable", _fake_python(tmp_path, body))
