@@ -35,10 +35,11 @@ from wm.model import init_params
 BUNDLE = "bundle.json"
 SHARD_BYTES = 15 * 2**20
 BUNDLE_FORMAT = 1
-RUN_FILES = ("config.json", "norm.json", "train_status.json", "eval.json", "judge.json",  # copied into a bundle
-             "judge2.json")
-# the episode judges' parameters (wm.judge.save_judge), where fit
-JUDGE_BLOBS = ("judge.msgpack", "judge2.msgpack")
+# the episode judges' file stems (wm.judge.save_judge: <stem>.json and <stem>.msgpack) and read-outs' names
+JUDGE, SECOND_JUDGE = "judge", "judge2"
+RUN_FILES = ("config.json", "norm.json", "train_status.json", "eval.json",  # copied into a bundle
+             *(f"{name}.json" for name in (JUDGE, SECOND_JUDGE)))
+JUDGE_BLOBS = tuple(f"{name}.msgpack" for name in (JUDGE, SECOND_JUDGE))  # the judges' parameters, where fit
 
 
 def is_bundle(out: Path) -> bool:

@@ -48,7 +48,7 @@ from sim_data.policies.scripted import simulate_actions
 from sim_data.sim.engines import default_engine
 from sim_data.sim.robot import ACTION_DIM
 from sim_data.util import even_pieces, pad_with_last, write_json_atomic
-from wm.checkpoint import run_file
+from wm.checkpoint import JUDGE, SECOND_JUDGE, run_file
 from wm.config import JUDGE_LR, KEPT_STEPS
 from wm.imagine import (
     SEGMENT,
@@ -64,8 +64,6 @@ from wm.imagine import (
 )
 from wm.metrics import accuracy, auroc
 from wm.model import ModelConfig
-
-JUDGE, SECOND_JUDGE = "judge", "judge2"  # the files' stems (judge.json, judge.msgpack) and read-outs' names
 
 WIDTH = 64
 WEIGHT_DECAY = 0.05
