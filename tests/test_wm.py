@@ -1508,6 +1508,23 @@ def test_bad_settings_are_refused():
     assert override(make_config("smoke"), ["model.dim=48"]).model.dim == 48
 
 
+def test_program_match_against_hand_computed_psnr():
+    """Three programs' truths of constant frames 0, 10 and 40; imagined as the truths, but program 0 off
+    by 2 everywhere, and program 1 drawn at 30 in group 0 (nearer program 2's truth than its own)."""
+    truth = np.zeros((2, 3, 2, 2, 2, 3))
+    truth[:, 1], truth[:, 2] = 10.0, 40.0
+    pred = truth.copy()
+    pred[:, 0] += 2.0
+    pred[0, 1] = 30.0
+    got = E.program_match(pred, truth)
+    db = lambda mse: 10 * math.log10(255.0**2 / mse)
+    assert got["match"].tolist() == [1.0, 0.5, 1.0]
+    np.testing.assert_allclose(got["own_psnr_db"], [db(4), (db(400) + 100.0) / 2, 100.0])  # exact at 100 dB
+    # program 0 off by 2: nearest other truth 10 (MSE 64 and 64); program 1: 40 at 10 away, then 0 at 10 away
+    np.testing.assert_allclose(got["nearest_other_psnr_db"], [db(64), db(100), db(900)])
+    np.testing.assert_allclose(got["truth_separation_psnr_db"], [db(100), db(100), db(900)])
+
+
 def test_make_train_smoke_writes_eval_json(smoke_world_model):
     out = smoke_world_model
     report = json.loads((out / "eval.json").read_text())
@@ -1518,7 +1535,10 @@ def test_make_train_smoke_writes_eval_json(smoke_world_model):
     # LPIPS beside PSNR, the imagined frames' and copy-last's (whose first horizon copies a frame 1 step old)
     assert len(fq["lpips"]) == 2 and all(x > 0 for x in fq["lpips"]) and all(x >= 0 for x in fq["copy_last_lpips"])
     assert report["summary"]["lpips_h8"] is None  # the smoke preset's horizons stop at 4
-    assert report["controllability"]["groups"] == 1 and 0.0 <= report["controllability"]["match_accuracy"] <= 1.0
+    ctrl = report["controllability"]
+    assert ctrl["groups"] == 1 and 0.0 <= ctrl["match_accuracy"] <= 1.0
+    for key in ("own_psnr_db", "nearest_other_psnr_db", "truth_separation_psnr_db"):
+        assert sorted(ctrl[key]) == sorted(ctrl["programs"]) and all(math.isfinite(v) for v in ctrl[key].values())
     assert report["success_prediction"]["episodes"] >= 1 and (out / "eval_frames.png").stat().st_size > 0
     sens = report["action_sensitivity"]  # the smoke data's task episodes: swaps where both outcomes occur
     assert sens["swaps"] == 0 and "note" in sens or 0.0 <= sens["follows_actions"] <= 1.0

@@ -14,9 +14,13 @@ from scipy.stats import mannwhitneyu
 def psnr(pred, true, axis=(-3, -2, -1)) -> np.ndarray:
     """Peak signal-to-noise ratio in dB of uint8 (or [0, 255] float) images, reduced over `axis`.
     Identical images give +inf."""
-    err = np.mean((np.asarray(pred, np.float64) - np.asarray(true, np.float64)) ** 2, axis=axis)
+    return psnr_of_mse(np.mean((np.asarray(pred, np.float64) - np.asarray(true, np.float64)) ** 2, axis=axis))
+
+
+def psnr_of_mse(err) -> np.ndarray:
+    """PSNR in dB of mean squared errors of [0, 255] pixels; an error of 0 gives +inf."""
     with np.errstate(divide="ignore"):
-        return 10.0 * np.log10(255.0**2 / err)
+        return 10.0 * np.log10(255.0**2 / np.asarray(err, np.float64))
 
 
 def ssim(pred, true) -> np.ndarray:

@@ -77,7 +77,7 @@ from wm.judge import (
     load_judge,
     spread,
 )
-from wm.metrics import accuracy, auroc, psnr, ssim, view_shift, window_contrast
+from wm.metrics import accuracy, auroc, psnr, psnr_of_mse, ssim, view_shift, window_contrast
 from wm.model import WorldModel
 from wm.perceptual import MISSING as LPIPS_MISSING
 from wm.perceptual import available, lpips
@@ -374,8 +374,9 @@ def controllability(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, 
 
     Returns {"groups", "programs", "horizon", "match_accuracy" (the share of imaginations nearest, by mean squared
     error, to their own program's true frames among the group's), "match_accuracy_per_program", "delta_psnr_db"
-    (mean PSNR under the own actions minus under the other program's)}, or {"groups": 0, "note"} where the dataset
-    has no complete program groups."""
+    (mean PSNR under the own actions minus under the other program's), and per program (program_match's)
+    "own_psnr_db", "nearest_other_psnr_db" and "truth_separation_psnr_db"}, or {"groups": 0, "note"} where the
+    dataset has no complete program groups."""
     groups: dict = {}
     for i in cache.select("programs", tasks):
         e = cache.episodes[i]
@@ -397,13 +398,35 @@ def controllability(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, 
     wrong = open_loop_chunked(cfg.model, params, norm, shuffled, h)["frames"]
     truth = np.stack(truths).astype(np.float64)
     k = len(programs)
-    pred_g, truth_g = pred.reshape((-1, k) + pred.shape[1:]), truth.reshape((-1, k) + truth.shape[1:])
-    dist = ((pred_g[:, :, None] - truth_g[:, None]) ** 2).mean(axis=(3, 4, 5, 6))  # (G, pred i, truth j)
-    match = dist.argmin(axis=2) == np.arange(k)[None]
+    match = program_match(pred.reshape((-1, k) + pred.shape[1:]), truth.reshape((-1, k) + truth.shape[1:]))
     dpsnr = _finite_mean(psnr(pred, truth, axis=(1, 2, 3, 4))) - _finite_mean(psnr(wrong, truth, axis=(1, 2, 3, 4)))
-    return {"groups": len(groups), "programs": programs, "horizon": h, "match_accuracy": float(match.mean()),
-            "match_accuracy_per_program": dict(zip(programs, match.mean(axis=0).tolist(), strict=True)),
-            "delta_psnr_db": dpsnr}
+    per = lambda key: dict(zip(programs, match[key].tolist(), strict=True))
+    return {"groups": len(groups), "programs": programs, "horizon": h, "match_accuracy": float(match["match"].mean()),
+            "match_accuracy_per_program": per("match"), "delta_psnr_db": dpsnr, "own_psnr_db": per("own_psnr_db"),
+            "nearest_other_psnr_db": per("nearest_other_psnr_db"),
+            "truth_separation_psnr_db": per("truth_separation_psnr_db")}
+
+
+def program_match(pred, truth) -> dict:
+    """Whether each program's imagination is nearest its own true frames, and how far apart those are.
+
+    pred, truth: (G, K, T, H, W, 3) uint8 or [0, 255] floats: G groups (one start each), the K programs'
+    imagined and true frames. Returns, per program (K,): "match" (the share of groups whose imagination
+    is nearest, by mean squared error, to its own program's truth), "own_psnr_db" (the imagination
+    against its own truth), "nearest_other_psnr_db" (against the nearest other program's truth) and
+    "truth_separation_psnr_db" (its truth against the nearest other program's truth: what a model must
+    resolve to tell them apart; a match needs own above nearest other), each a mean over the groups of
+    the PSNR of the mean squared error over all T frames, identical frames counted at 100 dB."""
+    pred, truth = np.asarray(pred, np.float64), np.asarray(truth, np.float64)
+    k = pred.shape[1]
+    mse = lambda a: np.stack([((a[:, i, None] - truth) ** 2).mean(axis=(2, 3, 4, 5)) for i in range(k)], axis=1)
+    dist, apart = mse(pred), mse(truth)  # (G, K, K): imagination or truth i against truth j
+    other = ~np.eye(k, dtype=bool)[None]
+    db = lambda mse: np.minimum(psnr_of_mse(mse), 100.0).mean(axis=0)  # identical frames at 100 dB, as _finite_mean
+    return {"match": (dist.argmin(axis=2) == np.arange(k)[None]).mean(axis=0),
+            "own_psnr_db": db(np.diagonal(dist, axis1=1, axis2=2)),
+            "nearest_other_psnr_db": db(np.where(other, dist, np.inf).min(axis=2)),
+            "truth_separation_psnr_db": db(np.where(other, apart, np.inf).min(axis=2))}
 
 
 def program_panel(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, horizon: int, task: str | None = None):
