@@ -1,12 +1,14 @@
 """wm.bench: the FLOP count (XLA's cost analysis of the lowered train step, which grows with the batch)
 and the scaling table over devices."""
 
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import pytest
 
 from wm import bench
-from wm.bench import matmul_flops_by_shape, step_flops
+from wm.bench import flops_by_module, imagine_step_flops, matmul_flops_by_shape, step_flops
+from wm.config import make_config
 
 
 @pytest.mark.slow
@@ -36,6 +38,33 @@ def test_matmul_flops_by_shape_counts_convolutions_and_dots_by_hand():
     grads = jax.jit(jax.grad(f, argnums=(0, 1))).lower(*args).as_text(dialect="hlo")
     convs = [v for k, v in matmul_flops_by_shape(grads).items() if k[0] == "convolution"]
     assert convs == [2.0 * (2 * 4 * 4 * 5) * 27] * 2
+
+
+class _Outer(nn.Module):
+    @nn.compact
+    def __call__(self, x, y):
+        return nn.Dense(5)(x).sum() + nn.Conv(4, (3, 3), strides=2)(y).sum() + (x @ x.T).sum()
+
+
+def test_flops_by_module_sums_each_flax_scope_by_hand():
+    args = (jnp.zeros((4, 3)), jnp.zeros((2, 8, 8, 3)))
+    params = _Outer().init(jax.random.PRNGKey(0), *args)
+    text = jax.jit(_Outer().apply).lower(params, *args).as_text(debug_info=True)
+    assert flops_by_module(text) == {"_Outer/Dense_0": 2.0 * 4 * 5 * 3,
+                                     "_Outer/Conv_0": 2.0 * (2 * 4 * 4 * 4) * (3 * 3 * 3),
+                                     "_Outer": 2.0 * 4 * 4 * 3}  # the product outside any submodule
+    assert flops_by_module(text, depth=1) == {"_Outer": 2.0 * 4 * 5 * 3 + 2.0 * 2 * 4 * 4 * 4 * 27 + 2.0 * 4 * 4 * 3}
+    plain = jax.jit(lambda a: (a @ a.T).sum()).lower(args[0]).as_text(debug_info=True)
+    assert flops_by_module(plain) == {"(outside any module)": 2.0 * 4 * 4 * 3}
+
+
+@pytest.mark.slow
+def test_imagine_step_flops_count_each_euler_step_of_the_frame_generator():
+    one, two = (imagine_step_flops(make_config("smoke", [f"model.refine={n}"]), batch=2) for n in (1, 2))
+    gen = "WorldModel.sample_frame/WorldModel.denoise"
+    assert one[gen] > 0 and two[gen] == 2 * one[gen]
+    assert {k: v for k, v in one.items() if k != gen} == {k: v for k, v in two.items() if k != gen}
+    assert gen not in imagine_step_flops(make_config("smoke", ["model.refine=0"]), batch=2)
 
 
 def test_kernel_profile_sums_device_kernels_by_kind_per_step():

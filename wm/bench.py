@@ -41,7 +41,7 @@ from jax.sharding import PartitionSpec as P
 
 from sim_data.util import device_name, run_cli, write_json_atomic
 from wm.config import make_config
-from wm.imagine import Norm, closed_loop
+from wm.imagine import Norm, closed_loop, init_state, step
 from wm.model import init_params
 from wm.probes import stand_in_probes
 from wm.train import (
@@ -159,6 +159,67 @@ def matmul_flops_by_shape(hlo: str) -> dict:
         key = (op, dtype, lhs, rhs, how, result)
         out[key] = out.get(key, 0.0) + 2.0 * float(np.prod(result)) * per_output
     return out
+
+
+_TENSOR = r"tensor<([^>]*)>"
+_NOT_SCOPES = {"while", "body", "cond", "closed_call", "checkpoint", "remat", "pjit", "scan", "vmap"}
+
+
+def _tensor_dims(t: str) -> list:
+    return [int(x) for x in t.split("x")[:-1]]
+
+
+def flops_by_module(text: str, depth: int = 2) -> dict:
+    """FLOPs of the convolutions and dot products in a lowered program's StableHLO with its locations
+    (`Lowered.as_text(debug_info=True)`), summed by the Flax module scope that made each (its first
+    `depth` scopes, "(outside any module)" where there is none): {scope: FLOPs}. A dot counts 2 x output
+    elements x contracted size, a convolution 2 x output elements x the kernel's elements / its output
+    features; a loop's body counts once, as in XLA's cost analysis."""
+    locs = dict(re.findall(r"^(#loc\d+) = loc\((.*)\)$", text, re.M))
+
+    def name(loc: str, hops: int = 0) -> str:
+        body = locs.get(loc, "")
+        quoted = re.match(r'"([^"]*)"', body)
+        if quoted:
+            return quoted.group(1)
+        inner = re.findall(r"#loc\d+", body)
+        return name(inner[0], hops + 1) if inner and hops < 32 else ""
+
+    out: dict = {}
+    for line in text.splitlines():
+        if "stablehlo.dot_general" in line:
+            m = re.search(r"contracting_dims = \[([0-9, ]*)\] x .*?: \(" + _TENSOR + ", " + _TENSOR + r"\) -> "
+                          + _TENSOR, line)
+            lhs, result = _tensor_dims(m.group(2)), _tensor_dims(m.group(4))
+            per_output = int(np.prod([lhs[int(i)] for i in m.group(1).split(",")]))
+        elif "stablehlo.convolution" in line:
+            m = re.search(r"\]x\[([^\]]*)\]->.*?: \(" + _TENSOR + ", " + _TENSOR + r"\) -> " + _TENSOR, line)
+            labels = [x.strip() for x in m.group(1).split(",")]
+            kernel, result = _tensor_dims(m.group(3)), _tensor_dims(m.group(4))
+            per_output = int(np.prod(kernel)) // kernel[labels.index("o")]
+        else:
+            continue
+        loc = re.search(r"loc\((#loc\d+)\)\s*$", line)
+        parts = name(loc.group(1)).split("/")[:-1] if loc else []  # the last part names the primitive
+        scopes = [q for q in parts if "(" not in q and q not in _NOT_SCOPES]
+        key = "/".join(scopes[:depth]) or "(outside any module)"
+        out[key] = out.get(key, 0.0) + 2.0 * float(np.prod(result)) * per_output
+    return out
+
+
+def imagine_step_flops(cfg, batch: int = 16, depth: int = 2) -> dict:
+    """FLOPs of one imagined step of one episode (`wm.imagine.step`: the dynamics, the decoder, the frame
+    generator's Euler steps, the re-encoding; the acting policy's own are left out), by Flax module scope
+    (flops_by_module), from cfg's model (a TrainConfig) lowered on this backend, not compiled."""
+    m = cfg.model
+    params = jax.eval_shape(lambda: init_params(m, jax.random.PRNGKey(0), window=cfg.window))
+    norm = Norm(jnp.zeros(m.proprio_dim), jnp.ones(m.proprio_dim), jnp.zeros(m.action_dim), jnp.ones(m.action_dim))
+    state = jax.eval_shape(lambda p: init_state(m, p, norm, jnp.zeros((batch, 2, m.size, m.size, 3), jnp.uint8),
+                                                jnp.zeros((batch, 2, m.proprio_dim)),
+                                                jnp.zeros((batch, 1, m.action_dim))), params)
+    action = jax.ShapeDtypeStruct((batch, m.action_dim), jnp.float32)
+    text = jax.jit(step, static_argnums=0).lower(m, params, norm, state, action).as_text(debug_info=True)
+    return {k: v / batch for k, v in flops_by_module(text, depth).items()}
 
 
 def step_flops_by_shape(preset: str, overrides=()) -> dict:
@@ -340,6 +401,8 @@ def main(argv=None) -> int:
                    help="also trace N train steps and write the GPU's time by kernel (a GPU only)")
     p.add_argument("--flops-by-shape", type=int, default=0, metavar="N",
                    help="print the N convolution and dot shapes of one train step with the most FLOPs and stop")
+    p.add_argument("--imagine-flops", action="store_true",
+                   help="print (and with --out write) the FLOPs of one imagined frame by module, lowered, and stop")
     p.add_argument("--scaling", default=None, metavar="N,N,...",
                    help="only training throughput on the first N devices for each N (same per-device batch), "
                         "replicated and fsdp: per-device frames/s and efficiency against one device's")
@@ -367,6 +430,17 @@ def main(argv=None) -> int:
         return 0
     if a.flops_only:
         print(step_flops(preset, a.overrides))
+        return 0
+    if a.imagine_flops:
+        by = imagine_step_flops(make_config(preset, a.overrides))
+        total = sum(by.values())
+        report = {"device": device_name(), "config": preset, "overrides": list(a.overrides),
+                  "imagine_step_flops": total, "by_module": dict(sorted(by.items(), key=lambda kv: -kv[1]))}
+        for scope, f in report["by_module"].items():
+            print(f"{f / 1e9:8.3f} GFLOP {f / total:6.1%}  {scope}")
+        print(f"{total / 1e9:8.3f} GFLOP an imagined frame (convolutions and dot products)")
+        if a.out is not None:
+            write_json_atomic(a.out, report)
         return 0
     if a.flops_by_shape:
         by = step_flops_by_shape(preset, a.overrides)
