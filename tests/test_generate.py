@@ -339,6 +339,57 @@ def test_drive_episodes_back_away_for_times_spread_over_the_range_from_the_scrip
                                           G.drive_table(G.drive_seconds(i), env.episode_steps))
 
 
+def test_varied_drives_cover_the_scripted_distance_at_speeds_within_range(monkeypatch):
+    """drive_varied: a share of the drives back away the same distance as a drive at 0.3 m/s for
+    drive_seconds(i) would, through segments of other speeds and stops; the others are as before."""
+    n = 100  # step_back's 5 s
+    varied = [i for i in range(200) if G.drive_is_varied(i, 0.5)]
+    assert 80 <= len(varied) <= 120 and not any(G.drive_is_varied(i, 0.0) for i in range(200))
+    assert all(G.drive_is_varied(i, 1.0) for i in range(200))
+    reached = 0
+    for i in varied:
+        seconds = G.drive_seconds(i)
+        speed = G.drive_profile(i, seconds, n)
+        assert speed.shape == (n,) and speed.min() >= 0.0 and speed.max() <= R.MAX_FORWARD_SPEED + 1e-6
+        distance, target = speed.sum() * G.CONTROL_DT, G.DRIVE_SPEED * seconds
+        assert distance <= target + 1e-5
+        if distance > target - 1e-5:
+            reached += 1
+            moving = np.flatnonzero(speed)
+            assert moving.size == 0 or speed[moving[-1] + 1:].sum() == 0.0  # it stops there for good
+        else:  # only where every moving segment is at the top speed
+            assert speed[speed > 0].min() >= R.MAX_FORWARD_SPEED - 1e-3
+        np.testing.assert_array_equal(speed, G.drive_profile(i, seconds, n))  # a function of i
+    assert reached >= 0.75 * len(varied)
+    assert len({round(float(np.ptp(G.drive_profile(i, 3.0, n)[:40])), 3) for i in varied[:10]}) > 5  # not one speed
+    table = G.drive_table(3.0, n, G.drive_profile(varied[1], 3.0, n))
+    np.testing.assert_allclose(-table[:, R.FORWARD_SPEED], G.drive_profile(varied[1], 3.0, n))
+    np.testing.assert_array_equal(np.delete(table, R.FORWARD_SPEED, axis=1), np.delete(G.drive_table(3.0, n), R.FORWARD_SPEED, axis=1))
+    with pytest.raises(ValueError, match="drive_varied"):
+        G.make_config("smoke", ["drive_varied=1.5"])
+
+    # the chunk plays each varied drive's own profile, the others the scripted speed
+    cfg = G.make_config("smoke", ["engine=cpu", "episodes=4", "batch=8", "drive=4", "drive_varied=0.5", "tasks=step_back"])
+
+    def rollout(env, policy, params, rng, renderers=(), progress=None, reset_keys=None, steps=None,
+                compile_ahead=False):
+        raise _Rollout(env, params)
+
+    monkeypatch.setattr(G, "record_episodes", rollout)
+    chunk = next(c for c in G._plan(cfg) if any(s == G.DRIVE for s, _ in c.rows(padded=False)))
+    with pytest.raises(_Rollout) as got:
+        G.simulate_chunk(cfg, chunk, "cpu")
+    env, params = got.value.args
+    kinds = set()
+    for r, (s, i) in enumerate(chunk.rows(padded=True)):
+        if s == G.DRIVE:
+            t = G.drive_seconds(i)
+            want = G.drive_profile(i, t, env.episode_steps) if G.drive_is_varied(i, 0.5) else None
+            kinds.add(want is None)
+            np.testing.assert_array_equal(params["table"][r][: env.episode_steps], G.drive_table(t, env.episode_steps, want))
+    assert kinds == {True, False}
+
+
 def test_a_chunk_mixing_skills_writes_each_episode_once_and_a_rerun_rewrites_only_the_missing_one(smoke, tmp_path):
     # the smoke dataset's batch and cameras: its compiled rollout serves this one too
     cfg = G.make_config("smoke", ["skills=0.0,0.5", "episodes=1", "programs=0", "cache=false", "workers=1"])

@@ -62,7 +62,7 @@ from sim_data.policies.scripted import (
 from sim_data.sim.engines import ENGINES, default_engine
 from sim_data.sim.env import HomeEnv, cached_env
 from sim_data.sim.render import CAMERAS, HEAD_CAMERA, cached_renderers
-from sim_data.sim.robot import ACTION_DIM, FORWARD_SPEED
+from sim_data.sim.robot import ACTION_DIM, FORWARD_SPEED, MAX_FORWARD_SPEED
 from sim_data.sim.rollout import WARM_STEPS, record_episodes
 from sim_data.sim.scene import load_model
 from sim_data.sim.tasks import CONTROL_DT, MAX_EPISODE_STEPS, TASK_NAMES
@@ -84,6 +84,10 @@ WEAK_GRIP = "weak_grip"  # the source of scripted episodes whose hand closes onl
 WEAK_GRIP_RANGE = (0.1, 0.7)  # the factors on a weak grip's closures
 DRIVE = "drive"  # the source of episodes that back away for a set time (DataConfig.drive)
 DRIVE_SECONDS = (0.0, 6.0)  # how long a drive episode backs away at the scripted 0.3 m/s: none to 1.8 m
+DRIVE_SPEED = 0.3  # m/s: the scripted back-away's speed, a drive's unless it is varied
+DRIVE_SEGMENT_SECONDS = (0.2, 1.0)  # a varied drive's segments of one speed
+DRIVE_STOP_SHARE = 0.2  # of a varied drive's segments, those standing still
+DRIVE_PROFILE_SEED = 7919  # the varied drives' profiles draw from (this, episode index)
 SOURCES_NAMED = (PLAY, WEAK_GRIP, DRIVE)  # sources that are their own policy name and kind
 
 
@@ -128,6 +132,9 @@ class DataConfig:
         and a policy acting on imagined frames may stop short or drive on; on every other task no
         drive succeeds. So these show the world model and its judge what every distance does, and that
         backing away alone achieves nothing else. Not demonstrations (policy_kind "drive").
+      drive_varied: the share of the drives (drive_is_varied) that cover their distance at a varied speed
+        instead (drive_profile: segments of random speeds and stops), so that the world model and its
+        judge learn a distance as the sum of the speeds, not as a time at the scripted speed.
     """
 
     tasks: tuple = TASK_NAMES
@@ -150,6 +157,7 @@ class DataConfig:
     policy_episodes: int = 0
     weak_grip: int = 0
     drive: int = 0
+    drive_varied: float = 0.0
     perturbed: tuple = ()
     perturb_episodes: int = 0
 
@@ -168,6 +176,8 @@ class DataConfig:
             raise ValueError("programs, play, policy_episodes, weak_grip, drive and perturb_episodes must be >= 0, "
                              f"got {self.programs}, {self.play}, {self.policy_episodes}, {self.weak_grip}, "
                              f"{self.drive}, {self.perturb_episodes}")
+        if not 0.0 <= self.drive_varied <= 1.0:
+            raise ValueError(f"drive_varied is a share of the drives, in [0, 1]; got {self.drive_varied}")
         if self.engine not in ("",) + ENGINES:
             raise ValueError(f"engine must be one of {ENGINES} or empty, got {self.engine!r}")
         if self.size not in (64, 128):
@@ -670,11 +680,53 @@ def drive_seconds(i: int) -> float:
     return lo + (hi - lo) * ((i * GOLDEN) % 1.0)
 
 
-def drive_table(seconds: float, num_steps: int) -> np.ndarray:
-    """(num_steps, 20) float32: the ready pose held while the base backs away at the scripted 0.3 m/s
-    for `seconds`, then stands (the step_backwards program with its own duration)."""
+def drive_is_varied(i: int, share: float) -> bool:
+    """Whether drive episode i covers its distance at a varied speed: a share of the drives, spread over
+    their indices (and so over their distances) by a sequence other than drive_seconds'."""
+    return ((i * SQRT2_FRACTION) % 1.0) < share
+
+
+SQRT2_FRACTION = 0.41421356237309515
+
+
+def drive_profile(i: int, seconds: float, num_steps: int) -> np.ndarray:
+    """(num_steps,) float32 backward speeds (m/s, in [0, MAX_FORWARD_SPEED]) of varied drive episode i:
+    segments of DRIVE_SEGMENT_SECONDS, a DRIVE_STOP_SHARE of them standing, the others at a uniform speed
+    from 0.05 m/s to the top speed, until the base has been commanded the distance DRIVE_SPEED covers in
+    `seconds` (the last step's speed cut to land on it), then none. Where the draws would not cover it
+    within num_steps, the moving segments are sped up (to at most the top speed), and the drive ends short
+    only where all of them at the top speed would not cover it."""
+    rng = np.random.default_rng([DRIVE_PROFILE_SEED, i])
+    speeds = np.zeros(num_steps)
+    t = 0
+    while t < num_steps:
+        n = max(1, round(rng.uniform(*DRIVE_SEGMENT_SECONDS) / CONTROL_DT))
+        stop = rng.random() < DRIVE_STOP_SHARE
+        speeds[t:t + n] = 0.0 if stop else rng.uniform(0.05, MAX_FORWARD_SPEED)
+        t += n
+    target = DRIVE_SPEED * seconds
+    if 0.0 < speeds.sum() * CONTROL_DT < target:  # the least factor on the speeds (capped) that covers it
+        covers = lambda c: np.minimum(speeds * c, MAX_FORWARD_SPEED).sum() * CONTROL_DT >= target
+        lo, hi = 1.0, MAX_FORWARD_SPEED / speeds[speeds > 0].min()
+        for _ in range(60):
+            lo, hi = (lo, (lo + hi) / 2) if covers((lo + hi) / 2) else ((lo + hi) / 2, hi)
+        speeds = np.minimum(speeds * hi, MAX_FORWARD_SPEED)
+    done = np.cumsum(speeds) * CONTROL_DT
+    k = int(np.searchsorted(done, target))  # the first step at which the distance is reached
+    if k < num_steps:
+        speeds[k] = (target - (done[k - 1] if k else 0.0)) / CONTROL_DT
+        speeds[k + 1:] = 0.0
+    return speeds.astype(np.float32)
+
+
+def drive_table(seconds: float, num_steps: int, profile=None) -> np.ndarray:
+    """(num_steps, 20) float32: the ready pose held while the base backs away at the scripted
+    DRIVE_SPEED for `seconds`, then stands (the step_backwards program with its own duration); or, given
+    a profile (num_steps,) of backward speeds (drive_profile), at those."""
     table = action_program("step_backwards", num_steps)
-    table[:, FORWARD_SPEED] = np.where(np.arange(num_steps) < round(seconds / CONTROL_DT), -0.3, 0.0)
+    if profile is None:
+        profile = np.where(np.arange(num_steps) < round(seconds / CONTROL_DT), DRIVE_SPEED, 0.0)
+    table[:, FORWARD_SPEED] = -np.asarray(profile, np.float32)
     return table
 
 
@@ -682,7 +734,9 @@ def _program_table(cfg: DataConfig, task: str, source: str, i: int, env: HomeEnv
     """The action table (env.episode_steps, 20) of a program episode (source: a program's name), of
     play episode i (source PLAY) or of drive episode i (DRIVE)."""
     if source == DRIVE:
-        return drive_table(drive_seconds(i), env.episode_steps)
+        seconds = drive_seconds(i)
+        varied = drive_is_varied(i, cfg.drive_varied)
+        return drive_table(seconds, env.episode_steps, drive_profile(i, seconds, env.episode_steps) if varied else None)
     if source == PLAY:
         seed = _initial_seed_of(cfg, task, source, i) + 1  # not the initial state's own seed
         return play_params([seed], env.episode_steps, env.idx.robot.action_low, env.idx.robot.action_high)["table"][0]
