@@ -88,6 +88,7 @@ DRIVE_SPEED = 0.3  # m/s: the scripted back-away's speed, a drive's unless it is
 DRIVE_SEGMENT_SECONDS = (0.2, 1.0)  # a varied drive's segments of one speed
 DRIVE_STOP_SHARE = 0.2  # of a varied drive's segments, those standing still
 DRIVE_PROFILE_SEED = 7919  # the varied drives' profiles draw from (this, episode index)
+SQRT2_FRACTION = 0.41421356237309515  # sqrt(2) - 1: picks the varied drives, unlike drive_seconds' GOLDEN
 SOURCES_NAMED = (PLAY, WEAK_GRIP, DRIVE)  # sources that are their own policy name and kind
 
 
@@ -684,9 +685,6 @@ def drive_is_varied(i: int, share: float) -> bool:
     """Whether drive episode i covers its distance at a varied speed: a share of the drives, spread over
     their indices (and so over their distances) by a sequence other than drive_seconds'."""
     return ((i * SQRT2_FRACTION) % 1.0) < share
-
-
-SQRT2_FRACTION = 0.41421356237309515
 
 
 def drive_profile(i: int, seconds: float, num_steps: int) -> np.ndarray:
