@@ -11,6 +11,7 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from sim_data.policies.scripted import action_program
 from sim_data.sim import robot
@@ -133,3 +134,54 @@ class LookBack:
 def look_back(threshold: float = 0.55):
     """Backs away until the bottom quarter of its view darkens below `threshold`."""
     return LookBack(), {"ready": ready_pose(), "threshold": jnp.float32(threshold)}
+
+
+@dataclasses.dataclass(frozen=True)
+class SpeedTable:
+    """Backs away at `params["speeds"][step]` m/s (one entry a control step; the last held after the table
+    ends), the arms, neck and hands in the ready pose: a drive at speeds that vary within the episode."""
+
+    def init_carry(self, params, obs, task_state, rng):
+        return jnp.zeros((obs["proprio"].shape[0],), jnp.int32)
+
+    def act(self, params, obs, carry, rng):
+        hold = jnp.broadcast_to(params["ready"], (carry.shape[0], robot.ACTION_DIM))
+        speed = params["speeds"][jnp.minimum(carry, params["speeds"].shape[0] - 1)]
+        return hold.at[:, robot.FORWARD_SPEED].set(-speed), carry + 1
+
+
+def speed_table(speed_at, seconds: float = 6.0):
+    """(policy, params) backing away at speed_at(t) m/s (t: (N,) seconds from the start, numpy) for `seconds`."""
+    t = np.arange(round(seconds / CONTROL_DT)) * CONTROL_DT
+    return SpeedTable(), {"ready": ready_pose(), "speeds": jnp.asarray(speed_at(t), jnp.float32)}
+
+
+# Back-aways whose speed varies, unlike any drive in the data (the distance in the first 5 s, step_back's episode):
+def stop_go():
+    """0.4 m/s for 0.4 s, then still for 0.3 s, four times: 0.64 m, inside step_back's band."""
+    return speed_table(lambda t: np.where((t % 0.7 < 0.4) & (t < 2.8), 0.4, 0.0))
+
+
+def ramp_back():
+    """Speeding up from 0 to 0.5 m/s over 3 s, then stopping: 0.74 m, inside the band."""
+    return speed_table(lambda t: np.where(t < 3.0, 0.5 * t / 3.0, 0.0))
+
+
+def ramp_far():
+    """Speeding up from 0 to 0.5 m/s over 4.5 s, then stopping: 1.11 m, too far."""
+    return speed_table(lambda t: np.where(t < 4.5, 0.5 * t / 4.5, 0.0))
+
+
+def surge():
+    """0.5 m/s for 0.6 s, then 0.1 m/s for 3 s: 0.60 m, inside the band."""
+    return speed_table(lambda t: np.where(t < 0.6, 0.5, np.where(t < 3.6, 0.1, 0.0)))
+
+
+def pulse_short():
+    """Two pulses of 0.3 s at 0.5 m/s a second apart: 0.30 m, too short."""
+    return speed_table(lambda t: np.where((t < 0.3) | ((t >= 1.0) & (t < 1.3)), 0.5, 0.0))
+
+
+def decel_far():
+    """0.5 m/s slowing to a stop over 5 s: 1.26 m, too far."""
+    return speed_table(lambda t: np.where(t < 5.0, 0.5 * (1.0 - t / 5.0), 0.0))

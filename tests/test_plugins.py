@@ -424,6 +424,26 @@ def test_the_examples_jittering_plugin_backs_away_for_its_time_at_speeds_drawn_a
             == 0).all()
 
 
+@pytest.mark.parametrize("name,metres", [("stop_go", 0.64), ("ramp_back", 0.7375), ("ramp_far", 1.1125),
+                                          ("surge", 0.60), ("pulse_short", 0.30), ("decel_far", 1.2625)])
+def test_the_examples_varying_speed_plugins_back_away_the_distance_they_state(name, metres):
+    """Each drives its table step by step, the ready pose held, the last entry after the table ends;
+    the distance in step_back's 100 steps (5 s) by hand: e.g. stop_go 4 x 8 steps at 0.4 m/s x 0.05 s."""
+    (src,) = resolve([f"examples.plugin_policy:{name}"])
+    obs = {"image": jnp.zeros((2, 64, 64, 3), jnp.uint8), "proprio": jnp.zeros((2, R.PROPRIO_DIM))}
+    carry = src.policy.init_carry(src.params, obs, None, jax.random.PRNGKey(0))
+    speeds = []
+    for _ in range(130):
+        a, carry = src.policy.act(src.params, obs, carry, jax.random.PRNGKey(0))
+        speeds.append(-np.asarray(a)[:, R.FORWARD_SPEED])
+    speeds = np.stack(speeds)
+    assert (speeds >= 0).all() and (speeds <= R.MAX_FORWARD_SPEED).all() and (speeds[:, 0] == speeds[:, 1]).all()
+    assert speeds[:100, 0].sum() * CONTROL_DT == pytest.approx(metres, abs=1e-3)
+    assert (speeds[120:] == speeds[119]).all()  # the table's last entry held
+    np.testing.assert_array_equal(np.delete(np.asarray(a), R.FORWARD_SPEED, axis=1),
+                                  np.broadcast_to(np.delete(np.asarray(ready_pose()), R.FORWARD_SPEED), (2, 19)))
+
+
 @dataclasses.dataclass(frozen=True)
 class SharedClock:
     """The example's back-away policy with one step counter for its whole batch (shape ()), which
