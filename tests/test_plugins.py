@@ -439,7 +439,12 @@ def test_the_examples_varying_speed_plugins_back_away_the_distance_they_state(na
     speeds = np.stack(speeds)
     assert (speeds >= 0).all() and (speeds <= R.MAX_FORWARD_SPEED).all() and (speeds[:, 0] == speeds[:, 1]).all()
     assert speeds[:100, 0].sum() * CONTROL_DT == pytest.approx(metres, abs=1e-3)
-    assert (speeds[120:] == speeds[119]).all()  # the table's last entry held
+    held = resolve(["examples.plugin_policy:stop_go"])[0].policy  # a table ending at a speed: that speed held
+    params = {"ready": ready_pose(), "speeds": jnp.asarray([0.1, 0.2, 0.3])}
+    c = held.init_carry(params, obs, None, jax.random.PRNGKey(0))
+    for want in (0.1, 0.2, 0.3, 0.3, 0.3):
+        b, c = held.act(params, obs, c, jax.random.PRNGKey(0))
+        assert -np.asarray(b)[:, R.FORWARD_SPEED] == pytest.approx([want, want])
     np.testing.assert_array_equal(np.delete(np.asarray(a), R.FORWARD_SPEED, axis=1),
                                   np.broadcast_to(np.delete(np.asarray(ready_pose()), R.FORWARD_SPEED), (2, 19)))
 

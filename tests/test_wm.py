@@ -1523,6 +1523,8 @@ def test_program_match_against_hand_computed_psnr():
     # program 0 off by 2: nearest other truth 10 (MSE 64 and 64); program 1: 40 at 10 away, then 0 at 10 away
     np.testing.assert_allclose(got["nearest_other_psnr_db"], [db(64), db(100), db(900)])
     np.testing.assert_allclose(got["truth_separation_psnr_db"], [db(100), db(100), db(900)])
+    with pytest.raises(ValueError, match=">= 2 programs"):
+        E.program_match(pred[:, :1], truth[:, :1])
 
 
 def test_make_train_smoke_writes_eval_json(smoke_world_model):

@@ -58,7 +58,30 @@ def test_flops_by_module_sums_each_flax_scope_by_hand():
     assert flops_by_module(plain) == {"(outside any module)": 2.0 * 4 * 4 * 3}
 
 
-@pytest.mark.slow
+@jax.jit
+def _helper(a, b):
+    return a @ b
+
+
+class _Calls(nn.Module):
+    @nn.compact
+    def __call__(self, x, y):
+        twice = _helper(x, x.T).sum() + _helper(x, x.T).sum()  # one outlined function, two call sites
+        outer = jnp.einsum("i,j->ij", x[0], x[1]).sum()  # a dot that contracts nothing
+        up = nn.ConvTranspose(4, (3, 3), strides=(2, 2))(y).sum()  # its input dilated by zeros
+        either = jax.lax.cond(x.sum() > 0, lambda a: (a @ a.T).sum(), lambda a: 2 * (a @ a.T).sum(), x)
+        return twice + outer + up + either
+
+
+def test_flops_by_module_counts_each_call_an_outer_product_a_transposed_convolution_and_both_branches():
+    args = (jnp.zeros((4, 3)), jnp.zeros((2, 8, 8, 3)))
+    params = _Calls().init(jax.random.PRNGKey(0), *args)
+    text = jax.jit(_Calls().apply).lower(params, *args).as_text(debug_info=True)
+    # each of the 2 x 8 x 8 inputs' 3 channels reaches 3 x 3 outputs' 4 features: 13,824 products
+    assert flops_by_module(text) == {"_Calls": 2 * (2.0 * 4 * 4 * 3) + 2.0 * 3 * 3 + 2 * (2.0 * 4 * 4 * 3),
+                                     "_Calls/ConvTranspose_0": 2.0 * (2 * 8 * 8 * 3) * (3 * 3) * 4}
+
+
 def test_imagine_step_flops_count_each_euler_step_of_the_frame_generator():
     one, two = (imagine_step_flops(make_config("smoke", [f"model.refine={n}"]), batch=2) for n in (1, 2))
     gen = "WorldModel.sample_frame/WorldModel.denoise"

@@ -149,16 +149,30 @@ def matmul_flops_by_shape(hlo: str) -> dict:
         dtype, result, op, lhs, rhs = m.group(1), _dims(m.group(2)), m.group(3), shapes[m.group(4)], shapes[m.group(5)]
         if op == "dot":
             contracting = _dims(re.search(r"lhs_contracting_dims=\{([0-9,]*)\}", line).group(1))
-            per_output, how = int(np.prod([lhs[i] for i in contracting])), f"contracting {contracting}"
+            flops, how = dot_flops(lhs, result, contracting), f"contracting {contracting}"
         else:
             kernel_labels = re.search(r"dim_labels=\w+_(\w+)->", line).group(1)
             how = re.search(r"window=\{([^}]*)\}", line).group(1)
-            dilation = re.search(r"lhs_dilate=([0-9x]+)", how)  # an input gradient's: only 1 in d^2 inputs is not 0
-            per_output = np.prod(rhs) / rhs[kernel_labels.index("o")] / np.prod(
-                [int(d) for d in dilation.group(1).split("x")] if dilation else [1])
+            dilation = re.search(r"lhs_dilate=([0-9x]+)", how)
+            flops = conv_flops(rhs, result, kernel_labels.index("o"),
+                               [int(d) for d in dilation.group(1).split("x")] if dilation else [1])
         key = (op, dtype, lhs, rhs, how, result)
-        out[key] = out.get(key, 0.0) + 2.0 * float(np.prod(result)) * per_output
+        out[key] = out.get(key, 0.0) + flops
     return out
+
+
+def dot_flops(lhs, result, contracting) -> float:
+    """2 x output elements x the contracted size: a dot product's FLOPs (lhs, result: shapes;
+    contracting: the lhs dimensions summed over, none for an outer product)."""
+    return 2.0 * float(np.prod(result)) * float(np.prod([lhs[i] for i in contracting]))
+
+
+def conv_flops(kernel, result, out_feature_dim: int, lhs_dilation) -> float:
+    """A convolution's FLOPs: 2 x output elements x the kernel operand's elements / its output features
+    (the weight gradient's "kernel" being an activation) / the input dilation's factors (a transposed
+    convolution or an input gradient skips the zeros it dilates its input with); the products with its
+    zero padding are counted."""
+    return 2.0 * float(np.prod(result)) * float(np.prod(kernel)) / kernel[out_feature_dim] / float(np.prod(lhs_dilation))
 
 
 _TENSOR = r"tensor<([^>]*)>"
@@ -170,41 +184,75 @@ def _tensor_dims(t: str) -> list:
 
 
 def flops_by_module(text: str, depth: int = 2) -> dict:
-    """FLOPs of the convolutions and dot products in a lowered program's StableHLO with its locations
-    (`Lowered.as_text(debug_info=True)`), summed by the Flax module scope that made each (its first
-    `depth` scopes, "(outside any module)" where there is none): {scope: FLOPs}. A dot counts 2 x output
-    elements x contracted size, a convolution 2 x output elements x the kernel's elements / its output
-    features; a loop's body counts once, as in XLA's cost analysis."""
+    """FLOPs of the convolutions and dot products (dot_flops, conv_flops) in a lowered program's StableHLO
+    with its locations (`Lowered.as_text(debug_info=True)`), summed by the Flax module scope whose code
+    made each (its first `depth` scopes, "(outside any module)" where there is none): {scope: FLOPs}.
+    A function the program calls (a jitted helper, a loop's body outlined) counts once a call site, its
+    products placed under the call's scope where their own name none; a loop's body counts once, as in
+    XLA's cost analysis, and both branches of a conditional count."""
     locs = dict(re.findall(r"^(#loc\d+) = loc\((.*)\)$", text, re.M))
 
     def name(loc: str, hops: int = 0) -> str:
         body = locs.get(loc, "")
         quoted = re.match(r'"([^"]*)"', body)
-        if quoted:
-            return quoted.group(1)
         inner = re.findall(r"#loc\d+", body)
+        if quoted and not quoted.group(1).endswith(":"):  # "prim:" wraps an op's own location on some versions
+            return quoted.group(1)
         return name(inner[0], hops + 1) if inner and hops < 32 else ""
 
-    out: dict = {}
+    def scope_of(line: str) -> list:
+        loc = re.search(r"loc\((#loc\d+)\)\s*$", line)
+        parts = name(loc.group(1)).split("/")[:-1] if loc else []  # the last part names the primitive
+        return [q for q in parts if "(" not in q and "," not in q and not q.endswith("_fun") and q not in _NOT_SCOPES]
+
+    own: dict = {}  # function -> {scope tuple: FLOPs}
+    calls: dict = {}  # function -> [(callee, scope tuple of the call)]
+    func = None
     for line in text.splitlines():
+        head = re.match(r"\s*func\.func (?:public |private )?@([\w.\-]+)", line)
+        if head:
+            func = head.group(1)
+            own.setdefault(func, {})
+            calls.setdefault(func, [])
+            continue
+        callee = re.search(r"(?:func\.)?call @([\w.\-]+)\(", line)
+        if callee:
+            calls[func].append((callee.group(1), tuple(scope_of(line))))
+            continue
         if "stablehlo.dot_general" in line:
             m = re.search(r"contracting_dims = \[([0-9, ]*)\] x .*?: \(" + _TENSOR + ", " + _TENSOR + r"\) -> "
                           + _TENSOR, line)
             lhs, result = _tensor_dims(m.group(2)), _tensor_dims(m.group(4))
-            per_output = int(np.prod([lhs[int(i)] for i in m.group(1).split(",")]))
+            flops = dot_flops(lhs, result, [int(i) for i in m.group(1).split(",") if i.strip()])
         elif "stablehlo.convolution" in line:
             m = re.search(r"\]x\[([^\]]*)\]->.*?: \(" + _TENSOR + ", " + _TENSOR + r"\) -> " + _TENSOR, line)
+            dilation = re.search(r"lhs_dilate = \[([0-9, ]*)\]", line)
             labels = [x.strip() for x in m.group(1).split(",")]
-            kernel, result = _tensor_dims(m.group(3)), _tensor_dims(m.group(4))
-            per_output = int(np.prod(kernel)) // kernel[labels.index("o")]
+            flops = conv_flops(_tensor_dims(m.group(3)), _tensor_dims(m.group(4)), labels.index("o"),
+                               [int(d) for d in dilation.group(1).split(",")] if dilation else [1])
         else:
             continue
-        loc = re.search(r"loc\((#loc\d+)\)\s*$", line)
-        parts = name(loc.group(1)).split("/")[:-1] if loc else []  # the last part names the primitive
-        scopes = [q for q in parts if "(" not in q and q not in _NOT_SCOPES]
-        key = "/".join(scopes[:depth]) or "(outside any module)"
-        out[key] = out.get(key, 0.0) + 2.0 * float(np.prod(result)) * per_output
-    return out
+        key = tuple(scope_of(line))
+        own[func][key] = own[func].get(key, 0.0) + flops
+
+    def total(fn: str, outer: tuple, seen: tuple) -> dict:
+        out: dict = {}
+        for key, f in own.get(fn, {}).items():
+            k = key or outer
+            out[k] = out.get(k, 0.0) + f
+        for callee, at in calls.get(fn, []):
+            if callee not in seen:
+                for k, f in total(callee, at or outer, seen + (callee,)).items():
+                    out[k] = out.get(k, 0.0) + f
+        return out
+
+    entry = "main" if "main" in own else next(iter(own), None)
+    by = total(entry, (), (entry,)) if entry else {}
+    merged: dict = {}
+    for key, f in by.items():
+        k = "/".join(key[:depth]) or "(outside any module)"
+        merged[k] = merged.get(k, 0.0) + f
+    return merged
 
 
 def imagine_step_flops(cfg, batch: int = 16, depth: int = 2) -> dict:
@@ -219,7 +267,11 @@ def imagine_step_flops(cfg, batch: int = 16, depth: int = 2) -> dict:
                                                 jnp.zeros((batch, 1, m.action_dim))), params)
     action = jax.ShapeDtypeStruct((batch, m.action_dim), jnp.float32)
     text = jax.jit(step, static_argnums=0).lower(m, params, norm, state, action).as_text(debug_info=True)
-    return {k: v / batch for k, v in flops_by_module(text, depth).items()}
+    by = flops_by_module(text, depth)
+    if by and set(by) == {"(outside any module)"}:
+        raise RuntimeError("the lowered step's locations name no Flax module: this jax writes them otherwise, "
+                           "and wm.bench.flops_by_module needs to learn how")
+    return {k: v / batch for k, v in by.items()}
 
 
 def step_flops_by_shape(preset: str, overrides=()) -> dict:

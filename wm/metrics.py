@@ -18,7 +18,8 @@ def psnr(pred, true, axis=(-3, -2, -1)) -> np.ndarray:
 
 
 def psnr_of_mse(err) -> np.ndarray:
-    """PSNR in dB of mean squared errors of [0, 255] pixels; an error of 0 gives +inf."""
+    """PSNR in dB (the shape of err) of mean squared errors (any shape) of [0, 255] pixels; an error of 0
+    gives +inf."""
     with np.errstate(divide="ignore"):
         return 10.0 * np.log10(255.0**2 / np.asarray(err, np.float64))
 

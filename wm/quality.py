@@ -144,9 +144,10 @@ def frame_quality(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, ep
     return res, {"pred": pred[:4], "truth": truth[:4]}
 
 
-def _finite_mean(x) -> float:
-    """Mean PSNR with identical frames (inf) counted at 100 dB."""
-    return float(np.mean(np.minimum(x, 100.0)))
+def _finite_mean(x, axis=None):
+    """Mean PSNR (over axis; all of it: a float) with identical frames (inf) counted at 100 dB."""
+    mean = np.mean(np.minimum(x, 100.0), axis=axis)
+    return float(mean) if axis is None else mean
 
 
 def success_prediction(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, episodes: list[int],
@@ -419,10 +420,13 @@ def program_match(pred, truth) -> dict:
     the PSNR of the mean squared error over all T frames, identical frames counted at 100 dB."""
     pred, truth = np.asarray(pred, np.float64), np.asarray(truth, np.float64)
     k = pred.shape[1]
-    mse = lambda a: np.stack([((a[:, i, None] - truth) ** 2).mean(axis=(2, 3, 4, 5)) for i in range(k)], axis=1)
-    dist, apart = mse(pred), mse(truth)  # (G, K, K): imagination or truth i against truth j
+    if k < 2 or pred.shape != truth.shape:
+        raise ValueError(f"program_match compares >= 2 programs' imagined and true frames of one shape; got "
+                         f"{pred.shape} and {truth.shape}")
+    to_truths = lambda a: np.stack([((a[:, i, None] - truth) ** 2).mean(axis=(2, 3, 4, 5)) for i in range(k)], axis=1)
+    dist, apart = to_truths(pred), to_truths(truth)  # (G, K, K) mean squared errors: i against truth j
     other = ~np.eye(k, dtype=bool)[None]
-    db = lambda mse: np.minimum(psnr_of_mse(mse), 100.0).mean(axis=0)  # identical frames at 100 dB, as _finite_mean
+    db = lambda err: _finite_mean(psnr_of_mse(err), axis=0)
     return {"match": (dist.argmin(axis=2) == np.arange(k)[None]).mean(axis=0),
             "own_psnr_db": db(np.diagonal(dist, axis1=1, axis2=2)),
             "nearest_other_psnr_db": db(np.where(other, dist, np.inf).min(axis=2)),

@@ -690,8 +690,8 @@ def drive_is_varied(i: int, share: float) -> bool:
 def drive_profile(i: int, seconds: float, num_steps: int) -> np.ndarray:
     """(num_steps,) float32 backward speeds (m/s, in [0, MAX_FORWARD_SPEED]) of varied drive episode i:
     segments of DRIVE_SEGMENT_SECONDS, a DRIVE_STOP_SHARE of them standing, the others at a uniform speed
-    from 0.05 m/s to the top speed, until the base has been commanded the distance DRIVE_SPEED covers in
-    `seconds` (the last step's speed cut to land on it), then none. Where the draws would not cover it
+    from 0.05 m/s to the top speed, until the base has been commanded the distance the scripted drive
+    covers (DRIVE_SPEED for `seconds`, or to the episode's end; the last step's speed cut to land on it), then none. Where the draws would not cover it
     within num_steps, the moving segments are sped up (to at most the top speed), and the drive ends short
     only where all of them at the top speed would not cover it."""
     rng = np.random.default_rng([DRIVE_PROFILE_SEED, i])
@@ -702,7 +702,7 @@ def drive_profile(i: int, seconds: float, num_steps: int) -> np.ndarray:
         stop = rng.random() < DRIVE_STOP_SHARE
         speeds[t:t + n] = 0.0 if stop else rng.uniform(0.05, MAX_FORWARD_SPEED)
         t += n
-    target = DRIVE_SPEED * seconds
+    target = DRIVE_SPEED * CONTROL_DT * min(round(seconds / CONTROL_DT), num_steps)  # drive_table's own distance
     if 0.0 < speeds.sum() * CONTROL_DT < target:  # the least factor on the speeds (capped) that covers it
         covers = lambda c: np.minimum(speeds * c, MAX_FORWARD_SPEED).sum() * CONTROL_DT >= target
         lo, hi = 1.0, MAX_FORWARD_SPEED / speeds[speeds > 0].min()
