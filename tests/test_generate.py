@@ -123,6 +123,8 @@ def test_bad_configuration_is_refused_before_work(tmp_path):
         G.make_config("huge")
     with pytest.raises(ValueError, match="drive and perturb_episodes must be >= 0"):
         G.make_config("smoke", ["weak_grip=-1"])
+    with pytest.raises(ValueError, match="play_nod is a chance"):
+        G.make_config("smoke", ["play_nod=-0.1"])
     with pytest.raises(SystemExit):
         G.main(["--config", "smoke", "--out", str(tmp_path / "x"), "size=96"])
     assert not (tmp_path / "x").exists()

@@ -20,7 +20,7 @@ from sim_data.sim import robot as R
 from sim_data.sim import scene as S
 from sim_data.sim.env import HomeEnv
 from sim_data.sim.rollout import _jitted_init, run_episodes
-from sim_data.sim.tasks import MAX_EPISODE_STEPS
+from sim_data.sim.tasks import CONTROL_DT, MAX_EPISODE_STEPS
 
 
 @pytest.fixture(scope="module")
@@ -133,6 +133,32 @@ def test_play_is_seeded_smooth_bounded_and_varied(idx):
         assert (moved[:, part].max(axis=1) > 0.1).mean() > 0.3  # every part of the action vector is exercised
         assert (moved[:, part].max(axis=1) < 1e-6).mean() > 0.0 or part == R.HAND_CLOSURE  # and sometimes rests
     assert (table[:, :, R.FORWARD_SPEED] < -0.1).any() and (table[:, :, R.FORWARD_SPEED] > 0.1).any()
+
+
+def test_play_nods_only_where_asked_and_leaves_the_rest_of_the_episode_as_it_was():
+    """nod: a 0.5-2 Hz sine of 0.05-0.2 rad on the neck's pitch (and sometimes its yaw) over the play
+    episode's own neck, every other action as at nod 0; nod 0 is the play of old, draw for draw."""
+    steps, t = 200, np.arange(200) * CONTROL_DT
+    yawed = 0
+    for seed in range(30):
+        plain, nodding = play_program(seed, steps), play_program(seed, steps, nod=1.0)
+        np.testing.assert_array_equal(play_program(seed, steps, nod=0.0), plain)
+        others = [c for c in range(R.ACTION_DIM) if c not in range(R.NECK.start, R.NECK.stop)]
+        np.testing.assert_array_equal(nodding[:, others], plain[:, others])
+        added = nodding[:, R.NECK] - plain[:, R.NECK]  # (steps, 2): yaw, pitch
+        pitch, yaw = added[:, 1], added[:, 0]
+        yawed += bool(np.abs(yaw).max() > 0)
+        for wave in (pitch,) + ((yaw,) if np.abs(yaw).max() > 0 else ()):
+            # one sine: its least-squares fit at the best frequency of a fine grid leaves nothing behind
+            crossings = np.count_nonzero(np.diff(np.sign(wave)) != 0)
+            hz = crossings / (2 * t[-1])
+            assert 0.4 <= hz <= 2.1 and 0.05 - 1e-6 <= np.abs(wave).max() <= 0.2 + 1e-6
+            best = min(np.linalg.lstsq(np.stack([np.sin(2 * np.pi * f * t), np.cos(2 * np.pi * f * t)], 1), wave,
+                                       rcond=None)[1].sum() for f in np.linspace(0.5, 2.0, 1501))
+            assert best < 1e-3 * (wave**2).sum()  # a 0.001 Hz grid leaves a trace; two sines leave a fifth
+    assert 5 <= yawed <= 25  # the yaw about half the time
+    half = [np.abs(play_program(s, steps, nod=0.5) - play_program(s, steps)).max() > 0 for s in range(60)]
+    assert 15 <= sum(half) <= 45
 
 
 def test_scripts_and_programs_as_one_policy_act_each_row_as_its_own_kind(model):

@@ -111,6 +111,9 @@ class DataConfig:
         action program of `sim_data.policies.scripted.PROGRAMS` is recorded: the world model's controllability set.
       play: episodes per task of random play (`sim_data.policies.scripted.play_program`, policy "play"), in
         train/val/test like the scripted ones: they show the world model what every action does.
+      play_nod: the chance that a play episode's neck also nods or shakes at 0.5-2 Hz (play_program's
+        nod), which the knots alone never do: a model that has not seen a fast neck draws the view of
+        the controllability panel's `air_guitar` program still (docs/world-model.md).
       policies: policy specs (`sim_data.policies.registry`: zoo registries, plug-ins) whose own rollouts join
         the dataset, failures included; policy_episodes: episodes per policy and task (0: `episodes`),
         from the same initial states as the scripted episodes 0, 1, ...
@@ -154,6 +157,7 @@ class DataConfig:
     cache: bool = True
     programs: int = 0
     play: int = 0
+    play_nod: float = 0.0
     policies: tuple = ()
     policy_episodes: int = 0
     weak_grip: int = 0
@@ -177,6 +181,8 @@ class DataConfig:
             raise ValueError("programs, play, policy_episodes, weak_grip, drive and perturb_episodes must be >= 0, "
                              f"got {self.programs}, {self.play}, {self.policy_episodes}, {self.weak_grip}, "
                              f"{self.drive}, {self.perturb_episodes}")
+        if not 0.0 <= self.play_nod <= 1.0:
+            raise ValueError(f"play_nod is a chance, in [0, 1]; got {self.play_nod}")
         if not 0.0 <= self.drive_varied <= 1.0:
             raise ValueError(f"drive_varied is a share of the drives, in [0, 1]; got {self.drive_varied}")
         if self.engine not in ("",) + ENGINES:
@@ -737,7 +743,8 @@ def _program_table(cfg: DataConfig, task: str, source: str, i: int, env: HomeEnv
         return drive_table(seconds, env.episode_steps, drive_profile(i, seconds, env.episode_steps) if varied else None)
     if source == PLAY:
         seed = _initial_seed_of(cfg, task, source, i) + 1  # not the initial state's own seed
-        return play_params([seed], env.episode_steps, env.idx.robot.action_low, env.idx.robot.action_high)["table"][0]
+        return play_params([seed], env.episode_steps, env.idx.robot.action_low, env.idx.robot.action_high,
+                           cfg.play_nod)["table"][0]
     return program_params([source], env.episode_steps)["table"][0]
 
 

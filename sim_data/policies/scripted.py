@@ -410,7 +410,11 @@ PLAY_ARM_AMPLITUDE = np.array([0.9, 0.5, 0.6, 1.0, 0.8, 0.6, 0.6], np.float32)
 PLAY_STYLES = ("eased", "stepped")
 
 
-def play_program(seed: int, num_steps: int, style: str | None = None) -> np.ndarray:
+PLAY_NOD_HZ = (0.5, 2.0)  # a nodding play episode's neck oscillation: its frequency
+PLAY_NOD_RAD = (0.05, 0.2)  # and its amplitude on each neck joint it moves
+
+
+def play_program(seed: int, num_steps: int, style: str | None = None, nod: float = 0.0) -> np.ndarray:
     """Random "play" actions (num_steps, 20) float32 from the ready pose, a function of seed.
 
     Each arm either rests or moves through random joint targets (sometimes with a 0.5 to 2 Hz
@@ -419,7 +423,10 @@ def play_program(seed: int, num_steps: int, style: str | None = None) -> np.ndar
     2.5 s apart; "stepped" holds each knot and jumps to the next (knots half as far apart), so
     that motions start and stop at instants the past does not foretell and only the action
     explains. style None draws one from the seed. Play covers what the scripted tasks leave out,
-    so a world model learns what every action does.
+    so a world model learns what every action does. nod: the chance that the neck also oscillates
+    (PLAY_NOD_HZ, PLAY_NOD_RAD; the pitch, and the yaw half the time) over its knots, as a head that
+    nods or shakes: the knots alone never move it faster than one target a second. Drawn after
+    everything else, so an episode's other actions are those of nod 0.
     """
     rng = np.random.default_rng(seed)
     style = style or PLAY_STYLES[int(rng.integers(len(PLAY_STYLES)))]
@@ -466,13 +473,19 @@ def play_program(seed: int, num_steps: int, style: str | None = None) -> np.ndar
     drive = rng.uniform(-1, 1, (n, 2)).astype(np.float32) * [0.35, 0.6] * (rng.random((n, 2)) < 0.5)
     drive[0] = 0.0
     a[:, R.DRIVE] = eased(drive * (rng.random() < 0.7), gap)
+    if nod > 0.0 and rng.random() < nod:
+        joints = [R.NECK.start + 1] + ([R.NECK.start] if rng.random() < 0.5 else [])
+        for j in joints:
+            hz, amp, phase = rng.uniform(*PLAY_NOD_HZ), rng.uniform(*PLAY_NOD_RAD), rng.uniform(0, 2 * np.pi)
+            a[:, j] += amp * np.sin(2 * np.pi * hz * t + phase)
     return a
 
 
-def play_params(seeds, num_steps: int, low, high) -> dict:
-    """ProgramPolicy parameters for one play episode per seed, clipped to the action bounds (20,)
-    (`RobotIndex.action_low`, `action_high`), so that the recorded actions are the ones applied."""
-    return {"table": np.clip(np.stack([play_program(int(s), num_steps) for s in seeds]), low, high)}
+def play_params(seeds, num_steps: int, low, high, nod: float = 0.0) -> dict:
+    """ProgramPolicy parameters for one play episode per seed (play_program, its chance to nod), clipped to
+    the action bounds (20,) (`RobotIndex.action_low`, `action_high`), so that the recorded actions are the
+    ones applied."""
+    return {"table": np.clip(np.stack([play_program(int(s), num_steps, nod=nod) for s in seeds]), low, high)}
 
 
 @dataclasses.dataclass(frozen=True)
