@@ -341,6 +341,22 @@ def test_drive_episodes_back_away_for_times_spread_over_the_range_from_the_scrip
                                           G.drive_table(G.drive_seconds(i), env.episode_steps))
 
 
+def test_drives_by_split_spread_each_splits_durations_over_the_range():
+    """drive_by_split: the k-th drive of a split (in index order) lasts drive_seconds(k), so each split,
+    training's first, holds the range's spread; without it drive i lasts drive_seconds(i)."""
+    for by_split in (False, True):
+        cfg = G.make_config("demo", [f"drive_by_split={str(by_split).lower()}"])
+        splits = [G.split_of(cfg, G.initial_seed(cfg, "step_back", i)) for i in range(40)]
+        for split in ("train", "val", "test"):
+            mine = [i for i in range(40) if splits[i] == split]
+            order = [G.drive_of_split(cfg, "step_back", i) for i in mine]
+            assert order == (list(range(len(mine))) if by_split else mine)
+    cfg = G.make_config("demo", ["drive_by_split=true"])
+    train = [G.drive_seconds(G.drive_of_split(cfg, "step_back", i)) for i in range(16)
+             if G.split_of(cfg, G.initial_seed(cfg, "step_back", i)) == "train"]
+    assert max(train) > 5.0 and min(train) == 0.0  # a drive still backing away at step_back's 5 s end, one standing
+
+
 def test_varied_drives_cover_the_scripted_distance_at_speeds_within_range(monkeypatch):
     """drive_varied: a share of the drives back away the same distance as a drive at 0.3 m/s for
     drive_seconds(i) would, through segments of other speeds and stops; the others are as before."""

@@ -136,6 +136,9 @@ class DataConfig:
         and a policy acting on imagined frames may stop short or drive on; on every other task no
         drive succeeds. So these show the world model and its judge what every distance does, and that
         backing away alone achieves nothing else. Not demonstrations (policy_kind "drive").
+      drive_by_split: the drives' durations spread over each split's drives by their order among them
+        (drive_of_split) rather than over all the drives by index, so that the training split holds the
+        whole range of distances (by index, a split's few drives may all miss the longest ones).
       drive_varied: the share of the drives (drive_is_varied) that cover their distance at a varied speed
         instead (drive_profile: segments of random speeds and stops), so that the world model and its
         judge learn a distance as the sum of the speeds, not as a time at the scripted speed.
@@ -162,6 +165,7 @@ class DataConfig:
     policy_episodes: int = 0
     weak_grip: int = 0
     drive: int = 0
+    drive_by_split: bool = False
     drive_varied: float = 0.0
     perturbed: tuple = ()
     perturb_episodes: int = 0
@@ -687,6 +691,16 @@ def drive_seconds(i: int) -> float:
     return lo + (hi - lo) * ((i * GOLDEN) % 1.0)
 
 
+def drive_of_split(cfg: DataConfig, task: str, i: int) -> int:
+    """Drive episode i's order among the drives 0..i of task in its split (that of the scripted episode i's
+    initial state): with cfg.drive_by_split its duration is drive_seconds of this, else of i."""
+    if not cfg.drive_by_split:
+        return i
+    split = lambda j: split_of(cfg, initial_seed(cfg, task, j))
+    mine = split(i)
+    return sum(split(j) == mine for j in range(i))
+
+
 def drive_is_varied(i: int, share: float) -> bool:
     """Whether drive episode i covers its distance at a varied speed: a share of the drives, spread over
     their indices (and so over their distances) by a sequence other than drive_seconds'."""
@@ -738,7 +752,7 @@ def _program_table(cfg: DataConfig, task: str, source: str, i: int, env: HomeEnv
     """The action table (env.episode_steps, 20) of a program episode (source: a program's name), of
     play episode i (source PLAY) or of drive episode i (DRIVE)."""
     if source == DRIVE:
-        seconds = drive_seconds(i)
+        seconds = drive_seconds(drive_of_split(cfg, task, i))
         varied = drive_is_varied(i, cfg.drive_varied)
         return drive_table(seconds, env.episode_steps, drive_profile(i, seconds, env.episode_steps) if varied else None)
     if source == PLAY:
