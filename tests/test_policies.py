@@ -147,6 +147,7 @@ def test_play_nods_only_where_asked_and_leaves_the_rest_of_the_episode_as_it_was
         np.testing.assert_array_equal(nodding[:, others], plain[:, others])
         added = nodding[:, R.NECK] - plain[:, R.NECK]  # (steps, 2): yaw, pitch
         pitch, yaw = added[:, 1], added[:, 0]
+        np.testing.assert_allclose(added[0], 0.0, atol=1e-7)  # the neck starts at the episode's own start
         yawed += bool(np.abs(yaw).max() > 0)
         for wave in (pitch,) + ((yaw,) if np.abs(yaw).max() > 0 else ()):
             # one sine: its least-squares fit at the best frequency of a fine grid leaves nothing behind

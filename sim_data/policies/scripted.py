@@ -476,7 +476,8 @@ def play_program(seed: int, num_steps: int, style: str | None = None, nod: float
     if nod > 0.0 and rng.random() < nod:
         joints = [R.NECK.start + 1] + ([R.NECK.start] if rng.random() < 0.5 else [])
         for j in joints:
-            hz, amp, phase = rng.uniform(*PLAY_NOD_HZ), rng.uniform(*PLAY_NOD_RAD), rng.uniform(0, 2 * np.pi)
+            # from the episode's first step, up or down: the neck still starts at its ready pose
+            hz, amp, phase = rng.uniform(*PLAY_NOD_HZ), rng.uniform(*PLAY_NOD_RAD), np.pi * (rng.random() < 0.5)
             a[:, j] += amp * np.sin(2 * np.pi * hz * t + phase)
     return a
 
