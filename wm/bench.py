@@ -92,9 +92,20 @@ def step_inputs(cfg):
         batch["anchor"] = batch["frames"][:, 0]
     if cfg.w_read > 0:
         batch["task"] = jnp.zeros((b,), jnp.int32)
-    norm = Norm(jnp.zeros(m.proprio_dim), jnp.ones(m.proprio_dim), jnp.zeros(m.action_dim), jnp.ones(m.action_dim),
+    return state, batch, unit_norm(m)
+
+
+def unit_norm(m) -> Norm:
+    """Statistics that leave a ModelConfig m's proprioception, actions and scene state as they are."""
+    return Norm(jnp.zeros(m.proprio_dim), jnp.ones(m.proprio_dim), jnp.zeros(m.action_dim), jnp.ones(m.action_dim),
                 jnp.zeros(m.scene_dim), jnp.ones(m.scene_dim))
-    return state, batch, norm
+
+
+def blank_context(m, batch: int) -> tuple:
+    """2 blank context steps of `batch` episodes for ModelConfig m: frames (B, 2, S, S, 3) uint8,
+    proprioception (B, 2, P) and the action between them (B, 1, A), zeros."""
+    return (jnp.zeros((batch, 2, m.size, m.size, 3), jnp.uint8), jnp.zeros((batch, 2, m.proprio_dim)),
+            jnp.zeros((batch, 1, m.action_dim)))
 
 
 def frozen_inputs(cfg):
@@ -261,10 +272,8 @@ def imagine_step_flops(cfg, batch: int = 16, depth: int = 2) -> dict:
     (flops_by_module), from cfg's model (a TrainConfig) lowered on this backend, not compiled."""
     m = cfg.model
     params = jax.eval_shape(lambda: init_params(m, jax.random.PRNGKey(0), window=cfg.window))
-    norm = Norm(jnp.zeros(m.proprio_dim), jnp.ones(m.proprio_dim), jnp.zeros(m.action_dim), jnp.ones(m.action_dim))
-    state = jax.eval_shape(lambda p: init_state(m, p, norm, jnp.zeros((batch, 2, m.size, m.size, 3), jnp.uint8),
-                                                jnp.zeros((batch, 2, m.proprio_dim)),
-                                                jnp.zeros((batch, 1, m.action_dim))), params)
+    norm = unit_norm(m)
+    state = jax.eval_shape(lambda p: init_state(m, p, norm, *blank_context(m, batch)), params)
     action = jax.ShapeDtypeStruct((batch, m.action_dim), jnp.float32)
     text = jax.jit(step, static_argnums=0).lower(m, params, norm, state, action).as_text(debug_info=True)
     by = flops_by_module(text, depth)
@@ -420,11 +429,8 @@ def imagine_rate(cfg, batch: int, horizon: int) -> dict:
     params = init_params(m, jax.random.PRNGKey(0), window=cfg.window)
     pol = BenchPolicy()
     pparams = ConvPolicy().init(jax.random.PRNGKey(1), jnp.zeros((1, m.size, m.size, 3), jnp.uint8), jnp.zeros((1, 37)))
-    norm = Norm(jnp.zeros(m.proprio_dim), jnp.ones(m.proprio_dim), jnp.zeros(m.action_dim), jnp.ones(m.action_dim))
-    c = 2
-    frames = jnp.zeros((batch, c, m.size, m.size, 3), jnp.uint8)
-    proprio = jnp.zeros((batch, c, m.proprio_dim))
-    acts = jnp.zeros((batch, c - 1, m.action_dim))
+    norm = unit_norm(m)
+    frames, proprio, acts = blank_context(m, batch)
     t0 = time.perf_counter()
     jax.block_until_ready(closed_loop(m, pol, horizon, params, norm, pparams, frames, proprio, acts,
                                       jax.random.PRNGKey(0)))
