@@ -187,7 +187,10 @@ def decision_figure(decision: dict) -> str:
     ax.set_xlabel("episodes per policy in the world model")
     ax.set_ylabel("P(pick the truly better policy)")
     ax.set_title(f"decision analysis at alignment {_fmt(decision['alignment'], 2)}", fontsize=10)
-    ax.legend(fontsize=7)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=7)
+    else:  # one policy a task, or none read: no pair to decide between and no alignment to model
+        ax.text(0.5, 0.5, "no pairs of policies to decide between", ha="center", va="center", transform=ax.transAxes)
     ax.grid(alpha=0.3)
     return _png(fig)
 

@@ -6,6 +6,7 @@ import math
 import shutil
 import threading
 import time
+import warnings
 from pathlib import Path
 
 import jax
@@ -680,6 +681,15 @@ def test_the_decision_figure_draws_without_an_alignment():
     decision = {"alignment": None, "episodes": [1, 4, 16], "model": {"0.1": None, "0.3": None},
                 "resampled": {"0.3": [0.5, 0.6, 0.7]}, "pairs": {"0.3": 2}}
     assert decision_figure(decision).startswith("data:image/png;base64,")
+
+
+def test_the_decision_figure_says_when_there_is_nothing_to_decide():
+    # one policy alone on its task: no pair and no alignment
+    decision = {"alignment": None, "episodes": [1, 4, 16], "model": {"0.1": None}, "resampled": {"0.1": None},
+                "pairs": {"0.1": 0}}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # matplotlib warns of a legend without entries
+        assert decision_figure(decision).startswith("data:image/png;base64,")
 
 
 def test_a_checkpoint_pick_among_equal_ratings_is_flagged():
