@@ -162,6 +162,30 @@ def test_play_nods_only_where_asked_and_leaves_the_rest_of_the_episode_as_it_was
     assert 15 <= sum(half) <= 45
 
 
+def test_a_nod_stays_inside_the_neck_s_range_as_a_whole_sine(idx):
+    """Where a drawn nod would cross the neck's limit its amplitude shrinks to fit, so the clip to the
+    action bounds never flattens its crests; the wave stays one sine, the rest of the episode as before."""
+    low, high = idx.robot.action_low, idx.robot.action_high
+    steps, capped = 100, 0
+    for seed in range(200):
+        plain, free = play_program(seed, steps), play_program(seed, steps, nod=1.0)
+        fitted = play_program(seed, steps, nod=1.0, bounds=(low, high))
+        table = play_params([seed], steps, low, high, nod=1.0)["table"][0]
+        np.testing.assert_array_equal(table[:, R.NECK], fitted[:, R.NECK])  # nothing left for the clip there
+        neck = fitted[:, R.NECK]
+        assert np.all(neck >= low[R.NECK] - 1e-6) and np.all(neck <= high[R.NECK] + 1e-6)
+        over = np.any(free[:, R.NECK] > high[R.NECK] + 1e-6) or np.any(free[:, R.NECK] < low[R.NECK] - 1e-6)
+        capped += bool(over)
+        for j in range(2):
+            wave, drawn = fitted[:, R.NECK][:, j] - plain[:, R.NECK][:, j], free[:, R.NECK][:, j] - plain[:, R.NECK][:, j]
+            if np.abs(drawn).max() > 0:  # the same sine, scaled by the room the knots leave
+                scale = np.abs(wave).max() / np.abs(drawn).max()
+                np.testing.assert_allclose(wave, scale * drawn, atol=1e-6)
+                assert scale == 1.0 or not np.all(neck[:, j] < high[R.NECK][j] - 1e-4) or not np.all(
+                    neck[:, j] > low[R.NECK][j] + 1e-4)  # shrunk only as far as a crest meets the limit
+    assert capped >= 5  # drawn nods that would have crossed the pitch's 1.2 rad do occur
+
+
 def test_scripts_and_programs_as_one_policy_act_each_row_as_its_own_kind(model):
     from sim_data.sim.rollout import run_episodes
 

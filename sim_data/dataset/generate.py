@@ -711,9 +711,10 @@ def drive_profile(i: int, seconds: float, num_steps: int) -> np.ndarray:
     """(num_steps,) float32 backward speeds (m/s, in [0, MAX_FORWARD_SPEED]) of varied drive episode i:
     segments of DRIVE_SEGMENT_SECONDS, a DRIVE_STOP_SHARE of them standing, the others at a uniform speed
     from 0.05 m/s to the top speed, until the base has been commanded the distance the scripted drive
-    covers (DRIVE_SPEED for `seconds`, or to the episode's end; the last step's speed cut to land on it), then none. Where the draws would not cover it
-    within num_steps, the moving segments are sped up (to at most the top speed), and the drive ends short
-    only where all of them at the top speed would not cover it."""
+    covers (DRIVE_SPEED for `seconds`, or to the episode's end; the last step's speed cut to land on it), then
+    none. Where the draws would not cover it within num_steps, the moving segments are sped up (to at most the
+    top speed), and the drive ends short only where all of them at the top speed would not cover it (and
+    stands still where every segment drawn stands: nine or more in a row, about 5e-7 for step_back)."""
     rng = np.random.default_rng([DRIVE_PROFILE_SEED, i])
     speeds = np.zeros(num_steps)
     t = 0

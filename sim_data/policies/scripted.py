@@ -414,7 +414,7 @@ PLAY_NOD_HZ = (0.5, 2.0)  # a nodding play episode's neck oscillation: its frequ
 PLAY_NOD_RAD = (0.05, 0.2)  # and its amplitude on each neck joint it moves
 
 
-def play_program(seed: int, num_steps: int, style: str | None = None, nod: float = 0.0) -> np.ndarray:
+def play_program(seed: int, num_steps: int, style: str | None = None, nod: float = 0.0, bounds=None) -> np.ndarray:
     """Random "play" actions (num_steps, 20) float32 from the ready pose, a function of seed.
 
     Each arm either rests or moves through random joint targets (sometimes with a 0.5 to 2 Hz
@@ -425,8 +425,10 @@ def play_program(seed: int, num_steps: int, style: str | None = None, nod: float
     explains. style None draws one from the seed. Play covers what the scripted tasks leave out,
     so a world model learns what every action does. nod: the chance that the neck also oscillates
     (PLAY_NOD_HZ, PLAY_NOD_RAD; the pitch, and the yaw half the time) over its knots, as a head that
-    nods or shakes: the knots alone never move it faster than one target a second. Drawn after
-    everything else, so an episode's other actions are those of nod 0.
+    nods or shakes: eased knots never move it faster than one target a second, stepped ones two. Drawn
+    after everything else, so an episode's other actions are those of nod 0. bounds: the actions' (low
+    (20,), high (20,)), within which a nod's amplitude is kept (a sine clipped at the neck's limit would
+    flatten into a plateau); None: uncapped.
     """
     rng = np.random.default_rng(seed)
     style = style or PLAY_STYLES[int(rng.integers(len(PLAY_STYLES)))]
@@ -478,7 +480,12 @@ def play_program(seed: int, num_steps: int, style: str | None = None, nod: float
         for j in joints:
             # from the episode's first step, up or down: the neck still starts at its ready pose
             hz, amp, phase = rng.uniform(*PLAY_NOD_HZ), rng.uniform(*PLAY_NOD_RAD), np.pi * (rng.random() < 0.5)
-            a[:, j] += amp * np.sin(2 * np.pi * hz * t + phase)
+            wave = np.sin(2 * np.pi * hz * t + phase)
+            if bounds is not None:  # the largest amplitude at which no step passes a limit
+                up, down = wave > 1e-6, wave < -1e-6
+                room = np.concatenate([(bounds[1][j] - a[up, j]) / wave[up], (a[down, j] - bounds[0][j]) / -wave[down]])
+                amp = float(np.clip(room.min(initial=amp), 0.0, amp))
+            a[:, j] += amp * wave
     return a
 
 
@@ -486,7 +493,9 @@ def play_params(seeds, num_steps: int, low, high, nod: float = 0.0) -> dict:
     """ProgramPolicy parameters for one play episode per seed (play_program, its chance to nod), clipped to
     the action bounds (20,) (`RobotIndex.action_low`, `action_high`), so that the recorded actions are the
     ones applied."""
-    return {"table": np.clip(np.stack([play_program(int(s), num_steps, nod=nod) for s in seeds]), low, high)}
+    bounds = (np.asarray(low), np.asarray(high))
+    return {"table": np.clip(np.stack([play_program(int(s), num_steps, nod=nod, bounds=bounds) for s in seeds]),
+                             low, high)}
 
 
 @dataclasses.dataclass(frozen=True)
