@@ -313,13 +313,33 @@ def _policy_table(rows: list[dict]) -> list[list[str]]:
 
 PLUGIN_NOTE = ("Each plug-in beside the task's other policies: its true and predicted success with their 95% "
                "intervals (episodes), the error, and its place when the task's policies are ordered by true and by "
-               "predicted success (1: the best; ties share the better place).")
+               "predicted success (1: the best; ties share the better place). The same read-out applied to the "
+               "plug-in's simulated episodes says where a prediction outside the true interval goes wrong: where it "
+               "reads them outside the interval too, the read-out (the judge) does not recognise what the policy did; "
+               "where it reads them inside, the world model imagines the policy's episodes otherwise than the "
+               "simulator plays them.")
+
+
+def error_source(p: dict) -> str:
+    """Where a policy row's prediction outside its true interval goes wrong: "read-out" where the read-out of
+    its simulated episodes (pred_rate_on_truth) also lies outside the interval, "imagination" where it lies
+    inside; "-" for a prediction inside the interval, "n/a" where either rate was not read."""
+    lo, hi = p["true_ci"]
+    pred, seen = p.get("pred_rate"), p.get("pred_rate_on_truth")
+    if _missing(pred):
+        return "n/a"
+    if lo <= pred <= hi:
+        return "-"
+    if _missing(seen):
+        return "n/a"
+    return "imagination" if lo <= seen <= hi else "read-out"
 
 
 def plugin_table(policies: list[dict]) -> list[list[str]] | None:
     """Per plug-in and task: true and predicted rate with intervals (the true one marked where some of its
-    simulated episodes went non-finite: their outcomes are doubtful), the error, and the plug-in's place
-    among the task's policies by true and by predicted rate; None where no policy is a plug-in."""
+    simulated episodes went non-finite: their outcomes are doubtful), the error, the read-out of its simulated
+    episodes and where the error lies (error_source), and the plug-in's place among the task's policies by true
+    and by predicted rate; None where no policy is a plug-in."""
     mine = [p for p in policies if p.get("kind") == "plugin"]
     if not mine:
         return None
@@ -329,7 +349,7 @@ def plugin_table(policies: list[dict]) -> list[list[str]] | None:
         return "n/a" if _missing(p[key]) else str(1 + sum(v > p[key] for v in others))
 
     rows = [["plug-in", "task", "true (95% CI)", "predicted (95% CI)", "|predicted - true|", "inside the true interval",
-             "place by true / predicted"]]
+             "read from its simulated episodes", "where the error lies", "place by true / predicted"]]
     for p in sorted(mine, key=lambda r: (r["name"], r["task"])):
         n = sum(q["task"] == p["task"] for q in policies)
         err = None if _missing(p["pred_rate"]) else abs(p["pred_rate"] - p["true_rate"])
@@ -338,7 +358,8 @@ def plugin_table(policies: list[dict]) -> list[list[str]] | None:
         doubt = f", {bad} of {p['n']} episodes non-finite" if bad else ""
         rows.append([p["name"], p["task"], f"{p['true_rate']:.2f} ({p['true_ci'][0]:.2f}-{p['true_ci'][1]:.2f}{doubt})",
                      f"{_fmt(p['pred_rate'], 2)} ({_fmt(p['pred_ci'][0], 2)}-{_fmt(p['pred_ci'][1], 2)})",
-                     _fmt(err, 2), inside, f"{place(p, 'true_rate')} / {place(p, 'pred_rate')} of {n}"])
+                     _fmt(err, 2), inside, _fmt(p.get("pred_rate_on_truth"), 2), error_source(p),
+                     f"{place(p, 'true_rate')} / {place(p, 'pred_rate')} of {n}"])
     return rows
 
 
