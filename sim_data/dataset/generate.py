@@ -714,7 +714,7 @@ def drive_profile(i: int, seconds: float, num_steps: int) -> np.ndarray:
     covers (DRIVE_SPEED for `seconds`, or to the episode's end; the last step's speed cut to land on it), then
     none. Where the draws would not cover it within num_steps, the moving segments are sped up (to at most the
     top speed), and the drive ends short only where all of them at the top speed would not cover it (and
-    stands still where every segment drawn stands: nine or more in a row, about 5e-7 for step_back)."""
+    stands still in the rare draw where every segment within the episode stands)."""
     rng = np.random.default_rng([DRIVE_PROFILE_SEED, i])
     speeds = np.zeros(num_steps)
     t = 0
