@@ -113,6 +113,30 @@ def test_loader_windows_epochs_and_resume(two_shards):
         C.WindowLoader(cache, window, batch, split=None, cameras=["top_cam"])
 
 
+def test_first_windows_count_each_episode_s_start_that_many_more_times(two_shards):
+    cache = C.TrainingCache(two_shards)
+    window, batch, extra = 16, 4, 3
+    plain = C.WindowLoader(cache, window, batch, split=None, seed=3)
+    loader = C.WindowLoader(cache, window, batch, split=None, seed=3, first_windows=extra)
+    per_episode = {i: r["length"] - window + 1 for i, r in enumerate(cache.episodes)}
+    assert loader.windows == plain.windows + extra * len(per_episode)
+    every = loader.gather(np.arange(loader.windows))  # an epoch's windows, all of them
+    drawn = {}
+    for e, s in zip(every["episode"], every["start"]):
+        drawn[(int(e), int(s))] = drawn.get((int(e), int(s)), 0) + 1
+    assert drawn == {(i, s): 1 + extra * (s == 0) for i, n in per_episode.items() for s in range(n)}
+    ep = cache.episode(0)  # an extra window is the episode's first steps, as the plain one
+    first = loader.gather(np.array([plain.windows]))
+    assert int(first["episode"][0]) == 0 and int(first["start"][0]) == 0
+    np.testing.assert_array_equal(first["frames"]["head_cam"][0], ep["frames"]["head_cam"][:window])
+    np.testing.assert_array_equal(first["action"][0], ep["action"][:window])
+    # without them the loader's windows and order are those it had before the option
+    np.testing.assert_array_equal(C.WindowLoader(cache, window, batch, split=None, seed=3, first_windows=0)
+                                  .batch_at(0, 1)["start"], plain.batch_at(0, 1)["start"])
+    with pytest.raises(ValueError, match="first_windows"):
+        C.WindowLoader(cache, window, batch, split=None, first_windows=-1)
+
+
 def test_a_repeated_episode_counts_its_windows_that_many_times_an_epoch(two_shards):
     from wm.config import make_config
     from wm.train import failed_attempts_repeated

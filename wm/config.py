@@ -60,6 +60,9 @@ class TrainConfig:
         that did not succeed) counts in a training epoch (1: as every other episode): more grasps that
         slip for a model whose imagined grasps hold too often. The episode judge draws its training
         episodes from the same list, so it weighs them alike.
+        first_windows: how many more times each training episode's first window (its steps 0 to window - 1)
+        counts in an epoch (0: once, as every other start): every ranked episode is imagined from its
+        first frame, a start one window in 90-190 trains.
         w_scene: with model.scene, of the squared error of the predicted next scene state, standardised
         by the training split's statistics (wm.imagine.Norm.scene). w_refine: with model.refine, of the
         frame generator's flow-matching loss (wm.train._refine_loss: a squared error in pixels, as the frame's).
@@ -132,6 +135,7 @@ class TrainConfig:
     w_scene: float = 1.0
     w_refine: float = 1.0
     fail_repeat: int = 1
+    first_windows: int = 0
     log_every: int = 50
     eval_every: int = 500
     ckpt_every: int = 500
@@ -214,6 +218,8 @@ class TrainConfig:
         if self.model.refine and self.window - 1 <= self.rollout_passes:
             raise ValueError(f"model.refine learns from a frame of every pass: window - 1 must exceed rollout_passes "
                              f"(got window={self.window}, rollout_passes={self.rollout_passes})")
+        if self.first_windows < 0:
+            raise ValueError(f"first_windows counts extra first windows an episode (>= 0); got {self.first_windows}")
         if self.fail_repeat < 1:
             raise ValueError(f"fail_repeat counts each failed task attempt that many times (>= 1); "
                              f"got {self.fail_repeat}")

@@ -461,7 +461,7 @@ class Run:
         self.loader = WindowLoader(self.cache, cfg.window, cfg.batch, split="train", seed=cfg.seed, part=part,
                                    first_frames=cfg.model.anchor,
                                    cameras=[cfg.camera], tasks=cfg.train_tasks or None, fraction=cfg.train_fraction,
-                                   repeat=_repeat(cfg))
+                                   repeat=_repeat(cfg), first_windows=cfg.first_windows)
         norm_path = self.out / "norm.json"
         if norm_path.exists():
             self.norm = Norm.from_dict(json.loads(norm_path.read_text()))

@@ -352,6 +352,8 @@ class WindowLoader:
     `repeat(record)`, given, says how many times an episode's windows count in an epoch (its index
     record, TrainingCache.episodes; default once each): `episodes` lists an episode that often,
     `distinct` once.
+    `first_windows` adds each episode's first window (its start 0) that many more times an epoch:
+    imagination starts from an episode's first frame, a position one window in 90-190 covers.
     `state()` after a batch and `restore(state)` in a new loader continue the same sequence.
     `part=(i, n)` yields the i-th of n equal row blocks of each batch (B = batch / n rows): n
     processes that each take their part train on the same global batches as one process would.
@@ -366,9 +368,11 @@ class WindowLoader:
 
     def __init__(self, cache: TrainingCache, window: int, batch: int, split: str | None = "train", seed: int = 0,
                  cameras=None, tasks=None, fraction: float = 1.0, prefetch: int = 8, threads: int = 4,
-                 part: tuple[int, int] = (0, 1), first_frames: bool = False, repeat=None):
+                 part: tuple[int, int] = (0, 1), first_frames: bool = False, repeat=None, first_windows: int = 0):
         if window < 1 or batch < 1:
             raise ValueError(f"window and batch must be >= 1, got {window}, {batch}")
+        if first_windows < 0:
+            raise ValueError(f"first_windows counts extra first windows an episode (>= 0), got {first_windows}")
         index, count = part
         if not (count >= 1 and 0 <= index < count and batch % count == 0):
             raise ValueError(f"part {part} must be (i, n) with 0 <= i < n and n dividing the batch {batch}")
@@ -387,7 +391,8 @@ class WindowLoader:
                              f"of {batch}")
         self._ends = np.cumsum(counts)
         self._firsts = self._ends - counts  # the first window id of each episode
-        self.windows = int(self._ends[-1])
+        self._every = int(self._ends[-1])  # the ids past these are first windows again, episode by episode
+        self.windows = self._every + first_windows * len(self.episodes)
         self.batches_per_epoch = self.windows // batch
         self._task_id = {t: i for i, t in enumerate(cache.tasks)}
         self._position = (0, 0)
@@ -427,8 +432,10 @@ class WindowLoader:
 
     def gather(self, window_ids: np.ndarray) -> dict:
         """The windows with these ids (0 .. windows-1) as one batch."""
-        pos = np.searchsorted(self._ends, window_ids, side="right")
-        starts = window_ids - self._firsts[pos]
+        extra = window_ids >= self._every
+        pos = np.where(extra, (window_ids - self._every) % len(self.episodes),
+                       np.searchsorted(self._ends, np.minimum(window_ids, self._every - 1), side="right"))
+        starts = np.where(extra, 0, window_ids - self._firsts[pos])
         eps = self.episodes[pos]
         recs = [self.cache.episodes[i] for i in eps]
         out = {"frames": {}, "outcome": np.array([r["success"] for r in recs], bool),
