@@ -1417,7 +1417,9 @@ def main(argv=None) -> int:
     print(json.dumps(no_nan({"within_task_mean": {who: {k: [w[who]["mean"][k], w[who]["mean_ci"][k]]
                                                         for k in S.WITHIN_TASK}
                                                   for who in ("world_model", "proxy")}}), indent=1))
-    print(f"{S.policy_count(res['policies'])} in {time.perf_counter() - t0:.0f} s; results {a.out / 'results.json'}")
+    # where parts simulated and imagined in other processes (the pipeline's eval stage), this one only gathered
+    print(f"{S.policy_count(res['policies'])}; {time.perf_counter() - t0:.0f} s in this process; "
+          f"results {a.out / 'results.json'}")
     return 0
 
 

@@ -279,7 +279,8 @@ def _metrics_table(metrics: dict) -> list[list[str]]:
         val = _fmt(metrics.get(s))
         if s == "pearson":
             ci, bs = metrics.get("pearson_ci", [None, None]), metrics.get("pearson_ci_bootstrap", [None, None])
-            val += f" (Fisher {_fmt(ci[0], 2)}..{_fmt(ci[1], 2)}; bootstrap {_fmt(bs[0], 2)}..{_fmt(bs[1], 2)})"
+            val += (f" (Fisher {_fmt(ci[0], 2)}..{_fmt(ci[1], 2)}; bootstrap of initial states "
+                    f"{_fmt(bs[0], 2)}..{_fmt(bs[1], 2)})")
         row = [s, val, *[_fmt(r.get(s)) if s in r else "-" for r in readouts.values()],
                _fmt(base.get(s)) if s != "alignment" else "-"]
         if k:
@@ -314,32 +315,44 @@ def _policy_table(rows: list[dict]) -> list[list[str]]:
 PLUGIN_NOTE = ("Each plug-in beside the task's other policies: its true and predicted success with their 95% "
                "intervals (episodes), the error, and its place when the task's policies are ordered by true and by "
                "predicted success (1: the best; ties share the better place). The same read-out applied to the "
-               "plug-in's simulated episodes says where a prediction outside the true interval goes wrong: where it "
-               "reads them outside the interval too, the read-out (the judge) does not recognise what the policy did; "
-               "where it reads them inside, the world model imagines the policy's episodes otherwise than the "
-               "simulator plays them.")
+               "plug-in's simulated episodes splits the error in two: predicted minus that reading is imagination's "
+               "part (the world model plays the policy otherwise than the simulator), that reading minus the true "
+               "rate the read-out's (the judge does not recognise what the policy did); the larger part of a "
+               "prediction outside the true interval names where it lies. The judge learns from imagined episodes, "
+               "so it may read true episodes lower or higher across the board: compare with the task's other "
+               "policies' readings in results.json (pred_rate_on_truth).")
+
+
+def error_parts(p: dict) -> tuple[float, float] | None:
+    """(imagination's part, the read-out's part) of a policy row's error pred_rate - true_rate: pred_rate -
+    pred_rate_on_truth and pred_rate_on_truth - true_rate (they sum to the error); None where either rate
+    was not read."""
+    pred, seen = p.get("pred_rate"), p.get("pred_rate_on_truth")
+    if _missing(pred) or _missing(seen):
+        return None
+    return pred - seen, seen - p["true_rate"]
 
 
 def error_source(p: dict) -> str:
-    """Where a policy row's prediction outside its true interval goes wrong: "read-out" where the read-out of
-    its simulated episodes (pred_rate_on_truth) also lies outside the interval, "imagination" where it lies
-    inside; "-" for a prediction inside the interval, "n/a" where either rate was not read."""
+    """Where a policy row's prediction outside its true interval goes wrong: "imagination" or "read-out",
+    whichever part of the error (error_parts) is larger; "-" for a prediction inside the interval, "n/a" where
+    either rate was not read."""
     lo, hi = p["true_ci"]
-    pred, seen = p.get("pred_rate"), p.get("pred_rate_on_truth")
-    if _missing(pred):
+    if _missing(p.get("pred_rate")):
         return "n/a"
-    if lo <= pred <= hi:
+    if lo <= p["pred_rate"] <= hi:
         return "-"
-    if _missing(seen):
+    parts = error_parts(p)
+    if parts is None:
         return "n/a"
-    return "imagination" if lo <= seen <= hi else "read-out"
+    return "imagination" if abs(parts[0]) > abs(parts[1]) else "read-out"
 
 
 def plugin_table(policies: list[dict]) -> list[list[str]] | None:
     """Per plug-in and task: true and predicted rate with intervals (the true one marked where some of its
     simulated episodes went non-finite: their outcomes are doubtful), the error, the read-out of its simulated
-    episodes and where the error lies (error_source), and the plug-in's place among the task's policies by true
-    and by predicted rate; None where no policy is a plug-in."""
+    episodes, the error's two parts (error_parts) and where it lies (error_source), and the plug-in's place among
+    the task's policies by true and by predicted rate; None where no policy is a plug-in."""
     mine = [p for p in policies if p.get("kind") == "plugin"]
     if not mine:
         return None
@@ -349,7 +362,8 @@ def plugin_table(policies: list[dict]) -> list[list[str]] | None:
         return "n/a" if _missing(p[key]) else str(1 + sum(v > p[key] for v in others))
 
     rows = [["plug-in", "task", "true (95% CI)", "predicted (95% CI)", "|predicted - true|", "inside the true interval",
-             "read from its simulated episodes", "where the error lies", "place by true / predicted"]]
+             "read from its simulated episodes", "error: imagination + read-out", "where the error lies",
+             "place by true / predicted"]]
     for p in sorted(mine, key=lambda r: (r["name"], r["task"])):
         n = sum(q["task"] == p["task"] for q in policies)
         err = None if _missing(p["pred_rate"]) else abs(p["pred_rate"] - p["true_rate"])
@@ -358,9 +372,14 @@ def plugin_table(policies: list[dict]) -> list[list[str]] | None:
         doubt = f", {bad} of {p['n']} episodes non-finite" if bad else ""
         rows.append([p["name"], p["task"], f"{p['true_rate']:.2f} ({p['true_ci'][0]:.2f}-{p['true_ci'][1]:.2f}{doubt})",
                      f"{_fmt(p['pred_rate'], 2)} ({_fmt(p['pred_ci'][0], 2)}-{_fmt(p['pred_ci'][1], 2)})",
-                     _fmt(err, 2), inside, _fmt(p.get("pred_rate_on_truth"), 2), error_source(p),
+                     _fmt(err, 2), inside, _fmt(p.get("pred_rate_on_truth"), 2), _parts_text(error_parts(p)),
+                     error_source(p),
                      f"{place(p, 'true_rate')} / {place(p, 'pred_rate')} of {n}"])
     return rows
+
+
+def _parts_text(parts) -> str:
+    return "n/a" if parts is None else f"{parts[0]:+.2f} {parts[1]:+.2f}"
 
 
 def _html_table(rows) -> str:
@@ -500,7 +519,9 @@ def within_task_table(res: dict) -> list[list[str]]:
     w = res["metrics"]["within_task"]
     others = _other_readouts(w)
     targets = TARGETS.get(res.get("preset", ""), {})
-    rows = [["statistic (mean over tasks)", "world model", "imitation-loss proxy", "world model - proxy",
+    readout = res.get("world_model", {}).get("readout")
+    rows = [["statistic (mean over tasks)", f"world model ({readout} read-out)" if readout else "world model",
+             "imitation-loss proxy", "world model - proxy (paired, over the policies with a validation loss)",
              *[label for _, label in others], f"target ({res.get('preset') or 'none'} preset)"]]
     floor = res["metrics"].get("mmrv_floor")
     for k in w["world_model"]["mean"]:

@@ -376,17 +376,23 @@ def test_the_report_places_each_plugin_among_its_tasks_policies():
     assert table[0][-1] == "place by true / predicted"
     # on mug: truly 2nd of 3 (0.9 > 0.5 > 0.2), read 1st (0.85 above 0.8); 0.35 off, outside [0.3, 0.7]; its
     # simulated episodes read 0.55, inside: the imagination is what differs
-    assert table[1] == ["mine", "mug", "0.50 (0.30-0.70)", "0.85 (0.80-0.90)", "0.35", "no", "0.55", "imagination",
-                        "2 / 1 of 3"]
-    assert table[2][4:] == ["n/a", "n/a", "n/a", "n/a", "2 / n/a of 2"]  # a prediction not read
+    assert table[1] == ["mine", "mug", "0.50 (0.30-0.70)", "0.85 (0.80-0.90)", "0.35", "no", "0.55", "+0.30 +0.05",
+                        "imagination", "2 / 1 of 3"]
+    assert table[2][4:] == ["n/a", "n/a", "n/a", "n/a", "n/a", "2 / n/a of 2"]  # a prediction not read
     assert table[2][2] == "0.00 (0.00-0.20, 16 of 16 episodes non-finite)"  # a truth in doubt says so
     assert RP.plugin_table([p for p in policies if p["kind"] == "learned"]) is None
 
 
 def test_a_plugin_s_error_is_placed_in_the_read_out_or_in_imagination():
     truth = {"true_rate": 0.0, "true_ci": [0.0, 0.19]}
-    assert RP.error_source(truth | {"pred_rate": 0.97, "pred_rate_on_truth": 0.96}) == "read-out"  # misread even so
+    assert RP.error_source(truth | {"pred_rate": 0.97, "pred_rate_on_truth": 0.84}) == "read-out"  # misread even so
+    np.testing.assert_allclose(RP.error_parts(truth | {"pred_rate": 0.97, "pred_rate_on_truth": 0.84}), (0.13, 0.84))
     assert RP.error_source(truth | {"pred_rate": 0.97, "pred_rate_on_truth": 0.05}) == "imagination"
+    # a judge that reads true episodes low across the board: the larger part names the source, not the interval
+    assert RP.error_source({"true_rate": 1.0, "true_ci": [0.81, 1.0], "pred_rate": 0.2,
+                            "pred_rate_on_truth": 0.6}) == "read-out"  # -0.4 imagined, -0.4 read: a tie to the read-out
+    assert RP.error_source({"true_rate": 1.0, "true_ci": [0.81, 1.0], "pred_rate": 0.1,
+                            "pred_rate_on_truth": 0.6}) == "imagination"
     assert RP.error_source(truth | {"pred_rate": 0.10, "pred_rate_on_truth": 0.96}) == "-"  # inside: no error to place
     assert RP.error_source(truth | {"pred_rate": 0.97, "pred_rate_on_truth": None}) == "n/a"  # frames not kept
     assert RP.error_source(truth | {"pred_rate": None, "pred_rate_on_truth": 0.05}) == "n/a"
