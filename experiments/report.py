@@ -764,6 +764,8 @@ FIDELITY_NOTE = ("The same policy from the same start, in the simulator and in t
 def timing_table(rows: list[dict]) -> list[list[str]]:
     """The pipeline's timing.json (experiments.pipeline): one row per stage command, and the total."""
     def cell(v):
+        if isinstance(v, list):  # one figure a world model (train_steps)
+            return ", ".join(cell(x) for x in v) or "-"
         return "-" if v is None else _fmt(v, 1) if isinstance(v, float) else str(v)
 
     out = [[label for _, label in TIMING_COLUMNS]]

@@ -222,6 +222,8 @@ def test_each_stage_command_appends_its_wall_and_compile_seconds_to_the_timing_t
         assert [c["s"] for c in r["slowest_compiles"]] == sorted((c["s"] for c in r["slowest_compiles"]), reverse=True)
     assert ["train", "scaled_tanh", "1"] in [row[:3] for row in compile_table(rows)]
     table = timing_table(rows)
+    assert table[2][table[0].index("training steps")] == "7, 7, -"  # one figure a world model
+    assert {r["gpus"] for r in rows} == {0}  # the CPU alone
     assert table[-1][:3] == ["total", f"{rows[0]['wall_s'] + rows[1]['wall_s']:.1f}",
                              f"{rows[0]['compile_s'] + rows[1]['compile_s']:.1f}"]
 
