@@ -510,6 +510,15 @@ def _other_readouts(w: dict) -> list[tuple[str, str]]:
                                            ("replayed", REPLAYED), ("sim_imagined", SIM_IMAGINED)) if k in w])
 
 
+def target_status(value, target) -> str:
+    """": met" or ": not met" for a figure against a preset's target (op, threshold); "" where the figure
+    is undefined."""
+    if _missing(value):
+        return ""
+    op, x = target
+    return ": met" if (value >= x if op == ">=" else value <= x) else ": not met"
+
+
 def within_task_table(res: dict) -> list[list[str]]:
     """The headline: each within-task statistic's mean over tasks for the world model and the proxy,
     their difference, the world model's other read-outs, its read-out applied to the simulated
@@ -526,7 +535,7 @@ def within_task_table(res: dict) -> list[list[str]]:
     floor = res["metrics"].get("mmrv_floor")
     for k in w["world_model"]["mean"]:
         tgt = targets.get(k)
-        goal = f"{tgt[0]} {tgt[1]}" if tgt else "-"
+        goal = f"{tgt[0]} {tgt[1]}{target_status(w['world_model']['mean'][k], tgt)}" if tgt else "-"
         # MMRV's floor: what the truth's own sampling noise leaves to any predictor
         if k == "mmrv" and floor and not _missing(floor["mean"]):
             goal = (f"{goal} " if tgt else "") + f"(a perfect predictor: {floor['mean']:.3f})"

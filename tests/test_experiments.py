@@ -683,6 +683,14 @@ def test_the_decision_figure_draws_without_an_alignment():
     assert decision_figure(decision).startswith("data:image/png;base64,")
 
 
+def test_a_headline_figure_says_whether_it_meets_its_target():
+    from experiments.report import target_status
+
+    assert target_status(0.76, (">=", 0.7)) == ": met" and target_status(0.69, (">=", 0.7)) == ": not met"
+    assert target_status(0.178, ("<=", 0.05)) == ": not met" and target_status(0.05, ("<=", 0.05)) == ": met"
+    assert target_status(float("nan"), (">=", 0.9)) == "" and target_status(None, (">=", 0.9)) == ""
+
+
 def test_the_decision_figure_says_when_there_is_nothing_to_decide():
     # one policy alone on its task: no pair and no alignment
     decision = {"alignment": None, "episodes": [1, 4, 16], "model": {"0.1": None}, "resampled": {"0.1": None},
