@@ -294,7 +294,8 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
     compiling = stage_row(compiled_since(compiled), read_parts(parts))
     record_timing(d["eval"] / TIMING, {
         "stage": stage, "done": done, "wall_s": wall, **compiling,
-        "gpus": (len(gpus) if spread else 1) if gpus else 0, **({"cores": len(cores)} if on_cores else {}),
+        "gpus": len(gpus) if spread else int(bool(gpus) or jax.default_backend() != "cpu"),
+        **({"cores": len(cores)} if on_cores else {}),
         "device": device_name(), **stage_throughput(p, name, stage, wall)})
     print(f"== {name}: {stage} {'done' if done else 'to be continued'} in {wall:.0f} s "
           f"({compiling['compile_s']:.0f} s compiling)", file=sys.stderr, flush=True)

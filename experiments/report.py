@@ -530,7 +530,7 @@ def within_task_table(res: dict) -> list[list[str]]:
     targets = TARGETS.get(res.get("preset", ""), {})
     readout = res.get("world_model", {}).get("readout")
     rows = [["statistic (mean over tasks)", f"world model ({readout} read-out)" if readout else "world model",
-             "imitation-loss proxy", "world model - proxy (paired, over the policies with a validation loss)",
+             "imitation-loss proxy", "world model - proxy (paired, over the policies both score)",
              *[label for _, label in others], f"target ({res.get('preset') or 'none'} preset)"]]
     floor = res["metrics"].get("mmrv_floor")
     for k in w["world_model"]["mean"]:

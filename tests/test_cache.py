@@ -130,9 +130,13 @@ def test_first_windows_count_each_episode_s_start_that_many_more_times(two_shard
     assert int(first["episode"][0]) == 0 and int(first["start"][0]) == 0
     np.testing.assert_array_equal(first["frames"]["head_cam"][0], ep["frames"]["head_cam"][:window])
     np.testing.assert_array_equal(first["action"][0], ep["action"][:window])
-    # without them the loader's windows and order are those it had before the option
-    np.testing.assert_array_equal(C.WindowLoader(cache, window, batch, split=None, seed=3, first_windows=0)
-                                  .batch_at(0, 1)["start"], plain.batch_at(0, 1)["start"])
+    # without them every start once, in the order the seed draws: window id k is the k-th start of the
+    # episodes in turn, the epoch's order a permutation of the ids by (seed, epoch)
+    assert plain.windows == sum(per_episode.values())
+    ids = [(i, s) for i, n in per_episode.items() for s in range(n)]
+    order = np.random.default_rng([3, 0]).permutation(plain.windows)[batch:2 * batch]
+    got = plain.batch_at(0, 1)
+    assert list(zip(got["episode"].tolist(), got["start"].tolist())) == [ids[k] for k in order]
     with pytest.raises(ValueError, match="first_windows"):
         C.WindowLoader(cache, window, batch, split=None, first_windows=-1)
 

@@ -352,7 +352,8 @@ class WindowLoader:
     `repeat(record)`, given, says how many times an episode's windows count in an epoch (its index
     record, TrainingCache.episodes; default once each): `episodes` lists an episode that often,
     `distinct` once.
-    `first_windows` adds each episode's first window (its start 0) that many more times an epoch:
+    `first_windows` adds each episode's first window (its start 0) that many more times an epoch (times
+    its `repeat`: each listing of an episode brings its own):
     imagination starts from an episode's first frame, a position one window in (length - window + 1) covers.
     `state()` after a batch and `restore(state)` in a new loader continue the same sequence.
     `part=(i, n)` yields the i-th of n equal row blocks of each batch (B = batch / n rows): n
