@@ -56,9 +56,9 @@ def spearman(predicted, true) -> float:
 
 
 def kendall(predicted, true) -> float:
-    """Kendall's tau-b (scipy); NaN when either side is constant."""
+    """Kendall's tau-b (scipy); NaN when either side is constant or n < MIN_CORRELATED (as pearson)."""
     p, t = _pair(predicted, true)
-    if len(p) < 2 or np.ptp(p) == 0 or np.ptp(t) == 0:
+    if len(p) < MIN_CORRELATED or np.ptp(p) == 0 or np.ptp(t) == 0:
         return math.nan
     return float(sps.kendalltau(p, t).statistic)
 

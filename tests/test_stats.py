@@ -31,6 +31,8 @@ def test_spearman_and_kendall_with_ties_by_hand():
     assert S.kendall(pred, true) == pytest.approx(5 / math.sqrt(30))
     assert S.spearman(pred, true) == pytest.approx(sps.spearmanr(pred, true).statistic)
     assert S.kendall(pred, true) == pytest.approx(sps.kendalltau(pred, true).statistic)
+    # two policies always agree or disagree wholly: no rank correlation, as for Pearson and Spearman
+    assert math.isnan(S.kendall([0.2, 0.9], [0.0, 1.0])) and math.isnan(S.spearman([0.2, 0.9], [0.0, 1.0]))
 
 
 def test_mmrv_weights_violations_by_true_gap_and_counts_predicted_ties():
