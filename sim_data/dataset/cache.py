@@ -353,8 +353,8 @@ class WindowLoader:
     record, TrainingCache.episodes; default once each): `episodes` lists an episode that often,
     `distinct` once.
     `first_windows` adds each episode's first window (its start 0) that many more times an epoch (times
-    its `repeat`: each listing of an episode brings its own):
-    imagination starts from an episode's first frame, a position one window in (length - window + 1) covers.
+    its `repeat`: each listing of an episode brings its own), since imagination starts from an episode's
+    first frame, a position one window in (length - window + 1) covers.
     `state()` after a batch and `restore(state)` in a new loader continue the same sequence.
     `part=(i, n)` yields the i-th of n equal row blocks of each batch (B = batch / n rows): n
     processes that each take their part train on the same global batches as one process would.
