@@ -62,8 +62,8 @@ class TrainConfig:
         episodes from the same list, so it weighs them alike.
         first_windows: how many more times each training episode's first window (its steps 0 to window - 1)
         counts in an epoch (0: once, as every other start; times fail_repeat for a repeated failure): every
-        ranked episode is imagined from its
-        first frame, a start one window in (episode length - window + 1) trains.
+        ranked episode is imagined from its first frame, a start one window in (episode length - window + 1)
+        trains.
         w_scene: with model.scene, of the squared error of the predicted next scene state, standardised
         by the training split's statistics (wm.imagine.Norm.scene). w_refine: with model.refine, of the
         frame generator's flow-matching loss (wm.train._refine_loss: a squared error in pixels, as the frame's).

@@ -19,6 +19,7 @@ import dataclasses
 import functools
 import hashlib
 import json
+import math
 import multiprocessing
 import os
 import shutil
@@ -88,7 +89,7 @@ DRIVE_SPEED = 0.3  # m/s: the scripted back-away's speed, a drive's unless it is
 DRIVE_SEGMENT_SECONDS = (0.2, 1.0)  # a varied drive's segments of one speed
 DRIVE_STOP_SHARE = 0.2  # of a varied drive's segments, those standing still
 DRIVE_PROFILE_SEED = 7919  # the varied drives' profiles draw from (this, episode index)
-SQRT2_FRACTION = 0.41421356237309515  # sqrt(2) - 1: picks the varied drives, unlike drive_seconds' GOLDEN
+SQRT2_FRACTION = math.sqrt(2) - 1  # picks the varied drives, a sequence unlike drive_seconds' GOLDEN
 SOURCES_NAMED = (PLAY, WEAK_GRIP, DRIVE)  # sources that are their own policy name and kind
 
 
