@@ -56,8 +56,8 @@ that sees it end also copies its results, report, timing table and the world mod
 into DIR (collect), so that the command that learns the chain is done also brings its outcome back;
 with `--collect-cache` also the compilation caches (runs/jax_cache, runs/xla_autotune), packed into at
 most three files of <= 15 MiB (pack_compile_cache) for the next lease on a machine of the same kind, by
-every follow that finds them grown since its last packing, the chain running or not: a machine taken
-back mid-chain has left what it compiled so far.
+every follow but one that returns 4 (whose files are the bundle's), the chain running or not: a machine
+taken back mid-chain has left what it compiled so far.
 With `--until-bundle` it also returns, with exit status 4, once this chain's train stage has written
 the world models' bundles (below) and no earlier `--until-bundle` returned for them: copy
 runs/bundles/<p> off the machine in the same command (a follow that returned 4 does not return it
@@ -564,10 +564,21 @@ def use_compilation_cache(root: str) -> str:
 def cache_files(root: Path, settled_s: float = 0.0) -> list[tuple[str, Path]]:
     """[(name in the packed cache, file)] of the compilation caches of a pipeline rooted at root
     (compile_cache_dirs), sorted; with settled_s > 0 only files last written more than settled_s seconds
-    ago (a running chain's entry being written is left for a later packing)."""
-    now = time.time()
-    return sorted((f"{name}/{f.relative_to(d).as_posix()}", f) for name, d in compile_cache_dirs(root).items()
-                  if d.is_dir() for f in d.rglob("*") if f.is_file() and now - f.stat().st_mtime > settled_s)
+    ago (a running chain's entry being written is left for a later packing). XLA's temporary files (in
+    `tmp` folders, `tmp_*`: renamed into place once whole) are left out, and so is a file that goes
+    while it is listed."""
+    now, out = time.time(), []
+    for name, d in compile_cache_dirs(root).items():
+        for f in d.rglob("*") if d.is_dir() else ():
+            rel = f.relative_to(d)
+            if any(part == "tmp" or part.startswith("tmp_") for part in rel.parts):
+                continue
+            try:
+                if f.is_file() and now - f.stat().st_mtime > settled_s:
+                    out.append((f"{name}/{rel.as_posix()}", f))
+            except OSError:
+                continue
+    return sorted(out)
 
 
 def pack_compile_cache(root: Path, dest: Path, part_bytes: int = CACHE_PART_BYTES,
@@ -619,7 +630,7 @@ def restore_compile_cache(src: Path, root: Path) -> int:
     parts = sorted(Path(src).glob(f"{CACHE_PART}[0-9][0-9]"))
     if not parts:
         raise FileNotFoundError(f"{src} holds no {CACHE_PART}NN: pack one with --follow ... --collect DIR "
-                                "--collect-cache at the end of a lease")
+                                "--collect-cache on a lease's follows")
     numbers = [int(p.name[len(CACHE_PART):]) for p in parts]
     if numbers != list(range(len(parts))):
         raise ValueError(f"{src}: the cache's parts are {numbers}, not 0..{len(parts) - 1}: one is missing")
@@ -688,7 +699,6 @@ STILL_RUNNING = 3  # --follow's exit status while the detached chain runs on
 BUNDLED = 4  # --follow --until-bundle's exit status once the world models' bundles are new
 BUNDLES = "bundles.json"  # in the logs: the chain's bundles once all are written (bundle_members)
 BUNDLE_SEEN = "bundle.followed"  # in the logs: the hash of the BUNDLES that --until-bundle last returned for
-CACHE_PACKED = "cache.packed"  # in the logs: the hash of the cache files that --collect-cache last packed
 
 
 def detach(name: str, argv: list[str]) -> Path:
@@ -799,8 +809,8 @@ def follow(name: str, seconds: float, members: int | None = None, out=sys.stdout
     or has ended, so that they are copied off the machine before a lease ends (by the same command:
     the next call does not return for them again). With collect_to, a chain that has ended (well or not)
     has its outcome copied there (collect) before the call returns, and with collect_cache its
-    compilation caches packed beside it (pack_compile_cache), for the next lease's --cache-from; a chain
-    still running has them packed where they grew since the last packing (pack_new_cache)."""
+    compilation caches packed beside it (pack_compile_cache), for the next lease's --cache-from; so has
+    a chain that still runs, of the entries settled (CACHE_SETTLED_S), unless the call returns BUNDLED."""
     p = pipeline(name, members)
     logs = _logs(p, name)
     if not (logs / DETACHED_PID).exists():
@@ -825,13 +835,11 @@ def follow(name: str, seconds: float, members: int | None = None, out=sys.stdout
         (logs / BUNDLE_SEEN).write_text(digest + "\n")
         print(f"== {name}: the world models' bundles are written: copy {' '.join(bundles)} off the machine now "
               f"(a later lease evaluates them with --stage eval --set eval:wm={','.join(bundles)})", file=out)
-        if collect_cache:
-            pack_new_cache(p, name, Path(collect_to), out)
-        return BUNDLED
+        return BUNDLED  # its command's files are the bundle's: the caches come with the next follow
     if _detached_pid(logs) is not None:
         print(f"== {name}: still running after {time.monotonic() - t0:.0f} s of following", file=out)
         if collect_cache:
-            pack_new_cache(p, name, Path(collect_to), out)
+            pack_cache(p, name, Path(collect_to), out, CACHE_SETTLED_S)
         return STILL_RUNNING
     rc_path = logs / DETACHED_RC
     rc = int(rc_path.read_text()) if rc_path.exists() else None
@@ -841,29 +849,23 @@ def follow(name: str, seconds: float, members: int | None = None, out=sys.stdout
     if collect_to is not None:
         files = collect(p, name, Path(collect_to))
         if collect_cache:
-            files += pack_new_cache(p, name, Path(collect_to), out, settled_s=0.0, always=True)
+            files += pack_cache(p, name, Path(collect_to), out)
         print(f"== {name}: collected {', '.join(f.name for f in files)} into {collect_to}", file=out)
     return 0 if rc == 0 else 1
 
 
-def pack_new_cache(p: Pipeline, name: str, dest: Path, out, settled_s: float = CACHE_SETTLED_S,
-                   always: bool = False) -> list[Path]:
-    """The chain's compilation caches packed into dest (pack_compile_cache, of the files settled_s
-    seconds old) unless, without always, they hold the same files as at this chain's last packing (whose
-    parts a lent GPU brought back with that command). So every follow of a running chain brings back
-    what it compiled so far, and a lease whose machine goes mid-chain still leaves its caches for the
-    next one's --cache-from. Returns the parts written."""
-    files = cache_files(Path(p.root), settled_s)
-    digest = hashlib.sha1(json.dumps([(n, f.stat().st_size) for n, f in files]).encode()).hexdigest()
-    seen = _logs(p, name) / CACHE_PACKED
-    if not always and seen.exists() and seen.read_text().strip() == digest:
-        print(f"== {name}: the compilation caches are as last packed: not packed again", file=out)
+def pack_cache(p: Pipeline, name: str, dest: Path, out, settled_s: float = 0.0) -> list[Path]:
+    """The chain's compilation caches packed into dest (pack_compile_cache, of the files settled_s seconds
+    old), with a line on `out` saying what was packed; a failure is that line, never an exception: a
+    follow's exit status says how the chain runs. Returns the parts written."""
+    try:
+        parts = pack_compile_cache(Path(p.root), dest, settled_s=settled_s)
+    except OSError as e:
+        print(f"== {name}: the compilation caches were not packed: {e}", file=out)
         return []
-    parts = pack_compile_cache(Path(p.root), dest, settled_s=settled_s)
     if parts:
-        seen.write_text(digest + "\n")
         print(f"== {name}: the compilation caches packed in {len(parts)} part{'s' * (len(parts) > 1)}, "
-              f"{sum(f.stat().st_size for f in parts) / 2**20:.1f} MiB ({len(files)} files)", file=out)
+              f"{sum(f.stat().st_size for f in parts) / 2**20:.1f} MiB", file=out)
     return parts
 
 
@@ -899,8 +901,8 @@ def main(argv=None) -> int:
                          "world models' figures and logs into DIR (e.g. $OUT), in the same command")
     ap.add_argument("--collect-cache", action="store_true",
                     help="with --collect, also pack the compilation caches (runs/jax_cache, runs/xla_autotune) into "
-                         f"DIR/{CACHE_PART}NN (<= 15 MiB each), for the next lease's --cache-from: at the chain's "
-                         "end, and while it runs wherever they grew since the last packing")
+                         f"DIR/{CACHE_PART}NN (<= 15 MiB each), for the next lease's --cache-from: by every follow "
+                         "but one that returns 4, the chain running or ended")
     ap.add_argument("--cache-from", type=Path, default=None, metavar="DIR",
                     help=f"first restore the compilation caches from DIR/{CACHE_PART}NN (--collect-cache's, from a "
                          "lease on a machine of the same kind), so that the stages load what it compiled")

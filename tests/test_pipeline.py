@@ -537,41 +537,49 @@ def test_the_caches_pack_from_and_restore_to_where_the_chain_keeps_them(tmp_path
 
 
 def test_every_follow_of_a_running_chain_brings_back_the_caches_compiled_so_far(tmp_path, monkeypatch):
-    """A machine may be taken back mid-chain: each follow with --collect-cache packs the caches where they
-    grew since its last packing, leaving out an entry too recent to be whole, and packs nothing twice."""
+    """A machine may be taken back mid-chain: each follow with --collect-cache packs the caches' settled
+    entries (not one written a moment ago, nor XLA's temporary files), the one that sees the end every
+    entry; a follow that returns for the bundles leaves its files to them; a packing that fails is a
+    message, not the follow's exit status."""
     monkeypatch.chdir(tmp_path)
     monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
-    monkeypatch.setattr(P.sys, "executable", _fake_python(tmp_path, "sleep 60"))
+    logs = Path("runs/logs/full")
+    listing = json.dumps({"runs/bundles/full": "1"})
+    body = f"sleep 1.5; echo '{listing}' > {logs / P.BUNDLES}; sleep 1; exit 0"
+    monkeypatch.setattr(P.sys, "executable", _fake_python(tmp_path, body))
     monkeypatch.setattr(P, "FOLLOW_POLL_S", 0.05)
-    cache = Path("runs/jax_cache")
-    cache.mkdir(parents=True)
     old = time.time() - 3600
-    for f in ("jit_data_step", "jit_zoo_step"):
-        (cache / f).write_bytes(f.encode())
-        os.utime(cache / f, (old, old))
-    (cache / "jit_being_written").write_bytes(b"half")  # now: may still be written
+    for f in ("jax_cache/jit_data_step", "jax_cache/jit_zoo_step", "xla_autotune/tmp/tmp_per_fusion_cache_1"):
+        Path("runs", f).parent.mkdir(parents=True, exist_ok=True)
+        Path("runs", f).write_bytes(f.encode())
+        os.utime(Path("runs", f), (old, old))
+    Path("runs/jax_cache/jit_being_written").write_bytes(b"half")  # now: may still be written
     P.detach("full", ["full"])
-    pid = int(Path("runs/logs/full/pipeline.pid").read_text())
 
     def packed(out):
         parts = sorted(out.glob(f"{P.CACHE_PART}*"))
         with tarfile.open(fileobj=io.BytesIO(b"".join(f.read_bytes() for f in parts)), mode="r:gz") as tar:
             return sorted(tar.getnames())
 
-    try:
-        text = io.StringIO()
-        assert P.follow("full", 0.1, out=text, collect_to=tmp_path / "a", collect_cache=True) == P.STILL_RUNNING
-        assert packed(tmp_path / "a") == ["jax_cache/jit_data_step", "jax_cache/jit_zoo_step"]
-        assert "packed in 1 part" in text.getvalue()
+    text = io.StringIO()
+    assert P.follow("full", 0.1, out=text, collect_to=tmp_path / "a", collect_cache=True) == P.STILL_RUNNING
+    assert packed(tmp_path / "a") == ["jax_cache/jit_data_step", "jax_cache/jit_zoo_step"]
+    assert "packed in 1 part" in text.getvalue()
+
+    def failing(*a, **k):
+        raise OSError(2, "No such file or directory")
+
+    with monkeypatch.context() as m:
+        m.setattr(P, "pack_compile_cache", failing)
         text = io.StringIO()
         assert P.follow("full", 0.1, out=text, collect_to=tmp_path / "b", collect_cache=True) == P.STILL_RUNNING
-        assert "as last packed: not packed again" in text.getvalue() and not (tmp_path / "b").exists()
-        os.utime(cache / "jit_being_written", (old, old))  # written in full since
-        assert P.follow("full", 0.1, out=io.StringIO(), collect_to=tmp_path / "c", collect_cache=True) == 3
-        assert packed(tmp_path / "c") == ["jax_cache/jit_being_written", "jax_cache/jit_data_step",
-                                          "jax_cache/jit_zoo_step"]
-    finally:
-        os.killpg(pid, signal.SIGKILL)
+        assert "the compilation caches were not packed: [Errno 2]" in text.getvalue()
+    assert P.follow("full", 30, out=io.StringIO(), until_bundle=True, collect_to=tmp_path / "c",
+                    collect_cache=True) == P.BUNDLED
+    assert not list((tmp_path / "c").glob(f"{P.CACHE_PART}*"))
+    assert P.follow("full", 30, out=io.StringIO(), collect_to=tmp_path / "d", collect_cache=True) == 0
+    assert packed(tmp_path / "d") == ["jax_cache/jit_being_written", "jax_cache/jit_data_step",
+                                      "jax_cache/jit_zoo_step"]
 
 
 def test_a_lease_collects_its_caches_and_the_next_starts_from_them(tmp_path, monkeypatch, capsys):
@@ -586,7 +594,7 @@ def test_a_lease_collects_its_caches_and_the_next_starts_from_them(tmp_path, mon
     text = io.StringIO()
     assert P.follow("full", 30, out=text, collect_to=out, collect_cache=True) == 0
     assert f"{P.CACHE_PART}00" in text.getvalue() and (out / f"{P.CACHE_PART}00").exists()
-    assert "the compilation caches packed in 1 part, 0.0 MiB (1 files)" in text.getvalue()
+    assert "the compilation caches packed in 1 part, 0.0 MiB" in text.getvalue()
     shutil.rmtree("runs")
     seen = tmp_path / "argv"
     monkeypatch.setattr(P.sys, "executable", _fake_python(tmp_path, f'echo "$@" > {seen}'))
