@@ -545,7 +545,7 @@ def test_every_follow_of_a_running_chain_brings_back_the_caches_compiled_so_far(
     monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
     logs = Path("runs/logs/full")
     listing = json.dumps({"runs/bundles/full": "1"})
-    body = f"sleep 1.5; echo '{listing}' > {logs / P.BUNDLES}; sleep 1; exit 0"
+    body = f"sleep 4; echo '{listing}' > {logs / P.BUNDLES}; sleep 2; exit 0"  # the first two follows come well before
     monkeypatch.setattr(P.sys, "executable", _fake_python(tmp_path, body))
     monkeypatch.setattr(P, "FOLLOW_POLL_S", 0.05)
     old = time.time() - 3600
