@@ -52,7 +52,7 @@ from sim_data.dataset.cache import TrainingCache, window_episodes
 from sim_data.sim.engines import default_engine
 from sim_data.util import run_cli, write_json_atomic
 from wm.checkpoint import load_run_config, load_trained
-from wm.config import JUDGE_LR, with_imagine
+from wm.config import JUDGE_LR, make_config, with_imagine
 from wm.imagine import FEATURE_GROUPS, feature_columns
 from wm.judge import (
     VAL_EPISODES,
@@ -98,6 +98,14 @@ class Variant:
     replay_labels: bool = False
 
 
+def preset_judge(preset: str) -> Variant:
+    """The Variant that fits the episode judge of wm.config's `preset` (its inputs, learning rate,
+    members and kept step)."""
+    cfg = make_config(preset)
+    return Variant(inputs=cfg.judge_inputs, lr=cfg.judge_lr, members=cfg.judge_members, select=cfg.judge_select,
+                   raw_mean=cfg.judge_raw_mean)
+
+
 VARIANTS = {
     "refit_1024": Variant(episodes=1024),  # TrainConfig's default judge_episodes, fit again
     "all": Variant(),
@@ -122,16 +130,15 @@ VARIANTS = {
     # the same judges kept at their last step: a validation of a few dozen episodes (the demo's) keeps
     # members that have barely left their initialisation
     f"all_lr5e-4_x{ENSEMBLE}_last": Variant(lr=5e-4, members=ENSEMBLE, select="last"),
-    # the presets' judges (`full`: every group but the scene's; `demo`: the proprioception and actions,
+    # the presets' judges as wm.config names them (both read the proprioception and actions; `demo`'s
     # kept at the last step), and the same pooling the features' own mean too (a distance at any speed)
-    **{f"{name}{tag}": Variant(inputs=inputs, lr=5e-4, members=ENSEMBLE, select=select, raw_mean=raw)
-       for name, inputs, select in (("full_recipe", tuple(g for g in FEATURE_GROUPS if g != "scene"), "best"),
-                                    ("demo_recipe", ("proprio", "action"), "last"))
-       for tag, raw in (("", False), ("_raw_mean", True))},
+    **{f"{name}_recipe{tag}": dataclasses.replace(preset_judge(name), raw_mean=raw)
+       for name in ("full", "demo") for tag, raw in (("", False), ("_raw_mean", True))},
+    # `full`'s second judge: every group but the scene head's, as six at a quarter of the learning rate
+    "full_judge2": dataclasses.replace(preset_judge("full"), inputs=make_config("full").judge2_inputs),
     # the presets' judges learning what the closed loop's imagined actions truly achieve
-    **{f"{name}_replay": Variant(inputs=inputs, lr=5e-4, members=ENSEMBLE, select=select, replay_labels=True)
-       for name, inputs, select in (("full_recipe", tuple(g for g in FEATURE_GROUPS if g != "scene"), "best"),
-                                    ("demo_recipe", ("proprio", "action"), "last"))},
+    **{f"{name}_recipe_replay": dataclasses.replace(preset_judge(name), replay_labels=True)
+       for name in ("full", "demo")},
 }
 BOUND = "crossfit_bound"
 # A judge fit to the training episodes' true frames alone, reading the evaluation's simulated episodes

@@ -114,7 +114,10 @@ def test_a_variant_fits_its_judge_at_its_seed_learning_rate_and_members(np_rng, 
     assert (demo.inputs, demo.lr, demo.members, demo.select, demo.raw_mean) == (("proprio", "action"), 5e-4, 6, "last",
                                                                                 False)
     assert raw == J.dataclasses.replace(demo, raw_mean=True)
-    assert "scene" not in J.VARIANTS["full_recipe"].inputs and J.VARIANTS["full_recipe_raw_mean"].raw_mean
+    full, full2 = J.VARIANTS["full_recipe"], J.VARIANTS["full_judge2"]
+    assert (full.inputs, full.lr, full.members, full.select) == (("proprio", "action"), 5e-4, 6, "best")
+    assert "scene" not in full2.inputs and "latent" in full2.inputs and full2.select == "best"
+    assert J.VARIANTS["full_recipe_raw_mean"] == J.dataclasses.replace(full, raw_mean=True)
     for t in ("a", "b"):
         assert probs[t].shape == true[t].shape and ((probs[t] > 0.5) == true[t]).mean() > 0.9
 

@@ -1167,7 +1167,9 @@ def test_a_second_judge_learns_from_the_same_imaginations_and_labels_reading_its
     with pytest.raises(ValueError, match="judge2_inputs are among"):
         make_config("smoke", ["judge2_inputs=proprio,frames"])
     # judge_episodes=0 switches every judge off (wm.train fits none), a second one its preset names included
-    assert make_config("full", ["judge_episodes=0"]).judge2_inputs == ("proprio", "action")
+    full = make_config("full", ["judge_episodes=0"])
+    assert full.judge_inputs == ("proprio", "action") and "action" in full.judge2_inputs
+    assert "scene" not in full.judge2_inputs and "latent" in full.judge2_inputs
 
 
 def test_the_warm_up_fits_both_judges_on_placeholders_and_hands_back_the_first(monkeypatch):
