@@ -1150,12 +1150,13 @@ def test_a_second_judge_learns_from_the_same_imaginations_and_labels_reading_its
     monkeypatch.setattr(J, "dataset_policies", lambda root: {})
     monkeypatch.setattr(J, "imagine_episodes", lambda *a: imagined.append(a[4]) or _readings(a[4], 0.5))
     monkeypatch.setattr(J, "fit", lambda train, val, tasks, steps, seed, progress, columns, *a:
-                        fits.append((train, val, columns)) or (len(fits), {"n": len(fits)}))
+                        fits.append((train, val, columns, steps)) or (len(fits), {"n": len(fits)}))
     monkeypatch.setattr(J, "save_judge", lambda judge, metrics, out, name: saved.append((judge, name)))
     cfg = make_config("smoke", ["judge_episodes=64", "judge2_inputs=proprio,action"])
     got = J.fit_judge(cfg, None, None, _Episodes(), list(range(6000)), tmp_path, progress=False)
     assert len(imagined) == 2  # the training and validation episodes imagined once, for both judges
-    (train1, val1, cols1), (train2, val2, cols2) = fits
+    assert [f[3] for f in fits] == [cfg.judge_steps] * 2  # judge2_steps=0: the first judge's steps
+    (train1, val1, cols1, _), (train2, val2, cols2, _) = fits
     assert train1 is train2 and val1 is val2
     assert cols1.tolist() == I.feature_columns(cfg.model, cfg.judge_inputs).tolist()
     assert cols2.tolist() == I.feature_columns(cfg.model, ("proprio", "action")).tolist()
@@ -1166,6 +1167,13 @@ def test_a_second_judge_learns_from_the_same_imaginations_and_labels_reading_its
     assert J.judges_fit(make_config("smoke", ["judge_episodes=64"]), tmp_path) and not J.judges_fit(cfg, tmp_path)
     with pytest.raises(ValueError, match="judge2_inputs are among"):
         make_config("smoke", ["judge2_inputs=proprio,frames"])
+    # the second judge trained longer than the first, on the same imaginations
+    fits.clear()
+    J.fit_judge(make_config("smoke", ["judge_episodes=64", "judge2_inputs=proprio", "judge2_steps=45"]), None, None,
+                _Episodes(), list(range(6000)), tmp_path, progress=False)
+    assert [f[3] for f in fits] == [20, 45]
+    with pytest.raises(ValueError, match="judge2_steps >= 0"):
+        make_config("smoke", ["judge2_steps=-1"])
     # judge_episodes=0 switches every judge off (wm.train fits none), a second one its preset names included
     full = make_config("full", ["judge_episodes=0"])
     assert full.judge_inputs == ("proprio", "action") and "action" in full.judge2_inputs

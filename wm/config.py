@@ -101,7 +101,8 @@ class TrainConfig:
         judge2_inputs: where named, a second episode judge fit as the first, on the same imagined
         episodes and labels, reading these feature groups instead of judge_inputs (saved as judge2.*);
         the evaluator reports its read-out ("judge2") beside the others, so that one trained model
-        compares two judges on the same imaginations. () fits none.
+        compares two judges on the same imaginations. () fits none. judge2_steps: the second judge's
+        optimiser steps (0: judge_steps), so that one run also compares a judge trained longer.
     """
 
     model: ModelConfig = ModelConfig()
@@ -156,6 +157,7 @@ class TrainConfig:
     judge_steps: int = 1500
     judge_inputs: tuple = tuple(g for g in FEATURE_GROUPS if g != "scene")
     judge2_inputs: tuple = ()
+    judge2_steps: int = 0
     judge_observed: bool = False
     judge_members: int = 1
     judge_lr: float = JUDGE_LR
@@ -181,8 +183,10 @@ class TrainConfig:
             raise ValueError(f"eval_context must be in 1..model.context ({self.model.context})")
         if not 0 < self.train_fraction <= 1:
             raise ValueError(f"train_fraction must be in (0, 1], got {self.train_fraction}")
-        if self.judge_episodes < 0 or self.judge_steps < 1 or self.judge_members < 1 or self.judge_lr <= 0:
-            raise ValueError("judge_episodes >= 0, judge_steps >= 1, judge_members >= 1 and judge_lr > 0 are required")
+        if (self.judge_episodes < 0 or self.judge_steps < 1 or self.judge2_steps < 0 or self.judge_members < 1
+                or self.judge_lr <= 0):
+            raise ValueError("judge_episodes >= 0, judge_steps >= 1, judge2_steps >= 0, judge_members >= 1 and "
+                             "judge_lr > 0 are required")
         if self.judge_labels not in JUDGE_LABELS:
             raise ValueError(f"judge_labels is {' or '.join(JUDGE_LABELS)}, got {self.judge_labels!r}")
         if self.judge_select not in KEPT_STEPS:
