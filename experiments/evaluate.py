@@ -46,6 +46,7 @@ evaluation then compiles it loads from JAX's persistent compilation cache instea
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import hashlib
 import json
@@ -362,7 +363,7 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
     reset_keys = reset_keys_of(seeds)
     renderer = cached_renderers(models[0][0].model.size, (HEAD_CAMERA,))
     kept = {}
-    clock = {"sim_s": 0.0, "wm_s": 0.0, "steps": None}
+    clock = {"sim_s": 0.0, "wm_s": 0.0, "steps": None, "wm_parts": dict.fromkeys(WM_PARTS, 0.0)}
     todo = [b for b in task_batches(cfg, sources, len(seeds)) if chunks is None or b[:2] in chunks]
     bar = tqdm(total=sum(len(part) * (slices[j][1] - slices[j][0]) for _, j, part, _ in todo), desc=f"{task}",
                unit="ep", disable=not progress)
@@ -383,7 +384,7 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
         clock["steps"] = truth["steps"]
         clock["sim_s"] += time.perf_counter() - t0
         t0 = time.perf_counter()
-        got, each = _predict_batch(cfg, task, models, policy, params, truth, rng)
+        got, each = _predict_batch(cfg, task, models, policy, params, truth, rng, clock["wm_parts"])
         got = {key: v.reshape((len(padded), n) + v.shape[1:])[: len(part)] for key, v in got.items()}
         got["true"] = truth["outcome"][: len(part)]
         got["sim_imagined"] = (simulate_actions(task, each[0]["action"], reset_keys[s0:s1], engine)[: len(part)]
@@ -399,7 +400,7 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
     # rankings sharing cfg.truth_cache (other GPUs' models) each take the batches no other is simulating
     rows = [row for batch_rows in in_turn(todo, run_batch) for row in batch_rows]
     bar.close()
-    sim_s, wm_s, steps = clock["sim_s"], clock["wm_s"], clock["steps"]
+    sim_s, wm_s, steps, wm_parts = clock["sim_s"], clock["wm_s"], clock["steps"], clock["wm_parts"]
     if chunks is None:
         res = join_slices(rows, len(models), len(seeds))
         first = list(range(len(res["names"])))
@@ -407,29 +408,55 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
         res = _stack_rows(rows, len(models), slices[0][1] - slices[0][0])
         first = [r for r, j in enumerate(res["slices"]) if j == 0]
     videos, index = _select_videos(cfg, task, [res["names"][r] for r in first], res["true"][first], kept)
-    return {**res, "videos": videos, "video_index": index, "sim_s": sim_s, "wm_s": wm_s, "steps": steps}
+    return {**res, "videos": videos, "video_index": index, "sim_s": sim_s, "wm_s": wm_s, "wm_parts": wm_parts,
+            "steps": steps}
 
 
-def _predict_batch(cfg: EvalConfig, task: str, models, policy, params, truth: dict, rng) -> tuple[dict, list]:
+# the parts of an evaluation batch's world-model time (results.json's timing "imagine_parts"): the
+# policies' closed loops with every read-out of them, their frames and actions against the simulator's,
+# the simulated episodes read through each model (truth_features), and with replay=1 their actions imagined
+WM_PARTS = ("closed_loop_s", "fidelity_s", "observed_s", "replay_s")
+
+
+@contextlib.contextmanager
+def _timed(clock: dict, key: str):
+    """Adds the with-block's wall time to clock[key]."""
+    t0 = time.perf_counter()
+    try:
+        yield
+    finally:
+        clock[key] += time.perf_counter() - t0
+
+
+def _predict_batch(cfg: EvalConfig, task: str, models, policy, params, truth: dict, rng,
+                   clock: dict | None = None) -> tuple[dict, list]:
     """Every world model's predictions for one simulated batch of B episodes: ({"prob": (B,) the
     models' mean of cfg.readout, "prob_members": (B, K) per model, "readout_<name>", "prob_observed",
     OBSERVED_SECOND, "prob_replayed" (B,), "sim_finite" (B,), the traces (B, T), the fidelity arrays, and with
-    cfg.keep_features "features" and "features_observed" (B, T, F) float16}, each model's _imagine)."""
+    cfg.keep_features "features" and "features_observed" (B, T, F) float16}, each model's _imagine).
+    clock: {WM_PARTS name: seconds} to which each part's wall time is added (each part ends in host
+    arrays, so its device work is inside its time)."""
+    clock = clock if clock is not None else dict.fromkeys(WM_PARTS, 0.0)
     steps, frames0, proprio0 = truth["steps"], truth["frames0"], truth["proprio0"]
     b = len(frames0)
-    each = [_imagine(m, task, policy, params, frames0, proprio0, steps, jax.random.fold_in(rng, 1)) for m in models]
+    with _timed(clock, "closed_loop_s"):
+        each = [_imagine(m, task, policy, params, frames0, proprio0, steps, jax.random.fold_in(rng, 1))
+                for m in models]
     p_each = np.stack([e[cfg.readout] for e in each], axis=1)  # (B, K)
+    with _timed(clock, "fidelity_s"):
+        fidelity = imagination_fidelity(truth, each[0]["frames"], each[0]["action"], steps)
     got = {"prob": p_each.mean(1), "prob_members": p_each,
            **{k: np.mean([e[k] for e in each], axis=0).astype(np.float16) for k in ("trace_success", "trace_progress")},
-           "true_progress": truth.get("progress", np.full((b, steps), np.nan)).astype(np.float16),
-           **imagination_fidelity(truth, each[0]["frames"], each[0]["action"], steps),
+           "true_progress": truth.get("progress", np.full((b, steps), np.nan)).astype(np.float16), **fidelity,
            **{f"readout_{r}": np.mean([e[r] for e in each], axis=0) for r in READOUTS}}
-    seen = [truth_features(m, truth) for m in models]
-    on_truth = [_read_truth(m, task, x, b) for m, x in zip(models, seen)]
+    with _timed(clock, "observed_s"):
+        seen = [truth_features(m, truth) for m in models]
+        on_truth = [_read_truth(m, task, x, b) for m, x in zip(models, seen)]
     got["prob_observed"] = np.mean([r[cfg.readout] for r in on_truth], axis=0)
     got[OBSERVED_SECOND] = np.mean([r[SECOND_JUDGE] for r in on_truth], axis=0)
-    got["prob_replayed"] = (np.mean([_read_replay(m, task, truth, cfg.readout) for m in models], axis=0)
-                            if cfg.replay else np.full(b, np.nan))
+    with _timed(clock, "replay_s"):
+        got["prob_replayed"] = (np.mean([_read_replay(m, task, truth, cfg.readout) for m in models], axis=0)
+                                if cfg.replay else np.full(b, np.nan))
     got["sim_finite"] = simulated_finite(truth)
     if cfg.keep_features:
         got["features"] = np.asarray(each[0]["features"], np.float16)
@@ -511,6 +538,7 @@ def merge_task_parts(cfg: EvalConfig, parts: list, order: list) -> dict:
     videos = {k: v for p in parts for k, v in p["videos"].items() if k.rsplit("/", 1)[0] in keys}
     return {**merged, "names": list(order), "videos": videos, "video_index": index,
             "sim_s": sum(p["sim_s"] for p in parts), "wm_s": sum(p["wm_s"] for p in parts),
+            "wm_parts": {k: sum(p.get("wm_parts", {}).get(k, 0.0) for p in parts) for k in WM_PARTS},
             "steps": next((p["steps"] for p in parts if p["steps"] is not None), None), "seeds": parts[0]["seeds"]}
 
 
@@ -1180,6 +1208,7 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, models, wm
         "controllability": sorted(panel),
         "imagination": {t: fidelity_summary(results[t]) for t in tasks},
         "timing": {t: {"simulate_s": results[t]["sim_s"], "imagine_s": results[t]["wm_s"],
+                       "imagine_parts": results[t].get("wm_parts", {}),
                        "episodes": int(results[t]["true"].size), "steps": results[t]["steps"],
                        "nonfinite_sim_episodes": int((~results[t]["sim_finite"]).sum())} for t in tasks},
     }
@@ -1303,6 +1332,7 @@ def load_features(out: Path, task: str, observed: bool = False) -> np.ndarray:
 
 def _save_task(path: Path, res: dict) -> None:
     meta = {"names": res["names"], "video_index": res["video_index"], "sim_s": res["sim_s"], "wm_s": res["wm_s"],
+            "wm_parts": res.get("wm_parts", {}),
             "steps": res["steps"], "seeds": res["seeds"], **({"slices": res["slices"]} if "slices" in res else {})}
     arrays = {**{k: res[k] for k in POLICY_ARRAYS + ("prob_members",)},
               "meta": np.frombuffer(json.dumps(meta).encode(), np.uint8)}

@@ -98,6 +98,10 @@ def test_results_hold_every_policy_with_statistics_from_the_episodes(evaluation,
         assert row["action_gap_largest"]["rms"] == pytest.approx(np.sqrt((d ** 2).mean(0)).max(), abs=1e-4)
     assert "sim_imagined" in res["metrics"]["within_task"] and "loop_actions" in res["metrics"]
     assert res["timing"]["mug"]["nonfinite_sim_episodes"] == 0
+    # where the world model's time went: every part ran (replay=1), within the batches' world-model time
+    parts = res["timing"]["mug"]["imagine_parts"]
+    assert list(parts) == list(E.WM_PARTS) and min(parts.values()) > 0
+    assert sum(parts.values()) <= res["timing"]["mug"]["imagine_s"]
     # the initial states are held out from the training data
     used = {json.loads(line)["seed"] for line in (smoke_dataset[1] / "manifest.jsonl").read_text().splitlines()}
     assert not set(meta["seeds"]) & used and len(set(meta["seeds"])) == 2
