@@ -515,7 +515,7 @@ def fit_judge(cfg, params, norm: Norm, cache, train_ids: list[int], out: Path, p
     labelled = {"labels": cfg.judge_labels, **({"relabelled": relabelled} if relabelled else {})}
     out_metrics = {}
     for name, inputs in judge_inputs(cfg).items():
-        steps = cfg.judge2_steps or cfg.judge_steps if name == SECOND_JUDGE else cfg.judge_steps
+        steps = (cfg.judge2_steps or cfg.judge_steps) if name == SECOND_JUDGE else cfg.judge_steps
         judge, metrics = fit(train, val, tasks, steps, cfg.seed, progress,
                              feature_columns(cfg.model, inputs), cfg.judge_lr, cfg.judge_members,
                              cfg.judge_select, cfg.judge_raw_mean)
