@@ -187,6 +187,27 @@ def compare_groups(true: dict, groups: dict, draws: int = 1000, seed: int = 0) -
     return out
 
 
+def ranked_reader(res: dict) -> str:
+    """What a results.json's ranking read: its read-out, and for a judge the feature groups it reads
+    ("judge: proprio,action"); "judge: inputs not recorded" where the results name none."""
+    wm = res.get("world_model", {})
+    readout = wm.get("readout", "judge")
+    if readout not in ("judge", "judge2"):
+        return readout
+    inputs = wm.get("judge_inputs" if readout == "judge" else "judge2_inputs")
+    return f"{readout}: {','.join(inputs) if inputs else 'inputs not recorded'}"
+
+
+def reader_warning(runs: list[dict], labels: list[str]) -> str | None:
+    """A warning where the runs' rankings read with different judges (ranked_reader), which a
+    comparison would credit to the world models; None where they all read alike."""
+    readers = [ranked_reader(r) for r in runs]
+    if len(set(readers)) < 2:
+        return None
+    return ("warning: the runs rank by different read-outs, so the comparison holds the judges' difference too: "
+            + "; ".join(f"{label}: {reader}" for label, reader in zip(labels, readers, strict=True)))
+
+
 def compare(base: list[dict], design: list[dict], draws: int = 1000, seed: int = 0) -> dict:
     """Two groups of experiments.evaluate results.json over one zoo and one truth -> {"draws",
     "resamples", "tasks", "policies": {task: P}, "all": compare_groups over every policy, "unseen": the
@@ -341,6 +362,9 @@ def main(argv=None) -> int:
     runs = [read_run(r) for r in a.base + a.design]
     if states:
         runs = state_range(runs, *states, labels=a.base + a.design)
+    warning = reader_warning(runs, a.base + a.design)
+    if warning:
+        print(warning, file=sys.stderr)
     res = compare(runs[:len(a.base)], runs[len(a.base):], a.draws)
     res |= {"names": list(names), "base_runs": [str(r) for r in a.base], "design_runs": [str(r) for r in a.design],
             "states": list(states) if states else None}

@@ -387,8 +387,9 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
         got, each = _predict_batch(cfg, task, models, policy, params, truth, rng, clock["wm_parts"])
         got = {key: v.reshape((len(padded), n) + v.shape[1:])[: len(part)] for key, v in got.items()}
         got["true"] = truth["outcome"][: len(part)]
-        got["sim_imagined"] = (simulate_actions(task, each[0]["action"], reset_keys[s0:s1], engine)[: len(part)]
-                               .astype(np.float64) if cfg.replay else np.full((len(part), n), np.nan))
+        with _timed(clock["wm_parts"], "sim_imagined_s"):
+            got["sim_imagined"] = (simulate_actions(task, each[0]["action"], reset_keys[s0:s1], engine)[: len(part)]
+                                   .astype(np.float64) if cfg.replay else np.full((len(part), n), np.nan))
         clock["wm_s"] += time.perf_counter() - t0
         if j == 0:  # the report's videos come from the first slice's states
             for i, src in enumerate(part):
@@ -414,8 +415,9 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
 
 # the parts of an evaluation batch's world-model time (results.json's timing "imagine_parts"): the
 # policies' closed loops with every read-out of them, their frames and actions against the simulator's,
-# the simulated episodes read through each model (truth_features), and with replay=1 their actions imagined
-WM_PARTS = ("closed_loop_s", "fidelity_s", "observed_s", "replay_s")
+# the simulated episodes read through each model (truth_features), and with replay=1 their actions
+# imagined open loop and the loop's actions simulated; the rest of imagine_s is the host's bookkeeping
+WM_PARTS = ("closed_loop_s", "fidelity_s", "observed_s", "replay_s", "sim_imagined_s")
 
 
 @contextlib.contextmanager
@@ -538,7 +540,9 @@ def merge_task_parts(cfg: EvalConfig, parts: list, order: list) -> dict:
     videos = {k: v for p in parts for k, v in p["videos"].items() if k.rsplit("/", 1)[0] in keys}
     return {**merged, "names": list(order), "videos": videos, "video_index": index,
             "sim_s": sum(p["sim_s"] for p in parts), "wm_s": sum(p["wm_s"] for p in parts),
-            "wm_parts": {k: sum(p.get("wm_parts", {}).get(k, 0.0) for p in parts) for k in WM_PARTS},
+            # parts saved before the split have none: the sum only where every part was timed
+            "wm_parts": ({k: sum(p["wm_parts"][k] for p in parts) for k in WM_PARTS}
+                         if all(set(WM_PARTS) <= set(p.get("wm_parts", {})) for p in parts) else {}),
             "steps": next((p["steps"] for p in parts if p["steps"] is not None), None), "seeds": parts[0]["seeds"]}
 
 
@@ -1192,6 +1196,8 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, models, wm
                         "train_tasks": train_tasks,
                         "training": training, "cut_short": any(t["cut_short"] for t in training),
                         "readout": cfg.readout, "imagine": wm_cfg.model.imagine,
+                        # what each judge reads, so that comparisons across runs can tell judges apart
+                        "judge_inputs": list(wm_cfg.judge_inputs), "judge2_inputs": list(wm_cfg.judge2_inputs),
                         "rule": {t: READOUT_LABELS["success"] if cfg.readout == "judge" and not
                                  (judge is not None and judge.knows(t)) else READOUT_LABELS[cfg.readout]
                                  for t in tasks}},

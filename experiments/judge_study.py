@@ -103,7 +103,8 @@ def preset_judge(preset: str) -> Variant:
     members and kept step)."""
     cfg = make_config(preset)
     return Variant(inputs=cfg.judge_inputs, lr=cfg.judge_lr, members=cfg.judge_members, select=cfg.judge_select,
-                   raw_mean=cfg.judge_raw_mean)
+                   raw_mean=cfg.judge_raw_mean, observed=cfg.judge_observed,
+                   replay_labels=cfg.judge_labels == "replayed")
 
 
 VARIANTS = {
@@ -335,7 +336,7 @@ def study(eval_dir: Path, out: Path, wm_run: Path | None = None, data: Path | No
     saved = load_judge(wm_run) if SAVED in names else None
     for name in names:
         path = out / "variants" / f"{name}.npz"
-        if path.exists():
+        if path.exists() and fit_matches(path, name):
             continue
         if name == SAVED and saved is None:
             print(f"judge variant {name} skipped: {wm_run} saved no judge", file=sys.stderr)
@@ -357,12 +358,31 @@ def study(eval_dir: Path, out: Path, wm_run: Path | None = None, data: Path | No
             print(f"warning: judge variant {name} skipped: {e}", file=sys.stderr)
             continue
         tmp = path.with_name(f"{name}.tmp{os.getpid()}.npz")
-        np.savez(tmp, __fit__=json.dumps(fit_metrics), **probs)
+        np.savez(tmp, __fit__=json.dumps(fit_metrics), __variant__=json.dumps(variant_definition(name)), **probs)
         os.replace(tmp, path)
     setup = {"wm": str(wm_run), "data": str(data), "judge_steps": steps, "train_episodes": len(ids),
              "rollout_episodes": int(train["rollout"].sum()) if train else 0, "val_episodes": len(val_ids),
              "variants": {n: dataclasses.asdict(v) for n, v in VARIANTS.items() if n in names}}
     return score(eval_dir, out, draws, setup)
+
+
+def variant_definition(name: str) -> dict | None:
+    """What variant `name` fits (its Variant as a dict), saved beside its readings; None for the
+    saved judge and the bounds, whose definitions are the run's and the study's own."""
+    return dataclasses.asdict(VARIANTS[name]) if name in VARIANTS else None
+
+
+def fit_matches(path: Path, name: str) -> bool:
+    """Whether the readings saved at path were fit as variant `name` is now defined (a variant whose
+    definition changed, or readings saved without one, are fit again, with a message)."""
+    with np.load(path) as z:
+        saved = json.loads(str(z["__variant__"])) if "__variant__" in z.files else "unrecorded"
+    want = json.loads(json.dumps(variant_definition(name)))  # tuples as JSON's lists, as saved
+    if saved == want:
+        return True
+    print(f"judge variant {name}: its saved readings were fit as {saved}, not as {want}: fitting it again",
+          file=sys.stderr)
+    return False
 
 
 def score(eval_dir: Path, out: Path, draws: int = 1000, setup: dict | None = None) -> dict:

@@ -13,6 +13,8 @@ installs it as any other), next to the wheels `fetch-wheels.sh` leaves in `.whl/
 from __future__ import annotations
 
 import argparse
+import csv
+import io
 import subprocess
 import sys
 import tempfile
@@ -38,15 +40,21 @@ def slim(wheel: Path, drop, out_dir: Path) -> Path:
         if missing:
             raise ValueError(f"{wheel.name} holds no {', '.join(missing)}; its members: {', '.join(names)}")
         partial = target.with_name(target.name + ".partial")
-        with zipfile.ZipFile(partial, "w", zipfile.ZIP_DEFLATED) as dst:
-            for info in src.infolist():
-                if info.filename in drop:
-                    continue
-                data = src.read(info)
-                if info.filename.endswith(".dist-info/RECORD"):
-                    lines = data.decode().splitlines()
-                    data = ("\n".join(ln for ln in lines if ln.split(",", 1)[0] not in drop) + "\n").encode()
-                dst.writestr(info, data)
+        try:
+            with zipfile.ZipFile(partial, "w", zipfile.ZIP_DEFLATED) as dst:
+                for info in src.infolist():
+                    if info.filename in drop:
+                        continue
+                    data = src.read(info)
+                    if info.filename.endswith(".dist-info/RECORD"):
+                        rows = csv.reader(data.decode().splitlines())
+                        kept = io.StringIO()
+                        csv.writer(kept, lineterminator="\n").writerows(r for r in rows if r and r[0] not in drop)
+                        data = kept.getvalue().encode()
+                    dst.writestr(info, data)
+        except BaseException:
+            partial.unlink(missing_ok=True)
+            raise
     partial.replace(target)
     return target
 

@@ -253,3 +253,24 @@ def test_states_cut_every_run_to_the_same_initial_states_and_a_run_too_short_is_
         with pytest.raises(SystemExit):
             C.main(["--base", str(short_run), "--design", str(long_run), "--states", bad])
 
+
+
+def test_runs_ranked_by_judges_of_other_inputs_are_named_before_the_comparison(tmp_path, capsys):
+    true = _truth(5)
+    recorded = lambda readout, inputs, second: {"readout": readout, "judge_inputs": inputs, "judge2_inputs": second}
+    old, new = recorded("judge", ["proprio", "action", "latent"], []), recorded("judge", ["proprio", "action"], [])
+    assert C.ranked_reader({"world_model": new}) == "judge: proprio,action"
+    assert C.ranked_reader({"world_model": recorded("judge2", ["latent"], ["proprio"])}) == "judge2: proprio"
+    assert C.ranked_reader({"world_model": {"readout": "judge"}}) == "judge: inputs not recorded"
+    assert C.ranked_reader({"world_model": recorded("progress", [], [])}) == "progress"
+    assert C.reader_warning([{"world_model": new}] * 2, ["a", "b"]) is None
+    runs = []
+    for i, wm in enumerate((old, new)):
+        d = tmp_path / f"run{i}"
+        d.mkdir()
+        (d / "results.json").write_text(json.dumps({**_results(true, _noisy(true, 0.1, i)), "world_model": wm}))
+        runs.append(str(d))
+    assert C.main(["--base", runs[0], "--design", runs[1], "--draws", "5"]) == 0
+    err = capsys.readouterr().err
+    assert "rank by different read-outs" in err
+    assert f"{runs[0]}: judge: proprio,action,latent; {runs[1]}: judge: proprio,action" in err

@@ -36,7 +36,7 @@ from sim_data.policies.registry import resolve
 from sim_data.sim.render import HEAD_CAMERA, RenderConfig, Renderer, episode_rgb
 from sim_data.sim.rollout import SEGMENT
 from wm import judge as J
-from wm.checkpoint import load_trained, trained_tasks
+from wm.checkpoint import load_run_config, load_trained, trained_tasks
 from wm.checkpoint import main as checkpoint_main
 from wm.imagine import FEATURE_GROUPS, feature_columns, feature_dim
 from wm.judge import load_judge
@@ -99,6 +99,9 @@ def test_results_hold_every_policy_with_statistics_from_the_episodes(evaluation,
     assert "sim_imagined" in res["metrics"]["within_task"] and "loop_actions" in res["metrics"]
     assert res["timing"]["mug"]["nonfinite_sim_episodes"] == 0
     # where the world model's time went: every part ran (replay=1), within the batches' world-model time
+    # what the ranked judge reads, for comparisons across runs (experiments.compare)
+    wm_cfg = load_run_config(Path(res["world_model"]["run"]))[0]
+    assert res["world_model"]["judge_inputs"] == list(wm_cfg.judge_inputs)
     parts = res["timing"]["mug"]["imagine_parts"]
     assert list(parts) == list(E.WM_PARTS) and min(parts.values()) > 0
     assert sum(parts.values()) <= res["timing"]["mug"]["imagine_s"]

@@ -170,3 +170,18 @@ def test_replayed_labels_are_the_simulated_outcomes_of_the_imagined_actions(monk
     assert [c[0] for c in calls] == ["mug", "step_back", "step_back"] and all(len(c[1]) == 1 for c in calls)
     assert J.VARIANTS["demo_recipe_replay"] == J.dataclasses.replace(J.VARIANTS["demo_recipe"], replay_labels=True)
     assert J.VARIANTS["full_recipe_replay"].replay_labels and not J.VARIANTS["full_recipe"].replay_labels
+
+
+def test_saved_readings_are_reused_only_where_fit_as_their_variant_is_now_defined(tmp_path, capsys):
+    now = json.dumps(J.variant_definition("full_recipe"))
+    other = json.dumps(J.dataclasses.asdict(J.VARIANTS["full_judge2"]))
+    for stem, fields in (("now", {"__variant__": now}), ("other", {"__variant__": other}), ("unrecorded", {})):
+        np.savez(tmp_path / f"{stem}.npz", __fit__="{}", mug=np.zeros((2, 3)), **fields)
+    assert J.fit_matches(tmp_path / "now.npz", "full_recipe")
+    assert not J.fit_matches(tmp_path / "other.npz", "full_recipe")
+    assert "fitting it again" in capsys.readouterr().err
+    assert not J.fit_matches(tmp_path / "unrecorded.npz", "full_recipe")
+    assert J.variant_definition(J.BOUND) is None
+    # the presets' judges follow wm.config, observed and replayed labels included
+    replay = J.dataclasses.replace(J.preset_judge("demo"), replay_labels=True)
+    assert J.VARIANTS["demo_recipe_replay"] == replay and not J.preset_judge("full").observed

@@ -1,3 +1,5 @@
+import subprocess
+import sys
 import zipfile
 
 import pytest
@@ -34,3 +36,16 @@ def test_a_member_the_wheel_lacks_is_refused(tmp_path):
     with pytest.raises(ValueError, match="holds no pkg/weights/vgg16.ckpt"):
         slim(wheel, ["pkg/weights/vgg16.ckpt"], tmp_path / "out")
     assert not (tmp_path / "out" / wheel.name).exists()
+
+
+def test_pip_installs_a_slimmed_wheel_as_any_other(tmp_path):
+    members = {"pkg/__init__.py": b"VALUE = 7\n", "pkg/big.bin": b"b" * 100,
+               "pkg-1.0.dist-info/METADATA": b"Metadata-Version: 2.1\nName: pkg\nVersion: 1.0\n",
+               "pkg-1.0.dist-info/WHEEL": b"Wheel-Version: 1.0\nGenerator: test\nRoot-Is-Purelib: true\nTag: py3-none-any\n"}
+    wheel = tmp_path / "pkg-1.0-py3-none-any.whl"
+    _wheel(wheel, members)
+    out = slim(wheel, ["pkg/big.bin"], tmp_path / "out")
+    site = tmp_path / "site"
+    subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-index", "--no-deps", "--target", str(site),
+                    str(out)], check=True)
+    assert (site / "pkg" / "__init__.py").read_text() == "VALUE = 7\n" and not (site / "pkg" / "big.bin").exists()

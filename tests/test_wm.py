@@ -1174,6 +1174,8 @@ def test_a_second_judge_learns_from_the_same_imaginations_and_labels_reading_its
     assert [f[3] for f in fits] == [20, 45]
     with pytest.raises(ValueError, match="judge2_steps >= 0"):
         make_config("smoke", ["judge2_steps=-1"])
+    with pytest.raises(ValueError, match="name its inputs with judge2_inputs"):
+        make_config("smoke", ["judge2_steps=45"])
     # judge_episodes=0 switches every judge off (wm.train fits none), a second one its preset names included
     full = make_config("full", ["judge_episodes=0"])
     assert full.judge_inputs == ("proprio", "action") and "action" in full.judge2_inputs

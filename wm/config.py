@@ -212,6 +212,8 @@ class TrainConfig:
                              f"free_nats={self.free_nats}")
         if "scene" in self.judge_inputs and not self.model.scene:
             raise ValueError("judge_inputs names \"scene\", which only a model with model.scene predicts")
+        if self.judge2_steps and not self.judge2_inputs:
+            raise ValueError("judge2_steps sets the second judge's steps: name its inputs with judge2_inputs too")
         if set(self.judge2_inputs) - set(FEATURE_GROUPS) or ("scene" in self.judge2_inputs and not self.model.scene):
             raise ValueError(f"judge2_inputs are among {', '.join(FEATURE_GROUPS)} (\"scene\" with model.scene); "
                              f"got {list(self.judge2_inputs)}")
