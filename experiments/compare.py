@@ -191,7 +191,7 @@ def ranked_reader(res: dict) -> str:
     """What a results.json's ranking read: its read-out, and for a judge the feature groups it reads
     ("judge: proprio,action"); "judge: inputs not recorded" where the results name none."""
     wm = res.get("world_model", {})
-    readout = wm.get("readout", "judge")
+    readout = wm.get("readout") or "judge"
     if readout not in ("judge", "judge2"):
         return readout
     inputs = wm.get("judge_inputs" if readout == "judge" else "judge2_inputs")

@@ -68,7 +68,17 @@ def combine(results: list[dict]) -> dict:
         mine = [r for r in rows if r["task"] == task]
         if len(mine) >= 3:
             metrics[task] = ensemble_metrics(mine, threshold)
-    return {"models": len(results), "policies": rows, "metrics": metrics}
+    return {"models": len(results), "policies": rows, "metrics": metrics, **shared_reader(results)}
+
+
+READER_KEYS = ("readout", "judge_inputs", "judge2_inputs")  # what a results.json's ranking read with
+
+
+def shared_reader(results: list[dict]) -> dict:
+    """{"world_model": READER_KEYS' values} where every result's ranking read alike (so that
+    experiments.compare can tell what an ensemble ranked with), else {}."""
+    readers = {json.dumps({k: r.get("world_model", {}).get(k) for k in READER_KEYS}) for r in results}
+    return {"world_model": json.loads(readers.pop())} if len(readers) == 1 else {}
 
 
 def ensemble_metrics(rows: list[dict], threshold: float = 0.5) -> dict:
@@ -154,7 +164,7 @@ def member_results(run: Path, k: int) -> dict:
             probs = np.asarray(by_name[p["name"]], np.float64)
             rows.append({**{f: p[f] for f in TRUTH_FIELDS if f in p},
                          "pred_episodes": np.round(probs, 5).tolist(), "pred_rate": float(probs.mean())})
-    return {"policies": rows, "member": k, "ensemble_run": str(run)}
+    return {"policies": rows, "member": k, "ensemble_run": str(run), **shared_reader([res])}
 
 
 def read_run(spec: str) -> dict:

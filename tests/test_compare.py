@@ -262,6 +262,7 @@ def test_runs_ranked_by_judges_of_other_inputs_are_named_before_the_comparison(t
     assert C.ranked_reader({"world_model": new}) == "judge: proprio,action"
     assert C.ranked_reader({"world_model": recorded("judge2", ["latent"], ["proprio"])}) == "judge2: proprio"
     assert C.ranked_reader({"world_model": {"readout": "judge"}}) == "judge: inputs not recorded"
+    assert C.ranked_reader({"world_model": {"readout": None}}) == C.ranked_reader({}) == "judge: inputs not recorded"
     assert C.ranked_reader({"world_model": recorded("progress", [], [])}) == "progress"
     assert C.reader_warning([{"world_model": new}] * 2, ["a", "b"]) is None
     runs = []
@@ -274,3 +275,21 @@ def test_runs_ranked_by_judges_of_other_inputs_are_named_before_the_comparison(t
     err = capsys.readouterr().err
     assert "rank by different read-outs" in err
     assert f"{runs[0]}: judge: proprio,action,latent; {runs[1]}: judge: proprio,action" in err
+
+
+def test_an_ensemble_and_its_members_keep_what_their_ranking_read(tmp_path):
+    true = _truth(6)
+    wm = {"readout": "judge", "judge_inputs": ["proprio", "action"], "judge2_inputs": []}
+    def rated(res):  # the per-policy rates combine reads beside the episodes
+        return {"policies": [{**p, "n": N, "true_rate": float(np.mean(p["true_episodes"])),
+                              "pred_rate": float(np.mean(p["pred_episodes"]))} for p in res["policies"]]}
+
+    runs = [{**rated(_results(true, _noisy(true, 0.1, s))), "world_model": wm} for s in (1, 2)]
+    assert E.combine(runs)["world_model"] == wm
+    other = {**runs[1], "world_model": {**wm, "judge_inputs": ["latent"]}}
+    assert "world_model" not in E.combine([runs[0], other])
+    members = [_noisy(true, 0.1, s) for s in (1, 2)]
+    _ensemble_run(tmp_path / "ens", true, members)
+    res = json.loads((tmp_path / "ens" / "results.json").read_text())
+    (tmp_path / "ens" / "results.json").write_text(json.dumps({**res, "world_model": wm}))
+    assert C.ranked_reader(E.read_run(f"{tmp_path / 'ens'}#1")) == "judge: proprio,action"
