@@ -40,7 +40,10 @@ for the report.
     python -m experiments.evaluate --config full --warm wm=runs/wm/full [key=value ...]
 
 compiles the evaluation's programs ahead, beside the world model's training (`warm`): what the
-evaluation then compiles it loads from JAX's persistent compilation cache instead.
+evaluation then compiles it loads from JAX's persistent compilation cache instead. With
+`truth_cache=DIR truth_frames=1` it also simulates every episode of the evaluation into DIR, and
+the evaluation given the same settings reads them instead of simulating: the simulator's share of
+the evaluation runs beside the training too.
 """
 
 from __future__ import annotations
@@ -53,6 +56,7 @@ import json
 import math
 import os
 import re
+import shutil
 import sys
 import time
 from collections import Counter
@@ -84,7 +88,7 @@ from sim_data.sim.engines import ENGINES, PHYSICS_REVISION, default_engine
 from sim_data.sim.env import cached_env
 from sim_data.sim.render import HEAD_CAMERA, cached_renderers
 from sim_data.sim.rollout import WARM_STEPS, record_policies
-from sim_data.sim.tasks import TASK_NAMES
+from sim_data.sim.tasks import TASK_NAMES, TASKS
 from sim_data.util import (
     device_name,
     hash_arrays,
@@ -175,7 +179,15 @@ class EvalConfig:
         proprioception) is kept and reused by later evaluations of the same policies from the same
         states, whatever the world model (a sweep ranks one zoo with many models); "" keeps none.
         Rankings running at once share its batches out (each simulates those no other is simulating).
-        Used only with video_policies=0, as it keeps no real videos.
+        Without truth_frames used only with video_policies=0, as it keeps no real videos. A warm-up
+        (warm) of an evaluation with a truth_cache simulates every batch into it, beside the world
+        model's training, so that the evaluation itself only imagines.
+      truth_frames: with truth_cache, also keep each batch's simulated frames, proprioception and
+        actions, so that an evaluation reading the cache reads the simulated episodes through the
+        world model, compares imagined frames with them and films them, as one that simulated
+        (its figures and videos those of an evaluation without a cache). Costs S*S*3 bytes a frame:
+        about 30 GB for the `full` zoo at 100 states (truth_space checks the disk first); an entry
+        kept without frames is simulated again.
       keep_features: also keep every imagined episode's step features (wm.imagine.step_features, the
         first model's) in OUT/features/<task>.npy, (P, N, T, F) float16 in the order of the task's
         policies and states, so other read-outs of the same imaginations (judges: experiments.judge_study)
@@ -212,6 +224,7 @@ class EvalConfig:
     decision_episodes: tuple = (5, 10, 20, 50, 100, 200, 500)
     max_minutes: float = 0.0
     truth_cache: str = ""
+    truth_frames: bool = False
     keep_features: bool = False
     replay: bool = False
     imagine: str = ""
@@ -219,8 +232,8 @@ class EvalConfig:
     def validate(self) -> None:
         """Raises ValueError where a setting is missing or out of range: no policies or world model, too few
         episodes, a state_batch that does not divide them, an unknown engine, read-out, task or imagine mode,
-        a threshold outside (0, 1), truth_cache with videos, or a world model named twice (a run beside its
-        own bundle too)."""
+        a threshold outside (0, 1), truth_cache with videos but without truth_frames, truth_frames without
+        truth_cache, or a world model named twice (a run beside its own bundle too)."""
         if not self.policies:
             raise ValueError("name at least one policy spec (policies=runs/policies/demo,...)")
         if not self.wm:
@@ -235,8 +248,11 @@ class EvalConfig:
             raise ValueError(f"readout must be one of {READOUTS + (AUTO,)}, got {self.readout!r}")
         if not 0 < self.threshold < 1:
             raise ValueError(f"threshold must be in (0, 1), got {self.threshold}")
-        if self.truth_cache and self.video_policies:
-            raise ValueError("truth_cache keeps no real videos: use it with video_policies=0")
+        if self.truth_cache and self.video_policies and not self.truth_frames:
+            raise ValueError("truth_cache keeps no real videos without their frames: use it with video_policies=0, "
+                             "or keep the frames (truth_frames=1)")
+        if self.truth_frames and not self.truth_cache:
+            raise ValueError("truth_frames keeps the simulated frames in the truth cache: name it (truth_cache=DIR)")
         unknown = [t for t in self.tasks if t not in TASK_NAMES]
         if unknown:
             raise ValueError(f"unknown tasks {unknown}; choose among {', '.join(TASK_NAMES)}")
@@ -377,8 +393,7 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
         policy, params = chunk_policy(padded, n)
         rng = slice_key(cfg, j)
         t0 = time.perf_counter()
-        truth = simulate_truth(cfg, task, policy, params, seeds[s0:s1], reset_keys[s0:s1], rng, engine, renderer,
-                               wait, code="".join(s.code for s in padded))
+        truth = simulate_batch(cfg, task, batch, (policy, params), slices, seeds, reset_keys, engine, renderer, wait)
         if truth is None:
             return None
         clock["steps"] = truth["steps"]
@@ -670,15 +685,75 @@ def simulated_finite(truth: dict) -> np.ndarray:
     return ok(truth["proprio"]) & ok(truth["action"])
 
 
+def simulate_batch(cfg: EvalConfig, task: str, batch, chunk: tuple, slices, seeds, reset_keys, engine: str,
+                   renderer, wait: bool = True, read: bool = True) -> dict | None:
+    """simulate_truth of one of task_batches' batches (k, j, policies, padded), chunk its padded
+    policies' (policy, params) (chunk_policy), from the states of slice j with the slice's random key."""
+    _, j, _, padded = batch
+    s0, s1 = slices[j]
+    policy, params = chunk
+    return simulate_truth(cfg, task, policy, params, seeds[s0:s1], reset_keys[s0:s1], slice_key(cfg, j), engine,
+                          renderer, wait, code="".join(s.code for s in padded), read=read)
+
+
+def simulate_all(cfg: EvalConfig, tasks, sources, used: set, engine: str, renderer, progress: bool = True) -> None:
+    """Every batch of cfg's evaluation of tasks simulated into cfg.truth_cache, as the evaluation
+    would simulate it (simulate_batch; the same held-out states, slices and random keys), those no
+    other process is simulating first; batches the cache holds are left as they are."""
+    for task in tasks:
+        seeds = heldout_seeds(task, cfg.episodes, cfg.seed, used)
+        slices, reset_keys = state_slices(cfg, len(seeds)), reset_keys_of(seeds)
+        todo = task_batches(cfg, [s for s in sources if s.runs_on(task)], len(seeds))
+        bar = tqdm(total=sum(len(part) * (slices[j][1] - slices[j][0]) for _, j, part, _ in todo),
+                   desc=f"simulate {task}", unit="ep", disable=not progress)
+
+        def attempt(batch, wait: bool) -> bool | None:
+            _, j, part, padded = batch
+            chunk = chunk_policy(padded, slices[j][1] - slices[j][0])
+            if simulate_batch(cfg, task, batch, chunk, slices, seeds, reset_keys, engine, renderer, wait,
+                              read=False) is None:
+                return None
+            bar.update(len(part) * (slices[j][1] - slices[j][0]))
+            return True
+
+        in_turn(todo, attempt)
+        bar.close()
+
+
+def truth_space(cfg: EvalConfig, tasks, sources, size: int) -> None:
+    """Raises ValueError where the disk of cfg.truth_cache has too little room for the frames that
+    cfg.truth_frames keeps there: (T+1) frames of size x size x 3 bytes for each of a task's episodes
+    (every batch's policies, padding included, from every state), less what the cache holds already."""
+    if not cfg.truth_frames:
+        return
+    root = Path(cfg.truth_cache)
+    root.mkdir(parents=True, exist_ok=True)
+    slices = state_slices(cfg, cfg.episodes)
+    episodes = {t: sum(len(padded) * (slices[j][1] - slices[j][0])
+                       for _, j, _, padded in task_batches(cfg, [s for s in sources if s.runs_on(t)], cfg.episodes))
+                for t in tasks}
+    need = sum(n * (TASKS[t].episode_steps + 1) * size * size * 3 for t, n in episodes.items())
+    need -= sum(f.stat().st_size for f in root.glob("*.npz"))
+    free = shutil.disk_usage(root).free
+    if need > 0.95 * free:
+        raise ValueError(f"truth_frames: the simulated frames need about {need / 1e9:.1f} GB more in {root}, which has "
+                         f"{free / 1e9:.1f} GB free: free some space, evaluate fewer states (episodes=...), or keep "
+                         "the outcomes alone (truth_frames=0 with video_policies=0)")
+
+
+TRUTH_ARRAYS = ("frames", "proprio", "action")  # the simulated episodes a truth cache keeps with truth_frames
+
+
 def simulate_truth(cfg: EvalConfig, task: str, policy, params, seeds, reset_keys, rng, engine: str,
-                   renderer, wait: bool = True, code: str = "") -> dict | None:
+                   renderer, wait: bool = True, code: str = "", read: bool = True) -> dict | None:
     """Closed-loop simulator episodes of P stacked policies from n initial states, or the same read
     back from cfg.truth_cache (a process that finds another simulating the same batch waits for it,
     under a lock file beside the cache entry, and reads its outcomes; with wait=False it returns None
     at once instead). Returns {"outcome": (P, n) bool, "frames0": (P*n, 1, S, S, 3) uint8,
     "proprio0": (P*n, 1, 37), "steps": int, and "frames": (P*n, T+1, S, S, 3), "proprio": (P*n,
-    T+1, 37) and "action": (P*n, T, 20) where simulated}. code: the plug-ins' code_digest, part of the
-    cache's key."""
+    T+1, 37) and "action": (P*n, T, 20) where simulated or kept (cfg.truth_frames)}. code: the
+    plug-ins' code_digest, part of the cache's key. read=False: {} where the cache holds the batch
+    (a warm-up filling the cache has no use for it)."""
     if not cfg.truth_cache:
         return _simulate(task, policy, params, seeds, reset_keys, rng, engine, renderer)
     path = Path(cfg.truth_cache) / f"{task}-{_truth_key(task, policy, params, seeds, rng, engine, renderer, code)}.npz"
@@ -690,11 +765,14 @@ def simulate_truth(cfg: EvalConfig, task: str, policy, params, seeds, reset_keys
             return None
         if path.exists():
             with np.load(path) as z:
-                return {k: z[k] for k in ("outcome", "frames0", "proprio0", "progress") if k in z.files} | {
-                "steps": int(z["steps"])}
+                if not cfg.truth_frames or "frames" in z.files:
+                    if not read:
+                        return {}
+                    keep = ("outcome", "frames0", "proprio0", "progress") + (TRUTH_ARRAYS if cfg.truth_frames else ())
+                    return {k: z[k] for k in keep if k in z.files} | {"steps": int(z["steps"])}
         truth = _simulate(task, policy, params, seeds, reset_keys, rng, engine, renderer)
         tmp = path.with_name(f"{path.stem}.tmp{os.getpid()}.npz")
-        np.savez(tmp, **{k: v for k, v in truth.items() if k not in ("frames", "proprio", "action")})
+        np.savez(tmp, **{k: np.asarray(v) for k, v in truth.items() if cfg.truth_frames or k not in TRUTH_ARRAYS})
         tmp.replace(path)
     return truth
 
@@ -993,8 +1071,10 @@ def warm(cfg: EvalConfig, progress: bool = True, wait_s: float = 0.0, after_trai
     the imagined actions (whole episodes), and on the `mjx` engine the joining of an episode's
     segments (`_recording_of`, a program per episode length; about a second to compile).
     after_training: first the programs that the first world model's training runs once it has
-    trained (wm.train.warm_after_training: its judge's fit, eval.json), which it needs sooner. Writes
-    nothing but the cache."""
+    trained (wm.train.warm_after_training: its judge's fit, eval.json), which it needs sooner. With
+    cfg.truth_cache, last, every batch's whole episodes simulated into it (simulate_all; with
+    cfg.truth_frames their frames too), so that the evaluation only imagines. Writes nothing but
+    the caches."""
     cfg.validate()
     wait_for_files([Path(run) / f for run in cfg.wm_runs for f in ("config.json", "norm.json")], wait_s,
                    f"{', '.join(map(str, cfg.wm_runs))} to start training")
@@ -1032,6 +1112,12 @@ def warm(cfg: EvalConfig, progress: bool = True, wait_s: float = 0.0, after_trai
         program_panel(wm_cfg, wm_params, norm, TrainingCache(wm_data), horizon=48)
     print(f"the evaluation's programs ran once in {time.perf_counter() - t0:.0f} s ({', '.join(tasks)})",
           file=sys.stderr)
+    if cfg.truth_cache:
+        t0 = time.perf_counter()
+        truth_space(cfg, tasks, sources, wm_cfg.model.size)
+        simulate_all(cfg, tasks, sources, used, engine, renderer, progress)
+        print(f"the evaluation's episodes simulated into {cfg.truth_cache} in {time.perf_counter() - t0:.0f} s",
+              file=sys.stderr)
 
 
 # ---- the run -----------------------------------------------------------------------------------------
@@ -1059,6 +1145,7 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
                          "another read-out")
     make_output_dir(out / "tasks")
     _check_config(cfg, out, sources, models)
+    truth_space(cfg, tasks, sources, models[0][0].model.size)
     cfg = dataclasses.replace(cfg, readout=auto_readout(cfg.readout, cfg.wm_runs, models))
     wm_data = str(load_run_config(Path(cfg.wm_runs[0]))[1])  # the first model's data: the tasks it saw
     wm_cache = TrainingCache(wm_data) if (Path(wm_data) / "cache" / "index.json").exists() else None

@@ -83,7 +83,10 @@ compiling. With `--warm-eval` (one GPU), the train stage starts
 training runs once trained (its episode judge's imaginations and fit, eval.json), then the
 evaluation's simulator and imagination programs on its own batches, a few steps long, each with the
 world model's shapes and parameters of zeros, and the train stage's end and the eval stage load
-them. Each compiles on the host's cores while the GPU works.
+them. Each compiles on the host's cores while the GPU works. With `--set eval:truth_cache=DIR --set
+eval:truth_frames=1` beside `--warm-eval`, that warm-up then also simulates every episode of the
+evaluation into DIR, frames kept (about 30 GB for `full` at 100 states; the disk is checked first),
+and the eval stage reads them instead of simulating: its simulator's share runs beside the training.
 
 Each stage command appends a row to the evaluation directory's `timing.json`: its wall seconds, the
 seconds spent compiling (JAX's compile events, experiments.timing; a stage spread over GPUs adds the

@@ -35,6 +35,7 @@ from sim_data.policies.bc import MixedPolicy, StackedPolicy, stacked
 from sim_data.policies.registry import resolve
 from sim_data.sim.render import HEAD_CAMERA, RenderConfig, Renderer, episode_rgb
 from sim_data.sim.rollout import SEGMENT
+from sim_data.sim.tasks import TASKS
 from wm import judge as J
 from wm.checkpoint import load_run_config, load_trained, trained_tasks
 from wm.checkpoint import main as checkpoint_main
@@ -548,6 +549,39 @@ def test_truth_cache_returns_the_simulated_batch_waits_for_a_writer_and_misses_o
         E.simulate_truth(cfg, "mug", policy, params, seeds, keys, rng, "cpu", renderer)
     with pytest.raises(ValueError, match="video_policies=0"):
         E.make_config("demo", ["truth_cache=/tmp/t"])
+    with pytest.raises(ValueError, match="name it"):
+        E.make_config("demo", ["truth_frames=1"])
+    assert E.make_config("demo", ["truth_cache=/tmp/t", "truth_frames=1"]).video_policies  # films from the cache
+
+    # with truth_frames the entry keeps the simulated episodes: one kept without them is simulated again
+    monkeypatch.undo()
+    framed = dataclasses.replace(cfg, truth_frames=True)
+    whole = E.simulate_truth(framed, "mug", policy, params, seeds, keys, rng, "cpu", renderer)
+    monkeypatch.setattr(E, "record_policies", no_simulation)
+    kept = E.simulate_truth(framed, "mug", policy, params, seeds, keys, rng, "cpu", renderer)
+    for k in ("outcome", "frames0", "proprio0", "progress", *E.TRUTH_ARRAYS):
+        assert kept[k].dtype == np.asarray(whole[k]).dtype and np.array_equal(kept[k], np.asarray(whole[k])), k
+    assert kept["frames"].shape == (6, kept["steps"] + 1, 64, 64, 3)
+    assert E.simulate_truth(framed, "mug", policy, params, seeds, keys, rng, "cpu", renderer, read=False) == {}
+    assert "frames" not in E.simulate_truth(cfg, "mug", policy, params, seeds, keys, rng, "cpu", renderer)
+
+
+def test_the_truth_cache_refuses_frames_the_disk_cannot_hold(smoke_zoo, tmp_path, monkeypatch):
+    zoo_dir, _ = smoke_zoo
+    sources = resolve([f"{zoo_dir}#conv_proprio+conv_noproprio"])
+    cfg = E.EvalConfig(policies=("x",), wm="y", tasks=("mug",), episodes=4, batch=6, state_batch=2,
+                       truth_cache=str(tmp_path / "truth"), truth_frames=True)
+    # 4 checkpoints of mug in batches of 2 (no padding) from 4 states in 2 slices: 16 episodes of 121
+    # frames of 64 x 64 x 3 bytes
+    assert len(sources) == 4 and all(len(b[3]) == 2 for b in E.task_batches(cfg, sources, 4))
+    need = 16 * (TASKS["mug"].episode_steps + 1) * 64 * 64 * 3
+    usage = shutil.disk_usage(tmp_path)
+    monkeypatch.setattr(E.shutil, "disk_usage", lambda _: usage._replace(free=need))
+    with pytest.raises(ValueError, match=rf"about {need / 1e9:.1f} GB more .* {need / 1e9:.1f} GB free"):
+        E.truth_space(cfg, ["mug"], sources, 64)
+    (tmp_path / "truth" / "mug-held.npz").write_bytes(bytes(need // 10))  # what the cache holds counts
+    E.truth_space(cfg, ["mug"], sources, 64)
+    E.truth_space(dataclasses.replace(cfg, truth_frames=False), ["mug"], sources, 64)
 
 
 def test_auto_readout_picks_the_judge_only_where_every_model_saw_learned_policies_rollouts(smoke_world_model,
@@ -850,6 +884,32 @@ def test_the_warm_up_runs_the_programs_the_evaluation_then_runs(smoke_world_mode
                             "_observed_segment", "_open_loop_segment"}
     with pytest.raises(FileNotFoundError, match="no started training run"):
         E.warm(dataclasses.replace(cfg, wm=str(tmp_path / "none")), progress=False)
+
+
+@pytest.mark.slow  # what only the GPU chain uses (the truth simulated beside the training)
+def test_a_warm_up_with_a_truth_cache_simulates_the_episodes_the_evaluation_then_reads(evaluation, tmp_path,
+                                                                                      monkeypatch):
+    """E.warm with truth_cache and truth_frames simulates every batch of the evaluation into the cache;
+    the evaluation of the same settings then simulates nothing, and every array it saves (outcomes,
+    every read-out, the read-out of the simulated episodes, the frames' fidelity, the videos) is that
+    of the evaluation fixture, which simulated its own."""
+    cfg, out, _ = evaluation
+    kept = dataclasses.replace(cfg, truth_cache=str(tmp_path / "truth"), truth_frames=True)
+    E.warm(kept, progress=False)
+    batches = E.task_batches(kept, resolve(kept.policies), kept.episodes)
+    assert len(list((tmp_path / "truth").glob("mug-*.npz"))) == len(batches) == 2
+
+    def no_simulation(*a, **k):
+        raise AssertionError("simulated although the warm-up filled the cache")
+
+    monkeypatch.setattr(E, "record_policies", no_simulation)
+    E.run(kept, tmp_path / "run", progress=False)
+    with np.load(out / "tasks" / "mug.npz") as want, np.load(tmp_path / "run" / "tasks" / "mug.npz") as got:
+        assert sorted(got.files) == sorted(want.files)
+        for k in want.files:
+            if k != "meta":  # its timings differ
+                assert np.array_equal(got[k], want[k], equal_nan=got[k].dtype.kind == "f"), k
+        assert np.isfinite(got["prob_observed"]).all()
 
 
 def test_a_second_judge_is_read_beside_the_first_on_the_same_imaginations(evaluation, smoke_world_model, tmp_path):
