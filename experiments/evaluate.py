@@ -256,6 +256,9 @@ class EvalConfig:
         unknown = [t for t in self.tasks if t not in TASK_NAMES]
         if unknown:
             raise ValueError(f"unknown tasks {unknown}; choose among {', '.join(TASK_NAMES)}")
+        if twice := sorted({t for t in self.tasks if self.tasks.count(t) > 1}):
+            # evaluated once, but every row and pooled statistic would count each of its policies twice
+            raise ValueError(f"tasks names {', '.join(twice)} twice: {','.join(self.tasks)}")
         if self.imagine not in ("",) + IMAGINE_MODES:
             raise ValueError(f"imagine must be one of {', '.join(IMAGINE_MODES)} or empty, got {self.imagine!r}")
         same = [os.path.realpath(w) for w in self.wm_runs]  # one directory however spelled (a/, ./a, a link)
@@ -1192,6 +1195,13 @@ def evaluation_tasks(cfg: EvalConfig, sources) -> list[str]:
     alone, which run on any task) every task that each of cfg's world models learned to judge."""
     tasks = list(cfg.tasks) or sorted({s.task for s in sources if s.task})
     if tasks:
+        # a task no policy runs on (a zoo's checkpoints of other tasks, no plug-in) has nothing to evaluate:
+        # said here, before anything runs, rather than failing deep inside its batches
+        if empty := [t for t in tasks if not any(s.runs_on(t) for s in sources)]:
+            trained = sorted({s.task for s in sources if s.task})
+            raise ValueError(f"no policy runs on task {', '.join(empty)}: the registry's checkpoints run on the "
+                             f"task they were trained for ({', '.join(trained)}) and plug-ins on any; leave "
+                             f"{'it' if len(empty) == 1 else 'them'} out of tasks=... or add a plug-in")
         return tasks
     known = [set(trained_tasks(Path(r))) for r in cfg.wm_runs]
     tasks = sorted(set.intersection(*known)) if known else []

@@ -66,13 +66,14 @@ def kendall(predicted, true) -> float:
 def mmrv(predicted, true) -> float:
     """SIMPLER's mean maximum rank violation:
 
-        MMRV = 1/N sum_i max_j |true_i - true_j| * 1[(pred_i < pred_j) != (true_i < true_j)]
+        MMRV = 1/N sum_i max_j |true_i - true_j| * 1[(pred_i > pred_j) != (true_i > true_j)]
 
-    each violation weighted by the true gap. Ties follow the definition's strict comparisons: a pair
-    tied in prediction but not in truth is a violation (from the side of the truly worse policy); a
-    pair tied in truth weighs 0. NaN where every policy's true rate is the same: there is no order to
-    violate, and a 0 would read as a perfect ranking (as pairwise accuracy, undefined without a pair
-    apart in truth).
+    each violation weighted by the true gap. Ties follow the strict comparisons of SIMPLER's code
+    (simpler_env/utils/metrics.py): a pair tied in prediction but not in truth is a violation charged
+    to the truly better policy (whose `true_i > true_j` the tie contradicts; which side takes it moves
+    each side's max, and so MMRV); a pair tied in truth weighs 0. NaN where every policy's true rate is
+    the same: there is no order to violate, and a 0 would read as a perfect ranking (as pairwise
+    accuracy, undefined without a pair apart in truth).
     """
     p, t = _pair(predicted, true)
     return float(_masked_mmrv(p, t, np.ones(len(p), bool)))
@@ -81,7 +82,7 @@ def mmrv(predicted, true) -> float:
 def _violation_gaps(p, t) -> np.ndarray:
     """(..., N, N) |t_i - t_j| where the pair (i, j) is mis-ordered (mmrv's comparisons), else 0."""
     return np.abs(t[..., :, None] - t[..., None, :]) * (
-        (p[..., :, None] < p[..., None, :]) != (t[..., :, None] < t[..., None, :]))
+        (p[..., :, None] > p[..., None, :]) != (t[..., :, None] > t[..., None, :]))
 
 
 def mmrv_charges(predicted, true) -> tuple[np.ndarray, np.ndarray]:
@@ -239,10 +240,11 @@ def task_statistics(pred, true, threshold: float = 0.5) -> dict:
 def draw_statistics(pred, true, threshold: float = 0.5) -> dict:
     """task_statistics of D resamplings of one task at once: pred (D, P, N) probabilities (a policy with
     a non-finite one left out) or (D, P) scores (NaN: no score, left out), true (D, P, N) outcomes.
-    Returns {stat: (D,) float64}; every statistic of a draw with fewer than 2 scored policies is NaN,
-    and Pearson and Spearman with fewer than MIN_CORRELATED or where either side is constant (pearson,
-    spearman); MMRV, pairwise accuracy and alignment as mmrv, pairwise_accuracy and alignment over the
-    scored policies."""
+    Returns {stat: (D,) float64}; every ranking statistic of a draw with fewer than 2 scored policies is
+    NaN (alignment, per episode, is defined for one policy: a plug-in evaluated alone has it, as its row
+    and the pooled figures do; NaN with none), and Pearson and Spearman with fewer than MIN_CORRELATED
+    or where either side is constant (pearson, spearman); MMRV, pairwise accuracy and alignment as mmrv,
+    pairwise_accuracy and alignment over the scored policies."""
     pred, true = np.asarray(pred, np.float64), np.asarray(true, np.float64)
     t = true.mean(-1)
     if pred.ndim == 3:
@@ -260,7 +262,7 @@ def draw_statistics(pred, true, threshold: float = 0.5) -> dict:
            "spearman": _masked_pearson(_masked_rank(p, keep), _masked_rank(t, keep), keep),
            "mmrv": _masked_mmrv(p, t, keep), "pairwise_acc_gap10": _masked_pairwise(p, t, keep, 0.10),
            "alignment": aligned}
-    return {k: np.where(n >= 2, v, math.nan) for k, v in out.items()}
+    return {k: v if k == "alignment" else np.where(n >= 2, v, math.nan) for k, v in out.items()}
 
 
 def _masked_pearson(x, y, keep) -> np.ndarray:

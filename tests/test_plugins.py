@@ -22,6 +22,7 @@ from sim_data.dataset import generate as G
 from sim_data.policies.bc import stacked
 from sim_data.policies.registry import (
     ClippedPolicy,
+    PolicySource,
     fingerprint,
     group_by_policy,
     load_plugin,
@@ -354,6 +355,22 @@ def test_the_report_escapes_names_and_names_tasks_the_world_model_never_learned(
     res = {"tasks": ["mug", "step_back"], "world_model": {"train_tasks": ["mug"]}}
     assert "never saw step_back in training (it learned mug)" in RP.unlearned_warning(res)
     assert RP.unlearned_warning({"tasks": ["mug"], "world_model": {"train_tasks": ["mug"]}}) == ""
+
+
+def test_a_task_no_policy_runs_on_is_an_error_before_anything_runs():
+    """A zoo's checkpoints run on their own task only: asking for another task with no plug-in beside them
+    leaves it no policy, which must be said up front (it failed as a ZeroDivisionError deep in the batching)."""
+    step_back = PolicySource(name="step_back/c/5", kind="learned", task="step_back", policy=None, params=None,
+                             record={})
+    plugin = PolicySource(name="mine", kind="plugin", task=None, policy=None, params=None, record={})
+    cfg = E.EvalConfig(policies=("x",), wm="w", tasks=("mug", "step_back"))
+    with pytest.raises(ValueError, match="no policy runs on task mug"):
+        E.evaluation_tasks(cfg, [step_back])
+    assert E.evaluation_tasks(cfg, [step_back, plugin]) == ["mug", "step_back"]
+    assert E.evaluation_tasks(dataclasses.replace(cfg, tasks=()), [step_back]) == ["step_back"]
+    # a task named twice would be evaluated once and every policy's row on it counted twice
+    with pytest.raises(ValueError, match="tasks names step_back twice"):
+        dataclasses.replace(cfg, tasks=("step_back", "mug", "step_back")).validate()
 
 
 def test_overrides_may_stand_on_both_sides_of_an_option(capsys):

@@ -39,7 +39,7 @@ def test_mmrv_weights_violations_by_true_gap_and_counts_predicted_ties():
     # only the pair (0, 1) is misordered; its true gap 0.4 is the max for policies 0 and 1
     assert S.mmrv([0.3, 0.6, 0.1], [0.9, 0.5, 0.2]) == pytest.approx((0.4 + 0.4 + 0.0) / 3)
     assert S.mmrv([0.1, 0.5, 0.9], [0.2, 0.5, 0.8]) == 0.0
-    # a predicted tie is a violation from the truly worse policy's side
+    # a predicted tie is a violation, charged to the truly better policy (SIMPLER's strict `>`)
     assert S.mmrv([0.5, 0.5], [0.2, 0.6]) == pytest.approx(0.4 / 2)
     # a true tie weighs nothing whatever the prediction
     assert S.mmrv([0.9, 0.1, 0.0], [0.5, 0.5, 0.9]) == pytest.approx((0.4 + 0.4 + 0.4) / 3)
@@ -47,6 +47,42 @@ def test_mmrv_weights_violations_by_true_gap_and_counts_predicted_ties():
     # where every true rate ties there is no order to violate: undefined, not a perfect 0
     assert math.isnan(S.mmrv([0.9, 0.1], [0.5, 0.5]))
     assert math.isnan(S.task_statistics([0.2, 0.7, 0.4], np.ones((3, 4)))["mmrv"])
+
+
+def _simpler_mmrv(sim, real):
+    """SIMPLER's own MMRV (simpler_env/utils/metrics.py: mean_maximum_rank_violation), loop for loop."""
+    out = []
+    for i in range(len(sim)):
+        worst = 0.0
+        for j in range(len(sim)):
+            if (sim[i] > sim[j]) != (real[i] > real[j]):
+                worst = max(worst, abs(real[i] - real[j]))
+        out.append(worst)
+    return float(np.mean(out))
+
+
+def test_mmrv_is_simplers_with_ties_in_prediction():
+    # a tie in prediction charged to the truly better policy, as SIMPLER's code does: here 0.9 + 1.0 + 0.9,
+    # where charging the truly worse one would give 0.9 + 1.0 + 0.0
+    assert S.mmrv([0.5, 0.5, 0.0], [0.0, 1.0, 0.9]) == pytest.approx(2.8 / 3)
+    rng = np.random.default_rng(0)
+    for _ in range(300):  # rates on a coarse grid: ties on both sides
+        n = int(rng.integers(2, 8))
+        p, t = rng.integers(0, 4, n) / 4, rng.integers(0, 4, n) / 4
+        if np.ptp(t) > 0:
+            assert S.mmrv(p, t) == pytest.approx(_simpler_mmrv(p, t)), (p, t)
+            assert S.task_statistics(p[:, None], t[:, None])["mmrv"] == pytest.approx(_simpler_mmrv(p, t))
+
+
+def test_one_policy_has_a_per_episode_alignment_but_no_ranking():
+    # a plug-in evaluated alone: nothing to rank, but its episodes agree or not, as its row and the pooled
+    # figures say (the within-task headline read n/a)
+    got = S.task_statistics(np.array([[0.9, 0.2, 0.7]]), np.array([[1, 0, 0]]))
+    assert got["alignment"] == pytest.approx(2 / 3)
+    assert all(math.isnan(got[k]) for k in ("pearson", "spearman", "mmrv", "pairwise_acc_gap10"))
+    assert math.isnan(S.task_statistics(np.array([[math.nan, 0.2, 0.7]]), np.array([[1, 0, 0]]))["alignment"])
+    w = S.within_task({"t": np.array([[1, 0, 0]])}, {"wm": {"t": np.array([[0.9, 0.2, 0.7]])}}, draws=50)
+    assert w["wm"]["mean"]["alignment"] == pytest.approx(2 / 3) and not math.isnan(w["wm"]["mean_ci"]["alignment"][0])
 
 
 def test_rank_violations_charge_each_policys_mmrv_term_to_its_worst_partner():
