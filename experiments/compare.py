@@ -146,18 +146,25 @@ def _task_mean(per_task: dict) -> dict:
                 for k in S.WITHIN_TASK}
 
 
-def compare_groups(true: dict, groups: dict, draws: int = 1000, seed: int = 0) -> dict:
+def compare_groups(true: dict, groups: dict, draws: int = 1000, seed: int = 0, threshold: float = 0.5) -> dict:
     """The comparison of groups of predictors over one truth (the module's docstring).
 
     true: {task: (P, N) outcomes}; groups: {"base": [{task: (P, N) probabilities}] one per run,
     "design": [...]}. Returns {"base", "design": {"runs": [{stat: x}], "mean": {stat}, "range":
     {stat: [min, max]}, "mean_ci": {stat: [lo, hi]}, "per_task": {task: {stat: mean over runs}},
     "runs_per_task": [{task: {stat: x}}] one per run, "abs_error": [x] one per run (mean_abs_error)},
-    "gain": {"mean": {stat: design - base}, "mean_ci", "per_task", "per_task_ci"}}."""
+    "gain": {"mean": {stat: design - base}, "mean_ci", "per_task", "per_task_ci"}, and "left_out": {task:
+    [policy indices]} where some run's predictions are not finite (its imagination diverged): those
+    policies are left out of every run's statistics}."""
     if sorted(groups) != sorted(GROUPS) or any(not runs for runs in groups.values()):
         raise ValueError(f"give both groups {GROUPS}, each with at least one run")
-    predictors = {f"{g}{i}": run for g in GROUPS for i, run in enumerate(groups[g])}
-    point, boot = S.within_task_draws(true, predictors, draws=draws, seed=seed)
+    # every run over the policies that all runs read: a policy one run's imagination diverged on (left out
+    # of its statistics, stats.draw_statistics) is left out of every run's, so the gain compares like with like
+    common = {t: np.logical_and.reduce([S.scored_policies(run[t]) for g in GROUPS for run in groups[g]])
+              for t in true}
+    predictors = {f"{g}{i}": {t: S.without_policies(run[t], ~common[t]) for t in true}
+                  for g in GROUPS for i, run in enumerate(groups[g])}
+    point, boot = S.within_task_draws(true, predictors, threshold, draws=draws, seed=seed)
     tasks = list(true)
     out, task_draws, mean_draws = {}, {}, {}
     for g in GROUPS:
@@ -177,6 +184,8 @@ def compare_groups(true: dict, groups: dict, draws: int = 1000, seed: int = 0) -
                   "runs_per_task": [{t: {k: float(point[n][t][k]) for k in S.WITHIN_TASK} for t in tasks}
                                     for n in names],
                   "abs_error": [mean_abs_error(true, run) for run in groups[g]]}
+    if not all(c.all() for c in common.values()):
+        out["left_out"] = {t: np.flatnonzero(~c).tolist() for t, c in common.items() if not c.all()}
     d, b = "design", "base"
     out["gain"] = {"mean": {k: out[d]["mean"][k] - out[b]["mean"][k] for k in S.WITHIN_TASK},
                    "mean_ci": {k: S.percentile_interval(mean_draws[d][k] - mean_draws[b][k]) for k in S.WITHIN_TASK},
@@ -216,10 +225,16 @@ def compare(base: list[dict], design: list[dict], draws: int = 1000, seed: int =
     where no family is unseen), "families": over the counterfactual families' members, each subset
     absent with fewer than MIN_PER_TASK a task, with "<subset>_policies": {task: P} beside each}."""
     true, preds, unseen, family = episode_tables(base + design)
+    # alignment at the evaluations' own threshold (their results.json's), as experiments.ensemble reads it
+    thresholds = {r.get("config", {}).get("threshold", 0.5) for r in base + design}
+    if len(thresholds) > 1:
+        raise ValueError(f"the evaluations threshold predictions differently ({sorted(thresholds)}): their "
+                         "alignments would not compare")
+    threshold = thresholds.pop()
     k = len(base)
     out = {"draws": draws, "resamples": S.WITHIN_TASK_RESAMPLES, "tasks": list(true),
            "policies": {t: int(v.shape[0]) for t, v in true.items()},
-           "all": compare_groups(true, {"base": preds[:k], "design": preds[k:]}, draws, seed)}
+           "all": compare_groups(true, {"base": preds[:k], "design": preds[k:]}, draws, seed, threshold)}
     subsets = {"unseen": unseen}
     rows = (base + design)[0]["policies"]  # every run ranks the same policies (episode_tables)
     seen = {p["name"] for r in base + design for p in r["policies"] if p.get("in_wm_data", True)}
@@ -234,7 +249,7 @@ def compare(base: list[dict], design: list[dict], draws: int = 1000, seed: int =
             out[f"{name}_policies"] = {t: int(u.sum()) for t, u in keep.items()}
             out[name] = compare_groups(_kept(true, keep), {"base": [_kept(p, keep) for p in preds[:k]],
                                                            "design": [_kept(p, keep) for p in preds[k:]]},
-                                       draws, seed)
+                                       draws, seed, threshold)
     return out
 
 
@@ -249,14 +264,15 @@ def rate_shifts(true: dict, base: list[dict], design: list[dict], names: dict) -
         d = np.mean([run[t].mean(1) for run in design], 0)
         rows += [{"task": t, "name": n, "true": float(true[t][i].mean()), "base": float(b[i]),
                   "design": float(d[i]), "shift": float(d[i] - b[i])} for i, n in enumerate(names[t])]
-    return sorted(rows, key=lambda r: -abs(r["shift"]))
+    # a shift that is NaN (a run's imagination diverged on the policy) last: a NaN key would leave the sort unordered
+    return sorted(rows, key=lambda r: (math.isnan(r["shift"]), -abs(r["shift"]) if not math.isnan(r["shift"]) else 0.0))
 
 
 def shifts_markdown(shifts: list[dict], names: tuple[str, str] = GROUPS, shown: int = SHIFTS_SHOWN) -> str:
     """A sentence on the largest shift of a predicted rate and how many exceed REPRODUCED, then a table of
     the `shown` largest."""
     top = shifts[0]
-    moved = sum(abs(r["shift"]) > REPRODUCED for r in shifts)
+    moved = sum(not abs(r["shift"]) <= REPRODUCED for r in shifts)  # a rate one side cannot read moved too
     lines = [f"Predicted success rates, {names[1]} against {names[0]}: the largest shift {top['shift']:+.3f} "
              f"({top['name']}); {moved} of {len(shifts)} policies moved by more than {REPRODUCED}"
              + (" (the same figures)." if moved == 0 else "."), "",

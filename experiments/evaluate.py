@@ -1045,7 +1045,7 @@ def decision_analysis(cfg: EvalConfig, tasks: dict, alignment: float, most: int 
             rates = res["true"].mean(1)
             read = np.isfinite(res["prob"]).all(1)  # a policy whose imagination diverged reads no outcome
             pairs += [(task, a, b) for a in range(len(rates)) for b in range(len(rates))
-                      if read[a] and read[b] and abs(rates[a] - rates[b] - g) <= 0.05]
+                      if read[a] and read[b] and abs(rates[a] - rates[b] - g) <= 0.05 + 1e-9]  # 0.35 - 0.3 is 0.05
         spread = np.unique(np.linspace(0, len(pairs) - 1, min(most, len(pairs))).round().astype(int))
         chosen = [pairs[i] for i in spread]
         curves = [S.resampled_pick_better(tasks[t]["prob"][a] >= cfg.threshold, tasks[t]["prob"][b] >= cfg.threshold,
@@ -1317,8 +1317,22 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, models, wm
     }
 
 
+# what each kind of 95% interval in results.json resamples or assumes (metrics["intervals"])
+INTERVALS = {
+    "policies[].true_ci, pred_thresholded_ci": "Wilson score interval of the policy's successes over its episodes "
+                                               "(initial states)",
+    "policies[].pred_ci": "t-interval of the policy's mean predicted probability over its episodes (initial states)",
+    "within_task.*.mean_ci, per_task_ci, difference": f"percentile bootstrap resampling {S.WITHIN_TASK_RESAMPLES}",
+    "pooled, per_task, unseen: pearson_ci": "Fisher's z over the policies, their rates taken as measured "
+                                            "(nothing resampled)",
+    "pooled, per_task, unseen: pearson_ci_bootstrap": "percentile bootstrap resampling initial states (every "
+                                                      "policy's episodes of a state together), the policies fixed",
+}
+
+
 def all_metrics(cfg: EvalConfig, results: dict, tasks, rows: list[dict], seen: set) -> dict:
-    """results.json's "metrics": the within-task headline, pooled and per task (and with cfg.replay
+    """results.json's "metrics": the within-task headline, pooled and per task, what each interval
+    resamples ("intervals", INTERVALS) (and with cfg.replay
     loop_actions_block's "loop_actions"); the same for the policies not in `seen` (those whose rollouts
     the world model never saw) where there are three or more of them and the world model saw any, and
     within task for those of them that are not counterfactual families ("unseen_networks_within_task",
@@ -1326,7 +1340,8 @@ def all_metrics(cfg: EvalConfig, results: dict, tasks, rows: list[dict], seen: s
     true_eps, prob_eps, member_eps = _episodes_of(results, tasks, lambda name: True)
     metrics = {"within_task": within_task_block(results, tasks, rows, cfg, lambda name: True),
                "mmrv_floor": S.mmrv_floor({t: results[t]["true"] for t in tasks}),
-               "pooled": ranking_block(rows, true_eps, prob_eps, cfg.threshold, member_eps), "per_task": {}}
+               "pooled": ranking_block(rows, true_eps, prob_eps, cfg.threshold, member_eps), "per_task": {},
+               "intervals": INTERVALS}
     if (loop := loop_actions_block(results, tasks, cfg)) is not None:
         metrics["loop_actions"] = loop
     for t in tasks:

@@ -237,14 +237,16 @@ def task_statistics(pred, true, threshold: float = 0.5) -> dict:
     return {k: float(v[0]) for k, v in draw_statistics(pred[None], true[None], threshold).items()}
 
 
-def draw_statistics(pred, true, threshold: float = 0.5) -> dict:
+def draw_statistics(pred, true, threshold: float = 0.5, distinct=None) -> dict:
     """task_statistics of D resamplings of one task at once: pred (D, P, N) probabilities (a policy with
     a non-finite one left out) or (D, P) scores (NaN: no score, left out), true (D, P, N) outcomes.
     Returns {stat: (D,) float64}; every ranking statistic of a draw with fewer than 2 scored policies is
     NaN (alignment, per episode, is defined for one policy: a plug-in evaluated alone has it, as its row
     and the pooled figures do; NaN with none), and Pearson and Spearman with fewer than MIN_CORRELATED
     or where either side is constant (pearson, spearman); MMRV, pairwise accuracy and alignment as mmrv,
-    pairwise_accuracy and alignment over the scored policies."""
+    pairwise_accuracy and alignment over the scored policies. distinct: (D,) how many different policies
+    each draw's scored ones are (a policy drawn twice counts once: two policies drawn as three lie on a
+    line, r = +-1); default, every scored one is another policy."""
     pred, true = np.asarray(pred, np.float64), np.asarray(true, np.float64)
     t = true.mean(-1)
     if pred.ndim == 3:
@@ -257,9 +259,10 @@ def draw_statistics(pred, true, threshold: float = 0.5) -> dict:
     else:
         p, keep = pred, ~np.isnan(pred)
         aligned = np.full(len(p), math.nan)
-    n = keep.sum(-1)
-    out = {"pearson": _masked_pearson(p, t, keep),
-           "spearman": _masked_pearson(_masked_rank(p, keep), _masked_rank(t, keep), keep),
+    n = keep.sum(-1) if distinct is None else np.asarray(distinct)
+    few = n < MIN_CORRELATED
+    out = {"pearson": np.where(few, math.nan, _masked_pearson(p, t, keep)),
+           "spearman": np.where(few, math.nan, _masked_pearson(_masked_rank(p, keep), _masked_rank(t, keep), keep)),
            "mmrv": _masked_mmrv(p, t, keep), "pairwise_acc_gap10": _masked_pairwise(p, t, keep, 0.10),
            "alignment": aligned}
     return {k: v if k == "alignment" else np.where(n >= 2, v, math.nan) for k, v in out.items()}
@@ -358,7 +361,10 @@ def within_task_draws(true: dict, predictors: dict, threshold: float = 0.5, draw
             r, c = rows[d:d + step, :, None], cols[d:d + step, None, :]
             for n in names:
                 pr = scored[n]
-                got = draw_statistics(pr[r[..., 0]] if pr.ndim == 1 else pr[r, c], tt[r, c], threshold)
+                drawn = np.zeros((len(r), tt.shape[0]), bool)  # which policies the draw holds, once each
+                np.put_along_axis(drawn, r[..., 0], True, axis=1)
+                distinct = (drawn & scored_policies(pr)).sum(-1)
+                got = draw_statistics(pr[r[..., 0]] if pr.ndim == 1 else pr[r, c], tt[r, c], threshold, distinct)
                 for k, v in got.items():
                     boot[n][t][k][d:d + step] = v
     return point, boot

@@ -1,6 +1,7 @@
 """experiments.compare: two designs' seeds ranking one zoo, against the within-task statistics."""
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -293,3 +294,32 @@ def test_an_ensemble_and_its_members_keep_what_their_ranking_read(tmp_path):
     res = json.loads((tmp_path / "ens" / "results.json").read_text())
     (tmp_path / "ens" / "results.json").write_text(json.dumps({**res, "world_model": wm}))
     assert C.ranked_reader(E.read_run(f"{tmp_path / 'ens'}#1")) == "judge: proprio,action"
+
+
+def test_a_policy_one_run_cannot_read_is_left_out_of_every_runs_statistics_and_shifts_stay_ordered():
+    true = _truth()
+    base = _noisy(true, 0.2, 1)
+    base["mug"][0] = 1.0  # the base reads the worst policy as a sure success ...
+    design = {t: v.copy() for t, v in base.items()}
+    design["mug"][0] = np.nan  # ... and the design, otherwise the same, diverges there
+    got = C.compare_groups(true, {"base": [base], "design": [design]}, draws=50)
+    for k in S.WITHIN_TASK:
+        assert got["gain"]["mean"][k] == pytest.approx(0.0), k
+        assert got["gain"]["mean_ci"][k] == pytest.approx([0.0, 0.0]), k
+    assert got["left_out"] == {"mug": [0]}
+    names = {t: [f"{t}/p{i}" for i in range(P)] for t in TASKS}
+    moved = {t: base[t] + (0.3 if t == "wipe" else 0.0) for t in TASKS}
+    moved["mug"] = design["mug"]
+    shifts = C.rate_shifts(true, [base], [moved], names)
+    assert shifts[0]["shift"] == pytest.approx(0.3) and math.isnan(shifts[-1]["shift"])
+
+
+def test_alignment_is_read_at_the_evaluations_own_threshold():
+    true = _truth()
+    pred = _noisy(true, 0.2, 1)
+    runs = [_results(true, pred) | {"config": {"threshold": 0.3}} for _ in range(2)]
+    got = C.compare(runs[:1], runs[1:], draws=5)
+    want = S.within_task(true, {"wm": pred}, threshold=0.3, draws=2)["wm"]["mean"]["alignment"]
+    assert got["all"]["base"]["mean"]["alignment"] == pytest.approx(want)
+    with pytest.raises(ValueError, match="threshold"):
+        C.compare(runs[:1], [runs[1] | {"config": {"threshold": 0.5}}], draws=5)

@@ -422,3 +422,18 @@ def test_the_difference_to_a_proxy_compares_the_policies_both_score():
     # the world model's own row keeps every policy it scores, the plug-in included
     own = both["world_model"]["per_task"]["t"]["pearson"]
     assert own != pytest.approx(alone["world_model"]["per_task"]["t"]["pearson"])
+
+
+def test_a_bootstrap_draw_of_fewer_than_three_distinct_policies_has_no_correlation():
+    # three policies: most draws hold one of them twice, and two policies drawn as three lie on a line
+    rng = np.random.default_rng(1)
+    levels = np.array([0.25, 0.5, 0.75])
+    true = {"t": (rng.random((3, 16)) < levels[:, None]).astype(float)}
+    wm = {"t": np.clip(levels[:, None] + rng.normal(0, 0.3, (3, 16)), 0, 1)}
+    _, boot = S.within_task_draws(true, {"wm": wm}, draws=300, seed=0)
+    pick = np.random.default_rng(0)
+    for d in range(300):
+        rows, _ = pick.integers(0, 3, 3), pick.integers(0, 16, 16)
+        for k in ("pearson", "spearman"):
+            got = boot["wm"]["t"][k][d]
+            assert math.isnan(got) == (len(set(rows.tolist())) < S.MIN_CORRELATED), (d, k, rows)
