@@ -1257,10 +1257,12 @@ def test_a_judge_of_replayed_labels_learns_what_the_imagined_actions_achieved(tm
     np.testing.assert_array_equal(got["train"]["label"][600:], truth)  # the true readings keep theirs
     val_ids = J.spread(list(range(6000, 7000)), 150)
     np.testing.assert_array_equal(got["val"]["label"], np.array([i % 4 == 0 and i % 3 != 0 for i in val_ids]))
-    # the spread picks task a's episodes alone (even ids): one replay a split, both in the batch of the
-    # larger (one compiled rollout)
-    assert closed.sum() == 200 and sum(i % 3 == 0 for i in val_ids) == 150
-    assert [r[:2] for r in replays] == [("a", 200), ("a", 200)]
+    # training's spread picks task a's episodes alone (every tenth id), validation's both tasks (150 of
+    # 1000 spread evenly, every third a rollout): one replay a task and split, each in the batch of the
+    # largest (one compiled rollout)
+    closed_val = [i for i in val_ids if i % 3 == 0]
+    assert closed.sum() == 200 and len(closed_val) == 51
+    assert sorted(r[:2] for r in replays) == [("a", 200), ("a", 200), ("b", 200)]
     m = got["metrics"]
     assert m["labels"] == "replayed" and m["relabelled"]["train"]["closed_loop"] == closed.sum()
     assert m["relabelled"]["train"]["changed"] == (closed & truth).sum()
@@ -1291,7 +1293,7 @@ def test_the_judge_warm_up_replays_what_the_fit_replays(tmp_path, monkeypatch):
     J.fit_judge(cfg, None, norm, _Rollouts(), list(range(6000)), tmp_path, progress=False)
     into = calls["warm"]
     J.warm_judge(cfg, None, norm, _Rollouts(), list(range(6000)))
-    assert calls["warm"] == [("a", (200, 3, 20), (200, 2), "uint32", calls["fit"][0][-1])]
+    assert calls["warm"] == [(t, (200, 3, 20), (200, 2), "uint32", calls["fit"][0][-1]) for t in "ab"]
     assert set(calls["fit"]) == set(calls["warm"])
     into = calls["none"] = []
     J.warm_judge(make_config("smoke", ["judge_episodes=600"]), None, norm, _Rollouts(), list(range(6000)))

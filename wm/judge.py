@@ -582,8 +582,12 @@ def _placeholder_episodes(cache, ids: list[int], dim: int) -> dict:
 
 
 def spread(ids: list[int], n: int) -> list[int]:
-    """At most n of ids, evenly spaced (the cache orders episodes by task and policy)."""
-    return list(ids[:: max(1, len(ids) // n)][:n])
+    """At most n of ids, evenly spaced over the whole list: the k-th is ids[k * len(ids) // n], so that
+    the last ids (the cache orders episodes by task and policy: the last tasks) are drawn as often as
+    the first (a stride of len(ids) // n cut at n would leave out the tail, up to half the list)."""
+    if len(ids) <= n:
+        return list(ids)
+    return [ids[k * len(ids) // n] for k in range(n)]
 
 
 # ---- files -----------------------------------------------------------------------------------------

@@ -56,6 +56,17 @@ def auroc(scores, labels) -> float:
     return float(mannwhitneyu(pos, neg).statistic / (len(pos) * len(neg)))
 
 
+def auroc_within_groups(scores, labels, groups) -> tuple[float, dict]:
+    """AUROC within each group (a task) and their mean over the groups holding both outcomes: a
+    score that only tells the groups apart (one task succeeds more often than another) earns 0.5
+    here, where the pooled auroc credits it. Returns (mean, {group: auroc}); nan where no group has
+    both outcomes (a group with one outcome is nan in the dict and left out of the mean)."""
+    s, y, g = np.asarray(scores, np.float64), np.asarray(labels, bool), np.asarray(groups)
+    each = {str(k): auroc(s[g == k], y[g == k]) for k in sorted(set(g.tolist()))}
+    defined = [v for v in each.values() if np.isfinite(v)]
+    return (float(np.mean(defined)) if defined else float("nan")), each
+
+
 def accuracy(prob, labels, threshold: float = 0.5) -> float:
     """The share of predictions, probabilities prob (N,) at or above threshold read as positive, that match
     labels (N,) bool."""

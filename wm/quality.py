@@ -77,7 +77,7 @@ from wm.judge import (
     load_judge,
     spread,
 )
-from wm.metrics import accuracy, auroc, psnr, psnr_of_mse, ssim, view_shift, window_contrast
+from wm.metrics import accuracy, auroc, auroc_within_groups, psnr, psnr_of_mse, ssim, view_shift, window_contrast
 from wm.model import WorldModel
 from wm.perceptual import MISSING as LPIPS_MISSING
 from wm.perceptual import available, lpips
@@ -159,7 +159,7 @@ def success_prediction(cfg: TrainConfig, params, norm: Norm, cache: TrainingCach
     the per-step rule's ("per_step_rule_"), the progress head's last value clipped to [0, 1]
     ("progress_"), and beside them the final frame's and the outcome head's."""
     got = imagined or imagine_episodes(cfg.model, params, norm, cache, episodes, cfg.camera, progress=False)
-    return _success_summary(success_readouts(got, judge), got["label"])
+    return _success_summary(success_readouts(got, judge), got["label"], got["task"])
 
 
 def success_readouts(got: dict, judge: EpisodeJudge | None) -> dict:
@@ -182,15 +182,24 @@ def _headline(rules: dict) -> str:
     return "judge_" if "judge_" in rules else "per_step_rule_"
 
 
-def _success_summary(rules: dict, labels) -> dict:
+def _success_summary(rules: dict, labels, tasks=None) -> dict:
     """Accuracy and AUROC of each read-out (success_readouts) against the outcomes; the headline's
-    (the judge's where there is one) also as "accuracy" and "auroc"."""
+    (the judge's where there is one) also as "accuracy" and "auroc". With the episodes' tasks, each
+    read-out's AUROC within each task too ("<tag>auroc_within_task": the mean over the tasks holding
+    both outcomes; "<tag>auroc_per_task"), the headline's also as "auroc_within_task": the pooled AUROC
+    credits a read-out that only tells an easy task from a hard one (knowing the task alone scores
+    above 0.5 wherever the tasks' success rates differ)."""
     out = {"episodes": len(labels), "positive_rate": float(labels.mean()), "context": 1,
            "rule": "episode judge" if "judge_" in rules else "highest per-step probability"}
     for tag, p in rules.items():
         out.update({f"{tag}accuracy": accuracy(p, labels), f"{tag}auroc": auroc(p, labels)})
+        if tasks is not None:
+            within, per_task = auroc_within_groups(p, labels, tasks)
+            out.update({f"{tag}auroc_within_task": within, f"{tag}auroc_per_task": per_task})
     headline = _headline(rules)
     out.update({"accuracy": out[f"{headline}accuracy"], "auroc": out[f"{headline}auroc"]})
+    if tasks is not None:
+        out["auroc_within_task"] = out[f"{headline}auroc_within_task"]
     return out
 
 
@@ -485,6 +494,7 @@ def evaluate(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, out: Pa
         "lpips_h8": fq["lpips"][at[8]] if 8 in at and "lpips" in fq else None,
         "copy_last_lpips_h8": fq["copy_last_lpips"][at[8]] if 8 in at and "lpips" in fq else None,
         "success_accuracy": sp["accuracy"], "success_auroc": sp["auroc"], "progress_auroc": sp["progress_auroc"],
+        "success_auroc_within_task": sp.get("auroc_within_task"),
         "match_accuracy": ctrl.get("match_accuracy"), "delta_psnr_db": ctrl.get("delta_psnr_db"),
         "success_follows_actions": sens.get("follows_actions"),
         "action_contrast": dep.get("action_contrast"),
@@ -513,7 +523,7 @@ def success_episodes(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache,
     tasked = spread(tasked, cfg.eval_episodes)
     got = imagine_episodes(cfg.model, params, norm, cache, tasked, cfg.camera, progress=True)
     rules = success_readouts(got, judge)
-    summary = _success_summary(rules, got["label"])
+    summary = _success_summary(rules, got["label"], got["task"])
     imagined = rules[_headline(rules)]
     on_truth = _read_true_episodes(cfg, params, norm, cache, tasked, judge if "judge_" in rules else None)
     keys = ("episode_id", "task", "policy", "policy_kind", "skill")
