@@ -1044,8 +1044,9 @@ def decision_analysis(cfg: EvalConfig, tasks: dict, alignment: float, most: int 
         for task, res in tasks.items():
             rates = res["true"].mean(1)
             read = np.isfinite(res["prob"]).all(1)  # a policy whose imagination diverged reads no outcome
+            # the window's edges in, whatever the rates' float rounding
             pairs += [(task, a, b) for a in range(len(rates)) for b in range(len(rates))
-                      if read[a] and read[b] and abs(rates[a] - rates[b] - g) <= 0.05 + 1e-9]  # 0.35 - 0.3 is 0.05
+                      if read[a] and read[b] and abs(rates[a] - rates[b] - g) <= 0.05 + 1e-9]
         spread = np.unique(np.linspace(0, len(pairs) - 1, min(most, len(pairs))).round().astype(int))
         chosen = [pairs[i] for i in spread]
         curves = [S.resampled_pick_better(tasks[t]["prob"][a] >= cfg.threshold, tasks[t]["prob"][b] >= cfg.threshold,
