@@ -664,12 +664,13 @@ TIMING_COLUMNS = (("stage", "stage"), ("wall_s", "wall s"), ("compile_s", "compi
 def fidelity_table(res: dict) -> list[list[str]] | None:
     """Per task and horizon: the imagined frame's PSNR against the simulated episode's, the first
     true frame's (copy-first), their difference, and the RMS gap between the policy's actions in
-    imagination and in the simulator; None where the results hold none."""
+    imagination and in the simulator at that step (the step's action, which led to its frame: at step
+    1 the action on the true first frame); None where the results hold none."""
     imag = res.get("imagination")
     if not imag:
         return None
     rows = [["task", "step", "imagined frame PSNR (dB)", "copy-first PSNR (dB)", "gain over copy-first (dB)",
-             "action gap (RMS)"]]
+             "action gap of the step's action (RMS)"]]
     for t, f in imag.items():
         for k, h in enumerate(f["horizons"]):
             rows.append([t, str(h), _fmt(f["frame_psnr"][k], 2), _fmt(f["copy_first_psnr"][k], 2),
