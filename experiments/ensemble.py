@@ -36,7 +36,8 @@ MEMBER_STATS = ("pearson", "spearman", "mmrv", "pairwise_acc_gap10")
 def combine(results: list[dict]) -> dict:
     """The ensemble's results.json from K >= 2 `experiments.evaluate` results over the same
     policies: {"models": K, "policies": [{name, task, lineage, n, true_rate, true_spread, pred_rate,
-    pred_rates (K,)}], "metrics": {"pooled" and per task: ranking_metrics + "members"}}."""
+    pred_rates (K,)}], "metrics": {"pooled" and per task: ranking_metrics + "members"}, "intervals": what
+    its Pearson intervals resample (stats.INTERVALS)}."""
     if len(results) < 2:
         raise ValueError(f"an ensemble needs at least two evaluations, got {len(results)}")
     by_key = [{(p["task"], p["name"]): p for p in r["policies"]} for r in results]
@@ -68,7 +69,9 @@ def combine(results: list[dict]) -> dict:
         mine = [r for r in rows if r["task"] == task]
         if len(mine) >= 3:
             metrics[task] = ensemble_metrics(mine, threshold)
-    return {"models": len(results), "policies": rows, "metrics": metrics, **shared_reader(results)}
+    intervals = {k: v for k, v in S.INTERVALS.items() if "pearson_ci" in k}  # what its intervals resample
+    return {"models": len(results), "policies": rows, "metrics": metrics, "intervals": intervals,
+            **shared_reader(results)}
 
 
 READER_KEYS = ("readout", "judge_inputs", "judge2_inputs")  # what a results.json's ranking read with

@@ -1318,22 +1318,9 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, models, wm
     }
 
 
-# what each kind of 95% interval in results.json resamples or assumes (metrics["intervals"])
-INTERVALS = {
-    "policies[].true_ci, pred_thresholded_ci": "Wilson score interval of the policy's successes over its episodes "
-                                               "(initial states)",
-    "policies[].pred_ci": "t-interval of the policy's mean predicted probability over its episodes (initial states)",
-    "within_task.*.mean_ci, per_task_ci, difference": f"percentile bootstrap resampling {S.WITHIN_TASK_RESAMPLES}",
-    "pooled, per_task, unseen: pearson_ci": "Fisher's z over the policies, their rates taken as measured "
-                                            "(nothing resampled)",
-    "pooled, per_task, unseen: pearson_ci_bootstrap": "percentile bootstrap resampling initial states (every "
-                                                      "policy's episodes of a state together), the policies fixed",
-}
-
-
 def all_metrics(cfg: EvalConfig, results: dict, tasks, rows: list[dict], seen: set) -> dict:
     """results.json's "metrics": the within-task headline, pooled and per task, what each interval
-    resamples ("intervals", INTERVALS) (and with cfg.replay
+    resamples ("intervals", experiments.stats.INTERVALS) (and with cfg.replay
     loop_actions_block's "loop_actions"); the same for the policies not in `seen` (those whose rollouts
     the world model never saw) where there are three or more of them and the world model saw any, and
     within task for those of them that are not counterfactual families ("unseen_networks_within_task",
@@ -1342,7 +1329,7 @@ def all_metrics(cfg: EvalConfig, results: dict, tasks, rows: list[dict], seen: s
     metrics = {"within_task": within_task_block(results, tasks, rows, cfg, lambda name: True),
                "mmrv_floor": S.mmrv_floor({t: results[t]["true"] for t in tasks}),
                "pooled": ranking_block(rows, true_eps, prob_eps, cfg.threshold, member_eps), "per_task": {},
-               "intervals": INTERVALS}
+               "intervals": S.INTERVALS}
     if (loop := loop_actions_block(results, tasks, cfg)) is not None:
         metrics["loop_actions"] = loop
     for t in tasks:

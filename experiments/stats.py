@@ -222,6 +222,19 @@ LOWER_IS_BETTER = ("mmrv",)
 DRAW_CHUNK = 1 << 22  # resampled outcomes held at once by within_task_draws
 WITHIN_TASK_RESAMPLES = "policies and initial states, within each task (the same states for each policy)"
 
+# what each kind of 95% interval in results.json resamples or assumes (an evaluation's
+# metrics["intervals"]; an ensemble's "intervals", its Pearson intervals')
+INTERVALS = {
+    "policies[].true_ci, pred_thresholded_ci": "Wilson score interval of the policy's successes over its episodes "
+                                               "(initial states)",
+    "policies[].pred_ci": "t-interval of the policy's mean predicted probability over its episodes (initial states)",
+    "within_task.*.mean_ci, per_task_ci, difference": f"percentile bootstrap resampling {WITHIN_TASK_RESAMPLES}",
+    "pooled, per_task, unseen: pearson_ci": "Fisher's z over the policies, their rates taken as measured "
+                                            "(nothing resampled)",
+    "pooled, per_task, unseen: pearson_ci_bootstrap": "percentile bootstrap resampling initial states (every "
+                                                      "policy's episodes of a state together), the policies fixed",
+}
+
 
 def task_statistics(pred, true, threshold: float = 0.5) -> dict:
     """The within-task statistics (WITHIN_TASK) of one task's ranking.

@@ -74,8 +74,8 @@ def test_results_hold_every_policy_with_statistics_from_the_episodes(evaluation,
         meta = json.loads(z["meta"].tobytes().decode())
     assert true.shape == prob.shape == (5, 2) and meta["names"] == names
     # results.json says what each kind of interval resamples
-    assert res["metrics"]["intervals"] == E.INTERVALS and res["metrics"]["within_task"]["resamples"] in " ".join(
-        E.INTERVALS.values())
+    assert res["metrics"]["intervals"] == S.INTERVALS and res["metrics"]["within_task"]["resamples"] in " ".join(
+        S.INTERVALS.values())
     for row, t, p in zip(res["policies"], true, prob, strict=True):
         assert row["true_rate"] == t.mean() and row["n"] == 2
         assert row["true_ci"] == pytest.approx(list(S.wilson_interval(int(t.sum()), 2)))

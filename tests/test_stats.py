@@ -166,6 +166,7 @@ def test_an_ensemble_ranks_by_the_mean_of_its_models_predicted_rates(tmp_path):
     assert m["members"]["pearson"] == pytest.approx([np.corrcoef(one, mean_true)[0, 1], np.corrcoef(two, mean_true)[0, 1]])
     assert m["members_mean"]["pearson"] == pytest.approx(np.mean(m["members"]["pearson"]))
     assert res["metrics"]["mug"]["pearson"] == pytest.approx(m["pearson"])
+    assert set(res["intervals"]) == {k for k in S.INTERVALS if "pearson_ci" in k}  # what they resample
     with pytest.raises(ValueError, match="at least two"):
         ENS.combine([_evaluation(one, true)])
     with pytest.raises(ValueError, match="other policies"):
