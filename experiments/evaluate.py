@@ -370,11 +370,11 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
     second judge's, the same way; NaN without one), "prob_replayed": (P, N) float
     (cfg.readout of each simulated episode's actions imagined open loop, _read_replay, with
     cfg.replay; the mean; NaN otherwise), "sim_finite": (P, N) bool
-    (the simulated episode's proprioception and actions all finite; True where read from the
-    truth cache), "prob_members": (K, P, N), "trace_success" and "trace_progress": (P, N, T) float16
+    (the simulated episode's proprioception and actions all finite; True where read from a truth
+    cache without frames), "prob_members": (K, P, N), "trace_success" and "trace_progress": (P, N, T) float16
     (the per-step success probability and predicted progress of each imagined episode; the models'
-    mean), "true_progress": (P, N, T) float16 (the simulator's progress; NaN where read from the truth
-    cache), "videos": {key: (T+1, S, S, 3)} (the first model's imagination), "video_index": [...],
+    mean), "true_progress": (P, N, T) float16 (the simulator's progress; NaN where a truth cache's
+    entry lacks it), "videos": {key: (T+1, S, S, 3)} (the first model's imagination), "video_index": [...],
     "sim_s", "wm_s", "steps"}. With `chunks`, a row per policy and slice of states instead: "names"
     repeat, "slices" [P'] gives each row's slice, and N is a slice's states (merge_task_parts joins them).
     """
@@ -736,7 +736,7 @@ def truth_space(cfg: EvalConfig, tasks, sources, size: int) -> None:
                        for _, j, _, padded in task_batches(cfg, [s for s in sources if s.runs_on(t)], cfg.episodes))
                 for t in tasks}
     need = sum(n * (TASKS[t].episode_steps + 1) * size * size * 3 for t, n in episodes.items())
-    need -= sum(f.stat().st_size for f in root.glob("*.npz"))
+    need -= sum(f.stat().st_size for f in root.glob("*.npz") if ".tmp" not in f.name)  # not a dead writer's half file
     free = shutil.disk_usage(root).free
     if need > 0.95 * free:
         raise ValueError(f"truth_frames: the simulated frames need about {need / 1e9:.1f} GB more in {root}, which has "
@@ -774,10 +774,33 @@ def simulate_truth(cfg: EvalConfig, task: str, policy, params, seeds, reset_keys
                     keep = ("outcome", "frames0", "proprio0", "progress") + (TRUTH_ARRAYS if cfg.truth_frames else ())
                     return {k: z[k] for k in keep if k in z.files} | {"steps": int(z["steps"])}
         truth = _simulate(task, policy, params, seeds, reset_keys, rng, engine, renderer)
-        tmp = path.with_name(f"{path.stem}.tmp{os.getpid()}.npz")
-        np.savez(tmp, **{k: np.asarray(v) for k, v in truth.items() if cfg.truth_frames or k not in TRUTH_ARRAYS})
-        tmp.replace(path)
+        _keep_truth(cfg, path, truth)
     return truth
+
+
+TRUTH_RESERVE = 2 << 30  # bytes an entry of the truth cache leaves free on its disk (the training's checkpoints beside)
+
+
+def _keep_truth(cfg: EvalConfig, path: Path, truth: dict) -> None:
+    """Writes truth (simulate_truth's, the lock of path held) to the cache entry path through a temporary
+    file: first removes what a writer killed before its rename left there (SIGKILL: a warm-up stopped
+    beside the training), and keeps nothing, with a warning, where the disk would keep less than
+    TRUTH_RESERVE free or the write fails: the evaluation goes on with the simulated episodes in hand."""
+    for stale in path.parent.glob(f"{path.stem}.tmp*.npz"):
+        stale.unlink(missing_ok=True)
+    arrays = {k: np.asarray(v) for k, v in truth.items() if cfg.truth_frames or k not in TRUTH_ARRAYS}
+    size = sum(a.nbytes for a in arrays.values())
+    if shutil.disk_usage(path.parent).free < size + TRUTH_RESERVE:
+        print(f"warning: {path.parent} has no room for {size / 1e9:.1f} GB more: {path.name} not kept in the "
+              "truth cache", file=sys.stderr)
+        return
+    tmp = path.with_name(f"{path.stem}.tmp{os.getpid()}.npz")
+    try:
+        np.savez(tmp, **arrays)
+        tmp.replace(path)
+    except OSError as e:
+        tmp.unlink(missing_ok=True)
+        print(f"warning: {path.name} not kept in the truth cache ({e})", file=sys.stderr)
 
 
 def _simulate(task, policy, params, seeds, reset_keys, rng, engine, renderer, steps: int | None = None) -> dict:
@@ -1149,7 +1172,12 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
                          "another read-out")
     make_output_dir(out / "tasks")
     _check_config(cfg, out, sources, models)
-    truth_space(cfg, tasks, sources, models[0][0].model.size)
+    try:
+        truth_space(cfg, tasks, sources, models[0][0].model.size)
+    except ValueError as e:
+        # what the cache does not hold is simulated here all the same (the figures do not depend on the
+        # cache): an evaluation, unlike the warm-up that fills the cache, goes on, keeping what fits
+        print(f"warning: {e}; the evaluation simulates what the cache lacks and keeps only what fits", file=sys.stderr)
     cfg = dataclasses.replace(cfg, readout=auto_readout(cfg.readout, cfg.wm_runs, models))
     wm_data = str(load_run_config(Path(cfg.wm_runs[0]))[1])  # the first model's data: the tasks it saw
     wm_cache = TrainingCache(wm_data) if (Path(wm_data) / "cache" / "index.json").exists() else None

@@ -582,9 +582,47 @@ def test_the_truth_cache_refuses_frames_the_disk_cannot_hold(smoke_zoo, tmp_path
     monkeypatch.setattr(E.shutil, "disk_usage", lambda _: usage._replace(free=need))
     with pytest.raises(ValueError, match=rf"about {need / 1e9:.1f} GB more .* {need / 1e9:.1f} GB free"):
         E.truth_space(cfg, ["mug"], sources, 64)
+    # a killed writer's temporary file is not what the cache holds
+    (tmp_path / "truth" / "mug-held.tmp4242.npz").write_bytes(bytes(need // 10))
+    with pytest.raises(ValueError, match="GB more"):
+        E.truth_space(cfg, ["mug"], sources, 64)
     (tmp_path / "truth" / "mug-held.npz").write_bytes(bytes(need // 10))  # what the cache holds counts
     E.truth_space(cfg, ["mug"], sources, 64)
     E.truth_space(dataclasses.replace(cfg, truth_frames=False), ["mug"], sources, 64)
+
+
+def test_a_truth_cache_entry_clears_a_killed_writers_file_and_is_skipped_where_the_disk_is_full(tmp_path, monkeypatch,
+                                                                                             capsys):
+    """A warm-up killed mid-write (SIGKILL: its stage's wait ran out) leaves its temporary file: the next
+    writer of the entry removes it, and the disk check does not count it as held. An entry the disk has
+    no room for, or whose write fails, is not kept: the evaluation goes on with the episodes in hand."""
+    cfg = E.EvalConfig(policies=("x",), wm="y", truth_cache=str(tmp_path / "truth"), truth_frames=True)
+    root = tmp_path / "truth"
+    root.mkdir()
+    path = root / "mug-0123456789abcdef0123.npz"
+    stale = root / f"{path.stem}.tmp999999.npz"
+    stale.write_bytes(bytes(1000))
+    truth = {"outcome": np.ones((2, 3), bool), "frames0": np.zeros((6, 1, 4, 4, 3), np.uint8),
+             "proprio0": np.zeros((6, 1, 37), np.float32), "steps": 5,
+             "frames": np.zeros((6, 6, 4, 4, 3), np.uint8), "proprio": np.zeros((6, 6, 37), np.float32),
+             "action": np.zeros((6, 5, 20), np.float32), "progress": np.zeros((6, 5), np.float32)}
+    E._keep_truth(cfg, path, truth)
+    assert not stale.exists() and sorted(f.name for f in root.iterdir()) == [path.name]
+    with np.load(path) as z:
+        assert sorted(z.files) == sorted(truth) and np.array_equal(z["frames"], truth["frames"])
+    path.unlink()
+    usage = shutil.disk_usage(tmp_path)
+    monkeypatch.setattr(E.shutil, "disk_usage", lambda _: usage._replace(free=E.TRUTH_RESERVE))
+    E._keep_truth(cfg, path, truth)
+    assert not any(root.iterdir()) and "not kept" in capsys.readouterr().err
+    monkeypatch.undo()
+
+    def full(*a, **k):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(E.np, "savez", full)
+    E._keep_truth(cfg, path, truth)
+    assert not any(root.iterdir()) and "No space left" in capsys.readouterr().err
 
 
 def test_auto_readout_picks_the_judge_only_where_every_model_saw_learned_policies_rollouts(smoke_world_model,
