@@ -265,7 +265,7 @@ def rate_shifts(true: dict, base: list[dict], design: list[dict], names: dict) -
         rows += [{"task": t, "name": n, "true": float(true[t][i].mean()), "base": float(b[i]),
                   "design": float(d[i]), "shift": float(d[i] - b[i])} for i, n in enumerate(names[t])]
     # a shift that is NaN (a run's imagination diverged on the policy) last: a NaN key would leave the sort unordered
-    return sorted(rows, key=lambda r: (math.isnan(r["shift"]), -abs(r["shift"]) if not math.isnan(r["shift"]) else 0.0))
+    return sorted(rows, key=lambda r: (math.isnan(r["shift"]), -abs(r["shift"])))
 
 
 def shifts_markdown(shifts: list[dict], names: tuple[str, str] = GROUPS, shown: int = SHIFTS_SHOWN) -> str:

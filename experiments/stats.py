@@ -372,10 +372,10 @@ def within_task_draws(true: dict, predictors: dict, threshold: float = 0.5, draw
         step = max(1, DRAW_CHUNK // tt.size)  # draws at once: bounds the (draws, P, N) gathers
         for d in range(0, draws, step):
             r, c = rows[d:d + step, :, None], cols[d:d + step, None, :]
+            drawn = np.zeros((len(r), tt.shape[0]), bool)  # which policies each draw holds, once each
+            np.put_along_axis(drawn, r[..., 0], True, axis=1)
             for n in names:
                 pr = scored[n]
-                drawn = np.zeros((len(r), tt.shape[0]), bool)  # which policies the draw holds, once each
-                np.put_along_axis(drawn, r[..., 0], True, axis=1)
                 distinct = (drawn & scored_policies(pr)).sum(-1)
                 got = draw_statistics(pr[r[..., 0]] if pr.ndim == 1 else pr[r, c], tt[r, c], threshold, distinct)
                 for k, v in got.items():

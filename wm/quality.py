@@ -182,24 +182,22 @@ def _headline(rules: dict) -> str:
     return "judge_" if "judge_" in rules else "per_step_rule_"
 
 
-def _success_summary(rules: dict, labels, tasks=None) -> dict:
+def _success_summary(rules: dict, labels, tasks) -> dict:
     """Accuracy and AUROC of each read-out (success_readouts) against the outcomes; the headline's
-    (the judge's where there is one) also as "accuracy" and "auroc". With the episodes' tasks, each
-    read-out's AUROC within each task too ("<tag>auroc_within_task": the mean over the tasks holding
+    (the judge's where there is one) also as "accuracy" and "auroc"; and by the episodes' tasks (N,),
+    each read-out's AUROC within each task ("<tag>auroc_within_task": the mean over the tasks holding
     both outcomes; "<tag>auroc_per_task"), the headline's also as "auroc_within_task": the pooled AUROC
     credits a read-out that only tells an easy task from a hard one (knowing the task alone scores
     above 0.5 wherever the tasks' success rates differ)."""
     out = {"episodes": len(labels), "positive_rate": float(labels.mean()), "context": 1,
            "rule": "episode judge" if "judge_" in rules else "highest per-step probability"}
     for tag, p in rules.items():
-        out.update({f"{tag}accuracy": accuracy(p, labels), f"{tag}auroc": auroc(p, labels)})
-        if tasks is not None:
-            within, per_task = auroc_within_groups(p, labels, tasks)
-            out.update({f"{tag}auroc_within_task": within, f"{tag}auroc_per_task": per_task})
+        within, per_task = auroc_within_groups(p, labels, tasks)
+        out.update({f"{tag}accuracy": accuracy(p, labels), f"{tag}auroc": auroc(p, labels),
+                    f"{tag}auroc_within_task": within, f"{tag}auroc_per_task": per_task})
     headline = _headline(rules)
-    out.update({"accuracy": out[f"{headline}accuracy"], "auroc": out[f"{headline}auroc"]})
-    if tasks is not None:
-        out["auroc_within_task"] = out[f"{headline}auroc_within_task"]
+    out.update({"accuracy": out[f"{headline}accuracy"], "auroc": out[f"{headline}auroc"],
+                "auroc_within_task": out[f"{headline}auroc_within_task"]})
     return out
 
 
@@ -494,7 +492,7 @@ def evaluate(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache, out: Pa
         "lpips_h8": fq["lpips"][at[8]] if 8 in at and "lpips" in fq else None,
         "copy_last_lpips_h8": fq["copy_last_lpips"][at[8]] if 8 in at and "lpips" in fq else None,
         "success_accuracy": sp["accuracy"], "success_auroc": sp["auroc"], "progress_auroc": sp["progress_auroc"],
-        "success_auroc_within_task": sp.get("auroc_within_task"),
+        "success_auroc_within_task": sp["auroc_within_task"],
         "match_accuracy": ctrl.get("match_accuracy"), "delta_psnr_db": ctrl.get("delta_psnr_db"),
         "success_follows_actions": sens.get("follows_actions"),
         "action_contrast": dep.get("action_contrast"),
