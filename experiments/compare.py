@@ -183,7 +183,7 @@ def compare_groups(true: dict, groups: dict, draws: int = 1000, seed: int = 0, t
                                for t in tasks},
                   "runs_per_task": [{t: {k: float(point[n][t][k]) for k in S.WITHIN_TASK} for t in tasks}
                                     for n in names],
-                  "abs_error": [mean_abs_error(true, run) for run in groups[g]]}
+                  "abs_error": [mean_abs_error(_kept(true, common), _kept(run, common)) for run in groups[g]]}
     if not all(c.all() for c in common.values()):
         out["left_out"] = {t: np.flatnonzero(~c).tolist() for t, c in common.items() if not c.all()}
     d, b = "design", "base"

@@ -107,6 +107,7 @@ from wm.checkpoint import (
     load_started,
     load_trained,
     trained_tasks,
+    training_fingerprints,
     training_policies,
     training_seeds,
     training_status,
@@ -1305,8 +1306,7 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, models, wm
               f"on truth is left out): {bad}", file=sys.stderr)
     if unread := S.nonfinite_policies(rows):
         print(f"warning: {unread}", file=sys.stderr)
-    # the policies whose own rollouts some member of the ensemble saw in training
-    seen = set().union(*(training_policies(Path(r)) for r in cfg.wm_runs))
+    seen = seen_policies(cfg.wm_runs, sources)
     for r in rows:
         r["in_wm_data"] = r["name"] in seen
     metrics = all_metrics(cfg, results, tasks, rows, seen)
@@ -1344,6 +1344,15 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, models, wm
                        "episodes": int(results[t]["true"].size), "steps": results[t]["steps"],
                        "nonfinite_sim_episodes": int((~results[t]["sim_finite"]).sum())} for t in tasks},
     }
+
+
+def seen_policies(wm_runs, sources) -> set:
+    """The names of the policies whose own rollouts some world model of wm_runs saw in training: those
+    its data names, and those of `sources` that compute what a policy of its data computed
+    (registry.fingerprint), so that a policy evaluated under another name than its rollouts' is seen."""
+    seen = set().union(*(training_policies(Path(r)) for r in wm_runs))
+    computed = set().union(*(training_fingerprints(Path(r)) for r in wm_runs))
+    return seen | {s.name for s in sources if computed and fingerprint(s) in computed}
 
 
 def all_metrics(cfg: EvalConfig, results: dict, tasks, rows: list[dict], seen: set) -> dict:
@@ -1513,6 +1522,16 @@ def wm_fingerprint(model) -> str:
     return h.hexdigest()[:16]
 
 
+def _compared(fields: dict) -> dict:
+    """An evaluation's config (as_json) as a rerun into its OUT must match it: without what does not
+    change its results, the time budget and the truth cache where it keeps the simulated frames (the
+    figures are then those of an evaluation without one); a cache without them leaves the frame
+    figures out (NaN), which a rerun must match."""
+    without_frames = bool(fields.get("truth_cache")) and not fields.get("truth_frames")
+    kept = {k: v for k, v in fields.items() if k not in ("max_minutes", "truth_cache", "truth_frames")}
+    return kept | {"truth_cache_without_frames": without_frames}
+
+
 def _check_config(cfg: EvalConfig, out: Path, sources, models=None) -> None:
     """Records cfg, every policy's fingerprint (its parameters and, for a plug-in, its code) and every
     world model's (wm_fingerprint; with `models`) in out/config.json, or checks a rerun against them:
@@ -1528,7 +1547,7 @@ def _check_config(cfg: EvalConfig, out: Path, sources, models=None) -> None:
         saved = read_json(path)
         theirs = saved.pop(FINGERPRINTS, {})
         their_wm = saved.pop(WM_FINGERPRINTS, None)  # None: an OUT that records none, resumed as it is
-        differs = [f for f in differing_fields(saved, mine, as_json(EvalConfig())) if f != "max_minutes"]
+        differs = differing_fields(_compared(saved), _compared(mine), _compared(as_json(EvalConfig())))
         if differs:
             raise ValueError(f"{out} holds an evaluation of another configuration (differs: {', '.join(differs)}); "
                              "use another OUT")

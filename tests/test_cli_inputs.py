@@ -77,3 +77,20 @@ def test_a_rerun_with_another_world_model_at_the_same_path_is_refused(tmp_path):
     saved.pop(E.WM_FINGERPRINTS)  # an OUT that records no world model's fingerprint resumes
     (out / "config.json").write_text(json.dumps(saved))
     E._check_config(cfg, out, [], [_model(2.0)])
+
+
+def test_a_rerun_may_add_or_drop_a_truth_cache_that_keeps_the_frames_but_not_one_without(tmp_path):
+    """A truth cache with its frames gives an evaluation's figures exactly (docs/benchmarks.md), so a rerun
+    into the same OUT may read one or not; one without frames leaves the frame figures NaN, so a task
+    saved with them is not resumed without (nor the other way) and neither is another episode count."""
+    base = ["policies=examples.plugin_policy:make", "video_policies=0"]
+    out = tmp_path / "eval"
+    (out / "tasks").mkdir(parents=True)
+    E._check_config(E.make_config("demo", base), out, [])
+    (out / "tasks" / "mug.npz").write_bytes(b"")
+    for extra in ([f"truth_cache={tmp_path / 'truth'}", "truth_frames=1"], ["max_minutes=3"], []):
+        E._check_config(E.make_config("demo", base + extra), out, [])
+    for extra, field in (([f"truth_cache={tmp_path / 'truth'}"], "truth_cache_without_frames"),
+                         (["episodes=3"], "episodes")):
+        with pytest.raises(ValueError, match=rf"another configuration \(differs: {field}\)"):
+            E._check_config(E.make_config("demo", base + extra), out, [])

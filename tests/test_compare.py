@@ -307,6 +307,7 @@ def test_a_policy_one_run_cannot_read_is_left_out_of_every_runs_statistics_and_s
         assert got["gain"]["mean"][k] == pytest.approx(0.0), k
         assert got["gain"]["mean_ci"][k] == pytest.approx([0.0, 0.0]), k
     assert got["left_out"] == {"mug": [0]}
+    assert got["design"]["abs_error"] == pytest.approx(got["base"]["abs_error"])  # finite, the same policies
     names = {t: [f"{t}/p{i}" for i in range(P)] for t in TASKS}
     moved = {t: base[t] + (0.3 if t == "wipe" else 0.0) for t in TASKS}
     moved["mug"] = design["mug"]

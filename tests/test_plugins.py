@@ -28,6 +28,7 @@ from sim_data.policies.registry import (
     load_plugin,
     resolve,
     stacked_sources,
+    used_fingerprints,
     used_policies,
 )
 from sim_data.sim import robot as R
@@ -560,3 +561,27 @@ def test_a_plugins_rollouts_in_the_training_data_count_as_seen(tmp_path):
             {"policy": "perturbed:mug/conv_proprio/97~perturbed", "policy_kind": "perturbed"}]
     (tmp_path / "manifest.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
     assert used_policies(tmp_path) == {"mug/conv_proprio/97", "examples.plugin_policy:make", "mine"}
+
+
+def test_a_policy_evaluated_under_another_name_than_its_rollouts_counts_as_seen(tmp_path):
+    """Seen is decided by what a policy computes where the training data records it: the plug-in whose
+    rollouts were recorded as "plugin:mine" is seen when evaluated as examples.plugin_policy:make, a
+    policy of the same name that computes something else is seen by its name, and another is not."""
+    plugin = resolve(["examples.plugin_policy:make"])[0]
+    other = dataclasses.replace(plugin, name="other", params=jax.tree_util.tree_map(lambda a: a + 1, plugin.params))
+    assert fingerprint(other) != fingerprint(plugin)
+    data = tmp_path / "data"
+    data.mkdir()
+    rows = [{"policy": "plugin:mine", "policy_kind": "plugin", "policy_fingerprint": fingerprint(plugin)},
+            {"policy": "scripted@1.00", "policy_kind": "scripted"},
+            {"policy": "learned:mug/conv/5", "policy_kind": "learned"}]  # a manifest that records no fingerprint
+    (data / "manifest.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    assert used_fingerprints(data) == {fingerprint(plugin)}
+    bundle = tmp_path / "bundle"  # a bundle carries its data's names and fingerprints
+    bundle.mkdir()
+    (bundle / "bundle.json").write_text(json.dumps({"data_policies": sorted(used_policies(data)),
+                                                    "data_fingerprints": sorted(used_fingerprints(data))}))
+    lone = dataclasses.replace(other, name="lone")
+    assert E.seen_policies([bundle], [plugin, other, lone]) == {"mine", "mug/conv/5", plugin.name}
+    (bundle / "bundle.json").write_text(json.dumps({"data_policies": ["mine"]}))  # one that records none
+    assert E.seen_policies([bundle], [plugin, other]) == {"mine"}

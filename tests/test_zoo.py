@@ -24,7 +24,15 @@ from sim_data.policies.bc import (
     stack_params,
     stacked,
 )
-from sim_data.policies.registry import PLAN, every_nth_checkpoint, registry_file, resolve, used_policies
+from sim_data.policies.registry import (
+    PLAN,
+    every_nth_checkpoint,
+    fingerprint,
+    registry_file,
+    resolve,
+    used_fingerprints,
+    used_policies,
+)
 from sim_data.sim import robot as R
 from sim_data.sim.env import HomeEnv
 from sim_data.sim.rollout import run_episodes
@@ -276,6 +284,9 @@ def test_mixed_dataset_records_policy_rollouts(smoke_dataset, smoke_zoo, smoke_w
     # a world model trained on it has seen that checkpoint and the plug-in act
     assert used_policies(out) == {f"mug/conv_proprio/{last}", "examples.plugin_policy:make"}
     assert used_policies(data) == set()
+    # and what each computes, so that it is seen under another name too
+    sources = resolve([f"{zoo_dir}#mug/conv_proprio/{last}", "examples.plugin_policy:make"])
+    assert used_fingerprints(out) == {fingerprint(s) for s in sources} and used_fingerprints(data) == set()
     scripted_seed = next(r["seed"] for r in rows if r["policy_kind"] == "scripted" and r["episode_id"].endswith("0"))
     assert learned[0]["seed"] == scripted_seed  # the same initial state as scripted episode 0
     meta = G.read_episode_meta(out / learned[0]["file"])

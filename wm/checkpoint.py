@@ -26,7 +26,7 @@ import orbax.checkpoint as ocp
 from flax import serialization, traverse_util
 
 from sim_data.dataset.cache import TrainingCache
-from sim_data.policies.registry import used_policies, used_seeds
+from sim_data.policies.registry import used_fingerprints, used_policies, used_seeds
 from sim_data.util import read_json, run_cli, write_json_atomic
 from wm.config import TrainConfig, from_dict
 from wm.imagine import Norm
@@ -90,6 +90,14 @@ def training_policies(out: Path) -> set:
     if is_bundle(out):
         return set(bundle_meta(out).get("data_policies", ()))
     return used_policies(load_run_config(out)[1])
+
+
+def training_fingerprints(out: Path) -> set:
+    """The fingerprints of the same policies (sim_data.policies.registry.fingerprint), where the
+    training data's manifests record them."""
+    if is_bundle(out):
+        return set(bundle_meta(out).get("data_fingerprints", ()))
+    return used_fingerprints(load_run_config(out)[1])
 
 
 def trained_tasks(out: Path) -> tuple:
@@ -197,7 +205,8 @@ def write_bundle(run: Path, out: Path, dtype: str = "bfloat16") -> dict:
             hashes[blob] = _sha256(tmp / blob)
     meta = {"format": BUNDLE_FORMAT, "source": str(run.absolute()), "dtype": dtype,
             "parameters": int(sum(a.size for a in flat.values())), "sha256": hashes, "files": _run_files(run),
-            "data_seeds": sorted(training_seeds(run)), "data_policies": sorted(training_policies(run))}
+            "data_seeds": sorted(training_seeds(run)), "data_policies": sorted(training_policies(run)),
+            "data_fingerprints": sorted(training_fingerprints(run))}
     write_json_atomic(tmp / BUNDLE, meta)
     if out.exists():
         shutil.rmtree(out)

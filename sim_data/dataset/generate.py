@@ -44,7 +44,9 @@ from sim_data.policies.degrade import GOLDEN, perturbation
 from sim_data.policies.registry import (
     PERTURBED,
     PLAN,
+    SEEN_KINDS,
     PolicySource,
+    fingerprint,
     is_plugin,
     perturbed_copy,
     registry_file,
@@ -789,10 +791,16 @@ def build_manifest(cfg: DataConfig, out: Path, learned=()) -> list:
     """Writes manifest.jsonl from the episode files of cfg's plan (each read back); returns its rows."""
     keys = ("episode_id", "task", "policy", "policy_kind", "skill", "seed", "success", "num_steps", "split", "file",
             "engine", "renderer", "heldout")
-    rows = []
+    rows, prints = [], {}
     for task, source, i in _episodes(cfg, learned):
         meta = read_episode_meta(out / "episodes" / f"{episode_id(task, source, i)}.mcap")
-        rows.append({k: meta[k] for k in keys})
+        row = {k: meta[k] for k in keys}
+        if policy_kind(source) in SEEN_KINDS:
+            # what the policy computes, so that an evaluation under another name still counts it seen
+            if source.name not in prints:
+                prints[source.name] = fingerprint(source)
+            row["policy_fingerprint"] = prints[source.name]
+        rows.append(row)
     tmp = out / f"manifest.jsonl.tmp{os.getpid()}"
     tmp.write_text("".join(json.dumps(r) + "\n" for r in rows))
     os.replace(tmp, out / "manifest.jsonl")

@@ -554,16 +554,29 @@ def used_seeds(*datasets) -> set:
     return seeds
 
 
-def used_policies(*datasets) -> set:
-    """The names of the learned policies and plug-ins whose rollouts are in the manifests of the given
-    dataset directories (a world model trained on them has seen those policies act)."""
-    names = set()
+SEEN_KINDS = ("learned", "plugin")  # the kinds of policy whose rollouts make an evaluated policy seen
+
+
+def _seen_rows(datasets) -> list[dict]:
+    rows = []
     for d in datasets:
         manifest = Path(d) / "manifest.jsonl"
         if manifest.exists():
-            rows = (json.loads(line) for line in manifest.read_text().splitlines() if line)
-            names |= {r["policy"].split(":", 1)[1] for r in rows if r.get("policy_kind") in ("learned", "plugin")}
-    return names
+            rows += [r for line in manifest.read_text().splitlines() if line
+                     if (r := json.loads(line)).get("policy_kind") in SEEN_KINDS]
+    return rows
+
+
+def used_policies(*datasets) -> set:
+    """The names of the learned policies and plug-ins whose rollouts are in the manifests of the given
+    dataset directories (a world model trained on them has seen those policies act)."""
+    return {r["policy"].split(":", 1)[1] for r in _seen_rows(datasets)}
+
+
+def used_fingerprints(*datasets) -> set:
+    """The fingerprints (what each computes) of the same policies, where the manifests record them: a
+    policy evaluated under another name than its rollouts' is seen all the same."""
+    return {r["policy_fingerprint"] for r in _seen_rows(datasets) if r.get("policy_fingerprint")}
 
 
 def heldout_seeds(task: str, n: int, seed: int, used: set) -> list[int]:
