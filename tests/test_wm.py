@@ -32,6 +32,7 @@ from wm.checkpoint import (
     bundle_holds,
     load_run_config,
     load_trained,
+    training_fingerprints,
     training_policies,
     training_seeds,
     training_status,
@@ -1604,6 +1605,7 @@ def test_a_bundle_carries_the_model_in_bfloat16_and_refuses_a_damaged_copy(smoke
         np.testing.assert_array_equal(np.asarray(b), np.asarray(jnp.asarray(a, jnp.bfloat16), np.float32))
     assert training_status(bundle) == training_status(run) and training_seeds(bundle) == training_seeds(run)
     assert training_policies(bundle) == training_policies(run)
+    assert training_fingerprints(bundle) == training_fingerprints(run)
     assert load_run_config(bundle) == load_run_config(run) and len(training_seeds(run)) > 0
     np.testing.assert_array_equal(J.judge_episodes(load_judge(bundle), episodes), J.judge_episodes(judge, episodes))
     assert all(f.stat().st_size <= 15 * 2**20 for f in bundle.iterdir())
