@@ -125,6 +125,10 @@ def test_bad_configuration_is_refused_before_work(tmp_path):
         G.make_config("smoke", ["weak_grip=-1"])
     with pytest.raises(ValueError, match="play_nod is a chance"):
         G.make_config("smoke", ["play_nod=-0.1"])
+    with pytest.raises(ValueError, match="skills must differ by at least 0.01"):  # both would be episodes "s030"
+        G.make_config("smoke", ["skills=0.3,0.304"])
+    with pytest.raises(ValueError, match="names a task twice"):
+        G.make_config("smoke", ["tasks=mug,mug"])
     with pytest.raises(SystemExit):
         G.main(["--config", "smoke", "--out", str(tmp_path / "x"), "size=96"])
     assert not (tmp_path / "x").exists()
@@ -136,6 +140,37 @@ def test_another_config_is_not_mixed_into_a_dataset(smoke, tmp_path):
     shutil.copytree(out, copy)
     with pytest.raises(ValueError, match="another configuration"):
         G.generate(G.make_config("smoke", ["seed=5"]), copy, progress=False)
+
+
+def test_a_rerun_may_change_the_workers_but_not_the_engine_or_what_its_policies_compute(smoke, tmp_path):
+    """config.json names the engine and the learned policies by their specs alone: sources.json records
+    the engine resolved and each policy's fingerprint, and a rerun (or a reused dataset) that would mix
+    other episodes into the finished ones is refused; the writer processes change no episode."""
+    _, out, _ = smoke
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    assert json.loads((copy / G.SOURCES_FILE).read_text()) == {"engine": "cpu", "policies": {}}
+    G.generate(G.make_config("smoke", ["workers=1"]), copy, progress=False)  # nothing left to simulate
+    with pytest.raises(ValueError, match="simulated with the cpu engine, and this run would use mjx"):
+        G._check_sources_match(copy, [], "mjx")
+    with pytest.raises(ValueError, match=r"\(reused\) holds episodes simulated with the cpu engine"):
+        G._check_sources_match(tmp_path / "new", [], "mjx", reuse=copy)
+    src = PolicySource("mine", "plugin", None, "a policy", {"w": np.zeros(2)}, {"plugin": "mine"})
+    mixed = tmp_path / "mixed"
+    mixed.mkdir()
+    G._check_sources_match(mixed, [src], "cpu")
+    G._check_sources_match(mixed, [src], "cpu")  # the same policy: resumes
+    with pytest.raises(ValueError, match=r"now compute otherwise or are no longer named \(\['mine'\]"):
+        G._check_sources_match(mixed, [dataclasses.replace(src, params={"w": np.ones(2)})], "cpu")
+
+
+def test_drives_join_a_reused_dataset_only_where_no_weak_grip_shares_their_chunks(tmp_path):
+    base = G.make_config("smoke", ["weak_grip=2", "programs=1"])
+    reused = tmp_path / "reused"
+    reused.mkdir()
+    (reused / "config.json").write_text(json.dumps(dataclasses.asdict(base)))
+    with pytest.raises(ValueError, match=r"other settings \(\['drive'\]\)"):
+        G.link_shared_episodes(dataclasses.replace(base, drive=2), tmp_path / "out", reused)
 
 
 def test_chunks_group_by_compiled_rollout_across_tasks_and_parts_begin_on_different_ones():

@@ -175,6 +175,10 @@ def test_a_failed_export_leaves_nothing_and_overwrite_replaces(export, tmp_path)
     (tmp_path / "out" / "stale").write_text("x")
     assert L.export(data, tmp_path / "out", overwrite=True) == info
     assert not (tmp_path / "out" / "stale").exists() and (tmp_path / "out" / "meta" / "info.json").exists()
+    for onto in (data, data.parent):  # an OUT that is the dataset or holds it would replace it
+        with pytest.raises(ValueError, match="would replace the dataset"):
+            L.export(data, onto, overwrite=True)
+    assert (data / "manifest.jsonl").exists()
 
 
 def test_lerobot_reads_the_export(export):

@@ -4,6 +4,7 @@ import dataclasses
 import functools
 import json
 import os
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -560,3 +561,41 @@ def test_the_rollouts_warm_up_fills_the_persistent_cache_that_a_later_process_lo
     assert warmed["cache_lookups"] > warmed["cache_hits"]  # compiled there
     rolled = run("rollouts")
     assert rolled["cache_lookups"] - rolled["cache_hits"] <= 1, rolled
+
+
+def test_measured_success_is_read_back_only_for_the_same_states_engine_and_policies(smoke_zoo, tmp_path,
+                                                                                    monkeypatch):
+    """measure_success keeps each task's outcomes; a rerun reads them back where it would measure the
+    same policies (as they are now) over the same states with the same engine, and measures again
+    otherwise. The simulation is replaced by outcomes that say which call made them."""
+    zoo_dir, _ = smoke_zoo
+    out = tmp_path / "zoo"
+    shutil.copytree(zoo_dir, out)
+    calls = []
+
+    def fake(env, policy, params, keys, rng, renderers):
+        calls.append(len(keys))
+        return np.ones((jax.tree_util.tree_leaves(params)[0].shape[0], len(keys)), bool), None
+
+    monkeypatch.setattr(zoo, "record_policies", fake)
+    monkeypatch.setattr(zoo, "cached_env", lambda *a: None)
+    monkeypatch.setattr(zoo, "cached_renderers", lambda *a: None)
+    first = zoo.measure_success(out, 2, engine="cpu", progress=False)
+    n = len(calls)
+    assert n >= 1 and all(p["n"] == 2 and p["rate"] == 1.0 for p in first["policies"])
+    assert zoo.measure_success(out, 2, engine="cpu", progress=False) == first and len(calls) == n  # read back
+    again = zoo.measure_success(out, 3, engine="cpu", progress=False)  # more states: measured again
+    assert len(calls) > n and all(p["n"] == 3 for p in again["policies"])
+    n = len(calls)
+    zoo.measure_success(out, 3, seed=1, engine="cpu", progress=False)
+    assert len(calls) > n
+    n = len(calls)
+    zoo.measure_success(out, 3, seed=1, engine="cpu", progress=False)
+    assert len(calls) == n  # read back
+    registry = json.loads((out / "policies.json").read_text())  # a checkpoint trained again: other parameters
+    recs = registry["policies"]
+    recs[0]["checkpoint"] = next(r["checkpoint"] for r in recs[1:] if r["net"] == recs[0]["net"]
+                                 and r["task"] == recs[0]["task"])
+    (out / "policies.json").write_text(json.dumps(registry))
+    zoo.measure_success(out, 3, seed=1, engine="cpu", progress=False)
+    assert len(calls) > n

@@ -85,11 +85,28 @@ def _decode(path: Path, cameras) -> dict:
             "progress": ep["progress"], "scene": scene}
 
 
-def _write_shard(root: Path, name: str, decoded: list, cameras) -> dict:
-    """Writes one shard (in name.tmp, renamed when whole); returns its summary."""
+SOURCES = "sources.json"  # a shard's episode files as they were when it was built (_file_stamps)
+
+
+def _file_stamps(files) -> dict:
+    """{file name: [size, modification time in ns]}: a file written again under its name (an episode
+    simulated again, a corrupt one replaced) changes its stamp, so the shard that holds it is rebuilt."""
+    return {f.name: [(st := f.stat()).st_size, st.st_mtime_ns] for f in files}
+
+
+def _shard_current(shard: Path, group) -> bool:
+    """Whether a built shard holds the episode files of group as they are now."""
+    if not (shard / "episodes.json").exists() or not (shard / SOURCES).exists():
+        return False
+    return json.loads((shard / SOURCES).read_text()) == _file_stamps(group)
+
+
+def _write_shard(root: Path, name: str, decoded: list, cameras, stamps: dict) -> dict:
+    """Writes one shard (in name.tmp, renamed when whole) with its files' stamps; returns its summary."""
     tmp, final = root / f"{name}.tmp", root / name
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir()
+    (tmp / SOURCES).write_text(json.dumps(stamps))
     good = [d for d in decoded if "error" not in d]
     records, start = [], 0
     for d in good:
@@ -103,6 +120,7 @@ def _write_shard(root: Path, name: str, decoded: list, cameras) -> dict:
     skipped = [{"file": str(d.get("file", "")), "error": d["error"]} for d in decoded if "error" in d]
     summary = {"name": name, "frames": start, "episodes": records, "skipped": skipped}
     (tmp / "episodes.json").write_text(json.dumps(summary, indent=1))
+    shutil.rmtree(final, ignore_errors=True)  # a shard built from the files as they were
     os.replace(tmp, final)
     return summary
 
@@ -137,7 +155,8 @@ def build_cache(out: Path, skip_corrupt: bool = False, workers: int | None = Non
     (root / "index.json").unlink(missing_ok=True)
     groups = [files[i:i + shard_episodes] for i in range(0, len(files), shard_episodes)]
     names = [f"shard-{i:05d}" for i in range(len(groups))]
-    todo = [(n, g) for n, g in zip(names, groups) if not (root / n / "episodes.json").exists()]
+    todo = [(n, g) for n, g in zip(names, groups) if not _shard_current(root / n, g)]
+    stamps = {n: _file_stamps(g) for n, g in todo}  # before decoding: a file written meanwhile is built again
     bar = tqdm(total=sum(len(g) for _, g in todo), unit="ep", desc="cache", disable=not progress or not todo)
     workers = workers or min(16, os.cpu_count() or 1)
     copied = reused_rows(reuse, files, cameras) if reuse is not None else {}
@@ -164,7 +183,7 @@ def build_cache(out: Path, skip_corrupt: bool = False, workers: int | None = Non
                 decoded.append(d)
                 bar.update(1)
             submitted[k] = None
-            _write_shard(root, name, decoded, cameras)
+            _write_shard(root, name, decoded, cameras, stamps[name])
     bar.close()
     index = _write_index(root, names, cameras)
     for s in index["skipped"]:

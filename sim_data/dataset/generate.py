@@ -75,6 +75,7 @@ from sim_data.util import (
     make_output_dir,
     package_versions,
     pad_with_last,
+    read_json,
     run_cli,
     wait_for_files,
     wilson_interval,
@@ -182,6 +183,10 @@ class DataConfig:
             raise ValueError(f"tasks {bad or '(none)'} unknown; choose from {', '.join(TASK_NAMES)}")
         if not self.skills or any(not 0.0 <= float(s) <= 1.0 for s in self.skills):
             raise ValueError(f"skills must be in [0, 1], got {self.skills}")
+        if len(set(self.tasks)) < len(self.tasks):
+            raise ValueError(f"tasks names a task twice: {self.tasks}")
+        if len({round(float(s) * 100) for s in self.skills}) < len(self.skills):  # episode_id's skill in percent
+            raise ValueError(f"skills must differ by at least 0.01 (each names its episodes in percent), got {self.skills}")
         if self.episodes < 1 or self.batch < 1 or self.workers < 1:
             raise ValueError("episodes, batch and workers must be >= 1")
         if min(self.programs, self.play, self.policy_episodes, self.weak_grip, self.drive, self.perturb_episodes) < 0:
@@ -479,13 +484,15 @@ def link_shared_episodes(cfg: DataConfig, out: Path, reuse: Path, learned=()) ->
     also holds, so they are not simulated again; returns how many. The reused dataset's configuration
     must equal cfg apart from the learned policies and drives it adds (and the worker count): the same
     seeds then give the same bytes (a drive plays an action table, and a table's row gives the
-    episode it gives alone)."""
+    episode it gives alone), except beside weak-grip episodes, whose script draws its noise by their
+    row in the chunk the drives share: there the drives must be the same too."""
     reuse = Path(reuse)
     if not (reuse / "config.json").exists():
         raise FileNotFoundError(f"{reuse} holds no dataset (config.json): generate it first")
     theirs = json.loads((reuse / "config.json").read_text())
     mine = json.loads(json.dumps(dataclasses.asdict(cfg)))
-    diff = sorted(k for k in mine if k not in _ADDITIONS and theirs.get(k) != mine[k])
+    additions = tuple(k for k in _ADDITIONS if not (k == "drive" and cfg.weak_grip))
+    diff = sorted(k for k in mine if k not in additions and theirs.get(k) != mine[k])
     if diff:
         raise ValueError(f"{reuse} was generated with other settings ({diff}); its episodes cannot be reused")
     linked = 0
@@ -517,6 +524,7 @@ def generate(cfg: DataConfig, out: Path, progress: bool = True, reuse: Path | No
     learned = learned_sources(cfg)
     with exclusive(out / "episodes.lock"):  # the parts of one dataset start together
         _check_config_matches(cfg, out)
+        _check_sources_match(out, learned, engine, reuse)
         if part is None:  # (a part's writers may be busy with theirs)
             for stale in (out / "episodes").glob("*.tmp"):
                 stale.unlink()  # a killed run's half-written file
@@ -784,7 +792,35 @@ def _drain(pending, bar, wait_all: bool):
 
 def _check_config_matches(cfg: DataConfig, out: Path) -> None:
     """Saves the resolved config on first use; refuses to mix a different one into the same directory."""
-    save_or_check(out / "config.json", as_json(cfg), "a dataset", defaults=as_json(DataConfig()))
+    # the writer processes change no episode's content: a rerun may use fewer (out of memory) or more
+    save_or_check(out / "config.json", as_json(cfg), "a dataset", defaults=as_json(DataConfig()), ignore=("workers",))
+
+
+SOURCES_FILE = "sources.json"  # the engine a dataset's episodes are simulated with and what its learned policies compute
+
+
+def _check_sources_match(out: Path, learned, engine: str, reuse: Path | None = None) -> None:
+    """Saves the engine and each learned policy's fingerprint (registry.fingerprint) on first use;
+    refuses a rerun, or a reused dataset, that would mix episodes of another engine or of policies
+    that now compute otherwise (a zoo trained again at the same path, a plug-in's code changed): the
+    config names both only by their specs, and a finished episode is kept as it is."""
+    mine = {"engine": engine, "policies": {s.name: fingerprint(s) for s in learned}}
+    for d, what in ((out, "holds"), (reuse, "(reused) holds")):
+        path = None if d is None else Path(d) / SOURCES_FILE
+        if path is None or not path.exists():
+            continue
+        theirs = read_json(path)
+        if theirs["engine"] != engine:
+            raise ValueError(f"{d} {what} episodes simulated with the {theirs['engine']} engine, and this run "
+                             f"would use {engine}: set engine={theirs['engine']} or use another OUT")
+        if d == out and theirs["policies"] != mine["policies"]:
+            changed = sorted(n for n in theirs["policies"].keys() | mine["policies"].keys()
+                             if theirs["policies"].get(n) != mine["policies"].get(n))
+            raise ValueError(f"{d} holds rollouts of policies that now compute otherwise or are no longer "
+                             f"named ({changed[:5]}{' ...' if len(changed) > 5 else ''}: a zoo trained again, "
+                             "a plug-in's code changed); use another OUT")
+    if not (out / SOURCES_FILE).exists():
+        write_json_atomic(out / SOURCES_FILE, mine)
 
 
 def build_manifest(cfg: DataConfig, out: Path, learned=()) -> list:

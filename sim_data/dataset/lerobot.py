@@ -309,6 +309,9 @@ def export(data: Path, out: Path, overwrite: bool = False, progress: bool = Fals
     """
     data, out = Path(data), Path(out)
     rows = read_manifest(data)
+    if out.resolve() == data.resolve() or out.resolve() in data.resolve().parents:
+        raise ValueError(f"OUT {out} is the dataset {data} or holds it: an export there would replace the "
+                         "dataset; choose another OUT")
     _check_out(out, overwrite)
     check_cameras(data, rows)
     tmp = out.with_name(out.name + ".tmp")
