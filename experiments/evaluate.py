@@ -1320,7 +1320,7 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, models, wm
         "versions": package_versions(("jax", "flax", "optax", "orbax-checkpoint", "mujoco", "mujoco-mjx", "numpy")),
         "world_model": {"run": cfg.wm, "runs": list(cfg.wm_runs), "data": wm_data,
                         "train_tasks": train_tasks,
-                        "training": training, "cut_short": any(t["cut_short"] for t in training),
+                        "training": training, "cut_short": any(t["cut_short"] is not False for t in training),
                         "readout": cfg.readout, "imagine": wm_cfg.model.imagine,
                         # what each judge reads, so that comparisons across runs can tell judges apart
                         "judge_inputs": list(wm_cfg.judge_inputs), "judge2_inputs": list(wm_cfg.judge2_inputs),

@@ -617,8 +617,9 @@ th{background:#f3f3f3}img{max-width:100%}img.anim{width:300px;image-rendering:pi
 .ok{color:#070}.bad{color:#b00}.warn{color:#b00;font-weight:bold}code{background:#f3f3f3;padding:1px 4px}"""
 
 
-CUT_SHORT = ("Cut short: a world model stopped at its safety time limit before its budget of steps; these "
-             "figures are not those of the preset (rerun its training to finish it).")
+CUT_SHORT = ("Cut short: a world model stopped at its safety time limit before its budget of steps, or one whose "
+             "training has not finished a command (no train_status.json); these figures are not those of the "
+             "preset (rerun its training to finish it).")
 
 
 def selection_summary(sel: dict) -> str:

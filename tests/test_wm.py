@@ -24,6 +24,7 @@ from sim_data.config import override
 from sim_data.dataset.cache import TrainingCache
 from sim_data.policies.registry import PolicySource
 from sim_data.sim.scene import SCENE_STATE_NAMES
+from wm import checkpoint as CK
 from wm import imagine as I
 from wm import judge as J
 from wm import metrics as M
@@ -955,6 +956,12 @@ def test_learning_rate_is_a_function_of_the_step():
         make_config("smoke", ["max_minutes=-1"])
     with pytest.raises(ValueError, match="anchor_drop"):
         make_config("smoke", ["anchor_drop=1.0"])
+    for bad in ("eval_every=0", "ckpt_every=0", "log_every=0", "val_batches=0"):
+        with pytest.raises(ValueError, match="must be >= 1"):
+            make_config("smoke", [bad])
+    for bad in ("grad_clip=0", "weight_decay=-1", "lr=0"):
+        with pytest.raises(ValueError, match="grad_clip > 0"):
+            make_config("smoke", [bad])
 
 
 class HoldStill:
@@ -1480,6 +1487,9 @@ def test_a_run_cut_short_is_left_unevaluated_and_the_rerun_finishes_it(smoke_dat
     assert train_main([*args, "max_minutes=1e-6"]) == 0  # stops at its first logged step
     assert json.loads((out / "train_status.json").read_text()) == {"step": 5, "steps": 30, "cut_short": True}
     assert not (out / "eval.json").exists()
+    # validated on the eval_every grid alone, as an uninterrupted run: the stop at step 5 chose nothing, so
+    # the rerun keeps the step an uninterrupted run keeps
+    assert json.loads((out / "checkpoints" / "5" / "loader" / "metadata").read_text())["best_val"] == math.inf
     assert train_main(args) == 0
     assert json.loads((out / "train_status.json").read_text())["cut_short"] is False
     assert (out / "eval.json").exists()
@@ -1622,7 +1632,16 @@ def test_a_bundle_carries_the_model_in_bfloat16_and_refuses_a_damaged_copy(smoke
     meta = json.loads((other / "bundle.json").read_text())
     meta["files"]["config.json"]["train"]["model"]["dim"] *= 2
     (other / "bundle.json").write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match="bundle.json does not match its own SHA-256"):  # edited by hand
+        load_trained(other)
+    meta["meta_sha256"] = CK._meta_digest(meta)  # as written so by other code
+    (other / "bundle.json").write_text(json.dumps(meta))
     with pytest.raises(ValueError, match="do not fit its configuration's model .* another version of wm.model"):
+        load_trained(other)
+    meta["files"]["config.json"]["train"]["model"]["new_setting"] = 1
+    meta["meta_sha256"] = CK._meta_digest(meta)
+    (other / "bundle.json").write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match=r"settings this code does not know \(new_setting\)"):
         load_trained(other)
 
 

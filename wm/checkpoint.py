@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import json
 import os
 import shutil
 import sys
@@ -34,6 +35,7 @@ from wm.model import init_params
 
 BUNDLE = "bundle.json"
 SHARD_BYTES = 15 * 2**20
+BUNDLE_BYTES = 64 * 2**20  # what a GPU machine returns in all (its files of <= 16 MiB each)
 BUNDLE_FORMAT = 1
 # the episode judges' file stems (wm.judge.save_judge: <stem>.json and <stem>.msgpack) and read-outs' names
 JUDGE, SECOND_JUDGE = "judge", "judge2"
@@ -207,11 +209,27 @@ def write_bundle(run: Path, out: Path, dtype: str = "bfloat16") -> dict:
             "parameters": int(sum(a.size for a in flat.values())), "sha256": hashes, "files": _run_files(run),
             "data_seeds": sorted(training_seeds(run)), "data_policies": sorted(training_policies(run)),
             "data_fingerprints": sorted(training_fingerprints(run))}
+    meta["meta_sha256"] = _meta_digest(meta)
     write_json_atomic(tmp / BUNDLE, meta)
-    if out.exists():
-        shutil.rmtree(out)
-    os.replace(tmp, out)
+    total = sum(f.stat().st_size for f in tmp.iterdir())
+    if total > BUNDLE_BYTES:
+        print(f"warning: the bundle holds {total / 2**20:.1f} MiB, more than the {BUNDLE_BYTES >> 20} MiB a GPU "
+              "machine returns (bfloat16 parameters halve it)", file=sys.stderr)
+    if out.exists():  # the old bundle aside until the new one is in place: a kill leaves one of the two
+        old = out.with_name(out.name + f".old{os.getpid()}")
+        os.replace(out, old)
+        os.replace(tmp, out)
+        shutil.rmtree(old)
+    else:
+        os.replace(tmp, out)
     return meta
+
+
+def _meta_digest(meta: dict) -> str:
+    """The SHA-256 of bundle.json's content but this digest (its configuration, normalisation and
+    judges' statistics are read from it), as canonical JSON."""
+    body = {k: v for k, v in meta.items() if k != "meta_sha256"}
+    return hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 
 def _run_files(run: Path) -> dict:
@@ -254,6 +272,8 @@ def check_bundle(out: Path) -> dict:
     meta = bundle_meta(out)
     if meta.get("format") != BUNDLE_FORMAT:
         raise ValueError(f"{out}: bundle format {meta.get('format')}, this code reads {BUNDLE_FORMAT}")
+    if "meta_sha256" in meta and _meta_digest(meta) != meta["meta_sha256"]:
+        raise ValueError(f"{out}/{BUNDLE} does not match its own SHA-256: the copy is damaged or was edited")
     for name, digest in meta["sha256"].items():
         if not (out / name).exists():
             raise FileNotFoundError(f"{out}/{name} is missing: copy the whole bundle directory")

@@ -171,6 +171,12 @@ class TrainConfig:
         self.model.validate()
         if self.batch < 1 or self.window < 2 or self.steps < 1:
             raise ValueError("batch >= 1, window >= 2 and steps >= 1 are required")
+        if min(self.log_every, self.eval_every, self.ckpt_every, self.val_batches) < 1:
+            raise ValueError(f"log_every, eval_every, ckpt_every and val_batches must be >= 1, got {self.log_every}, "
+                             f"{self.eval_every}, {self.ckpt_every}, {self.val_batches}")
+        if self.grad_clip <= 0 or self.weight_decay < 0 or self.lr <= 0:
+            raise ValueError(f"lr > 0, grad_clip > 0 and weight_decay >= 0 are required, got {self.lr}, "
+                             f"{self.grad_clip}, {self.weight_decay}")
         if self.eval_every % self.log_every or self.ckpt_every % self.log_every:
             raise ValueError("eval_every and ckpt_every must be multiples of log_every")
         if self.select not in KEPT_STEPS:
@@ -299,7 +305,13 @@ def to_dict(cfg) -> dict:
 def from_dict(d: dict) -> TrainConfig:
     """The TrainConfig that to_dict wrote as d, JSON's lists turned back into tuples; not validated."""
     d = dict(d)
-    model = ModelConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.pop("model").items()})
+    m = d.pop("model")
+    unknown = sorted(set(m) - {f.name for f in dataclasses.fields(ModelConfig)})
+    unknown += sorted(set(d) - {f.name for f in dataclasses.fields(TrainConfig)})
+    if unknown:
+        raise ValueError(f"a world model's configuration names settings this code does not know ({', '.join(unknown)}): "
+                         "it was written by other code; use the code that trained it")
+    model = ModelConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in m.items()})
     return TrainConfig(model=model, **{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
 
 

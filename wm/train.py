@@ -468,8 +468,11 @@ class Run:
         else:
             self.norm = compute_norm(self.cache, [int(i) for i in self.loader.distinct])
             write_json_atomic(norm_path, self.norm.to_dict())
+        # validated on the tasks it trains on: a held-out task must not choose the kept step
+        val_tasks = cfg.train_tasks or None
         self.val = WindowLoader(self.cache, cfg.window, cfg.batch, split="val", seed=1234, cameras=[cfg.camera],
-                                part=part, first_frames=cfg.model.anchor) if self.cache.select("val") else None
+                                part=part, first_frames=cfg.model.anchor, tasks=val_tasks) \
+            if self.cache.select("val", tasks=val_tasks) else None
         self.mesh = make_mesh()
         params = init_params(cfg.model, jax.random.PRNGKey(cfg.seed), window=cfg.window)
         # the optimiser's state made by one program, not an eager zeros per parameter shape
@@ -510,13 +513,20 @@ class Run:
         meta = {"train": self.loader.state(), "best_val": self.best_val}
         # best before latest: a run killed between the two resumes before this step and, retracing the
         # same steps, finds the same best again, whose checkpoint is then already there (and the same)
-        if best and step not in self.best.all_steps():
-            self.best.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave({"params": kept_params(self.state)}),
-                                                         loader=ocp.args.JsonSave(meta)), force=True)
-            self.best.wait_until_finished()
+        if best:
+            self.keep(step)
         self.latest.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(self.state),
                                                        loader=ocp.args.JsonSave(meta)), force=True)
         self.latest.wait_until_finished()
+
+    def keep(self, step: int) -> None:
+        """Keeps the parameters of step (kept_params) in best/, unless that step is there already."""
+        if step in self.best.all_steps():
+            return
+        meta = {"train": self.loader.state(), "best_val": self.best_val}
+        self.best.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave({"params": kept_params(self.state)}),
+                                                     loader=ocp.args.JsonSave(meta)), force=True)
+        self.best.wait_until_finished()
 
     def validate(self) -> dict:
         """The validation loss's parts, each averaged over the first val_batches validation batches (the same ones
@@ -575,11 +585,19 @@ class Run:
             if jax.process_count() > 1:  # process 0's clock decides, or one process would wait on the others forever
                 out_of_time = bool(multihost_utils.broadcast_one_to_all(np.bool_(out_of_time)))
             is_best = False
-            if step % cfg.eval_every == 0 or step == cfg.steps or out_of_time:
+            # validated on the eval_every grid alone, so that a run a safety stop cuts and a rerun finishes
+            # keeps the step an uninterrupted run keeps; cut short, "last" keeps where it stopped
+            if step % cfg.eval_every == 0 or step == cfg.steps:
                 means.update(self.validate())
                 v = means.get("val_loss", means["loss"])
-                is_best = kept_at(cfg.select, step == cfg.steps or out_of_time, v, self.best_val)
+                if not math.isfinite(v):
+                    raise TrainingDiverged(f"non-finite validation loss {v} at step {step}; the last good checkpoint "
+                                           f"(step {self.latest.latest_step()}) in {self.out / 'checkpoints'} is "
+                                           "untouched. Lower lr or raise warmup, and rerun.")
+                is_best = kept_at(cfg.select, step == cfg.steps, v, self.best_val)
                 self.best_val = min(self.best_val, v)
+            elif out_of_time:
+                is_best = kept_at(cfg.select, True, math.inf, self.best_val)
             log.write(means)
             bar.set_postfix(loss=f"{means['loss']:.4f}", fps=f"{means['frames_per_s']:.0f}")
             last = means
@@ -590,7 +608,7 @@ class Run:
         bar.close()
         self.loader.close()
         if self.best.latest_step() is None:  # e.g. a run that resumed at its last step
-            self.save(step, True)
+            self.keep(step)
         status = {"step": step, "steps": cfg.steps, "cut_short": step < cfg.steps}
         if jax.process_index() == 0:
             write_json_atomic(self.out / "train_status.json", status)
