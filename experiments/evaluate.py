@@ -887,6 +887,11 @@ def _mean_or_none(x) -> float | None:
     return None if np.isnan(x).any() else float(np.mean(x))
 
 
+def _finite(x) -> bool:
+    """Whether x is a finite number (None and NaN are not)."""
+    return isinstance(x, (int, float)) and math.isfinite(x)
+
+
 def _finite_mean(x) -> float | None:
     """The mean of x's finite values, rounded to 4 decimals; None where none is finite."""
     x = np.asarray(x, np.float64)
@@ -933,7 +938,8 @@ def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) ->
                      "pred_rate_thresholded": float((p >= cfg.threshold).mean()) if read else math.nan,
                      "pred_thresholded_ci": (list(S.wilson_interval(int((p >= cfg.threshold).sum()), n)) if read
                                              else [math.nan, math.nan]),
-                     "val_loss": rec.get("val_loss"),
+                     # a checkpoint whose imitation training diverged (NaN) has no loss to rank by
+                     "val_loss": rec.get("val_loss") if _finite(rec.get("val_loss")) else None,
                      "alignment": S.alignment(p >= cfg.threshold, t) if read else math.nan,
                      "pred_rate_readouts": dict(zip(named, r.mean(1).tolist(), strict=True)),
                      # the read-out of the simulated episodes, and of their actions replayed (replay=1)

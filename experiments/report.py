@@ -457,8 +457,14 @@ def verdict(res: dict) -> str:
                 "difference is undefined. Mean within-task Pearson r "
                 f"{_ci(wm['mean']['pearson'], wm['mean_ci']['pearson'])}"
                 f" against {_ci(px['mean']['pearson'], px['mean_ci']['pearson'])}, over different tasks.")
-    ahead = [t for t in tasks if (diff["per_task_ci"][t]["pearson"][0] or -1) > 0]
-    behind = [t for t in tasks if (diff["per_task_ci"][t]["pearson"][1] or 1) < 0]
+    ahead = [t for t in both if (diff["per_task_ci"][t]["pearson"][0] or -1) > 0]
+    behind = [t for t in both if (diff["per_task_ci"][t]["pearson"][1] or 1) < 0]
+    over = ""
+    if "shared" in diff:  # the difference compares fewer policies than the world model's own figure
+        sh = diff["shared"]
+        wm, px = sh["first"], sh["other"]
+        over = (f" over the {sh['policies']} of {sh['of']} policies both rank (a plug-in has no validation loss, "
+                "a policy whose imagination diverged no prediction)")
     lo = diff["mean_ci"]["pearson"][0]
     hi = diff["mean_ci"]["pearson"][1]
     if lo is not None and lo > 0:
@@ -467,7 +473,7 @@ def verdict(res: dict) -> str:
         head = "The world model ranks policies within a task worse than the imitation-loss proxy"
     else:
         head = "Within a task, the world model's ranking cannot be told apart from the imitation-loss proxy's"
-    return (f"{head}: mean within-task Pearson r {_ci(wm['mean']['pearson'], wm['mean_ci']['pearson'])} against "
+    return (f"{head}{over}: mean within-task Pearson r {_ci(wm['mean']['pearson'], wm['mean_ci']['pearson'])} against "
             f"{_ci(px['mean']['pearson'], px['mean_ci']['pearson'])} (difference "
             f"{_ci(diff['mean']['pearson'], diff['mean_ci']['pearson'])}; 95% intervals resampling "
             f"{w['resamples']}){_coverage(w, tasks)}. Per task, the difference's interval lies above 0 in "
@@ -626,6 +632,9 @@ def selection_summary(sel: dict) -> str:
     """One paragraph on checkpoint selection (results.json's checkpoint_selection), saying how many of
     its picks were made among checkpoints the world model rated equally."""
     if not sel["n"]:
+        if sel.get("unread"):
+            return (f"No checkpoint of the {sel['unread']} training runs of two or more could be read by the world "
+                    "model (its imagination diverged on every one): no selection to judge.")
         return "No training run has two or more checkpoints here."
     tied = sum(x.get("tied", 1) > 1 for x in sel["lineages"])
     return (f"Over {sel['n']} training runs (task x lineage), the world model's highest-rated checkpoint is the "

@@ -394,19 +394,27 @@ def within_task(true: dict, predictors: dict, threshold: float = 0.5, draws: int
     every later predictor the paired difference of the first minus it: "difference": {name: {"mean",
     "mean_ci", "per_task", "per_task_ci"}} (for mmrv a negative difference favours the first), both
     over the policies that both score (a proxy scores no plug-in; a world model none whose
-    imagination diverged), in the same bootstrap draws.
+    imagination diverged), in the same bootstrap draws; where that leaves policies out, also
+    "shared": {"policies", "of": how many it compares of all, "first", "other": each side's "mean"
+    and "mean_ci" over those policies alone}.
     """
     tasks, names = list(true), list(predictors)
     point, boot = within_task_draws(true, predictors, threshold, draws, seed)
 
     def summary(stat_of, samples_of) -> dict:
+        # a task whose statistic is undefined (every policy at one true rate, or one predicted) is left
+        # out of the draws as of the point: a resampled draw may define it, from what the point lacks
+        def drawn(t):
+            return {k: samples_of(t)[k] if not math.isnan(stat_of(t)[k]) else np.full(draws, math.nan)
+                    for k in WITHIN_TASK}
+
         with warnings.catch_warnings():  # a mean over nothing but NaN stays NaN, silently
             warnings.simplefilter("ignore", RuntimeWarning)
             mean = {k: float(np.nanmean([stat_of(t)[k] for t in tasks])) for k in WITHIN_TASK}
-            mean_ci = {k: percentile_interval(np.nanmean(np.stack([samples_of(t)[k] for t in tasks]), 0))
+            mean_ci = {k: percentile_interval(np.nanmean(np.stack([drawn(t)[k] for t in tasks]), 0))
                        for k in WITHIN_TASK}
         return {"mean": mean, "mean_ci": mean_ci, "per_task": {t: stat_of(t) for t in tasks},
-                "per_task_ci": {t: {k: percentile_interval(samples_of(t)[k]) for k in WITHIN_TASK} for t in tasks}}
+                "per_task_ci": {t: {k: percentile_interval(drawn(t)[k]) for k in WITHIN_TASK} for t in tasks}}
 
     out = {"tasks": tasks, "draws": draws, "resamples": WITHIN_TASK_RESAMPLES}
     for n in names:
@@ -416,14 +424,23 @@ def within_task(true: dict, predictors: dict, threshold: float = 0.5, draws: int
     for n in names[1:]:
         pa, ba, pb, bb = point[first], boot[first], point[n], boot[n]
         common = {t: scored_policies(predictors[first][t]) & scored_policies(predictors[n][t]) for t in tasks}
+        shared = None
         if any((common[t] != scored_policies(predictors[m][t])).any() for t in tasks for m in (first, n)):
             pair = {"a": {t: without_policies(predictors[first][t], ~common[t]) for t in tasks},
                     "b": {t: without_policies(predictors[n][t], ~common[t]) for t in tasks}}
             pp, bp = within_task_draws(true, pair, threshold, draws, seed)  # the same seed: the same draws
             pa, ba, pb, bb = pp["a"], bp["a"], pp["b"], bp["b"]
+            # each side over the policies the difference compares, which a reader quotes beside it
+            sides = {side: summary(lambda t, p=p: p[t], lambda t, b=b: b[t])
+                     for side, p, b in (("first", pa, ba), ("other", pb, bb))}
+            shared = {"policies": int(sum(common[t].sum() for t in tasks)),
+                      "of": int(sum(np.shape(true[t])[0] for t in tasks)),
+                      **{side: {"mean": v["mean"], "mean_ci": v["mean_ci"]} for side, v in sides.items()}}
         out["difference"][n] = summary(
             lambda t, pa=pa, pb=pb: {k: pa[t][k] - pb[t][k] for k in WITHIN_TASK},
             lambda t, ba=ba, bb=bb: {k: ba[t][k] - bb[t][k] for k in WITHIN_TASK})
+        if shared is not None:
+            out["difference"][n]["shared"] = shared
     return out
 
 
@@ -482,15 +499,18 @@ def checkpoint_selection(rows: list[dict]) -> dict:
     share the highest rating), "best_step", "picked_true", "best_true", "regret" (best_true -
     picked_true), "exact" (the share of the tied whose true rate is the highest: 1 or 0 without a
     tie), "within_ci" (the share of them whose true rate lies inside the best one's 95% interval)}],
-    "exact_share", "within_ci_share", "mean_regret", "n"} (shares and mean NaN when no lineage qualifies).
+    "exact_share", "within_ci_share", "mean_regret", "n", "unread" (runs of two or more checkpoints
+    none of which the world model could read: imagination diverged)} (shares and mean NaN when no
+    lineage qualifies).
     """
     groups: dict = {}
     for r in rows:
         if r.get("step") is not None:
             groups.setdefault((r["task"], r["lineage"]), []).append(r)
-    out = []
+    out, unread = [], 0
     for (task, lineage), rs in sorted(groups.items()):
         read = [r for r in rs if r.get("pred_rate") is not None and not math.isnan(r["pred_rate"])]
+        unread += len(rs) >= 2 and not read
         if len(rs) < 2 or not read:
             continue
         top = max(r["pred_rate"] for r in read)
@@ -505,7 +525,7 @@ def checkpoint_selection(rows: list[dict]) -> dict:
                     "within_ci": float(np.mean([r["true_rate"] >= best["true_ci"][0] for r in tied]))})
     share = (lambda k: float(np.mean([x[k] for x in out]))) if out else (lambda k: math.nan)
     return {"lineages": out, "exact_share": share("exact"), "within_ci_share": share("within_ci"),
-            "mean_regret": share("regret"), "n": len(out)}
+            "mean_regret": share("regret"), "n": len(out), "unread": unread}
 
 
 def is_family(row: dict) -> bool:
@@ -545,7 +565,8 @@ def family_statistics(rows: list[dict], rate: str = "pred_rate", ceiling: bool =
     that truth (pearson_ceiling: how high r can be against this truth, however narrow its span; it
     depends on the truth alone, so one read-out's statistics carry it for all).
 
-    Returns {"families": [{"task", "family", "n" (policies, base included), "pearson", "mean_abs_error",
+    Returns {"families": [{"task", "family", "n" (policies read, base included), "unread" (members left
+    out: no finite prediction, their imagination diverged), "pearson", "mean_abs_error",
     "true_range": [lowest, highest], "pearson_ceiling"}], "mean_pearson" (over families where r is
     defined), "mean_pearson_ceiling" (over the same families), "mean_abs_error" (over families)}; NaN
     means where there is no family.
@@ -563,18 +584,23 @@ def family_statistics(rows: list[dict], rate: str = "pred_rate", ceiling: bool =
     out = []
     for (task, family), rs in sorted(groups.items()):
         base = last.get((task, family.split("~", 1)[0]))
-        members = rs + ([base] if base is not None else [])
+        everyone = rs + ([base] if base is not None else [])
+        # a member whose imagination diverged has no prediction: left out, and counted
+        members = [r for r in everyone if r.get(rate) is not None and math.isfinite(r[rate])]
+        if not members:
+            continue
         pred = [r[rate] for r in members]
         true = [r["true_rate"] for r in members]
         episodes = [r.get("n") for r in members]
         top = pearson_ceiling(true, episodes) if ceiling and all(episodes) else math.nan
-        out.append({"task": task, "family": family, "n": len(members), "pearson": pearson(pred, true)[0],
+        out.append({"task": task, "family": family, "n": len(members), "unread": len(everyone) - len(members),
+                    "pearson": pearson(pred, true)[0],
                     "mean_abs_error": float(np.mean(np.abs(np.subtract(pred, true)))),
                     "true_range": [min(true), max(true)], "pearson_ceiling": top})
     defined = [x for x in out if not math.isnan(x["pearson"])]
     mean = lambda key: float(np.mean([x[key] for x in defined])) if defined else math.nan
     return {"families": out, "mean_pearson": mean("pearson"), "mean_pearson_ceiling": mean("pearson_ceiling"),
-            "mean_abs_error": float(np.mean([x["mean_abs_error"] for x in out])) if out else math.nan}
+            "mean_abs_error": _defined_mean([x["mean_abs_error"] for x in out])}
 
 
 def policy_count(rows: list[dict]) -> str:

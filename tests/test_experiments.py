@@ -740,6 +740,25 @@ def test_the_verdict_says_which_tasks_each_mean_is_over():
     assert "lies above 0 in 1 of 1 (mug)" in got
 
 
+def test_the_verdict_quotes_both_sides_over_the_policies_its_difference_compares():
+    """Plug-ins the world model reads backwards beside checkpoints it reads well: the difference to the
+    proxy is taken over the checkpoints (the proxy scores no plug-in), so the verdict quotes both over
+    them, not the world model's figure over every policy."""
+    rng = np.random.default_rng(5)
+    rates = np.array([0.95, 0.8, 0.6, 0.4, 0.2, 0.05] * 2)
+    true = {t: (rng.random((12, 32)) < rates[:, None]).astype(float) for t in ("mug", "wipe")}
+    wm = {t: np.concatenate([np.repeat(rates[:6, None], 32, 1), np.repeat(1 - rates[6:, None], 32, 1)])
+          for t in true}
+    proxy = {t: np.concatenate([-np.arange(6.0) + rng.normal(0, 2, 6), np.full(6, np.nan)]) for t in true}
+    within = S.within_task(true, {"world_model": wm, "proxy": proxy}, draws=200)
+    shared = within["difference"]["proxy"]["shared"]
+    got = verdict({"policies": [{"task": t} for t in true for _ in range(12)], "metrics": {"within_task": within}})
+    assert "over the 12 of 24 policies both rank" in got
+    wm_shared = shared["first"]
+    assert f"Pearson r {wm_shared['mean']['pearson']:.2f}" in got
+    assert within["world_model"]["mean"]["pearson"] < 0.5 < wm_shared["mean"]["pearson"]
+
+
 def test_a_read_out_that_ranks_better_than_the_ranked_one_is_named_with_how_to_rank_by_it():
     within = _within(0.80, 0.2)
     within["readout_judge2"] = {"mean": {"pearson": 0.90}, "mean_ci": {"pearson": [0.85, 0.95]}}

@@ -106,6 +106,7 @@ def test_the_evaluator_refuses_a_misspelt_selector_in_one_line(zoo, capsys):
     (lambda r: r["policies"][4].update(degrade={"noise": float("nan")}), r"record 4 .*noise must be finite"),
     (lambda r: r["policies"][4].update(degrade={"noise": "0.2"}), r"record 4 .*noise must be finite"),
     (lambda r: r["policies"][4].update(degrade=[0.2]), r"record 4 .*'degrade' must be a JSON object"),
+    (lambda r: r["policies"][0].update(lineage="conv~v2"), r"record 0 .*'~' in the lineage 'conv~v2' marks a counterfactual"),
 ])
 def test_a_hand_edited_registry_is_refused_naming_its_file_record_and_field(zoo, tmp_path, edit, message):
     d = edited(zoo, tmp_path, edit)

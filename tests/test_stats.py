@@ -312,6 +312,8 @@ def test_checkpoint_selection_by_hand():
                      row("mug", "a", 1000, 0.5, 0.3)]
     (got,) = S.checkpoint_selection(best_diverged)["lineages"]  # the truly best is still the best, though unread
     assert (got["picked_step"], got["best_step"], got["regret"]) == (1000, 100, pytest.approx(0.4))
+    unread = S.checkpoint_selection([row("mug", "a", s, 0.5, math.nan) for s in (10, 100)] + rows[3:5])
+    assert (unread["n"], unread["unread"]) == (1, 1)  # lineage a has two checkpoints, neither read
 
 
 def test_family_statistics_by_hand():
@@ -338,6 +340,13 @@ def test_family_statistics_by_hand():
     noise, grip = (next(f for f in counted["families"] if f["family"] == k) for k in ("conv~noise", "conv~grip"))
     assert noise["pearson_ceiling"] == S.pearson_ceiling([0.6, 0.1, 0.9], [4, 4, 4])
     assert math.isnan(grip["pearson_ceiling"]) and counted["mean_pearson_ceiling"] == noise["pearson_ceiling"]
+    # a level whose imagination diverged is left out of its family, not the family out of the figures
+    diverged = rows + [row("conv~noise", None, 0.0, math.nan)]
+    again = S.family_statistics(diverged)
+    noise_again = next(f for f in again["families"] if f["family"] == "conv~noise")
+    assert noise_again["n"] == 3 and noise_again["unread"] == 1
+    assert noise_again["pearson"] == pytest.approx(noise["pearson"])
+    assert again["mean_abs_error"] == pytest.approx(got["mean_abs_error"])
 
 
 def test_pearson_ceiling_is_a_perfect_predictors_r_against_the_truth_measured_again():
@@ -423,6 +432,27 @@ def test_the_difference_to_a_proxy_compares_the_policies_both_score():
     # the world model's own row keeps every policy it scores, the plug-in included
     own = both["world_model"]["per_task"]["t"]["pearson"]
     assert own != pytest.approx(alone["world_model"]["per_task"]["t"]["pearson"])
+    # and the difference says what it compares: each side over the four policies both score
+    shared = both["difference"]["proxy"]["shared"]
+    assert (shared["policies"], shared["of"]) == (4, 5) and "shared" not in alone["difference"]["proxy"]
+    for side, name in (("first", "world_model"), ("other", "proxy")):
+        assert shared[side]["mean"]["pearson"] == pytest.approx(alone[name]["mean"]["pearson"])
+
+
+def test_a_task_whose_statistic_is_undefined_is_left_out_of_its_draws_too():
+    """Every policy of "flat" succeeds on half its states, other states each: Pearson r is undefined
+    there, and a resampled draw that happens to define it must not count in the intervals."""
+    rng = np.random.default_rng(2)
+    flat = np.zeros((5, 16))
+    for i in range(5):
+        flat[i, rng.permutation(16)[:8]] = 1.0
+    true = {"flat": flat, "t": (rng.random((5, 16)) < np.array([0.9, 0.7, 0.5, 0.3, 0.1])[:, None]).astype(float)}
+    wm = {t: np.clip(v + rng.normal(0, 0.3, v.shape), 0, 1) for t, v in true.items()}
+    got = S.within_task(true, {"world_model": wm}, draws=200)["world_model"]
+    assert math.isnan(got["per_task"]["flat"]["pearson"])
+    assert all(math.isnan(x) for x in got["per_task_ci"]["flat"]["pearson"])
+    assert got["mean"]["pearson"] == pytest.approx(got["per_task"]["t"]["pearson"])
+    assert got["mean_ci"]["pearson"] == pytest.approx(got["per_task_ci"]["t"]["pearson"])
 
 
 def test_a_bootstrap_draw_of_fewer_than_three_distinct_policies_has_no_correlation():

@@ -464,7 +464,8 @@ def check_record(path: Path, i: int, r) -> None:
     """Raises a ValueError naming the registry `path`, the record (its index and name) and the field,
     where record i lacks a required field (RECORD_FIELDS) or holds one of another type, names an unknown
     task, describes a network PolicyNetConfig refuses (an unknown field or encoder) or a degradation
-    degrade_params refuses (an unknown knob, a level out of range)."""
+    degrade_params refuses (an unknown knob, a level out of range), or names a lineage with "~" (a
+    counterfactual family's mark) without a degradation."""
     named = f" ({r['name']!r})" if isinstance(r, dict) and isinstance(r.get("name"), str) else ""
     where = f"{path}: record {i}{named}"
     if not isinstance(r, dict):
@@ -477,6 +478,9 @@ def check_record(path: Path, i: int, r) -> None:
                              f"got {r[field]!r}")
     if r["task"] not in TASK_NAMES:
         raise ValueError(f"{where}: unknown task {r['task']!r}; the tasks are {', '.join(TASK_NAMES)}")
+    if "~" in r["lineage"] and r.get("degrade") is None:
+        raise ValueError(f"{where}: '~' in the lineage {r['lineage']!r} marks a counterfactual family (a checkpoint "
+                         "degraded by its 'degrade' knobs, which this record lacks); name the lineage without it")
     try:
         PolicyNetConfig(**r["net"]).validate()
     except (TypeError, ValueError) as e:
