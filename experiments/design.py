@@ -98,6 +98,8 @@ def plan(preset: str, name: str, overrides=(), seeds: int = 2, steps: int = 4000
                             ("--config", p.eval, "--out", str(run / f"eval_e{episodes}"), f"policies={d['policies']}",
                              f"wm={run / 'wm'}", f"episodes={episodes}", "max_minutes=0", *p.eval_overrides,
                              "video_policies=0", f"truth_cache={root / 'truth'}")))
+    # the evaluations' settings too, before any model trains for them (episodes a state batch must divide)
+    evaluate.make_config(p.eval, [a for a in jobs[0].eval_argv if "=" in a and not a.startswith("-")])
     return jobs
 
 

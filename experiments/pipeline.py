@@ -130,6 +130,7 @@ from sim_data.dataset import generate
 from sim_data.parts import can_pin_cores, local_cores, local_gpus, run_parallel
 from sim_data.policies import zoo
 from sim_data.util import device_name, run_cli, with_xla_flags, write_json_atomic
+from wm import config as wm_config
 from wm import train
 from wm.checkpoint import BUNDLE, bundle_holds, write_bundle
 
@@ -150,7 +151,7 @@ class Pipeline:
     rollout_episodes: int = 0  # episodes per selected checkpoint
     perturbed: str = ""  # a zoo selector whose checkpoints' perturbed copies' rollouts join too (generate's perturbed)
     perturb_episodes: int = 0  # episodes per perturbed copy
-    members: int = 1  # world models trained with seeds 0..members-1; their ensemble evaluates the policies
+    members: int = 1  # world models trained with seeds s..s+members-1 (s: the train settings' seed); their ensemble evaluates
     data_overrides: tuple = ()
     policies_overrides: tuple = ()
     train_overrides: tuple = ()
@@ -350,25 +351,47 @@ def untrained(d: dict) -> list[tuple[int, Path]]:
     return [(k, m) for k, m in enumerate(d["members"]) if not (m / "eval.json").exists()]
 
 
-def member_seed(k: int) -> list[str]:
-    """Member k's override: seed=k (member 0 keeps the preset's seed)."""
-    return [f"seed={k}"] if k else []
+def member_args(p: Pipeline, k: int, extra=()) -> list[str]:
+    """Member k's wm.train overrides: the preset's, then extra, then seed = the seed they give plus k
+    (member 0 keeps it), so that an ensemble's members differ whatever seed extra sets."""
+    given = [*p.train_overrides, *extra]
+    if not k:
+        return given
+    return [*given, f"seed={wm_config.make_config(p.train, _settings(given)).seed + k}"]
+
+
+def _settings(args) -> list[str]:
+    """The key=value settings among a module's arguments (its options and their values left out)."""
+    return [a for a in args if "=" in a and not a.startswith("-")]
+
+
+def check_trained_members(p: Pipeline, d: dict, extra=()) -> None:
+    """Refuses a trained member (eval.json written) whose configuration differs from the one the train
+    stage would give it now (`--set train:...` changed after it trained): it would be kept, bundled
+    and evaluated as it is, the change silently ignored."""
+    for k, m in enumerate(d["members"]):
+        if (m / "eval.json").exists():
+            train.check_run_config(wm_config.make_config(p.train, _settings(member_args(p, k, extra))),
+                                   d["wm_data"], m)
 
 
 def train_members(name: str, extra=(), gpus=(), members: int | None = None) -> tuple[bool, list[Path]]:
-    """Trains the world models of pipeline `name` not yet trained: member k with seed=k, as many at a
-    time as there are GPUs, the GPUs shared out among them (one member left on two GPUs trains on
-    both, data-parallel; one in this process without several GPUs); returns whether every member is
-    trained, and the timing files of the child processes that trained them."""
+    """Trains the world models of pipeline `name` not yet trained: member k with its seed plus k
+    (member_args), as many at a time as there are GPUs, the GPUs shared out among them (one member
+    left on two GPUs trains on both, data-parallel; one in this process without several GPUs); a
+    trained member whose settings the stage's overrides now change is refused (check_trained_members).
+    Returns whether every member is trained, and the timing files of the child processes that trained
+    them."""
     p = pipeline(name, members)
     d = p.dirs(name)
+    check_trained_members(p, d, extra)
     todo = untrained(d)
     if not todo:
         print(f"{', '.join(str(m) for m in d['members'])}: trained (eval.json exists); skipping", file=sys.stderr)
         return True, []
     todo = todo[: max(len(gpus), 1)]  # a round that fits one command; the stage's next run trains the rest
-    commands = [["--config", p.train, "--data", str(d["wm_data"]), "--out", str(m), *p.train_overrides,
-                 *member_seed(k), *extra] for k, m in todo]
+    commands = [["--config", p.train, "--data", str(d["wm_data"]), "--out", str(m), *member_args(p, k, extra)]
+                for k, m in todo]
     parts = []
     if len(gpus) > 1:
         parts = run_parts("wm.train", commands, gpu_groups(gpus, len(todo)), _logs(p, name), "train-member")
@@ -457,7 +480,7 @@ def start_warm_train(p: Pipeline, name: str, overrides) -> subprocess.Popen | No
     # the read loss (w_read) probes with the rollouts' checkpoints, whose episodes the data stage's dataset lacks
     argv = [sys.executable, "-m", "wm.train", "--config", p.train, "--data", str(d["data"]), "--warm",
             *(["--probe-policies", f"{d['policies']}#{p.rollouts}"] if p.rollouts else []),
-            *p.train_overrides, *member_seed(todo[0][0]), *overrides]
+            *member_args(p, todo[0][0], overrides)]
     print(f"compiling the world model's training programs beside the rollouts ({log})", file=sys.stderr, flush=True)
     return _start_warm(argv, log)
 
@@ -696,7 +719,36 @@ def stage_overrides(sets: list[str]) -> dict:
     return out
 
 
+def check_settings(name: str, stage: str, per_stage: dict, overrides=(), members: int | None = None) -> None:
+    """Builds the configuration of every stage the command runs (`stage`, or all) from the preset's and
+    the user's settings (per_stage: --set's; overrides: the one stage's), so that an unknown key or a
+    value out of range stops the command before any work: found by its own stage, it would stop the
+    chain after the stages before it had run (a training of twenty minutes before an evaluation's
+    typo). The report stage takes no settings."""
+    p = pipeline(name, members)
+    d = p.dirs(name)
+    if per_stage.get("report") or (stage == "report" and overrides):
+        raise ValueError("the report stage takes no settings: it renders the evaluation's results.json")
+
+    def mine(s):
+        return [*per_stage.get(s, []), *(overrides if stage == s else [])]
+
+    for s in STAGES if stage == "all" else (stage,):
+        if s == "data":
+            generate.make_config(p.data, _settings([*p.data_overrides, *mine("data")]))
+        elif s == "policies":
+            zoo.make_config(p.policies, _settings([*p.policies_overrides, *mine("policies")]))
+        elif s == "rollouts" and p.rollouts:
+            generate.make_config(p.data, _settings(rollouts_args(p, name, [*per_stage.get("data", []), *mine("rollouts")])))
+        elif s == "train":
+            for k in range(p.members):
+                wm_config.make_config(p.train, _settings(member_args(p, k, mine("train"))))
+        elif s == "eval":
+            evaluate.make_config(p.eval, _settings([f"policies={d['policies']}", *p.eval_overrides, *mine("eval")]))
+
+
 DETACHED_LOG, DETACHED_PID, DETACHED_RC = "pipeline.log", "pipeline.pid", "pipeline.rc"
+DETACHED_MEMBERS = "pipeline.members"  # the --members of the detached chain, where given
 FOLLOW_POLL_S = 5.0
 STILL_RUNNING = 3  # --follow's exit status while the detached chain runs on
 BUNDLED = 4  # --follow --until-bundle's exit status once the world models' bundles are new
@@ -704,7 +756,7 @@ BUNDLES = "bundles.json"  # in the logs: the chain's bundles once all are writte
 BUNDLE_SEEN = "bundle.followed"  # in the logs: the hash of the BUNDLES that --until-bundle last returned for
 
 
-def detach(name: str, argv: list[str]) -> Path:
+def detach(name: str, argv: list[str], members: int | None = None) -> Path:
     """Starts `python -m experiments.pipeline argv` (without --detach; the train and eval stages
     without their safety stop unless argv sets one) detached from the terminal (setsid), its output
     in runs/logs/<name>/pipeline.log and its exit status, when it ends, in pipeline.rc beside it;
@@ -715,8 +767,10 @@ def detach(name: str, argv: list[str]) -> Path:
     if pid is not None:
         raise ValueError(f"a detached {name} chain still runs (pid {pid}): follow it with "
                          f"`python -m experiments.pipeline {name} --follow 540`, or stop it with kill -- -{pid}")
-    for f in (DETACHED_LOG, DETACHED_RC, BUNDLES, BUNDLE_SEEN):
+    for f in (DETACHED_LOG, DETACHED_RC, BUNDLES, BUNDLE_SEEN, DETACHED_MEMBERS):
         (logs / f).unlink(missing_ok=True)
+    if members is not None:  # a follow without --members collects this ensemble's members
+        (logs / DETACHED_MEMBERS).write_text(str(members))
     unbounded = ["--set", "train:max_minutes=0", "--set", "eval:max_minutes=0"]  # before the user's: theirs win
     cmd = " ".join(shlex.quote(a) for a in [sys.executable, "-m", "experiments.pipeline", *unbounded, *argv])
     rc, tmp = shlex.quote(str(logs / DETACHED_RC)), shlex.quote(str(logs / (DETACHED_RC + ".tmp")))
@@ -813,9 +867,12 @@ def follow(name: str, seconds: float, members: int | None = None, out=sys.stdout
     the next call does not return for them again). With collect_to, a chain that has ended (well or not)
     has its outcome copied there (collect) before the call returns, and with collect_cache its
     compilation caches packed beside it (pack_compile_cache), for the next lease's --cache-from; so has
-    a chain that still runs, of the entries settled (CACHE_SETTLED_S), unless the call returns BUNDLED."""
+    a chain that still runs, of the entries settled (CACHE_SETTLED_S), unless the call returns BUNDLED.
+    members: the ensemble's size, by default the detached chain's (its --members, else the preset's)."""
+    logs = _logs(PIPELINES[name], name)
+    if members is None and (logs / DETACHED_MEMBERS).exists():
+        members = int((logs / DETACHED_MEMBERS).read_text())
     p = pipeline(name, members)
-    logs = _logs(p, name)
     if not (logs / DETACHED_PID).exists():
         raise ValueError(f"no detached {name} chain in {logs}: start one with --detach")
     t0 = time.monotonic()
@@ -960,6 +1017,14 @@ def main(argv=None) -> int:
             ap.error("--cache-from restores the caches for a chain to come: give it to the command that starts it")
         return follow(a.pipeline, a.follow, a.members, until_bundle=a.until_bundle, collect_to=a.collect,
                       collect_cache=a.collect_cache)
+    try:
+        check_settings(a.pipeline, a.stage, per_stage, a.overrides, a.members)
+    except ValueError as e:
+        ap.error(str(e))
+    # before restoring the caches, which a running chain reads and writes
+    if a.detach and (running := _detached_pid(_logs(PIPELINES[a.pipeline], a.pipeline))) is not None:
+        ap.error(f"a detached {a.pipeline} chain still runs (pid {running}): follow it with "
+                 f"`python -m experiments.pipeline {a.pipeline} --follow 540`, or stop it with kill -- -{running}")
     if a.cache_from is not None:
         try:
             restored = restore_compile_cache(a.cache_from, Path(PIPELINES[a.pipeline].root))
@@ -968,7 +1033,7 @@ def main(argv=None) -> int:
         print(f"restored {restored} files of the compilation caches from {a.cache_from}")
         raw = _without_option(raw, "--cache-from")
     if a.detach:
-        print(f"started in the background; log: {detach(a.pipeline, [x for x in raw if x != '--detach'])}\n"
+        print(f"started in the background; log: {detach(a.pipeline, [x for x in raw if x != '--detach'], a.members)}\n"
               f"follow it with: python -m experiments.pipeline {a.pipeline} --follow 520 --until-bundle --collect DIR")
         return 0
     use_compilation_cache(PIPELINES[a.pipeline].root)

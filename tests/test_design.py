@@ -32,6 +32,8 @@ def test_the_plan_trains_each_seed_of_both_designs_on_the_presets_data_and_evalu
     assert len({j.wm for j in jobs}) == 4 and all(j.eval.name == "eval_e8" for j in jobs)
     with pytest.raises(ValueError, match="unknown setting"):
         D.plan("demo", "typo", ["model.anchr=true"])
+    with pytest.raises(ValueError, match="state_batch must divide episodes"):  # full's state batch is 50
+        D.plan("full", "anchor", ["model.anchor=true"], episodes=30)
     for bad in ({"name": "recipe"}, {"name": "recipe2"}, {"overrides": []}, {"overrides": ["model.anchor"]}, {"seeds": 0}):
         with pytest.raises(ValueError):
             D.plan("demo", **({"name": "x", "overrides": ["a=1"]} | bad))

@@ -972,6 +972,7 @@ def test_a_warm_up_with_a_truth_cache_simulates_the_episodes_the_evaluation_then
         assert np.isfinite(got["prob_observed"]).all()
 
 
+@pytest.mark.slow  # the GPU presets' option (judge2_inputs), as the other paths only they take
 def test_a_second_judge_is_read_beside_the_first_on_the_same_imaginations(evaluation, smoke_world_model, tmp_path):
     """A run with a second episode judge (judge2.*, wm.config's judge2_inputs): the evaluation reads
     the same imaginations with both, reports the second's read-out beside the others, and a bundle

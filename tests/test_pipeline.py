@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from experiments import pipeline as P
-from wm.checkpoint import bundle_meta
+from wm.checkpoint import RUN_FILES, bundle_meta
 
 
 @pytest.fixture(autouse=True)
@@ -30,7 +30,7 @@ def keep_caches(monkeypatch):
 def tiny(tmp_path, monkeypatch):
     """A pipeline of 3 members under tmp_path whose training entry point records its arguments and
     writes the eval.json a finished training leaves."""
-    monkeypatch.setitem(P.PIPELINES, "tiny", P.Pipeline(data="d", policies="p", train="t", eval="demo",
+    monkeypatch.setitem(P.PIPELINES, "tiny", P.Pipeline(data="d", policies="p", train="smoke", eval="demo",
                                                         root=str(tmp_path), members=3,
                                                         train_overrides=("max_minutes=1",)))
     calls = []
@@ -49,9 +49,9 @@ def tiny(tmp_path, monkeypatch):
 
 
 def fake_bundle(run, out):
-    """Stands in for wm.checkpoint.write_bundle on the fake trainings: a bundle.json naming its run's eval.json."""
+    """Stands in for wm.checkpoint.write_bundle on the fake trainings: a bundle.json holding its run's files."""
     out.mkdir(parents=True, exist_ok=True)
-    meta = {"files": {"eval.json": json.loads((run / "eval.json").read_text())}, "sha256": {}}
+    meta = {"files": {n: json.loads((run / n).read_text()) for n in RUN_FILES if (run / n).exists()}, "sha256": {}}
     (out / "bundle.json").write_text(json.dumps(meta))
     return meta
 
@@ -81,6 +81,30 @@ def test_without_gpus_the_train_stage_trains_one_member_a_run_and_eval_waits_for
     monkeypatch.setattr(experiments.evaluate, "main", got.append)
     P.run_stage("tiny", "eval")
     assert f"wm={d['members'][0]},{d['members'][1]},{d['members'][2]}" in got[0]
+
+
+def test_members_seeds_follow_a_seed_set_and_a_trained_member_refuses_changed_settings(tiny):
+    """--set train:seed=5 gives the members 5, 6, 7 (each its own model, not three of seed 5); once they
+    are trained, a train stage with other settings is refused rather than keeping the models as they are."""
+    calls, d = tiny
+    while not P.run_stage("tiny", "train", extra=["seed=5"]):
+        pass
+    assert [[a for a in c if a.startswith("seed=")][-1] for c in calls] == ["seed=5", "seed=6", "seed=7"]
+    assert P.run_stage("tiny", "train", extra=["seed=5"])  # the same settings: trained, skipped
+    with pytest.raises(ValueError, match=r"another configuration \(differs: train.steps\)"):
+        P.run_stage("tiny", "train", extra=["seed=5", "steps=99"])
+
+
+def test_every_stages_settings_are_checked_before_any_work(monkeypatch):
+    ran = []
+    monkeypatch.setattr(P, "run_stage", lambda *a, **k: ran.append(a) or True)
+    monkeypatch.setattr(P, "use_compilation_cache", lambda root: "")
+    for argv in (["--set", "eval:episodez=50"], ["--set", "train:stepz=3500"], ["--set", "eval:episodes=55"],
+                 ["--set", "data:tasks=mug,mug"], ["--set", "report:x=1"], ["--stage", "report", "x=1"],
+                 ["--stage", "policies", "stepz=1"]):
+        with pytest.raises(SystemExit):
+            P.main(["full", *argv])
+    assert not ran
 
 
 def test_with_several_gpus_stages_run_in_parts_and_members_side_by_side(tiny, monkeypatch):
@@ -248,8 +272,8 @@ def test_a_time_slot_passes_what_is_left_to_train_and_eval_and_starts_no_stage_a
     assert "rerun the same command to continue from the eval stage" in capsys.readouterr().err
     ran.clear()
     clock[0] = 0.0
-    assert P.main(["full", "--minutes", "9", "--stage", "eval", "episodes=8"]) == 0
-    assert ran == [("eval", ["episodes=8", "max_minutes=9.000"])]
+    assert P.main(["full", "--minutes", "9", "--stage", "eval", "episodes=100"]) == 0
+    assert ran == [("eval", ["episodes=100", "max_minutes=9.000"])]
 
 
 def test_a_stage_spread_over_gpus_counts_its_child_processes_compiling_and_frames(tiny, monkeypatch):
@@ -384,14 +408,25 @@ def test_follow_says_a_detached_chain_still_runs_and_a_second_detach_is_refused(
     monkeypatch.setattr(P, "FOLLOW_POLL_S", 0.05)
     with pytest.raises(ValueError, match="no detached full chain"):
         P.follow("full", 1)
-    P.detach("full", ["full"])
+    P.detach("full", ["full", "--members", "2"], members=2)
     pid = int(Path("runs/logs/full/pipeline.pid").read_text())
     try:
         out = io.StringIO()
+        followed = []
+        monkeypatch.setattr(P, "pipeline", lambda name, members=None: followed.append(members) or P.PIPELINES[name])
         assert P.follow("full", 0.2, out=out) == P.STILL_RUNNING
+        assert followed[0] == 2  # the chain's ensemble, though this follow names none
+        monkeypatch.undo()
+        monkeypatch.chdir(tmp_path)
+        monkeypatch.setattr(P, "FOLLOW_POLL_S", 0.05)
         assert "still running" in out.getvalue()
         with pytest.raises(ValueError, match=f"still runs \\(pid {pid}\\)"):
             P.detach("full", ["full"])
+        restored = []
+        monkeypatch.setattr(P, "restore_compile_cache", lambda *a: restored.append(a) or 0)
+        with pytest.raises(SystemExit):  # refused before its caches are restored under the running chain
+            P.main(["full", "--detach", "--cache-from", str(tmp_path / "carry")])
+        assert not restored
     finally:
         os.killpg(pid, signal.SIGKILL)
     deadline = time.monotonic() + 10
@@ -663,6 +698,7 @@ def test_the_rollouts_stage_compiles_the_training_programs_beside_it_with_the_tr
                         warm_eval=None, warm_rollouts=None, cores=():
                         ran.append((stage, warm)) or True)
     monkeypatch.setattr(P, "use_compilation_cache", lambda root: "")
+    monkeypatch.setattr(P, "check_settings", lambda *a: None)  # the stand-in presets build no configuration
     P.main(["roll", "--warm-train", "--set", "train:steps=3500", "--set", "eval:episodes=50"])
     assert dict(ran)["rollouts"] == ["steps=3500"]
 
@@ -695,7 +731,7 @@ def test_data_overrides_reach_the_rollouts_stage_that_reuses_the_data(monkeypatc
 
 def test_a_failed_rollouts_stage_stops_its_warm_up_and_the_warm_up_takes_the_first_untrained_members_seed(
         tmp_path, monkeypatch):
-    monkeypatch.setitem(P.PIPELINES, "roll2", P.Pipeline(data="d", policies="p", train="t", eval="e",
+    monkeypatch.setitem(P.PIPELINES, "roll2", P.Pipeline(data="d", policies="p", train="smoke", eval="e",
                                                          root=str(tmp_path), rollouts="conv", members=2))
     events = []
 
@@ -779,6 +815,7 @@ def test_the_train_stage_compiles_the_evaluations_programs_beside_it_with_the_ev
     monkeypatch.setattr(P, "run_stage", lambda name, stage, extra=(), gpus=(), members=None, warm=None,
                         warm_eval=None, warm_rollouts=None, cores=(): ran.append((stage, warm_eval)) or True)
     monkeypatch.setattr(P, "use_compilation_cache", lambda root: "")
+    monkeypatch.setattr(P, "check_settings", lambda *a: None)  # the stand-in presets build no configuration
     P.main(["ev", "--warm-eval", "--set", "train:steps=3500", "--set", "eval:episodes=50"])
     assert dict(ran)["train"] == ["episodes=50"]
 
@@ -840,6 +877,7 @@ def test_the_policies_stage_compiles_the_rollouts_programs_beside_it_with_the_ro
     monkeypatch.setattr(P, "run_stage", lambda name, stage, extra=(), gpus=(), members=None, warm=None,
                         warm_eval=None, warm_rollouts=None, cores=(): ran.append((stage, warm_rollouts)) or True)
     monkeypatch.setattr(P, "use_compilation_cache", lambda root: "")
+    monkeypatch.setattr(P, "check_settings", lambda *a: None)  # the stand-in presets build no configuration
     P.main(["wr", "--warm-rollouts", "--set", "data:batch=960", "--set", "rollouts:policy_episodes=4"])
     assert dict(ran)["policies"] == ["batch=960", "policy_episodes=4"]
     with pytest.raises(SystemExit):
