@@ -151,7 +151,8 @@ class Pipeline:
     rollout_episodes: int = 0  # episodes per selected checkpoint
     perturbed: str = ""  # a zoo selector whose checkpoints' perturbed copies' rollouts join too (generate's perturbed)
     perturb_episodes: int = 0  # episodes per perturbed copy
-    members: int = 1  # world models trained with seeds s..s+members-1 (s: the train seed); their ensemble ranks
+    # world models trained with seeds s..s+members-1 (s: the train seed); their ensemble ranks the policies
+    members: int = 1
     data_overrides: tuple = ()
     policies_overrides: tuple = ()
     train_overrides: tuple = ()
