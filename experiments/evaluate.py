@@ -461,7 +461,9 @@ def _predict_batch(cfg: EvalConfig, task: str, models, policy, params, truth: di
     steps, frames0, proprio0 = truth["steps"], truth["frames0"], truth["proprio0"]
     b = len(frames0)
     with _timed(clock, "closed_loop_s"):
-        each = [_imagine(m, task, policy, params, frames0, proprio0, steps, jax.random.fold_in(rng, 1))
+        # the policy draws from the keys it drew from in the simulator (record_policies' split of rng)
+        policy_keys = tuple(jax.random.split(rng, 3)[1:])
+        each = [_imagine(m, task, policy, params, frames0, proprio0, steps, jax.random.fold_in(rng, 1), policy_keys)
                 for m in models]
     p_each = np.stack([e[cfg.readout] for e in each], axis=1)  # (B, K)
     with _timed(clock, "fidelity_s"):
@@ -565,14 +567,14 @@ def merge_task_parts(cfg: EvalConfig, parts: list, order: list) -> dict:
             "steps": next((p["steps"] for p in parts if p["steps"] is not None), None), "seeds": parts[0]["seeds"]}
 
 
-def _imagine(model, task, policy, params, frames0, proprio0, steps, rng) -> dict:
-    """One world model's closed-loop episodes of a batch: {read-out name: (B,) float64 the episode's
-    success probability by that read-out (read_episodes), "trace_success" and "trace_progress": (B, T)
-    float32 the per-step heads' outputs, "frames": (B, T, S, S, 3) uint8 imagined, "action": (B, T, 20)
-    float32 the policy's actions}."""
+def _imagine(model, task, policy, params, frames0, proprio0, steps, rng, policy_keys=None) -> dict:
+    """One world model's closed-loop episodes of a batch (policy_keys: closed_loop's): {read-out name:
+    (B,) float64 the episode's success probability by that read-out (read_episodes), "trace_success"
+    and "trace_progress": (B, T) float32 the per-step heads' outputs, "frames": (B, T, S, S, 3) uint8
+    imagined, "action": (B, T, 20) float32 the policy's actions}."""
     wm_cfg, wm_params, norm, judge, judge2 = model
     got = closed_loop(wm_cfg.model, policy, steps, wm_params, norm, params, frames0, proprio0,
-                      np.zeros((len(frames0), 0, R.ACTION_DIM), np.float32), rng)
+                      np.zeros((len(frames0), 0, R.ACTION_DIM), np.float32), rng, policy_keys=policy_keys)
     return {**read_episodes(judge, task, got["features"], judge2), "trace_success": np.asarray(got["success"], np.float32),
             "trace_progress": np.asarray(got["progress"], np.float32), "frames": got["frames"],
             "action": np.asarray(got["action"], np.float32), "features": got["features"]}

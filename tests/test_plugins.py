@@ -249,6 +249,38 @@ def test_a_plugins_actions_are_clipped_to_the_ranges_the_simulator_applies(user_
                                                                  idx.action_low, idx.action_high))
 
 
+class _Peeking:
+    """A plug-in that reads what it should not (the simulator's state, the task state) and sends NaN."""
+
+    def init_carry(self, params, obs, task_state, rng):
+        seen = jnp.float32(len(obs)) + (0.0 if task_state is None else 100.0)
+        return jnp.full(obs["proprio"].shape[:1], seen)
+
+    def act(self, params, obs, carry, rng):
+        action = jnp.zeros((obs["proprio"].shape[0], 20)).at[:, 0].set(carry).at[:, 1].set(jnp.nan)
+        return action.at[:, 2].set(jnp.float32(len(obs))), carry
+
+
+def test_a_plugin_sees_in_the_simulator_what_it_sees_in_the_world_model_and_a_nan_acts_as_0():
+    idx = robot_index(load_model())
+    policy = ClippedPolicy(_Peeking(), tuple(idx.action_low.tolist()), tuple(idx.action_high.tolist()))
+    sim_obs = {"image": jnp.zeros((2, 64, 64, 3), jnp.uint8), "proprio": jnp.zeros((2, R.PROPRIO_DIM)),
+               "qpos": jnp.zeros((2, 9)), "qvel": jnp.zeros((2, 9)), "time": jnp.zeros(2)}
+    carry = policy.init_carry(None, sim_obs, object(), jax.random.PRNGKey(0))  # a task state: not passed on
+    action, _ = policy.act(None, sim_obs, carry, jax.random.PRNGKey(1))
+    wm_obs = {k: sim_obs[k] for k in ("image", "proprio")}
+    again, _ = policy.act(None, wm_obs, policy.init_carry(None, wm_obs, None, jax.random.PRNGKey(0)),
+                          jax.random.PRNGKey(1))
+    np.testing.assert_array_equal(action, again)
+    assert float(action[0, 2]) == np.clip(2.0, idx.action_low[2], idx.action_high[2])  # two keys seen
+    assert float(action[0, 1]) == np.clip(0.0, idx.action_low[1], idx.action_high[1])  # NaN as 0
+    # the data generator's (simulator_only): the simulator's view and task state, as documented
+    generator = ClippedPolicy(_Peeking(), policy.low, policy.high, simulator_only=True)
+    seen, _ = generator.act(None, sim_obs, generator.init_carry(None, sim_obs, object(), jax.random.PRNGKey(0)),
+                            jax.random.PRNGKey(1))
+    assert float(seen[0, 2]) == np.clip(5.0, idx.action_low[2], idx.action_high[2])
+
+
 def test_equal_policies_with_parameters_of_other_shapes_run_apart(user_module):
     narrow, wide, narrow2 = resolve(["user_pols:narrow_mlp", "user_pols:wide_mlp", "again=user_pols:narrow_mlp"])
     assert narrow.policy == wide.policy  # one policy object, the width in its parameters
@@ -585,3 +617,15 @@ def test_a_policy_evaluated_under_another_name_than_its_rollouts_counts_as_seen(
     assert E.seen_policies([bundle], [plugin, other, lone]) == {"mine", "mug/conv/5", plugin.name}
     (bundle / "bundle.json").write_text(json.dumps({"data_policies": ["mine"]}))  # one that records none
     assert E.seen_policies([bundle], [plugin, other]) == {"mine"}
+
+
+def test_a_random_policy_draws_alike_in_the_simulator_and_in_imagination(smoke_world_model, tmp_path):
+    """A policy that ignores what it sees and acts at random (flail) takes in imagination the actions it
+    took in the simulator, step for step: imagination's policy keys are the simulated episodes' own, so
+    an imagined episode is the counterfactual of its true twin and the action gap measures the model."""
+    cfg = E.EvalConfig(policies=("examples.plugin_policy:flail",), wm=str(smoke_world_model), tasks=("mug",),
+                       episodes=2, batch=2, video_policies=0, decision_episodes=(5,), keep_features=False)
+    E.run(cfg, tmp_path / "run", progress=False)
+    gap = E.load_task(tmp_path / "run" / "tasks" / "mug.npz")["action_gap"]
+    assert gap.shape[-1] > 1 and np.isfinite(gap).all()
+    np.testing.assert_array_equal(gap, 0.0)

@@ -358,21 +358,24 @@ def _open_loop_segment(cfg: ModelConfig, params, norm: Norm, state: ImagineState
 
 
 def closed_loop(cfg: ModelConfig, policy, horizon: int, params, norm: Norm, policy_params, frames, proprio,
-                context_actions, rng, anchor=None, start=None) -> dict:
+                context_actions, rng, anchor=None, start=None, policy_keys=None) -> dict:
     """A policy acting inside the world model for `horizon` steps from C context observations (anchor,
     start: the episodes' first frames (B, S, S, 3) uint8 and the contexts' indices (B,) in their
     episodes where the context starts later: init_state).
 
-    The policy's carry starts from `policy.init_carry(policy_params, obs, None, rng)` on the last
-    context observation; a stochastic model (cfg.stochastic) draws each step's code from its prior
-    with keys of its own, derived from rng. The steps run in compiled segments of SEGMENT steps, so
+    The policy's carry starts from `policy.init_carry(policy_params, obs, None, k_init)` on the last
+    context observation and its step t acts with `fold_in(k_act, t)`, (k_init, k_act) split from rng or
+    given as policy_keys: an evaluation gives the keys its simulated episodes' policy drew from
+    (sim_data.sim.rollout's), so that a stochastic policy draws alike in the simulator and in
+    imagination. A stochastic model (cfg.stochastic) draws each step's code from its prior with keys
+    of its own, derived from rng. The steps run in compiled segments of SEGMENT steps, so
     that horizons of every task share one program (the last segment's surplus steps are dropped).
     Returns {"frames":
     (B, horizon, S, S, 3) uint8, "proprio": (B, horizon, 37), "success": (B, horizon), "outcome":
     (B, horizon), "progress": (B, horizon), "action": (B, horizon, 20), "features": (B, horizon, F)}.
     """
     carry, keys = _closed_loop_start(cfg, policy, params, norm, policy_params, frames, proprio, context_actions, rng,
-                                     anchor, start)
+                                     anchor, start, policy_keys)
     parts = []
     for t0 in range(0, horizon, SEGMENT):
         carry, got = _closed_loop_segment(cfg, policy, params, norm, policy_params, carry, keys, t0)
@@ -382,9 +385,9 @@ def closed_loop(cfg: ModelConfig, policy, horizon: int, params, norm: Norm, poli
 
 @functools.partial(jax.jit, static_argnums=(0, 1))
 def _closed_loop_start(cfg: ModelConfig, policy, params, norm: Norm, policy_params, frames, proprio, context_actions,
-                       rng, anchor, start):
+                       rng, anchor, start, policy_keys=None):
     state = init_state(cfg, params, norm, frames, proprio, context_actions, anchor, start)
-    k_init, k_act = jax.random.split(rng)
+    k_init, k_act = jax.random.split(rng) if policy_keys is None else policy_keys
     k_code = jax.random.fold_in(rng, DYNAMICS_STREAM)
     obs = {"image": frames[:, -1], "proprio": proprio[:, -1]}
     return (state, obs, policy.init_carry(policy_params, obs, None, k_init)), (k_act, k_code)

@@ -167,7 +167,8 @@ def load_plugin(spec: str, world_model: bool = True) -> PolicySource:
     files = sorted({f for f in (_source_file(module), _source_file(type(policy))) if f})
     idx = robot_index(load_model())
     return PolicySource(name=name or target, kind="plugin", task=None,
-                        policy=ClippedPolicy(policy, tuple(idx.action_low.tolist()), tuple(idx.action_high.tolist())),
+                        policy=ClippedPolicy(policy, tuple(idx.action_low.tolist()), tuple(idx.action_high.tolist()),
+                                             simulator_only=not world_model),
                         params=params, record={"plugin": target}, code=code_digest(files, traced))
 
 
@@ -182,6 +183,8 @@ class ClippedPolicy:
     policy: object
     low: tuple  # (20,)
     high: tuple
+    simulator_only: bool = False  # the data generator's: it may read the simulator's obs and task state
+
 
     @property
     def stacks_in_turn(self) -> bool:
@@ -189,7 +192,10 @@ class ClippedPolicy:
         return bool(getattr(self.policy, "stacks_in_turn", False))
 
     def _key(self) -> tuple:
-        return type(self.policy), self.policy, self.low, self.high
+        return type(self.policy), self.policy, self.low, self.high, self.simulator_only
+
+    def _view(self, obs: dict) -> dict:
+        return obs if self.simulator_only else plugin_view(obs)
 
     def __eq__(self, other):
         return self._key() == other._key() if type(other) is ClippedPolicy else NotImplemented
@@ -198,13 +204,27 @@ class ClippedPolicy:
         return hash(self._key())
 
     def init_carry(self, params, obs, task_state, rng):
-        """The wrapped policy's carry."""
-        return self.policy.init_carry(params, obs, task_state, rng)
+        """The wrapped policy's carry, from what it sees in the world model too (plugin_view, no task
+        state), unless simulator_only."""
+        return self.policy.init_carry(params, self._view(obs), task_state if self.simulator_only else None, rng)
 
     def act(self, params, obs, carry, rng):
-        """The wrapped policy's action (B, 20), clipped to [low, high], and its carry."""
-        action, carry = self.policy.act(params, obs, carry, rng)
+        """The wrapped policy's action (B, 20) on what it sees (as init_carry), a NaN as 0 and clipped to
+        [low, high], and its carry: the simulator on either engine and the world model then take the same
+        action (the C engine would zero every control of a step with a NaN, MJX carry it into the state,
+        the world model's imagination diverge)."""
+        action, carry = self.policy.act(params, self._view(obs), carry, rng)
+        action = jnp.where(jnp.isnan(action), 0.0, action)
         return jnp.clip(action, jnp.asarray(self.low, jnp.float32), jnp.asarray(self.high, jnp.float32)), carry
+
+
+PLUGIN_OBS = ("image", "proprio")  # what a policy sees, in the simulator as in the world model
+
+
+def plugin_view(obs: dict) -> dict:
+    """obs cut down to PLUGIN_OBS: the simulator's rollout also carries privileged state (qpos, qvel,
+    time) that the world model cannot give, so a plug-in that read it would run otherwise in each."""
+    return {k: obs[k] for k in PLUGIN_OBS if k in obs}
 
 
 def _source_file(obj) -> str | None:
