@@ -768,6 +768,10 @@ def test_a_stochastic_model_reads_its_code_from_the_posterior_in_training_and_th
                           jax.random.PRNGKey(k)) for k in (0, 0, 1)]
     np.testing.assert_array_equal(runs[0]["frames"], runs[1]["frames"])
     assert float(jnp.abs(runs[0]["features"] - runs[2]["features"]).max()) > 1e-4
+    # an episode's draws are its own, whatever its row: the batch reversed gives its episodes reversed
+    flipped = I.closed_loop(cfg, HoldStill(), 4, params, norm, policy, frames[::-1, :2], proprio[::-1, :2],
+                            action[::-1, :1], jax.random.PRNGKey(0))
+    np.testing.assert_allclose(flipped["features"][::-1], runs[0]["features"], atol=1e-5)
     with pytest.raises(ValueError, match="stochastic"):
         dataclasses.replace(CFG, stochastic=-1).validate()
 

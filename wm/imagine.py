@@ -368,7 +368,8 @@ def closed_loop(cfg: ModelConfig, policy, horizon: int, params, norm: Norm, poli
     given as policy_keys: an evaluation gives the keys its simulated episodes' policy drew from
     (sim_data.sim.rollout's), so that a stochastic policy draws alike in the simulator and in
     imagination. A stochastic model (cfg.stochastic) draws each step's code from its prior with keys
-    of its own, derived from rng. The steps run in compiled segments of SEGMENT steps, so
+    of its own, derived from rng, each episode's from its first frame and step (ImagineState.draw,
+    clock), so that it does not depend on the episode's row or batch. The steps run in compiled segments of SEGMENT steps, so
     that horizons of every task share one program (the last segment's surplus steps are dropped).
     Returns {"frames":
     (B, horizon, S, S, 3) uint8, "proprio": (B, horizon, 37), "success": (B, horizon), "outcome":
@@ -401,8 +402,9 @@ def _closed_loop_segment(cfg: ModelConfig, policy, params, norm: Norm, policy_pa
         st, ob, pc = c
         action, pc = policy.act(policy_params, ob, pc, jax.random.fold_in(k_act, t))
         noise = None
-        if cfg.stochastic:
-            noise = jax.random.normal(jax.random.fold_in(k_code, t), (action.shape[0], cfg.stochastic))
+        if cfg.stochastic:  # each episode's own draws (its first frame's hash and step), whatever its batch row
+            noise = jax.vmap(lambda d, c: jax.random.normal(jax.random.fold_in(jax.random.fold_in(k_code, d), c),
+                                                            (cfg.stochastic,)))(st.draw, st.clock)
         st = step(cfg, params, norm, st, action, noise)
         ob = current_observation(norm, st)
         return (st, ob, pc), (ob["image"], ob["proprio"], st.success, st.outcome, st.progress, action,
