@@ -459,12 +459,13 @@ def verdict(res: dict) -> str:
                 f" against {_ci(px['mean']['pearson'], px['mean_ci']['pearson'])}, over different tasks.")
     ahead = [t for t in both if (diff["per_task_ci"][t]["pearson"][0] or -1) > 0]
     behind = [t for t in both if (diff["per_task_ci"][t]["pearson"][1] or 1) < 0]
-    over = ""
+    over, covered = "", w
     if "shared" in diff:  # the difference compares fewer policies than the world model's own figure
         sh = diff["shared"]
         wm, px = sh["first"], sh["other"]
-        over = (f" over the {sh['policies']} of {sh['of']} policies both rank (a plug-in has no validation loss, "
-                "a policy whose imagination diverged no prediction)")
+        covered = {**w, "world_model": wm, "proxy": px} if "per_task" in wm else w
+        over = (f" over the {sh['policies']} of {sh['of']} policies both rank (the proxy ranks only checkpoints "
+                "with a validation loss, the world model no policy whose imagination diverged)")
     lo = diff["mean_ci"]["pearson"][0]
     hi = diff["mean_ci"]["pearson"][1]
     if lo is not None and lo > 0:
@@ -476,7 +477,7 @@ def verdict(res: dict) -> str:
     return (f"{head}{over}: mean within-task Pearson r {_ci(wm['mean']['pearson'], wm['mean_ci']['pearson'])} against "
             f"{_ci(px['mean']['pearson'], px['mean_ci']['pearson'])} (difference "
             f"{_ci(diff['mean']['pearson'], diff['mean_ci']['pearson'])}; 95% intervals resampling "
-            f"{w['resamples']}){_coverage(w, tasks)}. Per task, the difference's interval lies above 0 in "
+            f"{w['resamples']}){_coverage(covered, tasks)}. Per task, the difference's interval lies above 0 in "
             f"{len(ahead)} of {len(both)}"
             f"{' (' + ', '.join(ahead) + ')' if ahead else ''} and below 0 in {len(behind)}"
             f"{' (' + ', '.join(behind) + ')' if behind else ''}.")

@@ -395,8 +395,8 @@ def within_task(true: dict, predictors: dict, threshold: float = 0.5, draws: int
     "mean_ci", "per_task", "per_task_ci"}} (for mmrv a negative difference favours the first), both
     over the policies that both score (a proxy scores no plug-in; a world model none whose
     imagination diverged), in the same bootstrap draws; where that leaves policies out, also
-    "shared": {"policies", "of": how many it compares of all, "first", "other": each side's "mean"
-    and "mean_ci" over those policies alone}.
+    "shared": {"policies", "of": how many it compares of all, "first", "other": each side's "mean",
+    "mean_ci" and "per_task" over those policies alone}.
     """
     tasks, names = list(true), list(predictors)
     point, boot = within_task_draws(true, predictors, threshold, draws, seed)
@@ -435,7 +435,7 @@ def within_task(true: dict, predictors: dict, threshold: float = 0.5, draws: int
                      for side, p, b in (("first", pa, ba), ("other", pb, bb))}
             shared = {"policies": int(sum(common[t].sum() for t in tasks)),
                       "of": int(sum(np.shape(true[t])[0] for t in tasks)),
-                      **{side: {"mean": v["mean"], "mean_ci": v["mean_ci"]} for side, v in sides.items()}}
+                      **{side: {k: v[k] for k in ("mean", "mean_ci", "per_task")} for side, v in sides.items()}}
         out["difference"][n] = summary(
             lambda t, pa=pa, pb=pb: {k: pa[t][k] - pb[t][k] for k in WITHIN_TASK},
             lambda t, ba=ba, bb=bb: {k: ba[t][k] - bb[t][k] for k in WITHIN_TASK})
