@@ -640,7 +640,7 @@ def read_episodes(judge, task: str, features, judge2=None) -> dict:
     (NaN without one, or where it does not know the task)}, float64."""
     x = np.asarray(features)
     out = {"progress": np.clip(x[:, -1, PROGRESS_FEATURE], 0.0, 1.0).astype(np.float64),
-           "success": np.asarray(episode_success(x[..., SUCCESS_FEATURE]), np.float64)}
+           "success": np.asarray(episode_success(x[..., SUCCESS_FEATURE], task), np.float64)}
     out["judge"] = judge.probability(x, task).astype(np.float64) if judge is not None and judge.knows(task) \
         else out["success"]
     out["judge2"] = judge2.probability(x, task).astype(np.float64) if judge2 is not None and judge2.knows(task) \

@@ -1690,8 +1690,18 @@ def test_success_only_writes_each_held_out_episodes_read_outs_beside_their_summa
                                        ep["action"][None, :-1]))
     judge = load_judge(smoke_world_model)
     want = judge.probability(x, rows[0]["task"])[0] if judge is not None and judge.knows(rows[0]["task"]) \
-        else np.asarray(I.episode_success(x[..., I.SUCCESS_FEATURE]))[0]
+        else np.asarray(I.episode_success(x[..., I.SUCCESS_FEATURE], rows[0]["task"]))[0]
     assert rows[0]["on_truth"] == pytest.approx(float(want), abs=1e-6)
+
+
+def test_an_episodes_success_read_is_its_highest_step_for_a_latched_task_else_its_last():
+    """The simulator keeps the mug's and wipe's success once met and judges the others on the last step:
+    a base that drives through step_back's band and on past it fails, though it was inside on the way."""
+    steps = np.array([[0.1, 0.9, 0.8, 0.2], [0.1, 0.2, 0.3, 0.7]])
+    np.testing.assert_allclose(I.episode_success(steps, "mug"), [0.9, 0.7])
+    np.testing.assert_allclose(I.episode_success(steps, "wipe"), [0.9, 0.7])
+    for task in ("step_back", "airfryer", "shelf", "arcade"):
+        np.testing.assert_allclose(I.episode_success(steps, task), [0.2, 0.7])
 
 
 def _without_generator(params) -> dict:

@@ -224,7 +224,8 @@ def action_sensitivity(cfg: TrainConfig, params, norm: Norm, cache: TrainingCach
     row_of = {i: k for k, i in enumerate(episodes)}
 
     def read(feats, task):
-        return judge.probability(feats, task) if use_judge else feats[..., SUCCESS_FEATURE].max(axis=1)
+        return judge.probability(feats, task) if use_judge else np.asarray(episode_success(feats[..., SUCCESS_FEATURE],
+                                                                                           task))
 
     own_p, swap_p, label = [], [], []
     for (task, n), g in sorted(groups.items()):
@@ -548,7 +549,7 @@ def _read_true_episodes(cfg: TrainConfig, params, norm: Norm, cache: TrainingCac
                                          np.stack([e["proprio"] for e in eps]),
                                          np.stack([e["action"][:-1] for e in eps])))
         out[ks] = judge.probability(x, task) if judge is not None \
-            else np.asarray(episode_success(x[..., SUCCESS_FEATURE]))
+            else np.asarray(episode_success(x[..., SUCCESS_FEATURE], task))
     return out
 
 

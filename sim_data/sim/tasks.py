@@ -37,6 +37,9 @@ from flax import struct
 from sim_data.sim import scene as S
 
 TASK_NAMES = ("mug", "wipe", "airfryer", "arcade", "shelf", "step_back")
+# the tasks whose success, once met, stays met (the mug's held lift, the wiped share): the others are
+# judged on the episode's last step (a tray pushed back, a base driven on past the band, a late press)
+LATCHED_TASKS = ("mug", "wipe")
 CONTROL_DT = 0.05  # 20 Hz control
 PHYSICS_SUBSTEPS = 10  # of the model's 5 ms timestep
 NUM_DIRT = S.DIRT_GRID[0] * S.DIRT_GRID[1]
