@@ -594,7 +594,7 @@ class Run:
                     raise TrainingDiverged(f"non-finite validation loss {v} at step {step}; the last good checkpoint "
                                            f"(step {self.latest.latest_step()}) in {self.out / 'checkpoints'} is "
                                            "untouched. Lower lr or raise warmup, and rerun.")
-                is_best = kept_at(cfg.select, step == cfg.steps, v, self.best_val)
+                is_best = kept_at(cfg.select, step == cfg.steps or out_of_time, v, self.best_val)
                 self.best_val = min(self.best_val, v)
             elif out_of_time:
                 is_best = kept_at(cfg.select, True, math.inf, self.best_val)
