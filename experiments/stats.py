@@ -404,17 +404,15 @@ def within_task(true: dict, predictors: dict, threshold: float = 0.5, draws: int
     def summary(stat_of, samples_of) -> dict:
         # a task whose statistic is undefined (every policy at one true rate, or one predicted) is left
         # out of the draws as of the point: a resampled draw may define it, from what the point lacks
-        def drawn(t):
-            return {k: samples_of(t)[k] if not math.isnan(stat_of(t)[k]) else np.full(draws, math.nan)
-                    for k in WITHIN_TASK}
-
+        drawn = {t: {k: samples_of(t)[k] if not math.isnan(stat_of(t)[k]) else np.full(draws, math.nan)
+                     for k in WITHIN_TASK} for t in tasks}
         with warnings.catch_warnings():  # a mean over nothing but NaN stays NaN, silently
             warnings.simplefilter("ignore", RuntimeWarning)
             mean = {k: float(np.nanmean([stat_of(t)[k] for t in tasks])) for k in WITHIN_TASK}
-            mean_ci = {k: percentile_interval(np.nanmean(np.stack([drawn(t)[k] for t in tasks]), 0))
+            mean_ci = {k: percentile_interval(np.nanmean(np.stack([drawn[t][k] for t in tasks]), 0))
                        for k in WITHIN_TASK}
         return {"mean": mean, "mean_ci": mean_ci, "per_task": {t: stat_of(t) for t in tasks},
-                "per_task_ci": {t: {k: percentile_interval(drawn(t)[k]) for k in WITHIN_TASK} for t in tasks}}
+                "per_task_ci": {t: {k: percentile_interval(drawn[t][k]) for k in WITHIN_TASK} for t in tasks}}
 
     out = {"tasks": tasks, "draws": draws, "resamples": WITHIN_TASK_RESAMPLES}
     for n in names:

@@ -514,16 +514,17 @@ class Run:
         # best before latest: a run killed between the two resumes before this step and, retracing the
         # same steps, finds the same best again, whose checkpoint is then already there (and the same)
         if best:
-            self.keep(step)
+            self.keep(step, meta)
         self.latest.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(self.state),
                                                        loader=ocp.args.JsonSave(meta)), force=True)
         self.latest.wait_until_finished()
 
-    def keep(self, step: int) -> None:
-        """Keeps the parameters of step (kept_params) in best/, unless that step is there already."""
+    def keep(self, step: int, meta: dict | None = None) -> None:
+        """Keeps the parameters of step (kept_params) in best/ with meta (the loader's position and
+        best_val, as save writes them), unless that step is there already."""
         if step in self.best.all_steps():
             return
-        meta = {"train": self.loader.state(), "best_val": self.best_val}
+        meta = meta or {"train": self.loader.state(), "best_val": self.best_val}
         self.best.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave({"params": kept_params(self.state)}),
                                                      loader=ocp.args.JsonSave(meta)), force=True)
         self.best.wait_until_finished()

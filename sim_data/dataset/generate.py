@@ -827,14 +827,14 @@ def build_manifest(cfg: DataConfig, out: Path, learned=()) -> list:
     """Writes manifest.jsonl from the episode files of cfg's plan (each read back); returns its rows."""
     keys = ("episode_id", "task", "policy", "policy_kind", "skill", "seed", "success", "num_steps", "split", "file",
             "engine", "renderer", "heldout")
-    rows, prints = [], {}
+    # what each policy computes (sources.json, written as the run began), so that an evaluation under
+    # another name still counts it seen
+    prints = read_json(out / SOURCES_FILE)["policies"]
+    rows = []
     for task, source, i in _episodes(cfg, learned):
         meta = read_episode_meta(out / "episodes" / f"{episode_id(task, source, i)}.mcap")
         row = {k: meta[k] for k in keys}
         if policy_kind(source) in SEEN_KINDS:
-            # what the policy computes, so that an evaluation under another name still counts it seen
-            if source.name not in prints:
-                prints[source.name] = fingerprint(source)
             row["policy_fingerprint"] = prints[source.name]
         rows.append(row)
     tmp = out / f"manifest.jsonl.tmp{os.getpid()}"
