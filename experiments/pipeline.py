@@ -52,8 +52,10 @@ stages run without their safety stop, max_minutes=0, unless `--set` or `--minute
 (below); `--follow S` waits up to S seconds for it, then prints the stages' timing rows so far and the log's
 last lines, and exits 0 once the command has ended well (a whole chain: with its report's path), 1 if
 it failed, 3 while it still runs; with `--collect DIR` (on a lent GPU: `--collect $OUT`) the follow
-that sees it end also copies its results, report, timing table and the world models' figures and logs
-into DIR (collect), so that the command that learns the chain is done also brings its outcome back;
+copies the chain's results, report, timing table and the world models' figures and logs, as far as they
+are written, into DIR (collect) as it starts, every COLLECT_EVERY_S seconds while it waits and as it
+returns, so that a command cut short by its machine's lease still brings back what the chain had
+finished, and the one that learns the chain is done brings its whole outcome;
 with `--collect-cache` also the compilation caches (runs/jax_cache, runs/xla_autotune), packed into at
 most three files of <= 15 MiB (pack_compile_cache) for the next lease on a machine of the same kind, by
 every follow but one that returns 4 (whose files are the bundle's), the chain running or not: a machine
@@ -751,6 +753,7 @@ def check_settings(name: str, stage: str, per_stage: dict, overrides=(), members
 DETACHED_LOG, DETACHED_PID, DETACHED_RC = "pipeline.log", "pipeline.pid", "pipeline.rc"
 DETACHED_MEMBERS = "pipeline.members"  # the --members of the detached chain, where given
 FOLLOW_POLL_S = 5.0
+COLLECT_EVERY_S = 60.0  # a follow's collect interval: a lease's limit may cut its command before it returns
 STILL_RUNNING = 3  # --follow's exit status while the detached chain runs on
 BUNDLED = 4  # --follow --until-bundle's exit status once the world models' bundles are new
 BUNDLES = "bundles.json"  # in the logs: the chain's bundles once all are written (bundle_members)
@@ -858,6 +861,16 @@ def collect(p: Pipeline, name: str, dest: Path) -> list[Path]:
     return written + [dest / "runs.tgz"]
 
 
+def collect_running(p: Pipeline, name: str, dest: Path, out) -> list[Path]:
+    """collect of a chain that may still write its files: a file replaced while it is read is a line on
+    `out` saying so, never an exception (the next collect takes it). Returns the files written."""
+    try:
+        return collect(p, name, dest)
+    except (OSError, tarfile.TarError) as e:
+        print(f"== {name}: not collected this time: {e}", file=out)
+        return []
+
+
 def follow(name: str, seconds: float, members: int | None = None, out=sys.stdout, until_bundle: bool = False,
            collect_to: Path | None = None, collect_cache: bool = False) -> int:
     """Waits up to `seconds` for the preset's detached command to end; prints the timing rows written
@@ -865,10 +878,12 @@ def follow(name: str, seconds: float, members: int | None = None, out=sys.stdout
     was killed, STILL_RUNNING while it runs; with until_bundle, BUNDLED as soon as the world models'
     bundles are listed and no earlier call returned for them (new_bundles), whether the chain runs on
     or has ended, so that they are copied off the machine before a lease ends (by the same command:
-    the next call does not return for them again). With collect_to, a chain that has ended (well or not)
-    has its outcome copied there (collect) before the call returns, and with collect_cache its
-    compilation caches packed beside it (pack_compile_cache), for the next lease's --cache-from; so has
-    a chain that still runs, of the entries settled (CACHE_SETTLED_S), unless the call returns BUNDLED.
+    the next call does not return for them again). With collect_to (and not until_bundle, whose
+    command's files are the bundle's), the chain's outcome as far as it is written is copied there
+    (collect) as the call starts, every COLLECT_EVERY_S while it waits and before it returns, so that a
+    command killed at a lease's limit leaves what the chain had finished; with collect_cache the
+    compilation caches are packed beside it before the call returns (pack_compile_cache: of the entries
+    settled, CACHE_SETTLED_S, while the chain runs), for the next lease's --cache-from.
     members: the ensemble's size, by default the detached chain's (its --members, else the preset's)."""
     logs = _logs(PIPELINES[name], name)
     if members is None and (logs / DETACHED_MEMBERS).exists():
@@ -878,9 +893,14 @@ def follow(name: str, seconds: float, members: int | None = None, out=sys.stdout
         raise ValueError(f"no detached {name} chain in {logs}: start one with --detach")
     t0 = time.monotonic()
     ready = None
+    collecting = collect_to is not None and not until_bundle
+    next_collect = t0
     while _detached_pid(logs) is not None and time.monotonic() - t0 < seconds:
         if until_bundle and (ready := new_bundles(logs)) is not None:
             break
+        if collecting and time.monotonic() >= next_collect:
+            collect_running(p, name, Path(collect_to), out)
+            next_collect = time.monotonic() + COLLECT_EVERY_S
         time.sleep(FOLLOW_POLL_S)
     if until_bundle and ready is None:
         ready = new_bundles(logs)
@@ -899,6 +919,9 @@ def follow(name: str, seconds: float, members: int | None = None, out=sys.stdout
         return BUNDLED  # its command's files are the bundle's: the caches come with the next follow
     if _detached_pid(logs) is not None:
         print(f"== {name}: still running after {time.monotonic() - t0:.0f} s of following", file=out)
+        if collecting:
+            files = collect_running(p, name, Path(collect_to), out)
+            print(f"== {name}: collected so far {', '.join(f.name for f in files)} into {collect_to}", file=out)
         if collect_cache:
             pack_cache(p, name, Path(collect_to), out, CACHE_SETTLED_S)
         return STILL_RUNNING
@@ -958,8 +981,10 @@ def main(argv=None) -> int:
                     help="with --follow, also return (exit 4) once the world models' bundles are written, the "
                          "first time a follow sees them")
     ap.add_argument("--collect", type=Path, default=None, metavar="DIR",
-                    help="with --follow, once the chain has ended copy its results, report, timing and the "
-                         "world models' figures and logs into DIR (e.g. $OUT), in the same command")
+                    help="with --follow, copy the chain's results, report, timing and the world models' "
+                         "figures and logs, as far as written, into DIR (e.g. $OUT) as it starts, every "
+                         f"{COLLECT_EVERY_S:.0f} s and as it returns: a command cut at a lease's limit brings "
+                         "back what the chain had finished")
     ap.add_argument("--collect-cache", action="store_true",
                     help="with --collect, also pack the compilation caches (runs/jax_cache, runs/xla_autotune) into "
                          f"DIR/{CACHE_PART}NN (<= 15 MiB each), for the next lease's --cache-from: by every follow "

@@ -8,6 +8,7 @@ import os
 import shutil
 import signal
 import tarfile
+import threading
 import time
 from pathlib import Path
 
@@ -470,7 +471,7 @@ def test_follow_until_bundle_returns_once_for_each_new_bundle_while_the_chain_ru
 def test_follow_collects_a_finished_chains_outcome_in_the_command_that_sees_it_end(tmp_path, monkeypatch, capsys):
     """The follow that sees the chain end copies its evaluation's files and a tarball of its logs and the
     world model's figures (no checkpoints) into the folder given; a follow of a running chain collects
-    nothing."""
+    what is written so far."""
     monkeypatch.chdir(tmp_path)
     body = ("sleep 0.5; mkdir -p runs/eval/full runs/wm/full/checkpoints/7; "
             "echo '{\"policies\": []}' > runs/eval/full/results.json; echo '# report' > runs/eval/full/report.md; "
@@ -482,7 +483,10 @@ def test_follow_collects_a_finished_chains_outcome_in_the_command_that_sees_it_e
     P.detach("full", ["full"])
     out = tmp_path / "out"
     assert P.follow("full", 0.1, out=io.StringIO(), collect_to=out) == P.STILL_RUNNING
-    assert not out.exists()
+    assert [f.name for f in out.iterdir()] == ["runs.tgz"]  # the log so far, no results yet
+    with tarfile.open(out / "runs.tgz") as tar:
+        names = tar.getnames()
+        assert "logs/full/pipeline.log" in names and not any(n.startswith("wm/") for n in names)
     text = io.StringIO()
     assert P.follow("full", 30, out=text, collect_to=out) == 0
     assert sorted(f.name for f in out.iterdir()) == ["report.md", "results.json", "runs.tgz", "timing.json"]
@@ -496,6 +500,47 @@ def test_follow_collects_a_finished_chains_outcome_in_the_command_that_sees_it_e
     with pytest.raises(SystemExit):
         P.main(["full", "--collect", str(out)])
     assert "--collect is an option of --follow" in capsys.readouterr().err
+
+
+def test_a_follow_collects_as_it_waits_so_a_command_cut_at_its_limit_leaves_what_was_finished(tmp_path,
+                                                                                                 monkeypatch):
+    """A lease's limit can kill the follow's command before it returns: the files it collects while it
+    waits already hold the world model's figures written meanwhile; a file replaced while it is read is
+    a message, the next collect takes it."""
+    monkeypatch.chdir(tmp_path)
+    body = ("sleep 0.5; mkdir -p runs/wm/full; echo '{\"auroc\": 0.9}' > runs/wm/full/eval.json.tmp; "
+            "mv runs/wm/full/eval.json.tmp runs/wm/full/eval.json; sleep 60")
+    monkeypatch.setattr(P.sys, "executable", _fake_python(tmp_path, body))
+    monkeypatch.setattr(P, "FOLLOW_POLL_S", 0.05)
+    monkeypatch.setattr(P, "COLLECT_EVERY_S", 0.1)
+    P.detach("full", ["full"])
+    pid = int(Path("runs/logs/full/pipeline.pid").read_text())
+    out = tmp_path / "out"
+
+    def collected():
+        try:
+            with tarfile.open(out / "runs.tgz") as tar:
+                return json.loads(tar.extractfile("wm/full/eval.json").read())
+        except (OSError, KeyError, tarfile.TarError):
+            return None
+
+    follower = threading.Thread(target=P.follow, args=("full", 30), kwargs=dict(out=io.StringIO(), collect_to=out))
+    try:
+        follower.start()
+        deadline = time.monotonic() + 20
+        while collected() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert follower.is_alive() and collected() == {"auroc": 0.9}  # the follow still waits
+    finally:
+        os.killpg(pid, signal.SIGKILL)
+        follower.join()
+    text = io.StringIO()
+    with monkeypatch.context() as m:
+        def replaced(*a, **k):
+            raise OSError(2, "No such file or directory")
+        m.setattr(P, "collect", replaced)
+        assert P.collect_running(P.PIPELINES["full"], "full", out, text) == []
+    assert "not collected this time: [Errno 2]" in text.getvalue()
 
 
 def test_the_compilation_caches_pack_into_parts_that_restore_to_the_same_files(tmp_path, monkeypatch, capsys):
