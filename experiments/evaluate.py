@@ -73,6 +73,7 @@ from sim_data.dataset.cache import TrainingCache
 from sim_data.parts import add_part_argument, config_and_part, exclusive, in_turn
 from sim_data.policies.bc import MixedPolicy
 from sim_data.policies.registry import (
+    applied_policy,
     describe,
     fingerprint,
     group_by_policy,
@@ -573,7 +574,7 @@ def _imagine(model, task, policy, params, frames0, proprio0, steps, rng, policy_
     and "trace_progress": (B, T) float32 the per-step heads' outputs, "frames": (B, T, S, S, 3) uint8
     imagined, "action": (B, T, 20) float32 the policy's actions}."""
     wm_cfg, wm_params, norm, judge, judge2 = model
-    got = closed_loop(wm_cfg.model, policy, steps, wm_params, norm, params, frames0, proprio0,
+    got = closed_loop(wm_cfg.model, applied_policy(policy), steps, wm_params, norm, params, frames0, proprio0,
                       np.zeros((len(frames0), 0, R.ACTION_DIM), np.float32), rng, policy_keys=policy_keys)
     return {**read_episodes(judge, task, got["features"], judge2), "trace_success": np.asarray(got["success"], np.float32),
             "trace_progress": np.asarray(got["progress"], np.float32), "frames": got["frames"],

@@ -150,6 +150,54 @@ def test_a_recorded_rollout_compiled_ahead_compiles_once_and_records_the_same_ep
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
+class _Commands:
+    """The same command at every step: (20,) params["action"] for every episode of the batch."""
+
+    def init_carry(self, params, obs, task_state, rng):
+        return jnp.zeros((obs["proprio"].shape[0],), jnp.int32)
+
+    def act(self, params, obs, carry, rng):
+        return jnp.broadcast_to(params["action"], (carry.shape[0], R.ACTION_DIM)), carry + 1
+
+
+def test_a_rollout_records_the_action_the_robot_applied_not_the_one_asked_for(model):
+    """A command past its range (driving back at 0.9 m/s, closures of 1.5) or NaN is recorded as the robot
+    applies it, a NaN as 0 and the rest clipped, so that a world model trained on the record or given a
+    policy's actions in imagination reads what the robot did; the simulation is that of the applied command."""
+    idx = R.robot_index(model)
+    asked = np.zeros(R.ACTION_DIM, np.float32)
+    asked[R.FORWARD_SPEED], asked[R.YAW_RATE] = -0.9, 2.5
+    asked[R.HAND_CLOSURE] = 1.5
+    asked[R.NECK.start] = np.nan
+    applied = np.asarray(R.applied_action(jnp.asarray(asked), idx))
+    assert applied[R.FORWARD_SPEED] == -R.MAX_FORWARD_SPEED and applied[R.YAW_RATE] == R.MAX_YAW_RATE
+    np.testing.assert_array_equal(applied[R.HAND_CLOSURE], 1.0)
+    assert applied[R.NECK.start] == 0.0 and np.isfinite(applied).all()
+    env = HomeEnv("step_back", 1, engine="cpu")
+    rng = jax.random.PRNGKey(3)
+    runs = {}
+    for name, action in (("asked", asked), ("applied", applied)):
+        runs[name] = run_episodes(env, _Commands(), {"action": jnp.asarray(action)}, rng, record=True)
+    for name in runs:
+        np.testing.assert_array_equal(np.asarray(runs[name][1].action), np.broadcast_to(applied, (1, env.episode_steps,
+                                                                                                   R.ACTION_DIM)))
+    np.testing.assert_array_equal(np.asarray(runs["asked"][0].qpos), np.asarray(runs["applied"][0].qpos))
+    _, rec = record_episodes(env, _Commands(), {"action": jnp.asarray(asked)}, rng, steps=SEGMENT)
+    np.testing.assert_array_equal(np.asarray(rec.action), np.broadcast_to(applied, (1, SEGMENT, R.ACTION_DIM)))
+
+
+def test_reset_takes_a_typed_key_as_the_raw_key_it_holds():
+    """jax.random.key(3) and jax.random.PRNGKey(3), one key or one per episode, draw the same initial
+    states; keys for another batch size are refused, saying what reset takes."""
+    env = HomeEnv("mug", 2, engine="cpu")
+    want = np.asarray(env.reset(jax.random.PRNGKey(3)).qpos)
+    for keys in (jax.random.key(3), jax.random.split(jax.random.key(3), 2), jax.random.split(jax.random.PRNGKey(3), 2)):
+        np.testing.assert_array_equal(np.asarray(env.reset(keys).qpos), want)
+    for wrong in (jax.random.split(jax.random.PRNGKey(0), 3), jax.random.split(jax.random.key(0), 3)):
+        with pytest.raises(ValueError, match=r"one PRNG key or 2 of them \(B, 2\), got an array of shape \(3, 2\)"):
+            env.reset(wrong)
+
+
 def test_unknown_engine_is_a_clear_error():
     with pytest.raises(ValueError, match="unknown engine 'gpu'"):
         HomeEnv("mug", 1, engine="gpu")

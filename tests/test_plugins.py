@@ -20,9 +20,11 @@ from experiments import report as RP
 from experiments import stats as S
 from sim_data.dataset import generate as G
 from sim_data.policies.bc import stacked
+from sim_data.policies.degrade import DegradedPolicy, degrade_params
 from sim_data.policies.registry import (
     ClippedPolicy,
     PolicySource,
+    applied_policy,
     fingerprint,
     group_by_policy,
     load_plugin,
@@ -247,6 +249,37 @@ def test_a_plugins_actions_are_clipped_to_the_ranges_the_simulator_applies(user_
     assert got["user_pols:fast"][0, R.FORWARD_SPEED] == R.MAX_FORWARD_SPEED
     np.testing.assert_array_equal(got["user_pols:calm"], np.clip(np.full((3, 20), np.float32(0.1)),
                                                                  idx.action_low, idx.action_high))
+
+
+@dataclasses.dataclass(frozen=True)
+class _Steady:
+    """Every action entry params["value"]; the carry counts steps."""
+
+    def init_carry(self, params, obs, task_state, rng):
+        return jnp.zeros((obs["proprio"].shape[0],), jnp.int32)
+
+    def act(self, params, obs, carry, rng):
+        return jnp.full((carry.shape[0], 20), params["value"], jnp.float32), carry + 1
+
+
+def test_imagination_gives_the_world_model_a_learned_policys_actions_as_the_robot_applies_them():
+    """A policy lengthening its drive past the robot's top speed (a drive x2 family) is clipped to what the
+    robot applies before the world model reads it, as its rollouts record it; a plug-in, clipped already,
+    is used as it is; equal policies give equal wrappers (one compiled imagination)."""
+    idx = robot_index(load_model())
+    degraded = DegradedPolicy(_Steady())
+    params = degrade_params({"value": np.float32(-0.3)}, drive=2.0)
+    wrapped = applied_policy(degraded)
+    assert wrapped == applied_policy(DegradedPolicy(_Steady())) and hash(wrapped) == hash(applied_policy(degraded))
+    obs = {"image": jnp.zeros((2, 64, 64, 3), jnp.uint8), "proprio": jnp.zeros((2, R.PROPRIO_DIM))}
+    rng = jax.random.PRNGKey(1)
+    raw = np.asarray(degraded.act(params, obs, degraded.init_carry(params, obs, None, rng), rng)[0])
+    got = np.asarray(wrapped.act(params, obs, wrapped.init_carry(params, obs, None, rng), rng)[0])
+    assert raw[0, R.FORWARD_SPEED] == np.float32(-0.6) and got[0, R.FORWARD_SPEED] == -R.MAX_FORWARD_SPEED
+    assert raw[0, R.HAND_CLOSURE.start] < 0 and got[0, R.HAND_CLOSURE.start] == 0.0
+    np.testing.assert_array_equal(got, np.clip(raw, idx.action_low, idx.action_high))
+    plugin = resolve(["examples.plugin_policy:make"])[0].policy
+    assert applied_policy(plugin) is plugin
 
 
 class _Peeking:

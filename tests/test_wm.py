@@ -22,7 +22,7 @@ from flax import serialization
 
 from sim_data.config import override
 from sim_data.dataset.cache import TrainingCache
-from sim_data.policies.registry import PolicySource
+from sim_data.policies.registry import ClippedPolicy, PolicySource
 from sim_data.sim.scene import SCENE_STATE_NAMES
 from wm import checkpoint as CK
 from wm import imagine as I
@@ -2038,7 +2038,8 @@ def test_the_judges_closed_loop_runs_each_checkpoints_episodes_as_one_slot_and_p
     calls = []
 
     def fake_closed_loop(cfg, policy, horizon, params, norm, policy_params, frames, proprio, ctx, rng):
-        p = policy.count(policy_params)
+        assert isinstance(policy, ClippedPolicy)  # imagined with the actions as the robot applies them
+        p = policy.policy.count(policy_params)
         w = np.repeat(np.asarray(policy_params["w"]), len(frames) // p)  # each row's parameter set
         calls.append((p, len(frames)))
         return {"features": np.broadcast_to((frames[:, 0, 0, 0, 0] * 1000.0 + w)[:, None, None], (len(frames), horizon, 1))}

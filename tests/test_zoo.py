@@ -27,6 +27,7 @@ from sim_data.policies.bc import (
 )
 from sim_data.policies.registry import (
     PLAN,
+    applied_policy,
     every_nth_checkpoint,
     fingerprint,
     registry_file,
@@ -305,7 +306,7 @@ def test_mixed_dataset_records_policy_rollouts(smoke_dataset, smoke_zoo, smoke_w
     src = pols[cache.episodes[i]["policy"]]
     got = imagine_episodes(wm_cfg.model, wm_params, norm, cache, [i], "head_cam", False, pols, seed=3)
     ep = cache.episode(i, cameras=["head_cam"])
-    want = closed_loop(wm_cfg.model, StackedPolicy(src.policy), ep["record"]["length"] - 1, wm_params, norm,
+    want = closed_loop(wm_cfg.model, applied_policy(StackedPolicy(src.policy)), ep["record"]["length"] - 1, wm_params, norm,
                        stack_params([src.params]), ep["frames"]["head_cam"][None, :1], ep["proprio"][None, :1],
                        np.zeros((1, 0, 20), np.float32), jax.random.PRNGKey(3))
     np.testing.assert_allclose(got["features"][0], np.asarray(want["features"][0]), rtol=1e-5, atol=1e-5)

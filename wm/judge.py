@@ -43,7 +43,7 @@ from flax import serialization
 from tqdm import tqdm
 
 from sim_data.policies.bc import stacked
-from sim_data.policies.registry import policy_chunks, resolve, stack_key
+from sim_data.policies.registry import applied_policy, policy_chunks, resolve, stack_key
 from sim_data.policies.scripted import simulate_actions
 from sim_data.sim.engines import default_engine
 from sim_data.sim.robot import ACTION_DIM
@@ -237,7 +237,7 @@ def _closed_loop_part(cfg: ModelConfig, params, norm: Norm, cache, part, camera:
     rows = [i for _, ids in part for i in ids]
     eps = {i: cache.episode(i, cameras=[camera]) for i in dict.fromkeys(rows)}  # a padding row reads none
     stacked_policy, policy_params = stacked(policy, [src.params for src, _ in part])
-    got = closed_loop(cfg, stacked_policy, horizon, params, norm, policy_params,
+    got = closed_loop(cfg, applied_policy(stacked_policy), horizon, params, norm, policy_params,
                       np.stack([eps[i]["frames"][camera][:1] for i in rows]),
                       np.stack([eps[i]["proprio"][:1] for i in rows]),
                       np.zeros((len(rows), 0, cfg.action_dim), np.float32), rng)

@@ -221,6 +221,17 @@ class ClippedPolicy:
 PLUGIN_OBS = ("image", "proprio")  # what a policy sees, in the simulator as in the world model
 
 
+def applied_policy(policy) -> ClippedPolicy:
+    """policy as imagination runs it: its actions as the robot applies them (a NaN as 0, clipped to the
+    robot's ranges; sim_data.sim.robot.applied_action), as a rollout records them and the world model
+    was trained on them, its observations unchanged. A ClippedPolicy (a plug-in) is returned as it is."""
+    if isinstance(policy, ClippedPolicy):
+        return policy
+    idx = robot_index(load_model())
+    return ClippedPolicy(policy, tuple(idx.action_low.tolist()), tuple(idx.action_high.tolist()),
+                         simulator_only=True)  # sees what it is given: imagination gives image and proprio
+
+
 def plugin_view(obs: dict) -> dict:
     """obs cut down to PLUGIN_OBS: the simulator's rollout also carries privileged state (qpos, qvel,
     time) that the world model cannot give, so a plug-in that read it would run otherwise in each."""

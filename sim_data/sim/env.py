@@ -95,12 +95,17 @@ class EnvCore:
         self._sample = jax.jit(jax.vmap(self._sample_one))
         self._pre = jax.jit(self.pre_step)
         self._post = jax.jit(self.post_step)
+        self.applied = jax.jit(self.applied_action)
         if self.engine.name == "mjx":
             self._step = jax.jit(self.mjx_step)
             self._init = jax.jit(self.engine.init)
 
     def _sample_one(self, key, task_id):
         return sample_initial(task_id, key, self.idx, self._qpos0, self._mocap0, self.heldout)
+
+    def applied_action(self, action):
+        """The action (B, 20) as the robot applies it (robot.applied_action): what a rollout records."""
+        return R.applied_action(action, self.idx.robot)
 
     # ---- shared halves of a control step -------------------------------------------------------
     def pre_step(self, state: State, action):
@@ -194,12 +199,17 @@ class HomeEnv:
         return self.task.episode_steps
 
     def reset(self, rng: jax.Array) -> State:
-        """Samples B initial states. rng: one PRNG key, or (B,) keys (one per episode)."""
+        """Samples B initial states. rng: one PRNG key, or (B,) keys (one per episode); a key is a raw
+        (2,) uint32 array (jax.random.PRNGKey) or a typed one (jax.random.key), which draw alike."""
         keys = jnp.asarray(rng)
-        if keys.ndim == 1 and not jnp.issubdtype(keys.dtype, jax.dtypes.prng_key):
-            keys = jax.random.split(keys, self.batch_size) if keys.shape == (2,) else keys
-        if keys.shape[0] != self.batch_size:
-            raise ValueError(f"reset got {keys.shape[0]} keys for a batch of {self.batch_size}")
+        typed = jnp.issubdtype(keys.dtype, jax.dtypes.prng_key)
+        if keys.shape == (() if typed else (2,)):
+            keys = jax.random.split(keys, self.batch_size)
+        if typed:  # the raw data of each key: one compiled sampler for either kind
+            keys = jax.random.key_data(keys)
+        if keys.ndim != 2 or keys.shape[0] != self.batch_size:
+            raise ValueError(f"reset takes one PRNG key or {self.batch_size} of them (B, 2), got an array of "
+                             f"shape {keys.shape}")
         return self.core.reset(keys, jnp.full((self.batch_size,), self.task.id, jnp.int32))
 
     def poses(self, state: State) -> Poses:

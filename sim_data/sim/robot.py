@@ -116,18 +116,27 @@ def robot_index(model) -> RobotIndex:
     )
 
 
+def applied_action(action: jnp.ndarray, idx: RobotIndex) -> jnp.ndarray:
+    """The action (..., 20) as the robot applies it: a NaN as 0, then clipped to [action_low,
+    action_high] (the position actuators' control ranges, closures in [0, 1], speeds within
+    +-MAX_FORWARD_SPEED and +-MAX_YAW_RATE). Datasets record it and the world model is given it, so
+    that a command past a range (a lengthened drive, noise on a joint) reads as what the robot did."""
+    a = jnp.where(jnp.isnan(action), 0.0, action)
+    return jnp.clip(a, idx.action_low, idx.action_high)
+
+
 def action_to_ctrl(action: jnp.ndarray, base_yaw: jnp.ndarray, idx: RobotIndex) -> jnp.ndarray:
     """Maps actions to the 23 actuator controls of home.xml.
 
     Args:
-      action: (B, 20) actions (clipped here to their documented ranges).
+      action: (B, 20) actions (taken here as applied_action: a NaN as 0, clipped to their ranges).
       base_yaw: (B,) current base heading, to turn the robot-frame driving command into
         world-frame base velocities.
       idx: the model's RobotIndex.
     Returns:
       (B, 23) float controls.
     """
-    a = jnp.clip(action, idx.action_low, idx.action_high)
+    a = applied_action(action, idx)
     closure = a[..., HAND_CLOSURE]
     finger = (1.0 - closure) * FINGER_OPEN
     fingers = jnp.stack([finger[..., 0], finger[..., 0], finger[..., 1], finger[..., 1]], axis=-1)

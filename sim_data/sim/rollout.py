@@ -103,6 +103,7 @@ def run_episodes(env: HomeEnv, policy, params, rng: jax.Array, record: bool = Fa
     steps = []
     for t in range(env.episode_steps):
         action, carry = act(params, state.obs, carry, jax.random.fold_in(k_act, t))
+        action = env.core.applied(action)
         state = env.step(state, action)
         if record:
             steps.append(_record(state, action))
@@ -131,6 +132,7 @@ def _scan_segment(core: EnvCore, policy, record: bool, params, state, carry, rng
     def body(c, t):
         st, pc = c
         action, pc = policy.act(params, st.obs, pc, jax.random.fold_in(rng, t))
+        action = core.applied(action)
         st = core.mjx_step(st, action)
         return (st, pc), (_record(st, action) if record else None)
 
@@ -234,6 +236,7 @@ def record_episodes(env: HomeEnv, policy, params, rng: jax.Array, renderers: tup
     first, recorded, actions = (frames, rec), [], []
     for t in range(env.episode_steps if steps is None else steps):
         action, carry = act(params, obs, carry, jax.random.fold_in(k_act, t))
+        action = env.core.applied(action)
         state = env.step(state, action)
         obs, frames, rec = observe(state, rgb)
         recorded.append((frames, rec))
@@ -268,6 +271,7 @@ def _scan_recorded(core: EnvCore, policy, renderers, params, state, carry, obs, 
     def body(c, t):
         st, pc, ob = c
         action, pc = policy.act(params, ob, pc, jax.random.fold_in(rng, t))
+        action = core.applied(action)
         st = core.mjx_step(st, action)
         ob, fr, rc = _observation(core.poses(st), st, renderers, rgb)
         return (st, pc, ob), ((fr, rc), action)
