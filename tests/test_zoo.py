@@ -325,12 +325,14 @@ def test_mixed_dataset_records_policy_rollouts(smoke_dataset, smoke_zoo, smoke_w
                      ep["action"][None, : n - 1])
     k_init, k_act = jax.random.split(jax.random.PRNGKey(i))
 
+    pol = applied_policy(src.policy)  # as the robot applies them, as the episode logs them
+
     def acts(images, proprio):
-        carry = src.policy.init_carry(src.params, {"image": images[None, 0], "proprio": proprio[None, 0]}, None, k_init)
+        carry = pol.init_carry(src.params, {"image": images[None, 0], "proprio": proprio[None, 0]}, None, k_init)
         out = []
         for t in range(n):
-            a, carry = src.policy.act(src.params, {"image": images[None, t], "proprio": proprio[None, t]}, carry,
-                                      jax.random.fold_in(k_act, t))
+            a, carry = pol.act(src.params, {"image": images[None, t], "proprio": proprio[None, t]}, carry,
+                               jax.random.fold_in(k_act, t))
             out.append(np.asarray(a[0]))
         return np.asarray(norm.action(np.stack(out)))
 
@@ -346,6 +348,7 @@ def test_mixed_dataset_records_policy_rollouts(smoke_dataset, smoke_zoo, smoke_w
     np.testing.assert_allclose(row["copy_first_mean"], np.abs(on_held - on_true).mean(), rtol=1e-3)
     np.testing.assert_allclose(pil["logged_vs_true"], np.abs(on_true - np.asarray(norm.action(ep["action"][:n]))).mean(),
                                rtol=1e-3, atol=1e-6)
+    assert pil["logged_vs_true"] < 1e-3  # a deterministic policy on its own episode's frames acts as it logged
     assert policy_action_divergence(cfg, wm_params, norm, cache, [i], {})["episodes"] == 0
     # the judge's warm-up runs the programs of its fit, closed loops included: a fit after it compiles
     # none of them (a model width no other test imagines with, so that they are new here)

@@ -56,6 +56,7 @@ from tqdm import tqdm
 
 from sim_data.config import override
 from sim_data.dataset.cache import TrainingCache
+from sim_data.policies.registry import applied_policy
 from sim_data.util import run_cli, write_json_atomic
 from wm.checkpoint import load_trained
 from wm.config import TrainConfig, check_dataset
@@ -297,7 +298,8 @@ def action_dependence(cfg: TrainConfig, params, norm: Norm, cache: TrainingCache
 
 @functools.partial(jax.jit, static_argnums=(0,))
 def _policy_actions(policy, params, images, proprio, rng):
-    """The actions a policy takes, step by step with its own carry, on given observations:
+    """The actions a policy takes (policy_action_divergence gives it through applied_policy: as the
+    robot applies them, as the episodes log them), step by step with its own carry, on given observations:
     images (B, T, S, S, 3) uint8, proprio (B, T, 37) -> (B, T, 20). Every sequence starts a fresh
     carry from its first observation and sees the same keys."""
     k_init, k_act = jax.random.split(rng)
@@ -355,7 +357,8 @@ def policy_action_divergence(cfg: TrainConfig, params, norm: Norm, cache: Traini
         images = np.stack([np.pad(x, pad, mode="edge") for x in (true_img, im_img, held_img)])
         prop = np.stack([np.pad(x, pad[:2], mode="edge") for x in (true_prop, im_prop, held_prop)])
         src = policies[cache.episodes[i]["policy"]]
-        acts = np.asarray(_policy_actions(src.policy, src.params, images, prop, jax.random.PRNGKey(i)))[:, :n]
+        acts = np.asarray(_policy_actions(applied_policy(src.policy), src.params, images, prop,
+                                          jax.random.PRNGKey(i)))[:, :n]
         scaled = np.asarray(norm.action(acts))
         diff = np.abs(scaled[1:] - scaled[0]).mean(-1)  # (2, n): imagined, copy-first
         logged.append(float(np.abs(scaled[0] - np.asarray(norm.action(ep["action"][:n]))).mean()))
