@@ -149,7 +149,7 @@ def test_a_rerun_may_change_the_workers_but_not_the_engine_or_what_its_policies_
     _, out, _ = smoke
     copy = tmp_path / "copy"
     shutil.copytree(out, copy)
-    assert json.loads((copy / G.SOURCES_FILE).read_text()) == {"engine": "cpu", "policies": {}}
+    assert json.loads((copy / G.SOURCES_FILE).read_text()) == {"engine": "cpu", "actions": "applied", "policies": {}}
     G.generate(G.make_config("smoke", ["workers=1"]), copy, progress=False)  # nothing left to simulate
     with pytest.raises(ValueError, match="simulated with the cpu engine, and this run would use mjx"):
         G._check_sources_match(copy, [], "mjx")
@@ -162,6 +162,13 @@ def test_a_rerun_may_change_the_workers_but_not_the_engine_or_what_its_policies_
     G._check_sources_match(mixed, [src], "cpu")  # the same policy: resumes
     with pytest.raises(ValueError, match=r"now compute otherwise or are no longer named \(\['mine'\]"):
         G._check_sources_match(mixed, [dataclasses.replace(src, params={"w": np.ones(2)})], "cpu")
+    # a dataset whose episodes record the actions as asked (no "actions" entry) is neither resumed nor reused
+    older = tmp_path / "older"
+    older.mkdir()
+    (older / G.SOURCES_FILE).write_text(json.dumps({"engine": "cpu", "policies": {}}))
+    for out, reuse, says in ((older, None, "holds"), (tmp_path / "new2", older, r"\(reused\) holds")):
+        with pytest.raises(ValueError, match=says + " episodes whose actions are recorded as the policies asked"):
+            G._check_sources_match(out, [], "cpu", reuse=reuse)
 
 
 def test_drives_join_a_reused_dataset_only_where_no_weak_grip_shares_their_chunks(tmp_path):

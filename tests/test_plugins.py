@@ -635,6 +635,8 @@ def test_a_policy_evaluated_under_another_name_than_its_rollouts_counts_as_seen(
     plugin = resolve(["examples.plugin_policy:make"])[0]
     other = dataclasses.replace(plugin, name="other", params=jax.tree_util.tree_map(lambda a: a + 1, plugin.params))
     assert fingerprint(other) != fingerprint(plugin)
+    # the data generator loads it for the simulator alone: the same policy, the same fingerprint
+    assert fingerprint(resolve(["examples.plugin_policy:make"], world_model=False)[0]) == fingerprint(plugin)
     data = tmp_path / "data"
     data.mkdir()
     rows = [{"policy": "plugin:mine", "policy_kind": "plugin", "policy_fingerprint": fingerprint(plugin)},

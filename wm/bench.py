@@ -39,6 +39,7 @@ import numpy as np
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
+from sim_data.policies.registry import applied_policy
 from sim_data.util import device_name, run_cli, write_json_atomic
 from wm.config import make_config
 from wm.imagine import Norm, closed_loop, init_state, step
@@ -427,7 +428,7 @@ def imagine_rate(cfg, batch: int, horizon: int) -> dict:
     Returns {"batch", "horizon", "frames_per_s", "first_call_s" (the compiling call's seconds)}."""
     m = cfg.model
     params = init_params(m, jax.random.PRNGKey(0), window=cfg.window)
-    pol = BenchPolicy()
+    pol = applied_policy(BenchPolicy())  # as the evaluation runs a policy: its actions as the robot applies them
     pparams = ConvPolicy().init(jax.random.PRNGKey(1), jnp.zeros((1, m.size, m.size, 3), jnp.uint8), jnp.zeros((1, 37)))
     norm = unit_norm(m)
     frames, proprio, acts = blank_context(m, batch)

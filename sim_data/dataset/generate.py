@@ -797,19 +797,27 @@ def _check_config_matches(cfg: DataConfig, out: Path) -> None:
 
 
 SOURCES_FILE = "sources.json"  # the engine a dataset's episodes are simulated with and what its learned policies compute
+# how its episodes record actions: as the robot applies them (robot.applied_action), where a dataset
+# without this entry holds them as the policies asked (a learned policy's drive past the top speed)
+ACTIONS_RECORDED = "applied"
 
 
 def _check_sources_match(out: Path, learned, engine: str, reuse: Path | None = None) -> None:
-    """Saves the engine and each learned policy's fingerprint (registry.fingerprint) on first use;
-    refuses a rerun, or a reused dataset, that would mix episodes of another engine or of policies
-    that now compute otherwise (a zoo trained again at the same path, a plug-in's code changed): the
-    config names both only by their specs, and a finished episode is kept as it is."""
-    mine = {"engine": engine, "policies": {s.name: fingerprint(s) for s in learned}}
+    """Saves the engine, how actions are recorded (ACTIONS_RECORDED) and each learned policy's
+    fingerprint (registry.fingerprint) on first use; refuses a rerun, or a reused dataset, that would
+    mix episodes of another engine, of actions recorded otherwise, or of policies that now compute
+    otherwise (a zoo trained again at the same path, a plug-in's code changed): the config names
+    the policies only by their specs, and a finished episode is kept as it is."""
+    mine = {"engine": engine, "actions": ACTIONS_RECORDED, "policies": {s.name: fingerprint(s) for s in learned}}
     for d, what in ((out, "holds"), (reuse, "(reused) holds")):
         path = None if d is None else Path(d) / SOURCES_FILE
         if path is None or not path.exists():
             continue
         theirs = read_json(path)
+        if theirs.get("actions") != ACTIONS_RECORDED:
+            raise ValueError(f"{d} {what} episodes whose actions are recorded as the policies asked for them, and "
+                             "this version records them as the robot applies them (clipped to their ranges): "
+                             "generate into another OUT")
         if theirs["engine"] != engine:
             raise ValueError(f"{d} {what} episodes simulated with the {theirs['engine']} engine, and this run "
                              f"would use {engine}: set engine={theirs['engine']} or use another OUT")

@@ -336,8 +336,11 @@ def describe(x) -> str:
 
 def fingerprint(source: PolicySource) -> str:
     """A digest of what the policy computes: its description, its parameters and, for a plug-in, its
-    code when it was loaded (code_digest); a rerun into the same output compares it."""
-    h = hashlib.sha256(describe(source.policy).encode())
+    code when it was loaded (code_digest); a rerun into the same output compares it. A plug-in is
+    described without its ClippedPolicy, whose simulator_only differs between the data generator and
+    the evaluation: the same plug-in is one policy in both."""
+    policy = source.policy.policy if isinstance(source.policy, ClippedPolicy) else source.policy
+    h = hashlib.sha256(describe(policy).encode())
     hash_arrays(h, source.params)
     h.update(source.code.encode())
     return h.hexdigest()[:16]

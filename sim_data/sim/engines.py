@@ -25,9 +25,10 @@ with contextlib.redirect_stdout(io.StringIO()):
     from mujoco import mjx
 
 ENGINES = ("cpu", "mjx")
-# raised whenever an engine's physics changes what it simulates (the `mjx` engine's implicit gyroscopic
-# term of free bodies is revision 2): outcomes cached under an older revision are simulated again
-PHYSICS_REVISION = 2
+# raised whenever an engine's physics or a rollout's record changes what it simulates or holds (the `mjx`
+# engine's implicit gyroscopic term of free bodies is revision 2; actions recorded as the robot applies
+# them, a NaN as 0, revision 3): outcomes cached under an older revision are simulated again
+PHYSICS_REVISION = 3
 POSE_FIELDS = ("geom_xpos", "geom_xmat", "cam_xpos", "cam_xmat")
 
 

@@ -199,17 +199,17 @@ class HomeEnv:
         return self.task.episode_steps
 
     def reset(self, rng: jax.Array) -> State:
-        """Samples B initial states. rng: one PRNG key, or (B,) keys (one per episode); a key is a raw
-        (2,) uint32 array (jax.random.PRNGKey) or a typed one (jax.random.key), which draw alike."""
+        """Samples B initial states. rng: one PRNG key, or B keys (one per episode): raw, (2,) or (B, 2)
+        uint32 (jax.random.PRNGKey), or typed, () or (B,) (jax.random.key: of the default implementation
+        it draws as the raw key it holds)."""
         keys = jnp.asarray(rng)
         typed = jnp.issubdtype(keys.dtype, jax.dtypes.prng_key)
         if keys.shape == (() if typed else (2,)):
             keys = jax.random.split(keys, self.batch_size)
-        if typed:  # the raw data of each key: one compiled sampler for either kind
-            keys = jax.random.key_data(keys)
-        if keys.ndim != 2 or keys.shape[0] != self.batch_size:
-            raise ValueError(f"reset takes one PRNG key or {self.batch_size} of them (B, 2), got an array of "
-                             f"shape {keys.shape}")
+        if keys.shape[:1] != (self.batch_size,) or keys.ndim != (1 if typed else 2):
+            raise ValueError(f"reset takes one PRNG key or {self.batch_size} of them ({self.batch_size} typed keys "
+                             f"or ({self.batch_size}, 2) raw ones), got {'typed keys' if typed else 'an array'} "
+                             f"of shape {keys.shape}")
         return self.core.reset(keys, jnp.full((self.batch_size,), self.task.id, jnp.int32))
 
     def poses(self, state: State) -> Poses:
