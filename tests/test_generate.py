@@ -14,7 +14,7 @@ from mcap.reader import make_reader
 
 from sim_data.dataset import generate as G
 from sim_data.dataset.episodes import read_episode
-from sim_data.policies.registry import PolicySource
+from sim_data.policies.registry import PolicySource, fingerprint
 from sim_data.policies.scripted import PROGRAMS
 from sim_data.sim import robot as R
 from sim_data.util import even_pieces
@@ -162,13 +162,16 @@ def test_a_rerun_may_change_the_workers_but_not_the_engine_or_what_its_policies_
     G._check_sources_match(mixed, [src], "cpu")  # the same policy: resumes
     with pytest.raises(ValueError, match=r"now compute otherwise or are no longer named \(\['mine'\]"):
         G._check_sources_match(mixed, [dataclasses.replace(src, params={"w": np.ones(2)})], "cpu")
-    # a dataset whose episodes record the actions as asked (no "actions" entry) is neither resumed nor reused
+    # rollouts whose actions are recorded as asked (no "actions" entry) are neither resumed nor reused;
+    # scripted episodes alone are the same either way
     older = tmp_path / "older"
     older.mkdir()
     (older / G.SOURCES_FILE).write_text(json.dumps({"engine": "cpu", "policies": {}}))
+    G._check_sources_match(tmp_path / "new1", [], "cpu", reuse=older)
+    (older / G.SOURCES_FILE).write_text(json.dumps({"engine": "cpu", "policies": {"mine": fingerprint(src)}}))
     for out, reuse, says in ((older, None, "holds"), (tmp_path / "new2", older, r"\(reused\) holds")):
-        with pytest.raises(ValueError, match=says + " episodes whose actions are recorded as the policies asked"):
-            G._check_sources_match(out, [], "cpu", reuse=reuse)
+        with pytest.raises(ValueError, match=says + " rollouts whose actions are recorded as the policies asked"):
+            G._check_sources_match(out, [src], "cpu", reuse=reuse)
 
 
 def test_drives_join_a_reused_dataset_only_where_no_weak_grip_shares_their_chunks(tmp_path):

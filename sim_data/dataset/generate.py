@@ -798,7 +798,8 @@ def _check_config_matches(cfg: DataConfig, out: Path) -> None:
 
 SOURCES_FILE = "sources.json"  # the engine a dataset's episodes are simulated with and what its learned policies compute
 # how its episodes record actions: as the robot applies them (robot.applied_action), where a dataset
-# without this entry holds them as the policies asked (a learned policy's drive past the top speed)
+# without this entry holds its learned policies' rollouts as the policies asked (a drive past the top
+# speed); its scripted, program and play episodes are the same either way (their commands stay in range)
 ACTIONS_RECORDED = "applied"
 
 
@@ -814,10 +815,10 @@ def _check_sources_match(out: Path, learned, engine: str, reuse: Path | None = N
         if path is None or not path.exists():
             continue
         theirs = read_json(path)
-        if theirs.get("actions") != ACTIONS_RECORDED:
-            raise ValueError(f"{d} {what} episodes whose actions are recorded as the policies asked for them, and "
+        if theirs.get("actions") != ACTIONS_RECORDED and theirs["policies"]:  # scripted actions stay in range
+            raise ValueError(f"{d} {what} rollouts whose actions are recorded as the policies asked for them, and "
                              "this version records them as the robot applies them (clipped to their ranges): "
-                             "generate into another OUT")
+                             "generate into another OUT, or remove this one (`make clean` removes the demo's)")
         if theirs["engine"] != engine:
             raise ValueError(f"{d} {what} episodes simulated with the {theirs['engine']} engine, and this run "
                              f"would use {engine}: set engine={theirs['engine']} or use another OUT")
