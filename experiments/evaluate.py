@@ -1356,12 +1356,18 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, models, wm
 
 
 def seen_policies(wm_runs, sources) -> set:
-    """The names of the policies whose own rollouts some world model of wm_runs saw in training: those
-    its data names, and those of `sources` that compute what a policy of its data computed
-    (registry.fingerprint), so that a policy evaluated under another name than its rollouts' is seen."""
-    seen = set().union(*(training_policies(Path(r)) for r in wm_runs))
-    computed = set().union(*(training_fingerprints(Path(r)) for r in wm_runs))
-    return seen | {s.name for s in sources if computed and fingerprint(s) in computed}
+    """The names of the policies of `sources` whose own rollouts some world model of wm_runs saw in
+    training. Where its data records what each policy computes (registry.fingerprint), by that alone:
+    a policy evaluated under another name than its rollouts' is seen, and one that took a trained
+    policy's name but computes otherwise (a plug-in revised since its rollouts) is not; where its
+    data records no fingerprint (an older dataset), by name."""
+    prints = {s.name: fingerprint(s) for s in sources}
+    seen = set()
+    for run in map(Path, wm_runs):
+        computed = training_fingerprints(run)
+        names = set() if computed else training_policies(run)
+        seen |= {s.name for s in sources if prints[s.name] in computed or s.name in names}
+    return seen
 
 
 def all_metrics(cfg: EvalConfig, results: dict, tasks, rows: list[dict], seen: set) -> dict:

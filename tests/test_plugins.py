@@ -109,6 +109,37 @@ def needs_task_state():
 def broken():
     return float("abc"), {}
 
+@dataclasses.dataclass(frozen=True)
+class HostSpeed(Counting):
+    """Asks the host for its speed (a numpy model) without saying how to vectorise the call."""
+    def act(self, params, obs, carry, rng):
+        import jax
+        import numpy as np
+        b = carry.shape[0]
+        speed = jax.pure_callback(lambda c: np.full(c.shape, -0.3, np.float32),
+                                  jax.ShapeDtypeStruct((b,), jnp.float32), carry)
+        return jnp.zeros((b, 20)).at[:, 18].set(speed), carry + 1
+
+def host_speed():
+    return HostSpeed(), {}
+
+@dataclasses.dataclass(frozen=True)
+class Smoothed:
+    """A bfloat16 moving average of the proprioception, its decay a plain Python number."""
+    def init_carry(self, params, obs, task_state, rng):
+        return jnp.zeros(obs["proprio"].shape, jnp.bfloat16)
+    def act(self, params, obs, carry, rng):
+        ema = params["decay"] * carry + (1 - params["decay"]) * obs["proprio"].astype(jnp.bfloat16)
+        return jnp.zeros((carry.shape[0], 20)), ema
+
+def smoothed():
+    return Smoothed(), {"decay": 0.9}
+
+def sixty_four():
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    return Constant(), {"value": 0.1}
+
 class Plain(Counting):
     """A hashable policy that is no dataclass: its default repr holds a memory address."""
     def act(self, params, obs, carry, rng):
@@ -158,6 +189,16 @@ def test_a_plugin_is_checked_against_the_protocol_before_it_runs(user_module):
     with pytest.raises(RuntimeError, match=r"'user_pols:broken': user_pols.broken\(\) raised ValueError") as e:
         load_plugin("user_pols:broken")
     assert isinstance(e.value.__cause__, ValueError)  # the user's traceback is kept
+    # as the rollouts and imagination run it: stacked, under vmap, its parameters arrays
+    with pytest.raises(RuntimeError, match=r"'user_pols:host_speed'.*stacked, under jax.vmap.*pure_callback"):
+        load_plugin("user_pols:host_speed")
+    with pytest.raises(ValueError, match=r"'user_pols:smoothed'.*stacked.*bfloat16.*float32"):
+        load_plugin("user_pols:smoothed")
+    with pytest.raises(ValueError, match=r"'user_pols:sixty_four'.*turned JAX's 64-bit mode \(jax_enable_x64\) on"):
+        load_plugin("user_pols:sixty_four")
+    assert not jax.config.jax_enable_x64  # put back as it was
+    with pytest.raises(ValueError, match=r"cannot pass arguments to a plug-in.*functools.partial"):
+        resolve(["user_pols:mlp(8)"])
     source = load_plugin("mine=user_pols:narrow_mlp")  # a pytree of parameters and a dict carry pass
     assert source.name == "mine" and source.kind == "plugin" and source.record == {"plugin": "user_pols:narrow_mlp"}
     assert len(source.code) == 16  # its code's digest, kept out of the record that datasets write
@@ -631,7 +672,8 @@ def test_a_plugins_rollouts_in_the_training_data_count_as_seen(tmp_path):
 def test_a_policy_evaluated_under_another_name_than_its_rollouts_counts_as_seen(tmp_path):
     """Seen is decided by what a policy computes where the training data records it: the plug-in whose
     rollouts were recorded as "plugin:mine" is seen when evaluated as examples.plugin_policy:make, a
-    policy of the same name that computes something else is seen by its name, and another is not."""
+    policy that took the name "mine" but computes something else is not, nor is another; where the data
+    records no fingerprint, by name."""
     plugin = resolve(["examples.plugin_policy:make"])[0]
     other = dataclasses.replace(plugin, name="other", params=jax.tree_util.tree_map(lambda a: a + 1, plugin.params))
     assert fingerprint(other) != fingerprint(plugin)
@@ -648,10 +690,10 @@ def test_a_policy_evaluated_under_another_name_than_its_rollouts_counts_as_seen(
     bundle.mkdir()
     (bundle / "bundle.json").write_text(json.dumps({"data_policies": sorted(used_policies(data)),
                                                     "data_fingerprints": sorted(used_fingerprints(data))}))
-    lone = dataclasses.replace(other, name="lone")
-    assert E.seen_policies([bundle], [plugin, other, lone]) == {"mine", "mug/conv/5", plugin.name}
+    lone, revised = dataclasses.replace(other, name="lone"), dataclasses.replace(other, name="mine")
+    assert E.seen_policies([bundle], [plugin, other, lone, revised]) == {plugin.name}
     (bundle / "bundle.json").write_text(json.dumps({"data_policies": ["mine"]}))  # one that records none
-    assert E.seen_policies([bundle], [plugin, other]) == {"mine"}
+    assert E.seen_policies([bundle], [plugin, other, revised]) == {"mine"}
 
 
 def test_a_random_policy_draws_alike_in_the_simulator_and_in_imagination(smoke_world_model, tmp_path):

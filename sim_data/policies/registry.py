@@ -131,6 +131,7 @@ def load_plugin(spec: str, world_model: bool = True) -> PolicySource:
     if not module_name or not attr:
         raise ValueError(f"plug-in {spec!r}: a plug-in is package.module:attribute, the attribute a callable "
                          "returning (policy, params)")
+    x64 = bool(jax.config.jax_enable_x64)
     try:
         module = importlib.import_module(module_name)
     except ImportError as e:
@@ -152,6 +153,11 @@ def load_plugin(spec: str, world_model: bool = True) -> PolicySource:
             raise RuntimeError(f"plug-in {spec!r}: {module_name}.{attr}() raised {type(e).__name__}: {e}") from e
     else:
         got = obj
+    if bool(jax.config.jax_enable_x64) != x64:  # every program of the process would change its dtypes
+        jax.config.update("jax_enable_x64", x64)
+        raise ValueError(f"plug-in {spec!r}: importing or calling it turned JAX's 64-bit mode (jax_enable_x64) "
+                         f"{'on' if not x64 else 'off'}; the simulator, renderer and world model run in 32 bits: "
+                         "leave the setting as it is and cast inside the policy instead")
     if not (isinstance(got, tuple) and len(got) == 2):
         raise ValueError(f"plug-in {spec!r} must give (policy, params), got {type(got).__name__}")
     policy, params = got
@@ -257,11 +263,14 @@ def check_protocol(spec: str, policy, params, batch: int = 2, size: int = 64,
     where task_state_optional (the simulator alone, which gives the policy its task state, will run
     it), a policy that fails here is not checked: a warning says so and the digest is "".
     size: the frames' side, 64 as in every preset. The policy is traced at a second batch, batch + 1,
-    too: the rollouts run it on batches of every size, so a batch fixed in its code fails here."""
+    too: the rollouts run it on batches of every size, so a batch fixed in its code fails here; and
+    stacked (sim_data.policies.bc.stacked), as every rollout and imagination runs it: under jax.vmap
+    (unless its stacks_in_turn), its parameters stacked into arrays."""
     traced = _check_batch(spec, policy, params, batch, size, task_state_optional)
     if traced is None:
         return ""
-    _check_batch(spec, policy, params, batch + 1, size, task_state_optional=False, again=True)
+    _check_batch(spec, policy, params, batch + 1, size, task_state_optional=False, hint=FIXED_BATCH)
+    _check_batch(spec, *stacked(policy, [params], [0]), batch, size, task_state_optional=False, hint=STACKED)
     init_jaxpr, act_jaxpr = traced
     h = hashlib.sha256(f"{init_jaxpr}\n{act_jaxpr}".encode())
     hash_arrays(h, [*init_jaxpr.consts, *act_jaxpr.consts])  # the printed program names them, not their values
@@ -281,10 +290,16 @@ def trace_on_blank_batch(policy, params, batch: int, size: int):
     return init_jaxpr, carry, act_jaxpr, out
 
 
-def _check_batch(spec: str, policy, params, batch: int, size: int, task_state_optional: bool, again: bool = False):
+FIXED_BATCH = " (is the batch size fixed in its code? the rollouts run batches of every size)"
+STACKED = (" (as the rollouts and imagination run it: stacked, under jax.vmap unless the policy's stacks_in_turn is "
+           "true, its parameters as arrays; a jax.pure_callback needs a vmap_method, and a Python number among "
+           "the parameters becomes a float32 array)")
+
+
+def _check_batch(spec: str, policy, params, batch: int, size: int, task_state_optional: bool, hint: str = ""):
     """check_protocol at one batch size: (init_carry's and act's traced programs), or None where the
-    policy fails without a task state and task_state_optional (a warning says so). again: the second
-    batch size traced, where a wrong shape most likely means a batch fixed in the policy's code."""
+    policy fails without a task state and task_state_optional (a warning says so). hint: what a failure
+    most likely means (a second batch size: a batch fixed in the policy's code; stacked: vmap)."""
     try:
         init_jaxpr, carry, act_jaxpr, out = trace_on_blank_batch(policy, params, batch, size)
     except Exception as e:
@@ -294,22 +309,18 @@ def _check_batch(spec: str, policy, params, batch: int, size: int, task_state_op
             return None
         raise RuntimeError(f"plug-in {spec!r}: the policy fails on a batch of {batch} observations "
                            f"(image ({batch}, {size}, {size}, 3) uint8, proprio ({batch}, {PROPRIO_DIM}) float32, "
-                           f"task_state None, as in the world model): {type(e).__name__}: {e}"
-                           + (" (is the batch size fixed in its code? the rollouts run batches of every size)"
-                              if again else "")) from e
+                           f"task_state None, as in the world model){hint}: {type(e).__name__}: {e}") from e
     if not (isinstance(out, (tuple, list)) and len(out) == 2):
         got = jax.tree.map(lambda x: getattr(x, "shape", x), out)
         raise ValueError(f"plug-in {spec!r}: act must return a pair (action, carry), got {got}")
     action, after = out
     if getattr(action, "shape", None) != (batch, ACTION_DIM):
         raise ValueError(f"plug-in {spec!r}: act must return actions of shape ({batch}, {ACTION_DIM}) for a "
-                         f"batch of {batch}, got {getattr(action, 'shape', type(action).__name__)}"
-                         + (" (is the batch size fixed in its code? the rollouts run batches of every size)"
-                            if again else ""))
+                         f"batch of {batch}, got {getattr(action, 'shape', type(action).__name__)}{hint}")
     before_s, after_s = (jax.tree.map(lambda x: (x.shape, str(x.dtype)), c) for c in (carry, after))
     if jax.tree.structure(carry) != jax.tree.structure(after) or before_s != after_s:
         raise ValueError(f"plug-in {spec!r}: act must return its carry with the structure, shapes and dtypes it "
-                         f"was given (the rollouts run it inside lax.scan): given {before_s}, returned {after_s}")
+                         f"was given (the rollouts run it inside lax.scan){hint}: given {before_s}, returned {after_s}")
     return init_jaxpr, act_jaxpr
 
 
@@ -434,6 +445,11 @@ def resolve(specs, world_model: bool = True, planned: bool = False) -> list[Poli
             module = module_file.group(1).replace("/", ".").replace("\\", ".")
             raise ValueError(f"{spec!r} names a file: name a plug-in by its module, importable from the working "
                              f"directory, as {module}:{module_file.group(2)}")
+        called = re.fullmatch(r"(?:[^=:(]*=)?[\w.]+:\w+\(.*\)", spec)
+        if called:
+            raise ValueError(f"{spec!r}: a spec cannot pass arguments to a plug-in; write a function without "
+                             "arguments in your module that calls it with them (or bind them with "
+                             "functools.partial) and name that function")
         got = [load_plugin(spec, world_model)] if is_plugin(spec) else load_registry_sources(spec, planned)
         for source in got:
             origin.setdefault(source.name, []).append(spec)
