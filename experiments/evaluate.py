@@ -1318,7 +1318,8 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, models, wm
     seen = seen_policies(cfg.wm_runs, sources)
     for r in rows:
         r["in_wm_data"] = r["name"] in seen
-    metrics = all_metrics(cfg, results, tasks, rows, seen)
+    trained_on_policies = any(training_policies(Path(r)) or training_fingerprints(Path(r)) for r in cfg.wm_runs)
+    metrics = all_metrics(cfg, results, tasks, rows, seen, trained_on_policies)
     training = [training_status(Path(r)) for r in cfg.wm_runs]
     wm_cfg, wm_params, norm, judge, _ = models[0]
     panel = program_panel(wm_cfg, wm_params, norm, wm_cache, horizon=48) if wm_cache is not None else {}
@@ -1370,11 +1371,12 @@ def seen_policies(wm_runs, sources) -> set:
     return seen
 
 
-def all_metrics(cfg: EvalConfig, results: dict, tasks, rows: list[dict], seen: set) -> dict:
+def all_metrics(cfg: EvalConfig, results: dict, tasks, rows: list[dict], seen: set,
+                trained_on_policies: bool) -> dict:
     """results.json's "metrics": the within-task headline, pooled and per task, what each interval
     resamples ("intervals", experiments.stats.INTERVALS) (and with cfg.replay
     loop_actions_block's "loop_actions"); the same for the policies not in `seen` (those whose rollouts
-    the world model never saw) where there are three or more of them and the world model saw any, and
+    the world model never saw) where there are three or more of them and it was trained on any policy's, and
     within task for those of them that are not counterfactual families ("unseen_networks_within_task",
     unseen_networks) over the tasks that hold three or more."""
     true_eps, prob_eps, member_eps = _episodes_of(results, tasks, lambda name: True)
@@ -1388,7 +1390,7 @@ def all_metrics(cfg: EvalConfig, results: dict, tasks, rows: list[dict], seen: s
         metrics["per_task"][t] = ranking_block([r for r in rows if r["task"] == t], results[t]["true"],
                                                results[t]["prob"], cfg.threshold, results[t]["prob_members"])
     unseen = [r for r in rows if r["name"] not in seen]
-    if seen and len(unseen) >= 3:
+    if trained_on_policies and len(unseen) >= 3:  # trained on scripts alone, every row is unseen: the block above
         true_eps, prob_eps, member_eps = _episodes_of(results, tasks, lambda name: name not in seen)
         metrics["unseen"] = ranking_block(unseen, true_eps, prob_eps, cfg.threshold, member_eps)
         # over the tasks that hold an unseen policy (a task with none has nothing to resample)

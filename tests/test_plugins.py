@@ -140,6 +140,11 @@ def sixty_four():
     jax.config.update("jax_enable_x64", True)
     return Constant(), {"value": 0.1}
 
+def sixty_four_then_fails():
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    raise RuntimeError("no model file")
+
 class Plain(Counting):
     """A hashable policy that is no dataclass: its default repr holds a memory address."""
     def act(self, params, obs, carry, rng):
@@ -176,6 +181,13 @@ def user_module(tmp_path, monkeypatch):
         sys.modules.pop(name, None)
 
 
+def test_a_zoo_folder_named_like_a_call_is_read_as_a_zoo(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "zoo:v2(old)").mkdir()
+    with pytest.raises(FileNotFoundError, match=r"policies.json is missing"):
+        resolve(["zoo:v2(old)"])
+
+
 def test_a_plugin_is_checked_against_the_protocol_before_it_runs(user_module):
     with pytest.raises(ValueError, match=r"'user_pols:short'.*shape \(2, 20\).*\(2, 19\)"):
         load_plugin("user_pols:short")
@@ -197,8 +209,12 @@ def test_a_plugin_is_checked_against_the_protocol_before_it_runs(user_module):
     with pytest.raises(ValueError, match=r"'user_pols:sixty_four'.*turned JAX's 64-bit mode \(jax_enable_x64\) on"):
         load_plugin("user_pols:sixty_four")
     assert not jax.config.jax_enable_x64  # put back as it was
-    with pytest.raises(ValueError, match=r"cannot pass arguments to a plug-in.*functools.partial"):
-        resolve(["user_pols:mlp(8)"])
+    with pytest.raises(RuntimeError, match=r"sixty_four_then_fails\(\) raised RuntimeError: no model file"):
+        load_plugin("user_pols:sixty_four_then_fails")
+    assert not jax.config.jax_enable_x64  # put back also where the plug-in fails
+    for spec in ("user_pols:mlp(8)", "user_pols:mlp(width=8)"):
+        with pytest.raises(ValueError, match=r"cannot pass arguments to a plug-in.*functools.partial"):
+            resolve([spec])
     source = load_plugin("mine=user_pols:narrow_mlp")  # a pytree of parameters and a dict carry pass
     assert source.name == "mine" and source.kind == "plugin" and source.record == {"plugin": "user_pols:narrow_mlp"}
     assert len(source.code) == 16  # its code's digest, kept out of the record that datasets write

@@ -122,16 +122,9 @@ def is_plugin(spec: str) -> bool:
     return ":" in target and not Path(target.split("#")[0]).exists() and "/" not in target.split(":")[0]
 
 
-def load_plugin(spec: str, world_model: bool = True) -> PolicySource:
-    """`[name=]package.module:attribute` -> its PolicySource, the policy checked against the protocol
-    (check_protocol) before anything runs it. world_model: whether it will also run in a world model,
-    which gives it no task state (False: the simulator alone, whose task state it may read)."""
-    name, _, target = spec.rpartition("=")
-    module_name, _, attr = target.partition(":")
-    if not module_name or not attr:
-        raise ValueError(f"plug-in {spec!r}: a plug-in is package.module:attribute, the attribute a callable "
-                         "returning (policy, params)")
-    x64 = bool(jax.config.jax_enable_x64)
+def _import_plugin(spec: str, module_name: str, attr: str) -> tuple:
+    """(the plug-in's module, what its attribute gives: the attribute called where it is callable), with
+    errors that name the plug-in and keep the user's traceback."""
     try:
         module = importlib.import_module(module_name)
     except ImportError as e:
@@ -148,13 +141,29 @@ def load_plugin(spec: str, world_model: bool = True) -> PolicySource:
     obj = getattr(module, attr)
     if callable(obj) and not isinstance(obj, tuple):
         try:
-            got = obj()
+            return module, obj()
         except Exception as e:  # the user's own code: keep its traceback, name the plug-in
             raise RuntimeError(f"plug-in {spec!r}: {module_name}.{attr}() raised {type(e).__name__}: {e}") from e
-    else:
-        got = obj
-    if bool(jax.config.jax_enable_x64) != x64:  # every program of the process would change its dtypes
-        jax.config.update("jax_enable_x64", x64)
+    return module, obj
+
+
+def load_plugin(spec: str, world_model: bool = True) -> PolicySource:
+    """`[name=]package.module:attribute` -> its PolicySource, the policy checked against the protocol
+    (check_protocol) before anything runs it. world_model: whether it will also run in a world model,
+    which gives it no task state (False: the simulator alone, whose task state it may read)."""
+    name, _, target = spec.rpartition("=")
+    module_name, _, attr = target.partition(":")
+    if not module_name or not attr:
+        raise ValueError(f"plug-in {spec!r}: a plug-in is package.module:attribute, the attribute a callable "
+                         "returning (policy, params)")
+    x64 = bool(jax.config.jax_enable_x64)
+    try:
+        module, got = _import_plugin(spec, module_name, attr)
+    finally:  # put back whatever befell the import: every program of the process would change its dtypes
+        switched = bool(jax.config.jax_enable_x64) != x64
+        if switched:
+            jax.config.update("jax_enable_x64", x64)
+    if switched:
         raise ValueError(f"plug-in {spec!r}: importing or calling it turned JAX's 64-bit mode (jax_enable_x64) "
                          f"{'on' if not x64 else 'off'}; the simulator, renderer and world model run in 32 bits: "
                          "leave the setting as it is and cast inside the policy instead")
@@ -293,7 +302,7 @@ def trace_on_blank_batch(policy, params, batch: int, size: int):
 FIXED_BATCH = " (is the batch size fixed in its code? the rollouts run batches of every size)"
 STACKED = (" (as the rollouts and imagination run it: stacked, under jax.vmap unless the policy's stacks_in_turn is "
            "true, its parameters as arrays; a jax.pure_callback needs a vmap_method, and a Python number among "
-           "the parameters becomes a float32 array)")
+           "the parameters becomes a float32 or int32 array)")
 
 
 def _check_batch(spec: str, policy, params, batch: int, size: int, task_state_optional: bool, hint: str = ""):
@@ -446,7 +455,7 @@ def resolve(specs, world_model: bool = True, planned: bool = False) -> list[Poli
             raise ValueError(f"{spec!r} names a file: name a plug-in by its module, importable from the working "
                              f"directory, as {module}:{module_file.group(2)}")
         called = re.fullmatch(r"(?:[^=:(]*=)?[\w.]+:\w+\(.*\)", spec)
-        if called:
+        if called and not Path(spec.split("#")[0]).exists():
             raise ValueError(f"{spec!r}: a spec cannot pass arguments to a plug-in; write a function without "
                              "arguments in your module that calls it with them (or bind them with "
                              "functools.partial) and name that function")
