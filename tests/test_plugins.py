@@ -188,30 +188,29 @@ def test_a_zoo_folder_named_like_a_call_is_read_as_a_zoo(tmp_path, monkeypatch):
         resolve(["zoo:v2(old)"])
 
 
+REFUSED = [  # (plug-in, error, what the message says)
+    ("short", ValueError, r"shape \(2, 20\).*\(2, 19\)"),
+    ("drifting", ValueError, r"carry.*int32.*float32"),
+    ("needs_task_state", RuntimeError, r"task_state None"),
+    # as the rollouts and imagination run it: stacked, under vmap, its parameters arrays
+    ("host_speed", RuntimeError, r"stacked, under jax.vmap.*pure_callback"),
+    ("smoothed", ValueError, r"stacked.*bfloat16.*float32"),
+    ("sixty_four", ValueError, r"turned JAX's 64-bit mode \(jax_enable_x64\) on"),
+    ("sixty_four_then_fails", RuntimeError, r"sixty_four_then_fails\(\) raised RuntimeError: no model file"),
+]
+
+
 def test_a_plugin_is_checked_against_the_protocol_before_it_runs(user_module):
-    with pytest.raises(ValueError, match=r"'user_pols:short'.*shape \(2, 20\).*\(2, 19\)"):
-        load_plugin("user_pols:short")
-    with pytest.raises(ValueError, match=r"'user_pols:drifting'.*carry.*int32.*float32"):
-        load_plugin("user_pols:drifting")
-    with pytest.raises(RuntimeError, match=r"'user_pols:needs_task_state'.*task_state None"):
-        load_plugin("user_pols:needs_task_state")
+    for attr, error, says in REFUSED:
+        with pytest.raises(error, match=f"'user_pols:{attr}'.*" + says):
+            load_plugin(f"user_pols:{attr}")
+        assert not jax.config.jax_enable_x64  # put back as it was, also where the plug-in fails
     # the simulator alone (the data generator) gives it a task state: accepted there
     assert load_plugin("user_pols:needs_task_state", world_model=False).kind == "plugin"
     assert G.resolve_sources(["user_pols:needs_task_state"], world_model=False)
     with pytest.raises(RuntimeError, match=r"'user_pols:broken': user_pols.broken\(\) raised ValueError") as e:
         load_plugin("user_pols:broken")
     assert isinstance(e.value.__cause__, ValueError)  # the user's traceback is kept
-    # as the rollouts and imagination run it: stacked, under vmap, its parameters arrays
-    with pytest.raises(RuntimeError, match=r"'user_pols:host_speed'.*stacked, under jax.vmap.*pure_callback"):
-        load_plugin("user_pols:host_speed")
-    with pytest.raises(ValueError, match=r"'user_pols:smoothed'.*stacked.*bfloat16.*float32"):
-        load_plugin("user_pols:smoothed")
-    with pytest.raises(ValueError, match=r"'user_pols:sixty_four'.*turned JAX's 64-bit mode \(jax_enable_x64\) on"):
-        load_plugin("user_pols:sixty_four")
-    assert not jax.config.jax_enable_x64  # put back as it was
-    with pytest.raises(RuntimeError, match=r"sixty_four_then_fails\(\) raised RuntimeError: no model file"):
-        load_plugin("user_pols:sixty_four_then_fails")
-    assert not jax.config.jax_enable_x64  # put back also where the plug-in fails
     for spec in ("user_pols:mlp(8)", "user_pols:mlp(width=8)"):
         with pytest.raises(ValueError, match=r"cannot pass arguments to a plug-in.*functools.partial"):
             resolve([spec])
