@@ -1181,7 +1181,7 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
                          f"read as nothing; evaluate tasks={','.join(t for t in tasks if t not in unknown)} or choose "
                          "another read-out")
     make_output_dir(out / "tasks")
-    _check_config(cfg, out, sources, models)
+    prints = _check_config(cfg, out, sources, models)
     try:
         truth_space(cfg, tasks, sources, models[0][0].model.size)
     except ValueError as e:
@@ -1200,7 +1200,7 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
         return None
     if not results:
         raise ValueError(f"{out}: no task is finished yet ({', '.join(tasks)}); run without --partial")
-    report = gather(cfg, out, tasks, results, sources, models, wm_data, wm_cache, engine, preset)
+    report = gather(cfg, out, tasks, results, sources, prints, models, wm_data, wm_cache, engine, preset)
     write_json_atomic(out / "results.json", no_nan(report))
     return report
 
@@ -1298,10 +1298,10 @@ def evaluate_tasks(cfg: EvalConfig, out: Path, tasks, sources, models, used: set
     return None if part is not None else results
 
 
-def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, models, wm_data: str, wm_cache, engine: str,
-           preset: str) -> dict:
+def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, prints: dict, models, wm_data: str, wm_cache,
+           engine: str, preset: str) -> dict:
     """results.json's contents from the finished tasks' results (the others listed as missing), and
-    out/videos.npz."""
+    out/videos.npz. prints: each source's fingerprint (_check_config's)."""
     # the tasks every model learned (its judge's, else its training's: wm.checkpoint.trained_tasks)
     known = learned_tasks(cfg.wm_runs, wm_cache)
     train_tasks = list(tasks) if known is None else known
@@ -1315,7 +1315,7 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, models, wm
               f"on truth is left out): {bad}", file=sys.stderr)
     if unread := S.nonfinite_policies(rows):
         print(f"warning: {unread}", file=sys.stderr)
-    seen = seen_policies(cfg.wm_runs, sources)
+    seen = seen_policies(cfg.wm_runs, sources, prints)
     for r in rows:
         r["in_wm_data"] = r["name"] in seen
     trained_on_policies = any(training_policies(Path(r)) or training_fingerprints(Path(r)) for r in cfg.wm_runs)
@@ -1356,13 +1356,14 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, models, wm
     }
 
 
-def seen_policies(wm_runs, sources) -> set:
+def seen_policies(wm_runs, sources, prints: dict | None = None) -> set:
     """The names of the policies of `sources` whose own rollouts some world model of wm_runs saw in
     training. Where its data records what each policy computes (registry.fingerprint), by that alone:
     a policy evaluated under another name than its rollouts' is seen, and one that took a trained
     policy's name but computes otherwise (a plug-in revised since its rollouts) is not; where its
-    data records no fingerprint (an older dataset), by name."""
-    prints = {s.name: fingerprint(s) for s in sources}
+    data records no fingerprint (an older dataset), by name. prints: {name: fingerprint} of the
+    sources where already computed."""
+    prints = prints or {s.name: fingerprint(s) for s in sources}
     seen = set()
     for run in map(Path, wm_runs):
         computed = training_fingerprints(run)
@@ -1549,12 +1550,12 @@ def _compared(fields: dict) -> dict:
     return kept | {"truth_cache_without_frames": without_frames}
 
 
-def _check_config(cfg: EvalConfig, out: Path, sources, models=None) -> None:
+def _check_config(cfg: EvalConfig, out: Path, sources, models=None) -> dict:
     """Records cfg, every policy's fingerprint (its parameters and, for a plug-in, its code) and every
     world model's (wm_fingerprint; with `models`) in out/config.json, or checks a rerun against them:
     results an OUT holds are read back, so they must come from this configuration and these policies
     and world models as they are now. An OUT that holds no results yet (a run that failed before its
-    first task was saved) is taken over by the new configuration."""
+    first task was saved) is taken over by the new configuration. Returns {name: fingerprint}."""
     mine = as_json(cfg)
     mine.pop("max_minutes")  # a time budget does not change what is computed
     prints = {s.name: fingerprint(s) for s in sources}
@@ -1578,6 +1579,7 @@ def _check_config(cfg: EvalConfig, out: Path, sources, models=None) -> None:
     else:
         write_json_atomic(path, mine | {FINGERPRINTS: prints}
                           | ({} if wm_prints is None else {WM_FINGERPRINTS: wm_prints}))
+    return prints
 
 
 def main(argv=None) -> int:

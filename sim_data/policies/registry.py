@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import functools
 import hashlib
 import importlib
 import importlib.util
@@ -44,7 +45,7 @@ import numpy as np
 
 from sim_data.policies.bc import BCPolicy, PolicyNetConfig, load_params, stacked, stand_in_params
 from sim_data.policies.degrade import DegradedPolicy, degrade_params, perturbed_params
-from sim_data.sim.robot import ACTION_DIM, PROPRIO_DIM, robot_index
+from sim_data.sim.robot import ACTION_DIM, PROPRIO_DIM, clip_action, robot_index
 from sim_data.sim.scene import load_model
 from sim_data.sim.tasks import TASK_NAMES
 from sim_data.util import even_pieces, hash_arrays, pad_with_last, read_json
@@ -180,10 +181,8 @@ def load_plugin(spec: str, world_model: bool = True) -> PolicySource:
         raise ValueError(f"plug-in {spec!r}: the policy must be hashable (a frozen dataclass, for instance)") from None
     traced = check_protocol(spec, policy, params, task_state_optional=not world_model)
     files = sorted({f for f in (_source_file(module), _source_file(type(policy))) if f})
-    idx = robot_index(load_model())
     return PolicySource(name=name or target, kind="plugin", task=None,
-                        policy=ClippedPolicy(policy, tuple(idx.action_low.tolist()), tuple(idx.action_high.tolist()),
-                                             simulator_only=not world_model),
+                        policy=ClippedPolicy(policy, *action_bounds(), simulator_only=not world_model),
                         params=params, record={"plugin": target}, code=code_digest(files, traced))
 
 
@@ -229,8 +228,7 @@ class ClippedPolicy:
         action (the C engine would zero every control of a step with a NaN, MJX carry it into the state,
         the world model's imagination diverge)."""
         action, carry = self.policy.act(params, self._view(obs), carry, rng)
-        action = jnp.where(jnp.isnan(action), 0.0, action)
-        return jnp.clip(action, jnp.asarray(self.low, jnp.float32), jnp.asarray(self.high, jnp.float32)), carry
+        return clip_action(action, self.low, self.high), carry
 
 
 PLUGIN_OBS = ("image", "proprio")  # what a policy sees, in the simulator as in the world model
@@ -242,9 +240,14 @@ def applied_policy(policy) -> ClippedPolicy:
     was trained on them, its observations unchanged. A ClippedPolicy (a plug-in) is returned as it is."""
     if isinstance(policy, ClippedPolicy):
         return policy
+    return ClippedPolicy(policy, *action_bounds(), simulator_only=True)  # sees what imagination gives it
+
+
+@functools.lru_cache(maxsize=1)
+def action_bounds() -> tuple:
+    """(low, high): the robot's action ranges (robot_index's action_low, action_high), each a (20,) tuple."""
     idx = robot_index(load_model())
-    return ClippedPolicy(policy, tuple(idx.action_low.tolist()), tuple(idx.action_high.tolist()),
-                         simulator_only=True)  # sees what it is given: imagination gives image and proprio
+    return tuple(idx.action_low.tolist()), tuple(idx.action_high.tolist())
 
 
 def plugin_view(obs: dict) -> dict:

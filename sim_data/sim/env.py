@@ -95,17 +95,14 @@ class EnvCore:
         self._sample = jax.jit(jax.vmap(self._sample_one))
         self._pre = jax.jit(self.pre_step)
         self._post = jax.jit(self.post_step)
-        self.applied = jax.jit(self.applied_action)
+        # an action as the robot applies it (robot.applied_action): what a rollout records
+        self.applied = jax.jit(functools.partial(R.applied_action, idx=self.idx.robot))
         if self.engine.name == "mjx":
             self._step = jax.jit(self.mjx_step)
             self._init = jax.jit(self.engine.init)
 
     def _sample_one(self, key, task_id):
         return sample_initial(task_id, key, self.idx, self._qpos0, self._mocap0, self.heldout)
-
-    def applied_action(self, action):
-        """The action (B, 20) as the robot applies it (robot.applied_action): what a rollout records."""
-        return R.applied_action(action, self.idx.robot)
 
     # ---- shared halves of a control step -------------------------------------------------------
     def pre_step(self, state: State, action):

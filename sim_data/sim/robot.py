@@ -116,13 +116,18 @@ def robot_index(model) -> RobotIndex:
     )
 
 
+def clip_action(action: jnp.ndarray, low, high) -> jnp.ndarray:
+    """action (..., 20) with a NaN as 0, then clipped to [low, high] (each (20,))."""
+    a = jnp.where(jnp.isnan(action), 0.0, action)
+    return jnp.clip(a, jnp.asarray(low, jnp.float32), jnp.asarray(high, jnp.float32))
+
+
 def applied_action(action: jnp.ndarray, idx: RobotIndex) -> jnp.ndarray:
     """The action (..., 20) as the robot applies it: a NaN as 0, then clipped to [action_low,
     action_high] (the position actuators' control ranges, closures in [0, 1], speeds within
     +-MAX_FORWARD_SPEED and +-MAX_YAW_RATE). Datasets record it and the world model is given it, so
     that a command past a range (a lengthened drive, noise on a joint) reads as what the robot did."""
-    a = jnp.where(jnp.isnan(action), 0.0, action)
-    return jnp.clip(a, idx.action_low, idx.action_high)
+    return clip_action(action, idx.action_low, idx.action_high)
 
 
 def action_to_ctrl(action: jnp.ndarray, base_yaw: jnp.ndarray, idx: RobotIndex) -> jnp.ndarray:
