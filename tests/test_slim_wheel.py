@@ -4,6 +4,7 @@ import zipfile
 
 import pytest
 
+from experiments import slim_wheel
 from experiments.slim_wheel import slim
 
 
@@ -49,3 +50,30 @@ def test_pip_installs_a_slimmed_wheel_as_any_other(tmp_path):
     subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-index", "--no-deps", "--target", str(site),
                     str(out)], check=True)
     assert (site / "pkg" / "__init__.py").read_text() == "VALUE = 7\n" and not (site / "pkg" / "big.bin").exists()
+
+
+def test_a_pattern_drops_every_member_under_it_and_one_matching_none_is_refused(tmp_path):
+    members = {"pkg/__init__.py": b"", "pkg/test_data/a.xml": b"a", "pkg/test_data/sub/b.stl": b"b",
+               "pkg/_cffi.cpython-312-x86_64-linux-gnu.so": b"c"}
+    wheel = tmp_path / "pkg-1.0-py3-none-any.whl"
+    _wheel(wheel, members)
+    out = slim(wheel, ["pkg/test_data/*", "pkg/_cffi.*"], tmp_path / "out")
+    with zipfile.ZipFile(out) as z:
+        assert sorted(z.namelist()) == ["pkg-1.0.dist-info/RECORD", "pkg/__init__.py"]
+    with pytest.raises(ValueError, match=r"holds no pkg/weights/\*"):
+        slim(wheel, ["pkg/test_data/*", "pkg/weights/*"], tmp_path / "out2")
+
+
+def test_the_fetched_wheels_are_slimmed_in_place_once(tmp_path, monkeypatch):
+    monkeypatch.setattr(slim_wheel, "FETCHED_UNREAD", {"mujoco_mjx": ("mujoco/mjx/test_data/*",)})
+    mjx = tmp_path / "mujoco_mjx-3.17.0-py3-none-any.whl"
+    other = tmp_path / "mcap-1.6.0-py3-none-any.whl"
+    _wheel(mjx, {"mujoco/mjx/__init__.py": b"x", "mujoco/mjx/test_data/model.xml": b"m" * 100})
+    _wheel(other, {"mcap/__init__.py": b"y"})
+    before = other.read_bytes()
+    assert slim_wheel.slim_fetched(tmp_path) == [mjx]
+    with zipfile.ZipFile(mjx) as z:
+        assert sorted(z.namelist()) == ["mujoco/mjx/__init__.py", "pkg-1.0.dist-info/RECORD"]
+    assert other.read_bytes() == before
+    assert slim_wheel.slim_fetched(tmp_path) == []  # already slim: left as it is
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([mjx.name, other.name])
