@@ -592,6 +592,33 @@ def test_reencoded_rollout_passes_change_only_the_passes(model_and_inputs):
     assert abs(float(both["latent_pass1"]) - float(plain["latent_pass1"])) > 1e-6
 
 
+@pytest.mark.slow
+def test_proprio_noise_moves_what_reads_the_body_only_where_training_draws_it(model_and_inputs):
+    from wm.train import loss_fn
+
+    params, frames, proprio, action = model_and_inputs
+    norm, batch = _identity_norm_and_batch(frames, proprio, action)
+    cfg = make_config("smoke")
+    noisy = dataclasses.replace(cfg, proprio_noise=2.0)
+    loss = jax.jit(loss_fn, static_argnums=3)
+    rng = jax.random.PRNGKey(3)
+    plain, drawn = loss(params, batch, norm, cfg, rng)[1], loss(params, batch, norm, noisy, rng)[1]
+    for k in ("recon", "keep_recon"):  # the encoder and decoder never read the body
+        if k in plain:
+            np.testing.assert_allclose(drawn[k], plain[k], rtol=1e-6, err_msg=k)
+    assert abs(float(drawn["proprio"]) - float(plain["proprio"])) > 1e-4
+    again = loss(params, batch, norm, noisy, rng)[1]
+    np.testing.assert_array_equal(again["proprio"], drawn["proprio"])  # the draw follows rng alone
+    unseeded = loss(params, batch, norm, noisy)[1]  # validation draws nothing: the plain loss
+    for k in plain:
+        np.testing.assert_allclose(unseeded[k], loss(params, batch, norm, cfg)[1][k], rtol=1e-6, err_msg=k)
+
+
+def test_a_negative_noise_is_refused():
+    with pytest.raises(ValueError, match="proprio_noise"):
+        make_config("smoke", ["proprio_noise=-0.1"])
+
+
 @jax.jit
 def _first_pass(params, frames, proprio, action):
     """The teacher-forced pass's decoded frames (B, T-1, S, S, 3) in [0, 1], as loss_fn decodes them."""

@@ -35,6 +35,10 @@ class TrainConfig:
         constant rate (warmup-stable-decay, wm.train.learning_rate); 0: a cosine decay instead.
       context_noise: the largest std of Gaussian noise added to the input latents (each window draws
         its level uniformly below it; 0: none), as GameNGen's noise augmentation.
+      proprio_noise: the largest std of Gaussian noise added to the input (standardised)
+        proprioception of the teacher-forced pass (each window draws its level uniformly below it; 0:
+        none): a body state copied forward from its noisy present is wrong, so the next one must follow
+        the commanded action (a base that drives on in imagination whatever it is told is the copy).
       anchor_drop: with model.anchor, the share of training windows that predict without their
         anchor frame (each window draws it apart), so that the dynamics keeps learning the robot's
         own motion from the frames it sees instead of leaning on the sharp first frame.
@@ -119,6 +123,7 @@ class TrainConfig:
     rollout_grad: bool = False
     cooldown: float = 0.0
     context_noise: float = 0.0
+    proprio_noise: float = 0.0
     anchor_drop: float = 0.3
     reencode_passes: bool = False
     w_recon: float = 1.0
@@ -205,6 +210,9 @@ class TrainConfig:
             raise ValueError(f"cooldown is a share of steps, in [0, 1]; got {self.cooldown}")
         if not 0.0 <= self.anchor_drop < 1.0:
             raise ValueError(f"anchor_drop is a share of training windows, in [0, 1); got {self.anchor_drop}")
+        if self.context_noise < 0 or self.proprio_noise < 0:
+            raise ValueError(f"context_noise and proprio_noise are noise stds, >= 0; got {self.context_noise}, "
+                             f"{self.proprio_noise}")
         if self.w_lpips < 0:
             raise ValueError(f"w_lpips is a loss weight, >= 0; got {self.w_lpips}")
         if self.w_contrast < 0 or (self.w_contrast > 0 and self.batch < 2):

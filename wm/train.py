@@ -146,6 +146,7 @@ def every_fourth(x):
 
 
 REFINE_STREAM = 1 << 10  # the frame generator's draws: fold_in(rng, this + pass), apart from the counters above
+PROPRIO_NOISE_STREAM = 1 << 11  # the input proprioception's noise (proprio_noise): fold_in(rng, this)
 
 
 def _refine_loss(model, params, decoded, z, target, k: int, passes: int, key):
@@ -166,8 +167,9 @@ def _refine_loss(model, params, decoded, z, target, k: int, passes: int, key):
 
 def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_weights=None, probes=None):
     """Scalar loss and its parts for one batch (frames (B, T, S, S, 3) uint8, ...; with an anchor frame
-    "anchor" (B, S, S, 3) uint8 and "start" (B,) int too: model_batch); rng draws the context noise and
-    the windows that train without their anchor (None: neither, as in validation); lpips_weights: the
+    "anchor" (B, S, S, 3) uint8 and "start" (B,) int too: model_batch); rng draws the context noise, the
+    proprioception's noise and the windows that train without their anchor (None: none of them, as in
+    validation); lpips_weights: the
     perceptual network's (wm.perceptual.params()), needed where cfg.w_lpips > 0; probes: the read
     loss's checkpoints (wm.probes.Probes), needed where cfg.w_read > 0, with "task" and "start" in
     the batch (model_batch's read)."""
@@ -206,6 +208,10 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_w
         k1, k2 = jax.random.split(rng)
         level = jax.random.uniform(k1, (z.shape[0],) + (1,) * (z.ndim - 1), maxval=cfg.context_noise)
         z_in = jnp.clip(z + level * jax.random.normal(k2, z.shape), -1.0, 1.0)
+    if cfg.proprio_noise > 0 and rng is not None:  # the body's present is not to be copied forward exactly
+        k1, k2 = jax.random.split(jax.random.fold_in(rng, PROPRIO_NOISE_STREAM))
+        level = jax.random.uniform(k1, (proprio.shape[0], 1, 1), maxval=cfg.proprio_noise)
+        p_in = proprio + level * jax.random.normal(k2, proprio.shape)
     z_target = jax.lax.stop_gradient(z[:, 1:])
     # the stochastic code's posterior reads prediction t's target, frame t+1 (the last prediction has none)
     code_target = jnp.concatenate([z_target, jnp.zeros_like(z[:, :1])], axis=1) if cfg.model.stochastic else None
