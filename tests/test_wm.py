@@ -572,14 +572,19 @@ def _identity_norm_and_batch(frames, proprio, action):
     return norm, batch
 
 
-@pytest.mark.slow
-def test_reencoded_rollout_passes_change_only_the_passes(model_and_inputs):
+def _smoke_loss(model_and_inputs):
+    """(params, norm, batch, the smoke preset's config, loss_fn jitted with the config static): one
+    program a configuration, where op by op each operation would compile apart."""
     from wm.train import loss_fn
 
     params, frames, proprio, action = model_and_inputs
     norm, batch = _identity_norm_and_batch(frames, proprio, action)
-    cfg = make_config("smoke")
-    loss = jax.jit(loss_fn, static_argnums=3)  # one program a configuration: op by op, each operation compiles apart
+    return params, norm, batch, make_config("smoke"), jax.jit(loss_fn, static_argnums=3)
+
+
+@pytest.mark.slow
+def test_reencoded_rollout_passes_change_only_the_passes(model_and_inputs):
+    params, norm, batch, cfg, loss = _smoke_loss(model_and_inputs)
     parts = {}
     for model_re, passes_re in ((False, False), (True, False), (True, True)):
         c = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, reencode=model_re), reencode_passes=passes_re)
@@ -594,13 +599,8 @@ def test_reencoded_rollout_passes_change_only_the_passes(model_and_inputs):
 
 @pytest.mark.slow
 def test_proprio_noise_moves_what_reads_the_body_only_where_training_draws_it(model_and_inputs):
-    from wm.train import loss_fn
-
-    params, frames, proprio, action = model_and_inputs
-    norm, batch = _identity_norm_and_batch(frames, proprio, action)
-    cfg = make_config("smoke")
+    params, norm, batch, cfg, loss = _smoke_loss(model_and_inputs)
     noisy = dataclasses.replace(cfg, proprio_noise=2.0)
-    loss = jax.jit(loss_fn, static_argnums=3)
     rng = jax.random.PRNGKey(3)
     plain, drawn = loss(params, batch, norm, cfg, rng)[1], loss(params, batch, norm, noisy, rng)[1]
     for k in ("proprio", "latent", "proprio_pass1"):  # the predictions read the noisy body, later passes included
