@@ -169,10 +169,9 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_w
     """Scalar loss and its parts for one batch (frames (B, T, S, S, 3) uint8, ...; with an anchor frame
     "anchor" (B, S, S, 3) uint8 and "start" (B,) int too: model_batch); rng draws the context noise, the
     proprioception's noise and the windows that train without their anchor (None: none of them, as in
-    validation); lpips_weights: the
-    perceptual network's (wm.perceptual.params()), needed where cfg.w_lpips > 0; probes: the read
-    loss's checkpoints (wm.probes.Probes), needed where cfg.w_read > 0, with "task" and "start" in
-    the batch (model_batch's read)."""
+    validation); lpips_weights: the perceptual network's (wm.perceptual.params()), needed where
+    cfg.w_lpips > 0; probes: the read loss's checkpoints (wm.probes.Probes), needed where
+    cfg.w_read > 0, with "task" and "start" in the batch (model_batch's read)."""
     if cfg.w_lpips > 0 and lpips_weights is None:
         raise ValueError("w_lpips > 0 needs the LPIPS network's weights (wm.perceptual.params())")
     if cfg.w_read > 0 and probes is None:
