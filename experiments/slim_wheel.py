@@ -105,12 +105,11 @@ def slim_fetched(folder: Path) -> list[Path]:
         if not patterns:
             continue
         with zipfile.ZipFile(wheel) as z:
-            names = z.namelist()
-        present = [p for p in patterns if fnmatch.filter(names, p)]
-        for p in sorted(set(patterns) - set(present)):
+            _, missing = matched(z.namelist(), patterns)
+        for p in missing:
             print(f"{wheel.name} holds no {p}: already slimmed, or the package changed", file=sys.stderr)
-        if present:
-            done.append(slim(wheel, present, folder))
+        if len(missing) < len(patterns):
+            done.append(slim(wheel, [p for p in patterns if p not in missing], folder))
     return done
 
 
