@@ -874,6 +874,29 @@ def test_the_judge_reads_the_scene_state_imagination_and_observation_predict(mod
         I.feature_columns(CFG, ("scene",))
 
 
+def test_blind_groups_of_the_next_body_state_ignore_the_frames_and_the_rest_still_read_them(model_and_inputs):
+    # the same body and actions under other frames: the blind columns (joint velocities, base velocity)
+    # come out the same, the others move; with the same parameters the plain model predicts the others
+    # alike and the blind ones otherwise (its tokens' correction added)
+    _, frames, proprio, action = model_and_inputs
+    cfg = dataclasses.replace(CFG, blind=("base", "joint_vel"))
+    params = init_params(cfg, jax.random.PRNGKey(0), window=6)
+    m = WorldModel(cfg)
+    z = compiled(m, WorldModel.encode)({"params": params}, frames)
+    out = compiled(m, WorldModel.predict)({"params": params}, z, proprio, action)["proprio"]
+    other = compiled(m, WorldModel.predict)({"params": params}, -z[:, ::-1], proprio, action)["proprio"]
+    blind = np.zeros(cfg.proprio_dim, bool)
+    blind[16:35] = True
+    np.testing.assert_array_equal(np.asarray(cfg.blind_mask), blind)
+    np.testing.assert_allclose(out[..., blind], other[..., blind], atol=1e-6)
+    assert float(jnp.abs(out[..., ~blind] - other[..., ~blind]).max()) > 1e-4
+    plain = compiled(WorldModel(CFG), WorldModel.predict)({"params": params}, z, proprio, action)["proprio"]
+    np.testing.assert_allclose(out[..., ~blind], plain[..., ~blind], atol=1e-6)
+    assert float(jnp.abs(out[..., blind] - plain[..., blind]).max()) > 1e-4
+    with pytest.raises(ValueError, match="proprioception groups"):
+        dataclasses.replace(CFG, blind=("legs",)).validate()
+
+
 @pytest.mark.slow
 def test_the_scene_head_predicts_the_standardised_scene_state_and_its_error_enters_the_loss(model_and_inputs):
     from wm.train import loss_fn

@@ -24,11 +24,15 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from sim_data.sim.robot import PROPRIO_BASE_VEL, PROPRIO_HAND_CLOSURE, PROPRIO_JOINT_POS, PROPRIO_JOINT_VEL
 from sim_data.util import jit_initialiser
 
 LATENT_SIDE = 8
 INPUT_CLIP = 10.0  # standardised proprio and actions are clipped to +-INPUT_CLIP, predicted proprio too
 IMAGINE_MODES = ("window", "cache")
+# the proprioception groups ModelConfig.blind may name (sim_data.sim.robot's layout)
+BLIND_GROUPS = {"joints": PROPRIO_JOINT_POS, "joint_vel": PROPRIO_JOINT_VEL, "base": PROPRIO_BASE_VEL,
+                "hands": PROPRIO_HAND_CLOSURE}
 COPY_BIAS = 4.0  # the compose mask's initial logit: an untrained decoder passes the previous frame through (98%)
 # the frame generator's noise, in pixel units ([0, 1]): above the spread of what it adds to the decoded frame
 # (a few hundredths at one step, about a tenth at eight), so that its first step starts from noise alone
@@ -103,6 +107,10 @@ class ModelConfig:
         step (wm.imagine.refine_noise); the keep gate still copies the pixels it keeps. Training teaches it
         on the decoded frames of every pass with their gradient stopped, and its parameters are clipped
         and updated apart (wm.train.make_optimizer): the rest of the model learns as without it.
+      blind: the groups of the next proprioception (BLIND_GROUPS: "joints", "joint_vel", "base", "hands")
+        predicted by the (proprioception, action) MLP alone, without the frame tokens' correction: the
+        base glides on its driving command and the joints follow their targets whatever the camera
+        shows, so what the body does next cannot be read from what the task's frames usually show.
     """
 
     size: int = 64
@@ -132,6 +140,7 @@ class ModelConfig:
     scene_dim: int = 24
     refine: int = 0
     refine_channels: tuple = (64, 128)
+    blind: tuple = ()
 
     def validate(self) -> None:
         """Raises ValueError where the architecture is inconsistent: an unknown tokenizer, upsampler or imagine
@@ -158,11 +167,22 @@ class ModelConfig:
             raise ValueError(f"refine is the frame generator's steps (0: none), got {self.refine}")
         if len(self.refine_channels) != 2 or any(c < 8 or c % 8 for c in self.refine_channels):
             raise ValueError(f"refine_channels are two widths, multiples of 8 (group norm); got {self.refine_channels}")
+        unknown = sorted(set(self.blind) - set(BLIND_GROUPS))
+        if unknown:
+            raise ValueError(f"blind names proprioception groups among {', '.join(BLIND_GROUPS)}; got {unknown}")
 
     @property
     def scene_width(self) -> int:
         """Columns of the predicted scene state (the head's output, imagination's, the judge's): scene_dim or 0."""
         return self.scene_dim if self.scene else 0
+
+    @property
+    def blind_mask(self) -> jnp.ndarray:
+        """(proprio_dim,) bool: the proprioception columns the tokens do not correct (blind)."""
+        mask = jnp.zeros(self.proprio_dim, bool)
+        for group in self.blind:
+            mask = mask.at[BLIND_GROUPS[group]].set(True)
+        return mask
 
     @property
     def tokens_per_frame(self) -> int:
@@ -596,7 +616,8 @@ class Dynamics(nn.Module):
         width = cfg.proprio_dim + 3 + cfg.scene_width
         heads = nn.Dense(width, dtype=jnp.float32)(nn.silu(nn.Dense(cfg.dim, dtype=jnp.float32)(pooled)))
         # clipped like the standardised inputs, so that a long imagined rollout cannot diverge
-        p_out = jnp.clip(p_next + heads[..., :cfg.proprio_dim], -INPUT_CLIP, INPUT_CLIP)
+        correction = jnp.where(cfg.blind_mask, 0.0, heads[..., :cfg.proprio_dim])
+        p_out = jnp.clip(p_next + correction, -INPUT_CLIP, INPUT_CLIP)
         out = {"z": z_next, "proprio": p_out,
                "success": heads[..., cfg.proprio_dim], "outcome": heads[..., cfg.proprio_dim + 1],
                "progress": heads[..., cfg.proprio_dim + 2], "flow": flow, **codes}
