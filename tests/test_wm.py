@@ -43,6 +43,7 @@ from wm.checkpoint import main as checkpoint_main
 from wm.config import SMOKE_MODEL, check_dataset, make_config
 from wm.judge import load_judge
 from wm.model import (
+    INPUT_CLIP,
     Decoder,
     WorldModel,
     anchor_span,
@@ -876,8 +877,9 @@ def test_the_judge_reads_the_scene_state_imagination_and_observation_predict(mod
 
 def test_blind_groups_of_the_next_body_state_ignore_the_frames_and_the_rest_still_read_them(model_and_inputs):
     # the same body and actions under other frames: the blind columns (joint velocities, base velocity)
-    # come out the same, the others move; with the same parameters the plain model predicts the others
-    # alike and the blind ones otherwise (its tokens' correction added)
+    # come out the same, the others move; with the blind model's linear path at zero, the plain model
+    # of the same parameters predicts the others alike and the blind ones otherwise (its tokens'
+    # correction added); the linear path moves every column by its linear map of body and action
     _, frames, proprio, action = model_and_inputs
     cfg = dataclasses.replace(CFG, blind=("base", "joint_vel"))
     params = init_params(cfg, jax.random.PRNGKey(0), window=6)
@@ -890,9 +892,16 @@ def test_blind_groups_of_the_next_body_state_ignore_the_frames_and_the_rest_stil
     np.testing.assert_array_equal(np.asarray(cfg.blind_mask), blind)
     np.testing.assert_allclose(out[..., blind], other[..., blind], atol=1e-6)
     assert float(jnp.abs(out[..., ~blind] - other[..., ~blind]).max()) > 1e-4
-    plain = compiled(WorldModel(CFG), WorldModel.predict)({"params": params}, z, proprio, action)["proprio"]
-    np.testing.assert_allclose(out[..., ~blind], plain[..., ~blind], atol=1e-6)
-    assert float(jnp.abs(out[..., blind] - plain[..., blind]).max()) > 1e-4
+    linear = params["dynamics"]["blind_linear"]
+    body = np.concatenate([proprio, action], -1)
+    no_linear = {**params, "dynamics": {**params["dynamics"],
+                                        "blind_linear": jax.tree_util.tree_map(jnp.zeros_like, linear)}}
+    without = compiled(m, WorldModel.predict)({"params": no_linear}, z, proprio, action)["proprio"]
+    np.testing.assert_allclose(out, np.clip(without + body @ linear["kernel"] + linear["bias"], -INPUT_CLIP, INPUT_CLIP), atol=1e-4)
+    plain_params = {**params, "dynamics": {k: v for k, v in params["dynamics"].items() if k != "blind_linear"}}
+    plain = compiled(WorldModel(CFG), WorldModel.predict)({"params": plain_params}, z, proprio, action)["proprio"]
+    np.testing.assert_allclose(without[..., ~blind], plain[..., ~blind], atol=1e-6)
+    assert float(jnp.abs(without[..., blind] - plain[..., blind]).max()) > 1e-4
     with pytest.raises(ValueError, match="proprioception groups"):
         dataclasses.replace(CFG, blind=("legs",)).validate()
 

@@ -558,9 +558,11 @@ class Dynamics(nn.Module):
         anchor_tokens = embed(patchify(anchor[:, None], cfg.patch).astype(dt))[:, 0] + pos if cfg.anchor else None
         # the robot's next state from its state and the action alone (the joints follow their targets):
         # the frame's tokens are then conditioned on where the body and camera go, not only on the command
-        s = jnp.concatenate([proprio, action], -1).astype(jnp.float32)
-        s = nn.silu(nn.Dense(cfg.dim, dtype=jnp.float32)(nn.silu(nn.Dense(cfg.dim, dtype=jnp.float32)(s))))
-        p_next = proprio + nn.Dense(cfg.proprio_dim, dtype=jnp.float32)(s)
+        body = jnp.concatenate([proprio, action], -1).astype(jnp.float32)
+        h = nn.silu(nn.Dense(cfg.dim, dtype=jnp.float32)(nn.silu(nn.Dense(cfg.dim, dtype=jnp.float32)(body))))
+        p_next = proprio + nn.Dense(cfg.proprio_dim, dtype=jnp.float32)(h)
+        if cfg.blind:  # a linear path too: between and beyond the data's commands the body responds as near them
+            p_next = p_next + nn.Dense(cfg.proprio_dim, dtype=jnp.float32, name="blind_linear")(body)
         cond_in = jnp.concatenate([action, proprio, p_next], -1).astype(dt)
         cond = nn.Dense(cfg.dim, dtype=dt)(nn.silu(nn.Dense(cfg.dim, dtype=dt)(cond_in)))
         table = self.param("time_bias", nn.initializers.zeros, (cfg.heads, cfg.context))
