@@ -879,7 +879,7 @@ def test_blind_groups_of_the_next_body_state_ignore_the_frames_and_the_rest_stil
     # the same body and actions under other frames: the blind columns (joint velocities, base velocity)
     # come out the same, the others move; with the blind model's linear path at zero, the plain model
     # of the same parameters predicts the others alike and the blind ones otherwise (its tokens'
-    # correction added); the linear path moves every column by its linear map of body and action
+    # correction added); the linear path adds its linear map of body and action to the blind columns
     _, frames, proprio, action = model_and_inputs
     cfg = dataclasses.replace(CFG, blind=("base", "joint_vel"))
     params = init_params(cfg, jax.random.PRNGKey(0), window=6)
@@ -897,7 +897,8 @@ def test_blind_groups_of_the_next_body_state_ignore_the_frames_and_the_rest_stil
     no_linear = {**params, "dynamics": {**params["dynamics"],
                                         "blind_linear": jax.tree_util.tree_map(jnp.zeros_like, linear)}}
     without = compiled(m, WorldModel.predict)({"params": no_linear}, z, proprio, action)["proprio"]
-    np.testing.assert_allclose(out, np.clip(without + body @ linear["kernel"] + linear["bias"], -INPUT_CLIP, INPUT_CLIP), atol=1e-4)
+    added = np.where(blind, body @ linear["kernel"] + linear["bias"], 0.0)
+    np.testing.assert_allclose(out, np.clip(without + added, -INPUT_CLIP, INPUT_CLIP), atol=1e-4)
     plain_params = {**params, "dynamics": {k: v for k, v in params["dynamics"].items() if k != "blind_linear"}}
     plain = compiled(WorldModel(CFG), WorldModel.predict)({"params": plain_params}, z, proprio, action)["proprio"]
     np.testing.assert_allclose(without[..., ~blind], plain[..., ~blind], atol=1e-6)

@@ -561,8 +561,9 @@ class Dynamics(nn.Module):
         body = jnp.concatenate([proprio, action], -1).astype(jnp.float32)
         h = nn.silu(nn.Dense(cfg.dim, dtype=jnp.float32)(nn.silu(nn.Dense(cfg.dim, dtype=jnp.float32)(body))))
         p_next = proprio + nn.Dense(cfg.proprio_dim, dtype=jnp.float32)(h)
-        if cfg.blind:  # a linear path too: between and beyond the data's commands the body responds as near them
-            p_next = p_next + nn.Dense(cfg.proprio_dim, dtype=jnp.float32, name="blind_linear")(body)
+        if cfg.blind:  # the blind groups' linear path: between and beyond the data's commands the body responds
+            linear = nn.Dense(cfg.proprio_dim, dtype=jnp.float32, name="blind_linear")(body)  # as it does near them
+            p_next = p_next + jnp.where(cfg.blind_mask, linear, 0.0)
         cond_in = jnp.concatenate([action, proprio, p_next], -1).astype(dt)
         cond = nn.Dense(cfg.dim, dtype=dt)(nn.silu(nn.Dense(cfg.dim, dtype=dt)(cond_in)))
         table = self.param("time_bias", nn.initializers.zeros, (cfg.heads, cfg.context))
