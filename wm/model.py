@@ -108,9 +108,10 @@ class ModelConfig:
         on the decoded frames of every pass with their gradient stopped, and its parameters are clipped
         and updated apart (wm.train.make_optimizer): the rest of the model learns as without it.
       blind: the groups of the next proprioception (BLIND_GROUPS: "joints", "joint_vel", "base", "hands")
-        predicted by the (proprioception, action) MLP alone, without the frame tokens' correction: the
-        base glides on its driving command and the joints follow their targets whatever the camera
-        shows, so what the body does next cannot be read from what the task's frames usually show.
+        predicted from those groups' present and the action alone (BlindBody), without the frame
+        tokens' correction: the base glides on its driving command and the joints follow their targets
+        whatever the camera shows and the rest of the body does, so what the body does next cannot be
+        read from what the task's frames usually show, nor from an imagined arm's drift.
     """
 
     size: int = 64
@@ -521,6 +522,25 @@ def _gaussian(params):
     return mean, -1.5 + 3.5 * jnp.tanh(raw / 3.5)
 
 
+class BlindBody(nn.Module):
+    """The next proprioception of ModelConfig.blind's groups from those groups' present and the action
+    alone: an MLP beside a linear map. The rest of an imagined body may drift, and a body part's
+    response to its commands does not depend on it; the linear map carries the response between and
+    beyond the commands the data holds as it is near them."""
+
+    cfg: ModelConfig
+
+    @nn.compact
+    def __call__(self, proprio, action):
+        """proprio (B, T, proprio_dim), action (B, T, action_dim), both standardised -> the next
+        proprio (B, T, proprio_dim), meaningful in the blind groups' columns alone."""
+        cfg = self.cfg
+        own = jnp.concatenate([jnp.where(cfg.blind_mask, proprio, 0.0), action], -1).astype(jnp.float32)
+        h = nn.silu(nn.Dense(cfg.dim, dtype=jnp.float32)(nn.silu(nn.Dense(cfg.dim, dtype=jnp.float32)(own))))
+        return (proprio + nn.Dense(cfg.proprio_dim, dtype=jnp.float32)(h)
+                + nn.Dense(cfg.proprio_dim, dtype=jnp.float32, name="linear")(own))
+
+
 class Dynamics(nn.Module):
     """Latents, proprio, actions (B, T, ...) of frames 0..T-1 -> predictions for frames 1..T."""
 
@@ -561,9 +581,8 @@ class Dynamics(nn.Module):
         body = jnp.concatenate([proprio, action], -1).astype(jnp.float32)
         h = nn.silu(nn.Dense(cfg.dim, dtype=jnp.float32)(nn.silu(nn.Dense(cfg.dim, dtype=jnp.float32)(body))))
         p_next = proprio + nn.Dense(cfg.proprio_dim, dtype=jnp.float32)(h)
-        if cfg.blind:  # the blind groups' linear path: between and beyond the data's commands the body responds
-            linear = nn.Dense(cfg.proprio_dim, dtype=jnp.float32, name="blind_linear")(body)  # as it does near them
-            p_next = p_next + jnp.where(cfg.blind_mask, linear, 0.0)
+        if cfg.blind:
+            p_next = jnp.where(cfg.blind_mask, BlindBody(cfg, name="blind")(proprio, action), p_next)
         cond_in = jnp.concatenate([action, proprio, p_next], -1).astype(dt)
         cond = nn.Dense(cfg.dim, dtype=dt)(nn.silu(nn.Dense(cfg.dim, dtype=dt)(cond_in)))
         table = self.param("time_bias", nn.initializers.zeros, (cfg.heads, cfg.context))
