@@ -43,6 +43,7 @@ from wm.checkpoint import main as checkpoint_main
 from wm.config import SMOKE_MODEL, check_dataset, make_config
 from wm.judge import load_judge
 from wm.model import (
+    INPUT_CLIP,
     Decoder,
     WorldModel,
     anchor_span,
@@ -879,7 +880,7 @@ def test_blind_groups_of_the_next_body_state_read_only_their_present_and_the_act
     # another state of the rest of the body, and move with their own present and the action; the
     # other columns are the plain model's of the same shared parameters, frames and all
     _, frames, proprio, action = model_and_inputs
-    cfg = dataclasses.replace(CFG, blind=("base", "joint_vel"))
+    cfg = dataclasses.replace(CFG, blind=("joint_vel", "base"))
     params = init_params(cfg, jax.random.PRNGKey(0), window=6)
     blind = np.zeros(cfg.proprio_dim, bool)
     blind[16:35] = True
@@ -893,15 +894,27 @@ def test_blind_groups_of_the_next_body_state_read_only_their_present_and_the_act
                   predict({"params": params}, z, np.where(blind, proprio, proprio + noise), action)["proprio"]):
         np.testing.assert_allclose(moved[..., blind], out[..., blind], atol=1e-6)
         assert float(jnp.abs(moved[..., ~blind] - out[..., ~blind]).max()) > 1e-4
-    for moved in (predict({"params": params}, z, np.where(blind, proprio + noise, proprio), action)["proprio"],
-                  predict({"params": params}, z, proprio, action + noise[..., :action.shape[-1]])["proprio"]):
-        assert float(jnp.abs(moved[..., blind] - out[..., blind]).max()) > 1e-4
+    own = predict({"params": params}, z, np.where(blind, proprio + noise, proprio), action)["proprio"]
+    assert float(jnp.abs((own - noise)[..., blind] - out[..., blind]).max()) > 1e-4  # beyond the residual
+    acted = predict({"params": params}, z, proprio, action + noise[..., :action.shape[-1]])["proprio"]
+    assert float(jnp.abs(acted[..., blind] - out[..., blind]).max()) > 1e-4
+    # with the linear map zeroed, the blind columns move by exactly its map of their present and the action
+    no_linear = jax.tree_util.tree_map(jnp.zeros_like, params["dynamics"]["blind"]["linear"])
+    flat = {**params, "dynamics": {**params["dynamics"], "blind": {**params["dynamics"]["blind"], "linear": no_linear}}}
+    lin = params["dynamics"]["blind"]["linear"]
+    own_in = np.concatenate([np.where(blind, proprio, 0.0), action], -1)
+    np.testing.assert_allclose(out[..., blind], np.clip(predict({"params": flat}, z, proprio, action)["proprio"]
+                               + own_in @ lin["kernel"] + lin["bias"], -INPUT_CLIP, INPUT_CLIP)[..., blind],
+                               atol=1e-4)
     plain_params = {**params, "dynamics": {k: v for k, v in params["dynamics"].items() if k != "blind"}}
     plain = compiled(WorldModel(CFG), WorldModel.predict)({"params": plain_params}, z, proprio, action)["proprio"]
     np.testing.assert_allclose(out[..., ~blind], plain[..., ~blind], atol=1e-6)
     assert float(jnp.abs(out[..., blind] - plain[..., blind]).max()) > 1e-4
-    with pytest.raises(ValueError, match="proprioception groups"):
-        dataclasses.replace(CFG, blind=("legs",)).validate()
+    for bad in (("legs",), ("base", "joint_vel"), ("base", "base")):
+        with pytest.raises(ValueError, match="proprioception groups"):
+            dataclasses.replace(CFG, blind=bad).validate()
+    with pytest.raises(ValueError, match="proprio_dim"):
+        dataclasses.replace(CFG, blind=("base",), proprio_dim=12).validate()
 
 
 @pytest.mark.slow

@@ -23,8 +23,15 @@ import math
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from sim_data.sim.robot import PROPRIO_BASE_VEL, PROPRIO_HAND_CLOSURE, PROPRIO_JOINT_POS, PROPRIO_JOINT_VEL
+from sim_data.sim.robot import (
+    PROPRIO_BASE_VEL,
+    PROPRIO_DIM,
+    PROPRIO_HAND_CLOSURE,
+    PROPRIO_JOINT_POS,
+    PROPRIO_JOINT_VEL,
+)
 from sim_data.util import jit_initialiser
 
 LATENT_SIDE = 8
@@ -107,11 +114,13 @@ class ModelConfig:
         step (wm.imagine.refine_noise); the keep gate still copies the pixels it keeps. Training teaches it
         on the decoded frames of every pass with their gradient stopped, and its parameters are clipped
         and updated apart (wm.train.make_optimizer): the rest of the model learns as without it.
-      blind: the groups of the next proprioception (BLIND_GROUPS: "joints", "joint_vel", "base", "hands")
-        predicted from those groups' present and the action alone (BlindBody), without the frame
-        tokens' correction: the base glides on its driving command and the joints follow their targets
-        whatever the camera shows and the rest of the body does, so what the body does next cannot be
-        read from what the task's frames usually show, nor from an imagined arm's drift.
+      blind: the groups of the next proprioception (BLIND_GROUPS: "joints", "joint_vel", "base", "hands",
+        named in that order) predicted from the named groups' present and the action alone (BlindBody),
+        without the frame tokens' correction: the base glides on its driving command and the joints
+        follow their targets whatever the camera shows and the unnamed groups do, so what the body
+        does next cannot be read from what the task's frames usually show, nor from the drift of an
+        imagined part it does not depend on. The named groups read each other: a joint's velocity
+        follows the gap between its target and its position, so name "joint_vel" with "joints".
     """
 
     size: int = 64
@@ -168,9 +177,12 @@ class ModelConfig:
             raise ValueError(f"refine is the frame generator's steps (0: none), got {self.refine}")
         if len(self.refine_channels) != 2 or any(c < 8 or c % 8 for c in self.refine_channels):
             raise ValueError(f"refine_channels are two widths, multiples of 8 (group norm); got {self.refine_channels}")
-        unknown = sorted(set(self.blind) - set(BLIND_GROUPS))
-        if unknown:
-            raise ValueError(f"blind names proprioception groups among {', '.join(BLIND_GROUPS)}; got {unknown}")
+        if list(self.blind) != [g for g in BLIND_GROUPS if g in self.blind]:
+            raise ValueError(f"blind names proprioception groups, each once, in the order {', '.join(BLIND_GROUPS)} "
+                             f"(one model, one name); got {list(self.blind)}")
+        if self.blind and self.proprio_dim != PROPRIO_DIM:
+            raise ValueError(f"blind groups are columns of the robot's proprioception ({PROPRIO_DIM} values, "
+                             f"sim_data.sim.robot); this model's proprio_dim is {self.proprio_dim}")
 
     @property
     def scene_width(self) -> int:
@@ -178,11 +190,11 @@ class ModelConfig:
         return self.scene_dim if self.scene else 0
 
     @property
-    def blind_mask(self) -> jnp.ndarray:
-        """(proprio_dim,) bool: the proprioception columns the tokens do not correct (blind)."""
-        mask = jnp.zeros(self.proprio_dim, bool)
+    def blind_mask(self) -> np.ndarray:
+        """(proprio_dim,) bool, a constant of the program: the proprioception columns of the blind groups."""
+        mask = np.zeros(self.proprio_dim, bool)
         for group in self.blind:
-            mask = mask.at[BLIND_GROUPS[group]].set(True)
+            mask[BLIND_GROUPS[group]] = True
         return mask
 
     @property
@@ -523,10 +535,10 @@ def _gaussian(params):
 
 
 class BlindBody(nn.Module):
-    """The next proprioception of ModelConfig.blind's groups from those groups' present and the action
-    alone: an MLP beside a linear map. The rest of an imagined body may drift, and a body part's
-    response to its commands does not depend on it; the linear map carries the response between and
-    beyond the commands the data holds as it is near them."""
+    """The next proprioception of ModelConfig.blind's groups from those groups' present (all of them
+    together) and the action alone: an MLP beside a linear map. The rest of an imagined body may
+    drift, and a body part's response to its commands does not depend on it; the linear map carries
+    the response between and beyond the commands the data holds as it is near them."""
 
     cfg: ModelConfig
 
