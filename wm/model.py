@@ -650,7 +650,9 @@ class Dynamics(nn.Module):
         width = cfg.proprio_dim + 3 + cfg.scene_width
         heads = nn.Dense(width, dtype=jnp.float32)(nn.silu(nn.Dense(cfg.dim, dtype=jnp.float32)(pooled)))
         # clipped like the standardised inputs, so that a long imagined rollout cannot diverge
-        correction = jnp.where(cfg.blind_mask, 0.0, heads[..., :cfg.proprio_dim])
+        correction = heads[..., :cfg.proprio_dim]
+        if cfg.blind:  # only a blind model's program holds the select: a carried compilation cache still serves the rest
+            correction = jnp.where(cfg.blind_mask, 0.0, correction)
         p_out = jnp.clip(p_next + correction, -INPUT_CLIP, INPUT_CLIP)
         out = {"z": z_next, "proprio": p_out,
                "success": heads[..., cfg.proprio_dim], "outcome": heads[..., cfg.proprio_dim + 1],
