@@ -149,6 +149,14 @@ REFINE_STREAM = 1 << 10  # the frame generator's draws: fold_in(rng, this + pass
 PROPRIO_NOISE_STREAM = 1 << 11  # the input proprioception's noise (proprio_noise): fold_in(rng, this)
 
 
+def with_window_noise(x, key, max_std: float, bound: float):
+    """x (B, ...) plus Gaussian noise of a std each window (row) draws uniformly below max_std, clipped to
+    +-bound: the context's and the proprioception's noise augmentation."""
+    k1, k2 = jax.random.split(key)
+    level = jax.random.uniform(k1, (x.shape[0],) + (1,) * (x.ndim - 1), maxval=max_std)
+    return jnp.clip(x + level * jax.random.normal(k2, x.shape), -bound, bound)
+
+
 def _refine_loss(model, params, decoded, z, target, k: int, passes: int, key):
     """The frame generator's flow-matching loss on pass k's decoded frames (B, T, S, S, 3) in [0, 1]
     (predicted latents z (B, T, 8, 8, C), true frames target): every 2(passes + 1)-th frame from the
@@ -204,13 +212,9 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_w
             # the noise below splits rng into counters 0 and 1 (fold_in(rng, 1) is its second key): 2 is the anchor's
             keep_anchor = jax.random.uniform(jax.random.fold_in(rng, 2), (frames.shape[0],)) >= cfg.anchor_drop
     if cfg.context_noise > 0 and rng is not None:  # corrupted inputs: the past cannot be copied forward exactly
-        k1, k2 = jax.random.split(rng)
-        level = jax.random.uniform(k1, (z.shape[0],) + (1,) * (z.ndim - 1), maxval=cfg.context_noise)
-        z_in = jnp.clip(z + level * jax.random.normal(k2, z.shape), -1.0, 1.0)
+        z_in = with_window_noise(z, rng, cfg.context_noise, 1.0)
     if cfg.proprio_noise > 0 and rng is not None:  # the body's present is not to be copied forward exactly
-        k1, k2 = jax.random.split(jax.random.fold_in(rng, PROPRIO_NOISE_STREAM))
-        level = jax.random.uniform(k1, (proprio.shape[0], 1, 1), maxval=cfg.proprio_noise)
-        p_in = jnp.clip(proprio + level * jax.random.normal(k2, proprio.shape), -INPUT_CLIP, INPUT_CLIP)
+        p_in = with_window_noise(proprio, jax.random.fold_in(rng, PROPRIO_NOISE_STREAM), cfg.proprio_noise, INPUT_CLIP)
     z_target = jax.lax.stop_gradient(z[:, 1:])
     # the stochastic code's posterior reads prediction t's target, frame t+1 (the last prediction has none)
     code_target = jnp.concatenate([z_target, jnp.zeros_like(z[:, :1])], axis=1) if cfg.model.stochastic else None
