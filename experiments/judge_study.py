@@ -137,6 +137,14 @@ VARIANTS = {
        for name in ("full", "demo") for tag, raw in (("", False), ("_raw_mean", True))},
     # `full`'s second judge: every group but the scene head's, as six at a quarter of the learning rate
     "full_judge2": dataclasses.replace(preset_judge("full"), inputs=make_config("full").judge2_inputs),
+    # the presets' judges without the actions: a judge that reads the commands can learn what a
+    # degraded command looks like (a weak grip, noise) rather than whether the imagined body got there;
+    # "_proprio" reads the imagined body alone, "_seen" every imagined group but the actions and the
+    # scene head's
+    **{f"{name}_recipe_{tag}": dataclasses.replace(preset_judge(name), inputs=inputs)
+       for name in ("full", "demo")
+       for tag, inputs in (("proprio", ("proprio",)),
+                           ("seen", tuple(g for g in FEATURE_GROUPS if g not in ("action", "scene"))))},
     # the presets' judges learning what the closed loop's imagined actions truly achieve
     **{f"{name}_recipe_replay": dataclasses.replace(preset_judge(name), replay_labels=True)
        for name in ("full", "demo")},

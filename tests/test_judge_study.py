@@ -118,6 +118,11 @@ def test_a_variant_fits_its_judge_at_its_seed_learning_rate_and_members(np_rng, 
     assert (full.inputs, full.lr, full.members, full.select) == (("proprio", "action"), 5e-4, 6, "best")
     assert "scene" not in full2.inputs and "latent" in full2.inputs and full2.select == "best"
     assert J.VARIANTS["full_recipe_raw_mean"] == J.dataclasses.replace(full, raw_mean=True)
+    # the presets' judges without the actions: the body alone, or every imagined group but the scene head's
+    assert J.VARIANTS["demo_recipe_proprio"] == J.dataclasses.replace(demo, inputs=("proprio",))
+    seen = J.VARIANTS["full_recipe_seen"]
+    assert seen == J.dataclasses.replace(full, inputs=seen.inputs)
+    assert "action" not in seen.inputs and "scene" not in seen.inputs and {"proprio", "latent"} <= set(seen.inputs)
     for t in ("a", "b"):
         assert probs[t].shape == true[t].shape and ((probs[t] > 0.5) == true[t]).mean() > 0.9
 
