@@ -131,7 +131,7 @@ from experiments.timing import (
 from sim_data.dataset import generate
 from sim_data.parts import can_pin_cores, local_cores, local_gpus, run_parallel
 from sim_data.policies import zoo
-from sim_data.util import device_name, run_cli, with_xla_flags, write_json_atomic
+from sim_data.util import CACHE_KEY_LOG_ENV, device_name, record_cache_keys, run_cli, with_xla_flags, write_json_atomic
 from wm import config as wm_config
 from wm import train
 from wm.checkpoint import BUNDLE, bundle_holds, write_bundle
@@ -567,6 +567,7 @@ CACHE_PART_BYTES = 15 * 2**20  # a lent GPU brings back files of <= 16 MiB
 CACHE_MAX_PARTS = 3  # beside collect's five files: a lent GPU brings back eight
 # JAX writes a cache entry in place: one this recent may still be half written while a chain runs
 CACHE_SETTLED_S = 10.0
+CACHE_KEY_LOG = "cache_keys.log"  # in the chain's logs: its programs' cache keys, part by part
 
 
 def compile_cache_dirs(root) -> dict[str, Path]:
@@ -576,13 +577,18 @@ def compile_cache_dirs(root) -> dict[str, Path]:
     return {"jax_cache": Path(jax_dir), "xla_autotune": Path(root) / "xla_autotune"}
 
 
-def use_compilation_cache(root: str) -> str:
+def use_compilation_cache(root: str, key_log: Path | None = None) -> str:
     """Turns on JAX's persistent compilation cache in root/jax_cache (or where JAX_COMPILATION_CACHE_DIR
     says), for this process and the stages' child processes: a stage run again, a later stage and
     the other GPUs' parts load what one process compiled. In root/xla_autotune XLA keeps its GPU
     autotuning results per fusion (XLA_FLAGS), which every program with the same fusions reuses
-    where the whole program is not cached: most of a fresh train step's compile time. Call it before
+    where the whole program is not cached: most of a fresh train step's compile time. With key_log,
+    this process and every command it starts log their programs' cache keys there, part by part
+    (sim_data.util.record_cache_keys; experiments.cache_keys compares two leases'). Call it before
     JAX's backend starts (XLA reads its flags then). Returns the compilation cache's directory."""
+    if key_log is not None:
+        os.environ[CACHE_KEY_LOG_ENV] = str(Path(key_log).absolute())
+        record_cache_keys(Path(key_log))
     dirs = compile_cache_dirs(Path(root).absolute())
     path = os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(dirs["jax_cache"]))
     jax.config.update("jax_compilation_cache_dir", path)
@@ -1062,7 +1068,7 @@ def main(argv=None) -> int:
         print(f"started in the background; log: {detach(a.pipeline, [x for x in raw if x != '--detach'], a.members)}\n"
               f"follow it with: python -m experiments.pipeline {a.pipeline} --follow 520 --until-bundle --collect DIR")
         return 0
-    use_compilation_cache(PIPELINES[a.pipeline].root)
+    use_compilation_cache(PIPELINES[a.pipeline].root, key_log=_logs(PIPELINES[a.pipeline], a.pipeline) / CACHE_KEY_LOG)
     t0 = time.perf_counter()
     for stage in STAGES if a.stage == "all" else (a.stage,):
         while True:

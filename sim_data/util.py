@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import functools
 import json
+import logging
 import os
+import re
 import sys
 import time
 from importlib import metadata as importlib_metadata
@@ -155,12 +157,59 @@ def jit_initialiser(fun, static_argnums=()):
     return init
 
 
+# where a command logs the parts of its persistent compilation cache keys (record_cache_keys), when set:
+# the pipeline sets it for itself and every process it starts
+CACHE_KEY_LOG_ENV = "WMLAB_CACHE_KEY_LOG"
+# what JAX's key computation and its cache lookups log at DEBUG level
+_KEY_LOGGERS = ("jax._src.cache_key", "jax._src.compiler")
+_KEY_PART_RE = re.compile(r"get_cache_key hash of serialized (.+): ([0-9a-f]+)$")
+_LOOKUP_RE = re.compile(r"persistent compilation cache (hit|miss) for '(.+)' with key '(.+)'$", re.IGNORECASE)
+
+
+class _CacheKeyLog(logging.Filter):
+    """A logger filter that appends the key parts and lookups JAX logs at DEBUG level to a file, and
+    drops every DEBUG record of its logger, so that the level turned down prints nothing new."""
+
+    def __init__(self, path: Path):
+        super().__init__()
+        self.path = Path(path)
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.levelno > logging.DEBUG:
+            return True
+        msg = record.getMessage()
+        part, lookup = _KEY_PART_RE.search(msg), _LOOKUP_RE.search(msg)
+        line = (f"part\t{part[1]}\t{part[2]}" if part else
+                f"{lookup[1].lower()}\t{lookup[2]}\t{lookup[3]}" if lookup else None)
+        if line is not None:
+            with open(self.path, "a") as f:
+                f.write(f"{os.getpid()}\t{line}\n")
+        return False
+
+
+def record_cache_keys(path: Path) -> None:
+    """From now on appends each persistent compilation cache key this process computes, part by part
+    (the program, jaxlib's version, the backend's, the XLA flags, the compile options, the accelerator,
+    ...), and its lookup, hit or miss, to the log at path: tab-separated lines "pid part NAME HASH" and
+    "pid hit|miss PROGRAM KEY" (experiments.cache_keys reads and compares two). Idempotent per path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    for name in _KEY_LOGGERS:
+        logger = logging.getLogger(name)
+        if not any(isinstance(f, _CacheKeyLog) and f.path == path for f in logger.filters):
+            logger.addFilter(_CacheKeyLog(path))
+        logger.setLevel(logging.DEBUG)
+
+
 def run_cli(main) -> int:
-    """Runs a command's main() for `python -m`, with XLA's flags set (set_xla_flags): a user's
+    """Runs a command's main() for `python -m`, with XLA's flags set (set_xla_flags) and, where
+    CACHE_KEY_LOG_ENV names a log, the compilation cache's keys recorded there: a user's
     mistake (a bad path, preset, value, plug-in or selector, raised as FileNotFoundError,
     NotADirectoryError or ValueError with a message that names the input) ends in that one line and
     exit status 2, without a traceback."""
     set_xla_flags()
+    if os.environ.get(CACHE_KEY_LOG_ENV):
+        record_cache_keys(Path(os.environ[CACHE_KEY_LOG_ENV]))
     try:
         return main()
     except (FileNotFoundError, NotADirectoryError, ValueError) as e:

@@ -7,6 +7,8 @@ import json
 import os
 import shutil
 import signal
+import subprocess
+import sys
 import tarfile
 import threading
 import time
@@ -16,6 +18,7 @@ import jax
 import numpy as np
 import pytest
 
+from experiments import cache_keys as K
 from experiments import pipeline as P
 from wm.checkpoint import RUN_FILES, bundle_meta
 
@@ -99,7 +102,7 @@ def test_members_seeds_follow_a_seed_set_and_a_trained_member_refuses_changed_se
 def test_every_stages_settings_are_checked_before_any_work(monkeypatch):
     ran = []
     monkeypatch.setattr(P, "run_stage", lambda *a, **k: ran.append(a) or True)
-    monkeypatch.setattr(P, "use_compilation_cache", lambda root: "")
+    monkeypatch.setattr(P, "use_compilation_cache", lambda root, key_log=None: "")
     for argv in (["--set", "eval:episodez=50"], ["--set", "train:stepz=3500"], ["--set", "eval:episodes=55"],
                  ["--set", "data:tasks=mug,mug"], ["--set", "report:x=1"], ["--stage", "report", "x=1"],
                  ["--stage", "policies", "stepz=1"]):
@@ -197,6 +200,48 @@ def test_the_eval_stage_evaluates_a_model_named_by_wm_though_no_member_was_train
     assert [a for a in got[0] if a.startswith("wm=")] == ["wm=runs/bundles/elsewhere"]
 
 
+CACHE_KEY_PROGRAM = """
+import sys
+import jax, jax.numpy as jnp
+from sim_data.util import run_cli
+jax.config.update("jax_compilation_cache_dir", sys.argv[1])
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
+jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+scale = float(sys.argv[2])
+def main():
+    def doubled(x):
+        return x * 2.0
+    jax.jit(doubled)(jnp.ones(3)).block_until_ready()  # the same program in both
+    def scaled(x):
+        return jnp.sin(x) * scale
+    jax.jit(scaled)(jnp.ones(3)).block_until_ready()  # another constant: another program
+run_cli(main)
+"""
+
+
+def test_the_cache_key_log_names_the_part_of_a_key_that_moved_between_two_processes(tmp_path):
+    log = tmp_path / "logs" / "cache_keys.log"
+    env = {**os.environ, P.CACHE_KEY_LOG_ENV: str(log)}
+    for scale in ("1.0", "3.0"):
+        subprocess.run([sys.executable, "-c", CACHE_KEY_PROGRAM, str(tmp_path / "cache"), scale], env=env, check=True)
+    first, second = tmp_path / "first.log", tmp_path / "second.log"
+    lines = log.read_text().splitlines()
+    pids = list(dict.fromkeys(line.split("\t")[0] for line in lines))
+    assert len(pids) == 2  # one run_cli process each, both logging through the environment
+    for pid, path in zip(pids, (first, second)):
+        path.write_text("\n".join(x for x in lines if x.startswith(pid + "\t")) + "\n")
+    a, b = K.read_cache_keys(first), K.read_cache_keys(second)
+    assert not a["jit_scaled"]["hit"] and not b["jit_scaled"]["hit"]
+    assert not a["jit_doubled"]["hit"] and b["jit_doubled"]["hit"]  # the second found the first's program
+    assert set(a["jit_scaled"]["parts"]) >= {"computation", "jax_lib version", "XLA flags", "compile_options"}
+    rows = {r["program"]: r for r in K.compare(a, b)}
+    assert rows["jit_scaled"]["differs"] == ["computation"] and not rows["jit_scaled"]["same_key"]
+    assert rows["jit_doubled"] == {"program": "jit_doubled", "same_key": True, "differs": []}
+    assert K.main([str(first), str(second)]) == 0
+    with pytest.raises(FileNotFoundError, match="not a file"):
+        K.main([str(first), str(tmp_path / "none.log")])
+
+
 def test_the_pipeline_shares_one_compilation_cache_with_its_child_processes(tmp_path, monkeypatch):
     calls = []
     monkeypatch.setattr(jax.config, "update", lambda *a: calls.append(a))
@@ -213,6 +258,13 @@ def test_the_pipeline_shares_one_compilation_cache_with_its_child_processes(tmp_
     monkeypatch.setenv("XLA_FLAGS", "")
     assert P.use_compilation_cache(str(tmp_path / "other")) == "/elsewhere"
     assert os.environ["XLA_FLAGS"] == f"{P.AUTOTUNE_FLAG}={tmp_path.absolute()}/other/xla_autotune"
+    # with a key log: this process records there, and the commands it starts learn where
+    logged = []
+    monkeypatch.setattr(P, "record_cache_keys", logged.append)
+    monkeypatch.delenv(P.CACHE_KEY_LOG_ENV, raising=False)
+    P.use_compilation_cache(str(tmp_path), key_log=tmp_path / "logs" / P.CACHE_KEY_LOG)
+    assert logged == [tmp_path / "logs" / P.CACHE_KEY_LOG]
+    assert os.environ[P.CACHE_KEY_LOG_ENV] == str((tmp_path / "logs" / P.CACHE_KEY_LOG).absolute())
 
 
 def test_each_stage_command_appends_its_wall_and_compile_seconds_to_the_timing_table(tiny, monkeypatch):
@@ -265,7 +317,7 @@ def test_a_time_slot_passes_what_is_left_to_train_and_eval_and_starts_no_stage_a
 
     monkeypatch.setattr(P, "run_stage", fake_stage)
     monkeypatch.setattr(P.time, "perf_counter", lambda: clock[0])
-    monkeypatch.setattr(P, "use_compilation_cache", lambda root: "")
+    monkeypatch.setattr(P, "use_compilation_cache", lambda root, key_log=None: "")
     assert P.main(["full", "--minutes", "9"]) == 0
     assert [s for s, _ in ran] == ["data", "policies", "rollouts", "train", "train"]
     assert [e for s, e in ran if s in ("data", "policies", "rollouts")] == [[], [], []]
@@ -366,7 +418,7 @@ def test_set_gives_each_stage_its_own_overrides_and_refuses_what_names_no_stage(
     monkeypatch.setattr(P, "run_stage", lambda name, stage, extra=(), gpus=(), members=None, warm=None,
                         warm_eval=None, warm_rollouts=None, cores=():
                         ran.append((stage, extra)) or True)
-    monkeypatch.setattr(P, "use_compilation_cache", lambda root: "")
+    monkeypatch.setattr(P, "use_compilation_cache", lambda root, key_log=None: "")
     assert P.main(["full", "--set", "train:steps=3500", "--set", "eval:episodes=50", "--set", "train:seed=1"]) == 0
     assert dict(ran) == {"data": [], "policies": [], "rollouts": [], "train": ["steps=3500", "seed=1"],
                          "eval": ["episodes=50"], "report": []}
@@ -742,7 +794,7 @@ def test_the_rollouts_stage_compiles_the_training_programs_beside_it_with_the_tr
     monkeypatch.setattr(P, "run_stage", lambda name, stage, extra=(), gpus=(), members=None, warm=None,
                         warm_eval=None, warm_rollouts=None, cores=():
                         ran.append((stage, warm)) or True)
-    monkeypatch.setattr(P, "use_compilation_cache", lambda root: "")
+    monkeypatch.setattr(P, "use_compilation_cache", lambda root, key_log=None: "")
     monkeypatch.setattr(P, "check_settings", lambda *a: None)  # the stand-in presets build no configuration
     P.main(["roll", "--warm-train", "--set", "train:steps=3500", "--set", "eval:episodes=50"])
     assert dict(ran)["rollouts"] == ["steps=3500"]
@@ -767,7 +819,7 @@ def test_data_overrides_reach_the_rollouts_stage_that_reuses_the_data(monkeypatc
     monkeypatch.setattr(P, "run_stage", lambda name, stage, extra=(), gpus=(), members=None, warm=None,
                         warm_eval=None, warm_rollouts=None, cores=():
                         ran.append((stage, extra)) or True)
-    monkeypatch.setattr(P, "use_compilation_cache", lambda root: "")
+    monkeypatch.setattr(P, "use_compilation_cache", lambda root, key_log=None: "")
     P.main(["full", "--set", "data:batch=960", "--set", "rollouts:policy_episodes=8"])
     got = dict(ran)
     assert got["data"] == ["batch=960"] and got["rollouts"] == ["batch=960", "policy_episodes=8"]
@@ -859,7 +911,7 @@ def test_the_train_stage_compiles_the_evaluations_programs_beside_it_with_the_ev
     ran = []
     monkeypatch.setattr(P, "run_stage", lambda name, stage, extra=(), gpus=(), members=None, warm=None,
                         warm_eval=None, warm_rollouts=None, cores=(): ran.append((stage, warm_eval)) or True)
-    monkeypatch.setattr(P, "use_compilation_cache", lambda root: "")
+    monkeypatch.setattr(P, "use_compilation_cache", lambda root, key_log=None: "")
     monkeypatch.setattr(P, "check_settings", lambda *a: None)  # the stand-in presets build no configuration
     P.main(["ev", "--warm-eval", "--set", "train:steps=3500", "--set", "eval:episodes=50"])
     assert dict(ran)["train"] == ["episodes=50"]
@@ -921,7 +973,7 @@ def test_the_policies_stage_compiles_the_rollouts_programs_beside_it_with_the_ro
     ran = []
     monkeypatch.setattr(P, "run_stage", lambda name, stage, extra=(), gpus=(), members=None, warm=None,
                         warm_eval=None, warm_rollouts=None, cores=(): ran.append((stage, warm_rollouts)) or True)
-    monkeypatch.setattr(P, "use_compilation_cache", lambda root: "")
+    monkeypatch.setattr(P, "use_compilation_cache", lambda root, key_log=None: "")
     monkeypatch.setattr(P, "check_settings", lambda *a: None)  # the stand-in presets build no configuration
     P.main(["wr", "--warm-rollouts", "--set", "data:batch=960", "--set", "rollouts:policy_episodes=4"])
     assert dict(ran)["policies"] == ["batch=960", "policy_episodes=4"]
