@@ -910,9 +910,29 @@ def test_blind_groups_of_the_next_body_state_read_only_their_present_and_the_act
     plain = compiled(WorldModel(CFG), WorldModel.predict)({"params": plain_params}, z, proprio, action)["proprio"]
     np.testing.assert_allclose(out[..., ~blind], plain[..., ~blind], atol=1e-6)
     assert float(jnp.abs(out[..., blind] - plain[..., blind]).max()) > 1e-4
+    # two paths: the arms' groups read each other, the base reads the base alone, each with its own parameters
+    two = dataclasses.replace(CFG, blind=("joints", "joint_vel", "base"), blind_alone=("base",))
+    two.validate()
+    assert two.blind_paths == (("blind", ("joints", "joint_vel")), ("blind_base", ("base",)))
+    arms, base = np.zeros(two.proprio_dim, bool), np.zeros(two.proprio_dim, bool)
+    arms[:32], base[32:35] = True, True
+    np.testing.assert_array_equal(two.blind_mask, arms | base)
+    params2 = init_params(two, jax.random.PRNGKey(0), window=6)
+    assert {"blind", "blind_base"} <= set(params2["dynamics"])
+    predict2 = compiled(WorldModel(two), WorldModel.predict)
+    out2 = predict2({"params": params2}, z, proprio, action)["proprio"]
+    arms_moved = predict2({"params": params2}, z, np.where(arms, proprio + noise, proprio), action)["proprio"]
+    base_moved = predict2({"params": params2}, z, np.where(base, proprio + noise, proprio), action)["proprio"]
+    np.testing.assert_allclose(arms_moved[..., base], out2[..., base], atol=1e-6)  # the base ignores the arms
+    np.testing.assert_allclose(base_moved[..., arms], out2[..., arms], atol=1e-6)  # and the arms the base
+    assert float(jnp.abs(arms_moved[..., arms] - out2[..., arms]).max()) > 1e-4
+    assert float(jnp.abs(base_moved[..., base] - out2[..., base]).max()) > 1e-4
     for bad in (("legs",), ("base", "joint_vel"), ("base", "base")):
         with pytest.raises(ValueError, match="proprioception groups"):
             dataclasses.replace(CFG, blind=bad).validate()
+    for blind, alone in ((("joints", "base"), ("hands",)), (("joints", "base"), ("base", "joints")), ((), ("base",))):
+        with pytest.raises(ValueError, match="groups of blind"):
+            dataclasses.replace(CFG, blind=blind, blind_alone=alone).validate()
     with pytest.raises(ValueError, match="proprio_dim"):
         dataclasses.replace(CFG, blind=("base",), proprio_dim=12).validate()
 

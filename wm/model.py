@@ -121,6 +121,9 @@ class ModelConfig:
         does next cannot be read from what the task's frames usually show, nor from the drift of an
         imagined part it does not depend on. The named groups read each other: a joint's velocity
         follows the gap between its target and its position, so name "joint_vel" with "joints".
+      blind_alone: groups of blind each predicted by a BlindBody of its own, from its own present and
+        the action (blind=joints,joint_vel,base with blind_alone=base drives the base from the base
+        alone, whatever the imagined arms do, while the arms' groups read each other).
     """
 
     size: int = 64
@@ -151,6 +154,7 @@ class ModelConfig:
     refine: int = 0
     refine_channels: tuple = (64, 128)
     blind: tuple = ()
+    blind_alone: tuple = ()
 
     def validate(self) -> None:
         """Raises ValueError where the architecture is inconsistent: an unknown tokenizer, upsampler or imagine
@@ -180,6 +184,9 @@ class ModelConfig:
         if list(self.blind) != [g for g in BLIND_GROUPS if g in self.blind]:
             raise ValueError(f"blind names proprioception groups, each once, in the order {', '.join(BLIND_GROUPS)} "
                              f"(one model, one name); got {list(self.blind)}")
+        if list(self.blind_alone) != [g for g in self.blind if g in self.blind_alone]:
+            raise ValueError(f"blind_alone names groups of blind ({', '.join(self.blind) or 'none'}), each once, in "
+                             f"blind's order; got {list(self.blind_alone)}")
         if self.blind and self.proprio_dim != PROPRIO_DIM:
             raise ValueError(f"blind groups are columns of the robot's proprioception ({PROPRIO_DIM} values, "
                              f"sim_data.sim.robot); this model's proprio_dim is {self.proprio_dim}")
@@ -190,12 +197,23 @@ class ModelConfig:
         return self.scene_dim if self.scene else 0
 
     @property
-    def blind_mask(self) -> np.ndarray:
-        """(proprio_dim,) bool, a constant of the program: the proprioception columns of the blind groups."""
+    def blind_paths(self) -> tuple:
+        """((name, groups), ...): one BlindBody each, the groups of blind not in blind_alone together
+        ("blind"), then each of blind_alone by itself ("blind_<group>")."""
+        shared = tuple(g for g in self.blind if g not in self.blind_alone)
+        return ((("blind", shared),) if shared else ()) + tuple((f"blind_{g}", (g,)) for g in self.blind_alone)
+
+    def group_mask(self, groups) -> np.ndarray:
+        """(proprio_dim,) bool, a constant of the program: the proprioception columns of the named groups."""
         mask = np.zeros(self.proprio_dim, bool)
-        for group in self.blind:
+        for group in groups:
             mask[BLIND_GROUPS[group]] = True
         return mask
+
+    @property
+    def blind_mask(self) -> np.ndarray:
+        """(proprio_dim,) bool: the proprioception columns of every blind path's groups."""
+        return self.group_mask(self.blind)
 
     @property
     def tokens_per_frame(self) -> int:
@@ -535,19 +553,20 @@ def _gaussian(params):
 
 
 class BlindBody(nn.Module):
-    """The next proprioception of ModelConfig.blind's groups from those groups' present (all of them
-    together) and the action alone: an MLP beside a linear map. The rest of an imagined body may
+    """The next proprioception of one blind path's groups (ModelConfig.blind_paths) from those groups'
+    present (together) and the action alone: an MLP beside a linear map. The rest of an imagined body may
     drift, and a body part's response to its commands does not depend on it; the linear map carries
     the response between and beyond the commands the data holds as it is near them."""
 
     cfg: ModelConfig
+    groups: tuple
 
     @nn.compact
     def __call__(self, proprio, action):
         """proprio (B, T, proprio_dim), action (B, T, action_dim), both standardised -> the next
-        proprio (B, T, proprio_dim), meaningful in the blind groups' columns alone."""
+        proprio (B, T, proprio_dim), meaningful in its groups' columns alone."""
         cfg = self.cfg
-        own = jnp.concatenate([jnp.where(cfg.blind_mask, proprio, 0.0), action], -1).astype(jnp.float32)
+        own = jnp.concatenate([jnp.where(cfg.group_mask(self.groups), proprio, 0.0), action], -1).astype(jnp.float32)
         h = nn.silu(nn.Dense(cfg.dim, dtype=jnp.float32)(nn.silu(nn.Dense(cfg.dim, dtype=jnp.float32)(own))))
         return (proprio + nn.Dense(cfg.proprio_dim, dtype=jnp.float32)(h)
                 + nn.Dense(cfg.proprio_dim, dtype=jnp.float32, name="linear")(own))
@@ -593,8 +612,8 @@ class Dynamics(nn.Module):
         body = jnp.concatenate([proprio, action], -1).astype(jnp.float32)
         h = nn.silu(nn.Dense(cfg.dim, dtype=jnp.float32)(nn.silu(nn.Dense(cfg.dim, dtype=jnp.float32)(body))))
         p_next = proprio + nn.Dense(cfg.proprio_dim, dtype=jnp.float32)(h)
-        if cfg.blind:
-            p_next = jnp.where(cfg.blind_mask, BlindBody(cfg, name="blind")(proprio, action), p_next)
+        for name, groups in cfg.blind_paths:
+            p_next = jnp.where(cfg.group_mask(groups), BlindBody(cfg, groups, name=name)(proprio, action), p_next)
         cond_in = jnp.concatenate([action, proprio, p_next], -1).astype(dt)
         cond = nn.Dense(cfg.dim, dtype=dt)(nn.silu(nn.Dense(cfg.dim, dtype=dt)(cond_in)))
         table = self.param("time_bias", nn.initializers.zeros, (cfg.heads, cfg.context))
