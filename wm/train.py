@@ -48,7 +48,7 @@ from wm.config import PRESETS, TrainConfig, check_dataset, make_config, to_dict
 from wm.imagine import Norm, to_uint8
 from wm.judge import dataset_policies, fit_judge, judges_fit, load_judge, warm_judge
 from wm.metrics import action_contrast, gaussian_kl
-from wm.model import INPUT_CLIP, REFINE_SIGMA, WorldModel, init_params
+from wm.model import INPUT_CLIP, REFINE_SIGMA, WorldModel, block_flow, init_params
 from wm.probes import make_probes, probe_rows, probe_sources, read_loss_from, readings
 from wm.quality import evaluate
 
@@ -173,6 +173,12 @@ def _refine_loss(model, params, decoded, z, target, k: int, passes: int, key):
     return jnp.mean((base + clean - goal) ** 2)
 
 
+def _flow_loss(flow, true_flow, confidence):
+    """The predicted flows' (B, T, 8, 8, 2) absolute distance from the block-matched ones (wm.model.block_flow),
+    in latent cells, each cell weighed by its match's confidence (B, T, 8, 8): a mean over cells and frames."""
+    return jnp.mean(confidence * jnp.abs(flow - true_flow).sum(-1))
+
+
 def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_weights=None, probes=None):
     """Scalar loss and its parts for one batch (frames (B, T, S, S, 3) uint8, ...; with an anchor frame
     "anchor" (B, S, S, 3) uint8 and "start" (B,) int too: model_batch); rng draws the context noise, the
@@ -219,6 +225,10 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_w
     # the stochastic code's posterior reads prediction t's target, frame t+1 (the last prediction has none)
     code_target = jnp.concatenate([z_target, jnp.zeros_like(z[:, :1])], axis=1) if cfg.model.stochastic else None
     hold = (lambda x: x) if cfg.rollout_grad else jax.lax.stop_gradient
+    if cfg.w_flow > 0:  # the true frames' motion, which every pass's flow should warp its previous frame by
+        flat = lambda x: x.reshape((-1,) + x.shape[2:])
+        true_flow, flow_conf = (x.reshape(target.shape[:2] + x.shape[1:])
+                                for x in block_flow(flat(pix[:, :-1]), flat(target), cfg.flow_radius))
     for k in range(1 + cfg.rollout_passes):
         noise = None
         if cfg.model.stochastic and rng is not None:  # counters 0-2 are the context noise's and the anchor's
@@ -257,6 +267,9 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_w
                                 anchor_keep=keep_anchor, target=code_target, noise=noise, method=WorldModel.predict)
             parts["contrast"] = action_contrast(zp, other["z"][:, :-1], z_target)
             total = total + cfg.w_contrast * parts["contrast"]
+        if cfg.w_flow > 0:
+            parts[f"flow{tag}"] = _flow_loss(pred["flow"][:, :-1], true_flow, flow_conf)
+            total = total + cfg.w_flow * parts[f"flow{tag}"]
         if keep is not None:
             parts[f"keep{tag}"] = _keep_loss(keep, target, prev)
             total = total + cfg.w_keep * parts[f"keep{tag}"]
