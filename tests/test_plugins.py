@@ -19,7 +19,7 @@ from experiments import evaluate as E
 from experiments import report as RP
 from experiments import stats as S
 from sim_data.dataset import generate as G
-from sim_data.policies.bc import stacked
+from sim_data.policies.bc import BCPolicy, PolicyNetConfig, stacked, stand_in_params
 from sim_data.policies.degrade import DegradedPolicy, degrade_params
 from sim_data.policies.registry import (
     ClippedPolicy,
@@ -27,6 +27,7 @@ from sim_data.policies.registry import (
     applied_policy,
     fingerprint,
     group_by_policy,
+    is_project_policy,
     load_plugin,
     resolve,
     stacked_sources,
@@ -709,6 +710,49 @@ def test_a_policy_evaluated_under_another_name_than_its_rollouts_counts_as_seen(
     assert E.seen_policies([bundle], [plugin, other, lone, revised]) == {plugin.name}
     (bundle / "bundle.json").write_text(json.dumps({"data_policies": ["mine"]}))  # one that records none
     assert E.seen_policies([bundle], [plugin, other, revised]) == {"mine"}
+
+
+ZOO_SERVER = '''
+import dataclasses
+from sim_data.policies.bc import BCPolicy, PolicyNetConfig, stand_in_params
+
+NET = PolicyNetConfig(width=8, hidden=16)
+
+
+def served():
+    return BCPolicy(NET), stand_in_params(NET, False)
+
+
+@dataclasses.dataclass(frozen=True)
+class Mine(BCPolicy):
+    pass
+
+
+def subclassed():
+    return Mine(NET), stand_in_params(NET, False)
+'''
+
+
+def test_a_plugin_serving_a_zoo_checkpoint_through_its_own_module_is_that_checkpoint(tmp_path, monkeypatch):
+    """A user's module that returns one of the project's policies with a checkpoint's parameters computes
+    what the checkpoint computes: the same fingerprint, so a world model that saw the checkpoint's
+    rollouts counts the plug-in as seen; a class of the module's own is the module's code and is not."""
+    (tmp_path / "zoo_server.py").write_text(ZOO_SERVER)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    sys.modules.pop("zoo_server", None)
+    net = PolicyNetConfig(width=8, hidden=16)
+    checkpoint = PolicySource(name="mug/conv/5", kind="learned", task="mug", policy=BCPolicy(net),
+                              params=stand_in_params(net, False), record={})
+    served, subclassed = resolve(["zoo_server:served", "zoo_server:subclassed"])
+    assert is_project_policy(served.policy.policy) and not is_project_policy(subclassed.policy.policy)
+    assert fingerprint(served) == fingerprint(checkpoint)
+    assert fingerprint(subclassed) != fingerprint(checkpoint)
+    bundle = tmp_path / "bundle"
+    bundle.mkdir()
+    (bundle / "bundle.json").write_text(json.dumps({"data_policies": [checkpoint.name],
+                                                    "data_fingerprints": [fingerprint(checkpoint)]}))
+    assert E.seen_policies([bundle], [served, subclassed]) == {served.name}
+    sys.modules.pop("zoo_server", None)
 
 
 def test_a_random_policy_draws_alike_in_the_simulator_and_in_imagination(smoke_world_model, tmp_path):

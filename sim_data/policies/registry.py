@@ -181,9 +181,18 @@ def load_plugin(spec: str, world_model: bool = True) -> PolicySource:
         raise ValueError(f"plug-in {spec!r}: the policy must be hashable (a frozen dataclass, for instance)") from None
     traced = check_protocol(spec, policy, params, task_state_optional=not world_model)
     files = sorted({f for f in (_source_file(module), _source_file(type(policy))) if f})
+    # a policy of the project's own classes (a zoo checkpoint served by a user's module) computes what
+    # its description and parameters say, as the zoo's does: the module that built it is no part of it
+    code = "" if is_project_policy(policy) else code_digest(files, traced)
     return PolicySource(name=name or target, kind="plugin", task=None,
                         policy=ClippedPolicy(policy, *action_bounds(), simulator_only=not world_model),
-                        params=params, record={"plugin": target}, code=code_digest(files, traced))
+                        params=params, record={"plugin": target}, code=code)
+
+
+def is_project_policy(policy) -> bool:
+    """Whether a policy object is of a class the project defines (sim_data's), whose code is the project's
+    at every commit, rather than one a plug-in's module defines."""
+    return type(policy).__module__.split(".")[0] == "sim_data"
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -358,8 +367,10 @@ def describe(x) -> str:
 
 
 def fingerprint(source: PolicySource) -> str:
-    """A digest of what the policy computes: its description, its parameters and, for a plug-in, its
-    code when it was loaded (code_digest); a rerun into the same output compares it. A plug-in is
+    """A digest of what the policy computes: its description, its parameters and, for a plug-in of a
+    class of its own, its code when it was loaded (code_digest); a rerun into the same output compares
+    it. A plug-in that serves one of the project's policies (is_project_policy) with a zoo checkpoint's
+    parameters is that checkpoint. A plug-in is
     described without its ClippedPolicy, whose simulator_only differs between the data generator and
     the evaluation: the same plug-in is one policy in both."""
     policy = source.policy.policy if isinstance(source.policy, ClippedPolicy) else source.policy
