@@ -142,8 +142,8 @@ def test_block_flow_finds_a_known_shift_cell_by_cell_and_trusts_no_flat_cell():
         make_config("smoke", ["w_flow=0.1", "flow_radius=0"])
 
 
-def test_the_flow_term_is_the_confidence_weighted_distance_from_the_matched_flow(model_and_inputs):
-    from wm.train import _flow_loss, loss_fn
+def test_the_flow_term_is_the_confidence_weighted_distance_from_the_matched_flow():
+    from wm.train import _flow_loss
 
     flow = np.zeros((1, 2, 8, 8, 2), np.float32)
     flow[0, 0, 0, 0] = (0.5, -0.25)
@@ -152,6 +152,12 @@ def test_the_flow_term_is_the_confidence_weighted_distance_from_the_matched_flow
     conf[0, 0, 0, 0] = 0.5
     # one cell of 128 differs, by 0.75 cells summed over (dy, dx), at confidence 0.5
     np.testing.assert_allclose(_flow_loss(flow, truth, conf), 0.5 * 0.75 / 128, rtol=1e-6)
+
+
+@pytest.mark.slow
+def test_the_flow_term_joins_the_loss_once_a_pass(model_and_inputs):
+    from wm.train import loss_fn
+
     params, frames, proprio, action = model_and_inputs
     norm, batch = _identity_norm_and_batch(frames, proprio, action)
     cfg = make_config("smoke", ["w_flow=0.3"])
