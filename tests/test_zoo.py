@@ -346,6 +346,12 @@ def test_mixed_dataset_records_policy_rollouts(smoke_dataset, smoke_zoo, smoke_w
         np.testing.assert_allclose(row["imagined"][k], np.abs(on_imagined - on_true).mean(-1)[h], rtol=1e-3, atol=1e-5)
         np.testing.assert_allclose(row["copy_first"][k], np.abs(on_held - on_true).mean(-1)[h], rtol=1e-3, atol=1e-5)
     np.testing.assert_allclose(row["copy_first_mean"], np.abs(on_held - on_true).mean(), rtol=1e-3)
+    # the frames it read, against the true ones from step 1 on (identical frames at 100 dB)
+    from wm.metrics import psnr
+
+    read = {"imagined": np.asarray(imag["frames"][0])[: n - 1], "copy_first": np.repeat(frames[:1], n - 1, 0)}
+    for key, seen in read.items():
+        np.testing.assert_allclose(row[f"{key}_psnr_db"], np.minimum(psnr(seen, frames[1:]), 100.0).mean(), rtol=1e-6)
     np.testing.assert_allclose(pil["logged_vs_true"], np.abs(on_true - np.asarray(norm.action(ep["action"][:n]))).mean(),
                                rtol=1e-3, atol=1e-6)
     assert pil["logged_vs_true"] < 1e-3  # a deterministic policy on its own episode's frames acts as it logged

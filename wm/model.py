@@ -271,8 +271,8 @@ def block_flow(prev, nxt, radius: int):
     8x8 cells of nxt, the whole-pixel shift (dy, dx), |dy|, |dx| <= radius, whose block of prev (read as
     warp reads it, clamped at the border) is nearest in summed absolute difference; ties go to the
     smaller shift. prev, nxt (N, S, S, C) float -> (flow (N, 8, 8, 2) in latent cells, as warp takes it;
-    confidence (N, 8, 8) in [0, 1]: how much worse the shifts' mean match is than the best, relative to
-    it, so 0 where the cell has no texture to match and near 1 where one shift stands out)."""
+    confidence (N, 8, 8) in [0, 1]: how far the best match's error lies below the mean over shifts, as a
+    share of that mean, so 0 where the cell has no texture to match and near 1 where one shift stands out)."""
     n, s, _, c = prev.shape
     cell = s // LATENT_SIDE
     shifts = sorted(((dy, dx) for dy in range(-radius, radius + 1) for dx in range(-radius, radius + 1)),

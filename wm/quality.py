@@ -326,7 +326,9 @@ def policy_action_divergence(cfg: TrainConfig, params, norm: Norm, cache: Traini
     action units (divided by the data's action std).
 
     Returns {"episodes", "horizons", "tasks": {task: {"episodes", "imagined": [mean divergence at each
-    horizon], "copy_first": [...], "imagined_mean", "copy_first_mean" (over every step)}},
+    horizon], "copy_first": [...], "imagined_mean", "copy_first_mean" (over every step),
+    "imagined_psnr_db", "copy_first_psnr_db" (the per-frame PSNR of the observations the policy read,
+    steps 1 on, against the true ones: _finite_mean's)}},
     "imagined_mean", "copy_first_mean" (over tasks), "logged_vs_true": mean divergence of the actions on
     the true observations from the logged ones (near 0 where the policy is deterministic)}, or
     {"episodes": 0, "note"} where no held-out episode's policy can be loaded."""
@@ -362,9 +364,14 @@ def policy_action_divergence(cfg: TrainConfig, params, norm: Norm, cache: Traini
         scaled = np.asarray(norm.action(acts))
         diff = np.abs(scaled[1:] - scaled[0]).mean(-1)  # (2, n): imagined, copy-first
         logged.append(float(np.abs(scaled[0] - np.asarray(norm.action(ep["action"][:n]))).mean()))
-        row = per_task.setdefault(cache.episodes[i]["task"], {"imagined": [], "copy_first": []})
+        row = per_task.setdefault(cache.episodes[i]["task"],
+                                  {"imagined": [], "copy_first": [], "imagined_db": [], "copy_first_db": []})
         row["imagined"].append(diff[0])
         row["copy_first"].append(diff[1])
+        if n > 1:  # what the policy read: the frames of steps 1..n-1 against the true ones
+            db = psnr(np.stack([im_img, held_img])[:, 1:], true_img[None, 1:])
+            row["imagined_db"].append(db[0])
+            row["copy_first_db"].append(db[1])
     tasks = {}
     for task, row in sorted(per_task.items()):
         tasks[task] = {"episodes": len(row["imagined"])}
@@ -373,6 +380,8 @@ def policy_action_divergence(cfg: TrainConfig, params, norm: Norm, cache: Traini
             tasks[task][key] = [float(np.mean([d[h] for d in row[key] if len(d) > h]))
                                 if any(len(d) > h for d in row[key]) else None for h in horizons]
             tasks[task][f"{key}_mean"] = float(np.mean(np.concatenate(row[key])))
+            seen = row[f"{key}_db"]
+            tasks[task][f"{key}_psnr_db"] = _finite_mean(np.concatenate(seen)) if seen else None
     return {"episodes": len(ids), "horizons": horizons, "tasks": tasks,
             "imagined_mean": float(np.mean([t["imagined_mean"] for t in tasks.values()])),
             "copy_first_mean": float(np.mean([t["copy_first_mean"] for t in tasks.values()])),

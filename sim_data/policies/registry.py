@@ -370,9 +370,9 @@ def fingerprint(source: PolicySource) -> str:
     """A digest of what the policy computes: its description, its parameters and, for a plug-in of a
     class of its own, its code when it was loaded (code_digest); a rerun into the same output compares
     it. A plug-in that serves one of the project's policies (is_project_policy) with a zoo checkpoint's
-    parameters is that checkpoint. A plug-in is
-    described without its ClippedPolicy, whose simulator_only differs between the data generator and
-    the evaluation: the same plug-in is one policy in both."""
+    parameters is that checkpoint. A plug-in is described without its ClippedPolicy, whose
+    simulator_only differs between the data generator and the evaluation: the same plug-in is one
+    policy in both."""
     policy = source.policy.policy if isinstance(source.policy, ClippedPolicy) else source.policy
     h = hashlib.sha256(describe(policy).encode())
     hash_arrays(h, source.params)
