@@ -42,6 +42,7 @@ def _inputs(n=6, seed=0):
             rs.integers(0, 100, n).astype(np.int32), np.array([0, 0, 1, 1, 2, 2], np.int32)[:n])
 
 
+@pytest.mark.slow  # an option no preset uses (make test-slow runs it)
 def test_the_read_loss_is_each_frames_probes_squared_action_difference():
     sources = [_source("a/conv/1", "a", seed=1), _source("b/conv/2", "b", seed=2), _source("a/vit/3", "a", VIT, 3)]
     probes = PR.make_probes(sources, ["a", "b", "c"])

@@ -927,6 +927,7 @@ def test_the_judge_reads_the_scene_state_imagination_and_observation_predict(mod
         I.feature_columns(CFG, ("scene",))
 
 
+@pytest.mark.slow  # an option no preset uses (make test-slow runs it)
 def test_blind_groups_of_the_next_body_state_read_only_their_present_and_the_action(model_and_inputs):
     # the blind columns (joint velocities, base velocity) come out the same under other frames and
     # another state of the rest of the body, and move with their own present and the action; the
@@ -1165,6 +1166,7 @@ def test_episode_judge_learns_an_integral_and_round_trips(tmp_path):
     assert J.load_judge(tmp_path / "nothing") is None
 
 
+@pytest.mark.slow  # an option no preset uses (make test-slow runs it)
 def test_a_judge_pooling_its_features_own_mean_reads_them_beside_the_per_step_network_and_round_trips(tmp_path):
     rng = np.random.default_rng(3)
     train, val = _synthetic_episodes(rng, 96), _synthetic_episodes(rng, 32)
