@@ -715,6 +715,7 @@ def test_a_policy_evaluated_under_another_name_than_its_rollouts_counts_as_seen(
 ZOO_SERVER = '''
 import dataclasses
 from sim_data.policies.bc import BCPolicy, PolicyNetConfig, stand_in_params
+from sim_data.policies.degrade import DegradedPolicy, degrade_params
 
 NET = PolicyNetConfig(width=8, hidden=16)
 
@@ -730,6 +731,10 @@ class Mine(BCPolicy):
 
 def subclassed():
     return Mine(NET), stand_in_params(NET, False)
+
+
+def wrapped():
+    return DegradedPolicy(Mine(NET)), degrade_params(stand_in_params(NET, False))
 '''
 
 
@@ -743,8 +748,10 @@ def test_a_plugin_serving_a_zoo_checkpoint_through_its_own_module_is_that_checkp
     net = PolicyNetConfig(width=8, hidden=16)
     checkpoint = PolicySource(name="mug/conv/5", kind="learned", task="mug", policy=BCPolicy(net),
                               params=stand_in_params(net, False), record={})
-    served, subclassed = resolve(["zoo_server:served", "zoo_server:subclassed"])
+    served, subclassed, wrapped = resolve(["zoo_server:served", "zoo_server:subclassed", "zoo_server:wrapped"])
     assert is_project_policy(served.policy.policy) and not is_project_policy(subclassed.policy.policy)
+    assert not is_project_policy(wrapped.policy.policy)  # the project's wrapper around a class of the module's
+    assert wrapped.code and is_project_policy(DegradedPolicy(BCPolicy(net)))
     assert fingerprint(served) == fingerprint(checkpoint)
     assert fingerprint(subclassed) != fingerprint(checkpoint)
     bundle = tmp_path / "bundle"

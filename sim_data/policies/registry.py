@@ -190,9 +190,20 @@ def load_plugin(spec: str, world_model: bool = True) -> PolicySource:
 
 
 def is_project_policy(policy) -> bool:
-    """Whether a policy object is of a class the project defines (sim_data's), whose code is the project's
-    at every commit, rather than one a plug-in's module defines."""
-    return type(policy).__module__.split(".")[0] == "sim_data"
+    """Whether a policy object and every policy it wraps (its dataclass fields, in turn) are of classes the
+    project defines (sim_data's), whose code is the project's at every commit, rather than ones a
+    plug-in's module defines."""
+    def policies(x):
+        if callable(getattr(x, "act", None)):
+            yield x
+        if dataclasses.is_dataclass(x) and not isinstance(x, type):
+            for f in dataclasses.fields(x):
+                yield from policies(getattr(x, f.name))
+        elif isinstance(x, (tuple, list)):
+            for y in x:
+                yield from policies(y)
+
+    return all(type(p).__module__.split(".")[0] == "sim_data" for p in policies(policy))
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
