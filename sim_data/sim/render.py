@@ -629,3 +629,77 @@ def cached_renderers(size, cameras) -> tuple:
     """One Renderer of size x size pixels per camera named, in order; kept for the next call with the same
     arguments (cameras a tuple), so that their compiled programs are reused."""
     return tuple(Renderer(S.load_model(), RenderConfig(height=size, width=size, camera=c)) for c in cameras)
+
+
+# ---- reprojection: a frame redrawn from another camera pose through its depth ---------------------
+
+def rides_with_camera(model: mujoco.MjModel, camera: str = HEAD_CAMERA) -> np.ndarray:
+    """(ngeom,) bool: the geoms of the body tree that carries `camera` (for the head camera, the robot's
+    own body), which move with the camera rather than with the world."""
+    cam = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
+    if cam < 0:
+        raise ValueError(f"unknown camera {camera!r}")
+    root = model.body_rootid[model.cam_bodyid[cam]]
+    if root == 0:  # a camera fixed in the world: nothing rides with it
+        return np.zeros(model.ngeom, bool)
+    return model.body_rootid[model.geom_bodyid] == root
+
+
+def _fill_holes(img: np.ndarray, filled: np.ndarray, passes: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each hole takes the mean of its filled 3x3 neighbours, `passes` rings inwards; (B, H, W, 3) float,
+    (B, H, W) bool -> the same, updated."""
+    h, w = filled.shape[1:]
+    for _ in range(passes):
+        if filled.all():
+            break
+        pi = np.pad(img * filled[..., None], ((0, 0), (1, 1), (1, 1), (0, 0)))
+        pm = np.pad(filled.astype(np.float64), ((0, 0), (1, 1), (1, 1)))
+        acc = sum(pi[:, dy:dy + h, dx:dx + w] for dy in range(3) for dx in range(3))
+        n = sum(pm[:, dy:dy + h, dx:dx + w] for dy in range(3) for dx in range(3))
+        grow = ~filled & (n > 0)
+        img = np.where(grow[..., None], acc / np.maximum(n, 1)[..., None], img)
+        filled = filled | grow
+    return img, filled
+
+
+def reproject(rgb, depth, rides, cam_pos0, cam_mat0, cam_pos, cam_mat, fovy_deg: float, fill: int = 8):
+    """Frames redrawn at new camera poses from frames drawn at others, through their depth: each pixel's
+    point is carried into the new camera (the nearest wins a pixel) and the pixels that nothing lands on
+    take their neighbours' colour (`fill` rings), the rest the frame's mean. Pixels that ride with the
+    camera stay where they were. What an imagination that moves the camera over a still scene can
+    show at best from one frame: parallax right, new views of what the frame hid only guessed.
+
+    rgb (B, H, W, 3) uint8; depth (B, H, W) float metres along the camera axis (the renderer's);
+    rides (B, H, W) bool; cam_pos0, cam_pos (B, 3) and cam_mat0, cam_mat (B, 3, 3) world-from-camera
+    (MuJoCo's cam_xpos, cam_xmat); fovy_deg: the camera's vertical field of view.
+    Returns (B, H, W, 3) uint8 frames and (B, H, W) bool: the pixels a point landed on."""
+    rgb, depth, rides = np.asarray(rgb), np.asarray(depth, np.float64), np.asarray(rides, bool)
+    b, h, w = depth.shape
+    tan = np.tan(np.deg2rad(fovy_deg) / 2)
+    ys = (1 - 2 * (np.arange(h) + 0.5) / h) * tan
+    xs = (2 * (np.arange(w) + 0.5) / w - 1) * tan * (w / h)
+    local = np.stack([xs[None, None] * depth, ys[None, :, None] * depth, -depth], -1)
+    world = np.asarray(cam_pos0, np.float64)[:, None, None] + np.einsum("bij,bhwj->bhwi", np.asarray(cam_mat0), local)
+    new = np.einsum("bji,bhwj->bhwi", np.asarray(cam_mat, np.float64), world - np.asarray(cam_pos)[:, None, None])
+    z = -new[..., 2]
+    zs = np.maximum(z, 1e-6)
+    col = np.round((new[..., 0] / zs / (tan * w / h) + 1) * w / 2 - 0.5).astype(np.int64)
+    row = np.round((1 - new[..., 1] / zs / tan) * h / 2 - 0.5).astype(np.int64)
+    rr, cc = np.broadcast_to(np.arange(h)[None, :, None], (b, h, w)), np.broadcast_to(np.arange(w)[None, None], (b, h, w))
+    row, col, z = np.where(rides, rr, row), np.where(rides, cc, col), np.where(rides, 0.0, z)
+    ok = ((z > 1e-3) | rides) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    bb = np.broadcast_to(np.arange(b)[:, None, None], (b, h, w))
+    target = (bb * h + row) * w + col
+    t, zz, src = target[ok], z[ok], rgb[ok].astype(np.float64)
+    order = np.lexsort((zz, t))  # by target pixel, nearest first
+    first = np.unique(t[order], return_index=True)[1]
+    won = order[first]
+    img = np.zeros((b * h * w, 3))
+    filled = np.zeros(b * h * w, bool)
+    img[t[won]], filled[t[won]] = src[won], True
+    img, filled = img.reshape(b, h, w, 3), filled.reshape(b, h, w)
+    covered = filled.copy()
+    img, filled = _fill_holes(img, filled, fill)
+    mean = rgb.reshape(b, -1, 3).mean(axis=1)[:, None, None]
+    img = np.where(filled[..., None], img, mean)
+    return np.clip(img + 0.5, 0, 255).astype(np.uint8), covered

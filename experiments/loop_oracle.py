@@ -1,0 +1,214 @@
+"""What a policy does when the frames it reads stand in for an imagination's: its closed loop in the
+simulator, from the evaluator's held-out initial states, with the head camera's frame replaced.
+
+A world model ranks a policy by letting it act on imagined frames; a policy that acts on its camera
+then behaves as the frames let it. This study separates what the frames must get right from what a
+world model gets wrong, with the simulator's own state and camera:
+
+- `true`: the simulator's frames, the reference loop;
+- `still`: the first frame held, what an imagination that draws no motion shows;
+- `reproject`: the first frame carried to the camera's true pose through its depth
+  (`sim_data.sim.render.reproject`): the camera's motion and its parallax exact, what the first frame
+  hid filled from its neighbours, the world frozen (an arm or an object moved is not redrawn);
+- `flow_chain`: each frame shown warped from the last one shown by the true frames' motion, block
+  matched on 8x8 cells (`wm.model.block_flow`, `wm.model.warp`): the world model's own warp, given
+  the true motion of every step.
+
+Written to OUT/loop_oracle.json, per task, policy and mode: the success rate with its Wilson interval,
+the base's displacement back along its starting heading at the end (mean, least, most), the forward
+command summed over the episode (as applied), the RMS gap of the actions from the `true` loop's at
+each step (mean over the episode), and the PSNR of the frames read against the simulator's frame of
+the same state (steps 1-8 and the episode's second half). The same command resumes: a (task, policy,
+mode) already in the file is kept. The `cpu` engine (MuJoCo's C engine), on any machine.
+
+    python -m experiments.loop_oracle --policies runs/policies/demo --tasks step_back --out runs/oracle/demo
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm import tqdm
+
+from sim_data.policies.registry import heldout_seeds, plugin_view, resolve, used_seeds
+from sim_data.sim.engines import CpuEngine
+from sim_data.sim.env import HomeEnv
+from sim_data.sim.render import (
+    HEAD_CAMERA,
+    cached_renderers,
+    episode_rgb,
+    poses_from_arrays,
+    reproject,
+    rides_with_camera,
+)
+from sim_data.sim.robot import FORWARD_SPEED
+from sim_data.sim.tasks import TASK_NAMES, backward_distance
+from sim_data.util import run_cli, wilson_interval, write_json_atomic
+from wm.model import block_flow, warp
+
+MODES = ("true", "still", "reproject", "flow_chain")
+FLOW_RADIUS = 4
+RESULTS = "loop_oracle.json"
+
+
+def psnr_db(a, b) -> np.ndarray:
+    """(B,) PSNR in dB of uint8 frames a against b, (B, H, W, 3) each (100 dB where they are equal)."""
+    mse = ((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2).mean(axis=(1, 2, 3))
+    return np.where(mse > 0, 10 * np.log10(255.0 ** 2 / np.maximum(mse, 1e-12)), 100.0)
+
+
+class Camera:
+    """The head camera of a batch of episodes: each state's frame, depth, the pixels of the robot's own
+    body and the camera's pose."""
+
+    def __init__(self, env: HomeEnv, colors):
+        (self.renderer,) = cached_renderers(64, (HEAD_CAMERA,))
+        geo = self.renderer.geometry
+        self.cam = geo.cam_names.index(HEAD_CAMERA)
+        self.fovy = float(geo.fovy[self.cam])
+        self.rides = rides_with_camera(env.model, HEAD_CAMERA)
+        self.rgb = episode_rgb(geo, colors)
+
+    def draw(self, state) -> dict:
+        poses = poses_from_arrays(**CpuEngine.poses(state.physics))
+        out = {k: np.asarray(v) for k, v in self.renderer.render(poses, self.rgb).items()}
+        out["rides"] = self.rides[np.clip(out["geom_id"], 0, None)] & (out["geom_id"] >= 0)
+        out["pos"], out["mat"] = np.asarray(poses.cam_xpos[:, self.cam]), np.asarray(poses.cam_xmat[:, self.cam])
+        return out
+
+
+def shown_frame(mode: str, first: dict, now: dict, prev_true, prev_shown, fovy: float) -> np.ndarray:
+    """(B, 64, 64, 3) uint8: the frame the policy reads in `mode`, given the first state's drawing, the
+    current one's, the last step's true frame and the last frame shown."""
+    if mode == "true":
+        return now["rgb"]
+    if mode == "still":
+        return first["rgb"]
+    if mode == "reproject":
+        return reproject(first["rgb"], first["depth"], first["rides"], first["pos"], first["mat"], now["pos"],
+                         now["mat"], fovy)[0]
+    if mode == "flow_chain":
+        def unit(x):
+            return jnp.asarray(x, jnp.float32) / 255.0
+        flow, _ = block_flow(unit(prev_true), unit(now["rgb"]), FLOW_RADIUS)
+        return np.asarray(jnp.clip(warp(unit(prev_shown), flow) * 255.0 + 0.5, 0, 255)).astype(np.uint8)
+    raise ValueError(f"unknown mode {mode!r}; choose among {', '.join(MODES)}")
+
+
+def run_loop(task: str, source, mode: str, reset_keys: np.ndarray, rng: jax.Array) -> dict:
+    """One closed loop of `source` (a registry PolicySource) on `task` from reset_keys (B, 2), reading the
+    frames of `mode`. Returns per-episode arrays: success (B,), back (B,) m, forward (B,) the applied
+    forward command summed, actions (B, T, 20), psnr (B, T) of the frames read."""
+    env = HomeEnv(task, len(reset_keys), engine="cpu")
+    state = env.reset(jnp.asarray(reset_keys))
+    camera = Camera(env, state.task.colors)
+    first = camera.draw(state)
+    params = source.episodes_params(np.arange(len(reset_keys)))
+    k_pol, k_act = jax.random.split(rng)
+    obs = plugin_view({**state.obs, "image": jnp.asarray(first["rgb"])})
+    carry = jax.jit(source.policy.init_carry)(params, obs, None, k_pol)
+    act = jax.jit(source.policy.act)
+    prev_true = prev_shown = first["rgb"]
+    actions, psnr = [], []
+    for t in range(env.episode_steps):
+        action, carry = act(params, obs, carry, jax.random.fold_in(k_act, t))
+        action = env.core.applied(action)
+        actions.append(np.asarray(action))
+        state = env.step(state, action)
+        now = camera.draw(state)
+        shown = shown_frame(mode, first, now, prev_true, prev_shown, camera.fovy)
+        psnr.append(psnr_db(shown, now["rgb"]))
+        prev_true, prev_shown = now["rgb"], shown
+        obs = plugin_view({**state.obs, "image": jnp.asarray(shown)})
+    actions = np.stack(actions, axis=1)
+    return {"success": np.asarray(state.success, bool), "back": np.asarray(backward_distance(state.task, state.qpos, env.idx)),
+            "forward": actions[..., FORWARD_SPEED].sum(axis=1), "actions": actions, "psnr": np.stack(psnr, axis=1)}
+
+
+def summary(res: dict, reference: dict | None) -> dict:
+    """The figures of one loop (run_loop's dict), its action gap against the `true` loop's (reference)."""
+    n, k = len(res["success"]), int(res["success"].sum())
+    half = res["psnr"].shape[1] // 2
+    out = {"episodes": n, "success": k / n, "success_ci": list(wilson_interval(k, n)),
+           "back_m": {"mean": float(res["back"].mean()), "min": float(res["back"].min()), "max": float(res["back"].max())},
+           "forward_sum": float(res["forward"].mean()),
+           "psnr_db_steps_1_8": float(res["psnr"][:, :8].mean()), "psnr_db_second_half": float(res["psnr"][:, half:].mean())}
+    if reference is not None:
+        gap = np.sqrt(((res["actions"] - reference["actions"]) ** 2).mean(axis=-1))
+        out["action_gap"] = float(gap.mean())
+    return out
+
+
+def study(policies: str, tasks: list[str], out: Path, modes: list[str], episodes: int, seed: int,
+          progress: bool = True) -> dict:
+    """Runs every (task, policy, mode) not yet in OUT/loop_oracle.json and writes it after each."""
+    unknown = [m for m in modes if m not in MODES]
+    if unknown:
+        raise ValueError(f"unknown modes {unknown}; choose among {', '.join(MODES)}")
+    bad = [t for t in tasks if t not in TASK_NAMES]
+    if bad:
+        raise ValueError(f"unknown tasks {bad}; choose among {', '.join(TASK_NAMES)}")
+    if episodes < 1:
+        raise ValueError(f"--episodes must be >= 1, got {episodes}")
+    sources = resolve([s for s in policies.split(",") if s])
+    path = out / RESULTS
+    results = json.loads(path.read_text()) if path.exists() else {}
+    if results and results.get("settings", {}) != {"episodes": episodes, "seed": seed}:
+        raise ValueError(f"{path} was written with {results.get('settings')}; use another --out or the same "
+                         f"--episodes and --seed")
+    results["settings"] = {"episodes": episodes, "seed": seed}
+    used = used_seeds(*({s.record.get("data") for s in sources} - {None}))
+    jobs = [(t, s) for t in tasks for s in sources if s.runs_on(t)]
+    if not jobs:
+        raise ValueError(f"none of the policies runs on {', '.join(tasks)}")
+    # the action gap needs the true loop of each policy beside the others
+    order = ["true"] + [m for m in modes if m != "true"]
+    bar = tqdm(total=len(jobs) * len(order), desc="loops", disable=not progress)
+    for task, source in jobs:
+        keys = np.stack([np.asarray(jax.random.PRNGKey(s)) for s in heldout_seeds(task, episodes, seed, used)])
+        rng = jax.random.fold_in(jax.random.PRNGKey(seed), source.salt)
+        done = results.setdefault("tasks", {}).setdefault(task, {}).setdefault(source.name, {})
+        reference = None
+        for mode in order:
+            if mode in done and (mode != "true" or all(m in done for m in order)):
+                bar.update(1)
+                continue
+            res = run_loop(task, source, mode, keys, rng)
+            if mode == "true":
+                reference = res
+            if mode in modes:
+                done[mode] = summary(res, None if mode == "true" else reference)
+                write_json_atomic(path, results)
+            bar.update(1)
+    bar.close()
+    return results
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--policies", required=True, help="policy specs as the evaluator takes them (a zoo registry, "
+                    "registry#lineage, a plug-in module:function, comma-separated)")
+    ap.add_argument("--tasks", required=True, help="comma-separated task names")
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--modes", default=",".join(MODES), help=f"comma-separated among {', '.join(MODES)}")
+    ap.add_argument("--episodes", type=int, default=16, help="held-out initial states a policy (the evaluator's)")
+    ap.add_argument("--seed", type=int, default=0, help="the evaluator's seed: its held-out states and draws")
+    a = ap.parse_args(argv)
+    res = study(a.policies, [t for t in a.tasks.split(",") if t], a.out, [m for m in a.modes.split(",") if m],
+                a.episodes, a.seed)
+    for task, pols in res["tasks"].items():
+        for name, by_mode in pols.items():
+            line = "  ".join(f"{m} {v['success']:.2f} ({v['back_m']['mean']:+.2f} m)" for m, v in by_mode.items())
+            print(f"{task:10s} {name:42s} {line}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run_cli(main))
