@@ -12,7 +12,10 @@ world model gets wrong, with the simulator's own state and camera:
   hid filled from its neighbours, the world frozen (an arm or an object moved is not redrawn);
 - `flow_chain`: each frame shown warped from the last one shown by the true frames' motion, block
   matched on 8x8 cells (`wm.model.block_flow`, `wm.model.warp`): the world model's own warp, given
-  the true motion of every step.
+  the true motion of every step;
+- `flow_anchor`: the first frame warped by the motion from it to the true frame now, block matched on
+  the same cells: the same warp anchored on the first frame, so that motion accumulates over the
+  episode rather than being resampled away step by step.
 
 Written to OUT/loop_oracle.json, per task, policy and mode: the success rate with its Wilson interval,
 the base's displacement back along its starting heading at the end (mean, least, most), the forward
@@ -27,6 +30,7 @@ mode) already in the file is kept. The `cpu` engine (MuJoCo's C engine), on any 
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
 from pathlib import Path
@@ -52,8 +56,9 @@ from sim_data.sim.tasks import TASK_NAMES, backward_distance
 from sim_data.util import run_cli, wilson_interval, write_json_atomic
 from wm.model import block_flow, warp
 
-MODES = ("true", "still", "reproject", "flow_chain")
+MODES = ("true", "still", "reproject", "flow_chain", "flow_anchor")
 FLOW_RADIUS = 4
+ANCHOR_RADIUS = 8  # the first frame's content moves up to about 8 px by the end of a drive
 RESULTS = "loop_oracle.json"
 
 
@@ -83,6 +88,17 @@ class Camera:
         return out
 
 
+def _unit(x):
+    return jnp.asarray(x, jnp.float32) / 255.0
+
+
+@functools.partial(jax.jit, static_argnums=3)
+def _warped(src, frm, to, radius: int):
+    """src warped by the block-matched motion from frm to `to` (all (B, S, S, 3) in [0, 1]), as uint8."""
+    flow, _ = block_flow(frm, to, radius)
+    return jnp.clip(warp(src, flow) * 255.0 + 0.5, 0, 255).astype(jnp.uint8)
+
+
 def shown_frame(mode: str, first: dict, now: dict, prev_true, prev_shown, fovy: float) -> np.ndarray:
     """(B, 64, 64, 3) uint8: the frame the policy reads in `mode`, given the first state's drawing, the
     current one's, the last step's true frame and the last frame shown."""
@@ -93,11 +109,10 @@ def shown_frame(mode: str, first: dict, now: dict, prev_true, prev_shown, fovy: 
     if mode == "reproject":
         return reproject(first["rgb"], first["depth"], first["rides"], first["pos"], first["mat"], now["pos"],
                          now["mat"], fovy)[0]
-    if mode == "flow_chain":
-        def unit(x):
-            return jnp.asarray(x, jnp.float32) / 255.0
-        flow, _ = block_flow(unit(prev_true), unit(now["rgb"]), FLOW_RADIUS)
-        return np.asarray(jnp.clip(warp(unit(prev_shown), flow) * 255.0 + 0.5, 0, 255)).astype(np.uint8)
+    if mode in ("flow_chain", "flow_anchor"):
+        src, frm, radius = ((prev_shown, prev_true, FLOW_RADIUS) if mode == "flow_chain"
+                            else (first["rgb"], first["rgb"], ANCHOR_RADIUS))
+        return np.asarray(_warped(_unit(src), _unit(frm), _unit(now["rgb"]), radius))
     raise ValueError(f"unknown mode {mode!r}; choose among {', '.join(MODES)}")
 
 
