@@ -24,6 +24,11 @@ each step (mean over the episode), and the PSNR of the frames read against the s
 the same state (steps 1-8 and the episode's second half). The same command resumes: a (task, policy,
 mode) already in the file is kept. The `cpu` engine (MuJoCo's C engine), on any machine.
 
+The held-out states are the evaluator's (`heldout_seeds`, past the zoo's data seeds; the evaluator also
+skips its world models' training seeds, which collide with a held-out seed rarely), and the policy
+draws its random numbers as in the evaluator's first slice of states: where a task's states fit one
+slice (`state_batch`), the `true` loop's outcomes are the evaluation's own.
+
     python -m experiments.loop_oracle --policies runs/policies/demo --tasks step_back --out runs/oracle/demo
 """
 
@@ -40,7 +45,8 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from sim_data.policies.registry import heldout_seeds, plugin_view, resolve, used_seeds
+from experiments.evaluate import chunk_policy
+from sim_data.policies.registry import heldout_seeds, resolve, used_seeds
 from sim_data.sim.engines import CpuEngine
 from sim_data.sim.env import HomeEnv
 from sim_data.sim.render import (
@@ -72,8 +78,8 @@ class Camera:
     """The head camera of a batch of episodes: each state's frame, depth, the pixels of the robot's own
     body and the camera's pose."""
 
-    def __init__(self, env: HomeEnv, colors):
-        (self.renderer,) = cached_renderers(64, (HEAD_CAMERA,))
+    def __init__(self, env: HomeEnv, colors, size: int):
+        (self.renderer,) = cached_renderers(size, (HEAD_CAMERA,))
         geo = self.renderer.geometry
         self.cam = geo.cam_names.index(HEAD_CAMERA)
         self.fovy = float(geo.fovy[self.cam])
@@ -100,7 +106,7 @@ def _warped(src, frm, to, radius: int):
 
 
 def shown_frame(mode: str, first: dict, now: dict, prev_true, prev_shown, fovy: float) -> np.ndarray:
-    """(B, 64, 64, 3) uint8: the frame the policy reads in `mode`, given the first state's drawing, the
+    """(B, S, S, 3) uint8: the frame the policy reads in `mode`, given the first state's drawing, the
     current one's, the last step's true frame and the last frame shown."""
     if mode == "true":
         return now["rgb"]
@@ -116,19 +122,21 @@ def shown_frame(mode: str, first: dict, now: dict, prev_true, prev_shown, fovy: 
     raise ValueError(f"unknown mode {mode!r}; choose among {', '.join(MODES)}")
 
 
-def run_loop(task: str, source, mode: str, reset_keys: np.ndarray, rng: jax.Array) -> dict:
+def run_loop(task: str, source, mode: str, reset_keys: np.ndarray, rng: jax.Array, size: int = 64) -> dict:
     """One closed loop of `source` (a registry PolicySource) on `task` from reset_keys (B, 2), reading the
-    frames of `mode`. Returns per-episode arrays: success (B,), back (B,) m, forward (B,) the applied
-    forward command summed, actions (B, T, 20), psnr (B, T) of the frames read."""
+    frames of `mode` (size x size pixels), the policy run and seeded as the evaluator runs it in the
+    simulator (its chunk of one, salted by its name; rng split as `record_episodes` splits it). Returns
+    per-episode arrays: success (B,), back (B,) m, forward (B,) the applied forward command summed,
+    actions (B, T, 20), psnr (B, T) of the frames read."""
     env = HomeEnv(task, len(reset_keys), engine="cpu")
     state = env.reset(jnp.asarray(reset_keys))
-    camera = Camera(env, state.task.colors)
+    camera = Camera(env, state.task.colors, size)
     first = camera.draw(state)
-    params = source.episodes_params(np.arange(len(reset_keys)))
-    k_pol, k_act = jax.random.split(rng)
-    obs = plugin_view({**state.obs, "image": jnp.asarray(first["rgb"])})
-    carry = jax.jit(source.policy.init_carry)(params, obs, None, k_pol)
-    act = jax.jit(source.policy.act)
+    policy, params = chunk_policy([source], len(reset_keys))
+    _, k_pol, k_act = jax.random.split(rng, 3)
+    obs = {**state.obs, "image": jnp.asarray(first["rgb"])}
+    carry = jax.jit(policy.init_carry)(params, obs, state.task, k_pol)
+    act = jax.jit(policy.act)
     prev_true = prev_shown = first["rgb"]
     actions, psnr = [], []
     for t in range(env.episode_steps):
@@ -140,7 +148,7 @@ def run_loop(task: str, source, mode: str, reset_keys: np.ndarray, rng: jax.Arra
         shown = shown_frame(mode, first, now, prev_true, prev_shown, camera.fovy)
         psnr.append(psnr_db(shown, now["rgb"]))
         prev_true, prev_shown = now["rgb"], shown
-        obs = plugin_view({**state.obs, "image": jnp.asarray(shown)})
+        obs = {**state.obs, "image": jnp.asarray(shown)}
     actions = np.stack(actions, axis=1)
     return {"success": np.asarray(state.success, bool), "back": np.asarray(backward_distance(state.task, state.qpos, env.idx)),
             "forward": actions[..., FORWARD_SPEED].sum(axis=1), "actions": actions, "psnr": np.stack(psnr, axis=1)}
@@ -160,46 +168,45 @@ def summary(res: dict, reference: dict | None) -> dict:
     return out
 
 
-def study(policies: str, tasks: list[str], out: Path, modes: list[str], episodes: int, seed: int,
+def study(policies: str, tasks: list[str], out: Path, modes: list[str], episodes: int, seed: int, size: int = 64,
           progress: bool = True) -> dict:
-    """Runs every (task, policy, mode) not yet in OUT/loop_oracle.json and writes it after each."""
+    """Runs every (task, policy, mode) not yet in OUT/loop_oracle.json and writes it after each; a pair
+    with modes left runs its `true` loop first, the reference of their action gap."""
     unknown = [m for m in modes if m not in MODES]
     if unknown:
         raise ValueError(f"unknown modes {unknown}; choose among {', '.join(MODES)}")
     bad = [t for t in tasks if t not in TASK_NAMES]
     if bad:
         raise ValueError(f"unknown tasks {bad}; choose among {', '.join(TASK_NAMES)}")
-    if episodes < 1:
-        raise ValueError(f"--episodes must be >= 1, got {episodes}")
+    if episodes < 1 or size < 8 or size % 8:
+        raise ValueError(f"--episodes must be >= 1 and --size a multiple of 8; got {episodes} and {size}")
     sources = resolve([s for s in policies.split(",") if s])
     path = out / RESULTS
     results = json.loads(path.read_text()) if path.exists() else {}
-    if results and results.get("settings", {}) != {"episodes": episodes, "seed": seed}:
+    settings = {"episodes": episodes, "seed": seed, "size": size}
+    if results and results.get("settings", {}) != settings:
         raise ValueError(f"{path} was written with {results.get('settings')}; use another --out or the same "
-                         f"--episodes and --seed")
-    results["settings"] = {"episodes": episodes, "seed": seed}
+                         f"--episodes, --seed and --size")
+    results["settings"] = settings
     used = used_seeds(*({s.record.get("data") for s in sources} - {None}))
     jobs = [(t, s) for t in tasks for s in sources if s.runs_on(t)]
     if not jobs:
         raise ValueError(f"none of the policies runs on {', '.join(tasks)}")
-    # the action gap needs the true loop of each policy beside the others
-    order = ["true"] + [m for m in modes if m != "true"]
-    bar = tqdm(total=len(jobs) * len(order), desc="loops", disable=not progress)
+    # the evaluator's key for its first slice of states (experiments.evaluate.slice_key)
+    rng = jax.random.fold_in(jax.random.PRNGKey(seed), 0)
+    bar = tqdm(total=len(jobs) * len(modes), desc="loops", disable=not progress)
     for task, source in jobs:
         keys = np.stack([np.asarray(jax.random.PRNGKey(s)) for s in heldout_seeds(task, episodes, seed, used)])
-        rng = jax.random.fold_in(jax.random.PRNGKey(seed), source.salt)
         done = results.setdefault("tasks", {}).setdefault(task, {}).setdefault(source.name, {})
-        reference = None
-        for mode in order:
-            if mode in done and (mode != "true" or all(m in done for m in order)):
-                bar.update(1)
-                continue
-            res = run_loop(task, source, mode, keys, rng)
-            if mode == "true":
-                reference = res
-            if mode in modes:
-                done[mode] = summary(res, None if mode == "true" else reference)
-                write_json_atomic(path, results)
+        todo = [m for m in modes if m not in done]
+        bar.update(len(modes) - len(todo))
+        if not todo:
+            continue
+        reference = run_loop(task, source, "true", keys, rng, size)
+        for mode in todo:
+            res = reference if mode == "true" else run_loop(task, source, mode, keys, rng, size)
+            done[mode] = summary(res, None if mode == "true" else reference)
+            write_json_atomic(path, results)
             bar.update(1)
     bar.close()
     return results
@@ -215,9 +222,10 @@ def main(argv=None) -> int:
     ap.add_argument("--modes", default=",".join(MODES), help=f"comma-separated among {', '.join(MODES)}")
     ap.add_argument("--episodes", type=int, default=16, help="held-out initial states a policy (the evaluator's)")
     ap.add_argument("--seed", type=int, default=0, help="the evaluator's seed: its held-out states and draws")
+    ap.add_argument("--size", type=int, default=64, help="the camera's frame size in pixels, the world model's")
     a = ap.parse_args(argv)
     res = study(a.policies, [t for t in a.tasks.split(",") if t], a.out, [m for m in a.modes.split(",") if m],
-                a.episodes, a.seed)
+                a.episodes, a.seed, a.size)
     for task, pols in res["tasks"].items():
         for name, by_mode in pols.items():
             line = "  ".join(f"{m} {v['success']:.2f} ({v['back_m']['mean']:+.2f} m)" for m, v in by_mode.items())

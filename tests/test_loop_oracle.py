@@ -64,6 +64,7 @@ def test_the_frames_move_a_policy_that_reads_them_and_no_other(tmp_path, monkeyp
 
     monkeypatch.setattr(L, "run_loop", lambda *a, **k: pytest.fail("a finished loop ran again"))
     assert L.study(PLUGINS, ["step_back"], tmp_path, list(L.MODES), 2, 0, progress=False) == res
+    assert L.study(PLUGINS, ["step_back"], tmp_path, ["still"], 2, 0, progress=False) == res
     assert json.loads((tmp_path / L.RESULTS).read_text()) == res
     with pytest.raises(ValueError, match="--episodes"):
         L.study(PLUGINS, ["step_back"], tmp_path, ["still"], 3, 0, progress=False)

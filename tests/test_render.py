@@ -159,12 +159,32 @@ def test_reprojection_redraws_the_scene_as_the_renderer_does_after_the_robot_mov
     moved[:, byaw] += 0.1
     b, pos1, mat1 = _drawn(renderer, model, moved, mocap, colors, rides)
     warped, covered = reproject(a["rgb"], a["depth"], a["rides"], pos0, mat0, pos1, mat1, fovy)
+    np.testing.assert_array_equal(warped[a["rides"]], a["rgb"][a["rides"]])  # the robot's own pixels stay put
     scene = covered & ~b["rides"] & (b["geom_id"] >= 0)
     assert scene.mean() > 0.3
     err = np.abs(warped.astype(float) - b["rgb"]).mean(-1)[scene].mean()
     still = np.abs(a["rgb"].astype(float) - b["rgb"]).mean(-1)[scene].mean()
     assert err < 0.35 * still, (err, still)
     assert err < 12.0, err
+
+
+def test_reprojection_lets_the_nearer_point_win_and_leaves_what_was_hidden_empty():
+    """A red square at 1 m before a blue wall at 3 m, the camera moved 0.25 m to its right (90 degree
+    field of view, 32 px: 16 px per metre of shift at 1 m): the square moves 4 px left, the wall 1 px
+    (1.33 rounded), so where both land the square must show, and the wall's strip the square hid (3 px)
+    stays uncovered until filled."""
+    h = w = 32
+    depth = np.full((1, h, w), 3.0)
+    depth[0, 12:20, 12:20] = 1.0
+    rgb = np.zeros((1, h, w, 3), np.uint8)
+    rgb[..., 2] = 255
+    rgb[0, 12:20, 12:20] = (255, 0, 0)
+    eye = np.eye(3)[None]
+    moved, covered = reproject(rgb, depth, np.zeros((1, h, w), bool), np.zeros((1, 3)), eye,
+                               np.array([[0.25, 0.0, 0.0]]), eye, 90.0)
+    np.testing.assert_array_equal(moved[0, 12:20, 8:16], np.broadcast_to([255, 0, 0], (8, 8, 3)))
+    assert not covered[0, 12:20, 16:19].any() and covered[0, 12:20, 19:31].all()
+    assert (moved[0, 12:20, 19:31] == [0, 0, 255]).all()
 
 
 def test_reprojection_refuses_an_unknown_camera():

@@ -635,7 +635,8 @@ def cached_renderers(size, cameras) -> tuple:
 
 def rides_with_camera(model: mujoco.MjModel, camera: str = HEAD_CAMERA) -> np.ndarray:
     """(ngeom,) bool: the geoms of the body tree that carries `camera` (for the head camera, the robot's
-    own body), which move with the camera rather than with the world."""
+    whole body, arms included), which `reproject` keeps where they were drawn rather than moving them
+    with the world."""
     cam = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
     if cam < 0:
         raise ValueError(f"unknown camera {camera!r}")
