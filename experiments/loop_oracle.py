@@ -21,8 +21,10 @@ Written to OUT/loop_oracle.json, per task, policy and mode: the success rate wit
 the base's displacement back along its starting heading at the end (mean, least, most), the forward
 command summed over the episode (as applied), the RMS gap of the actions from the `true` loop's at
 each step (mean over the episode), and the PSNR of the frames read against the simulator's frame of
-the same state (steps 1-8 and the episode's second half). The same command resumes: a (task, policy,
-mode) already in the file is kept. The `cpu` engine (MuJoCo's C engine), on any machine.
+the same state (steps 1-8 and the episode's second half); and OUT/frames/<task>/<policy>_<mode>.png,
+the first episode's true frames above those read, at five steps from the first to the last. The same
+command resumes: a (task, policy, mode) already in the file is kept. The `cpu` engine (MuJoCo's C
+engine), on any machine.
 
 The held-out states are the evaluator's (`heldout_seeds`, past the zoo's data seeds; the evaluator also
 skips its world models' training seeds, which collide with a held-out seed rarely), and the policy
@@ -37,12 +39,14 @@ from __future__ import annotations
 import argparse
 import functools
 import json
+import os
 import sys
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from PIL import Image
 from tqdm import tqdm
 
 from experiments.evaluate import chunk_policy
@@ -66,6 +70,7 @@ MODES = ("true", "still", "reproject", "flow_chain", "flow_anchor")
 FLOW_RADIUS = 4
 ANCHOR_RADIUS = 8  # the first frame's content moves up to about 8 px by the end of a drive
 RESULTS = "loop_oracle.json"
+STRIP_FRAMES = 5  # steps of the first episode filmed, evenly spread from the first to the last
 
 
 def psnr_db(a, b) -> np.ndarray:
@@ -127,7 +132,8 @@ def run_loop(task: str, source, mode: str, reset_keys: np.ndarray, rng: jax.Arra
     frames of `mode` (size x size pixels), the policy run and seeded as the evaluator runs it in the
     simulator (its chunk of one, salted by its name; rng split as `record_episodes` splits it). Returns
     per-episode arrays: success (B,), back (B,) m, forward (B,) the applied forward command summed,
-    actions (B, T, 20), psnr (B, T) of the frames read."""
+    actions (B, T, 20), psnr (B, T) of the frames read; and "strip", the first episode's true and read
+    frames at STRIP_FRAMES steps (save_strip)."""
     env = HomeEnv(task, len(reset_keys), engine="cpu")
     state = env.reset(jnp.asarray(reset_keys))
     camera = Camera(env, state.task.colors, size)
@@ -138,7 +144,8 @@ def run_loop(task: str, source, mode: str, reset_keys: np.ndarray, rng: jax.Arra
     carry = jax.jit(policy.init_carry)(params, obs, state.task, k_pol)
     act = jax.jit(policy.act)
     prev_true = prev_shown = first["rgb"]
-    actions, psnr = [], []
+    actions, psnr, strip = [], [], []
+    filmed = set(np.linspace(0, env.episode_steps - 1, STRIP_FRAMES).round().astype(int).tolist())
     for t in range(env.episode_steps):
         action, carry = act(params, obs, carry, jax.random.fold_in(k_act, t))
         action = env.core.applied(action)
@@ -147,11 +154,23 @@ def run_loop(task: str, source, mode: str, reset_keys: np.ndarray, rng: jax.Arra
         now = camera.draw(state)
         shown = shown_frame(mode, first, now, prev_true, prev_shown, camera.fovy)
         psnr.append(psnr_db(shown, now["rgb"]))
+        if t in filmed:
+            strip.append(np.concatenate([now["rgb"][0], shown[0]], axis=0))
         prev_true, prev_shown = now["rgb"], shown
         obs = {**state.obs, "image": jnp.asarray(shown)}
     actions = np.stack(actions, axis=1)
-    return {"success": np.asarray(state.success, bool), "back": np.asarray(backward_distance(state.task, state.qpos, env.idx)),
+    return {"strip": np.concatenate(strip, axis=1), "success": np.asarray(state.success, bool), "back": np.asarray(backward_distance(state.task, state.qpos, env.idx)),
             "forward": actions[..., FORWARD_SPEED].sum(axis=1), "actions": actions, "psnr": np.stack(psnr, axis=1)}
+
+
+def save_strip(path: Path, strip: np.ndarray) -> None:
+    """Writes run_loop's strip ((2 S, STRIP_FRAMES S, 3) uint8: the simulator's frame above the frame read,
+    at evenly spread steps of the first episode) as a PNG four times the size, atomically."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    big = Image.fromarray(strip).resize((strip.shape[1] * 4, strip.shape[0] * 4), Image.NEAREST)
+    tmp = path.with_suffix(".tmp.png")
+    big.save(tmp)
+    os.replace(tmp, path)
 
 
 def summary(res: dict, reference: dict | None) -> dict:
@@ -205,6 +224,8 @@ def study(policies: str, tasks: list[str], out: Path, modes: list[str], episodes
         reference = run_loop(task, source, "true", keys, rng, size)
         for mode in todo:
             res = reference if mode == "true" else run_loop(task, source, mode, keys, rng, size)
+            if mode != "true":
+                save_strip(out / "frames" / task / f"{source.slug}_{mode}.png", res["strip"])
             done[mode] = summary(res, None if mode == "true" else reference)
             write_json_atomic(path, results)
             bar.update(1)

@@ -3,7 +3,9 @@
 import json
 import textwrap
 
+import numpy as np
 import pytest
+from PIL import Image
 
 from experiments import loop_oracle as L
 
@@ -62,6 +64,10 @@ def test_the_frames_move_a_policy_that_reads_them_and_no_other(tmp_path, monkeyp
     assert look["still"]["back_m"]["mean"] > true_back + 0.4 and look["still"]["action_gap"] > 0.0
     assert abs(look["reproject"]["back_m"]["mean"] - true_back) < 0.2
 
+    strip = np.asarray(Image.open(tmp_path / "frames" / "step_back" / "look_still.png"))
+    assert strip.shape == (2 * 64 * 4, L.STRIP_FRAMES * 64 * 4, 3)
+    first, last = strip[:256, :256], strip[:256, -256:]  # the true view moved; the still one did not
+    assert (first != last).any() and (strip[256:, :256] == strip[256:, -256:]).all()
     monkeypatch.setattr(L, "run_loop", lambda *a, **k: pytest.fail("a finished loop ran again"))
     assert L.study(PLUGINS, ["step_back"], tmp_path, list(L.MODES), 2, 0, progress=False) == res
     assert L.study(PLUGINS, ["step_back"], tmp_path, ["still"], 2, 0, progress=False) == res
