@@ -68,7 +68,7 @@ from wm.model import block_flow, warp
 
 MODES = ("true", "still", "reproject", "flow_chain", "flow_anchor")
 FLOW_RADIUS = 4
-ANCHOR_RADIUS = 8  # the first frame's content moves up to about 8 px by the end of a drive
+ANCHOR_RADIUS = 8  # the match from the first frame searches twice a step's radius: its motion accumulates
 RESULTS = "loop_oracle.json"
 STRIP_FRAMES = 5  # steps of the first episode filmed, evenly spread from the first to the last
 
@@ -159,8 +159,10 @@ def run_loop(task: str, source, mode: str, reset_keys: np.ndarray, rng: jax.Arra
         prev_true, prev_shown = now["rgb"], shown
         obs = {**state.obs, "image": jnp.asarray(shown)}
     actions = np.stack(actions, axis=1)
-    return {"strip": np.concatenate(strip, axis=1), "success": np.asarray(state.success, bool), "back": np.asarray(backward_distance(state.task, state.qpos, env.idx)),
-            "forward": actions[..., FORWARD_SPEED].sum(axis=1), "actions": actions, "psnr": np.stack(psnr, axis=1)}
+    return {"success": np.asarray(state.success, bool),
+            "back": np.asarray(backward_distance(state.task, state.qpos, env.idx)),
+            "forward": actions[..., FORWARD_SPEED].sum(axis=1), "actions": actions,
+            "psnr": np.stack(psnr, axis=1), "strip": np.concatenate(strip, axis=1)}
 
 
 def save_strip(path: Path, strip: np.ndarray) -> None:
@@ -177,10 +179,12 @@ def summary(res: dict, reference: dict | None) -> dict:
     """The figures of one loop (run_loop's dict), its action gap against the `true` loop's (reference)."""
     n, k = len(res["success"]), int(res["success"].sum())
     half = res["psnr"].shape[1] // 2
+    back = res["back"]
     out = {"episodes": n, "success": k / n, "success_ci": list(wilson_interval(k, n)),
-           "back_m": {"mean": float(res["back"].mean()), "min": float(res["back"].min()), "max": float(res["back"].max())},
+           "back_m": {"mean": float(back.mean()), "min": float(back.min()), "max": float(back.max())},
            "forward_sum": float(res["forward"].mean()),
-           "psnr_db_steps_1_8": float(res["psnr"][:, :8].mean()), "psnr_db_second_half": float(res["psnr"][:, half:].mean())}
+           "psnr_db_steps_1_8": float(res["psnr"][:, :8].mean()),
+           "psnr_db_second_half": float(res["psnr"][:, half:].mean())}
     if reference is not None:
         gap = np.sqrt(((res["actions"] - reference["actions"]) ** 2).mean(axis=-1))
         out["action_gap"] = float(gap.mean())
