@@ -134,7 +134,7 @@ def _drawn(renderer, model, qpos, mocap, colors, rides):
 
 def test_reprojection_redraws_the_scene_as_the_renderer_does_after_the_robot_moves():
     """The head camera's frame carried through its depth to the pose after the base backs 0.3 m and
-    turns 0.1 rad matches the renderer's frame there wherever a point landed (the scene's ids and colours),
+    turns 0.1 rad matches the renderer's frame there in colour wherever a point of the scene landed,
     far better than the first frame held; at the same pose it is the frame itself."""
     model = S.load_model()
     renderer = Renderer(model, RenderConfig(camera="head_cam"))
