@@ -10,6 +10,8 @@ world model gets wrong, with the simulator's own state and camera:
 - `reproject`: the first frame carried to the camera's true pose through its depth
   (`sim_data.sim.render.reproject`): the camera's motion and its parallax exact, what the first frame
   hid filled from its neighbours, the world frozen (an arm or an object moved is not redrawn);
+- `reproject_fill_true`: the same with the pixels no point landed on taken from the simulator's frame:
+  what a generator that draws exactly what the first frame hid would add to the reprojection;
 - `flow_chain`: each frame shown warped from the last one shown by the true frames' motion, block
   matched on 8x8 cells (`wm.model.block_flow`, `wm.model.warp`): the world model's own warp, given
   the true motion of every step;
@@ -66,7 +68,7 @@ from sim_data.sim.tasks import TASK_NAMES, backward_distance
 from sim_data.util import run_cli, wilson_interval, write_json_atomic
 from wm.model import block_flow, warp
 
-MODES = ("true", "still", "reproject", "flow_chain", "flow_anchor")
+MODES = ("true", "still", "reproject", "reproject_fill_true", "flow_chain", "flow_anchor")
 FLOW_RADIUS = 4
 ANCHOR_RADIUS = 8  # the match from the first frame searches twice a step's radius: its motion accumulates
 RESULTS = "loop_oracle.json"
@@ -117,9 +119,10 @@ def shown_frame(mode: str, first: dict, now: dict, prev_true, prev_shown, fovy: 
         return now["rgb"]
     if mode == "still":
         return first["rgb"]
-    if mode == "reproject":
-        return reproject(first["rgb"], first["depth"], first["rides"], first["pos"], first["mat"], now["pos"],
-                         now["mat"], fovy)[0]
+    if mode in ("reproject", "reproject_fill_true"):
+        frame, covered = reproject(first["rgb"], first["depth"], first["rides"], first["pos"], first["mat"],
+                                   now["pos"], now["mat"], fovy)
+        return frame if mode == "reproject" else np.where(covered[..., None], frame, now["rgb"])
     if mode in ("flow_chain", "flow_anchor"):
         src, frm, radius = ((prev_shown, prev_true, FLOW_RADIUS) if mode == "flow_chain"
                             else (first["rgb"], first["rgb"], ANCHOR_RADIUS))
