@@ -64,21 +64,18 @@ from sim_data.sim.render import (
     rides_with_camera,
 )
 from sim_data.sim.robot import FORWARD_SPEED
+from sim_data.sim.rollout import jitted_act, jitted_init
 from sim_data.sim.tasks import TASK_NAMES, backward_distance
 from sim_data.util import run_cli, wilson_interval, write_json_atomic
+from wm.metrics import psnr as frame_psnr
 from wm.model import block_flow, warp
 
 MODES = ("true", "still", "reproject", "reproject_fill_true", "flow_chain", "flow_anchor")
 FLOW_RADIUS = 4
 ANCHOR_RADIUS = 8  # the match from the first frame searches twice a step's radius: its motion accumulates
 RESULTS = "loop_oracle.json"
+PSNR_EQUAL = 100.0  # dB where the frame read is the true one (its PSNR is infinite)
 STRIP_FRAMES = 5  # steps of the first episode filmed, evenly spread from the first to the last
-
-
-def psnr_db(a, b) -> np.ndarray:
-    """(B,) PSNR in dB of uint8 frames a against b, (B, H, W, 3) each (100 dB where they are equal)."""
-    mse = ((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2).mean(axis=(1, 2, 3))
-    return np.where(mse > 0, 10 * np.log10(255.0 ** 2 / np.maximum(mse, 1e-12)), 100.0)
 
 
 class Camera:
@@ -144,8 +141,8 @@ def run_loop(task: str, source, mode: str, reset_keys: np.ndarray, rng: jax.Arra
     policy, params = chunk_policy([source], len(reset_keys))
     _, k_pol, k_act = jax.random.split(rng, 3)
     obs = {**state.obs, "image": jnp.asarray(first["rgb"])}
-    carry = jax.jit(policy.init_carry)(params, obs, state.task, k_pol)
-    act = jax.jit(policy.act)
+    carry = jitted_init(policy)(params, obs, state.task, k_pol)
+    act = jitted_act(policy)
     prev_true = prev_shown = first["rgb"]
     actions, psnr, strip = [], [], []
     filmed = set(np.linspace(0, env.episode_steps - 1, STRIP_FRAMES).round().astype(int).tolist())
@@ -156,7 +153,7 @@ def run_loop(task: str, source, mode: str, reset_keys: np.ndarray, rng: jax.Arra
         state = env.step(state, action)
         now = camera.draw(state)
         shown = shown_frame(mode, first, now, prev_true, prev_shown, camera.fovy)
-        psnr.append(psnr_db(shown, now["rgb"]))
+        psnr.append(np.minimum(frame_psnr(shown, now["rgb"]), PSNR_EQUAL))
         if t in filmed:
             strip.append(np.concatenate([now["rgb"][0], shown[0]], axis=0))
         prev_true, prev_shown = now["rgb"], shown

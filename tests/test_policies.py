@@ -19,7 +19,7 @@ from sim_data.policies.scripted import (
 from sim_data.sim import robot as R
 from sim_data.sim import scene as S
 from sim_data.sim.env import HomeEnv
-from sim_data.sim.rollout import _jitted_init, run_episodes
+from sim_data.sim.rollout import jitted_init, run_episodes
 from sim_data.sim.tasks import CONTROL_DT, MAX_EPISODE_STEPS
 
 
@@ -70,7 +70,7 @@ def test_skill_changes_the_plan_deterministically(model):
     pol = ScriptedPolicy.create("mug", model)
     st = env.reset(jax.random.PRNGKey(0))
     params = {"skill": jnp.array([1.0, 0.2])}
-    init = _jitted_init(pol)  # run_episodes' compiled plan, not a program of its own
+    init = jitted_init(pol)  # run_episodes' compiled plan, not a program of its own
     c1 = init(params, st.obs, st.task, jax.random.PRNGKey(1))
     c2 = init(params, st.obs, st.task, jax.random.PRNGKey(1))
     np.testing.assert_array_equal(np.asarray(c1.pos), np.asarray(c2.pos))

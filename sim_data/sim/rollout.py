@@ -92,14 +92,14 @@ def run_episodes(env: HomeEnv, policy, params, rng: jax.Array, record: bool = Fa
     """
     k_reset, k_pol, k_act = jax.random.split(rng, 3)
     state = env.reset(k_reset)
-    carry = _jitted_init(policy)(params, state.obs, state.task, k_pol)
+    carry = jitted_init(policy)(params, state.obs, state.task, k_pol)
     if env.engine.name == "mjx":
         segments = []
         for start in _segment_starts(env):
             state, carry, traj = _scan_segment(env.core, policy, record, params, state, carry, k_act, jnp.int32(start))
             segments.append(traj)
         return state, (_trajectory_of(segments) if record else None)
-    act = _jitted_act(policy)
+    act = jitted_act(policy)
     steps = []
     for t in range(env.episode_steps):
         action, carry = act(params, state.obs, carry, jax.random.fold_in(k_act, t))
@@ -115,12 +115,15 @@ def run_episodes(env: HomeEnv, policy, params, rng: jax.Array, record: bool = Fa
 
 
 @functools.lru_cache(maxsize=64)
-def _jitted_act(policy):
+def jitted_act(policy):
+    """policy.act jitted once per policy object (equal policies share it), so that every episode batch of
+    the same shapes runs one compiled program."""
     return jax.jit(policy.act)
 
 
 @functools.lru_cache(maxsize=64)
-def _jitted_init(policy):
+def jitted_init(policy):
+    """policy.init_carry jitted once per policy object, as jitted_act."""
     return jax.jit(policy.init_carry)  # eager, its many small ops would each compile
 
 
@@ -216,7 +219,7 @@ def record_episodes(env: HomeEnv, policy, params, rng: jax.Array, renderers: tup
     if env.engine.name == "mjx":
         obs, frames, rec = _observe_mjx(env.core, renderers, state, rgb)
         # the policy's carry starts from what it sees at reset, the camera's frame included
-        carry = _jitted_init(policy)(params, obs, state.task, k_pol)
+        carry = jitted_init(policy)(params, obs, state.task, k_pol)
         if ahead is not None:
             _wait_ahead(ahead)  # a call before it ends would compile the same program a second time
         segments = []
@@ -230,9 +233,9 @@ def record_episodes(env: HomeEnv, policy, params, rng: jax.Array, renderers: tup
     def observe(st, colors):
         return jitted(st.replace(physics=st.physics.replace(rows=None)), colors)  # float64 rows stay out of jit
 
-    act = _jitted_act(policy)
+    act = jitted_act(policy)
     obs, frames, rec = observe(state, rgb)
-    carry = _jitted_init(policy)(params, obs, state.task, k_pol)
+    carry = jitted_init(policy)(params, obs, state.task, k_pol)
     first, recorded, actions = (frames, rec), [], []
     for t in range(env.episode_steps if steps is None else steps):
         action, carry = act(params, obs, carry, jax.random.fold_in(k_act, t))
