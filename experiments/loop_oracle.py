@@ -12,6 +12,9 @@ world model gets wrong, with the simulator's own state and camera:
   hid filled from its neighbours, the world frozen (an arm or an object moved is not redrawn);
 - `reproject_fill_true`: the same with the pixels no point landed on taken from the simulator's frame:
   what a generator that draws exactly what the first frame hid would add to the reprojection;
+- `reproject_fill_learned`: the same with those pixels drawn by a generator trained on a dataset's
+  episodes (`wm.fill`, trained by `experiments.fill`; `--fill DIR`), which knows the camera's pose but
+  not the simulator's frame;
 - `flow_chain`: each frame shown warped from the last one shown by the true frames' motion, block
   matched on 8x8 cells (`wm.model.block_flow`, `wm.model.warp`): the world model's own warp, given
   the true motion of every step;
@@ -67,10 +70,12 @@ from sim_data.sim.robot import FORWARD_SPEED
 from sim_data.sim.rollout import jitted_act, jitted_init
 from sim_data.sim.tasks import TASK_NAMES, backward_distance
 from sim_data.util import run_cli, wilson_interval, write_json_atomic
+from wm.fill import filled, load_fill
 from wm.metrics import psnr as frame_psnr
 from wm.model import block_flow, warp
 
-MODES = ("true", "still", "reproject", "reproject_fill_true", "flow_chain", "flow_anchor")
+MODES = ("true", "still", "reproject", "reproject_fill_true", "reproject_fill_learned", "flow_chain", "flow_anchor")
+LEARNED = "reproject_fill_learned"  # the mode that needs a trained fill (--fill)
 FLOW_RADIUS = 4
 ANCHOR_RADIUS = 8  # the match from the first frame searches twice a step's radius: its motion accumulates
 RESULTS = "loop_oracle.json"
@@ -109,16 +114,20 @@ def _warped(src, frm, to, radius: int):
     return jnp.clip(warp(src, flow) * 255.0 + 0.5, 0, 255).astype(jnp.uint8)
 
 
-def shown_frame(mode: str, first: dict, now: dict, prev_true, prev_shown, fovy: float) -> np.ndarray:
+def shown_frame(mode: str, first: dict, now: dict, prev_true, prev_shown, fovy: float, fill=None) -> np.ndarray:
     """(B, S, S, 3) uint8: the frame the policy reads in `mode`, given the first state's drawing, the
-    current one's, the last step's true frame and the last frame shown."""
+    current one's, the last step's true frame and the last frame shown; fill: wm.fill.load_fill's
+    (net, params, cfg, size), for reproject_fill_learned."""
     if mode == "true":
         return now["rgb"]
     if mode == "still":
         return first["rgb"]
-    if mode in ("reproject", "reproject_fill_true"):
+    if mode in ("reproject", "reproject_fill_true", LEARNED):
         frame, covered = reproject(first["rgb"], first["depth"], first["rides"], first["pos"], first["mat"],
                                    now["pos"], now["mat"], fovy)
+        if mode == LEARNED:
+            net, params, cfg, _ = fill
+            return filled(net, params, cfg, frame, covered, now["pos"], now["mat"], fovy)
         return frame if mode == "reproject" else np.where(covered[..., None], frame, now["rgb"])
     if mode in ("flow_chain", "flow_anchor"):
         src, frm, radius = ((prev_shown, prev_true, FLOW_RADIUS) if mode == "flow_chain"
@@ -127,10 +136,11 @@ def shown_frame(mode: str, first: dict, now: dict, prev_true, prev_shown, fovy: 
     raise ValueError(f"unknown mode {mode!r}; choose among {', '.join(MODES)}")
 
 
-def run_loop(task: str, source, mode: str, reset_keys: np.ndarray, rng: jax.Array, size: int = 64) -> dict:
+def run_loop(task: str, source, mode: str, reset_keys: np.ndarray, rng: jax.Array, size: int = 64,
+             fill=None) -> dict:
     """One closed loop of `source` (a registry PolicySource) on `task` from reset_keys (B, 2), reading the
-    frames of `mode` (size x size pixels), the policy run and seeded as the evaluator runs it in the
-    simulator (its chunk of one, salted by its name; rng split as `record_episodes` splits it). Returns
+    frames of `mode` (size x size pixels; fill: load_fill's tuple, for reproject_fill_learned), the
+    policy run and seeded as the evaluator runs it in the simulator (its chunk of one, salted by its name; rng split as `record_episodes` splits it). Returns
     per-episode arrays: success (B,), back (B,) m, forward (B,) the applied forward command summed,
     actions (B, T, 20), psnr (B, T) of the frames read; and "strip", the first episode's true and read
     frames at STRIP_FRAMES steps (save_strip)."""
@@ -152,7 +162,7 @@ def run_loop(task: str, source, mode: str, reset_keys: np.ndarray, rng: jax.Arra
         actions.append(np.asarray(action))
         state = env.step(state, action)
         now = camera.draw(state)
-        shown = shown_frame(mode, first, now, prev_true, prev_shown, camera.fovy)
+        shown = shown_frame(mode, first, now, prev_true, prev_shown, camera.fovy, fill)
         psnr.append(np.minimum(frame_psnr(shown, now["rgb"]), PSNR_EQUAL))
         if t in filmed:
             strip.append(np.concatenate([now["rgb"][0], shown[0]], axis=0))
@@ -192,9 +202,10 @@ def summary(res: dict, reference: dict | None) -> dict:
 
 
 def study(policies: str, tasks: list[str], out: Path, modes: list[str], episodes: int, seed: int, size: int = 64,
-          progress: bool = True) -> dict:
+          progress: bool = True, fill: Path | None = None) -> dict:
     """Runs every (task, policy, mode) not yet in OUT/loop_oracle.json and writes it after each; a pair
-    with modes left runs its `true` loop first, the reference of their action gap."""
+    with modes left runs its `true` loop first, the reference of their action gap. fill: the directory
+    of a trained wm.fill (experiments.fill's OUT), needed by reproject_fill_learned."""
     unknown = [m for m in modes if m not in MODES]
     if unknown:
         raise ValueError(f"unknown modes {unknown}; choose among {', '.join(MODES)}")
@@ -203,6 +214,15 @@ def study(policies: str, tasks: list[str], out: Path, modes: list[str], episodes
         raise ValueError(f"unknown tasks {bad}; choose among {', '.join(TASK_NAMES)}")
     if episodes < 1 or size < 8 or size % 8:
         raise ValueError(f"--episodes must be >= 1 and --size a multiple of 8; got {episodes} and {size}")
+    fill_net = None
+    if LEARNED in modes:
+        if fill is None:
+            raise ValueError(f"the mode {LEARNED} draws with a trained fill: name its directory with --fill "
+                             f"(train one with python -m experiments.fill)")
+        fill_net = load_fill(fill)
+        if fill_net[3] != size:
+            raise ValueError(f"the fill in {fill} draws {fill_net[3]}-px frames; the loops here read {size}-px "
+                             f"ones (--size)")
     sources = resolve([s for s in policies.split(",") if s])
     path = out / RESULTS
     results = json.loads(path.read_text()) if path.exists() else {}
@@ -227,10 +247,12 @@ def study(policies: str, tasks: list[str], out: Path, modes: list[str], episodes
             continue
         reference = run_loop(task, source, "true", keys, rng, size)
         for mode in todo:
-            res = reference if mode == "true" else run_loop(task, source, mode, keys, rng, size)
+            res = reference if mode == "true" else run_loop(task, source, mode, keys, rng, size, fill_net)
             if mode != "true":
                 save_strip(out / "frames" / task / f"{source.slug}_{mode}.png", res["strip"])
             done[mode] = summary(res, None if mode == "true" else reference)
+            if mode == LEARNED:
+                done[mode]["fill"] = str(fill)
             write_json_atomic(path, results)
             bar.update(1)
     bar.close()
@@ -244,13 +266,17 @@ def main(argv=None) -> int:
                     "registry#lineage, a plug-in module:function, comma-separated)")
     ap.add_argument("--tasks", required=True, help="comma-separated task names")
     ap.add_argument("--out", type=Path, required=True)
-    ap.add_argument("--modes", default=",".join(MODES), help=f"comma-separated among {', '.join(MODES)}")
+    ap.add_argument("--modes", help=f"comma-separated among {', '.join(MODES)} (default: all, {LEARNED} only "
+                    "with --fill)")
     ap.add_argument("--episodes", type=int, default=16, help="held-out initial states a policy (the evaluator's)")
     ap.add_argument("--seed", type=int, default=0, help="the evaluator's seed: its held-out states and draws")
     ap.add_argument("--size", type=int, default=64, help="the camera's frame size in pixels, the world model's")
+    ap.add_argument("--fill", type=Path, help=f"a trained fill's directory (experiments.fill --out), for {LEARNED}")
     a = ap.parse_args(argv)
-    res = study(a.policies, [t for t in a.tasks.split(",") if t], a.out, [m for m in a.modes.split(",") if m],
-                a.episodes, a.seed, a.size)
+    modes = ([m for m in a.modes.split(",") if m] if a.modes
+             else [m for m in MODES if m != LEARNED or a.fill is not None])
+    res = study(a.policies, [t for t in a.tasks.split(",") if t], a.out, modes,
+                a.episodes, a.seed, a.size, fill=a.fill)
     for task, pols in res["tasks"].items():
         for name, by_mode in pols.items():
             line = "  ".join(f"{m} {v['success']:.2f} ({v['back_m']['mean']:+.2f} m)" for m, v in by_mode.items())

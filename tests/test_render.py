@@ -14,7 +14,16 @@ from sim_data.bench.render_check import (
 )
 from sim_data.sim import scene as S
 from sim_data.sim.env import HomeEnv
-from sim_data.sim.render import RenderConfig, Renderer, episode_rgb, poses_from_arrays, reproject, rides_with_camera
+from sim_data.sim.render import (
+    RenderConfig,
+    Renderer,
+    episode_rgb,
+    floor_hits,
+    pixel_rays,
+    poses_from_arrays,
+    reproject,
+    rides_with_camera,
+)
 from sim_data.sim.tasks import TASK_NAMES
 
 PRIMITIVES_XML = """
@@ -185,6 +194,34 @@ def test_reprojection_lets_the_nearer_point_win_and_leaves_what_was_hidden_empty
     np.testing.assert_array_equal(moved[0, 12:20, 8:16], np.broadcast_to([255, 0, 0], (8, 8, 3)))
     assert not covered[0, 12:20, 16:19].any() and covered[0, 12:20, 19:31].all()
     assert (moved[0, 12:20, 19:31] == [0, 0, 255]).all()
+
+
+def test_floor_hits_are_where_the_renderer_draws_the_floor():
+    """For the pixels the renderer draws as floor after the robot backs away from the counter, the
+    floor point from the camera's pose alone is the point its depth puts there (to a millimetre), and
+    the rays are unit vectors; a camera looking up meets no floor."""
+    model = S.load_model()
+    renderer = Renderer(model, RenderConfig(camera="head_cam"))
+    cam = renderer.geometry.cam_names.index("head_cam")
+    fovy = renderer.geometry.fovy[cam]
+    env = HomeEnv("step_back", 2, engine="cpu")
+    st = env.reset(jax.random.PRNGKey(5))
+    qpos = np.array(st.qpos)
+    bx, by, _ = env.idx.robot.base_qpos
+    qpos[:, bx] -= 1.0  # far enough back that the floor shows
+    out, pos, mat = _drawn(renderer, model, qpos, np.asarray(st.mocap_pos), np.asarray(st.task.colors),
+                           rides_with_camera(model, "head_cam"))
+    floor = out["geom_id"] == mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "floor")
+    assert floor.mean() > 0.05
+    local = pixel_rays(64, 64, fovy)[None] * out["depth"][..., None]
+    world = pos[:, None, None] + np.einsum("bij,bhwj->bhwi", mat, local)
+    xy, ray = floor_hits(pos, mat, fovy, 64, 64)
+    np.testing.assert_allclose(xy[floor], world[floor][:, :2], atol=1e-3)
+    np.testing.assert_allclose(np.abs(world[floor][:, 2]), 0.0, atol=1e-3)
+    np.testing.assert_allclose(np.linalg.norm(ray, axis=-1), 1.0, atol=1e-9)
+    up = np.diag([1.0, -1.0, -1.0])[None]  # the camera's -z (its view) along the world's +z
+    xy_up, _ = floor_hits(np.array([[0.0, 0.0, 1.0]]), up, 60.0, 8, 8)
+    assert (xy_up == 0).all()
 
 
 def test_reprojection_refuses_an_unknown_camera():

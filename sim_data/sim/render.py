@@ -663,6 +663,29 @@ def _fill_holes(img: np.ndarray, filled: np.ndarray, passes: int) -> tuple[np.nd
     return img, filled
 
 
+def pixel_rays(h: int, w: int, fovy_deg: float) -> np.ndarray:
+    """(H, W, 3) float64: each pixel's ray through its centre in the camera's frame (MuJoCo's: x right,
+    y up, looking down -z), scaled so that its depth along the axis is 1."""
+    tan = np.tan(np.deg2rad(fovy_deg) / 2)
+    ys = (1 - 2 * (np.arange(h) + 0.5) / h) * tan
+    xs = (2 * (np.arange(w) + 0.5) / w - 1) * tan * (w / h)
+    return np.stack(np.broadcast_arrays(xs[None], ys[:, None], -np.ones((h, w))), -1)
+
+
+def floor_hits(cam_pos, cam_mat, fovy_deg: float, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """Where each pixel's ray meets the floor (the plane z = 0), for cameras at cam_pos (B, 3) with
+    world-from-camera cam_mat (B, 3, 3): (B, H, W, 2) world x, y in metres (zero where the ray does not
+    come down to the floor) and (B, H, W, 3) the ray's unit direction in the world. The geometry a
+    generator needs to draw the floor that a frame never showed."""
+    pos, mat = np.asarray(cam_pos, np.float64), np.asarray(cam_mat, np.float64)
+    ray = np.einsum("bij,hwj->bhwi", mat, pixel_rays(h, w, fovy_deg))
+    ray /= np.linalg.norm(ray, axis=-1, keepdims=True)
+    down = ray[..., 2] < -1e-6
+    dist = np.where(down, pos[:, None, None, 2] / np.where(down, -ray[..., 2], 1.0), 0.0)
+    xy = np.where(down[..., None], pos[:, None, None, :2] + dist[..., None] * ray[..., :2], 0.0)
+    return xy, ray
+
+
 def reproject(rgb, depth, rides, cam_pos0, cam_mat0, cam_pos, cam_mat, fovy_deg: float, fill: int = 8):
     """Frames redrawn at new camera poses from frames drawn at others, through their depth: each pixel's
     point is carried into the new camera (the nearest wins a pixel) and the pixels that nothing lands on
@@ -677,9 +700,7 @@ def reproject(rgb, depth, rides, cam_pos0, cam_mat0, cam_pos, cam_mat, fovy_deg:
     rgb, depth, rides = np.asarray(rgb), np.asarray(depth, np.float64), np.asarray(rides, bool)
     b, h, w = depth.shape
     tan = np.tan(np.deg2rad(fovy_deg) / 2)
-    ys = (1 - 2 * (np.arange(h) + 0.5) / h) * tan
-    xs = (2 * (np.arange(w) + 0.5) / w - 1) * tan * (w / h)
-    local = np.stack([xs[None, None] * depth, ys[None, :, None] * depth, -depth], -1)
+    local = pixel_rays(h, w, fovy_deg)[None] * depth[..., None]
     world = np.asarray(cam_pos0, np.float64)[:, None, None] + np.einsum("bij,bhwj->bhwi", np.asarray(cam_mat0), local)
     new = np.einsum("bji,bhwj->bhwi", np.asarray(cam_mat, np.float64), world - np.asarray(cam_pos)[:, None, None])
     z = -new[..., 2]

@@ -1,0 +1,169 @@
+"""Trains the generator of what a reprojected frame leaves empty (`wm.fill`) on a dataset's episodes.
+
+Each recorded episode is replayed in MuJoCo's C engine from its seed with its recorded actions (the
+dataset's own replay), the head camera drawn at every `--every`-th step with its depth and pose; the
+first frame, reprojected to each later pose through its depth, is paired with the frame drawn there.
+The training split's episodes train the net; the validation split's measure it against the
+reprojection's own guess for those pixels (its neighbours' colours), by the mean absolute error and
+the PSNR over the pixels no point landed on.
+
+    python -m experiments.fill --data runs/data/demo --tasks step_back --out runs/fill/demo
+
+Writes OUT/fill.json and OUT/fill.msgpack (wm.fill.load_fill reads them; `experiments.loop_oracle
+--modes reproject_fill_learned --fill OUT` puts the net in a policy's loop) and OUT/pairs-<split>.npz,
+the replayed pairs, which a rerun reuses; a finished fill is not trained again.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm import tqdm
+
+from experiments.loop_oracle import Camera
+from sim_data.dataset.episodes import read_episode
+from sim_data.sim.env import HomeEnv
+from sim_data.sim.render import reproject
+from sim_data.sim.tasks import TASK_NAMES
+from sim_data.util import run_cli
+from wm.fill import FILL_JSON, FillConfig, filled, hole_l1, save_fill, train_fill
+
+PAIR_KEYS = ("reprojected", "covered", "true", "cam_pos", "cam_mat")
+REPLAY_BATCH = 32
+
+
+def manifest_rows(data: Path, tasks, split: str) -> list[dict]:
+    """The manifest records of data's episodes of `tasks` in `split`, in the manifest's order, each with
+    its episode file's path under "path"."""
+    manifest = Path(data) / "manifest.jsonl"
+    if not manifest.exists():
+        raise FileNotFoundError(f"{data} is not a dataset (no manifest.jsonl); make one with "
+                                f"python -m sim_data.dataset.generate")
+    rows = [json.loads(line) for line in manifest.read_text().splitlines() if line]
+    return [{**r, "path": str(Path(data) / r["file"])} for r in rows if r["task"] in tasks and r["split"] == split]
+
+
+def replay_pairs(rows: list[dict], size: int, every: int, progress: bool = True) -> tuple[dict, float]:
+    """Replays the episodes of `rows` (manifest_rows' records) and pairs, at every
+    `every`-th step, the first frame reprojected to the camera's pose with the frame drawn there.
+    Returns ({"reprojected": (N, S, S, 3) uint8, "covered": (N, S, S) bool, "true": (N, S, S, 3) uint8,
+    "cam_pos": (N, 3), "cam_mat": (N, 3, 3)}, the camera's vertical field of view in degrees)."""
+    groups: dict = {}
+    for r in rows:
+        groups.setdefault((r["task"], bool(r.get("heldout", False)), int(r["num_steps"])), []).append(r)
+    out = {k: [] for k in PAIR_KEYS}
+    fovy = None
+    bar = tqdm(total=len(rows), desc="replay", disable=not progress)
+    for (task, heldout, steps), members in groups.items():
+        for start in range(0, len(members), REPLAY_BATCH):
+            chunk = members[start:start + REPLAY_BATCH]
+            actions = np.stack([read_episode(Path(r["path"]), cameras=(), sim_state=False)["action"]
+                                for r in chunk])
+            env = HomeEnv(task, len(chunk), engine="cpu", heldout=heldout)
+            state = env.reset(jnp.stack([jax.random.PRNGKey(int(r["seed"])) for r in chunk]))
+            camera = Camera(env, state.task.colors, size)
+            fovy = camera.fovy
+            first = camera.draw(state)
+            for t in range(steps):
+                state = env.step(state, actions[:, t])
+                if (t + 1) % every:
+                    continue
+                now = camera.draw(state)
+                frame, covered = reproject(first["rgb"], first["depth"], first["rides"], first["pos"], first["mat"],
+                                           now["pos"], now["mat"], fovy)
+                for k, v in zip(PAIR_KEYS, (frame, covered, now["rgb"], now["pos"], now["mat"])):
+                    out[k].append(np.asarray(v))
+            bar.update(len(chunk))
+    bar.close()
+    if fovy is None:
+        raise ValueError("no episodes to replay")
+    return {k: np.concatenate(v) for k, v in out.items()}, fovy
+
+
+def cached_pairs(out: Path, split: str, data: list[Path], tasks, size: int, every: int,
+                 progress: bool) -> tuple[dict, float]:
+    """replay_pairs for the `split` episodes of the datasets in `data`, kept in OUT/pairs-<split>.npz for
+    a rerun."""
+    path = out / f"pairs-{split}.npz"
+    settings = json.dumps({"data": [str(d) for d in data], "tasks": sorted(tasks), "size": size, "every": every})
+    if path.exists():
+        with np.load(path) as z:
+            if str(z["settings"]) == settings:
+                return {k: z[k] for k in PAIR_KEYS}, float(z["fovy"])
+    rows = [r for d in data for r in manifest_rows(d, tasks, split)]
+    if not rows:
+        raise ValueError(f"{', '.join(map(str, data))} hold no {split} episodes of {', '.join(tasks)}")
+    pairs, fovy = replay_pairs(rows, size, every, progress)
+    out.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, settings=settings, fovy=fovy, **pairs)
+    os.replace(tmp, path)
+    return pairs, fovy
+
+
+def hole_scores(pred: np.ndarray, true: np.ndarray, covered: np.ndarray) -> dict:
+    """Mean absolute error (0-255) and PSNR (dB) over the pixels no point landed on, all frames pooled:
+    pred, true (N, S, S, 3) uint8, covered (N, S, S) bool."""
+    err = np.asarray(hole_l1(jnp.asarray(pred, jnp.float32), jnp.asarray(true, jnp.float32), jnp.asarray(covered)))
+    hole = ~covered
+    mse = ((pred.astype(np.float64) - true) ** 2)[hole].mean()
+    return {"hole_mae": float(err), "hole_psnr_db": float(10 * np.log10(255.0 ** 2 / max(mse, 1e-12))),
+            "hole_share": float(hole.mean())}
+
+
+def validate(net, params, cfg: FillConfig, pairs: dict, fovy: float, batch: int = 256) -> dict:
+    """The fill's hole scores on pairs beside those of the reprojection's neighbour fill."""
+    drawn = np.concatenate([filled(net, params, cfg, *(pairs[k][i:i + batch] for k in
+                                                       ("reprojected", "covered", "cam_pos", "cam_mat")), fovy)
+                            for i in range(0, len(pairs["covered"]), batch)])
+    return {"fill": hole_scores(drawn, pairs["true"], pairs["covered"]),
+            "neighbours": hole_scores(pairs["reprojected"], pairs["true"], pairs["covered"]),
+            "pairs": len(pairs["covered"])}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", required=True, help="dataset directories (sim_data.dataset.generate's OUT), "
+                    "comma-separated")
+    ap.add_argument("--tasks", required=True, help="comma-separated task names")
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--size", type=int, default=64, help="frame size in pixels")
+    ap.add_argument("--every", type=int, default=2, help="pair every k-th step of an episode")
+    ap.add_argument("--steps", type=int, default=FillConfig.steps, help="training steps")
+    ap.add_argument("--batch", type=int, default=FillConfig.batch)
+    ap.add_argument("--width", type=int, default=FillConfig.width)
+    ap.add_argument("--seed", type=int, default=0)
+    a = ap.parse_args(argv)
+    tasks = [t for t in a.tasks.split(",") if t]
+    bad = [t for t in tasks if t not in TASK_NAMES]
+    if bad or not tasks:
+        raise ValueError(f"unknown tasks {bad}; choose among {', '.join(TASK_NAMES)}")
+    if a.every < 1 or a.size < 8 or a.size % 8:
+        raise ValueError(f"--every must be >= 1 and --size a multiple of 8; got {a.every} and {a.size}")
+    cfg = FillConfig(width=a.width, steps=a.steps, batch=a.batch, seed=a.seed)
+    data = [Path(d) for d in a.data.split(",") if d]
+    if (a.out / FILL_JSON).exists():
+        print(f"{a.out / FILL_JSON} exists: the fill is trained (remove it to train again)")
+        return 0
+    train, fovy = cached_pairs(a.out, "train", data, tasks, a.size, a.every, True)
+    val, _ = cached_pairs(a.out, "val", data, tasks, a.size, a.every, True)
+    print(f"{len(train['covered'])} training pairs ({(~train['covered']).mean():.1%} of their pixels empty), "
+          f"{len(val['covered'])} validation pairs")
+    net, params, fit = train_fill(train, fovy, cfg)
+    scores = validate(net, params, cfg, val, fovy)
+    save_fill(a.out, params, cfg, a.size, {"train_loss": fit["loss"], "val": scores, "data": a.data,
+                                           "tasks": tasks, "every": a.every})
+    print(json.dumps(scores, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run_cli(main))
