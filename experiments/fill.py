@@ -9,9 +9,13 @@ the PSNR over the pixels no point landed on.
 
     python -m experiments.fill --data runs/data/demo --tasks step_back --out runs/fill/demo
 
+`--data` takes several datasets, comma-separated (a zoo's rollouts beside the data it was trained on).
+
 Writes OUT/fill.json and OUT/fill.msgpack (wm.fill.load_fill reads them; `experiments.loop_oracle
---modes reproject_fill_learned --fill OUT` puts the net in a policy's loop) and OUT/pairs-<split>.npz,
-the replayed pairs, which a rerun reuses; a finished fill is not trained again.
+--modes reproject_fill_learned --fill OUT` puts the net in a policy's loop), OUT/pairs-<split>.npz, the
+replayed pairs, which a rerun reuses, and OUT/egomotion.json, the base's motion from the driving
+commands (wm.egomotion) fit on the same training episodes and checked open loop on the validation
+ones; a finished fill or model is not made again.
 """
 
 from __future__ import annotations
@@ -31,8 +35,11 @@ from experiments.loop_oracle import Camera
 from sim_data.dataset.episodes import read_episode
 from sim_data.sim.env import HomeEnv
 from sim_data.sim.render import reproject
+from sim_data.sim.robot import robot_index
+from sim_data.sim.scene import load_model
 from sim_data.sim.tasks import TASK_NAMES
 from sim_data.util import run_cli
+from wm.egomotion import EGOMOTION_JSON, fit_egomotion, roll_base, save_egomotion
 from wm.fill import FILL_JSON, FillConfig, filled, hole_l1, save_fill, train_fill
 
 PAIR_KEYS = ("reprojected", "covered", "true", "cam_pos", "cam_mat")
@@ -128,6 +135,27 @@ def validate(net, params, cfg: FillConfig, pairs: dict, fovy: float, batch: int 
             "pairs": len(pairs["covered"])}
 
 
+def recorded_motion(rows: list[dict]) -> tuple[list, list]:
+    """The base's world poses ([(T + 1, 3)] x, y, yaw) and the actions ([(T, 20)]) of the episodes of rows."""
+    base_qpos = robot_index(load_model()).base_qpos
+    eps = [read_episode(Path(r["path"]), cameras=()) for r in rows]
+    return [e["qpos"][:, base_qpos] for e in eps], [e["action"] for e in eps]
+
+
+def fit_and_check_egomotion(train_rows: list[dict], val_rows: list[dict]) -> tuple[np.ndarray, dict]:
+    """wm.egomotion's model fit on train_rows' episodes, and how far from the recorded base its open-loop
+    prediction ends on val_rows' (metres, mean and largest), beside a base that never moves."""
+    coef = fit_egomotion(*recorded_motion(train_rows))
+    bases, actions = recorded_motion(val_rows)
+    end_err, still_err = [], []
+    for base, action in zip(bases, actions):
+        pred = roll_base(coef, base[None, 0], action[None])[0]
+        end_err.append(float(np.linalg.norm(pred[-1, :2] - base[-1, :2])))
+        still_err.append(float(np.linalg.norm(base[0, :2] - base[-1, :2])))
+    return coef, {"val_end_error_m": {"mean": float(np.mean(end_err)), "max": float(np.max(end_err))},
+                  "val_end_error_still_m": float(np.mean(still_err)), "val_episodes": len(val_rows)}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -150,6 +178,12 @@ def main(argv=None) -> int:
         raise ValueError(f"--every must be >= 1 and --size a multiple of 8; got {a.every} and {a.size}")
     cfg = FillConfig(width=a.width, steps=a.steps, batch=a.batch, seed=a.seed)
     data = [Path(d) for d in a.data.split(",") if d]
+    if not (a.out / EGOMOTION_JSON).exists():
+        rows = {split: [r for d in data for r in manifest_rows(d, tasks, split)] for split in ("train", "val")}
+        coef, check = fit_and_check_egomotion(rows["train"], rows["val"])
+        save_egomotion(a.out, coef, {**check, "data": a.data, "tasks": tasks})
+        print(f"base motion: open loop over a validation episode ends {check['val_end_error_m']['mean']:.3f} m "
+              f"from the recorded base (a still base: {check['val_end_error_still_m']:.3f} m)")
     if (a.out / FILL_JSON).exists():
         print(f"{a.out / FILL_JSON} exists: the fill is trained (remove it to train again)")
         return 0

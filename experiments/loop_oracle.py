@@ -15,6 +15,15 @@ world model gets wrong, with the simulator's own state and camera:
 - `reproject_fill_learned`: the same with those pixels drawn by a generator trained on a dataset's
   episodes (`wm.fill`, trained by `experiments.fill`; `--fill DIR`), which knows the camera's pose but
   not the simulator's frame;
+- `egomotion_fill_learned`: the same at the camera's pose with the base where a model of its motion
+  under the driving commands puts it (`wm.egomotion`, fit beside the fill), run open loop from the
+  first state on the actions the policy took, the joints as the simulator has them: the frames of an
+  imagination whose camera moves as the actions say;
+- `imagined`: the same with nothing of the simulator after the first state: the joints and the objects
+  held where they were, the policy's proprioception the first state's, and the success predicted from
+  the base's predicted motion by the task's rule (step_back only: the band of distance backed; a hit on
+  the stool is not predicted); the simulator runs beside it only to say what the same actions truly do.
+  A world model for step_back made of the first frame's depth, the base-motion model and the fill;
 - `flow_chain`: each frame shown warped from the last one shown by the true frames' motion, block
   matched on 8x8 cells (`wm.model.block_flow`, `wm.model.warp`): the world model's own warp, given
   the true motion of every step;
@@ -27,7 +36,9 @@ the base's displacement back along its starting heading at the end (mean, least,
 command summed over the episode (as applied), the RMS gap of the actions from the `true` loop's at
 each step (mean over the episode), and the PSNR of the frames read against the simulator's frame of
 the same state (steps 1-8 and the episode's second half); and OUT/frames/<task>/<policy>_<mode>.png,
-the first episode's true frames above those read, at five steps from the first to the last. The same
+the first episode's true frames above those read, at five steps from the first to the last; with the
+`imagined` mode, its predicted success beside the true loop's, per policy and per task (Pearson r and
+mean absolute error over the policies, `imagined_against_true`). The same
 command resumes: a (task, policy, mode) already in the file is kept. The `cpu` engine (MuJoCo's C
 engine), on any machine.
 
@@ -61,6 +72,7 @@ from sim_data.sim.env import HomeEnv
 from sim_data.sim.render import (
     HEAD_CAMERA,
     cached_renderers,
+    camera_poses,
     episode_rgb,
     poses_from_arrays,
     reproject,
@@ -68,14 +80,18 @@ from sim_data.sim.render import (
 )
 from sim_data.sim.robot import FORWARD_SPEED
 from sim_data.sim.rollout import jitted_act, jitted_init
-from sim_data.sim.tasks import TASK_NAMES, backward_distance
+from sim_data.sim.tasks import STEP_BACK_BAND, TASK_NAMES, backward_distance
 from sim_data.util import run_cli, wilson_interval, write_json_atomic
+from wm.egomotion import load_egomotion, step_base
 from wm.fill import filled, load_fill
 from wm.metrics import psnr as frame_psnr
 from wm.model import block_flow, warp
 
-MODES = ("true", "still", "reproject", "reproject_fill_true", "reproject_fill_learned", "flow_chain", "flow_anchor")
-LEARNED = "reproject_fill_learned"  # the mode that needs a trained fill (--fill)
+MODES = ("true", "still", "reproject", "reproject_fill_true", "reproject_fill_learned", "egomotion_fill_learned",
+         "imagined", "flow_chain", "flow_anchor")
+LEARNED, EGOMOTION, IMAGINED = "reproject_fill_learned", "egomotion_fill_learned", "imagined"
+NEEDS_FILL = (LEARNED, EGOMOTION, IMAGINED)  # the modes that draw with a trained fill (--fill)
+PREDICTS = ("step_back",)  # the tasks whose success follows from the base's motion alone (IMAGINED)
 FLOW_RADIUS = 4
 ANCHOR_RADIUS = 8  # the match from the first frame searches twice a step's radius: its motion accumulates
 RESULTS = "loop_oracle.json"
@@ -122,10 +138,10 @@ def shown_frame(mode: str, first: dict, now: dict, prev_true, prev_shown, fovy: 
         return now["rgb"]
     if mode == "still":
         return first["rgb"]
-    if mode in ("reproject", "reproject_fill_true", LEARNED):
+    if mode in ("reproject", "reproject_fill_true", *NEEDS_FILL):
         frame, covered = reproject(first["rgb"], first["depth"], first["rides"], first["pos"], first["mat"],
                                    now["pos"], now["mat"], fovy)
-        if mode == LEARNED:
+        if mode in NEEDS_FILL:
             net, params, cfg, _ = fill
             return filled(net, params, cfg, frame, covered, now["pos"], now["mat"], fovy)
         return frame if mode == "reproject" else np.where(covered[..., None], frame, now["rgb"])
@@ -137,15 +153,16 @@ def shown_frame(mode: str, first: dict, now: dict, prev_true, prev_shown, fovy: 
 
 
 def run_loop(task: str, source, mode: str, reset_keys: np.ndarray, rng: jax.Array, size: int = 64,
-             fill=None) -> dict:
+             fill=None, egomotion=None) -> dict:
     """One closed loop of `source` (a registry PolicySource) on `task` from reset_keys (B, 2), reading the
-    frames of `mode` (size x size pixels; fill: load_fill's tuple, for reproject_fill_learned), the
-    policy run and seeded as the evaluator runs it in the simulator (its chunk of one, salted by its name; rng split as `record_episodes` splits it). Returns
+    frames of `mode` (size x size pixels; fill: load_fill's tuple, for the learned fills; egomotion:
+    load_egomotion's matrix, for egomotion_fill_learned), the policy run and seeded as the evaluator runs it in the simulator (its chunk of one, salted by its name; rng split as `record_episodes` splits it). Returns
     per-episode arrays: success (B,), back (B,) m, forward (B,) the applied forward command summed,
+    (imagined only) predicted_success (B,) and predicted_back (B,) m from the imagined base,
     actions (B, T, 20), psnr (B, T) of the frames read; and "strip", the first episode's true and read
     frames at STRIP_FRAMES steps (save_strip)."""
     env = HomeEnv(task, len(reset_keys), engine="cpu")
-    state = env.reset(jnp.asarray(reset_keys))
+    state = start = env.reset(jnp.asarray(reset_keys))
     camera = Camera(env, state.task.colors, size)
     first = camera.draw(state)
     policy, params = chunk_policy([source], len(reset_keys))
@@ -154,6 +171,8 @@ def run_loop(task: str, source, mode: str, reset_keys: np.ndarray, rng: jax.Arra
     carry = jitted_init(policy)(params, obs, state.task, k_pol)
     act = jitted_act(policy)
     prev_true = prev_shown = first["rgb"]
+    base_qpos = env.idx.robot.base_qpos
+    base, moved = np.asarray(state.qpos)[:, base_qpos].astype(np.float64), np.zeros((len(reset_keys), 3))
     actions, psnr, strip = [], [], []
     filmed = set(np.linspace(0, env.episode_steps - 1, STRIP_FRAMES).round().astype(int).tolist())
     for t in range(env.episode_steps):
@@ -162,14 +181,29 @@ def run_loop(task: str, source, mode: str, reset_keys: np.ndarray, rng: jax.Arra
         actions.append(np.asarray(action))
         state = env.step(state, action)
         now = camera.draw(state)
-        shown = shown_frame(mode, first, now, prev_true, prev_shown, camera.fovy, fill)
+        seen = now
+        if mode in (EGOMOTION, IMAGINED):
+            base, moved = step_base(egomotion, base, moved, np.asarray(action))
+            held = mode == IMAGINED
+            qpos = np.array(start.qpos if held else state.qpos)
+            qpos[:, base_qpos] = base
+            mocap = start.mocap_pos if held else state.mocap_pos
+            seen = {**now, **dict(zip(("pos", "mat"), camera_poses(env.model, qpos, mocap)))}
+        shown = shown_frame(mode, first, seen, prev_true, prev_shown, camera.fovy, fill)
         psnr.append(np.minimum(frame_psnr(shown, now["rgb"]), PSNR_EQUAL))
         if t in filmed:
             strip.append(np.concatenate([now["rgb"][0], shown[0]], axis=0))
         prev_true, prev_shown = now["rgb"], shown
         obs = {**state.obs, "image": jnp.asarray(shown)}
+        if mode == IMAGINED:
+            obs["proprio"] = start.obs["proprio"]
     actions = np.stack(actions, axis=1)
-    return {"success": np.asarray(state.success, bool),
+    predicted = {}
+    if mode == IMAGINED:
+        back = np.asarray(backward_distance(start.task, qpos, env.idx))
+        predicted = {"predicted_back": back,
+                     "predicted_success": (back >= STEP_BACK_BAND[0]) & (back <= STEP_BACK_BAND[1])}
+    return {**predicted, "success": np.asarray(state.success, bool),
             "back": np.asarray(backward_distance(state.task, state.qpos, env.idx)),
             "forward": actions[..., FORWARD_SPEED].sum(axis=1), "actions": actions,
             "psnr": np.stack(psnr, axis=1), "strip": np.concatenate(strip, axis=1)}
@@ -198,6 +232,25 @@ def summary(res: dict, reference: dict | None) -> dict:
     if reference is not None:
         gap = np.sqrt(((res["actions"] - reference["actions"]) ** 2).mean(axis=-1))
         out["action_gap"] = float(gap.mean())
+    if "predicted_success" in res:
+        k, pb = int(res["predicted_success"].sum()), res["predicted_back"]
+        out["predicted_success"], out["predicted_success_ci"] = k / n, list(wilson_interval(k, n))
+        out["predicted_back_m"] = {"mean": float(pb.mean()), "min": float(pb.min()), "max": float(pb.max())}
+    return out
+
+
+def imagined_against_true(results: dict) -> dict:
+    """Per task, the imagined mode's predicted success rates against the true loop's over the policies
+    that have both: Pearson r (None where either side is constant), mean absolute error, policies."""
+    out = {}
+    for task, pols in results.get("tasks", {}).items():
+        pairs = [(v[IMAGINED]["predicted_success"], v["true"]["success"]) for v in pols.values()
+                 if IMAGINED in v and "true" in v]
+        if not pairs:
+            continue
+        pred, true = np.array(pairs).T
+        r = float(np.corrcoef(pred, true)[0, 1]) if len(pairs) > 1 and pred.std() > 0 and true.std() > 0 else None
+        out[task] = {"pearson": r, "mean_abs_error": float(np.abs(pred - true).mean()), "policies": len(pairs)}
     return out
 
 
@@ -214,12 +267,16 @@ def study(policies: str, tasks: list[str], out: Path, modes: list[str], episodes
         raise ValueError(f"unknown tasks {bad}; choose among {', '.join(TASK_NAMES)}")
     if episodes < 1 or size < 8 or size % 8:
         raise ValueError(f"--episodes must be >= 1 and --size a multiple of 8; got {episodes} and {size}")
-    fill_net = None
-    if LEARNED in modes:
+    fill_net = egomotion = None
+    if any(m in NEEDS_FILL for m in modes):
         if fill is None:
-            raise ValueError(f"the mode {LEARNED} draws with a trained fill: name its directory with --fill "
-                             f"(train one with python -m experiments.fill)")
+            raise ValueError(f"the modes {', '.join(NEEDS_FILL)} draw with a trained fill: name its directory "
+                             f"with --fill (train one with python -m experiments.fill)")
         fill_net = load_fill(fill)
+        egomotion = load_egomotion(fill) if EGOMOTION in modes or IMAGINED in modes else None
+    if IMAGINED in modes and any(t not in PREDICTS for t in tasks):
+        raise ValueError(f"the mode {IMAGINED} predicts the base's motion alone, from which only the success of "
+                         f"{', '.join(PREDICTS)} follows; run it on those tasks")
         if fill_net[3] != size:
             raise ValueError(f"the fill in {fill} draws {fill_net[3]}-px frames; the loops here read {size}-px "
                              f"ones (--size)")
@@ -247,12 +304,14 @@ def study(policies: str, tasks: list[str], out: Path, modes: list[str], episodes
             continue
         reference = run_loop(task, source, "true", keys, rng, size)
         for mode in todo:
-            res = reference if mode == "true" else run_loop(task, source, mode, keys, rng, size, fill_net)
+            res = reference if mode == "true" else run_loop(task, source, mode, keys, rng, size, fill_net, egomotion)
             if mode != "true":
                 save_strip(out / "frames" / task / f"{source.slug}_{mode}.png", res["strip"])
             done[mode] = summary(res, None if mode == "true" else reference)
-            if mode == LEARNED:
+            if mode in NEEDS_FILL:
                 done[mode]["fill"] = str(fill)
+            if IMAGINED in modes:
+                results["imagined_against_true"] = imagined_against_true(results)
             write_json_atomic(path, results)
             bar.update(1)
     bar.close()
@@ -266,21 +325,28 @@ def main(argv=None) -> int:
                     "registry#lineage, a plug-in module:function, comma-separated)")
     ap.add_argument("--tasks", required=True, help="comma-separated task names")
     ap.add_argument("--out", type=Path, required=True)
-    ap.add_argument("--modes", help=f"comma-separated among {', '.join(MODES)} (default: all, {LEARNED} only "
-                    "with --fill)")
+    ap.add_argument("--modes", help=f"comma-separated among {', '.join(MODES)} (default: all, those with a "
+                    "learned fill only with --fill)")
     ap.add_argument("--episodes", type=int, default=16, help="held-out initial states a policy (the evaluator's)")
     ap.add_argument("--seed", type=int, default=0, help="the evaluator's seed: its held-out states and draws")
     ap.add_argument("--size", type=int, default=64, help="the camera's frame size in pixels, the world model's")
-    ap.add_argument("--fill", type=Path, help=f"a trained fill's directory (experiments.fill --out), for {LEARNED}")
+    ap.add_argument("--fill", type=Path, help="a trained fill's directory (experiments.fill --out), for "
+                    f"{' and '.join(NEEDS_FILL)}")
     a = ap.parse_args(argv)
     modes = ([m for m in a.modes.split(",") if m] if a.modes
-             else [m for m in MODES if m != LEARNED or a.fill is not None])
+             else [m for m in MODES if m not in NEEDS_FILL or a.fill is not None])
     res = study(a.policies, [t for t in a.tasks.split(",") if t], a.out, modes,
                 a.episodes, a.seed, a.size, fill=a.fill)
     for task, pols in res["tasks"].items():
         for name, by_mode in pols.items():
             line = "  ".join(f"{m} {v['success']:.2f} ({v['back_m']['mean']:+.2f} m)" for m, v in by_mode.items())
+            if IMAGINED in by_mode:
+                line += f"  predicted {by_mode[IMAGINED]['predicted_success']:.2f}"
             print(f"{task:10s} {name:42s} {line}")
+    for task, fit in res.get("imagined_against_true", {}).items():
+        r = "undefined" if fit["pearson"] is None else f"{fit['pearson']:.3f}"
+        print(f"{task}: imagined against true success over {fit['policies']} policies: Pearson {r}, "
+              f"mean |error| {fit['mean_abs_error']:.3f}")
     return 0
 
 

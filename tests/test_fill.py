@@ -1,13 +1,18 @@
 """The generator of what a reprojected frame leaves empty (wm.fill) and its training on a dataset's
 episodes (experiments.fill)."""
 
+import jax
 import numpy as np
 import pytest
 
+from examples.plugin_policy import ready_pose
 from experiments import fill as F
 from experiments import loop_oracle as L
 from sim_data.dataset.episodes import read_episode
+from sim_data.sim.env import HomeEnv
 from sim_data.sim.render import floor_hits
+from sim_data.sim.robot import FORWARD_SPEED, YAW_RATE
+from wm import egomotion as E
 from wm import fill as W
 
 SIZE, FOVY, CELL = 16, 60.0, 0.75
@@ -90,6 +95,46 @@ def test_replayed_pairs_are_the_recorded_frames(smoke_dataset, tmp_path):
     assert again["true"].shape[0] == len(F.manifest_rows(data, ["mug"], split)) * (len(ep["action"]) // 10)
 
 
+def _drives(steps=100, seed=0):
+    """The base's poses (B, T + 1, 3) and actions (B, T, 20) of step_back episodes in MuJoCo's C engine,
+    each a drive at a random speed and turn for a random time, then a stop."""
+    env = HomeEnv("step_back", 4, engine="cpu")
+    state = env.reset(jax.random.PRNGKey(seed))
+    rng = np.random.default_rng(seed)
+    actions = np.tile(np.asarray(ready_pose(), np.float32), (4, steps, 1))  # the arms held as the plug-in holds them
+    moving = np.arange(steps)[None] < rng.integers(20, steps, (4, 1))  # a drive, then a stop
+    actions[..., FORWARD_SPEED] = rng.uniform(-0.5, 0.5, (4, 1)) * moving
+    actions[..., YAW_RATE] = rng.uniform(-0.3, 0.3, (4, 1)) * moving
+    actions = np.asarray(env.core.applied(actions.reshape(-1, 20))).reshape(actions.shape)
+    bases = [np.asarray(state.qpos)[:, env.idx.robot.base_qpos]]
+    for t in range(steps):
+        state = env.step(state, actions[:, t])
+        bases.append(np.asarray(state.qpos)[:, env.idx.robot.base_qpos])
+    return np.stack(bases, 1), actions
+
+
+@pytest.mark.slow  # random drives and two closed loops of a plug-in with the camera drawn (30-60 s on 2 cores)
+def test_the_imagined_loop_predicts_a_drive_from_its_actions_alone(tmp_path):
+    """With the base's motion fit on random drives, the imagined loop of the back-away plug-in (blind to
+    its camera) predicts where the simulator puts it to a centimetre, and so its success; the rates
+    against the true loop's land in imagined_against_true; tasks whose success the base's motion does
+    not decide are refused."""
+    bases, actions = _drives()
+    E.save_egomotion(tmp_path / "fill", E.fit_egomotion(list(bases), list(actions)), {})
+    cfg = W.FillConfig(width=4, levels=1)
+    W.save_fill(tmp_path / "fill", W.init_fill(cfg, 64)[1], cfg, 64, {})
+    res = L.study("blind=examples.plugin_policy:make", ["step_back"], tmp_path / "o", ["true", L.IMAGINED], 3, 0,
+                  progress=False, fill=tmp_path / "fill")
+    blind = res["tasks"]["step_back"]["blind"]
+    assert blind[L.IMAGINED]["action_gap"] == 0.0
+    assert abs(blind[L.IMAGINED]["predicted_back_m"]["mean"] - blind["true"]["back_m"]["mean"]) < 0.01
+    assert blind[L.IMAGINED]["predicted_success"] == blind["true"]["success"]
+    assert res["imagined_against_true"]["step_back"] == {"pearson": None, "mean_abs_error": 0.0, "policies": 1}
+    with pytest.raises(ValueError, match="step_back"):
+        L.study("blind=examples.plugin_policy:make", ["mug"], tmp_path / "m", [L.IMAGINED], 2, 0, progress=False,
+                fill=tmp_path / "fill")
+
+
 def test_bad_inputs_are_refused(tmp_path):
     with pytest.raises(ValueError, match="FillConfig"):
         W.FillConfig(width=2)
@@ -101,5 +146,14 @@ def test_bad_inputs_are_refused(tmp_path):
         F.manifest_rows(tmp_path, ["mug"], "train")
     with pytest.raises(ValueError, match="unknown tasks"):
         F.main(["--data", str(tmp_path), "--tasks", "dance", "--out", str(tmp_path)])
-    with pytest.raises(ValueError, match="--fill"):
-        L.study("blind=examples.plugin_policy:make", ["step_back"], tmp_path, [L.LEARNED], 2, 0, progress=False)
+    for mode in L.NEEDS_FILL:
+        with pytest.raises(ValueError, match="--fill"):
+            L.study("blind=examples.plugin_policy:make", ["step_back"], tmp_path, [mode], 2, 0, progress=False)
+    cfg = W.FillConfig(width=4, levels=1)
+    W.save_fill(tmp_path / "fill", W.init_fill(cfg, 64)[1], cfg, 64, {})
+    with pytest.raises(FileNotFoundError, match="egomotion.json"):
+        L.study("blind=examples.plugin_policy:make", ["step_back"], tmp_path / "o", [L.EGOMOTION], 2, 0,
+                progress=False, fill=tmp_path / "fill")
+    with pytest.raises(ValueError, match="32-px"):
+        L.study("blind=examples.plugin_policy:make", ["step_back"], tmp_path / "o", [L.LEARNED], 2, 0, size=32,
+                progress=False, fill=tmp_path / "fill")

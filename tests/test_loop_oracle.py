@@ -10,7 +10,7 @@ from PIL import Image
 from experiments import loop_oracle as L
 
 PLUGINS = "blind=examples.plugin_policy:make,look=oracle_probe:make"
-PLAIN = [m for m in L.MODES if m != L.LEARNED]  # the stand-ins that need no trained fill
+PLAIN = [m for m in L.MODES if m not in L.NEEDS_FILL]  # the stand-ins that need no trained fill
 
 # Backs away until the counter's white top fills less than 60% of the share of the frame it filled at the
 # start (a latch in the carry): a policy that reads how far it has come from its camera alone.

@@ -17,6 +17,7 @@ from sim_data.sim.env import HomeEnv
 from sim_data.sim.render import (
     RenderConfig,
     Renderer,
+    camera_poses,
     episode_rgb,
     floor_hits,
     pixel_rays,
@@ -222,6 +223,20 @@ def test_floor_hits_are_where_the_renderer_draws_the_floor():
     up = np.diag([1.0, -1.0, -1.0])[None]  # the camera's -z (its view) along the world's +z
     xy_up, _ = floor_hits(np.array([[0.0, 0.0, 1.0]]), up, 60.0, 8, 8)
     assert (xy_up == 0).all()
+
+
+def test_camera_poses_are_the_engines_own():
+    """The head camera's pose from a state's qpos by camera_poses is the one the cpu engine computed for
+    that state; a camera the model lacks is refused."""
+    env = HomeEnv("step_back", 2, engine="cpu")
+    st = env.reset(jax.random.PRNGKey(7))
+    poses = env.poses(st)
+    cam = mujoco.mj_name2id(env.model, mujoco.mjtObj.mjOBJ_CAMERA, "head_cam")
+    pos, mat = camera_poses(env.model, np.asarray(st.qpos), np.asarray(st.mocap_pos))
+    np.testing.assert_allclose(pos, np.asarray(poses.cam_xpos)[:, cam], atol=1e-5)
+    np.testing.assert_allclose(mat, np.asarray(poses.cam_xmat)[:, cam], atol=1e-5)
+    with pytest.raises(ValueError, match="unknown camera"):
+        camera_poses(env.model, np.asarray(st.qpos), np.asarray(st.mocap_pos), "nose_cam")
 
 
 def test_reprojection_refuses_an_unknown_camera():

@@ -646,6 +646,24 @@ def rides_with_camera(model: mujoco.MjModel, camera: str = HEAD_CAMERA) -> np.nd
     return model.body_rootid[model.geom_bodyid] == root
 
 
+def camera_poses(model: mujoco.MjModel, qpos, mocap_pos, camera: str = HEAD_CAMERA) -> tuple[np.ndarray, np.ndarray]:
+    """(B, 3) positions and (B, 3, 3) world-from-camera rotations of `camera` at states qpos (B, nq) with
+    mocap_pos (B, nmocap, 3), by MuJoCo's C forward kinematics: where a camera is at poses no
+    simulation reached (a predicted base, for instance)."""
+    cam = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
+    if cam < 0:
+        raise ValueError(f"unknown camera {camera!r}")
+    data = mujoco.MjData(model)
+    pos, mat = [], []
+    for q, m in zip(np.asarray(qpos), np.asarray(mocap_pos)):
+        data.qpos[:], data.mocap_pos[:] = q, m
+        mujoco.mj_kinematics(model, data)
+        mujoco.mj_camlight(model, data)
+        pos.append(data.cam_xpos[cam].copy())
+        mat.append(data.cam_xmat[cam].reshape(3, 3).copy())
+    return np.stack(pos), np.stack(mat)
+
+
 def _fill_holes(img: np.ndarray, filled: np.ndarray, passes: int) -> tuple[np.ndarray, np.ndarray]:
     """Each hole takes the mean of its filled 3x3 neighbours, `passes` rings inwards; (B, H, W, 3) float,
     (B, H, W) bool -> the same, updated."""

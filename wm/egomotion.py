@@ -1,0 +1,98 @@
+"""The robot base's motion predicted from the actions alone: how far and which way the camera's carrier
+moves at each step under the driving commands, for an imagination that redraws the scene from the
+camera's predicted pose.
+
+The base's displacement over a control step, in its own frame at the step's start (forward, left,
+turn), follows a first-order model of the commands: d_t = A [d_{t-1}, v_t, w_t, 1], with v_t, w_t
+the forward-speed and yaw-rate commands as applied (`sim_data.sim.robot.FORWARD_SPEED`, `YAW_RATE`)
+and A (3, 6) fit by least squares on recorded episodes (`fit_egomotion`). `roll_base` runs it from a
+start pose, each step fed its own last prediction, never the simulator's.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from sim_data.sim.robot import FORWARD_SPEED, YAW_RATE
+from sim_data.util import read_json, write_json_atomic
+
+EGOMOTION_JSON = "egomotion.json"
+
+
+def _wrap(angle):
+    return (angle + np.pi) % (2 * np.pi) - np.pi
+
+
+def displacements(base: np.ndarray) -> np.ndarray:
+    """(..., T, 3) per-step displacements (forward m, left m, turn rad) of base poses (..., T + 1, 3)
+    (world x, y, yaw), each in the base's frame at the step's start."""
+    base = np.asarray(base, np.float64)
+    dxy = base[..., 1:, :2] - base[..., :-1, :2]
+    yaw = base[..., :-1, 2]
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.stack([c * dxy[..., 0] + s * dxy[..., 1], -s * dxy[..., 0] + c * dxy[..., 1],
+                     _wrap(base[..., 1:, 2] - yaw)], -1)
+
+
+def _regressors(prev: np.ndarray, action: np.ndarray) -> np.ndarray:
+    action = np.asarray(action, np.float64)
+    return np.concatenate([prev, action[..., FORWARD_SPEED:FORWARD_SPEED + 1], action[..., YAW_RATE:YAW_RATE + 1],
+                           np.ones(prev.shape[:-1] + (1,))], -1)
+
+
+def fit_egomotion(bases, actions) -> np.ndarray:
+    """A (3, 6) of the first-order model, fit by least squares on episodes: bases [(T_i + 1, 3)] world
+    base poses, actions [(T_i, 20)] the actions applied (episodes of any lengths)."""
+    xs, ys = [], []
+    for base, action in zip(bases, actions):
+        d = displacements(base)
+        if len(d) != len(action):
+            raise ValueError(f"an episode has {len(base)} base poses and {len(action)} actions; it needs one "
+                             f"pose more than actions")
+        prev = np.concatenate([np.zeros((1, 3)), d[:-1]])
+        xs.append(_regressors(prev, action))
+        ys.append(d)
+    if not xs:
+        raise ValueError("no episodes to fit the base's motion on")
+    coef, *_ = np.linalg.lstsq(np.concatenate(xs), np.concatenate(ys), rcond=None)
+    return coef.T
+
+
+def step_base(coef: np.ndarray, base: np.ndarray, prev: np.ndarray, action: np.ndarray) -> tuple:
+    """One control step of the model: base (B, 3) world pose, prev (B, 3) the last predicted displacement,
+    action (B, 20) -> (the next base pose, its displacement)."""
+    d = _regressors(np.asarray(prev, np.float64), action) @ np.asarray(coef).T
+    yaw = base[:, 2]
+    c, s = np.cos(yaw), np.sin(yaw)
+    moved = np.stack([base[:, 0] + c * d[:, 0] - s * d[:, 1], base[:, 1] + s * d[:, 0] + c * d[:, 1],
+                      _wrap(yaw + d[:, 2])], -1)
+    return moved, d
+
+
+def roll_base(coef: np.ndarray, start: np.ndarray, actions: np.ndarray) -> np.ndarray:
+    """(B, T + 1, 3) base poses predicted from start (B, 3) under actions (B, T, 20), the first the start."""
+    base, prev = np.asarray(start, np.float64), np.zeros((len(start), 3))
+    out = [base]
+    for t in range(actions.shape[1]):
+        base, prev = step_base(coef, base, prev, actions[:, t])
+        out.append(base)
+    return np.stack(out, 1)
+
+
+def save_egomotion(out: Path, coef: np.ndarray, metrics: dict) -> None:
+    """Writes out/egomotion.json: the model's A and the fit's metrics."""
+    write_json_atomic(Path(out) / EGOMOTION_JSON, {"coef": np.asarray(coef).tolist(), "metrics": metrics})
+
+
+def load_egomotion(out: Path) -> np.ndarray:
+    """A (3, 6) saved by save_egomotion in out."""
+    path = Path(out) / EGOMOTION_JSON
+    if not path.exists():
+        raise FileNotFoundError(f"{out} holds no base-motion model ({EGOMOTION_JSON}); fit one with "
+                                f"python -m experiments.fill --out {out}")
+    coef = np.asarray(read_json(path)["coef"], np.float64)
+    if coef.shape != (3, 6):
+        raise ValueError(f"{path}: the model's matrix is {coef.shape}, not (3, 6); fit it again")
+    return coef
