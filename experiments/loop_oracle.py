@@ -274,12 +274,12 @@ def study(policies: str, tasks: list[str], out: Path, modes: list[str], episodes
                              f"with --fill (train one with python -m experiments.fill)")
         fill_net = load_fill(fill)
         egomotion = load_egomotion(fill) if EGOMOTION in modes or IMAGINED in modes else None
-    if IMAGINED in modes and any(t not in PREDICTS for t in tasks):
-        raise ValueError(f"the mode {IMAGINED} predicts the base's motion alone, from which only the success of "
-                         f"{', '.join(PREDICTS)} follows; run it on those tasks")
         if fill_net[3] != size:
             raise ValueError(f"the fill in {fill} draws {fill_net[3]}-px frames; the loops here read {size}-px "
                              f"ones (--size)")
+    if IMAGINED in modes and any(t not in PREDICTS for t in tasks):
+        raise ValueError(f"the mode {IMAGINED} predicts the base's motion alone, from which only the success of "
+                         f"{', '.join(PREDICTS)} follows; run it on those tasks")
     sources = resolve([s for s in policies.split(",") if s])
     path = out / RESULTS
     results = json.loads(path.read_text()) if path.exists() else {}
