@@ -39,7 +39,7 @@ from sim_data.sim.robot import robot_index
 from sim_data.sim.scene import load_model
 from sim_data.sim.tasks import TASK_NAMES
 from sim_data.util import run_cli
-from wm.egomotion import EGOMOTION_JSON, fit_egomotion, roll_base, save_egomotion
+from wm.egomotion import EGOMOTION_JSON, fit_egomotion, fit_joints, roll_base, save_egomotion, step_joints
 from wm.fill import FILL_JSON, FillConfig, filled, hole_l1, save_fill, train_fill
 
 PAIR_KEYS = ("reprojected", "covered", "true", "cam_pos", "cam_mat")
@@ -135,25 +135,38 @@ def validate(net, params, cfg: FillConfig, pairs: dict, fovy: float, batch: int 
             "pairs": len(pairs["covered"])}
 
 
-def recorded_motion(rows: list[dict]) -> tuple[list, list]:
-    """The base's world poses ([(T + 1, 3)] x, y, yaw) and the actions ([(T, 20)]) of the episodes of rows."""
-    base_qpos = robot_index(load_model()).base_qpos
+def recorded_motion(rows: list[dict]) -> tuple[list, list, list]:
+    """The base's world poses ([(T + 1, 3)] x, y, yaw), the actuated joints' positions ([(T + 1, 16)])
+    and the actions ([(T, 20)]) of the episodes of rows."""
+    idx = robot_index(load_model())
     eps = [read_episode(Path(r["path"]), cameras=()) for r in rows]
-    return [e["qpos"][:, base_qpos] for e in eps], [e["action"] for e in eps]
+    return ([e["qpos"][:, idx.base_qpos] for e in eps], [e["qpos"][:, idx.posed_qpos] for e in eps],
+            [e["action"] for e in eps])
 
 
-def fit_and_check_egomotion(train_rows: list[dict], val_rows: list[dict]) -> tuple[np.ndarray, dict]:
-    """wm.egomotion's model fit on train_rows' episodes, and how far from the recorded base its open-loop
-    prediction ends on val_rows' (metres, mean and largest), beside a base that never moves."""
-    coef = fit_egomotion(*recorded_motion(train_rows))
-    bases, actions = recorded_motion(val_rows)
-    end_err, still_err = [], []
-    for base, action in zip(bases, actions):
+def fit_and_check_egomotion(train_rows: list[dict], val_rows: list[dict]) -> tuple[np.ndarray, np.ndarray, dict]:
+    """wm.egomotion's base and joint models fit on train_rows' episodes, and how far from the recorded
+    ones their open-loop predictions are on val_rows': the base at the end (metres, mean and largest,
+    beside a base that never moves), the joints over the episode (radians, mean and largest, beside
+    joints held at their start)."""
+    bases, qs, actions = recorded_motion(train_rows)
+    coef, joints = fit_egomotion(bases, actions), fit_joints(qs, actions)
+    end_err, still_err, joint_err, held_err = [], [], [], []
+    for base, q, action in zip(*recorded_motion(val_rows)):
         pred = roll_base(coef, base[None, 0], action[None])[0]
         end_err.append(float(np.linalg.norm(pred[-1, :2] - base[-1, :2])))
         still_err.append(float(np.linalg.norm(base[0, :2] - base[-1, :2])))
-    return coef, {"val_end_error_m": {"mean": float(np.mean(end_err)), "max": float(np.max(end_err))},
-                  "val_end_error_still_m": float(np.mean(still_err)), "val_episodes": len(val_rows)}
+        now, prev, path = q[None, 0].astype(np.float64), np.zeros((1, q.shape[1])), [q[0]]
+        for t in range(len(action)):
+            now, prev = step_joints(joints, now, prev, action[None, t])
+            path.append(now[0])
+        joint_err.append(np.abs(np.stack(path) - q))
+        held_err.append(np.abs(q - q[:1]))
+    joint_err, held_err = np.concatenate(joint_err), np.concatenate(held_err)
+    return coef, joints, {"val_end_error_m": {"mean": float(np.mean(end_err)), "max": float(np.max(end_err))},
+                          "val_end_error_still_m": float(np.mean(still_err)),
+                          "val_joint_error_rad": {"mean": float(joint_err.mean()), "max": float(joint_err.max())},
+                          "val_joint_error_held_rad": float(held_err.mean()), "val_episodes": len(val_rows)}
 
 
 def main(argv=None) -> int:
@@ -180,10 +193,12 @@ def main(argv=None) -> int:
     data = [Path(d) for d in a.data.split(",") if d]
     if not (a.out / EGOMOTION_JSON).exists():
         rows = {split: [r for d in data for r in manifest_rows(d, tasks, split)] for split in ("train", "val")}
-        coef, check = fit_and_check_egomotion(rows["train"], rows["val"])
-        save_egomotion(a.out, coef, {**check, "data": a.data, "tasks": tasks})
+        coef, joints, check = fit_and_check_egomotion(rows["train"], rows["val"])
+        save_egomotion(a.out, coef, {**check, "data": a.data, "tasks": tasks}, joints)
         print(f"base motion: open loop over a validation episode ends {check['val_end_error_m']['mean']:.3f} m "
-              f"from the recorded base (a still base: {check['val_end_error_still_m']:.3f} m)")
+              f"from the recorded base (a still base: {check['val_end_error_still_m']:.3f} m); joints "
+              f"{check['val_joint_error_rad']['mean']:.4f} rad from the recorded ones (held: "
+              f"{check['val_joint_error_held_rad']:.4f})")
     if (a.out / FILL_JSON).exists():
         print(f"{a.out / FILL_JSON} exists: the fill is trained (remove it to train again)")
         return 0

@@ -19,8 +19,9 @@ world model gets wrong, with the simulator's own state and camera:
   under the driving commands puts it (`wm.egomotion`, fit beside the fill), run open loop from the
   first state on the actions the policy took, the joints as the simulator has them: the frames of an
   imagination whose camera moves as the actions say;
-- `imagined`: the same with nothing of the simulator after the first state: the joints and the objects
-  held where they were, the policy's proprioception the first state's, and the success predicted from
+- `imagined`: the same with nothing of the simulator after the first state: the actuated joints where
+  a model of their motion under their targets puts them (`wm.egomotion` too), the objects held where
+  they were, the policy's proprioception the first state's, and the success predicted from
   the base's predicted motion by the task's rule (step_back only: the band of distance backed; a hit on
   the stool is not predicted); the simulator runs beside it only to say what the same actions truly do.
   A world model for step_back made of the first frame's depth, the base-motion model and the fill;
@@ -82,7 +83,7 @@ from sim_data.sim.robot import FORWARD_SPEED
 from sim_data.sim.rollout import jitted_act, jitted_init
 from sim_data.sim.tasks import STEP_BACK_BAND, TASK_NAMES, backward_distance
 from sim_data.util import run_cli, wilson_interval, write_json_atomic
-from wm.egomotion import load_egomotion, step_base
+from wm.egomotion import load_egomotion, step_base, step_joints
 from wm.fill import filled, load_fill
 from wm.metrics import psnr as frame_psnr
 from wm.model import block_flow, warp
@@ -156,7 +157,7 @@ def run_loop(task: str, source, mode: str, reset_keys: np.ndarray, rng: jax.Arra
              fill=None, egomotion=None) -> dict:
     """One closed loop of `source` (a registry PolicySource) on `task` from reset_keys (B, 2), reading the
     frames of `mode` (size x size pixels; fill: load_fill's tuple, for the learned fills; egomotion:
-    load_egomotion's matrix, for egomotion_fill_learned), the policy run and seeded as the evaluator runs it in the simulator (its chunk of one, salted by its name; rng split as `record_episodes` splits it). Returns
+    load_egomotion's (base, joints) models, for egomotion_fill_learned and imagined), the policy run and seeded as the evaluator runs it in the simulator (its chunk of one, salted by its name; rng split as `record_episodes` splits it). Returns
     per-episode arrays: success (B,), back (B,) m, forward (B,) the applied forward command summed,
     (imagined only) predicted_success (B,) and predicted_back (B,) m from the imagined base,
     actions (B, T, 20), psnr (B, T) of the frames read; and "strip", the first episode's true and read
@@ -171,8 +172,9 @@ def run_loop(task: str, source, mode: str, reset_keys: np.ndarray, rng: jax.Arra
     carry = jitted_init(policy)(params, obs, state.task, k_pol)
     act = jitted_act(policy)
     prev_true = prev_shown = first["rgb"]
-    base_qpos = env.idx.robot.base_qpos
+    base_qpos, posed_qpos = env.idx.robot.base_qpos, env.idx.robot.posed_qpos
     base, moved = np.asarray(state.qpos)[:, base_qpos].astype(np.float64), np.zeros((len(reset_keys), 3))
+    joints, turned = np.asarray(state.qpos)[:, posed_qpos].astype(np.float64), np.zeros((len(reset_keys), len(posed_qpos)))
     actions, psnr, strip = [], [], []
     filmed = set(np.linspace(0, env.episode_steps - 1, STRIP_FRAMES).round().astype(int).tolist())
     for t in range(env.episode_steps):
@@ -183,10 +185,14 @@ def run_loop(task: str, source, mode: str, reset_keys: np.ndarray, rng: jax.Arra
         now = camera.draw(state)
         seen = now
         if mode in (EGOMOTION, IMAGINED):
-            base, moved = step_base(egomotion, base, moved, np.asarray(action))
+            base_model, joint_model = egomotion
+            base, moved = step_base(base_model, base, moved, np.asarray(action))
             held = mode == IMAGINED
             qpos = np.array(start.qpos if held else state.qpos)
             qpos[:, base_qpos] = base
+            if held:
+                joints, turned = step_joints(joint_model, joints, turned, np.asarray(action))
+                qpos[:, posed_qpos] = joints
             mocap = start.mocap_pos if held else state.mocap_pos
             seen = {**now, **dict(zip(("pos", "mat"), camera_poses(env.model, qpos, mocap)))}
         shown = shown_frame(mode, first, seen, prev_true, prev_shown, camera.fovy, fill)
@@ -273,7 +279,7 @@ def study(policies: str, tasks: list[str], out: Path, modes: list[str], episodes
             raise ValueError(f"the modes {', '.join(NEEDS_FILL)} draw with a trained fill: name its directory "
                              f"with --fill (train one with python -m experiments.fill)")
         fill_net = load_fill(fill)
-        egomotion = load_egomotion(fill) if EGOMOTION in modes or IMAGINED in modes else None
+        egomotion = load_egomotion(fill, joints=True) if EGOMOTION in modes or IMAGINED in modes else None
         if fill_net[3] != size:
             raise ValueError(f"the fill in {fill} draws {fill_net[3]}-px frames; the loops here read {size}-px "
                              f"ones (--size)")

@@ -49,3 +49,36 @@ def test_a_saved_model_reads_back_and_bad_inputs_are_refused(tmp_path):
         E.fit_egomotion([np.zeros((5, 3))], [np.zeros((5, ACTION_DIM))])
     with pytest.raises(ValueError, match="no episodes"):
         E.fit_egomotion([], [])
+
+
+def test_the_joints_model_recovers_a_lagged_servo():
+    """Joints driven toward random targets by dq = 0.4 (u - q) + 0.3 dq_prev (+ 0.01 on the last): the fit
+    finds those coefficients and step_joints replays the joints from their start alone."""
+    rng = np.random.default_rng(2)
+    true = np.tile([0.4, 0.3, 0.0], (E.JOINTS, 1))
+    true[-1, 2] = 0.01
+    qs, actions = [], []
+    for _ in range(3):
+        u = np.zeros((60, ACTION_DIM))
+        u[:, :E.JOINTS] = np.repeat(rng.uniform(-1, 1, (4, E.JOINTS)), 15, axis=0)  # a new target every 15 steps
+        q, prev, path = rng.uniform(-1, 1, (1, E.JOINTS)), np.zeros((1, E.JOINTS)), []
+        path.append(q[0])
+        for t in range(60):
+            q, prev = E.step_joints(true, q, prev, u[None, t])
+            path.append(q[0])
+        qs.append(np.stack(path))
+        actions.append(u)
+    coef = E.fit_joints(qs, actions)
+    np.testing.assert_allclose(coef, true, atol=1e-8)
+    with pytest.raises(ValueError, match="one state"):
+        E.fit_joints([qs[0][:-1]], [actions[0]])
+
+
+def test_a_model_without_joints_is_refused_where_they_are_needed(tmp_path):
+    E.save_egomotion(tmp_path, TRUE_A, {})
+    with pytest.raises(ValueError, match="joints"):
+        E.load_egomotion(tmp_path, joints=True)
+    E.save_egomotion(tmp_path, TRUE_A, {}, np.zeros((E.JOINTS, 3)))
+    base, joints = E.load_egomotion(tmp_path, joints=True)
+    np.testing.assert_array_equal(base, TRUE_A)
+    np.testing.assert_array_equal(joints, 0.0)

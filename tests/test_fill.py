@@ -96,8 +96,9 @@ def test_replayed_pairs_are_the_recorded_frames(smoke_dataset, tmp_path):
 
 
 def _drives(steps=100, seed=0):
-    """The base's poses (B, T + 1, 3) and actions (B, T, 20) of step_back episodes in MuJoCo's C engine,
-    each a drive at a random speed and turn for a random time, then a stop."""
+    """The base's poses (B, T + 1, 3), the actuated joints' positions (B, T + 1, 16) and the actions
+    (B, T, 20) of step_back episodes in MuJoCo's C engine, each a drive at a random speed and turn for a
+    random time, then a stop."""
     env = HomeEnv("step_back", 4, engine="cpu")
     state = env.reset(jax.random.PRNGKey(seed))
     rng = np.random.default_rng(seed)
@@ -106,11 +107,12 @@ def _drives(steps=100, seed=0):
     actions[..., FORWARD_SPEED] = rng.uniform(-0.5, 0.5, (4, 1)) * moving
     actions[..., YAW_RATE] = rng.uniform(-0.3, 0.3, (4, 1)) * moving
     actions = np.asarray(env.core.applied(actions.reshape(-1, 20))).reshape(actions.shape)
-    bases = [np.asarray(state.qpos)[:, env.idx.robot.base_qpos]]
+    qpos = [np.asarray(state.qpos)]
     for t in range(steps):
         state = env.step(state, actions[:, t])
-        bases.append(np.asarray(state.qpos)[:, env.idx.robot.base_qpos])
-    return np.stack(bases, 1), actions
+        qpos.append(np.asarray(state.qpos))
+    qpos = np.stack(qpos, 1)
+    return qpos[..., env.idx.robot.base_qpos], qpos[..., env.idx.robot.posed_qpos], actions
 
 
 @pytest.mark.slow  # random drives and two closed loops of a plug-in with the camera drawn (30-60 s on 2 cores)
@@ -119,8 +121,9 @@ def test_the_imagined_loop_predicts_a_drive_from_its_actions_alone(tmp_path):
     its camera) predicts where the simulator puts it to a centimetre, and so its success; the rates
     against the true loop's land in imagined_against_true; tasks whose success the base's motion does
     not decide are refused."""
-    bases, actions = _drives()
-    E.save_egomotion(tmp_path / "fill", E.fit_egomotion(list(bases), list(actions)), {})
+    bases, qs, actions = _drives()
+    E.save_egomotion(tmp_path / "fill", E.fit_egomotion(list(bases), list(actions)), {},
+                     E.fit_joints(list(qs), list(actions)))
     cfg = W.FillConfig(width=4, levels=1)
     W.save_fill(tmp_path / "fill", W.init_fill(cfg, 64)[1], cfg, 64, {})
     res = L.study("blind=examples.plugin_policy:make", ["step_back"], tmp_path / "o", ["true", L.IMAGINED], 3, 0,

@@ -1,12 +1,16 @@
-"""The robot base's motion predicted from the actions alone: how far and which way the camera's carrier
-moves at each step under the driving commands, for an imagination that redraws the scene from the
-camera's predicted pose.
+"""The robot's own motion predicted from the actions alone: how far and which way the camera's carrier
+moves at each step under the driving commands, and where the position-controlled joints (the neck
+that carries the camera among them) go under their targets, for an imagination that redraws the
+scene from the camera's predicted pose.
 
 The base's displacement over a control step, in its own frame at the step's start (forward, left,
 turn), follows a first-order model of the commands: d_t = A [d_{t-1}, v_t, w_t, 1], with v_t, w_t
 the forward-speed and yaw-rate commands as applied (`sim_data.sim.robot.FORWARD_SPEED`, `YAW_RATE`)
 and A (3, 6) fit by least squares on recorded episodes (`fit_egomotion`). `roll_base` runs it from a
-start pose, each step fed its own last prediction, never the simulator's.
+start pose, each step fed its own last prediction, never the simulator's. Each actuated joint j
+(the action's first 16 entries are their targets, in `sim_data.sim.robot.ACTION_NAMES`' order, the
+order of `RobotIndex.posed_qpos`) moves as dq_t = a_j (u_t - q_t) + b_j dq_{t-1} + c_j
+(`fit_joints`, `step_joints`).
 """
 
 from __future__ import annotations
@@ -81,18 +85,56 @@ def roll_base(coef: np.ndarray, start: np.ndarray, actions: np.ndarray) -> np.nd
     return np.stack(out, 1)
 
 
-def save_egomotion(out: Path, coef: np.ndarray, metrics: dict) -> None:
-    """Writes out/egomotion.json: the model's A and the fit's metrics."""
-    write_json_atomic(Path(out) / EGOMOTION_JSON, {"coef": np.asarray(coef).tolist(), "metrics": metrics})
+JOINTS = 16  # the actuated joints whose targets lead the action vector
 
 
-def load_egomotion(out: Path) -> np.ndarray:
-    """A (3, 6) saved by save_egomotion in out."""
+def fit_joints(qs, actions) -> np.ndarray:
+    """(16, 3) per joint (a, b, c) of dq_t = a (u_t - q_t) + b dq_{t-1} + c, by least squares on episodes:
+    qs [(T_i + 1, 16)] the actuated joints' positions, actions [(T_i, 20)] as applied."""
+    rows, ys = [], []
+    for q, action in zip(qs, actions):
+        q, u = np.asarray(q, np.float64), np.asarray(action, np.float64)[:, :JOINTS]
+        if len(q) != len(u) + 1:
+            raise ValueError(f"an episode has {len(q)} joint states and {len(u)} actions; it needs one state "
+                             f"more than actions")
+        dq = np.diff(q, axis=0)
+        prev = np.concatenate([np.zeros((1, JOINTS)), dq[:-1]])
+        rows.append(np.stack([u - q[:-1], prev, np.ones_like(prev)], -1))
+        ys.append(dq)
+    if not rows:
+        raise ValueError("no episodes to fit the joints' motion on")
+    x, y = np.concatenate(rows), np.concatenate(ys)
+    return np.stack([np.linalg.lstsq(x[:, j], y[:, j], rcond=None)[0] for j in range(JOINTS)])
+
+
+def step_joints(coef: np.ndarray, q: np.ndarray, prev: np.ndarray, action: np.ndarray) -> tuple:
+    """One control step of the joints' model: q, prev (B, 16) positions and last predicted change, action
+    (B, 20) -> (the next positions, their change)."""
+    a, b, c = np.asarray(coef).T
+    dq = a * (np.asarray(action, np.float64)[:, :JOINTS] - q) + b * prev + c
+    return q + dq, dq
+
+
+def save_egomotion(out: Path, coef: np.ndarray, metrics: dict, joints: np.ndarray | None = None) -> None:
+    """Writes out/egomotion.json: the base model's A, the joints' (a, b, c) where given, and the fit's
+    metrics."""
+    write_json_atomic(Path(out) / EGOMOTION_JSON, {"coef": np.asarray(coef).tolist(), "metrics": metrics,
+                                                   "joints": None if joints is None else np.asarray(joints).tolist()})
+
+
+def load_egomotion(out: Path, joints: bool = False):
+    """A (3, 6) saved by save_egomotion in out; with joints, (A, the joints' (16, 3))."""
     path = Path(out) / EGOMOTION_JSON
     if not path.exists():
         raise FileNotFoundError(f"{out} holds no base-motion model ({EGOMOTION_JSON}); fit one with "
                                 f"python -m experiments.fill --out {out}")
-    coef = np.asarray(read_json(path)["coef"], np.float64)
+    meta = read_json(path)
+    coef = np.asarray(meta["coef"], np.float64)
     if coef.shape != (3, 6):
         raise ValueError(f"{path}: the model's matrix is {coef.shape}, not (3, 6); fit it again")
-    return coef
+    if not joints:
+        return coef
+    if meta.get("joints") is None:
+        raise ValueError(f"{path} holds no model of the joints' motion; remove it and run python -m "
+                         f"experiments.fill --out {Path(out)} again")
+    return coef, np.asarray(meta["joints"], np.float64)
