@@ -9,7 +9,6 @@ from sim_data.bench.render_check import (
     ID_TARGET,
     compare,
     mujoco_reference,
-    poses_of,
     random_states,
 )
 from sim_data.sim import scene as S
@@ -22,6 +21,7 @@ from sim_data.sim.render import (
     floor_hits,
     pixel_rays,
     poses_from_arrays,
+    poses_of,
     reproject,
     rides_with_camera,
 )

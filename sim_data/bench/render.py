@@ -25,10 +25,10 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from sim_data.bench.render_check import poses_of, random_states
+from sim_data.bench.render_check import random_states
 from sim_data.sim import scene as S
 from sim_data.sim.env import HomeEnv
-from sim_data.sim.render import HEAD_CAMERA, Poses, RenderConfig, Renderer, episode_rgb
+from sim_data.sim.render import HEAD_CAMERA, Poses, RenderConfig, Renderer, episode_rgb, poses_of
 from sim_data.sim.tasks import TASK_NAMES
 from sim_data.util import device_name, run_cli, write_json_atomic
 

@@ -21,11 +21,10 @@ from sim_data.sim import scene as S
 from sim_data.sim.env import HomeEnv
 from sim_data.sim.render import (
     CAMERAS,
-    Poses,
     RenderConfig,
     Renderer,
     episode_rgb,
-    poses_from_arrays,
+    poses_of,
 )
 from sim_data.sim.rollout import run_episodes
 from sim_data.sim.tasks import TASK_NAMES
@@ -59,19 +58,6 @@ def random_states(task: str, n: int, seed: int = 0, heldout: bool = False):
     lo, hi = idx.action_low[:16], idx.action_high[:16]
     qpos[:, idx.posed_qpos] = rng.uniform(lo, hi, (n, 16))
     return qpos, np.asarray(st.mocap_pos), np.asarray(st.task.colors)
-
-
-def poses_of(model: mujoco.MjModel, qpos: np.ndarray, mocap_pos: np.ndarray) -> Poses:
-    """Poses (B, ...) by MuJoCo's C forward kinematics of each state."""
-    data = mujoco.MjData(model)
-    out = {k: [] for k in ("geom_xpos", "geom_xmat", "cam_xpos", "cam_xmat")}
-    for q, mp in zip(qpos, mocap_pos):
-        data.qpos[:], data.mocap_pos[:] = q, mp
-        mujoco.mj_kinematics(model, data)
-        mujoco.mj_camlight(model, data)
-        for k in out:
-            out[k].append(getattr(data, k).copy())
-    return poses_from_arrays(*(np.stack(out[k]) for k in out))
 
 
 def mujoco_reference(model: mujoco.MjModel, qpos, mocap_pos, camera: str, height: int, width: int):

@@ -646,22 +646,28 @@ def rides_with_camera(model: mujoco.MjModel, camera: str = HEAD_CAMERA) -> np.nd
     return model.body_rootid[model.geom_bodyid] == root
 
 
+def poses_of(model: mujoco.MjModel, qpos, mocap_pos) -> Poses:
+    """Poses (B, ...) of states qpos (B, nq) with mocap_pos (B, nmocap, 3), by MuJoCo's C forward
+    kinematics: where everything is at states no simulation reached (a predicted robot, for instance)."""
+    data = mujoco.MjData(model)
+    out = {k: [] for k in ("geom_xpos", "geom_xmat", "cam_xpos", "cam_xmat")}
+    for q, mp in zip(np.asarray(qpos), np.asarray(mocap_pos)):
+        data.qpos[:], data.mocap_pos[:] = q, mp
+        mujoco.mj_kinematics(model, data)
+        mujoco.mj_camlight(model, data)
+        for k in out:
+            out[k].append(getattr(data, k).copy())
+    return poses_from_arrays(*(np.stack(out[k]) for k in out))
+
+
 def camera_poses(model: mujoco.MjModel, qpos, mocap_pos, camera: str = HEAD_CAMERA) -> tuple[np.ndarray, np.ndarray]:
     """(B, 3) positions and (B, 3, 3) world-from-camera rotations of `camera` at states qpos (B, nq) with
-    mocap_pos (B, nmocap, 3), by MuJoCo's C forward kinematics: where a camera is at poses no
-    simulation reached (a predicted base, for instance)."""
+    mocap_pos (B, nmocap, 3) (poses_of)."""
     cam = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
     if cam < 0:
         raise ValueError(f"unknown camera {camera!r}")
-    data = mujoco.MjData(model)
-    pos, mat = [], []
-    for q, m in zip(np.asarray(qpos), np.asarray(mocap_pos)):
-        data.qpos[:], data.mocap_pos[:] = q, m
-        mujoco.mj_kinematics(model, data)
-        mujoco.mj_camlight(model, data)
-        pos.append(data.cam_xpos[cam].copy())
-        mat.append(data.cam_xmat[cam].reshape(3, 3).copy())
-    return np.stack(pos), np.stack(mat)
+    poses = poses_of(model, qpos, mocap_pos)
+    return np.asarray(poses.cam_xpos[:, cam]), np.asarray(poses.cam_xmat[:, cam])
 
 
 def _fill_holes(img: np.ndarray, filled: np.ndarray, passes: int) -> tuple[np.ndarray, np.ndarray]:
