@@ -25,6 +25,9 @@ world model gets wrong, with the simulator's own state and camera:
   the base's predicted motion by the task's rule (step_back only: the band of distance backed; a hit on
   the stool is not predicted); the simulator runs beside it only to say what the same actions truly do.
   A world model for step_back made of the first frame's depth, the base-motion model and the fill;
+- `imagined_body`: the same with the robot's own body drawn at its predicted joints (the renderer's
+  drawing of the robot's geoms alone, as its model gives their shapes) where the first frame's drawing
+  of it was, what that drawing hid left to the fill;
 - `flow_chain`: each frame shown warped from the last one shown by the true frames' motion, block
   matched on 8x8 cells (`wm.model.block_flow`, `wm.model.warp`): the world model's own warp, given
   the true motion of every step;
@@ -38,8 +41,8 @@ command summed over the episode (as applied), the RMS gap of the actions from th
 each step (mean over the episode), and the PSNR of the frames read against the simulator's frame of
 the same state (steps 1-8 and the episode's second half); and OUT/frames/<task>/<policy>_<mode>.png,
 the first episode's true frames above those read, at five steps from the first to the last; with the
-`imagined` mode, its predicted success beside the true loop's, per policy and per task (Pearson r and
-mean absolute error over the policies, `imagined_against_true`). The same
+`imagined` modes, their predicted success beside the true loop's, per policy and per task (Pearson r
+and mean absolute error over the policies, `imagined_against_true`). The same
 command resumes: a (task, policy, mode) already in the file is kept. The `cpu` engine (MuJoCo's C
 engine), on any machine.
 
@@ -76,6 +79,7 @@ from sim_data.sim.render import (
     camera_poses,
     episode_rgb,
     poses_from_arrays,
+    poses_of,
     reproject,
     rides_with_camera,
 )
@@ -89,10 +93,11 @@ from wm.metrics import psnr as frame_psnr
 from wm.model import block_flow, warp
 
 MODES = ("true", "still", "reproject", "reproject_fill_true", "reproject_fill_learned", "egomotion_fill_learned",
-         "imagined", "flow_chain", "flow_anchor")
-LEARNED, EGOMOTION, IMAGINED = "reproject_fill_learned", "egomotion_fill_learned", "imagined"
-NEEDS_FILL = (LEARNED, EGOMOTION, IMAGINED)  # the modes that draw with a trained fill (--fill)
-PREDICTS = ("step_back",)  # the tasks whose success follows from the base's motion alone (IMAGINED)
+         "imagined", "imagined_body", "flow_chain", "flow_anchor")
+LEARNED, EGOMOTION, IMAGINED, BODY = "reproject_fill_learned", "egomotion_fill_learned", "imagined", "imagined_body"
+NEEDS_FILL = (LEARNED, EGOMOTION, IMAGINED, BODY)  # the modes that draw with a trained fill (--fill)
+PREDICTED = (IMAGINED, BODY)  # the modes that predict the robot's motion and the success
+PREDICTS = ("step_back",)  # the tasks whose success follows from the base's motion alone (PREDICTED)
 FLOW_RADIUS = 4
 ANCHOR_RADIUS = 8  # the match from the first frame searches twice a step's radius: its motion accumulates
 RESULTS = "loop_oracle.json"
@@ -113,7 +118,10 @@ class Camera:
         self.rgb = episode_rgb(geo, colors)
 
     def draw(self, state) -> dict:
-        poses = poses_from_arrays(**CpuEngine.poses(state.physics))
+        return self.draw_poses(poses_from_arrays(**CpuEngine.poses(state.physics)))
+
+    def draw_poses(self, poses) -> dict:
+        """The same drawing at any Poses (B, ...): where a predicted robot would be, for instance."""
         out = {k: np.asarray(v) for k, v in self.renderer.render(poses, self.rgb).items()}
         out["rides"] = self.rides[np.clip(out["geom_id"], 0, None)] & (out["geom_id"] >= 0)
         out["pos"], out["mat"] = np.asarray(poses.cam_xpos[:, self.cam]), np.asarray(poses.cam_xmat[:, self.cam])
@@ -141,10 +149,11 @@ def shown_frame(mode: str, first: dict, now: dict, prev_true, prev_shown, fovy: 
         return first["rgb"]
     if mode in ("reproject", "reproject_fill_true", *NEEDS_FILL):
         frame, covered = reproject(first["rgb"], first["depth"], first["rides"], first["pos"], first["mat"],
-                                   now["pos"], now["mat"], fovy)
+                                   now["pos"], now["mat"], fovy, keep_rides=mode != BODY)
         if mode in NEEDS_FILL:
             net, params, cfg, _ = fill
-            return filled(net, params, cfg, frame, covered, now["pos"], now["mat"], fovy)
+            frame = filled(net, params, cfg, frame, covered, now["pos"], now["mat"], fovy)
+            return np.where(now["rides"][..., None], now["rgb"], frame) if mode == BODY else frame
         return frame if mode == "reproject" else np.where(covered[..., None], frame, now["rgb"])
     if mode in ("flow_chain", "flow_anchor"):
         src, frm, radius = ((prev_shown, prev_true, FLOW_RADIUS) if mode == "flow_chain"
@@ -184,28 +193,29 @@ def run_loop(task: str, source, mode: str, reset_keys: np.ndarray, rng: jax.Arra
         state = env.step(state, action)
         now = camera.draw(state)
         seen = now
-        if mode in (EGOMOTION, IMAGINED):
+        if mode in (EGOMOTION, *PREDICTED):
             base_model, joint_model = egomotion
             base, moved = step_base(base_model, base, moved, np.asarray(action))
-            held = mode == IMAGINED
+            held = mode in PREDICTED
             qpos = np.array(start.qpos if held else state.qpos)
             qpos[:, base_qpos] = base
             if held:
                 joints, turned = step_joints(joint_model, joints, turned, np.asarray(action))
                 qpos[:, posed_qpos] = joints
             mocap = start.mocap_pos if held else state.mocap_pos
-            seen = {**now, **dict(zip(("pos", "mat"), camera_poses(env.model, qpos, mocap)))}
+            seen = (camera.draw_poses(poses_of(env.model, qpos, mocap)) if mode == BODY
+                    else {**now, **dict(zip(("pos", "mat"), camera_poses(env.model, qpos, mocap)))})
         shown = shown_frame(mode, first, seen, prev_true, prev_shown, camera.fovy, fill)
         psnr.append(np.minimum(frame_psnr(shown, now["rgb"]), PSNR_EQUAL))
         if t in filmed:
             strip.append(np.concatenate([now["rgb"][0], shown[0]], axis=0))
         prev_true, prev_shown = now["rgb"], shown
         obs = {**state.obs, "image": jnp.asarray(shown)}
-        if mode == IMAGINED:
+        if mode in PREDICTED:
             obs["proprio"] = start.obs["proprio"]
     actions = np.stack(actions, axis=1)
     predicted = {}
-    if mode == IMAGINED:
+    if mode in PREDICTED:
         back = np.asarray(backward_distance(start.task, qpos, env.idx))
         predicted = {"predicted_back": back,
                      "predicted_success": (back >= STEP_BACK_BAND[0]) & (back <= STEP_BACK_BAND[1])}
@@ -246,17 +256,20 @@ def summary(res: dict, reference: dict | None) -> dict:
 
 
 def imagined_against_true(results: dict) -> dict:
-    """Per task, the imagined mode's predicted success rates against the true loop's over the policies
-    that have both: Pearson r (None where either side is constant), mean absolute error, policies."""
+    """Per task and predicting mode (PREDICTED), its predicted success rates against the true loop's over
+    the policies that have both: Pearson r (None where either side is constant), mean absolute error,
+    policies."""
     out = {}
     for task, pols in results.get("tasks", {}).items():
-        pairs = [(v[IMAGINED]["predicted_success"], v["true"]["success"]) for v in pols.values()
-                 if IMAGINED in v and "true" in v]
-        if not pairs:
-            continue
-        pred, true = np.array(pairs).T
-        r = float(np.corrcoef(pred, true)[0, 1]) if len(pairs) > 1 and pred.std() > 0 and true.std() > 0 else None
-        out[task] = {"pearson": r, "mean_abs_error": float(np.abs(pred - true).mean()), "policies": len(pairs)}
+        for mode in PREDICTED:
+            pairs = [(v[mode]["predicted_success"], v["true"]["success"]) for v in pols.values()
+                     if mode in v and "true" in v]
+            if not pairs:
+                continue
+            pred, true = np.array(pairs).T
+            r = float(np.corrcoef(pred, true)[0, 1]) if len(pairs) > 1 and pred.std() > 0 and true.std() > 0 else None
+            out.setdefault(task, {})[mode] = {"pearson": r, "mean_abs_error": float(np.abs(pred - true).mean()),
+                                              "policies": len(pairs)}
     return out
 
 
@@ -279,12 +292,12 @@ def study(policies: str, tasks: list[str], out: Path, modes: list[str], episodes
             raise ValueError(f"the modes {', '.join(NEEDS_FILL)} draw with a trained fill: name its directory "
                              f"with --fill (train one with python -m experiments.fill)")
         fill_net = load_fill(fill)
-        egomotion = load_egomotion(fill, joints=True) if EGOMOTION in modes or IMAGINED in modes else None
+        egomotion = load_egomotion(fill, joints=True) if any(m in (EGOMOTION, *PREDICTED) for m in modes) else None
         if fill_net[3] != size:
             raise ValueError(f"the fill in {fill} draws {fill_net[3]}-px frames; the loops here read {size}-px "
                              f"ones (--size)")
-    if IMAGINED in modes and any(t not in PREDICTS for t in tasks):
-        raise ValueError(f"the mode {IMAGINED} predicts the base's motion alone, from which only the success of "
+    if any(m in PREDICTED for m in modes) and any(t not in PREDICTS for t in tasks):
+        raise ValueError(f"the modes {', '.join(PREDICTED)} predict the base's motion alone, from which only the success of "
                          f"{', '.join(PREDICTS)} follows; run it on those tasks")
     sources = resolve([s for s in policies.split(",") if s])
     path = out / RESULTS
@@ -316,7 +329,7 @@ def study(policies: str, tasks: list[str], out: Path, modes: list[str], episodes
             done[mode] = summary(res, None if mode == "true" else reference)
             if mode in NEEDS_FILL:
                 done[mode]["fill"] = str(fill)
-            if IMAGINED in modes:
+            if any(m in PREDICTED for m in modes):
                 results["imagined_against_true"] = imagined_against_true(results)
             write_json_atomic(path, results)
             bar.update(1)
@@ -346,13 +359,15 @@ def main(argv=None) -> int:
     for task, pols in res["tasks"].items():
         for name, by_mode in pols.items():
             line = "  ".join(f"{m} {v['success']:.2f} ({v['back_m']['mean']:+.2f} m)" for m, v in by_mode.items())
-            if IMAGINED in by_mode:
-                line += f"  predicted {by_mode[IMAGINED]['predicted_success']:.2f}"
+            for mode in PREDICTED:
+                if mode in by_mode:
+                    line += f"  {mode} predicted {by_mode[mode]['predicted_success']:.2f}"
             print(f"{task:10s} {name:42s} {line}")
-    for task, fit in res.get("imagined_against_true", {}).items():
-        r = "undefined" if fit["pearson"] is None else f"{fit['pearson']:.3f}"
-        print(f"{task}: imagined against true success over {fit['policies']} policies: Pearson {r}, "
-              f"mean |error| {fit['mean_abs_error']:.3f}")
+    for task, by_mode in res.get("imagined_against_true", {}).items():
+        for mode, fit in by_mode.items():
+            r = "undefined" if fit["pearson"] is None else f"{fit['pearson']:.3f}"
+            print(f"{task}: {mode}'s predicted against true success over {fit['policies']} policies: Pearson {r}, "
+                  f"mean |error| {fit['mean_abs_error']:.3f}")
     return 0
 
 

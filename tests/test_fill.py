@@ -126,13 +126,15 @@ def test_the_imagined_loop_predicts_a_drive_from_its_actions_alone(tmp_path):
                      E.fit_joints(list(qs), list(actions)))
     cfg = W.FillConfig(width=4, levels=1)
     W.save_fill(tmp_path / "fill", W.init_fill(cfg, 64)[1], cfg, 64, {})
-    res = L.study("blind=examples.plugin_policy:make", ["step_back"], tmp_path / "o", ["true", L.IMAGINED], 3, 0,
+    res = L.study("blind=examples.plugin_policy:make", ["step_back"], tmp_path / "o", ["true", *L.PREDICTED], 3, 0,
                   progress=False, fill=tmp_path / "fill")
     blind = res["tasks"]["step_back"]["blind"]
-    assert blind[L.IMAGINED]["action_gap"] == 0.0
-    assert abs(blind[L.IMAGINED]["predicted_back_m"]["mean"] - blind["true"]["back_m"]["mean"]) < 0.01
-    assert blind[L.IMAGINED]["predicted_success"] == blind["true"]["success"]
-    assert res["imagined_against_true"]["step_back"] == {"pearson": None, "mean_abs_error": 0.0, "policies": 1}
+    for mode in L.PREDICTED:
+        assert blind[mode]["action_gap"] == 0.0
+        assert abs(blind[mode]["predicted_back_m"]["mean"] - blind["true"]["back_m"]["mean"]) < 0.01
+        assert blind[mode]["predicted_success"] == blind["true"]["success"]
+        assert res["imagined_against_true"]["step_back"][mode] == {"pearson": None, "mean_abs_error": 0.0,
+                                                                   "policies": 1}
     with pytest.raises(ValueError, match="step_back"):
         L.study("blind=examples.plugin_policy:make", ["mug"], tmp_path / "m", [L.IMAGINED], 2, 0, progress=False,
                 fill=tmp_path / "fill")

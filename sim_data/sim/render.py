@@ -710,12 +710,14 @@ def floor_hits(cam_pos, cam_mat, fovy_deg: float, h: int, w: int) -> tuple[np.nd
     return xy, ray
 
 
-def reproject(rgb, depth, rides, cam_pos0, cam_mat0, cam_pos, cam_mat, fovy_deg: float, fill: int = 8):
+def reproject(rgb, depth, rides, cam_pos0, cam_mat0, cam_pos, cam_mat, fovy_deg: float, fill: int = 8,
+              keep_rides: bool = True):
     """Frames redrawn at new camera poses from frames drawn at others, through their depth: each pixel's
     point is carried into the new camera (the nearest wins a pixel) and the pixels that nothing lands on
     take their neighbours' colour (`fill` rings), the rest the frame's mean. Pixels that ride with the
-    camera stay where they were. What an imagination that moves the camera over a still scene can
-    show at best from one frame: parallax right, new views of what the frame hid only guessed.
+    camera stay where they were (keep_rides), or are left out, for a drawing of the camera's carrier
+    at its new pose to take their place. What an imagination that moves the camera over a still scene
+    can show at best from one frame: parallax right, new views of what the frame hid only guessed.
 
     rgb (B, H, W, 3) uint8; depth (B, H, W) float metres along the camera axis (the renderer's);
     rides (B, H, W) bool; cam_pos0, cam_pos (B, 3) and cam_mat0, cam_mat (B, 3, 3) world-from-camera
@@ -734,7 +736,7 @@ def reproject(rgb, depth, rides, cam_pos0, cam_mat0, cam_pos, cam_mat, fovy_deg:
     rr = np.broadcast_to(np.arange(h)[None, :, None], (b, h, w))
     cc = np.broadcast_to(np.arange(w)[None, None], (b, h, w))
     row, col, z = np.where(rides, rr, row), np.where(rides, cc, col), np.where(rides, 0.0, z)
-    ok = ((z > 1e-3) | rides) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    ok = ((z > 1e-3) | rides) & (col >= 0) & (col < w) & (row >= 0) & (row < h) & (keep_rides | ~rides)
     bb = np.broadcast_to(np.arange(b)[:, None, None], (b, h, w))
     target = (bb * h + row) * w + col
     t, zz, src = target[ok], z[ok], rgb[ok].astype(np.float64)
