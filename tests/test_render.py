@@ -160,6 +160,8 @@ def test_reprojection_redraws_the_scene_as_the_renderer_does_after_the_robot_mov
     same, covered = reproject(a["rgb"], a["depth"], a["rides"], pos0, mat0, pos0, mat0, fovy)
     np.testing.assert_array_equal(same, a["rgb"])
     assert covered.all()
+    _, covered = reproject(a["rgb"], a["depth"], a["rides"], pos0, mat0, pos0, mat0, fovy, keep_rides=False)
+    np.testing.assert_array_equal(covered, ~a["rides"])  # the robot's own pixels left for a drawing of it
 
     moved = qpos.copy()
     bx, by, byaw = env.idx.robot.base_qpos
