@@ -141,8 +141,9 @@ def _warped(src, frm, to, radius: int):
 
 def shown_frame(mode: str, first: dict, now: dict, prev_true, prev_shown, fovy: float, fill=None) -> np.ndarray:
     """(B, S, S, 3) uint8: the frame the policy reads in `mode`, given the first state's drawing, the
-    current one's, the last step's true frame and the last frame shown; fill: wm.fill.load_fill's
-    (net, params, cfg, size), for reproject_fill_learned."""
+    current one's (for the modes that place the camera by wm.egomotion, the drawing at the imagined
+    pose), the last step's true frame and the last frame shown; fill: wm.fill.load_fill's (net,
+    params, cfg, size), for the modes that draw with it (NEEDS_FILL)."""
     if mode == "true":
         return now["rgb"]
     if mode == "still":
@@ -166,9 +167,11 @@ def run_loop(task: str, source, mode: str, reset_keys: np.ndarray, rng: jax.Arra
              fill=None, egomotion=None) -> dict:
     """One closed loop of `source` (a registry PolicySource) on `task` from reset_keys (B, 2), reading the
     frames of `mode` (size x size pixels; fill: load_fill's tuple, for the learned fills; egomotion:
-    load_egomotion's (base, joints) models, for egomotion_fill_learned and imagined), the policy run and seeded as the evaluator runs it in the simulator (its chunk of one, salted by its name; rng split as `record_episodes` splits it). Returns
-    per-episode arrays: success (B,), back (B,) m, forward (B,) the applied forward command summed,
-    (imagined only) predicted_success (B,) and predicted_back (B,) m from the imagined base,
+    load_egomotion's (base, joints) models, for egomotion_fill_learned and the imagined modes), the
+    policy run and seeded as the evaluator runs it in the simulator (its chunk of one, salted by its
+    name; rng split as `record_episodes` splits it). Returns per-episode arrays: success (B,), back
+    (B,) m, forward (B,) the applied forward command summed, (the imagined modes only)
+    predicted_success (B,) and predicted_back (B,) m from the imagined base,
     actions (B, T, 20), psnr (B, T) of the frames read; and "strip", the first episode's true and read
     frames at STRIP_FRAMES steps (save_strip)."""
     env = HomeEnv(task, len(reset_keys), engine="cpu")
@@ -183,7 +186,8 @@ def run_loop(task: str, source, mode: str, reset_keys: np.ndarray, rng: jax.Arra
     prev_true = prev_shown = first["rgb"]
     base_qpos, posed_qpos = env.idx.robot.base_qpos, env.idx.robot.posed_qpos
     base, moved = np.asarray(state.qpos)[:, base_qpos].astype(np.float64), np.zeros((len(reset_keys), 3))
-    joints, turned = np.asarray(state.qpos)[:, posed_qpos].astype(np.float64), np.zeros((len(reset_keys), len(posed_qpos)))
+    joints = np.asarray(state.qpos)[:, posed_qpos].astype(np.float64)
+    turned = np.zeros_like(joints)
     actions, psnr, strip = [], [], []
     filmed = set(np.linspace(0, env.episode_steps - 1, STRIP_FRAMES).round().astype(int).tolist())
     for t in range(env.episode_steps):
@@ -277,7 +281,7 @@ def study(policies: str, tasks: list[str], out: Path, modes: list[str], episodes
           progress: bool = True, fill: Path | None = None) -> dict:
     """Runs every (task, policy, mode) not yet in OUT/loop_oracle.json and writes it after each; a pair
     with modes left runs its `true` loop first, the reference of their action gap. fill: the directory
-    of a trained wm.fill (experiments.fill's OUT), needed by reproject_fill_learned."""
+    of a trained wm.fill and wm.egomotion (experiments.fill's OUT), needed by NEEDS_FILL's modes."""
     unknown = [m for m in modes if m not in MODES]
     if unknown:
         raise ValueError(f"unknown modes {unknown}; choose among {', '.join(MODES)}")
@@ -297,8 +301,8 @@ def study(policies: str, tasks: list[str], out: Path, modes: list[str], episodes
             raise ValueError(f"the fill in {fill} draws {fill_net[3]}-px frames; the loops here read {size}-px "
                              f"ones (--size)")
     if any(m in PREDICTED for m in modes) and any(t not in PREDICTS for t in tasks):
-        raise ValueError(f"the modes {', '.join(PREDICTED)} predict the base's motion alone, from which only the success of "
-                         f"{', '.join(PREDICTS)} follows; run it on those tasks")
+        raise ValueError(f"the modes {', '.join(PREDICTED)} predict the robot's motion alone, from which only the "
+                         f"success of {', '.join(PREDICTS)} follows; run them on those tasks")
     sources = resolve([s for s in policies.split(",") if s])
     path = out / RESULTS
     results = json.loads(path.read_text()) if path.exists() else {}
