@@ -13,9 +13,10 @@ the PSNR over the pixels no point landed on.
 
 Writes OUT/fill.json and OUT/fill.msgpack (wm.fill.load_fill reads them; `experiments.loop_oracle
 --modes reproject_fill_learned --fill OUT` puts the net in a policy's loop), OUT/pairs-<split>.npz, the
-replayed pairs, which a rerun reuses, and OUT/egomotion.json, the base's motion from the driving
-commands (wm.egomotion) fit on the same training episodes and checked open loop on the validation
-ones; a finished fill or model is not made again.
+replayed pairs, which a rerun reuses, and OUT/egomotion.json, the robot's motion from the actions (the
+base's from the driving commands, the joints' from their targets: wm.egomotion) fit on the same
+training episodes and checked open loop on the validation ones; a finished fill or model is not made
+again.
 """
 
 from __future__ import annotations
@@ -193,6 +194,9 @@ def main(argv=None) -> int:
     data = [Path(d) for d in a.data.split(",") if d]
     if not (a.out / EGOMOTION_JSON).exists():
         rows = {split: [r for d in data for r in manifest_rows(d, tasks, split)] for split in ("train", "val")}
+        empty = [split for split, found in rows.items() if not found]
+        if empty:
+            raise ValueError(f"{a.data} hold no {' or '.join(empty)} episodes of {', '.join(tasks)}")
         coef, joints, check = fit_and_check_egomotion(rows["train"], rows["val"])
         save_egomotion(a.out, coef, {**check, "data": a.data, "tasks": tasks}, joints)
         print(f"base motion: open loop over a validation episode ends {check['val_end_error_m']['mean']:.3f} m "

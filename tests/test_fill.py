@@ -151,6 +151,9 @@ def test_bad_inputs_are_refused(tmp_path):
         F.manifest_rows(tmp_path, ["mug"], "train")
     with pytest.raises(ValueError, match="unknown tasks"):
         F.main(["--data", str(tmp_path), "--tasks", "dance", "--out", str(tmp_path)])
+    (tmp_path / "manifest.jsonl").write_text("")
+    with pytest.raises(ValueError, match="no train or val episodes of step_back"):
+        F.main(["--data", str(tmp_path), "--tasks", "step_back", "--out", str(tmp_path / "f")])
     for mode in L.NEEDS_FILL:
         with pytest.raises(ValueError, match="--fill"):
             L.study("blind=examples.plugin_policy:make", ["step_back"], tmp_path, [mode], 2, 0, progress=False)
