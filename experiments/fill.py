@@ -40,7 +40,7 @@ from sim_data.sim.robot import robot_index
 from sim_data.sim.scene import load_model
 from sim_data.sim.tasks import TASK_NAMES
 from sim_data.util import run_cli
-from wm.egomotion import EGOMOTION_JSON, fit_egomotion, fit_joints, roll_base, save_egomotion, step_joints
+from wm.egomotion import EGOMOTION_JSON, fit_egomotion, fit_joints, roll_base, roll_joints, save_egomotion
 from wm.fill import FILL_JSON, FillConfig, filled, hole_l1, save_fill, train_fill
 
 PAIR_KEYS = ("reprojected", "covered", "true", "cam_pos", "cam_mat")
@@ -157,11 +157,7 @@ def fit_and_check_egomotion(train_rows: list[dict], val_rows: list[dict]) -> tup
         pred = roll_base(coef, base[None, 0], action[None])[0]
         end_err.append(float(np.linalg.norm(pred[-1, :2] - base[-1, :2])))
         still_err.append(float(np.linalg.norm(base[0, :2] - base[-1, :2])))
-        now, prev, path = q[None, 0].astype(np.float64), np.zeros((1, q.shape[1])), [q[0]]
-        for t in range(len(action)):
-            now, prev = step_joints(joints, now, prev, action[None, t])
-            path.append(now[0])
-        joint_err.append(np.abs(np.stack(path) - q))
+        joint_err.append(np.abs(roll_joints(joints, q[None, 0], action[None])[0] - q))
         held_err.append(np.abs(q - q[:1]))
     joint_err, held_err = np.concatenate(joint_err), np.concatenate(held_err)
     return coef, joints, {"val_end_error_m": {"mean": float(np.mean(end_err)), "max": float(np.max(end_err))},

@@ -201,14 +201,14 @@ def run_loop(task: str, source, mode: str, reset_keys: np.ndarray, rng: jax.Arra
             base_model, joint_model = egomotion
             base, moved = step_base(base_model, base, moved, np.asarray(action))
             held = mode in PREDICTED
-            qpos = np.array(start.qpos if held else state.qpos)
-            qpos[:, base_qpos] = base
+            robot = np.array(start.qpos if held else state.qpos)  # the state the camera is placed by
+            robot[:, base_qpos] = base
             if held:
                 joints, turned = step_joints(joint_model, joints, turned, np.asarray(action))
-                qpos[:, posed_qpos] = joints
+                robot[:, posed_qpos] = joints
             mocap = start.mocap_pos if held else state.mocap_pos
-            seen = (camera.draw_poses(poses_of(env.model, qpos, mocap)) if mode == BODY
-                    else {**now, **dict(zip(("pos", "mat"), camera_poses(env.model, qpos, mocap)))})
+            seen = (camera.draw_poses(poses_of(env.model, robot, mocap)) if mode == BODY
+                    else {**now, **dict(zip(("pos", "mat"), camera_poses(env.model, robot, mocap)))})
         shown = shown_frame(mode, first, seen, prev_true, prev_shown, camera.fovy, fill)
         psnr.append(np.minimum(frame_psnr(shown, now["rgb"]), PSNR_EQUAL))
         if t in filmed:
@@ -220,7 +220,7 @@ def run_loop(task: str, source, mode: str, reset_keys: np.ndarray, rng: jax.Arra
     actions = np.stack(actions, axis=1)
     predicted = {}
     if mode in PREDICTED:
-        back = np.asarray(backward_distance(start.task, qpos, env.idx))
+        back = np.asarray(backward_distance(start.task, robot, env.idx))
         predicted = {"predicted_back": back,
                      "predicted_success": (back >= STEP_BACK_BAND[0]) & (back <= STEP_BACK_BAND[1])}
     return {**predicted, "success": np.asarray(state.success, bool),

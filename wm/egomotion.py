@@ -10,7 +10,7 @@ and A (3, 6) fit by least squares on recorded episodes (`fit_egomotion`). `roll_
 start pose, each step fed its own last prediction, never the simulator's. Each actuated joint j
 (the action's first 16 entries are their targets, in `sim_data.sim.robot.ACTION_NAMES`' order, the
 order of `RobotIndex.posed_qpos`) moves as dq_t = a_j (u_t - q_t) + b_j dq_{t-1} + c_j
-(`fit_joints`, `step_joints`).
+(`fit_joints`, `step_joints`, `roll_joints`).
 """
 
 from __future__ import annotations
@@ -113,6 +113,17 @@ def step_joints(coef: np.ndarray, q: np.ndarray, prev: np.ndarray, action: np.nd
     a, b, c = np.asarray(coef).T
     dq = a * (np.asarray(action, np.float64)[:, :JOINTS] - q) + b * prev + c
     return q + dq, dq
+
+
+def roll_joints(coef: np.ndarray, start: np.ndarray, actions: np.ndarray) -> np.ndarray:
+    """(B, T + 1, 16) joint positions predicted from start (B, 16) under actions (B, T, 20), the first the
+    start."""
+    q = np.asarray(start, np.float64)
+    prev, out = np.zeros_like(q), [q]
+    for t in range(actions.shape[1]):
+        q, prev = step_joints(coef, q, prev, actions[:, t])
+        out.append(q)
+    return np.stack(out, 1)
 
 
 def save_egomotion(out: Path, coef: np.ndarray, metrics: dict, joints: np.ndarray | None = None) -> None:

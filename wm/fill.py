@@ -134,7 +134,8 @@ def train_fill(pairs: dict, fovy: float, cfg: FillConfig, progress: bool = True)
         params, opt_state, loss = _train_step(net, tx, params, opt_state, jnp.asarray(x),
                                               jnp.asarray(pairs["true"][i], jnp.float32) / 255.0,
                                               jnp.asarray(pairs["covered"][i]))
-        losses.append(float(loss))
+        losses.append(loss)  # read back once at the end: a float() here would wait on every step
+    losses = np.asarray(jax.device_get(losses), np.float64).tolist()
     tail = losses[-max(1, cfg.steps // 10):]
     return net, params, {"loss": float(np.mean(tail)), "losses": losses}
 
