@@ -63,6 +63,7 @@ from collections import Counter
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
@@ -89,7 +90,7 @@ from sim_data.sim.engines import ENGINES, PHYSICS_REVISION, default_engine
 from sim_data.sim.env import cached_env
 from sim_data.sim.render import HEAD_CAMERA, cached_renderers
 from sim_data.sim.rollout import WARM_STEPS, record_policies
-from sim_data.sim.tasks import TASK_NAMES, TASKS
+from sim_data.sim.tasks import TASK_NAMES, TASKS, backward_distance
 from sim_data.util import (
     device_name,
     hash_arrays,
@@ -114,6 +115,7 @@ from wm.checkpoint import (
     training_status,
 )
 from wm.config import with_imagine
+from wm.geometric import PREDICTS, Motion, imagine_robot, load_motion, predicted_success, robot_camera, start_view
 from wm.imagine import (
     PROGRESS_FEATURE,
     SUCCESS_FEATURE,
@@ -131,7 +133,11 @@ from wm.train import warm_after_training
 # Per-step arrays (P, N, T) saved with each task: imagined success and progress, the simulator's progress
 TRACES = ("trace_success", "trace_progress", "true_progress")
 # "judge2": the second episode judge (wm.config.TrainConfig.judge2_inputs), NaN for a model without one
-READOUTS = ("progress", "judge", "success", "judge2")
+MODEL_READOUTS = ("progress", "judge", "success", "judge2")
+# "geometric": the robot's own motion imagined over the still scene (wm.geometric, cfg.geometric) where a
+# task's success follows from it (wm.geometric.PREDICTS), the ranked read-out elsewhere; NaN without one
+GEOMETRIC = "geometric"
+READOUTS = MODEL_READOUTS + (GEOMETRIC,)
 AUTO = "auto"  # the judge where every model's judge saw its own closed-loop imaginations of learned policies
 READOUT_KEYS = tuple(f"readout_{r}" for r in READOUTS)
 # the second judge's read-out of the simulated episodes themselves, beside prob_observed (cfg.readout's):
@@ -147,7 +153,8 @@ FIDELITY = ("frame_psnr", "copy_first_psnr", "action_gap", "action_gap_dims")
 POLICY_ARRAYS = (("true", "prob", "prob_observed", OBSERVED_SECOND, "prob_replayed", "sim_imagined", "sim_finite")
                  + READOUT_KEYS + TRACES + FIDELITY)
 READOUT_LABELS = {"progress": "progress head at the last step", "judge": "episode judge",
-                  "success": "highest per-step success probability", "judge2": "second episode judge"}
+                  "success": "highest per-step success probability", "judge2": "second episode judge",
+                  GEOMETRIC: "the robot's motion imagined over the still scene, the ranked read-out elsewhere"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -208,6 +215,12 @@ class EvalConfig:
         outcomes. Costs one more imagination and one more simulation of every episode.
       imagine: how the world models imagine (wm.model.ModelConfig.imagine: "window" or "cache") in
         place of the setting each was trained with; "" keeps theirs.
+      geometric: a directory of the robot's motion and fill models (python -m experiments.fill --out
+        DIR): the tasks whose success follows from the robot's own motion (wm.geometric.PREDICTS) are
+        also imagined by wm.geometric.imagine_robot, from the same states with the same policy keys,
+        read by the task's rule on the predicted motion ("readout_geometric"; elsewhere the ranked
+        read-out); "" imagines them by the world models alone.
+      geometric_ranks: rank those tasks' policies by the geometric read-out (prob) rather than cfg.readout.
     """
 
     policies: tuple = ()
@@ -230,6 +243,8 @@ class EvalConfig:
     keep_features: bool = False
     replay: bool = False
     imagine: str = ""
+    geometric: str = ""
+    geometric_ranks: bool = False
 
     def validate(self) -> None:
         """Raises ValueError where a setting is missing or out of range: no policies or world model, too few
@@ -246,8 +261,12 @@ class EvalConfig:
             raise ValueError(f"state_batch must divide episodes ({self.episodes}), got {self.state_batch}")
         if self.engine not in ("",) + ENGINES:
             raise ValueError(f"engine must be one of {ENGINES} or empty, got {self.engine!r}")
-        if self.readout not in READOUTS + (AUTO,):
-            raise ValueError(f"readout must be one of {READOUTS + (AUTO,)}, got {self.readout!r}")
+        if self.readout not in MODEL_READOUTS + (AUTO,):
+            raise ValueError(f"readout must be one of {MODEL_READOUTS + (AUTO,)}, got {self.readout!r} (the geometric "
+                             f"read-out ranks with geometric=DIR geometric_ranks=1)")
+        if self.geometric_ranks and not self.geometric:
+            raise ValueError("geometric_ranks ranks by the geometric read-out: name its models (geometric=DIR, "
+                             "trained by python -m experiments.fill --out DIR)")
         if not 0 < self.threshold < 1:
             raise ValueError(f"threshold must be in (0, 1), got {self.threshold}")
         if self.truth_cache and self.video_policies and not self.truth_frames:
@@ -360,7 +379,7 @@ def balance_chunks(sizes: dict, n_parts: int) -> dict:
 
 
 def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: str, progress: bool,
-                  chunks=None) -> dict:
+                  chunks=None, motion=None) -> dict:
     """True and predicted outcomes of every source on task from the held-out seeds, predicted by
     each of K world models (`models`: load_models' list); with `chunks` (keys
     (k, j) of task_batches), of those batches only (a part of the task, for merge_task_parts).
@@ -377,7 +396,8 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
     (the per-step success probability and predicted progress of each imagined episode; the models'
     mean), "true_progress": (P, N, T) float16 (the simulator's progress; NaN where a truth cache's
     entry lacks it), "videos": {key: (T+1, S, S, 3)} (the first model's imagination), "video_index": [...],
-    "sim_s", "wm_s", "steps"}. With `chunks`, a row per policy and slice of states instead: "names"
+    "sim_s", "wm_s", "steps"}; with motion (wm.geometric.load_motion's, cfg.geometric) "readout_geometric"
+    (geometric_readout; with cfg.geometric_ranks "prob" too). With `chunks`, a row per policy and slice of states instead: "names"
     repeat, "slices" [P'] gives each row's slice, and N is a slice's states (merge_task_parts joins them).
     """
     slices = state_slices(cfg, len(seeds))
@@ -405,6 +425,9 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
         clock["sim_s"] += time.perf_counter() - t0
         t0 = time.perf_counter()
         got, each = _predict_batch(cfg, task, models, policy, params, truth, rng, clock["wm_parts"])
+        if motion is not None:
+            with _timed(clock["wm_parts"], "geometric_s"):
+                got |= geometric_readout(cfg, task, motion, policy, params, reset_keys[s0:s1], len(padded), rng, got)
         got = {key: v.reshape((len(padded), n) + v.shape[1:])[: len(part)] for key, v in got.items()}
         got["true"] = truth["outcome"][: len(part)]
         with _timed(clock["wm_parts"], "sim_imagined_s"):
@@ -437,7 +460,7 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
 # policies' closed loops with every read-out of them, their frames and actions against the simulator's,
 # the simulated episodes read through each model (truth_features), and with replay=1 their actions
 # imagined open loop and the loop's actions simulated; the rest of imagine_s is the host's bookkeeping
-WM_PARTS = ("closed_loop_s", "fidelity_s", "observed_s", "replay_s", "sim_imagined_s")
+WM_PARTS = ("closed_loop_s", "fidelity_s", "observed_s", "replay_s", "sim_imagined_s", "geometric_s")
 
 
 @contextlib.contextmanager
@@ -472,7 +495,8 @@ def _predict_batch(cfg: EvalConfig, task: str, models, policy, params, truth: di
     got = {"prob": p_each.mean(1), "prob_members": p_each,
            **{k: np.mean([e[k] for e in each], axis=0).astype(np.float16) for k in ("trace_success", "trace_progress")},
            "true_progress": truth.get("progress", np.full((b, steps), np.nan)).astype(np.float16), **fidelity,
-           **{f"readout_{r}": np.mean([e[r] for e in each], axis=0) for r in READOUTS}}
+           **{f"readout_{r}": np.mean([e[r] for e in each], axis=0) for r in MODEL_READOUTS},
+           f"readout_{GEOMETRIC}": np.full(b, np.nan)}
     with _timed(clock, "observed_s"):
         seen = [truth_features(m, truth) for m in models]
         on_truth = [_read_truth(m, task, x, b) for m, x in zip(models, seen)]
@@ -487,6 +511,34 @@ def _predict_batch(cfg: EvalConfig, task: str, models, policy, params, truth: di
         if seen[0] is not None:
             got["features_observed"] = np.asarray(seen[0], np.float16)
     return got, each
+
+
+def geometric_readout(cfg: EvalConfig, task: str, motion: Motion, policy, params, reset_keys, copies: int, rng,
+                      got: dict) -> dict:
+    """The geometric read-out of a batch of `copies` policies (chunk_policy's, policy-major) from the
+    N states of reset_keys: for a task of wm.geometric.PREDICTS, the policies acting in
+    wm.geometric.imagine_robot's imagination from each state's first drawing, with the keys they drew
+    from in the simulator, their success the task's rule on the predicted motion (1 or 0 an episode);
+    elsewhere got["prob"] (the ranked read-out). Returns {"readout_geometric": (B,) float64} and, with
+    cfg.geometric_ranks on such a task, "prob" and "prob_members" ((B,), (B, K)) replaced by it."""
+    if task not in PREDICTS:
+        return {f"readout_{GEOMETRIC}": got["prob"]}
+    camera = robot_camera()
+    env = cached_env(task, len(reset_keys), "cpu", False)  # the simulation's scene (_simulate's env)
+    state = env.reset(jnp.asarray(reset_keys))
+
+    def tile(x):
+        return jnp.tile(x, (copies,) + (1,) * (jnp.ndim(x) - 1))
+
+    view = jax.tree.map(tile, start_view(env, state, motion.size, camera))
+    policy_keys = tuple(jax.random.split(rng, 3)[1:])  # _predict_batch's: the simulator's draws
+    moved = imagine_robot(policy, params, motion, view, policy_keys, camera, env.episode_steps)
+    back = backward_distance(jax.tree.map(tile, state.task), moved["qpos"], env.idx)
+    p = predicted_success(back).astype(np.float64)
+    out = {f"readout_{GEOMETRIC}": p}
+    if cfg.geometric_ranks:
+        out |= {"prob": p, "prob_members": np.repeat(p[:, None], got["prob_members"].shape[1], axis=1)}
+    return out
 
 
 def _empty_rows(k: int, n: int) -> dict:
@@ -964,9 +1016,11 @@ def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) ->
 
 def readouts_of(results: dict, tasks) -> list[str]:
     """The READOUTS that read every task of tasks (results: {task: evaluate_task's dict}): all, the
-    second judge only where its read-out is not NaN throughout any task (a model without one, or one
-    that never learned the task, reads nothing there)."""
-    return [r for r in READOUTS if r != SECOND_JUDGE or all(np.isfinite(results[t][f"readout_{r}"]).any() for t in tasks)]
+    second judge and the geometric read-out only where theirs is not NaN throughout any task (a model
+    without a second judge, or one that never learned the task, reads nothing there; the geometric
+    read-out reads only with cfg.geometric)."""
+    return [r for r in READOUTS
+            if r not in (SECOND_JUDGE, GEOMETRIC) or all(np.isfinite(results[t][f"readout_{r}"]).any() for t in tasks)]
 
 
 def read_readouts(rows: list[dict]) -> list[str]:
@@ -1116,7 +1170,7 @@ def warm(cfg: EvalConfig, progress: bool = True, wait_s: float = 0.0, after_trai
     wait_for_files([Path(run) / f for run in cfg.wm_runs for f in ("config.json", "norm.json")], wait_s,
                    f"{', '.join(map(str, cfg.wm_runs))} to start training")
     # which read-out ranks changes no compiled program ("auto" needs the judges, fit after training)
-    cfg = dataclasses.replace(cfg, readout=READOUTS[0]) if cfg.readout == AUTO else cfg
+    cfg = dataclasses.replace(cfg, readout=MODEL_READOUTS[0]) if cfg.readout == AUTO else cfg
     sources = resolve(cfg.policies)
     tasks = evaluation_tasks(cfg, sources)
     models = []
@@ -1173,6 +1227,10 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
     sources = resolve(cfg.policies)  # the policies and models are checked before OUT records the configuration
     tasks = evaluation_tasks(cfg, sources)
     models = load_models(cfg.wm_runs, cfg.imagine)
+    motion = load_motion(Path(cfg.geometric)) if cfg.geometric else None
+    if motion is not None and motion.size != models[0][0].model.size:
+        raise ValueError(f"the geometric models in {cfg.geometric} draw {motion.size}-px frames; the world models "
+                         f"imagine {models[0][0].model.size}-px ones: train the fill at that size (--size)")
     if cfg.readout == SECOND_JUDGE and (lacking := [r for r, m in zip(cfg.wm_runs, models) if m[4] is None]):
         raise ValueError(f"readout=judge2 ranks by a second episode judge, which {', '.join(lacking)} lacks: train "
                          "with judge2_inputs=... (wm.config.TrainConfig) or choose another read-out")
@@ -1195,7 +1253,7 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
         print(f"warning: the world model never saw tasks {unseen} in training", file=sys.stderr)
     used = seeds_in_use(cfg, sources)
     engine = cfg.engine or default_engine()
-    results = evaluate_tasks(cfg, out, tasks, sources, models, used, engine, progress, part, partial)
+    results = evaluate_tasks(cfg, out, tasks, sources, models, used, engine, progress, part, partial, motion)
     if results is None:
         return None
     if not results:
@@ -1253,10 +1311,10 @@ def evaluation_tasks(cfg: EvalConfig, sources) -> list[str]:
 
 
 def evaluate_tasks(cfg: EvalConfig, out: Path, tasks, sources, models, used: set, engine: str, progress: bool,
-                   part: tuple[int, int] | None, partial: bool) -> dict | None:
+                   part: tuple[int, int] | None, partial: bool, motion=None) -> dict | None:
     """{task: results (evaluate_task)} of every task evaluated, read back from out/tasks where a
     run before evaluated it (or its parts did, merged here); None for a part, or when cfg.max_minutes
-    stops before a task (see run)."""
+    stops before a task (see run). motion: the geometric models (cfg.geometric), or None."""
     results = {}
     by_task = {t: [s for s in sources if s.runs_on(t)] for t in tasks}
     if part is not None and cfg.keep_features:
@@ -1286,7 +1344,7 @@ def evaluate_tasks(cfg: EvalConfig, out: Path, tasks, sources, models, used: set
         t_task = time.perf_counter()
         seeds = heldout_seeds(task, cfg.episodes, cfg.seed, used)
         chunks = None if part is None else {(k, j) for t, k, j in mine if t == task}
-        res = evaluate_task(cfg, task, by_task[task], models, seeds, engine, progress, chunks)
+        res = evaluate_task(cfg, task, by_task[task], models, seeds, engine, progress, chunks, motion)
         longest = max(longest, time.perf_counter() - t_task)
         res["seeds"] = seeds
         if "features" in res:

@@ -47,7 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from experiments import stats as S
-from experiments.evaluate import READOUTS, load_features, load_task
+from experiments.evaluate import MODEL_READOUTS, load_features, load_task
 from sim_data.dataset.cache import TrainingCache, window_episodes
 from sim_data.sim.engines import default_engine
 from sim_data.util import run_cli, write_json_atomic
@@ -400,7 +400,7 @@ def score(eval_dir: Path, out: Path, draws: int = 1000, setup: dict | None = Non
     tasks = finished_tasks(eval_dir)
     res = {t: load_task(eval_dir / "tasks" / f"{t}.npz") for t in tasks}
     true = {t: res[t]["true"] for t in tasks}
-    predictors = {f"eval_{r}": {t: res[t][f"readout_{r}"] for t in tasks} for r in READOUTS
+    predictors = {f"eval_{r}": {t: res[t][f"readout_{r}"] for t in tasks} for r in MODEL_READOUTS
                   if any(np.isfinite(res[t][f"readout_{r}"]).any() for t in tasks)}  # a second judge where fit
     fits = {}
     for path in sorted((out / "variants").glob("*.npz"), key=lambda p: p.stat().st_mtime_ns):

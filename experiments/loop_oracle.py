@@ -85,10 +85,11 @@ from sim_data.sim.render import (
 )
 from sim_data.sim.robot import FORWARD_SPEED
 from sim_data.sim.rollout import jitted_act, jitted_init
-from sim_data.sim.tasks import STEP_BACK_BAND, TASK_NAMES, backward_distance
+from sim_data.sim.tasks import TASK_NAMES, backward_distance
 from sim_data.util import run_cli, wilson_interval, write_json_atomic
 from wm.egomotion import load_egomotion, step_base, step_joints
 from wm.fill import filled, load_fill
+from wm.geometric import PREDICTS, Motion, imagine_robot, predicted_success, robot_camera, start_view
 from wm.metrics import psnr as frame_psnr
 from wm.model import block_flow, warp
 
@@ -97,7 +98,6 @@ MODES = ("true", "still", "reproject", "reproject_fill_true", "reproject_fill_le
 LEARNED, EGOMOTION, IMAGINED, BODY = "reproject_fill_learned", "egomotion_fill_learned", "imagined", "imagined_body"
 NEEDS_FILL = (LEARNED, EGOMOTION, IMAGINED, BODY)  # the modes that draw with a trained fill (--fill)
 PREDICTED = (IMAGINED, BODY)  # the modes that predict the robot's motion and the success
-PREDICTS = ("step_back",)  # the tasks whose success follows from the base's motion alone (PREDICTED)
 FLOW_RADIUS = 4
 ANCHOR_RADIUS = 8  # the match from the first frame searches twice a step's radius: its motion accumulates
 RESULTS = "loop_oracle.json"
@@ -163,6 +163,37 @@ def shown_frame(mode: str, first: dict, now: dict, prev_true, prev_shown, fovy: 
     raise ValueError(f"unknown mode {mode!r}; choose among {', '.join(MODES)}")
 
 
+def imagined_loop(task: str, source, reset_keys: np.ndarray, rng: jax.Array, motion: Motion,
+                  proprio: str = "held") -> dict:
+    """run_loop's `imagined` mode: the policy acts in wm.geometric.imagine_robot's imagination from the
+    first state, compiled once; the simulator then plays the actions it took there, for what they truly
+    do and for the frames the imagination should have drawn. Returns run_loop's dict."""
+    env = HomeEnv(task, len(reset_keys), engine="cpu")
+    state = start = env.reset(jnp.asarray(reset_keys))
+    camera = Camera(env, state.task.colors, motion.size)
+    robot = robot_camera()
+    view = start_view(env, start, motion.size, robot)
+    policy, params = chunk_policy([source], len(reset_keys))
+    _, k_pol, k_act = jax.random.split(rng, 3)
+    got = imagine_robot(policy, params, motion, view, (k_pol, k_act), robot, env.episode_steps, proprio,
+                        keep_frames=True)
+    actions, frames = np.asarray(got["action"]), np.asarray(got["frames"])
+    psnr, strip = [], []
+    filmed = set(np.linspace(0, env.episode_steps - 1, STRIP_FRAMES).round().astype(int).tolist())
+    for t in range(env.episode_steps):
+        state = env.step(state, jnp.asarray(actions[:, t]))
+        now = camera.draw(state)
+        psnr.append(np.minimum(frame_psnr(frames[:, t], now["rgb"]), PSNR_EQUAL))
+        if t in filmed:
+            strip.append(np.concatenate([now["rgb"][0], frames[0, t]], axis=0))
+    back = np.asarray(backward_distance(start.task, got["qpos"], env.idx))
+    return {"predicted_back": back, "predicted_success": predicted_success(back),
+            "success": np.asarray(state.success, bool),
+            "back": np.asarray(backward_distance(state.task, state.qpos, env.idx)),
+            "forward": actions[..., FORWARD_SPEED].sum(axis=1), "actions": actions,
+            "psnr": np.stack(psnr, axis=1), "strip": np.concatenate(strip, axis=1)}
+
+
 def run_loop(task: str, source, mode: str, reset_keys: np.ndarray, rng: jax.Array, size: int = 64,
              fill=None, egomotion=None) -> dict:
     """One closed loop of `source` (a registry PolicySource) on `task` from reset_keys (B, 2), reading the
@@ -174,6 +205,10 @@ def run_loop(task: str, source, mode: str, reset_keys: np.ndarray, rng: jax.Arra
     predicted_success (B,) and predicted_back (B,) m from the imagined base,
     actions (B, T, 20), psnr (B, T) of the frames read; and "strip", the first episode's true and read
     frames at STRIP_FRAMES steps (save_strip)."""
+    if mode == IMAGINED:
+        net, params, cfg, fill_size = fill
+        return imagined_loop(task, source, reset_keys, rng, Motion(*map(jnp.asarray, egomotion), params, net, cfg,
+                                                                   fill_size))
     env = HomeEnv(task, len(reset_keys), engine="cpu")
     state = start = env.reset(jnp.asarray(reset_keys))
     camera = Camera(env, state.task.colors, size)
@@ -197,10 +232,10 @@ def run_loop(task: str, source, mode: str, reset_keys: np.ndarray, rng: jax.Arra
         state = env.step(state, action)
         now = camera.draw(state)
         seen = now
-        if mode in (EGOMOTION, *PREDICTED):
+        if mode in (EGOMOTION, BODY):
             base_model, joint_model = egomotion
             base, moved = step_base(base_model, base, moved, np.asarray(action))
-            held = mode in PREDICTED
+            held = mode == BODY
             robot = np.array(start.qpos if held else state.qpos)  # the state the camera is placed by
             robot[:, base_qpos] = base
             if held:
@@ -215,14 +250,13 @@ def run_loop(task: str, source, mode: str, reset_keys: np.ndarray, rng: jax.Arra
             strip.append(np.concatenate([now["rgb"][0], shown[0]], axis=0))
         prev_true, prev_shown = now["rgb"], shown
         obs = {**state.obs, "image": jnp.asarray(shown)}
-        if mode in PREDICTED:
+        if mode == BODY:
             obs["proprio"] = start.obs["proprio"]
     actions = np.stack(actions, axis=1)
     predicted = {}
-    if mode in PREDICTED:
+    if mode == BODY:
         back = np.asarray(backward_distance(start.task, robot, env.idx))
-        predicted = {"predicted_back": back,
-                     "predicted_success": (back >= STEP_BACK_BAND[0]) & (back <= STEP_BACK_BAND[1])}
+        predicted = {"predicted_back": back, "predicted_success": predicted_success(back)}
     return {**predicted, "success": np.asarray(state.success, bool),
             "back": np.asarray(backward_distance(state.task, state.qpos, env.idx)),
             "forward": actions[..., FORWARD_SPEED].sum(axis=1), "actions": actions,

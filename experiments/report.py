@@ -497,7 +497,8 @@ def better_readout_note(res: dict) -> str | None:
              f"{_ci(w[k]['mean']['pearson'], w[k]['mean_ci']['pearson'])}, the ranked read-out ({ranked}) minus it "
              f"{_ci(w['difference'][k]['mean']['pearson'], w['difference'][k]['mean_ci']['pearson'])}"
              for k in better]
-    how = " or ".join(f"readout={k[len('readout_'):]}" for k in better)
+    how = " or ".join("geometric_ranks=1" if k == "readout_geometric" else f"readout={k[len('readout_'):]}"
+                      for k in better)
     return (f"Another read-out of the same imagined episodes ranks the policies better within a task: {'; '.join(parts)} "
             f"(paired, resampling {w['resamples']}). The evaluation ranks by it with {how}.")
 

@@ -34,9 +34,9 @@ def test_displacements_are_in_the_base_frame():
 def test_the_fit_recovers_the_model_and_rolls_out_its_episodes():
     bases, actions = _episodes(8, 50, 0)
     coef = E.fit_egomotion(list(bases), list(actions))
-    np.testing.assert_allclose(coef, TRUE_A, atol=1e-8)
+    np.testing.assert_allclose(coef, TRUE_A, atol=1e-5)  # the episodes rolled in float32, as imagination runs
     test_bases, test_actions = _episodes(3, 80, 1)
-    np.testing.assert_allclose(E.roll_base(coef, test_bases[:, 0], test_actions), test_bases, atol=1e-8)
+    np.testing.assert_allclose(E.roll_base(coef, test_bases[:, 0], test_actions), test_bases, atol=1e-5)
     assert np.abs(test_bases[:, -1, :2] - test_bases[:, 0, :2]).max() > 0.05  # the episodes do move
 
 
@@ -65,11 +65,11 @@ def test_the_joints_model_recovers_a_lagged_servo():
         path.append(q[0])
         for t in range(60):
             q, prev = E.step_joints(true, q, prev, u[None, t])
-            path.append(q[0])
+            path.append(np.asarray(q[0], np.float64))
         qs.append(np.stack(path))
         actions.append(u)
     coef = E.fit_joints(qs, actions)
-    np.testing.assert_allclose(coef, true, atol=1e-8)
+    np.testing.assert_allclose(coef, true, atol=1e-5)  # the joints stepped in float32
     with pytest.raises(ValueError, match="one state"):
         E.fit_joints([qs[0][:-1]], [actions[0]])
 

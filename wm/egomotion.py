@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 
 from sim_data.sim.robot import FORWARD_SPEED, YAW_RATE
@@ -64,25 +65,28 @@ def fit_egomotion(bases, actions) -> np.ndarray:
     return coef.T
 
 
-def step_base(coef: np.ndarray, base: np.ndarray, prev: np.ndarray, action: np.ndarray) -> tuple:
+def step_base(coef, base, prev, action) -> tuple:
     """One control step of the model: base (B, 3) world pose, prev (B, 3) the last predicted displacement,
-    action (B, 20) -> (the next base pose, its displacement)."""
-    d = _regressors(np.asarray(prev, np.float64), action) @ np.asarray(coef).T
-    yaw = base[:, 2]
-    c, s = np.cos(yaw), np.sin(yaw)
-    moved = np.stack([base[:, 0] + c * d[:, 0] - s * d[:, 1], base[:, 1] + s * d[:, 0] + c * d[:, 1],
-                      _wrap(yaw + d[:, 2])], -1)
+    action (B, 20) -> (the next base pose, its displacement), float32. Traceable."""
+    action = jnp.asarray(action, jnp.float32)
+    x = jnp.concatenate([jnp.asarray(prev, jnp.float32), action[:, FORWARD_SPEED:FORWARD_SPEED + 1],
+                         action[:, YAW_RATE:YAW_RATE + 1], jnp.ones((len(action), 1), jnp.float32)], -1)
+    d = x @ jnp.asarray(coef, jnp.float32).T
+    base = jnp.asarray(base, jnp.float32)
+    c, s = jnp.cos(base[:, 2]), jnp.sin(base[:, 2])
+    moved = jnp.stack([base[:, 0] + c * d[:, 0] - s * d[:, 1], base[:, 1] + s * d[:, 0] + c * d[:, 1],
+                       _wrap(base[:, 2] + d[:, 2])], -1)
     return moved, d
 
 
 def roll_base(coef: np.ndarray, start: np.ndarray, actions: np.ndarray) -> np.ndarray:
     """(B, T + 1, 3) base poses predicted from start (B, 3) under actions (B, T, 20), the first the start."""
-    base, prev = np.asarray(start, np.float64), np.zeros((len(start), 3))
+    base, prev = jnp.asarray(start, jnp.float32), jnp.zeros((len(start), 3))
     out = [base]
     for t in range(actions.shape[1]):
         base, prev = step_base(coef, base, prev, actions[:, t])
         out.append(base)
-    return np.stack(out, 1)
+    return np.stack(out, 1).astype(np.float64)
 
 
 JOINTS = 16  # the actuated joints whose targets lead the action vector
@@ -107,23 +111,24 @@ def fit_joints(qs, actions) -> np.ndarray:
     return np.stack([np.linalg.lstsq(x[:, j], y[:, j], rcond=None)[0] for j in range(JOINTS)])
 
 
-def step_joints(coef: np.ndarray, q: np.ndarray, prev: np.ndarray, action: np.ndarray) -> tuple:
+def step_joints(coef, q, prev, action) -> tuple:
     """One control step of the joints' model: q, prev (B, 16) positions and last predicted change, action
-    (B, 20) -> (the next positions, their change)."""
-    a, b, c = np.asarray(coef).T
-    dq = a * (np.asarray(action, np.float64)[:, :JOINTS] - q) + b * prev + c
+    (B, 20) -> (the next positions, their change), float32. Traceable."""
+    a, b, c = jnp.asarray(coef, jnp.float32).T
+    q = jnp.asarray(q, jnp.float32)
+    dq = a * (jnp.asarray(action, jnp.float32)[:, :JOINTS] - q) + b * jnp.asarray(prev, jnp.float32) + c
     return q + dq, dq
 
 
 def roll_joints(coef: np.ndarray, start: np.ndarray, actions: np.ndarray) -> np.ndarray:
     """(B, T + 1, 16) joint positions predicted from start (B, 16) under actions (B, T, 20), the first the
     start."""
-    q = np.asarray(start, np.float64)
-    prev, out = np.zeros_like(q), [q]
+    q = jnp.asarray(start, jnp.float32)
+    prev, out = jnp.zeros_like(q), [q]
     for t in range(actions.shape[1]):
         q, prev = step_joints(coef, q, prev, actions[:, t])
         out.append(q)
-    return np.stack(out, 1)
+    return np.stack(out, 1).astype(np.float64)
 
 
 def save_egomotion(out: Path, coef: np.ndarray, metrics: dict, joints: np.ndarray | None = None) -> None:

@@ -77,18 +77,18 @@ class FillNet(nn.Module):
         return nn.sigmoid(nn.Conv(3, (1, 1))(h))
 
 
-def fill_features(reprojected, covered, cam_pos, cam_mat, fovy: float, freqs) -> np.ndarray:
+def fill_features(reprojected, covered, cam_pos, cam_mat, fovy, freqs) -> jax.Array:
     """(B, S, S, C) float32 inputs of FillNet: the reprojected frame ((B, S, S, 3) uint8) in [0, 1],
     `covered` ((B, S, S) bool: a point landed there), each pixel's unit ray in the world (3), whether it
     meets the floor (1), where (x, y in metres, 2) and those in sines and cosines at `freqs` cycles per
-    metre; cam_pos (B, 3), cam_mat (B, 3, 3) world-from-camera."""
+    metre; cam_pos (B, 3), cam_mat (B, 3, 3) world-from-camera. Traceable."""
     b, s = covered.shape[:2]
     xy, ray = floor_hits(cam_pos, cam_mat, fovy, s, s)
     down = (ray[..., 2] < -1e-6)[..., None]
-    phase = 2 * np.pi * xy[..., None, :] * np.asarray(freqs)[:, None]  # (B, S, S, F, 2)
-    waves = np.concatenate([np.sin(phase), np.cos(phase)], -1).reshape(b, s, s, -1) * down
-    return np.concatenate([np.asarray(reprojected, np.float32) / 255.0, np.asarray(covered, np.float32)[..., None],
-                           ray, down, xy, waves], -1).astype(np.float32)
+    phase = 2 * jnp.pi * xy[..., None, :] * jnp.asarray(freqs, jnp.float32)[:, None]  # (B, S, S, F, 2)
+    waves = jnp.concatenate([jnp.sin(phase), jnp.cos(phase)], -1).reshape(b, s, s, -1) * down
+    return jnp.concatenate([jnp.asarray(reprojected, jnp.float32) / 255.0,
+                            jnp.asarray(covered, jnp.float32)[..., None], ray, down, xy, waves], -1)
 
 
 def init_fill(cfg: FillConfig, size: int):
@@ -131,7 +131,7 @@ def train_fill(pairs: dict, fovy: float, cfg: FillConfig, progress: bool = True)
         i = rng.integers(0, n, cfg.batch)
         x = fill_features(pairs["reprojected"][i], pairs["covered"][i], pairs["cam_pos"][i], pairs["cam_mat"][i],
                           fovy, cfg.freqs)
-        params, opt_state, loss = _train_step(net, tx, params, opt_state, jnp.asarray(x),
+        params, opt_state, loss = _train_step(net, tx, params, opt_state, x,
                                               jnp.asarray(pairs["true"][i], jnp.float32) / 255.0,
                                               jnp.asarray(pairs["covered"][i]))
         losses.append(loss)  # read back once at the end: a float() here would wait on every step
@@ -140,16 +140,13 @@ def train_fill(pairs: dict, fovy: float, cfg: FillConfig, progress: bool = True)
     return net, params, {"loss": float(np.mean(tail)), "losses": losses}
 
 
-@functools.partial(jax.jit, static_argnums=0)
-def _apply(net, params, x):
-    return net.apply({"params": params}, x)
-
-
-def filled(net, params, cfg: FillConfig, reprojected, covered, cam_pos, cam_mat, fovy: float) -> np.ndarray:
-    """(B, S, S, 3) uint8: the reprojected frames with the pixels no point landed on drawn by the net."""
+@functools.partial(jax.jit, static_argnums=(0, 2))
+def filled(net, params, cfg: FillConfig, reprojected, covered, cam_pos, cam_mat, fovy) -> jax.Array:
+    """(B, S, S, 3) uint8: the reprojected frames with the pixels no point landed on drawn by the net.
+    Traceable (net and cfg static)."""
     x = fill_features(reprojected, covered, cam_pos, cam_mat, fovy, cfg.freqs)
-    drawn = np.clip(np.asarray(_apply(net, params, jnp.asarray(x))) * 255.0 + 0.5, 0, 255).astype(np.uint8)
-    return np.where(np.asarray(covered)[..., None], np.asarray(reprojected), drawn)
+    drawn = jnp.clip(net.apply({"params": params}, x) * 255.0 + 0.5, 0, 255).astype(jnp.uint8)
+    return jnp.where(jnp.asarray(covered)[..., None], jnp.asarray(reprojected, jnp.uint8), drawn)
 
 
 def save_fill(out: Path, params, cfg: FillConfig, size: int, metrics: dict) -> None:

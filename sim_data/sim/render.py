@@ -670,85 +670,88 @@ def camera_poses(model: mujoco.MjModel, qpos, mocap_pos, camera: str = HEAD_CAME
     return np.asarray(poses.cam_xpos[:, cam]), np.asarray(poses.cam_xmat[:, cam])
 
 
-def _fill_holes(img: np.ndarray, filled: np.ndarray, passes: int) -> tuple[np.ndarray, np.ndarray]:
+def _fill_holes(img, filled, passes: int) -> tuple[jax.Array, jax.Array]:
     """Each hole takes the mean of its filled 3x3 neighbours, `passes` rings inwards; (B, H, W, 3) float,
     (B, H, W) bool -> the same, updated."""
     h, w = filled.shape[1:]
     for _ in range(passes):
-        if filled.all():
-            break
-        pi = np.pad(img * filled[..., None], ((0, 0), (1, 1), (1, 1), (0, 0)))
-        pm = np.pad(filled.astype(np.float64), ((0, 0), (1, 1), (1, 1)))
+        pi = jnp.pad(img * filled[..., None], ((0, 0), (1, 1), (1, 1), (0, 0)))
+        pm = jnp.pad(filled.astype(img.dtype), ((0, 0), (1, 1), (1, 1)))
         acc = sum(pi[:, dy:dy + h, dx:dx + w] for dy in range(3) for dx in range(3))
         n = sum(pm[:, dy:dy + h, dx:dx + w] for dy in range(3) for dx in range(3))
         grow = ~filled & (n > 0)
-        img = np.where(grow[..., None], acc / np.maximum(n, 1)[..., None], img)
+        img = jnp.where(grow[..., None], acc / jnp.maximum(n, 1)[..., None], img)
         filled = filled | grow
     return img, filled
 
 
-def pixel_rays(h: int, w: int, fovy_deg: float) -> np.ndarray:
-    """(H, W, 3) float64: each pixel's ray through its centre in the camera's frame (MuJoCo's: x right,
-    y up, looking down -z), scaled so that its depth along the axis is 1."""
-    tan = np.tan(np.deg2rad(fovy_deg) / 2)
-    ys = (1 - 2 * (np.arange(h) + 0.5) / h) * tan
-    xs = (2 * (np.arange(w) + 0.5) / w - 1) * tan * (w / h)
-    return np.stack(np.broadcast_arrays(xs[None], ys[:, None], -np.ones((h, w))), -1)
+def pixel_rays(h: int, w: int, fovy_deg) -> jax.Array:
+    """(H, W, 3) float32: each pixel's ray through its centre in the camera's frame (MuJoCo's: x right,
+    y up, looking down -z), scaled so that its depth along the axis is 1. Traceable in fovy_deg."""
+    tan = jnp.tan(jnp.deg2rad(jnp.asarray(fovy_deg, jnp.float32)) / 2)
+    ys = (1 - 2 * (jnp.arange(h, dtype=jnp.float32) + 0.5) / h) * tan
+    xs = (2 * (jnp.arange(w, dtype=jnp.float32) + 0.5) / w - 1) * tan * (w / h)
+    return jnp.stack(jnp.broadcast_arrays(xs[None], ys[:, None], -jnp.ones((h, w), jnp.float32)), -1)
 
 
-def floor_hits(cam_pos, cam_mat, fovy_deg: float, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+@functools.partial(jax.jit, static_argnums=(3, 4))
+def floor_hits(cam_pos, cam_mat, fovy_deg, h: int, w: int) -> tuple[jax.Array, jax.Array]:
     """Where each pixel's ray meets the floor (the plane z = 0), for cameras at cam_pos (B, 3) with
     world-from-camera cam_mat (B, 3, 3): (B, H, W, 2) world x, y in metres (zero where the ray does not
-    come down to the floor) and (B, H, W, 3) the ray's unit direction in the world. The geometry a
-    generator needs to draw the floor that a frame never showed."""
-    pos, mat = np.asarray(cam_pos, np.float64), np.asarray(cam_mat, np.float64)
-    ray = np.einsum("bij,hwj->bhwi", mat, pixel_rays(h, w, fovy_deg))
-    ray /= np.linalg.norm(ray, axis=-1, keepdims=True)
+    come down to the floor) and (B, H, W, 3) the ray's unit direction in the world, float32. The
+    geometry a generator needs to draw the floor that a frame never showed."""
+    pos, mat = jnp.asarray(cam_pos, jnp.float32), jnp.asarray(cam_mat, jnp.float32)
+    ray = jnp.einsum("bij,hwj->bhwi", mat, pixel_rays(h, w, fovy_deg))
+    ray /= jnp.linalg.norm(ray, axis=-1, keepdims=True)
     down = ray[..., 2] < -1e-6
-    dist = np.where(down, pos[:, None, None, 2] / np.where(down, -ray[..., 2], 1.0), 0.0)
-    xy = np.where(down[..., None], pos[:, None, None, :2] + dist[..., None] * ray[..., :2], 0.0)
+    dist = jnp.where(down, pos[:, None, None, 2] / jnp.where(down, -ray[..., 2], 1.0), 0.0)
+    xy = jnp.where(down[..., None], pos[:, None, None, :2] + dist[..., None] * ray[..., :2], 0.0)
     return xy, ray
 
 
-def reproject(rgb, depth, rides, cam_pos0, cam_mat0, cam_pos, cam_mat, fovy_deg: float, fill: int = 8,
+@functools.partial(jax.jit, static_argnames=("fill", "keep_rides"))
+def reproject(rgb, depth, rides, cam_pos0, cam_mat0, cam_pos, cam_mat, fovy_deg, fill: int = 8,
               keep_rides: bool = True):
     """Frames redrawn at new camera poses from frames drawn at others, through their depth: each pixel's
-    point is carried into the new camera (the nearest wins a pixel) and the pixels that nothing lands on
-    take their neighbours' colour (`fill` rings), the rest the frame's mean. Pixels that ride with the
-    camera stay where they were (keep_rides), or are left out, for a drawing of the camera's carrier
-    at its new pose to take their place. What an imagination that moves the camera over a still scene
-    can show at best from one frame: parallax right, new views of what the frame hid only guessed.
+    point is carried into the new camera (the nearest wins a pixel; of equally near ones, the first in
+    the frame's row-major order) and the pixels that nothing lands on take their neighbours' colour
+    (`fill` rings), the rest the frame's mean. Pixels that ride with the camera stay where they were
+    (keep_rides), or are left out, for a drawing of the camera's carrier at its new pose to take their
+    place. What an imagination that moves the camera over a still scene can show at best from one
+    frame: parallax right, new views of what the frame hid only guessed. Traceable (under jit, scan).
 
     rgb (B, H, W, 3) uint8; depth (B, H, W) float metres along the camera axis (the renderer's);
     rides (B, H, W) bool; cam_pos0, cam_pos (B, 3) and cam_mat0, cam_mat (B, 3, 3) world-from-camera
     (MuJoCo's cam_xpos, cam_xmat); fovy_deg: the camera's vertical field of view.
     Returns (B, H, W, 3) uint8 frames and (B, H, W) bool: the pixels a point landed on."""
-    rgb, depth, rides = np.asarray(rgb), np.asarray(depth, np.float64), np.asarray(rides, bool)
+    f32 = jnp.float32
+    depth, rides = jnp.asarray(depth, f32), jnp.asarray(rides, bool)
     b, h, w = depth.shape
-    tan = np.tan(np.deg2rad(fovy_deg) / 2)
+    n = b * h * w
+    tan = jnp.tan(jnp.deg2rad(jnp.asarray(fovy_deg, f32)) / 2)
     local = pixel_rays(h, w, fovy_deg)[None] * depth[..., None]
-    world = np.asarray(cam_pos0, np.float64)[:, None, None] + np.einsum("bij,bhwj->bhwi", np.asarray(cam_mat0), local)
-    new = np.einsum("bji,bhwj->bhwi", np.asarray(cam_mat, np.float64), world - np.asarray(cam_pos)[:, None, None])
+    world = jnp.asarray(cam_pos0, f32)[:, None, None] + jnp.einsum("bij,bhwj->bhwi", jnp.asarray(cam_mat0, f32), local)
+    new = jnp.einsum("bji,bhwj->bhwi", jnp.asarray(cam_mat, f32), world - jnp.asarray(cam_pos, f32)[:, None, None])
     z = -new[..., 2]
-    zs = np.maximum(z, 1e-6)
-    col = np.round((new[..., 0] / zs / (tan * w / h) + 1) * w / 2 - 0.5).astype(np.int64)
-    row = np.round((1 - new[..., 1] / zs / tan) * h / 2 - 0.5).astype(np.int64)
-    rr = np.broadcast_to(np.arange(h)[None, :, None], (b, h, w))
-    cc = np.broadcast_to(np.arange(w)[None, None], (b, h, w))
-    row, col, z = np.where(rides, rr, row), np.where(rides, cc, col), np.where(rides, 0.0, z)
+    zs = jnp.maximum(z, 1e-6)
+    # clipped to one pixel past each edge before the cast: a point far off the axis must not overflow
+    col = jnp.round(jnp.clip((new[..., 0] / zs / (tan * w / h) + 1) * w / 2 - 0.5, -1, w)).astype(jnp.int32)
+    row = jnp.round(jnp.clip((1 - new[..., 1] / zs / tan) * h / 2 - 0.5, -1, h)).astype(jnp.int32)
+    rr = jnp.broadcast_to(jnp.arange(h)[None, :, None], (b, h, w))
+    cc = jnp.broadcast_to(jnp.arange(w)[None, None], (b, h, w))
+    row, col, z = jnp.where(rides, rr, row), jnp.where(rides, cc, col), jnp.where(rides, 0.0, z)
     ok = ((z > 1e-3) | rides) & (col >= 0) & (col < w) & (row >= 0) & (row < h) & (keep_rides | ~rides)
-    bb = np.broadcast_to(np.arange(b)[:, None, None], (b, h, w))
-    target = (bb * h + row) * w + col
-    t, zz, src = target[ok], z[ok], rgb[ok].astype(np.float64)
-    order = np.lexsort((zz, t))  # by target pixel, nearest first
-    first = np.unique(t[order], return_index=True)[1]
-    won = order[first]
-    img = np.zeros((b * h * w, 3))
-    filled = np.zeros(b * h * w, bool)
-    img[t[won]], filled[t[won]] = src[won], True
-    img, filled = img.reshape(b, h, w, 3), filled.reshape(b, h, w)
-    covered = filled.copy()
-    img, filled = _fill_holes(img, filled, fill)
-    mean = rgb.reshape(b, -1, 3).mean(axis=1)[:, None, None]
-    img = np.where(filled[..., None], img, mean)
-    return np.clip(img + 0.5, 0, 255).astype(np.uint8), covered
+    bb = jnp.broadcast_to(jnp.arange(b)[:, None, None], (b, h, w))
+    target = jnp.where(ok, (bb * h + row) * w + col, n).ravel()  # n: dropped by the scatters
+    z = z.ravel()
+    nearest = jnp.full(n, jnp.inf, f32).at[target].min(z, mode="drop")
+    wins = ok.ravel() & (z == nearest[jnp.minimum(target, n - 1)])
+    winner = jnp.full(n, n, jnp.int32).at[target].min(jnp.where(wins, jnp.arange(n, dtype=jnp.int32), n), mode="drop")
+    covered = winner < n
+    colours = jnp.asarray(rgb).reshape(n, 3).astype(f32)
+    img = jnp.where(covered[:, None], colours[jnp.minimum(winner, n - 1)], 0.0).reshape(b, h, w, 3)
+    covered = covered.reshape(b, h, w)
+    img, filled = _fill_holes(img, covered, fill)
+    mean = colours.reshape(b, -1, 3).mean(axis=1)[:, None, None]
+    img = jnp.where(filled[..., None], img, mean)
+    return jnp.clip(img + 0.5, 0, 255).astype(jnp.uint8), covered

@@ -1,0 +1,186 @@
+"""A policy in the loop of an imagination that moves the robot over a still scene, compiled once.
+
+Where a task's outcome follows from the robot's own motion (step_back: how far the base backed away),
+an imagination needs three things right: where the actions take the robot, what its camera then sees,
+and that the policy reading those frames acts as it would in the simulator. This one takes each from a
+model fit on recorded episodes, and nothing from the simulator after the first state:
+
+- the base's and the actuated joints' motion under the actions (`wm.egomotion`: first-order linear
+  models of the driving commands and of the joints' targets);
+- the camera's pose at the predicted robot state, by MuJoCo's kinematics (MJX, so under jit);
+- the frame there: the first frame carried to that pose through its depth
+  (`sim_data.sim.render.reproject`: parallax exact, the robot's own pixels kept in place) and what
+  the first frame never showed drawn by a trained generator (`wm.fill`);
+- the policy's proprioception: the first state's (`proprio="held"`), or the predicted joints, their
+  velocities and the base's velocity, the fingers' closure held (`proprio="predicted"`).
+
+`imagine_robot` runs whole episodes as one `lax.scan` (policy, models and frame size static; the
+policy's parameters, the first views and the keys are data), so a batch of states and any policy of
+the same structure reuse one program. `load_motion` reads what `experiments.fill` trained.
+"""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from flax import struct
+
+from sim_data.sim import robot as R
+from sim_data.sim import scene as S
+from sim_data.sim.engines import make_engine
+from sim_data.sim.env import HomeEnv
+from sim_data.sim.render import (
+    HEAD_CAMERA,
+    cached_renderers,
+    episode_rgb,
+    poses_from_arrays,
+    reproject,
+    rides_with_camera,
+)
+from sim_data.sim.tasks import CONTROL_DT, STEP_BACK_BAND
+from wm.egomotion import JOINTS, load_egomotion, step_base, step_joints
+from wm.fill import FillConfig, filled, load_fill
+
+PROPRIO_MODES = ("held", "predicted")
+PREDICTS = ("step_back",)  # the tasks whose success follows from the base's motion alone
+
+
+@struct.dataclass
+class FirstView:
+    """The batch's first state as the imagination starts from it: rgb (B, S, S, 3) uint8, depth (B, S, S)
+    float32 metres along the camera axis, rides (B, S, S) bool (the robot's own pixels), pos (B, 3) and
+    mat (B, 3, 3) the camera's world pose, qpos (B, nq), mocap (B, nmocap, 3), proprio (B, 37)."""
+    rgb: jax.Array
+    depth: jax.Array
+    rides: jax.Array
+    pos: jax.Array
+    mat: jax.Array
+    qpos: jax.Array
+    mocap: jax.Array
+    proprio: jax.Array
+
+
+@struct.dataclass
+class Motion:
+    """The fitted models: base (3, 6) and joints (16, 3) (wm.egomotion), the fill's parameters; its
+    net, config and frame size static."""
+    base: jax.Array
+    joints: jax.Array
+    fill_params: dict
+    fill_net: object = struct.field(pytree_node=False)
+    fill_cfg: FillConfig = struct.field(pytree_node=False)
+    size: int = struct.field(pytree_node=False)
+
+
+def load_motion(out: Path) -> Motion:
+    """The models experiments.fill wrote to out (fill.json, fill.msgpack, egomotion.json with joints)."""
+    net, params, cfg, size = load_fill(out)
+    base, joints = load_egomotion(out, joints=True)
+    return Motion(jnp.asarray(base, jnp.float32), jnp.asarray(joints, jnp.float32), params, net, cfg, size)
+
+
+class RobotCamera:
+    """A camera's world pose at robot states no simulation reached, by MJX's kinematics (the `mjx`
+    engine's start of an episode, traceable); hashable by identity, so a static argument of jit. One
+    per camera (`robot_camera`)."""
+
+    def __init__(self, camera: str = HEAD_CAMERA):
+        self.name = camera
+        self.model = S.load_model()
+        self.cam = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
+        if self.cam < 0:
+            raise ValueError(f"unknown camera {camera!r}")
+        self.idx = S.scene_index(self.model).robot
+        self.fovy = float(self.model.cam_fovy[self.cam])
+        self._engine = make_engine("mjx", self.model, 1)  # its init maps over any batch
+
+    def pose(self, qpos, mocap) -> tuple[jax.Array, jax.Array]:
+        """(B, 3) positions and (B, 3, 3) world-from-camera rotations at qpos (B, nq), mocap (B, nmocap, 3)."""
+        d = self._engine.init(qpos, mocap)
+        return d.cam_xpos[:, self.cam], d.cam_xmat[:, self.cam]
+
+
+@functools.lru_cache(maxsize=4)
+def robot_camera(camera: str = HEAD_CAMERA) -> RobotCamera:
+    return RobotCamera(camera)
+
+
+def predicted_proprio(joints, joint_step, base_step, closure) -> jax.Array:
+    """(B, 37) proprioception of a predicted robot (sim_data.sim.robot.proprioception's layout): joints
+    (B, 16), their change over the step (B, 16), the base's displacement in its own frame (B, 3:
+    forward, left, turn) over the step, and the fingers' closure (B, 2), held from the first state."""
+    return jnp.concatenate([joints, joint_step / CONTROL_DT, base_step / CONTROL_DT, closure], -1)
+
+
+@functools.partial(jax.jit, static_argnames=("policy", "camera", "steps", "proprio", "keep_frames"))
+def imagine_robot(policy, policy_params, motion: Motion, view: FirstView, policy_keys, camera: RobotCamera,
+                  steps: int, proprio: str = "held", keep_frames: bool = False) -> dict:
+    """`steps` control steps of `policy` (a sim_data policy: init_carry, act) acting on the imagined
+    frames from view, its carry started by init_carry(params, {"image", "proprio"} of the first state,
+    None, k_init) and step t acting with fold_in(k_act, t), policy_keys = (k_init, k_act), as the
+    evaluator seeds a policy in the simulator and in a world model.
+
+    Returns {"action": (B, T, 20) the actions as applied, "base": (B, T + 1, 3) the predicted base
+    poses (x, y, yaw; the first the start's), "qpos": (B, nq) the last predicted state (the objects
+    where they started), and with keep_frames "frames": (B, T, S, S, 3) uint8 the frames read after
+    each step}."""
+    if proprio not in PROPRIO_MODES:
+        raise ValueError(f"proprio must be one of {', '.join(PROPRIO_MODES)}; got {proprio!r}")
+    idx = camera.idx
+    base_at, posed_at = jnp.asarray(idx.base_qpos), jnp.asarray(idx.posed_qpos)
+    k_init, k_act = policy_keys
+    closure = view.proprio[:, 2 * JOINTS + 3:]
+    obs = {"image": view.rgb, "proprio": view.proprio}
+    carry0 = policy.init_carry(policy_params, obs, None, k_init)
+    base0, joints0 = view.qpos[:, base_at], view.qpos[:, posed_at]
+
+    def body(c, t):
+        obs, pc, base, moved, joints, turned = c
+        action, pc = policy.act(policy_params, obs, pc, jax.random.fold_in(k_act, t))
+        action = R.applied_action(action, idx)
+        base, moved = step_base(motion.base, base, moved, action)
+        joints, turned = step_joints(motion.joints, joints, turned, action)
+        qpos = view.qpos.at[:, base_at].set(base).at[:, posed_at].set(joints)
+        pos, mat = camera.pose(qpos, view.mocap)
+        frame, covered = reproject(view.rgb, view.depth, view.rides, view.pos, view.mat, pos, mat, camera.fovy)
+        frame = filled(motion.fill_net, motion.fill_params, motion.fill_cfg, frame, covered, pos, mat, camera.fovy)
+        seen = view.proprio if proprio == "held" else predicted_proprio(joints, turned, moved, closure)
+        out = (action, base, frame if keep_frames else None)
+        return ({"image": frame, "proprio": seen}, pc, base, moved, joints, turned), out
+
+    zeros = jnp.zeros_like(base0)
+    init = (obs, carry0, base0, zeros, joints0, jnp.zeros_like(joints0))
+    (_, _, base, _, joints, _), (actions, bases, frames) = jax.lax.scan(body, init, jnp.arange(steps))
+    qpos = view.qpos.at[:, base_at].set(base).at[:, posed_at].set(joints)
+    out = {"action": jnp.swapaxes(actions, 0, 1),
+           "base": jnp.concatenate([base0[:, None], jnp.swapaxes(bases, 0, 1)], 1), "qpos": qpos}
+    if keep_frames:
+        out["frames"] = jnp.swapaxes(frames, 0, 1)
+    return out
+
+
+def predicted_success(back) -> np.ndarray:
+    """(B,) bool: step_back's rule (the band of distance backed, STEP_BACK_BAND) on predicted distances."""
+    back = np.asarray(back)
+    return (back >= STEP_BACK_BAND[0]) & (back <= STEP_BACK_BAND[1])
+
+
+def start_view(env: HomeEnv, state, size: int, camera: RobotCamera) -> FirstView:
+    """The FirstView of an environment's states (a batch just reset, say): the camera's frame and depth
+    at size x size pixels by the project's renderer, the pixels of the robot's own body, the camera's
+    pose, the states' qpos, mocap positions and proprioception."""
+    (renderer,) = cached_renderers(size, (camera.name,))
+    poses = poses_from_arrays(**env.core.engine.poses(state.physics))
+    drawn = renderer.render(poses, episode_rgb(renderer.geometry, state.task.colors))
+    gid = np.asarray(drawn["geom_id"])
+    rides = rides_with_camera(env.model, camera.name)[np.clip(gid, 0, None)] & (gid >= 0)
+    pos, mat = camera.pose(state.qpos, state.mocap_pos)
+    return FirstView(jnp.asarray(drawn["rgb"], jnp.uint8), jnp.asarray(drawn["depth"], jnp.float32),
+                     jnp.asarray(rides), pos, mat, jnp.asarray(state.qpos, jnp.float32),
+                     jnp.asarray(state.mocap_pos, jnp.float32), jnp.asarray(state.obs["proprio"], jnp.float32))
+
