@@ -90,7 +90,7 @@ from sim_data.sim.engines import ENGINES, PHYSICS_REVISION, default_engine
 from sim_data.sim.env import cached_env
 from sim_data.sim.render import HEAD_CAMERA, cached_renderers
 from sim_data.sim.rollout import WARM_STEPS, record_policies
-from sim_data.sim.tasks import TASK_NAMES, TASKS, backward_distance
+from sim_data.sim.tasks import TASK_NAMES, TASKS
 from sim_data.util import (
     device_name,
     hash_arrays,
@@ -115,7 +115,7 @@ from wm.checkpoint import (
     training_status,
 )
 from wm.config import with_imagine
-from wm.geometric import PREDICTS, Motion, imagine_robot, load_motion, predicted_success, robot_camera, start_view
+from wm.geometric import PREDICTS, Motion, imagine_robot, load_motion, robot_camera, start_view
 from wm.imagine import (
     PROGRESS_FEATURE,
     SUCCESS_FEATURE,
@@ -154,7 +154,7 @@ POLICY_ARRAYS = (("true", "prob", "prob_observed", OBSERVED_SECOND, "prob_replay
                  + READOUT_KEYS + TRACES + FIDELITY)
 READOUT_LABELS = {"progress": "progress head at the last step", "judge": "episode judge",
                   "success": "highest per-step success probability", "judge2": "second episode judge",
-                  GEOMETRIC: "the robot's motion imagined over the still scene, the ranked read-out elsewhere"}
+                  GEOMETRIC: "the robot's motion imagined over the still scene (wm.geometric)"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -518,7 +518,7 @@ def geometric_readout(cfg: EvalConfig, task: str, motion: Motion, policy, params
     """The geometric read-out of a batch of `copies` policies (chunk_policy's, policy-major) from the
     N states of reset_keys: for a task of wm.geometric.PREDICTS, the policies acting in
     wm.geometric.imagine_robot's imagination from each state's first drawing, with the keys they drew
-    from in the simulator, their success the task's rule on the predicted motion (1 or 0 an episode);
+    from in the simulator, their success the task's rule on the predicted states (1 or 0 an episode);
     elsewhere got["prob"] (the ranked read-out). Returns {"readout_geometric": (B,) float64} and, with
     cfg.geometric_ranks on such a task, "prob" and "prob_members" ((B,), (B, K)) replaced by it."""
     if task not in PREDICTS:
@@ -533,8 +533,7 @@ def geometric_readout(cfg: EvalConfig, task: str, motion: Motion, policy, params
     view = jax.tree.map(tile, start_view(env, state, motion.size, camera))
     policy_keys = tuple(jax.random.split(rng, 3)[1:])  # _predict_batch's: the simulator's draws
     moved = imagine_robot(policy, params, motion, view, policy_keys, camera, env.episode_steps)
-    back = backward_distance(jax.tree.map(tile, state.task), moved["qpos"], env.idx)
-    p = predicted_success(back).astype(np.float64)
+    p = np.asarray(moved["success"], np.float64)
     out = {f"readout_{GEOMETRIC}": p}
     if cfg.geometric_ranks:
         out |= {"prob": p, "prob_members": np.repeat(p[:, None], got["prob_members"].shape[1], axis=1)}
@@ -1392,9 +1391,12 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, prints: di
                         "readout": cfg.readout, "imagine": wm_cfg.model.imagine,
                         # what each judge reads, so that comparisons across runs can tell judges apart
                         "judge_inputs": list(wm_cfg.judge_inputs), "judge2_inputs": list(wm_cfg.judge2_inputs),
-                        "rule": {t: READOUT_LABELS["success"] if cfg.readout == "judge" and not
+                        "rule": {t: READOUT_LABELS[GEOMETRIC] if cfg.geometric_ranks and t in PREDICTS
+                                 else READOUT_LABELS["success"] if cfg.readout == "judge" and not
                                  (judge is not None and judge.knows(t)) else READOUT_LABELS[cfg.readout]
-                                 for t in tasks}},
+                                 for t in tasks},
+                        # the tasks ranked by the geometric read-out instead (cfg.geometric_ranks)
+                        "geometric_ranks": [t for t in tasks if cfg.geometric_ranks and t in PREDICTS]},
         "tasks": tasks, "missing_tasks": missing, "policies": rows, "metrics": metrics,
         "checkpoint_selection": S.checkpoint_selection(rows),
         # the chosen read-out's, then each read-out's ("by_readout")

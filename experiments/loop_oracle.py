@@ -21,13 +21,14 @@ world model gets wrong, with the simulator's own state and camera:
   imagination whose camera moves as the actions say;
 - `imagined`: the same with nothing of the simulator after the first state: the actuated joints where
   a model of their motion under their targets puts them (`wm.egomotion` too), the objects held where
-  they were, the policy's proprioception the first state's, and the success predicted from
-  the base's predicted motion by the task's rule (step_back only: the band of distance backed; a hit on
-  the stool is not predicted); the simulator runs beside it only to say what the same actions truly do.
-  A world model for step_back made of the first frame's depth, the base-motion model and the fill;
-- `imagined_body`: the same with the robot's own body drawn at its predicted joints (the renderer's
-  drawing of the robot's geoms alone, as its model gives their shapes) where the first frame's drawing
-  of it was, what that drawing hid left to the fill;
+  they were, the policy's proprioception the first state's, and the success predicted by the task's
+  own rule on the predicted states (step_back only: the band of distance backed, failed where the base
+  met an obstacle on the way); the simulator runs beside it only to say what the same actions truly do.
+  A world model for step_back made of the first frame's depth, the motion models and the fill, run as
+  one compiled loop (`wm.geometric.imagine_robot`, which the evaluator's geometric read-out runs);
+- `imagined_body`: the same, stepped here, with the robot's own body drawn at its predicted joints (the
+  renderer's drawing of the robot's geoms alone, as its model gives their shapes) where the first
+  frame's drawing of it was, what that drawing hid left to the fill; its success the band alone;
 - `flow_chain`: each frame shown warped from the last one shown by the true frames' motion, block
   matched on 8x8 cells (`wm.model.block_flow`, `wm.model.warp`): the world model's own warp, given
   the true motion of every step;
@@ -85,11 +86,11 @@ from sim_data.sim.render import (
 )
 from sim_data.sim.robot import FORWARD_SPEED
 from sim_data.sim.rollout import jitted_act, jitted_init
-from sim_data.sim.tasks import TASK_NAMES, backward_distance
+from sim_data.sim.tasks import STEP_BACK_BAND, TASK_NAMES, backward_distance
 from sim_data.util import run_cli, wilson_interval, write_json_atomic
 from wm.egomotion import load_egomotion, step_base, step_joints
 from wm.fill import filled, load_fill
-from wm.geometric import PREDICTS, Motion, imagine_robot, predicted_success, robot_camera, start_view
+from wm.geometric import PREDICTS, Motion, imagine_robot, robot_camera, start_view
 from wm.metrics import psnr as frame_psnr
 from wm.model import block_flow, warp
 
@@ -187,7 +188,7 @@ def imagined_loop(task: str, source, reset_keys: np.ndarray, rng: jax.Array, mot
         if t in filmed:
             strip.append(np.concatenate([now["rgb"][0], frames[0, t]], axis=0))
     back = np.asarray(backward_distance(start.task, got["qpos"], env.idx))
-    return {"predicted_back": back, "predicted_success": predicted_success(back),
+    return {"predicted_back": back, "predicted_success": np.asarray(got["success"], bool),
             "success": np.asarray(state.success, bool),
             "back": np.asarray(backward_distance(state.task, state.qpos, env.idx)),
             "forward": actions[..., FORWARD_SPEED].sum(axis=1), "actions": actions,
@@ -256,7 +257,7 @@ def run_loop(task: str, source, mode: str, reset_keys: np.ndarray, rng: jax.Arra
     predicted = {}
     if mode == BODY:
         back = np.asarray(backward_distance(start.task, robot, env.idx))
-        predicted = {"predicted_back": back, "predicted_success": predicted_success(back)}
+        predicted = {"predicted_back": back, "predicted_success": (back >= STEP_BACK_BAND[0]) & (back <= STEP_BACK_BAND[1])}
     return {**predicted, "success": np.asarray(state.success, bool),
             "back": np.asarray(backward_distance(state.task, state.qpos, env.idx)),
             "forward": actions[..., FORWARD_SPEED].sum(axis=1), "actions": actions,

@@ -537,6 +537,8 @@ def within_task_table(res: dict) -> list[list[str]]:
     others = _other_readouts(w)
     targets = TARGETS.get(res.get("preset", ""), {})
     readout = res.get("world_model", {}).get("readout")
+    if readout and (geo := res["world_model"].get("geometric_ranks")):
+        readout += f" read-out; {', '.join(geo)} by the geometric"
     rows = [["statistic (mean over tasks)", f"world model ({readout} read-out)" if readout else "world model",
              "imitation-loss proxy", "world model - proxy (paired, over the policies both score)",
              *[label for _, label in others], f"target ({res.get('preset') or 'none'} preset)"]]

@@ -42,7 +42,7 @@ from sim_data.sim.render import (
     reproject,
     rides_with_camera,
 )
-from sim_data.sim.tasks import CONTROL_DT, STEP_BACK_BAND
+from sim_data.sim.tasks import CONTROL_DT, TaskState, update_task
 from wm.egomotion import JOINTS, load_egomotion, step_base, step_joints
 from wm.fill import FillConfig, filled, load_fill
 
@@ -54,7 +54,8 @@ PREDICTS = ("step_back",)  # the tasks whose success follows from the base's mot
 class FirstView:
     """The batch's first state as the imagination starts from it: rgb (B, S, S, 3) uint8, depth (B, S, S)
     float32 metres along the camera axis, rides (B, S, S) bool (the robot's own pixels), pos (B, 3) and
-    mat (B, 3, 3) the camera's world pose, qpos (B, nq), mocap (B, nmocap, 3), proprio (B, 37)."""
+    mat (B, 3, 3) the camera's world pose, qpos (B, nq), mocap (B, nmocap, 3), proprio (B, 37), task
+    the TaskState (B, ...) its task's rule advances."""
     rgb: jax.Array
     depth: jax.Array
     rides: jax.Array
@@ -63,6 +64,7 @@ class FirstView:
     qpos: jax.Array
     mocap: jax.Array
     proprio: jax.Array
+    task: TaskState
 
 
 @struct.dataclass
@@ -95,7 +97,8 @@ class RobotCamera:
         self.cam = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
         if self.cam < 0:
             raise ValueError(f"unknown camera {camera!r}")
-        self.idx = S.scene_index(self.model).robot
+        self.scene = S.scene_index(self.model)
+        self.idx = self.scene.robot
         self.fovy = float(self.model.cam_fovy[self.cam])
         self._engine = make_engine("mjx", self.model, 1)  # its init maps over any batch
 
@@ -125,14 +128,20 @@ def imagine_robot(policy, policy_params, motion: Motion, view: FirstView, policy
     None, k_init) and step t acting with fold_in(k_act, t), policy_keys = (k_init, k_act), as the
     evaluator seeds a policy in the simulator and in a world model.
 
+    The task's own rule (sim_data.sim.tasks.update_task) runs on the predicted states, the objects held
+    where they started: for step_back, the band of distance backed at the end, failed where the base
+    came within its radius of an obstacle on the way.
+
     Returns {"action": (B, T, 20) the actions as applied, "base": (B, T + 1, 3) the predicted base
-    poses (x, y, yaw; the first the start's), "qpos": (B, nq) the last predicted state (the objects
-    where they started), and with keep_frames "frames": (B, T, S, S, 3) uint8 the frames read after
-    each step}."""
+    poses (x, y, yaw; the first the start's), "qpos": (B, nq) the last predicted state, "success":
+    (B,) bool the rule's verdict on the last, and with keep_frames "frames": (B, T, S, S, 3) uint8 the
+    frames read after each step}."""
     if proprio not in PROPRIO_MODES:
         raise ValueError(f"proprio must be one of {', '.join(PROPRIO_MODES)}; got {proprio!r}")
     idx = camera.idx
     base_at, posed_at = jnp.asarray(idx.base_qpos), jnp.asarray(idx.posed_qpos)
+    base_v, posed_v = jnp.asarray(idx.base_qvel), jnp.asarray(idx.posed_qvel)
+    qvel0 = jnp.zeros((view.qpos.shape[0], camera.model.nv), jnp.float32)
     k_init, k_act = policy_keys
     closure = view.proprio[:, 2 * JOINTS + 3:]
     obs = {"image": view.rgb, "proprio": view.proprio}
@@ -140,34 +149,35 @@ def imagine_robot(policy, policy_params, motion: Motion, view: FirstView, policy
     base0, joints0 = view.qpos[:, base_at], view.qpos[:, posed_at]
 
     def body(c, t):
-        obs, pc, base, moved, joints, turned = c
+        obs, pc, ts, _, base, moved, joints, turned = c
         action, pc = policy.act(policy_params, obs, pc, jax.random.fold_in(k_act, t))
         action = R.applied_action(action, idx)
+        before = base
         base, moved = step_base(motion.base, base, moved, action)
         joints, turned = step_joints(motion.joints, joints, turned, action)
         qpos = view.qpos.at[:, base_at].set(base).at[:, posed_at].set(joints)
+        turn = (base[:, 2:] - before[:, 2:] + jnp.pi) % (2 * jnp.pi) - jnp.pi
+        qvel = (qvel0.at[:, base_v].set(jnp.concatenate([base[:, :2] - before[:, :2], turn], -1) / CONTROL_DT)
+                .at[:, posed_v].set(turned / CONTROL_DT))
+        ts, success = update_task(ts, qpos, qvel, view.mocap, camera.scene)
         pos, mat = camera.pose(qpos, view.mocap)
         frame, covered = reproject(view.rgb, view.depth, view.rides, view.pos, view.mat, pos, mat, camera.fovy)
         frame = filled(motion.fill_net, motion.fill_params, motion.fill_cfg, frame, covered, pos, mat, camera.fovy)
         seen = view.proprio if proprio == "held" else predicted_proprio(joints, turned, moved, closure)
         out = (action, base, frame if keep_frames else None)
-        return ({"image": frame, "proprio": seen}, pc, base, moved, joints, turned), out
+        return ({"image": frame, "proprio": seen}, pc, ts, success, base, moved, joints, turned), out
 
     zeros = jnp.zeros_like(base0)
-    init = (obs, carry0, base0, zeros, joints0, jnp.zeros_like(joints0))
-    (_, _, base, _, joints, _), (actions, bases, frames) = jax.lax.scan(body, init, jnp.arange(steps))
+    no = jnp.zeros(base0.shape[0], bool)
+    init = (obs, carry0, view.task, no, base0, zeros, joints0, jnp.zeros_like(joints0))
+    (_, _, _, success, base, _, joints, _), (actions, bases, frames) = jax.lax.scan(body, init, jnp.arange(steps))
     qpos = view.qpos.at[:, base_at].set(base).at[:, posed_at].set(joints)
     out = {"action": jnp.swapaxes(actions, 0, 1),
-           "base": jnp.concatenate([base0[:, None], jnp.swapaxes(bases, 0, 1)], 1), "qpos": qpos}
+           "base": jnp.concatenate([base0[:, None], jnp.swapaxes(bases, 0, 1)], 1), "qpos": qpos,
+           "success": success}
     if keep_frames:
         out["frames"] = jnp.swapaxes(frames, 0, 1)
     return out
-
-
-def predicted_success(back) -> np.ndarray:
-    """(B,) bool: step_back's rule (the band of distance backed, STEP_BACK_BAND) on predicted distances."""
-    back = np.asarray(back)
-    return (back >= STEP_BACK_BAND[0]) & (back <= STEP_BACK_BAND[1])
 
 
 def start_view(env: HomeEnv, state, size: int, camera: RobotCamera) -> FirstView:
@@ -182,5 +192,6 @@ def start_view(env: HomeEnv, state, size: int, camera: RobotCamera) -> FirstView
     pos, mat = camera.pose(state.qpos, state.mocap_pos)
     return FirstView(jnp.asarray(drawn["rgb"], jnp.uint8), jnp.asarray(drawn["depth"], jnp.float32),
                      jnp.asarray(rides), pos, mat, jnp.asarray(state.qpos, jnp.float32),
-                     jnp.asarray(state.mocap_pos, jnp.float32), jnp.asarray(state.obs["proprio"], jnp.float32))
+                     jnp.asarray(state.mocap_pos, jnp.float32), jnp.asarray(state.obs["proprio"], jnp.float32),
+                     state.task)
 
