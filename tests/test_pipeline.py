@@ -87,6 +87,29 @@ def test_without_gpus_the_train_stage_trains_one_member_a_run_and_eval_waits_for
     assert f"wm={d['members'][0]},{d['members'][1]},{d['members'][2]}" in got[0]
 
 
+def test_a_preset_with_geometric_tasks_fits_their_models_after_training_and_ranks_them_by_it(tiny, monkeypatch):
+    """The train stage fits the geometric models on the data at the world model's frame size once the
+    members are trained (not before); the eval stage names them and ranks by them."""
+    _, d = tiny
+    monkeypatch.setitem(P.PIPELINES, "tiny", dataclasses.replace(P.PIPELINES["tiny"], members=1,
+                                                                 geometric="step_back",
+                                                                 geometric_args=("--steps", "7")))
+    d = P.PIPELINES["tiny"].dirs("tiny")
+    fits, evals = [], []
+    monkeypatch.setattr(P.fill, "main", fits.append)
+    monkeypatch.setattr(P, "load_run_config", lambda run: (dataclasses.replace(
+        P.wm_config.make_config("smoke"), model=dataclasses.replace(P.wm_config.make_config("smoke").model, size=48)),
+        None))
+    assert P.run_stage("tiny", "train") is True
+    assert fits == [["--data", str(d["data"]), "--tasks", "step_back", "--out", str(d["geometric"]), "--size", "48",
+                     "--steps", "7"]]
+    import experiments.evaluate
+
+    monkeypatch.setattr(experiments.evaluate, "main", evals.append)
+    P.run_stage("tiny", "eval")
+    assert f"geometric={d['geometric']}" in evals[0] and "geometric_ranks=1" in evals[0]
+
+
 def test_members_seeds_follow_a_seed_set_and_a_trained_member_refuses_changed_settings(tiny):
     """--set train:seed=5 gives the members 5, 6, 7 (each its own model, not three of seed 5); once they
     are trained, a train stage with other settings is refused rather than keeping the models as they are."""
