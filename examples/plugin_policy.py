@@ -185,3 +185,29 @@ def pulse_short():
 def decel_far():
     """0.5 m/s slowing to a stop over 5 s: 1.26 m, too far."""
     return speed_table(lambda t: np.where(t < 5.0, 0.5 * (1.0 - t / 5.0), 0.0))
+
+
+@dataclasses.dataclass(frozen=True)
+class Odometer:
+    """Backs away at 0.3 m/s until the distance its proprioception's forward speed sums to (the base's
+    speed, `robot.PROPRIO_BASE_VEL`'s first entry, over each control step) reaches `params["metres"]`, then
+    stops; the arms, neck and hands in the ready pose. A policy that reads its body, not its camera: in
+    a world model it stops where the imagined body says it has gone."""
+
+    def init_carry(self, params, obs, task_state, rng):
+        return jnp.zeros((obs["proprio"].shape[0],), jnp.float32)
+
+    def act(self, params, obs, carry, rng):
+        driven = carry - obs["proprio"][:, robot.PROPRIO_BASE_VEL.start] * CONTROL_DT  # backwards: a negative speed
+        hold = jnp.broadcast_to(params["ready"], (carry.shape[0], robot.ACTION_DIM))
+        return hold.at[:, robot.FORWARD_SPEED].set(jnp.where(driven < params["metres"], -0.3, 0.0)), driven
+
+
+def odometer(metres: float = 0.65):
+    """Backs away until its body says it has gone `metres` (0.65 m: inside step_back's band)."""
+    return Odometer(), {"ready": ready_pose(), "metres": jnp.float32(metres)}
+
+
+def odometer_far():
+    """The same to 1.1 m: too far."""
+    return odometer(1.1)

@@ -1066,10 +1066,10 @@ def ranking_block(rows: list[dict], true_eps, prob_eps, threshold: float, member
 
 
 def within_task_block(results: dict, tasks, rows: list[dict], cfg: EvalConfig, keep) -> dict:
-    """The within-task headline (experiments.stats.within_task) of the world model (cfg.readout)
-    beside the imitation-loss proxy (minus each checkpoint's validation loss; policies without one,
-    such as plug-ins, are left out of the proxy's statistics), the world model's other read-outs
-    ("readout_<name>"), and, where every episode has it, the read-out applied to the simulated
+    """The within-task headline (experiments.stats.within_task) of the world model (cfg.readout, with
+    cfg.geometric_ranks the geometric read-out where it predicts) beside the imitation-loss proxy
+    (minus each checkpoint's validation loss; policies without one, such as plug-ins, are left out of
+    the proxy's statistics), the world model's other read-outs ("readout_<name>"), and, where every episode has it, the read-out applied to the simulated
     episodes themselves ("on_truth", _read_truth: what it reads where imagination is exact; the second
     judge's "on_truth_judge2" beside it, unless it is the one ranked by) and to
     their own actions replayed open loop ("replayed", cfg.replay), and the simulator's outcomes of
@@ -1077,7 +1077,9 @@ def within_task_block(results: dict, tasks, rows: list[dict], cfg: EvalConfig, k
     accepts."""
     true, wm, proxy, observed, observed2, replayed, played, picked_of = {}, {}, {}, {}, {}, {}, {}, {}
     # a second judge only where it reads every task: its mean over tasks then means what the others' does
-    others = {f"readout_{r}": {} for r in readouts_of(results, tasks) if r != cfg.readout}
+    # ranked by the geometric read-out where it predicts, the ranked one is that read-out and cfg.readout another
+    ranked = GEOMETRIC if cfg.geometric_ranks else cfg.readout
+    others = {f"readout_{r}": {} for r in readouts_of(results, tasks) if r != ranked}
     for t in tasks:
         names = results[t]["names"]
         loss = {r["name"]: r["val_loss"] for r in rows if r["task"] == t}

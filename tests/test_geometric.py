@@ -11,7 +11,7 @@ import pytest
 from experiments import evaluate as E
 from sim_data.sim.env import HomeEnv
 from sim_data.sim.render import camera_poses
-from sim_data.sim.robot import FORWARD_SPEED, YAW_RATE
+from sim_data.sim.robot import FORWARD_SPEED, PROPRIO_BASE_VEL, YAW_RATE
 from sim_data.sim.tasks import CONTROL_DT, STEP_BACK_BAND, backward_distance, base_clearance
 from wm import egomotion as EM
 from wm import geometric as G
@@ -37,7 +37,7 @@ class ReadsItsView:
     def act(self, params, obs, carry, rng):
         b = obs["image"].shape[0]
         bright = obs["image"].astype(jnp.float32).mean(axis=(1, 2, 3)) / 255.0
-        forward = -0.1 - 0.3 * bright + (0.2 * obs["proprio"][:, 2 * EM.JOINTS] if self.body else 0.0)
+        forward = -0.1 - 0.3 * bright + (0.2 * obs["proprio"][:, PROPRIO_BASE_VEL.start] if self.body else 0.0)
         action = jnp.full((b, 20), params["target"], jnp.float32)
         return action.at[:, FORWARD_SPEED].set(forward).at[:, YAW_RATE].set(0.2), carry + 1
 
@@ -108,7 +108,7 @@ def test_predicted_proprioception_carries_the_base_speed_of_the_step_before():
                               keep_frames=True) for m in G.PROPRIO_MODES}
     got = run["predicted"]
     frames = np.concatenate([np.asarray(view.rgb)[:, None], np.asarray(got["frames"])[:, :-1]], 1)
-    speed = np.concatenate([np.asarray(view.proprio)[:, None, 2 * EM.JOINTS],
+    speed = np.concatenate([np.asarray(view.proprio)[:, None, PROPRIO_BASE_VEL.start],
                             EM.displacements(np.asarray(got["base"]))[:, :-1, 0] / CONTROL_DT], 1)
     want = -0.1 - 0.3 * frames.astype(np.float64).mean(axis=(2, 3, 4)) / 255.0 + 0.2 * speed
     np.testing.assert_allclose(np.asarray(got["action"])[..., FORWARD_SPEED], want, atol=1e-4)
@@ -129,7 +129,7 @@ def test_the_evaluator_refuses_a_geometric_ranking_without_its_models():
 def test_the_evaluator_reads_step_back_by_the_robots_imagined_motion(smoke_world_model, tmp_path):
     """A plug-in that backs away 2 s at 0.3 m/s: under a base model that moves 0.05 s of the command a
     step it backs 0.6 m, inside the band, in every state, so the geometric read-out is 1 for every
-    episode; with geometric_ranks it is the ranked prediction too."""
+    episode; with geometric_ranks it is the ranked prediction too, and the results say so."""
     size = load_run_config(smoke_world_model)[0].model.size
     motion_dir = tmp_path / "motion"
     cfg = FillConfig(width=4, levels=1)
@@ -141,5 +141,10 @@ def test_the_evaluator_reads_step_back_by_the_robots_imagined_motion(smoke_world
     (row,) = res["policies"]
     assert row["pred_rate_readouts"]["geometric"] == 1.0 and row["true_rate"] == 1.0
     assert E.load_task(tmp_path / "read" / "tasks" / "step_back.npz")["readout_geometric"].tolist() == [[1.0, 1.0]]
+    assert "readout_geometric" in res["metrics"]["within_task"]
     ranked = E.run(dataclasses.replace(base, geometric_ranks=True), tmp_path / "ranked", progress=False)
     assert ranked["policies"][0]["pred_rate"] == 1.0
+    assert ranked["world_model"]["geometric_ranks"] == ["step_back"]
+    # ranked by it, the geometric read-out is the world model's column, and the read-out it replaced another
+    w = ranked["metrics"]["within_task"]
+    assert "readout_geometric" not in w and f"readout_{ranked['world_model']['readout']}" in w

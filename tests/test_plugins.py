@@ -570,6 +570,25 @@ def test_the_examples_camera_reading_plugin_backs_away_until_the_bottom_of_its_v
                                   np.broadcast_to(np.delete(np.asarray(ready_pose()), R.FORWARD_SPEED), (2, 19)))
 
 
+def test_the_examples_body_reading_plugin_stops_where_its_sensed_speed_sums_to_its_distance():
+    """The odometer sums its proprioception's forward speed over the control steps, this step's sensed speed
+    counted before it acts: fed -0.3 m/s (0.015 m a step) its sum reaches 0.66 >= 0.65 at the 44th step,
+    so it backs 43 steps and then stops for good; fed a still body it never stops."""
+    (odo,) = resolve(["examples.plugin_policy:odometer"])
+    proprio = np.zeros((2, R.PROPRIO_DIM), np.float32)
+    proprio[0, R.PROPRIO_BASE_VEL.start] = -0.3
+    obs = {"image": jnp.zeros((2, 64, 64, 3), jnp.uint8), "proprio": jnp.asarray(proprio)}
+    carry = odo.policy.init_carry(odo.params, obs, None, jax.random.PRNGKey(0))
+    speeds = []
+    for _ in range(60):
+        a, carry = odo.policy.act(odo.params, obs, carry, jax.random.PRNGKey(0))
+        speeds.append(np.asarray(a)[:, R.FORWARD_SPEED])
+    speeds = np.stack(speeds)
+    np.testing.assert_allclose(speeds[:43, 0], -0.3)
+    assert (speeds[43:, 0] == 0).all()
+    np.testing.assert_allclose(speeds[:, 1], -0.3)
+
+
 def test_the_examples_jittering_plugin_backs_away_for_its_time_at_speeds_drawn_around_its_mean():
     (jitter,) = resolve(["examples.plugin_policy:jitter_back"])
     obs = {"image": jnp.zeros((512, 64, 64, 3), jnp.uint8), "proprio": jnp.zeros((512, R.PROPRIO_DIM))}

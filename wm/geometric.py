@@ -43,7 +43,7 @@ from sim_data.sim.render import (
     rides_with_camera,
 )
 from sim_data.sim.tasks import CONTROL_DT, TaskState, update_task
-from wm.egomotion import JOINTS, load_egomotion, step_base, step_joints
+from wm.egomotion import load_egomotion, step_base, step_joints
 from wm.fill import FillConfig, filled, load_fill
 
 PROPRIO_MODES = ("held", "predicted")
@@ -143,7 +143,7 @@ def imagine_robot(policy, policy_params, motion: Motion, view: FirstView, policy
     base_v, posed_v = jnp.asarray(idx.base_qvel), jnp.asarray(idx.posed_qvel)
     qvel0 = jnp.zeros((view.qpos.shape[0], camera.model.nv), jnp.float32)
     k_init, k_act = policy_keys
-    closure = view.proprio[:, 2 * JOINTS + 3:]
+    closure = view.proprio[:, R.PROPRIO_BASE_VEL.stop:]
     obs = {"image": view.rgb, "proprio": view.proprio}
     carry0 = policy.init_carry(policy_params, obs, None, k_init)
     base0, joints0 = view.qpos[:, base_at], view.qpos[:, posed_at]
