@@ -518,7 +518,8 @@ def geometric_readout(cfg: EvalConfig, task: str, motion: Motion, policy, params
     """The geometric read-out of a batch of `copies` policies (chunk_policy's, policy-major) from the
     N states of reset_keys: for a task of wm.geometric.PREDICTS, the policies acting in
     wm.geometric.imagine_robot's imagination from each state's first drawing, with the keys they drew
-    from in the simulator, their success the task's rule on the predicted states (1 or 0 an episode);
+    from in the simulator and the predicted robot's proprioception, their success the task's rule on the
+    predicted states (1 or 0 an episode);
     elsewhere got["prob"] (the ranked read-out). Returns {"readout_geometric": (B,) float64} and, with
     cfg.geometric_ranks on such a task, "prob" and "prob_members" ((B,), (B, K)) replaced by it."""
     if task not in PREDICTS:
@@ -532,7 +533,8 @@ def geometric_readout(cfg: EvalConfig, task: str, motion: Motion, policy, params
 
     view = jax.tree.map(tile, start_view(env, state, motion.size, camera))
     policy_keys = tuple(jax.random.split(rng, 3)[1:])  # _predict_batch's: the simulator's draws
-    moved = imagine_robot(policy, params, motion, view, policy_keys, camera, env.episode_steps)
+    # the policy reads the predicted body (a policy that sums its sensed speed stops where the model says)
+    moved = imagine_robot(policy, params, motion, view, policy_keys, camera, env.episode_steps, "predicted")
     p = np.asarray(moved["success"], np.float64)
     out = {f"readout_{GEOMETRIC}": p}
     if cfg.geometric_ranks:
