@@ -218,7 +218,7 @@ class EvalConfig:
       geometric: a directory of the robot's motion and fill models (python -m experiments.fill --out
         DIR): the tasks whose success follows from the robot's own motion (wm.geometric.PREDICTS) are
         also imagined by wm.geometric.imagine_robot, from the same states with the same policy keys,
-        read by the task's rule on the predicted motion ("readout_geometric"; elsewhere the ranked
+        read by the task's rule on the predicted states ("readout_geometric"; elsewhere the ranked
         read-out); "" imagines them by the world models alone.
       geometric_ranks: rank those tasks' policies by the geometric read-out (prob) rather than cfg.readout.
     """
@@ -519,9 +519,9 @@ def geometric_readout(cfg: EvalConfig, task: str, motion: Motion, policy, params
     N states of reset_keys: for a task of wm.geometric.PREDICTS, the policies acting in
     wm.geometric.imagine_robot's imagination from each state's first drawing, with the keys they drew
     from in the simulator and the predicted robot's proprioception, their success the task's rule on the
-    predicted states (1 or 0 an episode);
-    elsewhere got["prob"] (the ranked read-out). Returns {"readout_geometric": (B,) float64} and, with
-    cfg.geometric_ranks on such a task, "prob" and "prob_members" ((B,), (B, K)) replaced by it."""
+    predicted states (1 or 0 an episode); elsewhere got["prob"] (the ranked read-out). Returns
+    {"readout_geometric": (B,) float64} and, with cfg.geometric_ranks on such a task, "prob" and
+    "prob_members" ((B,), (B, K)) replaced by it."""
     if task not in PREDICTS:
         return {f"readout_{GEOMETRIC}": got["prob"]}
     camera = robot_camera()
