@@ -83,6 +83,7 @@ from sim_data.sim.render import (
     poses_of,
     reproject,
     rides_with_camera,
+    riding_pixels,
 )
 from sim_data.sim.robot import FORWARD_SPEED
 from sim_data.sim.rollout import jitted_act, jitted_init
@@ -124,7 +125,7 @@ class Camera:
     def draw_poses(self, poses) -> dict:
         """The same drawing at any Poses (B, ...): where a predicted robot would be, for instance."""
         out = {k: np.asarray(v) for k, v in self.renderer.render(poses, self.rgb).items()}
-        out["rides"] = self.rides[np.clip(out["geom_id"], 0, None)] & (out["geom_id"] >= 0)
+        out["rides"] = riding_pixels(self.rides, out["geom_id"])
         out["pos"], out["mat"] = np.asarray(poses.cam_xpos[:, self.cam]), np.asarray(poses.cam_xmat[:, self.cam])
         return out
 

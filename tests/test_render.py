@@ -24,6 +24,7 @@ from sim_data.sim.render import (
     poses_of,
     reproject,
     rides_with_camera,
+    riding_pixels,
 )
 from sim_data.sim.tasks import TASK_NAMES
 
@@ -138,7 +139,7 @@ def _drawn(renderer, model, qpos, mocap, colors, rides):
     poses = poses_of(model, qpos, mocap)
     out = {k: np.asarray(v) for k, v in renderer.render(poses, episode_rgb(renderer.geometry, colors)).items()}
     cam = renderer.geometry.cam_names.index(renderer.cfg.camera)
-    out["rides"] = rides[np.clip(out["geom_id"], 0, None)] & (out["geom_id"] >= 0)
+    out["rides"] = riding_pixels(rides, out["geom_id"])
     return out, np.asarray(poses.cam_xpos[:, cam]), np.asarray(poses.cam_xmat[:, cam])
 
 

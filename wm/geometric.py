@@ -27,7 +27,6 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import mujoco
-import numpy as np
 from flax import struct
 
 from sim_data.sim import robot as R
@@ -41,6 +40,7 @@ from sim_data.sim.render import (
     poses_from_arrays,
     reproject,
     rides_with_camera,
+    riding_pixels,
 )
 from sim_data.sim.tasks import CONTROL_DT, TaskState, update_task
 from wm.egomotion import load_egomotion, step_base, step_joints
@@ -187,8 +187,7 @@ def start_view(env: HomeEnv, state, size: int, camera: RobotCamera) -> FirstView
     (renderer,) = cached_renderers(size, (camera.name,))
     poses = poses_from_arrays(**env.core.engine.poses(state.physics))
     drawn = renderer.render(poses, episode_rgb(renderer.geometry, state.task.colors))
-    gid = np.asarray(drawn["geom_id"])
-    rides = rides_with_camera(env.model, camera.name)[np.clip(gid, 0, None)] & (gid >= 0)
+    rides = riding_pixels(rides_with_camera(env.model, camera.name), drawn["geom_id"])
     pos, mat = camera.pose(state.qpos, state.mocap_pos)
     return FirstView(jnp.asarray(drawn["rgb"], jnp.uint8), jnp.asarray(drawn["depth"], jnp.float32),
                      jnp.asarray(rides), pos, mat, jnp.asarray(state.qpos, jnp.float32),

@@ -670,6 +670,13 @@ def camera_poses(model: mujoco.MjModel, qpos, mocap_pos, camera: str = HEAD_CAME
     return np.asarray(poses.cam_xpos[:, cam]), np.asarray(poses.cam_xmat[:, cam])
 
 
+def riding_pixels(rides, geom_id) -> np.ndarray:
+    """(B, H, W) bool: the pixels of a drawing (geom_id (B, H, W), the renderer's; -1 where nothing was
+    hit) whose geom rides with the camera (rides: rides_with_camera's (ngeom,) mask)."""
+    gid = np.asarray(geom_id)
+    return np.asarray(rides)[np.clip(gid, 0, None)] & (gid >= 0)
+
+
 def _fill_holes(img, filled, passes: int) -> tuple[jax.Array, jax.Array]:
     """Each hole takes the mean of its filled 3x3 neighbours, `passes` rings inwards; (B, H, W, 3) float,
     (B, H, W) bool -> the same, updated."""
