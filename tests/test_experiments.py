@@ -776,6 +776,12 @@ def test_a_read_out_that_ranks_better_than_the_ranked_one_is_named_with_how_to_r
     assert better_readout_note(res) is None
     within["difference"]["readout_judge2"]["mean_ci"]["pearson"] = [None, None]  # no bootstrap: nothing claimed
     assert better_readout_note(res) is None
+    # the geometric read-out is ranked by with its own switch, not as a readout
+    within["readout_geometric"] = {"mean": {"pearson": 0.95}, "mean_ci": {"pearson": [0.9, 0.98]}}
+    within["difference"]["readout_geometric"] = {"mean": {"pearson": -0.15}, "mean_ci": {"pearson": [-0.2, -0.1]}}
+    got = better_readout_note(res)
+    assert "the geometric read-out's mean within-task Pearson r 0.95" in got and "geometric_ranks=1." in got
+    assert "readout=geometric" not in got
 
 
 def test_the_decision_figure_draws_without_an_alignment():
