@@ -403,7 +403,7 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
     slices = state_slices(cfg, len(seeds))
     reset_keys = reset_keys_of(seeds)
     renderer = cached_renderers(models[0][0].model.size, (HEAD_CAMERA,))
-    kept = {}
+    kept, starts = {}, {}
     clock = {"sim_s": 0.0, "wm_s": 0.0, "steps": None, "wm_parts": dict.fromkeys(WM_PARTS, 0.0)}
     todo = [b for b in task_batches(cfg, sources, len(seeds)) if chunks is None or b[:2] in chunks]
     bar = tqdm(total=sum(len(part) * (slices[j][1] - slices[j][0]) for _, j, part, _ in todo), desc=f"{task}",
@@ -427,7 +427,9 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
         got, each = _predict_batch(cfg, task, models, policy, params, truth, rng, clock["wm_parts"])
         if motion is not None:
             with _timed(clock["wm_parts"], "geometric_s"):
-                got |= geometric_readout(cfg, task, motion, policy, params, reset_keys[s0:s1], len(padded), rng, got)
+                if task in PREDICTS and j not in starts:  # a slice's first views serve every batch of it
+                    starts[j] = geometric_start(task, reset_keys[s0:s1], motion.size)
+                got |= geometric_readout(cfg, task, motion, policy, params, starts.get(j), len(padded), rng, got)
         got = {key: v.reshape((len(padded), n) + v.shape[1:])[: len(part)] for key, v in got.items()}
         got["true"] = truth["outcome"][: len(part)]
         with _timed(clock["wm_parts"], "sim_imagined_s"):
@@ -513,10 +515,17 @@ def _predict_batch(cfg: EvalConfig, task: str, models, policy, params, truth: di
     return got, each
 
 
-def geometric_readout(cfg: EvalConfig, task: str, motion: Motion, policy, params, reset_keys, copies: int, rng,
+def geometric_start(task: str, reset_keys, size: int) -> tuple:
+    """(wm.geometric.FirstView, the number of control steps) of the N states of reset_keys (N, 2) on
+    task, drawn at size x size pixels in the simulation's scene (_simulate's env)."""
+    env = cached_env(task, len(reset_keys), "cpu", False)
+    return start_view(env, env.reset(jnp.asarray(reset_keys)), size, robot_camera()), env.episode_steps
+
+
+def geometric_readout(cfg: EvalConfig, task: str, motion: Motion, policy, params, start: tuple, copies: int, rng,
                       got: dict) -> dict:
     """The geometric read-out of a batch of `copies` policies (chunk_policy's, policy-major) from the
-    N states of reset_keys: for a task of wm.geometric.PREDICTS, the policies acting in
+    N states of start (geometric_start's): for a task of wm.geometric.PREDICTS, the policies acting in
     wm.geometric.imagine_robot's imagination from each state's first drawing, with the keys they drew
     from in the simulator and the predicted robot's proprioception, their success the task's rule on the
     predicted states (1 or 0 an episode); elsewhere got["prob"] (the ranked read-out). Returns
@@ -524,17 +533,11 @@ def geometric_readout(cfg: EvalConfig, task: str, motion: Motion, policy, params
     "prob_members" ((B,), (B, K)) replaced by it."""
     if task not in PREDICTS:
         return {f"readout_{GEOMETRIC}": got["prob"]}
-    camera = robot_camera()
-    env = cached_env(task, len(reset_keys), "cpu", False)  # the simulation's scene (_simulate's env)
-    state = env.reset(jnp.asarray(reset_keys))
-
-    def tile(x):
-        return jnp.tile(x, (copies,) + (1,) * (jnp.ndim(x) - 1))
-
-    view = jax.tree.map(tile, start_view(env, state, motion.size, camera))
+    first, steps = start
+    view = jax.tree.map(lambda x: jnp.tile(x, (copies,) + (1,) * (jnp.ndim(x) - 1)), first)
     policy_keys = tuple(jax.random.split(rng, 3)[1:])  # _predict_batch's: the simulator's draws
     # the policy reads the predicted body (a policy that sums its sensed speed stops where the model says)
-    moved = imagine_robot(policy, params, motion, view, policy_keys, camera, env.episode_steps, "predicted")
+    moved = imagine_robot(policy, params, motion, view, policy_keys, robot_camera(), steps, "predicted")
     p = np.asarray(moved["success"], np.float64)
     out = {f"readout_{GEOMETRIC}": p}
     if cfg.geometric_ranks:

@@ -26,7 +26,8 @@ from sim_data.util import read_json, write_json_atomic
 EGOMOTION_JSON = "egomotion.json"
 
 
-def _wrap(angle):
+def wrap_angle(angle):
+    """Angles (any shape, NumPy or traced) wrapped into [-pi, pi)."""
     return (angle + np.pi) % (2 * np.pi) - np.pi
 
 
@@ -38,13 +39,15 @@ def displacements(base: np.ndarray) -> np.ndarray:
     yaw = base[..., :-1, 2]
     c, s = np.cos(yaw), np.sin(yaw)
     return np.stack([c * dxy[..., 0] + s * dxy[..., 1], -s * dxy[..., 0] + c * dxy[..., 1],
-                     _wrap(base[..., 1:, 2] - yaw)], -1)
+                     wrap_angle(base[..., 1:, 2] - yaw)], -1)
 
 
-def _regressors(prev: np.ndarray, action: np.ndarray) -> np.ndarray:
-    action = np.asarray(action, np.float64)
-    return np.concatenate([prev, action[..., FORWARD_SPEED:FORWARD_SPEED + 1], action[..., YAW_RATE:YAW_RATE + 1],
-                           np.ones(prev.shape[:-1] + (1,))], -1)
+def _regressors(prev, action, xp=np):
+    """(..., 6) the base model's inputs [d_{t-1}, v_t, w_t, 1] from prev (..., 3) and action (..., 20), in
+    prev's dtype; xp: NumPy for the fit, jax.numpy for the traced step."""
+    action = xp.asarray(action, prev.dtype)
+    return xp.concatenate([prev, action[..., FORWARD_SPEED:FORWARD_SPEED + 1], action[..., YAW_RATE:YAW_RATE + 1],
+                           xp.ones(prev.shape[:-1] + (1,), prev.dtype)], -1)
 
 
 def fit_egomotion(bases, actions) -> np.ndarray:
@@ -68,14 +71,11 @@ def fit_egomotion(bases, actions) -> np.ndarray:
 def step_base(coef, base, prev, action) -> tuple:
     """One control step of the model: base (B, 3) world pose, prev (B, 3) the last predicted displacement,
     action (B, 20) -> (the next base pose, its displacement), float32. Traceable."""
-    action = jnp.asarray(action, jnp.float32)
-    x = jnp.concatenate([jnp.asarray(prev, jnp.float32), action[:, FORWARD_SPEED:FORWARD_SPEED + 1],
-                         action[:, YAW_RATE:YAW_RATE + 1], jnp.ones((len(action), 1), jnp.float32)], -1)
-    d = x @ jnp.asarray(coef, jnp.float32).T
+    d = _regressors(jnp.asarray(prev, jnp.float32), action, jnp) @ jnp.asarray(coef, jnp.float32).T
     base = jnp.asarray(base, jnp.float32)
     c, s = jnp.cos(base[:, 2]), jnp.sin(base[:, 2])
     moved = jnp.stack([base[:, 0] + c * d[:, 0] - s * d[:, 1], base[:, 1] + s * d[:, 0] + c * d[:, 1],
-                       _wrap(base[:, 2] + d[:, 2])], -1)
+                       wrap_angle(base[:, 2] + d[:, 2])], -1)
     return moved, d
 
 

@@ -43,7 +43,7 @@ from sim_data.sim.render import (
     riding_pixels,
 )
 from sim_data.sim.tasks import CONTROL_DT, TaskState, update_task
-from wm.egomotion import load_egomotion, step_base, step_joints
+from wm.egomotion import load_egomotion, step_base, step_joints, wrap_angle
 from wm.fill import FillConfig, filled, load_fill
 
 PROPRIO_MODES = ("held", "predicted")
@@ -156,8 +156,8 @@ def imagine_robot(policy, policy_params, motion: Motion, view: FirstView, policy
         base, moved = step_base(motion.base, base, moved, action)
         joints, turned = step_joints(motion.joints, joints, turned, action)
         qpos = view.qpos.at[:, base_at].set(base).at[:, posed_at].set(joints)
-        turn = (base[:, 2:] - before[:, 2:] + jnp.pi) % (2 * jnp.pi) - jnp.pi
-        qvel = (qvel0.at[:, base_v].set(jnp.concatenate([base[:, :2] - before[:, :2], turn], -1) / CONTROL_DT)
+        step = jnp.concatenate([base[:, :2] - before[:, :2], wrap_angle(base[:, 2:] - before[:, 2:])], -1)
+        qvel = (qvel0.at[:, base_v].set(step / CONTROL_DT)
                 .at[:, posed_v].set(turned / CONTROL_DT))
         ts, success = update_task(ts, qpos, qvel, view.mocap, camera.scene)
         pos, mat = camera.pose(qpos, view.mocap)
