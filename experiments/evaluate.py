@@ -116,6 +116,7 @@ from wm.checkpoint import (
 )
 from wm.config import with_imagine
 from wm.geometric import PREDICTS, Motion, imagine_robot, load_motion, robot_camera, start_view
+from wm.grasp import GRASPED, GraspRule, grasp_success, load_grasp
 from wm.imagine import (
     PROGRESS_FEATURE,
     SUCCESS_FEATURE,
@@ -134,8 +135,10 @@ from wm.train import warm_after_training
 TRACES = ("trace_success", "trace_progress", "true_progress")
 # "judge2": the second episode judge (wm.config.TrainConfig.judge2_inputs), NaN for a model without one
 MODEL_READOUTS = ("progress", "judge", "success", "judge2")
-# "geometric": the robot's own motion imagined over the still scene (wm.geometric, cfg.geometric) where a
-# task's success follows from it (wm.geometric.PREDICTS), the ranked read-out elsewhere; NaN without one
+# "geometric": the task's rule on states predicted from the actions (cfg.geometric): the robot's own motion
+# imagined over the still scene where success follows from it (wm.geometric.PREDICTS), the held object moved
+# by the fitted grasp (wm.grasp.GRASPED) along the actions the policy took in the world model's imagination;
+# the ranked read-out elsewhere; NaN without one
 GEOMETRIC = "geometric"
 READOUTS = MODEL_READOUTS + (GEOMETRIC,)
 AUTO = "auto"  # the judge where every model's judge saw its own closed-loop imaginations of learned policies
@@ -154,7 +157,7 @@ POLICY_ARRAYS = (("true", "prob", "prob_observed", OBSERVED_SECOND, "prob_replay
                  + READOUT_KEYS + TRACES + FIDELITY)
 READOUT_LABELS = {"progress": "progress head at the last step", "judge": "episode judge",
                   "success": "highest per-step success probability", "judge2": "second episode judge",
-                  GEOMETRIC: "the robot's motion imagined over the still scene (wm.geometric)"}
+                  GEOMETRIC: "the task's rule on states predicted from the actions (wm.geometric, wm.grasp)"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -218,8 +221,11 @@ class EvalConfig:
       geometric: a directory of the robot's motion and fill models (python -m experiments.fill --out
         DIR): the tasks whose success follows from the robot's own motion (wm.geometric.PREDICTS) are
         also imagined by wm.geometric.imagine_robot, from the same states with the same policy keys,
-        read by the task's rule on the predicted states ("readout_geometric"; elsewhere the ranked
-        read-out); "" imagines them by the world models alone.
+        read by the task's rule on the predicted states ("readout_geometric"); where DIR holds a grasp
+        rule (experiments.fill with a task of wm.grasp.GRASPED), those tasks' outcomes are read by
+        their rule on the states the actions of the policy's imagined episodes lead to (wm.grasp:
+        the robot's motion models, the object moved with the grip that holds it); elsewhere the ranked
+        read-out. "" imagines them by the world models alone.
       geometric_ranks: rank those tasks' policies by the geometric read-out (prob) rather than cfg.readout.
     """
 
@@ -379,7 +385,7 @@ def balance_chunks(sizes: dict, n_parts: int) -> dict:
 
 
 def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: str, progress: bool,
-                  chunks=None, motion=None) -> dict:
+                  chunks=None, motion=None, grasp=None) -> dict:
     """True and predicted outcomes of every source on task from the held-out seeds, predicted by
     each of K world models (`models`: load_models' list); with `chunks` (keys
     (k, j) of task_batches), of those batches only (a part of the task, for merge_task_parts).
@@ -396,8 +402,9 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
     (the per-step success probability and predicted progress of each imagined episode; the models'
     mean), "true_progress": (P, N, T) float16 (the simulator's progress; NaN where a truth cache's
     entry lacks it), "videos": {key: (T+1, S, S, 3)} (the first model's imagination), "video_index": [...],
-    "sim_s", "wm_s", "steps"}; with motion (wm.geometric.load_motion's, cfg.geometric) "readout_geometric"
-    (geometric_readout; with cfg.geometric_ranks "prob" too). With `chunks`, a row per policy and slice of states instead: "names"
+    "sim_s", "wm_s", "steps"}; with motion (wm.geometric.load_motion's, cfg.geometric; grasp:
+    wm.grasp.load_grasp's or None) "readout_geometric" (geometric_readout; with cfg.geometric_ranks
+    "prob" too). With `chunks`, a row per policy and slice of states instead: "names"
     repeat, "slices" [P'] gives each row's slice, and N is a slice's states (merge_task_parts joins them).
     """
     slices = state_slices(cfg, len(seeds))
@@ -427,9 +434,10 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
         got, each = _predict_batch(cfg, task, models, policy, params, truth, rng, clock["wm_parts"])
         if motion is not None:
             with _timed(clock["wm_parts"], "geometric_s"):
-                if task in PREDICTS and j not in starts:  # a slice's first views serve every batch of it
+                if task in geometric_tasks(grasp) and j not in starts:  # a slice's first views serve its batches
                     starts[j] = geometric_start(task, reset_keys[s0:s1], motion.size)
-                got |= geometric_readout(cfg, task, motion, policy, params, starts.get(j), len(padded), rng, got)
+                got |= geometric_readout(cfg, task, motion, policy, params, starts.get(j), len(padded), rng, got,
+                                         grasp, [e["action"] for e in each])
         got = {key: v.reshape((len(padded), n) + v.shape[1:])[: len(part)] for key, v in got.items()}
         got["true"] = truth["outcome"][: len(part)]
         with _timed(clock["wm_parts"], "sim_imagined_s"):
@@ -522,23 +530,36 @@ def geometric_start(task: str, reset_keys, size: int) -> tuple:
     return start_view(env, env.reset(jnp.asarray(reset_keys)), size, robot_camera()), env.episode_steps
 
 
+def geometric_tasks(grasp: GraspRule | None) -> tuple:
+    """The tasks the geometric read-out predicts: wm.geometric.PREDICTS, and with a grasp rule
+    wm.grasp.GRASPED's."""
+    return PREDICTS + (tuple(GRASPED) if grasp is not None else ())
+
+
 def geometric_readout(cfg: EvalConfig, task: str, motion: Motion, policy, params, start: tuple, copies: int, rng,
-                      got: dict) -> dict:
+                      got: dict, grasp: GraspRule | None = None, loops_actions=()) -> dict:
     """The geometric read-out of a batch of `copies` policies (chunk_policy's, policy-major) from the
     N states of start (geometric_start's): for a task of wm.geometric.PREDICTS, the policies acting in
     wm.geometric.imagine_robot's imagination from each state's first drawing, with the keys they drew
     from in the simulator and the predicted robot's proprioception, their success the task's rule on the
-    predicted states (1 or 0 an episode); elsewhere got["prob"] (the ranked read-out). Returns
-    {"readout_geometric": (B,) float64} and, with cfg.geometric_ranks on such a task, "prob" and
-    "prob_members" ((B,), (B, K)) replaced by it."""
-    if task not in PREDICTS:
+    predicted states (1 or 0 an episode); for a task of wm.grasp.GRASPED with a grasp rule, the rule's
+    verdict (wm.grasp.grasp_success) on each world model's loop of the batch (loops_actions: [(B, T, 20)]
+    the actions its policies took there), the mean over the models; elsewhere got["prob"] (the ranked
+    read-out). Returns {"readout_geometric": (B,) float64} and, with cfg.geometric_ranks on such a task,
+    "prob" and "prob_members" ((B,), (B, K)) replaced by it."""
+    if task not in geometric_tasks(grasp):
         return {f"readout_{GEOMETRIC}": got["prob"]}
     first, steps = start
     view = jax.tree.map(lambda x: jnp.tile(x, (copies,) + (1,) * (jnp.ndim(x) - 1)), first)
-    policy_keys = tuple(jax.random.split(rng, 3)[1:])  # _predict_batch's: the simulator's draws
-    # the policy reads the predicted body (a policy that sums its sensed speed stops where the model says)
-    moved = imagine_robot(policy, params, motion, view, policy_keys, robot_camera(), steps, "predicted")
-    p = np.asarray(moved["success"], np.float64)
+    if task in PREDICTS:
+        policy_keys = tuple(jax.random.split(rng, 3)[1:])  # _predict_batch's: the simulator's draws
+        # the policy reads the predicted body (a policy that sums its sensed speed stops where the model says)
+        moved = imagine_robot(policy, params, motion, view, policy_keys, robot_camera(), steps, "predicted")
+        p = np.asarray(moved["success"], np.float64)
+    else:
+        p = np.mean([np.asarray(grasp_success(grasp, motion.base, motion.joints, view.qpos, view.mocap, view.task,
+                                              actions, robot_camera(), task)["success"], np.float64)
+                     for actions in loops_actions], axis=0)
     out = {f"readout_{GEOMETRIC}": p}
     if cfg.geometric_ranks:
         out |= {"prob": p, "prob_members": np.repeat(p[:, None], got["prob_members"].shape[1], axis=1)}
@@ -1234,6 +1255,7 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
     tasks = evaluation_tasks(cfg, sources)
     models = load_models(cfg.wm_runs, cfg.imagine)
     motion = load_motion(Path(cfg.geometric)) if cfg.geometric else None
+    grasp = load_grasp(Path(cfg.geometric)) if cfg.geometric else None
     if motion is not None and motion.size != models[0][0].model.size:
         raise ValueError(f"the geometric models in {cfg.geometric} draw {motion.size}-px frames; the world models "
                          f"imagine {models[0][0].model.size}-px ones: train the fill at that size (--size)")
@@ -1259,7 +1281,7 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
         print(f"warning: the world model never saw tasks {unseen} in training", file=sys.stderr)
     used = seeds_in_use(cfg, sources)
     engine = cfg.engine or default_engine()
-    results = evaluate_tasks(cfg, out, tasks, sources, models, used, engine, progress, part, partial, motion)
+    results = evaluate_tasks(cfg, out, tasks, sources, models, used, engine, progress, part, partial, motion, grasp)
     if results is None:
         return None
     if not results:
@@ -1317,10 +1339,10 @@ def evaluation_tasks(cfg: EvalConfig, sources) -> list[str]:
 
 
 def evaluate_tasks(cfg: EvalConfig, out: Path, tasks, sources, models, used: set, engine: str, progress: bool,
-                   part: tuple[int, int] | None, partial: bool, motion=None) -> dict | None:
+                   part: tuple[int, int] | None, partial: bool, motion=None, grasp=None) -> dict | None:
     """{task: results (evaluate_task)} of every task evaluated, read back from out/tasks where a
     run before evaluated it (or its parts did, merged here); None for a part, or when cfg.max_minutes
-    stops before a task (see run). motion: the geometric models (cfg.geometric), or None."""
+    stops before a task (see run). motion, grasp: the geometric models and grasp rule (cfg.geometric), or None."""
     results = {}
     by_task = {t: [s for s in sources if s.runs_on(t)] for t in tasks}
     if part is not None and cfg.keep_features:
@@ -1350,7 +1372,7 @@ def evaluate_tasks(cfg: EvalConfig, out: Path, tasks, sources, models, used: set
         t_task = time.perf_counter()
         seeds = heldout_seeds(task, cfg.episodes, cfg.seed, used)
         chunks = None if part is None else {(k, j) for t, k, j in mine if t == task}
-        res = evaluate_task(cfg, task, by_task[task], models, seeds, engine, progress, chunks, motion)
+        res = evaluate_task(cfg, task, by_task[task], models, seeds, engine, progress, chunks, motion, grasp)
         longest = max(longest, time.perf_counter() - t_task)
         res["seeds"] = seeds
         if "features" in res:
@@ -1373,6 +1395,7 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, prints: di
     tasks = [t for t in tasks if t in results]
     by_name = {s.name: s for s in sources}
     rows = [r for task in tasks for r in policy_rows(cfg, task, results[task], by_name)]
+    ruled = geometric_tasks(load_grasp(Path(cfg.geometric)) if cfg.geometric else None) if cfg.geometric_ranks else ()
     bad = {t: int((~results[t]["sim_finite"]).sum()) for t in tasks if not results[t]["sim_finite"].all()}
     if bad:
         print(f"warning: simulated episodes whose state went non-finite (their true outcome is doubtful; the judge "
@@ -1398,12 +1421,12 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, prints: di
                         "readout": cfg.readout, "imagine": wm_cfg.model.imagine,
                         # what each judge reads, so that comparisons across runs can tell judges apart
                         "judge_inputs": list(wm_cfg.judge_inputs), "judge2_inputs": list(wm_cfg.judge2_inputs),
-                        "rule": {t: READOUT_LABELS[GEOMETRIC] if cfg.geometric_ranks and t in PREDICTS
+                        "rule": {t: READOUT_LABELS[GEOMETRIC] if t in ruled
                                  else READOUT_LABELS["success"] if cfg.readout == "judge" and not
                                  (judge is not None and judge.knows(t)) else READOUT_LABELS[cfg.readout]
                                  for t in tasks},
                         # the tasks ranked by the geometric read-out instead (cfg.geometric_ranks)
-                        "geometric_ranks": [t for t in tasks if cfg.geometric_ranks and t in PREDICTS]},
+                        "geometric_ranks": [t for t in tasks if t in ruled]},
         "tasks": tasks, "missing_tasks": missing, "policies": rows, "metrics": metrics,
         "checkpoint_selection": S.checkpoint_selection(rows),
         # the chosen read-out's, then each read-out's ("by_readout")

@@ -16,7 +16,11 @@ Writes OUT/fill.json and OUT/fill.msgpack (wm.fill.load_fill reads them; `experi
 replayed pairs, which a rerun reuses, and OUT/egomotion.json, the robot's motion from the actions (the
 base's from the driving commands, the joints' from their targets: wm.egomotion) fit on the same
 training episodes and checked open loop on the validation ones; a finished fill or model is not made
-again.
+again. A task of wm.grasp.GRASPED among `--tasks` (the mug) is not replayed for the fill: its episodes fit
+the grasp rule instead (OUT/grasp.json: wm.grasp.fit_grasp_rule on the training split, its accuracy on
+the validation split beside the majority outcome's), with the motion models already in OUT.
+
+    python -m experiments.fill --data runs/data/demo_demo_rollouts --tasks mug --out runs/fill/demo
 """
 
 from __future__ import annotations
@@ -40,8 +44,27 @@ from sim_data.sim.robot import robot_index
 from sim_data.sim.scene import load_model
 from sim_data.sim.tasks import TASK_NAMES
 from sim_data.util import run_cli
-from wm.egomotion import EGOMOTION_JSON, fit_egomotion, fit_joints, roll_base, roll_joints, save_egomotion
+from wm.egomotion import (
+    EGOMOTION_JSON,
+    fit_egomotion,
+    fit_joints,
+    load_egomotion,
+    roll_base,
+    roll_joints,
+    save_egomotion,
+)
 from wm.fill import FILL_JSON, FillConfig, filled, hole_l1, save_fill, train_fill
+from wm.geometric import robot_camera
+from wm.grasp import (
+    GRASP_JSON,
+    GRASPED,
+    GraspRule,
+    fit_grasp_rule,
+    robot_path,
+    rule_grid,
+    save_grasp,
+    verdicts_of_rules,
+)
 
 PAIR_KEYS = ("reprojected", "covered", "true", "cam_pos", "cam_mat")
 REPLAY_BATCH = 32
@@ -166,6 +189,51 @@ def fit_and_check_egomotion(train_rows: list[dict], val_rows: list[dict]) -> tup
                           "val_joint_error_held_rad": float(held_err.mean()), "val_episodes": len(val_rows)}
 
 
+def grasp_verdicts(rows: list[dict], base: np.ndarray, joints: np.ndarray, progress: bool = True) -> tuple:
+    """Each of rule_grid()'s verdicts on the episodes of rows (manifest_rows' records of tasks in
+    wm.grasp.GRASPED), their states predicted from the recorded actions and the episode's first state
+    (reset again from its seed): ((G, E) bool, (E,) bool the recorded outcomes, in rows' order)."""
+    camera, grid = robot_camera(), rule_grid()
+    order, verdicts = [], []
+    groups: dict = {}
+    for i, r in enumerate(rows):
+        groups.setdefault((r["task"], bool(r.get("heldout", False)), int(r["num_steps"])), []).append(i)
+    bar = tqdm(total=len(rows), desc="grasp", disable=not progress)
+    for (task, heldout, _), members in groups.items():
+        env = HomeEnv(task, REPLAY_BATCH, engine="cpu", heldout=heldout)
+        for start in range(0, len(members), REPLAY_BATCH):
+            chunk = members[start:start + REPLAY_BATCH]
+            padded = chunk + chunk[-1:] * (REPLAY_BATCH - len(chunk))  # one shape, one compilation
+            actions = np.stack([read_episode(Path(rows[i]["path"]), cameras=(), sim_state=False)["action"]
+                                for i in padded])
+            state = env.reset(jnp.stack([jax.random.PRNGKey(int(rows[i]["seed"])) for i in padded]))
+            path = robot_path(base, joints, state.qpos, state.mocap_pos, actions, camera)
+            got = verdicts_of_rules(grid, path, actions, state.mocap_pos, state.task, camera, task)
+            verdicts.append(np.asarray(got)[:, :len(chunk)])
+            order += chunk
+            bar.update(len(chunk))
+    bar.close()
+    back = np.argsort(order)
+    return np.concatenate(verdicts, 1)[:, back], np.array([bool(r["success"]) for r in rows])
+
+
+def fit_and_check_grasp(train_rows: list[dict], val_rows: list[dict], base: np.ndarray, joints: np.ndarray,
+                        progress: bool = True) -> tuple[GraspRule, dict]:
+    """wm.grasp's rule fit on train_rows' episodes (the grid's most accurate) and its accuracy on
+    val_rows', beside that of always predicting the training split's more common outcome."""
+    verdicts, outcomes = grasp_verdicts(train_rows, base, joints, progress)
+    rule, train_acc = fit_grasp_rule(verdicts, outcomes)
+    grid = rule_grid()
+    best = int(np.flatnonzero(np.all([np.asarray(getattr(grid, k)) == np.asarray(getattr(rule, k))
+                                      for k in ("closure", "reach_xy", "reach_z", "offset_z")], 0))[0])
+    val_verdicts, val_outcomes = grasp_verdicts(val_rows, base, joints, progress)
+    majority = bool(outcomes.mean() >= 0.5)
+    return rule, {"train_accuracy": train_acc, "val_accuracy": float(np.mean(val_verdicts[best] == val_outcomes)),
+                  "val_accuracy_majority": float(np.mean(val_outcomes == majority)),
+                  "train_episodes": len(train_rows), "val_episodes": len(val_rows),
+                  "val_successes": int(val_outcomes.sum())}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -199,17 +267,30 @@ def main(argv=None) -> int:
               f"from the recorded base (a still base: {check['val_end_error_still_m']:.3f} m); joints "
               f"{check['val_joint_error_rad']['mean']:.4f} rad from the recorded ones (held: "
               f"{check['val_joint_error_held_rad']:.4f})")
+    grasped, drawn = [t for t in tasks if t in GRASPED], [t for t in tasks if t not in GRASPED]
+    if grasped and not (a.out / GRASP_JSON).exists():
+        base, joints = load_egomotion(a.out, joints=True)
+        rows = {split: [r for d in data for r in manifest_rows(d, grasped, split)] for split in ("train", "val")}
+        if empty := [split for split, found in rows.items() if not found]:
+            raise ValueError(f"{a.data} hold no {' or '.join(empty)} episodes of {', '.join(grasped)} to fit the "
+                             "grasp rule on")
+        rule, check = fit_and_check_grasp(rows["train"], rows["val"], base, joints)
+        save_grasp(a.out, rule, {**check, "data": a.data, "tasks": grasped})
+        print(f"grasp: {rule.as_dict()}; validation outcomes predicted {check['val_accuracy']:.3f} of "
+              f"{check['val_episodes']} ({check['val_accuracy_majority']:.3f} by the majority outcome)")
+    if not drawn:
+        return 0
     if (a.out / FILL_JSON).exists():
         print(f"{a.out / FILL_JSON} exists: the fill is trained (remove it to train again)")
         return 0
-    train, fovy = cached_pairs(a.out, "train", data, tasks, a.size, a.every, True)
-    val, _ = cached_pairs(a.out, "val", data, tasks, a.size, a.every, True)
+    train, fovy = cached_pairs(a.out, "train", data, drawn, a.size, a.every, True)
+    val, _ = cached_pairs(a.out, "val", data, drawn, a.size, a.every, True)
     print(f"{len(train['covered'])} training pairs ({(~train['covered']).mean():.1%} of their pixels empty), "
           f"{len(val['covered'])} validation pairs")
     net, params, fit = train_fill(train, fovy, cfg)
     scores = validate(net, params, cfg, val, fovy)
     save_fill(a.out, params, cfg, a.size, {"train_loss": fit["loss"], "val": scores, "data": a.data,
-                                           "tasks": tasks, "every": a.every})
+                                           "tasks": drawn, "every": a.every})
     print(json.dumps(scores, indent=1))
     return 0
 

@@ -139,6 +139,7 @@ from sim_data.util import CACHE_KEY_LOG_ENV, device_name, record_cache_keys, run
 from wm import config as wm_config
 from wm import train
 from wm.checkpoint import BUNDLE, bundle_holds, load_run_config, write_bundle
+from wm.grasp import GRASPED
 
 STAGES = ("data", "policies", "rollouts", "train", "eval", "report")
 TIMING = "timing.json"  # in the evaluation's directory: one row per stage command
@@ -163,8 +164,8 @@ class Pipeline:
     policies_overrides: tuple = ()
     train_overrides: tuple = ()
     eval_overrides: tuple = ()
-    # tasks (comma-separated, of wm.geometric.PREDICTS) ranked by the geometric read-out, whose motion and
-    # fill models the train stage fits on the data (experiments.fill, with geometric_args)
+    # tasks (comma-separated, of wm.geometric.PREDICTS and wm.grasp.GRASPED) ranked by the geometric read-out,
+    # whose motion models, fill and grasp rule the train stage fits (experiments.fill, with geometric_args)
     geometric: str = ""
     geometric_args: tuple = ()
 
@@ -427,11 +428,17 @@ def train_members(name: str, extra=(), gpus=(), members: int | None = None) -> t
 
 
 def fit_geometric(p: Pipeline, d: dict) -> None:
-    """Fits the geometric models of p's geometric tasks on its data at the world model's frame size
-    (experiments.fill: the motion models, the fill), unless d["geometric"] holds them already."""
+    """Fits the geometric models of p's geometric tasks at the world model's frame size (experiments.fill),
+    unless d["geometric"] holds them already: the motion models and the fill on its data, then the grasp
+    rule of its tasks of wm.grasp.GRASPED on the world model's data (the zoo's rollouts among them, whose
+    grasps are the learned policies')."""
     size = load_run_config(d["wm"])[0].model.size
-    fill.main(["--data", str(d["data"]), "--tasks", p.geometric, "--out", str(d["geometric"]), "--size", str(size),
-               *p.geometric_args])
+    tasks = p.geometric.split(",")
+    drawn, grasped = [t for t in tasks if t not in GRASPED], [t for t in tasks if t in GRASPED]
+    for data, group in ((d["data"], drawn), (d["wm_data"], grasped)):
+        if group:
+            fill.main(["--data", str(data), "--tasks", ",".join(group), "--out", str(d["geometric"]), "--size",
+                       str(size), *p.geometric_args])
 
 
 def bundle_members(d: dict, logs: Path) -> list[Path]:

@@ -102,9 +102,13 @@ class RobotCamera:
         self.fovy = float(self.model.cam_fovy[self.cam])
         self._engine = make_engine("mjx", self.model, 1)  # its init maps over any batch
 
+    def data(self, qpos, mocap):
+        """MJX data with every body, geom, site and camera placed at qpos (B, nq), mocap (B, nmocap, 3)."""
+        return self._engine.init(qpos, mocap)
+
     def pose(self, qpos, mocap) -> tuple[jax.Array, jax.Array]:
         """(B, 3) positions and (B, 3, 3) world-from-camera rotations at qpos (B, nq), mocap (B, nmocap, 3)."""
-        d = self._engine.init(qpos, mocap)
+        d = self.data(qpos, mocap)
         return d.cam_xpos[:, self.cam], d.cam_xmat[:, self.cam]
 
 

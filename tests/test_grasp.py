@@ -1,0 +1,177 @@
+"""The held object predicted from the actions (wm.grasp): the grip site's kinematics against MuJoCo's C
+engine, the rule's verdicts on hand-made paths and on the C engine's scripted episodes, and its fit."""
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+from conftest import scripted
+
+from experiments import evaluate as E
+from sim_data.sim import scene as S
+from sim_data.sim.env import HomeEnv
+from sim_data.sim.robot import RIGHT_HAND
+from sim_data.sim.rollout import run_episodes
+from sim_data.sim.tasks import CONTROL_DT, MUG_HOLD, MUG_LIFT, mug_height
+from wm import egomotion as EM
+from wm import grasp as GR
+from wm.fill import FillConfig, init_fill
+from wm.geometric import Motion, robot_camera
+
+RULE = GR.GraspRule.of([0.5, 0.04, 0.02, 0.0])
+
+
+def _mug_start(n=3, seed=0):
+    env = HomeEnv("mug", n, engine="cpu")
+    return env, env.reset(jax.random.split(jax.random.PRNGKey(seed), n))
+
+
+def test_the_grip_site_is_where_mujocos_c_kinematics_puts_it():
+    """robot_path's grip site at its predicted states equals MuJoCo's C kinematics there to 1e-5, and
+    its states are the motion models' (the base and joints rolled by wm.egomotion)."""
+    env, state = _mug_start(2)
+    camera = robot_camera()
+    rng = np.random.default_rng(0)
+    actions = rng.uniform(env.idx.robot.action_low, env.idx.robot.action_high, (2, 6, 20)).astype(np.float32)
+    base = np.zeros((3, 6))
+    base[0, 3], base[2, 4] = 0.05, 0.05
+    joints = np.tile([0.5, 0.0, 0.0], (EM.JOINTS, 1))
+    path = GR.robot_path(jnp.asarray(base, jnp.float32), jnp.asarray(joints, jnp.float32), state.qpos,
+                         state.mocap_pos, actions, camera)
+    qpos, grip = np.asarray(path["qpos"]), np.asarray(path["grip"])
+    assert qpos.shape == (2, 6, env.model.nq) and grip.shape == (2, 6, 3)
+    rolled = EM.roll_joints(joints, np.asarray(state.qpos)[:, env.idx.robot.posed_qpos], actions)
+    np.testing.assert_allclose(qpos[..., env.idx.robot.posed_qpos], rolled[:, 1:], atol=1e-5)
+    model, data = camera.model, mujoco.MjData(camera.model)
+    site = GR.grip_site(camera)
+    for b in range(2):
+        for t in range(6):
+            data.qpos[:] = qpos[b, t]
+            data.mocap_pos[:] = np.asarray(state.mocap_pos)[b]
+            mujoco.mj_kinematics(model, data)
+            np.testing.assert_allclose(grip[b, t], data.site_xpos[site], atol=1e-5)
+
+
+def _hand_made(state, steps, lift_by, close_at, open_at, beside):
+    """A path of `steps` states whose grip site sits on each mug (offset `beside` m in x), closes at
+    close_at, rises by lift_by m over ten steps from there and opens at open_at."""
+    camera = robot_camera()
+    obj = GR.object_address("mug", camera)
+    qpos = np.repeat(np.asarray(state.qpos)[:, None], steps, 1)
+    grip = np.repeat(qpos[:, :, obj:obj + 3].copy(), 1, 0)
+    grip[:, :, 0] += np.asarray(beside)[:, None]
+    t = np.arange(steps)
+    grip[:, :, 2] += np.asarray(lift_by)[:, None] * np.clip((t - close_at) / 10, 0, 1)[None]
+    closure = np.where((t >= close_at) & (t < np.asarray(open_at)[:, None]), 1.0, 0.0)
+    actions = np.zeros((len(qpos), steps, 20), np.float32)
+    actions[..., RIGHT_HAND] = closure
+    return {"qpos": jnp.asarray(qpos, jnp.float32), "grip": jnp.asarray(grip, jnp.float32)}, actions
+
+
+def test_the_held_mug_follows_the_grip_and_the_tasks_own_rule_decides():
+    """On hand-made paths: a grip that closes on the mug and rises 15 cm lifts it (the task's rule:
+    8 cm held for half a second) and succeeds; the same grip opened before half a second above 8 cm
+    drops it and fails; one that closes 6 cm beside the mug never holds it."""
+    env, state = _mug_start(3)
+    steps, close_at = 60, 10
+    above = close_at + int(np.ceil(10 * MUG_LIFT / 0.15))  # the first step 8 cm up
+    short = above + int(MUG_HOLD / CONTROL_DT) - 3
+    path, actions = _hand_made(state, steps, [0.15, 0.15, 0.15], close_at, [steps, short, steps], [0.0, 0.0, 0.06])
+    got = GR.held_verdict(RULE, path, actions, state.mocap_pos, state.task, robot_camera(), "mug")
+    assert np.asarray(got["held"]).tolist() == [True, True, False]
+    assert np.asarray(got["success"]).tolist() == [True, False, False]
+    np.testing.assert_allclose(np.asarray(got["lift"]), [0.15, 0.15, 0.0], atol=1e-5)
+    # the rule's mug starts where the task measures its height: on the counter
+    np.testing.assert_allclose(np.asarray(mug_height(state.qpos, S.scene_index(env.model))), 0.0, atol=2e-3)
+
+
+def _rule_at(closure, reach_xy, reach_z, offset_z) -> int:
+    """The grid index of the rule at these positions along each number's grid."""
+    sizes = (len(GR.CLOSURES), len(GR.REACHES_XY), len(GR.REACHES_Z), len(GR.OFFSETS_Z))
+    return int(np.ravel_multi_index((closure, reach_xy, reach_z, offset_z), sizes))
+
+
+def test_fit_grasp_rule_takes_the_most_accurate_rule_and_the_middle_of_equals():
+    grid = GR.rule_grid()
+    outcomes = np.array([True, False, True, False])
+    verdicts = np.zeros((len(grid.closure), 4), bool)
+    verdicts[_rule_at(0, 0, 0, 0)] = [True, False, True, True]  # 3 of 4
+    rule, acc = GR.fit_grasp_rule(verdicts, outcomes)
+    assert acc == 0.75 and rule.as_dict() == jax.tree.map(lambda x: x[_rule_at(0, 0, 0, 0)], grid).as_dict()
+    # three reaches in a row equally right: the middle one
+    for reach in (1, 2, 3):
+        verdicts[_rule_at(1, reach, 1, 2)] = outcomes
+    rule, acc = GR.fit_grasp_rule(verdicts, outcomes)
+    assert acc == 1.0 and rule.as_dict() == jax.tree.map(lambda x: x[_rule_at(1, 2, 1, 2)], grid).as_dict()
+    assert rule.as_dict()["reach_xy"] == pytest.approx(GR.REACHES_XY[2])
+
+
+@pytest.fixture(scope="module")
+def scripted_mug_episodes():
+    """Eight mug episodes of the scripted policy in MuJoCo's C engine, at skills 1.0 and 0.3 and full and
+    weak grips: (first states, actions (8, T, 20), the joints' recorded positions (8, T + 1, 16), the
+    outcomes (8,) bool)."""
+    firsts, actions, joints, outcomes = [], [], [], []
+    for k, (skill, grip) in enumerate([((1.0, 0.3), (1.0, 1.0)), ((1.0, 1.0), (0.2, 1.0)),
+                                       ((0.3, 1.0), (1.0, 0.1)), ((1.0, 0.3), (1.0, 1.0))]):
+        env = HomeEnv("mug", 2, engine="cpu")
+        pol, params = scripted(env.model, list(skill), grip=list(grip))
+        rng = jax.random.PRNGKey(100 + k)
+        state, traj = run_episodes(env, pol, params, rng, record=True)
+        first = env.reset(jax.random.split(rng, 3)[0])
+        firsts.append(first)
+        actions.append(np.asarray(traj.action))
+        q = np.concatenate([np.asarray(first.qpos)[:, None], np.asarray(traj.qpos)], 1)
+        joints.append(q[..., env.idx.robot.posed_qpos])
+        outcomes.append(np.asarray(state.success))
+    return firsts, np.concatenate(actions), np.concatenate(joints), np.concatenate(outcomes)
+
+
+def test_the_rule_reads_the_outcomes_of_mujocos_scripted_episodes(scripted_mug_episodes):
+    """The states predicted from each episode's first state and actions (a joints model fit on the
+    episodes, a still base) with the rule held in hand give the C engine's outcomes in at least 7 of 8
+    episodes, among which both outcomes occur."""
+    firsts, actions, joints, outcomes = scripted_mug_episodes
+    assert outcomes.any() and not outcomes.all()
+    joint_coef = jnp.asarray(EM.fit_joints(list(joints), list(actions)), jnp.float32)
+    still = jnp.zeros((3, 6), jnp.float32)
+    got = []
+    for k, first in enumerate(firsts):
+        a = actions[2 * k:2 * k + 2]
+        got.append(np.asarray(GR.grasp_success(RULE, still, joint_coef, first.qpos, first.mocap_pos, first.task, a,
+                                               robot_camera(), "mug")["success"]))
+    assert (np.concatenate(got) == outcomes).sum() >= 7
+
+
+def test_a_task_without_an_object_to_grasp_is_refused():
+    with pytest.raises(ValueError, match="no object to grasp"):
+        GR.object_address("step_back", robot_camera())
+
+
+def test_the_evaluator_reads_the_mug_from_the_loops_actions_and_ranks_by_it():
+    """experiments.evaluate's geometric read-out of a mug batch is wm.grasp's verdict on the actions the
+    policies took in each world model's loop, the mean over the models; with geometric_ranks it is
+    the ranked probability too. Without a grasp rule the mug keeps the ranked read-out."""
+    assert "mug" in E.geometric_tasks(RULE) and "mug" not in E.geometric_tasks(None)
+    keys = E.reset_keys_of(np.array([3, 4]))
+    start = E.geometric_start("mug", keys, 16)
+    net, params = init_fill(FillConfig(width=4, levels=1), 16)
+    joints = np.tile([0.5, 0.0, 0.0], (EM.JOINTS, 1))
+    motion = Motion(jnp.zeros((3, 6)), jnp.asarray(joints, jnp.float32), params, net, FillConfig(width=4, levels=1), 16)
+    first = start[0]
+    obj = GR.object_address("mug", robot_camera())
+    reach = np.zeros((2, start[1], 20), np.float32)  # the hand closed from the first step, away from the mug
+    reach[..., RIGHT_HAND] = 1.0
+    got = {"prob": np.array([0.3, 0.6]), "prob_members": np.array([[0.3], [0.6]])}
+    cfg = E.make_config("demo", ["geometric_ranks=1", "geometric=x"])
+    mine = E.geometric_readout(cfg, "mug", motion, None, None, start, 1, jax.random.PRNGKey(0), got, RULE,
+                               [reach, reach])
+    direct = GR.grasp_success(RULE, motion.base, motion.joints, first.qpos, first.mocap, first.task, reach,
+                              robot_camera(), "mug")
+    np.testing.assert_array_equal(mine["readout_geometric"], np.asarray(direct["success"], np.float64))
+    np.testing.assert_array_equal(mine["prob"], mine["readout_geometric"])
+    assert mine["prob_members"].shape == (2, 1)
+    assert np.asarray(first.qpos)[:, obj + 2].min() > S.COUNTER_TOP  # the mug stands on the counter
+    kept = E.geometric_readout(cfg, "mug", motion, None, None, start, 1, jax.random.PRNGKey(0), got, None, [reach])
+    np.testing.assert_array_equal(kept["readout_geometric"], got["prob"])

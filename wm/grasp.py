@@ -1,0 +1,180 @@
+"""An object the hand picks up, predicted from the actions: the mug's state, and its task's verdict.
+
+A world model that ranks grasping policies must know whether the hand closed on the mug and where the
+hand took it. This model takes both from the actions and the first state alone:
+
+- the base and the actuated joints move under the actions by `wm.egomotion`'s fitted models, and MuJoCo's
+  kinematics (MJX, so under jit) place the right hand's grip site at every predicted state;
+- each time the right hand's commanded closure rises to `GraspRule.closure` (an open hand closing, or
+  one closed from the first step), the grip takes the object when the site lies within `reach_xy` of
+  its centre horizontally and within `reach_z` of `offset_z` above it; a held object moves with the
+  grip site from then on, and drops back to its start when the closure falls below the threshold;
+- the task's own rule (`sim_data.sim.tasks.update_task`: for the mug, its bottom 8 cm above the
+  counter for half a second) runs on the predicted states.
+
+The rule's four numbers are fit on recorded episodes (`fit_grasp_rule`: the most accurate on the
+training split's outcomes, over a grid) and checked on the validation split; `experiments.fill` fits and
+saves them (`GRASP_JSON`) beside the motion models. `grasp_success` reads any batch of action sequences:
+the actions a policy took in a world model's imagination, or those of simulated episodes.
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from flax import struct
+
+from sim_data.sim import robot as R
+from sim_data.sim.tasks import TaskState, update_task
+from sim_data.util import read_json, write_json_atomic
+from wm.egomotion import step_base, step_joints
+from wm.geometric import RobotCamera
+
+GRASP_JSON = "grasp.json"
+GRASPED = {"mug": "mug_qpos"}  # task -> its held object's free joint (sim_data.sim.scene.SceneIndex field)
+GRIP_SITE = "right_grip"
+# the grid fit_grasp_rule searches
+CLOSURES = (0.3, 0.5, 0.7, 0.9)
+REACHES_XY = (0.01, 0.015, 0.02, 0.03, 0.04, 0.05)
+REACHES_Z = (0.01, 0.02, 0.03, 0.05)
+OFFSETS_Z = (-0.02, -0.01, 0.0, 0.01, 0.02)
+
+
+@struct.dataclass
+class GraspRule:
+    """When the grip holds the object: closure, the right hand's commanded closure that closes it;
+    reach_xy (m), the grip site's largest horizontal distance from the object's centre at that step;
+    offset_z and reach_z (m), its height above the centre and the tolerance on it. Scalars (or arrays
+    of one shape, to score several rules at once)."""
+    closure: jax.Array
+    reach_xy: jax.Array
+    reach_z: jax.Array
+    offset_z: jax.Array
+
+    @classmethod
+    def of(cls, values) -> GraspRule:
+        return cls(*(jnp.asarray(v, jnp.float32) for v in values))
+
+    def as_dict(self) -> dict:
+        return {k: float(getattr(self, k)) for k in ("closure", "reach_xy", "reach_z", "offset_z")}
+
+
+def grip_site(camera: RobotCamera) -> int:
+    site = mujoco.mj_name2id(camera.model, mujoco.mjtObj.mjOBJ_SITE, GRIP_SITE)
+    if site < 0:
+        raise ValueError(f"the scene has no site {GRIP_SITE!r}")
+    return site
+
+
+def object_address(task: str, camera: RobotCamera) -> int:
+    """The qpos address of task's held object (its free joint's position)."""
+    if task not in GRASPED:
+        raise ValueError(f"no object to grasp in task {task!r}; the grasp model reads {', '.join(GRASPED)}")
+    return int(getattr(camera.scene, GRASPED[task]))
+
+
+@functools.partial(jax.jit, static_argnames=("camera",))
+def robot_path(base_coef, joint_coef, qpos0, mocap0, actions, camera: RobotCamera) -> dict:
+    """The robot's states predicted from qpos0 (B, nq), mocap0 (B, nmocap, 3) under actions (B, T, 20)
+    as applied, by base_coef (3, 6) and joint_coef (16, 3) (wm.egomotion): {"qpos": (B, T, nq) after
+    each step (the objects where they started), "grip": (B, T, 3) the right hand's grip site there}."""
+    idx = camera.idx
+    site = grip_site(camera)
+    base_at, posed_at = jnp.asarray(idx.base_qpos), jnp.asarray(idx.posed_qpos)
+
+    def body(c, action):
+        base, moved, joints, turned = c
+        base, moved = step_base(base_coef, base, moved, action)
+        joints, turned = step_joints(joint_coef, joints, turned, action)
+        qpos = qpos0.at[:, base_at].set(base).at[:, posed_at].set(joints)
+        return (base, moved, joints, turned), (qpos, camera.data(qpos, mocap0).site_xpos[:, site])
+
+    base0, joints0 = qpos0[:, base_at], qpos0[:, posed_at]
+    init = (base0, jnp.zeros_like(base0), joints0, jnp.zeros_like(joints0))
+    _, (qpos, grip) = jax.lax.scan(body, init, jnp.swapaxes(jnp.asarray(actions, jnp.float32), 0, 1))
+    return {"qpos": jnp.swapaxes(qpos, 0, 1), "grip": jnp.swapaxes(grip, 0, 1)}
+
+
+def held_verdict(rule: GraspRule, path: dict, actions, mocap0, task0: TaskState, camera: RobotCamera,
+                 task: str) -> dict:
+    """The task's verdict on robot_path's states with the object moved by rule: {"success": (B,) bool
+    after the last step, "held": (B,) bool the grip took the object, "lift": (B,) float32 the object's
+    highest rise (m) over its start}. Traceable; the object starts where path's states hold it."""
+    obj = object_address(task, camera)
+    qpos, grip = jnp.swapaxes(path["qpos"], 0, 1), jnp.swapaxes(path["grip"], 0, 1)
+    closure = jnp.swapaxes(jnp.asarray(actions, jnp.float32)[..., R.RIGHT_HAND], 0, 1)
+    start = qpos[0, :, obj:obj + 3]
+    qvel = jnp.zeros(qpos.shape[1:2] + (camera.model.nv,), jnp.float32)
+
+    def body(c, x):
+        was, held, grip_at, ts, _, lift = c
+        q, g, u = x
+        closed = u >= rule.closure
+        closing = closed & ~was
+        rel = g - start
+        near = (jnp.hypot(rel[:, 0], rel[:, 1]) <= rule.reach_xy) & (jnp.abs(rel[:, 2] - rule.offset_z) <= rule.reach_z)
+        grip_at = jnp.where(closing[:, None], g, grip_at)
+        held = (held | (closing & near)) & closed
+        at = jnp.where(held[:, None], start + g - grip_at, start)
+        ts, success = update_task(ts, q.at[:, obj:obj + 3].set(at), qvel, mocap0, camera.scene)
+        return (closed, held, grip_at, ts, success, jnp.maximum(lift, at[:, 2] - start[:, 2])), held
+
+    no = jnp.zeros(start.shape[0], bool)
+    init = (no, no, jnp.zeros_like(start), task0, no, jnp.zeros(start.shape[0]))
+    (*_, success, lift), held = jax.lax.scan(body, init, (qpos, grip, closure))
+    return {"success": success, "held": held.any(0), "lift": lift}
+
+
+@functools.partial(jax.jit, static_argnames=("camera", "task"))
+def grasp_success(rule: GraspRule, base_coef, joint_coef, qpos0, mocap0, task0: TaskState, actions,
+                  camera: RobotCamera, task: str) -> dict:
+    """held_verdict on robot_path's states: the task's verdict from qpos0 (B, nq), mocap0 (B, nmocap, 3)
+    and task0 (the TaskState at reset) under actions (B, T, 20) as applied."""
+    path = robot_path(base_coef, joint_coef, qpos0, mocap0, actions, camera)
+    return held_verdict(rule, path, actions, mocap0, task0, camera, task)
+
+
+@functools.partial(jax.jit, static_argnames=("camera", "task"))
+def verdicts_of_rules(rules: GraspRule, path: dict, actions, mocap0, task0: TaskState, camera: RobotCamera,
+                      task: str) -> jax.Array:
+    """(G, B) bool: held_verdict's success under each of the G rules of rules ((G,) arrays)."""
+    return jax.vmap(lambda r: held_verdict(r, path, actions, mocap0, task0, camera, task)["success"])(rules)
+
+
+def rule_grid() -> GraspRule:
+    """Every rule of fit_grasp_rule's grid, as a GraspRule of (G,) arrays."""
+    return GraspRule.of(np.array(list(itertools.product(CLOSURES, REACHES_XY, REACHES_Z, OFFSETS_Z))).T)
+
+
+def fit_grasp_rule(verdicts: np.ndarray, outcomes: np.ndarray) -> tuple[GraspRule, float]:
+    """The rule of rule_grid() whose verdicts (G, E) bool (verdicts_of_rules' over the training
+    episodes) agree most often with their recorded outcomes (E,) bool, and that share. Among equally
+    accurate rules, the one nearest the middle of them (each number's median over them, in steps of its
+    grid), so that a rule the data cannot pin down keeps a margin on every side; then the first in the
+    grid's order."""
+    acc = (np.asarray(verdicts) == np.asarray(outcomes, bool)[None]).mean(1)
+    tied = np.flatnonzero(acc == acc.max())
+    steps = np.array(list(itertools.product(*(range(len(v)) for v in (CLOSURES, REACHES_XY, REACHES_Z, OFFSETS_Z)))))
+    at = steps[tied]
+    best = int(tied[np.argmin(np.abs(at - np.median(at, 0)).sum(1))])
+    return jax.tree.map(lambda x: x[best], rule_grid()), float(acc[best])
+
+
+def save_grasp(out: Path, rule: GraspRule, metrics: dict) -> None:
+    """Writes out/grasp.json: the rule and its fit's metrics."""
+    write_json_atomic(Path(out) / GRASP_JSON, {"rule": rule.as_dict(), "metrics": metrics})
+
+
+def load_grasp(out: Path) -> GraspRule | None:
+    """The rule save_grasp wrote in out, or None where out holds none."""
+    path = Path(out) / GRASP_JSON
+    if not path.exists():
+        return None
+    rule = read_json(path)["rule"]
+    return GraspRule.of([rule[k] for k in ("closure", "reach_xy", "reach_z", "offset_z")])
