@@ -58,6 +58,7 @@ from wm.geometric import robot_camera
 from wm.grasp import (
     GRASP_JSON,
     GRASPED,
+    GRID,
     GraspRule,
     fit_grasp_rule,
     robot_path,
@@ -209,7 +210,7 @@ def grasp_verdicts(rows: list[dict], base: np.ndarray, joints: np.ndarray, progr
             state = env.reset(jnp.stack([jax.random.PRNGKey(int(rows[i]["seed"])) for i in padded]))
             path = robot_path(base, joints, state.qpos, state.mocap_pos, actions, camera)
             got = verdicts_of_rules(grid, path, actions, state.mocap_pos, state.task, camera, task)
-            verdicts.append(np.asarray(got)[:, :len(chunk)])
+            verdicts.append(got[:, :len(chunk)])
             order += chunk
             bar.update(len(chunk))
     bar.close()
@@ -224,8 +225,8 @@ def fit_and_check_grasp(train_rows: list[dict], val_rows: list[dict], base: np.n
     verdicts, outcomes = grasp_verdicts(train_rows, base, joints, progress)
     rule, train_acc = fit_grasp_rule(verdicts, outcomes)
     grid = rule_grid()
-    best = int(np.flatnonzero(np.all([np.asarray(getattr(grid, k)) == np.asarray(getattr(rule, k))
-                                      for k in ("closure", "reach_xy", "reach_z", "offset_z")], 0))[0])
+    best = int(np.flatnonzero(np.all([np.asarray(getattr(grid, k)) == np.asarray(getattr(rule, k)) for k in GRID],
+                                      0))[0])
     val_verdicts, val_outcomes = grasp_verdicts(val_rows, base, joints, progress)
     majority = bool(outcomes.mean() >= 0.5)
     return rule, {"train_accuracy": train_acc, "val_accuracy": float(np.mean(val_verdicts[best] == val_outcomes)),

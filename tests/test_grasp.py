@@ -19,7 +19,7 @@ from wm import grasp as GR
 from wm.fill import FillConfig, init_fill
 from wm.geometric import Motion, robot_camera
 
-RULE = GR.GraspRule.of([0.5, 0.04, 0.02, 0.0])
+RULE = GR.GraspRule.of([0.5, 0.04, -0.02, 0.02, 0.4])
 
 
 def _mug_start(n=3, seed=0):
@@ -53,9 +53,10 @@ def test_the_grip_site_is_where_mujocos_c_kinematics_puts_it():
             np.testing.assert_allclose(grip[b, t], data.site_xpos[site], atol=1e-5)
 
 
-def _hand_made(state, steps, lift_by, close_at, open_at, beside):
+def _hand_made(state, steps, lift_by, close_at, open_at, beside, swept):
     """A path of `steps` states whose grip site sits on each mug (offset `beside` m in x), closes at
-    close_at, rises by lift_by m over ten steps from there and opens at open_at."""
+    close_at, rises by lift_by m over ten steps from there and opens at open_at; where `swept`, it
+    arrives over the mug only at close_at, from 5 cm away in y."""
     camera = robot_camera()
     obj = GR.object_address("mug", camera)
     qpos = np.repeat(np.asarray(state.qpos)[:, None], steps, 1)
@@ -63,6 +64,7 @@ def _hand_made(state, steps, lift_by, close_at, open_at, beside):
     grip[:, :, 0] += np.asarray(beside)[:, None]
     t = np.arange(steps)
     grip[:, :, 2] += np.asarray(lift_by)[:, None] * np.clip((t - close_at) / 10, 0, 1)[None]
+    grip[:, :close_at, 1] += 0.05 * np.asarray(swept, float)[:, None]
     closure = np.where((t >= close_at) & (t < np.asarray(open_at)[:, None]), 1.0, 0.0)
     actions = np.zeros((len(qpos), steps, 20), np.float32)
     actions[..., RIGHT_HAND] = closure
@@ -72,39 +74,43 @@ def _hand_made(state, steps, lift_by, close_at, open_at, beside):
 def test_the_held_mug_follows_the_grip_and_the_tasks_own_rule_decides():
     """On hand-made paths: a grip that closes on the mug and rises 15 cm lifts it (the task's rule:
     8 cm held for half a second) and succeeds; the same grip opened before half a second above 8 cm
-    drops it and fails; one that closes 6 cm beside the mug never holds it."""
-    env, state = _mug_start(3)
+    drops it and fails; one that closes 6 cm beside the mug never holds it, nor one that sweeps onto it
+    at 1 m/s as it closes."""
+    env, state = _mug_start(4)
     steps, close_at = 60, 10
     above = close_at + int(np.ceil(10 * MUG_LIFT / 0.15))  # the first step 8 cm up
     short = above + int(MUG_HOLD / CONTROL_DT) - 3
-    path, actions = _hand_made(state, steps, [0.15, 0.15, 0.15], close_at, [steps, short, steps], [0.0, 0.0, 0.06])
+    path, actions = _hand_made(state, steps, [0.15] * 4, close_at, [steps, short, steps, steps], [0.0, 0.0, 0.06, 0.0],
+                               [False, False, False, True])
     got = GR.held_verdict(RULE, path, actions, state.mocap_pos, state.task, robot_camera(), "mug")
-    assert np.asarray(got["held"]).tolist() == [True, True, False]
-    assert np.asarray(got["success"]).tolist() == [True, False, False]
-    np.testing.assert_allclose(np.asarray(got["lift"]), [0.15, 0.15, 0.0], atol=1e-5)
+    assert np.asarray(got["held"]).tolist() == [True, True, False, False]
+    assert np.asarray(got["success"]).tolist() == [True, False, False, False]
+    np.testing.assert_allclose(np.asarray(got["lift"]), [0.15, 0.15, 0.0, 0.0], atol=1e-5)
+    slow = GR.GraspRule.of({**RULE.as_dict(), "speed": 1e3})  # with no limit on its speed, the sweep holds it
+    assert np.asarray(GR.held_verdict(slow, path, actions, state.mocap_pos, state.task, robot_camera(), "mug")["success"]
+                      ).tolist() == [True, False, False, True]
     # the rule's mug starts where the task measures its height: on the counter
     np.testing.assert_allclose(np.asarray(mug_height(state.qpos, S.scene_index(env.model))), 0.0, atol=2e-3)
 
 
-def _rule_at(closure, reach_xy, reach_z, offset_z) -> int:
-    """The grid index of the rule at these positions along each number's grid."""
-    sizes = (len(GR.CLOSURES), len(GR.REACHES_XY), len(GR.REACHES_Z), len(GR.OFFSETS_Z))
-    return int(np.ravel_multi_index((closure, reach_xy, reach_z, offset_z), sizes))
+def _rule_at(*at) -> int:
+    """The grid index of the rule at these positions along each field's values (wm.grasp.GRID's order)."""
+    return int(np.ravel_multi_index(at, tuple(len(v) for v in GR.GRID.values())))
 
 
 def test_fit_grasp_rule_takes_the_most_accurate_rule_and_the_middle_of_equals():
     grid = GR.rule_grid()
     outcomes = np.array([True, False, True, False])
     verdicts = np.zeros((len(grid.closure), 4), bool)
-    verdicts[_rule_at(0, 0, 0, 0)] = [True, False, True, True]  # 3 of 4
+    verdicts[_rule_at(0, 0, 0, 0, 0)] = [True, False, True, True]  # 3 of 4
     rule, acc = GR.fit_grasp_rule(verdicts, outcomes)
-    assert acc == 0.75 and rule.as_dict() == jax.tree.map(lambda x: x[_rule_at(0, 0, 0, 0)], grid).as_dict()
+    assert acc == 0.75 and rule.as_dict() == jax.tree.map(lambda x: x[_rule_at(0, 0, 0, 0, 0)], grid).as_dict()
     # three reaches in a row equally right: the middle one
     for reach in (1, 2, 3):
-        verdicts[_rule_at(1, reach, 1, 2)] = outcomes
+        verdicts[_rule_at(1, reach, 1, 2, 3)] = outcomes
     rule, acc = GR.fit_grasp_rule(verdicts, outcomes)
-    assert acc == 1.0 and rule.as_dict() == jax.tree.map(lambda x: x[_rule_at(1, 2, 1, 2)], grid).as_dict()
-    assert rule.as_dict()["reach_xy"] == pytest.approx(GR.REACHES_XY[2])
+    assert acc == 1.0 and rule.as_dict() == jax.tree.map(lambda x: x[_rule_at(1, 2, 1, 2, 3)], grid).as_dict()
+    assert rule.as_dict()["reach_xy"] == pytest.approx(GR.GRID["reach_xy"][2])
 
 
 @pytest.fixture(scope="module")

@@ -7,12 +7,13 @@ hand took it. This model takes both from the actions and the first state alone:
   kinematics (MJX, so under jit) place the right hand's grip site at every predicted state;
 - each time the right hand's commanded closure rises to `GraspRule.closure` (an open hand closing, or
   one closed from the first step), the grip takes the object when the site lies within `reach_xy` of
-  its centre horizontally and within `reach_z` of `offset_z` above it; a held object moves with the
-  grip site from then on, and drops back to its start when the closure falls below the threshold;
+  its centre horizontally, between `z_low` and `z_high` above it, and moved at most `speed` over that
+  step; a held object moves with the grip site from then on, and drops back to its start when the
+  closure falls below the threshold;
 - the task's own rule (`sim_data.sim.tasks.update_task`: for the mug, its bottom 8 cm above the
   counter for half a second) runs on the predicted states.
 
-The rule's four numbers are fit on recorded episodes (`fit_grasp_rule`: the most accurate on the
+The rule's five numbers are fit on recorded episodes (`fit_grasp_rule`: the most accurate on the
 training split's outcomes, over a grid) and checked on the validation split; `experiments.fill` fits and
 saves them (`GRASP_JSON`) beside the motion models. `grasp_success` reads any batch of action sequences:
 the actions a policy took in a world model's imagination, or those of simulated episodes.
@@ -31,7 +32,7 @@ import numpy as np
 from flax import struct
 
 from sim_data.sim import robot as R
-from sim_data.sim.tasks import TaskState, update_task
+from sim_data.sim.tasks import CONTROL_DT, TaskState, update_task
 from sim_data.util import read_json, write_json_atomic
 from wm.egomotion import step_base, step_joints
 from wm.geometric import RobotCamera
@@ -39,30 +40,37 @@ from wm.geometric import RobotCamera
 GRASP_JSON = "grasp.json"
 GRASPED = {"mug": "mug_qpos"}  # task -> its held object's free joint (sim_data.sim.scene.SceneIndex field)
 GRIP_SITE = "right_grip"
-# the grid fit_grasp_rule searches
-CLOSURES = (0.3, 0.5, 0.7, 0.9)
-REACHES_XY = (0.01, 0.015, 0.02, 0.03, 0.04, 0.05)
-REACHES_Z = (0.01, 0.02, 0.03, 0.05)
-OFFSETS_Z = (-0.02, -0.01, 0.0, 0.01, 0.02)
+# the grid fit_grasp_rule searches, one axis a field of GraspRule
+GRID = {"closure": (0.3, 0.5, 0.7, 0.9),
+        "reach_xy": (0.015, 0.02, 0.025, 0.03, 0.035, 0.04, 0.05),
+        "z_low": (-0.04, -0.03, -0.02, -0.01, 0.0),
+        "z_high": (0.01, 0.02, 0.03, 0.04, 0.05),
+        "speed": (0.1, 0.2, 0.4, 0.8, 1e3)}  # 1e3 m/s: no limit
+RULES_AT_ONCE = 500  # verdicts_of_rules' batch of rules
 
 
 @struct.dataclass
 class GraspRule:
     """When the grip holds the object: closure, the right hand's commanded closure that closes it;
     reach_xy (m), the grip site's largest horizontal distance from the object's centre at that step;
-    offset_z and reach_z (m), its height above the centre and the tolerance on it. Scalars (or arrays
-    of one shape, to score several rules at once)."""
+    z_low and z_high (m), the lowest and highest the site may be above the centre; speed (m/s), the
+    fastest the site may move over the step it closes in (a hand that sweeps past does not hold).
+    Scalars (or arrays of one shape, to score several rules at once)."""
     closure: jax.Array
     reach_xy: jax.Array
-    reach_z: jax.Array
-    offset_z: jax.Array
+    z_low: jax.Array
+    z_high: jax.Array
+    speed: jax.Array
 
     @classmethod
     def of(cls, values) -> GraspRule:
+        """The rule of values in GRID's order of fields (or a {field: value} dict)."""
+        if isinstance(values, dict):
+            values = [values[k] for k in GRID]
         return cls(*(jnp.asarray(v, jnp.float32) for v in values))
 
     def as_dict(self) -> dict:
-        return {k: float(getattr(self, k)) for k in ("closure", "reach_xy", "reach_z", "offset_z")}
+        return {k: float(getattr(self, k)) for k in GRID}
 
 
 def grip_site(camera: RobotCamera) -> int:
@@ -113,20 +121,21 @@ def held_verdict(rule: GraspRule, path: dict, actions, mocap0, task0: TaskState,
     qvel = jnp.zeros(qpos.shape[1:2] + (camera.model.nv,), jnp.float32)
 
     def body(c, x):
-        was, held, grip_at, ts, _, lift = c
+        was, held, grip_at, before, ts, _, lift = c
         q, g, u = x
         closed = u >= rule.closure
         closing = closed & ~was
         rel = g - start
-        near = (jnp.hypot(rel[:, 0], rel[:, 1]) <= rule.reach_xy) & (jnp.abs(rel[:, 2] - rule.offset_z) <= rule.reach_z)
+        near = ((jnp.hypot(rel[:, 0], rel[:, 1]) <= rule.reach_xy) & (rel[:, 2] >= rule.z_low) & (rel[:, 2] <= rule.z_high)
+                & (jnp.linalg.norm(g - before, axis=-1) <= rule.speed * CONTROL_DT))
         grip_at = jnp.where(closing[:, None], g, grip_at)
         held = (held | (closing & near)) & closed
         at = jnp.where(held[:, None], start + g - grip_at, start)
         ts, success = update_task(ts, q.at[:, obj:obj + 3].set(at), qvel, mocap0, camera.scene)
-        return (closed, held, grip_at, ts, success, jnp.maximum(lift, at[:, 2] - start[:, 2])), held
+        return (closed, held, grip_at, g, ts, success, jnp.maximum(lift, at[:, 2] - start[:, 2])), held
 
     no = jnp.zeros(start.shape[0], bool)
-    init = (no, no, jnp.zeros_like(start), task0, no, jnp.zeros(start.shape[0]))
+    init = (no, no, jnp.zeros_like(start), grip[0], task0, no, jnp.zeros(start.shape[0]))
     (*_, success, lift), held = jax.lax.scan(body, init, (qpos, grip, closure))
     return {"success": success, "held": held.any(0), "lift": lift}
 
@@ -141,15 +150,26 @@ def grasp_success(rule: GraspRule, base_coef, joint_coef, qpos0, mocap0, task0: 
 
 
 @functools.partial(jax.jit, static_argnames=("camera", "task"))
-def verdicts_of_rules(rules: GraspRule, path: dict, actions, mocap0, task0: TaskState, camera: RobotCamera,
-                      task: str) -> jax.Array:
-    """(G, B) bool: held_verdict's success under each of the G rules of rules ((G,) arrays)."""
+def _verdicts(rules: GraspRule, path: dict, actions, mocap0, task0: TaskState, camera: RobotCamera, task: str):
     return jax.vmap(lambda r: held_verdict(r, path, actions, mocap0, task0, camera, task)["success"])(rules)
 
 
+def verdicts_of_rules(rules: GraspRule, path: dict, actions, mocap0, task0: TaskState, camera: RobotCamera,
+                      task: str) -> np.ndarray:
+    """(G, B) bool: held_verdict's success under each of the G rules of rules ((G,) arrays), RULES_AT_ONCE
+    at a time (the last batch padded with the first rule: one compiled program)."""
+    g = len(rules.closure)
+    out = []
+    for i in range(0, g, RULES_AT_ONCE):
+        idx = np.minimum(np.arange(i, i + RULES_AT_ONCE), g - 1)
+        out.append(np.asarray(_verdicts(jax.tree.map(lambda x: x[idx], rules), path, actions, mocap0, task0, camera,
+                                        task))[: g - i])
+    return np.concatenate(out)
+
+
 def rule_grid() -> GraspRule:
-    """Every rule of fit_grasp_rule's grid, as a GraspRule of (G,) arrays."""
-    return GraspRule.of(np.array(list(itertools.product(CLOSURES, REACHES_XY, REACHES_Z, OFFSETS_Z))).T)
+    """Every rule of fit_grasp_rule's grid (GRID), as a GraspRule of (G,) arrays, the last field fastest."""
+    return GraspRule.of(np.array(list(itertools.product(*GRID.values()))).T)
 
 
 def fit_grasp_rule(verdicts: np.ndarray, outcomes: np.ndarray) -> tuple[GraspRule, float]:
@@ -160,7 +180,7 @@ def fit_grasp_rule(verdicts: np.ndarray, outcomes: np.ndarray) -> tuple[GraspRul
     grid's order."""
     acc = (np.asarray(verdicts) == np.asarray(outcomes, bool)[None]).mean(1)
     tied = np.flatnonzero(acc == acc.max())
-    steps = np.array(list(itertools.product(*(range(len(v)) for v in (CLOSURES, REACHES_XY, REACHES_Z, OFFSETS_Z)))))
+    steps = np.array(list(itertools.product(*(range(len(v)) for v in GRID.values()))))
     at = steps[tied]
     best = int(tied[np.argmin(np.abs(at - np.median(at, 0)).sum(1))])
     return jax.tree.map(lambda x: x[best], rule_grid()), float(acc[best])
@@ -177,4 +197,7 @@ def load_grasp(out: Path) -> GraspRule | None:
     if not path.exists():
         return None
     rule = read_json(path)["rule"]
-    return GraspRule.of([rule[k] for k in ("closure", "reach_xy", "reach_z", "offset_z")])
+    if set(rule) != set(GRID):
+        raise ValueError(f"{path} holds a rule of {sorted(rule)}, not of {list(GRID)}: remove it and run python -m "
+                         f"experiments.fill --out {Path(out)} --tasks {','.join(GRASPED)} again")
+    return GraspRule.of(rule)
