@@ -88,11 +88,13 @@ def test_without_gpus_the_train_stage_trains_one_member_a_run_and_eval_waits_for
 
 
 def test_a_preset_with_geometric_tasks_fits_their_models_after_training_and_ranks_them_by_it(tiny, monkeypatch):
-    """The train stage fits the geometric models on the data at the world model's frame size once the
-    members are trained (not before); the eval stage names them and ranks by them."""
+    """The train stage fits the geometric models at the world model's frame size once the members are
+    trained (not before): the motion models and the fill of step_back on the data, then the grasp rule of
+    the mug on the world model's data (the rollouts among it); the eval stage names them and ranks by
+    them."""
     _, d = tiny
     monkeypatch.setitem(P.PIPELINES, "tiny", dataclasses.replace(P.PIPELINES["tiny"], members=1,
-                                                                 geometric="step_back",
+                                                                 geometric="step_back,mug",
                                                                  geometric_args=("--steps", "7")))
     d = P.PIPELINES["tiny"].dirs("tiny")
     fits, evals = [], []
@@ -102,6 +104,8 @@ def test_a_preset_with_geometric_tasks_fits_their_models_after_training_and_rank
         None))
     assert P.run_stage("tiny", "train") is True
     assert fits == [["--data", str(d["data"]), "--tasks", "step_back", "--out", str(d["geometric"]), "--size", "48",
+                     "--steps", "7"],
+                    ["--data", str(d["wm_data"]), "--tasks", "mug", "--out", str(d["geometric"]), "--size", "48",
                      "--steps", "7"]]
     import experiments.evaluate
 
