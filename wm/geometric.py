@@ -117,6 +117,12 @@ def robot_camera(camera: str = HEAD_CAMERA) -> RobotCamera:
     return RobotCamera(camera)
 
 
+def posed(qpos, base, joints, idx: R.RobotIndex) -> jax.Array:
+    """qpos (B, nq) with the base (B, 3: x, y, yaw) and the actuated joints (B, 16) set; the rest (the
+    objects, the fingers) as given. Traceable."""
+    return qpos.at[:, jnp.asarray(idx.base_qpos)].set(base).at[:, jnp.asarray(idx.posed_qpos)].set(joints)
+
+
 def predicted_proprio(joints, joint_step, base_step, closure) -> jax.Array:
     """(B, 37) proprioception of a predicted robot (sim_data.sim.robot.proprioception's layout): joints
     (B, 16), their change over the step (B, 16), the base's displacement in its own frame (B, 3:
@@ -159,7 +165,7 @@ def imagine_robot(policy, policy_params, motion: Motion, view: FirstView, policy
         before = base
         base, moved = step_base(motion.base, base, moved, action)
         joints, turned = step_joints(motion.joints, joints, turned, action)
-        qpos = view.qpos.at[:, base_at].set(base).at[:, posed_at].set(joints)
+        qpos = posed(view.qpos, base, joints, idx)
         step = jnp.concatenate([base[:, :2] - before[:, :2], wrap_angle(base[:, 2:] - before[:, 2:])], -1)
         qvel = (qvel0.at[:, base_v].set(step / CONTROL_DT)
                 .at[:, posed_v].set(turned / CONTROL_DT))
@@ -175,7 +181,7 @@ def imagine_robot(policy, policy_params, motion: Motion, view: FirstView, policy
     no = jnp.zeros(base0.shape[0], bool)
     init = (obs, carry0, view.task, no, base0, zeros, joints0, jnp.zeros_like(joints0))
     (_, _, _, success, base, _, joints, _), (actions, bases, frames) = jax.lax.scan(body, init, jnp.arange(steps))
-    qpos = view.qpos.at[:, base_at].set(base).at[:, posed_at].set(joints)
+    qpos = posed(view.qpos, base, joints, idx)
     out = {"action": jnp.swapaxes(actions, 0, 1),
            "base": jnp.concatenate([base0[:, None], jnp.swapaxes(bases, 0, 1)], 1), "qpos": qpos,
            "success": success}

@@ -35,7 +35,7 @@ from sim_data.sim import robot as R
 from sim_data.sim.tasks import CONTROL_DT, TaskState, update_task
 from sim_data.util import read_json, write_json_atomic
 from wm.egomotion import step_base, step_joints
-from wm.geometric import RobotCamera
+from wm.geometric import RobotCamera, posed
 
 GRASP_JSON = "grasp.json"
 GRASPED = {"mug": "mug_qpos"}  # task -> its held object's free joint (sim_data.sim.scene.SceneIndex field)
@@ -100,7 +100,7 @@ def robot_path(base_coef, joint_coef, qpos0, mocap0, actions, camera: RobotCamer
         base, moved, joints, turned = c
         base, moved = step_base(base_coef, base, moved, action)
         joints, turned = step_joints(joint_coef, joints, turned, action)
-        qpos = qpos0.at[:, base_at].set(base).at[:, posed_at].set(joints)
+        qpos = posed(qpos0, base, joints, idx)
         return (base, moved, joints, turned), (qpos, camera.data(qpos, mocap0).site_xpos[:, site])
 
     base0, joints0 = qpos0[:, base_at], qpos0[:, posed_at]
