@@ -434,8 +434,8 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
         got, each = _predict_batch(cfg, task, models, policy, params, truth, rng, clock["wm_parts"])
         if motion is not None:
             with _timed(clock["wm_parts"], "geometric_s"):
-                if task in geometric_tasks(grasp) and j not in starts:  # a slice's first views serve its batches
-                    starts[j] = geometric_start(task, reset_keys[s0:s1], motion.size)
+                if task in geometric_tasks(motion, grasp) and j not in starts:  # a slice's first views serve its batches
+                    starts[j] = geometric_start(task, reset_keys[s0:s1], models[0][0].model.size)
                 got |= geometric_readout(cfg, task, motion, policy, params, starts.get(j), len(padded), rng, got,
                                          grasp, [e["action"] for e in each])
         got = {key: v.reshape((len(padded), n) + v.shape[1:])[: len(part)] for key, v in got.items()}
@@ -530,10 +530,12 @@ def geometric_start(task: str, reset_keys, size: int) -> tuple:
     return start_view(env, env.reset(jnp.asarray(reset_keys)), size, robot_camera()), env.episode_steps
 
 
-def geometric_tasks(grasp: GraspRule | None) -> tuple:
-    """The tasks the geometric read-out predicts: wm.geometric.PREDICTS, and with a grasp rule
-    wm.grasp.GRASPED's."""
-    return PREDICTS + (tuple(GRASPED) if grasp is not None else ())
+def geometric_tasks(motion: Motion | None, grasp: GraspRule | None) -> tuple:
+    """The tasks the geometric read-out predicts: wm.geometric.PREDICTS where motion holds a fill, and
+    with a grasp rule wm.grasp.GRASPED's."""
+    if motion is None:
+        return ()
+    return (PREDICTS if motion.fill_net is not None else ()) + (tuple(GRASPED) if grasp is not None else ())
 
 
 def geometric_readout(cfg: EvalConfig, task: str, motion: Motion, policy, params, start: tuple, copies: int, rng,
@@ -547,7 +549,7 @@ def geometric_readout(cfg: EvalConfig, task: str, motion: Motion, policy, params
     the actions its policies took there), the mean over the models; elsewhere got["prob"] (the ranked
     read-out). Returns {"readout_geometric": (B,) float64} and, with cfg.geometric_ranks on such a task,
     "prob" and "prob_members" ((B,), (B, K)) replaced by it."""
-    if task not in geometric_tasks(grasp):
+    if task not in geometric_tasks(motion, grasp):
         return {f"readout_{GEOMETRIC}": got["prob"]}
     first, steps = start
     view = jax.tree.map(lambda x: jnp.tile(x, (copies,) + (1,) * (jnp.ndim(x) - 1)), first)
@@ -1256,7 +1258,7 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
     models = load_models(cfg.wm_runs, cfg.imagine)
     motion = load_motion(Path(cfg.geometric)) if cfg.geometric else None
     grasp = load_grasp(Path(cfg.geometric)) if cfg.geometric else None
-    if motion is not None and motion.size != models[0][0].model.size:
+    if motion is not None and motion.size is not None and motion.size != models[0][0].model.size:
         raise ValueError(f"the geometric models in {cfg.geometric} draw {motion.size}-px frames; the world models "
                          f"imagine {models[0][0].model.size}-px ones: train the fill at that size (--size)")
     if cfg.readout == SECOND_JUDGE and (lacking := [r for r, m in zip(cfg.wm_runs, models) if m[4] is None]):
@@ -1395,7 +1397,8 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, prints: di
     tasks = [t for t in tasks if t in results]
     by_name = {s.name: s for s in sources}
     rows = [r for task in tasks for r in policy_rows(cfg, task, results[task], by_name)]
-    ruled = geometric_tasks(load_grasp(Path(cfg.geometric)) if cfg.geometric else None) if cfg.geometric_ranks else ()
+    ruled = (geometric_tasks(load_motion(Path(cfg.geometric)), load_grasp(Path(cfg.geometric)))
+             if cfg.geometric and cfg.geometric_ranks else ())
     bad = {t: int((~results[t]["sim_finite"]).sum()) for t in tasks if not results[t]["sim_finite"].all()}
     if bad:
         print(f"warning: simulated episodes whose state went non-finite (their true outcome is doubtful; the judge "

@@ -17,7 +17,7 @@ from sim_data.sim.tasks import CONTROL_DT, MUG_HOLD, MUG_LIFT, mug_height
 from wm import egomotion as EM
 from wm import grasp as GR
 from wm.fill import FillConfig, init_fill
-from wm.geometric import Motion, robot_camera
+from wm.geometric import Motion, load_motion, robot_camera
 
 RULE = GR.GraspRule.of([0.5, 0.04, -0.02, 0.02, 0.4])
 
@@ -159,12 +159,13 @@ def test_the_evaluator_reads_the_mug_from_the_loops_actions_and_ranks_by_it():
     """experiments.evaluate's geometric read-out of a mug batch is wm.grasp's verdict on the actions the
     policies took in each world model's loop, the mean over the models; with geometric_ranks it is
     the ranked probability too. Without a grasp rule the mug keeps the ranked read-out."""
-    assert "mug" in E.geometric_tasks(RULE) and "mug" not in E.geometric_tasks(None)
     keys = E.reset_keys_of(np.array([3, 4]))
     start = E.geometric_start("mug", keys, 16)
     net, params = init_fill(FillConfig(width=4, levels=1), 16)
     joints = np.tile([0.5, 0.0, 0.0], (EM.JOINTS, 1))
     motion = Motion(jnp.zeros((3, 6)), jnp.asarray(joints, jnp.float32), params, net, FillConfig(width=4, levels=1), 16)
+    assert set(E.geometric_tasks(motion, RULE)) == {"step_back", "mug"}
+    assert E.geometric_tasks(motion, None) == ("step_back",) and E.geometric_tasks(None, RULE) == ()
     first = start[0]
     obj = GR.object_address("mug", robot_camera())
     reach = np.zeros((2, start[1], 20), np.float32)  # the hand closed from the first step, away from the mug
@@ -181,3 +182,18 @@ def test_the_evaluator_reads_the_mug_from_the_loops_actions_and_ranks_by_it():
     assert np.asarray(first.qpos)[:, obj + 2].min() > S.COUNTER_TOP  # the mug stands on the counter
     kept = E.geometric_readout(cfg, "mug", motion, None, None, start, 1, jax.random.PRNGKey(0), got, None, [reach])
     np.testing.assert_array_equal(kept["readout_geometric"], got["prob"])
+
+
+def test_motion_models_without_a_fill_serve_the_grasp_alone(tmp_path):
+    """A directory where experiments.fill fit the motion models and the grasp rule but no fill (a preset
+    whose geometric tasks are grasped ones only) loads with the fill's parts None: the evaluator reads
+    the grasped tasks by it and step_back by its world models."""
+    joints = np.tile([0.5, 0.0, 0.0], (EM.JOINTS, 1))
+    EM.save_egomotion(tmp_path, np.zeros((3, 6)), {}, joints)
+    GR.save_grasp(tmp_path, RULE, {})
+    motion = load_motion(tmp_path)
+    assert motion.fill_net is None and motion.size is None
+    np.testing.assert_allclose(np.asarray(motion.joints), joints)
+    rule = GR.load_grasp(tmp_path)
+    assert rule.as_dict() == pytest.approx(RULE.as_dict())
+    assert E.geometric_tasks(motion, rule) == ("mug",)

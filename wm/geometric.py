@@ -44,7 +44,7 @@ from sim_data.sim.render import (
 )
 from sim_data.sim.tasks import CONTROL_DT, TaskState, update_task
 from wm.egomotion import load_egomotion, step_base, step_joints, wrap_angle
-from wm.fill import FillConfig, filled, load_fill
+from wm.fill import FILL_JSON, FillConfig, filled, load_fill
 
 PROPRIO_MODES = ("held", "predicted")
 PREDICTS = ("step_back",)  # the tasks whose success follows from the base's motion alone
@@ -70,7 +70,7 @@ class FirstView:
 @struct.dataclass
 class Motion:
     """The fitted models: base (3, 6) and joints (16, 3) (wm.egomotion), the fill's parameters; its
-    net, config and frame size static."""
+    net, config and frame size static (None where no fill was trained)."""
     base: jax.Array
     joints: jax.Array
     fill_params: dict
@@ -80,9 +80,11 @@ class Motion:
 
 
 def load_motion(out: Path) -> Motion:
-    """The models experiments.fill wrote to out (fill.json, fill.msgpack, egomotion.json with joints)."""
-    net, params, cfg, size = load_fill(out)
+    """The models experiments.fill wrote to out (egomotion.json with joints; fill.json and fill.msgpack
+    where it trained a fill: without one, fill_params, fill_net, fill_cfg and size are None, and the
+    motion serves wm.grasp, not imagine_robot)."""
     base, joints = load_egomotion(out, joints=True)
+    net, params, cfg, size = load_fill(out) if (Path(out) / FILL_JSON).exists() else (None,) * 4
     return Motion(jnp.asarray(base, jnp.float32), jnp.asarray(joints, jnp.float32), params, net, cfg, size)
 
 
