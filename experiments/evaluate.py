@@ -1288,7 +1288,8 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
         return None
     if not results:
         raise ValueError(f"{out}: no task is finished yet ({', '.join(tasks)}); run without --partial")
-    report = gather(cfg, out, tasks, results, sources, prints, models, wm_data, wm_cache, engine, preset)
+    ruled = geometric_tasks(motion, grasp) if cfg.geometric_ranks else ()
+    report = gather(cfg, out, tasks, results, sources, prints, models, wm_data, wm_cache, engine, preset, ruled)
     write_json_atomic(out / "results.json", no_nan(report))
     return report
 
@@ -1387,9 +1388,10 @@ def evaluate_tasks(cfg: EvalConfig, out: Path, tasks, sources, models, used: set
 
 
 def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, prints: dict, models, wm_data: str, wm_cache,
-           engine: str, preset: str) -> dict:
+           engine: str, preset: str, ruled: tuple = ()) -> dict:
     """results.json's contents from the finished tasks' results (the others listed as missing), and
-    out/videos.npz. prints: each source's fingerprint (_check_config's)."""
+    out/videos.npz. prints: each source's fingerprint (_check_config's); ruled: the tasks ranked by the
+    geometric read-out (geometric_tasks' with cfg.geometric_ranks)."""
     # the tasks every model learned (its judge's, else its training's: wm.checkpoint.trained_tasks)
     known = learned_tasks(cfg.wm_runs, wm_cache)
     train_tasks = list(tasks) if known is None else known
@@ -1397,8 +1399,6 @@ def gather(cfg: EvalConfig, out: Path, tasks, results: dict, sources, prints: di
     tasks = [t for t in tasks if t in results]
     by_name = {s.name: s for s in sources}
     rows = [r for task in tasks for r in policy_rows(cfg, task, results[task], by_name)]
-    ruled = (geometric_tasks(load_motion(Path(cfg.geometric)), load_grasp(Path(cfg.geometric)))
-             if cfg.geometric and cfg.geometric_ranks else ())
     bad = {t: int((~results[t]["sim_finite"]).sum()) for t in tasks if not results[t]["sim_finite"].all()}
     if bad:
         print(f"warning: simulated episodes whose state went non-finite (their true outcome is doubtful; the judge "

@@ -58,7 +58,6 @@ from wm.geometric import robot_camera
 from wm.grasp import (
     GRASP_JSON,
     GRASPED,
-    GRID,
     GraspRule,
     fit_grasp_rule,
     robot_path,
@@ -190,11 +189,13 @@ def fit_and_check_egomotion(train_rows: list[dict], val_rows: list[dict]) -> tup
                           "val_joint_error_held_rad": float(held_err.mean()), "val_episodes": len(val_rows)}
 
 
-def grasp_verdicts(rows: list[dict], base: np.ndarray, joints: np.ndarray, progress: bool = True) -> tuple:
-    """Each of rule_grid()'s verdicts on the episodes of rows (manifest_rows' records of tasks in
-    wm.grasp.GRASPED), their states predicted from the recorded actions and the episode's first state
-    (reset again from its seed): ((G, E) bool, (E,) bool the recorded outcomes, in rows' order)."""
-    camera, grid = robot_camera(), rule_grid()
+def grasp_verdicts(rows: list[dict], base: np.ndarray, joints: np.ndarray, rules: GraspRule,
+                   progress: bool = True) -> tuple:
+    """Each of the G rules' verdicts (rules: a GraspRule of (G,) arrays) on the episodes of rows
+    (manifest_rows' records of tasks in wm.grasp.GRASPED), their states predicted from the recorded
+    actions and the episode's first state (reset again from its seed): ((G, E) bool, (E,) bool the
+    recorded outcomes, in rows' order)."""
+    camera = robot_camera()
     order, verdicts = [], []
     groups: dict = {}
     for i, r in enumerate(rows):
@@ -209,7 +210,7 @@ def grasp_verdicts(rows: list[dict], base: np.ndarray, joints: np.ndarray, progr
                                 for i in padded])
             state = env.reset(jnp.stack([jax.random.PRNGKey(int(rows[i]["seed"])) for i in padded]))
             path = robot_path(base, joints, state.qpos, state.mocap_pos, actions, camera)
-            got = verdicts_of_rules(grid, path, actions, state.mocap_pos, state.task, camera, task)
+            got = verdicts_of_rules(rules, path, actions, state.mocap_pos, state.task, camera, task)
             verdicts.append(got[:, :len(chunk)])
             order += chunk
             bar.update(len(chunk))
@@ -222,14 +223,12 @@ def fit_and_check_grasp(train_rows: list[dict], val_rows: list[dict], base: np.n
                         progress: bool = True) -> tuple[GraspRule, dict]:
     """wm.grasp's rule fit on train_rows' episodes (the grid's most accurate) and its accuracy on
     val_rows', beside that of always predicting the training split's more common outcome."""
-    verdicts, outcomes = grasp_verdicts(train_rows, base, joints, progress)
+    verdicts, outcomes = grasp_verdicts(train_rows, base, joints, rule_grid(), progress)
     rule, train_acc = fit_grasp_rule(verdicts, outcomes)
-    grid = rule_grid()
-    best = int(np.flatnonzero(np.all([np.asarray(getattr(grid, k)) == np.asarray(getattr(rule, k)) for k in GRID],
-                                      0))[0])
-    val_verdicts, val_outcomes = grasp_verdicts(val_rows, base, joints, progress)
+    val_verdicts, val_outcomes = grasp_verdicts(val_rows, base, joints, jax.tree.map(lambda x: x[None], rule),
+                                                progress)
     majority = bool(outcomes.mean() >= 0.5)
-    return rule, {"train_accuracy": train_acc, "val_accuracy": float(np.mean(val_verdicts[best] == val_outcomes)),
+    return rule, {"train_accuracy": train_acc, "val_accuracy": float(np.mean(val_verdicts[0] == val_outcomes)),
                   "val_accuracy_majority": float(np.mean(val_outcomes == majority)),
                   "train_episodes": len(train_rows), "val_episodes": len(val_rows),
                   "val_successes": int(val_outcomes.sum())}

@@ -119,6 +119,22 @@ def robot_camera(camera: str = HEAD_CAMERA) -> RobotCamera:
     return RobotCamera(camera)
 
 
+def robot_start(qpos, idx: R.RobotIndex) -> tuple:
+    """The motion models' state at qpos (B, nq): (base (B, 3) x, y, yaw; its last step (B, 3); the actuated
+    joints (B, 16); their last step (B, 16)), the steps zero. Traceable."""
+    base, joints = qpos[:, jnp.asarray(idx.base_qpos)], qpos[:, jnp.asarray(idx.posed_qpos)]
+    return base, jnp.zeros_like(base), joints, jnp.zeros_like(joints)
+
+
+def step_robot(base_coef, joint_coef, robot: tuple, action) -> tuple:
+    """robot_start's state one control step on under action (B, 20) as applied, by the base model
+    base_coef (3, 6) and the joints' joint_coef (16, 3) (wm.egomotion). Traceable."""
+    base, moved, joints, turned = robot
+    base, moved = step_base(base_coef, base, moved, action)
+    joints, turned = step_joints(joint_coef, joints, turned, action)
+    return base, moved, joints, turned
+
+
 def posed(qpos, base, joints, idx: R.RobotIndex) -> jax.Array:
     """qpos (B, nq) with the base (B, 3: x, y, yaw) and the actuated joints (B, 16) set; the rest (the
     objects, the fingers) as given. Traceable."""
@@ -151,22 +167,20 @@ def imagine_robot(policy, policy_params, motion: Motion, view: FirstView, policy
     if proprio not in PROPRIO_MODES:
         raise ValueError(f"proprio must be one of {', '.join(PROPRIO_MODES)}; got {proprio!r}")
     idx = camera.idx
-    base_at, posed_at = jnp.asarray(idx.base_qpos), jnp.asarray(idx.posed_qpos)
     base_v, posed_v = jnp.asarray(idx.base_qvel), jnp.asarray(idx.posed_qvel)
     qvel0 = jnp.zeros((view.qpos.shape[0], camera.model.nv), jnp.float32)
     k_init, k_act = policy_keys
     closure = view.proprio[:, R.PROPRIO_BASE_VEL.stop:]
     obs = {"image": view.rgb, "proprio": view.proprio}
     carry0 = policy.init_carry(policy_params, obs, None, k_init)
-    base0, joints0 = view.qpos[:, base_at], view.qpos[:, posed_at]
+    robot0 = robot_start(view.qpos, idx)
 
     def body(c, t):
-        obs, pc, ts, _, base, moved, joints, turned = c
+        obs, pc, ts, _, robot = c
         action, pc = policy.act(policy_params, obs, pc, jax.random.fold_in(k_act, t))
         action = R.applied_action(action, idx)
-        before = base
-        base, moved = step_base(motion.base, base, moved, action)
-        joints, turned = step_joints(motion.joints, joints, turned, action)
+        before = robot[0]
+        robot = base, moved, joints, turned = step_robot(motion.base, motion.joints, robot, action)
         qpos = posed(view.qpos, base, joints, idx)
         step = jnp.concatenate([base[:, :2] - before[:, :2], wrap_angle(base[:, 2:] - before[:, 2:])], -1)
         qvel = (qvel0.at[:, base_v].set(step / CONTROL_DT)
@@ -177,15 +191,13 @@ def imagine_robot(policy, policy_params, motion: Motion, view: FirstView, policy
         frame = filled(motion.fill_net, motion.fill_params, motion.fill_cfg, frame, covered, pos, mat, camera.fovy)
         seen = view.proprio if proprio == "held" else predicted_proprio(joints, turned, moved, closure)
         out = (action, base, frame if keep_frames else None)
-        return ({"image": frame, "proprio": seen}, pc, ts, success, base, moved, joints, turned), out
+        return ({"image": frame, "proprio": seen}, pc, ts, success, robot), out
 
-    zeros = jnp.zeros_like(base0)
-    no = jnp.zeros(base0.shape[0], bool)
-    init = (obs, carry0, view.task, no, base0, zeros, joints0, jnp.zeros_like(joints0))
-    (_, _, _, success, base, _, joints, _), (actions, bases, frames) = jax.lax.scan(body, init, jnp.arange(steps))
+    init = (obs, carry0, view.task, jnp.zeros(view.qpos.shape[0], bool), robot0)
+    (_, _, _, success, (base, _, joints, _)), (actions, bases, frames) = jax.lax.scan(body, init, jnp.arange(steps))
     qpos = posed(view.qpos, base, joints, idx)
     out = {"action": jnp.swapaxes(actions, 0, 1),
-           "base": jnp.concatenate([base0[:, None], jnp.swapaxes(bases, 0, 1)], 1), "qpos": qpos,
+           "base": jnp.concatenate([robot0[0][:, None], jnp.swapaxes(bases, 0, 1)], 1), "qpos": qpos,
            "success": success}
     if keep_frames:
         out["frames"] = jnp.swapaxes(frames, 0, 1)

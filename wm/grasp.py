@@ -34,8 +34,7 @@ from flax import struct
 from sim_data.sim import robot as R
 from sim_data.sim.tasks import CONTROL_DT, TaskState, update_task
 from sim_data.util import read_json, write_json_atomic
-from wm.egomotion import step_base, step_joints
-from wm.geometric import RobotCamera, posed
+from wm.geometric import RobotCamera, posed, robot_start, step_robot
 
 GRASP_JSON = "grasp.json"
 GRASPED = {"mug": "mug_qpos"}  # task -> its held object's free joint (sim_data.sim.scene.SceneIndex field)
@@ -92,20 +91,15 @@ def robot_path(base_coef, joint_coef, qpos0, mocap0, actions, camera: RobotCamer
     """The robot's states predicted from qpos0 (B, nq), mocap0 (B, nmocap, 3) under actions (B, T, 20)
     as applied, by base_coef (3, 6) and joint_coef (16, 3) (wm.egomotion): {"qpos": (B, T, nq) after
     each step (the objects where they started), "grip": (B, T, 3) the right hand's grip site there}."""
-    idx = camera.idx
     site = grip_site(camera)
-    base_at, posed_at = jnp.asarray(idx.base_qpos), jnp.asarray(idx.posed_qpos)
 
-    def body(c, action):
-        base, moved, joints, turned = c
-        base, moved = step_base(base_coef, base, moved, action)
-        joints, turned = step_joints(joint_coef, joints, turned, action)
-        qpos = posed(qpos0, base, joints, idx)
-        return (base, moved, joints, turned), (qpos, camera.data(qpos, mocap0).site_xpos[:, site])
+    def body(robot, action):
+        robot = base, _, joints, _ = step_robot(base_coef, joint_coef, robot, action)
+        qpos = posed(qpos0, base, joints, camera.idx)
+        return robot, (qpos, camera.data(qpos, mocap0).site_xpos[:, site])
 
-    base0, joints0 = qpos0[:, base_at], qpos0[:, posed_at]
-    init = (base0, jnp.zeros_like(base0), joints0, jnp.zeros_like(joints0))
-    _, (qpos, grip) = jax.lax.scan(body, init, jnp.swapaxes(jnp.asarray(actions, jnp.float32), 0, 1))
+    _, (qpos, grip) = jax.lax.scan(body, robot_start(qpos0, camera.idx),
+                                   jnp.swapaxes(jnp.asarray(actions, jnp.float32), 0, 1))
     return {"qpos": jnp.swapaxes(qpos, 0, 1), "grip": jnp.swapaxes(grip, 0, 1)}
 
 
@@ -156,12 +150,13 @@ def _verdicts(rules: GraspRule, path: dict, actions, mocap0, task0: TaskState, c
 
 def verdicts_of_rules(rules: GraspRule, path: dict, actions, mocap0, task0: TaskState, camera: RobotCamera,
                       task: str) -> np.ndarray:
-    """(G, B) bool: held_verdict's success under each of the G rules of rules ((G,) arrays), RULES_AT_ONCE
-    at a time (the last batch padded with the first rule: one compiled program)."""
+    """(G, B) bool: held_verdict's success under each of the G rules of rules ((G,) arrays), at most
+    RULES_AT_ONCE at a time (the last batch padded with the last rule: one compiled program)."""
     g = len(rules.closure)
+    at_once = min(g, RULES_AT_ONCE)
     out = []
-    for i in range(0, g, RULES_AT_ONCE):
-        idx = np.minimum(np.arange(i, i + RULES_AT_ONCE), g - 1)
+    for i in range(0, g, at_once):
+        idx = np.minimum(np.arange(i, i + at_once), g - 1)
         out.append(np.asarray(_verdicts(jax.tree.map(lambda x: x[idx], rules), path, actions, mocap0, task0, camera,
                                         task))[: g - i])
     return np.concatenate(out)
