@@ -116,7 +116,7 @@ from wm.checkpoint import (
 )
 from wm.config import with_imagine
 from wm.geometric import PREDICTS, Motion, imagine_robot, load_motion, robot_camera, start_view
-from wm.grasp import GRASPED, GraspRule, grasp_success, load_grasp
+from wm.grasp import grasp_success, load_grasp
 from wm.imagine import (
     PROGRESS_FEATURE,
     SUCCESS_FEATURE,
@@ -137,7 +137,7 @@ TRACES = ("trace_success", "trace_progress", "true_progress")
 MODEL_READOUTS = ("progress", "judge", "success", "judge2")
 # "geometric": the task's rule on states predicted from the actions (cfg.geometric): the robot's own motion
 # imagined over the still scene where success follows from it (wm.geometric.PREDICTS), the held object moved
-# by the fitted grasp (wm.grasp.GRASPED) along the actions the policy took in the world model's imagination;
+# by its task's fitted grasp (wm.grasp.GRASPED) along the actions the policy took in the world model's imagination;
 # the ranked read-out elsewhere; NaN without one
 GEOMETRIC = "geometric"
 READOUTS = MODEL_READOUTS + (GEOMETRIC,)
@@ -222,7 +222,7 @@ class EvalConfig:
         DIR): the tasks whose success follows from the robot's own motion (wm.geometric.PREDICTS) are
         also imagined by wm.geometric.imagine_robot, from the same states with the same policy keys,
         read by the task's rule on the predicted states ("readout_geometric"); where DIR holds a grasp
-        rule (experiments.fill with a task of wm.grasp.GRASPED), those tasks' outcomes are read by
+        rule (experiments.fill with tasks of wm.grasp.GRASPED), those tasks' outcomes are read by
         their rule on the states the actions of the policy's imagined episodes lead to (wm.grasp:
         the robot's motion models, the object moved with the grip that holds it); elsewhere the ranked
         read-out. "" imagines them by the world models alone.
@@ -403,7 +403,7 @@ def evaluate_task(cfg: EvalConfig, task: str, sources, models, seeds, engine: st
     mean), "true_progress": (P, N, T) float16 (the simulator's progress; NaN where a truth cache's
     entry lacks it), "videos": {key: (T+1, S, S, 3)} (the first model's imagination), "video_index": [...],
     "sim_s", "wm_s", "steps"}; with motion (wm.geometric.load_motion's, cfg.geometric; grasp:
-    wm.grasp.load_grasp's or None) "readout_geometric" (geometric_readout; with cfg.geometric_ranks
+    wm.grasp.load_grasp's {task: rule}) "readout_geometric" (geometric_readout; with cfg.geometric_ranks
     "prob" too). With `chunks`, a row per policy and slice of states instead: "names"
     repeat, "slices" [P'] gives each row's slice, and N is a slice's states (merge_task_parts joins them).
     """
@@ -530,21 +530,21 @@ def geometric_start(task: str, reset_keys, size: int) -> tuple:
     return start_view(env, env.reset(jnp.asarray(reset_keys)), size, robot_camera()), env.episode_steps
 
 
-def geometric_tasks(motion: Motion | None, grasp: GraspRule | None) -> tuple:
+def geometric_tasks(motion: Motion | None, grasp: dict | None) -> tuple:
     """The tasks the geometric read-out predicts: wm.geometric.PREDICTS where motion holds a fill, and
-    with a grasp rule wm.grasp.GRASPED's."""
+    those grasp holds a rule of (wm.grasp.load_grasp's {task: GraspRule})."""
     if motion is None:
         return ()
-    return (PREDICTS if motion.fill_net is not None else ()) + (tuple(GRASPED) if grasp is not None else ())
+    return (PREDICTS if motion.fill_net is not None else ()) + tuple(grasp or ())
 
 
 def geometric_readout(cfg: EvalConfig, task: str, motion: Motion, policy, params, start: tuple, copies: int, rng,
-                      got: dict, grasp: GraspRule | None = None, loops_actions=()) -> dict:
+                      got: dict, grasp: dict | None = None, loops_actions=()) -> dict:
     """The geometric read-out of a batch of `copies` policies (chunk_policy's, policy-major) from the
     N states of start (geometric_start's): for a task of wm.geometric.PREDICTS, the policies acting in
     wm.geometric.imagine_robot's imagination from each state's first drawing, with the keys they drew
     from in the simulator and the predicted robot's proprioception, their success the task's rule on the
-    predicted states (1 or 0 an episode); for a task of wm.grasp.GRASPED with a grasp rule, the rule's
+    predicted states (1 or 0 an episode); for a task grasp holds a rule of (wm.grasp.load_grasp's), its
     verdict (wm.grasp.grasp_success) on each world model's loop of the batch (loops_actions: [(B, T, 20)]
     the actions its policies took there), the mean over the models; elsewhere got["prob"] (the ranked
     read-out). Returns {"readout_geometric": (B,) float64} and, with cfg.geometric_ranks on such a task,
@@ -559,7 +559,7 @@ def geometric_readout(cfg: EvalConfig, task: str, motion: Motion, policy, params
         moved = imagine_robot(policy, params, motion, view, policy_keys, robot_camera(), steps, "predicted")
         p = np.asarray(moved["success"], np.float64)
     else:
-        p = np.mean([np.asarray(grasp_success(grasp, motion.base, motion.joints, view.qpos, view.mocap, view.task,
+        p = np.mean([np.asarray(grasp_success(grasp[task], motion.base, motion.joints, view.qpos, view.mocap, view.task,
                                               actions, robot_camera(), task)["success"], np.float64)
                      for actions in loops_actions], axis=0)
     out = {f"readout_{GEOMETRIC}": p}
@@ -1257,7 +1257,7 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
     tasks = evaluation_tasks(cfg, sources)
     models = load_models(cfg.wm_runs, cfg.imagine)
     motion = load_motion(Path(cfg.geometric)) if cfg.geometric else None
-    grasp = load_grasp(Path(cfg.geometric)) if cfg.geometric else None
+    grasp = load_grasp(Path(cfg.geometric)) if cfg.geometric else {}
     if motion is not None and motion.size is not None and motion.size != models[0][0].model.size:
         raise ValueError(f"the geometric models in {cfg.geometric} draw {motion.size}-px frames; the world models "
                          f"imagine {models[0][0].model.size}-px ones: train the fill at that size (--size)")
@@ -1345,7 +1345,7 @@ def evaluate_tasks(cfg: EvalConfig, out: Path, tasks, sources, models, used: set
                    part: tuple[int, int] | None, partial: bool, motion=None, grasp=None) -> dict | None:
     """{task: results (evaluate_task)} of every task evaluated, read back from out/tasks where a
     run before evaluated it (or its parts did, merged here); None for a part, or when cfg.max_minutes
-    stops before a task (see run). motion, grasp: the geometric models and grasp rule (cfg.geometric), or None."""
+    stops before a task (see run). motion, grasp: the geometric models and grasp rules (cfg.geometric), or None, {}."""
     results = {}
     by_task = {t: [s for s in sources if s.runs_on(t)] for t in tasks}
     if part is not None and cfg.keep_features:

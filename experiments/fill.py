@@ -16,9 +16,10 @@ Writes OUT/fill.json and OUT/fill.msgpack (wm.fill.load_fill reads them; `experi
 replayed pairs, which a rerun reuses, and OUT/egomotion.json, the robot's motion from the actions (the
 base's from the driving commands, the joints' from their targets: wm.egomotion) fit on the same
 training episodes and checked open loop on the validation ones; a finished fill or model is not made
-again. A task of wm.grasp.GRASPED among `--tasks` (the mug) is not replayed for the fill: its episodes fit
-the grasp rule instead (OUT/grasp.json: wm.grasp.fit_grasp_rule on the training split, its accuracy on
-the validation split beside the majority outcome's), with the motion models already in OUT.
+again. A task of wm.grasp.GRASPED among `--tasks` (the mug, the air fryer) is not replayed for the fill: its
+episodes fit its grasp rule instead (in OUT/grasp.json: wm.grasp.fit_grasp_rule on the training split,
+its accuracy on the validation split beside the majority outcome's), with the motion models already
+in OUT; a task whose rule OUT holds is not fit again.
 
     python -m experiments.fill --data runs/data/demo_demo_rollouts --tasks mug --out runs/fill/demo
 """
@@ -56,10 +57,10 @@ from wm.egomotion import (
 from wm.fill import FILL_JSON, FillConfig, filled, hole_l1, save_fill, train_fill
 from wm.geometric import robot_camera
 from wm.grasp import (
-    GRASP_JSON,
     GRASPED,
     GraspRule,
     fit_grasp_rule,
+    load_grasp,
     robot_path,
     rule_grid,
     save_grasp,
@@ -268,15 +269,14 @@ def main(argv=None) -> int:
               f"{check['val_joint_error_rad']['mean']:.4f} rad from the recorded ones (held: "
               f"{check['val_joint_error_held_rad']:.4f})")
     grasped, drawn = [t for t in tasks if t in GRASPED], [t for t in tasks if t not in GRASPED]
-    if grasped and not (a.out / GRASP_JSON).exists():
+    for task in [t for t in grasped if t not in load_grasp(a.out)]:
         base, joints = load_egomotion(a.out, joints=True)
-        rows = {split: [r for d in data for r in manifest_rows(d, grasped, split)] for split in ("train", "val")}
+        rows = {split: [r for d in data for r in manifest_rows(d, [task], split)] for split in ("train", "val")}
         if empty := [split for split, found in rows.items() if not found]:
-            raise ValueError(f"{a.data} hold no {' or '.join(empty)} episodes of {', '.join(grasped)} to fit the "
-                             "grasp rule on")
+            raise ValueError(f"{a.data} hold no {' or '.join(empty)} episodes of {task} to fit its grasp rule on")
         rule, check = fit_and_check_grasp(rows["train"], rows["val"], base, joints)
-        save_grasp(a.out, rule, {**check, "data": a.data, "tasks": grasped})
-        print(f"grasp: {rule.as_dict()}; validation outcomes predicted {check['val_accuracy']:.3f} of "
+        save_grasp(a.out, task, rule, {**check, "data": a.data})
+        print(f"grasp ({task}): {rule.as_dict()}; validation outcomes predicted {check['val_accuracy']:.3f} of "
               f"{check['val_episodes']} ({check['val_accuracy_majority']:.3f} by the majority outcome)")
     if not drawn:
         return 0

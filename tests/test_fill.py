@@ -1,6 +1,9 @@
 """The generator of what a reprojected frame leaves empty (wm.fill) and its training on a dataset's
 episodes (experiments.fill)."""
 
+import json
+import shutil
+
 import jax
 import numpy as np
 import pytest
@@ -14,6 +17,7 @@ from sim_data.sim.render import floor_hits
 from sim_data.sim.robot import FORWARD_SPEED, YAW_RATE
 from wm import egomotion as E
 from wm import fill as W
+from wm import grasp as GR
 
 SIZE, FOVY, CELL = 16, 60.0, 0.75
 LIGHT, DARK, WALL = np.array([200, 170, 120]), np.array([90, 70, 50]), np.array([150, 150, 160])
@@ -165,3 +169,29 @@ def test_bad_inputs_are_refused(tmp_path):
     with pytest.raises(ValueError, match="32-px"):
         L.study("blind=examples.plugin_policy:make", ["step_back"], tmp_path / "o", [L.LEARNED], 2, 0, size=32,
                 progress=False, fill=tmp_path / "fill")
+
+
+@pytest.mark.slow  # fits the motion models and the grasp grid's rules on the smoke episodes (about a minute on 2 cores)
+def test_the_cli_fits_each_grasped_tasks_rule_once_and_names_a_task_without_episodes(smoke_dataset, tmp_path):
+    """experiments.fill on a grasped task writes the motion models and that task's rule with its fit's
+    figures into grasp.json; a rerun fits nothing again; a grasped task the data holds no episodes of
+    is refused with the task named, and the rules already fit stay."""
+    _, data, _ = smoke_dataset
+    copy = tmp_path / "data"
+    shutil.copytree(data, copy, symlinks=True)
+    rows = [json.loads(line) for line in (copy / "manifest.jsonl").read_text().splitlines()]
+    for r, split in zip(rows, ("train", "val")):  # one episode in each split
+        r["split"] = split
+    (copy / "manifest.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    out = tmp_path / "geo"
+    assert F.main(["--data", str(copy), "--tasks", "mug", "--out", str(out)]) == 0
+    held = json.loads((out / GR.GRASP_JSON).read_text())
+    assert set(held["rules"]) == {"mug"} and set(held["rules"]["mug"]) == set(GR.GRID)
+    assert held["metrics"]["mug"]["train_episodes"] == 1 and held["metrics"]["mug"]["val_episodes"] == 1
+    assert held["metrics"]["mug"]["train_accuracy"] == 1.0  # one episode: some rule of the grid reads it
+    written = (out / GR.GRASP_JSON).stat().st_mtime_ns
+    assert F.main(["--data", str(copy), "--tasks", "mug", "--out", str(out)]) == 0
+    assert (out / GR.GRASP_JSON).stat().st_mtime_ns == written
+    with pytest.raises(ValueError, match="no train or val episodes of airfryer"):
+        F.main(["--data", str(copy), "--tasks", "mug,airfryer", "--out", str(out)])
+    assert set(GR.load_grasp(out)) == {"mug"}

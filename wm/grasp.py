@@ -1,19 +1,21 @@
-"""An object the hand picks up, predicted from the actions: the mug's state, and its task's verdict.
+"""An object the hand takes, predicted from the actions: the mug's or the air fryer tray's state, and the task's verdict.
 
-A world model that ranks grasping policies must know whether the hand closed on the mug and where the
+A world model that ranks grasping policies must know whether the hand closed on the object and where the
 hand took it. This model takes both from the actions and the first state alone:
 
 - the base and the actuated joints move under the actions by `wm.egomotion`'s fitted models, and MuJoCo's
   kinematics (MJX, so under jit) place the right hand's grip site at every predicted state;
 - each time the right hand's commanded closure rises to `GraspRule.closure` (an open hand closing, or
   one closed from the first step), the grip takes the object when the site lies within `reach_xy` of
-  its centre horizontally, between `z_low` and `z_high` above it, and moved at most `speed` over that
-  step; a held object moves with the grip site from then on, and drops back to its start when the
-  closure falls below the threshold;
-- the task's own rule (`sim_data.sim.tasks.update_task`: for the mug, its bottom 8 cm above the
-  counter for half a second) runs on the predicted states.
+  the place it is held by (the mug's centre, the tray's handle) horizontally, between `z_low` and
+  `z_high` above it, and moved at most `speed` over that step; while the hand stays closed the object
+  moves with the grip site: the mug freely (dropped back to its start when the hand opens), the tray
+  along its slide by the grip's travel on the slide's axis, within the slide's range (left where the
+  hand lets go);
+- the task's own rule (`sim_data.sim.tasks.update_task`: for the mug, its bottom 8 cm above the counter
+  for half a second; for the air fryer, the tray 10 cm out at the end) runs on the predicted states.
 
-The rule's five numbers are fit on recorded episodes (`fit_grasp_rule`: the most accurate on the
+Each task's five numbers are fit on its recorded episodes (`fit_grasp_rule`: the most accurate on the
 training split's outcomes, over a grid) and checked on the validation split; `experiments.fill` fits and
 saves them (`GRASP_JSON`) beside the motion models. `grasp_success` reads any batch of action sequences:
 the actions a policy took in a world model's imagination, or those of simulated episodes.
@@ -21,6 +23,7 @@ the actions a policy took in a world model's imagination, or those of simulated 
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import itertools
 from pathlib import Path
@@ -37,11 +40,22 @@ from sim_data.util import read_json, write_json_atomic
 from wm.geometric import RobotCamera, posed, robot_start, step_robot
 
 GRASP_JSON = "grasp.json"
-GRASPED = {"mug": "mug_qpos"}  # task -> its held object's free joint (sim_data.sim.scene.SceneIndex field)
+
+
+@dataclasses.dataclass(frozen=True)
+class Held:
+    """How a task's object moves in the hand: joint, the joint that carries it (a free joint: the
+    body follows the grip; a slide: its travel follows the grip's along the slide's axis); handle, the
+    geom the grip takes it by (None: the body's own centre)."""
+    joint: str
+    handle: str | None = None
+
+
+GRASPED = {"mug": Held("mug"), "airfryer": Held("fryer_tray", "handle")}
 GRIP_SITE = "right_grip"
 # the grid fit_grasp_rule searches, one axis a field of GraspRule
 GRID = {"closure": (0.3, 0.5, 0.7, 0.9),
-        "reach_xy": (0.015, 0.02, 0.025, 0.03, 0.035, 0.04, 0.05),
+        "reach_xy": (0.015, 0.02, 0.025, 0.03, 0.035, 0.04, 0.05, 0.06, 0.08),
         "z_low": (-0.04, -0.03, -0.02, -0.01, 0.0),
         "z_high": (0.01, 0.02, 0.03, 0.04, 0.05),
         "speed": (0.1, 0.2, 0.4, 0.8, 1e3)}  # 1e3 m/s: no limit
@@ -73,17 +87,47 @@ class GraspRule:
 
 
 def grip_site(camera: RobotCamera) -> int:
-    site = mujoco.mj_name2id(camera.model, mujoco.mjtObj.mjOBJ_SITE, GRIP_SITE)
-    if site < 0:
-        raise ValueError(f"the scene has no site {GRIP_SITE!r}")
-    return site
+    return _named(camera, mujoco.mjtObj.mjOBJ_SITE, GRIP_SITE)
 
 
-def object_address(task: str, camera: RobotCamera) -> int:
-    """The qpos address of task's held object (its free joint's position)."""
+def held_of(task: str) -> Held:
     if task not in GRASPED:
         raise ValueError(f"no object to grasp in task {task!r}; the grasp model reads {', '.join(GRASPED)}")
-    return int(getattr(camera.scene, GRASPED[task]))
+    return GRASPED[task]
+
+
+def _named(camera: RobotCamera, kind, name: str) -> int:
+    i = mujoco.mj_name2id(camera.model, kind, name)
+    if i < 0:
+        raise ValueError(f"the scene has no {kind.name[6:].lower()} {name!r}")
+    return i
+
+
+def object_joint(task: str, camera: RobotCamera) -> tuple[int, int, bool]:
+    """Task's held object's joint: (its id, its qpos address, whether it slides)."""
+    j = _named(camera, mujoco.mjtObj.mjOBJ_JOINT, held_of(task).joint)
+    return j, int(camera.model.jnt_qposadr[j]), camera.model.jnt_type[j] == mujoco.mjtJoint.mjJNT_SLIDE
+
+
+def object_at(task: str, camera: RobotCamera, qpos, mocap) -> dict:
+    """Where the grip must take task's object at states qpos (B, nq), mocap (B, nmocap, 3): {"handle":
+    (B, 3) the point, "coords": (B, k) the joint's coordinates that move (a free joint's position, k=3;
+    a slide's travel, k=1), "carry": (B, 3, k) the coordinates' change per metre of grip motion, "low",
+    "high": (k,) their range}. Traceable."""
+    held = held_of(task)
+    j, adr, slides = object_joint(task, camera)
+    d = camera.data(qpos, mocap)
+    if slides:
+        lo, hi = camera.model.jnt_range[j]
+        coords, carry = qpos[:, adr:adr + 1], d.xaxis[:, j, :, None]
+    else:
+        lo, hi = -np.inf, np.inf
+        coords, carry = qpos[:, adr:adr + 3], jnp.broadcast_to(jnp.eye(3), (qpos.shape[0], 3, 3))
+    handle = (d.geom_xpos[:, _named(camera, mujoco.mjtObj.mjOBJ_GEOM, held.handle)] if held.handle
+              else qpos[:, adr:adr + 3])
+    k = coords.shape[1]
+    return {"handle": handle, "coords": coords, "carry": carry, "low": jnp.full(k, lo, jnp.float32),
+            "high": jnp.full(k, hi, jnp.float32)}
 
 
 @functools.partial(jax.jit, static_argnames=("camera",))
@@ -106,32 +150,38 @@ def robot_path(base_coef, joint_coef, qpos0, mocap0, actions, camera: RobotCamer
 def held_verdict(rule: GraspRule, path: dict, actions, mocap0, task0: TaskState, camera: RobotCamera,
                  task: str) -> dict:
     """The task's verdict on robot_path's states with the object moved by rule: {"success": (B,) bool
-    after the last step, "held": (B,) bool the grip took the object, "lift": (B,) float32 the object's
-    highest rise (m) over its start}. Traceable; the object starts where path's states hold it."""
-    obj = object_address(task, camera)
+    after the last step, "held": (B,) bool the grip took the object, "moved": (B,) float32 the farthest
+    (m) the object's coordinates got from their start}. Traceable; the object starts where path's
+    states hold it."""
+    _, adr, _ = object_joint(task, camera)
     qpos, grip = jnp.swapaxes(path["qpos"], 0, 1), jnp.swapaxes(path["grip"], 0, 1)
     closure = jnp.swapaxes(jnp.asarray(actions, jnp.float32)[..., R.RIGHT_HAND], 0, 1)
-    start = qpos[0, :, obj:obj + 3]
+    obj = object_at(task, camera, qpos[0], mocap0)
+    start, k = obj["coords"], obj["coords"].shape[1]
+    free = k == 3  # a free body falls back to its start when let go; a slide stays where it was left
     qvel = jnp.zeros(qpos.shape[1:2] + (camera.model.nv,), jnp.float32)
 
     def body(c, x):
-        was, held, grip_at, before, ts, _, lift = c
+        was, held, grip_at, coords_at, coords, before, ts, _, far = c
         q, g, u = x
         closed = u >= rule.closure
         closing = closed & ~was
-        rel = g - start
+        rel = g - obj["handle"]
         near = ((jnp.hypot(rel[:, 0], rel[:, 1]) <= rule.reach_xy) & (rel[:, 2] >= rule.z_low) & (rel[:, 2] <= rule.z_high)
                 & (jnp.linalg.norm(g - before, axis=-1) <= rule.speed * CONTROL_DT))
         grip_at = jnp.where(closing[:, None], g, grip_at)
+        coords_at = jnp.where(closing[:, None], coords, coords_at)
         held = (held | (closing & near)) & closed
-        at = jnp.where(held[:, None], start + g - grip_at, start)
-        ts, success = update_task(ts, q.at[:, obj:obj + 3].set(at), qvel, mocap0, camera.scene)
-        return (closed, held, grip_at, g, ts, success, jnp.maximum(lift, at[:, 2] - start[:, 2])), held
+        carried = jnp.clip(coords_at + jnp.einsum("bi,bik->bk", g - grip_at, obj["carry"]), obj["low"], obj["high"])
+        coords = jnp.where(held[:, None], carried, start if free else coords)
+        ts, success = update_task(ts, q.at[:, adr:adr + k].set(coords), qvel, mocap0, camera.scene)
+        far = jnp.maximum(far, jnp.linalg.norm(coords - start, axis=-1))
+        return (closed, held, grip_at, coords_at, coords, g, ts, success, far), held
 
     no = jnp.zeros(start.shape[0], bool)
-    init = (no, no, jnp.zeros_like(start), grip[0], task0, no, jnp.zeros(start.shape[0]))
-    (*_, success, lift), held = jax.lax.scan(body, init, (qpos, grip, closure))
-    return {"success": success, "held": held.any(0), "lift": lift}
+    init = (no, no, jnp.zeros_like(grip[0]), start, start, grip[0], task0, no, jnp.zeros(start.shape[0]))
+    (*_, success, far), held = jax.lax.scan(body, init, (qpos, grip, closure))
+    return {"success": success, "held": held.any(0), "moved": far}
 
 
 @functools.partial(jax.jit, static_argnames=("camera", "task"))
@@ -181,18 +231,21 @@ def fit_grasp_rule(verdicts: np.ndarray, outcomes: np.ndarray) -> tuple[GraspRul
     return jax.tree.map(lambda x: x[best], rule_grid()), float(acc[best])
 
 
-def save_grasp(out: Path, rule: GraspRule, metrics: dict) -> None:
-    """Writes out/grasp.json: the rule and its fit's metrics."""
-    write_json_atomic(Path(out) / GRASP_JSON, {"rule": rule.as_dict(), "metrics": metrics})
+def save_grasp(out: Path, task: str, rule: GraspRule, metrics: dict) -> None:
+    """Writes task's rule and its fit's metrics into out/grasp.json, beside the other tasks' there."""
+    path = Path(out) / GRASP_JSON
+    held = read_json(path) if path.exists() else {"rules": {}, "metrics": {}}
+    held["rules"][task], held["metrics"][task] = rule.as_dict(), metrics
+    write_json_atomic(path, held)
 
 
-def load_grasp(out: Path) -> GraspRule | None:
-    """The rule save_grasp wrote in out, or None where out holds none."""
+def load_grasp(out: Path) -> dict:
+    """The rules save_grasp wrote in out ({task: GraspRule}), or {} where out holds none."""
     path = Path(out) / GRASP_JSON
     if not path.exists():
-        return None
-    rule = read_json(path)["rule"]
-    if set(rule) != set(GRID):
-        raise ValueError(f"{path} holds a rule of {sorted(rule)}, not of {list(GRID)}: remove it and run python -m "
-                         f"experiments.fill --out {Path(out)} --tasks {','.join(GRASPED)} again")
-    return GraspRule.of(rule)
+        return {}
+    rules = read_json(path).get("rules")
+    if not isinstance(rules, dict) or any(set(r) != set(GRID) or t not in GRASPED for t, r in rules.items()):
+        raise ValueError(f"{path} does not hold a rule of {list(GRID)} for each of its tasks (of {list(GRASPED)}): "
+                         f"remove it and run python -m experiments.fill --out {Path(out)} --tasks TASKS again")
+    return {t: GraspRule.of(r) for t, r in rules.items()}
