@@ -20,7 +20,7 @@ from wm import grasp as GR
 from wm.fill import FillConfig, init_fill
 from wm.geometric import Motion, load_motion, robot_camera
 
-RULE = GR.GraspRule.of([0.5, 0.04, -0.02, 0.02, 0.4])
+RULE = GR.GraspRule.of([0.5, 0.04, -0.02, 0.02, 0.4, 1.0])
 
 
 def _mug_start(n=3, seed=0):
@@ -103,14 +103,14 @@ def test_fit_grasp_rule_takes_the_most_accurate_rule_and_the_middle_of_equals():
     grid = GR.rule_grid()
     outcomes = np.array([True, False, True, False])
     verdicts = np.zeros((len(grid.closure), 4), bool)
-    verdicts[_rule_at(0, 0, 0, 0, 0)] = [True, False, True, True]  # 3 of 4
+    verdicts[_rule_at(0, 0, 0, 0, 0, 0)] = [True, False, True, True]  # 3 of 4
     rule, acc = GR.fit_grasp_rule(verdicts, outcomes)
-    assert acc == 0.75 and rule.as_dict() == jax.tree.map(lambda x: x[_rule_at(0, 0, 0, 0, 0)], grid).as_dict()
+    assert acc == 0.75 and rule.as_dict() == jax.tree.map(lambda x: x[_rule_at(0, 0, 0, 0, 0, 0)], grid).as_dict()
     # three reaches in a row equally right: the middle one
     for reach in (1, 2, 3):
-        verdicts[_rule_at(1, reach, 1, 2, 3)] = outcomes
+        verdicts[_rule_at(1, reach, 1, 2, 3, 1)] = outcomes
     rule, acc = GR.fit_grasp_rule(verdicts, outcomes)
-    assert acc == 1.0 and rule.as_dict() == jax.tree.map(lambda x: x[_rule_at(1, 2, 1, 2, 3)], grid).as_dict()
+    assert acc == 1.0 and rule.as_dict() == jax.tree.map(lambda x: x[_rule_at(1, 2, 1, 2, 3, 1)], grid).as_dict()
     assert rule.as_dict()["reach_xy"] == pytest.approx(GR.GRID["reach_xy"][2])
 
 
@@ -151,7 +151,7 @@ def test_the_rule_reads_the_outcomes_of_mujocos_scripted_episodes(scripted_mug_e
     assert (np.concatenate(got) == outcomes).sum() >= 7
 
 
-TRAY_RULE = GR.GraspRule.of([0.7, 0.08, -0.02, 0.02, 0.4])  # as fit on 144 scripted air fryer episodes
+TRAY_RULE = GR.GraspRule.of([0.7, 0.08, -0.02, 0.02, 0.4, 1.0])  # as fit on 144 scripted air fryer episodes
 
 
 def test_the_tray_slides_out_with_the_grip_within_its_range_and_stays_where_the_hand_lets_go():

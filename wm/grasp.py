@@ -8,14 +8,15 @@ hand took it. This model takes both from the actions and the first state alone:
 - each time the right hand's commanded closure rises to `GraspRule.closure` (an open hand closing, or
   one closed from the first step), the grip takes the object when the site lies within `reach_xy` of
   the place it is held by (the mug's centre, the tray's handle) horizontally, between `z_low` and
-  `z_high` above it, and moved at most `speed` over that step; while the hand stays closed the object
+  `z_high` above it, and moved at most `speed` over that step; while the closure stays at `release` or
+  more (a hand that eases its grip part-way through a pull still holds) the object
   moves with the grip site: the mug freely (dropped back to its start when the hand opens), the tray
   along its slide by the grip's travel on the slide's axis, within the slide's range (left where the
   hand lets go);
 - the task's own rule (`sim_data.sim.tasks.update_task`: for the mug, its bottom 8 cm above the counter
   for half a second; for the air fryer, the tray 10 cm out at the end) runs on the predicted states.
 
-Each task's five numbers are fit on its recorded episodes (`fit_grasp_rule`: the most accurate on the
+Each task's six numbers are fit on its recorded episodes (`fit_grasp_rule`: the most accurate on the
 training split's outcomes, over a grid) and checked on the validation split; `experiments.fill` fits and
 saves them (`GRASP_JSON`) beside the motion models. `grasp_success` reads any batch of action sequences:
 the actions a policy took in a world model's imagination, or those of simulated episodes.
@@ -58,7 +59,8 @@ GRID = {"closure": (0.3, 0.5, 0.7, 0.9),
         "reach_xy": (0.015, 0.02, 0.025, 0.03, 0.035, 0.04, 0.05, 0.06, 0.08),
         "z_low": (-0.04, -0.03, -0.02, -0.01, 0.0),
         "z_high": (0.01, 0.02, 0.03, 0.04, 0.05),
-        "speed": (0.1, 0.2, 0.4, 0.8, 1e3)}  # 1e3 m/s: no limit
+        "speed": (0.1, 0.2, 0.4, 0.8, 1e3),  # 1e3 m/s: no limit
+        "release": (0.3, 0.5, 1.0)}  # above the closure: let go as soon as the closure falls below it
 RULES_AT_ONCE = 500  # verdicts_of_rules' batch of rules
 
 
@@ -67,13 +69,15 @@ class GraspRule:
     """When the grip holds the object: closure, the right hand's commanded closure that closes it;
     reach_xy (m), the grip site's largest horizontal distance from the object's centre at that step;
     z_low and z_high (m), the lowest and highest the site may be above the centre; speed (m/s), the
-    fastest the site may move over the step it closes in (a hand that sweeps past does not hold).
-    Scalars (or arrays of one shape, to score several rules at once)."""
+    fastest the site may move over the step it closes in (a hand that sweeps past does not hold);
+    release, the closure below which a held object is let go (at most closure: a hand that eases its
+    grip part-way through a pull still holds). Scalars (or arrays of one shape, to score several rules at once)."""
     closure: jax.Array
     reach_xy: jax.Array
     z_low: jax.Array
     z_high: jax.Array
     speed: jax.Array
+    release: jax.Array
 
     @classmethod
     def of(cls, values) -> GraspRule:
@@ -171,7 +175,7 @@ def held_verdict(rule: GraspRule, path: dict, actions, mocap0, task0: TaskState,
                 & (jnp.linalg.norm(g - before, axis=-1) <= rule.speed * CONTROL_DT))
         grip_at = jnp.where(closing[:, None], g, grip_at)
         coords_at = jnp.where(closing[:, None], coords, coords_at)
-        held = (held | (closing & near)) & closed
+        held = (held | (closing & near)) & (u >= jnp.minimum(rule.release, rule.closure))
         carried = jnp.clip(coords_at + jnp.einsum("bi,bik->bk", g - grip_at, obj["carry"]), obj["low"], obj["high"])
         coords = jnp.where(held[:, None], carried, start if free else coords)
         ts, success = update_task(ts, q.at[:, adr:adr + k].set(coords), qvel, mocap0, camera.scene)
