@@ -221,13 +221,13 @@ PIPELINES = {
                           train_overrides=("w_success=0.5", "w_progress=0.5", f"judge_episodes={JUDGE_ALL}"),
                           rollouts="conv_noproprio+conv_noproprio_lowskill+conv_proprio", rollout_episodes=32,
                           perturbed="conv_noproprio", perturb_episodes=32),
-    # `full_grip` with mug and airfryer ranked by their grasp rules on the actions each policy takes in
-    # imagination (wm.grasp, fit on the world model's data in the train stage, no fill), as the demo ranks
-    # mug; wipe by the judge
+    # `full_grip` with every task ranked by its grasp rule (the mug lifted, the tray pulled, the cloth drawn
+    # over the dirt) on the actions each policy takes in imagination (wm.grasp, fit on the world model's
+    # data in the train stage, no fill), as the demo ranks mug
     "full_grasp": Pipeline(data="wm_full_grip", policies="full", train="full", eval="full",
                            train_overrides=("w_success=0.5", "w_progress=0.5", f"judge_episodes={JUDGE_ALL}"),
                            rollouts="conv_noproprio+conv_noproprio_lowskill+conv_proprio", rollout_episodes=32,
-                           perturbed="conv_noproprio", perturb_episodes=32, geometric="mug,airfryer"),
+                           perturbed="conv_noproprio", perturb_episodes=32, geometric="mug,airfryer,wipe"),
     # `full_grip` with its perturbed copies taken from two other seen lineages, conv_noproprio_lowskill and
     # conv_proprio, instead of conv_noproprio, the counterfactual families' base (each episode one knob of
     # sim_data.policies.degrade at its own level, 32 a checkpoint). Measured over four seeds against

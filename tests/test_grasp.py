@@ -14,7 +14,7 @@ from sim_data.sim import scene as S
 from sim_data.sim.env import HomeEnv
 from sim_data.sim.robot import RIGHT_HAND
 from sim_data.sim.rollout import run_episodes
-from sim_data.sim.tasks import CONTROL_DT, MUG_HOLD, MUG_LIFT, mug_height
+from sim_data.sim.tasks import CONTROL_DT, MUG_HOLD, MUG_LIFT, dirt_cell_xy, mug_height
 from wm import egomotion as EM
 from wm import grasp as GR
 from wm.fill import FillConfig, init_fill
@@ -180,13 +180,49 @@ def test_the_tray_slides_out_with_the_grip_within_its_range_and_stays_where_the_
     assert np.asarray(got["success"]).tolist() == [True, False, True, False]
 
 
-def test_the_rule_reads_the_outcomes_of_mujocos_scripted_air_fryer_episodes():
-    """As for the mug: the tray's travel predicted from each scripted air fryer episode's first state
-    and actions (skills 1.0 and 0.4, a joints model fit on the episodes, a still base) gives the C
-    engine's outcome in at least 7 of 8 episodes, among which both outcomes occur."""
+CLOTH_RULE = GR.GraspRule.of([0.5, 0.03, -0.03, 0.02, 0.4, 0.5])  # as fit on 156 scripted wipe episodes
+
+
+def test_the_cloth_wipes_the_cells_it_is_drawn_over_and_lies_where_the_hand_lets_go():
+    """On hand-made paths from wipe starts: a grip that takes the cloth by its centre and draws it over
+    every dirt cell at its own height wipes the patch (the task's rule: 80% of the cells under the
+    cloth on the counter); the same grip let go on the patch's first cell leaves the cloth lying there
+    (its cells alone wiped: the hand sweeps on without it); drawn 5 cm above the counter it wipes none."""
+    env = HomeEnv("wipe", 3, engine="cpu")
+    state = env.reset(jax.random.split(jax.random.PRNGKey(2), 3))
+    camera = robot_camera()
+    cloth = np.asarray(GR.object_at("wipe", camera, state.qpos, state.mocap_pos)["handle"])
+    cells = np.asarray(dirt_cell_xy(state.task.patch))  # (3, 20, 2)
+    close_at, per_cell = 5, 2
+    steps = close_at + 10 + per_cell * cells.shape[1]
+    grip = np.repeat(cloth[:, None], steps, 1)
+    over = np.repeat(cells, per_cell, 1)  # each cell held under the cloth's centre for two steps
+    grip[:, close_at + 10:, :2] = over
+    grip[:, close_at + 1:close_at + 10, :2] = cloth[:, None, :2] + (over[:, :1] - cloth[:, None, :2]) * (
+        np.arange(1, 10) / 10)[None, :, None]  # taken where it lies, then brought to the first cell
+    grip[2, close_at + 1:, 2] += 0.05
+    actions = np.zeros((3, steps, 20), np.float32)
+    actions[:, close_at:, RIGHT_HAND] = 1.0
+    actions[1, close_at + 10 + per_cell:, RIGHT_HAND] = 0.0
+    path = {"qpos": jnp.repeat(state.qpos[:, None], steps, 1), "grip": jnp.asarray(grip, jnp.float32)}
+    got = GR.held_verdict(CLOTH_RULE, path, actions, state.mocap_pos, state.task, camera, "wipe")
+    assert np.asarray(got["held"]).all()
+    assert np.asarray(got["success"]).tolist() == [True, False, False]
+    at = np.asarray(got["at"])
+    np.testing.assert_allclose(at[1, :2], cells[1, 0], atol=1e-5)  # let go on the first cell, it lies there
+    np.testing.assert_allclose(at[:, 2], cloth[:, 2] + [0.0, 0.0, 0.05], atol=1e-5)  # on the counter; the third held up
+    np.testing.assert_allclose(at[0, :2], cells[0, -1], atol=1e-5)  # held to the end: under the grip
+
+
+@pytest.mark.parametrize("task, rule", [("airfryer", TRAY_RULE), ("wipe", CLOTH_RULE)])
+def test_the_rule_reads_the_outcomes_of_mujocos_scripted_episodes_of_the_tray_and_the_cloth(task, rule):
+    """As for the mug: the object's state predicted from each scripted episode's first state and
+    actions (skills 1.0 and 0.4, a joints model fit on the episodes, a still base) gives the C engine's
+    outcome in at least 7 of 8 episodes, among which both outcomes occur: the tray pulled out by its
+    handle, the cloth drawn over the dirt."""
     firsts, actions, joints, outcomes = [], [], [], []
     for k in range(4):
-        env = HomeEnv("airfryer", 2, engine="cpu")
+        env = HomeEnv(task, 2, engine="cpu")
         pol, params = scripted(env.model, [1.0, 0.4])
         rng = jax.random.PRNGKey(200 + k)
         final, traj = run_episodes(env, pol, params, rng, record=True)
@@ -199,9 +235,10 @@ def test_the_rule_reads_the_outcomes_of_mujocos_scripted_air_fryer_episodes():
     assert outcomes.any() and not outcomes.all()
     joint_coef = jnp.asarray(EM.fit_joints(list(np.concatenate(joints)), list(np.concatenate(actions))), jnp.float32)
     still = jnp.zeros((3, 6), jnp.float32)
-    got = np.concatenate([np.asarray(GR.grasp_success(TRAY_RULE, still, joint_coef, f.qpos, f.mocap_pos, f.task, a,
-                                                      robot_camera(), "airfryer")["success"])
+    got = np.concatenate([np.asarray(GR.grasp_success(rule, still, joint_coef, f.qpos, f.mocap_pos, f.task, a,
+                                                      robot_camera(), task)["success"])
                           for f, a in zip(firsts, actions)])
+    print(task, got.tolist(), outcomes.tolist())
     assert (got == outcomes).sum() >= 7
 
 

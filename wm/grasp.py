@@ -10,11 +10,12 @@ hand took it. This model takes both from the actions and the first state alone:
   the place it is held by (the mug's centre, the tray's handle) horizontally, between `z_low` and
   `z_high` above it, and moved at most `speed` over that step; while the closure stays at `release` or
   more (a hand that eases its grip part-way through a pull still holds) the object
-  moves with the grip site: the mug freely (dropped back to its start when the hand opens), the tray
-  along its slide by the grip's travel on the slide's axis, within the slide's range (left where the
-  hand lets go);
+  moves with the grip site: the mug and the cloth freely (let go, dropped to the height they started
+  at), the tray along its slide by the grip's travel on the slide's axis, within the slide's range (left
+  where the hand lets go);
 - the task's own rule (`sim_data.sim.tasks.update_task`: for the mug, its bottom 8 cm above the counter
-  for half a second; for the air fryer, the tray 10 cm out at the end) runs on the predicted states.
+  for half a second; for the air fryer, the tray 10 cm out at the end; for wipe, 80% of the dirt's cells
+  under the cloth while it lies on the counter) runs on the predicted states.
 
 Each task's six numbers are fit on its recorded episodes (`fit_grasp_rule`: the most accurate on the
 training split's outcomes, over a grid) and checked on the validation split; `experiments.fill` fits and
@@ -52,7 +53,7 @@ class Held:
     handle: str | None = None
 
 
-GRASPED = {"mug": Held("mug"), "airfryer": Held("fryer_tray", "handle")}
+GRASPED = {"mug": Held("mug"), "airfryer": Held("fryer_tray", "handle"), "wipe": Held("cloth")}
 GRIP_SITE = "right_grip"
 # the grid fit_grasp_rule searches, one axis a field of GraspRule
 GRID = {"closure": (0.3, 0.5, 0.7, 0.9),
@@ -155,14 +156,15 @@ def held_verdict(rule: GraspRule, path: dict, actions, mocap0, task0: TaskState,
                  task: str) -> dict:
     """The task's verdict on robot_path's states with the object moved by rule: {"success": (B,) bool
     after the last step, "held": (B,) bool the grip took the object, "moved": (B,) float32 the farthest
-    (m) the object's coordinates got from their start}. Traceable; the object starts where path's
+    (m) the object's coordinates got from their start, "at": (B, k) those coordinates after the last
+    step (object_at's)}. Traceable; the object starts where path's
     states hold it."""
     _, adr, _ = object_joint(task, camera)
     qpos, grip = jnp.swapaxes(path["qpos"], 0, 1), jnp.swapaxes(path["grip"], 0, 1)
     closure = jnp.swapaxes(jnp.asarray(actions, jnp.float32)[..., R.RIGHT_HAND], 0, 1)
     obj = object_at(task, camera, qpos[0], mocap0)
     start, k = obj["coords"], obj["coords"].shape[1]
-    free = k == 3  # a free body falls back to its start when let go; a slide stays where it was left
+    free = k == 3  # a free body let go falls to the height it started at (where it lay); a slide stays where left
     qvel = jnp.zeros(qpos.shape[1:2] + (camera.model.nv,), jnp.float32)
 
     def body(c, x):
@@ -177,15 +179,15 @@ def held_verdict(rule: GraspRule, path: dict, actions, mocap0, task0: TaskState,
         coords_at = jnp.where(closing[:, None], coords, coords_at)
         held = (held | (closing & near)) & (u >= jnp.minimum(rule.release, rule.closure))
         carried = jnp.clip(coords_at + jnp.einsum("bi,bik->bk", g - grip_at, obj["carry"]), obj["low"], obj["high"])
-        coords = jnp.where(held[:, None], carried, start if free else coords)
+        coords = jnp.where(held[:, None], carried, coords.at[:, 2].set(start[:, 2]) if free else coords)
         ts, success = update_task(ts, q.at[:, adr:adr + k].set(coords), qvel, mocap0, camera.scene)
         far = jnp.maximum(far, jnp.linalg.norm(coords - start, axis=-1))
         return (closed, held, grip_at, coords_at, coords, g, ts, success, far), held
 
     no = jnp.zeros(start.shape[0], bool)
     init = (no, no, jnp.zeros_like(grip[0]), start, start, grip[0], task0, no, jnp.zeros(start.shape[0]))
-    (*_, success, far), held = jax.lax.scan(body, init, (qpos, grip, closure))
-    return {"success": success, "held": held.any(0), "moved": far}
+    (*_, at, _, _, success, far), held = jax.lax.scan(body, init, (qpos, grip, closure))
+    return {"success": success, "held": held.any(0), "moved": far, "at": at}
 
 
 @functools.partial(jax.jit, static_argnames=("camera", "task"))
