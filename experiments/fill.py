@@ -16,7 +16,7 @@ Writes OUT/fill.json and OUT/fill.msgpack (wm.fill.load_fill reads them; `experi
 replayed pairs, which a rerun reuses, and OUT/egomotion.json, the robot's motion from the actions (the
 base's from the driving commands, the joints' from their targets: wm.egomotion) fit on the same
 training episodes and checked open loop on the validation ones; a finished fill or model is not made
-again. A task of wm.grasp.GRASPED among `--tasks` (the mug, the air fryer) is not replayed for the fill: its
+again. A task of wm.grasp.GRASPED among `--tasks` (mug, airfryer, wipe) is not replayed for the fill: its
 episodes fit its grasp rule instead (in OUT/grasp.json: wm.grasp.fit_grasp_rule on the training split,
 its accuracy on the validation split beside the majority outcome's), with the motion models already
 in OUT; a task whose rule OUT holds is not fit again.
@@ -269,8 +269,9 @@ def main(argv=None) -> int:
               f"{check['val_joint_error_rad']['mean']:.4f} rad from the recorded ones (held: "
               f"{check['val_joint_error_held_rad']:.4f})")
     grasped, drawn = [t for t in tasks if t in GRASPED], [t for t in tasks if t not in GRASPED]
-    for task in [t for t in grasped if t not in load_grasp(a.out)]:
-        base, joints = load_egomotion(a.out, joints=True)
+    unfit = [t for t in grasped if t not in load_grasp(a.out)]
+    base, joints = load_egomotion(a.out, joints=True) if unfit else (None, None)
+    for task in unfit:
         rows = {split: [r for d in data for r in manifest_rows(d, [task], split)] for split in ("train", "val")}
         if empty := [split for split, found in rows.items() if not found]:
             raise ValueError(f"{a.data} hold no {' or '.join(empty)} episodes of {task} to fit its grasp rule on")

@@ -1,4 +1,4 @@
-"""An object the hand takes, predicted from the actions: the mug's or the air fryer tray's state, and the task's verdict.
+"""Objects the hand takes (the mug, the air fryer's tray, the cloth), predicted from the actions, and the task's verdict.
 
 A world model that ranks grasping policies must know whether the hand closed on the object and where the
 hand took it. This model takes both from the actions and the first state alone:
@@ -7,12 +7,12 @@ hand took it. This model takes both from the actions and the first state alone:
   kinematics (MJX, so under jit) place the right hand's grip site at every predicted state;
 - each time the right hand's commanded closure rises to `GraspRule.closure` (an open hand closing, or
   one closed from the first step), the grip takes the object when the site lies within `reach_xy` of
-  the place it is held by (the mug's centre, the tray's handle) horizontally, between `z_low` and
-  `z_high` above it, and moved at most `speed` over that step; while the closure stays at `release` or
-  more (a hand that eases its grip part-way through a pull still holds) the object
-  moves with the grip site: the mug and the cloth freely (let go, dropped to the height they started
-  at), the tray along its slide by the grip's travel on the slide's axis, within the slide's range (left
-  where the hand lets go);
+  the place it is held by (the mug's and the cloth's centres, the tray's handle) horizontally, between
+  `z_low` and `z_high` above it, and moved at most `speed` over that step; while the closure stays at
+  `release` or more (a hand that eases its grip part-way through a pull still holds) the object moves
+  with the grip site: the mug and the cloth freely (let go, dropped to the height they started at), the
+  tray along its slide by the grip's travel on the slide's axis, within the slide's range (left where
+  the hand lets go);
 - the task's own rule (`sim_data.sim.tasks.update_task`: for the mug, its bottom 8 cm above the counter
   for half a second; for the air fryer, the tray 10 cm out at the end; for wipe, 80% of the dirt's cells
   under the cloth while it lies on the counter) runs on the predicted states.
@@ -68,11 +68,12 @@ RULES_AT_ONCE = 500  # verdicts_of_rules' batch of rules
 @struct.dataclass
 class GraspRule:
     """When the grip holds the object: closure, the right hand's commanded closure that closes it;
-    reach_xy (m), the grip site's largest horizontal distance from the object's centre at that step;
-    z_low and z_high (m), the lowest and highest the site may be above the centre; speed (m/s), the
-    fastest the site may move over the step it closes in (a hand that sweeps past does not hold);
-    release, the closure below which a held object is let go (at most closure: a hand that eases its
-    grip part-way through a pull still holds). Scalars (or arrays of one shape, to score several rules at once)."""
+    reach_xy (m), the grip site's largest horizontal distance from the place it is held by at that step
+    (object_at's "handle"); z_low and z_high (m), the lowest and highest the site may be above that
+    place; speed (m/s), the fastest the site may move over the step it closes in (a hand that sweeps
+    past does not hold); release, the closure below which a held object is let go (at most closure: a
+    hand that eases its grip part-way through a pull still holds). Scalars (or arrays of one shape, to
+    score several rules at once)."""
     closure: jax.Array
     reach_xy: jax.Array
     z_low: jax.Array
@@ -91,6 +92,13 @@ class GraspRule:
         return {k: float(getattr(self, k)) for k in GRID}
 
 
+def _named(camera: RobotCamera, kind, name: str) -> int:
+    i = mujoco.mj_name2id(camera.model, kind, name)
+    if i < 0:
+        raise ValueError(f"the scene has no {kind.name[6:].lower()} {name!r}")
+    return i
+
+
 def grip_site(camera: RobotCamera) -> int:
     return _named(camera, mujoco.mjtObj.mjOBJ_SITE, GRIP_SITE)
 
@@ -99,13 +107,6 @@ def held_of(task: str) -> Held:
     if task not in GRASPED:
         raise ValueError(f"no object to grasp in task {task!r}; the grasp model reads {', '.join(GRASPED)}")
     return GRASPED[task]
-
-
-def _named(camera: RobotCamera, kind, name: str) -> int:
-    i = mujoco.mj_name2id(camera.model, kind, name)
-    if i < 0:
-        raise ValueError(f"the scene has no {kind.name[6:].lower()} {name!r}")
-    return i
 
 
 def object_joint(task: str, camera: RobotCamera) -> tuple[int, int, bool]:
@@ -157,8 +158,7 @@ def held_verdict(rule: GraspRule, path: dict, actions, mocap0, task0: TaskState,
     """The task's verdict on robot_path's states with the object moved by rule: {"success": (B,) bool
     after the last step, "held": (B,) bool the grip took the object, "moved": (B,) float32 the farthest
     (m) the object's coordinates got from their start, "at": (B, k) those coordinates after the last
-    step (object_at's)}. Traceable; the object starts where path's
-    states hold it."""
+    step (object_at's)}. Traceable; the object starts where path's states hold it."""
     _, adr, _ = object_joint(task, camera)
     qpos, grip = jnp.swapaxes(path["qpos"], 0, 1), jnp.swapaxes(path["grip"], 0, 1)
     closure = jnp.swapaxes(jnp.asarray(actions, jnp.float32)[..., R.RIGHT_HAND], 0, 1)
