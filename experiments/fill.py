@@ -82,37 +82,52 @@ def manifest_rows(data: Path, tasks, split: str) -> list[dict]:
     return [{**r, "path": str(Path(data) / r["file"])} for r in rows if r["task"] in tasks and r["split"] == split]
 
 
+def seeded_batches(rows: list[dict], pad: bool = False):
+    """The episodes of `rows` (manifest_rows' records) in batches of at most REPLAY_BATCH, grouped by task,
+    held-out scene and length, each reset again from its seeds: yields (task, steps, members (indices into
+    rows), env (sim_data.sim.env.HomeEnv on the cpu engine), the state at reset, the recorded actions (B, T,
+    20)). With pad every batch holds REPLAY_BATCH episodes, the last member repeated (one shape, one
+    compilation); members lists the real ones."""
+    groups: dict = {}
+    for i, r in enumerate(rows):
+        groups.setdefault((r["task"], bool(r.get("heldout", False)), int(r["num_steps"])), []).append(i)
+    envs: dict = {}
+    for (task, heldout, steps), members in groups.items():
+        for start in range(0, len(members), REPLAY_BATCH):
+            chunk = members[start:start + REPLAY_BATCH]
+            batch = chunk + chunk[-1:] * (REPLAY_BATCH - len(chunk)) if pad else chunk
+            key = (task, heldout, len(batch))
+            if key not in envs:
+                envs[key] = HomeEnv(task, len(batch), engine="cpu", heldout=heldout)
+            env = envs[key]
+            actions = np.stack([read_episode(Path(rows[i]["path"]), cameras=(), sim_state=False)["action"]
+                                for i in batch])
+            state = env.reset(jnp.stack([jax.random.PRNGKey(int(rows[i]["seed"])) for i in batch]))
+            yield task, steps, chunk, env, state, actions
+
+
 def replay_pairs(rows: list[dict], size: int, every: int, progress: bool = True) -> tuple[dict, float]:
     """Replays the episodes of `rows` (manifest_rows' records) and pairs, at every
     `every`-th step, the first frame reprojected to the camera's pose with the frame drawn there.
     Returns ({"reprojected": (N, S, S, 3) uint8, "covered": (N, S, S) bool, "true": (N, S, S, 3) uint8,
     "cam_pos": (N, 3), "cam_mat": (N, 3, 3)}, the camera's vertical field of view in degrees)."""
-    groups: dict = {}
-    for r in rows:
-        groups.setdefault((r["task"], bool(r.get("heldout", False)), int(r["num_steps"])), []).append(r)
     out = {k: [] for k in PAIR_KEYS}
     fovy = None
     bar = tqdm(total=len(rows), desc="replay", disable=not progress)
-    for (task, heldout, steps), members in groups.items():
-        for start in range(0, len(members), REPLAY_BATCH):
-            chunk = members[start:start + REPLAY_BATCH]
-            actions = np.stack([read_episode(Path(r["path"]), cameras=(), sim_state=False)["action"]
-                                for r in chunk])
-            env = HomeEnv(task, len(chunk), engine="cpu", heldout=heldout)
-            state = env.reset(jnp.stack([jax.random.PRNGKey(int(r["seed"])) for r in chunk]))
-            camera = Camera(env, state.task.colors, size)
-            fovy = camera.fovy
-            first = camera.draw(state)
-            for t in range(steps):
-                state = env.step(state, actions[:, t])
-                if (t + 1) % every:
-                    continue
-                now = camera.draw(state)
-                frame, covered = reproject(first["rgb"], first["depth"], first["rides"], first["pos"], first["mat"],
-                                           now["pos"], now["mat"], fovy)
-                for k, v in zip(PAIR_KEYS, (frame, covered, now["rgb"], now["pos"], now["mat"])):
-                    out[k].append(np.asarray(v))
-            bar.update(len(chunk))
+    for _, steps, chunk, env, state, actions in seeded_batches(rows):
+        camera = Camera(env, state.task.colors, size)
+        fovy = camera.fovy
+        first = camera.draw(state)
+        for t in range(steps):
+            state = env.step(state, actions[:, t])
+            if (t + 1) % every:
+                continue
+            now = camera.draw(state)
+            frame, covered = reproject(first["rgb"], first["depth"], first["rides"], first["pos"], first["mat"],
+                                       now["pos"], now["mat"], fovy)
+            for k, v in zip(PAIR_KEYS, (frame, covered, now["rgb"], now["pos"], now["mat"])):
+                out[k].append(np.asarray(v))
+        bar.update(len(chunk))
     bar.close()
     if fovy is None:
         raise ValueError("no episodes to replay")
@@ -198,23 +213,13 @@ def grasp_verdicts(rows: list[dict], base: np.ndarray, joints: np.ndarray, rules
     recorded outcomes, in rows' order)."""
     camera = robot_camera()
     order, verdicts = [], []
-    groups: dict = {}
-    for i, r in enumerate(rows):
-        groups.setdefault((r["task"], bool(r.get("heldout", False)), int(r["num_steps"])), []).append(i)
     bar = tqdm(total=len(rows), desc="grasp", disable=not progress)
-    for (task, heldout, _), members in groups.items():
-        env = HomeEnv(task, REPLAY_BATCH, engine="cpu", heldout=heldout)
-        for start in range(0, len(members), REPLAY_BATCH):
-            chunk = members[start:start + REPLAY_BATCH]
-            padded = chunk + chunk[-1:] * (REPLAY_BATCH - len(chunk))  # one shape, one compilation
-            actions = np.stack([read_episode(Path(rows[i]["path"]), cameras=(), sim_state=False)["action"]
-                                for i in padded])
-            state = env.reset(jnp.stack([jax.random.PRNGKey(int(rows[i]["seed"])) for i in padded]))
-            path = robot_path(base, joints, state.qpos, state.mocap_pos, actions, camera)
-            got = verdicts_of_rules(rules, path, actions, state.mocap_pos, state.task, camera, task)
-            verdicts.append(got[:, :len(chunk)])
-            order += chunk
-            bar.update(len(chunk))
+    for task, _, chunk, _, state, actions in seeded_batches(rows, pad=True):
+        path = robot_path(base, joints, state.qpos, state.mocap_pos, actions, camera)
+        got = verdicts_of_rules(rules, path, actions, state.mocap_pos, state.task, camera, task)
+        verdicts.append(got[:, :len(chunk)])
+        order += chunk
+        bar.update(len(chunk))
     bar.close()
     back = np.argsort(order)
     return np.concatenate(verdicts, 1)[:, back], np.array([bool(r["success"]) for r in rows])

@@ -114,17 +114,15 @@ def test_fit_grasp_rule_takes_the_most_accurate_rule_and_the_middle_of_equals():
     assert rule.as_dict()["reach_xy"] == pytest.approx(GR.GRID["reach_xy"][2])
 
 
-@pytest.fixture(scope="module")
-def scripted_mug_episodes():
-    """Eight mug episodes of the scripted policy in MuJoCo's C engine, at skills 1.0 and 0.3 and full and
-    weak grips: (first states, actions (8, T, 20), the joints' recorded positions (8, T + 1, 16), the
-    outcomes (8,) bool)."""
+def _scripted_episodes(task: str, batches) -> tuple:
+    """Pairs of episodes of the scripted policy in MuJoCo's C engine, one pair a (skills, grips or None,
+    seed) of batches: (first states [one a pair], actions (E, T, 20), the joints' recorded positions
+    (E, T + 1, 16), the outcomes (E,) bool)."""
     firsts, actions, joints, outcomes = [], [], [], []
-    for k, (skill, grip) in enumerate([((1.0, 0.3), (1.0, 1.0)), ((1.0, 1.0), (0.2, 1.0)),
-                                       ((0.3, 1.0), (1.0, 0.1)), ((1.0, 0.3), (1.0, 1.0))]):
-        env = HomeEnv("mug", 2, engine="cpu")
-        pol, params = scripted(env.model, list(skill), grip=list(grip))
-        rng = jax.random.PRNGKey(100 + k)
+    for skill, grip, seed in batches:
+        env = HomeEnv(task, 2, engine="cpu")
+        pol, params = scripted(env.model, list(skill), grip=None if grip is None else list(grip))
+        rng = jax.random.PRNGKey(seed)
         state, traj = run_episodes(env, pol, params, rng, record=True)
         first = env.reset(jax.random.split(rng, 3)[0])
         firsts.append(first)
@@ -135,20 +133,31 @@ def scripted_mug_episodes():
     return firsts, np.concatenate(actions), np.concatenate(joints), np.concatenate(outcomes)
 
 
+def _rule_reads(rule, task: str, firsts, actions, joints) -> np.ndarray:
+    """(E,) bool: the rule's verdicts on _scripted_episodes' episodes, the joints model fit on them and a
+    still base."""
+    joint_coef = jnp.asarray(EM.fit_joints(list(joints), list(actions)), jnp.float32)
+    still = jnp.zeros((3, 6), jnp.float32)
+    return np.concatenate([np.asarray(GR.grasp_success(rule, still, joint_coef, f.qpos, f.mocap_pos, f.task,
+                                                       actions[2 * k:2 * k + 2], robot_camera(), task)["success"])
+                           for k, f in enumerate(firsts)])
+
+
+@pytest.fixture(scope="module")
+def scripted_mug_episodes():
+    """Eight mug episodes of the scripted policy in MuJoCo's C engine, at skills 1.0 and 0.3 and full and
+    weak grips (_scripted_episodes')."""
+    return _scripted_episodes("mug", [((1.0, 0.3), (1.0, 1.0), 100), ((1.0, 1.0), (0.2, 1.0), 101),
+                                      ((0.3, 1.0), (1.0, 0.1), 102), ((1.0, 0.3), (1.0, 1.0), 103)])
+
+
 def test_the_rule_reads_the_outcomes_of_mujocos_scripted_episodes(scripted_mug_episodes):
     """The states predicted from each episode's first state and actions (a joints model fit on the
     episodes, a still base) with the rule held in hand give the C engine's outcomes in at least 7 of 8
     episodes, among which both outcomes occur."""
     firsts, actions, joints, outcomes = scripted_mug_episodes
     assert outcomes.any() and not outcomes.all()
-    joint_coef = jnp.asarray(EM.fit_joints(list(joints), list(actions)), jnp.float32)
-    still = jnp.zeros((3, 6), jnp.float32)
-    got = []
-    for k, first in enumerate(firsts):
-        a = actions[2 * k:2 * k + 2]
-        got.append(np.asarray(GR.grasp_success(RULE, still, joint_coef, first.qpos, first.mocap_pos, first.task, a,
-                                               robot_camera(), "mug")["success"]))
-    assert (np.concatenate(got) == outcomes).sum() >= 7
+    assert (_rule_reads(RULE, "mug", firsts, actions, joints) == outcomes).sum() >= 7
 
 
 TRAY_RULE = GR.GraspRule.of([0.7, 0.08, -0.02, 0.02, 0.4, 1.0])  # as fit on 144 scripted air fryer episodes
@@ -220,26 +229,9 @@ def test_the_rule_reads_the_outcomes_of_mujocos_scripted_episodes_of_the_tray_an
     actions (skills 1.0 and 0.4, a joints model fit on the episodes, a still base) gives the C engine's
     outcome in at least 7 of 8 episodes, among which both outcomes occur: the tray pulled out by its
     handle, the cloth drawn over the dirt."""
-    firsts, actions, joints, outcomes = [], [], [], []
-    for k in range(4):
-        env = HomeEnv(task, 2, engine="cpu")
-        pol, params = scripted(env.model, [1.0, 0.4])
-        rng = jax.random.PRNGKey(200 + k)
-        final, traj = run_episodes(env, pol, params, rng, record=True)
-        firsts.append(env.reset(jax.random.split(rng, 3)[0]))
-        actions.append(np.asarray(traj.action))
-        q = np.concatenate([np.asarray(firsts[-1].qpos)[:, None], np.asarray(traj.qpos)], 1)
-        joints.append(q[..., env.idx.robot.posed_qpos])
-        outcomes.append(np.asarray(final.success))
-    outcomes = np.concatenate(outcomes)
+    firsts, actions, joints, outcomes = _scripted_episodes(task, [((1.0, 0.4), None, 200 + k) for k in range(4)])
     assert outcomes.any() and not outcomes.all()
-    joint_coef = jnp.asarray(EM.fit_joints(list(np.concatenate(joints)), list(np.concatenate(actions))), jnp.float32)
-    still = jnp.zeros((3, 6), jnp.float32)
-    got = np.concatenate([np.asarray(GR.grasp_success(rule, still, joint_coef, f.qpos, f.mocap_pos, f.task, a,
-                                                      robot_camera(), task)["success"])
-                          for f, a in zip(firsts, actions)])
-    print(task, got.tolist(), outcomes.tolist())
-    assert (got == outcomes).sum() >= 7
+    assert (_rule_reads(rule, task, firsts, actions, joints) == outcomes).sum() >= 7
 
 
 def test_a_task_without_an_object_to_grasp_is_refused():
