@@ -21,8 +21,8 @@ failures included (the published work's most useful source: what the evaluated p
 only what demonstrations do); the evaluation reports its statistics over every policy and over the
 policies whose rollouts the world model never saw (`metrics.unseen`). A preset that names `geometric`
 tasks (the demo: step_back) also fits, in its train stage, the robot's motion and the fill of what a
-moved camera newly sees on the data's episodes of those tasks (experiments.fill), and its evaluation
-ranks those tasks' policies by the geometric read-out (wm.geometric: the policy acting on frames
+moved camera newly sees on the data's episodes of those tasks (experiments.fill; the eval stage fits
+what is missing, for a model carried from another lease), and its evaluation ranks those tasks' policies by the geometric read-out (wm.geometric: the policy acting on frames
 reprojected to its imagined poses; experiments.evaluate's geometric_ranks).
 
 A preset may train an ensemble (`members`): world models that differ only in their training seed,
@@ -70,7 +70,8 @@ runs/bundles/<p> off the machine in the same command (a follow that returned 4 d
 again; deleting runs/logs/<p>/bundle.followed re-arms it), and a lease that ends
 before the chain does still leaves a trained model (about 65 MB for `full`, five shards of <= 15 MiB
 with the judge and bundle.json) that a later lease evaluates with `--stage eval --set eval:wm=...`
-(the bundles, comma-separated) after its own data and policies stages.
+(the bundles, comma-separated) after its own data and policies stages (and rollouts, where the preset's
+grasp rules learn from them).
 
 The train stage, once every member is trained, writes each one's portable bundle
 (wm.checkpoint.write_bundle: bfloat16 parameters in hashed shards, configuration, normalisation,
@@ -306,7 +307,7 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
             if done:  # before waiting for the warm-up: the model is what a lease that ends early keeps
                 bundle_members(d, _logs(p, name))
             if done and p.geometric:
-                fit_geometric(p, d)
+                fit_geometric(p, d, d["wm"])
     elif stage == "eval":
         # wm=... names the model to evaluate (a bundle carried from another lease): the members need not be here
         given = any(a.startswith("wm=") for a in extra)
@@ -315,6 +316,8 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
             raise SystemExit(f"{', '.join(waiting)} not trained yet: run the train stage (make full STAGE=train) "
                              "until it says every member is trained")
         members = [] if given else ["wm=" + ",".join(str(m) for m in d["members"])]
+        if p.geometric:  # what the train stage fits, here too for a model carried from another lease
+            fit_geometric(p, d, given_model(extra) or d["wm"])
         geometric = [f"geometric={d['geometric']}", "geometric_ranks=1"] if p.geometric else []
         args = ["--config", p.eval, "--out", str(d["eval"]), f"policies={d['policies']}", *members, *geometric,
                 *p.eval_overrides, *extra]
@@ -435,18 +438,24 @@ def train_members(name: str, extra=(), gpus=(), members: int | None = None) -> t
     return not left, parts
 
 
-def fit_geometric(p: Pipeline, d: dict) -> None:
-    """Fits the geometric models of p's geometric tasks at the world model's frame size (experiments.fill),
-    unless d["geometric"] holds them already: the motion models and the fill on its data, then the grasp
-    rule of its tasks of wm.grasp.GRASPED on the world model's data (the zoo's rollouts among them, whose
-    grasps are the learned policies')."""
-    size = load_run_config(d["wm"])[0].model.size
+def fit_geometric(p: Pipeline, d: dict, model: Path) -> None:
+    """Fits the geometric models of p's geometric tasks at the frame size of the world model `model` (a
+    run or a bundle; experiments.fill), what d["geometric"] holds already left as it is: the motion
+    models and the fill on its data, then the grasp rule of its tasks of wm.grasp.GRASPED on the world
+    model's data (the zoo's rollouts among them, whose grasps are the learned policies')."""
+    size = load_run_config(model)[0].model.size
     tasks = p.geometric.split(",")
     drawn, grasped = [t for t in tasks if t not in GRASPED], [t for t in tasks if t in GRASPED]
     for data, group in ((d["data"], drawn), (d["wm_data"], grasped)):
         if group:
             fill.main(["--data", str(data), "--tasks", ",".join(group), "--out", str(d["geometric"]), "--size",
                        str(size), *p.geometric_args])
+
+
+def given_model(extra) -> Path | None:
+    """The first world model an eval stage's `wm=PATH[,PATH...]` override names, or None without one."""
+    given = [a.split("=", 1)[1] for a in extra if a.startswith("wm=")]
+    return Path(given[-1].split(",")[0]) if given else None
 
 
 def bundle_members(d: dict, logs: Path) -> list[Path]:

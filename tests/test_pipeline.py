@@ -91,27 +91,40 @@ def test_a_preset_with_geometric_tasks_fits_their_models_after_training_and_rank
     """The train stage fits the geometric models at the world model's frame size once the members are
     trained (not before): the motion models and the fill of step_back on the data, then the grasp rule of
     the mug on the world model's data (the rollouts among it); the eval stage names them and ranks by
-    them."""
+    them, and asks the fit again for what is missing (experiments.fill leaves what is fit), at the frame
+    size of the model it is given where one is carried from another lease (wm=BUNDLE)."""
     _, d = tiny
     monkeypatch.setitem(P.PIPELINES, "tiny", dataclasses.replace(P.PIPELINES["tiny"], members=1,
                                                                  geometric="step_back,mug",
                                                                  geometric_args=("--steps", "7")))
     d = P.PIPELINES["tiny"].dirs("tiny")
-    fits, evals = [], []
+    fits, evals, read = [], [], []
+    sizes = {str(d["wm"]): 48, "carried/bundle": 64}
+
+    def run_config(run):
+        read.append(str(run))
+        smoke = P.wm_config.make_config("smoke")
+        return dataclasses.replace(smoke, model=dataclasses.replace(smoke.model, size=sizes[str(run)])), None
+
     monkeypatch.setattr(P.fill, "main", fits.append)
-    monkeypatch.setattr(P, "load_run_config", lambda run: (dataclasses.replace(
-        P.wm_config.make_config("smoke"), model=dataclasses.replace(P.wm_config.make_config("smoke").model, size=48)),
-        None))
+    monkeypatch.setattr(P, "load_run_config", run_config)
     assert P.run_stage("tiny", "train") is True
-    assert fits == [["--data", str(d["data"]), "--tasks", "step_back", "--out", str(d["geometric"]), "--size", "48",
-                     "--steps", "7"],
-                    ["--data", str(d["wm_data"]), "--tasks", "mug", "--out", str(d["geometric"]), "--size", "48",
-                     "--steps", "7"]]
+    def fit_at(size):
+        return [["--data", str(d["data"]), "--tasks", "step_back", "--out", str(d["geometric"]), "--size", size,
+                 "--steps", "7"],
+                ["--data", str(d["wm_data"]), "--tasks", "mug", "--out", str(d["geometric"]), "--size", size,
+                 "--steps", "7"]]
+
+    assert fits == fit_at("48") and read == [str(d["wm"])]
     import experiments.evaluate
 
     monkeypatch.setattr(experiments.evaluate, "main", evals.append)
     P.run_stage("tiny", "eval")
     assert f"geometric={d['geometric']}" in evals[0] and "geometric_ranks=1" in evals[0]
+    assert fits == fit_at("48") * 2
+    P.run_stage("tiny", "eval", extra=["wm=carried/bundle,carried/other"])
+    assert read[-1] == "carried/bundle" and fits[-2:] == fit_at("64")
+    assert "wm=carried/bundle,carried/other" in evals[1]
 
 
 def test_members_seeds_follow_a_seed_set_and_a_trained_member_refuses_changed_settings(tiny):
