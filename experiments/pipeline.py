@@ -22,8 +22,9 @@ only what demonstrations do); the evaluation reports its statistics over every p
 policies whose rollouts the world model never saw (`metrics.unseen`). A preset that names `geometric`
 tasks (the demo: step_back) also fits, in its train stage, the robot's motion and the fill of what a
 moved camera newly sees on the data's episodes of those tasks (experiments.fill; the eval stage fits
-what is missing, for a model carried from another lease), and its evaluation ranks those tasks' policies by the geometric read-out (wm.geometric: the policy acting on frames
-reprojected to its imagined poses; experiments.evaluate's geometric_ranks).
+what is missing, for a model carried from another lease), and its evaluation ranks those tasks'
+policies by the geometric read-out (wm.geometric: the policy acting on frames reprojected to its
+imagined poses; experiments.evaluate's geometric_ranks).
 
 A preset may train an ensemble (`members`): world models that differ only in their training seed,
 whose mean probability ranks the policies (one model's seed moves its ranking more than most design
@@ -453,7 +454,8 @@ def fit_geometric(p: Pipeline, d: dict, model: Path) -> None:
 
 
 def given_model(extra) -> Path | None:
-    """The first world model an eval stage's `wm=PATH[,PATH...]` override names, or None without one."""
+    """The first world model that an eval stage's last `wm=PATH[,PATH...]` override names (the one the
+    evaluation reads), or None without one."""
     given = [a.split("=", 1)[1] for a in extra if a.startswith("wm=")]
     return Path(given[-1].split(",")[0]) if given else None
 

@@ -109,6 +109,7 @@ def test_a_preset_with_geometric_tasks_fits_their_models_after_training_and_rank
     monkeypatch.setattr(P.fill, "main", fits.append)
     monkeypatch.setattr(P, "load_run_config", run_config)
     assert P.run_stage("tiny", "train") is True
+
     def fit_at(size):
         return [["--data", str(d["data"]), "--tasks", "step_back", "--out", str(d["geometric"]), "--size", size,
                  "--steps", "7"],
