@@ -1345,7 +1345,8 @@ def evaluate_tasks(cfg: EvalConfig, out: Path, tasks, sources, models, used: set
                    part: tuple[int, int] | None, partial: bool, motion=None, grasp=None) -> dict | None:
     """{task: results (evaluate_task)} of every task evaluated, read back from out/tasks where a
     run before evaluated it (or its parts did, merged here); None for a part, or when cfg.max_minutes
-    stops before a task (see run). motion: the geometric models (cfg.geometric) or None; grasp: their grasp rules ({task: rule})."""
+    stops before a task (see run). motion: the geometric models (cfg.geometric) or None; grasp: their
+    grasp rules ({task: rule})."""
     results = {}
     by_task = {t: [s for s in sources if s.runs_on(t)] for t in tasks}
     if part is not None and cfg.keep_features:

@@ -1,4 +1,5 @@
-"""Objects the hand takes (the mug, the air fryer's tray, the cloth), predicted from the actions, and the task's verdict.
+"""Objects the hand takes (the mug, the air fryer's tray, the cloth), predicted from the actions, and
+the task's verdict.
 
 A world model that ranks grasping policies must know whether the hand closed on the object and where the
 hand took it. This model takes both from the actions and the first state alone:
@@ -173,7 +174,8 @@ def held_verdict(rule: GraspRule, path: dict, actions, mocap0, task0: TaskState,
         closed = u >= rule.closure
         closing = closed & ~was
         rel = g - obj["handle"]
-        near = ((jnp.hypot(rel[:, 0], rel[:, 1]) <= rule.reach_xy) & (rel[:, 2] >= rule.z_low) & (rel[:, 2] <= rule.z_high)
+        near = ((jnp.hypot(rel[:, 0], rel[:, 1]) <= rule.reach_xy)
+                & (rel[:, 2] >= rule.z_low) & (rel[:, 2] <= rule.z_high)
                 & (jnp.linalg.norm(g - before, axis=-1) <= rule.speed * CONTROL_DT))
         grip_at = jnp.where(closing[:, None], g, grip_at)
         coords_at = jnp.where(closing[:, None], coords, coords_at)
