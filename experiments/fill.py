@@ -19,7 +19,8 @@ training episodes and checked open loop on the validation ones; a finished fill 
 again. A task of wm.grasp.GRASPED among `--tasks` (mug, airfryer, wipe) is not replayed for the fill: its
 episodes fit its grasp rule instead (in OUT/grasp.json: wm.grasp.fit_grasp_rule on the training split,
 its accuracy on the validation split beside the majority outcome's), with the motion models already
-in OUT; a task whose rule OUT holds is not fit again.
+in OUT; a task whose rule OUT holds is not fit again. Both fits read at most `--episodes` episodes a task
+and split, spread over the dataset's policies.
 
     python -m experiments.fill --data runs/data/demo_demo_rollouts --tasks mug --out runs/fill/demo
 """
@@ -80,6 +81,22 @@ def manifest_rows(data: Path, tasks, split: str) -> list[dict]:
                                 f"python -m sim_data.dataset.generate")
     rows = [json.loads(line) for line in manifest.read_text().splitlines() if line]
     return [{**r, "path": str(Path(data) / r["file"])} for r in rows if r["task"] in tasks and r["split"] == split]
+
+
+def fit_rows(data: list[Path], tasks, split: str, limit: int) -> list[dict]:
+    """The episodes of `tasks` in `split` of the datasets `data` that fit the motion models and the grasp
+    rules: per task at most `limit` (0: all), evenly spaced over its episodes ordered by policy and
+    episode, so every policy keeps its share and every run takes the same ones (in the datasets' order).
+    A few hundred pin down their few coefficients; a `full` dataset's thousands would cost the eval
+    stage minutes."""
+    rows = [r for d in data for r in manifest_rows(d, tasks, split)]
+    kept = set()
+    for task in tasks:
+        found = sorted((i for i, r in enumerate(rows) if r["task"] == task),
+                       key=lambda i: (rows[i].get("policy", ""), rows[i]["episode_id"]))
+        kept |= set(found if not limit or len(found) <= limit else
+                    (found[k * len(found) // limit] for k in range(limit)))
+    return [r for i, r in enumerate(rows) if i in kept]
 
 
 def seeded_batches(rows: list[dict], pad: bool = False):
@@ -253,20 +270,25 @@ def main(argv=None) -> int:
     ap.add_argument("--batch", type=int, default=FillConfig.batch)
     ap.add_argument("--width", type=int, default=FillConfig.width)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--episodes", type=int, default=384, help="at most this many episodes a task and split fit "
+                    "the motion models and the grasp rules, spread over the dataset's policies (0: all)")
     a = ap.parse_args(argv)
     tasks = [t for t in a.tasks.split(",") if t]
     bad = [t for t in tasks if t not in TASK_NAMES]
     if bad or not tasks:
         raise ValueError(f"unknown tasks {bad}; choose among {', '.join(TASK_NAMES)}")
-    if a.every < 1 or a.size < 8 or a.size % 8:
-        raise ValueError(f"--every must be >= 1 and --size a multiple of 8; got {a.every} and {a.size}")
+    if a.every < 1 or a.size < 8 or a.size % 8 or a.episodes < 0:
+        raise ValueError(f"--every must be >= 1, --size a multiple of 8 and --episodes >= 0; got {a.every}, "
+                         f"{a.size} and {a.episodes}")
     cfg = FillConfig(width=a.width, steps=a.steps, batch=a.batch, seed=a.seed)
     data = [Path(d) for d in a.data.split(",") if d]
     if not (a.out / EGOMOTION_JSON).exists():
-        rows = {split: [r for d in data for r in manifest_rows(d, tasks, split)] for split in ("train", "val")}
+        rows = {split: fit_rows(data, tasks, split, a.episodes) for split in ("train", "val")}
         empty = [split for split, found in rows.items() if not found]
         if empty:
             raise ValueError(f"{a.data} hold no {' or '.join(empty)} episodes of {', '.join(tasks)}")
+        print(f"fitting the robot's motion on {len(rows['train'])} training episodes, checking it on "
+              f"{len(rows['val'])}", flush=True)
         coef, joints, check = fit_and_check_egomotion(rows["train"], rows["val"])
         save_egomotion(a.out, coef, {**check, "data": a.data, "tasks": tasks}, joints)
         print(f"base motion: open loop over a validation episode ends {check['val_end_error_m']['mean']:.3f} m "
@@ -277,7 +299,7 @@ def main(argv=None) -> int:
     unfit = [t for t in grasped if t not in load_grasp(a.out)]
     base, joints = load_egomotion(a.out, joints=True) if unfit else (None, None)
     for task in unfit:
-        rows = {split: [r for d in data for r in manifest_rows(d, [task], split)] for split in ("train", "val")}
+        rows = {split: fit_rows(data, [task], split, a.episodes) for split in ("train", "val")}
         if empty := [split for split, found in rows.items() if not found]:
             raise ValueError(f"{a.data} hold no {' or '.join(empty)} episodes of {task} to fit its grasp rule on")
         rule, check = fit_and_check_grasp(rows["train"], rows["val"], base, joints)

@@ -155,6 +155,8 @@ def test_bad_inputs_are_refused(tmp_path):
         F.manifest_rows(tmp_path, ["mug"], "train")
     with pytest.raises(ValueError, match="unknown tasks"):
         F.main(["--data", str(tmp_path), "--tasks", "dance", "--out", str(tmp_path)])
+    with pytest.raises(ValueError, match="--episodes >= 0"):
+        F.main(["--data", str(tmp_path), "--tasks", "mug", "--out", str(tmp_path), "--episodes", "-1"])
     (tmp_path / "manifest.jsonl").write_text("")
     with pytest.raises(ValueError, match="no train or val episodes of step_back"):
         F.main(["--data", str(tmp_path), "--tasks", "step_back", "--out", str(tmp_path / "f")])
@@ -169,6 +171,31 @@ def test_bad_inputs_are_refused(tmp_path):
     with pytest.raises(ValueError, match="32-px"):
         L.study("blind=examples.plugin_policy:make", ["step_back"], tmp_path / "o", [L.LEARNED], 2, 0, size=32,
                 progress=False, fill=tmp_path / "fill")
+
+
+def test_the_fits_read_a_spread_of_each_tasks_episodes_in_the_datasets_order(tmp_path):
+    """fit_rows keeps at most `limit` episodes a task, evenly spaced over them ordered by policy and
+    episode (so each policy keeps its share), in the datasets' order; under the limit, or with 0, all."""
+    def write(data, rows):
+        data.mkdir()
+        (data / "manifest.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    # mug: 6 of policy "b" then 6 of "a", interleaved with step_back's 3; a val episode to leave out
+    mug = [{"task": "mug", "policy": p, "episode_id": f"mug-{p}-{i}", "split": "train", "file": f"{p}{i}"}
+           for p in ("b", "a") for i in range(6)]
+    step_back = [{"task": "step_back", "policy": "a", "episode_id": f"sb-{i}", "split": "train", "file": f"s{i}"}
+                 for i in range(3)]
+    val = {"task": "mug", "policy": "a", "episode_id": "mug-v", "split": "val", "file": "v"}
+    write(tmp_path / "one", mug[:6] + step_back + [val])
+    write(tmp_path / "two", mug[6:])
+    data = [tmp_path / "one", tmp_path / "two"]
+    kept = F.fit_rows(data, ["mug", "step_back"], "train", 4)
+    # mug ordered by policy: a0..a5, b0..b5; every third of the 12 -> a0, a3, b0, b3, in the datasets' order
+    assert [r["episode_id"] for r in kept] == ["mug-b-0", "mug-b-3", "sb-0", "sb-1", "sb-2", "mug-a-0", "mug-a-3"]
+    assert kept[0]["path"] == str(tmp_path / "one" / "b0")
+    everything = [r["episode_id"] for r in F.fit_rows(data, ["mug", "step_back"], "train", 0)]
+    assert everything == [r["episode_id"] for r in mug[:6] + step_back + mug[6:]]
+    assert [r["episode_id"] for r in F.fit_rows(data, ["mug"], "train", 12)] == [r["episode_id"] for r in mug]
+    assert [r["episode_id"] for r in F.fit_rows(data, ["mug"], "val", 1)] == ["mug-v"]
 
 
 @pytest.mark.slow  # fits the motion models and the grasp grid's rules on the smoke episodes (about a minute on 2 cores)

@@ -15,8 +15,10 @@ order of `RobotIndex.posed_qpos`) moves as dq_t = a_j (u_t - q_t) + b_j dq_{t-1}
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -81,12 +83,21 @@ def step_base(coef, base, prev, action) -> tuple:
 
 def roll_base(coef: np.ndarray, start: np.ndarray, actions: np.ndarray) -> np.ndarray:
     """(B, T + 1, 3) base poses predicted from start (B, 3) under actions (B, T, 20), the first the start."""
-    base, prev = jnp.asarray(start, jnp.float32), jnp.zeros((len(start), 3))
-    out = [base]
-    for t in range(actions.shape[1]):
-        base, prev = step_base(coef, base, prev, actions[:, t])
-        out.append(base)
-    return np.stack(out, 1).astype(np.float64)
+    start = jnp.asarray(start, jnp.float32)
+    return np.asarray(_roll(step_base, jnp.asarray(coef, jnp.float32), start, jnp.zeros_like(start),
+                            jnp.asarray(actions, jnp.float32)), np.float64)
+
+
+@functools.partial(jax.jit, static_argnames=("step",))
+def _roll(step, coef, start, prev, actions):
+    """(B, T + 1, D) the states `step` (step_base or step_joints) predicts from start (B, D), its last
+    change prev (B, D), under actions (B, T, 20): one compiled scan, where a Python loop of eager steps
+    would dispatch every operation of every step (minutes over a large dataset's validation episodes)."""
+    def one(carry, action):
+        state, change = step(coef, *carry, action)
+        return (state, change), state
+    _, states = jax.lax.scan(one, (start, prev), jnp.swapaxes(actions, 0, 1))
+    return jnp.concatenate([start[:, None], jnp.swapaxes(states, 0, 1)], 1)
 
 
 JOINTS = 16  # the actuated joints whose targets lead the action vector
@@ -123,12 +134,9 @@ def step_joints(coef, q, prev, action) -> tuple:
 def roll_joints(coef: np.ndarray, start: np.ndarray, actions: np.ndarray) -> np.ndarray:
     """(B, T + 1, 16) joint positions predicted from start (B, 16) under actions (B, T, 20), the first the
     start."""
-    q = jnp.asarray(start, jnp.float32)
-    prev, out = jnp.zeros_like(q), [q]
-    for t in range(actions.shape[1]):
-        q, prev = step_joints(coef, q, prev, actions[:, t])
-        out.append(q)
-    return np.stack(out, 1).astype(np.float64)
+    start = jnp.asarray(start, jnp.float32)
+    return np.asarray(_roll(step_joints, jnp.asarray(coef, jnp.float32), start, jnp.zeros_like(start),
+                            jnp.asarray(actions, jnp.float32)), np.float64)
 
 
 def save_egomotion(out: Path, coef: np.ndarray, metrics: dict, joints: np.ndarray | None = None) -> None:
