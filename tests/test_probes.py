@@ -62,6 +62,33 @@ def test_the_read_loss_is_each_frames_probes_squared_action_difference():
     assert float(PR.read_loss(probes, target, target, proprio, t, task)) == 0.0
 
 
+def test_the_read_loss_weighs_the_hands_closure_by_read_closure():
+    """With read_dims(w), a frame's error is the mean over its chunk of the action dimensions' squared
+    differences weighted by w (the two closure commands at w, the other 18 at 1) over their sum; at 1
+    the plain mean, and the config refuses a weight <= 0."""
+    sources = [_source("a/conv/1", "a", seed=1)]
+    probes = PR.make_probes(sources, ["a"])
+    pred, target, proprio, t, _ = _inputs(4)
+    task = np.zeros(4, np.int32)
+    s = sources[0]
+    read = lambda img: np.asarray(PolicyNet(s.policy.cfg).apply(  # noqa: E731
+        {"params": s.params["net"]}, img * 255.0, normalise_proprio(s.params, proprio), t))
+    per_dim = ((read(pred) - read(target)) ** 2).mean(axis=1)  # (4 frames, 20)
+    closure = per_dim[:, R.HAND_CLOSURE].sum(1)
+    want = ((per_dim.sum(1) - closure + 10 * closure) / (18 + 2 * 10)).mean()
+    assert PR.read_dims(1.0) is None
+    w = PR.read_dims(10.0)
+    assert w.shape == (R.ACTION_DIM,) and w[R.HAND_CLOSURE].tolist() == [10.0, 10.0] and w.sum() == 38.0
+    got = float(jax.jit(PR.read_loss)(probes, pred, target, proprio, t, task, w))
+    np.testing.assert_allclose(got, want, rtol=1e-4)
+    plain = float(PR.read_loss(probes, pred, target, proprio, t, task))
+    np.testing.assert_allclose(float(PR.read_loss(probes, pred, target, proprio, t, task, np.ones(R.ACTION_DIM))),
+                               plain, rtol=1e-6)
+    assert abs(got - plain) > 1e-3 * plain
+    with pytest.raises(ValueError, match="read_closure"):
+        make_config("smoke", ["read_closure=0"])
+
+
 def test_the_read_loss_trains_the_predicted_frames_alone_and_ignores_other_tasks():
     probes = PR.make_probes([_source("a/conv/1", "a", seed=1)], ["a", "b", "c"])
     pred, target, proprio, t, task = _inputs()

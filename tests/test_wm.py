@@ -724,7 +724,7 @@ def test_the_read_loss_adds_the_probes_action_difference_on_every_fourth_predict
     from sim_data.policies.bc import BCPolicy, PolicyNetConfig
     from sim_data.policies.bc import init_params as policy_params
     from sim_data.policies.registry import PolicySource
-    from wm.probes import make_probes, read_loss
+    from wm.probes import make_probes, read_dims, read_loss
     from wm.train import loss_fn
 
     params, frames, proprio, action = model_and_inputs
@@ -747,6 +747,11 @@ def test_the_read_loss_adds_the_probes_action_difference_on_every_fourth_predict
     pred, true = _first_pass(params, frames, proprio, action)[0, ::4], frames[0, 1::4] / 255.0
     want = read_loss(probes, pred, true, proprio[0, 1::4], np.array([1, 5], np.int32), np.zeros(2, np.int32))
     np.testing.assert_allclose(parts["read"], want, rtol=1e-4)
+    # read_closure weighs the hands' closure commands in the same frames' reading
+    _, closed = loss(params, batch, norm, dataclasses.replace(cfg, w_read=0.5, read_closure=10.0), None, None, probes)
+    want = read_loss(probes, pred, true, proprio[0, 1::4], np.array([1, 5], np.int32), np.zeros(2, np.int32),
+                     read_dims(10.0))
+    np.testing.assert_allclose(closed["read"], want, rtol=1e-4)
     with pytest.raises(ValueError, match="w_read"):
         loss_fn(params, batch, norm, dataclasses.replace(cfg, w_read=0.5))
 

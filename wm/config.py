@@ -60,7 +60,9 @@ class TrainConfig:
         (0: none; needs model.warp). w_read: of the read loss (wm.probes):
         the behaviour-cloning checkpoints whose rollouts the data holds, at most read_probes of them,
         read every 4th predicted frame of each pass and its true frame, and the difference of the
-        actions they take is the loss (0: none; needs such rollouts in the data). w_kl: with
+        actions they take is the loss (0: none; needs such rollouts in the data); read_closure: the
+        weight of the hands' closure commands in it against 1 for every other action dimension (1: the
+        plain mean; wm.probes.read_dims). w_kl: with
         model.stochastic, of the divergence of the code's posterior from its prior
         (wm.metrics.gaussian_kl), balanced as DreamerV3's: 0.8 of it trains the prior towards the
         posterior, 0.2 the posterior towards the prior, the latter counted only above free_nats nats a
@@ -144,6 +146,7 @@ class TrainConfig:
     flow_radius: int = 4
     w_read: float = 0.0
     read_probes: int = 8
+    read_closure: float = 1.0
     w_kl: float = 0.01
     free_nats: float = 1.0
     w_scene: float = 1.0
@@ -229,9 +232,10 @@ class TrainConfig:
             raise ValueError(f"w_flow is a loss weight, >= 0, that trains model.warp's flow, and flow_radius a "
                              f"search radius in pixels, 1 to {self.model.size // 2 - 1}; got w_flow={self.w_flow}, "
                              f"model.warp={self.model.warp}, flow_radius={self.flow_radius}")
-        if self.w_read < 0 or self.read_probes < 1:
-            raise ValueError(f"w_read is a loss weight, >= 0, and read_probes a count, >= 1; got w_read={self.w_read}, "
-                             f"read_probes={self.read_probes}")
+        if self.w_read < 0 or self.read_probes < 1 or self.read_closure <= 0:
+            raise ValueError(f"w_read is a loss weight, >= 0, read_probes a count, >= 1, and read_closure a weight, > 0; "
+                             f"got w_read={self.w_read}, read_probes={self.read_probes}, "
+                             f"read_closure={self.read_closure}")
         if self.w_kl <= 0 or self.free_nats < 0:
             raise ValueError(f"w_kl > 0 and free_nats >= 0 are required; got w_kl={self.w_kl}, "
                              f"free_nats={self.free_nats}")

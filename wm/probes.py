@@ -21,6 +21,7 @@ import numpy as np
 from flax import struct
 
 from sim_data.policies.bc import BCPolicy, PolicyNet, PolicyNetConfig, normalise_proprio, stack_params, stand_in_params
+from sim_data.sim.robot import ACTION_DIM, HAND_CLOSURE
 
 
 @struct.dataclass
@@ -142,10 +143,11 @@ def readings(probes: Probes, frames, proprio, t, rows: tuple) -> tuple:
                  for net, params, (r, _) in zip(probes.nets, probes.params, rows, strict=True))
 
 
-def read_loss_from(probes: Probes, pred, true_readings: tuple, proprio, t, rows: tuple):
+def read_loss_from(probes: Probes, pred, true_readings: tuple, proprio, t, rows: tuple, dims=None):
     """read_loss with the frames' assignment (probe_rows') and the probes' readings of the true frames
     (readings') given, so that several passes of predictions of the same frames share them."""
     pred, proprio, t = jnp.asarray(pred), jnp.asarray(proprio), jnp.asarray(t)
+    weights = None if dims is None else jnp.asarray(dims, jnp.float32) / jnp.sum(jnp.asarray(dims, jnp.float32))
     total, count = jnp.zeros(()), jnp.zeros(())
     for net, params, (r, valid), want in zip(probes.nets, probes.params, rows, true_readings, strict=True):
         def one(args, net=net):
@@ -154,7 +156,8 @@ def read_loss_from(probes: Probes, pred, true_readings: tuple, proprio, t, rows:
             # scatter, which deterministic GPU ops sort
             pick = ((r[:, None] == jnp.arange(pred.shape[0])) & v[:, None]).astype(pred.dtype)
             frames = jnp.einsum("cn,n...->c...", pick, pred, precision=jax.lax.Precision.HIGHEST)
-            err = jnp.mean((_chunk(net, p, frames, proprio[r], t[r], probes.dtype) - w) ** 2, axis=(1, 2))
+            sq = (_chunk(net, p, frames, proprio[r], t[r], probes.dtype) - w) ** 2
+            err = jnp.mean(sq, axis=(1, 2)) if weights is None else jnp.sum(jnp.mean(sq, axis=1) * weights, -1)
             v = v.astype(jnp.float32)
             return jnp.sum(v * err), jnp.sum(v)
         s, n = jax.lax.map(one, (params, r, valid, want))
@@ -162,14 +165,26 @@ def read_loss_from(probes: Probes, pred, true_readings: tuple, proprio, t, rows:
     return total / jnp.maximum(count, 1.0)
 
 
-def read_loss(probes: Probes, pred, target, proprio, t, task):
+def read_loss(probes: Probes, pred, target, proprio, t, task, dims=None):
     """The mean over frames of the squared difference between the action chunk that the frame's probe
     (one checkpoint of its task, probe_rows') reads from the predicted frame and the one it reads from
     the true frame (pred, target (N, S, S, 3) in [0, 1], the true frames' gradient stopped), given the
     true frames' proprio (N, 37) in its own units, steps t (N,) int32 since the episode began and task
-    (N,) int32. Frames of a task without probes count for nothing; 0 where every frame is of one."""
+    (N,) int32. Frames of a task without probes count for nothing; 0 where every frame is of one.
+    dims (20,): each action dimension's weight in a frame's mean (read_dims; None: all alike)."""
     rows = probe_rows(probes, task)
-    return read_loss_from(probes, pred, readings(probes, target, proprio, t, rows), proprio, t, rows)
+    return read_loss_from(probes, pred, readings(probes, target, proprio, t, rows), proprio, t, rows, dims)
+
+
+def read_dims(closure: float):
+    """(20,) float32 weights of the action dimensions in the read loss: the hands' closure commands at
+    `closure`, every other dimension at 1; None at closure 1 (the plain mean). A policy's closure decides
+    whether it grasps, and it is what an image-only network loses first on imagined frames."""
+    if closure == 1.0:
+        return None
+    w = np.ones(ACTION_DIM, np.float32)
+    w[HAND_CLOSURE] = closure
+    return w
 
 
 def stand_in_probes(n: int, size: int, dtype: str = "float32") -> Probes:

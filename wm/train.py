@@ -49,7 +49,7 @@ from wm.imagine import Norm, to_uint8
 from wm.judge import dataset_policies, fit_judge, judges_fit, load_judge, warm_judge
 from wm.metrics import action_contrast, gaussian_kl
 from wm.model import INPUT_CLIP, REFINE_SIGMA, WorldModel, block_flow, init_params
-from wm.probes import make_probes, probe_rows, probe_sources, read_loss_from, readings
+from wm.probes import make_probes, probe_rows, probe_sources, read_dims, read_loss_from, readings
 from wm.quality import evaluate
 
 
@@ -260,7 +260,7 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_w
             total = total + cfg.w_lpips * parts[f"lpips{tag}"]
         if cfg.w_read > 0:
             parts[f"read{tag}"] = read_loss_from(probes, every_fourth(pixels), true_read, read_proprio, read_t,
-                                                 read_rows)
+                                                 read_rows, read_dims(cfg.read_closure))
             total = total + cfg.w_read * parts[f"read{tag}"]
         if k == 0 and cfg.w_contrast > 0:  # the same context under another window's actions
             other = model.apply({"params": params}, z_in, p_in, jnp.roll(action, 1, axis=0), anchor=anchor, time=time,
