@@ -233,8 +233,8 @@ class TrainConfig:
                              f"search radius in pixels, 1 to {self.model.size // 2 - 1}; got w_flow={self.w_flow}, "
                              f"model.warp={self.model.warp}, flow_radius={self.flow_radius}")
         if self.w_read < 0 or self.read_probes < 1 or self.read_closure <= 0:
-            raise ValueError(f"w_read is a loss weight, >= 0, read_probes a count, >= 1, and read_closure a weight, > 0; "
-                             f"got w_read={self.w_read}, read_probes={self.read_probes}, "
+            raise ValueError(f"w_read is a loss weight, >= 0, read_probes a count, >= 1, and read_closure a "
+                             f"weight, > 0; got w_read={self.w_read}, read_probes={self.read_probes}, "
                              f"read_closure={self.read_closure}")
         if self.w_kl <= 0 or self.free_nats < 0:
             raise ValueError(f"w_kl > 0 and free_nats >= 0 are required; got w_kl={self.w_kl}, "

@@ -145,7 +145,8 @@ def readings(probes: Probes, frames, proprio, t, rows: tuple) -> tuple:
 
 def read_loss_from(probes: Probes, pred, true_readings: tuple, proprio, t, rows: tuple, dims=None):
     """read_loss with the frames' assignment (probe_rows') and the probes' readings of the true frames
-    (readings') given, so that several passes of predictions of the same frames share them."""
+    (readings') given, so that several passes of predictions of the same frames share them; dims as
+    read_loss's."""
     pred, proprio, t = jnp.asarray(pred), jnp.asarray(proprio), jnp.asarray(t)
     weights = None if dims is None else jnp.asarray(dims, jnp.float32) / jnp.sum(jnp.asarray(dims, jnp.float32))
     total, count = jnp.zeros(()), jnp.zeros(())
