@@ -83,8 +83,13 @@ def step_base(coef, base, prev, action) -> tuple:
 
 def roll_base(coef: np.ndarray, start: np.ndarray, actions: np.ndarray) -> np.ndarray:
     """(B, T + 1, 3) base poses predicted from start (B, 3) under actions (B, T, 20), the first the start."""
+    return _rolled(step_base, coef, start, actions)
+
+
+def _rolled(step, coef, start, actions) -> np.ndarray:
+    """_roll's (B, T + 1, D) float64 from NumPy inputs, float32 inside, the first change zero."""
     start = jnp.asarray(start, jnp.float32)
-    return np.asarray(_roll(step_base, jnp.asarray(coef, jnp.float32), start, jnp.zeros_like(start),
+    return np.asarray(_roll(step, jnp.asarray(coef, jnp.float32), start, jnp.zeros_like(start),
                             jnp.asarray(actions, jnp.float32)), np.float64)
 
 
@@ -134,9 +139,7 @@ def step_joints(coef, q, prev, action) -> tuple:
 def roll_joints(coef: np.ndarray, start: np.ndarray, actions: np.ndarray) -> np.ndarray:
     """(B, T + 1, 16) joint positions predicted from start (B, 16) under actions (B, T, 20), the first the
     start."""
-    start = jnp.asarray(start, jnp.float32)
-    return np.asarray(_roll(step_joints, jnp.asarray(coef, jnp.float32), start, jnp.zeros_like(start),
-                            jnp.asarray(actions, jnp.float32)), np.float64)
+    return _rolled(step_joints, coef, start, actions)
 
 
 def save_egomotion(out: Path, coef: np.ndarray, metrics: dict, joints: np.ndarray | None = None) -> None:

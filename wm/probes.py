@@ -148,7 +148,7 @@ def read_loss_from(probes: Probes, pred, true_readings: tuple, proprio, t, rows:
     (readings') given, so that several passes of predictions of the same frames share them; dims as
     read_loss's."""
     pred, proprio, t = jnp.asarray(pred), jnp.asarray(proprio), jnp.asarray(t)
-    weights = None if dims is None else jnp.asarray(dims, jnp.float32) / jnp.sum(jnp.asarray(dims, jnp.float32))
+    weights = None if dims is None else jnp.asarray(dims, jnp.float32) / np.sum(dims, dtype=np.float32)
     total, count = jnp.zeros(()), jnp.zeros(())
     for net, params, (r, valid), want in zip(probes.nets, probes.params, rows, true_readings, strict=True):
         def one(args, net=net):
