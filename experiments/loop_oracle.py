@@ -72,14 +72,12 @@ from tqdm import tqdm
 
 from experiments.evaluate import chunk_policy
 from sim_data.policies.registry import heldout_seeds, resolve, used_seeds
-from sim_data.sim.engines import CpuEngine
 from sim_data.sim.env import HomeEnv
 from sim_data.sim.render import (
     HEAD_CAMERA,
     cached_renderers,
     camera_poses,
     episode_rgb,
-    poses_from_arrays,
     poses_of,
     reproject,
     rides_with_camera,
@@ -117,10 +115,11 @@ class Camera:
         self.cam = geo.cam_names.index(HEAD_CAMERA)
         self.fovy = float(geo.fovy[self.cam])
         self.rides = rides_with_camera(env.model, HEAD_CAMERA)
+        self.env = env
         self.rgb = episode_rgb(geo, colors)
 
     def draw(self, state) -> dict:
-        return self.draw_poses(poses_from_arrays(**CpuEngine.poses(state.physics)))
+        return self.draw_poses(self.env.poses(state))
 
     def draw_poses(self, poses) -> dict:
         """The same drawing at any Poses (B, ...): where a predicted robot would be, for instance."""

@@ -12,6 +12,7 @@ from sim_data.bench.render_check import (
     random_states,
 )
 from sim_data.sim import scene as S
+from sim_data.sim import tasks as T
 from sim_data.sim.env import HomeEnv
 from sim_data.sim.render import (
     RenderConfig,
@@ -240,6 +241,30 @@ def test_camera_poses_are_the_engines_own():
     np.testing.assert_allclose(mat, np.asarray(poses.cam_xmat)[:, cam], atol=1e-5)
     with pytest.raises(ValueError, match="unknown camera"):
         camera_poses(env.model, np.asarray(st.qpos), np.asarray(st.mocap_pos), "nose_cam")
+
+
+def test_a_frame_shows_the_dirt_cells_its_step_wiped():
+    """The step that lays the cloth on the dirt sinks the cells it covers, and the frame of that step shows
+    them sunk: the dirt geoms where MuJoCo's forward kinematics puts them at the state's qpos and mocap
+    positions, as the recording stores them, not where the physics' last substep left them."""
+    env = HomeEnv("wipe", 1, engine="cpu")
+    st = env.reset(jax.random.PRNGKey(0))
+    q = np.asarray(st.qpos).copy()
+    a = env.idx.cloth_qpos
+    q[0, a : a + 2] = np.asarray(T.dirt_cell_xy(st.task.patch))[0, 7]  # flat on a cell inside the patch
+    q[0, a + 3 : a + 7] = [1, 0, 0, 0]
+    st = st.replace(qpos=q, physics=env.core.engine.init(q, np.asarray(st.mocap_pos)))
+    st = env.step(st, np.zeros((1, 20), np.float32))
+    wiped = np.asarray(st.task.wiped[0])
+    assert 0 < wiped.sum() < len(wiped)
+    dirt = env.idx.dirt_geom
+    shown = np.asarray(env.poses(st).geom_xpos)[0, dirt]
+    reference = np.asarray(poses_of(env.model, st.qpos, st.mocap_pos).geom_xpos)[0, dirt]
+    np.testing.assert_allclose(shown, reference, atol=1e-6)
+    np.testing.assert_allclose(shown[wiped, 2], S.COUNTER_TOP - 0.01, atol=1e-6)
+    np.testing.assert_allclose(shown[~wiped, 2], S.COUNTER_TOP + 0.0005, atol=1e-6)
+    # the physics alone still holds them up: the step sank them after its last substep
+    assert np.all(np.asarray(st.physics.poses["geom_xpos"])[0, dirt, 2] > S.COUNTER_TOP)
 
 
 def test_reprojection_refuses_an_unknown_camera():

@@ -37,7 +37,6 @@ from sim_data.sim.render import (
     HEAD_CAMERA,
     cached_renderers,
     episode_rgb,
-    poses_from_arrays,
     reproject,
     rides_with_camera,
     riding_pixels,
@@ -209,7 +208,7 @@ def start_view(env: HomeEnv, state, size: int, camera: RobotCamera) -> FirstView
     at size x size pixels by the project's renderer, the pixels of the robot's own body, the camera's
     pose, the states' qpos, mocap positions and proprioception."""
     (renderer,) = cached_renderers(size, (camera.name,))
-    poses = poses_from_arrays(**env.core.engine.poses(state.physics))
+    poses = env.poses(state)
     drawn = renderer.render(poses, episode_rgb(renderer.geometry, state.task.colors))
     rides = riding_pixels(rides_with_camera(env.model, camera.name), drawn["geom_id"])
     pos, mat = camera.pose(state.qpos, state.mocap_pos)

@@ -73,6 +73,16 @@ def _observe(qpos, qvel, ts: TaskState, idx: S.SceneIndex) -> dict:
     return {"proprio": R.proprioception(qpos, qvel, idx.robot), "qpos": qpos, "qvel": qvel, "time": ts.time}
 
 
+def shown_poses(engine_poses: dict, mocap_pos, dirt_geom, dirt_mocap) -> Poses:
+    """The Poses a frame of a state shows: the engine's (`{"geom_xpos": (B, ngeom, 3), ...}`, the kinematics
+    of the step's last substep) with the dirt cells' geoms dirt_geom (20,) at the heights of their mocap
+    bodies dirt_mocap (20,) in the state's mocap_pos (B, nmocap, 3). The step sinks the cells it wiped after
+    its physics placed the geoms, so without this a frame would show them one step late (traceable)."""
+    xpos = jnp.asarray(engine_poses["geom_xpos"])
+    xpos = xpos.at[:, dirt_geom, 2].set(jnp.asarray(mocap_pos, xpos.dtype)[:, dirt_mocap, 2])
+    return poses_from_arrays(xpos, engine_poses["geom_xmat"], engine_poses["cam_xpos"], engine_poses["cam_xmat"])
+
+
 class EnvCore:
     """What the jitted steps of an environment depend on: the model, the engine, B and the held-out
     flag, not the task (that is data in the state). Hashable by identity and shared through
@@ -145,8 +155,7 @@ class EnvCore:
 
     def poses(self, state: State) -> Poses:
         """`sim_data.sim.render.Poses` of the batch (traceable with the `mjx` engine)."""
-        p = self.engine.poses(state.physics)
-        return poses_from_arrays(p["geom_xpos"], p["geom_xmat"], p["cam_xpos"], p["cam_xmat"])
+        return shown_poses(self.engine.poses(state.physics), state.mocap_pos, self.idx.dirt_geom, self.idx.dirt_mocap)
 
     def step(self, state: State, action) -> State:
         """Advances every simulation by one control step under action (B, 20) float32."""

@@ -19,8 +19,8 @@ import numpy as np
 from flax import struct
 
 from sim_data.sim.engines import CpuEngine
-from sim_data.sim.env import EnvCore, HomeEnv, State
-from sim_data.sim.render import Poses, Renderer, episode_rgb, poses_from_arrays
+from sim_data.sim.env import EnvCore, HomeEnv, State, shown_poses
+from sim_data.sim.render import Poses, Renderer, episode_rgb
 from sim_data.sim.tasks import EPISODE_STEPS
 
 SEGMENT = 20  # control steps per compiled scan: every task's episode_steps is a multiple
@@ -231,7 +231,9 @@ def record_episodes(env: HomeEnv, policy, params, rng: jax.Array, renderers: tup
     jitted = _jitted_cpu_observe(renderers)
 
     def observe(st, colors):
-        return jitted(st.replace(physics=st.physics.replace(rows=None)), colors)  # float64 rows stay out of jit
+        # float64 rows stay out of jit
+        return jitted(st.replace(physics=st.physics.replace(rows=None)), colors, env.core.idx.dirt_geom,
+                      env.core.idx.dirt_mocap)
 
     act = jitted_act(policy)
     obs, frames, rec = observe(state, rgb)
@@ -253,9 +255,11 @@ def record_episodes(env: HomeEnv, policy, params, rng: jax.Array, renderers: tup
 
 @functools.lru_cache(maxsize=64)
 def _jitted_cpu_observe(renderers):
-    """Shared by every task and batch size of the cpu engine (the renderer compiles once per shape)."""
-    def observe(st, rgb):
-        return _observation(poses_from_arrays(**CpuEngine.poses(st.physics)), st, renderers, rgb)
+    """Shared by every task and batch size of the cpu engine (the renderer compiles once per shape);
+    dirt_geom and dirt_mocap: the scene index's (shown_poses)."""
+    def observe(st, rgb, dirt_geom, dirt_mocap):
+        return _observation(shown_poses(CpuEngine.poses(st.physics), st.mocap_pos, dirt_geom, dirt_mocap), st,
+                            renderers, rgb)
 
     return jax.jit(observe)
 

@@ -73,6 +73,7 @@ class SceneIndex:
     stool_mocap: int
     plant_mocap: int
     dirt_mocap: np.ndarray  # (20,) row-major over DIRT_GRID
+    dirt_geom: np.ndarray  # (20,) the cells' geoms, in dirt_mocap's order, each at its body's origin
     grip_site: np.ndarray  # (2,) left, right
     hand_body: np.ndarray  # (2,)
     nq: int
@@ -90,6 +91,15 @@ def default_mocap_pos(model: mujoco.MjModel) -> np.ndarray:
 def load_model(path: str = str(MODEL_PATH)) -> mujoco.MjModel:
     """The compiled home scene (cached: treat it as read-only)."""
     return mujoco.MjModel.from_xml_path(path)
+
+
+def dirt_geoms(model: mujoco.MjModel) -> np.ndarray:
+    """(20,) int32 geom ids of the dirt cells, row-major over DIRT_GRID. Each must sit at its mocap body's
+    origin: the renderer places it at the body's position (sim_data.sim.env.shown_poses)."""
+    ids = np.array([model.geom(f"dirt_{i}").id for i in range(DIRT_GRID[0] * DIRT_GRID[1])], dtype=np.int32)
+    if np.any(model.geom_pos[ids] != 0):
+        raise ValueError("the dirt cells' geoms must sit at their bodies' origins (no pos in home.xml)")
+    return ids
 
 
 def scene_index(model: mujoco.MjModel) -> SceneIndex:
@@ -114,6 +124,7 @@ def scene_index(model: mujoco.MjModel) -> SceneIndex:
         stool_mocap=mocap("stool"),
         plant_mocap=mocap("plant"),
         dirt_mocap=np.array([mocap(f"dirt_{i}") for i in range(DIRT_GRID[0] * DIRT_GRID[1])], dtype=np.int32),
+        dirt_geom=dirt_geoms(model),
         grip_site=np.array([model.site("left_grip").id, model.site("right_grip").id], dtype=np.int32),
         hand_body=np.array([model.body("left_hand").id, model.body("right_hand").id], dtype=np.int32),
         nq=model.nq,
