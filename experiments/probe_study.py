@@ -67,7 +67,8 @@ def study_run(run: Path, batches: int) -> dict:
     n = min(batches, val.batches_per_epoch)
     model, stand = [], []
     for k in range(n):
-        b = model_batch(val.batch_at(0, k), cfg.camera, cfg.model.anchor, cfg.model.scene, read=True)
+        b = model_batch(val.batch_at(0, k), cfg.camera, cfg.model.anchor, cfg.model.scene, read=True,
+                        grip=cfg.grip_focus > 0)
         parts = jax.device_get(jitted_validation_loss(cfg, params, jax.device_put(b), norm, None, probes))
         model.append({key: float(v) for key, v in parts.items() if key.startswith("read")})
         stand.append(stand_in_terms(probes, b))

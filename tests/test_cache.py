@@ -10,6 +10,7 @@ import pytest
 from sim_data.dataset import cache as C
 from sim_data.dataset.episodes import CorruptEpisode, read_episode
 from sim_data.dataset.replay import replay_files, summarize
+from sim_data.sim.render import grip_pixels
 from sim_data.sim.scene import load_model, scene_index, scene_state
 
 
@@ -37,6 +38,7 @@ def test_cache_rows_equal_the_mcap_files(two_shards):
         np.testing.assert_array_equal(row["success"], ep["success"])
         np.testing.assert_array_equal(row["progress"], ep["progress"])
         np.testing.assert_array_equal(row["scene"], scene_state(ep["qpos"], ep["mocap_pos"], scene_index(load_model())))
+        np.testing.assert_array_equal(row["grip_px"], grip_pixels(load_model(), ep["qpos"], ep["mocap_pos"]))
         assert rec["success"] == ep["meta"]["success"] and rec["length"] == ep["proprio"].shape[0]
 
 

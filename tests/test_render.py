@@ -20,9 +20,11 @@ from sim_data.sim.render import (
     camera_poses,
     episode_rgb,
     floor_hits,
+    grip_pixels,
     pixel_rays,
     poses_from_arrays,
     poses_of,
+    project_points,
     reproject,
     rides_with_camera,
     riding_pixels,
@@ -265,6 +267,46 @@ def test_a_frame_shows_the_dirt_cells_its_step_wiped():
     np.testing.assert_allclose(shown[~wiped, 2], S.COUNTER_TOP + 0.0005, atol=1e-6)
     # the physics alone still holds them up: the step sank them after its last substep
     assert np.all(np.asarray(st.physics.poses["geom_xpos"])[0, dirt, 2] > S.COUNTER_TOP)
+
+
+def test_projected_points_land_on_the_pixels_whose_rays_reach_them():
+    """project_points inverts pixel_rays: a point on pixel (i, j)'s ray, at any depth in front of a camera
+    at any pose, projects to that pixel's centre; a point behind the camera is NaN."""
+    rng = np.random.default_rng(0)
+    size, fovy = 64, 58.0
+    rays = np.asarray(pixel_rays(size, size, fovy))
+    mats = np.zeros((3, 9))
+    for m, q in zip(mats, rng.normal(size=(3, 4))):
+        mujoco.mju_quat2Mat(m, q / np.linalg.norm(q))
+    mats = mats.reshape(3, 3, 3)
+    pos = rng.normal(size=(3, 3))
+    pix = rng.integers(0, size, (3, 5, 2))
+    depth = rng.uniform(0.2, 5.0, (3, 5))
+    local = rays[pix[..., 0], pix[..., 1]] * depth[..., None]  # camera frame
+    world = pos[:, None] + np.einsum("bij,bkj->bki", mats, local)
+    want = (pix[..., ::-1] + 0.5) / size  # (x = column, y = row)
+    np.testing.assert_allclose(project_points(world, pos, mats, fovy), want, atol=1e-5)
+    behind = pos[:, None] - np.einsum("bij,bkj->bki", mats, local)
+    assert np.isnan(project_points(behind, pos, mats, fovy)).all()
+
+
+def test_the_grip_pixels_show_each_hand():
+    """Where grip_pixels puts the left and right grip sites of the robot standing ready, the renderer draws
+    that hand (its geom ids within a pixel of the spot); an unknown camera is refused."""
+    env = HomeEnv("mug", 2, engine="cpu")
+    st = env.reset(jax.random.PRNGKey(0))
+    grips = grip_pixels(env.model, st.qpos, st.mocap_pos)
+    assert grips.shape == (2, 2, 2) and np.all((grips > 0) & (grips < 1))
+    renderer = Renderer(env.model, RenderConfig(camera="head_cam"))
+    drawn = np.asarray(renderer.render(env.poses(st), episode_rgb(renderer.geometry, st.task.colors))["geom_id"])
+    for b in range(2):
+        for hand, body in enumerate(("left_hand", "right_hand")):
+            col, row = (grips[b, hand] * 64).astype(int)
+            ids = drawn[b, max(row - 1, 0):row + 2, max(col - 1, 0):col + 2].ravel()
+            bodies = {env.model.body(env.model.geom_bodyid[g]).name for g in ids if g >= 0}
+            assert body in bodies, (b, hand, bodies)
+    with pytest.raises(ValueError, match="unknown camera"):
+        grip_pixels(env.model, st.qpos, st.mocap_pos, "nose_cam")
 
 
 def test_reprojection_refuses_an_unknown_camera():

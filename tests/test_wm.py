@@ -756,6 +756,39 @@ def test_the_read_loss_adds_the_probes_action_difference_on_every_fourth_predict
         loss_fn(params, batch, norm, dataclasses.replace(cfg, w_read=0.5))
 
 
+def test_grip_focus_weighs_the_frames_errors_around_the_hands_grip_sites(model_and_inputs):
+    from wm.train import grip_weights, loss_fn, weighted_mse
+
+    # by hand: a 4 x 4 frame, the right site on pixel (row 1, column 2)'s centre, the left behind the camera
+    grip = np.array([[[[np.nan, np.nan], [2.5 / 4, 1.5 / 4]]]], np.float32)  # (1, 1, 2, 2) as (x, y)
+    w = np.asarray(grip_weights(grip, 4, 3.0, 0.25))[0, 0]
+    rows, cols = np.mgrid[0:4, 0:4]
+    d2 = ((cols + 0.5) / 4 - 2.5 / 4) ** 2 + ((rows + 0.5) / 4 - 1.5 / 4) ** 2
+    np.testing.assert_allclose(w, 1 + 3 * np.exp(-d2 / (2 * 0.25**2)), rtol=1e-6)
+    assert w[1, 2] == pytest.approx(4.0) and w.argmax() == 1 * 4 + 2
+    err = np.arange(48, dtype=np.float32).reshape(1, 4, 4, 3) / 48
+    np.testing.assert_allclose(weighted_mse(err, 0 * err, w[None]), (w[..., None] * err[0] ** 2).sum() / (w.sum() * 3),
+                               rtol=1e-6)
+    np.testing.assert_allclose(weighted_mse(err, 0 * err), np.mean(err**2), rtol=1e-6)
+
+    # through loss_fn: the teacher-forced pass's pixel term is its frames' error so weighted; the rest as before
+    params, frames, proprio, action = model_and_inputs
+    norm, batch = _identity_norm_and_batch(frames, proprio, action)
+    batch["grip_px"] = np.random.default_rng(5).uniform(0, 1, (2, 6, 2, 2)).astype(np.float32)
+    cfg = make_config("smoke")
+    loss = jax.jit(loss_fn, static_argnums=3)
+    _, plain = loss(params, batch, norm, cfg)
+    _, parts = loss(params, batch, norm, dataclasses.replace(cfg, grip_focus=4.0))
+    pred, target = _first_pass(params, frames, proprio, action), frames[:, 1:] / 255.0
+    want = weighted_mse(pred, target, grip_weights(batch["grip_px"][:, 1:], 64, 4.0, cfg.grip_radius))
+    np.testing.assert_allclose(parts["pixel"], want, rtol=1e-4)
+    np.testing.assert_allclose(plain["pixel"], np.mean((np.asarray(pred) - target) ** 2), rtol=1e-4)
+    assert abs(float(parts["pixel"]) - float(plain["pixel"])) > 1e-6
+    np.testing.assert_allclose(parts["latent"], plain["latent"], rtol=1e-6)
+    with pytest.raises(ValueError, match="grip_focus"):
+        make_config("smoke", ["grip_focus=-1"])
+
+
 def test_action_contrast_is_the_log_share_of_the_true_actions_prediction():
     target = np.zeros((2, 3, 4), np.float32)
     pred = np.full_like(target, 0.1)
@@ -1087,6 +1120,19 @@ def test_a_model_with_the_frame_generator_trains_writes_eval_json_and_travels_in
     back_cfg, back, _ = load_trained(tmp_path / "bundle")
     assert back_cfg.model.refine == 2
     np.testing.assert_allclose(back["refiner"]["Conv_2"]["kernel"], params["refiner"]["Conv_2"]["kernel"], atol=1e-2)
+
+
+@pytest.mark.slow
+def test_a_run_with_grip_focus_trains_on_the_caches_grip_pixels_with_its_frame_generator(smoke_dataset, tmp_path):
+    _, data, _ = smoke_dataset
+    out = tmp_path / "grip"
+    assert train_main(["--config", "smoke", "--data", str(data), "--out", str(out), "grip_focus=4", "model.refine=2",
+                       "steps=4", "log_every=2", "eval_every=4", "ckpt_every=4", "judge_episodes=0",
+                       "eval_episodes=2"]) == 0
+    cfg, _, _ = load_trained(out)
+    assert cfg.grip_focus == 4.0
+    log = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert any("refine" in r for r in log) and all(np.isfinite(r["pixel"]) for r in log if "pixel" in r)
 
 
 def test_learning_rate_is_a_function_of_the_step():

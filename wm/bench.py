@@ -93,6 +93,8 @@ def step_inputs(cfg):
         batch["anchor"] = batch["frames"][:, 0]
     if cfg.w_read > 0:
         batch["task"] = jnp.zeros((b,), jnp.int32)
+    if cfg.grip_focus > 0:
+        batch["grip_px"] = jnp.asarray(rng.uniform(size=(b, t, 2, 2)), jnp.float32)
     return state, batch, unit_norm(m)
 
 

@@ -62,7 +62,12 @@ class TrainConfig:
         read every 4th predicted frame of each pass and its true frame, and the difference of the
         actions they take is the loss (0: none; needs such rollouts in the data); read_closure: the
         weight of the hands' closure commands in it against 1 for every other action dimension (1: the
-        plain mean; wm.probes.read_dims). w_kl: with
+        plain mean; wm.probes.read_dims). grip_focus: the extra weight of the pixels around the hands'
+        grip sites in the frames' squared errors (the pixel term and the frame generator's): each pixel of a
+        true frame weighs 1 + grip_focus x exp(-d^2 / 2 grip_radius^2), d its distance from the nearer grip
+        site's image position (the data's grip_px, in frame widths), the weights normalised to a mean of 1
+        over the batch, so that the frames learn where a hand meets what it grasps, the detail a policy
+        that reads images decides its closure by (0: plain means; wm.train.grip_weights). w_kl: with
         model.stochastic, of the divergence of the code's posterior from its prior
         (wm.metrics.gaussian_kl), balanced as DreamerV3's: 0.8 of it trains the prior towards the
         posterior, 0.2 the posterior towards the prior, the latter counted only above free_nats nats a
@@ -147,6 +152,8 @@ class TrainConfig:
     w_read: float = 0.0
     read_probes: int = 8
     read_closure: float = 1.0
+    grip_focus: float = 0.0
+    grip_radius: float = 0.06
     w_kl: float = 0.01
     free_nats: float = 1.0
     w_scene: float = 1.0
@@ -232,6 +239,9 @@ class TrainConfig:
             raise ValueError(f"w_flow is a loss weight, >= 0, that trains model.warp's flow, and flow_radius a "
                              f"search radius in pixels, 1 to {self.model.size // 2 - 1}; got w_flow={self.w_flow}, "
                              f"model.warp={self.model.warp}, flow_radius={self.flow_radius}")
+        if self.grip_focus < 0 or self.grip_radius <= 0:
+            raise ValueError(f"grip_focus is a weight, >= 0, and grip_radius a distance in frame widths, > 0; got "
+                             f"grip_focus={self.grip_focus}, grip_radius={self.grip_radius}")
         if self.w_read < 0 or self.read_probes < 1 or self.read_closure <= 0:
             raise ValueError(f"w_read is a loss weight, >= 0, read_probes a count, >= 1, and read_closure a "
                              f"weight, > 0; got w_read={self.w_read}, read_probes={self.read_probes}, "

@@ -97,17 +97,25 @@ def training_episodes(cfg: TrainConfig, cache: TrainingCache) -> list[int]:
                                            _repeat(cfg))]
 
 
-def model_batch(batch: dict, camera: str, anchor: bool = False, scene: bool = False, read: bool = False) -> dict:
+def model_batch(batch: dict, camera: str, anchor: bool = False, scene: bool = False, read: bool = False,
+                grip: bool = False) -> dict:
     """The loader's batch reduced to what the model trains on (with anchor: and the episodes' first
     frames, "anchor" (B, S, S, 3) uint8, and the windows' first steps in their episodes, "start" (B,)
     int32, for a model with ModelConfig.anchor; with scene: and "scene" (B, T, 24), for a model with
     ModelConfig.scene; with read: and the windows' tasks "task" (B,) int32 and first steps "start", for
-    the read loss, TrainConfig.w_read)."""
+    the read loss, TrainConfig.w_read; with grip: and the grip sites' image positions "grip_px"
+    (B, T, 2, 2), for TrainConfig.grip_focus)."""
     out = {"frames": batch["frames"][camera], "proprio": batch["proprio"], "action": batch["action"],
            "success": batch["success"], "progress": batch["progress"], "outcome": batch["outcome"]}
     out |= {"scene": batch["scene"]} if scene else {}
+    out |= {"grip_px": batch["grip_px"]} if grip else {}
     out |= {"task": batch["task"], "start": batch["start"]} if read else {}
     return out | ({"anchor": batch["first_frames"][camera], "start": batch["start"]} if anchor else {})
+
+
+def training_batch(batch: dict, cfg: TrainConfig) -> dict:
+    """model_batch with what cfg's model and losses read."""
+    return model_batch(batch, cfg.camera, cfg.model.anchor, cfg.model.scene, cfg.w_read > 0, cfg.grip_focus > 0)
 
 
 # ---- loss and step ---------------------------------------------------------------------------------
@@ -157,11 +165,32 @@ def with_window_noise(x, key, max_std: float, bound: float):
     return jnp.clip(x + level * jax.random.normal(k2, x.shape), -bound, bound)
 
 
-def _refine_loss(model, params, decoded, z, target, k: int, passes: int, key):
+def grip_weights(grip_px, size: int, focus: float, radius: float) -> jax.Array:
+    """(B, T, S, S) float32 pixel weights of frames of size S x S whose hands' grip sites appear at grip_px
+    (B, T, 2, 2) (image coordinates in [0, 1], NaN where a site is behind the camera): 1 + focus x
+    exp(-d^2 / 2 radius^2), d each pixel centre's distance from the nearer site, in frame widths."""
+    centres = (jnp.arange(size, dtype=jnp.float32) + 0.5) / size
+    u, v = grip_px[..., 0][..., None, None], grip_px[..., 1][..., None, None]  # (B, T, 2, 1, 1)
+    d2 = (centres[:, None] - v) ** 2 + (centres[None, :] - u) ** 2  # (B, T, 2, S, S): rows by v, columns by u
+    near = jnp.where(jnp.isnan(d2), 0.0, jnp.exp(-d2 / (2 * radius**2))).max(axis=2)
+    return 1.0 + focus * near
+
+
+def weighted_mse(pred, target, weights=None) -> jax.Array:
+    """The mean squared error of frames (..., S, S, 3), each pixel weighted by weights (..., S, S) normalised
+    to a mean of 1 (None: the plain mean)."""
+    if weights is None:
+        return jnp.mean((pred - target) ** 2)
+    w = jax.lax.stop_gradient(weights)
+    return jnp.sum(w[..., None] * (pred - target) ** 2) / (jnp.sum(w) * pred.shape[-1])
+
+
+def _refine_loss(model, params, decoded, z, target, k: int, passes: int, key, weights=None):
     """The frame generator's flow-matching loss on pass k's decoded frames (B, T, S, S, 3) in [0, 1]
     (predicted latents z (B, T, 8, 8, C), true frames target): every 2(passes + 1)-th frame from the
     k-th, a noise level drawn uniformly for each, the squared error of its estimate of the clean
-    frame, in pixel units. Decoded frames and latents enter with their gradient stopped."""
+    frame, in pixel units, weighted by weights (B, T, S, S) where given (weighted_mse). Decoded frames
+    and latents enter with their gradient stopped."""
     pick = slice(k, None, 2 * (passes + 1))
     base, zc, goal = (jax.lax.stop_gradient(x[:, pick]) for x in (decoded, z, target))
     k_noise, k_time = jax.random.split(key)
@@ -170,7 +199,7 @@ def _refine_loss(model, params, decoded, z, target, k: int, passes: int, key):
     s = t[..., None, None, None]
     noisy = (1.0 - s) * noise + s * (goal - base)
     clean = model.apply({"params": params}, noisy, t, base, zc, method=WorldModel.denoise)
-    return jnp.mean((base + clean - goal) ** 2)
+    return weighted_mse(base + clean, goal, None if weights is None else weights[:, pick])
 
 
 def _flow_loss(flow, true_flow, confidence):
@@ -185,7 +214,8 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_w
     proprioception's noise and the windows that train without their anchor (None: none of them, as in
     validation); lpips_weights: the perceptual network's (wm.perceptual.params()), needed where
     cfg.w_lpips > 0; probes: the read loss's checkpoints (wm.probes.Probes), needed where
-    cfg.w_read > 0, with "task" and "start" in the batch (model_batch's read)."""
+    cfg.w_read > 0, with "task" and "start" in the batch (model_batch's read); "grip_px" (B, T, 2, 2) where
+    cfg.grip_focus > 0 (model_batch's grip)."""
     if cfg.w_lpips > 0 and lpips_weights is None:
         raise ValueError("w_lpips > 0 needs the LPIPS network's weights (wm.perceptual.params())")
     if cfg.w_read > 0 and probes is None:
@@ -194,6 +224,8 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_w
     frames = batch["frames"]
     pix = frames.astype(jnp.float32) / 255.0
     target = pix[:, 1:]
+    focus = (grip_weights(batch["grip_px"][:, 1:], target.shape[2], cfg.grip_focus, cfg.grip_radius)
+             if cfg.grip_focus > 0 else None)
     if cfg.w_read > 0:  # the probes read the true frames once; each pass's predictions are read against them
         read_proprio, read_t, read_task = read_inputs(batch, frames.shape[1])
         read_rows = probe_rows(probes, read_task)
@@ -239,7 +271,7 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_w
         pixels, keep = model.apply({"params": params}, zp, prev, pred["flow"][:, :-1], with_keep=True,
                                    method=WorldModel.decode)
         latent = jnp.mean((zp - z_target) ** 2)
-        pixel = jnp.mean((pixels - target) ** 2)
+        pixel = weighted_mse(pixels, target, focus)
         prop = jnp.mean((pred["proprio"][:, :-1] - proprio[:, 1:]) ** 2)
         succ = _bce(pred["success"][:, :-1], batch["success"][:, 1:])
         outc = _bce(pred["outcome"], jnp.broadcast_to(batch["outcome"][:, None], pred["outcome"].shape))
@@ -276,7 +308,7 @@ def loss_fn(params, batch: dict, norm: Norm, cfg: TrainConfig, rng=None, lpips_w
         if cfg.model.refine:
             parts[f"refine{tag}"] = _refine_loss(model, params, pixels, zp, target, k, cfg.rollout_passes,
                                                  jax.random.fold_in(jax.random.PRNGKey(cfg.seed) if rng is None
-                                                                    else rng, REFINE_STREAM + k))
+                                                                    else rng, REFINE_STREAM + k), focus)
             total = total + cfg.w_refine * parts[f"refine{tag}"]
         # the next pass reads this pass's predictions of frames 1..T-1: latents and proprio (with their
         # gradient if rollout_grad, so earlier steps learn what later ones need), and the decoded
@@ -557,10 +589,7 @@ class Run:
         if self.val is None:
             return {}
         if self._val_batches is None:  # the same batches at every evaluation: gathered once
-            self._val_batches = [put_batch(model_batch(self.val.batch_at(0, k), self.cfg.camera,
-                                                           self.cfg.model.anchor, self.cfg.model.scene,
-                                                           self.cfg.w_read > 0),
-                                           self.mesh)
+            self._val_batches = [put_batch(training_batch(self.val.batch_at(0, k), self.cfg), self.mesh)
                                  for k in range(min(self.cfg.val_batches, self.val.batches_per_epoch))]
         parts = [jax.device_get(self._loss(kept_params(self.state), b, self.norm)) for b in self._val_batches]
         return {f"val_{k}": float(np.mean([p[k] for p in parts])) for k in parts[0]}
@@ -643,8 +672,7 @@ class Run:
     def next_batch(self) -> dict:
         """The loader's next training batch as the step takes it, placed on this run's devices."""
         cfg = self.cfg
-        return put_batch(model_batch(next(self.loader), cfg.camera, cfg.model.anchor, cfg.model.scene, cfg.w_read > 0),
-                         self.mesh)
+        return put_batch(training_batch(next(self.loader), cfg), self.mesh)
 
     def warm(self) -> None:
         """Runs the training's programs once each (a step on the first training batch; the validation

@@ -11,7 +11,9 @@ order), each holding `<camera>.npy` (N, H, W, 3) uint8, `proprio.npy` (N, 37) fl
 `action.npy` (N, 20) float32 (row t is the action taken after frame t; zeros after an episode's
 last frame), `success.npy` (N,) bool, `progress.npy` (N,) float32 (task progress in [0, 1]) and
 `scene.npy` (N, 24) float32 (the scene's state, `sim_data.sim.scene.scene_state`, from the recorded
-qpos and mocap positions) and `episodes.json`; N counts frames (T+1 per episode).
+qpos and mocap positions), `grip_px.npy` (N, 2, 2) float32 (where the left and right grip sites appear
+in the head camera's frame, image coordinates in [0, 1], NaN behind it: `sim_data.sim.render.grip_pixels`
+of the same) and `episodes.json`; N counts frames (T+1 per episode).
 `index.json`, written last, lists shards, episodes (with shard, start, length) and skipped
 files. Shards are written under a temporary name and renamed when whole, so a killed build
 resumes; the same MCAP files give the same bytes. A dataset that links another's episodes
@@ -38,12 +40,13 @@ import numpy as np
 from tqdm import tqdm
 
 from sim_data.dataset.episodes import CorruptEpisode, read_episode, read_episode_meta
+from sim_data.sim.render import grip_pixels
 from sim_data.sim.scene import load_model, scene_index, scene_state
 from sim_data.util import run_cli, write_json_atomic
 
-FORMAT = 3
+FORMAT = 4
 EPISODE_KEYS = ("episode_id", "task", "policy", "policy_kind", "skill", "seed", "success", "split", "heldout")
-ARRAYS = ("proprio", "action", "success", "progress", "scene")
+ARRAYS = ("proprio", "action", "success", "progress", "scene", "grip_px")
 
 
 def cache_dir(out: Path) -> Path:
@@ -75,6 +78,7 @@ def _decode(path: Path, cameras) -> dict:
         scene = scene_state(ep["qpos"], ep["mocap_pos"], _home_scene_index())
     except ValueError as e:
         return {"error": f"{path}: {e}"}
+    grip = grip_pixels(load_model(), ep["qpos"], ep["mocap_pos"])
     n = ep["proprio"].shape[0]
     missing = [c for c in cameras if c not in ep["frames"]]
     if missing:
@@ -82,7 +86,7 @@ def _decode(path: Path, cameras) -> dict:
     action = np.zeros((n, ep["action"].shape[1]), np.float32)
     action[: n - 1] = ep["action"]
     return {"record": _record(ep["meta"], f"episodes/{path.name}", n), "frames": ep["frames"], "proprio": ep["proprio"], "action": action, "success": ep["success"],
-            "progress": ep["progress"], "scene": scene}
+            "progress": ep["progress"], "scene": scene, "grip_px": grip}
 
 
 SOURCES = "sources.json"  # a shard's episode files as they were when it was built (_file_stamps)
@@ -321,7 +325,7 @@ class TrainingCache:
     def episode(self, i: int, cameras=None) -> dict:
         """Episode i whole: {"frames": {camera: (T+1, H, W, 3) uint8}, "proprio": (T+1, 37),
         "action": (T+1, 20) (last row zeros), "success": (T+1,) bool, "progress": (T+1,) float32,
-        "scene": (T+1, 24) float32, "record": its index record}."""
+        "scene": (T+1, 24) float32, "grip_px": (T+1, 2, 2) float32, "record": its index record}."""
         e = self.episodes[i]
         sl = slice(e["start"], e["start"] + e["length"])
         cams = self.cameras if cameras is None else cameras
@@ -380,7 +384,7 @@ class WindowLoader:
 
     Batches: {"frames": {camera: (B, T, H, W, 3) uint8}, "proprio": (B, T, 37) float32,
     "action": (B, T, 20) float32 (action t follows frame t), "success": (B, T) bool, "progress": (B, T) float32,
-    "scene": (B, T, 24) float32 (sim_data.sim.scene.scene_state),
+    "scene": (B, T, 24) float32 (sim_data.sim.scene.scene_state), "grip_px": (B, T, 2, 2) float32 (grip_pixels),
     "outcome": (B,) bool (the episode's success), "task": (B,) int32 (index into cache.tasks),
     "start": (B,) int32 (the window's first step), "episode": (B,) int32}; with first_frames, also
     "first_frames": {camera: (B, H, W, 3) uint8} (each window's episode's first frame).

@@ -670,6 +670,43 @@ def camera_poses(model: mujoco.MjModel, qpos, mocap_pos, camera: str = HEAD_CAME
     return np.asarray(poses.cam_xpos[:, cam]), np.asarray(poses.cam_xmat[:, cam])
 
 
+GRIP_SITES = ("left_grip", "right_grip")  # between each hand's finger pads, where a grasp closes
+
+
+def project_points(points, cam_pos, cam_mat, fovy_deg) -> np.ndarray:
+    """(B, K, 2) float32 image coordinates in [0, 1] (x right, y down, as a frame's columns and rows; pixel
+    (i, j) of an S x S frame is centred at ((j + 0.5) / S, (i + 0.5) / S), pixel_rays' rays) of world points
+    (B, K, 3) seen by square-frame cameras at cam_pos (B, 3) with world-from-camera rotations cam_mat (B, 3, 3)
+    and a vertical field of view of fovy_deg; NaN for a point at or behind the camera's plane. Outside
+    [0, 1]: in front of the camera but out of its view."""
+    rel = np.asarray(points, np.float64) - np.asarray(cam_pos, np.float64)[:, None]
+    local = np.einsum("bij,bki->bkj", np.asarray(cam_mat, np.float64), rel)  # camera frame: R^T (p - c)
+    depth = -local[..., 2]
+    tan = np.tan(np.deg2rad(float(fovy_deg)) / 2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = np.stack([(local[..., 0] / depth / tan + 1) / 2, (1 - local[..., 1] / depth / tan) / 2], -1)
+    return np.where((depth > 1e-6)[..., None], uv, np.nan).astype(np.float32)
+
+
+def grip_pixels(model: mujoco.MjModel, qpos, mocap_pos, camera: str = HEAD_CAMERA) -> np.ndarray:
+    """(B, 2, 2) float32: where the left and right hands' grip sites (GRIP_SITES) appear in `camera`'s
+    square frame at states qpos (B, nq) with mocap_pos (B, nmocap, 3), as project_points' image
+    coordinates (NaN behind the camera), by MuJoCo's C forward kinematics."""
+    cam = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
+    if cam < 0:
+        raise ValueError(f"unknown camera {camera!r}")
+    sites = [model.site(name).id for name in GRIP_SITES]
+    data = mujoco.MjData(model)
+    qpos, mocap_pos = np.asarray(qpos), np.asarray(mocap_pos)
+    grips, cam_pos, cam_mat = (np.zeros((len(qpos),) + shape) for shape in ((2, 3), (3,), (3, 3)))
+    for b, (q, mp) in enumerate(zip(qpos, mocap_pos)):
+        data.qpos[:], data.mocap_pos[:] = q, mp
+        mujoco.mj_kinematics(model, data)
+        mujoco.mj_camlight(model, data)
+        grips[b], cam_pos[b], cam_mat[b] = data.site_xpos[sites], data.cam_xpos[cam], data.cam_xmat[cam].reshape(3, 3)
+    return project_points(grips, cam_pos, cam_mat, model.cam_fovy[cam])
+
+
 def riding_pixels(rides, geom_id) -> np.ndarray:
     """(B, H, W) bool: the pixels of a drawing (geom_id (B, H, W), the renderer's; -1 where nothing was
     hit) whose geom rides with the camera (rides: rides_with_camera's (ngeom,) mask)."""
