@@ -670,9 +670,6 @@ def camera_poses(model: mujoco.MjModel, qpos, mocap_pos, camera: str = HEAD_CAME
     return np.asarray(poses.cam_xpos[:, cam]), np.asarray(poses.cam_xmat[:, cam])
 
 
-GRIP_SITES = ("left_grip", "right_grip")  # between each hand's finger pads, where a grasp closes
-
-
 def project_points(points, cam_pos, cam_mat, fovy_deg) -> np.ndarray:
     """(B, K, 2) float32 image coordinates in [0, 1] (x right, y down, as a frame's columns and rows; pixel
     (i, j) of an S x S frame is centred at ((j + 0.5) / S, (i + 0.5) / S), pixel_rays' rays) of world points
@@ -689,13 +686,13 @@ def project_points(points, cam_pos, cam_mat, fovy_deg) -> np.ndarray:
 
 
 def grip_pixels(model: mujoco.MjModel, qpos, mocap_pos, camera: str = HEAD_CAMERA) -> np.ndarray:
-    """(B, 2, 2) float32: where the left and right hands' grip sites (GRIP_SITES) appear in `camera`'s
+    """(B, 2, 2) float32: where the left and right hands' grip sites (SceneIndex.grip_site) appear in `camera`'s
     square frame at states qpos (B, nq) with mocap_pos (B, nmocap, 3), as project_points' image
     coordinates (NaN behind the camera), by MuJoCo's C forward kinematics."""
     cam = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
     if cam < 0:
         raise ValueError(f"unknown camera {camera!r}")
-    sites = [model.site(name).id for name in GRIP_SITES]
+    sites = S.scene_index(model).grip_site
     data = mujoco.MjData(model)
     qpos, mocap_pos = np.asarray(qpos), np.asarray(mocap_pos)
     grips, cam_pos, cam_mat = (np.zeros((len(qpos),) + shape) for shape in ((2, 3), (3,), (3, 3)))
