@@ -649,25 +649,32 @@ def rides_with_camera(model: mujoco.MjModel, camera: str = HEAD_CAMERA) -> np.nd
 def poses_of(model: mujoco.MjModel, qpos, mocap_pos) -> Poses:
     """Poses (B, ...) of states qpos (B, nq) with mocap_pos (B, nmocap, 3), by MuJoCo's C forward
     kinematics: where everything is at states no simulation reached (a predicted robot, for instance)."""
+    out = kinematics(model, qpos, mocap_pos, ("geom_xpos", "geom_xmat", "cam_xpos", "cam_xmat"))
+    return poses_from_arrays(*out.values())
+
+
+def kinematics(model: mujoco.MjModel, qpos, mocap_pos, fields: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """MjData's `fields` (each (B, ...) stacked) after MuJoCo's C forward kinematics and camera placement at
+    states qpos (B, nq) with mocap_pos (B, nmocap, 3), in the order of `fields`."""
     data = mujoco.MjData(model)
-    out = {k: [] for k in ("geom_xpos", "geom_xmat", "cam_xpos", "cam_xmat")}
+    out = {k: [] for k in fields}
     for q, mp in zip(np.asarray(qpos), np.asarray(mocap_pos)):
         data.qpos[:], data.mocap_pos[:] = q, mp
         mujoco.mj_kinematics(model, data)
         mujoco.mj_camlight(model, data)
         for k in out:
             out[k].append(getattr(data, k).copy())
-    return poses_from_arrays(*(np.stack(out[k]) for k in out))
+    return {k: np.stack(v) for k, v in out.items()}
 
 
 def camera_poses(model: mujoco.MjModel, qpos, mocap_pos, camera: str = HEAD_CAMERA) -> tuple[np.ndarray, np.ndarray]:
     """(B, 3) positions and (B, 3, 3) world-from-camera rotations of `camera` at states qpos (B, nq) with
-    mocap_pos (B, nmocap, 3) (poses_of)."""
+    mocap_pos (B, nmocap, 3), by MuJoCo's C forward kinematics."""
     cam = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
     if cam < 0:
         raise ValueError(f"unknown camera {camera!r}")
-    poses = poses_of(model, qpos, mocap_pos)
-    return np.asarray(poses.cam_xpos[:, cam]), np.asarray(poses.cam_xmat[:, cam])
+    k = kinematics(model, qpos, mocap_pos, ("cam_xpos", "cam_xmat"))
+    return k["cam_xpos"][:, cam].astype(np.float32), k["cam_xmat"][:, cam].reshape(-1, 3, 3).astype(np.float32)
 
 
 def project_points(points, cam_pos, cam_mat, fovy_deg) -> np.ndarray:
@@ -692,16 +699,10 @@ def grip_pixels(model: mujoco.MjModel, qpos, mocap_pos, camera: str = HEAD_CAMER
     cam = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
     if cam < 0:
         raise ValueError(f"unknown camera {camera!r}")
-    sites = S.scene_index(model).grip_site
-    data = mujoco.MjData(model)
-    qpos, mocap_pos = np.asarray(qpos), np.asarray(mocap_pos)
-    grips, cam_pos, cam_mat = (np.zeros((len(qpos),) + shape) for shape in ((2, 3), (3,), (3, 3)))
-    for b, (q, mp) in enumerate(zip(qpos, mocap_pos)):
-        data.qpos[:], data.mocap_pos[:] = q, mp
-        mujoco.mj_kinematics(model, data)
-        mujoco.mj_camlight(model, data)
-        grips[b], cam_pos[b], cam_mat[b] = data.site_xpos[sites], data.cam_xpos[cam], data.cam_xmat[cam].reshape(3, 3)
-    return project_points(grips, cam_pos, cam_mat, model.cam_fovy[cam])
+    k = kinematics(model, qpos, mocap_pos, ("site_xpos", "cam_xpos", "cam_xmat"))
+    sites = np.asarray(S.scene_index(model).grip_site)
+    return project_points(k["site_xpos"][:, sites], k["cam_xpos"][:, cam], k["cam_xmat"][:, cam].reshape(-1, 3, 3),
+                          model.cam_fovy[cam])
 
 
 def riding_pixels(rides, geom_id) -> np.ndarray:
