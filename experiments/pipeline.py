@@ -137,7 +137,15 @@ from experiments.timing import (
 from sim_data.dataset import generate
 from sim_data.parts import can_pin_cores, local_cores, local_gpus, run_parallel
 from sim_data.policies import zoo
-from sim_data.util import CACHE_KEY_LOG_ENV, device_name, record_cache_keys, run_cli, with_xla_flags, write_json_atomic
+from sim_data.util import (
+    CACHE_KEY_LOG_ENV,
+    device_name,
+    key_cache_by_device_kind,
+    record_cache_keys,
+    run_cli,
+    with_xla_flags,
+    write_json_atomic,
+)
 from wm import config as wm_config
 from wm import train
 from wm.checkpoint import BUNDLE, bundle_holds, load_run_config, write_bundle
@@ -632,7 +640,8 @@ def compile_cache_dirs(root) -> dict[str, Path]:
 def use_compilation_cache(root: str, key_log: Path | None = None) -> str:
     """Turns on JAX's persistent compilation cache in root/jax_cache (or where JAX_COMPILATION_CACHE_DIR
     says), for this process and the stages' child processes: a stage run again, a later stage and
-    the other GPUs' parts load what one process compiled. In root/xla_autotune XLA keeps its GPU
+    the other GPUs' parts load what one process compiled, keyed by the devices' kind so that a cache carried
+    from another host of the same GPU serves (sim_data.util.key_cache_by_device_kind). In root/xla_autotune XLA keeps its GPU
     autotuning results per fusion (XLA_FLAGS), which every program with the same fusions reuses
     where the whole program is not cached: most of a fresh train step's compile time. With key_log,
     this process and every command it starts log their programs' cache keys there, part by part
@@ -642,6 +651,7 @@ def use_compilation_cache(root: str, key_log: Path | None = None) -> str:
         os.environ[CACHE_KEY_LOG_ENV] = str(Path(key_log).absolute())
         record_cache_keys(Path(key_log))
     dirs = compile_cache_dirs(Path(root).absolute())
+    key_cache_by_device_kind()
     path = os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(dirs["jax_cache"]))
     jax.config.update("jax_compilation_cache_dir", path)
     os.environ["XLA_FLAGS"] = with_xla_flags(os.environ.get("XLA_FLAGS", ""), f"{AUTOTUNE_FLAG}={dirs['xla_autotune']}")

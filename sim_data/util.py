@@ -15,6 +15,7 @@ from pathlib import Path
 
 import jax
 import numpy as np
+from jax._src import cache_key as jax_cache_key
 from scipy import stats as sps
 
 
@@ -201,13 +202,29 @@ def record_cache_keys(path: Path) -> None:
         logger.setLevel(logging.DEBUG)
 
 
+def _hash_device_kinds(hash_obj, accelerators) -> None:
+    jax_cache_key._hash_devices(hash_obj, np.asarray(accelerators))
+
+
+def key_cache_by_device_kind() -> None:
+    """Keys JAX's persistent compilation cache by its devices' kinds ("NVIDIA H100 80GB HBM3", one a device)
+    instead of their topology's fingerprint, which also hashes details of the host: two machines with the
+    same GPU then share a carried cache (between two H100 hosts every program's key differed in that part
+    alone; experiments.cache_keys). The kind fixes the instruction set the programs are compiled for, and
+    is what JAX itself hashes on a backend without a topology. Idempotent; for this process only."""
+    jax_cache_key._hash_accelerator_config = _hash_device_kinds
+
+
 def run_cli(main) -> int:
-    """Runs a command's main() for `python -m`, with XLA's flags set (set_xla_flags) and, where
-    CACHE_KEY_LOG_ENV names a log, the compilation cache's keys recorded there: a user's
+    """Runs a command's main() for `python -m`, with XLA's flags set (set_xla_flags), the persistent
+    compilation cache keyed by device kind where JAX_COMPILATION_CACHE_DIR turns it on
+    (key_cache_by_device_kind), and, where CACHE_KEY_LOG_ENV names a log, its keys recorded there: a user's
     mistake (a bad path, preset, value, plug-in or selector, raised as FileNotFoundError,
     NotADirectoryError or ValueError with a message that names the input) ends in that one line and
     exit status 2, without a traceback."""
     set_xla_flags()
+    if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+        key_cache_by_device_kind()
     if os.environ.get(CACHE_KEY_LOG_ENV):
         record_cache_keys(Path(os.environ[CACHE_KEY_LOG_ENV]))
     try:

@@ -283,6 +283,46 @@ def test_the_cache_key_log_names_the_part_of_a_key_that_moved_between_two_proces
         K.main([str(first), str(tmp_path / "none.log")])
 
 
+OTHER_HOST_PROGRAM = """
+import sys
+import jax, jax.numpy as jnp
+from jax._src import cache_key
+from sim_data.util import run_cli
+jax.config.update("jax_compilation_cache_dir", sys.argv[1])
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
+jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+class Topology:  # the same devices on a host whose topology's fingerprint differs
+    def fingerprint(self):
+        return int(sys.argv[2])
+cache_key.xla_client.get_topology_for_devices = lambda devices: Topology()
+def main():
+    jax.jit(lambda x: x * 2.0)(jnp.ones(3)).block_until_ready()
+run_cli(main)
+"""
+
+
+def test_a_cache_carried_to_a_host_with_the_same_devices_serves_although_its_topology_differs(tmp_path):
+    """Keyed by device kind (run_cli, where JAX_COMPILATION_CACHE_DIR is set), a program compiled on one host
+    is found on another whose topology fingerprints differently; keyed by JAX's own accelerator part
+    (the variable unset), the same lookup misses."""
+    log, cache = tmp_path / "cache_keys.log", tmp_path / "cache"
+    base = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+    runs = [(True, "1"), (True, "2"), (False, "3"), (False, "4")]
+    for by_kind, fingerprint in runs:
+        env = {**base, P.CACHE_KEY_LOG_ENV: str(log), **({"JAX_COMPILATION_CACHE_DIR": str(cache)} if by_kind else {})}
+        subprocess.run([sys.executable, "-c", OTHER_HOST_PROGRAM, str(cache), fingerprint], env=env, check=True)
+    lines = log.read_text().splitlines()
+    pids = list(dict.fromkeys(line.split("\t")[0] for line in lines))
+    assert len(pids) == len(runs)
+    hits = []
+    for pid in pids:
+        path = tmp_path / f"{pid}.log"
+        path.write_text("\n".join(x for x in lines if x.startswith(pid + "\t")) + "\n")
+        (entry,) = [v for k, v in K.read_cache_keys(path).items() if k.startswith("jit__lambda")]
+        hits.append(entry["hit"])
+    assert hits == [False, True, False, False]
+
+
 def test_the_pipeline_shares_one_compilation_cache_with_its_child_processes(tmp_path, monkeypatch):
     calls = []
     monkeypatch.setattr(jax.config, "update", lambda *a: calls.append(a))
