@@ -30,8 +30,20 @@ def test_command_writes_task_skill_rates(tmp_path):
     assert table["step_back"]["1.0"] == 1.0
 
 
+def test_a_weak_grip_drops_the_mug_that_the_scripts_full_grip_lifts(tmp_path):
+    rates = {}
+    for grip in ("1.0", "0.2"):
+        out = tmp_path / f"g{grip}.json"
+        assert main(["--backend", "cpu", "--episodes", "2", "--skills", "1.0", "--tasks", "mug", "--grip", grip,
+                     "--out", str(out)]) == 0
+        rates[grip] = json.loads(out.read_text())["mug"]["1.0"]
+    assert rates == {"1.0": 1.0, "0.2": 0.0}
+
+
 def test_bad_arguments_are_refused(tmp_path):
     with pytest.raises(SystemExit, match="outside"):
         main(["--skills", "1.5", "--out", str(tmp_path / "x.json")])
     with pytest.raises(SystemExit, match="unknown"):
         main(["--tasks", "mug,fly", "--out", str(tmp_path / "x.json")])
+    with pytest.raises(SystemExit, match="outside"):
+        main(["--grip", "1.5", "--out", str(tmp_path / "x.json")])

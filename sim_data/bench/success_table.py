@@ -4,7 +4,8 @@
 
 writes `{task: {skill: success_rate}}` (skill keys as given) and prints a table with 95% Wilson
 intervals. Episodes of one task share their initial states across skills (same seed), so the
-skills are compared on the same scenes.
+skills are compared on the same scenes. `--grip F` scales every closure of the scripts by F (the data
+generator's weak grips; 1: as scripted): at which grip a task's grasp still holds.
 """
 
 from __future__ import annotations
@@ -43,8 +44,9 @@ def parse_skills(text: str) -> list[str]:
     return skills
 
 
-def success_table(tasks, skills, episodes: int, engine: str, batch: int, seed: int, show_progress: bool = True):
-    """Runs `episodes` scripted episodes per (task, skill).
+def success_table(tasks, skills, episodes: int, engine: str, batch: int, seed: int, show_progress: bool = True,
+                  grip: float = 1.0):
+    """Runs `episodes` scripted episodes per (task, skill), every closure scaled by grip.
 
     Returns ({task: {skill: rate}}, {task: {skill: successes}}, seconds).
     """
@@ -61,7 +63,7 @@ def success_table(tasks, skills, episodes: int, engine: str, batch: int, seed: i
             wins = 0
             for ci, b in enumerate(chunks):
                 rng = jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(seed), ti), ci)
-                params = {"skill": jnp.full((b,), float(skill), jnp.float32)}
+                params = {"skill": jnp.full((b,), float(skill), jnp.float32), "grip": jnp.full((b,), grip, jnp.float32)}
                 state, _ = run_episodes(envs[b], policy, params, rng)
                 wins += int(np.sum(np.asarray(state.success)))
                 bar.update(b)
@@ -80,10 +82,13 @@ def main(argv=None) -> int:
     p.add_argument("--tasks", default=",".join(TASK_NAMES), help="comma-separated task names")
     p.add_argument("--batch", type=int, default=None, help="episodes simulated together (default: 50 cpu, 1024 mjx)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--grip", type=float, default=1.0, help="factor on every closure of the scripts (1: as scripted)")
     p.add_argument("--out", type=Path, required=True, help="JSON file to write")
     a = p.parse_args(argv)
     if a.episodes < 1:
         raise SystemExit("--episodes must be >= 1")
+    if not 0.0 <= a.grip <= 1.0:
+        raise SystemExit(f"--grip: {a.grip} is outside [0, 1]")
     tasks = [t.strip() for t in a.tasks.split(",") if t.strip()]
     unknown = [t for t in tasks if t not in TASK_NAMES]
     if unknown:
@@ -91,9 +96,9 @@ def main(argv=None) -> int:
     skills = parse_skills(a.skills)
     engine = a.backend or default_engine()
     batch = min(a.batch or (50 if engine == "cpu" else 1024), a.episodes)
-    rates, counts, secs = success_table(tasks, skills, a.episodes, engine, batch, a.seed)
+    rates, counts, secs = success_table(tasks, skills, a.episodes, engine, batch, a.seed, grip=a.grip)
     write_json_atomic(a.out, rates)
-    print(f"engine={engine} episodes={a.episodes} per point, {secs:.0f} s; 95% Wilson intervals")
+    print(f"engine={engine} episodes={a.episodes} per point, grip {a.grip:g}, {secs:.0f} s; 95% Wilson intervals")
     print(f"{'task':<10}" + "".join(f"{'skill ' + s:>22}" for s in skills))
     for task in tasks:
         cells = []
