@@ -151,7 +151,7 @@ FIDELITY_HORIZONS = (1, 8, 16, 32, 64)
 # Per-episode arrays of the imagination's fidelity to the simulated episode: frame PSNR and copy-first
 # PSNR at each horizon (P, N, H), the RMS gap of the policy's actions at each step (P, N, T) and in each
 # action dimension over the episode (P, N, 20)
-FIDELITY = ("frame_psnr", "copy_first_psnr", "action_gap", "action_gap_dims")
+FIDELITY = ("frame_psnr", "copy_first_psnr", "action_gap", "action_gap_dims", "action_bias_dims")
 # a task's per-policy arrays, (P, N, ...) (the ensemble members' prob_members, (K, P, N), apart)
 POLICY_ARRAYS = (("true", "prob", "prob_observed", OBSERVED_SECOND, "prob_replayed", "sim_imagined", "sim_finite")
                  + READOUT_KEYS + TRACES + FIDELITY)
@@ -692,7 +692,9 @@ def imagination_fidelity(truth: dict, imagined, actions, steps: int) -> dict:
     moves scores; identical frames count 100 dB), "action_gap": (B, T) float32 the root-mean-square
     difference of the policy's action on imagined and on true observations, "action_gap_dims": (B, 20)
     float32 the same per action dimension over the episode's steps (a gap in one dimension, such as
-    the base's speed, that the mean over 20 dilutes)}; NaN where the truth came from the cache
+    the base's speed, that the mean over 20 dilutes), "action_bias_dims": (B, 20) float32 the mean signed
+    difference (imagined minus true) per dimension over the steps (a hand that closes firmer in
+    imagination: a grasp is a threshold on its closure)}; NaN where the truth came from the cache
     without frames."""
     hs = fidelity_horizons(steps)
     b = len(actions)
@@ -700,16 +702,18 @@ def imagination_fidelity(truth: dict, imagined, actions, steps: int) -> dict:
         return {"frame_psnr": np.full((b, len(hs)), np.nan, np.float32),
                 "copy_first_psnr": np.full((b, len(hs)), np.nan, np.float32),
                 "action_gap": np.full((b, steps), np.nan, np.float32),
-                "action_gap_dims": np.full((b, R.ACTION_DIM), np.nan, np.float32)}
+                "action_gap_dims": np.full((b, R.ACTION_DIM), np.nan, np.float32),
+                "action_bias_dims": np.full((b, R.ACTION_DIM), np.nan, np.float32)}
     real = truth["frames"]
     at = [h - 1 for h in hs]
     true_h = np.asarray(real[:, hs])
     pred = np.minimum(psnr(np.asarray(imagined[:, at]), true_h), 100.0)
     first = np.minimum(psnr(np.asarray(real[:, :1]), true_h), 100.0)
-    squared = (np.asarray(actions, np.float64) - np.asarray(truth["action"], np.float64)) ** 2
+    diff = np.asarray(actions, np.float64) - np.asarray(truth["action"], np.float64)
     return {"frame_psnr": pred.astype(np.float32), "copy_first_psnr": first.astype(np.float32),
-            "action_gap": np.sqrt(squared.mean(-1)).astype(np.float32),
-            "action_gap_dims": np.sqrt(squared.mean(1)).astype(np.float32)}
+            "action_gap": np.sqrt((diff ** 2).mean(-1)).astype(np.float32),
+            "action_gap_dims": np.sqrt((diff ** 2).mean(1)).astype(np.float32),
+            "action_bias_dims": diff.mean(1).astype(np.float32)}
 
 
 def read_episodes(judge, task: str, features, judge2=None) -> dict:
@@ -994,6 +998,19 @@ def largest_action_gap(dims) -> dict | None:
     return {"dim": R.ACTION_NAMES[k], "rms": round(float(rms[k]), 4)}
 
 
+def closure_gap(dims, bias) -> dict:
+    """The right hand's closure in imagination against on true frames over a policy's episodes, from dims and
+    bias (N, 20) (imagination_fidelity's action_gap_dims and action_bias_dims; bias (N, 0) from results
+    written without it): {"closure_gap": the RMS gap, "closure_bias": the mean signed difference (> 0: the
+    hand closes firmer in imagination)}, each None where no episode has it."""
+    dims, bias = np.asarray(dims, np.float64), np.asarray(bias, np.float64)
+    gap = dims[:, R.RIGHT_HAND] if dims.shape[-1] == R.ACTION_DIM else np.full(len(dims), np.nan)
+    sign = bias[:, R.RIGHT_HAND] if bias.shape[-1] == R.ACTION_DIM else np.full(len(bias), np.nan)
+    ok, signed = np.isfinite(gap), np.isfinite(sign)
+    return {"closure_gap": round(float(np.sqrt((gap[ok] ** 2).mean())), 4) if ok.any() else None,
+            "closure_bias": round(float(sign[signed].mean()), 4) if signed.any() else None}
+
+
 def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) -> list[dict]:
     """One report row per policy of task from its results (evaluate_task's dict; sources_by_name: the sources by
     name, for their records and kinds): the true rate and predicted rate with their intervals, the thresholded
@@ -1006,10 +1023,10 @@ def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) ->
     members = res["prob_members"].transpose(1, 0, 2)  # (P, K, N)
     named = readouts_of({task: res}, [task])
     readouts = np.stack([res[f"readout_{r}"] for r in named], axis=1).reshape(len(res["names"]), len(named), -1)
-    for name, t, p, r, pk, ok, tp, ip, gap, dims, obs, obs2, rep, played in zip(
+    for name, t, p, r, pk, ok, tp, ip, gap, dims, bias, obs, obs2, rep, played in zip(
             res["names"], res["true"], res["prob"], readouts, members, res["sim_finite"], res["true_progress"],
-            res["trace_progress"], res["action_gap"], res["action_gap_dims"], res["prob_observed"],
-            res[OBSERVED_SECOND], res["prob_replayed"], res["sim_imagined"], strict=True):
+            res["trace_progress"], res["action_gap"], res["action_gap_dims"], res["action_bias_dims"],
+            res["prob_observed"], res[OBSERVED_SECOND], res["prob_replayed"], res["sim_imagined"], strict=True):
         rec = sources_by_name[name].record
         k, n = int(t.sum()), len(t)
         read = bool(np.isfinite(p).all())  # a non-finite prediction reads no outcome
@@ -1034,6 +1051,7 @@ def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) ->
                      "progress_true": _mean_curve(tp), "progress_imagined": _mean_curve(ip),
                      # RMS gap of the policy's actions on imagined and on true frames, over its episodes' steps
                      "action_gap": _finite_mean(gap), "action_gap_largest": largest_action_gap(dims),
+                     **closure_gap(dims, bias),
                      # per held-out state, in the order of the seeds: for ensembles (experiments.ensemble)
                      "true_episodes": t.astype(int).tolist(), "pred_episodes": np.round(p, 5).tolist()})
         if len(pk) > 1:

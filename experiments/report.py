@@ -725,7 +725,9 @@ def violation_table(res: dict) -> list[list[str]] | None:
     rows = [["task", "MMRV", "policy", "true", "predicted", *[label for _, label in extra], "share of the task's MMRV",
              "policies mis-ordered with it", "action gap (RMS; the task's median)"]]
     largest = any(p.get("action_gap_largest") for v in viol.values() for p in v["policies"])
+    closure = any(p.get("closure_bias") is not None for v in viol.values() for p in v["policies"])
     rows[0] += ["largest in one dimension"] if largest else []
+    rows[0] += ["right hand's closure, imagined minus true (mean; RMS)"] if closure else []
     for t, v in viol.items():
         gaps = [g for p in res.get("policies", []) if p["task"] == t and (g := p.get("action_gap")) is not None]
         median = f" ({_fmt(float(np.median(gaps)), 3)})" if gaps else ""
@@ -734,7 +736,8 @@ def violation_table(res: dict) -> list[list[str]] | None:
                          _fmt(p["true_rate"], 2), _fmt(p["pred_rate"], 2), *[_fmt(p.get(key), 2) for key, _ in extra],
                          f"{100 * p['share']:.0f}%",
                          str(p["against"]), _fmt(p.get("action_gap"), 3) + median,
-                         *([_largest_gap(p)] if largest else [])])
+                         *([_largest_gap(p)] if largest else []),
+                         *([f"{_fmt(p.get('closure_bias'), 3)}; {_fmt(p.get('closure_gap'), 3)}"] if closure else [])])
     return rows
 
 
@@ -767,7 +770,9 @@ VIOLATION_NOTE = ("Where MMRV comes from: each policy's term (its largest rank v
                   "is charged to the policy it is most mis-ordered with, so one policy read far from its truth "
                   "shows up as the partner of many. The action gap says how far its actions on imagined frames "
                   "stray from those on true frames, beside the task's median policy, and in the one action "
-                  "dimension where they stray most (a base that does not stop shows there, diluted in the mean).")
+                  "dimension where they stray most (a base that does not stop shows there, diluted in the mean); "
+                  "the right hand's closure beside it, in imagination minus on true frames (a grasp holds "
+                  "above a threshold on the closure, so a few hundredths firmer can turn a failure into a success).")
 
 
 UNSEEN_NETWORKS_TITLE = ("Within-task ranking of the unseen policies that are lineages of their own "

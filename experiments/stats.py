@@ -100,10 +100,10 @@ def rank_violations(rows: list[dict], top: int = 5, rate: str = "pred_rate") -> 
     far from its truth shows as the partner of many. Returns {task: {"mmrv", "policies": the `top`
     policies charged the most, each {"name", "true_rate", "pred_rate", "share" (of the task's MMRV;
     all the task's policies' shares sum to 1), "against" (how many policies' largest violation is with
-    it), "action_gap", "action_gap_largest", "on_truth", "replayed", "imagined_in_sim" (the row's
-    action_gap, action_gap_largest, pred_rate_on_truth, pred_rate_replayed and
-    true_rate_imagined_actions, where it has them)}}}; a task whose MMRV is 0 or undefined (mmrv) lists
-    none."""
+    it), "action_gap", "action_gap_largest", "closure_gap", "closure_bias", "on_truth", "replayed",
+    "imagined_in_sim" (the row's action_gap, action_gap_largest, closure_gap, closure_bias,
+    pred_rate_on_truth, pred_rate_replayed and true_rate_imagined_actions, where it has them)}}}; a task
+    whose MMRV is 0 or undefined (mmrv) lists none."""
     out = {}
     for task in sorted({r["task"] for r in rows}):
         rs = [r for r in rows if r["task"] == task]
@@ -116,6 +116,7 @@ def rank_violations(rows: list[dict], top: int = 5, rate: str = "pred_rate") -> 
             {"name": rs[k]["name"], "true_rate": rs[k]["true_rate"], "pred_rate": rs[k][rate],
              "share": float(charged[k] / terms.sum()), "against": int(against[k]),
              "action_gap": rs[k].get("action_gap"), "action_gap_largest": rs[k].get("action_gap_largest"),
+             "closure_gap": rs[k].get("closure_gap"), "closure_bias": rs[k].get("closure_bias"),
              "on_truth": rs[k].get("pred_rate_on_truth"),
              "replayed": rs[k].get("pred_rate_replayed"),
              "imagined_in_sim": rs[k].get("true_rate_imagined_actions")} for k in order]}

@@ -175,6 +175,13 @@ def test_imagination_fidelity_against_hand_computed_frames_and_actions():
     np.testing.assert_allclose(got["action_gap"], expect_gap, atol=1e-6)
     # per dimension over the 10 steps: every dimension of episode 0 off by 2 at one step of ten
     np.testing.assert_allclose(got["action_gap_dims"], [[2.0 / np.sqrt(10)] * 20, [0.0] * 20], atol=1e-6)
+    np.testing.assert_allclose(got["action_bias_dims"], [[0.2] * 20, [0.0] * 20], atol=1e-6)  # +2 at one step of ten
+    closer = true_actions.copy()
+    closer[1, :4, 17] -= 0.5  # episode 1's right hand closes 0.5 less for 4 of its 10 steps in imagination
+    hands = E.imagination_fidelity({"frames": real, "action": true_actions}, imagined, closer, 10)
+    assert E.closure_gap(hands["action_gap_dims"], hands["action_bias_dims"]) == {
+        "closure_gap": round(float(np.sqrt(0.5 ** 2 * 4 / 10 / 2)), 4), "closure_bias": -0.1}
+    assert E.closure_gap(np.full((2, 20), np.nan), np.zeros((2, 0))) == {"closure_gap": None, "closure_bias": None}
     dims = np.zeros((3, 20))
     dims[:, 18] = [0.3, 0.0, 0.4]  # the base's speed off in two of three episodes
     dims[1, 0] = 0.1
@@ -186,6 +193,7 @@ def test_imagination_fidelity_against_hand_computed_frames_and_actions():
         summary["frame_psnr"][1] - summary["copy_first_psnr"][1], abs=2e-3)
     cached = E.imagination_fidelity({"frames0": real[:, :1]}, imagined, actions, 10)  # from the truth cache
     assert np.isnan(cached["frame_psnr"]).all() and cached["action_gap"].shape == (2, 10)
+    assert np.isnan(cached["action_bias_dims"]).all() and cached["action_bias_dims"].shape == (2, 20)
 
 
 def test_family_table_lists_each_family_under_each_readout():
@@ -312,6 +320,11 @@ def test_violation_table_lists_the_policies_that_carry_each_tasks_mmrv():
     table = violation_table({"rank_violations": json.loads(json.dumps(S.rank_violations(rows))), "policies": rows})
     assert table[0][-1] == "largest in one dimension" and table[1][-1] == "0.213 (forward_speed)"
     assert table[2][-1] == "n/a"
+    # where measured, the right hand's closure in imagination against on true frames
+    rows[0].update(closure_bias=0.031, closure_gap=0.0874)
+    table = violation_table({"rank_violations": json.loads(json.dumps(S.rank_violations(rows))), "policies": rows})
+    assert table[0][-2:] == ["largest in one dimension", "right hand's closure, imagined minus true (mean; RMS)"]
+    assert table[1][-1] == "0.031; 0.087" and table[2][-1] == "n/a; n/a"
     assert violation_table({}) is None  # results written before the table existed
     assert violation_table({"rank_violations": {"mug": {"mmrv": 0.0, "policies": []}}}) is None
 

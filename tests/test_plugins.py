@@ -421,7 +421,7 @@ def test_non_finite_predictions_are_not_read_as_failures():
            "prob": np.array([[0.9, 0.8, 0.2, 0.1], [np.nan] * 4]), "prob_members": np.zeros((1, p, n)),
            **{k: np.zeros((p, n)) for k in E.READOUT_KEYS}, "sim_finite": np.ones((p, n), bool),
            "true_progress": np.zeros((p, n, 3)), "trace_progress": np.zeros((p, n, 3)),
-           "action_gap": np.zeros((p, n)), "action_gap_dims": np.zeros((p, n, 20)),
+           "action_gap": np.zeros((p, n)), "action_gap_dims": np.zeros((p, n, 20)), "action_bias_dims": np.zeros((p, n, 20)),
            "prob_observed": np.full((p, n), np.nan), E.OBSERVED_SECOND: np.full((p, n), np.nan),
            "prob_replayed": np.full((p, n), np.nan), "sim_imagined": np.full((p, n), np.nan)}
     sources = {name: dataclasses.replace(load_plugin("examples.plugin_policy:make"), name=name) for name in res["names"]}
