@@ -150,7 +150,7 @@ OBSERVED_SECOND = f"prob_observed_{SECOND_JUDGE}"
 FIDELITY_HORIZONS = (1, 8, 16, 32, 64)
 # Per-episode arrays of the imagination's fidelity to the simulated episode: frame PSNR and copy-first
 # PSNR at each horizon (P, N, H), the RMS gap of the policy's actions at each step (P, N, T) and in each
-# action dimension over the episode (P, N, 20)
+# action dimension over the episode (P, N, 20), and the mean signed difference in each dimension (P, N, 20)
 FIDELITY = ("frame_psnr", "copy_first_psnr", "action_gap", "action_gap_dims", "action_bias_dims")
 # a task's per-policy arrays, (P, N, ...) (the ensemble members' prob_members, (K, P, N), apart)
 POLICY_ARRAYS = (("true", "prob", "prob_observed", OBSERVED_SECOND, "prob_replayed", "sim_imagined", "sim_finite")

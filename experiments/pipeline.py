@@ -640,10 +640,11 @@ def compile_cache_dirs(root) -> dict[str, Path]:
 def use_compilation_cache(root: str, key_log: Path | None = None) -> str:
     """Turns on JAX's persistent compilation cache in root/jax_cache (or where JAX_COMPILATION_CACHE_DIR
     says), for this process and the stages' child processes: a stage run again, a later stage and
-    the other GPUs' parts load what one process compiled, keyed by the devices' kind so that a cache carried
-    from another host of the same GPU serves (sim_data.util.key_cache_by_device_kind). In root/xla_autotune XLA keeps its GPU
-    autotuning results per fusion (XLA_FLAGS), which every program with the same fusions reuses
-    where the whole program is not cached: most of a fresh train step's compile time. With key_log,
+    the other GPUs' parts load what one process compiled, keyed by the devices' kind so that a cache
+    carried from another host of the same GPU serves (sim_data.util.key_cache_by_device_kind). In
+    root/xla_autotune XLA keeps its GPU autotuning results per fusion (XLA_FLAGS), which every program
+    with the same fusions reuses where the whole program is not cached: most of a fresh train step's
+    compile time. With key_log,
     this process and every command it starts log their programs' cache keys there, part by part
     (sim_data.util.record_cache_keys; experiments.cache_keys compares two leases'). Call it before
     JAX's backend starts (XLA reads its flags then). Returns the compilation cache's directory."""
