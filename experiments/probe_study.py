@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from sim_data.dataset.cache import TrainingCache, WindowLoader
-from sim_data.util import write_json_atomic
+from sim_data.util import run_cli, write_json_atomic
 from wm.checkpoint import load_run_config, load_trained
 from wm.probes import Probes, read_loss
 from wm.train import every_fourth, jitted_validation_loss, model_batch, read_inputs, read_probes
@@ -105,4 +105,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))
