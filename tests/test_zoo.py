@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from experiments.timing import compile_snapshot
+from sim_data.bench import closures
 from sim_data.dataset import generate as G
 from sim_data.dataset.episodes import read_episode
 from sim_data.policies import zoo
@@ -609,3 +610,27 @@ def test_measured_success_is_read_back_only_for_the_same_states_engine_and_polic
     (out / "policies.json").write_text(json.dumps(registry))
     zoo.measure_success(out, 3, seed=1, engine="cpu", progress=False)
     assert len(calls) > n
+
+
+def test_closures_of_a_grip_family_are_its_base_policys_scaled(smoke_zoo, tmp_path):
+    """sim_data.bench.closures on the smoke zoo's grip family: the member at grip 0 never closes the hand (every
+    failure weak), the member at grip 1 closes as its base checkpoint does, episode for episode."""
+    zoo_dir, registry = smoke_zoo
+    base = max((r for r in registry if r["lineage"] == "conv_proprio"), key=lambda r: r["step"])["name"]
+    out = tmp_path / "closures.json"
+    spec = f"{zoo_dir}#conv_proprio~grip+{base}"
+    assert closures.main(["--policies", spec, "--episodes", "2", "--engine", "cpu", "--out", str(out)]) == 0
+    rows = {r["name"]: r for r in json.loads(out.read_text())["policies"]}
+    weak, full = rows["mug/conv_proprio~grip/0"], rows["mug/conv_proprio~grip/1"]
+    assert weak["max_failure"] in (0.0, None) and weak["max_success"] in (0.0, None) and weak["successes"] == 0
+    assert weak["weak_failures"] == 2
+    assert {k: v for k, v in full.items() if k != "name"} == {k: v for k, v in rows[base].items() if k != "name"}
+    assert rows[base]["max_failure"] > 0.0 or rows[base]["max_success"] > 0.0  # the base does close its hand
+
+
+def test_closure_summary_by_hand():
+    closure = np.array([[0.0, 0.2, 1.0, 0.9], [0.1, 0.3, 0.2, 0.0], [0.5, 0.5, 0.4, 0.6]])
+    got = closures.closure_summary(closure, [True, False, False], firmest=2, threshold=0.45)
+    assert got == {"successes": 1, "n": 3, "max_success": 1.0, "max_failure": round((0.3 + 0.6) / 2, 4),
+                   "firmest_success": 0.95, "firmest_failure": round((0.25 + 0.55) / 2, 4), "weak_failures": 1}
+    assert closures.closure_summary(closure[:1], [False], 9, 0.45)["firmest_success"] is None
