@@ -17,9 +17,11 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from jax._src import cache_key as jax_cache_key
 
 from experiments import cache_keys as K
 from experiments import pipeline as P
+from sim_data import util
 from wm.checkpoint import RUN_FILES, bundle_meta
 
 
@@ -328,8 +330,10 @@ def test_the_pipeline_shares_one_compilation_cache_with_its_child_processes(tmp_
     monkeypatch.setattr(jax.config, "update", lambda *a: calls.append(a))
     monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
     monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false")
+    monkeypatch.setattr(jax_cache_key, "_hash_accelerator_config", jax_cache_key._hash_accelerator_config)
     path = P.use_compilation_cache(str(tmp_path))
     assert path == str(tmp_path.absolute() / "jax_cache") and calls == [("jax_compilation_cache_dir", path)]
+    assert jax_cache_key._hash_accelerator_config is util._hash_device_kinds  # keyed by device kind
     assert os.environ["JAX_COMPILATION_CACHE_DIR"] == path  # inherited by the stages' processes
     # XLA's autotuning results beside it, one flag appended to those already set
     assert os.environ["XLA_FLAGS"] == f"--xla_cpu_multi_thread_eigen=false {P.AUTOTUNE_FLAG}={tmp_path.absolute()}/xla_autotune"
