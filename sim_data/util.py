@@ -202,17 +202,25 @@ def record_cache_keys(path: Path) -> None:
         logger.setLevel(logging.DEBUG)
 
 
-def _hash_device_kinds(hash_obj, accelerators) -> None:
-    jax_cache_key._hash_devices(hash_obj, np.asarray(accelerators))
+_HASH_TOPOLOGY = jax_cache_key._hash_accelerator_config  # JAX's own: the devices' topology fingerprint
 
 
-def key_cache_by_device_kind() -> None:
-    """Keys JAX's persistent compilation cache by its devices' kinds ("NVIDIA H100 80GB HBM3", one a device)
-    instead of their topology's fingerprint, which also hashes details of the host: two machines with the
-    same GPU then share a carried cache (between two H100 hosts every program's key differed in that part
-    alone; experiments.cache_keys). The kind fixes the instruction set the programs are compiled for, and
-    is what JAX itself hashes on a backend without a topology. Idempotent; for this process only."""
-    jax_cache_key._hash_accelerator_config = _hash_device_kinds
+def _hash_device_kinds(hash_obj, accelerators, platforms: tuple[str, ...]) -> None:
+    devices = np.asarray(accelerators)
+    if all(d.platform in platforms for d in devices.flat):
+        jax_cache_key._hash_devices(hash_obj, devices)
+    else:  # a CPU's kind does not name its instruction set (AVX-512 or not): the host's topology does
+        _HASH_TOPOLOGY(hash_obj, accelerators)
+
+
+def key_cache_by_device_kind(platforms: tuple[str, ...] = ("gpu",)) -> None:
+    """Keys JAX's persistent compilation cache on GPUs by the devices' kinds ("NVIDIA H100 80GB HBM3", one a
+    device) instead of their topology's fingerprint, which also hashes details of the host: two machines
+    with the same GPU then share a carried cache (between two H100 hosts every program's key differed in
+    that part alone; experiments.cache_keys). A GPU's kind fixes the instruction set the programs are
+    compiled for, and is what JAX itself hashes on a backend without a topology; devices of other
+    platforms than `platforms` keep JAX's key. Idempotent; for this process only."""
+    jax_cache_key._hash_accelerator_config = functools.partial(_hash_device_kinds, platforms=tuple(platforms))
 
 
 def run_cli(main) -> int:

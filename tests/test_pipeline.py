@@ -289,7 +289,7 @@ OTHER_HOST_PROGRAM = """
 import sys
 import jax, jax.numpy as jnp
 from jax._src import cache_key
-from sim_data.util import run_cli
+from sim_data.util import key_cache_by_device_kind, run_cli
 jax.config.update("jax_compilation_cache_dir", sys.argv[1])
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
@@ -298,21 +298,22 @@ class Topology:  # the same devices on a host whose topology's fingerprint diffe
         return int(sys.argv[2])
 cache_key.xla_client.get_topology_for_devices = lambda devices: Topology()
 def main():
+    key_cache_by_device_kind(tuple(sys.argv[3].split(",")))  # "cpu" among them: this CPU stands for a GPU
     jax.jit(lambda x: x * 2.0)(jnp.ones(3)).block_until_ready()
 run_cli(main)
 """
 
 
 def test_a_cache_carried_to_a_host_with_the_same_devices_serves_although_its_topology_differs(tmp_path):
-    """Keyed by device kind (run_cli, where JAX_COMPILATION_CACHE_DIR is set), a program compiled on one host
-    is found on another whose topology fingerprints differently; keyed by JAX's own accelerator part
-    (the variable unset), the same lookup misses."""
+    """Keyed by device kind, a program compiled on one host is found on another whose topology fingerprints
+    differently; a CPU (not among the platforms keyed by kind: its kind does not name its instruction set)
+    keeps JAX's own accelerator part, and the same lookup misses."""
     log, cache = tmp_path / "cache_keys.log", tmp_path / "cache"
-    base = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
-    runs = [(True, "1"), (True, "2"), (False, "3"), (False, "4")]
-    for by_kind, fingerprint in runs:
-        env = {**base, P.CACHE_KEY_LOG_ENV: str(log), **({"JAX_COMPILATION_CACHE_DIR": str(cache)} if by_kind else {})}
-        subprocess.run([sys.executable, "-c", OTHER_HOST_PROGRAM, str(cache), fingerprint], env=env, check=True)
+    env = {**os.environ, P.CACHE_KEY_LOG_ENV: str(log), "JAX_COMPILATION_CACHE_DIR": str(cache)}
+    runs = [("gpu,cpu", "1"), ("gpu,cpu", "2"), ("gpu", "3"), ("gpu", "4")]
+    for platforms, fingerprint in runs:
+        subprocess.run([sys.executable, "-c", OTHER_HOST_PROGRAM, str(cache), fingerprint, platforms], env=env,
+                       check=True)
     lines = log.read_text().splitlines()
     pids = list(dict.fromkeys(line.split("\t")[0] for line in lines))
     assert len(pids) == len(runs)
@@ -325,6 +326,16 @@ def test_a_cache_carried_to_a_host_with_the_same_devices_serves_although_its_top
     assert hits == [False, True, False, False]
 
 
+def test_a_command_keys_the_cache_by_device_kind_where_the_cache_is_on(tmp_path, monkeypatch):
+    own = jax_cache_key._hash_accelerator_config
+    monkeypatch.setattr(jax_cache_key, "_hash_accelerator_config", own)
+    monkeypatch.setenv("XLA_FLAGS", os.environ.get("XLA_FLAGS", ""))  # run_cli sets XLA's flags: restored after
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
+    assert util.run_cli(lambda: 0) == 0 and jax_cache_key._hash_accelerator_config is own  # no cache: JAX's key
+    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(tmp_path))
+    assert util.run_cli(lambda: 0) == 0 and jax_cache_key._hash_accelerator_config.func is util._hash_device_kinds
+
+
 def test_the_pipeline_shares_one_compilation_cache_with_its_child_processes(tmp_path, monkeypatch):
     calls = []
     monkeypatch.setattr(jax.config, "update", lambda *a: calls.append(a))
@@ -333,7 +344,8 @@ def test_the_pipeline_shares_one_compilation_cache_with_its_child_processes(tmp_
     monkeypatch.setattr(jax_cache_key, "_hash_accelerator_config", jax_cache_key._hash_accelerator_config)
     path = P.use_compilation_cache(str(tmp_path))
     assert path == str(tmp_path.absolute() / "jax_cache") and calls == [("jax_compilation_cache_dir", path)]
-    assert jax_cache_key._hash_accelerator_config is util._hash_device_kinds  # keyed by device kind
+    keyed = jax_cache_key._hash_accelerator_config  # keyed by device kind on GPUs
+    assert keyed.func is util._hash_device_kinds and keyed.keywords == {"platforms": ("gpu",)}
     assert os.environ["JAX_COMPILATION_CACHE_DIR"] == path  # inherited by the stages' processes
     # XLA's autotuning results beside it, one flag appended to those already set
     assert os.environ["XLA_FLAGS"] == f"--xla_cpu_multi_thread_eigen=false {P.AUTOTUNE_FLAG}={tmp_path.absolute()}/xla_autotune"
