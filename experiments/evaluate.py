@@ -1627,6 +1627,8 @@ def load_task(path: Path) -> dict:
         finite = z["sim_finite"] if "sim_finite" in z.files else np.ones(z["prob"].shape, bool)
         traces = {k: z[k] if k in z.files else np.zeros(z["prob"].shape + (0,), np.float16) for k in TRACES}
         fidelity = {k: z[k] if k in z.files else np.full(z["prob"].shape + (0,), np.nan, np.float32) for k in FIDELITY}
+        if "action_bias_dims" not in z.files:  # written before it: unknown, at the width a newer part has
+            fidelity["action_bias_dims"] = np.full(z["prob"].shape + (R.ACTION_DIM,), np.nan, np.float32)
         readouts = {k: z[k] if k in z.files else np.full(z["prob"].shape, np.nan) for k in READOUT_KEYS}
         return {**meta, "true": z["true"].astype(bool), "prob": z["prob"], **readouts,
                 **fidelity,

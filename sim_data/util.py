@@ -202,7 +202,8 @@ def record_cache_keys(path: Path) -> None:
         logger.setLevel(logging.DEBUG)
 
 
-_HASH_TOPOLOGY = jax_cache_key._hash_accelerator_config  # JAX's own: the devices' topology fingerprint
+# JAX's own accelerator part of the key (the devices' topology fingerprint); None in a JAX without it
+_HASH_TOPOLOGY = getattr(jax_cache_key, "_hash_accelerator_config", None)
 
 
 def _hash_device_kinds(hash_obj, accelerators, platforms: tuple[str, ...]) -> None:
@@ -219,8 +220,10 @@ def key_cache_by_device_kind(platforms: tuple[str, ...] = ("gpu",)) -> None:
     with the same GPU then share a carried cache (between two H100 hosts every program's key differed in
     that part alone; experiments.cache_keys). A GPU's kind fixes the instruction set the programs are
     compiled for, and is what JAX itself hashes on a backend without a topology; devices of other
-    platforms than `platforms` keep JAX's key. Idempotent; for this process only."""
-    jax_cache_key._hash_accelerator_config = functools.partial(_hash_device_kinds, platforms=tuple(platforms))
+    platforms than `platforms` keep JAX's key. Idempotent; for this process only; a JAX whose key has no
+    such part is left as it is."""
+    if _HASH_TOPOLOGY is not None:
+        jax_cache_key._hash_accelerator_config = functools.partial(_hash_device_kinds, platforms=tuple(platforms))
 
 
 def run_cli(main) -> int:

@@ -11,6 +11,7 @@ import jax  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
+from jax._src import cache_key as jax_cache_key  # noqa: E402
 
 # Most of the suite's time is XLA compiling the same small functions (the cpu engine's rollout pieces, the
 # policies) in each test process: one compilation cache per run lets the second pytest-xdist worker load
@@ -24,6 +25,15 @@ if os.environ.get("PYTEST_XDIST_TESTRUNUID"):
     for _name, _value in _cache.items():
         jax.config.update(_name, _value)
         os.environ[_name.upper()] = str(_value)
+
+
+@pytest.fixture(autouse=True)
+def _jax_cache_key_as_found():
+    """A command run in-process (run_cli) re-keys JAX's compilation cache for its process
+    (sim_data.util.key_cache_by_device_kind): each test leaves the key as it found it."""
+    own = jax_cache_key._hash_accelerator_config
+    yield
+    jax_cache_key._hash_accelerator_config = own
 
 
 def pytest_configure(config):

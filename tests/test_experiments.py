@@ -64,7 +64,7 @@ def own_evaluation(evaluation, tmp_path):
     return cfg, tmp_path / "run", res
 
 
-def test_results_hold_every_policy_with_statistics_from_the_episodes(evaluation, smoke_dataset):
+def test_results_hold_every_policy_with_statistics_from_the_episodes(evaluation, smoke_dataset, tmp_path):
     cfg, out, res = evaluation
     assert json.loads((out / "results.json").read_text())["tasks"] == ["mug"]
     names = [p["name"] for p in res["policies"]]
@@ -100,6 +100,16 @@ def test_results_hold_every_policy_with_statistics_from_the_episodes(evaluation,
     for row, d in zip(res["policies"], dims, strict=True):
         assert row["action_gap_largest"] == E.largest_action_gap(d)
         assert row["action_gap_largest"]["rms"] == pytest.approx(np.sqrt((d ** 2).mean(0)).max(), abs=1e-4)
+    bias = E.load_task(out / "tasks" / "mug.npz")["action_bias_dims"]
+    assert bias.shape == (5, 2, 20) and (np.abs(bias) <= dims + 1e-6).all()  # a mean within its RMS
+    for row, d, b in zip(res["policies"], dims, bias, strict=True):
+        assert {k: row[k] for k in ("closure_gap", "closure_bias")} == E.closure_gap(d, b)
+    # a task file written before the signed difference: read back as unknown, at the width of a newer one
+    with np.load(out / "tasks" / "mug.npz") as z:
+        older = {k: z[k] for k in z.files if k != "action_bias_dims"}
+    np.savez(tmp_path / "older.npz", **older)
+    old = E.load_task(tmp_path / "older.npz")["action_bias_dims"]
+    assert old.shape == bias.shape and np.isnan(old).all()
     assert "sim_imagined" in res["metrics"]["within_task"] and "loop_actions" in res["metrics"]
     assert res["timing"]["mug"]["nonfinite_sim_episodes"] == 0
     # where the world model's time went: every part ran (replay=1), within the batches' world-model time
