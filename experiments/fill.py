@@ -60,8 +60,10 @@ from wm.geometric import robot_camera
 from wm.grasp import (
     GRASPED,
     GraspRule,
+    closure_variants,
     fit_grasp_rule,
     load_grasp,
+    refine_closure,
     robot_path,
     rule_grid,
     save_grasp,
@@ -244,10 +246,13 @@ def grasp_verdicts(rows: list[dict], base: np.ndarray, joints: np.ndarray, rules
 
 def fit_and_check_grasp(train_rows: list[dict], val_rows: list[dict], base: np.ndarray, joints: np.ndarray,
                         progress: bool = True) -> tuple[GraspRule, dict]:
-    """wm.grasp's rule fit on train_rows' episodes (the grid's most accurate) and its accuracy on
-    val_rows', beside that of always predicting the training split's more common outcome."""
+    """wm.grasp's rule fit on train_rows' episodes (the grid's most accurate, its closure then refined:
+    wm.grasp.refine_closure) and its accuracy on val_rows', beside that of always predicting the training
+    split's more common outcome."""
     verdicts, outcomes = grasp_verdicts(train_rows, base, joints, rule_grid(), progress)
     rule, train_acc = fit_grasp_rule(verdicts, outcomes)
+    variants, _ = grasp_verdicts(train_rows, base, joints, closure_variants(rule), progress)
+    rule, train_acc = refine_closure(rule, train_acc, variants, outcomes)
     val_verdicts, val_outcomes = grasp_verdicts(val_rows, base, joints, jax.tree.map(lambda x: x[None], rule),
                                                 progress)
     majority = bool(outcomes.mean() >= 0.5)

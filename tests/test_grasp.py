@@ -114,6 +114,25 @@ def test_fit_grasp_rule_takes_the_most_accurate_rule_and_the_middle_of_equals():
     assert rule.as_dict()["reach_xy"] == pytest.approx(GR.GRID["reach_xy"][2])
 
 
+def test_refine_closure_places_the_threshold_between_the_grid_steps_where_the_outcomes_turn():
+    rule = GR.GraspRule.of({"closure": 0.5, "reach_xy": 0.04, "z_low": -0.03, "z_high": 0.03, "speed": 0.4,
+                            "release": 0.5})
+    variants = GR.closure_variants(rule)
+    assert np.allclose(variants.closure, GR.CLOSURE_STEPS) and np.allclose(variants.reach_xy, 0.04)
+    assert set(GR.GRID["closure"]) <= set(GR.CLOSURE_STEPS)  # the grid's rule is among its variants
+    # episodes whose hands close to these commands hold exactly when the command is 0.43 or more
+    closes = np.array([0.2, 0.3, 0.41, 0.46, 0.48, 0.6, 1.0])
+    held = closes >= 0.43
+    verdicts = np.array([closes >= c for c in GR.CLOSURE_STEPS])
+    refined, acc = GR.refine_closure(rule, float(np.mean((closes >= 0.5) == held)), verdicts, held)
+    assert acc == 1.0 and refined.as_dict() == {**rule.as_dict(), "closure": pytest.approx(0.45)}
+    # outcomes that every closure from 0.35 to 0.55 reads alike: the middle of them
+    closes = np.array([0.2, 0.3, 0.6, 1.0])
+    verdicts = np.array([closes >= c for c in GR.CLOSURE_STEPS])
+    refined, acc = GR.refine_closure(rule, 1.0, verdicts, closes >= 0.43)
+    assert acc == 1.0 and refined.as_dict()["closure"] == pytest.approx(0.45)  # 0.35 to 0.6 tie: the middle
+
+
 def _scripted_episodes(task: str, batches) -> tuple:
     """Pairs of episodes of the scripted policy in MuJoCo's C engine, one pair a (skills, grips or None,
     seed) of batches: (first states [one a pair], actions (E, T, 20), the joints' recorded positions

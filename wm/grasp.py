@@ -63,6 +63,9 @@ GRID = {"closure": (0.3, 0.5, 0.7, 0.9),
         "z_high": (0.01, 0.02, 0.03, 0.04, 0.05),
         "speed": (0.1, 0.2, 0.4, 0.8, 1e3),  # 1e3 m/s: no limit
         "release": (0.3, 0.5, 1.0)}  # above the closure: let go as soon as the closure falls below it
+# the closures refine_closure tries with the grid's rule's other numbers: a grasp holds above a sharp threshold
+# on the closure command (0.40-0.45 for the scripts' mug, 0.2-0.3 for the tray), finer than GRID's steps
+CLOSURE_STEPS = tuple(round(0.1 + 0.05 * k, 2) for k in range(18))
 RULES_AT_ONCE = 500  # verdicts_of_rules' batch of rules
 
 
@@ -231,12 +234,35 @@ def fit_grasp_rule(verdicts: np.ndarray, outcomes: np.ndarray) -> tuple[GraspRul
     accurate rules, the one nearest the middle of them (each number's median over them, in steps of its
     grid), so that a rule the data cannot pin down keeps a margin on every side; then the first in the
     grid's order."""
+    steps = np.array(list(itertools.product(*(range(len(v)) for v in GRID.values()))))
+    best, acc = _most_accurate(verdicts, outcomes, steps)
+    return jax.tree.map(lambda x: x[best], rule_grid()), acc
+
+
+def _most_accurate(verdicts, outcomes, steps) -> tuple[int, float]:
+    """(index, share) of the candidate whose verdicts (G, E) bool agree most often with outcomes (E,) bool;
+    among equally accurate ones, the nearest the middle of them by their grid steps (G, K)."""
     acc = (np.asarray(verdicts) == np.asarray(outcomes, bool)[None]).mean(1)
     tied = np.flatnonzero(acc == acc.max())
-    steps = np.array(list(itertools.product(*(range(len(v)) for v in GRID.values()))))
     at = steps[tied]
     best = int(tied[np.argmin(np.abs(at - np.median(at, 0)).sum(1))])
-    return jax.tree.map(lambda x: x[best], rule_grid()), float(acc[best])
+    return best, float(acc[best])
+
+
+def closure_variants(rule: GraspRule) -> GraspRule:
+    """rule (one rule's scalars) with its closure at each of CLOSURE_STEPS: a GraspRule of (F,) arrays."""
+    n = len(CLOSURE_STEPS)
+    return GraspRule.of({**{k: np.full(n, v) for k, v in rule.as_dict().items()}, "closure": np.array(CLOSURE_STEPS)})
+
+
+def refine_closure(rule: GraspRule, accuracy: float, verdicts: np.ndarray, outcomes: np.ndarray) -> tuple:
+    """fit_grasp_rule's (rule, accuracy) with its closure moved along CLOSURE_STEPS where that agrees with
+    more training outcomes: verdicts (F, E) bool are closure_variants(rule)'s over the episodes, outcomes (E,)
+    bool their recorded ones: among the closures that do best, the middle one, as fit_grasp_rule keeps a
+    margin on every side of what the data allows (its grid's closure is among them, so the accuracy
+    never falls). Returns (rule, accuracy)."""
+    best, acc = _most_accurate(verdicts, outcomes, np.arange(len(CLOSURE_STEPS))[:, None])
+    return jax.tree.map(lambda x: x[best], closure_variants(rule)), acc
 
 
 def save_grasp(out: Path, task: str, rule: GraspRule, metrics: dict) -> None:
