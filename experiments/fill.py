@@ -252,7 +252,7 @@ def fit_and_check_grasp(train_rows: list[dict], val_rows: list[dict], base: np.n
     verdicts, outcomes = grasp_verdicts(train_rows, base, joints, rule_grid(), progress)
     rule, train_acc = fit_grasp_rule(verdicts, outcomes)
     variants, _ = grasp_verdicts(train_rows, base, joints, closure_variants(rule), progress)
-    rule, train_acc = refine_closure(rule, train_acc, variants, outcomes)
+    rule, train_acc = refine_closure(rule, variants, outcomes)
     val_verdicts, val_outcomes = grasp_verdicts(val_rows, base, joints, jax.tree.map(lambda x: x[None], rule),
                                                 progress)
     majority = bool(outcomes.mean() >= 0.5)

@@ -124,12 +124,13 @@ def test_refine_closure_places_the_threshold_between_the_grid_steps_where_the_ou
     closes = np.array([0.2, 0.3, 0.41, 0.46, 0.48, 0.6, 1.0])
     held = closes >= 0.43
     verdicts = np.array([closes >= c for c in GR.CLOSURE_STEPS])
-    refined, acc = GR.refine_closure(rule, float(np.mean((closes >= 0.5) == held)), verdicts, held)
+    assert np.mean((closes >= 0.5) == held) < 1.0  # the grid's closure misreads one
+    refined, acc = GR.refine_closure(rule, verdicts, held)
     assert acc == 1.0 and refined.as_dict() == {**rule.as_dict(), "closure": pytest.approx(0.45)}
     # outcomes that every closure from 0.35 to 0.55 reads alike: the middle of them
     closes = np.array([0.2, 0.3, 0.6, 1.0])
     verdicts = np.array([closes >= c for c in GR.CLOSURE_STEPS])
-    refined, acc = GR.refine_closure(rule, 1.0, verdicts, closes >= 0.43)
+    refined, acc = GR.refine_closure(rule, verdicts, closes >= 0.43)
     assert acc == 1.0 and refined.as_dict()["closure"] == pytest.approx(0.45)  # 0.35 to 0.6 tie: the middle
 
 

@@ -255,12 +255,12 @@ def closure_variants(rule: GraspRule) -> GraspRule:
     return GraspRule.of({**{k: np.full(n, v) for k, v in rule.as_dict().items()}, "closure": np.array(CLOSURE_STEPS)})
 
 
-def refine_closure(rule: GraspRule, accuracy: float, verdicts: np.ndarray, outcomes: np.ndarray) -> tuple:
-    """fit_grasp_rule's (rule, accuracy) with its closure moved along CLOSURE_STEPS where that agrees with
-    more training outcomes: verdicts (F, E) bool are closure_variants(rule)'s over the episodes, outcomes (E,)
-    bool their recorded ones: among the closures that do best, the middle one, as fit_grasp_rule keeps a
-    margin on every side of what the data allows (its grid's closure is among them, so the accuracy
-    never falls). Returns (rule, accuracy)."""
+def refine_closure(rule: GraspRule, verdicts: np.ndarray, outcomes: np.ndarray) -> tuple:
+    """fit_grasp_rule's rule with its closure placed on CLOSURE_STEPS: verdicts (F, E) bool are
+    closure_variants(rule)'s over the training episodes, outcomes (E,) bool their recorded ones; among the
+    closures that agree with the most, the middle one, as fit_grasp_rule keeps a margin on every side of
+    what the data allows (the grid's closure is among them, so the accuracy never falls). Returns (rule,
+    its accuracy)."""
     best, acc = _most_accurate(verdicts, outcomes, np.arange(len(CLOSURE_STEPS))[:, None])
     return jax.tree.map(lambda x: x[best], closure_variants(rule)), acc
 
