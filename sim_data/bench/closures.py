@@ -20,19 +20,10 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
-from sim_data.policies.registry import (
-    group_by_policy,
-    heldout_seeds,
-    policy_chunks,
-    resolve,
-    stacked_sources,
-    used_seeds,
-)
+from sim_data.policies.registry import heldout_seeds, resolve, used_seeds
+from sim_data.policies.zoo import recorded_chunks
 from sim_data.sim import robot as R
 from sim_data.sim.engines import ENGINES, default_engine
-from sim_data.sim.env import cached_env
-from sim_data.sim.render import HEAD_CAMERA, cached_renderers
-from sim_data.sim.rollout import record_policies
 from sim_data.util import run_cli, write_json_atomic
 
 
@@ -67,11 +58,8 @@ def measure_closures(spec: str, episodes: int, engine: str, firmest: int, thresh
         seeds = heldout_seeds(task, episodes, seed, used)
         keys = np.stack([np.asarray(jax.random.PRNGKey(x)) for x in seeds])
         task_sources = [s for s in sources if s.task == task]
-        for part, padded in (p for g in group_by_policy(task_sources) for p in policy_chunks(g, episodes, batch)):
-            env = cached_env(task, len(padded) * episodes, engine, False)
-            renderers = cached_renderers(part[0].policy.cfg.size, (HEAD_CAMERA,))
-            outcome, rec = record_policies(env, *stacked_sources(padded), keys, jax.random.PRNGKey(seed), renderers)
-            hand = np.asarray(rec.action)[..., R.RIGHT_HAND].reshape(len(padded), episodes, -1)
+        for part, outcome, rec in recorded_chunks(task, task_sources, keys, engine, seed, batch):
+            hand = np.asarray(rec.action)[..., R.RIGHT_HAND].reshape(len(outcome), episodes, -1)
             for j, src in enumerate(part):
                 rows.append({"name": src.name, "task": task,
                              **closure_summary(hand[j], outcome[j], firmest, threshold)})

@@ -572,6 +572,18 @@ def _check_config(cfg: ZooConfig, data: Path, out: Path) -> None:
 
 # ---- the registry ---------------------------------------------------------------------------------
 
+def recorded_chunks(task: str, sources, keys, engine: str, seed: int, batch: int):
+    """Each chunk of task's sources (those stacked together, at most `batch` episodes a chunk) run in the
+    simulator from the initial states of keys (n, 2), the head camera rendered: yields (the chunk's sources,
+    their (P, n) bool final successes, the chunk's Recording, padded sources included after them)."""
+    n = len(keys)
+    for part, padded in (p for g in group_by_policy(sources) for p in policy_chunks(g, n, batch)):
+        env = cached_env(task, len(padded) * n, engine, False)
+        renderers = cached_renderers(part[0].policy.cfg.size, (HEAD_CAMERA,))
+        outcome, rec = record_policies(env, *stacked_sources(padded), keys, jax.random.PRNGKey(seed), renderers)
+        yield part, outcome, rec
+
+
 def measure_success(out: Path, episodes: int, seed: int = 0, engine: str = "", batch: int = 2048,
                     progress: bool = True) -> dict:
     """True success of every checkpoint of the zoo in out over `episodes` held-out initial states per
@@ -595,10 +607,7 @@ def measure_success(out: Path, episodes: int, seed: int = 0, engine: str = "", b
         keys = np.stack([np.asarray(jax.random.PRNGKey(x)) for x in seeds])
         got = []
         bar = tqdm(total=len(task_sources) * episodes, desc=f"measure {task}", unit="ep", disable=not progress)
-        for part, padded in (p for g in group_by_policy(task_sources) for p in policy_chunks(g, episodes, batch)):
-            env = cached_env(task, len(padded) * episodes, engine, False)
-            renderers = cached_renderers(part[0].policy.cfg.size, (HEAD_CAMERA,))
-            outcome, _ = record_policies(env, *stacked_sources(padded), keys, jax.random.PRNGKey(seed), renderers)
+        for part, outcome, _ in recorded_chunks(task, task_sources, keys, engine, seed, batch):
             for j, src in enumerate(part):
                 n_ok = int(outcome[j].sum())
                 got.append({"name": src.name, "task": task, "lineage": src.record["lineage"],
