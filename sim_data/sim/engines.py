@@ -8,6 +8,7 @@ is shared JAX code in `sim_data.sim.env`.
 from __future__ import annotations
 
 import contextlib
+import functools
 import io
 import os
 from typing import Any
@@ -182,6 +183,12 @@ class MjxEngine:
         recomputes everything else from qpos, qvel, controls and the warm start (zero until a step),
         so the episode is the same as after a full mjx.forward, whose collision and constraint
         stages would compile a second time beside the step's."""
+        return self._placed(jnp.asarray(qpos, jnp.float32), jnp.asarray(mocap_pos, jnp.float32))
+
+    @functools.cached_property
+    def _placed(self):
+        # jitted: called eagerly (a camera's pose, an object's place), the vmapped kinematics would
+        # otherwise compile each of its hundreds of primitives on its own
         mjx, mx = self._mjx, self.mx
 
         def one(q, mp):
@@ -189,7 +196,7 @@ class MjxEngine:
             d = d.replace(qpos=q, mocap_pos=mp)
             return mjx.camlight(mx, mjx.com_pos(mx, mjx.kinematics(mx, d)))
 
-        return jax.vmap(one)(jnp.asarray(qpos, jnp.float32), jnp.asarray(mocap_pos, jnp.float32))
+        return jax.jit(jax.vmap(one))
 
     def advance(self, physics, ctrl, mocap_pos, nsub: int):
         """Steps every simulation nsub substeps with constant ctrl (B, nu) and mocap bodies at mocap_pos
