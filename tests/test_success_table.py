@@ -26,8 +26,12 @@ def test_command_writes_task_skill_rates(tmp_path):
     out = tmp_path / "t.json"
     assert main(["--backend", "cpu", "--episodes", "2", "--skills", "1.0,0.0", "--tasks", "step_back", "--out", str(out)]) == 0
     table = json.loads(out.read_text())
-    assert list(table) == ["step_back"] and list(table["step_back"]) == ["1.0", "0.0"]
-    assert table["step_back"]["1.0"] == 1.0
+    assert {k: table[k] for k in ("engine", "episodes", "grip", "seed")} == {"engine": "cpu", "episodes": 2,
+                                                                            "grip": 1.0, "seed": 0}
+    rates = table["rates"]
+    assert list(rates) == ["step_back"] and list(rates["step_back"]) == ["1.0", "0.0"]
+    assert rates["step_back"]["1.0"] == 1.0
+    assert table["intervals"]["step_back"]["1.0"] == pytest.approx(list(wilson_interval(2, 2)))
 
 
 def test_a_weak_grip_drops_the_mug_that_the_scripts_full_grip_lifts(tmp_path):
@@ -36,7 +40,9 @@ def test_a_weak_grip_drops_the_mug_that_the_scripts_full_grip_lifts(tmp_path):
         out = tmp_path / f"g{grip}.json"
         assert main(["--backend", "cpu", "--episodes", "2", "--skills", "1.0", "--tasks", "mug", "--grip", grip,
                      "--out", str(out)]) == 0
-        rates[grip] = json.loads(out.read_text())["mug"]["1.0"]
+        table = json.loads(out.read_text())
+        assert table["grip"] == float(grip)
+        rates[grip] = table["rates"]["mug"]["1.0"]
     assert rates == {"1.0": 1.0, "0.2": 0.0}
 
 

@@ -2,8 +2,9 @@
 
     python -m sim_data.bench.success_table --backend cpu --episodes 100 --skills 0.2,0.6,1.0 --out runs/success.json
 
-writes `{task: {skill: success_rate}}` (skill keys as given) and prints a table with 95% Wilson
-intervals. Episodes of one task share their initial states across skills (same seed), so the
+writes `{"engine", "episodes", "grip", "seed", "rates": {task: {skill: success_rate}}, "intervals":
+{task: {skill: [low, high]}}}` (skill keys as given; 95% Wilson intervals over the episodes) and prints
+the table. Episodes of one task share their initial states across skills (same seed), so the
 skills are compared on the same scenes. `--grip F` scales every closure of the scripts by F (the data
 generator's weak grips; 1: as scripted): at which grip a task's grasp still holds.
 """
@@ -97,14 +98,13 @@ def main(argv=None) -> int:
     engine = a.backend or default_engine()
     batch = min(a.batch or (50 if engine == "cpu" else 1024), a.episodes)
     rates, counts, secs = success_table(tasks, skills, a.episodes, engine, batch, a.seed, grip=a.grip)
-    write_json_atomic(a.out, rates)
+    intervals = {t: {s: list(wilson_interval(counts[t][s], a.episodes)) for s in skills} for t in tasks}
+    write_json_atomic(a.out, {"engine": engine, "episodes": a.episodes, "grip": a.grip, "seed": a.seed,
+                              "rates": rates, "intervals": intervals})
     print(f"engine={engine} episodes={a.episodes} per point, grip {a.grip:g}, {secs:.0f} s; 95% Wilson intervals")
     print(f"{'task':<10}" + "".join(f"{'skill ' + s:>22}" for s in skills))
     for task in tasks:
-        cells = []
-        for s in skills:
-            lo, hi = wilson_interval(counts[task][s], a.episodes)
-            cells.append(f"{rates[task][s]:.2f} [{lo:.2f},{hi:.2f}]")
+        cells = [f"{rates[task][s]:.2f} [{intervals[task][s][0]:.2f},{intervals[task][s][1]:.2f}]" for s in skills]
         print(f"{task:<10}" + "".join(f"{c:>22}" for c in cells))
     print(f"wrote {a.out}")
     return 0
