@@ -80,6 +80,7 @@ from sim_data.policies.registry import (
     group_by_policy,
     heldout_seeds,
     policy_chunks,
+    reset_keys_of,
     resolve,
     stacked_sources,
     used_seeds,
@@ -152,6 +153,8 @@ FIDELITY_HORIZONS = (1, 8, 16, 32, 64)
 # PSNR at each horizon (P, N, H), the RMS gap of the policy's actions at each step (P, N, T) and in each
 # action dimension over the episode (P, N, 20), and the mean signed difference in each dimension (P, N, 20)
 FIDELITY = ("frame_psnr", "copy_first_psnr", "action_gap", "action_gap_dims", "action_bias_dims")
+# the width at which a task file written before one of them reads it (unknown: NaN), where a newer part's is fixed
+FIDELITY_MISSING_WIDTH = {"action_bias_dims": R.ACTION_DIM}
 # a task's per-policy arrays, (P, N, ...) (the ensemble members' prob_members, (K, P, N), apart)
 POLICY_ARRAYS = (("true", "prob", "prob_observed", OBSERVED_SECOND, "prob_replayed", "sim_imagined", "sim_finite")
                  + READOUT_KEYS + TRACES + FIDELITY)
@@ -359,11 +362,6 @@ def chunk_policy(padded, n: int) -> tuple:
         return stacks[0]
     return (MixedPolicy(tuple(p for p, _ in stacks), tuple(len(g) * n for g in groups)),
             tuple(q for _, q in stacks))
-
-
-def reset_keys_of(seeds) -> np.ndarray:
-    """(n, 2) uint32: the reset keys of n initial-state seeds."""
-    return np.stack([np.asarray(jax.random.PRNGKey(s)) for s in seeds])
 
 
 def slice_key(cfg: EvalConfig, j: int) -> jax.Array:
@@ -1626,9 +1624,8 @@ def load_task(path: Path) -> dict:
             for k in ("prob_observed", OBSERVED_SECOND, "prob_replayed", "sim_imagined"))
         finite = z["sim_finite"] if "sim_finite" in z.files else np.ones(z["prob"].shape, bool)
         traces = {k: z[k] if k in z.files else np.zeros(z["prob"].shape + (0,), np.float16) for k in TRACES}
-        fidelity = {k: z[k] if k in z.files else np.full(z["prob"].shape + (0,), np.nan, np.float32) for k in FIDELITY}
-        if "action_bias_dims" not in z.files:  # written before it: unknown, at the width a newer part has
-            fidelity["action_bias_dims"] = np.full(z["prob"].shape + (R.ACTION_DIM,), np.nan, np.float32)
+        fidelity = {k: z[k] if k in z.files else
+                    np.full(z["prob"].shape + (FIDELITY_MISSING_WIDTH.get(k, 0),), np.nan, np.float32) for k in FIDELITY}
         readouts = {k: z[k] if k in z.files else np.full(z["prob"].shape, np.nan) for k in READOUT_KEYS}
         return {**meta, "true": z["true"].astype(bool), "prob": z["prob"], **readouts,
                 **fidelity,

@@ -16,11 +16,10 @@ import argparse
 import sys
 from pathlib import Path
 
-import jax
 import numpy as np
 from tqdm import tqdm
 
-from sim_data.policies.registry import heldout_seeds, resolve, used_seeds
+from sim_data.policies.registry import heldout_seeds, reset_keys_of, resolve, used_seeds
 from sim_data.policies.zoo import recorded_chunks
 from sim_data.sim import robot as R
 from sim_data.sim.engines import ENGINES, default_engine
@@ -56,7 +55,7 @@ def measure_closures(spec: str, episodes: int, engine: str, firmest: int, thresh
     bar = tqdm(total=len(sources) * episodes, desc="closures", unit="ep", disable=not progress, file=sys.stderr)
     for task in sorted({s.task for s in sources}):
         seeds = heldout_seeds(task, episodes, seed, used)
-        keys = np.stack([np.asarray(jax.random.PRNGKey(x)) for x in seeds])
+        keys = reset_keys_of(seeds)
         task_sources = [s for s in sources if s.task == task]
         for part, outcome, rec in recorded_chunks(task, task_sources, keys, engine, seed, batch):
             hand = np.asarray(rec.action)[..., R.RIGHT_HAND].reshape(len(outcome), episodes, -1)

@@ -667,6 +667,11 @@ def used_fingerprints(*datasets) -> set:
     return {r["policy_fingerprint"] for r in _seen_rows(datasets) if r.get("policy_fingerprint")}
 
 
+def reset_keys_of(seeds) -> np.ndarray:
+    """(n, 2) uint32: the reset keys of n initial-state seeds."""
+    return np.stack([np.asarray(jax.random.PRNGKey(s)) for s in seeds])
+
+
 def heldout_seeds(task: str, n: int, seed: int, used: set) -> list[int]:
     """n initial-state seeds of task that no training dataset used (a seed space of its own, with
     the rare collision skipped)."""

@@ -61,6 +61,7 @@ from sim_data.policies.registry import (
     heldout_seeds,
     load_registry_sources,
     policy_chunks,
+    reset_keys_of,
     stacked_sources,
     used_seeds,
 )
@@ -604,7 +605,7 @@ def measure_success(out: Path, episodes: int, seed: int = 0, engine: str = "", b
             rows += done["rows"]
             continue
         seeds = heldout_seeds(task, episodes, seed, used)
-        keys = np.stack([np.asarray(jax.random.PRNGKey(x)) for x in seeds])
+        keys = reset_keys_of(seeds)
         got = []
         bar = tqdm(total=len(task_sources) * episodes, desc=f"measure {task}", unit="ep", disable=not progress)
         for part, outcome, _ in recorded_chunks(task, task_sources, keys, engine, seed, batch):
