@@ -327,8 +327,7 @@ def test_a_cache_carried_to_a_host_with_the_same_devices_serves_although_its_top
 
 
 def test_a_command_keys_the_cache_by_device_kind_where_the_cache_is_on(tmp_path, monkeypatch):
-    own = jax_cache_key._hash_accelerator_config
-    monkeypatch.setattr(jax_cache_key, "_hash_accelerator_config", own)
+    own = jax_cache_key._hash_accelerator_config  # restored after the test by conftest's autouse fixture
     monkeypatch.setenv("XLA_FLAGS", os.environ.get("XLA_FLAGS", ""))  # run_cli sets XLA's flags: restored after
     monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
     assert util.run_cli(lambda: 0) == 0 and jax_cache_key._hash_accelerator_config is own  # no cache: JAX's key
@@ -341,7 +340,6 @@ def test_the_pipeline_shares_one_compilation_cache_with_its_child_processes(tmp_
     monkeypatch.setattr(jax.config, "update", lambda *a: calls.append(a))
     monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
     monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false")
-    monkeypatch.setattr(jax_cache_key, "_hash_accelerator_config", jax_cache_key._hash_accelerator_config)
     path = P.use_compilation_cache(str(tmp_path))
     assert path == str(tmp_path.absolute() / "jax_cache") and calls == [("jax_compilation_cache_dir", path)]
     keyed = jax_cache_key._hash_accelerator_config  # keyed by device kind on GPUs
