@@ -21,8 +21,11 @@ from sim_data.dataset.episodes import read_episode
 from sim_data.policies import zoo
 from sim_data.policies.bc import (
     BCPolicy,
+    PolicyNetConfig,
     StackedPolicy,
+    init_params,
     predict_chunk,
+    spatial_softmax,
     stack_params,
     stacked,
 )
@@ -469,6 +472,33 @@ def test_temporal_ensembling_executes_the_weighted_mean_of_the_chunks_covering_t
             want = sum(wk * chunks[t - k][:, k] for wk, k in zip(w, ages)) / w.sum()
             np.testing.assert_allclose(np.asarray(a), want, rtol=1e-4, atol=1e-5)
     assert len(frames) > cfg.chunk and not np.allclose(want, chunks[-1][:, 0])  # it differs from the newest chunk
+
+
+def test_spatial_softmax_is_the_softmax_weighted_mean_position_of_each_channel():
+    rng = np.random.default_rng(4)
+    x = rng.normal(size=(2, 3, 5, 4)).astype(np.float32)
+    got = np.asarray(spatial_softmax(jnp.asarray(x), 0.5))
+    for b in range(2):
+        for c in range(4):
+            w = np.exp(x[b, :, :, c] / 0.5)
+            w /= w.sum()
+            cols, rows = np.meshgrid(np.linspace(-1, 1, 5), np.linspace(-1, 1, 3))
+            np.testing.assert_allclose(got[b, 2 * c:2 * c + 2], [(w * cols).sum(), (w * rows).sum()], rtol=1e-5,
+                                       atol=1e-6)
+    peak = np.zeros((1, 3, 5, 1), np.float32)
+    peak[0, 2, 4, 0] = 50.0  # one dominant cell: its position, bottom right
+    np.testing.assert_allclose(np.asarray(spatial_softmax(jnp.asarray(peak), 1.0))[0], [1.0, 1.0], atol=1e-6)
+
+
+def test_a_keypoint_encoder_reads_each_channel_as_a_position_and_gives_the_chunk():
+    cfg = PolicyNetConfig(width=4, hidden=8, chunk=2, keypoints=True)
+    norm = {"proprio_mean": np.zeros(37), "proprio_std": np.ones(37), "action_mean": np.zeros(20),
+            "action_std": np.ones(20)}
+    params = init_params(cfg, jax.random.PRNGKey(0), norm, use_proprio=False)
+    assert params["net"]["feat"]["kernel"].shape[0] == 2 * (2 * cfg.width)  # (x, y) of each last-layer channel
+    image = jnp.asarray(np.random.default_rng(0).integers(0, 255, (3, 64, 64, 3), dtype=np.uint8))
+    chunk = predict_chunk(cfg, params, image, jnp.zeros((3, 37)), jnp.zeros((3,), jnp.int32))
+    assert chunk.shape == (3, 2, 20) and np.isfinite(np.asarray(chunk)).all()
 
 
 def test_random_shift_crops_the_edge_padded_image():

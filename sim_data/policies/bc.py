@@ -51,6 +51,9 @@ class PolicyNetConfig:
       ensemble: None to execute the newest chunk's first action; a number to execute the mean over
         the chunks covering the step with weights exp(-ensemble * age) (0: uniform; negative: the
         older predictions weigh more, as in ACT).
+      keypoints: the conv encoder ends in a spatial softmax (each channel of a stride-4 feature map
+        read as the expected image position of its activation, Levine et al. 2016) instead of the
+        flattened stride-8 map: where things are, rather than what the map holds.
     """
 
     encoder: str = "conv"
@@ -60,6 +63,7 @@ class PolicyNetConfig:
     chunk: int = 4
     size: int = 64
     ensemble: float | None = None
+    keypoints: bool = False
 
     def validate(self) -> None:
         if self.encoder not in ENCODERS:
@@ -70,12 +74,26 @@ class PolicyNetConfig:
 
 class ConvEncoder(nn.Module):
     width: int
+    keypoints: bool = False
 
     @nn.compact
     def __call__(self, x):
-        for i, (ch, k) in enumerate(((self.width, 4), (2 * self.width, 4), (2 * self.width, 3))):
-            x = nn.gelu(nn.Conv(ch, (k, k), strides=2, name=f"conv{i}")(x))
+        strides = (2, 2, 1) if self.keypoints else (2, 2, 2)
+        for i, ((ch, k), s) in enumerate(zip(((self.width, 4), (2 * self.width, 4), (2 * self.width, 3)), strides)):
+            x = nn.gelu(nn.Conv(ch, (k, k), strides=s, name=f"conv{i}")(x))
+        if self.keypoints:
+            return spatial_softmax(x, self.param("temperature", nn.initializers.ones, ()))
         return x.reshape(x.shape[0], -1)
+
+
+def spatial_softmax(x, temperature):
+    """(B, H, W, C) feature map -> (B, 2C): per channel, the softmax-weighted mean (x, y) position in
+    [-1, 1] of its activations, sharpened by dividing them by temperature."""
+    b, h, w, c = x.shape
+    weights = jax.nn.softmax(x.reshape(b, h * w, c) / temperature, axis=1)
+    ys, xs = jnp.meshgrid(jnp.linspace(-1.0, 1.0, h), jnp.linspace(-1.0, 1.0, w), indexing="ij")
+    grid = jnp.stack([xs.reshape(-1), ys.reshape(-1)], axis=-1).astype(x.dtype)  # (H*W, 2)
+    return jnp.einsum("bnc,nk->bck", weights, grid).reshape(b, 2 * c)
 
 
 class ViTEncoder(nn.Module):
@@ -117,7 +135,7 @@ class PolicyNet(nn.Module):
     def __call__(self, image, proprio, t):
         x = (image.astype(jnp.float32) / 255.0 - 0.5).astype(self.dtype)
         if self.cfg.encoder == "conv":
-            feat = ConvEncoder(self.cfg.width, name="encoder")(x)
+            feat = ConvEncoder(self.cfg.width, self.cfg.keypoints, name="encoder")(x)
         else:
             feat = ViTEncoder(self.cfg.width, self.cfg.depth, name="encoder")(x)
         feat = nn.LayerNorm(name="feat_norm")(nn.Dense(self.cfg.hidden, name="feat")(feat))
