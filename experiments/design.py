@@ -97,7 +97,7 @@ def plan(preset: str, name: str, overrides=(), seeds: int = 2, steps: int = 4000
                             (*p.train_overrides, f"seed={k}", f"steps={n}", "max_minutes=0", *extra),
                             ("--config", p.eval, "--out", str(run / f"eval_e{episodes}"), f"policies={d['policies']}",
                              f"wm={run / 'wm'}", f"episodes={episodes}", "max_minutes=0", *p.eval_overrides,
-                             "video_policies=0", f"truth_cache={root / 'truth'}")))
+                             "video_policies=0", f"truth_cache={root / 'truth'}", *evaluate.WORLD_MODEL_ALONE)))
     # the evaluations' settings too, before any model trains for them (episodes a state batch must divide)
     evaluate.make_config(p.eval, [a for a in jobs[0].eval_argv if "=" in a and not a.startswith("-")])
     return jobs

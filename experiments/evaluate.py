@@ -116,6 +116,7 @@ from wm.checkpoint import (
     training_status,
 )
 from wm.config import with_imagine
+from wm.egomotion import EGOMOTION_JSON
 from wm.geometric import PREDICTS, Motion, imagine_robot, load_motion, robot_camera, start_view
 from wm.grasp import grasp_success, load_grasp
 from wm.imagine import (
@@ -307,13 +308,19 @@ class EvalConfig:
         return tuple(w.strip() for w in self.wm.split(",") if w.strip())
 
 
+# the overrides that rank every task by the world model's own read-out where a preset names geometric models:
+# what a study of world-model designs compares (experiments.sweep, experiments.design)
+WORLD_MODEL_ALONE = ("geometric=", "geometric_ranks=0")
+
 PRESETS = {
     # enough episodes that the true rates resolve a ranking: 16 a policy (95% interval about +-0.2) on the
     # demo's CPU, 100 (+-0.1) on a GPU. The demo runs one policy a batch: XLA's CPU numerics move with a
     # batch's composition, enough to flip a marginal grasp or an imagined loop, so a policy's figures
     # would change with the policies evaluated beside it (and on 2 cores it is faster than batches of 256).
-    # The world model: `make demo`'s (experiments.pipeline's demo preset trains one)
-    "demo": EvalConfig(policies=("runs/policies/demo",), wm="runs/wm/demo", episodes=16, batch=16),
+    # The world model: `make demo`'s (experiments.pipeline's demo preset trains one), its step_back and mug
+    # ranked as `make demo` ranks them, by the geometric models its train stage fits (runs/fill/demo)
+    "demo": EvalConfig(policies=("runs/policies/demo",), wm="runs/wm/demo", episodes=16, batch=16,
+                       geometric="runs/fill/demo", geometric_ranks=True),
     # 52 policies x 50 states a batch: the 100 states run as two slices of one compiled program (50 as one)
     "full": EvalConfig(policies=("runs/policies/full",), wm="runs/wm/full", episodes=100, batch=2600, state_batch=50,
                        max_minutes=8.0),
@@ -1270,6 +1277,11 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
     cfg.validate()
     out = Path(out)
     sources = resolve(cfg.policies)  # the policies and models are checked before OUT records the configuration
+    if cfg.geometric and not (Path(cfg.geometric) / EGOMOTION_JSON).exists():
+        raise ValueError(f"geometric={cfg.geometric} holds no geometric models (the robot's motion, the fill, the grasp "
+                         "rules) ranking the tasks whose success they predict: `make demo` fits the demo's in its train "
+                         f"stage (python -m experiments.fill --out {cfg.geometric} ...); or pass geometric= geometric_ranks=0 "
+                         "to rank every task by the world model's read-out alone")
     tasks = evaluation_tasks(cfg, sources)
     models = load_models(cfg.wm_runs, cfg.imagine)
     motion = load_motion(Path(cfg.geometric)) if cfg.geometric else None

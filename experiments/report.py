@@ -320,39 +320,49 @@ PLUGIN_NOTE = ("Each plug-in beside the task's other policies: its true and pred
                "rate the read-out's (the judge does not recognise what the policy did); the larger part of a "
                "prediction outside the true interval names where it lies. The judge learns from imagined episodes, "
                "so it may read true episodes lower or higher across the board: compare with the task's other "
-               "policies' readings in results.json (pred_rate_on_truth).")
+               "policies' readings in results.json (pred_rate_on_truth). A task ranked by its rule (the geometric "
+               "read-out: results.json's geometric_ranks) has no such reading, as the judge's reading of the "
+               "simulated episodes is not the rule's: n/a there.")
 
 
-def error_parts(p: dict) -> tuple[float, float] | None:
+def error_parts(p: dict, ruled=()) -> tuple[float, float] | None:
     """(imagination's part, the read-out's part) of a policy row's error pred_rate - true_rate: pred_rate -
     pred_rate_on_truth and pred_rate_on_truth - true_rate (they sum to the error); None where either rate
-    was not read."""
-    pred, seen = p.get("pred_rate"), p.get("pred_rate_on_truth")
+    was not read, or where the row's task is among `ruled` (ranked by the geometric read-out, whose reading of
+    the simulated episodes pred_rate_on_truth is not)."""
+    pred, seen = p.get("pred_rate"), _on_truth(p, ruled)
     if _missing(pred) or _missing(seen):
         return None
     return pred - seen, seen - p["true_rate"]
 
 
-def error_source(p: dict) -> str:
+def _on_truth(p: dict, ruled=()):
+    """A policy row's reading of its simulated episodes by the read-out it is ranked by; None where its task is
+    among `ruled` (ranked by the geometric read-out, which results.json's pred_rate_on_truth is not)."""
+    return None if p.get("task") in ruled else p.get("pred_rate_on_truth")
+
+
+def error_source(p: dict, ruled=()) -> str:
     """Where a policy row's prediction outside its true interval goes wrong: "imagination" or "read-out",
     whichever part of the error (error_parts) is larger; "-" for a prediction inside the interval, "n/a" where
-    either rate was not read."""
+    either rate was not read (or its task is among `ruled`, error_parts)."""
     lo, hi = p["true_ci"]
     if _missing(p.get("pred_rate")):
         return "n/a"
     if lo <= p["pred_rate"] <= hi:
         return "-"
-    parts = error_parts(p)
+    parts = error_parts(p, ruled)
     if parts is None:
         return "n/a"
     return "imagination" if abs(parts[0]) > abs(parts[1]) else "read-out"
 
 
-def plugin_table(policies: list[dict]) -> list[list[str]] | None:
+def plugin_table(policies: list[dict], ruled=()) -> list[list[str]] | None:
     """Per plug-in and task: true and predicted rate with intervals (the true one marked where some of its
     simulated episodes went non-finite: their outcomes are doubtful), the error, the read-out of its simulated
     episodes, the error's two parts (error_parts) and where it lies (error_source), and the plug-in's place among
-    the task's policies by true and by predicted rate; None where no policy is a plug-in."""
+    the task's policies by true and by predicted rate; None where no policy is a plug-in. ruled: the tasks
+    ranked by the geometric read-out (results.json's world_model.geometric_ranks)."""
     mine = [p for p in policies if p.get("kind") == "plugin"]
     if not mine:
         return None
@@ -372,8 +382,8 @@ def plugin_table(policies: list[dict]) -> list[list[str]] | None:
         doubt = f", {bad} of {p['n']} episodes non-finite" if bad else ""
         rows.append([p["name"], p["task"], f"{p['true_rate']:.2f} ({p['true_ci'][0]:.2f}-{p['true_ci'][1]:.2f}{doubt})",
                      f"{_fmt(p['pred_rate'], 2)} ({_fmt(p['pred_ci'][0], 2)}-{_fmt(p['pred_ci'][1], 2)})",
-                     _fmt(err, 2), inside, _fmt(p.get("pred_rate_on_truth"), 2), _parts_text(error_parts(p)),
-                     error_source(p),
+                     _fmt(err, 2), inside, _fmt(_on_truth(p, ruled), 2), _parts_text(error_parts(p, ruled)),
+                     error_source(p, ruled),
                      f"{place(p, 'true_rate')} / {place(p, 'pred_rate')} of {n}"])
     return rows
 
@@ -641,7 +651,8 @@ def selection_summary(sel: dict) -> str:
                     "model (its imagination diverged on every one): no selection to judge.")
         return "No training run has two or more checkpoints here."
     tied = sum(x.get("tied", 1) > 1 for x in sel["lineages"])
-    return (f"Over {sel['n']} training runs (task x lineage), the world model's highest-rated checkpoint is the "
+    runs = "training run" if sel["n"] == 1 else "training runs"
+    return (f"Over {sel['n']} {runs} (task x lineage), the world model's highest-rated checkpoint is the "
             f"truly best in {_fmt_share(sel['exact_share'])}, within the best one's 95% interval in "
             f"{_fmt_share(sel['within_ci_share'])}; mean regret {_fmt(sel['mean_regret'], 2)} of true success."
             + (f" In {tied} of them the world model rated several checkpoints equally highest: each such pick is "
@@ -711,6 +722,11 @@ def family_table(res: dict) -> list[list[str]] | None:
     return rows
 
 
+def ruled_tasks(res: dict) -> tuple:
+    """The tasks results ranked by the geometric read-out (world_model.geometric_ranks; none in older results)."""
+    return tuple(res.get("world_model", {}).get("geometric_ranks") or ())
+
+
 def violation_table(res: dict) -> list[list[str]] | None:
     """Per task, the policies that carry its MMRV (results.json's rank_violations): each policy's
     term charged to the policy it is most mis-ordered with; None where the results hold none (older
@@ -718,6 +734,7 @@ def violation_table(res: dict) -> list[list[str]] | None:
     viol = res.get("rank_violations")
     if not viol or not any(v["policies"] for v in viol.values()):
         return None
+    ruled = ruled_tasks(res)  # their readings of the true episodes are the judge's, not the rule they are ranked by
     extra = [(k, label) for k, label in (("replayed", "read on its true actions replayed"),
                                          ("on_truth", "read on its true episodes"),
                                          ("imagined_in_sim", "simulated on its imagined actions"))
@@ -732,8 +749,9 @@ def violation_table(res: dict) -> list[list[str]] | None:
         gaps = [g for p in res.get("policies", []) if p["task"] == t and (g := p.get("action_gap")) is not None]
         median = f" ({_fmt(float(np.median(gaps)), 3)})" if gaps else ""
         for k, p in enumerate(v["policies"]):
+            read = [None if t in ruled else p.get(key) for key, _ in extra]
             rows.append([t if k == 0 else "", _fmt(v["mmrv"], 2) if k == 0 else "", p["name"],
-                         _fmt(p["true_rate"], 2), _fmt(p["pred_rate"], 2), *[_fmt(p.get(key), 2) for key, _ in extra],
+                         _fmt(p["true_rate"], 2), _fmt(p["pred_rate"], 2), *[_fmt(r, 2) for r in read],
                          f"{100 * p['share']:.0f}%",
                          str(p["against"]), _fmt(p.get("action_gap"), 3) + median,
                          *([_largest_gap(p)] if largest else []),
@@ -744,7 +762,9 @@ def violation_table(res: dict) -> list[list[str]] | None:
 def _largest_gap(row: dict) -> str:
     """A violation row's largest one-dimension action gap as "rms (dimension)", or n/a."""
     g = row.get("action_gap_largest")
-    return "n/a" if not g else f"{_fmt(g['rms'], 3)} ({g['dim']})"
+    if not g:
+        return "n/a"
+    return f"{_fmt(g['rms'], 3)} ({g['dim']})" if g["rms"] > 0 else f"{_fmt(g['rms'], 3)} (none differs)"
 
 
 def loop_note(res: dict) -> str | None:
@@ -947,7 +967,8 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
     tasks, policies, metrics = res["tasks"], res["policies"], res["metrics"]
     videos = read_videos(run)
     verd = verdicts(policies, tasks)
-    unlearned, unread, plug = unlearned_warning(res), nonfinite_policies(policies), plugin_table(policies)
+    unlearned, unread = unlearned_warning(res), nonfinite_policies(policies)
+    plug = plugin_table(policies, ruled_tasks(res))
     h = [f"<html><head><meta charset='utf-8'><title>World-model policy evaluation</title><style>{CSS}</style>"
          "</head><body>", "<h1>Policy evaluation in the world model against the simulator</h1>",
          f"<p>{policy_count(policies)} on {html.escape(', '.join(tasks))}; {res['config']['episodes']} held-out "

@@ -63,6 +63,7 @@ from matplotlib.figure import Figure
 
 from experiments import ensemble
 from experiments import stats as S
+from experiments.evaluate import WORLD_MODEL_ALONE
 from sim_data.parts import local_gpus
 from sim_data.util import run_cli, write_json_atomic
 
@@ -352,7 +353,8 @@ def rank_run(model: Path, zoo: Path, task: str, size: Size, out: Path, gpu, log:
     the simulator (experiments.evaluate; no videos; the simulated side cached in `truth` and shared
     by every model ranked from the same held-out states)."""
     return _subprocess(["-m", "experiments.evaluate", "--config", size.eval, "--out", str(out), f"wm={model}",
-                        f"policies={zoo}", f"tasks={task}", "video_policies=0", f"truth_cache={truth}"], gpu, log)
+                        f"policies={zoo}", f"tasks={task}", "video_policies=0", f"truth_cache={truth}",
+                        *WORLD_MODEL_ALONE], gpu, log)
 
 
 def train_run(run: SweepRun, size: Size, data: Path, out: Path, gpu, log: Path) -> int:

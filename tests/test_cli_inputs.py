@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from experiments import evaluate as E
+from sim_data.util import run_cli
 from wm.checkpoint import load_trained, trained_tasks
 from wm.config import TrainConfig
 from wm.imagine import Norm
@@ -94,3 +95,15 @@ def test_a_rerun_may_add_or_drop_a_truth_cache_that_keeps_the_frames_but_not_one
                          (["episodes=3"], "episodes")):
         with pytest.raises(ValueError, match=rf"another configuration \(differs: {field}\)"):
             E._check_config(E.make_config("demo", base + extra), out, [])
+
+
+def test_the_demo_preset_ranks_as_make_demo_does_and_names_missing_geometric_models(tmp_path, monkeypatch, capsys):
+    cfg = E.make_config("demo")
+    assert (cfg.geometric, cfg.geometric_ranks) == ("runs/fill/demo", True)  # what `make demo`'s chain passes
+    monkeypatch.chdir(tmp_path)  # no runs/fill/demo here
+    args = ["--out", "o", "wm=no/such/wm", "policies=examples.plugin_policy:make"]
+    assert run_cli(lambda: E.main(args)) == 2
+    err = capsys.readouterr().err
+    assert "geometric=runs/fill/demo holds no geometric models" in err and "geometric= geometric_ranks=0" in err
+    assert run_cli(lambda: E.main(args + ["geometric=", "geometric_ranks=0"])) == 2  # the judge alone: on to the model
+    assert "no/such/wm" in capsys.readouterr().err

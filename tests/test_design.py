@@ -25,7 +25,8 @@ def test_the_plan_trains_each_seed_of_both_designs_on_the_presets_data_and_evalu
         e = list(j.eval_argv)
         assert e[e.index("--out") + 1] == str(j.eval) and f"wm={j.wm}" in e and "episodes=8" in e
         assert f"policies={d['policies']}" in e
-        assert e[-2:] == ["video_policies=0", f"truth_cache={tmp_path / 'truth'}"]  # one simulation for every run
+        assert e[-4:-2] == ["video_policies=0", f"truth_cache={tmp_path / 'truth'}"]  # one simulation for every run
+        assert e[-2:] == ["geometric=", "geometric_ranks=0"]  # the designs' own read-out, not the demo's rules
     assert [j.wm.parent.relative_to(tmp_path) for j in jobs] == [
         D.Path("anchor/200steps_s0"), D.Path("anchor/200steps_s1"), D.Path("recipe/300steps_s0"),
         D.Path("recipe/300steps_s1")]

@@ -521,6 +521,27 @@ def test_the_report_places_each_plugin_among_its_tasks_policies():
     assert table[2][4:] == ["n/a", "n/a", "n/a", "n/a", "n/a", "2 / n/a of 2"]  # a prediction not read
     assert table[2][2] == "0.00 (0.00-0.20, 16 of 16 episodes non-finite)"  # a truth in doubt says so
     assert RP.plugin_table([p for p in policies if p["kind"] == "learned"]) is None
+    # mug ranked by its rule: the judge's 0.55 on the simulated episodes is not the rule's reading, so no split
+    ruled = RP.plugin_table(policies, ruled=("mug",))
+    assert ruled[1][6:9] == ["n/a", "n/a", "n/a"] and ruled[1][4:6] == table[1][4:6] and ruled[2] == table[2]
+
+
+def test_the_violations_of_a_task_ranked_by_its_rule_show_no_judge_reading_of_its_true_episodes():
+    def viol(name):
+        return {"name": name, "true_rate": 0.2, "pred_rate": 0.9, "on_truth": 0.4, "share": 1.0, "against": 1}
+    res = {"rank_violations": {t: {"mmrv": 0.3, "policies": [viol(f"{t}/p")]} for t in ("mug", "step_back")},
+           "policies": [], "world_model": {"geometric_ranks": ["step_back"]}}
+    rows = RP.violation_table(res)
+    col = rows[0].index("read on its true episodes")
+    assert [r[col] for r in rows[1:]] == ["0.40", "n/a"]  # mug by the judge, step_back by its rule
+    res["world_model"] = {}  # older results: every task by the read-out
+    assert [r[col] for r in RP.violation_table(res)[1:]] == ["0.40", "0.40"]
+    # a policy that acts alike on imagined and true frames has no largest dimension to name
+    res["rank_violations"]["mug"]["policies"][0]["action_gap_largest"] = {"rms": 0.0, "dim": "left_shoulder_pitch"}
+    res["rank_violations"]["step_back"]["policies"][0]["action_gap_largest"] = {"rms": 0.25, "dim": "forward_speed"}
+    rows = RP.violation_table(res)
+    col = rows[0].index("largest in one dimension")
+    assert [r[col] for r in rows[1:]] == ["0.000 (none differs)", "0.250 (forward_speed)"]
 
 
 def test_a_plugin_s_error_is_placed_in_the_read_out_or_in_imagination():

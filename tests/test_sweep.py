@@ -164,3 +164,13 @@ def test_data_jobs_come_just_before_the_first_sweep_that_needs_them(tmp_path):
     assert names[4:6] == ["data:shelf_arcade", "transfer/x=1/seed=0"]
     assert names.index("zoo") == names.index("data_scaling/x=0.125/seed=0") - 1
     assert len(names) == len(set(names)) == len(jobs) + 2 + 2 + 8
+
+
+def test_a_sweep_ranks_by_each_models_own_read_out_not_the_demo_presets_rules(tmp_path, monkeypatch):
+    calls = []
+    monkeypatch.setattr(W, "_subprocess", lambda args, gpu, log: calls.append(args) or 0)
+    assert W.rank_run(tmp_path / "wm", tmp_path / "zoo", "step_back", W.SIZES["demo"], tmp_path / "out", None,
+                      tmp_path / "log", tmp_path / "truth") == 0
+    args = calls[0]
+    assert args[args.index("--config") + 1] == "demo" and f"wm={tmp_path / 'wm'}" in args
+    assert args[-2:] == ["geometric=", "geometric_ranks=0"]  # the demo preset's own default ranks by the rules
