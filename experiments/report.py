@@ -519,12 +519,16 @@ REPLAYED = "the read-out of the true actions replayed"
 SIM_IMAGINED = "the simulator on the actions taken in imagination"
 
 
-def _other_readouts(w: dict) -> list[tuple[str, str]]:
+def _other_readouts(w: dict, res: dict | None = None) -> list[tuple[str, str]]:
     """(key, label) of the world model's read-outs other than the one it ranks by, in results' order,
     then, where measured, its read-out of the true episodes (and the second judge's), of their actions
-    replayed, and the simulator's outcomes of the actions the policies took in imagination."""
+    replayed, and the simulator's outcomes of the actions the policies took in imagination. Where res ranks
+    some tasks by the geometric read-out, the true episodes' reading names the read-out it is (not the rules')."""
+    upper = UPPER
+    if res and ruled_tasks(res) and (readout := res.get("world_model", {}).get("readout")):
+        upper = f"the {readout} read-out of the true episodes (every task's)"
     return ([(k, f"world model, {k[len('readout_'):]} read-out") for k in w if k.startswith("readout_")]
-            + [(k, label) for k, label in (("on_truth", UPPER), ("on_truth_judge2", UPPER_SECOND),
+            + [(k, label) for k, label in (("on_truth", upper), ("on_truth_judge2", UPPER_SECOND),
                                            ("replayed", REPLAYED), ("sim_imagined", SIM_IMAGINED)) if k in w])
 
 
@@ -544,7 +548,7 @@ def within_task_table(res: dict) -> list[list[str]]:
     exact imagination: experiments.judge_study's observed bound is one) and to their actions replayed open loop (where measured: imagination without the policy
     in the loop), and the preset's target, with MMRV's floor (stats.mmrv_floor) beside its target."""
     w = res["metrics"]["within_task"]
-    others = _other_readouts(w)
+    others = _other_readouts(w, res)
     targets = TARGETS.get(res.get("preset", ""), {})
     readout = res.get("world_model", {}).get("readout")
     if readout and (geo := res["world_model"].get("geometric_ranks")):
@@ -574,7 +578,7 @@ def per_task_table(res: dict, key: str = "within_task") -> list[list[str]]:
     stats = list(w["world_model"]["mean"])
     rows = [["task", "predictor", *[LABELS.get(k, k) for k in stats]]]
     who_label = [("world_model", "world model"), ("proxy", "imitation-loss proxy")]
-    who_label += _other_readouts(w)
+    who_label += _other_readouts(w, res)
     for t in w["tasks"]:
         for who, label in who_label:
             rows.append([t, label, *[_ci(w[who]["per_task"][t][k], w[who]["per_task_ci"][t][k])

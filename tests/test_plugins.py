@@ -812,3 +812,13 @@ def test_a_random_policy_draws_alike_in_the_simulator_and_in_imagination(smoke_w
     gap = E.load_task(tmp_path / "run" / "tasks" / "mug.npz")["action_gap"]
     assert gap.shape[-1] > 1 and np.isfinite(gap).all()
     np.testing.assert_array_equal(gap, 0.0)
+
+
+def test_the_true_episodes_reading_names_its_read_out_where_rules_rank_some_tasks():
+    w = {"on_truth": {}, "readout_progress": {}}
+    assert RP._other_readouts(w) == [("readout_progress", "world model, progress read-out"),
+                                     ("on_truth", "the read-out of the true episodes")]
+    res = {"world_model": {"readout": "judge", "geometric_ranks": ["step_back"]}}
+    assert RP._other_readouts(w, res)[1] == ("on_truth", "the judge read-out of the true episodes (every task's)")
+    res["world_model"]["geometric_ranks"] = []  # every task by the judge: the plain label says it
+    assert RP._other_readouts(w, res)[1] == ("on_truth", "the read-out of the true episodes")
