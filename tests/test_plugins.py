@@ -21,6 +21,7 @@ from experiments import stats as S
 from sim_data.dataset import generate as G
 from sim_data.policies.bc import BCPolicy, PolicyNetConfig, stacked, stand_in_params
 from sim_data.policies.degrade import DegradedPolicy, degrade_params
+from sim_data.policies import registry as REG
 from sim_data.policies.registry import (
     ClippedPolicy,
     PolicySource,
@@ -270,7 +271,7 @@ def test_unusual_plugins_are_kept_apart_and_checked(tmp_path, monkeypatch):
     assert back.policy.policy == forward.policy.policy  # namedtuples of equal fields compare equal, as tuples
     assert back.policy != forward.policy and len(group_by_policy([back, forward])) == 2  # but never run as one
     refusals = [("odd_pols:fixed_batch", ValueError, r"'odd_pols:fixed_batch'.*shape \(3, 20\).*got \(2, 20\)"),
-                ("odd_pols:single", ValueError, r"'odd_pols:single'.*a pair \(action, carry\)"),
+                ("odd_pols:single", ValueError, r"'odd_pols:single'.*a pair \(action, carry\), got an array of shape \(2, 20\)"),
                 ("odd_pols:bak", ValueError, r"no attribute 'bak'; did you mean back"),
                 ("odd_broken:make", RuntimeError, r"'odd_broken:make'.*importing 'odd_broken' raised KeyError"),
                 ("odd_dep:make", ValueError, r"'odd_dep:make'.*not_installed_anywhere.*not installed"),
@@ -822,3 +823,9 @@ def test_the_true_episodes_reading_names_its_read_out_where_rules_rank_some_task
     assert RP._other_readouts(w, res)[1] == ("on_truth", "the judge read-out of the true episodes (every task's)")
     res["world_model"]["geometric_ranks"] = []  # every task by the judge: the plain label says it
     assert RP._other_readouts(w, res)[1] == ("on_truth", "the read-out of the true episodes")
+
+
+def test_what_act_returned_instead_of_a_pair_is_described_plainly():
+    assert REG._described(np.zeros((2, 20))) == "an array of shape (2, 20)"
+    assert REG._described((np.zeros((2, 20)), np.zeros(3), 1.0)) == "a tuple of 3: [(2, 20), (3,), 'float']"
+    assert REG._described(None) == "a NoneType"

@@ -328,6 +328,17 @@ STACKED = (" (as the rollouts and imagination run it: stacked, under jax.vmap un
            "the parameters becomes a float32 or int32 array)")
 
 
+def _described(out) -> str:
+    """What a policy's act returned, for an error: an array as "an array of shape (B, 20)", a tuple or list of
+    another length as its length and its items' shapes."""
+    if hasattr(out, "shape"):
+        return f"an array of shape {tuple(out.shape)}"
+    if isinstance(out, (tuple, list)):
+        shapes = [tuple(x.shape) if hasattr(x, "shape") else type(x).__name__ for x in out]
+        return f"a {type(out).__name__} of {len(out)}: {shapes}"
+    return f"a {type(out).__name__}"
+
+
 def _check_batch(spec: str, policy, params, batch: int, size: int, task_state_optional: bool, hint: str = ""):
     """check_protocol at one batch size: (init_carry's and act's traced programs), or None where the
     policy fails without a task state and task_state_optional (a warning says so). hint: what a failure
@@ -343,8 +354,7 @@ def _check_batch(spec: str, policy, params, batch: int, size: int, task_state_op
                            f"(image ({batch}, {size}, {size}, 3) uint8, proprio ({batch}, {PROPRIO_DIM}) float32, "
                            f"task_state None, as in the world model){hint}: {type(e).__name__}: {e}") from e
     if not (isinstance(out, (tuple, list)) and len(out) == 2):
-        got = jax.tree.map(lambda x: getattr(x, "shape", x), out)
-        raise ValueError(f"plug-in {spec!r}: act must return a pair (action, carry), got {got}")
+        raise ValueError(f"plug-in {spec!r}: act must return a pair (action, carry), got {_described(out)}")
     action, after = out
     if getattr(action, "shape", None) != (batch, ACTION_DIM):
         raise ValueError(f"plug-in {spec!r}: act must return actions of shape ({batch}, {ACTION_DIM}) for a "
