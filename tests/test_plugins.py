@@ -19,9 +19,9 @@ from experiments import evaluate as E
 from experiments import report as RP
 from experiments import stats as S
 from sim_data.dataset import generate as G
+from sim_data.policies import registry as REG
 from sim_data.policies.bc import BCPolicy, PolicyNetConfig, stacked, stand_in_params
 from sim_data.policies.degrade import DegradedPolicy, degrade_params
-from sim_data.policies import registry as REG
 from sim_data.policies.registry import (
     ClippedPolicy,
     PolicySource,
