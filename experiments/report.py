@@ -726,6 +726,10 @@ def family_table(res: dict) -> list[list[str]] | None:
     return rows
 
 
+# a rank violation's readings by the ranked read-out (the simulator's outcome of its imagined actions is none)
+JUDGE_READINGS = ("replayed", "on_truth")
+
+
 def ruled_tasks(res: dict) -> tuple:
     """The tasks results ranked by the geometric read-out (world_model.geometric_ranks; none in older results)."""
     return tuple(res.get("world_model", {}).get("geometric_ranks") or ())
@@ -738,7 +742,7 @@ def violation_table(res: dict) -> list[list[str]] | None:
     viol = res.get("rank_violations")
     if not viol or not any(v["policies"] for v in viol.values()):
         return None
-    ruled = ruled_tasks(res)  # their readings of the true episodes are the judge's, not the rule they are ranked by
+    ruled = ruled_tasks(res)  # their judge's readings (JUDGE_READINGS) are not the rule they are ranked by
     extra = [(k, label) for k, label in (("replayed", "read on its true actions replayed"),
                                          ("on_truth", "read on its true episodes"),
                                          ("imagined_in_sim", "simulated on its imagined actions"))
@@ -753,7 +757,7 @@ def violation_table(res: dict) -> list[list[str]] | None:
         gaps = [g for p in res.get("policies", []) if p["task"] == t and (g := p.get("action_gap")) is not None]
         median = f" ({_fmt(float(np.median(gaps)), 3)})" if gaps else ""
         for k, p in enumerate(v["policies"]):
-            read = [None if t in ruled else p.get(key) for key, _ in extra]
+            read = [None if t in ruled and key in JUDGE_READINGS else p.get(key) for key, _ in extra]
             rows.append([t if k == 0 else "", _fmt(v["mmrv"], 2) if k == 0 else "", p["name"],
                          _fmt(p["true_rate"], 2), _fmt(p["pred_rate"], 2), *[_fmt(r, 2) for r in read],
                          f"{100 * p['share']:.0f}%",

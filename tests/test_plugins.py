@@ -529,12 +529,15 @@ def test_the_report_places_each_plugin_among_its_tasks_policies():
 
 def test_the_violations_of_a_task_ranked_by_its_rule_show_no_judge_reading_of_its_true_episodes():
     def viol(name):
-        return {"name": name, "true_rate": 0.2, "pred_rate": 0.9, "on_truth": 0.4, "share": 1.0, "against": 1}
+        return {"name": name, "true_rate": 0.2, "pred_rate": 0.9, "on_truth": 0.4, "imagined_in_sim": 0.3,
+                "share": 1.0, "against": 1}
     res = {"rank_violations": {t: {"mmrv": 0.3, "policies": [viol(f"{t}/p")]} for t in ("mug", "step_back")},
            "policies": [], "world_model": {"geometric_ranks": ["step_back"]}}
     rows = RP.violation_table(res)
     col = rows[0].index("read on its true episodes")
     assert [r[col] for r in rows[1:]] == ["0.40", "n/a"]  # mug by the judge, step_back by its rule
+    sim = rows[0].index("simulated on its imagined actions")
+    assert [r[sim] for r in rows[1:]] == ["0.30", "0.30"]  # the simulator's outcome, whatever reads the loop
     res["world_model"] = {}  # older results: every task by the read-out
     assert [r[col] for r in RP.violation_table(res)[1:]] == ["0.40", "0.40"]
     # a policy that acts alike on imagined and true frames has no largest dimension to name
