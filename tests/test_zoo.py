@@ -23,11 +23,11 @@ from sim_data.policies.bc import (
     BCPolicy,
     PolicyNetConfig,
     StackedPolicy,
-    init_params,
     predict_chunk,
     spatial_softmax,
     stack_params,
     stacked,
+    stand_in_params,
 )
 from sim_data.policies.registry import (
     PLAN,
@@ -492,9 +492,7 @@ def test_spatial_softmax_is_the_softmax_weighted_mean_position_of_each_channel()
 
 def test_a_keypoint_encoder_reads_each_channel_as_a_position_and_gives_the_chunk():
     cfg = PolicyNetConfig(width=4, hidden=8, chunk=2, keypoints=True)
-    norm = {"proprio_mean": np.zeros(37), "proprio_std": np.ones(37), "action_mean": np.zeros(20),
-            "action_std": np.ones(20)}
-    params = init_params(cfg, jax.random.PRNGKey(0), norm, use_proprio=False)
+    params = stand_in_params(cfg, use_proprio=False)
     assert params["net"]["feat"]["kernel"].shape[0] == 2 * (2 * cfg.width)  # (x, y) of each last-layer channel
     image = jnp.asarray(np.random.default_rng(0).integers(0, 255, (3, 64, 64, 3), dtype=np.uint8))
     chunk = predict_chunk(cfg, params, image, jnp.zeros((3, 37)), jnp.zeros((3,), jnp.int32))
