@@ -958,10 +958,32 @@ def read_results(run: Path) -> dict:
             raise ValueError(f"{path}: policy {p.get('name')!r} ({p.get('task')}) lacks {', '.join(lack)}")
         if p["task"] not in res["tasks"]:
             raise ValueError(f"{path}: policy {p['name']!r} is on task {p['task']!r}, not among tasks {res['tasks']}")
-        if not p["n"] or p["true_rate"] is None or None in p["true_ci"]:
+        if not p["n"] or p["true_rate"] is None or (isinstance(p["true_ci"], list) and None in p["true_ci"]):
             raise ValueError(f"{path}: policy {p['name']!r} ({p['task']}) has no simulated episode (n={p['n']}, "
                              f"true_rate {p['true_rate']}): leave it out or evaluate it")
+        if wrong := _misread_rates(p):
+            raise ValueError(f"{path}: policy {p['name']!r} ({p['task']}): {wrong} (edited by hand?)")
     return res
+
+
+def _is_rate(x) -> bool:
+    """Whether x is a success rate as results.json holds one: a number in [0, 1] (JSON true/false are not)."""
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and 0.0 <= x <= 1.0
+
+
+def _misread_rates(p: dict) -> str:
+    """What is wrong with a results row's rates and intervals ("" where nothing): true_rate a rate,
+    true_ci two rates, pred_rate a rate or null (its imagination diverged), pred_ci two rates or nulls."""
+    if not _is_rate(p["true_rate"]):
+        return f"true_rate {p['true_rate']!r} is not a rate in [0, 1]"
+    for key, may_be_null in (("true_ci", False), ("pred_ci", True)):
+        ci = p[key]
+        if not (isinstance(ci, list) and len(ci) == 2
+                and all(_is_rate(x) or (may_be_null and x is None) for x in ci)):
+            return f"{key} {ci!r} is not a pair of rates in [0, 1]" + (" or nulls" if may_be_null else "")
+    if not (p["pred_rate"] is None or _is_rate(p["pred_rate"])):
+        return f"pred_rate {p['pred_rate']!r} is neither a rate in [0, 1] nor null"
+    return ""
 
 
 def _sentence(s: str) -> str:

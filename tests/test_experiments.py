@@ -865,6 +865,16 @@ def test_a_results_file_the_report_cannot_read_is_named_with_what_is_wrong(evalu
     rows[0]["pred_rate"] = float("nan")  # json.dumps writes the token NaN: read as an undefined figure
     (run / "results.json").write_text(json.dumps(res | {"policies": rows}))
     assert read_results(run)["policies"][0]["pred_rate"] is None
+    for key, value, says in (("pred_rate", "0.5", r"pred_rate '0.5' is neither a rate in \[0, 1\] nor null"),
+                             ("pred_rate", 1.5, r"pred_rate 1.5 is neither"),
+                             ("pred_ci", None, r"pred_ci None is not a pair of rates in \[0, 1\] or nulls"),
+                             ("true_ci", [0.1], r"true_ci \[0.1\] is not a pair of rates in \[0, 1\] \(edited by hand\?\)"),
+                             ("true_rate", True, r"true_rate True is not a rate")):
+        rows = [dict(p) for p in res["policies"]]
+        rows[0][key] = value
+        (run / "results.json").write_text(json.dumps(res | {"policies": rows}))
+        with pytest.raises(ValueError, match=rf"policy '{rows[0]['name']}' \(mug\): {says}"):
+            read_results(run)
 
 
 def test_names_with_tex_and_markup_render_as_written(own_evaluation):
