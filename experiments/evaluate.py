@@ -279,6 +279,16 @@ class EvalConfig:
                              "trained by python -m experiments.fill --out DIR)")
         if not 0 < self.threshold < 1:
             raise ValueError(f"threshold must be in (0, 1), got {self.threshold}")
+        if self.video_policies < 0 or self.video_episodes < 0:
+            raise ValueError(f"video_policies and video_episodes count what the report films, >= 0; got "
+                             f"{self.video_policies}, {self.video_episodes}")
+        if not self.gaps or any(not 0 < g <= 1 for g in self.gaps):
+            raise ValueError(f"gaps are the decision analysis's true gaps between two policies, each in (0, 1]; got "
+                             f"{self.gaps!r} (gaps=0.1,0.2)")
+        if not self.decision_episodes or any(n < 1 for n in self.decision_episodes):
+            raise ValueError(f"decision_episodes are episode counts a policy, each >= 1; got {self.decision_episodes!r}")
+        if self.max_minutes < 0:
+            raise ValueError(f"max_minutes is a safety stop in minutes, >= 0 (0: none); got {self.max_minutes}")
         if self.truth_cache and self.video_policies and not self.truth_frames:
             raise ValueError("truth_cache keeps no real videos without their frames: use it with video_policies=0, "
                              "or keep the frames (truth_frames=1)")

@@ -664,6 +664,16 @@ def test_auto_readout_picks_the_judge_only_where_every_model_saw_learned_policie
         E.make_config("demo", ["readout=final"])
 
 
+@pytest.mark.parametrize("setting, says", [
+    ("gaps=1.5", r"gaps are .* each in \(0, 1\]; got \(1.5,\)"), ("gaps=0.1,-0.2", "gaps are"),
+    ("gaps=", r"got \(\)"), ("video_policies=-1", "video_policies and video_episodes count"),
+    ("video_episodes=-3", "count what the report films"), ("decision_episodes=0", "each >= 1; got \\(0,\\)"),
+    ("max_minutes=-1", "max_minutes is a safety stop")])
+def test_settings_that_only_the_analysis_after_the_episodes_reads_are_refused_before_any_runs(setting, says):
+    with pytest.raises(ValueError, match=says):
+        E.make_config("demo", [setting, *E.WORLD_MODEL_ALONE])
+
+
 def test_within_task_headline_and_checkpoint_selection_from_the_episodes(evaluation):
     from wm.quality import no_nan
 
