@@ -409,6 +409,32 @@ def unlearned_warning(res: dict) -> str:
             "its predictions there are guesses about a task it does not know.")
 
 
+def _tasks_by_rule(res: dict) -> dict:
+    """{what a task's policies are ranked by: [its tasks]} from results.json's world_model.rule ({} in
+    results written without it)."""
+    groups = {}
+    for t, rule in (res["world_model"].get("rule") or {}).items():
+        if t in res["tasks"]:
+            groups.setdefault(rule, []).append(t)
+    return groups
+
+
+def ranked_by(res: dict) -> str:
+    """A sentence saying what ranks each task's policies ("" in results written without it), and, for the
+    tasks the geometric read-out ranks, that it starts from the simulator's first state and applies the
+    task's own rule, so that its figures are not those of the learned network's reading of its frames."""
+    groups = _tasks_by_rule(res)
+    if not groups:
+        return ""
+    said = "; ".join(f"{', '.join(ts)} by {rule if rule.startswith('the ') else 'the ' + rule}"
+                     for rule, ts in groups.items())
+    ruled = ruled_tasks(res)
+    return (f"Ranked: {said}." + (f" The geometric read-out ({', '.join(ruled)}) moves the robot by models of its "
+                                  "motion from the simulator's first state and decides success by the task's own "
+                                  "rule on the predicted states: it is a model of the robot and its grasp, not the "
+                                  "learned network's reading of the frames it imagines." if ruled else ""))
+
+
 def md_table(rows) -> str:
     """A Markdown table of rows of strings, the first row the header; "|" in a cell is escaped."""
     # a policy's name may hold "|", a line break or an HTML tag's "<" ("<=" in a target stays as it is)
@@ -478,12 +504,14 @@ def verdict(res: dict) -> str:
                 "with a validation loss, the world model no policy whose imagination diverged)")
     lo = diff["mean_ci"]["pearson"][0]
     hi = diff["mean_ci"]["pearson"][1]
+    ruled = ruled_tasks(res)
+    by = f" (by its geometric read-out on {', '.join(ruled)})" if ruled else ""
     if lo is not None and lo > 0:
-        head = "The world model ranks policies within a task better than the imitation-loss proxy"
+        head = f"The world model{by} ranks policies within a task better than the imitation-loss proxy"
     elif hi is not None and hi < 0:
-        head = "The world model ranks policies within a task worse than the imitation-loss proxy"
+        head = f"The world model{by} ranks policies within a task worse than the imitation-loss proxy"
     else:
-        head = "Within a task, the world model's ranking cannot be told apart from the imitation-loss proxy's"
+        head = f"Within a task, the world model's ranking{by} cannot be told apart from the imitation-loss proxy's"
     return (f"{head}{over}: mean within-task Pearson r {_ci(wm['mean']['pearson'], wm['mean_ci']['pearson'])} against "
             f"{_ci(px['mean']['pearson'], px['mean_ci']['pearson'])} (difference "
             f"{_ci(diff['mean']['pearson'], diff['mean_ci']['pearson'])}; 95% intervals resampling "
@@ -551,9 +579,14 @@ def within_task_table(res: dict) -> list[list[str]]:
     others = _other_readouts(w, res)
     targets = TARGETS.get(res.get("preset", ""), {})
     readout = res.get("world_model", {}).get("readout")
-    if readout and (geo := res["world_model"].get("geometric_ranks")):
-        readout += f" read-out; {', '.join(geo)} by the geometric"
-    rows = [["statistic (mean over tasks)", f"world model ({readout} read-out)" if readout else "world model",
+    groups = _tasks_by_rule(res)
+    if len(groups) > 1:
+        label = "world model (" + "; ".join(f"{', '.join(ts)}: {rule}" for rule, ts in groups.items()) + ")"
+    elif groups:
+        label = f"world model ({next(iter(groups))})"
+    else:
+        label = f"world model ({readout} read-out)" if readout else "world model"
+    rows = [["statistic (mean over tasks)", label,
              "imitation-loss proxy", "world model - proxy (paired, over the policies both score)",
              *[label for _, label in others], f"target ({res.get('preset') or 'none'} preset)"]]
     floor = res["metrics"].get("mmrv_floor")
@@ -1007,6 +1040,7 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
          f"device {html.escape(str(res['device']))}.</p>",
          *([f"<p class='warn'>Partial: tasks {html.escape(', '.join(res['missing_tasks']))} were not evaluated; "
             "every statistic below leaves them out.</p>"] if res.get("missing_tasks") else []),
+         *([f"<p>{html.escape(ranking)}</p>"] if (ranking := ranked_by(res)) else []),
          *([f"<p class='warn'>{html.escape(unlearned)}</p>"] if unlearned else []),
          *([f"<p class='warn'>{html.escape(_sentence(unread))}.</p>"] if unread else []),
          *([f"<p class='warn'>{html.escape(CUT_SHORT)}</p>"] if res["world_model"].get("cut_short") else []),
@@ -1062,6 +1096,7 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
           f"engine {res['engine']}, device {res['device']}. Full report: `report.html`.", "",
           *([f"**Partial**: tasks {', '.join(res['missing_tasks'])} were not evaluated; every statistic below "
              "leaves them out.", ""] if res.get("missing_tasks") else []),
+          *([ranking, ""] if ranking else []),
           *([f"**{unlearned}**", ""] if unlearned else []),
           *([f"**{_sentence(unread)}.**", ""] if unread else []),
           *([f"**{CUT_SHORT}**", ""] if res["world_model"].get("cut_short") else []),

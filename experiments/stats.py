@@ -606,7 +606,8 @@ def policy_count(rows: list[dict]) -> str:
     """How many policies the rows (one a policy and task) hold: "31 policies, 37 policy-task pairs" where
     a policy runs on several tasks (a plug-in: the same name on each), "25 policies" where each runs on one."""
     names = len({r["name"] for r in rows})
-    return f"{names} policies" + (f", {len(rows)} policy-task pairs" if names != len(rows) else "")
+    return f"{names} {'policy' if names == 1 else 'policies'}" + (f", {len(rows)} policy-task pairs"
+                                                                   if names != len(rows) else "")
 
 
 def nonfinite_policies(rows: list[dict]) -> str:

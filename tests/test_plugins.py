@@ -828,6 +828,21 @@ def test_the_true_episodes_reading_names_its_read_out_where_rules_rank_some_task
     assert RP._other_readouts(w, res)[1] == ("on_truth", "the read-out of the true episodes")
 
 
+def test_the_report_says_what_ranks_each_task_and_that_the_geometric_read_out_is_no_network():
+    rule = "the task's rule on states predicted from the actions (wm.geometric, wm.grasp)"
+    res = {"tasks": ["mug", "step_back", "wipe"], "world_model": {
+        "readout": "judge", "geometric_ranks": ["step_back"],
+        "rule": {"mug": "episode judge", "step_back": rule, "wipe": "highest per-step success probability"}}}
+    said = RP.ranked_by(res)
+    assert said.startswith(f"Ranked: mug by the episode judge; step_back by {rule}; wipe by the highest per-step "
+                           "success probability. The geometric read-out (step_back) moves the robot")
+    assert "not the learned network's reading" in said
+    res["world_model"] |= {"geometric_ranks": [], "rule": {t: "episode judge" for t in res["tasks"]}}
+    assert RP.ranked_by(res) == "Ranked: mug, step_back, wipe by the episode judge."
+    del res["world_model"]["rule"]  # results written before the rule was recorded
+    assert RP.ranked_by(res) == ""
+
+
 def test_what_act_returned_instead_of_a_pair_is_described_plainly():
     assert REG._described(np.zeros((2, 20))) == "an array of shape (2, 20)"
     assert REG._described((np.zeros((2, 20)), np.zeros(3), 1.0)) == "a tuple of 3: [(2, 20), (3,), 'float']"

@@ -468,3 +468,10 @@ def test_a_bootstrap_draw_of_fewer_than_three_distinct_policies_has_no_correlati
         for k in ("pearson", "spearman"):
             got = boot["wm"]["t"][k][d]
             assert math.isnan(got) == (len(set(rows.tolist())) < S.MIN_CORRELATED), (d, k, rows)
+
+
+def test_policy_count_says_policy_for_one_and_counts_pairs_where_a_policy_runs_on_several_tasks():
+    assert S.policy_count([{"name": "a", "task": "mug"}]) == "1 policy"
+    assert S.policy_count([{"name": "a", "task": "mug"}, {"name": "b", "task": "mug"}]) == "2 policies"
+    assert S.policy_count([{"name": "a", "task": "mug"}, {"name": "a", "task": "step_back"}]) == (
+        "1 policy, 2 policy-task pairs")
