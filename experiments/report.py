@@ -435,6 +435,13 @@ def ranked_by(res: dict) -> str:
                                   "learned network's reading of the frames it imagines." if ruled else ""))
 
 
+def md_text(s: str) -> str:
+    """s as literal Markdown text: each character Markdown reads as syntax (a link's brackets and
+    parentheses, emphasis, code, HTML's angle brackets) escaped with a backslash, so that a policy's name
+    cannot open a link or a tag."""
+    return re.sub(r"([\\`*_\[\]()<>#!|~$])", r"\\\1", s)
+
+
 def md_table(rows) -> str:
     """A Markdown table of rows of strings, the first row the header; "|" in a cell is escaped."""
     # a policy's name may hold "|", a line break or an HTML tag's "<" ("<=" in a target stays as it is)
@@ -976,6 +983,9 @@ def read_results(run: Path) -> dict:
     what = f"{path} is not an experiments.evaluate results.json"
     if missing := [k for k in RESULTS_KEYS if k not in res]:
         raise ValueError(f"{what}: it lacks {', '.join(missing)} (written by an older version? rerun make eval)")
+    if not isinstance(res["tasks"], list) or not isinstance(res["policies"], list):
+        raise ValueError(f"{what}: tasks and policies must be lists, got {type(res['tasks']).__name__} and "
+                         f"{type(res['policies']).__name__}")
     if not res["tasks"]:
         missing = ", ".join(res.get("missing_tasks") or []) or "none"
         raise ValueError(f"{path} holds no evaluated task (missing: {missing}):"
@@ -986,13 +996,20 @@ def read_results(run: Path) -> dict:
             raise ValueError(f"{what}: metrics lacks {k}")
     if lack := [t for t in res["tasks"] if t not in metrics["per_task"] or t not in metrics["within_task"]["tasks"]]:
         raise ValueError(f"{path}: tasks {', '.join(lack)} have no statistics in metrics (edited by hand?)")
+    # a task's statistics count its rows whose prediction is defined (or all of them, where fewer than two are)
+    rows = {t: [p for p in res["policies"] if isinstance(p, dict) and p.get("task") == t] for t in res["tasks"]}
+    read = {t: sum(p.get("pred_rate") is not None for p in rows[t]) for t in res["tasks"]}
+    if wrong := [f"{t} ({len(rows[t])} rows, {n} in its statistics)" for t in res["tasks"]
+                 if (n := metrics["per_task"][t].get("n_policies")) is not None and not read[t] <= n <= len(rows[t])]:
+        raise ValueError(f"{path}: the policy rows do not match the statistics of tasks {', '.join(wrong)} "
+                         "(edited by hand? rerun make eval, or leave policies out with its policies= selection)")
     for p in res["policies"]:
         if lack := [k for k in ROW_KEYS if k not in p]:
             raise ValueError(f"{path}: policy {p.get('name')!r} ({p.get('task')}) lacks {', '.join(lack)}")
         if p["task"] not in res["tasks"]:
             raise ValueError(f"{path}: policy {p['name']!r} is on task {p['task']!r}, not among tasks {res['tasks']}")
         if not p["n"] or p["true_rate"] is None or (isinstance(p["true_ci"], list) and None in p["true_ci"]):
-            raise ValueError(f"{path}: policy {p['name']!r} ({p['task']}) has no simulated episode (n={p['n']}, "
+            raise ValueError(f"{path}: policy {p['name']!r} ({p['task']}) has no simulated outcome (n={p['n']}, "
                              f"true_rate {p['true_rate']}): leave it out or evaluate it")
         if wrong := _misread_rates(p):
             raise ValueError(f"{path}: policy {p['name']!r} ({p['task']}): {wrong} (edited by hand?)")
@@ -1132,7 +1149,7 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
             f"{'; true intervals overlap' if v['true_intervals_overlap'] else ''})" for v in verd] + [""]
     if mp4:
         md += ["## Videos", "", "Real (left) and imagined (right), MP4:", ""]
-        md += [f"- [{label}]({href})" for label, href in mp4] + [""]
+        md += [f"- [{md_text(label)}](<{href}>)" for label, href in mp4] + [""]
     if timing:
         md += ["## Pipeline timing", "", md_table(timing_table(timing)), ""]
         if compiles:
@@ -1193,10 +1210,11 @@ def write_report(run: Path, sweeps: Path | None = None) -> Path:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("run", type=Path, help="an evaluation directory (make eval OUT)")
+    p.add_argument("run", type=Path, help="an evaluation directory (make eval OUT), or its results.json")
     p.add_argument("--sweeps", type=Path, help="a directory of sweeps (make sweep OUT=DIR/<name>) to add a section each")
     a = p.parse_args(argv)
-    print(write_report(a.run, a.sweeps).absolute())
+    run = a.run.parent if a.run.name == "results.json" and a.run.is_file() else a.run
+    print(write_report(run, a.sweeps).absolute())
     return 0
 
 

@@ -885,6 +885,13 @@ def test_a_results_file_the_report_cannot_read_is_named_with_what_is_wrong(evalu
         (run / "results.json").write_text(json.dumps(res | {"policies": rows}))
         with pytest.raises(ValueError, match=rf"policy '{rows[0]['name']}' \(mug\): {says}"):
             read_results(run)
+    n = len(res["policies"])
+    (run / "results.json").write_text(json.dumps(res | {"policies": res["policies"][1:]}))
+    with pytest.raises(ValueError, match=rf"rows do not match the statistics of tasks mug \({n - 1} rows, {n} in"):
+        read_results(run)
+    (run / "results.json").write_text(json.dumps(res | {"tasks": "mug"}))
+    with pytest.raises(ValueError, match="tasks and policies must be lists, got str and list"):
+        read_results(run)
 
 
 def test_names_with_tex_and_markup_render_as_written(own_evaluation):

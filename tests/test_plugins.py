@@ -6,6 +6,7 @@ import dataclasses
 import importlib
 import json
 import math
+import re
 import sys
 import textwrap
 
@@ -841,6 +842,13 @@ def test_the_report_says_what_ranks_each_task_and_that_the_geometric_read_out_is
     assert RP.ranked_by(res) == "Ranked: mug, step_back, wipe by the episode judge."
     del res["world_model"]["rule"]  # results written before the rule was recorded
     assert RP.ranked_by(res) == ""
+
+
+def test_a_name_in_the_reports_markdown_is_text_not_a_link_or_a_tag():
+    name = "x](javascript:alert(1))[y <b>*a_b*</b> `c` #1 | $x$ ~d~ back\\slash!"
+    escaped = RP.md_text(name)
+    assert re.sub(r"\\(.)", r"\1", escaped) == name  # dropping each escape gives the name back
+    assert not re.search(r"(?<!\\)[\[\]()<>*_`#|$~!]", escaped.replace("\\\\", ""))  # nothing left unescaped
 
 
 def test_what_act_returned_instead_of_a_pair_is_described_plainly():
