@@ -455,6 +455,19 @@ def _ci(x, ci, digits=2) -> str:
     return f"{_fmt(x, digits)} [{_fmt(ci[0], digits)}, {_fmt(ci[1], digits)}]"
 
 
+def _signed(x, digits=2) -> str:
+    """x as _fmt writes it, but a non-zero x that would read 0.00 with one significant digit, so that an
+    interval said to lie above or below 0 is not printed touching it."""
+    if not _missing(x) and x != 0 and round(x, digits) == 0:
+        return f"{x:.1g}"
+    return _fmt(x, digits)
+
+
+def _difference_ci(x, ci, digits=2) -> str:
+    """A difference and its interval (_ci), each bound written with its sign kept (_signed)."""
+    return f"{_fmt(x, digits)} [{_signed(ci[0], digits)}, {_signed(ci[1], digits)}]"
+
+
 def _defined_tasks(block: dict, tasks) -> list[str]:
     """The tasks where a within-task block's (a predictor's or a difference's) Pearson r is defined (every
     task where the block gives no per-task figures)."""
@@ -521,7 +534,7 @@ def verdict(res: dict) -> str:
         head = f"Within a task, the world model's ranking{by} cannot be told apart from the imitation-loss proxy's"
     return (f"{head}{over}: mean within-task Pearson r {_ci(wm['mean']['pearson'], wm['mean_ci']['pearson'])} against "
             f"{_ci(px['mean']['pearson'], px['mean_ci']['pearson'])} (difference "
-            f"{_ci(diff['mean']['pearson'], diff['mean_ci']['pearson'])}; 95% intervals resampling "
+            f"{_difference_ci(diff['mean']['pearson'], diff['mean_ci']['pearson'])}; 95% intervals resampling "
             f"{w['resamples']}){_coverage(covered, tasks)}. Per task, the difference's interval lies above 0 in "
             f"{len(ahead)} of {len(both)}"
             f"{' (' + ', '.join(ahead) + ')' if ahead else ''} and below 0 in {len(behind)}"
@@ -641,7 +654,10 @@ def selection_table(sel: dict) -> list[list[str]]:
     rows = [["task", "lineage", "world model picks step", "truly best step", "true rate of the pick",
              "best true rate", "regret", "picks the best"]]
     for x in sel["lineages"]:
-        rows.append([x["task"], x["lineage"], str(x["picked_step"]), str(x["best_step"]), f"{x['picked_true']:.2f}",
+        picked = f"{x['picked_step']} (one of {x['tied']} rated equally)" if x.get("tied", 1) > 1 else str(x["picked_step"])
+        best = (f"{x['best_step']} (one of {x['best_tied']} truly equal)" if x.get("best_tied", 1) > 1
+                else str(x["best_step"]))
+        rows.append([x["task"], x["lineage"], picked, best, f"{x['picked_true']:.2f}",
                      f"{x['best_true']:.2f}", f"{x['regret']:.2f}",
                      _picks_the_best(x)])
     return rows
@@ -783,10 +799,12 @@ def violation_table(res: dict) -> list[list[str]] | None:
     if not viol or not any(v["policies"] for v in viol.values()):
         return None
     ruled = ruled_tasks(res)  # their judge's readings (JUDGE_READINGS) are not the rule they are ranked by
+    # a reading kept where some row shows it: the judge's readings only on tasks it ranks
     extra = [(k, label) for k, label in (("replayed", "read on its true actions replayed"),
                                          ("on_truth", "read on its true episodes"),
                                          ("imagined_in_sim", "simulated on its imagined actions"))
-             if any(p.get(k) is not None for v in viol.values() for p in v["policies"])]
+             if any(p.get(k) is not None and not (t in ruled and k in JUDGE_READINGS)
+                    for t, v in viol.items() for p in v["policies"])]
     rows = [["task", "MMRV", "policy", "true", "predicted", *[label for _, label in extra], "share of the task's MMRV",
              "policies mis-ordered with it", "action gap (RMS; the task's median)"]]
     largest = any(p.get("action_gap_largest") for v in viol.values() for p in v["policies"])

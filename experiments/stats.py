@@ -495,7 +495,7 @@ def checkpoint_selection(rows: list[dict]) -> dict:
     scores chance, not the later checkpoint's luck.
 
     Returns {"lineages": [{"task", "lineage", "picked_step" (the latest of the tied), "tied" (how many
-    share the highest rating), "best_step", "picked_true", "best_true", "regret" (best_true -
+    share the highest rating), "best_step", "best_tied" (how many share the highest true rate), "picked_true", "best_true", "regret" (best_true -
     picked_true), "exact" (the share of the tied whose true rate is the highest: 1 or 0 without a
     tie), "within_ci" (the share of them whose true rate lies inside the best one's 95% interval)}],
     "exact_share", "within_ci_share", "mean_regret", "n", "unread" (runs of two or more checkpoints
@@ -518,7 +518,8 @@ def checkpoint_selection(rows: list[dict]) -> dict:
         best = max(rs, key=lambda r: (r["true_rate"], r is picked, r["step"]))
         picked_true = float(np.mean([r["true_rate"] for r in tied]))
         out.append({"task": task, "lineage": lineage, "picked_step": picked["step"], "tied": len(tied),
-                    "best_step": best["step"], "picked_true": picked_true, "best_true": best["true_rate"],
+                    "best_step": best["step"], "best_tied": sum(r["true_rate"] == best["true_rate"] for r in rs),
+                    "picked_true": picked_true, "best_true": best["true_rate"],
                     "regret": best["true_rate"] - picked_true,
                     "exact": float(np.mean([r["true_rate"] >= best["true_rate"] for r in tied])),
                     "within_ci": float(np.mean([r["true_rate"] >= best["true_ci"][0] for r in tied]))})

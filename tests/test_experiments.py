@@ -851,6 +851,9 @@ def test_a_checkpoint_pick_among_equal_ratings_is_flagged():
     assert x["exact"] == pytest.approx(1 / 3) and x["regret"] == pytest.approx(0.8 - 0.5)
     assert "In 1 of them the world model rated several checkpoints equally highest" in selection_summary(sel)
     assert "3 rated equally: 33% of them the best" in md_table(selection_table(sel))
+    assert selection_table(sel)[1][2:4] == ["30 (one of 3 rated equally)", "20"]
+    ties = [dict(r, true_rate=1.0, true_ci=[0.8, 1.0]) for r in rows]  # every checkpoint truly as good
+    assert selection_table(S.checkpoint_selection(ties))[1][3] == "30 (one of 3 truly equal)"
     rows[1]["pred_rate"] = 0.6
     sel = S.checkpoint_selection(rows)
     assert "equally highest" not in selection_summary(sel) and sel["lineages"][0]["exact"] == 1

@@ -539,6 +539,8 @@ def test_the_violations_of_a_task_ranked_by_its_rule_show_no_judge_reading_of_it
     assert [r[col] for r in rows[1:]] == ["0.40", "n/a"]  # mug by the judge, step_back by its rule
     sim = rows[0].index("simulated on its imagined actions")
     assert [r[sim] for r in rows[1:]] == ["0.30", "0.30"]  # the simulator's outcome, whatever reads the loop
+    res["world_model"]["geometric_ranks"] = ["mug", "step_back"]  # every task by its rule: no judge column
+    assert "read on its true episodes" not in RP.violation_table(res)[0]
     res["world_model"] = {}  # older results: every task by the read-out
     assert [r[col] for r in RP.violation_table(res)[1:]] == ["0.40", "0.40"]
     # a policy that acts alike on imagined and true frames has no largest dimension to name
@@ -849,6 +851,13 @@ def test_a_name_in_the_reports_markdown_is_text_not_a_link_or_a_tag():
     escaped = RP.md_text(name)
     assert re.sub(r"\\(.)", r"\1", escaped) == name  # dropping each escape gives the name back
     assert not re.search(r"(?<!\\)[\[\]()<>*_`#|$~!]", escaped.replace("\\\\", ""))  # nothing left unescaped
+
+
+def test_a_difference_said_to_lie_above_0_is_not_printed_touching_it():
+    assert RP._difference_ci(0.29, [0.00056, 0.52]) == "0.29 [0.0006, 0.52]"
+    assert RP._difference_ci(-0.1, [-0.3, -0.004]) == "-0.10 [-0.30, -0.004]"
+    assert RP._difference_ci(0.29, [0.0, 0.52]) == "0.29 [0.00, 0.52]"  # exactly 0 stays 0
+    assert RP._difference_ci(0.2, [None, 0.31]) == "0.20 [n/a, 0.31]"
 
 
 def test_what_act_returned_instead_of_a_pair_is_described_plainly():

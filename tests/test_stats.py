@@ -303,6 +303,7 @@ def test_checkpoint_selection_by_hand():
     assert a["regret"] == pytest.approx(0.05)
     assert (b["picked_step"], b["best_step"], b["exact"], b["regret"]) == (100, 100, True, 0.0)
     assert (d["picked_step"], d["best_step"], d["exact"], d["regret"]) == (5, 5, True, 0.0)
+    assert (a["best_tied"], b["best_tied"], d["best_tied"]) == (1, 1, 2)
     assert got["n"] == 3 and got["exact_share"] == pytest.approx(2 / 3) and got["within_ci_share"] == 1.0
     assert got["mean_regret"] == pytest.approx(0.05 / 3)
     assert math.isnan(S.checkpoint_selection(rows[-2:])["exact_share"])
