@@ -601,12 +601,12 @@ def within_task_table(res: dict) -> list[list[str]]:
     readout = res.get("world_model", {}).get("readout")
     groups = _tasks_by_rule(res)
     if len(groups) > 1:
-        label = "world model (" + "; ".join(f"{', '.join(ts)}: {rule}" for rule, ts in groups.items()) + ")"
+        model = "world model (" + "; ".join(f"{', '.join(ts)}: {rule}" for rule, ts in groups.items()) + ")"
     elif groups:
-        label = f"world model ({next(iter(groups))})"
+        model = f"world model ({next(iter(groups))})"
     else:
-        label = f"world model ({readout} read-out)" if readout else "world model"
-    rows = [["statistic (mean over tasks)", label,
+        model = f"world model ({readout} read-out)" if readout else "world model"
+    rows = [["statistic (mean over tasks)", model,
              "imitation-loss proxy", "world model - proxy (paired, over the policies both score)",
              *[label for _, label in others], f"target ({res.get('preset') or 'none'} preset)"]]
     floor = res["metrics"].get("mmrv_floor")

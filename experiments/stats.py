@@ -495,8 +495,8 @@ def checkpoint_selection(rows: list[dict]) -> dict:
     scores chance, not the later checkpoint's luck.
 
     Returns {"lineages": [{"task", "lineage", "picked_step" (the latest of the tied), "tied" (how many
-    share the highest rating), "best_step", "best_tied" (how many share the highest true rate), "picked_true", "best_true", "regret" (best_true -
-    picked_true), "exact" (the share of the tied whose true rate is the highest: 1 or 0 without a
+    share the highest rating), "best_step", "best_tied" (how many share the highest true rate),
+    "picked_true", "best_true", "regret" (best_true - picked_true), "exact" (the share of the tied whose true rate is the highest: 1 or 0 without a
     tie), "within_ci" (the share of them whose true rate lies inside the best one's 95% interval)}],
     "exact_share", "within_ci_share", "mean_regret", "n", "unread" (runs of two or more checkpoints
     none of which the world model could read: imagination diverged)} (shares and mean NaN when no
