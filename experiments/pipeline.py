@@ -719,19 +719,22 @@ def pack_compile_cache(root: Path, dest: Path, part_bytes: int = CACHE_PART_BYTE
         whole.unlink(missing_ok=True)
 
 
-def restore_compile_cache(src: Path, root: Path) -> int:
-    """Extracts pack_compile_cache's parts found in src into the caches of a pipeline rooted at root
-    (compile_cache_dirs; beside what they hold, entries of the same name replaced). Raises
-    FileNotFoundError where src holds no part, and ValueError where the parts do not join into one
-    archive (one missing or cut short) or it holds anything outside CACHE_DIRS. Returns the files
-    restored."""
-    parts = sorted(Path(src).glob(f"{CACHE_PART}[0-9][0-9]"))
+def restore_compile_cache(src, root: Path) -> int:
+    """Extracts pack_compile_cache's parts found in src (a folder, or several: a packing larger than one
+    lease call carries beside the wheels travels in two calls, its parts split between two folders) into
+    the caches of a pipeline rooted at root (compile_cache_dirs; beside what they hold, entries of the
+    same name replaced). Raises FileNotFoundError where src holds no part, and ValueError where the parts
+    do not join into one archive (one missing, cut short or given twice) or it holds anything outside
+    CACHE_DIRS. Returns the files restored."""
+    folders = [Path(src)] if isinstance(src, (str, Path)) else [Path(d) for d in src]
+    parts = sorted((p for d in folders for p in d.glob(f"{CACHE_PART}[0-9][0-9]")), key=lambda p: p.name)
+    src = ", ".join(map(str, folders))
     if not parts:
         raise FileNotFoundError(f"{src} holds no {CACHE_PART}NN: pack one with --follow ... --collect DIR "
                                 "--collect-cache on a lease's follows")
     numbers = [int(p.name[len(CACHE_PART):]) for p in parts]
     if numbers != list(range(len(parts))):
-        raise ValueError(f"{src}: the cache's parts are {numbers}, not 0..{len(parts) - 1}: one is missing")
+        raise ValueError(f"{src}: the cache's parts are {numbers}, not 0..{len(parts) - 1}: one is missing or given twice")
     joined = b"".join(p.read_bytes() for p in parts)
     Path(root).mkdir(parents=True, exist_ok=True)
     try:
@@ -1058,9 +1061,10 @@ def main(argv=None) -> int:
                     help="with --collect, also pack the compilation caches (runs/jax_cache, runs/xla_autotune) into "
                          f"DIR/{CACHE_PART}NN (<= 15 MiB each), for the next lease's --cache-from: by every follow "
                          "but one that returns 4, the chain running or ended")
-    ap.add_argument("--cache-from", type=Path, default=None, metavar="DIR",
+    ap.add_argument("--cache-from", default=None, metavar="DIR[,DIR]",
                     help=f"first restore the compilation caches from DIR/{CACHE_PART}NN (--collect-cache's, from a "
-                         "lease on a machine of the same kind), so that the stages load what it compiled")
+                         "lease on a machine of the same kind; its parts may lie in several folders, comma-separated, "
+                         "carried by different calls), so that the stages load what it compiled")
     ap.add_argument("--warm-rollouts", action="store_true",
                     help="with the policies stage (one GPU or none), compile the rollouts' programs beside it (with "
                          "the data and rollouts stages' --set overrides), for the rollouts stage to load")
@@ -1122,7 +1126,8 @@ def main(argv=None) -> int:
                  f"`python -m experiments.pipeline {a.pipeline} --follow 540`, or stop it with kill -- -{running}")
     if a.cache_from is not None:
         try:
-            restored = restore_compile_cache(a.cache_from, Path(PIPELINES[a.pipeline].root))
+            restored = restore_compile_cache([d for d in a.cache_from.split(",") if d],
+                                             Path(PIPELINES[a.pipeline].root))
         except (FileNotFoundError, ValueError) as e:
             ap.error(str(e))
         print(f"restored {restored} files of the compilation caches from {a.cache_from}")

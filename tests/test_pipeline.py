@@ -711,6 +711,17 @@ def test_the_compilation_caches_pack_into_parts_that_restore_to_the_same_files(t
     fresh = tmp_path / "fresh" / "runs"
     assert P.restore_compile_cache(out, fresh) == 3
     assert {str(f.relative_to(fresh)): f.read_bytes() for f in fresh.rglob("*") if f.is_file()} == files
+    # the parts split between two folders, as two lease calls carry them: joined in their numbers' order
+    second = tmp_path / "second"
+    second.mkdir()
+    shutil.copy(out / f"{P.CACHE_PART}00", second)
+    split = [tmp_path / "first", second]
+    shutil.copytree(out, split[0], ignore=shutil.ignore_patterns(f"{P.CACHE_PART}00"))
+    assert P.restore_compile_cache(split, tmp_path / "split" / "runs") == 3
+    got = tmp_path / "split" / "runs"
+    assert {str(f.relative_to(got)): f.read_bytes() for f in got.rglob("*") if f.is_file()} == files
+    with pytest.raises(ValueError, match=r"parts are \[0, 0, 1, 2\].*given twice"):
+        P.restore_compile_cache([out, second], tmp_path / "other")
     # one part lost on the way: refused, naming what is missing
     (out / f"{P.CACHE_PART}01").rename(tmp_path / "aside")
     with pytest.raises(ValueError, match="one is missing"):
@@ -825,7 +836,8 @@ def test_a_lease_collects_its_caches_and_the_next_starts_from_them(tmp_path, mon
     shutil.rmtree("runs")
     seen = tmp_path / "argv"
     monkeypatch.setattr(P.sys, "executable", _fake_python(tmp_path, f'echo "$@" > {seen}'))
-    assert P.main(["full", "--detach", "--cache-from", str(out)]) == 0
+    (tmp_path / "carried_later").mkdir()  # a second call's folder, here without a part
+    assert P.main(["full", "--detach", "--cache-from", f"{out},{tmp_path / 'carried_later'}"]) == 0
     assert Path("runs/jax_cache/jit_step").read_text() == "compiled\n"
     assert "restored 1 files of the compilation caches" in capsys.readouterr().out
     for _ in range(100):  # the detached command runs without the option: the caches are in place already
