@@ -496,6 +496,8 @@ def verdict(res: dict) -> str:
     w = res["metrics"]["within_task"]
     wm, px, diff = w["world_model"], w["proxy"], w["difference"]["proxy"]
     tasks = w["tasks"]
+    ruled = ruled_tasks(res)
+    by = f" (by its geometric read-out on {', '.join(ruled)})" if ruled else ""
     if _missing(wm["mean"]["pearson"]):
         counts = ", ".join(f"{t} {sum(p['task'] == t for p in res['policies'])}" for t in tasks)
         return (f"No within-task ranking to judge: a task's Pearson r needs at least {MIN_CORRELATED} of its "
@@ -503,7 +505,7 @@ def verdict(res: dict) -> str:
     if _missing(px["mean"]["pearson"]):
         return (f"The imitation-loss proxy has no within-task figure here (it needs at least {MIN_CORRELATED} "
                 "policies of a task with a validation loss and differing true rates; plug-ins have none): the "
-                "world model alone ranks at a "
+                f"world model{by} alone ranks at a "
                 f"mean within-task Pearson r {_ci(wm['mean']['pearson'], wm['mean_ci']['pearson'])} (95% interval "
                 f"resampling {w['resamples']}){_coverage(w, tasks, ('world_model',))}.")
     both = _defined_tasks(diff, tasks)
@@ -524,8 +526,6 @@ def verdict(res: dict) -> str:
                 "with a validation loss, the world model no policy whose imagination diverged)")
     lo = diff["mean_ci"]["pearson"][0]
     hi = diff["mean_ci"]["pearson"][1]
-    ruled = ruled_tasks(res)
-    by = f" (by its geometric read-out on {', '.join(ruled)})" if ruled else ""
     if lo is not None and lo > 0:
         head = f"The world model{by} ranks policies within a task better than the imitation-loss proxy"
     elif hi is not None and hi < 0:

@@ -844,6 +844,14 @@ def test_the_report_says_what_ranks_each_task_and_that_the_geometric_read_out_is
     assert RP.ranked_by(res) == "Ranked: mug, step_back, wipe by the episode judge."
     del res["world_model"]["rule"]  # results written before the rule was recorded
     assert RP.ranked_by(res) == ""
+    # the verdict names the rule where no proxy figure stands beside the world model's
+    w = {"tasks": ["step_back"], "resamples": "policies",
+         "world_model": {"mean": {"pearson": 0.98}, "mean_ci": {"pearson": [0.9, 1.0]}},
+         "proxy": {"mean": {"pearson": math.nan}, "mean_ci": {"pearson": [None, None]}}, "difference": {"proxy": {}}}
+    res = {"metrics": {"within_task": w}, "policies": [], "world_model": {"geometric_ranks": ["step_back"]}}
+    assert "the world model (by its geometric read-out on step_back) alone ranks at" in RP.verdict(res)
+    res["world_model"]["geometric_ranks"] = []
+    assert "the world model alone ranks at" in RP.verdict(res)
 
 
 def test_a_name_in_the_reports_markdown_is_text_not_a_link_or_a_tag():
