@@ -728,13 +728,14 @@ def restore_compile_cache(src, root: Path) -> int:
     CACHE_DIRS. Returns the files restored."""
     folders = [Path(src)] if isinstance(src, (str, Path)) else [Path(d) for d in src]
     parts = sorted((p for d in folders for p in d.glob(f"{CACHE_PART}[0-9][0-9]")), key=lambda p: p.name)
-    src = ", ".join(map(str, folders))
+    where = ", ".join(map(str, folders))
     if not parts:
-        raise FileNotFoundError(f"{src} holds no {CACHE_PART}NN: pack one with --follow ... --collect DIR "
+        raise FileNotFoundError(f"{where} holds no {CACHE_PART}NN: pack one with --follow ... --collect DIR "
                                 "--collect-cache on a lease's follows")
     numbers = [int(p.name[len(CACHE_PART):]) for p in parts]
     if numbers != list(range(len(parts))):
-        raise ValueError(f"{src}: the cache's parts are {numbers}, not 0..{len(parts) - 1}: one is missing or given twice")
+        raise ValueError(f"{where}: the cache's parts are {numbers}, not 0..{len(parts) - 1}: one is missing or "
+                         "given twice")
     joined = b"".join(p.read_bytes() for p in parts)
     Path(root).mkdir(parents=True, exist_ok=True)
     try:
@@ -744,13 +745,13 @@ def restore_compile_cache(src, root: Path) -> int:
             foreign = [m.name for m in members if Path(m.name).parts[:1] not in [(d,) for d in CACHE_DIRS]
                        or ".." in Path(m.name).parts or not (m.isfile() or m.isdir())]
             if foreign:
-                raise ValueError(f"{src}: the cache archive holds {foreign[:3]}, outside {', '.join(CACHE_DIRS)}")
+                raise ValueError(f"{where}: the cache archive holds {foreign[:3]}, outside {', '.join(CACHE_DIRS)}")
             tar.extractall(unpacked, filter="data")
             for name, d in compile_cache_dirs(root).items():
                 if (Path(unpacked) / name).is_dir():
                     shutil.copytree(Path(unpacked) / name, d, dirs_exist_ok=True)
     except (tarfile.TarError, EOFError, OSError, zlib.error) as e:
-        raise ValueError(f"{src}: the cache's {len(parts)} parts do not make one archive ({e}): "
+        raise ValueError(f"{where}: the cache's {len(parts)} parts do not make one archive ({e}): "
                          "is a part cut short or from another lease?") from e
     return sum(m.isfile() for m in members)
 

@@ -791,6 +791,12 @@ def ruled_tasks(res: dict) -> tuple:
     return tuple(res.get("world_model", {}).get("geometric_ranks") or ())
 
 
+def _violation_reading(p: dict, key: str, task: str, ruled) -> float | None:
+    """A rank violation row's reading `key`; None for a judge's reading (JUDGE_READINGS) on a task in `ruled`,
+    which its rule ranks, not the judge."""
+    return None if task in ruled and key in JUDGE_READINGS else p.get(key)
+
+
 def violation_table(res: dict) -> list[list[str]] | None:
     """Per task, the policies that carry its MMRV (results.json's rank_violations): each policy's
     term charged to the policy it is most mis-ordered with; None where the results hold none (older
@@ -798,13 +804,12 @@ def violation_table(res: dict) -> list[list[str]] | None:
     viol = res.get("rank_violations")
     if not viol or not any(v["policies"] for v in viol.values()):
         return None
-    ruled = ruled_tasks(res)  # their judge's readings (JUDGE_READINGS) are not the rule they are ranked by
-    # a reading kept where some row shows it: the judge's readings only on tasks it ranks
+    ruled = ruled_tasks(res)
+    # a reading kept where some row shows it (_violation_reading: the judge's only on tasks it ranks)
     extra = [(k, label) for k, label in (("replayed", "read on its true actions replayed"),
                                          ("on_truth", "read on its true episodes"),
                                          ("imagined_in_sim", "simulated on its imagined actions"))
-             if any(p.get(k) is not None and not (t in ruled and k in JUDGE_READINGS)
-                    for t, v in viol.items() for p in v["policies"])]
+             if any(_violation_reading(p, k, t, ruled) is not None for t, v in viol.items() for p in v["policies"])]
     rows = [["task", "MMRV", "policy", "true", "predicted", *[label for _, label in extra], "share of the task's MMRV",
              "policies mis-ordered with it", "action gap (RMS; the task's median)"]]
     largest = any(p.get("action_gap_largest") for v in viol.values() for p in v["policies"])
@@ -815,7 +820,7 @@ def violation_table(res: dict) -> list[list[str]] | None:
         gaps = [g for p in res.get("policies", []) if p["task"] == t and (g := p.get("action_gap")) is not None]
         median = f" ({_fmt(float(np.median(gaps)), 3)})" if gaps else ""
         for k, p in enumerate(v["policies"]):
-            read = [None if t in ruled and key in JUDGE_READINGS else p.get(key) for key, _ in extra]
+            read = [_violation_reading(p, key, t, ruled) for key, _ in extra]
             rows.append([t if k == 0 else "", _fmt(v["mmrv"], 2) if k == 0 else "", p["name"],
                          _fmt(p["true_rate"], 2), _fmt(p["pred_rate"], 2), *[_fmt(r, 2) for r in read],
                          f"{100 * p['share']:.0f}%",
