@@ -1208,6 +1208,7 @@ def decision_analysis(cfg: EvalConfig, tasks: dict, alignment: float, most: int 
 
 # ---- compiling ahead -----------------------------------------------------------------------------
 
+EXIT_CUT_SHORT = 3  # the exit status of a run max_minutes stopped before its last task: rerun the same command
 WARM_START_WAIT_S = 900.0  # how long `--warm` waits for its world models' training to start
 
 
@@ -1277,8 +1278,9 @@ def warm(cfg: EvalConfig, progress: bool = True, wait_s: float = 0.0, after_trai
 
 def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int] | None = None,
         partial: bool = False, preset: str = "") -> dict | None:
-    """Evaluates (or completes the evaluation of) cfg into out; returns the results, or None when
-    cfg.max_minutes stopped it before the last task (rerun to finish). part: (K, N) evaluates the K-th
+    """Evaluates (or completes the evaluation of) cfg into out; returns the results. Where
+    cfg.max_minutes stops it before the last task, results.json holds the tasks finished, lists the
+    others in "missing_tasks" and says so in "cut_short" (rerun the same call to finish). part: (K, N) evaluates the K-th
     of N shares of every task's batches (balance_chunks) and returns None (sim_data.parts: one
     process per GPU; a run without a part merges the shares and gathers results.json). partial:
     evaluate nothing more and gather the tasks finished so far (a run cut short); results.json
@@ -1328,6 +1330,8 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
         raise ValueError(f"{out}: no task is finished yet ({', '.join(tasks)}); run without --partial")
     ruled = geometric_tasks(motion, grasp) if cfg.geometric_ranks else ()
     report = gather(cfg, out, tasks, results, sources, prints, models, wm_data, wm_cache, engine, preset, ruled)
+    stopped = not partial and len(results) < len(tasks)
+    report["cut_short"] = {"max_minutes": cfg.max_minutes, "tasks_left": report["missing_tasks"]} if stopped else None
     write_json_atomic(out / "results.json", no_nan(report))
     return report
 
@@ -1382,8 +1386,8 @@ def evaluation_tasks(cfg: EvalConfig, sources) -> list[str]:
 def evaluate_tasks(cfg: EvalConfig, out: Path, tasks, sources, models, used: set, engine: str, progress: bool,
                    part: tuple[int, int] | None, partial: bool, motion=None, grasp=None) -> dict | None:
     """{task: results (evaluate_task)} of every task evaluated, read back from out/tasks where a
-    run before evaluated it (or its parts did, merged here); None for a part, or when cfg.max_minutes
-    stops before a task (see run). motion: the geometric models (cfg.geometric) or None; grasp: their
+    run before evaluated it (or its parts did, merged here), without those cfg.max_minutes stopped it
+    before (see run); None for a part. motion: the geometric models (cfg.geometric) or None; grasp: their
     grasp rules ({task: rule})."""
     results = {}
     by_task = {t: [s for s in sources if s.runs_on(t)] for t in tasks}
@@ -1408,9 +1412,9 @@ def evaluate_tasks(cfg: EvalConfig, out: Path, tasks, sources, models, used: set
         elapsed = time.perf_counter() - t_start
         if cfg.max_minutes and longest and elapsed + longest > 60 * cfg.max_minutes:
             left = [t for t in tasks if not (out / "tasks" / f"{t}.npz").exists()]
-            print(f"stopping after {elapsed:.0f} s (max_minutes={cfg.max_minutes:g}): rerun the same command to "
-                  f"evaluate {', '.join(left)}", file=sys.stderr)
-            return None
+            print(f"stopping after {elapsed:.0f} s (max_minutes={cfg.max_minutes:g}): results.json holds the tasks "
+                  f"finished; rerun the same command to evaluate {', '.join(left)}", file=sys.stderr)
+            break
         t_task = time.perf_counter()
         seeds = heldout_seeds(task, cfg.episodes, cfg.seed, used)
         chunks = None if part is None else {(k, j) for t, k, j in mine if t == task}
@@ -1747,7 +1751,7 @@ def main(argv=None) -> int:
         p.error("--out is required (unless --warm)")
     res = run(cfg, a.out, part=part, partial=a.partial, preset=a.config)
     if res is None:
-        return 0  # a part, or stopped by max_minutes (the message says what is left)
+        return 0  # a part: the run without --part gathers
     w = res["metrics"]["within_task"]
     print(json.dumps(no_nan({"within_task_mean": {who: {k: [w[who]["mean"][k], w[who]["mean_ci"][k]]
                                                         for k in S.WITHIN_TASK}
@@ -1755,6 +1759,10 @@ def main(argv=None) -> int:
     # where parts simulated and imagined in other processes (the pipeline's eval stage), this one only gathered
     print(f"{S.policy_count(res['policies'])}; {time.perf_counter() - t0:.0f} s in this process; "
           f"results {a.out / 'results.json'}")
+    if res["cut_short"]:
+        print(f"cut short by max_minutes={cfg.max_minutes:g} before tasks {', '.join(res['cut_short']['tasks_left'])}: "
+              f"exit status {EXIT_CUT_SHORT}; rerun the same command to finish", file=sys.stderr)
+        return EXIT_CUT_SHORT
     return 0
 
 

@@ -335,7 +335,9 @@ def run_stage(name: str, stage: str, extra=(), gpus=(), members: int | None = No
         results = d["eval"] / "results.json"
         before = results.stat().st_mtime_ns if results.exists() else None
         evaluate.main(args)
-        done = results.exists() and results.stat().st_mtime_ns != before  # else max_minutes left tasks to do
+        # max_minutes may have stopped it before its last task: results.json then says so and the rerun finishes
+        done = (results.exists() and results.stat().st_mtime_ns != before
+                and not json.loads(results.read_text()).get("cut_short"))
     elif stage == "report":
         report.main([str(d["eval"])])
     wall = round(time.perf_counter() - t0, 3)

@@ -702,6 +702,18 @@ CUT_SHORT = ("Cut short: a world model stopped at its safety time limit before i
              "preset (rerun its training to finish it).")
 
 
+def partial_note(res: dict) -> str:
+    """The tasks a partial results.json lacks and, where the evaluation's safety time limit stopped it,
+    how to finish them ("" where every task was evaluated)."""
+    if not res.get("missing_tasks"):
+        return ""
+    note = f"Partial: tasks {', '.join(res['missing_tasks'])} were not evaluated; every statistic below leaves them out."
+    if cut := res.get("cut_short"):
+        note += (f" The evaluation stopped at its safety time limit (max_minutes={cut['max_minutes']:g}): rerun "
+                 "the same command to evaluate them.")
+    return note
+
+
 def selection_summary(sel: dict) -> str:
     """One paragraph on checkpoint selection (results.json's checkpoint_selection), saying how many of
     its picks were made among checkpoints the world model rated equally."""
@@ -1078,8 +1090,7 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
          "initial states "
          f"per task; {_models_phrase(res, lambda r: f'<code>{html.escape(r)}</code>')}; engine {res['engine']}; "
          f"device {html.escape(str(res['device']))}.</p>",
-         *([f"<p class='warn'>Partial: tasks {html.escape(', '.join(res['missing_tasks']))} were not evaluated; "
-            "every statistic below leaves them out.</p>"] if res.get("missing_tasks") else []),
+         *([f"<p class='warn'>{html.escape(partial)}</p>"] if (partial := partial_note(res)) else []),
          *([f"<p>{html.escape(ranking)}</p>"] if (ranking := ranked_by(res)) else []),
          *([f"<p class='warn'>{html.escape(unlearned)}</p>"] if unlearned else []),
          *([f"<p class='warn'>{html.escape(_sentence(unread))}.</p>"] if unread else []),
@@ -1134,8 +1145,7 @@ def build(run: Path, sweeps: Path | None = None) -> tuple[str, str]:
     md = [f"# Policy evaluation: {policy_count(policies)} on {', '.join(tasks)}", "",
           f"{_models_phrase(res, lambda r: f'`{r}`', capital=True)}, {res['config']['episodes']} held-out initial states per task, "
           f"engine {res['engine']}, device {res['device']}. Full report: `report.html`.", "",
-          *([f"**Partial**: tasks {', '.join(res['missing_tasks'])} were not evaluated; every statistic below "
-             "leaves them out.", ""] if res.get("missing_tasks") else []),
+          *([f"**{partial}**", ""] if partial else []),
           *([ranking, ""] if ranking else []),
           *([f"**{unlearned}**", ""] if unlearned else []),
           *([f"**{_sentence(unread)}.**", ""] if unread else []),

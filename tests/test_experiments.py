@@ -351,7 +351,31 @@ def test_a_partial_gather_reports_the_finished_tasks_and_names_the_rest(evaluati
     assert [p["name"] for p in got["policies"]] == [p["name"] for p in res["policies"]]
     assert got["metrics"]["pooled"]["alignment"] == pytest.approx(res["metrics"]["pooled"]["alignment"])
     assert not (cut / "tasks" / "step_back.npz").exists() and res["missing_tasks"] == []
-    assert "**Partial**: tasks step_back were not evaluated" in write_report(cut).with_suffix(".md").read_text()
+    assert got["cut_short"] is None  # gathered on request, not stopped
+    md = write_report(cut).with_suffix(".md").read_text()
+    assert "**Partial: tasks step_back were not evaluated" in md and "safety time limit" not in md
+
+
+def test_an_evaluation_its_time_limit_stops_writes_the_finished_tasks_marked_cut_short(evaluation, tmp_path,
+                                                                                      capsys):
+    """max_minutes is a safety stop: the command stops before a task that would end past it, writes
+    results.json over the tasks finished, marked cut short in it and in the report, and exits with
+    EXIT_CUT_SHORT, so that a script knows to rerun it (the fixture's settings: its programs serve)."""
+    cfg, _, res = evaluation
+    args = ["--config", "demo", "--out", str(tmp_path / "cut"), f"policies={','.join(cfg.policies)}", f"wm={cfg.wm}",
+            "geometric=", "geometric_ranks=0", "tasks=mug,step_back", "max_minutes=1e-9",
+            *(f"{k}={v}" for k, v in SMOKE_EVAL.items() if k != "tasks")]
+    args = [a.replace("(5, 50)", "5,50").replace("True", "1") for a in args]
+    assert E.main(args) == E.EXIT_CUT_SHORT == 3
+    assert "rerun the same command to evaluate step_back" in capsys.readouterr().err
+    got = json.loads((tmp_path / "cut" / "results.json").read_text())
+    assert got["tasks"] == ["mug"] and got["missing_tasks"] == ["step_back"]
+    assert got["cut_short"] == {"max_minutes": 1e-9, "tasks_left": ["step_back"]}
+    assert [(p["name"], p["true_rate"]) for p in got["policies"]] == [(p["name"], p["true_rate"]) for p in res["policies"]]
+    assert not (tmp_path / "cut" / "tasks" / "step_back.npz").exists()
+    md = write_report(tmp_path / "cut").with_suffix(".md").read_text()
+    assert ("**Partial: tasks step_back were not evaluated; every statistic below leaves them out. The evaluation "
+            "stopped at its safety time limit (max_minutes=1e-09): rerun the same command to evaluate them.**") in md
 
 
 def test_report_renders_figures_and_videos(own_evaluation):

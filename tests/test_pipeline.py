@@ -243,6 +243,25 @@ def test_the_eval_stage_evaluates_a_model_named_by_wm_though_no_member_was_train
     assert [a for a in got[0] if a.startswith("wm=")] == ["wm=runs/bundles/elsewhere"]
 
 
+def test_the_eval_stage_is_done_only_once_its_results_hold_every_task(tiny, monkeypatch):
+    """An evaluation its safety time limit stopped writes results.json marked cut short: the stage is to be
+    continued (the chain stops there and its rerun finishes), as when it writes nothing."""
+    _, d = tiny
+    import experiments.evaluate
+
+    def evaluates(cut_short):
+        def main(argv):
+            d["eval"].mkdir(parents=True, exist_ok=True)
+            (d["eval"] / "results.json").write_text(json.dumps({"cut_short": cut_short, "timing": {}}))
+        return main
+
+    for cut_short, done in (({"max_minutes": 8.0, "tasks_left": ["wipe"]}, False), (None, True)):
+        monkeypatch.setattr(experiments.evaluate, "main", evaluates(cut_short))
+        assert P.run_stage("tiny", "eval", ["wm=runs/bundles/elsewhere"]) is done
+    monkeypatch.setattr(experiments.evaluate, "main", lambda argv: None)  # stopped before its first task's end
+    assert P.run_stage("tiny", "eval", ["wm=runs/bundles/elsewhere"]) is False
+
+
 CACHE_KEY_PROGRAM = """
 import sys
 import jax, jax.numpy as jnp
