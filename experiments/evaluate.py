@@ -973,6 +973,17 @@ def _interval_of_mean(x) -> list:
     return S.mean_interval(x, (0.0, 1.0))[1] or [0.0, 1.0]
 
 
+def failed_peak_progress(true_progress, outcomes) -> float | None:
+    """How near a policy's failed episodes came to success: the highest progress the simulator measured
+    in each failed episode ((N, T) true_progress against (N,) bool outcomes; 1 is the success line,
+    sim_data.sim.tasks.task_progress), averaged over them and rounded to 3 decimals; None where no
+    episode failed or none of those has a progress (a truth cache kept without it). Near 1, the
+    policy's true rate turns on a few millimetres of its task's measure."""
+    failed = np.asarray(true_progress, np.float64)[~np.asarray(outcomes, bool)]
+    peaks = [float(np.nanmax(e)) for e in failed if np.isfinite(e).any()]
+    return round(float(np.mean(peaks)), 3) if peaks else None
+
+
 def _mean_curve(x) -> list:
     """(N, T) per-episode values -> their mean at each step (NaN episodes left out; null where all are),
     rounded to 3 decimals for results.json."""
@@ -1064,6 +1075,7 @@ def policy_rows(cfg: EvalConfig, task: str, res: dict, sources_by_name: dict) ->
                      "nonfinite_episodes": int((~ok).sum()), "nonfinite_predictions": int((~np.isfinite(p)).sum()),
                      # mean progress over the episodes at each step, the simulator's and the imagined
                      "progress_true": _mean_curve(tp), "progress_imagined": _mean_curve(ip),
+                     "failed_peak_progress": failed_peak_progress(tp, t),
                      # RMS gap of the policy's actions on imagined and on true frames, over its episodes' steps
                      "action_gap": _finite_mean(gap), "action_gap_largest": largest_action_gap(dims),
                      **closure_gap(dims, bias),

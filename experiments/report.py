@@ -826,8 +826,10 @@ def violation_table(res: dict) -> list[list[str]] | None:
              "policies mis-ordered with it", "action gap (RMS; the task's median)"]]
     largest = any(p.get("action_gap_largest") for v in viol.values() for p in v["policies"])
     closure = any(p.get("closure_bias") is not None for v in viol.values() for p in v["policies"])
+    near = any(p.get("failed_peak_progress") is not None for v in viol.values() for p in v["policies"])
     rows[0] += ["largest in one dimension"] if largest else []
     rows[0] += ["right hand's closure, imagined minus true (mean; RMS)"] if closure else []
+    rows[0] += [NEAR_MISS_COLUMN] if near else []
     for t, v in viol.items():
         gaps = [g for p in res.get("policies", []) if p["task"] == t and (g := p.get("action_gap")) is not None]
         median = f" ({_fmt(float(np.median(gaps)), 3)})" if gaps else ""
@@ -838,8 +840,19 @@ def violation_table(res: dict) -> list[list[str]] | None:
                          f"{100 * p['share']:.0f}%",
                          str(p["against"]), _fmt(p.get("action_gap"), 3) + median,
                          *([_largest_gap(p)] if largest else []),
-                         *([f"{_fmt(p.get('closure_bias'), 3)}; {_fmt(p.get('closure_gap'), 3)}"] if closure else [])])
+                         *([f"{_fmt(p.get('closure_bias'), 3)}; {_fmt(p.get('closure_gap'), 3)}"] if closure else []),
+                         *([_near_miss(p)] if near else [])])
     return rows
+
+
+NEAR_MISS_COLUMN = "its failed episodes' highest true progress (1: success)"
+
+
+def _near_miss(row: dict) -> str:
+    """A violation row's failed_peak_progress, "none failed" where every episode succeeded, or n/a."""
+    if row.get("failed_peak_progress") is not None:
+        return _fmt(row["failed_peak_progress"], 2)
+    return "none failed" if row.get("true_rate") == 1 else "n/a"
 
 
 def _largest_gap(row: dict) -> str:
@@ -875,7 +888,10 @@ VIOLATION_NOTE = ("Where MMRV comes from: each policy's term (its largest rank v
                   "stray from those on true frames, beside the task's median policy, and in the one action "
                   "dimension where they stray most (a base that does not stop shows there, diluted in the mean); "
                   "the right hand's closure beside it, in imagination minus on true frames (a grasp holds "
-                  "above a threshold on the closure, so a few hundredths firmer can turn a failure into a success).")
+                  "above a threshold on the closure, so a few hundredths firmer can turn a failure into a success); and how near "
+                  "its failed episodes came to success in the simulator (their highest progress, where 1 is the "
+                  "task's success line: near 1, its true rate turns on millimetres of the task's measure, which the "
+                  "world model must imagine to that precision to rank it).")
 
 
 UNSEEN_NETWORKS_TITLE = ("Within-task ranking of the unseen policies that are lineages of their own "

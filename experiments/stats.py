@@ -101,8 +101,9 @@ def rank_violations(rows: list[dict], top: int = 5, rate: str = "pred_rate") -> 
     policies charged the most, each {"name", "true_rate", "pred_rate", "share" (of the task's MMRV;
     all the task's policies' shares sum to 1), "against" (how many policies' largest violation is with
     it), "action_gap", "action_gap_largest", "closure_gap", "closure_bias", "on_truth", "replayed",
-    "imagined_in_sim" (the row's action_gap, action_gap_largest, closure_gap, closure_bias,
-    pred_rate_on_truth, pred_rate_replayed and true_rate_imagined_actions, where it has them)}}}; a task
+    "imagined_in_sim", "failed_peak_progress" (the row's action_gap, action_gap_largest, closure_gap,
+    closure_bias, pred_rate_on_truth, pred_rate_replayed, true_rate_imagined_actions and
+    failed_peak_progress, where it has them)}}}; a task
     whose MMRV is 0 or undefined (mmrv) lists none."""
     out = {}
     for task in sorted({r["task"] for r in rows}):
@@ -119,7 +120,8 @@ def rank_violations(rows: list[dict], top: int = 5, rate: str = "pred_rate") -> 
              "closure_gap": rs[k].get("closure_gap"), "closure_bias": rs[k].get("closure_bias"),
              "on_truth": rs[k].get("pred_rate_on_truth"),
              "replayed": rs[k].get("pred_rate_replayed"),
-             "imagined_in_sim": rs[k].get("true_rate_imagined_actions")} for k in order]}
+             "imagined_in_sim": rs[k].get("true_rate_imagined_actions"),
+             "failed_peak_progress": rs[k].get("failed_peak_progress")} for k in order]}
     return out
 
 

@@ -152,7 +152,7 @@ def test_rerun_resumes_and_other_config_is_refused(own_evaluation):
 
 
 def test_saved_traces_agree_with_the_episodes_outcomes(evaluation):
-    _, out, _ = evaluation
+    _, out, res = evaluation
     task = E.load_task(out / "tasks" / "mug.npz")
     p, n = task["true"].shape
     for key in E.TRACES:
@@ -164,6 +164,11 @@ def test_saved_traces_agree_with_the_episodes_outcomes(evaluation):
     np.testing.assert_allclose(task["trace_success"].max(-1), task["readout_success"], atol=2e-3)
     np.testing.assert_allclose(np.clip(task["trace_progress"][..., -1], 0, 1), task["readout_progress"], atol=2e-3)
     np.testing.assert_array_equal(task["prob"], task["readout_judge"])  # the preset's read-out
+    # how near each policy's failures came: from its saved progress, none where every episode succeeded
+    by_name = {r["name"]: r for r in res["policies"]}
+    for name, progress, true in zip(task["names"], task["true_progress"], task["true"], strict=True):
+        peak = by_name[str(name)]["failed_peak_progress"]
+        assert peak == E.failed_peak_progress(progress, true) and (peak is None) == bool(true.all())
 
 
 def test_imagination_fidelity_against_hand_computed_frames_and_actions():
@@ -312,6 +317,17 @@ def test_state_slices_share_one_program_and_parts_join_them_into_the_unsliced_re
         E.merge_task_parts(split, [E.load_task(parts / "tasks" / "mug.part0of2.npz")], whole["names"])
 
 
+def test_failed_peak_progress_is_the_mean_of_the_failed_episodes_highest_progress():
+    progress = np.array([[0.0, 0.5, 1.0, 1.0],     # succeeded: left out
+                         [0.0, 0.6, 0.975, 0.9],   # failed within 2.5% of the line, then slid back
+                         [0.0, 0.2, np.nan, 0.4],  # failed; a NaN step is skipped
+                         [np.nan] * 4], np.float16)  # failed, no progress kept: left out
+    outcomes = np.array([True, False, False, False])
+    assert E.failed_peak_progress(progress, outcomes) == round((float(np.float16(0.975)) + float(np.float16(0.4))) / 2, 3)
+    assert E.failed_peak_progress(progress[:1], outcomes[:1]) is None  # none failed
+    assert E.failed_peak_progress(progress[3:], outcomes[3:]) is None  # the failure kept no progress
+
+
 def test_violation_table_lists_the_policies_that_carry_each_tasks_mmrv():
     rows = [{"task": "mug", "name": n, "pred_rate": p, "true_rate": t, "action_gap": g}
             for n, p, t, g in zip("abcd", [0.9, 0.5, 0.1, 0.6], [0.1, 0.5, 0.0, 0.8], [0.1, 0.2, 0.3, 0.4])]
@@ -335,6 +351,11 @@ def test_violation_table_lists_the_policies_that_carry_each_tasks_mmrv():
     table = violation_table({"rank_violations": json.loads(json.dumps(S.rank_violations(rows))), "policies": rows})
     assert table[0][-2:] == ["largest in one dimension", "right hand's closure, imagined minus true (mean; RMS)"]
     assert table[1][-1] == "0.031; 0.087" and table[2][-1] == "n/a; n/a"
+    # where measured, how near the failed episodes came to success in the simulator
+    rows[0]["failed_peak_progress"] = 0.975
+    table = violation_table({"rank_violations": json.loads(json.dumps(S.rank_violations(rows))), "policies": rows})
+    assert table[0][-1] == "its failed episodes' highest true progress (1: success)"
+    assert table[1][-1] == "0.97" and table[2][-1] == "n/a"
     assert violation_table({}) is None  # results written before the table existed
     assert violation_table({"rank_violations": {"mug": {"mmrv": 0.0, "policies": []}}}) is None
 
