@@ -74,6 +74,15 @@ with the judge and bundle.json) that a later lease evaluates with `--stage eval 
 (the bundles, comma-separated) after its own data and policies stages (and rollouts, where the preset's
 grasp rules learn from them).
 
+A world model trained longer than one lease holds goes over several (wm.carry): the first lease's
+chain trains to `--set train:pause_at=N` of `steps` and ends after its train stage; `python -m wm.carry
+pack runs/wm/<p> DEST` packs the run exactly (carry.json and parts of <= 15 MiB: the `full` model's
+parameters and optimiser state are 389 MB before compression, its kept parameters 130 MB more),
+copied off eight a call; the next lease starts its chain with the same settings and `--run-from
+DIR[,DIR]`, the folders its later calls carry the parts into while the first stages run, and the train
+stage restores the run (waiting up to RUN_WAIT_S for them) and trains on, its steps those of an
+uninterrupted run on data whose fingerprint matches.
+
 The train stage, once every member is trained, writes each one's portable bundle
 (wm.checkpoint.write_bundle: bfloat16 parameters in hashed shards, configuration, normalisation,
 judge) into runs/bundles/, unless one of the same training is there, and then lists them in
@@ -140,15 +149,17 @@ from sim_data.policies import zoo
 from sim_data.util import (
     CACHE_KEY_LOG_ENV,
     device_name,
+    join_parts,
     key_cache_by_device_kind,
     record_cache_keys,
     run_cli,
     with_xla_flags,
     write_json_atomic,
+    write_parts,
 )
+from wm import carry, train
 from wm import config as wm_config
-from wm import train
-from wm.checkpoint import BUNDLE, bundle_holds, load_run_config, write_bundle
+from wm.checkpoint import BUNDLE, bundle_holds, load_run_config, training_status, write_bundle
 from wm.grasp import GRASPED
 
 STAGES = ("data", "policies", "rollouts", "train", "eval", "report")
@@ -417,6 +428,23 @@ def check_trained_members(p: Pipeline, d: dict, extra=()) -> None:
         if (m / "eval.json").exists():
             train.check_run_config(wm_config.make_config(p.train, _settings(member_args(p, k, extra))),
                                    d["wm_data"], m)
+
+
+RUN_WAIT_S = 1200.0  # how long a chain's train stage waits for a carried run's parts (--run-from)
+
+
+def restore_member(name: str, src: str) -> None:
+    """Restores into the one world model's run directory of pipeline `name` the run packed in src
+    (comma-separated folders: wm.carry.restore_run), waiting up to RUN_WAIT_S for its parts."""
+    member = pipeline(name, 1).dirs(name)["members"][0]
+    meta = carry.restore_run([d for d in src.split(",") if d], member, wait_s=RUN_WAIT_S)
+    print(f"== {name}: {member} restored at step {meta['step']} of {meta['steps']} from {src}", file=sys.stderr,
+          flush=True)
+
+
+def paused_members(name: str, members: int | None = None) -> list[Path]:
+    """The world models' run directories of pipeline `name` whose training stopped at its pause_at."""
+    return [m for m in pipeline(name, members).dirs(name)["members"] if training_status(m).get("paused")]
 
 
 def train_members(name: str, extra=(), gpus=(), members: int | None = None) -> tuple[bool, list[Path]]:
@@ -695,26 +723,18 @@ def pack_compile_cache(root: Path, dest: Path, part_bytes: int = CACHE_PART_BYTE
         old.unlink()
     if not files:
         return []
-    whole, parts = dest / (CACHE_PART + ".tmp"), []
+    whole = dest / (CACHE_PART + ".tmp")
     try:
         with tarfile.open(whole, "w:gz") as tar:
             for name, f in files:
                 tar.add(f, arcname=name)
         size = whole.stat().st_size
-        n = -(-size // part_bytes)
-        if n > max_parts:
+        if -(-size // part_bytes) > max_parts:
             print(f"the compilation cache takes {size / 2**20:.1f} MiB packed, more than {max_parts} files of "
                   f"{part_bytes / 2**20:g} MiB: not packed", file=sys.stderr)
             return []
-        with open(whole, "rb") as f:
-            for k in range(n):
-                tmp = dest / f"{CACHE_PART}{k:02d}.tmp"
-                tmp.write_bytes(f.read(part_bytes))
-                parts.append(tmp.replace(dest / f"{CACHE_PART}{k:02d}"))
-        return parts
+        return write_parts(whole, dest, CACHE_PART, part_bytes)
     except OSError as e:
-        for f in [*parts, *dest.glob(CACHE_PART + "*.tmp")]:
-            f.unlink(missing_ok=True)
         print(f"the compilation cache was not packed: {e}", file=sys.stderr)
         return []
     finally:
@@ -729,16 +749,9 @@ def restore_compile_cache(src, root: Path) -> int:
     do not join into one archive (one missing, cut short or given twice) or it holds anything outside
     CACHE_DIRS. Returns the files restored."""
     folders = [Path(src)] if isinstance(src, (str, Path)) else [Path(d) for d in src]
-    parts = sorted((p for d in folders for p in d.glob(f"{CACHE_PART}[0-9][0-9]")), key=lambda p: p.name)
     where = ", ".join(map(str, folders))
-    if not parts:
-        raise FileNotFoundError(f"{where} holds no {CACHE_PART}NN: pack one with --follow ... --collect DIR "
-                                "--collect-cache on a lease's follows")
-    numbers = [int(p.name[len(CACHE_PART):]) for p in parts]
-    if numbers != list(range(len(parts))):
-        raise ValueError(f"{where}: the cache's parts are {numbers}, not 0..{len(parts) - 1}: one is missing or "
-                         "given twice")
-    joined = b"".join(p.read_bytes() for p in parts)
+    joined, parts = join_parts(folders, CACHE_PART, "pack one with --follow ... --collect DIR --collect-cache on a "
+                                                    "lease's follows")
     Path(root).mkdir(parents=True, exist_ok=True)
     try:
         with tarfile.open(fileobj=io.BytesIO(joined), mode="r:gz") as tar, \
@@ -1068,6 +1081,11 @@ def main(argv=None) -> int:
                     help=f"first restore the compilation caches from DIR/{CACHE_PART}NN (--collect-cache's, from a "
                          "lease on a machine of the same kind; its parts may lie in several folders, comma-separated, "
                          "carried by different calls), so that the stages load what it compiled")
+    ap.add_argument("--run-from", default=None, metavar="DIR[,DIR]",
+                    help="before the train stage, restore the world model's run that a previous lease paused and "
+                         f"packed (wm.carry: carry.json and its parts, in one folder or several), waiting up to "
+                         f"{RUN_WAIT_S:.0f} s for them to arrive (carried in by later calls while the first stages "
+                         "run); the train stage then resumes it (one member)")
     ap.add_argument("--warm-rollouts", action="store_true",
                     help="with the policies stage (one GPU or none), compile the rollouts' programs beside it (with "
                          "the data and rollouts stages' --set overrides), for the rollouts stage to load")
@@ -1115,14 +1133,18 @@ def main(argv=None) -> int:
     if a.follow is not None:
         if a.detach:
             ap.error("--follow waits on a chain started by --detach: give them in two commands")
-        if a.cache_from is not None:
-            ap.error("--cache-from restores the caches for a chain to come: give it to the command that starts it")
+        for option, given in (("--cache-from", a.cache_from), ("--run-from", a.run_from)):
+            if given is not None:
+                ap.error(f"{option} restores for a chain to come: give it to the command that starts it")
         return follow(a.pipeline, a.follow, a.members, until_bundle=a.until_bundle, collect_to=a.collect,
                       collect_cache=a.collect_cache)
     try:
         check_settings(a.pipeline, a.stage, per_stage, a.overrides, a.members)
     except ValueError as e:
         ap.error(str(e))
+    if a.run_from is not None and (a.stage not in ("all", "train") or pipeline(a.pipeline, a.members).members != 1):
+        ap.error("--run-from restores one world model's run for the train stage: give it to a chain or to --stage "
+                 "train of a pipeline with one member")
     # before restoring the caches, which a running chain reads and writes
     if a.detach and (running := _detached_pid(_logs(PIPELINES[a.pipeline], a.pipeline))) is not None:
         ap.error(f"a detached {a.pipeline} chain still runs (pid {running}): follow it with "
@@ -1142,6 +1164,8 @@ def main(argv=None) -> int:
     use_compilation_cache(PIPELINES[a.pipeline].root, key_log=_logs(PIPELINES[a.pipeline], a.pipeline) / CACHE_KEY_LOG)
     t0 = time.perf_counter()
     for stage in STAGES if a.stage == "all" else (a.stage,):
+        if stage == "train" and a.run_from is not None:
+            restore_member(a.pipeline, a.run_from)
         while True:
             left = a.minutes - (time.perf_counter() - t0) / 60
             if a.minutes and left < 1.0:  # no stage starts, compiles and loads its inputs in less
@@ -1158,6 +1182,11 @@ def main(argv=None) -> int:
             if run_stage(a.pipeline, stage, [*mine, *a.overrides, *slot], gpus, a.members, warm, warm_eval,
                          warm_rollouts, cores) or a.stage != "all":
                 break
+            if stage == "train" and (paused := paused_members(a.pipeline, a.members)):
+                print(f"== {a.pipeline}: {', '.join(map(str, paused))} paused at its pause_at step: pack it for a "
+                      f"later lease (python -m wm.carry pack {paused[0]} DEST), which restores it with --run-from",
+                      file=sys.stderr)
+                return 0
     if a.stage in ("all", "report"):
         print(f"report: {(pipeline(a.pipeline).dirs(a.pipeline)['eval'] / 'report.html').absolute()} "
               f"({time.perf_counter() - t0:.0f} s)")

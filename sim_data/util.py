@@ -4,6 +4,7 @@ flags and the parameter initialisers' compilation."""
 from __future__ import annotations
 
 import functools
+import glob
 import json
 import logging
 import os
@@ -282,6 +283,47 @@ def wait_for_files(paths, wait_s: float, what: str) -> None:
     deadline = time.monotonic() + wait_s
     while not all(p.exists() for p in paths) and time.monotonic() < deadline:
         time.sleep(2.0)
+
+
+def write_parts(whole: Path, dest: Path, stem: str, part_bytes: int) -> list[Path]:
+    """The file `whole` cut into dest/<stem>00, 01, ... of at most part_bytes each (a lent GPU brings back
+    files of <= 16 MiB), each written under a temporary name and renamed once whole, after the parts of
+    stem that dest held are removed; returns them. On an error no part of stem is left in dest."""
+    dest.mkdir(parents=True, exist_ok=True)
+
+    def remove_parts():
+        for old in [*dest.glob(glob.escape(stem) + "[0-9][0-9]"), *dest.glob(glob.escape(stem) + "[0-9][0-9].tmp")]:
+            old.unlink(missing_ok=True)
+
+    remove_parts()
+    parts = []
+    try:
+        with open(whole, "rb") as f:
+            for k in range(max(-(-Path(whole).stat().st_size // part_bytes), 1)):
+                tmp = dest / f"{stem}{k:02d}.tmp"
+                tmp.write_bytes(f.read(part_bytes))
+                parts.append(tmp.replace(dest / f"{stem}{k:02d}"))
+    except OSError:
+        remove_parts()
+        raise
+    return parts
+
+
+def join_parts(folders, stem: str, hint: str = "") -> tuple[bytes, list[Path]]:
+    """(the bytes, the files) of write_parts' parts of stem found in folders (one folder, or several: a
+    lease carries a packing larger than one call's load in several calls, each its own folder), joined
+    in order of their numbers. Raises FileNotFoundError where the folders hold none (hint appended to
+    the message) and ValueError where their numbers are not 0..n-1 (one missing or given twice)."""
+    folders = [Path(folders)] if isinstance(folders, (str, Path)) else [Path(d) for d in folders]
+    parts = sorted((p for d in folders for p in d.glob(f"{glob.escape(stem)}[0-9][0-9]")), key=lambda p: p.name)
+    where = ", ".join(map(str, folders))
+    if not parts:
+        raise FileNotFoundError(f"{where} holds no {stem}NN" + (f": {hint}" if hint else ""))
+    numbers = [int(p.name[len(stem):]) for p in parts]
+    if numbers != list(range(len(parts))):
+        raise ValueError(f"{where}: the {stem}NN parts are {numbers}, not 0..{len(parts) - 1}: one is missing or "
+                         "given twice")
+    return b"".join(p.read_bytes() for p in parts), parts
 
 
 def package_versions(packages=("mujoco", "mujoco-mjx", "jax", "numpy", "opencv-python-headless", "mcap")) -> dict:

@@ -443,6 +443,41 @@ def test_a_time_slot_passes_what_is_left_to_train_and_eval_and_starts_no_stage_a
     assert ran == [("eval", ["episodes=100", "max_minutes=9.000"])]
 
 
+def test_a_chain_restores_a_carried_run_before_training_and_ends_where_its_training_pauses(tiny, monkeypatch,
+                                                                                          capsys):
+    _, d = tiny
+    ran, restored = [], []
+
+    def fake_stage(name, stage, extra=(), gpus=(), members=None, warm=None, warm_eval=None, warm_rollouts=None,
+                   cores=()):
+        ran.append(stage)
+        if stage == "train":  # trains to its pause_at: stopped, not finished
+            d["members"][0].mkdir(parents=True, exist_ok=True)
+            (d["members"][0] / "train_status.json").write_text(json.dumps(
+                {"step": 8000, "steps": 13000, "cut_short": True, "paused": True}))
+            return False
+        return True
+
+    def fake_restore(src, run, wait_s=0.0):
+        restored.append((src, run, wait_s, list(ran)))
+        return {"step": 8000, "steps": 13000}
+
+    monkeypatch.setattr(P, "run_stage", fake_stage)
+    monkeypatch.setattr(P.carry, "restore_run", fake_restore)
+    monkeypatch.setattr(P, "check_settings", lambda *args: None)  # the tiny preset names no real configurations
+    monkeypatch.setattr(P, "use_compilation_cache", lambda root, key_log=None: "")
+    assert P.main(["tiny", "--members", "1", "--run-from", ".carry-run0,.carry-run1"]) == 0
+    # restored once, after the stages before training (its parts arrive meanwhile), into the one member's run
+    assert restored == [([".carry-run0", ".carry-run1"], d["members"][0], P.RUN_WAIT_S, ["data", "policies",
+                                                                                         "rollouts"])]
+    assert ran == ["data", "policies", "rollouts", "train"]  # no evaluation of a paused model, no retraining
+    assert f"python -m wm.carry pack {d['members'][0]} DEST" in capsys.readouterr().err
+    for argv in (["tiny", "--run-from", "x"], ["tiny", "--members", "1", "--stage", "eval", "--run-from", "x"]):
+        with pytest.raises(SystemExit):
+            P.main(argv)
+    assert "one member" in capsys.readouterr().err
+
+
 def test_a_stage_spread_over_gpus_counts_its_child_processes_compiling_and_frames(tiny, monkeypatch):
     from experiments.report import compile_table, timing_table
 

@@ -25,7 +25,11 @@ class TrainConfig:
         same model. max_minutes: a safety stop only (0: none), counted from the run's start (data,
         compilation and restoring included): a run that reaches it stops, saves, is
         marked cut short (train_status.json) and left unjudged and unevaluated; rerunning the same
-        command resumes it to `steps` (a budget spread over several commands). lr, warmup,
+        command resumes it to `steps` (a budget spread over several commands). pause_at: a step at
+        which the run saves and stops as that safety stop does (at its first logged step at or after
+        it; 0: none), so that a budget spread over GPU leases is cut in steps: packed there
+        (wm.carry), a later lease resumes it with a later pause_at or none; like max_minutes it
+        changes nothing the run computes. lr, warmup,
         weight_decay, grad_clip: AdamW.
       rollout_passes: extra passes in which the dynamics reads its own (stop-gradient) predictions
         instead of encoded frames (0: teacher forcing only); each pass extends the errors it learns
@@ -127,6 +131,7 @@ class TrainConfig:
     window: int = 16
     steps: int = 20000
     max_minutes: float = 0.0
+    pause_at: int = 0
     lr: float = 6e-4
     warmup: int = 300
     weight_decay: float = 0.01
@@ -271,6 +276,8 @@ class TrainConfig:
                              f"got {self.fail_repeat}")
         if self.max_minutes < 0:
             raise ValueError(f"max_minutes is a safety stop in minutes (0: none), got {self.max_minutes}")
+        if self.pause_at < 0:
+            raise ValueError(f"pause_at is a step to save and stop at (0: none), got {self.pause_at}")
         if self.rollout_passes < 0 or self.lr <= 0:
             raise ValueError("rollout_passes >= 0 and lr > 0 are required")
 

@@ -43,6 +43,7 @@ from sim_data.dataset.cache import TrainingCache, WindowLoader, epoch_episodes
 from sim_data.policies.registry import resolve as resolve_policies
 from sim_data.util import make_output_dir, run_cli, write_json_atomic
 from wm import perceptual
+from wm.carry import check_data
 from wm.checkpoint import restore_params
 from wm.config import PRESETS, TrainConfig, check_dataset, make_config, to_dict
 from wm.imagine import Norm, to_uint8
@@ -609,7 +610,8 @@ class Run:
         t_log, acc, n_acc, waited = time.perf_counter(), None, 0, 0.0
         step = start
         last = {}
-        while step < cfg.steps:
+        # a run resumed where it paused stays paused: its command is rerun with a later pause_at or none
+        while step < cfg.steps and not (cfg.pause_at and cfg.pause_at <= start):
             t_wait = time.perf_counter()
             batch = self.next_batch()
             waited += time.perf_counter() - t_wait
@@ -636,6 +638,8 @@ class Run:
             out_of_time = bool(cfg.max_minutes and (time.perf_counter() - t_start) / 60 >= cfg.max_minutes)
             if jax.process_count() > 1:  # process 0's clock decides, or one process would wait on the others forever
                 out_of_time = bool(multihost_utils.broadcast_one_to_all(np.bool_(out_of_time)))
+            paused = bool(cfg.pause_at and cfg.pause_at <= step < cfg.steps)
+            out_of_time = out_of_time or paused  # a pause stops as the safety stop does, at a step set in advance
             is_best = False
             # validated on the eval_every grid alone, so that a run a safety stop cuts and a rerun finishes
             # keeps the step an uninterrupted run keeps; cut short, "last" keeps where it stopped
@@ -661,10 +665,15 @@ class Run:
         self.loader.close()
         if self.best.latest_step() is None:  # e.g. a run that resumed at its last step
             self.keep(step)
-        status = {"step": step, "steps": cfg.steps, "cut_short": step < cfg.steps}
+        paused = bool(cfg.pause_at and cfg.pause_at <= step < cfg.steps)
+        status = {"step": step, "steps": cfg.steps, "cut_short": step < cfg.steps, **({"paused": True} if paused else {})}
         if jax.process_index() == 0:
             write_json_atomic(self.out / "train_status.json", status)
-        if status["cut_short"]:
+        if paused:
+            print(f"paused at step {step} of {cfg.steps} (pause_at={cfg.pause_at}): pack the run for a later lease "
+                  f"(python -m wm.carry pack {self.out} DEST) or rerun with a later pause_at or none",
+                  file=sys.stderr)
+        elif status["cut_short"]:
             print(f"stopped by the safety limit max_minutes={cfg.max_minutes:g} at step {step} of {cfg.steps}: "
                   "the model is marked cut short; rerun the same command to finish it", file=sys.stderr)
         return {**status, **last}
@@ -723,9 +732,12 @@ def warm_after_training(cfg: TrainConfig, data: Path, norm: Norm) -> None:
 
 def check_run_config(cfg: TrainConfig, data: Path, out: Path) -> None:
     """Saves the resolved configuration; refuses to resume a run of another one or of another dataset
-    (a safety time limit aside, which changes nothing computed)."""
+    (a safety time limit or a pause aside, which change nothing computed), or a run carried from another
+    lease (wm.carry) on data other than the data it trained on there."""
+    check_data(out, data)
     save_or_check(out / "config.json", as_json({"train": to_dict(cfg), "data": str(Path(data).absolute())}),
-                  "a run", defaults=as_json({"train": to_dict(TrainConfig())}), ignore=("train.max_minutes",))
+                  "a run", defaults=as_json({"train": to_dict(TrainConfig())}),
+                  ignore=("train.max_minutes", "train.pause_at"))
 
 
 def main(argv=None) -> int:

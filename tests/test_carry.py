@@ -1,0 +1,82 @@
+"""A training run paused, packed, restored on another path and resumed (wm.carry): the same model as
+the uninterrupted run, and the packs and data it refuses."""
+
+import json
+import shutil
+
+import jax
+import numpy as np
+import pytest
+
+from wm import carry as C
+from wm.checkpoint import load_trained
+from wm.train import main as train_main
+
+TIMING = ("steps_per_s", "frames_per_s", "input_wait")  # what a logged step measures of the machine
+
+
+def _logged(run):
+    return [{k: v for k, v in json.loads(line).items() if k not in TIMING}
+            for line in (run / "metrics.jsonl").read_text().splitlines()]
+
+
+def test_a_paused_run_packed_and_restored_elsewhere_resumes_to_the_uninterrupted_model(smoke_dataset,
+                                                                                      smoke_world_model, tmp_path):
+    _, data, _ = smoke_dataset
+    args = ["--config", "smoke", "--data", str(data)]
+    first = tmp_path / "lease1" / "run"
+    assert train_main([*args, "--out", str(first), "pause_at=10"]) == 0
+    assert json.loads((first / "train_status.json").read_text()) == {"step": 10, "steps": 30, "cut_short": True,
+                                                                      "paused": True}
+    assert not (first / "eval.json").exists()
+    assert train_main([*args, "--out", str(first), "pause_at=10"]) == 0  # rerun as it is, it stays paused
+    assert [m["step"] for m in _logged(first)] == [5, 10]
+    # packed in parts of 256 KiB, carried in by two calls: the parts split between two folders
+    meta = C.pack_run(first, tmp_path / "pack", part_bytes=256 * 2**10)
+    parts = sorted((tmp_path / "pack").glob(C.PART + "*"))
+    assert meta["step"] == 10 and meta["parts"] == len(parts) > 2 and meta["data_sha256"] == C.data_fingerprint(data)
+    assert all(p.stat().st_size <= 256 * 2**10 for p in parts)
+    one, two = tmp_path / "call1", tmp_path / "call2"
+    one.mkdir()
+    two.mkdir()
+    for k, p in enumerate(parts):
+        shutil.copy(p, (one if k % 2 else two) / p.name)
+    with pytest.raises(FileNotFoundError, match="holds no carry.json"):
+        C.restore_run([one, two], tmp_path / "lease2" / "run")
+    shutil.copy(tmp_path / "pack" / C.CARRY, two / C.CARRY)
+    (one / parts[1].name).rename(tmp_path / parts[1].name)
+    with pytest.raises(FileNotFoundError, match=f"lacks {parts[1].name}"):
+        C.restore_run([one, two], tmp_path / "lease2" / "run")
+    (tmp_path / parts[1].name).rename(one / parts[1].name)
+    second = tmp_path / "lease2" / "run"
+    assert C.restore_run([one, two], second) == meta
+    assert C.restore_run([one, two], second) == meta  # restored already: left as it is
+    with pytest.raises(ValueError, match="holds another training run"):
+        C.restore_run([one, two], first)
+    # the next lease resumes it to its steps: every logged loss and the kept parameters are the
+    # uninterrupted run's, bit for bit
+    assert train_main([*args, "--out", str(second)]) == 0
+    assert json.loads((second / "train_status.json").read_text())["cut_short"] is False
+    assert _logged(second) == _logged(smoke_world_model)
+    for a, b in zip(jax.tree_util.tree_leaves(load_trained(second)[1]),
+                    jax.tree_util.tree_leaves(load_trained(smoke_world_model)[1]), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # a pack restored beside data that differs is refused before any step
+    other = tmp_path / "lease3" / "run"
+    C.restore_run([one, two], other)
+    carried = json.loads((other / C.CARRY).read_text())
+    (other / C.CARRY).write_text(json.dumps({**carried, "data_sha256": "0" * 64}))
+    with pytest.raises(ValueError, match="not the data"):
+        train_main([*args, "--out", str(other)])
+    assert [m["step"] for m in _logged(other)] == [5, 10]
+
+
+def test_damaged_or_foreign_packs_are_refused(smoke_world_model, tmp_path):
+    with pytest.raises(FileNotFoundError, match="no stopped training run"):
+        C.pack_run(tmp_path / "nothing", tmp_path / "pack")
+    C.pack_run(smoke_world_model, tmp_path / "pack", part_bytes=512 * 2**10)
+    part = tmp_path / "pack" / f"{C.PART}00"
+    part.write_bytes(part.read_bytes()[:-1])
+    with pytest.raises(ValueError, match="SHA-256 differs"):
+        C.restore_run(tmp_path / "pack", tmp_path / "run")
+    assert not (tmp_path / "run").exists()

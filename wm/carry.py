@@ -1,0 +1,201 @@
+"""A training run packed to travel between GPU leases and resume where it stopped.
+
+A lent machine keeps nothing for the next lease, and a lease holds about 30 minutes of which the
+data, the zoo and the rollouts take 7 to 8: a world model trained for longer goes in parts. The
+first lease trains to a step (`pause_at`, wm.config.TrainConfig) and packs the run; the next one
+regenerates the data, restores the run and trains on to `steps` (or to a later pause):
+
+    python -m wm.train --config full ... steps=13000 pause_at=8000        # saves and stops at 8000
+    python -m wm.carry pack runs/wm/full_grip runs/carry/full_grip         # carry.json + run.tgz.partNN
+    # copy the parts off the machine (eight a call) and carry them in (64 MiB a call), then:
+    python -m wm.carry restore DIR[,DIR...] runs/wm/full_grip              # the same wm.train resumes
+
+The pack holds what resuming needs, bit for bit: the latest checkpoint (parameters, optimiser
+state, the loader's position, the best validation loss), the kept parameters (best/), config.json,
+norm.json, metrics.jsonl and train_status.json, as one tar.gz cut into files of <= 15 MiB, and
+carry.json, which names the parts, their SHA-256 and the fingerprint of the data the run trained
+on: a resumed run refuses data that differs (check_data), since its steps would then not be those
+of an uninterrupted run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import io
+import json
+import shutil
+import sys
+import tarfile
+import tempfile
+import time
+import zlib
+from pathlib import Path
+
+from sim_data.util import join_parts, read_json, run_cli, write_json_atomic, write_parts
+from wm.checkpoint import training_status
+
+CARRY = "carry.json"  # the pack's description, beside its parts, and kept in the restored run
+PART = "run.tgz.part"
+PART_BYTES = 15 * 2**20  # a lent GPU brings back files of <= 16 MiB
+PACKED = ("config.json", "norm.json", "metrics.jsonl", "train_status.json", "checkpoints", "best")
+FINGERPRINTED = ("proprio.npy", "action.npy", "success.npy")  # per cache shard, beside its index.json
+
+
+def data_fingerprint(data: Path) -> str:
+    """SHA-256 of a dataset's training cache as a run reads it: index.json (its episodes, splits,
+    outcomes and lengths) and every shard's proprioception, actions and success flags, which any
+    difference in the simulation moves (the frames, gigabytes, are left out)."""
+    cache = Path(data) / "cache"
+    if not (cache / "index.json").exists():
+        raise FileNotFoundError(f"{data} holds no training cache (cache/index.json): generate the data first")
+    h = hashlib.sha256((cache / "index.json").read_bytes())
+    for shard in json.loads((cache / "index.json").read_text())["shards"]:
+        for name in FINGERPRINTED:
+            f = cache / shard["name"] / name
+            if f.exists():
+                h.update(f"{shard['name']}/{name}".encode())
+                with open(f, "rb") as fh:
+                    for block in iter(lambda: fh.read(1 << 22), b""):
+                        h.update(block)
+    return h.hexdigest()
+
+
+def pack_run(run: Path, dest: Path, part_bytes: int = PART_BYTES) -> dict:
+    """Packs the stopped training run `run` (one with train_status.json: paused, cut short or
+    finished) into dest: PACKED as one tar.gz cut into dest/PARTNN of <= part_bytes, and dest/CARRY
+    ({"step", "steps", "parts", "bytes", "sha256", "data", "data_sha256"}), written last. Returns
+    carry.json's contents. Raises FileNotFoundError where run has no status or checkpoint (it never
+    finished a command: rerun its training first)."""
+    run, dest = Path(run), Path(dest)
+    status = training_status(run)
+    if status["step"] is None or not (run / "checkpoints").is_dir():
+        raise FileNotFoundError(f"{run} holds no stopped training run (train_status.json and checkpoints/): train it "
+                                "with a pause_at, or until it stops, before packing it")
+    data = Path(read_json(run / "config.json")["data"])
+    dest.mkdir(parents=True, exist_ok=True)
+    (dest / CARRY).unlink(missing_ok=True)
+    whole = dest / (PART + ".tmp")
+    try:
+        with tarfile.open(whole, "w:gz") as tar:
+            for name in PACKED:
+                if (run / name).exists():
+                    tar.add(run / name, arcname=name)
+        parts = write_parts(whole, dest, PART, part_bytes)
+        meta = {"step": status["step"], "steps": status["steps"], "parts": len(parts),
+                "bytes": whole.stat().st_size, "sha256": _sha256(whole), "data": str(data),
+                "data_sha256": data_fingerprint(data)}
+    finally:
+        whole.unlink(missing_ok=True)
+    write_json_atomic(dest / CARRY, meta)
+    return meta
+
+
+def restore_run(src, run: Path, wait_s: float = 0.0) -> dict:
+    """Restores the run that pack_run packed, its parts and carry.json in src (a folder, or several:
+    a lease carries them in several calls, each its own folder), into `run`, carry.json kept there for
+    check_data; waits up to wait_s seconds for the parts carry.json names to arrive (a chain that
+    restores before its train stage while later calls carry them in). Returns carry.json's contents.
+    Raises FileNotFoundError where no folder holds carry.json or a part is still missing, ValueError
+    where the parts do not make the packed archive or `run` holds another training run (restore into
+    an empty path); a run restored from the same pack already is left as it is."""
+    folders = [Path(src)] if isinstance(src, (str, Path)) else [Path(d) for d in src]
+    where = ", ".join(map(str, folders))
+    if wait_s and not _arrived(folders):
+        print(f"waiting up to {wait_s:.0f} s for the packed run's {CARRY} and parts in {where}", file=sys.stderr,
+              flush=True)
+        deadline = time.monotonic() + wait_s
+        while not _arrived(folders) and time.monotonic() < deadline:
+            time.sleep(2.0)
+    found = [d / CARRY for d in folders if (d / CARRY).exists()]
+    if not found:
+        raise FileNotFoundError(f"{where} holds no {CARRY}: pack the run with python -m wm.carry pack RUN DEST")
+    meta = read_json(found[0])
+    missing = [n for n in _part_names(meta) if not any((d / n).exists() for d in folders)]
+    if missing:
+        raise FileNotFoundError(f"{where} lacks {', '.join(missing)} of the packed run's {meta['parts']} parts: "
+                                "carry them in too")
+    run = Path(run)
+    if (run / CARRY).exists() and read_json(run / CARRY)["sha256"] == meta["sha256"]:
+        return meta  # restored already (a rerun of the same command)
+    if (run / "train_status.json").exists() or (run / "checkpoints").exists():
+        raise ValueError(f"{run} holds another training run: restore into an empty path, or remove it")
+    joined, _ = join_parts(folders, PART)
+    if hashlib.sha256(joined).hexdigest() != meta["sha256"]:
+        raise ValueError(f"{where}: the parts do not make the packed run (SHA-256 differs from {CARRY}'s): is a part "
+                         "cut short or from another packing?")
+    run.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        with tarfile.open(fileobj=io.BytesIO(joined), mode="r:gz") as tar, \
+                tempfile.TemporaryDirectory(dir=run.parent) as unpacked:
+            foreign = [m.name for m in tar.getmembers() if Path(m.name).parts[0] not in PACKED
+                       or ".." in Path(m.name).parts]
+            if foreign:
+                raise ValueError(f"{where}: the packed run holds {foreign[:3]}, outside {', '.join(PACKED)}")
+            tar.extractall(unpacked, filter="data")
+            run.mkdir(parents=True, exist_ok=True)
+            for name in PACKED:
+                if (Path(unpacked) / name).exists():
+                    shutil.move(str(Path(unpacked) / name), str(run / name))
+    except (tarfile.TarError, EOFError, zlib.error) as e:
+        raise ValueError(f"{where}: the packed run does not unpack ({e})") from e
+    write_json_atomic(run / CARRY, meta)
+    return meta
+
+
+def _part_names(meta: dict) -> list[str]:
+    return [f"{PART}{k:02d}" for k in range(meta["parts"])]
+
+
+def _arrived(folders) -> bool:
+    """Whether one of folders holds carry.json and the folders hold every part it names."""
+    found = [d / CARRY for d in folders if (d / CARRY).exists()]
+    return bool(found) and all(any((d / n).exists() for d in folders) for n in _part_names(read_json(found[0])))
+
+
+def check_data(run: Path, data: Path) -> None:
+    """Where `run` was restored from a pack (it holds carry.json), refuses to resume it on data whose
+    fingerprint differs from the packed run's (ValueError): another machine kind's simulation, or
+    other settings, would make its remaining steps differ from an uninterrupted run's."""
+    carried = Path(run) / CARRY
+    if not carried.exists():
+        return
+    meta = read_json(carried)
+    if data_fingerprint(data) != meta["data_sha256"]:
+        raise ValueError(f"{data} is not the data {run} trained on before it was packed (their fingerprints differ: "
+                         "generate it with the same commit, settings and machine kind), so its remaining steps would "
+                         "not be an uninterrupted run's; train a fresh run on this data instead")
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 22), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="command", required=True)
+    pk = sub.add_parser("pack", help="pack a stopped training run into DEST (carry.json and parts of <= 15 MiB)")
+    pk.add_argument("run", type=Path)
+    pk.add_argument("dest", type=Path)
+    rs = sub.add_parser("restore", help="restore a packed run from its folders into RUN (an empty path)")
+    rs.add_argument("src", help="the folder(s) holding carry.json and the parts, comma-separated")
+    rs.add_argument("run", type=Path)
+    rs.add_argument("--wait", type=float, default=0.0, metavar="SECONDS",
+                    help="wait up to SECONDS for carry.json and the parts to arrive")
+    a = p.parse_args(argv)
+    if a.command == "pack":
+        meta = pack_run(a.run, a.dest)
+        print(f"{a.run}: step {meta['step']} of {meta['steps']} packed into {a.dest} ({CARRY} and {meta['parts']} "
+              f"parts, {meta['bytes'] / 2**20:.1f} MiB)")
+    else:
+        meta = restore_run(a.src.split(","), a.run, a.wait)
+        print(f"{a.run}: restored at step {meta['step']} of {meta['steps']}; its training command resumes it")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run_cli(main))
