@@ -33,7 +33,7 @@ import zlib
 from pathlib import Path
 
 from sim_data.util import join_parts, read_json, run_cli, write_json_atomic, write_parts
-from wm.checkpoint import training_status
+from wm.checkpoint import file_sha256, training_status
 
 CARRY = "carry.json"  # the pack's description, beside its parts, and kept in the restored run
 PART = "run.tgz.part"
@@ -55,9 +55,7 @@ def data_fingerprint(data: Path) -> str:
             f = cache / shard["name"] / name
             if f.exists():
                 h.update(f"{shard['name']}/{name}".encode())
-                with open(f, "rb") as fh:
-                    for block in iter(lambda: fh.read(1 << 22), b""):
-                        h.update(block)
+                h.update(f.read_bytes())
     return h.hexdigest()
 
 
@@ -83,7 +81,7 @@ def pack_run(run: Path, dest: Path, part_bytes: int = PART_BYTES) -> dict:
                     tar.add(run / name, arcname=name)
         parts = write_parts(whole, dest, PART, part_bytes)
         meta = {"step": status["step"], "steps": status["steps"], "parts": len(parts),
-                "bytes": whole.stat().st_size, "sha256": _sha256(whole), "data": str(data),
+                "bytes": whole.stat().st_size, "sha256": file_sha256(whole), "data": str(data),
                 "data_sha256": data_fingerprint(data)}
     finally:
         whole.unlink(missing_ok=True)
@@ -165,14 +163,6 @@ def check_data(run: Path, data: Path) -> None:
         raise ValueError(f"{data} is not the data {run} trained on before it was packed (their fingerprints differ: "
                          "generate it with the same commit, settings and machine kind), so its remaining steps would "
                          "not be an uninterrupted run's; train a fresh run on this data instead")
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 22), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def main(argv=None) -> int:

@@ -200,11 +200,11 @@ def write_bundle(run: Path, out: Path, dtype: str = "bfloat16") -> dict:
     for k, shard in enumerate(shards):
         name = f"params-{k}.msgpack"
         (tmp / name).write_bytes(serialization.msgpack_serialize({key: _to_bytes(a) for key, a in shard.items()}))
-        hashes[name] = _sha256(tmp / name)
+        hashes[name] = file_sha256(tmp / name)
     for blob in JUDGE_BLOBS:
         if (run / blob).exists():
             shutil.copyfile(run / blob, tmp / blob)
-            hashes[blob] = _sha256(tmp / blob)
+            hashes[blob] = file_sha256(tmp / blob)
     meta = {"format": BUNDLE_FORMAT, "source": str(run.absolute()), "dtype": dtype,
             "parameters": int(sum(a.size for a in flat.values())), "sha256": hashes, "files": _run_files(run),
             "data_seeds": sorted(training_seeds(run)), "data_policies": sorted(training_policies(run)),
@@ -245,7 +245,7 @@ def bundle_holds(run: Path, out: Path) -> bool:
         return False
     meta = bundle_meta(out)
     return meta["files"] == _run_files(run) and all(
-        meta["sha256"].get(blob) == (_sha256(Path(run) / blob) if (Path(run) / blob).exists() else None)
+        meta["sha256"].get(blob) == (file_sha256(Path(run) / blob) if (Path(run) / blob).exists() else None)
         for blob in JUDGE_BLOBS)
 
 
@@ -258,12 +258,10 @@ def _from_bytes(d: dict) -> np.ndarray:
     return np.frombuffer(d["data"], dtype).reshape(d["shape"]).astype(np.float32)
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
+def file_sha256(path: Path) -> str:
+    """The SHA-256 of a file's bytes, in hex."""
     with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+        return hashlib.file_digest(f, "sha256").hexdigest()
 
 
 def check_bundle(out: Path) -> dict:
@@ -277,7 +275,7 @@ def check_bundle(out: Path) -> dict:
     for name, digest in meta["sha256"].items():
         if not (out / name).exists():
             raise FileNotFoundError(f"{out}/{name} is missing: copy the whole bundle directory")
-        if _sha256(out / name) != digest:
+        if file_sha256(out / name) != digest:
             raise ValueError(f"{out}/{name} does not match its SHA-256 in {BUNDLE}: the copy is damaged")
     return meta
 
