@@ -1292,9 +1292,10 @@ def run(cfg: EvalConfig, out: Path, progress: bool = True, part: tuple[int, int]
         partial: bool = False, preset: str = "") -> dict | None:
     """Evaluates (or completes the evaluation of) cfg into out; returns the results. Where
     cfg.max_minutes stops it before the last task, results.json holds the tasks finished, lists the
-    others in "missing_tasks" and says so in "cut_short" (rerun the same call to finish). part: (K, N) evaluates the K-th
-    of N shares of every task's batches (balance_chunks) and returns None (sim_data.parts: one
-    process per GPU; a run without a part merges the shares and gathers results.json). partial:
+    others in "missing_tasks" and says so in "cut_short" (rerun the same call to finish). part: (K, N)
+    evaluates the K-th of N shares of every task's batches (balance_chunks) and returns None
+    (sim_data.parts: one process per GPU; a run without a part merges the shares and gathers
+    results.json). partial:
     evaluate nothing more and gather the tasks finished so far (a run cut short); results.json
     lists the others in "missing_tasks". preset: the name of cfg's preset, recorded so that the
     report shows that preset's targets."""

@@ -709,8 +709,9 @@ def partial_note(res: dict) -> str:
         return ""
     note = f"Partial: tasks {', '.join(res['missing_tasks'])} were not evaluated; every statistic below leaves them out."
     if cut := res.get("cut_short"):
-        note += (f" The evaluation stopped at its safety time limit (max_minutes={cut['max_minutes']:g}): rerun "
-                 "the same command to evaluate them.")
+        limit = cut.get("max_minutes") if isinstance(cut, dict) else None
+        setting = f" (max_minutes={limit:g})" if isinstance(limit, (int, float)) else ""
+        note += f" The evaluation stopped at its safety time limit{setting}: rerun the same command to evaluate them."
     return note
 
 

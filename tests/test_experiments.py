@@ -22,6 +22,7 @@ from experiments.report import (
     decision_figure,
     family_table,
     md_table,
+    partial_note,
     read_results,
     selection_summary,
     selection_table,
@@ -397,6 +398,10 @@ def test_an_evaluation_its_time_limit_stops_writes_the_finished_tasks_marked_cut
     md = write_report(tmp_path / "cut").with_suffix(".md").read_text()
     assert ("**Partial: tasks step_back were not evaluated; every statistic below leaves them out. The evaluation "
             "stopped at its safety time limit (max_minutes=1e-09): rerun the same command to evaluate them.**") in md
+    # a hand-edited limit that is no number is left out of the sentence, not a traceback
+    assert partial_note({"missing_tasks": ["wipe"], "cut_short": {"max_minutes": "soon"}}).endswith(
+        "safety time limit: rerun the same command to evaluate them.")
+    assert partial_note({"missing_tasks": []}) == ""
 
 
 def test_report_renders_figures_and_videos(own_evaluation):
