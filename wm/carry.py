@@ -75,7 +75,8 @@ def pack_run(run: Path, dest: Path, part_bytes: int = PART_BYTES) -> dict:
     (dest / CARRY).unlink(missing_ok=True)
     whole = dest / (PART + ".tmp")
     try:
-        with tarfile.open(whole, "w:gz") as tar:
+        # float32 weights and optimiser moments barely compress: the fastest level keeps the pack quick
+        with tarfile.open(whole, "w:gz", compresslevel=1) as tar:
             for name in PACKED:
                 if (run / name).exists():
                     tar.add(run / name, arcname=name)
