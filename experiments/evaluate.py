@@ -978,7 +978,8 @@ def failed_peak_progress(true_progress, outcomes) -> float | None:
     in each failed episode ((N, T) true_progress against (N,) bool outcomes; 1 is the success line,
     sim_data.sim.tasks.task_progress), averaged over them and rounded to 3 decimals; None where no
     episode failed or none of those has a progress (a truth cache kept without it). Near 1, the
-    policy's true rate turns on a few millimetres of its task's measure."""
+    policy's true rate turns on a few millimetres of its task's measure; at 1, its failures reached
+    success and left it (a drive past step_back's band)."""
     failed = np.asarray(true_progress, np.float64)[~np.asarray(outcomes, bool)]
     peaks = [float(np.nanmax(e)) for e in failed if np.isfinite(e).any()]
     return round(float(np.mean(peaks)), 3) if peaks else None

@@ -892,7 +892,8 @@ VIOLATION_NOTE = ("Where MMRV comes from: each policy's term (its largest rank v
                   "above a threshold on the closure, so a few hundredths firmer can turn a failure into a success); and how near "
                   "its failed episodes came to success in the simulator (their highest progress, where 1 is the "
                   "task's success line: near 1, its true rate turns on millimetres of the task's measure, which the "
-                  "world model must imagine to that precision to rank it).")
+                  "world model must imagine to that precision to rank it; at 1, its failures reached success and "
+                  "left it, as a drive past its band).")
 
 
 UNSEEN_NETWORKS_TITLE = ("Within-task ranking of the unseen policies that are lineages of their own "
