@@ -78,10 +78,11 @@ A world model trained longer than one lease holds goes over several (wm.carry): 
 chain trains to `--set train:pause_at=N` of `steps` and ends after its train stage; `python -m wm.carry
 pack runs/wm/<p> DEST` packs the run exactly (carry.json and parts of <= 15 MiB: the `full` model's
 parameters and optimiser state are 389 MB before compression, its kept parameters 130 MB more),
-copied off eight a call; the next lease starts its chain with the same settings and `--run-from
-DIR[,DIR]`, the folders its later calls carry the parts into while the first stages run, and the train
-stage restores the run (waiting up to RUN_WAIT_S for them) and trains on, its steps those of an
-uninterrupted run on data whose fingerprint matches.
+copied off four a call (a call returns 64 MiB); the next lease starts its chain with the same settings
+but a later pause_at or none, and `--run-from DIR[,DIR]`, the folders its later calls carry the parts
+into (four a call) while the first stages run, and the train stage restores the run (waiting up to
+RUN_WAIT_S for every part at its packed size) and trains on, its steps those of an uninterrupted run
+on data whose fingerprint matches.
 
 The train stage, once every member is trained, writes each one's portable bundle
 (wm.checkpoint.write_bundle: bfloat16 parameters in hashed shards, configuration, normalisation,
@@ -433,11 +434,17 @@ def check_trained_members(p: Pipeline, d: dict, extra=()) -> None:
 RUN_WAIT_S = 1200.0  # how long a chain's train stage waits for a carried run's parts (--run-from)
 
 
-def restore_member(name: str, src: str) -> None:
+def restore_member(name: str, src: str, extra=(), wait_s: float = RUN_WAIT_S) -> None:
     """Restores into the one world model's run directory of pipeline `name` the run packed in src
-    (comma-separated folders: wm.carry.restore_run), waiting up to RUN_WAIT_S for its parts."""
-    member = pipeline(name, 1).dirs(name)["members"][0]
-    meta = carry.restore_run([d for d in src.split(",") if d], member, wait_s=RUN_WAIT_S)
+    (comma-separated folders: wm.carry.restore_run), waiting up to wait_s for its parts; refuses one at
+    or past the pause_at that the train stage's overrides (extra) give, which would not train a step."""
+    p = pipeline(name, 1)
+    member = p.dirs(name)["members"][0]
+    meta = carry.restore_run([d for d in src.split(",") if d], member, wait_s=wait_s)
+    pause_at = wm_config.make_config(p.train, _settings(member_args(p, 0, extra))).pause_at
+    if pause_at and meta["step"] >= pause_at:
+        raise ValueError(f"{member} was restored at step {meta['step']}, at or past pause_at={pause_at}: rerun the "
+                         "chain with a later --set train:pause_at=... or none")
     print(f"== {name}: {member} restored at step {meta['step']} of {meta['steps']} from {src}", file=sys.stderr,
           flush=True)
 
@@ -1142,6 +1149,8 @@ def main(argv=None) -> int:
         check_settings(a.pipeline, a.stage, per_stage, a.overrides, a.members)
     except ValueError as e:
         ap.error(str(e))
+    if a.run_from is not None and not [d for d in a.run_from.split(",") if d]:
+        ap.error("--run-from names no folder: give the folders the packed run's parts are carried into")
     if a.run_from is not None and (a.stage not in ("all", "train") or pipeline(a.pipeline, a.members).members != 1):
         ap.error("--run-from restores one world model's run for the train stage: give it to a chain or to --stage "
                  "train of a pipeline with one member")
@@ -1163,15 +1172,18 @@ def main(argv=None) -> int:
         return 0
     use_compilation_cache(PIPELINES[a.pipeline].root, key_log=_logs(PIPELINES[a.pipeline], a.pipeline) / CACHE_KEY_LOG)
     t0 = time.perf_counter()
+    restored = a.run_from is None
     for stage in STAGES if a.stage == "all" else (a.stage,):
-        if stage == "train" and a.run_from is not None:
-            restore_member(a.pipeline, a.run_from)
         while True:
             left = a.minutes - (time.perf_counter() - t0) / 60
             if a.minutes and left < 1.0:  # no stage starts, compiles and loads its inputs in less
                 print(f"== {a.pipeline}: the {a.minutes:g}-minute slot is used; rerun the same command to continue "
                       f"from the {stage} stage", file=sys.stderr)
                 return 0
+            if stage == "train" and not restored:
+                restore_member(a.pipeline, a.run_from, per_stage.get("train", []) + list(a.overrides),
+                               min(RUN_WAIT_S, 60 * left) if a.minutes else RUN_WAIT_S)
+                restored = True
             slot = [f"max_minutes={left:.3f}"] if a.minutes and stage in ("train", "eval") else []
             warm = per_stage.get("train", []) if a.warm_train else None
             warm_eval = per_stage.get("eval", []) if a.warm_eval else None

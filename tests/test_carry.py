@@ -3,13 +3,16 @@ the uninterrupted run, and the packs and data it refuses."""
 
 import json
 import shutil
+import threading
 
 import jax
 import numpy as np
 import pytest
 
+from sim_data.util import device_name
 from wm import carry as C
 from wm.checkpoint import load_trained
+from wm.config import make_config
 from wm.train import main as train_main
 
 TIMING = ("steps_per_s", "frames_per_s", "input_wait")  # what a logged step measures of the machine
@@ -41,21 +44,31 @@ def test_a_paused_run_packed_and_restored_elsewhere_resumes_to_the_uninterrupted
     two.mkdir()
     for k, p in enumerate(parts):
         shutil.copy(p, (one if k % 2 else two) / p.name)
-    with pytest.raises(FileNotFoundError, match="holds no carry.json"):
+    with pytest.raises(FileNotFoundError, match="holds no readable carry.json"):
+        C.restore_run([one, two], tmp_path / "lease2" / "run")
+    (two / C.CARRY).write_text((tmp_path / "pack" / C.CARRY).read_text()[:40])  # still being copied in
+    with pytest.raises(FileNotFoundError, match="holds no readable carry.json"):
         C.restore_run([one, two], tmp_path / "lease2" / "run")
     shutil.copy(tmp_path / "pack" / C.CARRY, two / C.CARRY)
-    (one / parts[1].name).rename(tmp_path / parts[1].name)
+    whole = (one / parts[1].name).read_bytes()
+    (one / parts[1].name).write_bytes(whole[:1000])  # a part half copied in is not taken yet
     with pytest.raises(FileNotFoundError, match=f"lacks {parts[1].name}"):
         C.restore_run([one, two], tmp_path / "lease2" / "run")
-    (tmp_path / parts[1].name).rename(one / parts[1].name)
+    # a restore that waits takes the part once its copy is whole
+    finish = threading.Timer(1.0, lambda: (one / parts[1].name).write_bytes(whole))
+    finish.start()
     second = tmp_path / "lease2" / "run"
-    assert C.restore_run([one, two], second) == meta
+    assert C.restore_run([one, two], second, wait_s=30) == meta
+    finish.join()
     assert C.restore_run([one, two], second) == meta  # restored already: left as it is
     with pytest.raises(ValueError, match="holds another training run"):
         C.restore_run([one, two], first)
-    # the next lease resumes it to its steps: every logged loss and the kept parameters are the
-    # uninterrupted run's, bit for bit
-    assert train_main([*args, "--out", str(second)]) == 0
+    # the next lease resumes it to its steps, its data regenerated at another path (the repository lies
+    # elsewhere): every logged loss and the kept parameters are the uninterrupted run's, bit for bit
+    moved = tmp_path / "lease2" / "data"
+    shutil.copytree(data, moved)
+    assert train_main(["--config", "smoke", "--data", str(moved), "--out", str(second)]) == 0
+    assert json.loads((second / "config.json").read_text())["data"] == str(moved.absolute())
     assert json.loads((second / "train_status.json").read_text())["cut_short"] is False
     assert _logged(second) == _logged(smoke_world_model)
     for a, b in zip(jax.tree_util.tree_leaves(load_trained(second)[1]),
@@ -74,9 +87,23 @@ def test_a_paused_run_packed_and_restored_elsewhere_resumes_to_the_uninterrupted
 def test_damaged_or_foreign_packs_are_refused(smoke_world_model, tmp_path):
     with pytest.raises(FileNotFoundError, match="no stopped training run"):
         C.pack_run(tmp_path / "nothing", tmp_path / "pack")
-    C.pack_run(smoke_world_model, tmp_path / "pack", part_bytes=512 * 2**10)
+    meta = C.pack_run(smoke_world_model, tmp_path / "pack", part_bytes=512 * 2**10)
+    assert meta["sizes"] == [f.stat().st_size for f in sorted((tmp_path / "pack").glob(C.PART + "*"))]
+    assert (meta["device"], meta["devices"]) == (device_name(), jax.device_count())
     part = tmp_path / "pack" / f"{C.PART}00"
-    part.write_bytes(part.read_bytes()[:-1])
+    damaged = bytearray(part.read_bytes())
+    damaged[-1] ^= 0xFF  # whole in size, one byte changed
+    part.write_bytes(bytes(damaged))
     with pytest.raises(ValueError, match="SHA-256 differs"):
         C.restore_run(tmp_path / "pack", tmp_path / "run")
     assert not (tmp_path / "run").exists()
+    carried = json.loads((tmp_path / "pack" / C.CARRY).read_text())
+    (tmp_path / "pack" / C.CARRY).write_text(json.dumps({k: v for k, v in carried.items() if k != "sizes"}))
+    with pytest.raises(FileNotFoundError, match="holds no readable carry.json"):  # not pack_run's
+        C.restore_run(tmp_path / "pack", tmp_path / "run")
+
+
+@pytest.mark.parametrize("pause_at", [-1, 30, 31])
+def test_a_pause_at_or_past_the_budget_is_refused(pause_at):
+    with pytest.raises(ValueError, match="pause_at is a step before steps=30"):
+        make_config("smoke", [f"pause_at={pause_at}"])

@@ -476,6 +476,13 @@ def test_a_chain_restores_a_carried_run_before_training_and_ends_where_its_train
         with pytest.raises(SystemExit):
             P.main(argv)
     assert "one member" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        P.main(["tiny", "--members", "1", "--run-from", ","])
+    assert "names no folder" in capsys.readouterr().err
+    # a chain whose pause_at the restored run has reached would not train a step
+    with pytest.raises(ValueError, match="at or past pause_at=8000"):
+        P.restore_member("tiny", "x", ["steps=13000", "pause_at=8000"])
+    P.restore_member("tiny", "x", ["steps=13000", "pause_at=10000"])
 
 
 def test_a_stage_spread_over_gpus_counts_its_child_processes_compiling_and_frames(tiny, monkeypatch):

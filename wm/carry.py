@@ -7,7 +7,7 @@ regenerates the data, restores the run and trains on to `steps` (or to a later p
 
     python -m wm.train --config full ... steps=13000 pause_at=8000        # saves and stops at 8000
     python -m wm.carry pack runs/wm/full_grip runs/carry/full_grip         # carry.json + run.tgz.partNN
-    # copy the parts off the machine (eight a call) and carry them in (64 MiB a call), then:
+    # copy the parts off the machine and carry them in, four a call (a call moves 64 MiB each way), then:
     python -m wm.carry restore DIR[,DIR...] runs/wm/full_grip              # the same wm.train resumes
 
 The pack holds what resuming needs, bit for bit: the latest checkpoint (parameters, optimiser
@@ -32,7 +32,9 @@ import time
 import zlib
 from pathlib import Path
 
-from sim_data.util import join_parts, read_json, run_cli, write_json_atomic, write_parts
+import jax
+
+from sim_data.util import device_name, read_json, run_cli, write_json_atomic, write_parts
 from wm.checkpoint import file_sha256, training_status
 
 CARRY = "carry.json"  # the pack's description, beside its parts, and kept in the restored run
@@ -62,7 +64,8 @@ def data_fingerprint(data: Path) -> str:
 def pack_run(run: Path, dest: Path, part_bytes: int = PART_BYTES) -> dict:
     """Packs the stopped training run `run` (one with train_status.json: paused, cut short or
     finished) into dest: PACKED as one tar.gz cut into dest/PARTNN of <= part_bytes, and dest/CARRY
-    ({"step", "steps", "parts", "bytes", "sha256", "data", "data_sha256"}), written last. Returns
+    ({"step", "steps", "parts", "sizes" (each part's bytes), "bytes", "sha256", "data", "data_sha256",
+    "device" and "devices", the kind and count of the devices it was packed on}), written last. Returns
     carry.json's contents. Raises FileNotFoundError where run has no status or checkpoint (it never
     finished a command: rerun its training first)."""
     run, dest = Path(run), Path(dest)
@@ -71,6 +74,7 @@ def pack_run(run: Path, dest: Path, part_bytes: int = PART_BYTES) -> dict:
         raise FileNotFoundError(f"{run} holds no stopped training run (train_status.json and checkpoints/): train it "
                                 "with a pause_at, or until it stops, before packing it")
     data = Path(read_json(run / "config.json")["data"])
+    fingerprint = data_fingerprint(data)  # before any part is written: data that is gone stops it here
     dest.mkdir(parents=True, exist_ok=True)
     (dest / CARRY).unlink(missing_ok=True)
     whole = dest / (PART + ".tmp")
@@ -82,8 +86,9 @@ def pack_run(run: Path, dest: Path, part_bytes: int = PART_BYTES) -> dict:
                     tar.add(run / name, arcname=name)
         parts = write_parts(whole, dest, PART, part_bytes)
         meta = {"step": status["step"], "steps": status["steps"], "parts": len(parts),
-                "bytes": whole.stat().st_size, "sha256": file_sha256(whole), "data": str(data),
-                "data_sha256": data_fingerprint(data)}
+                "sizes": [f.stat().st_size for f in parts], "bytes": whole.stat().st_size,
+                "sha256": file_sha256(whole), "data": str(data), "data_sha256": fingerprint,
+                "device": device_name(), "devices": jax.device_count()}
     finally:
         whole.unlink(missing_ok=True)
     write_json_atomic(dest / CARRY, meta)
@@ -106,23 +111,23 @@ def restore_run(src, run: Path, wait_s: float = 0.0) -> dict:
         deadline = time.monotonic() + wait_s
         while not _arrived(folders) and time.monotonic() < deadline:
             time.sleep(2.0)
-    found = [d / CARRY for d in folders if (d / CARRY).exists()]
-    if not found:
-        raise FileNotFoundError(f"{where} holds no {CARRY}: pack the run with python -m wm.carry pack RUN DEST")
-    meta = read_json(found[0])
-    missing = [n for n in _part_names(meta) if not any((d / n).exists() for d in folders)]
-    if missing:
-        raise FileNotFoundError(f"{where} lacks {', '.join(missing)} of the packed run's {meta['parts']} parts: "
-                                "carry them in too")
+    meta = _read_carry(folders)
+    if meta is None:
+        raise FileNotFoundError(f"{where} holds no readable {CARRY}: pack the run with python -m wm.carry pack RUN "
+                                "DEST and carry its folder in whole")
+    files = _part_files(folders, meta)
+    if missing := [n for n, f in files.items() if f is None]:
+        raise FileNotFoundError(f"{where} lacks {', '.join(missing)} of the packed run's {meta['parts']} parts, or "
+                                "holds them cut short: carry them in too")
     run = Path(run)
-    if (run / CARRY).exists() and read_json(run / CARRY)["sha256"] == meta["sha256"]:
+    if (run / CARRY).exists() and read_json(run / CARRY).get("sha256") == meta["sha256"]:
         return meta  # restored already (a rerun of the same command)
     if (run / "train_status.json").exists() or (run / "checkpoints").exists():
         raise ValueError(f"{run} holds another training run: restore into an empty path, or remove it")
-    joined, _ = join_parts(folders, PART)
+    joined = b"".join(f.read_bytes() for f in files.values())
     if hashlib.sha256(joined).hexdigest() != meta["sha256"]:
         raise ValueError(f"{where}: the parts do not make the packed run (SHA-256 differs from {CARRY}'s): is a part "
-                         "cut short or from another packing?")
+                         "damaged or from another packing?")
     run.parent.mkdir(parents=True, exist_ok=True)
     try:
         with tarfile.open(fileobj=io.BytesIO(joined), mode="r:gz") as tar, \
@@ -142,14 +147,34 @@ def restore_run(src, run: Path, wait_s: float = 0.0) -> dict:
     return meta
 
 
-def _part_names(meta: dict) -> list[str]:
-    return [f"{PART}{k:02d}" for k in range(meta["parts"])]
+CARRY_KEYS = ("step", "steps", "parts", "sizes", "sha256", "data_sha256")
+
+
+def _read_carry(folders) -> dict | None:
+    """carry.json from the first of folders holding a whole one; None while none does (not carried in
+    yet, still being written, or not pack_run's)."""
+    for d in folders:
+        try:
+            meta = read_json(d / CARRY)
+        except (FileNotFoundError, ValueError):
+            continue
+        if all(k in meta for k in CARRY_KEYS) and len(meta["sizes"]) == meta["parts"]:
+            return meta
+    return None
+
+
+def _part_files(folders, meta: dict) -> dict:
+    """{each part's name (PARTNN, write_parts'): its file in folders at its packed size, or None (absent, or
+    still being copied in)}."""
+    return {f"{PART}{k:02d}": next((d / f"{PART}{k:02d}" for d in folders if (d / f"{PART}{k:02d}").is_file()
+                                    and (d / f"{PART}{k:02d}").stat().st_size == size), None)
+            for k, size in enumerate(meta["sizes"])}
 
 
 def _arrived(folders) -> bool:
-    """Whether one of folders holds carry.json and the folders hold every part it names."""
-    found = [d / CARRY for d in folders if (d / CARRY).exists()]
-    return bool(found) and all(any((d / n).exists() for d in folders) for n in _part_names(read_json(found[0])))
+    """Whether folders hold a whole carry.json and every part it names at its packed size."""
+    meta = _read_carry(folders)
+    return meta is not None and all(f is not None for f in _part_files(folders, meta).values())
 
 
 def check_data(run: Path, data: Path) -> None:
@@ -160,10 +185,25 @@ def check_data(run: Path, data: Path) -> None:
     if not carried.exists():
         return
     meta = read_json(carried)
+    if (meta.get("device"), meta.get("devices")) != (device_name(), jax.device_count()):
+        print(f"warning: {run} was packed on {meta.get('devices')} x {meta.get('device')} and resumes on "
+              f"{jax.device_count()} x {device_name()}: its remaining steps may differ from an uninterrupted run's "
+              "in the last bits", file=sys.stderr)
     if data_fingerprint(data) != meta["data_sha256"]:
         raise ValueError(f"{data} is not the data {run} trained on before it was packed (their fingerprints differ: "
                          "generate it with the same commit, settings and machine kind), so its remaining steps would "
                          "not be an uninterrupted run's; train a fresh run on this data instead")
+
+
+def adopt_data_path(run: Path, data: Path) -> None:
+    """Where `run` was restored from a pack and check_data passed, records data's path in its
+    config.json: the same data, by its fingerprint, where the repository lies elsewhere on this machine."""
+    run = Path(run)
+    if not (run / CARRY).exists() or not (run / "config.json").exists():
+        return
+    config = read_json(run / "config.json")
+    if config.get("data") != str(Path(data).absolute()):
+        write_json_atomic(run / "config.json", {**config, "data": str(Path(data).absolute())})
 
 
 def main(argv=None) -> int:
@@ -183,7 +223,7 @@ def main(argv=None) -> int:
         print(f"{a.run}: step {meta['step']} of {meta['steps']} packed into {a.dest} ({CARRY} and {meta['parts']} "
               f"parts, {meta['bytes'] / 2**20:.1f} MiB)")
     else:
-        meta = restore_run(a.src.split(","), a.run, a.wait)
+        meta = restore_run([d for d in a.src.split(",") if d], a.run, a.wait)
         print(f"{a.run}: restored at step {meta['step']} of {meta['steps']}; its training command resumes it")
     return 0
 

@@ -27,7 +27,7 @@ class TrainConfig:
         marked cut short (train_status.json) and left unjudged and unevaluated; rerunning the same
         command resumes it to `steps` (a budget spread over several commands). pause_at: a step at
         which the run saves and stops as that safety stop does (at its first logged step at or after
-        it; 0: none), so that a budget spread over GPU leases is cut in steps: packed there
+        it; 0: none, else below steps), so that a budget spread over GPU leases is cut in steps: packed there
         (wm.carry), a later lease resumes it with a later pause_at or none; like max_minutes it
         changes nothing the run computes. lr, warmup,
         weight_decay, grad_clip: AdamW.
@@ -276,8 +276,9 @@ class TrainConfig:
                              f"got {self.fail_repeat}")
         if self.max_minutes < 0:
             raise ValueError(f"max_minutes is a safety stop in minutes (0: none), got {self.max_minutes}")
-        if self.pause_at < 0:
-            raise ValueError(f"pause_at is a step to save and stop at (0: none), got {self.pause_at}")
+        if self.pause_at < 0 or self.pause_at >= self.steps:
+            raise ValueError(f"pause_at is a step before steps={self.steps} to save and stop at (0: none), got "
+                             f"{self.pause_at}")
         if self.rollout_passes < 0 or self.lr <= 0:
             raise ValueError("rollout_passes >= 0 and lr > 0 are required")
 

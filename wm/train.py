@@ -43,7 +43,7 @@ from sim_data.dataset.cache import TrainingCache, WindowLoader, epoch_episodes
 from sim_data.policies.registry import resolve as resolve_policies
 from sim_data.util import make_output_dir, run_cli, write_json_atomic
 from wm import perceptual
-from wm.carry import check_data
+from wm.carry import adopt_data_path, check_data
 from wm.checkpoint import restore_params
 from wm.config import PRESETS, TrainConfig, check_dataset, make_config, to_dict
 from wm.imagine import Norm, to_uint8
@@ -733,8 +733,10 @@ def warm_after_training(cfg: TrainConfig, data: Path, norm: Norm) -> None:
 def check_run_config(cfg: TrainConfig, data: Path, out: Path) -> None:
     """Saves the resolved configuration; refuses to resume a run of another one or of another dataset
     (a safety time limit or a pause aside, which change nothing computed), or a run carried from another
-    lease (wm.carry) on data other than the data it trained on there."""
+    lease (wm.carry) on data other than the data it trained on there (the same data at another path is
+    that run's data)."""
     check_data(out, data)
+    adopt_data_path(out, data)
     save_or_check(out / "config.json", as_json({"train": to_dict(cfg), "data": str(Path(data).absolute())}),
                   "a run", defaults=as_json({"train": to_dict(TrainConfig())}),
                   ignore=("train.max_minutes", "train.pause_at"))
