@@ -1,8 +1,10 @@
 """A training run paused, packed, restored on another path and resumed (wm.carry): the same model as
 the uninterrupted run, and the packs and data it refuses."""
 
+import io
 import json
 import shutil
+import tarfile
 import threading
 
 import jax
@@ -38,6 +40,8 @@ def test_a_paused_run_packed_and_restored_elsewhere_resumes_to_the_uninterrupted
     meta = C.pack_run(first, tmp_path / "pack", part_bytes=256 * 2**10)
     parts = sorted((tmp_path / "pack").glob(C.PART + "*"))
     assert meta["step"] == 10 and meta["parts"] == len(parts) > 2 and meta["data_sha256"] == C.data_fingerprint(data)
+    # the kept parameters are step 10's own: left out of the pack, kept again by the resumed run
+    assert C._steps(first / "best") == C._steps(first / "checkpoints") == [10] and meta["best_from_latest"] == 10
     assert all(p.stat().st_size <= 256 * 2**10 for p in parts)
     one, two = tmp_path / "call1", tmp_path / "call2"
     one.mkdir()
@@ -61,6 +65,7 @@ def test_a_paused_run_packed_and_restored_elsewhere_resumes_to_the_uninterrupted
     assert C.restore_run([one, two], second, wait_s=30) == meta
     finish.join()
     assert C.restore_run([one, two], second) == meta  # restored already: left as it is
+    assert not (second / "best").exists()
     with pytest.raises(ValueError, match="holds another training run"):
         C.restore_run([one, two], first)
     # the next lease resumes it to its steps, its data regenerated at another path (the repository lies
@@ -82,6 +87,17 @@ def test_a_paused_run_packed_and_restored_elsewhere_resumes_to_the_uninterrupted
     with pytest.raises(ValueError, match="not the data"):
         train_main([*args, "--out", str(other)])
     assert [m["step"] for m in _logged(other)] == [5, 10]
+
+
+def test_kept_parameters_of_an_earlier_step_travel_in_the_pack(smoke_world_model, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(smoke_world_model, run)
+    (run / "best" / "5").mkdir()  # as a run whose validation kept another step than its latest
+    meta = C.pack_run(run, tmp_path / "pack")
+    joined = b"".join(f.read_bytes() for f in sorted((tmp_path / "pack").glob(C.PART + "*")))
+    with tarfile.open(fileobj=io.BytesIO(joined), mode="r:gz") as tar:
+        names = tar.getnames()
+    assert meta["best_from_latest"] is None and "best/5" in names and "checkpoints" in names
 
 
 def test_damaged_or_foreign_packs_are_refused(smoke_world_model, tmp_path):

@@ -11,7 +11,8 @@ regenerates the data, restores the run and trains on to `steps` (or to a later p
     python -m wm.carry restore DIR[,DIR...] runs/wm/full_grip              # the same wm.train resumes
 
 The pack holds what resuming needs, bit for bit: the latest checkpoint (parameters, optimiser
-state, the loader's position, the best validation loss), the kept parameters (best/), config.json,
+state, the loader's position, the best validation loss), the kept parameters (best/; left out where
+they are the latest step's own, which the resumed run keeps again from its state), config.json,
 norm.json, metrics.jsonl and train_status.json, as one tar.gz cut into files of <= 15 MiB, and
 carry.json, which names the parts, their SHA-256 and the fingerprint of the data the run trained
 on: a resumed run refuses data that differs (check_data), since its steps would then not be those
@@ -65,7 +66,8 @@ def pack_run(run: Path, dest: Path, part_bytes: int = PART_BYTES) -> dict:
     """Packs the stopped training run `run` (one with train_status.json: paused, cut short or
     finished) into dest: PACKED as one tar.gz cut into dest/PARTNN of <= part_bytes, and dest/CARRY
     ({"step", "steps", "parts", "sizes" (each part's bytes), "bytes", "sha256", "data", "data_sha256",
-    "device" and "devices", the kind and count of the devices it was packed on}), written last. Returns
+    "device" and "devices", the kind and count of the devices it was packed on, "best_from_latest": the
+    step whose kept parameters were left out as the latest checkpoint's own, or None}), written last. Returns
     carry.json's contents. Raises FileNotFoundError where run has no status or checkpoint (it never
     finished a command: rerun its training first)."""
     run, dest = Path(run), Path(dest)
@@ -73,6 +75,10 @@ def pack_run(run: Path, dest: Path, part_bytes: int = PART_BYTES) -> dict:
     if status["step"] is None or not (run / "checkpoints").is_dir():
         raise FileNotFoundError(f"{run} holds no stopped training run (train_status.json and checkpoints/): train it "
                                 "with a pause_at, or until it stops, before packing it")
+    # kept parameters of the latest step itself are left out (a quarter of the pack): the resumed run keeps
+    # them again from the restored state (wm.train's Run.restore, best_from_latest)
+    latest, best = _steps(run / "checkpoints"), _steps(run / "best")
+    from_latest = best[-1] if len(best) == 1 and latest and best == latest[-1:] else None
     data = Path(read_json(run / "config.json")["data"])
     fingerprint = data_fingerprint(data)  # before any part is written: data that is gone stops it here
     dest.mkdir(parents=True, exist_ok=True)
@@ -82,13 +88,13 @@ def pack_run(run: Path, dest: Path, part_bytes: int = PART_BYTES) -> dict:
         # float32 weights and optimiser moments barely compress: the fastest level keeps the pack quick
         with tarfile.open(whole, "w:gz", compresslevel=1) as tar:
             for name in PACKED:
-                if (run / name).exists():
+                if (run / name).exists() and not (name == "best" and from_latest is not None):
                     tar.add(run / name, arcname=name)
         parts = write_parts(whole, dest, PART, part_bytes)
         meta = {"step": status["step"], "steps": status["steps"], "parts": len(parts),
                 "sizes": [f.stat().st_size for f in parts], "bytes": whole.stat().st_size,
                 "sha256": file_sha256(whole), "data": str(data), "data_sha256": fingerprint,
-                "device": device_name(), "devices": jax.device_count()}
+                "device": device_name(), "devices": jax.device_count(), "best_from_latest": from_latest}
     finally:
         whole.unlink(missing_ok=True)
     write_json_atomic(dest / CARRY, meta)
@@ -148,6 +154,19 @@ def restore_run(src, run: Path, wait_s: float = 0.0) -> dict:
 
 
 CARRY_KEYS = ("step", "steps", "parts", "sizes", "sha256", "data_sha256")
+
+
+def _steps(checkpoints: Path) -> list[int]:
+    """The steps an orbax checkpoint directory holds (its numbered folders), in order."""
+    return sorted(int(d.name) for d in checkpoints.iterdir() if d.is_dir() and d.name.isdigit()) \
+        if checkpoints.is_dir() else []
+
+
+def best_from_latest(run: Path) -> int | None:
+    """The step of a run restored from a pack whose kept parameters (best/) the pack left out as the latest
+    checkpoint's own, to be kept again from the restored state; None for any other run."""
+    carried = Path(run) / CARRY
+    return read_json(carried).get("best_from_latest") if carried.exists() else None
 
 
 def _read_carry(folders) -> dict | None:

@@ -43,7 +43,7 @@ from sim_data.dataset.cache import TrainingCache, WindowLoader, epoch_episodes
 from sim_data.policies.registry import resolve as resolve_policies
 from sim_data.util import make_output_dir, run_cli, write_json_atomic
 from wm import perceptual
-from wm.carry import adopt_data_path, check_data
+from wm.carry import adopt_data_path, best_from_latest, check_data
 from wm.checkpoint import restore_params
 from wm.config import PRESETS, TrainConfig, check_dataset, make_config, to_dict
 from wm.imagine import Norm, to_uint8
@@ -560,6 +560,8 @@ class Run:
         self.state = got["state"]
         self.loader.restore(got["loader"]["train"])
         self.best_val = got["loader"].get("best_val", math.inf)
+        if self.best.latest_step() is None and best_from_latest(self.out) == step:
+            self.keep(int(step))  # the pack left out the kept parameters, this step's own (wm.carry)
         return int(step)
 
     def save(self, step: int, best: bool) -> None:
