@@ -77,7 +77,8 @@ grasp rules learn from them).
 A world model trained longer than one lease holds goes over several (wm.carry): the first lease's
 chain trains to `--set train:pause_at=N` of `steps` and ends after its train stage; `python -m wm.carry
 pack runs/wm/<p> DEST` packs the run exactly (carry.json and parts of <= 15 MiB: the `full` model's
-parameters and optimiser state are 389 MB before compression, its kept parameters 130 MB more),
+parameters and optimiser state are 389 MB before compression, its kept parameters 130 MB more where
+they are another step's than the latest),
 copied off four a call (a call returns 64 MiB); the next lease starts its chain with the same settings
 but a later pause_at or none, and `--run-from DIR[,DIR]`, the folders its later calls carry the parts
 into (four a call) while the first stages run, and the train stage restores the run (waiting up to
