@@ -106,6 +106,12 @@ def test_damaged_or_foreign_packs_are_refused(smoke_world_model, tmp_path):
     meta = C.pack_run(smoke_world_model, tmp_path / "pack", part_bytes=512 * 2**10)
     assert meta["sizes"] == [f.stat().st_size for f in sorted((tmp_path / "pack").glob(C.PART + "*"))]
     assert (meta["device"], meta["devices"]) == (device_name(), jax.device_count())
+    # what each lease call copies off: carry.json with the first parts, then as many as a call moves
+    small = C.pack_run(smoke_world_model, tmp_path / "small", part_bytes=64 * 2**10)
+    groups = C.call_groups(tmp_path / "small", small, call_bytes=2 * 64 * 2**10 + 4096)
+    assert small["parts"] > 4 and groups[0][0].name == C.CARRY
+    assert [len(g) for g in groups[:-1]] == [3] + [2] * (len(groups) - 2) and len(groups[-1]) in (1, 2)
+    assert [f.name for g in groups for f in g][1:] == [f"{C.PART}{k:02d}" for k in range(small["parts"])]
     part = tmp_path / "pack" / f"{C.PART}00"
     damaged = bytearray(part.read_bytes())
     damaged[-1] ^= 0xFF  # whole in size, one byte changed

@@ -41,6 +41,7 @@ from wm.checkpoint import file_sha256, training_status
 CARRY = "carry.json"  # the pack's description, beside its parts, and kept in the restored run
 PART = "run.tgz.part"
 PART_BYTES = 15 * 2**20  # a lent GPU brings back files of <= 16 MiB
+CALL_BYTES = 60 * 2**20  # a lease call moves 64 MiB each way, the repository's tree beside a carried folder
 PACKED = ("config.json", "norm.json", "metrics.jsonl", "train_status.json", "checkpoints", "best")
 FINGERPRINTED = ("proprio.npy", "action.npy", "success.npy")  # per cache shard, beside its index.json
 
@@ -214,6 +215,19 @@ def check_data(run: Path, data: Path) -> None:
                          "not be an uninterrupted run's; train a fresh run on this data instead")
 
 
+def call_groups(dest: Path, meta: dict, call_bytes: int = CALL_BYTES) -> list[list[Path]]:
+    """The files of the pack in dest (pack_run's, meta its carry.json) in groups of at most call_bytes,
+    carry.json in the first: what one lease call copies off the machine, or carries in as one folder."""
+    groups, size = [[Path(dest) / CARRY]], (Path(dest) / CARRY).stat().st_size
+    for k, part_size in enumerate(meta["sizes"]):
+        if size + part_size > call_bytes:
+            groups.append([])
+            size = 0
+        groups[-1].append(Path(dest) / f"{PART}{k:02d}")
+        size += part_size
+    return groups
+
+
 def adopt_data_path(run: Path, data: Path) -> None:
     """Where `run` was restored from a pack and check_data passed, records data's path in its
     config.json: the same data, by its fingerprint, where the repository lies elsewhere on this machine."""
@@ -240,7 +254,10 @@ def main(argv=None) -> int:
     if a.command == "pack":
         meta = pack_run(a.run, a.dest)
         print(f"{a.run}: step {meta['step']} of {meta['steps']} packed into {a.dest} ({CARRY} and {meta['parts']} "
-              f"parts, {meta['bytes'] / 2**20:.1f} MiB)")
+              f"parts, {meta['bytes'] / 2**20:.1f} MiB); off a lent machine, a call each (into a folder of its own "
+              f"to carry in the next lease, the first with {CARRY}):")
+        for k, group in enumerate(call_groups(a.dest, meta)):
+            print(f"  {k + 1}: cp {' '.join(map(str, group))} $OUT")
     else:
         meta = restore_run([d for d in a.src.split(",") if d], a.run, a.wait)
         print(f"{a.run}: restored at step {meta['step']} of {meta['steps']}; its training command resumes it")
