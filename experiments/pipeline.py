@@ -120,7 +120,6 @@ import argparse
 import contextlib
 import dataclasses
 import hashlib
-import io
 import json
 import os
 import shlex
@@ -128,9 +127,7 @@ import shutil
 import subprocess
 import sys
 import tarfile
-import tempfile
 import time
-import zlib
 from pathlib import Path
 
 import jax
@@ -151,10 +148,12 @@ from sim_data.policies import zoo
 from sim_data.util import (
     CACHE_KEY_LOG_ENV,
     device_name,
+    folder_list,
     join_parts,
     key_cache_by_device_kind,
     record_cache_keys,
     run_cli,
+    unpacked_tar,
     with_xla_flags,
     write_json_atomic,
     write_parts,
@@ -442,10 +441,10 @@ def restore_member(name: str, src: str, extra=(), wait_s: float = RUN_WAIT_S) ->
     p = pipeline(name, 1)
     member = p.dirs(name)["members"][0]
     meta = carry.restore_run([d for d in src.split(",") if d], member, wait_s=wait_s)
-    pause_at = wm_config.make_config(p.train, _settings(member_args(p, 0, extra))).pause_at
-    if pause_at and meta["step"] >= pause_at:
-        raise ValueError(f"{member} was restored at step {meta['step']}, at or past pause_at={pause_at}: rerun the "
-                         "chain with a later --set train:pause_at=... or none")
+    cfg = wm_config.make_config(p.train, _settings(member_args(p, 0, extra)))
+    if cfg.pauses_at(meta["step"]):
+        raise ValueError(f"{member} was restored at step {meta['step']}, at or past pause_at={cfg.pause_at}: rerun "
+                         "the chain with a later --set train:pause_at=... or none")
     print(f"== {name}: {member} restored at step {meta['step']} of {meta['steps']} from {src}", file=sys.stderr,
           flush=True)
 
@@ -756,26 +755,14 @@ def restore_compile_cache(src, root: Path) -> int:
     same name replaced). Raises FileNotFoundError where src holds no part, and ValueError where the parts
     do not join into one archive (one missing, cut short or given twice) or it holds anything outside
     CACHE_DIRS. Returns the files restored."""
-    folders = [Path(src)] if isinstance(src, (str, Path)) else [Path(d) for d in src]
-    where = ", ".join(map(str, folders))
+    folders = folder_list(src)
     joined, parts = join_parts(folders, CACHE_PART, "pack one with --follow ... --collect DIR --collect-cache on a "
                                                     "lease's follows")
-    Path(root).mkdir(parents=True, exist_ok=True)
-    try:
-        with tarfile.open(fileobj=io.BytesIO(joined), mode="r:gz") as tar, \
-                tempfile.TemporaryDirectory(dir=root) as unpacked:
-            members = tar.getmembers()
-            foreign = [m.name for m in members if Path(m.name).parts[:1] not in [(d,) for d in CACHE_DIRS]
-                       or ".." in Path(m.name).parts or not (m.isfile() or m.isdir())]
-            if foreign:
-                raise ValueError(f"{where}: the cache archive holds {foreign[:3]}, outside {', '.join(CACHE_DIRS)}")
-            tar.extractall(unpacked, filter="data")
-            for name, d in compile_cache_dirs(root).items():
-                if (Path(unpacked) / name).is_dir():
-                    shutil.copytree(Path(unpacked) / name, d, dirs_exist_ok=True)
-    except (tarfile.TarError, EOFError, OSError, zlib.error) as e:
-        raise ValueError(f"{where}: the cache's {len(parts)} parts do not make one archive ({e}): "
-                         "is a part cut short or from another lease?") from e
+    broken = f"the cache's {len(parts)} parts do not make one archive: is a part cut short or from another lease?"
+    with unpacked_tar(joined, CACHE_DIRS, root, ", ".join(map(str, folders)), broken) as (unpacked, members):
+        for name, d in compile_cache_dirs(root).items():
+            if (unpacked / name).is_dir():
+                shutil.copytree(unpacked / name, d, dirs_exist_ok=True)
     return sum(m.isfile() for m in members)
 
 
@@ -1150,7 +1137,7 @@ def main(argv=None) -> int:
         check_settings(a.pipeline, a.stage, per_stage, a.overrides, a.members)
     except ValueError as e:
         ap.error(str(e))
-    if a.run_from is not None and not [d for d in a.run_from.split(",") if d]:
+    if a.run_from is not None and not folder_list(a.run_from):
         ap.error("--run-from names no folder: give the folders the packed run's parts are carried into")
     if a.run_from is not None and (a.stage not in ("all", "train") or pipeline(a.pipeline, a.members).members != 1):
         ap.error("--run-from restores one world model's run for the train stage: give it to a chain or to --stage "
@@ -1161,8 +1148,7 @@ def main(argv=None) -> int:
                  f"`python -m experiments.pipeline {a.pipeline} --follow 540`, or stop it with kill -- -{running}")
     if a.cache_from is not None:
         try:
-            restored = restore_compile_cache([d for d in a.cache_from.split(",") if d],
-                                             Path(PIPELINES[a.pipeline].root))
+            restored = restore_compile_cache(a.cache_from, Path(PIPELINES[a.pipeline].root))
         except (FileNotFoundError, ValueError) as e:
             ap.error(str(e))
         print(f"restored {restored} files of the compilation caches from {a.cache_from}")

@@ -825,9 +825,11 @@ def violation_table(res: dict) -> list[list[str]] | None:
              if any(_violation_reading(p, k, t, ruled) is not None for t, v in viol.items() for p in v["policies"])]
     rows = [["task", "MMRV", "policy", "true", "predicted", *[label for _, label in extra], "share of the task's MMRV",
              "policies mis-ordered with it", "action gap (RMS; the task's median)"]]
+    def shown(key):  # a column where some row has its reading
+        return any(p.get(key) is not None for v in viol.values() for p in v["policies"])
+
     largest = any(p.get("action_gap_largest") for v in viol.values() for p in v["policies"])
-    closure = any(p.get("closure_bias") is not None for v in viol.values() for p in v["policies"])
-    near = any(p.get("failed_peak_progress") is not None for v in viol.values() for p in v["policies"])
+    closure, near = shown("closure_bias"), shown("failed_peak_progress")
     rows[0] += ["largest in one dimension"] if largest else []
     rows[0] += ["right hand's closure, imagined minus true (mean; RMS)"] if closure else []
     rows[0] += [NEAR_MISS_COLUMN] if near else []

@@ -94,16 +94,20 @@ def mmrv_charges(predicted, true) -> tuple[np.ndarray, np.ndarray]:
     return terms, np.where(terms > 0, gap.argmax(axis=1), np.arange(len(terms)))
 
 
+# what a rank violation carries of its policy's row: {its key: the row's field}
+VIOLATION_READINGS = {"action_gap": "action_gap", "action_gap_largest": "action_gap_largest",
+                      "closure_gap": "closure_gap", "closure_bias": "closure_bias",
+                      "on_truth": "pred_rate_on_truth", "replayed": "pred_rate_replayed",
+                      "imagined_in_sim": "true_rate_imagined_actions", "failed_peak_progress": "failed_peak_progress"}
+
+
 def rank_violations(rows: list[dict], top: int = 5, rate: str = "pred_rate") -> dict:
     """Where each task's MMRV comes from (the rows' `rate` against their true_rate, as mmrv): every
     policy's term charged to the policy it is most mis-ordered with (mmrv_charges), so one policy read
     far from its truth shows as the partner of many. Returns {task: {"mmrv", "policies": the `top`
     policies charged the most, each {"name", "true_rate", "pred_rate", "share" (of the task's MMRV;
     all the task's policies' shares sum to 1), "against" (how many policies' largest violation is with
-    it), "action_gap", "action_gap_largest", "closure_gap", "closure_bias", "on_truth", "replayed",
-    "imagined_in_sim", "failed_peak_progress" (the row's action_gap, action_gap_largest, closure_gap,
-    closure_bias, pred_rate_on_truth, pred_rate_replayed, true_rate_imagined_actions and
-    failed_peak_progress, where it has them)}}}; a task
+    it), and the row's VIOLATION_READINGS under their keys (None where it lacks them)}}}; a task
     whose MMRV is 0 or undefined (mmrv) lists none."""
     out = {}
     for task in sorted({r["task"] for r in rows}):
@@ -116,12 +120,7 @@ def rank_violations(rows: list[dict], top: int = 5, rate: str = "pred_rate") -> 
         out[task] = {"mmrv": mmrv(pred, true), "policies": [
             {"name": rs[k]["name"], "true_rate": rs[k]["true_rate"], "pred_rate": rs[k][rate],
              "share": float(charged[k] / terms.sum()), "against": int(against[k]),
-             "action_gap": rs[k].get("action_gap"), "action_gap_largest": rs[k].get("action_gap_largest"),
-             "closure_gap": rs[k].get("closure_gap"), "closure_bias": rs[k].get("closure_bias"),
-             "on_truth": rs[k].get("pred_rate_on_truth"),
-             "replayed": rs[k].get("pred_rate_replayed"),
-             "imagined_in_sim": rs[k].get("true_rate_imagined_actions"),
-             "failed_peak_progress": rs[k].get("failed_peak_progress")} for k in order]}
+             **{key: rs[k].get(field) for key, field in VIOLATION_READINGS.items()}} for k in order]}
     return out
 
 

@@ -3,14 +3,19 @@ flags and the parameter initialisers' compilation."""
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import glob
+import io
 import json
 import logging
 import os
 import re
 import sys
+import tarfile
+import tempfile
 import time
+import zlib
 from importlib import metadata as importlib_metadata
 from pathlib import Path
 
@@ -285,6 +290,34 @@ def wait_for_files(paths, wait_s: float, what: str) -> None:
         time.sleep(2.0)
 
 
+def folder_list(src) -> list[Path]:
+    """The folders src names: "A,B" (a command-line value; empty names dropped), one path, or several."""
+    if isinstance(src, str):
+        return [Path(d) for d in src.split(",") if d]
+    return [Path(src)] if isinstance(src, Path) else [Path(d) for d in src]
+
+
+@contextlib.contextmanager
+def unpacked_tar(joined: bytes, tops, scratch: Path, where: str, broken: str):
+    """The tar.gz bytes `joined` extracted into a temporary folder under scratch, yielded as (folder,
+    members) and removed after. Refuses with a ValueError starting "where: " an archive holding anything
+    but files and folders under the top-level names `tops` (or a ".."), and one that does not unpack
+    (`broken`, with the reason)."""
+    Path(scratch).mkdir(parents=True, exist_ok=True)
+    try:
+        with tarfile.open(fileobj=io.BytesIO(joined), mode="r:gz") as tar, \
+                tempfile.TemporaryDirectory(dir=scratch) as unpacked:
+            members = tar.getmembers()
+            foreign = [m.name for m in members if Path(m.name).parts[:1] not in [(t,) for t in tops]
+                       or ".." in Path(m.name).parts or not (m.isfile() or m.isdir())]
+            if foreign:
+                raise ValueError(f"{where}: the archive holds {foreign[:3]}, outside {', '.join(tops)}")
+            tar.extractall(unpacked, filter="data")
+            yield Path(unpacked), members
+    except (tarfile.TarError, EOFError, zlib.error) as e:
+        raise ValueError(f"{where}: {broken} ({e})") from e
+
+
 def write_parts(whole: Path, dest: Path, stem: str, part_bytes: int) -> list[Path]:
     """The file `whole` cut into dest/<stem>00, 01, ... of at most part_bytes each (a lent GPU brings back
     files of <= 16 MiB), each written under a temporary name and renamed once whole, after the parts of
@@ -310,11 +343,11 @@ def write_parts(whole: Path, dest: Path, stem: str, part_bytes: int) -> list[Pat
 
 
 def join_parts(folders, stem: str, hint: str = "") -> tuple[bytes, list[Path]]:
-    """(the bytes, the files) of write_parts' parts of stem found in folders (one folder, or several: a
-    lease carries a packing larger than one call's load in several calls, each its own folder), joined
+    """(the bytes, the files) of write_parts' parts of stem found in folders (folder_list's: a lease
+    carries a packing larger than one call's load in several calls, each its own folder), joined
     in order of their numbers. Raises FileNotFoundError where the folders hold none (hint appended to
     the message) and ValueError where their numbers are not 0..n-1 (one missing or given twice)."""
-    folders = [Path(folders)] if isinstance(folders, (str, Path)) else [Path(d) for d in folders]
+    folders = folder_list(folders)
     parts = sorted((p for d in folders for p in d.glob(f"{glob.escape(stem)}[0-9][0-9]")), key=lambda p: p.name)
     where = ", ".join(map(str, folders))
     if not parts:

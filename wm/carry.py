@@ -23,19 +23,16 @@ from __future__ import annotations
 
 import argparse
 import hashlib
-import io
 import json
 import shutil
 import sys
 import tarfile
-import tempfile
 import time
-import zlib
 from pathlib import Path
 
 import jax
 
-from sim_data.util import device_name, read_json, run_cli, write_json_atomic, write_parts
+from sim_data.util import device_name, folder_list, read_json, run_cli, unpacked_tar, write_json_atomic, write_parts
 from wm.checkpoint import file_sha256, training_status
 
 CARRY = "carry.json"  # the pack's description, beside its parts, and kept in the restored run
@@ -79,7 +76,7 @@ def pack_run(run: Path, dest: Path, part_bytes: int = PART_BYTES) -> dict:
     # kept parameters of the latest step itself are left out (a quarter of the pack): the resumed run keeps
     # them again from the restored state (wm.train's Run.restore, best_from_latest)
     latest, best = _steps(run / "checkpoints"), _steps(run / "best")
-    from_latest = best[-1] if len(best) == 1 and latest and best == latest[-1:] else None
+    from_latest = best[0] if len(best) == 1 and best == latest[-1:] else None
     data = Path(read_json(run / "config.json")["data"])
     fingerprint = data_fingerprint(data)  # before any part is written: data that is gone stops it here
     dest.mkdir(parents=True, exist_ok=True)
@@ -110,7 +107,7 @@ def restore_run(src, run: Path, wait_s: float = 0.0) -> dict:
     Raises FileNotFoundError where no folder holds carry.json or a part is still missing, ValueError
     where the parts do not make the packed archive or `run` holds another training run (restore into
     an empty path); a run restored from the same pack already is left as it is."""
-    folders = [Path(src)] if isinstance(src, (str, Path)) else [Path(d) for d in src]
+    folders = folder_list(src)
     where = ", ".join(map(str, folders))
     if wait_s and not _arrived(folders):
         print(f"waiting up to {wait_s:.0f} s for the packed run's {CARRY} and parts in {where}", file=sys.stderr,
@@ -135,21 +132,11 @@ def restore_run(src, run: Path, wait_s: float = 0.0) -> dict:
     if hashlib.sha256(joined).hexdigest() != meta["sha256"]:
         raise ValueError(f"{where}: the parts do not make the packed run (SHA-256 differs from {CARRY}'s): is a part "
                          "damaged or from another packing?")
-    run.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        with tarfile.open(fileobj=io.BytesIO(joined), mode="r:gz") as tar, \
-                tempfile.TemporaryDirectory(dir=run.parent) as unpacked:
-            foreign = [m.name for m in tar.getmembers() if Path(m.name).parts[0] not in PACKED
-                       or ".." in Path(m.name).parts]
-            if foreign:
-                raise ValueError(f"{where}: the packed run holds {foreign[:3]}, outside {', '.join(PACKED)}")
-            tar.extractall(unpacked, filter="data")
-            run.mkdir(parents=True, exist_ok=True)
-            for name in PACKED:
-                if (Path(unpacked) / name).exists():
-                    shutil.move(str(Path(unpacked) / name), str(run / name))
-    except (tarfile.TarError, EOFError, zlib.error) as e:
-        raise ValueError(f"{where}: the packed run does not unpack ({e})") from e
+    with unpacked_tar(joined, PACKED, run.parent, where, "the packed run does not unpack") as (unpacked, _):
+        run.mkdir(parents=True, exist_ok=True)
+        for name in PACKED:
+            if (unpacked / name).exists():
+                shutil.move(str(unpacked / name), str(run / name))
     write_json_atomic(run / CARRY, meta)
     return meta
 
@@ -259,7 +246,7 @@ def main(argv=None) -> int:
         for k, group in enumerate(call_groups(a.dest, meta)):
             print(f"  {k + 1}: cp {' '.join(map(str, group))} $OUT")
     else:
-        meta = restore_run([d for d in a.src.split(",") if d], a.run, a.wait)
+        meta = restore_run(a.src, a.run, a.wait)
         print(f"{a.run}: restored at step {meta['step']} of {meta['steps']}; its training command resumes it")
     return 0
 

@@ -192,6 +192,10 @@ class TrainConfig:
     judge_raw_mean: bool = False
     judge_labels: str = "simulated"
 
+    def pauses_at(self, step: int) -> bool:
+        """Whether a run at `step` stops there for its pause_at, short of its steps."""
+        return bool(self.pause_at and self.pause_at <= step < self.steps)
+
     def validate(self) -> None:
         """Raises ValueError, naming the setting, where the model's or the training's settings are out of range or
         inconsistent with each other (e.g. eval_every not a multiple of log_every, model.keep without w_keep)."""

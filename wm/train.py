@@ -613,7 +613,7 @@ class Run:
         step = start
         last = {}
         # a run resumed where it paused stays paused: its command is rerun with a later pause_at or none
-        while step < cfg.steps and not (cfg.pause_at and cfg.pause_at <= start):
+        while step < cfg.steps and not cfg.pauses_at(start):
             t_wait = time.perf_counter()
             batch = self.next_batch()
             waited += time.perf_counter() - t_wait
@@ -640,8 +640,7 @@ class Run:
             out_of_time = bool(cfg.max_minutes and (time.perf_counter() - t_start) / 60 >= cfg.max_minutes)
             if jax.process_count() > 1:  # process 0's clock decides, or one process would wait on the others forever
                 out_of_time = bool(multihost_utils.broadcast_one_to_all(np.bool_(out_of_time)))
-            paused = bool(cfg.pause_at and cfg.pause_at <= step < cfg.steps)
-            out_of_time = out_of_time or paused  # a pause stops as the safety stop does, at a step set in advance
+            out_of_time = out_of_time or cfg.pauses_at(step)  # a pause stops as the safety stop does, at a set step
             is_best = False
             # validated on the eval_every grid alone, so that a run a safety stop cuts and a rerun finishes
             # keeps the step an uninterrupted run keeps; cut short, "last" keeps where it stopped
@@ -667,7 +666,7 @@ class Run:
         self.loader.close()
         if self.best.latest_step() is None:  # e.g. a run that resumed at its last step
             self.keep(step)
-        paused = bool(cfg.pause_at and cfg.pause_at <= step < cfg.steps)
+        paused = cfg.pauses_at(step)
         status = {"step": step, "steps": cfg.steps, "cut_short": step < cfg.steps, **({"paused": True} if paused else {})}
         if jax.process_index() == 0:
             write_json_atomic(self.out / "train_status.json", status)
