@@ -477,9 +477,11 @@ def train_members(name: str, extra=(), gpus=(), members: int | None = None) -> t
     else:
         print(f"member {todo[0][0]} of {p.members}: {todo[0][1]}", file=sys.stderr)
         train.main(commands[0])
-    left = [str(m) for _, m in untrained(d)]
-    if left:
-        print(f"{len(left)} of {p.members} world models left to train ({', '.join(left)}): run the train stage again",
+    left = [m for _, m in untrained(d)]
+    # a member paused at its pause_at is packed for a later lease, not trained on by a rerun here
+    rerun = [str(m) for m in left if not training_status(m).get("paused")]
+    if rerun:
+        print(f"{len(rerun)} of {p.members} world models left to train ({', '.join(rerun)}): run the train stage again",
               file=sys.stderr)
     return not left, parts
 

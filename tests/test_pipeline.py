@@ -443,6 +443,28 @@ def test_a_time_slot_passes_what_is_left_to_train_and_eval_and_starts_no_stage_a
     assert ran == [("eval", ["episodes=100", "max_minutes=9.000"])]
 
 
+def test_a_member_paused_at_its_pause_at_is_not_called_left_to_train(tmp_path, monkeypatch, capsys):
+    monkeypatch.setitem(P.PIPELINES, "tiny", P.Pipeline(data="d", policies="p", train="smoke", eval="demo",
+                                                        root=str(tmp_path), members=2))
+    status = {"step": 30, "steps": 60, "cut_short": True}
+
+    def stopping_train(argv):
+        out = Path(argv[argv.index("--out") + 1])
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "train_status.json").write_text(json.dumps(status))
+
+    import wm.train
+
+    monkeypatch.setattr(wm.train, "main", stopping_train)
+    d = P.PIPELINES["tiny"].dirs("tiny")
+    assert P.train_members("tiny") == (False, [])
+    assert f"2 of 2 world models left to train ({d['members'][0]}, {d['members'][1]})" in capsys.readouterr().err
+    status["paused"] = True  # the first member now paused: a rerun of the stage would not train it
+    assert P.train_members("tiny") == (False, [])
+    assert f"1 of 2 world models left to train ({d['members'][1]}): run the train stage again" in (
+        capsys.readouterr().err)
+
+
 def test_a_chain_restores_a_carried_run_before_training_and_ends_where_its_training_pauses(tiny, monkeypatch,
                                                                                           capsys):
     _, d = tiny
