@@ -32,6 +32,7 @@ def test_command_writes_task_skill_rates(tmp_path):
     assert list(rates) == ["step_back"] and list(rates["step_back"]) == ["1.0", "0.0"]
     assert rates["step_back"]["1.0"] == 1.0
     assert table["intervals"]["step_back"]["1.0"] == pytest.approx(list(wilson_interval(2, 2)))
+    assert table["failed_progress"]["step_back"]["1.0"] is None  # no failure to measure
 
 
 def test_a_weak_grip_drops_the_mug_that_the_scripts_full_grip_lifts(tmp_path):
@@ -53,3 +54,15 @@ def test_bad_arguments_are_refused(tmp_path):
         main(["--tasks", "mug,fly", "--out", str(tmp_path / "x.json")])
     with pytest.raises(SystemExit, match="outside"):
         main(["--grip", "1.5", "--out", str(tmp_path / "x.json")])
+
+
+def test_the_air_fryers_weak_grip_fails_a_few_millimetres_short_of_its_line(tmp_path):
+    # the hand hooks the tray's handle whatever its closure: a grip of 0.2 still drags the tray about
+    # 95% of the 10 cm, and the failures' progress says so
+    out = tmp_path / "fryer.json"
+    assert main(["--backend", "cpu", "--episodes", "2", "--skills", "1.0", "--tasks", "airfryer", "--grip", "0.2",
+                 "--out", str(out)]) == 0
+    table = json.loads(out.read_text())
+    assert table["rates"]["airfryer"]["1.0"] == 0.0
+    mean, top = table["failed_progress"]["airfryer"]["1.0"]
+    assert 0.9 < mean <= top < 1.0

@@ -3,8 +3,10 @@
     python -m sim_data.bench.success_table --backend cpu --episodes 100 --skills 0.2,0.6,1.0 --out runs/success.json
 
 writes `{"engine", "episodes", "grip", "seed", "rates": {task: {skill: success_rate}}, "intervals":
-{task: {skill: [low, high]}}}` (skill keys as given; 95% Wilson intervals over the episodes) and prints
-the table. Episodes of one task share their initial states across skills (same seed), so the
+{task: {skill: [low, high]}}, "failed_progress": {task: {skill: [mean, max] or null}}}` (skill keys as
+given; 95% Wilson intervals over the episodes; the task's progress, `sim_data.sim.tasks.task_progress`,
+at the end of the episodes that failed, null where none did: how near the failures came to the success
+line, 1) and prints the table. Episodes of one task share their initial states across skills (same seed), so the
 skills are compared on the same scenes. `--grip F` scales every closure of the scripts by F (the data
 generator's weak grips; 1: as scripted): at which grip a task's grasp still holds.
 """
@@ -49,30 +51,34 @@ def success_table(tasks, skills, episodes: int, engine: str, batch: int, seed: i
                   grip: float = 1.0):
     """Runs `episodes` scripted episodes per (task, skill), every closure scaled by grip.
 
-    Returns ({task: {skill: rate}}, {task: {skill: successes}}, seconds).
+    Returns ({task: {skill: rate}}, {task: {skill: successes}}, {task: {skill: [mean, max] of the failed
+    episodes' final progress, or None}}, seconds).
     """
-    rates, counts = {}, {}
+    rates, counts, near = {}, {}, {}
     total = len(tasks) * len(skills) * episodes
     bar = tqdm(total=total, unit="ep", desc="success table", disable=not show_progress, file=sys.stderr)
     t0 = time.time()
     for ti, task in enumerate(tasks):
-        rates[task], counts[task] = {}, {}
+        rates[task], counts[task], near[task] = {}, {}, {}
         chunks = [min(batch, episodes - s) for s in range(0, episodes, batch)]
         envs = {b: HomeEnv(task, b, engine=engine) for b in set(chunks)}
         policy = ScriptedPolicy.create(task, envs[chunks[0]].model)
         for skill in skills:
-            wins = 0
+            wins, failed = 0, []
             for ci, b in enumerate(chunks):
                 rng = jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(seed), ti), ci)
                 params = {"skill": jnp.full((b,), float(skill), jnp.float32), "grip": jnp.full((b,), grip, jnp.float32)}
                 state, _ = run_episodes(envs[b], policy, params, rng)
-                wins += int(np.sum(np.asarray(state.success)))
+                success = np.asarray(state.success)
+                wins += int(np.sum(success))
+                failed += np.asarray(state.progress)[~success].tolist()
                 bar.update(b)
                 bar.set_postfix(task=task, skill=skill)
             rates[task][skill] = wins / episodes
             counts[task][skill] = wins
+            near[task][skill] = [float(np.mean(failed)), float(np.max(failed))] if failed else None
     bar.close()
-    return rates, counts, time.time() - t0
+    return rates, counts, near, time.time() - t0
 
 
 def main(argv=None) -> int:
@@ -97,14 +103,18 @@ def main(argv=None) -> int:
     skills = parse_skills(a.skills)
     engine = a.backend or default_engine()
     batch = min(a.batch or (50 if engine == "cpu" else 1024), a.episodes)
-    rates, counts, secs = success_table(tasks, skills, a.episodes, engine, batch, a.seed, grip=a.grip)
+    rates, counts, near, secs = success_table(tasks, skills, a.episodes, engine, batch, a.seed, grip=a.grip)
     intervals = {t: {s: list(wilson_interval(counts[t][s], a.episodes)) for s in skills} for t in tasks}
     write_json_atomic(a.out, {"engine": engine, "episodes": a.episodes, "grip": a.grip, "seed": a.seed,
-                              "rates": rates, "intervals": intervals})
+                              "rates": rates, "intervals": intervals, "failed_progress": near})
     print(f"engine={engine} episodes={a.episodes} per point, grip {a.grip:g}, {secs:.0f} s; 95% Wilson intervals")
     print(f"{'task':<10}" + "".join(f"{'skill ' + s:>22}" for s in skills))
     for task in tasks:
         cells = [f"{rates[task][s]:.2f} [{intervals[task][s][0]:.2f},{intervals[task][s][1]:.2f}]" for s in skills]
+        print(f"{task:<10}" + "".join(f"{c:>22}" for c in cells))
+    print("the failures' final progress, mean / max (1: the success line)")
+    for task in tasks:
+        cells = [("-" if near[task][s] is None else f"{near[task][s][0]:.3f} / {near[task][s][1]:.3f}") for s in skills]
         print(f"{task:<10}" + "".join(f"{c:>22}" for c in cells))
     print(f"wrote {a.out}")
     return 0
