@@ -255,3 +255,24 @@ def test_mjx_tumbling_free_body_stays_finite_and_tracks_the_c_engine(model):
         worst_v = max(worst_v, float(np.abs(v - v_ref).max()))
     assert worst_q < 0.01 and worst_v < 0.2, (worst_q, worst_v)
     assert np.linalg.norm(v[:, 3:], axis=1).max() <= np.linalg.norm(omega, axis=1).max()
+
+
+def test_the_two_state_tray_pushes_away_from_its_centre_in_both_engines():
+    # an over-centre spring of 300 N/m about 7 cm: 300 x (0.12 - 0.07) = 15 N outward at 12 cm, 300 x
+    # (0.03 - 0.07) = -12 N inward at 3 cm; the plain slide has none
+    plain, sprung = S.load_model(), S.load_model(tray_spring=(300.0, 0.07))
+    tray = sprung.joint("fryer_tray")
+    assert plain.jnt_stiffness[tray.id] == 0.0 and sprung is not plain
+    passive = jax.jit(lambda m, d: mjx.forward(m, d).qfrc_passive)
+    on_mjx = mjx.put_model(sprung)
+    for q, force in ((0.12, 15.0), (0.03, -12.0)):
+        data = mujoco.MjData(sprung)
+        data.qpos[tray.qposadr[0]] = q
+        mujoco.mj_forward(sprung, data)
+        assert data.qfrc_spring[tray.dofadr[0]] == pytest.approx(force, rel=1e-6)
+        assert float(passive(on_mjx, mjx.put_data(sprung, data))[tray.dofadr[0]]) == pytest.approx(
+            data.qfrc_passive[tray.dofadr[0]], rel=1e-4, abs=1e-4)
+    with pytest.raises(ValueError, match="stiffness must be > 0"):
+        S.load_model(tray_spring=(-1.0, 0.07))
+    with pytest.raises(ValueError, match="inside the tray's travel"):
+        S.load_model(tray_spring=(300.0, 0.2))

@@ -66,3 +66,18 @@ def test_the_air_fryers_weak_grip_fails_a_few_millimetres_short_of_its_line(tmp_
     assert table["rates"]["airfryer"]["1.0"] == 0.0
     mean, top = table["failed_progress"]["airfryer"]["1.0"]
     assert 0.9 < mean <= top < 1.0
+
+
+def test_with_the_two_state_tray_the_air_fryers_failures_end_shut(tmp_path):
+    # over the centre the tray snaps open: the weak grip that fails 5 mm short above now succeeds; and
+    # the low-skill script's failures end with the tray shut (progress 0), not part-way (the plain
+    # slide leaves them at 0.19 of the line on average and up to 0.96, docs/results.md)
+    out = tmp_path / "spring.json"
+    assert main(["--backend", "cpu", "--episodes", "2", "--skills", "1.0,0.2", "--tasks", "airfryer", "--grip", "0.2",
+                 "--tray-spring", "300,0.07", "--out", str(out)]) == 0
+    table = json.loads(out.read_text())
+    assert table["tray_spring"] == [300.0, 0.07] and table["rates"]["airfryer"] == {"1.0": 1.0, "0.2": 0.0}
+    assert table["failed_progress"]["airfryer"] == {"1.0": None, "0.2": [0.0, 0.0]}
+    for bad, message in (("300", "is not K,X"), ("300,0.5", "inside the tray's travel"), ("0,0.07", "must be > 0")):
+        with pytest.raises(SystemExit, match=message):
+            main(["--tray-spring", bad, "--out", str(tmp_path / "x.json")])

@@ -92,12 +92,15 @@ class EnvCore:
     Args:
       batch_size: B. engine: "cpu" or "mjx". heldout: put the held-out plant into the scenes.
       nthread: threads of the `cpu` engine (default: all cores, at most B).
+      tray_spring: (stiffness N/m, centre m) to make the air fryer's tray two-state
+        (`sim_data.sim.scene.with_tray_spring`), or None for the plain slide.
     """
 
-    def __init__(self, batch_size: int, engine: str, heldout: bool, nthread: int | None):
+    def __init__(self, batch_size: int, engine: str, heldout: bool, nthread: int | None,
+                 tray_spring: tuple | None = None):
         self.batch_size = batch_size
         self.heldout = heldout
-        self.model = S.load_model()
+        self.model = S.load_model(tray_spring=tray_spring)
         self.idx = S.scene_index(self.model)
         self.engine = make_engine(engine, self.model, batch_size, nthread)
         self._qpos0 = np.asarray(self.model.qpos0, np.float32)
@@ -168,9 +171,10 @@ class EnvCore:
 
 
 @functools.lru_cache(maxsize=32)
-def env_core(batch_size: int, engine: str, heldout: bool, nthread: int | None = None) -> EnvCore:
+def env_core(batch_size: int, engine: str, heldout: bool, nthread: int | None = None,
+             tray_spring: tuple | None = None) -> EnvCore:
     """The EnvCore of these settings, one per process: every task's env shares it and its compiles."""
-    return EnvCore(batch_size, engine, heldout, nthread)
+    return EnvCore(batch_size, engine, heldout, nthread, tray_spring)
 
 
 class HomeEnv:
@@ -182,19 +186,21 @@ class HomeEnv:
       engine: "cpu", "mjx" or None for the default (mjx where a GPU is present).
       heldout: put the held-out plant into the scenes.
       nthread: threads of the `cpu` engine (default: all cores, at most B).
+      tray_spring: (stiffness N/m, centre m): the air fryer's tray two-state (EnvCore), or None.
 
     Attributes:
       core: the shared, task-free EnvCore that runs the steps.
     """
 
     def __init__(self, task: str, batch_size: int, engine: str | None = None, heldout: bool = False,
-                 nthread: int | None = None):
+                 nthread: int | None = None, tray_spring: tuple | None = None):
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         self.task: Task = get_task(task)
         self.batch_size = batch_size
         self.heldout = heldout
-        self.core = env_core(batch_size, engine or default_engine(), heldout, nthread)
+        self.core = env_core(batch_size, engine or default_engine(), heldout, nthread,
+                             tuple(tray_spring) if tray_spring else None)
         self.model, self.idx, self.engine = self.core.model, self.core.idx, self.core.engine
         if self.engine.name == "mjx" and batch_size > 2 and default_engine() == "cpu":
             warnings.warn("the mjx engine is meant for GPUs: on XLA:CPU its episode scans can stall at batch "

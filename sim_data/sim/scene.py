@@ -88,9 +88,29 @@ def default_mocap_pos(model: mujoco.MjModel) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=None)
-def load_model(path: str = str(MODEL_PATH)) -> mujoco.MjModel:
-    """The compiled home scene (cached: treat it as read-only)."""
-    return mujoco.MjModel.from_xml_path(path)
+def load_model(path: str = str(MODEL_PATH), tray_spring: tuple | None = None) -> mujoco.MjModel:
+    """The compiled home scene (cached: treat it as read-only); with tray_spring, the air fryer's tray
+    made two-state (with_tray_spring)."""
+    model = mujoco.MjModel.from_xml_path(path)
+    return with_tray_spring(model, *tray_spring) if tray_spring else model
+
+
+def with_tray_spring(model: mujoco.MjModel, stiffness: float, centre: float) -> mujoco.MjModel:
+    """model with the air fryer's tray pushed away from `centre` (m along its slide) by `stiffness`
+    (N/m): a negative joint stiffness about centre, an over-centre spring, so that a tray let go short
+    of centre falls shut and one pulled past it snaps open against its stop. Its outcome is then one of
+    two states centimetres apart, where a plain slide ends wherever the pull left it, millimetres either
+    side of a success line that no frame resolves (docs/results.md). Changes model in place and returns
+    it."""
+    joint = model.joint("fryer_tray")
+    low, high = (float(v) for v in model.jnt_range[joint.id])
+    if not stiffness > 0:
+        raise ValueError(f"tray_spring: the stiffness must be > 0 N/m, got {stiffness}")
+    if not low < centre < high:
+        raise ValueError(f"tray_spring: the centre must lie inside the tray's travel ({low:g}, {high:g}) m, got {centre}")
+    model.jnt_stiffness[joint.id] = -stiffness
+    model.qpos_spring[joint.qposadr[0]] = centre
+    return model
 
 
 def dirt_geoms(model: mujoco.MjModel) -> np.ndarray:
