@@ -263,6 +263,7 @@ def test_the_two_state_tray_pushes_away_from_its_centre_in_both_engines():
     plain, sprung = S.load_model(), S.load_model(tray_spring=(300.0, 0.07))
     tray = sprung.joint("fryer_tray")
     assert plain.jnt_stiffness[tray.id] == 0.0 and sprung is not plain
+    assert S.load_model(tray_spring=None) is plain and S.load_model(tray_spring=[300, 0.07]) is sprung  # one each
     passive = jax.jit(lambda m, d: mjx.forward(m, d).qfrc_passive)
     on_mjx = mjx.put_model(sprung)
     for q, force in ((0.12, 15.0), (0.03, -12.0)):

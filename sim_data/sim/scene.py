@@ -16,6 +16,7 @@ Layout (world frame, metres; the robot faces +x at the counter):
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import functools
 from pathlib import Path
@@ -87,21 +88,26 @@ def default_mocap_pos(model: mujoco.MjModel) -> np.ndarray:
     return np.asarray(model.body_pos[bodies[np.argsort(model.body_mocapid[bodies])]], np.float32)
 
 
-@functools.lru_cache(maxsize=None)
 def load_model(path: str = str(MODEL_PATH), tray_spring: tuple | None = None) -> mujoco.MjModel:
-    """The compiled home scene (cached: treat it as read-only); with tray_spring, the air fryer's tray
-    made two-state (with_tray_spring)."""
+    """The compiled home scene (cached: one model per path and tray_spring, however they are passed;
+    treat it as read-only); with tray_spring (stiffness, centre), the air fryer's tray made two-state
+    (with_tray_spring)."""
+    return _compiled(str(path), tuple(float(v) for v in tray_spring) if tray_spring else None)
+
+
+@functools.lru_cache(maxsize=None)
+def _compiled(path: str, tray_spring: tuple | None) -> mujoco.MjModel:
     model = mujoco.MjModel.from_xml_path(path)
     return with_tray_spring(model, *tray_spring) if tray_spring else model
 
 
 def with_tray_spring(model: mujoco.MjModel, stiffness: float, centre: float) -> mujoco.MjModel:
-    """model with the air fryer's tray pushed away from `centre` (m along its slide) by `stiffness`
-    (N/m): a negative joint stiffness about centre, an over-centre spring, so that a tray let go short
-    of centre falls shut and one pulled past it snaps open against its stop. Its outcome is then one of
-    two states centimetres apart, where a plain slide ends wherever the pull left it, millimetres either
-    side of a success line that no frame resolves (docs/results.md). Changes model in place and returns
-    it."""
+    """A copy of model with the air fryer's tray pushed away from `centre` (m along its slide) by
+    `stiffness` (N/m): a negative joint stiffness about centre, an over-centre spring, so that a tray
+    let go short of centre falls shut and one pulled past it snaps open against its stop. Its outcome is
+    then one of two states centimetres apart, where a plain slide ends wherever the pull left it,
+    millimetres either side of a success line that no frame resolves (docs/results.md)."""
+    model = copy.copy(model)
     joint = model.joint("fryer_tray")
     low, high = (float(v) for v in model.jnt_range[joint.id])
     if not stiffness > 0:
